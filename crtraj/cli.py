@@ -59,8 +59,204 @@ def _cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+# ----------------------------------------------------------------------- view
+def _add_view(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "view",
+        help="replay a plan/replan result in the browser (meshcat) or write it as standalone HTML",
+        description="Draw the robot, obstacles, start, goal, planned path, planner tree and executed trail of "
+        "a result file and replay the run with meshcat's time slider. Without --html, serves the page on "
+        "127.0.0.1 until Ctrl-C.",
+    )
+    p.add_argument("result", help="result JSON written by crtraj plan or crtraj replan")
+    p.add_argument("--html", metavar="FILE", help="write one self-contained HTML file (no server needed) and exit")
+    p.add_argument("--no-browser", action="store_true", help="do not open a browser tab, only print the URL")
+    p.add_argument("--no-play", action="store_true", help="do not start the animation when the page opens")
+    p.set_defaults(func=_cmd_view)
+
+
+def _cmd_view(args: argparse.Namespace) -> int:
+    import time
+
+    from crtraj.fileio import read_json
+    from crtraj.viz import Visualizer
+
+    result = read_json(args.result)
+    play = False if args.no_play else None
+    if args.html:
+        vis = Visualizer.for_result(result, play=play)
+        path = vis.save_html(args.html)
+        print(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB); open it in any browser, no server needed")
+        return 0
+    with Visualizer.for_result(result, server=True, play=play) as vis:
+        n = len(result["waypoints"])
+        print(f"serving {args.result} ({result.get('kind', 'plan')}, {n} waypoints) at {vis.url}", flush=True)
+        if not args.no_browser:
+            vis.open()
+        print("press Ctrl-C to stop", flush=True)
+        try:
+            while True:
+                time.sleep(3600)
+        except KeyboardInterrupt:
+            print("stopped", flush=True)
+    return 0
+
+
+# --------------------------------------------------------------------- stream
+def _add_stream(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "stream",
+        help="stream a planned trajectory to the robot's servos (UDP, serial or a dry-run file)",
+        description="Convert the result's waypoint actuation q(t) to servo angles and stage positions "
+        "([robot.actuators]), interpolate it at a fixed rate and send time-stamped set-points. Every frame is "
+        "checked against the position, velocity and acceleration limits before it leaves; a violation is "
+        "refused, never clamped. A watchdog holds when telemetry stops. Every run is recorded as JSON lines.",
+    )
+    p.add_argument("result", help="result JSON written by crtraj plan or crtraj replan")
+    dest = p.add_mutually_exclusive_group(required=True)
+    dest.add_argument("--udp", metavar="HOST:PORT", help="device address (e.g. 127.0.0.1:9870 for crtraj sim-device)")
+    dest.add_argument("--serial", metavar="DEV", help="serial port (e.g. /dev/ttyUSB0), COBS-framed frames")
+    dest.add_argument("--dry-run", metavar="FILE", help="write the frames to FILE instead of a device (no waiting)")
+    p.add_argument("--baud", type=int, default=115200, help="serial baud rate (default 115200)")
+    p.add_argument("--rate", type=float, default=None, help="set-points per second (default 100)")
+    p.add_argument("--watchdog", type=float, default=None, help="hold after this long without telemetry, s (0.1)")
+    p.add_argument("--robot", help="robot TOML whose [robot.actuators] to use (default: the result's robot)")
+    p.add_argument("--problem", help="problem TOML whose [stream] section sets the defaults")
+    p.add_argument("--time-scale", type=float, default=1.0, help="play the trajectory this many times slower")
+    p.add_argument(
+        "--approach",
+        action="store_true",
+        help="first move from the device's position to the trajectory start (straight line in actuator space, "
+        "not collision checked)",
+    )
+    p.add_argument("--log", help="run record (JSON lines; default out/stream/<result>-<time>.jsonl)")
+    p.set_defaults(func=_cmd_stream)
+
+
+def _cmd_stream(args: argparse.Namespace) -> int:
+    import dataclasses
+    import time
+
+    from crtraj.fields import Table
+    from crtraj.fileio import read_json
+    from crtraj.problem import Problem, load_robot
+    from crtraj.robot import Robot
+    from crtraj.setpoints import SetpointPath
+    from crtraj.stream import Streamer, StreamOptions
+    from crtraj.transport import Transport, parse_hostport
+
+    result = read_json(args.result)
+    if not isinstance(result, dict) or not isinstance(result.get("robot"), dict):
+        raise InputError(f"{args.result}: robot: missing (is this a crtraj plan/replan result?)")
+    robot = Robot.from_table(Table(result["robot"], "robot"))
+    acts = robot.actuators
+    if args.robot:
+        acts = load_robot(args.robot).actuators
+        if acts is None:
+            raise InputError(f"{args.robot}: robot.actuators: missing; add a [robot.actuators] table")
+    if acts is None:
+        raise InputError(
+            "robot.actuators: the result's robot has no [robot.actuators]; pass --robot problems/robots/cdsr2.toml"
+        )
+    actuators = acts.for_robot(robot)
+    opts = Problem.load(args.problem).options(StreamOptions, "stream") if args.problem else StreamOptions()
+    over = {k: v for k, v in (("rate", args.rate), ("watchdog", args.watchdog)) if v is not None}
+    opts = dataclasses.replace(opts, **over)
+    path = SetpointPath.from_result(result, actuators).scaled(args.time_scale)
+    if args.udp:
+        host, port = parse_hostport(args.udp, "--udp")
+        target = f"udp://{host}:{port}"
+    elif args.serial:
+        target = f"serial://{args.serial}?baud={args.baud}"
+    else:
+        target = f"file://{Path(args.dry_run).resolve()}"
+    log = args.log or Path("out") / "stream" / f"{Path(args.result).stem}-{time.strftime('%Y%m%d-%H%M%S')}.jsonl"
+    transport = Transport.open(target, baud=args.baud)
+    n = round(path.duration * opts.rate) + 1
+    print(
+        f"streaming {args.result} ({len(path.t)} waypoints, {path.duration:.2f} s, ~{n} set-points at "
+        f"{opts.rate:g} Hz) to {transport.description}",
+        flush=True,
+    )
+    rep = Streamer(transport, actuators, opts, log).run_path(path, approach=args.approach)
+    dev = ", ".join(f"{k} {v}" for k, v in rep.device.items())
+    fe = "" if rep.final_error is None else f", final error {rep.final_error:.3g}"
+    print(f"{rep.status}: {rep.message}")
+    print(
+        f"  {rep.frames} frames ({rep.moves} move, {rep.holds} hold, {rep.estops} e-stop) in {rep.duration:.2f} s; "
+        f"telemetry {rep.telemetry} ({rep.telemetry_errors} bad){fe}"
+    )
+    if dev:
+        print(f"  device: {dev}")
+    if rep.late_ticks:
+        print(f"  {rep.late_ticks} ticks late (max {rep.max_lateness * 1000:.1f} ms)")
+    print(f"  log: {rep.log}")
+    if args.dry_run:
+        print(f"  frames: {args.dry_run} (COBS + 0x00 delimited, see docs/protocol.md)")
+    return 0 if rep.ok else 1
+
+
+# ----------------------------------------------------------------- sim-device
+def _add_sim_device(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "sim-device",
+        help="run a simulated servo controller on 127.0.0.1 that speaks the stream protocol",
+        description="A device for testing crtraj stream without hardware: checks CRC and sequence numbers, "
+        "models each servo as a first-order lag, enforces the actuator limits itself, sends telemetry, and "
+        "injects faults on request. Runs until Ctrl-C or --duration.",
+    )
+    p.add_argument("--udp", metavar="127.0.0.1:PORT", required=True, help="address to listen on (port 0: any)")
+    p.add_argument("--robot", help="robot TOML with [robot.actuators] (default: problems/robots/cdsr2.toml)")
+    p.add_argument("--tau", type=float, default=0.03, help="servo time constant, s (default 0.03)")
+    p.add_argument("--telemetry-rate", type=float, default=100.0, help="telemetry frames per second (100)")
+    p.add_argument("--drop", type=float, default=0.0, help="probability of dropping each datagram (both ways)")
+    p.add_argument("--corrupt", type=float, default=0.0, help="probability of flipping bits in each datagram")
+    p.add_argument("--delay", type=float, default=0.0, help="extra latency of incoming frames, s")
+    p.add_argument("--disconnect-after", type=float, default=0.0, help="go silent and deaf after this many s")
+    p.add_argument("--disconnect-for", type=float, default=0.0, help="... for this many s (0: never disconnect)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the fault generator")
+    p.add_argument("--duration", type=float, default=None, help="stop after this many s (default: until Ctrl-C)")
+    p.set_defaults(func=_cmd_sim_device)
+
+
+def _cmd_sim_device(args: argparse.Namespace) -> int:
+    from crtraj.device import Faults, SimDevice
+    from crtraj.problem import load_robot
+    from crtraj.transport import parse_hostport
+
+    host, port = parse_hostport(args.udp, "--udp")
+    robot = load_robot(_resolve_robot(args.robot))
+    if robot.actuators is None:
+        raise InputError(f"{_resolve_robot(args.robot)}: robot.actuators: missing; add a [robot.actuators] table")
+    faults = Faults(args.drop, args.corrupt, args.delay, args.disconnect_after, args.disconnect_for)
+    actuators = robot.actuators.for_robot(robot)
+    dev = SimDevice(
+        actuators, port, host=host, tau=args.tau, telemetry_rate=args.telemetry_rate, faults=faults, seed=args.seed
+    )
+    print(
+        f"sim-device listening on {dev.url} ({actuators.n} actuators: {', '.join(actuators.names)}; "
+        f"tau {args.tau:g} s)",
+        flush=True,
+    )
+    try:
+        dev.serve(args.duration)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        st = dev.state()
+        dev.stop()
+    counts = ", ".join(f"{k} {st[k]}" for k in ("received", "applied", "crc_errors", "missed", "stale", "refused"))
+    print(f"sim-device stopped: {counts}", flush=True)
+    return 0
+
+
 # Subcommands register themselves here in display order.
-_COMMANDS: tuple[Callable[[argparse._SubParsersAction], None], ...] = (_add_export,)
+_COMMANDS: tuple[Callable[[argparse._SubParsersAction], None], ...] = (
+    _add_export,
+    _add_view,
+    _add_stream,
+    _add_sim_device,
+)
 
 
 def build_parser() -> argparse.ArgumentParser:

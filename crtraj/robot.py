@@ -223,7 +223,7 @@ class Robot:
             raise t.error("z_range", f"must be [low, high] with low <= high, got {list(z)}")
         actuators = None
         if t.has("actuators"):
-            from crtraj.stream import Actuators  # the streamer owns the actuator schema
+            from crtraj.actuators import Actuators  # the streamer owns the actuator schema
 
             actuators = Actuators.from_table(t.table("actuators"), len(segs))
         robot = cls(

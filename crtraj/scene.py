@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 
 from crtraj.errors import InputError
-from crtraj.fields import Table, check_array
+from crtraj.fields import Table
 
 PROFILES = ("linear", "sin", "cos")
 _PROFILE_CODE = {"linear": 0, "sin": 1, "cos": 2}
@@ -236,7 +236,7 @@ class Scene:
         hi = tuple(float(v) for v in self.workspace_hi)
         if len(lo) != 3 or len(hi) != 3 or not all(math.isfinite(v) for v in lo + hi):
             raise InputError("scene.workspace: lo and hi must be 3 finite numbers each (mm)")
-        if any(a >= b for a, b in zip(lo, hi)):
+        if any(a >= b for a, b in zip(lo, hi, strict=True)):
             raise InputError(f"scene.workspace: lo must be below hi on every axis, got lo {list(lo)}, hi {list(hi)}")
         object.__setattr__(self, "workspace_lo", lo)
         object.__setattr__(self, "workspace_hi", hi)
@@ -398,7 +398,9 @@ class Scene:
             ab = b[..., i, :][..., None, :] - ai
             den = np.sum(ab * ab, axis=-1)
             num = np.sum((p - ai) * ab, axis=-1)
-            u = np.clip(np.divide(num, den, out=np.zeros(np.broadcast_shapes(num.shape, den.shape)), where=den > 0), 0, 1)
+            # projection onto the segment; a resting centre (den = 0) projects to a
+            u = np.divide(num, den, out=np.zeros(np.broadcast_shapes(num.shape, den.shape)), where=den > 0)
+            u = np.clip(u, 0.0, 1.0)
             dist = np.linalg.norm(p - (ai + u[..., None] * ab), axis=-1)
             np.minimum(out, dist.min(axis=-1) - rmax[..., i], out=out)
         bound = out - inflate - self.safety_distance
@@ -528,8 +530,3 @@ class Scene:
         d["obstacle"] = [o.to_dict() for o in self.obstacles]
         return d
 
-
-def check_time(t: Any, name: str = "t") -> float:
-    """One finite time (s) or an `InputError` naming `name`."""
-    arr = check_array(t, name, ())
-    return float(arr)

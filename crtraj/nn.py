@@ -1,0 +1,77 @@
+"""Incremental nearest-neighbour index for growing search trees.
+
+scipy's KD-tree is static, so points go to a KD-tree that is rebuilt when the
+recent-points buffer grows as large as a fixed fraction of the tree (amortised
+O(log n) per insert), while queries combine a KD-tree query with one
+vectorised scan of the small buffer. No per-point Python loops.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+
+class NearestNeighbors:
+    """Points (any dimension, Euclidean) added one at a time; nearest / radius queries.
+
+    Indices are insertion order, starting at 0.
+    """
+
+    def __init__(self, dim: int, capacity: int = 1024, min_buffer: int = 64) -> None:
+        self.dim = int(dim)
+        self._data = np.empty((max(16, capacity), self.dim))
+        self._n = 0
+        self._tree: cKDTree | None = None
+        self._n_tree = 0  # points [0, _n_tree) are in the KD-tree
+        self._min_buffer = int(min_buffer)
+
+    def __len__(self) -> int:
+        return self._n
+
+    @property
+    def points(self) -> np.ndarray:
+        """(n, dim) view of all points."""
+        return self._data[: self._n]
+
+    def add(self, p: np.ndarray) -> int:
+        """Insert one point; return its index."""
+        if self._n == len(self._data):
+            grown = np.empty((2 * len(self._data), self.dim))
+            grown[: self._n] = self._data[: self._n]
+            self._data = grown
+        self._data[self._n] = p
+        self._n += 1
+        if self._n - self._n_tree > max(self._min_buffer, self._n_tree // 2):
+            self._tree = cKDTree(self._data[: self._n].copy())
+            self._n_tree = self._n
+        return self._n - 1
+
+    def nearest(self, q: np.ndarray) -> tuple[int, float]:
+        """Index and distance of the point nearest to q."""
+        if self._n == 0:
+            raise IndexError("nearest: the index is empty")
+        best_i, best_d = -1, np.inf
+        if self._tree is not None:
+            d, i = self._tree.query(q)
+            best_i, best_d = int(i), float(d)
+        if self._n > self._n_tree:
+            buf = self._data[self._n_tree : self._n]
+            d2 = np.einsum("ij,ij->i", buf - q, buf - q)
+            j = int(np.argmin(d2))
+            if d2[j] < best_d * best_d:
+                best_i, best_d = self._n_tree + j, float(np.sqrt(d2[j]))
+        return best_i, best_d
+
+    def within(self, q: np.ndarray, r: float) -> np.ndarray:
+        """Indices (sorted) of all points within distance r of q."""
+        parts = []
+        if self._tree is not None:
+            parts.append(np.asarray(self._tree.query_ball_point(q, r), dtype=int))
+        if self._n > self._n_tree:
+            buf = self._data[self._n_tree : self._n]
+            d2 = np.einsum("ij,ij->i", buf - q, buf - q)
+            parts.append(self._n_tree + np.flatnonzero(d2 <= r * r))
+        if not parts:
+            return np.zeros(0, dtype=int)
+        return np.sort(np.concatenate(parts))

@@ -1,0 +1,740 @@
+"""The safety-constrained steer step (paper eq. 15-18) as one NLP built once, and the DLS step.
+
+Given the current configuration ``x_prev`` and a target tip position, the
+steer step solves (mm, rad)
+
+    min_x  |tip(x) - target|^2
+           + w_d |S (x - x_prev)|^2                              (damping, eq. 17)
+           + w_o sum_ij a_i rho_i^2 / (|p_j(x) - c_i|^2 + eps)     (obstacle term, eq. 18)
+    s.t.   |p_j(x) - c_i|^2 >= a_i rho_i^2    for every collision point j, obstacle slot i
+           model.limits(x) within model.limit_bounds()           (theta <= theta_max, cable strokes)
+           x in robot.config_box(),  |S (x - x_prev)|_inf <= max_step
+
+with ``rho_i = R_i + D_sf + body_radius + margin`` and ``a_i`` the slot's
+active flag (padding slots: a = 0, constraint ``d^2 >= 0``, no penalty).
+
+Scaling ``S = diag(L_1, L_1, ..., L_n, L_n, 1)``: a bending change du of
+segment k moves points by up to about ``L_k du`` mm, so ``S dx`` is in mm
+like the tip error and z, and one number (`max_step`, mm) bounds the step.
+
+Mapping of the paper's coefficients (given for an unstated unit system):
+``w_d = (damping * damping_scale)^2`` and ``w_o = (obstacle_coefficient *
+obstacle_scale)^2`` with defaults damping_scale 0.1, obstacle_scale 0.03.
+With the paper's 0.3 / 20 (40) this gives w_d = 9e-4 and w_o = 0.36 (1.44):
+the tip term dominates (a 100 mm step is biased by ~0.1 mm), the obstacle
+term dominates the damping inside the 2-D null space (the body bends away
+from obstacles while the tip tracks, the paper's "null-space solutions"),
+and the damping picks the smallest such motion. The paper iterates eq. 17
+to convergence, where its damping only slows the approach; a single NLP
+with a small damping weight reaches the same fixed point in one solve.
+
+Safety between collision points: the constraints hold at `n_points`
+backbone points (the paper's ten). Between two neighbours the body may dip
+toward a sphere by the chord depth ``sqrt(rho^2 + h^2/4) - rho`` plus the
+arc's sagitta; with ten points on cdsr2 (h = 44 mm) that is a few mm, less
+than the 5 mm D_sf, so the dense body still clears the sphere surface plus
+the body radius (tests check this with 200 points). Set `margin` (mm) or
+`n_points` to make the dense body keep the full D_sf.
+"""
+
+from __future__ import annotations
+
+import math
+import shutil
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import casadi as ca
+import numpy as np
+
+from crtraj.errors import InputError
+from crtraj.fields import Table
+from crtraj.scene import PACK_WIDTH, Scene
+
+SOLVERS = ("ipopt", "sqp", "dls")
+QP_SOLVERS = ("daqp", "qrqp", "qpoases", "osqp", "proxqp", "highs")
+
+# Default IPOPT options (overridable from [steer.ipopt]). The NLP is tiny
+# (nx = 2n + 1 variables), so per-iteration overhead dominates: exact
+# Hessian (SX, expanded) converges in a handful of iterations; mumps is the
+# bundled linear solver.
+IPOPT_DEFAULTS: dict[str, Any] = {
+    "print_level": 0,
+    "sb": "yes",
+    "linear_solver": "mumps",
+    "hessian_approximation": "exact",
+    "tol": 1e-8,
+    "acceptable_tol": 1e-6,
+    "acceptable_iter": 5,
+    "constr_viol_tol": 1e-6,
+    "mu_strategy": "adaptive",
+    "mu_init": 1e-2,
+    "bound_push": 1e-8,
+    "bound_frac": 1e-8,
+}
+
+# Default sqpmethod options (overridable from [steer.sqp]).
+SQP_DEFAULTS: dict[str, Any] = {
+    "hessian_approximation": "exact",
+    "convexify_strategy": "regularize",
+    "tol_pr": 1e-8,
+    "tol_du": 1e-8,
+    "min_step_size": 1e-12,
+}
+
+_EPS_D2 = 1e-6  # mm^2, keeps the eq. 18 term finite if a point sits on a centre
+_G_SCALE = 1e-3  # 1/mm^2: collision constraints in units of 1000 mm^2, O(1..10)
+
+
+def _pairs(t: Table) -> tuple[tuple[str, Any], ...]:
+    """Solver option overrides: every value a string, number or boolean."""
+    out = []
+    for key in t.keys():
+        v = t.raw(key)
+        if isinstance(v, bool) or isinstance(v, (int, float, str)):
+            if isinstance(v, float) and not math.isfinite(v):
+                raise t.error(key, f"must be finite, got {v}")
+            out.append((key, v))
+        else:
+            raise t.error(key, f"expected a string, number or boolean, got {v!r}")
+    t.finish()
+    return tuple(out)
+
+
+@dataclass(frozen=True)
+class SteerOptions:
+    """Options of the ``[steer]`` section (units mm, rad, s).
+
+    solver: "ipopt" (default), "sqp" (CasADi sqpmethod + `qpsol`, the fast
+    path) or "dls" (iterated damped least squares, eq. 17, no hard
+    constraints). damping, obstacle_coefficient: the paper's lambda and mu;
+    damping_scale, obstacle_scale: their mapping to NLP weights (module
+    docstring). max_step: bound on ``|S (x - x_prev)|_inf`` (mm). tolerance:
+    tip error (mm) counted as reached. margin: extra keep-out (mm) added to
+    every obstacle in the hard constraints. n_points: constrained backbone
+    points (default the robot's collision_points). max_iter, tol: solver
+    iteration cap and tolerance (IPOPT `tol`; sqpmethod `tol_pr`/`tol_du`).
+    qpsol: QP solver of the sqp path. jit: compile the NLP functions with
+    gcc through CasADi's shell compiler. warm_start: start from the previous
+    solution's multipliers. feasibility_tolerance: constraint slack (mm)
+    accepted by the re-check. dls_gain, dls_iterations: K_P and iterations
+    of the dls path. ipopt, sqp: raw solver options overriding the defaults.
+    """
+
+    solver: str = "ipopt"
+    damping: float = 0.3
+    obstacle_coefficient: float = 20.0
+    damping_scale: float = 0.1
+    obstacle_scale: float = 0.03
+    max_step: float = 100.0
+    tolerance: float = 0.5
+    margin: float = 0.0
+    n_points: int | None = None
+    max_iter: int = 100
+    tol: float = 1e-8
+    qpsol: str = "daqp"
+    jit: bool = False
+    warm_start: bool = True
+    feasibility_tolerance: float = 1e-6
+    dls_gain: float = 1.0
+    dls_iterations: int = 200
+    ipopt: tuple[tuple[str, Any], ...] = field(default=())
+    sqp: tuple[tuple[str, Any], ...] = field(default=())
+
+    def __post_init__(self) -> None:
+        checks = [
+            ("solver", self.solver in SOLVERS, f"must be one of {', '.join(SOLVERS)}; got {self.solver!r}"),
+            ("qpsol", self.qpsol in QP_SOLVERS, f"must be one of {', '.join(QP_SOLVERS)}; got {self.qpsol!r}"),
+            ("damping", self.damping >= 0, f"must be >= 0, got {self.damping}"),
+            ("obstacle_coefficient", self.obstacle_coefficient >= 0, f"must be >= 0, got {self.obstacle_coefficient}"),
+            ("damping_scale", self.damping_scale > 0, f"must be > 0, got {self.damping_scale}"),
+            ("obstacle_scale", self.obstacle_scale > 0, f"must be > 0, got {self.obstacle_scale}"),
+            ("max_step", self.max_step > 0, f"must be > 0 mm, got {self.max_step}"),
+            ("tolerance", self.tolerance > 0, f"must be > 0 mm, got {self.tolerance}"),
+            ("margin", self.margin >= 0, f"must be >= 0 mm, got {self.margin}"),
+            ("n_points", self.n_points is None or self.n_points >= 2, f"must be >= 2, got {self.n_points}"),
+            ("max_iter", self.max_iter >= 1, f"must be >= 1, got {self.max_iter}"),
+            ("tol", self.tol > 0, f"must be > 0, got {self.tol}"),
+            ("feasibility_tolerance", self.feasibility_tolerance >= 0, "must be >= 0 mm"),
+            ("dls_gain", 0 < self.dls_gain <= 1, f"must be in (0, 1], got {self.dls_gain}"),
+            ("dls_iterations", self.dls_iterations >= 1, f"must be >= 1, got {self.dls_iterations}"),
+        ]
+        for name, ok, msg in checks:
+            if not ok:
+                raise InputError(f"steer.{name}: {msg}")
+        for name in ("damping", "obstacle_coefficient", "max_step", "tolerance", "margin", "tol"):
+            if not math.isfinite(getattr(self, name)):
+                raise InputError(f"steer.{name}: must be finite")
+
+    @property
+    def damping_weight(self) -> float:
+        """w_d = (damping * damping_scale)^2, weight of |S dx|^2 (mm^2)."""
+        return (self.damping * self.damping_scale) ** 2
+
+    @property
+    def obstacle_weight(self) -> float:
+        """w_o = (obstacle_coefficient * obstacle_scale)^2, weight of the eq. 18 sum (mm^2)."""
+        return (self.obstacle_coefficient * self.obstacle_scale) ** 2
+
+    @classmethod
+    def from_table(cls, t: Table) -> SteerOptions:
+        """Read ``[steer]`` (keys as the fields; ``[steer.ipopt]``/``[steer.sqp]`` raw solver options)."""
+        d = cls()
+        opts = cls(
+            solver=t.str("solver", d.solver, choices=SOLVERS),
+            damping=t.float("damping", d.damping, ge=0.0),
+            obstacle_coefficient=t.float("obstacle_coefficient", d.obstacle_coefficient, ge=0.0),
+            damping_scale=t.float("damping_scale", d.damping_scale, gt=0.0),
+            obstacle_scale=t.float("obstacle_scale", d.obstacle_scale, gt=0.0),
+            max_step=t.float("max_step", d.max_step, gt=0.0),
+            tolerance=t.float("tolerance", d.tolerance, gt=0.0),
+            margin=t.float("margin", d.margin, ge=0.0),
+            n_points=t.int("n_points", None, ge=2),
+            max_iter=t.int("max_iter", d.max_iter, ge=1),
+            tol=t.float("tol", d.tol, gt=0.0),
+            qpsol=t.str("qpsol", d.qpsol, choices=QP_SOLVERS),
+            jit=t.bool("jit", d.jit),
+            warm_start=t.bool("warm_start", d.warm_start),
+            feasibility_tolerance=t.float("feasibility_tolerance", d.feasibility_tolerance, ge=0.0),
+            dls_gain=t.float("dls_gain", d.dls_gain, gt=0.0, le=1.0),
+            dls_iterations=t.int("dls_iterations", d.dls_iterations, ge=1),
+            ipopt=_pairs(t.table("ipopt")),
+            sqp=_pairs(t.table("sqp")),
+        )
+        t.finish()
+        return opts
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain data in the ``[steer]`` schema (round-trips through `from_table`)."""
+        d: dict[str, Any] = {
+            "solver": self.solver,
+            "damping": self.damping,
+            "obstacle_coefficient": self.obstacle_coefficient,
+            "damping_scale": self.damping_scale,
+            "obstacle_scale": self.obstacle_scale,
+            "max_step": self.max_step,
+            "tolerance": self.tolerance,
+            "margin": self.margin,
+            "max_iter": self.max_iter,
+            "tol": self.tol,
+            "qpsol": self.qpsol,
+            "jit": self.jit,
+            "warm_start": self.warm_start,
+            "feasibility_tolerance": self.feasibility_tolerance,
+            "dls_gain": self.dls_gain,
+            "dls_iterations": self.dls_iterations,
+        }
+        if self.n_points is not None:
+            d["n_points"] = self.n_points
+        if self.ipopt:
+            d["ipopt"] = dict(self.ipopt)
+        if self.sqp:
+            d["sqp"] = dict(self.sqp)
+        return d
+
+
+@dataclass(frozen=True)
+class SteerResult:
+    """Outcome of one steer step.
+
+    x: configuration (rad, mm); q: cable lengths and z (mm); tip: tip
+    position (mm). converged: the solver's own success flag. safe: the
+    re-check (collision points vs obstacles, limits, bounds) holds.
+    success = converged and safe: x is a trustworthy configuration.
+    reached: tip_error <= tolerance. status: the solver's own return status.
+    message: one line for people. iterations; wall_time (s, whole call);
+    tip_error (mm); min_clearance (mm, `Scene.clearance` at t, or the swept
+    bound over [t, t_end]).
+    """
+
+    x: np.ndarray
+    q: np.ndarray
+    tip: np.ndarray
+    success: bool
+    reached: bool
+    converged: bool
+    safe: bool
+    status: str
+    message: str
+    iterations: int
+    wall_time: float
+    tip_error: float
+    min_clearance: float
+    solver: str
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "x": self.x.tolist(),
+            "q": self.q.tolist(),
+            "tip": self.tip.tolist(),
+            "success": self.success,
+            "reached": self.reached,
+            "converged": self.converged,
+            "safe": self.safe,
+            "status": self.status,
+            "message": self.message,
+            "iterations": self.iterations,
+            "wall_time": self.wall_time,
+            "tip_error": self.tip_error,
+            "min_clearance": self.min_clearance,
+            "solver": self.solver,
+        }
+
+
+def config_scale(robot: Any) -> np.ndarray:
+    """S (nx,): segment length L_k (mm/rad) for both bending entries of segment k, 1 for z."""
+    s = np.ones(robot.nx)
+    for k, seg in enumerate(robot.segments):
+        s[2 * k : 2 * k + 2] = seg.length
+    return s
+
+
+def dls_step(
+    model: Any,
+    x: Any,
+    target: Any,
+    damping: float = 0.3,
+    *,
+    gain: float = 1.0,
+    max_step: float | None = None,
+    clip: bool = True,
+) -> np.ndarray:
+    """One damped-least-squares step (paper eq. 15-17); returns the new configuration.
+
+    Solves ``min |J S^-1 dy - K_P e|^2 + lambda^2 |dy|^2`` in the scaled
+    coordinates ``dy = S dx`` (mm; see `config_scale`), so lambda = damping
+    is dimensionless as in the paper's cable-space form; e = target - tip (mm),
+    K_P = gain. ``max_step`` (mm) shrinks dy to ``|dy|_inf <= max_step``;
+    ``clip`` keeps the result inside ``robot.config_box()``. No obstacle
+    constraints: check the result with `Scene.clearance`.
+    """
+    xv = _vec(x, "x", model.nx)
+    tv = _vec(target, "target", 3)
+    S = config_scale(model.robot)
+    e = tv - model.tip_position(xv)
+    Js = model.jacobian(xv) / S
+    dy = Js.T @ np.linalg.solve(Js @ Js.T + damping**2 * np.eye(3), gain * e)
+    if max_step is not None:
+        big = np.max(np.abs(dy))
+        if big > max_step:
+            dy *= max_step / big
+    xn = xv + dy / S
+    if clip:
+        lo, hi = model.robot.config_box()
+        xn = np.clip(xn, lo, hi)
+    return xn
+
+
+def _vec(v: Any, name: str, n: int) -> np.ndarray:
+    try:
+        a = np.asarray(v, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError(f"{name}: expected {n} numbers") from None
+    if a.shape != (n,):
+        raise InputError(f"{name}: expected shape ({n},), got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise InputError(f"{name}: contains NaN or infinity")
+    return a
+
+
+class SteerSolver:
+    """The steer NLP of one robot, built once for up to `max_obstacles` obstacles.
+
+    Parameters enter as one vector ``p = [x_prev (nx), target (3), packed
+    obstacles (PACK_WIDTH * max_obstacles, see `Scene.pack`), D_sf, w_d, w_o]``;
+    nothing is rebuilt between calls.
+    """
+
+    def __init__(self, model: Any, max_obstacles: int = 8, options: SteerOptions | None = None) -> None:
+        if not isinstance(max_obstacles, (int, np.integer)) or max_obstacles < 0:
+            raise InputError(f"max_obstacles: must be an integer >= 0, got {max_obstacles!r}")
+        self.model = model
+        self.robot = model.robot
+        self.max_obstacles = int(max_obstacles)
+        self.options = options if options is not None else SteerOptions()
+        o = self.options
+        self.n_points = int(o.n_points if o.n_points is not None else self.robot.collision_points)
+        self.nx = model.nx
+        self.scale = config_scale(self.robot)
+        self.box = self.robot.config_box()
+        self.jit_message = ""
+        self._lam_g: np.ndarray | None = None
+        self._lam_x: np.ndarray | None = None
+        self._build()
+
+    # ------------------------------------------------------------------ build
+    def _points_function(self) -> ca.Function:
+        if self.n_points == self.model.n_points:
+            return self.model.backbone
+        return self.model.backbone_function(self.n_points)
+
+    def _build(self) -> None:
+        o, nx, M = self.options, self.nx, self.max_obstacles
+        x = ca.SX.sym("x", nx)
+        x_prev = ca.SX.sym("x_prev", nx)
+        target = ca.SX.sym("target", 3)
+        obs = ca.SX.sym("obstacles", PACK_WIDTH * M)
+        dsf = ca.SX.sym("safety_distance")
+        w_d = ca.SX.sym("w_d")
+        w_o = ca.SX.sym("w_o")
+        p = ca.vertcat(x_prev, target, obs, dsf, w_d, w_o)
+        self.n_params = int(p.numel())
+        fpts = self._points_function()
+        P = fpts(x)
+        tip = self.model.tip(x)
+        S = ca.DM(self.scale)
+        f = ca.sumsqr(tip - target) + w_d * ca.sumsqr(S * (x - x_prev))
+        body = self.robot.body_radius + o.margin
+        g_col = []
+        pen = 0
+        for i in range(M):
+            c = obs[PACK_WIDTH * i : PACK_WIDTH * i + 3]
+            rho = obs[PACK_WIDTH * i + 3] + dsf + body
+            act = obs[PACK_WIDTH * i + 4]
+            for j in range(self.n_points):
+                d2 = ca.sumsqr(P[:, j] - c)
+                # inactive slots give the constant, harmless g = 1 instead of a
+                # huge slack (1e12 mm^2) that slows IPOPT's barrier updates
+                g_col.append(act * _G_SCALE * (d2 - rho**2) + (1 - act))
+                pen = pen + act * rho**2 / (d2 + _EPS_D2)
+        f = f + w_o * pen
+        glim = self.model.limits(x)
+        lbg_lim, ubg_lim = self.model.limit_bounds()
+        self.n_col = len(g_col)
+        g = ca.vertcat(glim, *g_col)
+        self._lbg = np.concatenate([lbg_lim, np.zeros(self.n_col)])
+        self._ubg = np.concatenate([ubg_lim, np.full(self.n_col, np.inf)])
+        nlp = {"x": x, "p": p, "f": f, "g": g}
+        # a fused tip + Jacobian for the dls path: one call per iteration
+        self._tipjac = ca.Function("tipjac", [x], [tip, ca.jacobian(tip, x)])
+        if o.solver == "dls":
+            self._solver = None
+            return
+        common: dict[str, Any] = {"print_time": False, "error_on_fail": False}
+        if o.jit:
+            cc = shutil.which("gcc")
+            if cc is None:
+                self.jit_message = "jit requested but gcc was not found: running without jit"
+            else:
+                common.update({"jit": True, "compiler": "shell", "jit_options": {"compiler": "gcc", "flags": ["-O2"]}})
+                self.jit_message = "jit: compiled with gcc -O2"
+        if o.solver == "ipopt":
+            ip = dict(IPOPT_DEFAULTS)
+            ip["tol"] = o.tol
+            ip["max_iter"] = o.max_iter
+            ip.update(dict(o.ipopt))
+            self._ipopt_opts = ip
+            opts = dict(common)
+            opts["ipopt"] = ip
+            self._solver = self._nlpsol("ipopt", nlp, opts, "steer.ipopt")
+            self._solver_ws = None
+            if o.warm_start:
+                ws = dict(ip)
+                ws.setdefault("warm_start_init_point", "yes")
+                opts_ws = dict(common)
+                opts_ws["ipopt"] = ws
+                self._solver_ws = self._nlpsol("ipopt", nlp, opts_ws, "steer.ipopt")
+            # IPOPT reads its options at the first solve: surface bad ones now
+            self._probe()
+        else:
+            sq = dict(SQP_DEFAULTS)
+            sq.update({"max_iter": o.max_iter, "tol_pr": o.tol, "tol_du": o.tol})
+            sq.update(
+                {
+                    "qpsol": o.qpsol,
+                    "qpsol_options": {"error_on_fail": False, "print_problem": False}
+                    if o.qpsol != "qpoases"
+                    else {"error_on_fail": False, "printLevel": "none"},
+                    "print_header": False,
+                    "print_iteration": False,
+                    "print_status": False,
+                }
+            )
+            sq.update(dict(o.sqp))
+            opts = dict(common)
+            opts.update(sq)
+            self._solver = self._nlpsol("sqpmethod", nlp, opts, "steer.sqp")
+            self._solver_ws = None
+
+    def _nlpsol(self, plugin: str, nlp: dict[str, Any], opts: dict[str, Any], field_name: str) -> ca.Function:
+        try:
+            return ca.nlpsol(f"steer_{plugin}", plugin, nlp, opts)
+        except RuntimeError as exc:
+            text = str(exc)
+            if opts.get("jit"):
+                # a broken compiler must not make the steer unusable
+                self.jit_message = f"jit failed ({_last_line(text)}): running without jit"
+                opts = {k: v for k, v in opts.items() if k not in ("jit", "compiler", "jit_options")}
+                return self._nlpsol(plugin, nlp, opts, field_name)
+            raise InputError(f"{field_name}: solver rejected the options ({_last_line(text)})") from None
+
+    def _probe(self) -> None:
+        x0 = self.robot.straight()
+        p = self.parameters(x0, self.model.tip_position(x0), self._pad(), 0.0)
+        lbx, ubx = self.step_bounds(x0)
+        for solver in (self._solver, self._solver_ws):
+            if solver is None:
+                continue
+            solver(x0=x0, p=p, lbx=lbx, ubx=ubx, lbg=self._lbg, ubg=self._ubg)
+            status = solver.stats().get("return_status", "")
+            if status == "Invalid_Option":
+                keys = ", ".join(k for k, _ in self.options.ipopt) or "(defaults)"
+                raise InputError(f"steer.ipopt: IPOPT rejected an option (given: {keys})")
+
+    def _pad(self) -> np.ndarray:
+        return Scene().pack(0.0, self.max_obstacles)
+
+    # -------------------------------------------------------------- helpers
+    def parameters(
+        self,
+        x_prev: np.ndarray,
+        target: np.ndarray,
+        packed: np.ndarray,
+        safety_distance: float,
+        damping_weight: float | None = None,
+        obstacle_weight: float | None = None,
+    ) -> np.ndarray:
+        """The NLP parameter vector p (layout in the class docstring)."""
+        wd = self.options.damping_weight if damping_weight is None else damping_weight
+        wo = self.options.obstacle_weight if obstacle_weight is None else obstacle_weight
+        return np.concatenate([x_prev, target, packed, [safety_distance, wd, wo]])
+
+    def step_bounds(self, x_prev: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Variable bounds: the config box intersected with ``|S (x - x_prev)|_inf <= max_step``."""
+        d = self.options.max_step / self.scale
+        lo, hi = self.box
+        return np.maximum(lo, x_prev - d), np.minimum(hi, x_prev + d)
+
+    def _packed(
+        self, obstacles: Any, t: float, t_end: float | None, safety_distance: float | None
+    ) -> tuple[np.ndarray, float, Scene | None]:
+        if isinstance(obstacles, Scene):
+            if t_end is None:
+                packed = obstacles.pack(t, self.max_obstacles)
+            else:
+                packed = obstacles.pack_over(t, t_end, self.max_obstacles)
+            dsf = obstacles.safety_distance if safety_distance is None else float(safety_distance)
+            return packed, dsf, obstacles
+        if obstacles is None:
+            packed = self._pad()
+        else:
+            packed = _vec(obstacles, "obstacles", PACK_WIDTH * self.max_obstacles)
+        if safety_distance is None:
+            raise InputError("safety_distance: required (mm) when obstacles are given as a packed vector")
+        dsf = float(safety_distance)
+        if not (math.isfinite(dsf) and dsf >= 0):
+            raise InputError(f"safety_distance: must be >= 0 mm, got {safety_distance}")
+        return packed, dsf, None
+
+    def _clearance(
+        self, x: np.ndarray, packed: np.ndarray, dsf: float, scene: Scene | None, t: float, t_end: float | None
+    ) -> float:
+        """Clearance (mm) at the constrained points; the scene's own check when a scene is given."""
+        if scene is not None:
+            if t_end is None:
+                return float(scene.clearance(self.model, x, t, self.n_points))
+            return float(scene.clearance_over(self.model, x, t, t_end, self.n_points))
+        centers, radii, active = Scene.unpack(packed)
+        if not np.any(active > 0):
+            return math.inf
+        pts = self.model.points(x, self.n_points)
+        c, r = centers[active > 0], radii[active > 0]
+        d = np.linalg.norm(pts[:, None, :] - c[None, :, :], axis=-1) - r
+        return float(d.min() - self.robot.body_radius - dsf)
+
+    # ------------------------------------------------------------------ solve
+    def solve(
+        self,
+        x_prev: Any,
+        target: Any,
+        obstacles: Scene | Any = None,
+        *,
+        t: float = 0.0,
+        t_end: float | None = None,
+        safety_distance: float | None = None,
+        x0: Any = None,
+        obstacle_weight: float | None = None,
+        damping_weight: float | None = None,
+        check_start: bool = True,
+    ) -> SteerResult:
+        """One steer step from configuration x_prev toward tip position `target` (mm).
+
+        obstacles: a `Scene` (evaluated at time t (s), or held conservatively
+        over [t, t_end] with `Scene.pack_over` when t_end is given), a packed
+        vector from `Scene.pack` (then give `safety_distance`), or None.
+        x0: initial guess (default x_prev). obstacle_weight, damping_weight:
+        override w_o, w_d for this call. check_start: raise `InputError` when
+        x_prev is in collision or outside the robot's limits.
+        """
+        t_start = time.perf_counter()
+        xp = _vec(x_prev, "x_prev", self.nx)
+        tg = _vec(target, "target", 3)
+        if not math.isfinite(float(t)):
+            raise InputError(f"t: must be finite, got {t}")
+        if t_end is not None and not (math.isfinite(float(t_end)) and t_end >= t):
+            raise InputError(f"t_end: must be finite and >= t = {t}, got {t_end}")
+        packed, dsf, scene = self._packed(obstacles, float(t), t_end, safety_distance)
+        tol_f = self.options.feasibility_tolerance
+        if check_start:
+            if float(self.robot.limit_violation(xp)[0]) > 1e-9:
+                raise InputError("x_prev: outside the robot's limits (theta, cable stroke or z range)")
+            c0 = self._clearance(xp, packed, dsf, scene, float(t), t_end)
+            if c0 < -tol_f:
+                raise InputError(
+                    f"x_prev: start configuration is in collision (clearance {c0:.3f} mm, "
+                    f"D_sf {dsf:g} mm, at t = {float(t):g} s)"
+                )
+        if self.options.solver == "dls":
+            x, converged, status, iters = self._solve_dls(xp, tg)
+        else:
+            guess = xp if x0 is None else _vec(x0, "x0", self.nx)
+            x, converged, status, iters = self._solve_nlp(xp, tg, packed, dsf, guess, damping_weight, obstacle_weight)
+        return self._result(x, xp, tg, packed, dsf, scene, float(t), t_end, converged, status, iters, t_start)
+
+    def _solve_nlp(
+        self,
+        xp: np.ndarray,
+        tg: np.ndarray,
+        packed: np.ndarray,
+        dsf: float,
+        guess: np.ndarray,
+        wd: float | None,
+        wo: float | None,
+    ) -> tuple[np.ndarray, bool, str, int]:
+        p = self.parameters(xp, tg, packed, dsf, wd, wo)
+        lbx, ubx = self.step_bounds(xp)
+        args: dict[str, Any] = {"x0": np.clip(guess, lbx, ubx), "p": p, "lbx": lbx, "ubx": ubx}
+        args["lbg"], args["ubg"] = self._lbg, self._ubg
+        if self.options.__dict__.get("_free_inactive", True):
+            act = packed[PACK_WIDTH - 1 :: PACK_WIDTH]
+            lbg = self._lbg.copy()
+            lbg[self._lbg.size - self.n_col :] = np.where(np.repeat(act > 0, self.n_points), 0.0, -np.inf)
+            args["lbg"] = lbg
+        solver = self._solver
+        if self.options.warm_start and self._lam_g is not None:
+            args["lam_g0"] = self._lam_g
+            args["lam_x0"] = self._lam_x
+            if self._solver_ws is not None:
+                solver = self._solver_ws
+        try:
+            sol = solver(**args)
+        except RuntimeError as exc:  # evaluation errors (NaN) inside CasADi
+            return guess.copy(), False, f"Evaluation_Error: {_last_line(str(exc))}", 0
+        stats = solver.stats()
+        # IPOPT relaxes bounds by ~1e-8 relative; project back so the re-check
+        # judges the configuration that is actually returned
+        x = np.clip(np.asarray(sol["x"], dtype=float).reshape(-1), lbx, ubx)
+        ok = bool(stats.get("success", False)) and bool(np.all(np.isfinite(x)))
+        if ok:
+            self._lam_g = np.asarray(sol["lam_g"], dtype=float).reshape(-1)
+            self._lam_x = np.asarray(sol["lam_x"], dtype=float).reshape(-1)
+        else:
+            self._lam_g = self._lam_x = None
+        iters = int(stats.get("iter_count", -1))
+        return x, ok, str(stats.get("return_status", "unknown")), iters
+
+    def _solve_dls(self, xp: np.ndarray, tg: np.ndarray) -> tuple[np.ndarray, bool, str, int]:
+        """Iterate eq. 17 from x_prev; stop at the tolerance or when the step stalls."""
+        o = self.options
+        S = self.scale
+        lo, hi = self.step_bounds(xp)
+        lam2 = o.damping**2
+        x = xp.copy()
+        for it in range(1, o.dls_iterations + 1):
+            tip, J = self._tipjac(x)
+            e = tg - np.asarray(tip, dtype=float).reshape(-1)
+            if np.linalg.norm(e) <= 0.01 * o.tolerance:
+                return x, True, "Solve_Succeeded", it - 1
+            Js = np.asarray(J, dtype=float) / S
+            dy = Js.T @ np.linalg.solve(Js @ Js.T + lam2 * np.eye(3), o.dls_gain * e)
+            xn = np.clip(x + dy / S, lo, hi)
+            if np.max(np.abs((xn - x) * S)) < 1e-9:
+                return xn, True, "Stalled_At_Closest_Point", it
+            x = xn
+        return x, False, "Maximum_Iterations_Exceeded", o.dls_iterations
+
+    def _result(
+        self,
+        x: np.ndarray,
+        xp: np.ndarray,
+        tg: np.ndarray,
+        packed: np.ndarray,
+        dsf: float,
+        scene: Scene | None,
+        t: float,
+        t_end: float | None,
+        converged: bool,
+        status: str,
+        iters: int,
+        t_start: float,
+    ) -> SteerResult:
+        o = self.options
+        finite = bool(np.all(np.isfinite(x)))
+        if not finite:
+            x = xp.copy()
+        tip = self.model.tip_position(x)
+        err = float(np.linalg.norm(tip - tg))
+        clear = self._clearance(x, packed, dsf, scene, t, t_end)
+        lo, hi = self.step_bounds(xp)
+        in_box = bool(np.all(x >= lo - 1e-9 * (1 + np.abs(lo))) and np.all(x <= hi + 1e-9 * (1 + np.abs(hi))))
+        in_limits = float(self.robot.limit_violation(x)[0]) <= 1e-6
+        safe = finite and clear >= -o.feasibility_tolerance and in_box and in_limits
+        success = converged and safe
+        reached = success and err <= o.tolerance
+        if not finite:
+            message = f"solver returned NaN ({status}); x_prev returned unchanged"
+        elif not converged:
+            message = f"solver failed: {status}"
+        elif not safe:
+            what = []
+            if clear < -o.feasibility_tolerance:
+                what.append(f"clearance {clear:.3f} mm < 0")
+            if not in_limits:
+                what.append("outside the robot's limits")
+            if not in_box:
+                what.append("outside the step bounds")
+            message = "converged but the re-check failed: " + ", ".join(what)
+        elif reached:
+            message = f"reached: tip error {err:.3g} mm"
+        else:
+            at_step = bool(np.any(np.isclose(x, lo, atol=1e-6) | np.isclose(x, hi, atol=1e-6)) & (o.max_step < 1e5))
+            why = "the step bound max_step" if at_step and np.any(np.abs(x - xp) * self.scale >= 0.999 * o.max_step) else (
+                "obstacles or the robot's limits"
+            )
+            message = f"target not reached: closest safe configuration is {err:.3g} mm away (blocked by {why})"
+        return SteerResult(
+            x=x,
+            q=self.robot.cables(x),
+            tip=tip,
+            success=success,
+            reached=reached,
+            converged=converged,
+            safe=safe,
+            status=status,
+            message=message,
+            iterations=iters,
+            wall_time=time.perf_counter() - t_start,
+            tip_error=err,
+            min_clearance=clear,
+            solver=o.solver,
+        )
+
+    def solve_many(
+        self, x_prevs: Any, targets: Any, obstacles: Scene | Any = None, **kwargs: Any
+    ) -> list[SteerResult]:
+        """`solve` for each row of x_prevs (N, nx) and targets (N, 3); same obstacles and keywords."""
+        X = np.asarray(x_prevs, dtype=float)
+        T = np.asarray(targets, dtype=float)
+        if X.ndim != 2 or T.ndim != 2 or X.shape[0] != T.shape[0]:
+            raise InputError(f"x_prevs, targets: expected (N, {self.nx}) and (N, 3), got {X.shape} and {T.shape}")
+        return [self.solve(X[k], T[k], obstacles, **kwargs) for k in range(X.shape[0])]
+
+    def reset_warm_start(self) -> None:
+        """Forget the multipliers of the previous solve."""
+        self._lam_g = self._lam_x = None
+
+
+def _last_line(text: str) -> str:
+    lines = [ln.strip() for ln in text.strip().splitlines() if ln.strip()]
+    return lines[-1] if lines else text
