@@ -250,12 +250,137 @@ def _cmd_sim_device(args: argparse.Namespace) -> int:
     return 0
 
 
+# --------------------------------------------------------------------- replan
+def _add_replan(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "replan",
+        help="run the receding-horizon replanner in closed loop among moving obstacles (paper simulation 2)",
+        description="Simulate the robot from the task's start to its goal among the scene's moving, breathing "
+        "obstacles: a horizon NLP (the [replan] section) re-solved every step from the measured configuration, "
+        "a reference path re-planned when needed, the tracking controller and servo model ([tracking]), and "
+        "every applied move verified densely in time. Writes run.json, run.npz, run.png (body-obstacle "
+        "distance and tip error over time) and run.html (standalone 3-D replay) into --out.",
+    )
+    p.add_argument("problem", help="problem TOML (e.g. problems/paper_dynamic.toml)")
+    p.add_argument("--out", help="output folder (default out/replan, or out/replan-no-safety with --no-safety)")
+    p.add_argument("--seed", type=int, default=None, help="random seed of the planner (default: the problem's)")
+    p.add_argument(
+        "--no-safety",
+        action="store_true",
+        help="switch the collision-free terms off (NLP constraints, move verification, obstacles in the reference "
+        "planner), as in the paper's Fig. 7(b): the body then runs into the obstacles",
+    )
+    p.add_argument("--no-html", action="store_true", help="do not write run.html")
+    p.add_argument("--view", action="store_true", help="afterwards, serve the 3-D replay on 127.0.0.1 until Ctrl-C")
+    p.add_argument("--no-browser", action="store_true", help="with --view: only print the URL")
+    p.add_argument("--quiet", action="store_true", help="print only the summary line")
+    p.set_defaults(func=_cmd_replan)
+
+
+def _cmd_replan(args: argparse.Namespace) -> int:
+    import time
+
+    from crtraj.problem import Problem
+    from crtraj.simulate import loop_from_problem, write_run
+
+    if args.seed is not None and args.seed < 0:
+        raise InputError(f"--seed: must be >= 0, got {args.seed}")
+    out = Path(args.out) if args.out else Path("out") / ("replan-no-safety" if args.no_safety else "replan")
+    problem = Problem.load(args.problem)
+    seed = problem.seed if args.seed is None else args.seed
+    t0 = time.perf_counter()
+    loop = loop_from_problem(problem, safety=not args.no_safety, seed=seed)
+    o = loop.options
+    if not args.quiet:
+        d = loop.replanner.describe()
+        print(
+            f"replanning '{problem.name}' (seed {seed}, {'with' if o.safety else 'WITHOUT'} collision-free terms): "
+            f"horizon {o.horizon} x {o.dt:g} s, {d['solver']}, {d['variables']} variables, "
+            f"{d['constraints']} constraints; setup {time.perf_counter() - t0:.2f} s",
+            flush=True,
+        )
+    run = loop.run()
+    paths = write_run(run, loop, out, problem=problem, seed=seed, html=not args.no_html)
+    print(run.summary_line())
+    if not args.quiet:
+        counts = ", ".join(f"{k} {v}" for k, v in run.summary()["status_counts"].items())
+        print(f"  steps: {counts}; wall time {time.perf_counter() - t0:.2f} s")
+        for key in ("json", "npz", "png", "html"):
+            if key in paths:
+                print(f"  {key:4s} {paths[key]}")
+    if args.view:
+        from crtraj.viz import Visualizer
+
+        with Visualizer.for_result(paths["result"], server=True) as vis:
+            print(f"serving the run at {vis.url}", flush=True)
+            if not args.no_browser:
+                vis.open()
+            print("press Ctrl-C to stop", flush=True)
+            try:
+                while True:
+                    time.sleep(3600)
+            except KeyboardInterrupt:
+                print("stopped", flush=True)
+    ok = run.reached and (run.safety_violations == 0 or not o.safety)
+    return 0 if ok else 1
+
+
+# ---------------------------------------------------------------------- bench
+def _add_bench(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "bench",
+        help="run the paper's Table I benchmark against the paper and OMPL",
+        description="table1: RRT, RRT* (the paper's Algorithm 1), crtraj's configuration-space planner and "
+        "OMPL's RRTstar and RRTConnect on the same random dynamic scenes (paper sec. IV-B) with the same "
+        "validity checker and time budget; every success is re-verified densely. Writes DIR/table1.md "
+        "(the paper's layout, with the paper's numbers), DIR/runs.csv (every run) and DIR/scenarios.json.",
+    )
+    p.add_argument("table", choices=["table1"], help="which benchmark (table1: the paper's Table I)")
+    p.add_argument(
+        "--workers", type=int, default=None, help="worker processes (default: CPU count; 0 = run in this process)"
+    )
+    p.add_argument("--scenarios", type=int, default=100, help="scenarios per obstacle count (default 100)")
+    p.add_argument("--counts", default="1,3,5,7", help="obstacle counts, comma-separated (default 1,3,5,7)")
+    p.add_argument(
+        "--planners",
+        default=None,
+        help="comma-separated subset of rrt,rrtstar,cspace,ompl-rrtstar,ompl-rrtconnect (default: all)",
+    )
+    p.add_argument("--time-limit", type=float, default=5.0, help="wall-time budget per run, s (default 5)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the scenarios and runs (default 0)")
+    p.add_argument("--out", default="out/table1", help="output folder (default: out/table1)")
+    p.add_argument(
+        "--dask",
+        metavar="ADDRESS",
+        default=None,
+        help="run on a Dask distributed scheduler (e.g. tcp://127.0.0.1:8786) instead of processes",
+    )
+    p.add_argument("--robot", default=str(DEFAULT_ROBOT), help="robot TOML file (default: problems/robots/cdsr2.toml)")
+    p.add_argument("--planner-config", default=None, help="TOML file with a [planner] table shared by all planners")
+    p.add_argument(
+        "--verify-margin",
+        type=float,
+        default=0.0,
+        help="clearance (mm) the dense check demands from the sphere surfaces (default 0: no contact)",
+    )
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=_cmd_bench)
+
+
+def _cmd_bench(args: argparse.Namespace) -> int:
+    from crtraj.bench import run_cli
+
+    return run_cli(args)
+
+
 # Subcommands register themselves here in display order.
 _COMMANDS: tuple[Callable[[argparse._SubParsersAction], None], ...] = (
     _add_export,
     _add_view,
     _add_stream,
     _add_sim_device,
+    _add_replan,
+    _add_bench,
 )
 
 

@@ -40,14 +40,14 @@ import time
 from typing import Any
 
 import numpy as np
-from scipy.interpolate import BSpline
 
 from crtraj.errors import InputError
 from crtraj.fields import check_array
 from crtraj.model import Model
 from crtraj.plan_options import PlannerOptions
 from crtraj.plan_result import PlanResult, PlanStatus
-from crtraj.safe_ik import SafeIK
+from crtraj.postprocess import PathPostprocessor, empty_result, tree_edges
+from crtraj.safe_ik import SafeIK, format_statuses, resolve_start
 from crtraj.stop import StopClock, StopCondition
 from crtraj.tree import SearchTree
 from crtraj.validity import MotionValidator
@@ -75,6 +75,7 @@ class CSpacePlanner:
         self.robot = model.robot
         self.scene = scene
         self.options = PlannerOptions() if options is None else options
+        self._functions: dict[Any, Any] = {}  # CasADi functions shared by this planner's validators
         self.validator = self._validator(scene)
         m = scene.n_obstacles if max_obstacles is None else int(max_obstacles)
         self.ik = SafeIK(model, self.validator, max(m, scene.n_obstacles))
@@ -82,7 +83,12 @@ class CSpacePlanner:
     def _validator(self, scene: Any) -> MotionValidator:
         o = self.options
         return MotionValidator(
-            self.model, scene, check_points=o.check_points, resolution=o.resolution, max_speed=o.max_speed
+            self.model,
+            scene,
+            check_points=o.check_points,
+            resolution=o.resolution,
+            max_speed=o.max_speed,
+            functions=self._functions,
         )
 
     # ------------------------------------------------------------------ query
@@ -111,7 +117,6 @@ class CSpacePlanner:
         Bad input (NaN, wrong shapes) raises `InputError`; an unsafe start
         or an unreachable goal is a result status, not an exception.
         """
-        t_begin = time.perf_counter()
         o = self.options
         goal = check_array(goal, "goal", (3,))
         t0 = float(check_array(t0, "t0", ()))
@@ -132,41 +137,22 @@ class CSpacePlanner:
 
         # ---- start
         t1 = time.perf_counter()
-        if start_config is not None:
-            xs = check_array(start_config, "start_config", (self.robot.nx,))
-            viol = float(self.robot.limit_violation(xs)[0])
-            if viol > 1e-7:
-                return run.fail(PlanStatus.INVALID_START, f"start configuration violates the robot limits by {viol:.3g}")
-            c = float(v.clearance(xs[None], t0)[0])
-            if c < 0:
-                return run.fail(
-                    PlanStatus.INVALID_START,
-                    f"start configuration is in collision: body clearance {c:.2f} mm (below D_sf + margins)",
-                )
-        else:
-            st = check_array(start_tip, "start_tip", (3,))
-            batch = self.ik.solve(
-                st,
-                sc.pack(t0, self.ik.max_obstacles),
-                v.sample(rng, o.ik_seeds),
-                t_check=(t0, t0),
-                want=max(1, o.goal_configs),
-                newton_iterations=o.ik_iterations,
-                deadline=deadline,
-                validator=v,
-                tip_tolerance=min(1e-3, goal_tolerance),
-            )
-            run.counts["ik_solves_start"] = len(batch.solutions)
-            if not len(batch.safe):
-                run.timings["start_ik"] = time.perf_counter() - t1
-                return run.fail(
-                    PlanStatus.INVALID_START,
-                    f"no safe configuration puts the tip on the start {st.tolist()} mm "
-                    f"({o.ik_seeds} IK starts: {_fmt(batch.statuses)})",
-                )
-            # the least bent safe configuration
-            xs = batch.safe[int(np.argmin(v.motion_bound(_bend_only(batch.safe))))]
+        xs, why, n_ik = resolve_start(
+            self.ik,
+            v,
+            start_config=start_config,
+            start_tip=start_tip,
+            t0=t0,
+            rng=rng,
+            seeds=o.ik_seeds,
+            iterations=o.ik_iterations,
+            deadline=deadline,
+            tip_tolerance=min(1e-3, goal_tolerance),
+        )
         run.timings["start_ik"] = time.perf_counter() - t1
+        run.counts["ik_solves_start"] = n_ik
+        if xs is None:
+            return run.fail(PlanStatus.INVALID_START, why)
         run.x_start = xs
 
         # ---- goal configurations
@@ -177,7 +163,7 @@ class CSpacePlanner:
             return run.fail(
                 PlanStatus.INVALID_GOAL,
                 f"no safe configuration puts the tip on the goal {goal.tolist()} mm "
-                f"({run.counts.get('ik_solves_goal', 0)} IK solves: {_fmt(run.ik_statuses)})",
+                f"({run.counts.get('ik_solves_goal', 0)} IK solves: {format_statuses(run.ik_statuses)})",
             )
         run.goals = goals
 
@@ -191,15 +177,6 @@ class CSpacePlanner:
         return run.finish(path)
 
 
-def _bend_only(X: np.ndarray) -> np.ndarray:
-    """Configurations with z zeroed: distance from straight counts bending only."""
-    out = np.array(X, dtype=float)
-    out[:, -1] = 0.0
-    return out
-
-
-def _fmt(statuses: dict[str, int]) -> str:
-    return ", ".join(f"{k} x{n}" for k, n in statuses.items()) or "none tried"
 
 
 class _Run:
@@ -235,6 +212,8 @@ class _Run:
         self.goals = np.zeros((0, planner.robot.nx))
         self.trees: list[SearchTree] = []
         self._samples = np.zeros((0, planner.robot.nx))
+        self.samples0 = v.n_samples
+        self.via_seeds = np.zeros((0, planner.robot.nx))
 
     # ---------------------------------------------------------------- goal IK
     def goal_configs(self) -> np.ndarray:
@@ -288,14 +267,52 @@ class _Run:
         G = len(self.goals)
         XA = np.repeat(self.x_start[None], G, axis=0)
         dur = v.motion_bound(self.goals - XA) / v.max_speed
-        per_edge, _, _ = v.edge_clearance(XA, self.goals, self.t0, self.t0 + dur)
         self.counts["edge_checks"] = G
-        ok = np.flatnonzero(per_edge >= 0)
+        ok = np.flatnonzero(v.edges_valid(XA, self.goals, self.t0, self.t0 + dur))
         if len(ok):
             best = ok[np.argmin(dur[ok])]
             self.trees = []
             return np.stack([self.x_start, self.goals[best]])
+        via = self._via()
+        if via is not None:
+            return via
         return self._connect() if v.static else self._forward()
+
+    def _via(self) -> np.ndarray | None:
+        """One batched round of two-motion paths start -> via -> goal over random via configurations.
+
+        Many scenes (the paper's simulation 1 among them) need just one
+        intermediate configuration; checking `via_points` candidates in two
+        vectorised calls finds one far faster than growing trees one node at
+        a time. Valid start -> via motions seed the trees otherwise.
+        """
+        v, o = self.v, self.o
+        self.clock.tick()
+        K = o.via_points
+        if K == 0:
+            return None
+        vias = v.sample(self.rng, K)
+        t_via = self.t0 + v.motion_bound(vias - self.x_start) / v.max_speed
+        ok1 = v.edges_valid(np.repeat(self.x_start[None], K, axis=0), vias, self.t0, t_via)
+        self.counts["edge_checks"] = self.counts.get("edge_checks", 0) + K
+        good = np.flatnonzero(ok1)
+        self.via_seeds = vias[good]
+        if not len(good):
+            return None
+        # each via tries its nearest goal configuration (body-motion metric)
+        d = v.motion_bound(vias[good][:, None, :] - self.goals[None, :, :])  # (V, G)
+        VA = vias[good]
+        GB = self.goals[np.argmin(d, axis=1)]
+        TA = t_via[good]
+        TB = TA + v.motion_bound(GB - VA) / v.max_speed
+        ok2 = v.edges_valid(VA, GB, TA, TB)
+        self.counts["edge_checks"] += len(VA)
+        if not ok2.any():
+            return None
+        # the shortest valid two-motion path
+        total = (TB - self.t0)[ok2]
+        k = np.flatnonzero(ok2)[int(np.argmin(total))]
+        return np.stack([self.x_start, VA[k], GB[k]])
 
     def _extend(self, tree: SearchTree, y_target: np.ndarray, timed: bool) -> int:
         """One RRT step of at most `range` toward y_target; the new node index or -1."""
@@ -320,7 +337,10 @@ class _Run:
         bound = float(v.motion_bound(x_target - x_i))
         t_end = t_i + bound / v.max_speed if timed else 0.0
         self.counts["edge_checks"] = self.counts.get("edge_checks", 0) + 1
-        f = v.valid_prefix(x_i, x_target, t_i, t_end)
+        if full_only:
+            f = 1.0 if v.edges_valid(x_i[None], x_target[None], t_i, t_end)[0] else 0.0
+        else:
+            f = v.valid_prefix(x_i, x_target, t_i, t_end)
         if f < 1.0 and full_only:
             return -1
         if f * bound < v.resolution:
@@ -340,6 +360,8 @@ class _Run:
         v, o, rng, clock = self.v, self.o, self.rng, self.clock
         ts = SearchTree(self.p.robot.nx, self.p.robot.nx)
         ts.add(v.metric(self.x_start), self.x_start, 0.0, 0.0, -1)
+        for x in self.via_seeds:  # motions from the start already verified by the via round
+            ts.add(v.metric(x), x, 0.0, float(v.motion_bound(x - self.x_start)), 0)
         tg = SearchTree(self.p.robot.nx, self.p.robot.nx)
         for g in self.goals:
             tg.add(v.metric(g), g, 0.0, 0.0, -1)
@@ -377,6 +399,9 @@ class _Run:
         v, o, rng, clock = self.v, self.o, self.rng, self.clock
         ts = SearchTree(self.p.robot.nx, self.p.robot.nx)
         ts.add(v.metric(self.x_start), self.x_start, self.t0, 0.0, -1)
+        for x in self.via_seeds:  # motions from the start already verified (at these times) by the via round
+            b = float(v.motion_bound(x - self.x_start))
+            ts.add(v.metric(x), x, self.t0 + b / v.max_speed, b, 0)
         self.trees = [ts]
         goal_tree = SearchTree(self.p.robot.nx, self.p.robot.nx)
         for g in self.goals:
@@ -384,10 +409,8 @@ class _Run:
         y_goals = v.metric(self.goals)
         while not clock.should_stop(False):
             clock.tick()
-            if rng.random() < o.goal_bias:
-                y_rand = y_goals[rng.integers(len(y_goals))]
-            else:
-                y_rand = self._sample()
+            goal_sample = rng.random() < o.goal_bias
+            y_rand = y_goals[rng.integers(len(y_goals))] if goal_sample else self._sample()
             i_new = self._extend(ts, y_rand, timed=True)
             if i_new < 0:
                 continue
@@ -399,248 +422,74 @@ class _Run:
         return None
 
     # ------------------------------------------------------------ post-process
-    def _times(self, X: np.ndarray) -> np.ndarray:
-        return self.v.times(X, self.t0)
-
-    def _valid(self, X: np.ndarray) -> tuple[bool, float]:
-        T = self._times(X)
-        if not np.all(self.v.within_limits(X)):
-            return False, -np.inf
-        c, _ = self.v.path_clearance(X, T)
-        return c >= 0.0, c
-
-    def shortcut(self, X: np.ndarray) -> np.ndarray:
-        """Batched random shortcuts; each round keeps the verified one that saves most."""
-        v, o, rng = self.v, self.o, self.rng
-        n_checked = 0
-        for _ in range(o.shortcut_rounds):
-            if len(X) <= 2 or time.perf_counter() > self.deadline:
-                break
-            seg = v.motion_bound(np.diff(X, axis=0))
-            s = np.concatenate([[0.0], np.cumsum(seg)])
-            total = s[-1]
-            B = o.shortcut_batch
-            u = np.sort(rng.random((B, 2)) * total, axis=1)
-            # a third of the candidates skip whole vertices (u on the waypoints)
-            k = B // 3
-            if k and len(X) > 2:
-                idx = np.sort(rng.choice(len(X), size=(k, 2)), axis=1)
-                u[:k] = s[idx]
-            keep = (u[:, 1] - u[:, 0]) > v.resolution
-            u = u[keep]
-            if not len(u):
-                continue
-            P1, P2 = _at(X, s, u[:, 0]), _at(X, s, u[:, 1])
-            saving = (u[:, 1] - u[:, 0]) - v.motion_bound(P2 - P1)
-            good = saving > 1e-6
-            u, P1, P2, saving = u[good], P1[good], P2[good], saving[good]
-            if not len(u):
-                continue
-            cands = [self._splice(X, s, a, b, p1, p2) for a, b, p1, p2 in zip(u[:, 0], u[:, 1], P1, P2)]
-            n_checked += len(cands)
-            ok = self._batch_ok(cands)
-            if not ok.any():
-                continue
-            best = np.flatnonzero(ok)[np.argmax(saving[ok])]
-            X = _dedup(cands[best][0])
-        self.counts["shortcut_checks"] = n_checked
-        return _dedup(X)
-
-    @staticmethod
-    def _splice(
-        X: np.ndarray, s: np.ndarray, a: float, b: float, p1: np.ndarray, p2: np.ndarray
-    ) -> tuple[np.ndarray, int]:
-        """X with the part between arc positions a < b replaced by p1 -> p2; (path, index of p1)."""
-        i = int(np.searchsorted(s, a, side="right"))  # waypoints up to a: X[:i]
-        j = int(np.searchsorted(s, b, side="left"))  # waypoints from b on: X[j:]
-        # p1 may repeat X[i-1] and p2 X[j]: zero-length motions are harmless and removed later
-        return np.concatenate([X[:i], p1[None], p2[None], X[j:]]), i
-
-    def _batch_ok(self, cands: list[tuple[np.ndarray, int]]) -> np.ndarray:
-        """Which candidate paths are safe, checked in one vectorised call.
-
-        Static scenes: only the new straight motion needs checking. Moving
-        obstacles: the rest of the path is reached earlier, so everything from
-        the new motion on is checked at its new times.
-        """
-        v = self.v
-        XA, XB, TA, TB, owner = [], [], [], [], []
-        for c_i, (C, k) in enumerate(cands):
-            T = self._times(C)
-            last = k + 1 if v.static else len(C) - 1
-            XA.append(C[k:last])
-            XB.append(C[k + 1 : last + 1])
-            TA.append(T[k:last])
-            TB.append(T[k + 1 : last + 1])
-            owner.append(np.full(last - k, c_i))
-        per_edge, _, _ = v.edge_clearance(np.concatenate(XA), np.concatenate(XB), np.concatenate(TA), np.concatenate(TB))
-        worst = np.full(len(cands), np.inf)
-        np.minimum.at(worst, np.concatenate(owner), per_edge)
-        return worst >= 0.0
-
-    def smooth(self, X: np.ndarray) -> tuple[np.ndarray, bool]:
-        """B-spline corner rounding, verified; (path, smoothed?)."""
-        o = self.o
-        if not o.smooth or len(X) < 3:
-            return self.resample(X), False
-        corner = o.corner
-        for _ in range(2):
-            Y = self._spline(X, corner)
-            ok, _ = self._valid(Y)
-            self.counts["smooth_checks"] = self.counts.get("smooth_checks", 0) + 1
-            if ok:
-                return Y, True
-            corner /= 2.0
-        return self.resample(X), False
-
-    def _spline(self, X: np.ndarray, corner: float) -> np.ndarray:
-        v = self.v
-        ctrl = [X[0]]
-        for a, b in zip(X[:-1], X[1:]):
-            L = float(v.motion_bound(b - a))
-            c = min(corner, L / 3.0) / L if L > 0 else 0.0
-            ctrl.extend([a + c * (b - a), b - c * (b - a), b])
-        P = np.array(ctrl)
-        k = 3
-        n = len(P)
-        knots = np.concatenate([np.zeros(k), np.linspace(0.0, 1.0, n - k + 1), np.ones(k)])
-        spl = BSpline(knots, P, k)
-        # fine evaluation, then resampling at equal body-motion spacing
-        uu = np.linspace(0.0, 1.0, 40 * n)
-        F = spl(uu)
-        F[0], F[-1] = X[0], X[-1]
-        s = np.concatenate([[0.0], np.cumsum(v.motion_bound(np.diff(F, axis=0)))])
-        m = max(2, int(np.ceil(s[-1] / self.o.waypoint_step)) + 1)
-        target = np.linspace(0.0, s[-1], m)
-        Y = spl(np.interp(target, s, uu))
-        Y[0], Y[-1] = X[0], X[-1]  # exact ends (the clamped spline hits them up to round-off)
-        return Y
-
-    def resample(self, X: np.ndarray) -> np.ndarray:
-        """Insert waypoints on each straight motion so none is longer than `waypoint_step`."""
-        v = self.v
-        out = [X[:1]]
-        for a, b in zip(X[:-1], X[1:]):
-            n = max(1, int(np.ceil(float(v.motion_bound(b - a)) / self.o.waypoint_step)))
-            f = np.arange(1, n + 1)[:, None] / n
-            out.append(a + f * (b - a))
-        return np.concatenate(out)
-
     def finish(self, path: np.ndarray) -> PlanResult:
+        post = PathPostprocessor(self.v, self.o, self.rng, self.t0)
         t1 = time.perf_counter()
-        raw = path
-        path = self.shortcut(path)
+        short = post.shortcut(path, self.deadline)
         self.timings["shortcut"] = time.perf_counter() - t1
         t1 = time.perf_counter()
-        final, smoothed = self.smooth(path)
+        final, smoothed = post.smooth(short)
         self.timings["smooth"] = time.perf_counter() - t1
-        ok, clear = self._valid(final)
-        if not ok:  # the raw tree path is verified edge by edge; this cannot happen unless a bound is wrong
+        if not post.valid(final):  # every piece was verified; only a wrong bound could get here
             raise RuntimeError("internal error: the returned path failed its final verification")
         msg = (
             f"found a path after {self.clock.iterations} iterations; "
-            f"{len(raw)} tree waypoints, {len(path)} after shortcuts, {'smoothed' if smoothed else 'not smoothed'}"
+            f"{len(path)} tree waypoints, {len(short)} after shortcuts, {'smoothed' if smoothed else 'not smoothed'}"
         )
-        return self.result(PlanStatus.EXACT, msg, final, raw, smoothed, clear)
+        return self._result(post, PlanStatus.EXACT, msg, final, path, smoothed)
 
     def approximate(self) -> PlanResult:
         """No connection: the path to the start-tree node whose tip is nearest the goal."""
         ts = self.trees[0] if self.trees else None
-        d0 = float(np.linalg.norm(self.model.tip_position(self.x_start) - self.goal))
         if ts is None or len(ts) < 2:
             return self.fail(PlanStatus.TIMEOUT, f"no path: {self.clock.reason}")
-        tips = self.model.tip_position(ts.x)
-        d = np.linalg.norm(tips - self.goal, axis=1)
+        d0 = float(np.linalg.norm(self.model.tip_position(self.x_start) - self.goal))
+        d = np.linalg.norm(self.model.tip_position(ts.x) - self.goal, axis=1)
         best = int(np.argmin(d))
         if d[best] >= d0:
             return self.fail(PlanStatus.TIMEOUT, f"no path: {self.clock.reason}")
+        post = PathPostprocessor(self.v, self.o, self.rng, self.t0)
         raw = ts.x[ts.path_to(best)]
-        final = self.resample(raw)
-        ok, clear = self._valid(final)
-        if not ok:
+        final = post.resample(raw)
+        if not post.valid(final):
             raise RuntimeError("internal error: the approximate path failed its final verification")
         msg = f"no path to the goal ({self.clock.reason}); closest tip {d[best]:.1f} mm from the goal"
-        return self.result(PlanStatus.APPROXIMATE, msg, final, raw, False, clear)
+        return self._result(post, PlanStatus.APPROXIMATE, msg, final, raw, False)
+
+    def _result(
+        self, post: PathPostprocessor, status: PlanStatus, msg: str, final: np.ndarray, raw: np.ndarray, smoothed: bool
+    ) -> PlanResult:
+        self.counts["nodes"] = int(sum(len(t) for t in self.trees))
+        self.counts["collision_samples"] = self.v.n_samples - self.samples0
+        self.timings["total"] = time.perf_counter() - self.clock.t_start
+        res = post.result(
+            status=status,
+            message=msg,
+            planner=CSpacePlanner.name,
+            seed=self.seed,
+            goal=self.goal,
+            X=final,
+            raw=raw,
+            smoothed=smoothed,
+            cost=float(np.sum(self.v.motion_bound(np.diff(final, axis=0)))),
+            goal_configs=self.goals,
+            tree_edges=tree_edges(self.model, self.trees),
+            timings=self.timings,
+            counts=self.counts,
+        )
+        return res
 
     def fail(self, status: PlanStatus, message: str) -> PlanResult:
-        self.timings["total"] = time.perf_counter() - self.clock.t_start
         self.counts.setdefault("iterations", self.clock.iterations)
-        nx, nq = self.p.robot.nx, self.p.robot.nq
-        return PlanResult(
-            status=status,
-            message=message,
-            planner=CSpacePlanner.name,
-            seed=self.seed,
-            t=np.zeros(0),
-            configs=np.zeros((0, nx)),
-            tips=np.zeros((0, 3)),
-            cables=np.zeros((0, nq)),
-            goal_configs=self.goals if len(self.goals) else None,
-            tree_edges=self._tree_edges(),
-            timings=dict(self.timings),
-            counts=dict(self.counts),
-        )
-
-    def result(
-        self, status: PlanStatus, message: str, X: np.ndarray, raw: np.ndarray, smoothed: bool, clear: float
-    ) -> PlanResult:
-        v, model = self.v, self.model
-        T = self._times(X)
-        tips = model.tip_position(X)
-        dense = self._dense(X)
-        length = float(np.sum(np.linalg.norm(np.diff(model.tip_position(dense), axis=0), axis=1)))
         self.timings["total"] = time.perf_counter() - self.clock.t_start
-        self.counts["nodes"] = int(sum(len(t) for t in self.trees))
-        return PlanResult(
-            status=status,
-            message=message,
+        return empty_result(
+            status,
+            message,
             planner=CSpacePlanner.name,
             seed=self.seed,
-            t=T,
-            configs=X,
-            tips=tips,
-            cables=model.cables(X),
-            length=length,
-            cost=float(np.sum(v.motion_bound(np.diff(X, axis=0)))),
-            min_clearance=clear,
-            goal_error=float(np.linalg.norm(tips[-1] - self.goal)),
-            smoothed=smoothed,
-            raw_configs=raw,
-            raw_t=self._times(raw),
+            robot=self.p.robot,
             goal_configs=self.goals,
-            tree_edges=self._tree_edges(),
-            timings=dict(self.timings),
-            counts=dict(self.counts),
+            tree_edges=tree_edges(self.model, self.trees),
+            timings=self.timings,
+            counts=self.counts,
         )
-
-    def _dense(self, X: np.ndarray) -> np.ndarray:
-        """The path with extra points every ~resolution of body motion (for tip length)."""
-        v = self.v
-        out = [X[:1]]
-        for a, b in zip(X[:-1], X[1:]):
-            n = max(1, int(np.ceil(float(v.motion_bound(b - a)) / v.resolution)))
-            out.append(a + (np.arange(1, n + 1)[:, None] / n) * (b - a))
-        return np.concatenate(out)
-
-    def _tree_edges(self) -> np.ndarray:
-        parts = []
-        for tr in self.trees:
-            if len(tr) < 2:
-                continue
-            tips = self.model.tip_position(tr.x)
-            par, child = tr.edges()
-            parts.append(np.stack([tips[par], tips[child]], axis=1))
-        return np.concatenate(parts) if parts else np.zeros((0, 2, 3))
-
-
-def _at(X: np.ndarray, s: np.ndarray, u: np.ndarray) -> np.ndarray:
-    """Points at arc positions u along the polyline X with cumulative arc s."""
-    return np.stack([np.interp(u, s, X[:, j]) for j in range(X.shape[1])], axis=-1)
-
-
-def _dedup(X: np.ndarray) -> np.ndarray:
-    """Drop consecutive duplicate waypoints."""
-    if len(X) < 2:
-        return X
-    keep = np.concatenate([[True], np.any(np.abs(np.diff(X, axis=0)) > 1e-12, axis=1)])
-    return X[keep]

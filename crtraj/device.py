@@ -326,7 +326,7 @@ class SimDevice:
             if msg.seq <= self._last_seq:
                 self._counts["stale"] += 1
                 return
-            if msg.seq > self._last_seq + 1 and self._last_seq > 0:
+            if msg.seq > self._last_seq + 1:
                 self._counts["missed"] += msg.seq - self._last_seq - 1
             self._last_seq = msg.seq
             self._last_valid = now

@@ -35,6 +35,8 @@ class PlannerOptions:
     the safety-constrained IPOPT NLP takes over.
     goal_window: dynamic scenes only: half of the IK starts keep clear of
     everything the obstacles sweep over [t0, t0 + goal_window] (s).
+    via_points: cspace only: random intermediate configurations tried at
+    once as start -> via -> goal before the trees grow (0: skip).
     shortcut_rounds: rounds of batched shortcut attempts (each checks
     `shortcut_batch` candidate shortcuts at once).
     smooth: B-spline smoothing of the final path (verified; dropped if unsafe).
@@ -50,13 +52,14 @@ class PlannerOptions:
     range: float | None = None
     rewire_radius: float = 80.0
     max_speed: float = 50.0
-    resolution: float = 2.0
+    resolution: float = 3.0
     check_points: int = 21
     ik_seeds: int = 64
     goal_configs: int = 4
     ik_iterations: int = 15
     goal_window: float = 10.0
-    shortcut_rounds: int = 6
+    via_points: int = 32
+    shortcut_rounds: int = 4
     shortcut_batch: int = 16
     smooth: bool = True
     corner: float = 40.0
@@ -78,6 +81,7 @@ class PlannerOptions:
             "goal_configs": self.goal_configs >= 1,
             "ik_iterations": self.ik_iterations >= 0,
             "goal_window": self.goal_window >= 0,
+            "via_points": self.via_points >= 0,
             "shortcut_rounds": self.shortcut_rounds >= 0,
             "shortcut_batch": self.shortcut_batch >= 1,
             "corner": self.corner > 0,
@@ -121,6 +125,7 @@ class PlannerOptions:
             goal_configs=t.int("goal_configs", d.goal_configs, ge=1),
             ik_iterations=t.int("ik_iterations", d.ik_iterations, ge=0),
             goal_window=t.float("goal_window", d.goal_window, ge=0.0),
+            via_points=t.int("via_points", d.via_points, ge=0),
             shortcut_rounds=t.int("shortcut_rounds", d.shortcut_rounds, ge=0),
             shortcut_batch=t.int("shortcut_batch", d.shortcut_batch, ge=1),
             smooth=t.bool("smooth", d.smooth),

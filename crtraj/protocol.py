@@ -159,12 +159,18 @@ class Frame:
 def cobs_encode(data: bytes) -> bytes:
     """Consistent Overhead Byte Stuffing: the result has no zero byte (delimiter not included)."""
     out = bytearray()
-    for chunk in bytes(data).split(b"\x00"):
-        # a chunk of k non-zero bytes becomes blocks of at most 254 bytes with code = len + 1
+    chunks = bytes(data).split(b"\x00")
+    for j, chunk in enumerate(chunks):
+        # a run of non-zero bytes becomes blocks of at most 254 bytes with code = len + 1;
+        # a full block (0xFF) implies no zero after it
+        full = False
         while len(chunk) >= 254:
             out.append(0xFF)
             out += chunk[:254]
             chunk = chunk[254:]
+            full = True
+        if full and not chunk and j == len(chunks) - 1:
+            break  # canonical COBS: no empty block after a final full block
         out.append(len(chunk) + 1)
         out += chunk
     return bytes(out)

@@ -75,6 +75,7 @@ _FLOATS: dict[str, tuple[float, dict[str, float]]] = {
     "planner_time": (1.0, {"gt": 0.0}),
     "stall_time": (3.0, {"gt": 0.0}),
     "reference_speed": (0.7, {"gt": 0.0, "le": 1.0}),
+    "max_body_speed": (50.0, {"gt": 0.0}),
     "check_resolution": (1.0, {"gt": 0.0}),
     "settle_time": (0.5, {"ge": 0.0}),
 }
@@ -104,7 +105,9 @@ class ReplanOptions:
     at most), replan_period (s between periodic reference replans; 0 = only
     when needed), planner_time (s budget of one reference plan), stall_time
     (s without progress before the reference is replanned), reference_speed
-    (fraction of the rate limits the reference is timed with),
+    (fraction of the rate limits and of max_body_speed the reference is
+    timed with), max_body_speed (mm/s, fastest body point motion the
+    reference asks for, measured by `validity.MotionValidator.motion_bound`),
     check_resolution (mm of body motion between verification samples),
     check_points (backbone points of the verification), settle_time (s the
     tip must stay within the goal tolerance before the run ends).
@@ -133,6 +136,7 @@ class ReplanOptions:
     planner_time: float = _FLOATS["planner_time"][0]
     stall_time: float = _FLOATS["stall_time"][0]
     reference_speed: float = _FLOATS["reference_speed"][0]
+    max_body_speed: float = _FLOATS["max_body_speed"][0]
     check_resolution: float = _FLOATS["check_resolution"][0]
     check_points: int = _INTS["check_points"][0]
     settle_time: float = _FLOATS["settle_time"][0]
@@ -200,6 +204,11 @@ class HorizonResult:
     violation: float
     warm: bool = False
     extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def feasible(self) -> bool:
+        """The returned configurations satisfy every constraint (within 1e-6), converged or not."""
+        return bool(np.all(np.isfinite(self.configs))) and self.violation <= 1e-6
 
 
 def sagitta(robot: Any, spacing: float) -> float:
@@ -468,8 +477,14 @@ class Replanner:
         xs = np.asarray(sol["x"]).ravel()
         gs = np.asarray(sol["g"]).ravel()
         finite = bool(np.all(np.isfinite(xs)) and np.all(np.isfinite(gs)))
-        viol = float(max(np.max(self._lbg - gs, initial=0.0), np.max(gs - self._ubg, initial=0.0))) if finite else np.inf
-        box_viol = float(max(np.max(np.tile(self._box[0], N) - xs), np.max(xs - np.tile(self._box[1], N)))) if finite else np.inf
+        viol = (
+            float(max(np.max(self._lbg - gs, initial=0.0), np.max(gs - self._ubg, initial=0.0))) if finite else np.inf
+        )
+        box_viol = (
+            float(max(np.max(np.tile(self._box[0], N) - xs), np.max(xs - np.tile(self._box[1], N))))
+            if finite
+            else np.inf
+        )
         viol = max(viol, box_viol, 0.0)
         status = str(st.get("return_status", "unknown"))
         ok = bool(st.get("success", False)) and finite and viol <= 1e-6

@@ -33,12 +33,14 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from typing import Any
 
 import casadi as ca
 import numpy as np
 
+from crtraj.fields import check_array
 from crtraj.model import Model
-from crtraj.validity import MotionValidator
+from crtraj.validity import LIMIT_TOL, MotionValidator
 
 
 @dataclass(frozen=True)
@@ -283,3 +285,61 @@ class SafeIK:
                 keep(xs)
         safe = np.array(kept) if kept else np.zeros((0, self.robot.nx))
         return IKBatch(tuple(sols), safe, time.perf_counter() - t_start, statuses)
+
+
+def format_statuses(statuses: dict[str, int]) -> str:
+    """'Solve_Succeeded x3, Infeasible_Problem_Detected x2' (for messages)."""
+    return ", ".join(f"{k} x{n}" for k, n in statuses.items()) or "none tried"
+
+
+def resolve_start(
+    ik: SafeIK,
+    validator: MotionValidator,
+    *,
+    start_config: Any,
+    start_tip: Any,
+    t0: float,
+    rng: np.random.Generator,
+    seeds: int,
+    iterations: int,
+    deadline: float | None,
+    tip_tolerance: float,
+) -> tuple[np.ndarray | None, str, int]:
+    """The start configuration of a query: checked when given, else safe IK for the start tip.
+
+    Returns (x or None, why it is invalid, IK solves). Among several safe IK
+    solutions the least bent one is taken (smallest bending body motion).
+    Bad input (shape, NaN) raises `InputError`.
+    """
+    robot = ik.robot
+    if start_config is not None:
+        xs = check_array(start_config, "start_config", (robot.nx,))
+        viol = float(robot.limit_violation(xs)[0])
+        if viol > LIMIT_TOL:
+            return None, f"start configuration violates the robot limits by {viol:.3g}", 0
+        c = float(validator.clearance(xs[None], t0)[0])
+        if c < 0:
+            return None, f"start configuration is in collision: body clearance {c:.2f} mm (below D_sf + margins)", 0
+        return xs, "", 0
+    st = check_array(start_tip, "start_tip", (3,))
+    batch = ik.solve(
+        st,
+        validator.scene.pack(t0, ik.max_obstacles),
+        validator.sample(rng, seeds),
+        t_check=(t0, t0),
+        want=1,
+        newton_iterations=iterations,
+        deadline=deadline,
+        validator=validator,
+        tip_tolerance=tip_tolerance,
+    )
+    if not len(batch.safe):
+        return (
+            None,
+            f"no safe configuration puts the tip on the start {st.tolist()} mm "
+            f"({seeds} IK starts: {format_statuses(batch.statuses)})",
+            len(batch.solutions),
+        )
+    bend = batch.safe.copy()
+    bend[:, -1] = 0.0
+    return batch.safe[int(np.argmin(validator.motion_bound(bend)))], "", len(batch.solutions)

@@ -134,7 +134,7 @@ class ScenarioOptions:
                 raise InputError(f"{key}: must be a finite number > 0 (s), got {v!r}")
         lo = tuple(float(v) for v in self.tip_box_lo)
         hi = tuple(float(v) for v in self.tip_box_hi)
-        if len(lo) != 3 or len(hi) != 3 or any(not a < b for a, b in zip(lo, hi)):
+        if len(lo) != 3 or len(hi) != 3 or any(not a < b for a, b in zip(lo, hi, strict=True)):
             raise InputError(f"tip_box: lo must be below hi on every axis, got lo {list(lo)}, hi {list(hi)}")
         object.__setattr__(self, "tip_box_lo", lo)
         object.__setattr__(self, "tip_box_hi", hi)

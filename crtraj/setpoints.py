@@ -165,7 +165,8 @@ class SetpointPath:
         m = math.ceil((t1 - t0) / dt - 1e-9)
         stamps = t0 + dt * np.arange(m + 1)
         stamps[-1] = t1
-        slopes = PchipInterpolator(self.t, self.values, axis=0).derivative()(self.t)
+        with np.errstate(over="ignore", divide="ignore", invalid="ignore"):  # subnormal steps: slope 0
+            slopes = PchipInterpolator(self.t, self.values, axis=0).derivative()(self.t)
         slopes[0] = 0.0
         slopes[-1] = 0.0
         spline = CubicHermiteSpline(self.t, self.values, slopes, axis=0)

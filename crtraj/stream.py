@@ -495,13 +495,13 @@ class Streamer:
         stamps, values = path.sample(self.options.rate)
         v = self._gate.check_path(values, stamps, start=here)
         if v is not None:
-            msg = self._refusal_text(v, stamps, values, here)
+            msg = self._refusal_text(v, path, values, here)
             self._event("refused", msg)
             return self.close(status="refused", message=msg)
         self.send_path(stamps, values)
         self.finish()
         try:
-            self._run_loop(stop_when_latched=True)
+            self.run()
         except KeyboardInterrupt:
             with self._lock:
                 self._latch("interrupted (Ctrl-C)", self._clock())
@@ -509,26 +509,51 @@ class Streamer:
             return self.close(status="interrupted", message="interrupted (Ctrl-C): hold commanded")
         return self.close()
 
-    def _refusal_text(self, v: Violation, stamps: np.ndarray, values: np.ndarray, here: np.ndarray) -> str:
+    def _refusal_text(self, v: Violation, path: SetpointPath, values: np.ndarray, here: np.ndarray) -> str:
         msg = f"refused before sending: {v.message()}"
-        if v.index == 0 and v.quantity in ("velocity", "acceleration"):
-            d = np.abs(values[0] - here)
-            i = int(np.argmax(d / np.maximum(self.actuators.amax, 1e-12)))
-            msg += (
+        if v.quantity not in ("velocity", "acceleration"):
+            return msg
+        d = np.abs(values[0] - here)
+        if np.any(d > self.actuators.amax * self._dt**2 * (1 + 1e-9)):
+            i = int(np.argmax(d / self.actuators.amax))
+            return msg + (
                 f"; the path starts {d[i]:.4g} {self.actuators.units[i]} ({self.actuators.names[i]}) away from "
                 "the device's position: move there first (--approach)"
             )
-        elif v.quantity in ("velocity", "acceleration") and values.shape[0] > 2:
-            V = np.diff(values, axis=0) / self._dt
-            A = np.diff(np.vstack([np.zeros((1, values.shape[1])), V]), axis=0) / self._dt
-            need = max(
-                float(np.max(np.abs(V) / self.actuators.vmax)),
-                math.sqrt(float(np.max(np.abs(A) / self.actuators.amax))),
-            )
-            msg += f"; the path is too fast: try --time-scale {math.ceil(need * 110) / 100:.2f}"
+        scale = self._slowest_needed(path, here)
+        if scale is not None:
+            msg += f"; the path is too fast: try --time-scale {scale:.2f}"
         return msg
 
+    def _slowest_needed(self, path: SetpointPath, here: np.ndarray) -> float | None:
+        """The smallest time scale (in steps of 5 %) whose sampled set-points pass every limit."""
+        if path.approach_start is not None:
+            return None
+        _, values = path.sample(self.options.rate)
+        V = np.diff(values, axis=0) / self._dt
+        A = np.diff(V, axis=0) / self._dt
+        # continuous-time estimate as the first guess, then check the sampled path itself
+        guess = max(
+            1.0,
+            float(np.max(np.abs(V) / self.actuators.vmax, initial=0.0)),
+            math.sqrt(float(np.max(np.abs(A) / self.actuators.amax, initial=0.0))),
+        )
+        scale = math.ceil(guess * 20) / 20
+        for _ in range(60):
+            st, va = path.scaled(scale).sample(self.options.rate)
+            if self._gate.check_path(va, st, start=here) is None:
+                return scale
+            scale = math.ceil(scale * 1.05 * 20) / 20
+        return None
+
     # ----------------------------------------------------------------- loop
+    def run(self) -> None:
+        """Run the fixed-rate loop in the calling thread (after ``start(background=False)``) until
+        the stream is done, stopped, or has held for one watchdog period after a fault."""
+        if self._thread is not None:
+            raise StreamError("run: the loop already runs in the background")
+        self._run_loop(stop_when_latched=True)
+
     def _run_loop(self, stop_when_latched: bool = False) -> None:
         dt = self._dt
         nxt = self._clock()
@@ -793,7 +818,7 @@ class Streamer:
         if self._thread is not None and threading.current_thread() is not self._thread:
             self._thread.join(2.0)
         with self._lock:
-            if self._state in (WAITING, STREAMING, SETTLING, HELD):
+            if self._state in (WAITING, STREAMING, SETTLING, HELD) and self._counts["frames"]:
                 try:
                     self._send_hold(HOLD)
                 except TransportError as exc:
@@ -806,7 +831,7 @@ class Streamer:
             msg = message or self._reason or ("completed" if self._state == DONE else "")
             tel = self._last_tel
             err = self._final_error
-            if err is None and tel is not None and self._gate.position is not None:
+            if err is None and tel is not None and self._gate.position is not None and self._counts[MOVE]:
                 err = float(np.max(np.abs(tel.positions - self._gate.position)))
             report = StreamReport(
                 status=final,
@@ -819,7 +844,7 @@ class Streamer:
                 telemetry_errors=self._counts["telemetry_errors"],
                 device={} if tel is None else tel.counters(),
                 final_error=err,
-                duration=self._clock() - self._t_start if self._t_start else 0.0,
+                duration=self._clock() - self._t_start if self._state != IDLE or self._counts["frames"] else 0.0,
                 late_ticks=self._late,
                 max_lateness=max(self._max_late, 0.0),
                 log=None if self._log.path is None else str(self._log.path),

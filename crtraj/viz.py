@@ -34,17 +34,15 @@ import sys
 import tempfile
 import threading
 import time
+import warnings
 import weakref
 import webbrowser
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import meshcat
-import meshcat.geometry as mg
 import numpy as np
 import umsgpack
-from meshcat.animation import Animation, AnimationClip, AnimationTrack
 
 from crtraj.errors import InputError
 from crtraj.fields import Table, check_array, check_float
@@ -53,9 +51,24 @@ from crtraj.fileio import atomic_write_text
 if TYPE_CHECKING:
     from crtraj.model import Model
 
+with warnings.catch_warnings():
+    # meshcat's server module installs a pyzmq < 17 event-loop shim and pyzmq warns about it
+    warnings.filterwarnings("ignore", category=DeprecationWarning, message=r"zmq\.eventloop\.ioloop")
+    import meshcat
+    import meshcat.geometry as mg
+    from meshcat.animation import Animation, AnimationClip, AnimationTrack
+    from meshcat.servers.tree import SceneTree, walk
+    from meshcat.servers.zmqserver import ZMQWebSocketBridge
+
+try:  # the C msgpack packs a long animation ~25x faster than meshcat's pure-Python umsgpack, same bytes
+    import msgpack as _msgpack
+except ImportError:  # pragma: no cover - msgpack ships with most scientific stacks
+    _msgpack = None
+
 _HOST = "127.0.0.1"  # the only interface a crtraj server listens on
 _M_PER_MM = 1e-3
 _CAMERA_FOV_DEG = 75.0  # meshcat's default perspective camera
+_RAIL_OFFSET_MM = 15.0  # the base rail is drawn beside the backbone (+y), not through it
 _ROOT = "/meshcat"  # meshcat's conventional root of user content; deleting it keeps camera and lights
 # Rotation about x by +90 deg, (w, x, y, z): takes a three.js cylinder's y axis onto z.
 _Q_Y_TO_Z = np.array([math.cos(math.pi / 4), math.sin(math.pi / 4), 0.0, 0.0])
@@ -355,14 +368,24 @@ def _scene_recorder() -> Any:
     Only its scene tree and reply are used, so the commands it keeps and the
     static HTML it builds are exactly what meshcat's own server would give.
     """
-    from meshcat.servers.tree import SceneTree
-    from meshcat.servers.zmqserver import ZMQWebSocketBridge
-
     bridge = object.__new__(ZMQWebSocketBridge)
     bridge.tree = SceneTree()
     bridge.websocket_pool = set()
     bridge.zmq_socket = _Reply()
     return bridge
+
+
+def _ext(obj: Any) -> Any:
+    if isinstance(obj, umsgpack.Ext):
+        return _msgpack.ExtType(obj.type, obj.data)
+    raise TypeError(f"cannot pack {type(obj).__name__}")
+
+
+def _packb(data: Any) -> bytes:
+    """msgpack bytes of a lowered meshcat command (identical with either encoder)."""
+    if _msgpack is None:
+        return umsgpack.packb(data)
+    return _msgpack.packb(data, default=_ext, use_bin_type=True)
 
 
 def _read_log(fh: Any) -> str:
@@ -464,7 +487,7 @@ class _Window:
 
     def send(self, command: Any) -> None:
         data = command.lower()
-        frames = [data["type"].encode("utf-8"), data["path"].encode("utf-8"), umsgpack.packb(data)]
+        frames = [data["type"].encode("utf-8"), data["path"].encode("utf-8"), _packb(data)]
         self._recorder.handle_zmq(frames)
         if self._sock is not None:
             self._request(*frames)
@@ -569,6 +592,8 @@ class Visualizer:
 
     def open(self) -> Visualizer:
         """Open the page in the default browser (needs a server)."""
+        if self.url is None:
+            raise InputError("open: this Visualizer has no server (server=False); use save_html(path)")
         self._window.open()
         return self
 
@@ -619,7 +644,11 @@ class Visualizer:
         self.animation = None
 
     def frame_camera(self, points: Any, direction: Sequence[float] = (1.0, -0.6, 0.5)) -> None:
-        """Aim the camera at the bounding box of `points` (..., 3) (mm), looking along -direction."""
+        """Aim the camera at the bounding box of `points` (..., 3) (mm), looking along -direction.
+
+        The whole drawing (meshcat path /meshcat) is shifted so that the box centre sits at
+        meshcat's origin, which is what the mouse orbits around.
+        """
         P = np.asarray(points, dtype=float).reshape(-1, 3)
         P = P[np.all(np.isfinite(P), axis=1)]
         if P.size == 0:
@@ -639,7 +668,9 @@ class Visualizer:
         need = rel @ view + np.maximum(np.abs(rel @ up) / tan_v, np.abs(rel @ right) / (tan_v * 4 / 3))
         dist = 1.08 * float(need.max())
         off = view * dist * _M_PER_MM
-        self._vis["/Cameras/default"].set_transform(_translation(center * _M_PER_MM))
+        # meshcat 0.3.2's orbit controls look at and turn about the world origin whatever the
+        # camera node's transform, so the scene root moves instead: the box centre goes to the origin
+        self._vis[_ROOT].set_transform(_translation(-center * _M_PER_MM))
         # the camera sits in meshcat's "rotated" frame (y up): world (x, y, z) is (x, z, -y) there
         self._vis["/Cameras/default/rotated/<object>"].set_property("position", [off[0], off[2], -off[1]])
         self._framed = True
@@ -666,8 +697,7 @@ class Visualizer:
         if self._robot_drawn:
             return
         o = self.options
-        disc_r = (o.disc_radius if o.disc_radius is not None else self.robot.body_radius) * _M_PER_MM
-        disc_r = max(disc_r, 1.5 * o.backbone_radius * _M_PER_MM)
+        disc_r = self._disc_radius_m()
         mats = [mg.MeshPhongMaterial(color=self._segment_color(k)) for k in range(self.robot.n_segments)]
         for i, k in enumerate(self._chord_segment):
             # unit height, stretched per frame to the chord length by the y scale
@@ -681,22 +711,32 @@ class Visualizer:
         lo, hi = self.robot.z_range
         grey = mg.MeshPhongMaterial(color=0x606060)
         if hi > lo:
-            self._node("robot/rail").set_object(mg.Cylinder((hi - lo) * _M_PER_MM, 1.5 * _M_PER_MM), grey)
-            self._node("robot/rail").set_transform(
-                _transforms(np.array([0.0, 0.0, 0.5 * (lo + hi) * _M_PER_MM]), _Q_Y_TO_Z, np.ones(3))
-            )
-        self._node("robot/base").set_object(mg.Box([4 * disc_r, 4 * disc_r, 4 * _M_PER_MM]), grey)
+            rail = mg.Cylinder((hi - lo) * _M_PER_MM, 1.5 * _M_PER_MM)
+            self._node("robot/rail").set_object(rail, grey)
+            mid = np.array([0.0, _RAIL_OFFSET_MM, 0.5 * (lo + hi)]) * _M_PER_MM
+            self._node("robot/rail").set_transform(_transforms(mid, _Q_Y_TO_Z, np.ones(3)))
+        # the carriage: from the rail to just past the first disc
+        width = _RAIL_OFFSET_MM + 2.0 + disc_r / _M_PER_MM + 1.0
+        size = np.array([2 * disc_r / _M_PER_MM + 2.0, width, 4.0]) * _M_PER_MM
+        self._node("robot/base").set_object(mg.Box(size.tolist()), grey)
         self._robot_drawn = True
 
     def _rail_ends(self) -> np.ndarray:
         """Ends of the base rail (mm): the stroke of the base translation z."""
         lo, hi = self.robot.z_range
-        return np.array([[0.0, 0.0, lo], [0.0, 0.0, hi]])
+        return np.array([[0.0, _RAIL_OFFSET_MM, lo], [0.0, _RAIL_OFFSET_MM, hi]])
 
     def _base_position(self, z_mm: np.ndarray) -> np.ndarray:
-        """Centre of the base block (metres) below the first disc, for base translations z (mm)."""
-        z = np.asarray(z_mm, dtype=float) * _M_PER_MM - 0.5 * self.options.disc_thickness * _M_PER_MM - 2 * _M_PER_MM
-        return np.stack([np.zeros_like(z), np.zeros_like(z), z], axis=-1)
+        """Centre of the carriage (metres) below the first disc, for base translations z (mm)."""
+        disc_r = self._disc_radius_m() / _M_PER_MM
+        y = 0.5 * ((_RAIL_OFFSET_MM + 2.0) - (disc_r + 1.0))
+        z = np.asarray(z_mm, dtype=float) - 0.5 * self.options.disc_thickness - 2.0
+        return np.stack([np.zeros_like(z), np.full_like(z, y), z], axis=-1) * _M_PER_MM
+
+    def _disc_radius_m(self) -> float:
+        o = self.options
+        r = o.disc_radius if o.disc_radius is not None else self.robot.body_radius
+        return max(r, 1.5 * o.backbone_radius) * _M_PER_MM
 
     def display(self, x: Any) -> None:
         """Draw the robot at configuration x (nx,): bending vectors (rad) then z (mm)."""
@@ -902,8 +942,6 @@ class Visualizer:
 
     def scene_commands(self) -> list[dict[str, Any]]:
         """The decoded meshcat commands that make up the scene, in the order a page replays them."""
-        from meshcat.servers.tree import walk
-
         out = []
         for node in walk(self._window.tree()):
             blobs = [node.object, *node.properties, node.transform, node.animation]
@@ -935,7 +973,6 @@ def _exit_when_parent_goes() -> None:
 
 def _serve() -> None:
     """Entry point of the server child: meshcat's bridge, every socket on 127.0.0.1."""
-    from meshcat.servers.zmqserver import ZMQWebSocketBridge
 
     class _LoopbackBridge(ZMQWebSocketBridge):
         def make_app(self) -> Any:

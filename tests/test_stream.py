@@ -1,0 +1,474 @@
+"""Streamer: end to end against the simulated device, faults, watchdog, e-stop, limits, bad input, CLI."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from crtraj.cli import main
+from crtraj.device import Faults, SimDevice
+from crtraj.errors import InputError
+from crtraj.fields import Table
+from crtraj.fileio import atomic_write_json, to_jsonable
+from crtraj.protocol import ESTOP, HOLD, MOVE, Frame, read_stream_file
+from crtraj.setpoints import SetpointPath
+from crtraj.stream import Streamer, StreamError, StreamOptions
+from crtraj.transport import Transport
+
+pytestmark = pytest.mark.timeout(120)
+ROOT = Path(__file__).resolve().parent.parent
+ROBOT_FILE = ROOT / "problems" / "robots" / "cdsr2.toml"
+
+
+# ------------------------------------------------------------------ helpers
+@pytest.fixture(scope="module")
+def acts(robot):
+    return robot.actuators.for_robot(robot)
+
+
+def make_result(robot, model, x1, duration, n=11, z0=0.0):
+    """A result file dict (the common format) for a smooth configuration path from the straight pose at z0."""
+    x0 = robot.straight(z0)
+    s = np.linspace(0.0, 1.0, n)
+    X = x0 + (np.asarray(x1) - x0) * (0.5 - 0.5 * np.cos(np.pi * s))[:, None]
+    assert np.all(robot.limit_violation(X) <= 0)
+    Q, P, B = model.cables(X), model.tip_position(X), model.points(X)
+    wps = [
+        {"t": float(duration * si), "tip": P[k], "x": X[k], "q": Q[k], "backbone": B[k], "obstacles": {}}
+        for k, si in enumerate(s)
+    ]
+    return to_jsonable({"kind": "plan", "robot": robot.to_dict(), "status": "success", "waypoints": wps})
+
+
+X1 = np.array([0.3, -0.2, 0.1, 0.4, -8.0])
+
+
+@pytest.fixture(scope="module")
+def result(robot, model):
+    return make_result(robot, model, X1, 1.5)
+
+
+def tx_frames(log: Path) -> list[dict]:
+    return [r for r in map(json.loads, log.read_text().splitlines()) if r["type"] == "tx" and r["kind"] != "ping"]
+
+
+def events(rep) -> dict[str, float]:
+    out: dict[str, float] = {}
+    for wall, name, _ in rep.events:
+        out.setdefault(name, wall)
+    return out
+
+
+def assert_applied_frames_are_sent_frames(dev: SimDevice, log: Path) -> list[dict]:
+    sent = {r["seq"]: r for r in tx_frames(log)}
+    seqs = [a.seq for a in dev.applied]
+    assert seqs == sorted(seqs) and len(set(seqs)) == len(seqs), "device applied frames out of order"
+    for a in dev.applied:
+        r = sent[a.seq]
+        assert (Frame(a.kind, 0, 0, a.values).kind_name, a.stamp) == (r["kind"], r["stamp"])
+        np.testing.assert_array_equal(a.values, r["values"])
+    return list(sent.values())
+
+
+# ------------------------------------------------------------ end to end
+def test_streamed_trajectory_arrives_in_order_and_device_ends_at_final_setpoint(acts, result, tmp_path):
+    log = tmp_path / "run.jsonl"
+    path = SetpointPath.from_result(result, acts)
+    with SimDevice(acts) as dev:
+        rep = Streamer.open(dev.url, acts, log=log).run_path(path)
+        time.sleep(0.2)
+        final = dev.state()["positions"]
+    assert rep.ok, rep.message
+    sent = assert_applied_frames_are_sent_frames(dev, log)
+    moves = [r for r in sent if r["kind"] == "move"]
+    assert len(moves) == 151 and rep.moves == 151  # 1.5 s at 100 Hz, both ends included
+    assert [r["stamp"] for r in moves] == pytest.approx(np.linspace(0.0, 1.5, 151), abs=1e-12)
+    # loopback UDP without faults loses nothing
+    assert sum(a.kind == MOVE for a in dev.applied) == 151
+    goal = acts.command(np.asarray(result["waypoints"][-1]["q"]))
+    np.testing.assert_allclose(moves[-1]["values"], goal, atol=1e-12)
+    np.testing.assert_allclose(final, goal, atol=1e-3)
+    # the interpolated set-points pass through every waypoint (time stamps on the 10 ms grid)
+    for w in result["waypoints"]:
+        k = round(w["t"] * 100)
+        np.testing.assert_allclose(moves[k]["values"], acts.command(np.asarray(w["q"])), atol=1e-9)
+    # the record is complete JSON lines: header first, report last
+    lines = [json.loads(x) for x in log.read_text().splitlines()]
+    assert lines[0]["type"] == "header" and lines[-1]["type"] == "report" and lines[-1]["status"] == "done"
+    assert sum(r["type"] == "rx" for r in lines) == rep.telemetry > 50
+
+
+def test_lossy_corrupting_link_keeps_streaming_and_never_applies_a_damaged_frame(acts, result, tmp_path):
+    log = tmp_path / "run.jsonl"
+    path = SetpointPath.from_result(result, acts)
+    with SimDevice(acts, faults=Faults(drop=0.1, corrupt=0.05), seed=7) as dev:
+        rep = Streamer.open(dev.url, acts, log=log).run_path(path)
+        time.sleep(0.2)
+        st = dev.state()
+    assert rep.ok, rep.message
+    assert st["dropped_in"] > 5 and st["corrupted_in"] > 2 and st["crc_errors"] == st["corrupted_in"]
+    assert st["dropped_out"] > 5 and rep.telemetry_errors > 0  # telemetry was damaged too, and rejected
+    assert st["refused"] == 0
+    assert_applied_frames_are_sent_frames(dev, log)
+    goal = acts.command(np.asarray(result["waypoints"][-1]["q"]))
+    np.testing.assert_allclose(st["positions"], goal, atol=1e-3)
+
+
+# --------------------------------------------------------------- watchdog
+def test_stalled_source_holds_within_the_watchdog_time(acts, tmp_path):
+    log = tmp_path / "run.jsonl"
+    opts = StreamOptions(watchdog=0.1, prebuffer=0.05)
+    with SimDevice(acts) as dev:
+        s = Streamer.open(dev.url, acts, opts, log=log)
+        s.start()
+        p0 = s.position
+        t0 = time.monotonic()
+        for k in range(30):  # a live source at 100 Hz for 0.3 s, then it stalls
+            s.send_values(0.01 * k, p0 + 1e-4 * (1 - np.cos(np.pi * k / 29)))
+            time.sleep(max(0.0, t0 + 0.01 * (k + 1) - time.monotonic()))
+        time.sleep(0.5)
+        assert s.state == "held" and s.reason.startswith("source stalled")
+        with pytest.raises(StreamError, match="held"):
+            s.send_values(1.0, p0)
+        # resume: a new sequence from the hold position streams again
+        s.resume()
+        here = s.position
+        s.send_path(np.arange(5) * 0.01 + 2.0, np.tile(here, (5, 1)))
+        s.finish()
+        assert s.wait(5.0)
+        rep = s.close()
+    ev = events(rep)
+    assert rep.status == "done"
+    assert ev["stalled"] - ev["underrun"] >= 0.1 - 1e-9
+    assert ev["stalled"] - ev["underrun"] <= 0.1 + 0.1  # one watchdog period + generous scheduling margin
+    kinds = [r["kind"] for r in tx_frames(log)]
+    first_hold_after_moves = kinds.index("hold", kinds.index("move"))
+    assert set(kinds[first_hold_after_moves : first_hold_after_moves + 5]) == {"hold"}
+
+
+def test_silent_device_triggers_hold_within_the_watchdog_time(acts, result, tmp_path):
+    log = tmp_path / "run.jsonl"
+    path = SetpointPath.from_result(result, acts)
+    with SimDevice(acts, faults=Faults(disconnect_after=0.5, disconnect_for=30.0)) as dev:
+        rep = Streamer.open(dev.url, acts, log=log).run_path(path)
+    assert rep.status == "telemetry-lost", rep.message
+    lines = [json.loads(x) for x in log.read_text().splitlines()]
+    last_rx = max(r["wall"] for r in lines if r["type"] == "rx")
+    lost = next(r["wall"] for r in lines if r["type"] == "event" and r["event"] == "telemetry-lost")
+    assert 0.1 - 1e-9 <= lost - last_rx <= 0.1 + 0.1
+    after = [r["kind"] for r in lines if r["type"] == "tx" and r["wall"] >= lost]
+    assert after and set(after) == {"hold"}
+
+
+def test_estop_stops_at_once_and_latches(acts, result, tmp_path):
+    log = tmp_path / "run.jsonl"
+    path = SetpointPath.from_result(result, acts)
+    with SimDevice(acts) as dev:
+        s = Streamer.open(dev.url, acts, log=log)
+        timer = threading.Timer(0.5, s.estop)
+        timer.start()
+        rep = s.run_path(path)
+        timer.join()
+        time.sleep(0.05)
+        st = dev.state()
+    assert rep.status == "estop" and rep.estops >= 1
+    kinds = [r["kind"] for r in tx_frames(log)]
+    k = kinds.index("estop")
+    assert set(kinds[k:]) == {"estop"} and 20 < k < 140
+    assert st["status"] & 2  # STATUS_ESTOP
+    assert [a.kind for a in dev.applied][-1] == ESTOP
+
+
+def test_transport_errors_stop_and_report(acts, result, tmp_path):
+    path = SetpointPath.from_result(result, acts)
+    # nothing listens: ICMP port unreachable surfaces as a transport error
+    probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    probe.bind(("127.0.0.1", 0))
+    port = probe.getsockname()[1]
+    probe.close()
+    rep = Streamer.open(f"udp://127.0.0.1:{port}", acts).run_path(path)
+    assert rep.status == "error" and rep.moves == 0
+    assert "transport error" in rep.message or "no telemetry" in rep.message
+    # the device vanishes mid-stream
+    log = tmp_path / "run.jsonl"
+    dev = SimDevice(acts).start()
+    timer = threading.Timer(0.5, dev.stop)
+    timer.start()
+    rep = Streamer.open(dev.url, acts, log=log).run_path(path)
+    timer.join()
+    assert rep.status in ("error", "telemetry-lost"), rep.message
+    assert 20 < rep.moves < 151
+
+
+def test_device_with_stricter_limits_refusal_is_reported(robot, acts, result, tmp_path):
+    d = robot.to_dict()
+    d["actuators"]["servo"]["s2c2"]["position_limits"] = [-0.01, 0.01]
+    strict = type(robot).from_table(Table(d, "robot")).actuators.for_robot(robot)
+    path = SetpointPath.from_result(result, acts)
+    with SimDevice(strict) as dev:
+        rep = Streamer.open(dev.url, acts).run_path(path)
+    assert rep.status == "refused" and "device refused" in rep.message
+
+
+# ------------------------------------------------------- limits, refusal
+def test_too_fast_path_is_refused_before_anything_is_sent(robot, model, acts, tmp_path):
+    fast = make_result(robot, model, X1, 0.3)
+    path = SetpointPath.from_result(fast, acts)
+    dry = tmp_path / "frames.bin"
+    rep = Streamer.open(f"file://{dry}", acts).run_path(path)
+    assert rep.status == "refused" and rep.frames == 0
+    assert "refused before sending: z " in rep.message and "exceeds limit" in rep.message
+    scale = float(rep.message.split("--time-scale ")[1])
+    rep2 = Streamer.open(f"file://{dry}", acts).run_path(path.scaled(scale))
+    assert rep2.ok, rep2.message
+    assert dry.stat().st_size > 0
+
+
+def test_path_away_from_the_device_needs_an_approach(robot, model, acts, tmp_path):
+    res = make_result(robot, model, X1, 1.0, z0=-5.0)  # starts 5 mm below the device's z = 0
+    path = SetpointPath.from_result(res, acts)
+    with SimDevice(acts) as dev:
+        rep = Streamer.open(dev.url, acts).run_path(path)
+        assert rep.status == "refused" and "--approach" in rep.message and rep.moves == 0
+        rep = Streamer.open(dev.url, acts).run_path(path, approach=True)
+        time.sleep(0.2)
+        final = dev.state()["positions"]
+    assert rep.ok, rep.message
+    np.testing.assert_allclose(final, acts.command(np.asarray(res["waypoints"][-1]["q"])), atol=1e-3)
+
+
+class _Capture(Transport):
+    has_telemetry = False
+    description = "capture"
+
+    def __init__(self) -> None:
+        self.frames: list[Frame] = []
+
+    def send(self, frame: bytes) -> None:
+        self.frames.append(Frame.decode(frame))
+
+    def receive(self) -> list[bytes]:
+        return []
+
+
+class _Clock:
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+    def sleep(self, s: float) -> None:
+        self.now += max(s, 0.0)
+
+
+def _check_frames(frames, acts, start, dt):
+    """Independent re-computation of every limit over the frames that left."""
+    tol = 1e-9
+    prev, vprev = np.asarray(start, dtype=float), np.zeros(acts.n)
+    for f in frames:
+        p = f.values
+        assert np.all(p >= acts.lower - tol * np.maximum(np.abs(acts.lower), 1))
+        assert np.all(p <= acts.upper + tol * np.maximum(np.abs(acts.upper), 1))
+        if f.kind == MOVE:
+            v = (p - prev) / dt
+            a = (v - vprev) / dt
+            assert np.all(np.abs(v) <= acts.vmax * (1 + tol)), (f.seq, v)
+            assert np.all(np.abs(a) <= acts.amax * (1 + tol)), (f.seq, a)
+            vprev = v
+        else:
+            np.testing.assert_array_equal(p, prev)
+            vprev = np.zeros(acts.n)
+        prev = p
+
+
+steps = st.lists(
+    st.lists(st.floats(-1.0, 1.0), min_size=7, max_size=7),
+    min_size=2,
+    max_size=25,
+)
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(
+    steps=steps,
+    gaps=st.lists(st.floats(0.001, 0.6), min_size=25, max_size=25),
+    scale=st.sampled_from([0.001, 0.02, 0.3, 3.0]),
+    start=st.lists(st.floats(-2.5, 2.5), min_size=7, max_size=7),
+)
+def test_no_frame_ever_leaves_outside_its_limits(acts, steps, gaps, scale, start):
+    """Whatever the set-points (random walks of any speed, even outside the limits), every frame that
+    leaves respects position, velocity and acceleration limits; refused set-points stop the motion."""
+    start_v = np.clip(np.array(start) * np.r_[[1.0] * 6, [40.0]], acts.lower, acts.upper)
+    vals = start_v + scale * np.cumsum(np.array(steps) * np.r_[[1.0] * 6, [40.0]], axis=0)
+    stamps = np.cumsum(gaps[: len(steps)])
+    dt = 0.01
+    # live source: no preflight, the runtime gate alone
+    cap, clock = _Capture(), _Clock()
+    s = Streamer(cap, acts, StreamOptions(), None, clock=clock, sleep=clock.sleep)
+    s.start(start_v, background=False)
+    s.send_path(stamps, vals)
+    s.finish()
+    s.run()
+    rep = s.close()
+    assert rep.status in ("done", "refused")
+    _check_frames(cap.frames, acts, start_v, dt)
+    # whole path: preflight refuses (nothing sent) or every frame is within limits
+    cap2 = _Capture()
+    path = SetpointPath(np.r_[0.0, stamps], np.vstack([start_v, vals]))
+    rep2 = Streamer(cap2, acts, StreamOptions()).run_path(path)
+    assert rep2.status in ("done", "refused")
+    if rep2.status == "refused":
+        assert cap2.frames == []
+    _check_frames(cap2.frames, acts, start_v, dt)
+
+
+# -------------------------------------------------------------- bad input
+def _write(tmp_path, res, name="r.json"):
+    p = tmp_path / name
+    atomic_write_json(p, res)
+    return str(p)
+
+
+def _run_cli(argv, capsys):
+    code = main(argv)
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+@pytest.mark.parametrize(
+    ("mutate", "message"),
+    [
+        (lambda r: r["waypoints"][3]["q"].__setitem__(2, None), "waypoints[3].q[2] (s1c3): must be finite"),
+        (lambda r: r["waypoints"][4].__setitem__("t", 0.1), "waypoints[4].t: time must increase strictly"),
+        (lambda r: r["waypoints"][0]["q"].pop(), "waypoints[0].q: expected 7 values (s1c1, s1c2"),
+        (lambda r: r["waypoints"][1].pop("t"), "waypoints[1]: needs 't' (s) and 'q'"),
+        (lambda r: r.__setitem__("waypoints", []), "waypoints: missing or empty"),
+        (lambda r: r["robot"].pop("actuators"), "robot.actuators: the result's robot has no [robot.actuators]"),
+    ],
+)
+def test_bad_results_give_one_line_errors(result, tmp_path, capsys, mutate, message):
+    res = json.loads(json.dumps(result))
+    mutate(res)
+    code, _, err = _run_cli(["stream", _write(tmp_path, res), "--dry-run", str(tmp_path / "f.bin")], capsys)
+    assert code == 2
+    assert message in err
+    assert err.count("\n") == 1
+
+
+def test_unknown_actuator_in_robot_file(result, tmp_path, capsys):
+    text = ROBOT_FILE.read_text() + "\n[robot.actuators.servo.s3c1]\nsign = -1\n"
+    bad = tmp_path / "bad.toml"
+    bad.write_text(text)
+    code, _, err = _run_cli(
+        ["stream", _write(tmp_path, result), "--dry-run", str(tmp_path / "f.bin"), "--robot", str(bad)], capsys
+    )
+    assert code == 2 and "robot.actuators.servo.s3c1: unknown actuator (known: s1c1" in err
+
+
+def test_bad_live_setpoints(acts):
+    cap = _Capture()
+    s = Streamer(cap, acts, StreamOptions())
+    with pytest.raises(StreamError, match="not started"):
+        s.send_values(0.0, np.zeros(7))
+    s.start(np.zeros(7), background=False)
+    s.send_values(0.0, np.zeros(7))
+    with pytest.raises(InputError, match=r"t: set-point times must increase \(got 0 s after 0 s\)"):
+        s.send_values(0.0, np.zeros(7))
+    with pytest.raises(InputError, match="s1c2: must be finite, got nan"):
+        s.send_values(1.0, [0, np.nan, 0, 0, 0, 0, 0])
+    with pytest.raises(InputError, match=r"values: expected 7 \(s1c1"):
+        s.send_values(1.0, np.zeros(6))
+    with pytest.raises(InputError, match="t: must be finite"):
+        s.send_values(float("nan"), np.zeros(7))
+    with pytest.raises(InputError, match=r"q: expected shape \(N, 7\)"):
+        s.send_setpoint(1.0, np.zeros(5))
+    s.finish()
+    with pytest.raises(StreamError, match="finish"):
+        s.send_values(2.0, np.zeros(7))
+    s.close()
+
+
+def test_stream_options_from_table():
+    o = StreamOptions.from_table(Table({"rate": 200, "watchdog": 0.05}, "stream"))
+    assert (o.rate, o.watchdog, o.dt) == (200.0, 0.05, 0.005)
+    with pytest.raises(InputError, match=r"stream\.rte: unknown key"):
+        StreamOptions.from_table(Table({"rte": 1}, "stream"))
+    with pytest.raises(InputError, match=r"stream\.watchdog: must be > 0"):
+        StreamOptions.from_table(Table({"watchdog": 0}, "stream"))
+
+
+# -------------------------------------------------------------------- CLI
+def test_cli_dry_run_writes_the_frames_and_the_log(result, tmp_path, capsys, acts):
+    frames, log = tmp_path / "frames.bin", tmp_path / "run.jsonl"
+    res = _write(tmp_path, result)
+    code, out, _ = _run_cli(["stream", res, "--dry-run", str(frames), "--log", str(log), "--rate", "50"], capsys)
+    assert code == 0, out
+    assert out.startswith(f"streaming {res} (11 waypoints, 1.50 s, ~76 set-points at 50 Hz)")
+    decoded = read_stream_file(frames.read_bytes())
+    moves = [f for f in decoded if f.kind == MOVE]
+    assert len(moves) == 76 and decoded[-1].kind == HOLD
+    assert [f.seq for f in decoded] == list(range(1, len(decoded) + 1))
+    assert [r["seq"] for r in tx_frames(log)] == [f.seq for f in decoded]
+    np.testing.assert_allclose(moves[-1].values, acts.command(np.asarray(result["waypoints"][-1]["q"])))
+
+
+def test_cli_streams_to_sim_device_subprocess(result, tmp_path, capsys):
+    cmd = [sys.executable, "-m", "crtraj.cli", "sim-device", "--udp", "127.0.0.1:0", "--duration", "20"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True, cwd=ROOT)
+    try:
+        line = proc.stdout.readline()
+        assert line.startswith("sim-device listening on udp://127.0.0.1:")
+        addr = line.split("udp://")[1].split()[0]
+        log = tmp_path / "run.jsonl"
+        code, out, _ = _run_cli(["stream", _write(tmp_path, result), "--udp", addr, "--log", str(log)], capsys)
+        assert code == 0, out
+        assert out.splitlines()[1] == "done: completed"
+        # crash safety: kill a streaming CLI mid-run; the record holds complete lines up to the kill
+        log2 = tmp_path / "killed.jsonl"
+        slow = _write(tmp_path, result, "slow.json")
+        sp = subprocess.Popen(
+            # the device now stands at the path's end: --approach brings it back to the start first
+            [
+                sys.executable,
+                "-m",
+                "crtraj.cli",
+                "stream",
+                slow,
+                "--udp",
+                addr,
+                "--log",
+                str(log2),
+                "--time-scale",
+                "10",
+                "--approach",
+            ],
+            cwd=ROOT,
+            stdout=subprocess.DEVNULL,
+        )
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and (not log2.exists() or log2.read_text().count('"kind":"move"') < 30):
+            assert sp.poll() is None, "the streaming CLI ended early"
+            time.sleep(0.05)
+        os.kill(sp.pid, signal.SIGKILL)
+        sp.wait()
+        lines = log2.read_text().splitlines()
+        complete = [json.loads(x) for x in lines[:-1]]
+        assert sum(r.get("kind") == "move" for r in complete) >= 29
+        assert not any(r["type"] == "report" for r in complete)
+    finally:
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=10)
+    assert "sim-device stopped: received" in out

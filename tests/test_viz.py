@@ -1,0 +1,592 @@
+"""crtraj.viz and `crtraj view`: scene content, one key frame per waypoint, standalone HTML,
+the 127.0.0.1-only server, and rendering in a real (headless Chromium) browser."""
+
+from __future__ import annotations
+
+import base64
+import json
+import os
+import queue
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+import urllib.error
+import urllib.request
+from pathlib import Path
+
+import matplotlib.image as mpimg
+import numpy as np
+import pytest
+import umsgpack
+from matplotlib.colors import rgb_to_hsv
+from scipy.optimize import least_squares
+
+from crtraj.cli import main
+from crtraj.errors import InputError
+from crtraj.fields import Table
+from crtraj.fileio import atomic_write_json, to_jsonable
+from crtraj.viz import ViewOptions, Visualizer, _cylinder_quat
+
+# paper simulation 1 / 2: start, goal and the two spheres (mm)
+START = np.array([-50.0, 100.0, 390.0])
+GOAL = np.array([10.0, -120.0, 170.0])
+CENTERS = np.array([[0.0, 90.0, 330.0], [-10.0, -70.0, 250.0]])
+N_WAYPOINTS = 21
+
+
+def _ik(model, target, x0):
+    """Configuration whose tip is at `target` (mm), by least squares on the model's tip and Jacobian."""
+    lo, hi = model.robot.config_box()
+    sol = least_squares(
+        lambda x: model.tip_position(x) - target, x0, jac=lambda x: model.jacobian(x), bounds=(lo, hi), xtol=1e-12
+    )
+    assert np.linalg.norm(model.tip_position(sol.x) - target) < 1e-3
+    return sol.x
+
+
+def make_result(model, n=N_WAYPOINTS, kind="replan", obstacles=True, duration=10.0):
+    """A result dict in the common format: straight-line interpolation between IK solutions for the
+    paper's start and goal, two spheres whose centres drift and radii breathe (paper sim. 2)."""
+    x0 = _ik(model, START, np.array([0.3, 0.3, 0.0, 0.0, 0.0]))
+    x1 = _ik(model, GOAL, np.array([-0.3, -0.3, 0.0, 0.0, -100.0]))
+    s = np.linspace(0.0, 1.0, n)
+    X = x0 + s[:, None] * (x1 - x0)
+    t = np.linspace(0.0, duration, n) + 0.5  # does not start at 0: the animation must shift it
+    tips = model.tip_position(X)
+    drift = np.stack([8 * np.sin(0.5 * t), 6 * np.cos(0.3 * t), np.zeros(n)], axis=-1)
+    centers = CENTERS[None] + drift[:, None, :] * np.array([1.0, -1.0])[None, :, None]
+    radii = np.stack([60 + 10 * np.sin(0.7 * t), 45 + 15 * np.cos(0.4 * t)], axis=-1)
+    rng = np.random.default_rng(3)
+    a = rng.uniform([-150, -150, 150], [150, 150, 420], (30, 3))
+    edges = np.stack([a, a + rng.normal(0.0, 20.0, (30, 3))], axis=1)
+    waypoints = []
+    for i in range(n):
+        w = {"t": t[i], "tip": tips[i], "x": X[i], "q": model.cables(X[i]), "backbone": model.points(X[i])}
+        if obstacles:
+            w["obstacles"] = {"centers": centers[i], "radii": radii[i]}
+        waypoints.append(w)
+    result = {
+        "kind": kind,
+        "crtraj_version": "test",
+        "problem": {"name": "synthetic_sim1", "path": None, "seed": 0},
+        "robot": model.robot.to_dict(),
+        "scene": {"safety_distance": 5.0, "workspace": {"lo": [-150, -150, 0], "hi": [150, 150, 500]}},
+        "task": {"start": START, "goal": GOAL, "goal_tolerance": 0.5},
+        "status": "success",
+        "success": True,
+        "message": "",
+        "waypoints": waypoints,
+        "tree": {"edges": edges},
+        "reference": {"tip": tips + np.array([0.0, 0.0, 3.0])},
+    }
+    return json.loads(json.dumps(to_jsonable(result)))  # exactly what a result file holds
+
+
+@pytest.fixture(scope="module")
+def result(model):
+    return make_result(model)
+
+
+@pytest.fixture(scope="module")
+def shown(result):
+    """An offline Visualizer with the result drawn (animation paused at the first waypoint)."""
+    vis = Visualizer.for_result(result, play=False)
+    yield vis
+    vis.close()
+
+
+def _objects(vis):
+    """path -> decoded set_object command."""
+    return {c["path"]: c for c in vis.scene_commands() if c["type"] == "set_object"}
+
+
+def _last_transforms(vis):
+    """path -> 4x4 matrix of the last set_transform (meshcat sends column-major lists)."""
+    return {
+        c["path"]: np.array(c["matrix"]).reshape(4, 4).T for c in vis.scene_commands() if c["type"] == "set_transform"
+    }
+
+
+def _animation(vis):
+    anims = [c for c in vis.scene_commands() if c["type"] == "set_animation"]
+    assert len(anims) == 1
+    return {a["path"]: {t["name"]: t for t in a["clip"]["tracks"]} for a in anims[0]["animations"]}, anims[0]
+
+
+def _html_commands(html):
+    """The meshcat commands a static page replays, decoded from its data: URLs."""
+    blobs = re.findall(r'fetch\("data:application/octet-binary;base64,([A-Za-z0-9+/=]+)"\)', html)
+    return [umsgpack.unpackb(base64.b64decode(b)) for b in blobs]
+
+
+def _keys(track):
+    times = np.array([k["time"] for k in track["keys"]])
+    values = np.array([k["value"] for k in track["keys"]])
+    return times, values
+
+
+def _rotate(q_xyzw, v):
+    """Rotate v by three.js quaternions (..., 4) in x, y, z, w order."""
+    q = np.asarray(q_xyzw)
+    u, w = q[..., :3], q[..., 3:]
+    return v + 2 * np.cross(u, np.cross(u, v) + w * v)
+
+
+# ---------------------------------------------------------------- options
+def test_view_options_read_from_table_and_reject_bad_values():
+    o = ViewOptions.from_table(Table({"disc_spacing": 10.0, "segment_colors": ["#ff0000"], "play": False}, "view"))
+    assert o.disc_spacing == 10.0 and o.segment_colors == ("#ff0000",) and o.play is False
+    with pytest.raises(InputError, match=r"^view\.segment_colors\[0\]: expected a colour"):
+        ViewOptions.from_table(Table({"segment_colors": ["red"]}, "view"))
+    with pytest.raises(InputError, match=r"^view\.obstacle_opacity: must be <= 1"):
+        ViewOptions.from_table(Table({"obstacle_opacity": 1.5}, "view"))
+    with pytest.raises(InputError, match=r"^view\.disc_spcing: unknown key"):
+        ViewOptions.from_table(Table({"disc_spcing": 1.0}, "view"))
+
+
+def test_cylinder_quaternion_turns_y_axis_onto_direction():
+    rng = np.random.default_rng(0)
+    v = rng.normal(size=(200, 3))
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    v = np.vstack([v, [[0, 0, 1.0], [0, 0, -1.0], [0, -1.0, 0], [1.0, 0, 0]]])  # incl. the singular -z
+    q = _cylinder_quat(v)  # w, x, y, z
+    np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=1e-12)
+    np.testing.assert_allclose(_rotate(q[:, [1, 2, 3, 0]], np.array([0.0, 1.0, 0.0])), v, atol=1e-12)
+
+
+# ------------------------------------------------------------------ scene
+def test_scene_holds_every_named_object(shown, model, result):
+    objs = _objects(shown)
+    n_chords = 20  # 400 mm of backbone, a disc at least every 20 mm
+    backbone = sorted(p for p in objs if p.startswith("/meshcat/robot/backbone/"))
+    discs = sorted(p for p in objs if p.startswith("/meshcat/robot/discs/"))
+    assert len(backbone) == n_chords and len(discs) == n_chords + 1
+    for p in [
+        "/meshcat/robot/base",
+        "/meshcat/robot/rail",
+        "/meshcat/obstacles/0",
+        "/meshcat/obstacles/1",
+        "/meshcat/markers/start",
+        "/meshcat/markers/goal",
+        "/meshcat/path/planned/line",
+        "/meshcat/path/planned/dots",
+        "/meshcat/path/executed/line",
+        "/meshcat/tree",
+        "/meshcat/workspace",
+        "/meshcat/floor",
+    ]:
+        assert p in objs, p
+
+    def geom(path):
+        return objs[path]["object"]["geometries"][0]
+
+    def mat(path):
+        return objs[path]["object"]["materials"][0]
+
+    # discs are the paper's 6 mm wide (robot.body_radius 3 mm), sent in metres
+    assert geom(discs[0])["type"] == "CylinderGeometry"
+    assert geom(discs[0])["radiusTop"] == pytest.approx(model.robot.body_radius * 1e-3)
+    # one colour per segment: the first 10 chords are segment 1, the last 10 segment 2
+    colors = [mat(p)["color"] for p in backbone]
+    assert colors[:10] == [0x1F77B4] * 10 and colors[10:] == [0x2CA02C] * 10
+    assert mat(discs[0])["color"] == 0x1F77B4 and mat(discs[-1])["color"] == 0x2CA02C
+    # translucent unit spheres, scaled to the radius per frame
+    assert geom("/meshcat/obstacles/0") == {**geom("/meshcat/obstacles/0"), "type": "SphereGeometry", "radius": 1.0}
+    assert mat("/meshcat/obstacles/0")["transparent"] and mat("/meshcat/obstacles/0")["opacity"] < 1
+    # the tree holds both ends of every edge (float32, metres)
+    tree = objs["/meshcat/tree"]["object"]["geometries"][0]["data"]["attributes"]["position"]
+    pts = np.frombuffer(tree["array"].data, dtype=np.float32).reshape(-1, 3)
+    np.testing.assert_allclose(pts, np.asarray(result["tree"]["edges"]).reshape(-1, 3) * 1e-3, atol=1e-6)
+    # markers at the task's start and goal
+    T = _last_transforms(shown)
+    np.testing.assert_allclose(T["/meshcat/markers/start"][:3, 3], START * 1e-3, atol=1e-12)
+    np.testing.assert_allclose(T["/meshcat/markers/goal"][:3, 3], GOAL * 1e-3, atol=1e-12)
+
+
+def test_camera_frames_every_object(shown, result):
+    """Every start/goal marker, obstacle extreme and workspace corner lies inside the camera's
+    view cone (75 deg vertical, 4:3), looking at meshcat's origin, where the scene centre is moved."""
+    cmds = shown.scene_commands()
+    shift = _last_transforms(shown)["/meshcat"]
+    cam = [c for c in cmds if c["path"] == "/Cameras/default/rotated/<object>" and c["type"] == "set_property"]
+    a, b, c = cam[-1]["value"]
+    eye = np.array([a, -c, b])  # meshcat's "rotated" camera frame: local (a, b, c) is world (a, -c, b)
+    fwd = -eye / np.linalg.norm(eye)
+    right = np.cross(fwd, [0, 0, 1.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, fwd)
+    pts = [START, GOAL]
+    for w in result["waypoints"]:
+        for ctr, r in zip(w["obstacles"]["centers"], w["obstacles"]["radii"], strict=True):
+            pts += [np.array(ctr) + r * e for e in np.vstack([np.eye(3), -np.eye(3)])]
+    ws = result["scene"]["workspace"]
+    pts += [np.array([x, y, z]) for x in (-150, 150) for y in (-150, 150) for z in (ws["lo"][2], ws["hi"][2])]
+    P = (shift @ np.c_[np.array(pts) * 1e-3, np.ones(len(pts))].T).T[:, :3] - eye
+    depth = P @ fwd
+    tan = np.tan(np.radians(75 / 2))
+    assert np.all(depth > 0.05)
+    assert np.all(np.abs(P @ up) / depth < tan) and np.all(np.abs(P @ right) / depth < tan * 4 / 3)
+    # and it is framed tightly: something comes close to the edge of the view
+    assert max(np.max(np.abs(P @ up) / depth) / tan, np.max(np.abs(P @ right) / depth) / (tan * 4 / 3)) > 0.8
+
+
+def test_display_puts_every_cylinder_on_the_backbone(model):
+    x = np.array([0.7, -0.4, -1.2, 0.9, -35.0])
+    with Visualizer(model, server=False) as vis:
+        vis.display(x)
+        T = _last_transforms(vis)
+    joints = model.points(x, 21) * 1e-3  # independent: the model's own 21 evenly spread points
+    for i in range(20):
+        M = T[f"/meshcat/robot/backbone/{i:03d}"]
+        # a three.js cylinder of height 1 spans y in [-0.5, 0.5]; its ends must be the chord's ends
+        ends = (M @ np.array([[0, -0.5, 0, 1], [0, 0.5, 0, 1]]).T).T[:, :3]
+        np.testing.assert_allclose(ends, joints[i : i + 2], atol=1e-12)
+        # radius directions stay unscaled (the backbone keeps its drawn radius)
+        np.testing.assert_allclose(np.linalg.norm(M[:3, [0, 2]], axis=0), 1.0, atol=1e-12)
+    for j in range(21):
+        np.testing.assert_allclose(T[f"/meshcat/robot/discs/{j:03d}"][:3, 3], joints[j], atol=1e-12)
+    np.testing.assert_allclose(T["/meshcat/robot/discs/020"][:3, 3], model.tip_position(x) * 1e-3, atol=1e-12)
+
+
+def test_animation_has_one_key_per_waypoint_and_follows_the_run(shown, result):
+    tracks, cmd = _animation(shown)
+    wps = result["waypoints"]
+    t = np.array([w["t"] for w in wps])
+    assert cmd["options"] == {"play": False, "repetitions": 1}
+    # every moving node: 20 chords, 21 discs, the base, 2 obstacles
+    assert len(tracks) == 20 + 21 + 1 + 2
+    for path, tr in tracks.items():
+        for name, track in tr.items():
+            times, _ = _keys(track)
+            assert len(times) == len(wps), (path, name)
+            np.testing.assert_allclose(times, t - t[0], atol=1e-12)
+    clip = next(a for a in cmd["animations"] if a["path"] == "/meshcat/obstacles/0")["clip"]
+    assert clip["fps"] == 1  # key times are seconds
+    for i in range(2):
+        _, pos = _keys(tracks[f"/meshcat/obstacles/{i}"][".position"])
+        _, scale = _keys(tracks[f"/meshcat/obstacles/{i}"][".scale"])
+        np.testing.assert_allclose(pos * 1e3, [w["obstacles"]["centers"][i] for w in wps], atol=1e-9)
+        radii = np.array([w["obstacles"]["radii"][i] for w in wps])
+        np.testing.assert_allclose(scale, np.repeat(radii[:, None], 3, axis=1) * 1e-3, atol=1e-12)
+    # the last disc follows the recorded tip, the first one the base translation z
+    _, tip = _keys(tracks["/meshcat/robot/discs/020"][".position"])
+    np.testing.assert_allclose(tip * 1e3, [w["tip"] for w in wps], atol=1e-9)
+    _, base = _keys(tracks["/meshcat/robot/discs/000"][".position"])
+    np.testing.assert_allclose(base * 1e3, [[0, 0, w["x"][-1]] for w in wps], atol=1e-9)
+    # each chord cylinder spans the two discs it joins, at every key
+    for i in range(20):
+        _, a = _keys(tracks[f"/meshcat/robot/discs/{i:03d}"][".position"])
+        _, b = _keys(tracks[f"/meshcat/robot/discs/{i + 1:03d}"][".position"])
+        tr = tracks[f"/meshcat/robot/backbone/{i:03d}"]
+        _, mid = _keys(tr[".position"])
+        _, q = _keys(tr[".quaternion"])
+        _, s = _keys(tr[".scale"])
+        np.testing.assert_allclose(mid, 0.5 * (a + b), atol=1e-12)
+        np.testing.assert_allclose(s[:, 1], np.linalg.norm(b - a, axis=1), atol=1e-12)
+        np.testing.assert_allclose(_rotate(q, np.array([0, 1.0, 0])) * s[:, 1:2], b - a, atol=1e-12)
+
+
+def test_show_waypoint_moves_robot_and_obstacles(result, model):
+    with Visualizer.for_result(result, play=False) as vis:
+        vis.show_waypoint(7)
+        T = _last_transforms(vis)
+        with pytest.raises(InputError, match="show_waypoint: k must be in"):
+            vis.show_waypoint(len(result["waypoints"]))
+    w = result["waypoints"][7]
+    for i in range(2):
+        M = T[f"/meshcat/obstacles/{i}"]
+        np.testing.assert_allclose(M[:3, 3], np.array(w["obstacles"]["centers"][i]) * 1e-3, atol=1e-12)
+        np.testing.assert_allclose(M[:3, :3], np.eye(3) * w["obstacles"]["radii"][i] * 1e-3, atol=1e-12)
+    np.testing.assert_allclose(T["/meshcat/robot/discs/020"][:3, 3], np.array(w["tip"]) * 1e-3, atol=1e-12)
+
+
+def test_plan_result_draws_its_tips_as_the_planned_path(model):
+    res = make_result(model, n=5, kind="plan")
+    del res["reference"], res["tree"]
+    for w in res["waypoints"]:
+        del w["tip"]  # optional: computed from x
+    with Visualizer.for_result(res) as vis:
+        objs = _objects(vis)
+    assert "/meshcat/path/executed/line" not in objs and "/meshcat/tree" not in objs
+    pos = objs["/meshcat/path/planned/line"]["object"]["geometries"][0]["data"]["attributes"]["position"]
+    pts = np.frombuffer(pos["array"].data, dtype=np.float32).reshape(-1, 3)
+    X = np.array([w["x"] for w in res["waypoints"]])
+    np.testing.assert_allclose(pts, model.tip_position(X) * 1e-3, atol=1e-6)
+
+
+# --------------------------------------------------------------- export
+def test_static_html_is_standalone_and_replays_the_scene(shown, tmp_path):
+    out = shown.save_html(tmp_path / "sub" / "view.html")
+    assert out == tmp_path / "sub" / "view.html"
+    assert sorted(p.name for p in out.parent.iterdir()) == ["view.html"]  # atomic: no temp file left
+    html = out.read_text(encoding="utf-8")
+    assert "new MeshCat.Viewer" in html and "viewer.connect" not in html  # no websocket, no server
+    assert not re.search(r"<script[^>]+src=", html)  # the viewer's JavaScript is inlined
+    assert _html_commands(html) == shown.scene_commands()
+    assert shown.jupyter_cell().data.count("srcdoc=") == 1  # notebook cell: the same page inline
+
+
+def test_fast_packer_gives_meshcats_exact_bytes(shown):
+    """crtraj packs commands with the C msgpack when present; meshcat's umsgpack must agree byte for byte."""
+    from crtraj.viz import _packb
+
+    cmds = shown.scene_commands()
+    assert {c["type"] for c in cmds} >= {"set_object", "set_transform", "set_property", "set_animation"}
+    for c in cmds:
+        assert _packb(c) == umsgpack.packb(c)
+
+
+@pytest.mark.parametrize(
+    ("edit", "message"),
+    [
+        (lambda r: r.pop("waypoints"), r"^waypoints: missing"),
+        (lambda r: r.update(waypoints=[]), r"^waypoints: expected a non-empty list"),
+        (lambda r: r["waypoints"][2].update(x=[0.0] * 4), r"^waypoints\[2\]\.x: expected shape \(5\)"),
+        (lambda r: r["waypoints"][3].update(t=-1.0), r"^waypoints\[3\]\.t: time goes backwards"),
+        (lambda r: r["waypoints"][1]["obstacles"]["radii"].pop(), r"^waypoints\[1\]\.obstacles\.radii: expected"),
+        (lambda r: r["waypoints"][4].pop("obstacles"), r"^waypoints\[4\]\.obstacles: 0 obstacles, but"),
+        (lambda r: r["tree"].update(edges=[[1, 2, 3]]), r"^tree\.edges: expected shape"),
+        (lambda r: r.update(kind="fly"), r"^kind: must be plan or replan"),
+        (lambda r: r["robot"].update(cable_radius=-1), r"^robot\.cable_radius: must be > 0"),
+    ],
+)
+def test_bad_result_names_the_field(result, edit, message):
+    bad = json.loads(json.dumps(result))
+    edit(bad)
+    with pytest.raises(InputError, match=message):
+        Visualizer.for_result(bad)
+
+
+def test_result_of_another_robot_is_refused(result, model):
+    other = json.loads(json.dumps(result))
+    other["robot"]["segment"][1]["length"] = 150.0
+    with Visualizer(model, server=False) as vis, pytest.raises(InputError, match=r"^robot: the result was made for"):
+        vis.show_result(other)
+
+
+# ---------------------------------------------------------------- server
+def _listening(pid):
+    """(ip, port) of every listening TCP socket of process `pid` (Linux /proc)."""
+    inodes = set()
+    for fd in Path(f"/proc/{pid}/fd").iterdir():
+        m = re.match(r"socket:\[(\d+)\]", os.readlink(fd))
+        if m:
+            inodes.add(m.group(1))
+    out = []
+    for table, v6 in (("/proc/net/tcp", False), ("/proc/net/tcp6", True)):
+        if not os.path.exists(table):
+            continue
+        for line in Path(table).read_text().splitlines()[1:]:
+            f = line.split()
+            if f[3] != "0A" or f[9] not in inodes:  # 0A: LISTEN
+                continue
+            addr, port = f[1].split(":")
+            ip = "v6:" + addr if v6 else ".".join(str(b) for b in reversed(bytes.fromhex(addr)))
+            out.append((ip, int(port, 16)))
+    return out
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads listening sockets from /proc (Linux)")
+def test_server_listens_on_loopback_only_and_serves_the_same_scene(result):
+    import meshcat
+
+    vis = Visualizer.for_result(result, server=True)
+    try:
+        assert vis.url.startswith("http://127.0.0.1:") and vis.zmq_url.startswith("tcp://127.0.0.1:")
+        socks = _listening(vis.server_pid)
+        web_port = int(vis.url.split(":")[2].split("/")[0])
+        assert sorted(p for _, p in socks) == sorted([web_port, int(vis.zmq_url.rsplit(":", 1)[1])])
+        assert all(ip == "127.0.0.1" for ip, _ in socks), socks
+        page = urllib.request.urlopen(vis.url, timeout=20).read().decode()
+        assert "MeshCat" in page
+        # meshcat's own client asks the server for its static export: identical to ours
+        other = meshcat.Visualizer(zmq_url=vis.zmq_url)
+        assert other.static_html() == vis.static_html()
+        assert f'src="{vis.url}"' in vis.jupyter_cell().data
+    finally:
+        pid = vis.server_pid
+        vis.close()
+    assert not Path(f"/proc/{pid}").exists() or Path(f"/proc/{pid}/stat").read_text().split()[2] == "Z"
+    with pytest.raises(urllib.error.URLError):
+        urllib.request.urlopen(vis.url, timeout=5)
+    vis.close()  # a second close is harmless
+
+
+# ------------------------------------------------------------------- CLI
+def test_cli_view_html_writes_file_and_prints_path(result, tmp_path, capsys):
+    src = atomic_write_json(tmp_path / "run.json", result)
+    out = tmp_path / "view.html"
+    assert main(["view", str(src), "--html", str(out), "--no-play"]) == 0
+    printed = capsys.readouterr().out
+    assert str(out) in printed
+    html = out.read_text()
+    assert "new MeshCat.Viewer" in html
+    anims = [c for c in _html_commands(html) if c["type"] == "set_animation"]
+    assert anims[0]["options"]["play"] is False
+
+
+def test_cli_view_errors_are_one_line(tmp_path, capsys):
+    assert main(["view", str(tmp_path / "missing.json")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("crtraj: error:") and "missing.json: no such file" in err and "\n" not in err
+    (tmp_path / "bad.json").write_text('{"kind": "plan", "robot": {}}')
+    assert main(["view", str(tmp_path / "bad.json")]) == 2
+    assert "robot.segment: missing" in capsys.readouterr().err
+
+
+class _Lines:
+    """Reads a process's stdout on a thread, so waiting for a line can time out."""
+
+    def __init__(self, stream):
+        self.queue = queue.Queue()
+        self.seen = []
+        threading.Thread(target=lambda: [self.queue.put(line) for line in stream], daemon=True).start()
+
+    def wait_for(self, pattern, timeout):
+        deadline = time.monotonic() + timeout
+        while (left := deadline - time.monotonic()) > 0:
+            try:
+                line = self.queue.get(timeout=left)
+            except queue.Empty:
+                break
+            self.seen.append(line)
+            m = re.search(pattern, line)
+            if m:
+                return m
+        raise AssertionError(f"no line matching {pattern!r} within {timeout} s: {self.seen}")
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="sends SIGINT")
+def test_cli_view_serves_until_ctrl_c(result, tmp_path):
+    src = atomic_write_json(tmp_path / "run.json", result)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "crtraj.cli", "view", str(src), "--no-browser"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        lines = _Lines(proc.stdout)
+        url = lines.wait_for(r"at (http://127\.0\.0\.1:\d+/static/)", 60).group(1)
+        lines.wait_for("Ctrl-C", 10)
+        assert "MeshCat" in urllib.request.urlopen(url, timeout=20).read().decode()
+        proc.send_signal(signal.SIGINT)
+        lines.wait_for("stopped", 30)
+        proc.wait(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, proc.stderr.read()
+    with pytest.raises(urllib.error.URLError):  # the server went with it
+        urllib.request.urlopen(url, timeout=5)
+
+
+# --------------------------------------------------------------- browser
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser") or shutil.which("google-chrome")
+needs_chromium = pytest.mark.skipif(
+    CHROMIUM is None, reason="Chromium not found (Debian: apt-get install chromium); real-browser tests skipped"
+)
+
+
+def _screenshot(page: Path | str, png: Path, budget_ms: int) -> np.ndarray:
+    """Render `page` (an HTML file or a URL) in headless Chromium (software WebGL); RGB (H, W, 3) in [0, 1]."""
+    profile = png.with_suffix(".profile")
+    cmd = [
+        CHROMIUM,
+        "--headless",
+        "--no-sandbox",
+        "--disable-gpu",
+        "--disable-background-networking",
+        "--no-first-run",
+        "--disable-component-update",
+        "--disable-sync",
+        # WebGL with --disable-gpu runs on SwiftShader; newer Chromium wants it allowed explicitly
+        "--use-angle=swiftshader",
+        "--enable-unsafe-swiftshader",
+        f"--user-data-dir={profile}",
+        f"--screenshot={png}",
+        "--window-size=1024,768",
+        f"--virtual-time-budget={budget_ms}",
+        page.resolve().as_uri() if isinstance(page, Path) else page,
+    ]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=180)
+    assert proc.returncode == 0 and png.exists(), proc.stderr[-2000:]
+    return mpimg.imread(png)[..., :3]
+
+
+def _mask(img, hue_lo, hue_hi, min_sat):
+    """Pixels whose hue (deg) is in [hue_lo, hue_hi) (wrapping past 360) with saturation >= min_sat."""
+    hsv = rgb_to_hsv(img)
+    h = hsv[..., 0] * 360
+    inside = (h >= hue_lo) & (h < hue_hi) if hue_lo < hue_hi else (h >= hue_lo) | (h < hue_hi)
+    return inside & (hsv[..., 1] >= min_sat) & (hsv[..., 2] >= 0.15)
+
+
+# hue windows of the default colours: segment 1 #1f77b4, segment 2 #2ca02c, obstacles #d62728
+# (translucent, so less saturated), goal marker #e000e0, start marker #ffb000
+BLUE, GREEN, RED = (190, 222, 0.3), (105, 140, 0.3), (340, 10, 0.2)
+MAGENTA, AMBER = (290, 310, 0.5), (36, 48, 0.5)
+
+
+def _centroid(mask):
+    ys, xs = np.nonzero(mask)
+    return np.array([xs.mean(), ys.mean()])
+
+
+@needs_chromium
+def test_browser_renders_robot_and_obstacles(model, result, tmp_path):
+    html = Visualizer.for_result(result, play=False).save_html(tmp_path / "sim1.html")
+    img = _screenshot(html, tmp_path / "sim1.png", 4000)
+    assert img.shape == (768, 1024, 3)
+    # not blank: a failed WebGL context leaves one flat colour
+    assert img.reshape(-1, 3).std(axis=0).max() > 0.05
+    assert len(np.unique((img * 255).astype(np.uint8).reshape(-1, 3), axis=0)) > 200
+    n_blue, n_green, n_red = (int(_mask(img, *c).sum()) for c in (BLUE, GREEN, RED))
+    assert n_blue > 80 and n_green > 80, (n_blue, n_green)
+    assert n_red > 3000, n_red
+    # control: the same run without obstacles has no obstacle colour, robot colours stay
+    bare = Visualizer.for_result(make_result(model, obstacles=False), play=False).save_html(tmp_path / "bare.html")
+    img2 = _screenshot(bare, tmp_path / "bare.png", 4000)
+    assert int(_mask(img2, *RED).sum()) < 50
+    assert int(_mask(img2, *BLUE).sum()) > 80 and int(_mask(img2, *GREEN).sum()) > 80
+
+
+@needs_chromium
+def test_browser_animation_carries_robot_from_start_to_goal(model, tmp_path):
+    """Paused, the tip segment is at the start marker; played through (2 s run, 5 s of virtual
+    time), it is at the goal marker."""
+    result = make_result(model, duration=2.0)
+    paused = _screenshot(
+        Visualizer.for_result(result, play=False).save_html(tmp_path / "a.html"), tmp_path / "a.png", 4000
+    )
+    played = _screenshot(
+        Visualizer.for_result(result, play=True).save_html(tmp_path / "b.html"), tmp_path / "b.png", 5000
+    )
+    # marker pixels, found where nothing covers them: before the run, the robot is away from the goal
+    # and the start marker is outside the obstacles
+    start_px, goal_px = _centroid(_mask(paused, *AMBER)), _centroid(_mask(paused, *MAGENTA))
+    for img, near, far in ((paused, start_px, goal_px), (played, goal_px, start_px)):
+        # the tip: the segment-2 pixel farthest from segment 1
+        ys, xs = np.nonzero(_mask(img, *GREEN))
+        green = np.stack([xs, ys], axis=1)
+        tip = green[np.argmax(np.linalg.norm(green - _centroid(_mask(img, *BLUE)), axis=1))]
+        d_near, d_far = np.linalg.norm(tip - near), np.linalg.norm(tip - far)
+        assert d_near < 15 and d_far > 100, (d_near, d_far)
+
+
+@needs_chromium
+def test_browser_live_server_page_matches_standalone_page(result, tmp_path):
+    """The page served over the websocket renders the same picture as the standalone file."""
+    vis = Visualizer.for_result(result, server=True, play=False)
+    try:
+        live = _screenshot(vis.url, tmp_path / "live.png", 4000)
+        static = _screenshot(vis.save_html(tmp_path / "static.html"), tmp_path / "static.png", 4000)
+    finally:
+        vis.close()
+    assert int(_mask(live, *GREEN).sum()) > 80 and int(_mask(live, *RED).sum()) > 3000
+    assert np.abs(live - static).mean() < 0.01
