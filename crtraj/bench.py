@@ -31,11 +31,16 @@ time, as `PlanResult` defines it)
   the disc radius) keeps more than `verify_margin` mm from every sphere's
   surface, with the obstacle state `Scene.states(t)` at that very time.
 
-Samples are spaced at most `verify_dt` seconds and `verify_step` mm of
-backbone-point motion apart. This check shares nothing with the planners'
+Samples are spaced at most `verify_dt` seconds apart, and refined until no
+backbone point moves more than `verify_step` mm between two consecutive
+samples. This check shares nothing with the planners'
 validity checker except the robot model's points and the obstacle
 definition. Path length is the tip's travel along the same dense samples,
 computed the same way for every planner.
+
+Timing: `RunRecord.time_s` is the wall time of the planner's ``plan`` call in
+the worker. Each worker builds every planner once and runs one untimed
+warm-up query with it first (planners build NLP solvers lazily).
 """
 
 from __future__ import annotations
@@ -193,19 +198,38 @@ class DenseCheck:
     samples: int
 
 
-def _dense_samples(T: np.ndarray, X: np.ndarray, P: np.ndarray, dt: float, ds: float) -> tuple[np.ndarray, np.ndarray]:
-    """Times (S,) and configurations (S, nx) densely along the timed straight-line path."""
+def _dense_samples(T: np.ndarray, X: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Times (S,), configurations (S, nx) and straight-motion index (S,) with n[i] steps on motion i."""
     K = len(T)
     if K == 1:
-        return T.copy(), X.copy()
-    move = np.max(np.linalg.norm(np.diff(P, axis=0), axis=-1), axis=-1)  # (K-1,) largest point motion
-    n = np.maximum(1, np.maximum(np.ceil(np.diff(T) / dt), np.ceil(move / ds))).astype(int)
+        return T.copy(), X.copy(), np.zeros(1, dtype=int)
     seg = np.repeat(np.arange(K - 1), n)
     starts = np.concatenate([[0], np.cumsum(n)[:-1]])
     tau = (np.arange(n.sum()) - np.repeat(starts, n)) / n[seg]
     times = np.concatenate([T[seg] + tau * (T[seg + 1] - T[seg]), T[-1:]])
     configs = np.concatenate([X[seg] + tau[:, None] * (X[seg + 1] - X[seg]), X[-1:]])
-    return times, configs
+    return times, configs, np.concatenate([seg, [K - 2]])
+
+
+def _dense_path(
+    model: Model, T: np.ndarray, X: np.ndarray, n_points: int, dt: float, ds: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Dense (times, configurations, backbone points): consecutive samples at most dt apart in time
+    and ds apart in every backbone point (refined until true, at most 4 passes, then kept as is)."""
+    if len(T) == 1:
+        return T.copy(), X.copy(), model.points(X, n_points)
+    n = np.maximum(1, np.ceil(np.diff(T) / dt)).astype(int)
+    for _ in range(4):
+        times, configs, seg = _dense_samples(T, X, n)
+        pts = model.points(configs, n_points)  # (S, n_points, 3)
+        move = np.linalg.norm(np.diff(pts, axis=0), axis=-1).max(axis=-1)  # (S-1,), step k in motion seg[k]
+        worst = np.zeros(len(n))
+        np.maximum.at(worst, seg[:-1], move)
+        factor = np.ceil(worst / ds).astype(int)
+        if np.all(factor <= 1):
+            break
+        n = n * np.maximum(factor, 1)
+    return times, configs, pts
 
 
 def dense_check(
@@ -240,8 +264,7 @@ def dense_check(
         return fail(f"path starts at t = {T[0]:.6g} s, not at {t0:g} s")
     if np.max(np.abs(X[0] - np.asarray(start, dtype=float))) > _START_TOL:
         return fail("path does not start at the start configuration")
-    P = model.points(X, n_points)  # (K, n, 3)
-    times, configs = _dense_samples(T, X, P, dt, step)
+    times, configs, points = _dense_path(model, T, X, n_points, dt, step)
     limit = model.robot.limit_violation(configs)
     if np.max(limit) > _LIMIT_TOL:
         i = int(np.argmax(limit))
@@ -251,8 +274,7 @@ def dense_check(
     prev_tip: np.ndarray | None = None
     body = model.robot.body_radius
     for a in range(0, len(times), _CHUNK):
-        tc, xc = times[a : a + _CHUNK], configs[a : a + _CHUNK]
-        pts = model.points(xc, n_points)  # (C, n, 3)
+        tc, pts = times[a : a + _CHUNK], points[a : a + _CHUNK]  # (C,), (C, n, 3)
         tips = pts[:, -1, :]
         steps = np.linalg.norm(np.diff(tips, axis=0), axis=-1).sum()
         if prev_tip is not None:
@@ -305,30 +327,20 @@ class BenchPlanner(Protocol):
 PlannerFactory = Callable[[Model, PlannerOptions], BenchPlanner]
 
 
-# crtraj's planners: module, class. Each is built as cls(model, scene, options, max_obstacles=...)
-# and queried as plan(goal, start_config=..., scene=..., stop=..., seed=..., goal_tolerance=...).
-_CRTRAJ = {
-    "cspace": ("crtraj.cspace", "CSpacePlanner"),
-    "rrt": ("crtraj.planner", "RRT"),
-    "rrtstar": ("crtraj.planner", "RRTStar"),
-}
 # Obstacle slots the planners' NLPs are built with (they grow on demand).
 _SLOTS = 8
+_CRTRAJ = ("rrt", "rrtstar", "cspace")
 
 
 class _CrtrajPlanner:
-    """One of crtraj's planners, stopped by the bench's time limit and the options' other limits."""
+    """One of crtraj's planners (`crtraj.planner.make_planner`), stopped by the bench's time limit
+    and the options' other limits (iterations, first solution)."""
 
     def __init__(self, model: Model, options: PlannerOptions, algorithm: str) -> None:
-        import importlib
+        from crtraj.planner import make_planner
 
-        module, cls_name = _CRTRAJ[algorithm]
-        try:
-            cls = getattr(importlib.import_module(module), cls_name)
-        except (ImportError, AttributeError) as exc:
-            raise InputError(f"planners: {algorithm} is not available ({module}.{cls_name}: {exc})") from None
         self.options = options.with_(algorithm=algorithm)
-        self.planner = cls(model, Scene(), self.options, max_obstacles=_SLOTS)
+        self.planner = make_planner(model, Scene(), self.options, max_obstacles=_SLOTS)
 
     def plan(self, scenario: Scenario, *, time_limit: float, seed: int, goal_tolerance: float) -> PlanResult:
         o = self.options
@@ -363,15 +375,12 @@ class _OMPLBenchPlanner:
 
 
 def check_available(name: str) -> None:
-    """Raise `InputError` when a built-in planner's module cannot be imported here."""
-    import importlib
-
+    """Raise `InputError` when a built-in planner cannot be imported here."""
     if name in _CRTRAJ:
-        module, cls_name = _CRTRAJ[name]
         try:
-            getattr(importlib.import_module(module), cls_name)
-        except (ImportError, AttributeError) as exc:
-            raise InputError(f"planners: {name} is not available ({module}.{cls_name}: {exc})") from None
+            from crtraj.planner import make_planner  # noqa: F401
+        except ImportError as exc:
+            raise InputError(f"planners: {name} is not available ({exc})") from None
     elif name in ("ompl-rrtstar", "ompl-rrtconnect"):
         from crtraj.ompl_adapter import import_ompl
 
@@ -379,7 +388,7 @@ def check_available(name: str) -> None:
 
 
 def _builtin(name: str) -> PlannerFactory:
-    if name in ("rrt", "rrtstar", "cspace"):
+    if name in _CRTRAJ:
         return functools.partial(_CrtrajPlanner, algorithm=name)
     if name == "ompl-rrtstar":
         return functools.partial(_OMPLBenchPlanner, algorithm="RRTstar")
@@ -511,6 +520,8 @@ def run_task(spec: WorkerSpec, task: _Task) -> RunRecord:
         result = planner.plan(scenario, time_limit=task.time_limit, seed=task.seed, goal_tolerance=task.goal_tolerance)
     except InputError as exc:  # a planner refusing its input is a failed run, not a crashed bench
         return _error_record(base, f"planner refused the query: {exc}", time.perf_counter() - t1)
+    except Exception as exc:  # a crash is recorded (status "error", with its text) and the sweep goes on
+        return _error_record(base, f"planner raised {type(exc).__name__}: {exc}", time.perf_counter() - t1)
     elapsed = time.perf_counter() - t1
     return judge(ctx.model, scenario, result, elapsed, task, base)
 
@@ -599,6 +610,7 @@ class BenchReport:
     executor: str
     workers: int
     interrupted: bool = False
+    note: str = ""
     created: str = field(default_factory=lambda: datetime.now(timezone.utc).isoformat(timespec="seconds"))
 
     # ------------------------------------------------------------- figures
@@ -664,7 +676,7 @@ class BenchReport:
             f"samples, clearance > {o.verify_margin:g} mm); a success it rejects counts as a failure.\n\n"
         )
         if self.interrupted:
-            w("**Interrupted: the table covers only the runs that finished.**\n\n")
+            w(f"**Incomplete — {self.note}: the table covers only the {len(self.records)} runs that finished.**\n\n")
         paper_cols = {c: PAPER_COUNTS.index(c) for c in counts if c in PAPER_COUNTS}
 
         def paper(planner: str, key: str, c: int) -> float:
@@ -713,15 +725,19 @@ class BenchReport:
                 cells.append(f"{_fmt(s['time_median'], 3)} / {_fmt(s['time_p90'], 3)} ({s['rejected']} rej.)")
             w(f"| {LABELS.get(p, p)} | " + " | ".join(cells) + " |\n")
         # --- paired length ratios against OMPL RRTstar
-        if "cspace" in planners and "ompl-rrtstar" in planners:
-            w("\n## Path length of the default planner relative to OMPL RRTstar (same scenarios, both solved)\n\n")
-            w("| | " + " | ".join(f"{c} obs" for c in counts) + " |\n")
+        others = [p for p in planners if p != "cspace"]
+        if "cspace" in planners and others:
+            w("\n## Path length of the default planner relative to each other planner (scenarios both solved)\n\n")
+            w("Mean over the scenarios both solved of length(C-space) / length(other); below 1: C-space is shorter.\n")
+            w("\n")
+            w("| Other planner | " + " | ".join(f"{c} obs" for c in counts) + " |\n")
             w("|---|" + "---:|" * len(counts) + "\n")
-            cells = []
-            for c in counts:
-                n, ratio = self.paired_lengths("cspace", "ompl-rrtstar", c)
-                cells.append(f"{_fmt(ratio, 3)} (n={n})")
-            w("| mean of length(cspace) / length(OMPL RRTstar) | " + " | ".join(cells) + " |\n")
+            for p in others:
+                cells = []
+                for c in counts:
+                    n, ratio = self.paired_lengths("cspace", p, c)
+                    cells.append(f"{_fmt(ratio, 3)} (n={n})")
+                w(f"| {LABELS.get(p, p)} | " + " | ".join(cells) + " |\n")
         w(
             "\nTimes were measured with the workers sharing the machine; the paper's figures come from an "
             "Intel i7-12700H laptop.\n"
@@ -851,7 +867,7 @@ class Table1Bench:
         scenarios = self.scenarios()
         tasks = self.tasks(scenarios)
         records: list[RunRecord] = []
-        interrupted = False
+        interrupted, note = False, ""
         bar = _Progress(self.options, len(tasks)) if progress else None
         try:
             if bar:
@@ -863,7 +879,9 @@ class Table1Bench:
                 if on_record:
                     on_record(rec)
         except KeyboardInterrupt:
-            interrupted = True
+            interrupted, note = True, "interrupted (Ctrl-C)"
+        except cf.BrokenExecutor as exc:  # a worker died (killed, out of memory): keep what finished
+            interrupted, note = True, f"a worker died ({type(exc).__name__}: {exc})"
         finally:
             if bar:
                 bar.stop()
@@ -878,6 +896,7 @@ class Table1Bench:
             name,
             workers if executor is not None else 1,
             interrupted,
+            note,
         )
 
     def _execute(self, tasks: list[_Task], executor: cf.Executor | None) -> Iterable[RunRecord]:
@@ -1024,6 +1043,6 @@ def run_cli(args: Any) -> int:
         print(f"  {LABELS.get(p, p):<18} " + "; ".join(cells))
     print(f"wrote {', '.join(str(f) for f in files)} ({report.wall_time:.0f} s)")
     if report.interrupted:
-        print("crtraj: interrupted; the files hold the runs that finished", file=sys.stderr)
-        return 130
+        print(f"crtraj: {report.note}; the files hold the {len(report.records)} runs that finished", file=sys.stderr)
+        return 130 if "Ctrl-C" in report.note else 1
     return 0

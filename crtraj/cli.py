@@ -88,17 +88,17 @@ def _cmd_view(args: argparse.Namespace) -> int:
         path = vis.save_html(args.html)
         print(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB); open it in any browser, no server needed")
         return 0
-    with Visualizer.for_result(result, server=True, play=play) as vis:
-        n = len(result["waypoints"])
-        print(f"serving {args.result} ({result.get('kind', 'plan')}, {n} waypoints) at {vis.url}", flush=True)
-        if not args.no_browser:
-            vis.open()
-        print("press Ctrl-C to stop", flush=True)
-        try:
+    try:  # Ctrl-C is the normal way out, whenever it comes; leaving the block stops the server
+        with Visualizer.for_result(result, server=True, play=play) as vis:
+            n = len(result["waypoints"])
+            print(f"serving {args.result} ({result.get('kind', 'plan')}, {n} waypoints) at {vis.url}", flush=True)
+            if not args.no_browser:
+                vis.open()
+            print("press Ctrl-C to stop", flush=True)
             while True:
                 time.sleep(3600)
-        except KeyboardInterrupt:
-            print("stopped", flush=True)
+    except KeyboardInterrupt:
+        print("stopped", flush=True)
     return 0
 
 
@@ -250,6 +250,53 @@ def _cmd_sim_device(args: argparse.Namespace) -> int:
     return 0
 
 
+# ----------------------------------------------------------------------- plan
+def _add_plan(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "plan",
+        help="plan a collision-free motion from the task's start to its goal (paper simulation 1)",
+        description="Plan the problem's task among its scene's obstacles and write a result JSON (per waypoint: "
+        "time, tip, configuration, cable lengths, backbone points, obstacles; the search tree). Planners: "
+        "cspace (default: safe goal IK + RRT-Connect in configuration space), rrt and rrtstar (the paper's "
+        "Algorithm 1 over tip positions with the safety-constrained steer).",
+    )
+    p.add_argument("problem", help="problem TOML (e.g. problems/paper_static.toml)")
+    p.add_argument("--planner", choices=("cspace", "rrt", "rrtstar"), default=None, help="default: [planner] algorithm")
+    p.add_argument("--seed", type=int, default=None, help="random seed (default: the problem's seed)")
+    p.add_argument("--time-limit", type=float, default=None, help="planning time budget in s (default: [planner])")
+    p.add_argument("--out", default=None, help="result JSON (default: out/plan-<name>.json)")
+    p.set_defaults(func=_cmd_plan)
+
+
+def _cmd_plan(args: argparse.Namespace) -> int:
+    import math
+
+    from crtraj.planner import plan_problem
+    from crtraj.problem import Problem
+
+    if args.seed is not None and args.seed < 0:
+        raise InputError(f"--seed: must be >= 0, got {args.seed}")
+    if args.time_limit is not None and not (math.isfinite(args.time_limit) and args.time_limit > 0):
+        raise InputError(f"--time-limit: must be a number > 0 (s), got {args.time_limit}")
+    problem = Problem.load(args.problem)
+    run = plan_problem(problem, algorithm=args.planner, seed=args.seed, time_limit=args.time_limit)
+    r = run.result
+    out = Path(args.out) if args.out else Path("out") / f"plan-{problem.name}.json"
+    run.write(out)
+    print(f"{problem.name}: {r.status} with {r.planner} (seed {r.seed}) in {r.timings.get('total', 0.0) * 1e3:.1f} ms")
+    print(f"  {r.message}")
+    if r.has_path:
+        print(
+            f"  tip path {r.length:.1f} mm over {r.duration:.2f} s, {len(r.t)} waypoints, "
+            f"min clearance {r.min_clearance:.2f} mm (beyond D_sf {run.scene.safety_distance:g} mm), "
+            f"goal error {r.goal_error:.3f} mm"
+        )
+    steps = ", ".join(f"{k} {v * 1e3:.1f}" for k, v in r.timings.items() if k != "total")
+    print(f"  time (ms): {steps}; setup {run.setup_time * 1e3:.0f} ms")
+    print(f"  wrote {out}")
+    return 0 if r.success else 1
+
+
 # --------------------------------------------------------------------- replan
 def _add_replan(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
@@ -379,6 +426,7 @@ _COMMANDS: tuple[Callable[[argparse._SubParsersAction], None], ...] = (
     _add_view,
     _add_stream,
     _add_sim_device,
+    _add_plan,
     _add_replan,
     _add_bench,
 )

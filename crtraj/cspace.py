@@ -148,6 +148,7 @@ class CSpacePlanner:
             iterations=o.ik_iterations,
             deadline=deadline,
             tip_tolerance=min(1e-3, goal_tolerance),
+            max_nlp=o.ik_nlp_solves,
         )
         run.timings["start_ik"] = time.perf_counter() - t1
         run.counts["ik_solves_start"] = n_ik
@@ -175,8 +176,6 @@ class CSpacePlanner:
         if path is None:
             return run.approximate()
         return run.finish(path)
-
-
 
 
 class _Run:
@@ -222,11 +221,18 @@ class _Run:
         # the start itself is the first seed: its projection is a goal configuration close to the start
         seeds = np.concatenate([self.x_start[None], v.sample(self.rng, n - 1)]) if n > 1 else self.x_start[None]
         tip_tol = min(1e-3, self.goal_tolerance)
-        kw = {"want": o.goal_configs, "newton_iterations": o.ik_iterations, "deadline": self.deadline, "validator": v}
+        kw = {
+            "want": o.goal_configs,
+            "newton_iterations": o.ik_iterations,
+            "deadline": self.deadline,
+            "validator": v,
+            "max_nlp": o.ik_nlp_solves,
+        }
         if v.static or o.goal_window == 0:
             parts = [ik.solve(self.goal, sc.pack(self.t0, ik.max_obstacles), seeds, tip_tolerance=tip_tol, **kw)]
         else:
             # half the starts keep clear of everything the obstacles sweep over the goal window
+            kw["max_nlp"] = (o.ik_nlp_solves + 1) // 2
             t_end = self.t0 + o.goal_window
             half = (len(seeds) + 1) // 2
             parts = [
@@ -297,6 +303,12 @@ class _Run:
         self.counts["edge_checks"] = self.counts.get("edge_checks", 0) + K
         good = np.flatnonzero(ok1)
         self.via_seeds = vias[good]
+        # the verified motions form a one-level tree (kept for drawing)
+        tree = SearchTree(v.robot.nx, v.robot.nx)
+        tree.add(v.metric(self.x_start), self.x_start, self.t0, 0.0, -1)
+        for x, t in zip(vias[good], t_via[good], strict=True):
+            tree.add(v.metric(x), x, float(t), float(v.motion_bound(x - self.x_start)), 0)
+        self.trees = [tree]
         if not len(good):
             return None
         # each via tries its nearest goal configuration (body-motion metric)
@@ -312,6 +324,7 @@ class _Run:
         # the shortest valid two-motion path
         total = (TB - self.t0)[ok2]
         k = np.flatnonzero(ok2)[int(np.argmin(total))]
+        tree.add(v.metric(GB[k]), GB[k], float(TB[k]), float(total.min()) * v.max_speed, int(k) + 1)
         return np.stack([self.x_start, VA[k], GB[k]])
 
     def _extend(self, tree: SearchTree, y_target: np.ndarray, timed: bool) -> int:

@@ -32,7 +32,8 @@ class PlannerOptions:
     ik_seeds: random starts of the goal/start IK. goal_configs: stop the IK
     once this many distinct safe goal configurations exist.
     ik_iterations: damped-Newton iterations of the batch projection before
-    the safety-constrained IPOPT NLP takes over.
+    the safety-constrained IPOPT NLP takes over. ik_nlp_solves: at most
+    this many NLP solves per IK query (the slow, rarely needed stage).
     goal_window: dynamic scenes only: half of the IK starts keep clear of
     everything the obstacles sweep over [t0, t0 + goal_window] (s).
     via_points: cspace only: random intermediate configurations tried at
@@ -57,7 +58,8 @@ class PlannerOptions:
     ik_seeds: int = 64
     goal_configs: int = 4
     ik_iterations: int = 15
-    goal_window: float = 10.0
+    ik_nlp_solves: int = 8
+    goal_window: float = 4.0
     via_points: int = 32
     shortcut_rounds: int = 4
     shortcut_batch: int = 16
@@ -80,6 +82,7 @@ class PlannerOptions:
             "ik_seeds": self.ik_seeds >= 1,
             "goal_configs": self.goal_configs >= 1,
             "ik_iterations": self.ik_iterations >= 0,
+            "ik_nlp_solves": self.ik_nlp_solves >= 0,
             "goal_window": self.goal_window >= 0,
             "via_points": self.via_points >= 0,
             "shortcut_rounds": self.shortcut_rounds >= 0,
@@ -124,6 +127,7 @@ class PlannerOptions:
             ik_seeds=t.int("ik_seeds", d.ik_seeds, ge=1),
             goal_configs=t.int("goal_configs", d.goal_configs, ge=1),
             ik_iterations=t.int("ik_iterations", d.ik_iterations, ge=0),
+            ik_nlp_solves=t.int("ik_nlp_solves", d.ik_nlp_solves, ge=0),
             goal_window=t.float("goal_window", d.goal_window, ge=0.0),
             via_points=t.int("via_points", d.via_points, ge=0),
             shortcut_rounds=t.int("shortcut_rounds", d.shortcut_rounds, ge=0),

@@ -32,7 +32,8 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -179,6 +180,7 @@ class RRT:
             iterations=o.ik_iterations,
             deadline=deadline,
             tip_tolerance=min(1e-3, goal_tolerance),
+            max_nlp=o.ik_nlp_solves,
         )
         timings["start_ik"] = time.perf_counter() - t1
         counts["ik_solves_start"] = n_ik
@@ -213,21 +215,20 @@ class RRT:
             target = tip_n + (P - tip_n) * min(1.0, step / d)
             x_n, t_n = tree.x[n], float(tree.t[n])
             counts["steer_calls"] += 1
-            res = self.steer.solve(
-                x_n, target, sc, t=t_n, t_end=None if v.static else t_n + window, check_start=False
-            )
+            res = self.steer.solve(x_n, target, sc, t=t_n, t_end=None if v.static else t_n + window, check_start=False)
             if not res.success:
                 counts["steer_failed"] += 1
                 continue
             if not res.reached:
                 counts["not_reached"] += 1
                 continue
-            x_new = res.x
+            # the steer meets the limits to its solver tolerance; put the node exactly inside
+            x_new = v.project_limits(res.x)[0]
             dur = float(v.motion_bound(x_new - x_n)) / v.max_speed
             if not v.edges_valid(x_n[None], x_new[None], t_n, t_n + dur)[0]:
                 counts["edge_rejected"] += 1
                 continue
-            tip_new = res.tip
+            tip_new = self.model.tip_position(x_new)
             parent, cost = n, float(tree.cost[n]) + float(np.linalg.norm(tip_new - tip_n))
             if self.rewire:
                 parent, cost = self._choose_parent(tree, v, tip_new, x_new, parent, cost)
@@ -402,3 +403,113 @@ def make_planner(
         return CSpacePlanner(model, scene, o, max_obstacles=max_obstacles)
     cls = RRTStar if o.algorithm == "rrtstar" else RRT
     return cls(model, scene, o, steer_options, max_obstacles=max_obstacles)
+
+
+# ------------------------------------------------------------- problem files
+@dataclass(frozen=True)
+class ProblemPlan:
+    """One planning run of a problem file: the inputs, the result and the setup time (s)."""
+
+    problem: Any
+    model: Model
+    scene: Any
+    options: PlannerOptions
+    steer_options: SteerOptions | None
+    result: PlanResult
+    setup_time: float
+
+    def document(self) -> dict[str, Any]:
+        """The self-describing result file (kind "plan"; schema in the README), as plain JSON data."""
+        import datetime
+
+        import casadi as ca
+
+        from crtraj import __version__
+        from crtraj.fileio import to_jsonable
+
+        p, r, model, scene = self.problem, self.result, self.model, self.scene
+        waypoints = []
+        if len(r.t):
+            backbone = model.points(r.configs)
+            centers, radii = scene.states(r.t)
+            for k in range(len(r.t)):
+                waypoints.append(
+                    {
+                        "t": float(r.t[k]),
+                        "tip": r.tips[k],
+                        "x": r.configs[k],
+                        "q": r.cables[k],
+                        "backbone": backbone[k],
+                        "obstacles": {"centers": centers[k].reshape(-1, 3), "radii": radii[k].reshape(-1)},
+                    }
+                )
+        options: dict[str, Any] = {"planner": self.options.to_dict()}
+        if self.steer_options is not None:
+            options["steer"] = self.steer_options.to_dict()
+        doc: dict[str, Any] = {
+            "kind": "plan",
+            "crtraj_version": __version__,
+            "casadi_version": ca.__version__,
+            "numpy_version": np.__version__,
+            "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+            "problem": {"name": p.name, "path": None if p.path is None else str(p.path), "seed": r.seed},
+            "robot": model.robot.to_dict(),
+            "scene": scene.to_dict(),
+            "task": p.require_task().to_dict(),
+            "options": options,
+            "status": str(r.status),
+            "success": r.success,
+            "message": r.message,
+            "timing": {**{f"{k}_s": v for k, v in r.timings.items()}, "setup_s": self.setup_time},
+            "summary": r.summary(),
+            "waypoints": waypoints,
+            "tree": {"edges": r.tree_edges},
+        }
+        if r.raw_configs is not None and len(r.raw_configs):
+            doc["raw_path"] = {"t": r.raw_t, "x": r.raw_configs, "tip": model.tip_position(r.raw_configs)}
+        if r.goal_configs is not None and len(r.goal_configs):
+            doc["goal_configs"] = r.goal_configs
+        return to_jsonable(doc)
+
+    def write(self, path: str | Path) -> Path:
+        """Write `document()` as JSON, atomically."""
+        from crtraj.fileio import atomic_write_json
+
+        return atomic_write_json(path, self.document())
+
+
+def plan_problem(
+    problem: Any,
+    *,
+    algorithm: str | None = None,
+    seed: int | None = None,
+    time_limit: float | None = None,
+    model: Model | None = None,
+) -> ProblemPlan:
+    """Plan a problem file's task with its ``[scene]``, ``[planner]`` and ``[steer]`` sections.
+
+    algorithm, seed, time_limit (s) override the file. The start is
+    ``task.start_config`` when given, else a safe IK solution for ``task.start``.
+    """
+    from crtraj.scene import Scene
+
+    task = problem.require_task()
+    t1 = time.perf_counter()
+    scene = problem.options(Scene, "scene")
+    options = problem.options(PlannerOptions, "planner")
+    changes: dict[str, Any] = {}
+    if algorithm is not None:
+        changes["algorithm"] = algorithm
+    if time_limit is not None:
+        changes["time_limit"] = float(time_limit)
+    if changes:
+        options = options.with_(**changes)
+    steer_options = problem.options(SteerOptions, "steer")
+    model = Model(problem.robot) if model is None else model
+    planner = make_planner(model, scene, options, steer_options)
+    setup = time.perf_counter() - t1
+    seed = problem.seed if seed is None else int(seed)
+    start = {"start_config": task.start_config} if task.start_config is not None else {"start_tip": task.start}
+    result = planner.plan(task.goal, seed=seed, goal_tolerance=task.goal_tolerance, **start)
+    used_steer = getattr(planner, "steer_options", None)
+    return ProblemPlan(problem, model, scene, options, used_steer, result, setup)

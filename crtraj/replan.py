@@ -97,9 +97,10 @@ class ReplanOptions:
     (tip_weight, config_weight, velocity_weight, smooth_weight,
     terminal_weight; see the module docstring), max_cable_speed and
     max_z_speed (mm/s, the per-step rate limits), solver ("ipopt" or "sqp"
-    = CasADi sqpmethod with a QP solver `qpsol`), max_iter, tol,
-    max_solve_time (s, wall-time cap of one solve), safety (false drops the
-    obstacle constraints).
+    = CasADi sqpmethod with a QP solver `qpsol`), hessian ("gauss-newton"
+    of the least-squares cost, or "exact"), max_iter, tol, max_solve_time
+    (s, IPOPT's wall-time cap of one solve; sqpmethod is capped by
+    max_iter), safety (false drops the obstacle constraints).
 
     Closed loop (`crtraj.simulate.ClosedLoop`): duration (s of simulated time
     at most), replan_period (s between periodic reference replans; 0 = only
@@ -251,7 +252,7 @@ class Replanner:
 
     # ------------------------------------------------------------------ build
     def _build(self) -> None:
-        o, r, model = self.options, self.robot, self.model
+        o, model = self.options, self.model
         nx, N, M = self.nx, self.N, self.max_obstacles
         X = ca.SX.sym("X", nx, N)
         x0 = ca.SX.sym("x0", nx)
@@ -342,6 +343,8 @@ class Replanner:
             if o.qpsol == "qrqp":
                 qp_opts["print_iter"] = False
                 qp_opts["print_header"] = False
+                # qrqp's default of 1000 active-set iterations can stall one step for seconds
+                qp_opts["max_iter"] = 200
             if o.qpsol == "osqp":
                 qp_opts["osqp"] = {"verbose": False}
             if o.qpsol == "qpoases":
@@ -460,54 +463,84 @@ class Replanner:
             "lbg": self._lbg,
             "ubg": self._ubg,
         }
-        used_warm = warm and self._warm is not None
+        cold = np.tile(np.clip(x0, self._box[0], self._box[1]), N)  # hold still: rate- and limit-feasible
+        used_warm = warm and self._warm is not None and self._warm_fits(x0)
         if used_warm:
             w = self._warm
-            args["x0"] = w["x"]
-            args["lam_x0"] = w["lam_x"]
-            args["lam_g0"] = w["lam_g"]
+            args.update(x0=w["x"], lam_x0=w["lam_x"], lam_g0=w["lam_g"])
         else:
-            # a feasible-ish start: hold the current configuration over the horizon
-            args["x0"] = np.tile(np.clip(x0, self._box[0], self._box[1]), N)
+            args["x0"] = cold
+        r = self._call(args)
+        retried = False
+        if used_warm and not r["ok"]:
+            # a stale warm start can lead sqpmethod astray; one cold retry before declaring failure
+            retried = True
+            args = {k: v for k, v in args.items() if k not in ("lam_x0", "lam_g0")}
+            args["x0"] = cold
+            again = self._call(args)
+            again["wall"] += r["wall"]
+            r = again
+        self.solve_count += 1
+        self._warm = (
+            self._shifted(r["x"], np.asarray(r["sol"]["lam_x"]).ravel(), np.asarray(r["sol"]["lam_g"]).ravel())
+            if r["ok"]
+            else None
+        )
+        configs = r["x"].reshape(N, nx)
+        return HorizonResult(
+            configs=configs,
+            tips=self.model.tip_position(configs) if r["finite"] else np.full((N, 3), np.nan),
+            success=r["ok"],
+            status=r["status"],
+            iterations=r["iterations"],
+            wall_time=r["wall"],
+            cost=r["cost"],
+            min_distance=r["min_distance"],
+            violation=r["violation"],
+            warm=used_warm,
+            extra={"retried_cold": retried},
+        )
+
+    def _warm_fits(self, x0: np.ndarray) -> bool:
+        """The shifted previous solution starts within reach of x0 (else it belongs to another situation)."""
+        first = self._warm["x"][: self.nx] if self._warm is not None else None
+        if first is None:
+            return False
+        return bool(np.all(np.abs(self._A @ (first - x0)) <= 2.0 * self.step_limit + 1e-9))
+
+    def _call(self, args: dict[str, Any]) -> dict[str, Any]:
+        """One solver call and an independent look at what it returned."""
+        N = self.N
         t_start = time.perf_counter()
         sol = self.solver.call(args)
         wall = time.perf_counter() - t_start
         st = self.solver.stats()
-        self.solve_count += 1
         xs = np.asarray(sol["x"]).ravel()
         gs = np.asarray(sol["g"]).ravel()
         finite = bool(np.all(np.isfinite(xs)) and np.all(np.isfinite(gs)))
-        viol = (
-            float(max(np.max(self._lbg - gs, initial=0.0), np.max(gs - self._ubg, initial=0.0))) if finite else np.inf
-        )
-        box_viol = (
-            float(max(np.max(np.tile(self._box[0], N) - xs), np.max(xs - np.tile(self._box[1], N))))
-            if finite
-            else np.inf
-        )
-        viol = max(viol, box_viol, 0.0)
-        status = str(st.get("return_status", "unknown"))
-        ok = bool(st.get("success", False)) and finite and viol <= 1e-6
-        configs = xs.reshape(N, nx)
-        tips = self.model.tip_position(configs) if finite else np.full((N, 3), np.nan)
-        min_d = float(np.min(gs[self._n_lin :])) if (self._n_dist and finite) else math.inf
-        if ok:
-            self._warm = self._shifted(xs, np.asarray(sol["lam_x"]).ravel(), np.asarray(sol["lam_g"]).ravel())
+        if finite:
+            lo, hi = np.tile(self._box[0], N), np.tile(self._box[1], N)
+            viol = max(
+                float(np.max(self._lbg - gs, initial=0.0)),
+                float(np.max(gs - self._ubg, initial=0.0)),
+                float(np.max(lo - xs)),
+                float(np.max(xs - hi)),
+                0.0,
+            )
         else:
-            self._warm = None
-        iters = int(st.get("iter_count", -1))
-        return HorizonResult(
-            configs=configs,
-            tips=tips,
-            success=ok,
-            status=status,
-            iterations=iters,
-            wall_time=wall,
-            cost=float(sol["f"]) if finite else math.inf,
-            min_distance=min_d,
-            violation=viol,
-            warm=used_warm,
-        )
+            viol = math.inf
+        return {
+            "sol": sol,
+            "x": xs,
+            "wall": wall,
+            "finite": finite,
+            "violation": viol,
+            "status": str(st.get("return_status", "unknown")),
+            "ok": bool(st.get("success", False)) and finite and viol <= 1e-6,
+            "iterations": int(st.get("iter_count", -1)),
+            "cost": float(sol["f"]) if finite else math.inf,
+            "min_distance": float(np.min(gs[self._n_lin :])) if (self._n_dist and finite) else math.inf,
+        }
 
     def _shifted(self, xs: np.ndarray, lam_x: np.ndarray, lam_g: np.ndarray) -> dict[str, np.ndarray]:
         """Previous solution moved one step earlier, the last step repeated (the next solve's start)."""
@@ -530,7 +563,7 @@ class Replanner:
             "solver": self.options.solver if self.options.solver == "ipopt" else f"sqpmethod+{self.options.qpsol}",
             "variables": self.nx * self.N,
             "parameters": self._np,
-            "constraints": int(len(self._lbg)),
+            "constraints": len(self._lbg),
             "obstacle_constraints": self._n_dist,
             "max_obstacles": self.max_obstacles,
             "inflate_mm": self.inflate,

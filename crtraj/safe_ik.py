@@ -87,7 +87,7 @@ class SafeIK:
         *,
         margin: float | None = None,
         tip_tolerance: float = 1e-3,
-        max_iter: int = 200,
+        max_iter: int = 60,
     ) -> None:
         self.model = model
         self.validator = validator
@@ -107,9 +107,6 @@ class SafeIK:
         self._W_inv = np.linalg.inv(Mx.T @ Mx)
         self._damping = 1e-3
         self._step = 150.0  # mm of tip error removed per Newton step at most
-        self._C = self.robot.coupling_matrix()
-        self._C_inv = np.linalg.inv(self._C)
-        self._tmax = np.array([s.theta_max for s in self.robot.segments])
 
     @property
     def solver(self) -> ca.Function:
@@ -162,18 +159,6 @@ class SafeIK:
         }
         return ca.nlpsol("safe_ik", "ipopt", nlp, opts)
 
-    def _project_limits(self, X: np.ndarray) -> np.ndarray:
-        """Nearest point within the bending discs and the z stroke (cable strokes are checked later)."""
-        robot = self.robot
-        n = robot.n_segments
-        ub = (X[:, : 2 * n] @ self._C.T).reshape(-1, n, 2)
-        norm = np.linalg.norm(ub, axis=-1)
-        ub = ub * np.minimum(1.0, self._tmax / np.maximum(norm, 1e-300))[..., None]
-        out = X.copy()
-        out[:, : 2 * n] = ub.reshape(-1, 2 * n) @ self._C_inv.T
-        out[:, -1] = np.clip(X[:, -1], robot.z_range[0], robot.z_range[1])
-        return out
-
     def project(self, target: np.ndarray, seeds: np.ndarray, iterations: int) -> tuple[np.ndarray, np.ndarray]:
         """Batch damped-Newton projection of every seed onto tip(x) = target, ignoring obstacles.
 
@@ -202,7 +187,7 @@ class SafeIK:
             JW = J @ self._W_inv
             A = JW @ np.transpose(J, (0, 2, 1)) + self._damping * np.eye(3)
             dx = np.einsum("nij,ni->nj", JW, np.linalg.solve(A, e[..., None])[..., 0])
-            X = self._project_limits(X + dx)
+            X = self.validator.project_limits(X + dx)
         return X, err
 
     def solve(
@@ -218,6 +203,8 @@ class SafeIK:
         deadline: float | None = None,
         validator: MotionValidator | None = None,
         tip_tolerance: float | None = None,
+        max_nlp: int | None = None,
+        always: tuple[int, ...] = (),
     ) -> IKBatch:
         """Safe configurations with the tip on `target` (mm), from seed configurations (S, nx).
 
@@ -234,6 +221,10 @@ class SafeIK:
         validator: the scene to check against (default: the one given at construction;
         it must share the robot, check points and resolution). tip_tolerance:
         largest accepted tip error (mm; default the one given at construction).
+        max_nlp: at most this many NLP solves (default: one per remaining seed).
+        always: seed indices whose projection, if not safe, gets an NLP solve
+        first, even when enough configurations exist (e.g. the start
+        configuration as a seed: the safe goal configuration nearest to it).
         """
         t_start = time.perf_counter()
         v = self.validator if validator is None else validator
@@ -242,9 +233,6 @@ class SafeIK:
         seeds = np.atleast_2d(np.asarray(seeds, dtype=float))
         want = len(seeds) if want is None else int(want)
         required = self.margin - 0.25  # the NLP keeps `margin`; allow for its tolerance
-        X, err = self.project(target, seeds, newton_iterations)
-        inside = v.within_limits(X)
-        clear = v.clearance(X, t_check[0], t_check[1])
         sols: list[IKSolution] = []
         kept: list[np.ndarray] = []
 
@@ -253,25 +241,54 @@ class SafeIK:
                 return
             kept.append(x)
 
+        # project in blocks of Newton steps and stop as soon as enough safe configurations exist
+        S = len(seeds)
+        X = seeds.copy()
+        err = np.full(S, np.inf)
+        clear = np.full(S, -np.inf)
+        checked = np.zeros(S, dtype=bool)
+        good = np.zeros(S, dtype=bool)
+        done_it = 0
+        while True:
+            block = min(6 if done_it == 0 else 3, newton_iterations - done_it)
+            X, err = self.project(target, X, block)
+            done_it += block
+            new = ~checked & (err <= tol)
+            if new.any():
+                idx = np.flatnonzero(new)
+                clear[idx] = v.clearance(X[idx], t_check[0], t_check[1])
+                ok = v.within_limits(X[idx]) & (clear[idx] >= required)
+                good[idx] = ok
+                checked[idx] = True
+                for i in idx[ok]:
+                    sols.append(IKSolution(X[i], "projection", True, float(err[i]), float(clear[i]), True, 0.0))
+                    keep(X[i])
+            if len(kept) >= want or done_it >= newton_iterations:
+                break
         converged = err <= tol
-        good = converged & inside & (clear >= required)
-        for i in np.flatnonzero(good):
-            sols.append(IKSolution(X[i], "projection", True, float(err[i]), float(clear[i]), True, 0.0))
-            keep(X[i])
         statuses: dict[str, int] = {"projection": int(good.sum())}
+        nearest_first = []
         # most promising first: converged (by clearance), then by tip error
         rest = np.flatnonzero(~good)
         order = rest[np.lexsort((err[rest], -np.where(converged[rest], clear[rest], -np.inf)))]
+        forced = [i for i in always if 0 <= i < S and not good[i]]
+        order = np.concatenate([forced, [i for i in order if i not in forced]]).astype(int)
         inflate = v.inflate + self.margin
+        if max_nlp is not None:
+            order = order[: max(0, int(max_nlp))]
         for i in order:
-            if len(kept) >= want or (deadline is not None and time.perf_counter() > deadline):
+            if i not in forced and len(kept) >= want:
+                break
+            if deadline is not None and time.perf_counter() > deadline:
                 break
             t1 = time.perf_counter()
+            # start from the projection, stay close to the seed itself
             x0 = X[i]
-            p = np.concatenate([target, scene_pack, x0, [inflate]])
+            p = np.concatenate([target, scene_pack, seeds[i], [inflate]])
             r = self.solver(x0=x0, p=p, lbx=self._box[0], ubx=self._box[1], lbg=self._lbg, ubg=self._ubg)
             st = self.solver.stats()
-            xs = np.asarray(r["x"]).ravel()
+            # IPOPT meets the limits to its tolerance (~1e-8); put the result exactly inside
+            xs = self.validator.project_limits(np.asarray(r["x"], dtype=float).reshape(1, -1))[0]
             status = str(st.get("return_status", "unknown"))
             statuses[status] = statuses.get(status, 0) + 1
             ok = bool(st.get("success", False)) and bool(np.all(np.isfinite(xs)))
@@ -304,6 +321,7 @@ def resolve_start(
     iterations: int,
     deadline: float | None,
     tip_tolerance: float,
+    max_nlp: int | None = None,
 ) -> tuple[np.ndarray | None, str, int]:
     """The start configuration of a query: checked when given, else safe IK for the start tip.
 
@@ -332,6 +350,7 @@ def resolve_start(
         deadline=deadline,
         validator=validator,
         tip_tolerance=tip_tolerance,
+        max_nlp=max_nlp,
     )
     if not len(batch.safe):
         return (

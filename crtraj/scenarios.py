@@ -44,7 +44,7 @@ its own, in any process, in any order.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -167,16 +167,16 @@ class ScenarioOptions:
         t = Table(d, "scenarios")
         out = cls(
             seed=t.int("seed", 0, ge=0),
-            radius_mean=t.vec("radius_mean", 2, cls.radius_mean),  # type: ignore[arg-type]
-            radius_amplitude=t.vec("radius_amplitude", 2, cls.radius_amplitude),  # type: ignore[arg-type]
+            radius_mean=t.vec("radius_mean", 2, cls.radius_mean),
+            radius_amplitude=t.vec("radius_amplitude", 2, cls.radius_amplitude),
             omega=t.float("omega", cls.omega),
-            travel=t.vec("travel", 2, cls.travel),  # type: ignore[arg-type]
-            mean_speed=t.vec("mean_speed", 2, cls.mean_speed),  # type: ignore[arg-type]
-            fraction=t.vec("fraction", 2, cls.fraction),  # type: ignore[arg-type]
+            travel=t.vec("travel", 2, cls.travel),
+            mean_speed=t.vec("mean_speed", 2, cls.mean_speed),
+            fraction=t.vec("fraction", 2, cls.fraction),
             max_tilt=t.float("max_tilt", cls.max_tilt),
             min_tip_distance=t.float("min_tip_distance", cls.min_tip_distance),
-            tip_box_lo=t.vec("tip_box_lo", 3, cls.tip_box_lo),  # type: ignore[arg-type]
-            tip_box_hi=t.vec("tip_box_hi", 3, cls.tip_box_hi),  # type: ignore[arg-type]
+            tip_box_lo=t.vec("tip_box_lo", 3, cls.tip_box_lo),
+            tip_box_hi=t.vec("tip_box_hi", 3, cls.tip_box_hi),
             safety_distance=t.float("safety_distance", cls.safety_distance),
             time_step=t.float("time_step", cls.time_step),
             start_window=t.float("start_window", cls.start_window),
@@ -195,6 +195,7 @@ class Scenario:
     start: start configuration x (nx,). start_tip, goal: tips (3,) in mm.
     goal_config: the configuration the goal tip was drawn from (a witness
     that the goal is reachable, clear at t = 0; planners may end elsewhere).
+    attempts: start/goal draws the generator needed.
     """
 
     n_obstacles: int
@@ -206,7 +207,6 @@ class Scenario:
     goal: np.ndarray
     goal_config: np.ndarray
     attempts: int = 1
-    meta: dict[str, Any] = field(default_factory=dict)
 
     @property
     def key(self) -> tuple[int, int]:

@@ -57,6 +57,7 @@ class StepStatus(str, enum.Enum):
     FALLBACK = "fallback"  # the NLP's move was unusable; the previous solution's next move was applied
     HOLD = "hold"  # no verified move: the robot held its configuration (verified safe)
     UNSAFE = "unsafe"  # nothing verified safe, not even holding: the least unsafe option was applied
+    STALE = "stale"  # no trustworthy obstacle state (live feed stale): held still, nothing could be verified
 
     def __str__(self) -> str:
         return self.value
@@ -82,7 +83,8 @@ class ReferencePlan:
         return len(self.configs) >= 1
 
 
-ReferenceSource = Callable[[np.ndarray, float], ReferencePlan]
+# (configuration (nx,), time s, the obstacles as known at that time: a Scene) -> ReferencePlan
+ReferenceSource = Callable[[np.ndarray, float, Any], ReferencePlan]
 
 
 class DirectReference:
@@ -91,7 +93,7 @@ class DirectReference:
     def __init__(self, goal_config: Any) -> None:
         self.goal_config = np.array(check_array(goal_config, "goal_config", (None,)), dtype=float)
 
-    def __call__(self, x: np.ndarray, t: float) -> ReferencePlan:
+    def __call__(self, x: np.ndarray, t: float, scene: Any = None) -> ReferencePlan:
         return ReferencePlan(np.stack([np.asarray(x, float), self.goal_config]), "direct", "straight line", 0.0)
 
 
@@ -99,9 +101,11 @@ class PlannerReference:
     """Reference source backed by crtraj's planner: plans from the current configuration at time t.
 
     planner: a planner with ``plan(goal, start_config=, t0=, stop=, seed=, scene=, goal_tolerance=)``
-    (`crtraj.cspace.CSpacePlanner`). goal: tip (mm). time_limit: s per plan.
-    seed: base seed; each call uses the next one so runs reproduce exactly.
-    scene: plan among these obstacles (default the planner's own).
+    (`crtraj.planner.make_planner`). goal: tip (mm). stop: a bounded
+    `crtraj.stop.StopCondition` per plan. seed: base seed; each call uses the
+    next one so runs reproduce exactly. scene: always plan among these
+    obstacles (e.g. none, for a run without the collision-free terms);
+    default: the obstacles the loop passes with each call.
     """
 
     def __init__(
@@ -110,21 +114,20 @@ class PlannerReference:
         goal: Any,
         *,
         goal_tolerance: float,
-        time_limit: float,
+        stop: Any,
         seed: int = 0,
         scene: Any = None,
     ) -> None:
-        from crtraj.stop import StopCondition
-
+        stop.check_bounded()
         self.planner = planner
         self.goal = check_array(goal, "goal", (3,))
         self.goal_tolerance = float(goal_tolerance)
-        self.stop = StopCondition(time_limit=float(time_limit))
+        self.stop = stop
         self.seed = int(seed)
         self.scene = scene
         self.calls = 0
 
-    def __call__(self, x: np.ndarray, t: float) -> ReferencePlan:
+    def __call__(self, x: np.ndarray, t: float, scene: Any = None) -> ReferencePlan:
         t1 = time.perf_counter()
         res = self.planner.plan(
             self.goal,
@@ -132,12 +135,83 @@ class PlannerReference:
             t0=float(t),
             stop=self.stop,
             seed=self.seed + self.calls,
-            scene=self.scene,
+            scene=self.scene if self.scene is not None else scene,
             goal_tolerance=self.goal_tolerance,
         )
         self.calls += 1
         configs = res.configs if res.success else np.zeros((0, len(x)))
         return ReferencePlan(configs, str(res.status), res.message, time.perf_counter() - t1, res.tree_edges)
+
+
+class SceneObstacles:
+    """Obstacles whose motion is known in advance: the scene's time functions are the prediction."""
+
+    live = False
+
+    def __init__(self, scene: Any) -> None:
+        self.scene = scene
+
+    def at(self, t: float) -> tuple[Any, str]:
+        """(the obstacles as a `Scene` in the loop's clock, '') at time t (s)."""
+        return self.scene, ""
+
+
+class FeedObstacles:
+    """Obstacles from a live `crtraj.feed.ObstacleFeed`, predicted at constant velocity.
+
+    Each step turns the newest states into a `Scene` valid over the next
+    `window` seconds: every centre moves on a straight line at its measured
+    velocity (extrapolated from the message's age to now), every radius is
+    held at its largest value over the window (current radius plus any
+    growth at the measured rate). template: a `Scene` giving D_sf, the
+    workspace and the expected obstacles (their names are the feed ids).
+    A stale feed (an id missing or older than the feed's max_age) gives no
+    scene, and the loop holds still.
+    """
+
+    live = True
+
+    def __init__(self, feed: Any, template: Any, window: float) -> None:
+        from crtraj.scene import Obstacle
+
+        self._obstacle = Obstacle
+        self.feed = feed
+        self.template = template
+        self.window = float(window)
+        names = [o.name for o in template.obstacles]
+        if not all(names):
+            raise InputError("scene.obstacle: with a live feed every obstacle needs a name (its feed id)")
+        self.ids = tuple(names)
+
+    def at(self, t: float) -> tuple[Any, str]:
+        st = self.feed.latest()
+        if st.stale:
+            return None, f"obstacle feed stale: {st.reason}"
+        missing = [i for i in self.ids if i not in st.ids]
+        if missing:
+            return None, f"obstacle feed stale: no state for {', '.join(missing)}"
+        idx = [st.ids.index(i) for i in self.ids]
+        W = self.window
+        obs = []
+        for j, name in zip(idx, self.ids, strict=True):
+            v = st.velocities[j]
+            c = st.centers[j] + st.ages[j] * v  # where it is now
+            r_now = max(0.0, float(st.radii[j] + st.ages[j] * st.radius_rates[j]))
+            r = max(r_now, r_now + float(st.radius_rates[j]) * W)
+            moving = bool(np.any(v != 0.0))
+            obs.append(
+                self._obstacle(
+                    center=tuple(c),
+                    radius=r,
+                    to=tuple(c + W * v) if moving else None,
+                    duration=W,
+                    name=name,
+                )
+            )
+        # the snapshot's own clock starts now: loop time t maps to its time 0
+        from dataclasses import replace
+
+        return replace(self.template, obstacles=tuple(obs), time_origin=-float(t)), ""
 
 
 class _Reference:
@@ -202,8 +276,9 @@ class ReplanRun:
     dense_t, dense_x: every verification sample of the actual motion.
     commands: (K n_sub, nq) actuator set-point of every tracking period of
     length control_dt (s), from t = 0: with the servo model and q[0] they
-    reproduce the actual motion at any instant (for independent re-checks). reference_tips: tip polylines of every reference
-    path used, with the step index each started at.
+    reproduce the actual motion at any instant (for independent re-checks).
+    reference_tips: tip polylines of every reference path used, with the
+    step index each started at.
     """
 
     t: np.ndarray
@@ -242,6 +317,8 @@ class ReplanRun:
     setup_time: float
     wall_time: float
     nlp: dict[str, Any] = field(default_factory=dict)
+    late_steps: int = 0
+    live: bool = False
 
     @property
     def steps(self) -> int:
@@ -321,6 +398,10 @@ class ClosedLoop:
     initial_reference: a reference already planned from start_config at t = 0
     (saves the first planner call). extra_options: more option sections
     (name -> object with ``to_dict``) recorded in result files.
+    obstacles: where the obstacle states come from each step: `SceneObstacles`
+    (default: the scene's known time functions) or `FeedObstacles` (a live
+    feed, extrapolated at constant velocity; the scene then only gives D_sf,
+    the workspace and the expected obstacles).
     """
 
     def __init__(
@@ -338,6 +419,7 @@ class ClosedLoop:
         goal_config: Any = None,
         initial_reference: ReferencePlan | None = None,
         extra_options: dict[str, Any] | None = None,
+        obstacles: Any = None,
     ) -> None:
         t_setup = time.perf_counter()
         self.model = model
@@ -356,7 +438,7 @@ class ClosedLoop:
             raise InputError(
                 f"tracking.dt: must divide replan.dt = {o.dt:g} s into whole control periods, got {tr.dt:g} s"
             )
-        self.n_sub = int(round(n_sub))
+        self.n_sub = round(n_sub)
         if o.max_cable_speed > tr.max_cable_rate or o.max_z_speed > tr.max_z_rate:
             raise InputError(
                 f"replan.max_cable_speed / max_z_speed ({o.max_cable_speed:g} / {o.max_z_speed:g} mm/s) "
@@ -377,15 +459,30 @@ class ClosedLoop:
             if replanner is not None
             else Replanner(model, o, max_obstacles=scene.n_obstacles, safety_distance=scene.safety_distance)
         )
-        if self.replanner.options.dt != o.dt or self.replanner.N != o.horizon:
+        if self.replanner.options.dt != o.dt or o.horizon != self.replanner.N:
             raise InputError("replanner: its dt and horizon must match the loop's options")
-        self.validator = MotionValidator(model, scene, check_points=o.check_points, resolution=o.check_resolution)
+        self.obstacles = SceneObstacles(scene) if obstacles is None else obstacles
+        self._fns: dict[Any, Any] = {}  # CasADi functions shared by every step's validator
+        self.validator = self._validator(scene)
+        self._scene_now = scene
         A, _ = self.robot.cable_matrix()
         self._A = A
         self._rates = np.append(np.full(3 * self.robot.n_segments, o.max_cable_speed), o.max_z_speed)
         self.setup_time = time.perf_counter() - t_setup
 
     # ------------------------------------------------------------ utilities
+    def _validator(self, scene: Any) -> MotionValidator:
+        o = self.options
+        return MotionValidator(
+            self.model, scene, check_points=o.check_points, resolution=o.check_resolution, functions=self._fns
+        )
+
+    def _use(self, scene: Any) -> None:
+        """Make `scene` the obstacles every check of this step uses."""
+        if scene is not self._scene_now:
+            self._scene_now = scene
+            self.validator = self._validator(scene)
+
     def _seconds_per(self, dX: np.ndarray) -> np.ndarray:
         """Time (s) each configuration change takes at `reference_speed` times the rate limits."""
         o = self.options
@@ -413,7 +510,7 @@ class ClosedLoop:
             cmd = ctl.step(xm, qc, x0 + (j + 1) / n * (x1 - x0), h, x_reference_rate=rate)
             q_end = servo.advance(q, cmd.q, h)
             span = float(v.motion_bound(servo.config(q_end) - xm))
-            ns = max(1, int(math.ceil(2.0 * span / o.check_resolution)))
+            ns = max(1, math.ceil(2.0 * span / o.check_resolution))
             tau = h * np.arange(1, ns + 1) / ns
             ts.append(t + j * h + tau)
             xs.append(servo.config(servo.trajectory(q, cmd.q, tau)))
@@ -452,7 +549,7 @@ class ClosedLoop:
     def _measure(self, T: np.ndarray, X: np.ndarray) -> float:
         """Sampled (not conservative) body clearance (mm, minus D_sf) along the motion, many points."""
         P = self.model.points(X, REPORT_POINTS)
-        return float(np.min(self.scene.clearance_points(P, T, inflate=self.robot.body_radius)))
+        return float(np.min(self._scene_now.clearance_points(P, T, inflate=self.robot.body_radius)))
 
     def _reference_valid(self, ref: _Reference, s_now: float, t: float) -> bool:
         """The next stretch of the reference is clear of the obstacles at the times it would be reached."""
@@ -464,19 +561,45 @@ class ClosedLoop:
         return bool(np.all(self.validator.clearance(X, tt - o.dt, tt + o.dt) >= 0.0))
 
     # ------------------------------------------------------------------- run
-    def run(self, *, progress: Callable[[int, float, str], None] | None = None) -> ReplanRun:
+    def run(
+        self, *, progress: Callable[[int, float, str], None] | None = None, realtime: bool | None = None
+    ) -> ReplanRun:
         """Simulate from the start configuration until the goal is held, or `duration` runs out.
 
         progress: called after every step with (step index, time s, status).
+        realtime: pace the steps by the wall clock (default: only with a live
+        obstacle source, whose states are only meaningful in real time).
         """
         t_wall = time.perf_counter()
         o, rp = self.options, self.replanner
         dt = o.dt
+        live = bool(getattr(self.obstacles, "live", False))
+        realtime = live if realtime is None else bool(realtime)
         q = self.tracker.initial_command(self.x_start)
         st = _State(q=q, qc=q.copy(), x=self.servo.config(q))
         st.x_prev = st.x.copy()
         rp.reset()
         log = _Log()
+        scene0, why = self.obstacles.at(0.0)
+        deadline = time.perf_counter() + 2.0
+        while scene0 is None and live and time.perf_counter() < deadline:
+            time.sleep(0.01)  # give a live feed a moment to deliver its first states
+            scene0, why = self.obstacles.at(0.0)
+        if scene0 is None:
+            log.record(
+                0.0,
+                st,
+                math.nan,
+                math.nan,
+                math.nan,
+                st.x,
+                np.zeros((0, self.robot.nq)),
+                np.zeros(1),
+                st.x[None],
+                self.scene,
+            )
+            return self._finish(log, st, False, "no_obstacles", f"no obstacle state to start from: {why}", t_wall)
+        self._use(scene0)
         c0 = self._measure(np.array([0.0]), st.x[None])
         b0 = self._verify(np.array([0.0]), st.x[None], None)
         log.record(
@@ -489,26 +612,41 @@ class ClosedLoop:
             np.zeros((0, self.robot.nq)),
             np.array([0.0]),
             st.x[None],
+            scene0,
         )
         if o.safety and b0 < 0.0:
             msg = f"the start configuration is not clear of the obstacles at t = 0 (bound {b0:.2f} mm)"
             return self._finish(log, st, False, "invalid_start", msg, t_wall)
         settled_since: float | None = None
         reached = False
+        t_clock = time.perf_counter()
         for k in range(math.ceil(o.duration / dt - 1e-9)):
             t = st.t
             t_iter = time.perf_counter()
-            reason, plan_time, replanned, charged = self._update_reference(st, k)
-            X_ref = st.horizon_reference(self.replanner.N, dt)
-            res = self._solve(st.x, X_ref, rp.obstacles_from_scene(self.scene, t), st.x_prev)
-            st.nlp_failed = not res.feasible
-            status, x1, sim, bound = self._choose(st, res)
+            scene_t, why = self.obstacles.at(t)
+            if scene_t is None:
+                # no trustworthy obstacle state: keep the actuators where they are and say so
+                status, res = StepStatus.STALE, _skipped(self.replanner, f"skipped: {why}")
+                x1, bound = st.x.copy(), math.nan
+                sim = self._hold(st)
+                reason, plan_time, replanned, charged = "", 0.0, False, 0.0
+                st.last_plan = None
+                rp.reset()
+            else:
+                self._use(scene_t)
+                reason, plan_time, replanned, charged = self._update_reference(st, k)
+                X_ref = st.horizon_reference(self.replanner.N, dt)
+                res = self._solve(st.x, X_ref, rp.obstacles_from_scene(scene_t, t), st.x_prev)
+                st.nlp_failed = not res.feasible
+                status, x1, sim, bound = self._choose(st, res)
             iter_time = time.perf_counter() - t_iter + charged
             q_new, qc_new, T, X, cmds = sim
             measured = self._measure(T, X)
             st.x_prev, st.x, st.q, st.qc = st.x, self.servo.config(q_new), q_new, qc_new
             st.t = round((k + 1) * dt, 12)
-            log.record(st.t, st, measured, measured + self.scene.safety_distance, bound, x1, cmds, T, X)
+            log.record(
+                st.t, st, measured, measured + self.scene.safety_distance, bound, x1, cmds, T, X, self._scene_now
+            )
             log.step(status, res, plan_time, iter_time, replanned, reason)
             if progress is not None:
                 progress(k, st.t, str(status))
@@ -520,9 +658,26 @@ class ClosedLoop:
                     break
             else:
                 settled_since = None
+            if realtime:
+                lag = time.perf_counter() - t_clock - st.t
+                if lag < 0.0:
+                    time.sleep(-lag)
+                elif lag > dt:
+                    log.late += 1
         outcome = "reached" if reached else "timeout"
         msg = "goal reached and held" if reached else f"goal not reached within {o.duration:g} s"
         return self._finish(log, st, reached, outcome, msg, t_wall)
+
+    def _hold(self, st: _State) -> tuple[Any, ...]:
+        """The motion of holding still for one step: actuators commanded to their measured positions."""
+        t, dt = st.t, self.options.dt
+        return (
+            st.q.copy(),
+            st.q.copy(),
+            np.array([t, t + dt]),
+            np.stack([st.x, st.x]),
+            np.repeat(st.q[None], self.n_sub, axis=0),
+        )
 
     def _update_reference(self, st: _State, k: int) -> tuple[str, float, bool, float]:
         """Replan the reference path when needed; returns (reason, planner time s, replanned, time to charge s)."""
@@ -546,7 +701,7 @@ class ClosedLoop:
             return "", 0.0, False, 0.0
         st.t_last_attempt = t
         reused = k == 0 and self.initial_reference is not None
-        plan = self.initial_reference if reused else self.reference_source(st.x, t)
+        plan = self.initial_reference if reused else self.reference_source(st.x, t, self._scene_now)
         replanned = plan.ok
         if plan.ok:
             st.ref = _Reference(plan.configs, self._seconds_per, self.validator.metric)
@@ -586,13 +741,7 @@ class ClosedLoop:
                 break
         if chosen is None:
             # hold: command every actuator to its measured position; first-order servos then stay put
-            hold = (
-                st.q.copy(),
-                st.q.copy(),
-                np.array([t, t + dt]),
-                np.stack([st.x, st.x]),
-                np.repeat(st.q[None], self.n_sub, axis=0),
-            )
+            hold = self._hold(st)
             bound_h = float(self.validator.clearance(st.x[None], t, t + dt)[0])
             best = max(tried, key=lambda c: c[0]) if tried else None
             if bound_h >= 0.0 or best is None or best[0] <= bound_h:
@@ -620,7 +769,6 @@ class ClosedLoop:
         X = np.array(log.x)
         planned = np.array(log.planned)
         tips = model.tip_position(X)
-        centers, radii = self.scene.states(t)
         nq = self.robot.nq
         return ReplanRun(
             t=t,
@@ -629,8 +777,8 @@ class ClosedLoop:
             q_command=np.array(log.qc),
             tip=tips,
             backbone=model.points(X, REPORT_POINTS),
-            centers=centers,
-            radii=radii,
+            centers=np.array(log.centers),
+            radii=np.array(log.radii),
             clearance=np.array(log.clear),
             distance=np.array(log.dist),
             clearance_bound=np.array(log.bound),
@@ -659,7 +807,15 @@ class ClosedLoop:
             setup_time=self.setup_time,
             wall_time=time.perf_counter() - t_wall,
             nlp=self.replanner.describe(),
+            late_steps=log.late,
+            live=bool(getattr(self.obstacles, "live", False)),
         )
+
+
+def _skipped(rp: Replanner, status: str) -> HorizonResult:
+    """The record of a step whose NLP was not solved (status says why)."""
+    nan = np.full((rp.N, rp.nx), np.nan)
+    return HorizonResult(nan, np.full((rp.N, 3), np.nan), False, status, 0, 0.0, math.inf, math.nan, math.inf)
 
 
 class _State:
@@ -718,6 +874,9 @@ class _Log:
         self.dense_t: list[np.ndarray] = []
         self.dense_x: list[np.ndarray] = []
         self.commands: list[np.ndarray] = []
+        self.centers: list[np.ndarray] = []
+        self.radii: list[np.ndarray] = []
+        self.late = 0  # real-time steps that finished more than one step late
 
     def record(
         self,
@@ -730,8 +889,10 @@ class _Log:
         commands: np.ndarray,
         T: np.ndarray,
         X: np.ndarray,
+        scene: Any,
     ) -> None:
-        """The state at time t and the motion samples (T, X) that led to it (first sample = previous time)."""
+        """The state at time t, the motion samples (T, X) that led to it (first sample = previous time)
+        and the obstacles (as `scene` knows them) at t."""
         self.t.append(t)
         self.x.append(st.x)
         self.q.append(st.q)
@@ -742,6 +903,9 @@ class _Log:
         self.planned.append(np.asarray(planned, dtype=float))
         if len(commands):
             self.commands.append(commands)
+        c, r = scene.states(t)
+        self.centers.append(c.reshape(-1, 3))
+        self.radii.append(r.reshape(-1))
         skip = 1 if self.dense_t else 0
         self.dense_t.append(T[skip:])
         self.dense_x.append(X[skip:])
@@ -768,18 +932,22 @@ def loop_from_problem(
     options: ReplanOptions | None = None,
 ) -> ClosedLoop:
     """A `ClosedLoop` for a problem file: its robot, scene, task and ``[replan]``, ``[tracking]``,
-    ``[planner]`` sections. The start configuration is the task's ``start_config`` or the planner's
-    safe IK for the start tip; references come from the planner (`crtraj.cspace.CSpacePlanner`).
+    ``[planner]``, ``[steer]`` sections. The start configuration is the task's ``start_config`` or the
+    planner's safe IK for the start tip; references come from the planner ``[planner] algorithm`` names
+    (`crtraj.planner.make_planner`; default the configuration-space planner), each limited to
+    ``replan.planner_time`` seconds.
 
     safety=False drops the collision-free terms (NLP constraints, verification, and obstacles in
     the reference planner), as in the paper's Fig. 7(b). seed overrides the problem's seed.
     """
     from dataclasses import replace
 
-    from crtraj.cspace import CSpacePlanner
     from crtraj.plan_options import PlannerOptions
     from crtraj.plan_result import PlanStatus
+    from crtraj.planner import make_planner
     from crtraj.scene import Scene
+    from crtraj.steer import SteerOptions
+    from crtraj.stop import StopCondition
 
     task = problem.require_task()
     seed = problem.seed if seed is None else int(seed)
@@ -792,7 +960,7 @@ def loop_from_problem(
     popts = problem.options(PlannerOptions, "planner")
     scene = Scene.from_table(problem.section("scene"))
     model = Model(problem.robot)
-    planner = CSpacePlanner(model, scene, popts)
+    planner = make_planner(model, scene, popts, problem.options(SteerOptions, "steer"))
     plan_scene = scene if opts.safety else scene.with_obstacles(())
     first: ReferencePlan | None = None
     if task.start_config is not None:
@@ -817,7 +985,7 @@ def loop_from_problem(
         planner,
         task.goal,
         goal_tolerance=task.goal_tolerance,
-        time_limit=opts.planner_time,
+        stop=popts.stop() | StopCondition(time_limit=opts.planner_time),
         seed=seed,
         scene=plan_scene,
     )
@@ -831,7 +999,7 @@ def loop_from_problem(
         reference=source,
         goal_tolerance=task.goal_tolerance,
         initial_reference=first,
-        extra_options={"planner": popts},
+        extra_options={"planner": popts, "steer": problem.options(SteerOptions, "steer")},
     )
 
 
@@ -927,10 +1095,12 @@ def save_npz(run: ReplanRun, path: Any) -> Any:
     from crtraj.fileio import atomic_write_bytes
 
     arrays: dict[str, np.ndarray] = {}
-    for name in (
-        "t x q q_command tip backbone centers radii clearance distance clearance_bound planned tip_error "
-        "goal_error nlp_time plan_time iter_time iterations replanned dense_t dense_x commands control_dt tree_edges goal"
-    ).split():
+    names = (
+        "t", "x", "q", "q_command", "tip", "backbone", "centers", "radii", "clearance", "distance",
+        "clearance_bound", "planned", "tip_error", "goal_error", "nlp_time", "plan_time", "iter_time",
+        "iterations", "replanned", "dense_t", "dense_x", "commands", "control_dt", "tree_edges", "goal",
+    )  # fmt: skip
+    for name in names:
         arrays[name] = np.asarray(getattr(run, name))
     arrays["status"] = np.array(run.status, dtype=str)
     arrays["solver_status"] = np.array(run.solver_status, dtype=str)

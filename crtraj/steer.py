@@ -95,7 +95,7 @@ def _pairs(t: Table) -> tuple[tuple[str, Any], ...]:
     out = []
     for key in t.keys():
         v = t.raw(key)
-        if isinstance(v, bool) or isinstance(v, (int, float, str)):
+        if isinstance(v, (bool, int, float, str)):
             if isinstance(v, float) and not math.isfinite(v):
                 raise t.error(key, f"must be finite, got {v}")
             out.append((key, v))
@@ -120,16 +120,17 @@ class SteerOptions:
     iteration cap and tolerance (IPOPT `tol`; sqpmethod `tol_pr`/`tol_du`).
     qpsol: QP solver of the sqp path. jit: compile the NLP functions with
     gcc through CasADi's shell compiler. warm_start: start from the previous
-    solution's multipliers. feasibility_tolerance: constraint slack (mm)
-    accepted by the re-check. dls_gain, dls_iterations: K_P and iterations
+    solution's multipliers. predictor: start from one DLS step instead of
+    x_prev. feasibility_tolerance: constraint slack (mm) accepted by the
+    re-check. dls_gain, dls_iterations: K_P and iterations
     of the dls path. ipopt, sqp: raw solver options overriding the defaults.
     """
 
     solver: str = "ipopt"
     damping: float = 0.3
     obstacle_coefficient: float = 20.0
-    damping_scale: float = 0.1
-    obstacle_scale: float = 0.03
+    damping_scale: float = 0.02
+    obstacle_scale: float = 0.02
     max_step: float = 100.0
     tolerance: float = 0.5
     margin: float = 0.0
@@ -139,6 +140,7 @@ class SteerOptions:
     qpsol: str = "daqp"
     jit: bool = False
     warm_start: bool = True
+    predictor: bool = True
     feasibility_tolerance: float = 1e-6
     dls_gain: float = 1.0
     dls_iterations: int = 200
@@ -199,6 +201,7 @@ class SteerOptions:
             qpsol=t.str("qpsol", d.qpsol, choices=QP_SOLVERS),
             jit=t.bool("jit", d.jit),
             warm_start=t.bool("warm_start", d.warm_start),
+            predictor=t.bool("predictor", d.predictor),
             feasibility_tolerance=t.float("feasibility_tolerance", d.feasibility_tolerance, ge=0.0),
             dls_gain=t.float("dls_gain", d.dls_gain, gt=0.0, le=1.0),
             dls_iterations=t.int("dls_iterations", d.dls_iterations, ge=1),
@@ -224,6 +227,7 @@ class SteerOptions:
             "qpsol": self.qpsol,
             "jit": self.jit,
             "warm_start": self.warm_start,
+            "predictor": self.predictor,
             "feasibility_tolerance": self.feasibility_tolerance,
             "dls_gain": self.dls_gain,
             "dls_iterations": self.dls_iterations,
@@ -346,7 +350,10 @@ class SteerSolver:
 
     Parameters enter as one vector ``p = [x_prev (nx), target (3), packed
     obstacles (PACK_WIDTH * max_obstacles, see `Scene.pack`), D_sf, w_d, w_o]``;
-    nothing is rebuilt between calls.
+    nothing is rebuilt between calls. Each solve starts from a DLS predictor
+    (one eq. 17 step from x_prev, option `predictor`) unless x0 is given,
+    and, with `warm_start`, from the multipliers of the previous successful
+    solve.
     """
 
     def __init__(self, model: Any, max_obstacles: int = 8, options: SteerOptions | None = None) -> None:
@@ -367,11 +374,6 @@ class SteerSolver:
         self._build()
 
     # ------------------------------------------------------------------ build
-    def _points_function(self) -> ca.Function:
-        if self.n_points == self.model.n_points:
-            return self.model.backbone
-        return self.model.backbone_function(self.n_points)
-
     def _build(self) -> None:
         o, nx, M = self.options, self.nx, self.max_obstacles
         x = ca.SX.sym("x", nx)
@@ -383,9 +385,11 @@ class SteerSolver:
         w_o = ca.SX.sym("w_o")
         p = ca.vertcat(x_prev, target, obs, dsf, w_d, w_o)
         self.n_params = int(p.numel())
-        fpts = self._points_function()
+        model = self.model
+        fpts = model.backbone if self.n_points == model.n_points else model.backbone_function(self.n_points)
         P = fpts(x)
         tip = self.model.tip(x)
+        glim = self.model.limits(x)
         S = ca.DM(self.scale)
         f = ca.sumsqr(tip - target) + w_d * ca.sumsqr(S * (x - x_prev))
         body = self.robot.body_radius + o.margin
@@ -397,66 +401,46 @@ class SteerSolver:
             act = obs[PACK_WIDTH * i + 4]
             for j in range(self.n_points):
                 d2 = ca.sumsqr(P[:, j] - c)
-                # inactive slots give the constant, harmless g = 1 instead of a
-                # huge slack (1e12 mm^2) that slows IPOPT's barrier updates
+                # inactive slots give the constant g = 1 (and lbg = -inf, see
+                # _solve_nlp) instead of a 1e12 mm^2 slack that stalls IPOPT
                 g_col.append(act * _G_SCALE * (d2 - rho**2) + (1 - act))
                 pen = pen + act * rho**2 / (d2 + _EPS_D2)
         f = f + w_o * pen
-        glim = self.model.limits(x)
         lbg_lim, ubg_lim = self.model.limit_bounds()
         self.n_col = len(g_col)
-        g = ca.vertcat(glim, *g_col)
+        self._lbg_lim, self._ubg_lim = lbg_lim, ubg_lim
         self._lbg = np.concatenate([lbg_lim, np.zeros(self.n_col)])
         self._ubg = np.concatenate([ubg_lim, np.full(self.n_col, np.inf)])
-        nlp = {"x": x, "p": p, "f": f, "g": g}
-        # a fused tip + Jacobian for the dls path: one call per iteration
-        self._tipjac = ca.Function("tipjac", [x], [tip, ca.jacobian(tip, x)])
+        nlp = {"x": x, "p": p, "f": f, "g": ca.vertcat(glim, *g_col)}
+        # one call gives everything the predictor and the re-check need
+        self._check = ca.Function("steer_check", [x], [tip, ca.jacobian(tip, x), P, glim])
+        self._solver = None
+        self._solver_ws = None
         if o.solver == "dls":
-            self._solver = None
             return
         common: dict[str, Any] = {"print_time": False, "error_on_fail": False, "calc_lam_p": False}
         if o.jit:
-            cc = shutil.which("gcc")
-            if cc is None:
+            if shutil.which("gcc") is None:
                 self.jit_message = "jit requested but gcc was not found: running without jit"
             else:
                 common.update({"jit": True, "compiler": "shell", "jit_options": {"compiler": "gcc", "flags": ["-O2"]}})
                 self.jit_message = "jit: compiled with gcc -O2"
         if o.solver == "ipopt":
             ip = dict(IPOPT_DEFAULTS)
-            ip["tol"] = o.tol
-            ip["max_iter"] = o.max_iter
+            ip.update({"tol": o.tol, "max_iter": o.max_iter})
             ip.update(dict(o.ipopt))
-            self._ipopt_opts = ip
-            opts = dict(common)
-            opts["ipopt"] = ip
-            self._solver = self._nlpsol("ipopt", nlp, opts, "steer.ipopt")
-            self._solver_ws = None
+            self._solver = self._nlpsol("ipopt", nlp, {**common, "ipopt": ip}, "steer.ipopt")
             if o.warm_start:
-                ws = dict(ip)
-                ws.setdefault("warm_start_init_point", "yes")
-                opts_ws = dict(common)
-                opts_ws["ipopt"] = ws
-                self._solver_ws = self._nlpsol("ipopt", nlp, opts_ws, "steer.ipopt")
-            # IPOPT reads its options at the first solve: surface bad ones now
-            self._probe()
+                ws = {**ip, "warm_start_init_point": "yes"}
+                self._solver_ws = self._nlpsol("ipopt", nlp, {**common, "ipopt": ws}, "steer.ipopt")
+            self._probe()  # IPOPT reads its options at the first solve: surface bad ones now
         else:
             sq = dict(SQP_DEFAULTS)
-            sq.update({"max_iter": o.max_iter, "tol_pr": o.tol, "tol_du": o.tol})
-            sq.update(
-                {
-                    "qpsol": o.qpsol,
-                    "qpsol_options": _qp_options(o.qpsol),
-                    "print_header": False,
-                    "print_iteration": False,
-                    "print_status": False,
-                }
-            )
+            sq.update({"max_iter": o.max_iter, "tol_pr": o.tol, "tol_du": o.tol, "qpsol": o.qpsol})
+            sq.update({"qpsol_options": _qp_options(o.qpsol), "print_header": False})
+            sq.update({"print_iteration": False, "print_status": False})
             sq.update(dict(o.sqp))
-            opts = dict(common)
-            opts.update(sq)
-            self._solver = self._nlpsol("sqpmethod", nlp, opts, "steer.sqp")
-            self._solver_ws = None
+            self._solver = self._nlpsol("sqpmethod", nlp, {**common, **sq}, "steer.sqp")
 
     def _nlpsol(self, plugin: str, nlp: dict[str, Any], opts: dict[str, Any], field_name: str) -> ca.Function:
         try:
@@ -472,14 +456,14 @@ class SteerSolver:
 
     def _probe(self) -> None:
         x0 = self.robot.straight()
-        p = self.parameters(x0, self.model.tip_position(x0), self._pad(), 0.0)
+        tip = np.asarray(self.model.tip(x0), dtype=float).reshape(-1)
+        p = self.parameters(x0, tip, self._pad(), 0.0)
         lbx, ubx = self.step_bounds(x0)
         for solver in (self._solver, self._solver_ws):
             if solver is None:
                 continue
             solver(x0=x0, p=p, lbx=lbx, ubx=ubx, lbg=self._lbg, ubg=self._ubg)
-            status = solver.stats().get("return_status", "")
-            if status == "Invalid_Option":
+            if solver.stats().get("return_status", "") == "Invalid_Option":
                 keys = ", ".join(k for k, _ in self.options.ipopt) or "(defaults)"
                 raise InputError(f"steer.ipopt: IPOPT rejected an option (given: {keys})")
 
@@ -507,6 +491,19 @@ class SteerSolver:
         lo, hi = self.box
         return np.maximum(lo, x_prev - d), np.minimum(hi, x_prev + d)
 
+    def _evaluate(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(tip (3,), J (3, nx), points (n_points, 3), limits g) at x."""
+        tip, J, P, g = self._check(x)
+        return (
+            np.asarray(tip, dtype=float).reshape(-1),
+            np.asarray(J, dtype=float),
+            np.asarray(P, dtype=float).T,
+            np.asarray(g, dtype=float).reshape(-1),
+        )
+
+    def _limits_ok(self, g: np.ndarray, tol: float = 1e-6) -> bool:
+        return bool(np.all(g >= self._lbg_lim - tol) and np.all(g <= self._ubg_lim + tol))
+
     def _packed(
         self, obstacles: Any, t: float, t_end: float | None, safety_distance: float | None
     ) -> tuple[np.ndarray, float, Scene | None]:
@@ -519,6 +516,8 @@ class SteerSolver:
             return packed, dsf, obstacles
         if obstacles is None:
             packed = self._pad()
+            if safety_distance is None:
+                safety_distance = 0.0
         else:
             packed = _vec(obstacles, "obstacles", PACK_WIDTH * self.max_obstacles)
         if safety_distance is None:
@@ -529,20 +528,34 @@ class SteerSolver:
         return packed, dsf, None
 
     def _clearance(
-        self, x: np.ndarray, packed: np.ndarray, dsf: float, scene: Scene | None, t: float, t_end: float | None
+        self, pts: np.ndarray, packed: np.ndarray, dsf: float, scene: Scene | None, t: float, t_end: float | None
     ) -> float:
-        """Clearance (mm) at the constrained points; the scene's own check when a scene is given."""
+        """Clearance (mm) of the constrained points: `Scene.clearance_points` (the same
+        computation as `Scene.clearance`), or the packed spheres when no scene is given."""
+        body = self.robot.body_radius
         if scene is not None:
             if t_end is None:
-                return float(scene.clearance(self.model, x, t, self.n_points))
-            return float(scene.clearance_over(self.model, x, t, t_end, self.n_points))
+                return float(scene.clearance_points(pts, t, inflate=body))
+            return float(scene.clearance_points_over(pts, t, t_end, inflate=body))
         centers, radii, active = Scene.unpack(packed)
-        if not np.any(active > 0):
+        on = active > 0
+        if not np.any(on):
             return math.inf
-        pts = self.model.points(x, self.n_points)
-        c, r = centers[active > 0], radii[active > 0]
-        d = np.linalg.norm(pts[:, None, :] - c[None, :, :], axis=-1) - r
-        return float(d.min() - self.robot.body_radius - dsf)
+        d = np.linalg.norm(pts[:, None, :] - centers[on][None, :, :], axis=-1) - radii[on]
+        return float(d.min() - body - dsf)
+
+    def predict(self, x_prev: np.ndarray, target: np.ndarray) -> np.ndarray:
+        """One DLS step (eq. 17, scaled coordinates) from x_prev, inside the step bounds."""
+        tip, J, _, _ = self._evaluate(x_prev)
+        return self._dls_update(x_prev, tip, J, target, *self.step_bounds(x_prev))
+
+    def _dls_update(
+        self, x: np.ndarray, tip: np.ndarray, J: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndarray
+    ) -> np.ndarray:
+        o = self.options
+        Js = J / self.scale
+        dy = Js.T @ np.linalg.solve(Js @ Js.T + o.damping**2 * np.eye(3), o.dls_gain * (target - tip))
+        return np.clip(x + dy / self.scale, lo, hi)
 
     # ------------------------------------------------------------------ solve
     def solve(
@@ -564,9 +577,9 @@ class SteerSolver:
         obstacles: a `Scene` (evaluated at time t (s), or held conservatively
         over [t, t_end] with `Scene.pack_over` when t_end is given), a packed
         vector from `Scene.pack` (then give `safety_distance`), or None.
-        x0: initial guess (default x_prev). obstacle_weight, damping_weight:
-        override w_o, w_d for this call. check_start: raise `InputError` when
-        x_prev is in collision or outside the robot's limits.
+        x0: initial guess (default: the DLS predictor). obstacle_weight,
+        damping_weight: override w_o, w_d for this call. check_start: raise
+        `InputError` when x_prev is in collision or outside the robot's limits.
         """
         t_start = time.perf_counter()
         xp = _vec(x_prev, "x_prev", self.nx)
@@ -576,42 +589,36 @@ class SteerSolver:
         if t_end is not None and not (math.isfinite(float(t_end)) and t_end >= t):
             raise InputError(f"t_end: must be finite and >= t = {t}, got {t_end}")
         packed, dsf, scene = self._packed(obstacles, float(t), t_end, safety_distance)
-        tol_f = self.options.feasibility_tolerance
+        guess = None if x0 is None else _vec(x0, "x0", self.nx)
+        tip0, J0, pts0, g0 = self._evaluate(xp)
         if check_start:
-            if float(self.robot.limit_violation(xp)[0]) > 1e-9:
+            lo, hi = self.box
+            if not self._limits_ok(g0, 1e-9) or np.any(xp < lo - 1e-9) or np.any(xp > hi + 1e-9):
                 raise InputError("x_prev: outside the robot's limits (theta, cable stroke or z range)")
-            c0 = self._clearance(xp, packed, dsf, scene, float(t), t_end)
-            if c0 < -tol_f:
+            c0 = self._clearance(pts0, packed, dsf, scene, float(t), t_end)
+            if c0 < -self.options.feasibility_tolerance:
                 raise InputError(
                     f"x_prev: start configuration is in collision (clearance {c0:.3f} mm, "
                     f"D_sf {dsf:g} mm, at t = {float(t):g} s)"
                 )
+        lbx, ubx = self.step_bounds(xp)
         if self.options.solver == "dls":
-            x, converged, status, iters = self._solve_dls(xp, tg)
+            x, converged, status, iters = self._solve_dls(xp, tg, tip0, J0, lbx, ubx)
         else:
-            guess = xp if x0 is None else _vec(x0, "x0", self.nx)
-            x, converged, status, iters = self._solve_nlp(xp, tg, packed, dsf, guess, damping_weight, obstacle_weight)
-        return self._result(x, xp, tg, packed, dsf, scene, float(t), t_end, converged, status, iters, t_start)
+            if guess is None:
+                guess = self._dls_update(xp, tip0, J0, tg, lbx, ubx) if self.options.predictor else xp
+            p = self.parameters(xp, tg, packed, dsf, damping_weight, obstacle_weight)
+            x, converged, status, iters = self._solve_nlp(p, packed, np.clip(guess, lbx, ubx), lbx, ubx)
+        return self._result(x, xp, tg, packed, dsf, scene, float(t), t_end, lbx, ubx, converged, status, iters, t_start)
 
     def _solve_nlp(
-        self,
-        xp: np.ndarray,
-        tg: np.ndarray,
-        packed: np.ndarray,
-        dsf: float,
-        guess: np.ndarray,
-        wd: float | None,
-        wo: float | None,
+        self, p: np.ndarray, packed: np.ndarray, x0: np.ndarray, lbx: np.ndarray, ubx: np.ndarray
     ) -> tuple[np.ndarray, bool, str, int]:
-        p = self.parameters(xp, tg, packed, dsf, wd, wo)
-        lbx, ubx = self.step_bounds(xp)
-        args: dict[str, Any] = {"x0": np.clip(guess, lbx, ubx), "p": p, "lbx": lbx, "ubx": ubx}
-        args["lbg"], args["ubg"] = self._lbg, self._ubg
-        if self.options.__dict__.get("_free_inactive", True):
-            act = packed[PACK_WIDTH - 1 :: PACK_WIDTH]
-            lbg = self._lbg.copy()
-            lbg[self._lbg.size - self.n_col :] = np.where(np.repeat(act > 0, self.n_points), 0.0, -np.inf)
-            args["lbg"] = lbg
+        # padding slots: free rows (lbg = -inf) so the solver carries no slack for them
+        act = packed[PACK_WIDTH - 1 :: PACK_WIDTH] > 0
+        lbg = self._lbg.copy()
+        lbg[lbg.size - self.n_col :] = np.where(np.repeat(act, self.n_points), 0.0, -np.inf)
+        args: dict[str, Any] = {"x0": x0, "p": p, "lbx": lbx, "ubx": ubx, "lbg": lbg, "ubg": self._ubg}
         solver = self._solver
         if self.options.warm_start and self._lam_g is not None:
             args["lam_g0"] = self._lam_g
@@ -621,7 +628,8 @@ class SteerSolver:
         try:
             sol = solver(**args)
         except RuntimeError as exc:  # evaluation errors (NaN) inside CasADi
-            return guess.copy(), False, f"Evaluation_Error: {_last_line(str(exc))}", 0
+            self.reset_warm_start()
+            return x0.copy(), False, f"Evaluation_Error: {_last_line(str(exc))}", 0
         stats = solver.stats()
         # IPOPT relaxes bounds by ~1e-8 relative; project back so the re-check
         # judges the configuration that is actually returned
@@ -631,28 +639,24 @@ class SteerSolver:
             self._lam_g = np.asarray(sol["lam_g"], dtype=float).reshape(-1)
             self._lam_x = np.asarray(sol["lam_x"], dtype=float).reshape(-1)
         else:
-            self._lam_g = self._lam_x = None
-        iters = int(stats.get("iter_count", -1))
-        return x, ok, str(stats.get("return_status", "unknown")), iters
+            self.reset_warm_start()
+        return x, ok, str(stats.get("return_status", "unknown")), int(stats.get("iter_count", -1))
 
-    def _solve_dls(self, xp: np.ndarray, tg: np.ndarray) -> tuple[np.ndarray, bool, str, int]:
-        """Iterate eq. 17 from x_prev; stop at the tolerance or when the step stalls."""
+    def _solve_dls(
+        self, xp: np.ndarray, tg: np.ndarray, tip: np.ndarray, J: np.ndarray, lo: np.ndarray, hi: np.ndarray
+    ) -> tuple[np.ndarray, bool, str, int]:
+        """Iterate eq. 17 from x_prev inside the step bounds; stop at 1/100 of the
+        tolerance or when the step stalls (the closest point DLS can reach)."""
         o = self.options
-        S = self.scale
-        lo, hi = self.step_bounds(xp)
-        lam2 = o.damping**2
-        x = xp.copy()
-        for it in range(1, o.dls_iterations + 1):
-            tip, J = self._tipjac(x)
-            e = tg - np.asarray(tip, dtype=float).reshape(-1)
-            if np.linalg.norm(e) <= 0.01 * o.tolerance:
-                return x, True, "Solve_Succeeded", it - 1
-            Js = np.asarray(J, dtype=float) / S
-            dy = Js.T @ np.linalg.solve(Js @ Js.T + lam2 * np.eye(3), o.dls_gain * e)
-            xn = np.clip(x + dy / S, lo, hi)
-            if np.max(np.abs((xn - x) * S)) < 1e-9:
-                return xn, True, "Stalled_At_Closest_Point", it
+        x = xp
+        for it in range(o.dls_iterations):
+            if np.linalg.norm(tg - tip) <= 0.01 * o.tolerance:
+                return x, True, "Solve_Succeeded", it
+            xn = self._dls_update(x, tip, J, tg, lo, hi)
+            if np.max(np.abs((xn - x) * self.scale)) < 1e-9:
+                return xn, True, "Stalled_At_Closest_Point", it + 1
             x = xn
+            tip, J, _, _ = self._evaluate(x)
         return x, False, "Maximum_Iterations_Exceeded", o.dls_iterations
 
     def _result(
@@ -665,6 +669,8 @@ class SteerSolver:
         scene: Scene | None,
         t: float,
         t_end: float | None,
+        lbx: np.ndarray,
+        ubx: np.ndarray,
         converged: bool,
         status: str,
         iters: int,
@@ -674,36 +680,30 @@ class SteerSolver:
         finite = bool(np.all(np.isfinite(x)))
         if not finite:
             x = xp.copy()
-        tip = self.model.tip_position(x)
+        tip, _, pts, g = self._evaluate(x)
         err = float(np.linalg.norm(tip - tg))
-        clear = self._clearance(x, packed, dsf, scene, t, t_end)
-        lo, hi = self.step_bounds(xp)
-        in_box = bool(np.all(x >= lo - 1e-9 * (1 + np.abs(lo))) and np.all(x <= hi + 1e-9 * (1 + np.abs(hi))))
-        in_limits = float(self.robot.limit_violation(x)[0]) <= 1e-6
-        safe = finite and clear >= -o.feasibility_tolerance and in_box and in_limits
+        clear = self._clearance(pts, packed, dsf, scene, t, t_end)
+        in_box = bool(np.all(x >= lbx) and np.all(x <= ubx))
+        in_limits = self._limits_ok(g)
+        clear_ok = clear >= -o.feasibility_tolerance
+        safe = finite and clear_ok and in_box and in_limits
         success = converged and safe
         reached = success and err <= o.tolerance
         if not finite:
             message = f"solver returned NaN ({status}); x_prev returned unchanged"
         elif not converged:
-            message = f"solver failed: {status}"
+            message = f"solver failed ({status}); tip error {err:.3g} mm, clearance {clear:.3g} mm"
         elif not safe:
-            what = []
-            if clear < -o.feasibility_tolerance:
-                what.append(f"clearance {clear:.3f} mm < 0")
-            if not in_limits:
-                what.append("outside the robot's limits")
-            if not in_box:
-                what.append("outside the step bounds")
+            what = [] if clear_ok else [f"clearance {clear:.3g} mm < 0"]
+            what += [] if in_limits else ["outside the robot's limits"]
+            what += [] if in_box else ["outside the step bounds"]
             message = "converged but the re-check failed: " + ", ".join(what)
         elif reached:
-            message = f"reached: tip error {err:.3g} mm"
+            message = f"reached: tip error {err:.3g} mm, clearance {clear:.3g} mm"
         else:
-            at_step = bool(np.any(np.isclose(x, lo, atol=1e-6) | np.isclose(x, hi, atol=1e-6)) & (o.max_step < 1e5))
-            why = "the step bound max_step" if at_step and np.any(np.abs(x - xp) * self.scale >= 0.999 * o.max_step) else (
-                "obstacles or the robot's limits"
-            )
-            message = f"target not reached: closest safe configuration is {err:.3g} mm away (blocked by {why})"
+            moved = float(np.max(np.abs(x - xp) * self.scale))
+            why = "the step bound max_step" if moved >= 0.999 * o.max_step else "obstacles or the robot's limits"
+            message = f"target not reached: the closest safe configuration is {err:.3g} mm away (blocked by {why})"
         return SteerResult(
             x=x,
             q=self.robot.cables(x),
@@ -727,7 +727,7 @@ class SteerSolver:
         """`solve` for each row of x_prevs (N, nx) and targets (N, 3); same obstacles and keywords."""
         X = np.asarray(x_prevs, dtype=float)
         T = np.asarray(targets, dtype=float)
-        if X.ndim != 2 or T.ndim != 2 or X.shape[0] != T.shape[0]:
+        if X.ndim != 2 or T.ndim != 2 or X.shape[0] != T.shape[0] or X.shape[1] != self.nx or T.shape[1] != 3:
             raise InputError(f"x_prevs, targets: expected (N, {self.nx}) and (N, 3), got {X.shape} and {T.shape}")
         return [self.solve(X[k], T[k], obstacles, **kwargs) for k in range(X.shape[0])]
 

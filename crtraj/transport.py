@@ -9,6 +9,7 @@ into a stop and a report.
 
 from __future__ import annotations
 
+import abc
 import socket
 from pathlib import Path
 from urllib.parse import parse_qs, urlsplit
@@ -35,7 +36,7 @@ def parse_hostport(text: str, what: str) -> tuple[str, int]:
     return host, p
 
 
-class Transport:
+class Transport(abc.ABC):
     """A bidirectional frame link. Subclasses implement `send`, `receive` and `close`.
 
     has_telemetry: False for links that never answer (dry run); the streamer
@@ -45,14 +46,15 @@ class Transport:
     has_telemetry = True
     description = "transport"
 
+    @abc.abstractmethod
     def send(self, frame: bytes) -> None:
-        raise NotImplementedError
+        """Send one encoded frame."""
 
+    @abc.abstractmethod
     def receive(self) -> list[bytes]:
         """Every frame received since the last call (never blocks)."""
-        raise NotImplementedError
 
-    def close(self) -> None:
+    def close(self) -> None:  # noqa: B027 - links with nothing to release keep this default
         """Release the link (idempotent)."""
 
     def __enter__(self) -> Transport:

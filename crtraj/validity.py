@@ -216,6 +216,27 @@ class MotionValidator:
             out = np.concatenate([out, X[self.within_limits(X)]])
         return out[:n]
 
+    def project_limits(self, X: np.ndarray) -> np.ndarray:
+        """Configurations (N, nx) moved into the bending discs |u_bar_k| <= theta_max_k and the z stroke.
+
+        Radial scaling of each effective bending vector and clipping of z:
+        the nearest such point in those coordinates; solver round-off
+        (~1e-8 outside a limit) becomes exactly inside. Cable strokes are
+        not projected; with the default strokes (2 r theta_max) the discs imply them.
+        """
+        X = np.atleast_2d(np.asarray(X, dtype=float))
+        robot = self.robot
+        n = robot.n_segments
+        C = robot.coupling_matrix()
+        tmax = np.array([s.theta_max for s in robot.segments])
+        ub = (X[:, : 2 * n] @ C.T).reshape(-1, n, 2)
+        norm = np.linalg.norm(ub, axis=-1)
+        ub = ub * np.minimum(1.0, tmax / np.maximum(norm, 1e-300))[..., None]
+        out = X.copy()
+        out[:, : 2 * n] = ub.reshape(-1, 2 * n) @ np.linalg.inv(C).T
+        out[:, -1] = np.clip(X[:, -1], robot.z_range[0], robot.z_range[1])
+        return out
+
     # -------------------------------------------------------------- clearance
     def within_limits(self, X: np.ndarray) -> np.ndarray:
         """True per configuration when it respects every limit (bool (N,))."""

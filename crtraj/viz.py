@@ -17,6 +17,12 @@ server would give. A server, when asked for, is meshcat's, started as a child
 process with its web and ZMQ sockets bound to 127.0.0.1 only (meshcat 0.3.2
 would listen on every interface), and it exits when this process does.
 
+Jupyter: make ``vis.jupyter_cell()`` the last expression of a cell. With a
+server it embeds the live page (an iframe on 127.0.0.1, so the browser must run
+on the same machine as the kernel); offline (``server=False``, or
+``Visualizer.for_result(result)``) it embeds the standalone page, which also
+works for a remote kernel and in a saved notebook.
+
 meshcat 0.3.2 quirks handled here, once: cylinders lie along the y axis
 (three.js convention), int64 arrays are refused (everything is sent as
 float32), and ``meshcat.Visualizer.close()`` raises (the window here closes).
@@ -60,7 +66,7 @@ with warnings.catch_warnings():
     from meshcat.servers.tree import SceneTree, walk
     from meshcat.servers.zmqserver import ZMQWebSocketBridge
 
-try:  # the C msgpack packs a long animation ~25x faster than meshcat's pure-Python umsgpack, same bytes
+try:  # the C msgpack packs a long animation ~20x faster than meshcat's pure-Python umsgpack, same bytes
     import msgpack as _msgpack
 except ImportError:  # pragma: no cover - msgpack ships with most scientific stacks
     _msgpack = None
@@ -159,7 +165,6 @@ class _Run:
     """The drawable content of a result file (mm, s), validated."""
 
     kind: str
-    name: str
     t: np.ndarray  # (N,) s, non-decreasing
     x: np.ndarray  # (N, nx) configurations
     tip: np.ndarray  # (N, 3) mm; NaN rows where the file gives none
@@ -202,8 +207,6 @@ def _parse_run(result: Any, nx: int) -> _Run:
     kind = result.get("kind", "plan")
     if kind not in ("plan", "replan"):
         raise InputError(f"kind: must be plan or replan, got {kind!r}")
-    problem = result.get("problem")
-    name = str(problem.get("name", "result")) if isinstance(problem, Mapping) else "result"
     wps = _field(result, "waypoints", "")
     if not isinstance(wps, list) or not wps:
         raise InputError("waypoints: expected a non-empty list of waypoints")
@@ -242,7 +245,7 @@ def _parse_run(result: Any, nx: int) -> _Run:
         raw_edges = _field(tree, "edges", "tree")
         if len(raw_edges):
             edges = check_array(raw_edges, "tree.edges", (None, 2, 3))
-    return _Run(kind, name, t, x, tip, np.stack(centers), np.stack(radii), start, goal, reference, edges)
+    return _Run(kind, t, x, tip, np.stack(centers), np.stack(radii), start, goal, reference, edges)
 
 
 def _workspace(scene: Any) -> tuple[np.ndarray, np.ndarray] | None:
@@ -516,8 +519,10 @@ class Visualizer:
     ``Visualizer(model)`` starts a meshcat server on 127.0.0.1 (`url` is its
     address); ``server=False`` draws offline, for `save_html` /
     `static_html` only; ``zmq_url`` connects to a running meshcat server
-    instead. ``open=True`` opens the page in the default browser. Lengths in
-    mm, times in s. Use as a context manager or call `close` to stop the server.
+    instead. ``open=True`` opens the page in the default browser. `options`:
+    colours and sizes (`ViewOptions`, the problem file's ``[view]``). `timeout`
+    (s) bounds the server's start-up and every reply. Lengths in mm, times in
+    s. Use as a context manager or call `close` to stop the server.
     """
 
     def __init__(
@@ -528,7 +533,7 @@ class Visualizer:
         *,
         server: bool = True,
         options: ViewOptions | None = None,
-        timeout: float = 30.0,
+        timeout: float = 60.0,
     ) -> None:
         self.model = model
         self.robot = model.robot

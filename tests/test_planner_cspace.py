@@ -1,0 +1,201 @@
+"""The configuration-space planner (the default of `crtraj plan`), checked by independent dense checks."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from test_planner_helpers import assert_valid_plan, dense_path_check, paper_static
+
+from crtraj.cspace import CSpacePlanner
+from crtraj.errors import InputError
+from crtraj.plan_options import PlannerOptions
+from crtraj.plan_result import PlanStatus
+from crtraj.scene import Obstacle, Scene
+from crtraj.stop import StopCondition
+
+
+@pytest.fixture(scope="module")
+def sim1():
+    return paper_static()
+
+
+@pytest.fixture(scope="module")
+def planner(sim1):
+    _, model, scene = sim1
+    return CSpacePlanner(model, scene, PlannerOptions(time_limit=10.0))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_sim1_plan_is_valid(sim1, planner, seed):
+    problem, model, scene = sim1
+    task = problem.task
+    res = planner.plan(task.goal, start_tip=task.start, seed=seed, goal_tolerance=task.goal_tolerance)
+    assert res.status is PlanStatus.EXACT
+    assert np.linalg.norm(res.tips[0] - task.start) <= 1e-3
+    clear = assert_valid_plan(res, model, scene, task.goal, task.goal_tolerance)
+    # the reported clearance is a conservative measurement of the same thing
+    assert res.min_clearance <= clear + 1e-6
+    assert res.goal_error <= task.goal_tolerance
+    # waypoints are timed by the body-speed bound
+    np.testing.assert_allclose(res.t, planner.validator.times(res.configs, 0.0))
+    # the raw tree path is itself a valid motion from the same start to a goal configuration
+    raw_clear, raw_limit, _ = dense_path_check(model, scene, res.raw_t, res.raw_configs)
+    assert raw_clear >= 0.0 and raw_limit <= 1e-9
+    assert len(res.goal_configs) >= 1
+    np.testing.assert_allclose(
+        model.tip_position(res.goal_configs), np.tile(task.goal, (len(res.goal_configs), 1)), atol=1e-3
+    )
+
+
+def test_same_seed_same_plan(sim1, planner):
+    problem, _, _ = sim1
+    task = problem.task
+    a = planner.plan(task.goal, start_tip=task.start, seed=7)
+    b = planner.plan(task.goal, start_tip=task.start, seed=7)
+    c = planner.plan(task.goal, start_tip=task.start, seed=8)
+    np.testing.assert_array_equal(a.configs, b.configs)
+    np.testing.assert_array_equal(a.t, b.t)
+    assert a.counts["iterations"] == b.counts["iterations"]
+    assert not (a.configs.shape == c.configs.shape and np.array_equal(a.configs, c.configs))
+
+
+def test_start_config_and_t0(sim1, planner):
+    problem, model, scene = sim1
+    task = problem.task
+    first = planner.plan(task.goal, start_tip=task.start, seed=0)
+    x0 = first.configs[0]
+    res = planner.plan(task.goal, start_config=x0, t0=12.5, seed=3)
+    assert_valid_plan(res, model, scene, task.goal, 1.0, t0=12.5, start=x0)
+    # config_at reproduces the waypoints and interpolates straight between them
+    np.testing.assert_allclose(res.config_at(res.t), res.configs, atol=1e-12)
+    tm = 0.5 * (res.t[0] + res.t[1])
+    np.testing.assert_allclose(res.config_at(tm), 0.5 * (res.configs[0] + res.configs[1]), atol=1e-9)
+    np.testing.assert_allclose(res.config_at(res.t[-1] + 5.0), res.configs[-1])
+
+
+def test_invalid_start_and_goal_are_statuses(sim1, planner):
+    problem, model, scene = sim1
+    task = problem.task
+    inside = np.array(scene.obstacles[0].center)
+    res = planner.plan(task.goal, start_tip=inside, seed=0)
+    assert res.status is PlanStatus.INVALID_START and not res.success and not res.has_path
+    assert "start" in res.message
+    # a configuration whose body passes through the upper sphere
+    bad = model.robot.straight(0.0)
+    bad[:2] = [0.0, 0.4]
+    assert planner.validator.clearance(bad[None])[0] < 0
+    res = planner.plan(task.goal, start_config=bad, seed=0)
+    assert res.status is PlanStatus.INVALID_START and "collision" in res.message
+    over = model.robot.straight(0.0)
+    over[0] = 4.0  # theta beyond pi
+    res = planner.plan(task.goal, start_config=over, seed=0)
+    assert res.status is PlanStatus.INVALID_START and "limits" in res.message
+    res = planner.plan(inside, start_tip=task.start, seed=0)
+    assert res.status is PlanStatus.INVALID_GOAL and "goal" in res.message
+    res = planner.plan([0.0, 0.0, 800.0], start_tip=task.start, seed=0)
+    assert res.status is PlanStatus.INVALID_GOAL
+    assert len(res.t) == 0 and res.configs.shape == (0, model.robot.nx)
+
+
+def test_bad_input_raises(sim1, planner):
+    problem, _, _ = sim1
+    task = problem.task
+    with pytest.raises(InputError, match="goal"):
+        planner.plan([np.nan, 0.0, 100.0], start_tip=task.start)
+    with pytest.raises(InputError, match="start"):
+        planner.plan(task.goal)
+    with pytest.raises(InputError, match="start"):
+        planner.plan(task.goal, start_tip=task.start, start_config=np.zeros(5))
+    with pytest.raises(InputError, match="start_config"):
+        planner.plan(task.goal, start_config=np.zeros(4))
+    with pytest.raises(InputError, match="time_limit or max_iterations"):
+        planner.plan(task.goal, start_tip=task.start, stop=StopCondition(first_solution=True))
+
+
+def test_no_solution_within_budget_is_reported(sim1):
+    problem, model, scene = sim1
+    task = problem.task
+    # no via round, one tree iteration: not enough for simulation 1 (the direct motion collides)
+    planner = CSpacePlanner(model, scene, PlannerOptions(via_points=0))
+    res = planner.plan(task.goal, start_tip=task.start, seed=0, stop=StopCondition(max_iterations=1))
+    assert res.status in (PlanStatus.TIMEOUT, PlanStatus.APPROXIMATE)
+    assert not res.success and "iteration limit" in res.message
+    if res.has_path:  # an approximate path is still a verified motion, toward the goal
+        clear, limit, _ = dense_path_check(model, scene, res.t, res.configs)
+        assert clear >= 0 and limit <= 1e-9
+        start_error = np.linalg.norm(res.tips[0] - task.goal)
+        assert task.goal_tolerance < res.goal_error < start_error
+
+
+def test_moving_obstacles_are_avoided_in_time(sim1):
+    _, model, _ = sim1
+    # a sphere sweeping through the region between start and goal, and one that breathes
+    scene = Scene(
+        (
+            Obstacle((120.0, 0.0, 300.0), 35.0, to=(-120.0, 0.0, 300.0), duration=4.0, profile="cos"),
+            Obstacle((0.0, 90.0, 330.0), 40.0, amplitude=15.0, omega=1.0),
+        )
+    )
+    planner = CSpacePlanner(model, scene, PlannerOptions(time_limit=20.0))
+    assert not planner.validator.static
+    for seed in (0, 1):
+        res = planner.plan([60.0, -100.0, 250.0], start_config=model.robot.straight(-200.0), t0=1.0, seed=seed)
+        assert res.success, res.message
+        assert_valid_plan(res, model, scene, np.array([60.0, -100.0, 250.0]), 1.0, t0=1.0)
+
+
+def _random_static_scene(model, rng):
+    """A solvable-looking query: start and goal tips of two random clear configurations, spheres between them."""
+    from crtraj.validity import MotionValidator
+
+    v0 = MotionValidator(model, Scene((Obstacle((0.0, 0.0, 2000.0), 1.0),)))
+    while True:
+        X = v0.sample(rng, 2)
+        tips = model.tip_position(X)
+        if np.linalg.norm(tips[0] - tips[1]) < 150 or np.any(tips[:, 2] < 100):
+            continue
+        obstacles = []
+        for _ in range(rng.integers(1, 4)):
+            f = rng.uniform(0.3, 0.7)
+            c = tips[0] + f * (tips[1] - tips[0]) + rng.normal(size=3) * 30.0
+            obstacles.append(Obstacle(tuple(c), float(rng.uniform(20.0, 45.0))))
+        scene = Scene(tuple(obstacles))
+        v = MotionValidator(model, scene)
+        if np.all(v.clearance(X) > 5.0):
+            return scene, X[0], tips[1]
+
+
+@pytest.mark.slow
+def test_statistical_success_on_random_static_scenes(sim1):
+    _, model, _ = sim1
+    rng = np.random.default_rng(2024)
+    planner = CSpacePlanner(model, Scene(), PlannerOptions(time_limit=5.0), max_obstacles=4)
+    ok = 0
+    for k in range(20):
+        scene, start, goal = _random_static_scene(model, rng)
+        res = planner.plan(goal, start_config=start, scene=scene, seed=k)
+        if res.success:
+            clear, limit, _ = dense_path_check(model, scene, res.t, res.configs, dt=0.02)
+            assert clear >= 0.0 and limit <= 1e-9
+            assert np.linalg.norm(model.tip_position(res.configs[-1]) - goal) <= 1.0
+            ok += 1
+    assert ok >= 19, f"only {ok}/20 scenes solved"
+
+
+@pytest.mark.slow
+def test_statistical_success_on_paper_table1_scenes(sim1):
+    """20 of the paper's Table I scenes (3 moving, breathing spheres): verified in time by the dense check."""
+    from crtraj.scenarios import ScenarioGenerator, ScenarioOptions
+
+    _, model, _ = sim1
+    gen = ScenarioGenerator(model, ScenarioOptions(seed=0))
+    planner = CSpacePlanner(model, Scene(), PlannerOptions(time_limit=5.0), max_obstacles=8)
+    ok = 0
+    for i in range(20):
+        sc = gen.generate(3, i)
+        res = planner.plan(sc.goal, start_config=sc.start, scene=sc.scene, seed=i, goal_tolerance=0.5)
+        if res.success:
+            clear, limit, _ = dense_path_check(model, sc.scene, res.t, res.configs, dt=0.02)
+            assert clear >= 0.0 and limit <= 1e-9
+            ok += 1
+    assert ok >= 19, f"only {ok}/20 scenes solved"

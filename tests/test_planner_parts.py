@@ -1,0 +1,314 @@
+"""The planners' building blocks against independent computations: stop conditions, nearest
+neighbours, the search tree, the collision bounds of MotionValidator, safe IK, shortcuts and splines."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+from test_planner_helpers import dense_path_check, paper_static
+
+from crtraj.errors import InputError
+from crtraj.fields import Table
+from crtraj.nn import NearestNeighbors
+from crtraj.plan_options import PlannerOptions
+from crtraj.postprocess import PathPostprocessor, dedup
+from crtraj.safe_ik import SafeIK
+from crtraj.scene import Obstacle, Scene
+from crtraj.stop import StopCondition
+from crtraj.tree import SearchTree
+from crtraj.validity import MotionValidator
+
+
+@pytest.fixture(scope="module")
+def sim1():
+    return paper_static()
+
+
+@pytest.fixture(scope="module")
+def validator(sim1):
+    _, model, scene = sim1
+    return MotionValidator(model, scene)
+
+
+# ---------------------------------------------------------------- stop conditions
+def test_stop_condition_combines_and_validates():
+    a = StopCondition(time_limit=2.0) | StopCondition(max_iterations=10, time_limit=5.0)
+    assert a == StopCondition(time_limit=2.0, max_iterations=10, first_solution=False)
+    assert (a | StopCondition(first_solution=True)).first_solution
+    with pytest.raises(InputError, match="time_limit"):
+        StopCondition(time_limit=-1.0)
+    with pytest.raises(InputError, match="max_iterations"):
+        StopCondition(max_iterations=0)
+    with pytest.raises(InputError, match="time_limit or max_iterations"):
+        StopCondition(first_solution=True).check_bounded()
+
+
+def test_stop_clock_reasons():
+    clock = StopCondition(max_iterations=3, first_solution=True).start()
+    assert not clock.should_stop(False)
+    assert clock.should_stop(True) and clock.reason == "first solution"
+    clock = StopCondition(max_iterations=3).start()
+    for _ in range(3):
+        assert not clock.should_stop(False)
+        clock.tick()
+    assert clock.should_stop(False) and "iteration limit" in clock.reason
+    clock = StopCondition(time_limit=1e-12).start()
+    while clock.elapsed() <= 1e-12:
+        pass
+    assert clock.should_stop(False) and "time limit" in clock.reason
+
+
+# ------------------------------------------------------------- nearest neighbours
+def test_nearest_neighbors_match_brute_force():
+    rng = np.random.default_rng(3)
+    nn = NearestNeighbors(5, capacity=16, min_buffer=8)
+    pts = rng.normal(size=(700, 5)) * 100
+    for i, p in enumerate(pts):
+        assert nn.add(p) == i
+        if i % 37 == 0:
+            q = rng.normal(size=5) * 100
+            d = np.linalg.norm(pts[: i + 1] - q, axis=1)
+            j, dist = nn.nearest(q)
+            assert dist == pytest.approx(d.min())
+            assert d[j] == pytest.approx(d.min())
+            np.testing.assert_array_equal(nn.within(q, 80.0), np.flatnonzero(d <= 80.0))
+    np.testing.assert_array_equal(nn.points, pts)
+    with pytest.raises(IndexError):
+        NearestNeighbors(2).nearest(np.zeros(2))
+
+
+def test_search_tree_paths_and_subtrees():
+    tr = SearchTree(2, 3, capacity=2)  # forces growth
+    root = tr.add(np.zeros(2), np.zeros(3), 0.0, 0.0, -1)
+    a = tr.add(np.ones(2), np.ones(3), 1.0, 1.0, root)
+    b = tr.add(2 * np.ones(2), 2 * np.ones(3), 2.0, 2.0, a)
+    c = tr.add(np.array([0.0, 3.0]), 3 * np.ones(3), 3.0, 3.0, root)
+    np.testing.assert_array_equal(tr.path_to(b), [root, a, b])
+    assert set(tr.subtree(a)) == {a, b}
+    par, child = tr.edges()
+    assert sorted(zip(par.tolist(), child.tolist(), strict=True)) == [(0, 1), (0, 3), (1, 2)]
+    tr.set_parent(b, c, 5.0, 4.0)
+    np.testing.assert_array_equal(tr.path_to(b), [root, c, b])
+    assert tr.nearest(np.array([0.1, 2.9]))[0] == c
+
+
+# ------------------------------------------------------------------- the validator
+def test_motion_bound_bounds_every_backbone_point(sim1, validator):
+    _, model, _ = sim1
+    rng = np.random.default_rng(0)
+    X = validator.sample(rng, 400)
+    dX = rng.normal(size=X.shape) * rng.uniform(1e-3, 0.5, (len(X), 1))
+    dX[:, -1] *= 80.0
+    moved = np.linalg.norm(model.points(X + dX, 120) - model.points(X, 120), axis=-1).max(axis=1)
+    bound = validator.motion_bound(dX)
+    assert np.all(moved <= bound * (1 + 1e-9))
+    assert np.max(moved / bound) > 0.5  # the bound is not wildly loose
+
+
+def test_clearance_bounds_the_dense_body(sim1, validator):
+    _, model, scene = sim1
+    X = validator.sample(np.random.default_rng(1), 300)
+    P = model.points(X, 800)
+    c, r = scene.states(0.0)
+    dense = (np.linalg.norm(P[:, :, None] - c, axis=-1) - r).min(axis=(1, 2))
+    dense -= model.robot.body_radius + scene.safety_distance
+    cons = validator.clearance(X)
+    assert np.all(cons <= dense + 1e-9)
+    assert np.max(dense - cons) < 2.0 * validator.sagitta + 0.5  # tight up to the sagitta
+    np.testing.assert_allclose(validator.points(X[:5]), model.points(X[:5], validator.check_points), atol=1e-9)
+
+
+def test_clearance_over_a_window_bounds_moving_obstacles(sim1):
+    _, model, _ = sim1
+    scene = Scene(
+        (
+            Obstacle(
+                (80.0, 0.0, 250.0),
+                30.0,
+                amplitude=10.0,
+                omega=2.0,
+                to=(-40.0, 60.0, 300.0),
+                duration=3.0,
+                profile="cos",
+            ),
+        )
+    )
+    v = MotionValidator(model, scene)
+    assert not v.static
+    X = v.sample(np.random.default_rng(2), 60)
+    t_lo, t_hi = 0.7, 2.1
+    bound = v.clearance(X, t_lo, t_hi)
+    P = model.points(X, 400)
+    worst = np.full(len(X), np.inf)
+    for t in np.linspace(t_lo, t_hi, 300):
+        c, r = scene.states(t)
+        d = (np.linalg.norm(P - c[0], axis=-1) - r[0]).min(axis=1)
+        worst = np.minimum(worst, d - model.robot.body_radius - scene.safety_distance)
+    assert np.all(bound <= worst + 1e-9)
+
+
+def test_edge_checks_agree_with_an_independent_dense_check(sim1, validator):
+    _, model, scene = sim1
+    rng = np.random.default_rng(4)
+    XA, XB = validator.sample(rng, 120), validator.sample(rng, 120)
+    XA = XA[validator.clearance(XA) >= 0][:40]
+    XB = XB[validator.clearance(XB) >= 0][:40]
+    f, lower = validator.check_edges(XA, XB)
+    ok = validator.edges_valid(XA, XB)
+    np.testing.assert_array_equal(ok, f >= 1.0)
+    assert ok.any() and (~ok).any()
+    for a, b, fa, good in zip(XA, XB, f, ok, strict=True):
+        clear, _, _ = dense_path_check(model, scene, np.array([0.0, 1.0]), np.stack([a, b]), dt=0.002)
+        if good:
+            assert clear >= 0.0
+        if fa > 0:  # the certified prefix is safe
+            clear_p, _, _ = dense_path_check(model, scene, np.array([0.0, 1.0]), np.stack([a, a + fa * (b - a)]), 0.002)
+            assert clear_p >= 0.0
+    # motions that truly collide are rejected
+    assert np.all(lower[ok] >= 0.0)
+
+
+def test_sampler_covers_the_limits(validator):
+    X = validator.sample(np.random.default_rng(5), 2000)
+    assert np.all(validator.within_limits(X))
+    theta = np.linalg.norm(validator.robot.bending(X), axis=-1)
+    assert theta.max() > 0.95 * np.pi
+    lo, hi = validator.robot.z_range
+    assert X[:, -1].min() < lo + 10 and X[:, -1].max() > hi - 10
+
+
+def test_validator_rejects_bad_settings(sim1):
+    _, model, scene = sim1
+    with pytest.raises(InputError, match="check_points"):
+        MotionValidator(model, scene, check_points=1)
+    with pytest.raises(InputError, match="resolution"):
+        MotionValidator(model, scene, resolution=0.0)
+
+
+# -------------------------------------------------------------------------- safe IK
+def test_safe_ik_solutions_are_on_target_within_limits_and_clear(sim1, validator):
+    problem, model, scene = sim1
+    ik = SafeIK(model, validator, scene.n_obstacles)
+    goal = problem.task.goal
+    batch = ik.solve(goal, scene.pack(0.0, 2), validator.sample(np.random.default_rng(0), 32), want=32)
+    assert len(batch.safe) >= 2
+    np.testing.assert_allclose(model.tip_position(batch.safe), np.tile(goal, (len(batch.safe), 1)), atol=1e-3)
+    assert np.all(validator.within_limits(batch.safe))
+    for x in batch.safe:
+        clear, _, _ = dense_path_check(model, scene, np.array([0.0]), x[None])
+        assert clear >= 0.0
+    # distinct: no two kept solutions within the dedup distance
+    d = validator.motion_bound(batch.safe[:, None] - batch.safe[None])
+    assert np.all(d[~np.eye(len(d), dtype=bool)] >= 5.0)
+
+
+def test_safe_ik_nlp_stage_alone(sim1, validator):
+    problem, model, scene = sim1
+    ik = SafeIK(model, validator, 4)  # more slots than obstacles: padding must be inert
+    seeds = validator.sample(np.random.default_rng(1), 6)
+    batch = ik.solve(problem.task.goal, scene.pack(0.0, 4), seeds, newton_iterations=0, want=6)
+    assert "projection" in batch.statuses and batch.statuses["projection"] == 0
+    assert any(s.status == "Solve_Succeeded" for s in batch.solutions)
+    assert len(batch.safe) >= 1
+    for x in batch.safe:
+        assert np.linalg.norm(model.tip_position(x) - problem.task.goal) <= 1e-3
+        assert validator.clearance(x[None])[0] >= 0.0
+
+
+def test_safe_ik_unreachable_target(sim1, validator):
+    _, model, scene = sim1
+    ik = SafeIK(model, validator, 2)
+    far = np.array([0.0, 0.0, 900.0])  # beyond 400 mm of robot on a base that rises 100 mm
+    batch = ik.solve(far, scene.pack(0.0, 2), validator.sample(np.random.default_rng(2), 8), max_nlp=2)
+    assert len(batch.safe) == 0
+    assert sum(1 for s in batch.solutions if s.status != "projection") == 2
+    assert not any(s.safe for s in batch.solutions)
+
+
+# ----------------------------------------------------------------- post-processing
+def _zigzag(validator):
+    """A safe, needlessly long path in free space: the straight pose bent back and forth."""
+    robot = validator.robot
+    base = robot.straight(0.0)
+    X = []
+    for k, a in enumerate(np.linspace(-0.4, 0.4, 7)):
+        x = base.copy()
+        x[0] = a
+        x[1] = 0.3 * (-1) ** k
+        x[-1] = -20.0 + 5 * k
+        X.append(x)
+    return np.array(X)
+
+
+def test_shortcut_and_spline_keep_the_path_safe_and_shorter(sim1):
+    _, model, _ = sim1
+    empty = Scene((Obstacle((400.0, 400.0, 900.0), 1.0),))  # far away
+    v = MotionValidator(model, empty)
+    X = _zigzag(v)
+    post = PathPostprocessor(v, PlannerOptions(shortcut_rounds=6), np.random.default_rng(0), t0=2.0)
+    assert post.valid(X)
+    short = post.shortcut(X)
+    assert np.sum(v.motion_bound(np.diff(short, axis=0))) < np.sum(v.motion_bound(np.diff(X, axis=0)))
+    np.testing.assert_array_equal(short[0], X[0])
+    np.testing.assert_array_equal(short[-1], X[-1])
+    Y = post.spline(X, corner=40.0)
+    np.testing.assert_array_equal(Y[0], X[0])
+    np.testing.assert_array_equal(Y[-1], X[-1])
+    assert np.all(v.within_limits(Y))
+    assert np.max(v.motion_bound(np.diff(Y, axis=0))) <= post.o.waypoint_step + 1e-9
+    T = post.times(Y)
+    assert T[0] == 2.0
+    np.testing.assert_allclose(np.diff(T), v.motion_bound(np.diff(Y, axis=0)) / v.max_speed)
+    Z, smoothed = post.smooth(X)
+    assert smoothed and post.valid(Z)
+
+
+def test_smoothing_falls_back_when_the_spline_collides(sim1):
+    _, model, _ = sim1
+    robot = model.robot
+    v0 = MotionValidator(model, Scene((Obstacle((400.0, 400.0, 900.0), 1.0),)))
+    # lower the straight robot by 300 mm, then bend it by 1.5 rad: the rounded corner bends while still
+    # lowering, so its body passes places the two straight motions never visit
+    X = np.stack([robot.straight(100.0), robot.straight(-200.0), robot.straight(-200.0)])
+    X[2, 0] = 1.5
+    opts = PlannerOptions(corner=150.0)
+    Y = PathPostprocessor(v0, opts, np.random.default_rng(0)).spline(X, 150.0)
+    poly = model.points(PathPostprocessor(v0, opts, np.random.default_rng(0)).resample(X, 1.0), 60).reshape(-1, 3)
+    spl = model.points(Y, 60).reshape(-1, 3)
+    gap, _ = cKDTree(poly).query(spl)
+    centre = spl[int(np.argmax(gap))]
+    radius = float(gap.max()) - robot.body_radius - 5.0 - 2.5  # the polyline keeps ~2.5 mm beyond D_sf
+    assert radius > 2.0
+    v = MotionValidator(model, Scene((Obstacle(tuple(centre), radius),)))
+    post = PathPostprocessor(v, opts, np.random.default_rng(0))
+    assert post.valid(X)
+    assert not post.valid(Y)
+    Z, smoothed = post.smooth(X)
+    assert post.valid(Z)
+    if not smoothed:  # fell back: the raw path, resampled
+        np.testing.assert_allclose(Z, post.resample(X))
+    clear, _, _ = dense_path_check(model, v.scene, post.times(Z), Z)
+    assert clear >= 0.0
+
+
+def test_dedup_removes_repeats_only():
+    X = np.array([[0.0, 1.0], [0.0, 1.0], [1.0, 1.0], [1.0, 1.0], [0.0, 1.0]])
+    np.testing.assert_array_equal(dedup(X), [[0.0, 1.0], [1.0, 1.0], [0.0, 1.0]])
+
+
+# ------------------------------------------------------------------------- options
+def test_planner_options_from_table_and_errors():
+    o = PlannerOptions.from_table(Table({"algorithm": "rrtstar", "time_limit": 2.5, "range": 30.0}, "planner"))
+    assert o.algorithm == "rrtstar" and o.time_limit == 2.5 and o.step == 30.0
+    assert PlannerOptions().step == 150.0 and PlannerOptions(algorithm="rrt").step == 40.0
+    assert o.stop() == StopCondition(2.5, o.max_iterations, o.first_solution)
+    with pytest.raises(InputError, match=r"planner\.algorithm"):
+        PlannerOptions.from_table(Table({"algorithm": "prm"}, "planner"))
+    with pytest.raises(InputError, match=r"planner\.tim_limit: unknown key"):
+        PlannerOptions.from_table(Table({"tim_limit": 1.0}, "planner"))
+    with pytest.raises(InputError, match=r"planner\.goal_bias"):
+        PlannerOptions(goal_bias=1.5)
+    assert PlannerOptions.from_table(Table(PlannerOptions(range=12.0).to_dict(), "planner")) == PlannerOptions(
+        range=12.0
+    )

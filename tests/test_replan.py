@@ -1,0 +1,194 @@
+"""The horizon NLP (crtraj.replan.Replanner): constraints re-checked independently, options, parameters."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from crtraj.errors import InputError
+from crtraj.fields import Table
+from crtraj.replan import HorizonResult, Replanner, ReplanOptions
+from crtraj.scene import Obstacle, Scene
+
+XS = np.array([0.3, 0.0, 0.0, 0.0, 0.0])
+XG = np.array([-0.6, 0.5, -0.3, 0.2, -40.0])
+# a breathing sphere beside the straight motion XS -> XG: the motion clips it unless it bends away
+BALL = Obstacle(center=(-3.5, 76.8, 394.4), radius=30.0, amplitude=8.0, omega=0.5, phase=-0.43, name="ball")
+
+
+def _radius(o: Obstacle, t: np.ndarray) -> np.ndarray:
+    """Independent closed form of a static-centre obstacle's radius (mm)."""
+    return o.radius + o.amplitude * np.sin(o.omega * t + o.phase)
+
+
+def _straight_reference(x0: np.ndarray, xg: np.ndarray, N: int, frac: float) -> np.ndarray:
+    return x0 + np.clip(frac * np.arange(1, N + 1), 0, 1)[:, None] * (xg - x0)
+
+
+@pytest.fixture(scope="module")
+def scene() -> Scene:
+    return Scene(obstacles=(BALL,), safety_distance=5.0)
+
+
+@pytest.fixture(scope="module")
+def planner(model, scene) -> Replanner:
+    return Replanner(model, ReplanOptions(horizon=8, points=14, solver="sqp"), max_obstacles=2, safety_distance=5.0)
+
+
+def test_solution_keeps_every_constraint_on_an_independent_dense_check(model, scene, planner):
+    N, dt = planner.N, planner.options.dt
+    t0 = 3.0  # the ball is near its largest radius: the straight reference goes through it
+    # start part-way along the straight motion, where the reference runs into the ball
+    x0 = XS + 0.25 * (XG - XS)
+    assert float(scene.clearance(model, x0, t0, 100)) > 10.0
+    Xr = _straight_reference(x0, XG, N, 0.12)
+    assert np.min(scene.clearance(model, Xr, t0, 100)) < -5.0  # the reference itself collides
+    res = planner.solve(x0, Xr, planner.obstacles_from_scene(scene, t0))
+    assert res.success, res.status
+    assert res.feasible
+    X = res.configs
+    # dense in arc length: 200 points per configuration, D_sf + disc radius from the ball's surface
+    P = model.points(X, 200)  # (N, 200, 3)
+    d = np.linalg.norm(P - np.array(BALL.center), axis=-1).min(axis=1)  # (N,)
+    # ... at every instant of both steps around each configuration, fine time grid
+    for k in range(N):
+        tt = np.linspace(t0 + k * dt, t0 + (k + 2) * dt, 41)
+        need = _radius(BALL, tt).max() + 5.0 + model.robot.body_radius
+        assert d[k] >= need - 1e-6, (k, d[k], need)
+    # the obstacle really shaped the plan: some constraint is active
+    assert res.min_distance < 1e-3
+    # rate limits per actuator and step, and the robot's limits
+    A, _ = model.robot.cable_matrix()
+    steps = np.diff(np.vstack([x0, X]), axis=0) @ A.T
+    assert np.all(np.abs(steps) <= planner.step_limit + 1e-7)
+    assert np.all(model.robot.limit_violation(X) <= 1e-7)
+    # and it still makes progress toward the goal tip
+    goal_tip = model.tip_position(XG)
+    assert np.linalg.norm(res.tips[-1] - goal_tip) < np.linalg.norm(model.tip_position(x0) - goal_tip)
+
+
+def test_without_safety_the_same_problem_runs_into_the_obstacle(model, scene):
+    rp = Replanner(
+        model, ReplanOptions(horizon=8, points=14, solver="sqp", safety=False), max_obstacles=2, safety_distance=5.0
+    )
+    x0 = XS + 0.25 * (XG - XS)
+    res = rp.solve(x0, _straight_reference(x0, XG, rp.N, 0.12), rp.obstacles_from_scene(scene, 3.0))
+    assert res.success
+    assert math.isinf(res.min_distance)  # no obstacle constraints in this NLP
+    assert np.min(scene.clearance(model, res.configs, 3.0, 100)) < 0.0
+
+
+@pytest.mark.parametrize("solver", ["ipopt", "sqp"])
+def test_both_solvers_agree(model, scene, solver):
+    rp = Replanner(model, ReplanOptions(horizon=6, points=12, solver=solver), max_obstacles=1, safety_distance=5.0)
+    x0 = XS + 0.25 * (XG - XS)
+    Xr = _straight_reference(x0, XG, rp.N, 0.12)
+    res = rp.solve(x0, Xr, rp.obstacles_from_scene(scene, 3.0))
+    assert res.success, res.status
+    ref = Replanner(
+        model, ReplanOptions(horizon=6, points=12, solver="ipopt", tol=1e-9), max_obstacles=1, safety_distance=5.0
+    ).solve(x0, Xr, rp.obstacles_from_scene(scene, 3.0))
+    assert abs(res.cost - ref.cost) <= 1e-3 * max(1.0, ref.cost)
+
+
+def test_obstacle_slots_enclose_the_obstacle_over_each_window(model, planner):
+    mover = Obstacle(
+        center=(20.0, -40.0, 250.0),
+        radius=25.0,
+        amplitude=10.0,
+        omega=2.0,
+        to=(80.0, 0.0, 260.0),
+        duration=1.3,
+        profile="cos",
+    )
+    scene = Scene(obstacles=(BALL, mover), safety_distance=5.0)
+    t0 = 0.77
+    slots = planner.obstacles_from_scene(scene, t0).reshape(planner.N, 2, 4)
+    lo, hi = planner.step_windows(t0)
+    h = planner.spacing
+    for k in range(planner.N):
+        tt = np.linspace(lo[k], hi[k], 101)
+        C, R = scene.states(tt)
+        for i in range(2):
+            r_enc = math.sqrt(slots[k, i, 3] ** 2 - (h / 2) ** 2) - planner.inflate
+            reach = np.linalg.norm(C[:, i] - slots[k, i, :3], axis=1) + R[:, i]
+            assert np.all(reach <= r_enc + 1e-9)
+
+
+def test_padding_slots_are_inert(model, planner):
+    scene = Scene(obstacles=(BALL,), safety_distance=5.0)
+    slots = planner.obstacles_from_scene(scene, 0.0).reshape(planner.N, 2, 4)
+    assert np.all(slots[:, 1, 2] >= 1e5)  # far up the z axis
+    too_many = Scene(obstacles=(BALL, BALL, BALL), safety_distance=5.0)
+    with pytest.raises(InputError, match="at most 2"):
+        planner.obstacles_from_scene(too_many, 0.0)
+
+
+def test_constant_velocity_prediction_encloses_the_extrapolated_sphere(planner):
+    c = np.array([[10.0, 20.0, 300.0]])
+    v = np.array([[5.0, -3.0, 1.0]])
+    r, rd = np.array([30.0]), np.array([-2.0])
+    age = 0.05
+    slots = planner.obstacles_from_states(c, r, v, rd, age=age).reshape(planner.N, 2, 4)
+    lo, hi = planner.step_windows(age)
+    for k in range(planner.N):
+        tt = np.linspace(lo[k], hi[k], 51)
+        C = c[0] + tt[:, None] * v[0]
+        R = r[0] + tt * rd[0]
+        r_enc = math.sqrt(slots[k, 0, 3] ** 2 - (planner.spacing / 2) ** 2) - planner.inflate
+        assert np.all(np.linalg.norm(C - slots[k, 0, :3], axis=1) + R <= r_enc + 1e-9)
+
+
+def test_warm_start_reuses_the_shifted_solution(model, scene):
+    rp = Replanner(model, ReplanOptions(horizon=6, points=12, solver="sqp"), max_obstacles=1, safety_distance=5.0)
+    x0 = XS + 0.1 * (XG - XS)
+    Xr = _straight_reference(x0, XG, rp.N, 0.1)
+    ob = rp.obstacles_from_scene(scene, 0.0)
+    cold = rp.solve(x0, Xr, ob)
+    assert cold.success and not cold.warm
+    again = rp.solve(x0, Xr, ob)
+    assert again.warm
+    assert again.success
+    np.testing.assert_allclose(again.configs, cold.configs, atol=1e-5)
+    rp.reset()
+    assert not rp.solve(x0, Xr, ob).warm
+
+
+def test_failed_solve_is_reported_as_failed(model):
+    # the reference asks for an impossible jump, the start is inside an obstacle: no feasible point exists
+    scene = Scene(obstacles=(Obstacle(center=(0.0, 0.0, 300.0), radius=40.0),), safety_distance=5.0)
+    rp = Replanner(
+        model, ReplanOptions(horizon=4, points=10, solver="sqp", max_iter=20), max_obstacles=1, safety_distance=5.0
+    )
+    x0 = np.zeros(5)  # straight up the z axis, through the sphere
+    res = rp.solve(x0, np.repeat(x0[None], 4, axis=0), rp.obstacles_from_scene(scene, 0.0))
+    assert isinstance(res, HorizonResult)
+    assert not res.success
+    assert not res.feasible
+    assert res.status and res.status != "Solve_Succeeded"
+
+
+def test_bad_input_is_one_clear_error(planner):
+    ob = np.zeros((planner.N, 8))
+    with pytest.raises(InputError, match="x0"):
+        planner.solve(np.full(5, np.nan), np.zeros((planner.N, 5)), ob)
+    with pytest.raises(InputError, match="max_obstacles"):
+        Replanner(planner.model, ReplanOptions(), max_obstacles=-1, safety_distance=5.0)
+
+
+def test_options_from_table_validate_every_key():
+    o = ReplanOptions.from_table(Table({"horizon": 7, "dt": 0.05, "solver": "sqp", "qpsol": "qrqp"}, "replan"))
+    assert (o.horizon, o.dt, o.solver, o.qpsol) == (7, 0.05, "sqp", "qrqp")
+    assert ReplanOptions.from_table(Table(o.to_dict(), "replan")) == o
+    with pytest.raises(InputError, match=r"replan\.horizonn: unknown key"):
+        ReplanOptions.from_table(Table({"horizonn": 7}, "replan"))
+    with pytest.raises(InputError, match=r"replan\.solver: must be one of"):
+        ReplanOptions.from_table(Table({"solver": "snopt"}, "replan"))
+    with pytest.raises(InputError, match=r"replan\.dt"):
+        ReplanOptions.from_table(Table({"dt": -0.1}, "replan"))
+    with pytest.raises(InputError, match=r"replan\.horizon"):
+        ReplanOptions(horizon=0)
+    with pytest.raises(InputError, match=r"replan\.safety"):
+        ReplanOptions.from_table(Table({"safety": "yes"}, "replan"))
