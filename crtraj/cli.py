@@ -315,9 +315,33 @@ def _add_replan(sub: argparse._SubParsersAction) -> None:
         "--no-safety",
         action="store_true",
         help="switch the collision-free terms off (NLP constraints, move verification, obstacles in the reference "
-        "planner), as in the paper's Fig. 7(b): the body then runs into the obstacles",
+        "planner), as in the paper's Fig. 4(b): the body then runs into the obstacles",
     )
     p.add_argument("--no-html", action="store_true", help="do not write run.html")
+    p.add_argument(
+        "--feed",
+        metavar="udp://127.0.0.1:PORT",
+        help="take the obstacle states live from a UDP JSON feed (crtraj.feed; ids = the scene's obstacle names) "
+        "and run in real time, predicting each obstacle at constant velocity",
+    )
+    p.add_argument("--feed-max-age", type=float, default=0.2, help="with --feed: hold when a state is older, s (0.2)")
+    p.add_argument(
+        "--stream",
+        metavar="udp://HOST:PORT",
+        help="afterwards, stream the verified run's actuation to a device (as crtraj stream does; "
+        "the robot file needs [robot.actuators])",
+    )
+    p.add_argument(
+        "--approach",
+        action="store_true",
+        help="with --stream: first move from the device's position to the run's start (not collision checked)",
+    )
+    p.add_argument(
+        "--time-scale",
+        type=float,
+        default=1.0,
+        help="with --stream: play the run this many times slower (the device's acceleration limits may need it)",
+    )
     p.add_argument("--view", action="store_true", help="afterwards, serve the 3-D replay on 127.0.0.1 until Ctrl-C")
     p.add_argument("--no-browser", action="store_true", help="with --view: only print the URL")
     p.add_argument("--quiet", action="store_true", help="print only the summary line")
@@ -336,17 +360,33 @@ def _cmd_replan(args: argparse.Namespace) -> int:
     problem = Problem.load(args.problem)
     seed = problem.seed if args.seed is None else args.seed
     t0 = time.perf_counter()
-    loop = loop_from_problem(problem, safety=not args.no_safety, seed=seed)
-    o = loop.options
-    if not args.quiet:
-        d = loop.replanner.describe()
-        print(
-            f"replanning '{problem.name}' (seed {seed}, {'with' if o.safety else 'WITHOUT'} collision-free terms): "
-            f"horizon {o.horizon} x {o.dt:g} s, {d['solver']}, {d['variables']} variables, "
-            f"{d['constraints']} constraints; setup {time.perf_counter() - t0:.2f} s",
-            flush=True,
-        )
-    run = loop.run()
+    feed = None
+    if args.feed:
+        from crtraj.feed import ObstacleFeed
+        from crtraj.scene import Scene
+        from crtraj.transport import parse_hostport
+
+        host, port = parse_hostport(args.feed.removeprefix("udp://"), "--feed")
+        if host not in ("127.0.0.1", "localhost"):
+            raise InputError(f"--feed: the feed listens on 127.0.0.1 only, got host {host!r}")
+        ids = [o.name for o in Scene.from_table(problem.section("scene")).obstacles]
+        feed = ObstacleFeed(port, max_age=args.feed_max_age, expected=ids)
+        print(f"listening for obstacle states ({', '.join(ids)}) on udp://127.0.0.1:{feed.address[1]}", flush=True)
+    try:
+        loop = loop_from_problem(problem, safety=not args.no_safety, seed=seed, feed=feed)
+        o = loop.options
+        if not args.quiet:
+            d = loop.replanner.describe()
+            print(
+                f"replanning '{problem.name}' (seed {seed}, {'with' if o.safety else 'WITHOUT'} collision-free "
+                f"terms{', live obstacles, real time' if feed is not None else ''}): horizon {o.horizon} x {o.dt:g} s, "
+                f"{d['solver']}, {d['variables']} variables, {d['constraints']} constraints",
+                flush=True,
+            )
+        run = loop.run()
+    finally:
+        if feed is not None:
+            feed.close()
     paths = write_run(run, loop, out, problem=problem, seed=seed, html=not args.no_html)
     print(run.summary_line())
     if not args.quiet:
@@ -355,6 +395,9 @@ def _cmd_replan(args: argparse.Namespace) -> int:
         for key in ("json", "npz", "png", "html"):
             if key in paths:
                 print(f"  {key:4s} {paths[key]}")
+    ok = run.reached and (run.safety_violations == 0 or not o.safety)
+    if args.stream:
+        ok = _stream_run(args, problem, paths) and ok
     if args.view:
         from crtraj.viz import Visualizer
 
@@ -368,8 +411,26 @@ def _cmd_replan(args: argparse.Namespace) -> int:
                     time.sleep(3600)
             except KeyboardInterrupt:
                 print("stopped", flush=True)
-    ok = run.reached and (run.safety_violations == 0 or not o.safety)
     return 0 if ok else 1
+
+
+def _stream_run(args: argparse.Namespace, problem: object, paths: dict) -> bool:
+    """Stream a replan run's actuation (its waypoints' q) to a device; True when the stream completed."""
+    from crtraj.setpoints import SetpointPath
+    from crtraj.stream import Streamer, StreamOptions
+
+    robot = problem.robot  # type: ignore[attr-defined]
+    if robot.actuators is None:
+        raise InputError("robot.actuators: --stream needs a [robot.actuators] table in the robot file")
+    actuators = robot.actuators.for_robot(robot)
+    target = args.stream if "://" in args.stream else f"udp://{args.stream}"
+    opts = problem.options(StreamOptions, "stream")  # type: ignore[attr-defined]
+    log = Path(paths["json"]).parent / "stream.jsonl"
+    path = SetpointPath.from_result(paths["result"], actuators).scaled(args.time_scale)
+    print(f"streaming the run ({path.duration:.2f} s) to {target}", flush=True)
+    rep = Streamer.open(target, actuators, opts, log).run_path(path, approach=args.approach)
+    print(f"  stream {rep.status}: {rep.message}; {rep.frames} frames; log {rep.log}")
+    return rep.ok
 
 
 # ---------------------------------------------------------------------- bench

@@ -9,9 +9,14 @@ planner solves that part first and directly:
 1. Start: the given configuration (checked), or safe IK for the start tip.
 2. Goal: several distinct safe configurations with the tip exactly on the
    goal (`crtraj.safe_ik.SafeIK`: batch projection, then the
-   safety-constrained IPOPT NLP).
-3. Search: the straight motion start -> goal configuration is tried first;
-   then RRT-Connect (Kuffner & LaValle 2000) between a start tree and a goal
+   safety-constrained IPOPT NLP), always including the safe goal
+   configuration nearest the start (the NLP from the start itself).
+3. Search: the straight motions start -> goal configurations are tried
+   first (taken when one is at most 1.5 times the shortest), then one
+   batched round of two-motion paths start -> via -> goal over `via_points`
+   random via configurations (half of them scattered around the straight
+   motions), keeping the shortest; then RRT-Connect (Kuffner & LaValle
+   2000) between a start tree and a goal
    tree rooted at all goal configurations, in the body-motion metric of
    `MotionValidator` (distances are mm of body travel). In a scene whose
    obstacles move or change size the goal tree cannot know when it will be
@@ -113,6 +118,12 @@ class CSpacePlanner:
         condition (default: the options'). seed: seeds the random generator
         (the same seed gives the same plan). scene: plan among these
         obstacles instead of the planner's scene. goal_tolerance (mm).
+
+        Re-planning (a receding-horizon controller re-seeding its reference):
+        ``plan(goal, start_config=x_now, t0=t_now, stop=StopCondition(time_limit=0.2),
+        scene=predicted_scene)``; the result's times continue from t_now and
+        `PlanResult.config_at(t)` gives the verified motion at any time.
+        The same seed gives the same plan as long as no time limit fires.
 
         Bad input (NaN, wrong shapes) raises `InputError`; an unsafe start
         or an unreachable goal is a result status, not an exception.
@@ -227,6 +238,8 @@ class _Run:
             "deadline": self.deadline,
             "validator": v,
             "max_nlp": o.ik_nlp_solves,
+            # the safe goal configuration nearest the start: short paths, above all when re-planning
+            "always": (0,),
         }
         if v.static or o.goal_window == 0:
             parts = [ik.solve(self.goal, sc.pack(self.t0, ik.max_obstacles), seeds, tip_tolerance=tip_tol, **kw)]
@@ -247,7 +260,7 @@ class _Run:
                 ik.solve(
                     self.goal,
                     sc.pack(self.t0, ik.max_obstacles),
-                    seeds[half:],
+                    np.concatenate([seeds[:1], seeds[half:]]),
                     t_check=(self.t0, self.t0),
                     tip_tolerance=tip_tol,
                     **kw,
@@ -275,11 +288,20 @@ class _Run:
         dur = v.motion_bound(self.goals - XA) / v.max_speed
         self.counts["edge_checks"] = G
         ok = np.flatnonzero(v.edges_valid(XA, self.goals, self.t0, self.t0 + dur))
+        direct = None
         if len(ok):
             best = ok[np.argmin(dur[ok])]
-            self.trees = []
-            return np.stack([self.x_start, self.goals[best]])
+            direct = np.stack([self.x_start, self.goals[best]])
+            # a direct motion to a far goal configuration can be much longer than a small detour
+            # to the nearest one: then the via round competes
+            if dur[best] <= 1.5 * dur.min():
+                self.trees = []
+                return direct
         via = self._via()
+        if direct is not None:
+            if via is None or v.motion_bound(np.diff(via, axis=0)).sum() >= v.motion_bound(direct[1] - direct[0]):
+                return direct
+            return via
         if via is not None:
             return via
         return self._connect() if v.static else self._forward()
@@ -297,7 +319,18 @@ class _Run:
         K = o.via_points
         if K == 0:
             return None
-        vias = v.sample(self.rng, K)
+        # half uniform over the whole space, half around the straight motions to the goal configurations
+        # (a small detour is the common case, and it makes the two-motion path short)
+        rng = self.rng
+        n_local = K // 2
+        g = self.goals[rng.integers(len(self.goals), size=n_local)]
+        g[: n_local // 2] = self.goals[int(np.argmin(v.motion_bound(self.goals - self.x_start)))]
+        lam = rng.uniform(0.2, 0.8, size=(n_local, 1))
+        y = v.metric(self.x_start + lam * (g - self.x_start)) + rng.normal(
+            scale=o.via_spread, size=(n_local, len(g[0]))
+        )
+        local = v.project_limits(v.config_from_metric(y))
+        vias = np.concatenate([local, v.sample(rng, K - n_local)])
         t_via = self.t0 + v.motion_bound(vias - self.x_start) / v.max_speed
         ok1 = v.edges_valid(np.repeat(self.x_start[None], K, axis=0), vias, self.t0, t_via)
         self.counts["edge_checks"] = self.counts.get("edge_checks", 0) + K
@@ -336,13 +369,15 @@ class _Run:
         step = min(self.o.step, d)
         y_i = tree.keys[i]
         y_new = y_i + (y_target - y_i) * (step / d)
-        return self._advance(tree, i, v.config_from_metric(y_new), timed)
+        return self._advance(tree, i, v.config_from_metric(y_new), timed)[0]
 
-    def _advance(self, tree: SearchTree, i: int, x_target: np.ndarray, timed: bool, full_only: bool = False) -> int:
-        """Add the safe prefix of the motion node i -> x_target; returns the last node added or -1.
+    def _advance(
+        self, tree: SearchTree, i: int, x_target: np.ndarray, timed: bool, full_only: bool = False
+    ) -> tuple[int, bool]:
+        """Add the safe prefix of the motion node i -> x_target, a node every `range`.
 
-        Nodes are added every `range` along the prefix. With full_only, nothing
-        is added unless the whole motion is safe.
+        Returns (last node added or -1, whether x_target itself was reached and
+        added). With full_only, nothing is added unless the whole motion is safe.
         """
         v = self.v
         x_i = tree.x[i]
@@ -354,19 +389,18 @@ class _Run:
             f = 1.0 if v.edges_valid(x_i[None], x_target[None], t_i, t_end)[0] else 0.0
         else:
             f = v.valid_prefix(x_i, x_target, t_i, t_end)
-        if f < 1.0 and full_only:
-            return -1
-        if f * bound < v.resolution:
-            return -1
+        reached = f >= 1.0
+        if (full_only and not reached) or f * bound < v.resolution:
+            return -1, False
         n_nodes = max(1, int(np.ceil(f * bound / self.o.step - 1e-9)))
         last = i
         for k in range(1, n_nodes + 1):
             fk = f * k / n_nodes
-            x = x_i + fk * (x_target - x_i)
+            x = x_target if (reached and k == n_nodes) else x_i + fk * (x_target - x_i)
             t = t_i + fk * (t_end - t_i) if timed else 0.0
             cost = float(tree.cost[last]) + f * bound / n_nodes
             last = tree.add(v.metric(x), x, t, cost, last)
-        return last
+        return last, reached
 
     def _connect(self) -> np.ndarray | None:
         """Bidirectional RRT-Connect (static scenes)."""
@@ -392,8 +426,8 @@ class _Run:
             if i_new >= 0:
                 x_new = a.x[i_new]
                 j, _ = b.nearest(a.keys[i_new])
-                j_new = self._advance(b, j, x_new, timed=False)
-                if j_new >= 0 and np.array_equal(b.x[j_new], x_new):
+                j_new, met = self._advance(b, j, x_new, timed=False)
+                if met:
                     pa, pb = a.path_to(i_new), b.path_to(j_new)
                     xa, xb = a.x[pa], b.x[pb][::-1][1:]  # drop the duplicate meeting node
                     path = np.concatenate([xa, xb]) if a is ts else np.concatenate([xb[::-1], xa[::-1]])
@@ -429,8 +463,8 @@ class _Run:
                 continue
             g, _ = goal_tree.nearest(ts.keys[i_new])
             x_goal = self.goals[g]
-            j = self._advance(ts, i_new, x_goal, timed=True)
-            if j >= 0 and np.array_equal(ts.x[j], x_goal):
+            j, met = self._advance(ts, i_new, x_goal, timed=True)
+            if met:
                 return ts.x[ts.path_to(j)]
         return None
 

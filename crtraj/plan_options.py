@@ -20,8 +20,9 @@ class PlannerOptions:
     the default), "rrt" or "rrtstar" (the paper's Algorithm 1 over tip
     positions, each step a safety-constrained steer NLP).
     time_limit (s), max_iterations, first_solution: the stop condition
-    (`crtraj.stop.StopCondition`); rrtstar keeps improving its path until
-    time or iterations run out unless first_solution is true.
+    (`crtraj.stop.StopCondition`); with first_solution false, rrt and
+    rrtstar keep growing (rrtstar: improving) the tree until time or
+    iterations run out; cspace returns its first path (then shortcuts it).
     goal_bias: probability of sampling the goal. range: longest extension
     per iteration (mm; body motion for cspace, tip travel for rrt/rrtstar;
     None: 150 for cspace, 40 for rrt/rrtstar). rewire_radius: RRT* neighbour
@@ -37,7 +38,9 @@ class PlannerOptions:
     goal_window: dynamic scenes only: half of the IK starts keep clear of
     everything the obstacles sweep over [t0, t0 + goal_window] (s).
     via_points: cspace only: random intermediate configurations tried at
-    once as start -> via -> goal before the trees grow (0: skip).
+    once as start -> via -> goal before the trees grow (0: skip); half of
+    them uniform, half scattered by `via_spread` (mm of body motion, normal
+    per metric axis) around the straight motions to the goal configurations.
     shortcut_rounds: rounds of batched shortcut attempts (each checks
     `shortcut_batch` candidate shortcuts at once).
     smooth: B-spline smoothing of the final path (verified; dropped if unsafe).
@@ -54,13 +57,14 @@ class PlannerOptions:
     rewire_radius: float = 80.0
     max_speed: float = 50.0
     resolution: float = 3.0
-    check_points: int = 21
+    check_points: int = 15
     ik_seeds: int = 64
     goal_configs: int = 4
     ik_iterations: int = 15
     ik_nlp_solves: int = 8
     goal_window: float = 4.0
     via_points: int = 32
+    via_spread: float = 100.0
     shortcut_rounds: int = 4
     shortcut_batch: int = 16
     smooth: bool = True
@@ -85,6 +89,7 @@ class PlannerOptions:
             "ik_nlp_solves": self.ik_nlp_solves >= 0,
             "goal_window": self.goal_window >= 0,
             "via_points": self.via_points >= 0,
+            "via_spread": self.via_spread > 0,
             "shortcut_rounds": self.shortcut_rounds >= 0,
             "shortcut_batch": self.shortcut_batch >= 1,
             "corner": self.corner > 0,
@@ -130,6 +135,7 @@ class PlannerOptions:
             ik_nlp_solves=t.int("ik_nlp_solves", d.ik_nlp_solves, ge=0),
             goal_window=t.float("goal_window", d.goal_window, ge=0.0),
             via_points=t.int("via_points", d.via_points, ge=0),
+            via_spread=t.float("via_spread", d.via_spread, gt=0.0),
             shortcut_rounds=t.int("shortcut_rounds", d.shortcut_rounds, ge=0),
             shortcut_batch=t.int("shortcut_batch", d.shortcut_batch, ge=1),
             smooth=t.bool("smooth", d.smooth),

@@ -16,7 +16,7 @@ is verified first (in a scene with moving obstacles, the whole re-timed
 subtree). The goal is reached when a node's tip is within the goal tolerance.
 Path cost is tip path length (mm), as in the paper's Table I.
 
-The steer keeps the collision points of `check_points` (default 21) clear by
+The steer keeps the collision points of `check_points` (default 15) clear by
 the scene's D_sf plus the disc radius plus a margin, so that the
 configurations it returns also pass the planner's continuous-body check
 (the paper constrains ten points; with ten points the body between them can
@@ -144,10 +144,9 @@ class RRT:
         rng = np.random.default_rng(seed)
         v = self.validator if scene is None or scene is self.scene else self._validator(scene)
         sc = v.scene
-        if sc.n_obstacles > self.steer.max_obstacles:
-            raise InputError(
-                f"scene: {sc.n_obstacles} obstacles but the planner was built for {self.steer.max_obstacles}"
-            )
+        if sc.n_obstacles > self.steer.max_obstacles:  # grow the NLPs' obstacle slots (built once more)
+            self.steer = SteerSolver(self.model, sc.n_obstacles, self.steer_options)
+            self.ik = SafeIK(self.model, self.validator, sc.n_obstacles)
         self.steer.reset_warm_start()  # the same seed must give the same plan
         timings: dict[str, float] = {}
         counts: dict[str, int] = {"steer_calls": 0, "steer_failed": 0, "not_reached": 0, "edge_rejected": 0}

@@ -26,7 +26,7 @@ with h the arc spacing of the NLP's points: a point outside rho keeps every
 chord to its neighbour outside R + D_sf + body + sagitta + margin, and the
 arc stays within the sagitta of its chord. `margin` (mm) absorbs the servo
 lag of the real robot. With ``safety = false`` the obstacle constraints are
-left out (the paper's Fig. 7b run).
+left out (the paper's simulation 2, Fig. 4(b)).
 
 Obstacles, current state and reference are parameters of one `casadi.nlpsol`
 built at construction (the "compile once, call repeatedly" pattern of

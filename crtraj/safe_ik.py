@@ -267,7 +267,6 @@ class SafeIK:
                 break
         converged = err <= tol
         statuses: dict[str, int] = {"projection": int(good.sum())}
-        nearest_first = []
         # most promising first: converged (by clearance), then by tip error
         rest = np.flatnonzero(~good)
         order = rest[np.lexsort((err[rest], -np.where(converged[rest], clear[rest], -np.inf)))]

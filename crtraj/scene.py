@@ -434,7 +434,7 @@ class Scene:
         `n_obstacles` are padding: centre PAD_CENTER (1e6 mm up the z axis),
         radius 0, active 0, so they are inert with or without the flag.
         """
-        if float(np.ndim(t)) != 0:
+        if np.ndim(t) != 0:
             raise InputError(f"t: pack expects one time (s), got shape {np.shape(t)}")
         centers, radii = self.states(float(t))
         return self._pack(centers, radii, max_obstacles)
@@ -529,4 +529,3 @@ class Scene:
             d["time_origin"] = self.time_origin
         d["obstacle"] = [o.to_dict() for o in self.obstacles]
         return d
-

@@ -33,7 +33,7 @@ import enum
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -42,6 +42,7 @@ from crtraj.errors import InputError
 from crtraj.fields import check_array
 from crtraj.model import Model
 from crtraj.replan import HorizonResult, Replanner, ReplanOptions
+from crtraj.scene import Obstacle
 from crtraj.tracking import TrackingController, TrackingOptions
 from crtraj.validity import MotionValidator
 
@@ -161,20 +162,19 @@ class FeedObstacles:
 
     Each step turns the newest states into a `Scene` valid over the next
     `window` seconds: every centre moves on a straight line at its measured
-    velocity (extrapolated from the message's age to now), every radius is
-    held at its largest value over the window (current radius plus any
-    growth at the measured rate). template: a `Scene` giving D_sf, the
-    workspace and the expected obstacles (their names are the feed ids).
-    A stale feed (an id missing or older than the feed's max_age) gives no
+    velocity (extrapolated from the message's age to now). A growing radius
+    r + r' tau is bounded over the window by ``r + r' W sin(pi tau / (2 W))``
+    (the sine's arc lies above its chord), or held at r + r' W when that
+    sine is not allowed (amplitude above the mean radius); a shrinking radius
+    is held at its current value. template: a `Scene` giving D_sf, the
+    workspace and the expected obstacles (their names are the feed ids). A
+    stale feed (an id missing or older than the feed's max_age) gives no
     scene, and the loop holds still.
     """
 
     live = True
 
     def __init__(self, feed: Any, template: Any, window: float) -> None:
-        from crtraj.scene import Obstacle
-
-        self._obstacle = Obstacle
         self.feed = feed
         self.template = template
         self.window = float(window)
@@ -196,21 +196,18 @@ class FeedObstacles:
         for j, name in zip(idx, self.ids, strict=True):
             v = st.velocities[j]
             c = st.centers[j] + st.ages[j] * v  # where it is now
-            r_now = max(0.0, float(st.radii[j] + st.ages[j] * st.radius_rates[j]))
-            r = max(r_now, r_now + float(st.radius_rates[j]) * W)
+            rate = float(st.radius_rates[j])
+            r_now = max(0.0, float(st.radii[j] + st.ages[j] * rate))
+            grow = max(rate, 0.0) * W
+            if grow <= r_now:
+                radius = {"radius": r_now, "amplitude": grow, "omega": math.pi / (2.0 * W)}
+            else:
+                radius = {"radius": r_now + grow}
             moving = bool(np.any(v != 0.0))
             obs.append(
-                self._obstacle(
-                    center=tuple(c),
-                    radius=r,
-                    to=tuple(c + W * v) if moving else None,
-                    duration=W,
-                    name=name,
-                )
+                Obstacle(center=tuple(c), to=tuple(c + W * v) if moving else None, duration=W, name=name, **radius)
             )
         # the snapshot's own clock starts now: loop time t maps to its time 0
-        from dataclasses import replace
-
         return replace(self.template, obstacles=tuple(obs), time_origin=-float(t)), ""
 
 
@@ -367,6 +364,8 @@ class ReplanRun:
             "reference_plans": int(np.sum(self.replanned)),
             "planner_time_s": float(np.sum(self.plan_time)),
             "status_counts": counts,
+            "live_obstacles": self.live,
+            "late_steps": self.late_steps,
             "setup_s": self.setup_time,
             "wall_time_s": self.wall_time,
         }
@@ -930,6 +929,7 @@ def loop_from_problem(
     safety: bool | None = None,
     seed: int | None = None,
     options: ReplanOptions | None = None,
+    feed: Any = None,
 ) -> ClosedLoop:
     """A `ClosedLoop` for a problem file: its robot, scene, task and ``[replan]``, ``[tracking]``,
     ``[planner]``, ``[steer]`` sections. The start configuration is the task's ``start_config`` or the
@@ -938,10 +938,10 @@ def loop_from_problem(
     ``replan.planner_time`` seconds.
 
     safety=False drops the collision-free terms (NLP constraints, verification, and obstacles in
-    the reference planner), as in the paper's Fig. 7(b). seed overrides the problem's seed.
+    the reference planner), as in the paper's Fig. 4(b). seed overrides the problem's seed.
+    feed: a `crtraj.feed.ObstacleFeed`: obstacle states come from it, live (`FeedObstacles`; the
+    scene's obstacle names are the feed ids), and the run is paced in real time.
     """
-    from dataclasses import replace
-
     from crtraj.plan_options import PlannerOptions
     from crtraj.plan_result import PlanStatus
     from crtraj.planner import make_planner
@@ -961,13 +961,40 @@ def loop_from_problem(
     scene = Scene.from_table(problem.section("scene"))
     model = Model(problem.robot)
     planner = make_planner(model, scene, popts, problem.options(SteerOptions, "steer"))
-    plan_scene = scene if opts.safety else scene.with_obstacles(())
+    source: Any = None
+    scene0 = scene
+    if feed is not None:
+        source = FeedObstacles(feed, scene, window=max(2.0 * opts.horizon * opts.dt, 2.0) + 2.0 * opts.dt)
+        t_end = time.perf_counter() + 2.0
+        snap, why = source.at(0.0)
+        while snap is None and time.perf_counter() < t_end:
+            time.sleep(0.01)
+            snap, why = source.at(0.0)
+        if snap is None:
+            raise InputError(f"--feed: {why}")
+        # the run starts a moment after this snapshot (the first reference plan): find the start
+        # configuration among everything the obstacles may cover over the next half second
+        a, b, rmax = snap.swept(0.0, 0.5)
+        scene0 = snap.with_obstacles(
+            replace(
+                o,
+                center=tuple(0.5 * (a[i] + b[i])),
+                radius=float(rmax[i] + 0.5 * np.linalg.norm(b[i] - a[i])),
+                amplitude=0.0,
+                omega=0.0,
+                phase=0.0,
+                to=None,
+            )
+            for i, o in enumerate(snap.obstacles)
+        )
     first: ReferencePlan | None = None
     if task.start_config is not None:
         x0 = np.asarray(task.start_config, dtype=float)
     else:
         # the start configuration: the planner's safe IK for the start tip (among the real obstacles)
-        res = planner.plan(task.goal, start_tip=task.start, t0=0.0, seed=seed, goal_tolerance=task.goal_tolerance)
+        res = planner.plan(
+            task.goal, start_tip=task.start, t0=0.0, seed=seed, goal_tolerance=task.goal_tolerance, scene=scene0
+        )
         if res.status is PlanStatus.INVALID_START:
             raise InputError(f"task.start: {res.message}")
         if res.has_path:
@@ -977,17 +1004,17 @@ def loop_from_problem(
                     res.configs, str(res.status), res.message, res.timings.get("total", 0.0), res.tree_edges
                 )
         else:
-            only = planner.plan(task.start, start_tip=task.start, t0=0.0, seed=seed, goal_tolerance=1.0)
+            only = planner.plan(task.start, start_tip=task.start, t0=0.0, seed=seed, goal_tolerance=1.0, scene=scene0)
             if not only.has_path:
                 raise InputError(f"task.start: {only.message}")
             x0 = only.configs[0]
-    source = PlannerReference(
+    reference = PlannerReference(
         planner,
         task.goal,
         goal_tolerance=task.goal_tolerance,
         stop=popts.stop() | StopCondition(time_limit=opts.planner_time),
         seed=seed,
-        scene=plan_scene,
+        scene=None if opts.safety else scene.with_obstacles(()),
     )
     return ClosedLoop(
         model,
@@ -996,23 +1023,32 @@ def loop_from_problem(
         x0,
         options=opts,
         tracking=tracking,
-        reference=source,
+        reference=reference,
         goal_tolerance=task.goal_tolerance,
-        initial_reference=first,
+        initial_reference=None if feed is not None else first,
+        obstacles=source,
         extra_options={"planner": popts, "steer": problem.options(SteerOptions, "steer")},
     )
 
 
 # ------------------------------------------------------------------- outputs
-def per_obstacle_distance(run: ReplanRun, model: Model, scene: Any, n_points: int = REPORT_POINTS) -> np.ndarray:
-    """Surface distance (mm) from the body (backbone + body radius) to each obstacle at every dense sample.
+def per_obstacle_distance(
+    run: ReplanRun, model: Model, scene: Any, n_points: int = REPORT_POINTS
+) -> tuple[np.ndarray, np.ndarray]:
+    """Surface distance (mm) from the body (backbone + body radius) to each obstacle over the run.
 
-    Returns (S, m) for the samples `run.dense_t`; negative = penetration.
+    Returns (times (S,), distances (S, m)); negative = penetration. With known
+    obstacle motion every verification sample is used (`run.dense_t`); with
+    a live feed, the recorded step times and obstacle states.
     """
-    P = model.points(run.dense_x, n_points)  # (S, n, 3)
-    C, R = scene.states(run.dense_t)  # (S, m, 3), (S, m)
+    if run.live:
+        T, P, C, R = run.t, model.points(run.x, n_points), run.centers, run.radii
+    else:
+        T = run.dense_t
+        P = model.points(run.dense_x, n_points)  # (S, n, 3)
+        C, R = scene.states(T)  # (S, m, 3), (S, m)
     d = np.linalg.norm(P[:, :, None, :] - C[:, None, :, :], axis=-1).min(axis=1)  # (S, m)
-    return d - R - model.robot.body_radius
+    return T, d - R - model.robot.body_radius
 
 
 def result_dict(run: ReplanRun, loop: ClosedLoop, problem: Any = None, seed: int | None = None) -> dict[str, Any]:
@@ -1114,7 +1150,7 @@ def save_npz(run: ReplanRun, path: Any) -> Any:
 
 
 def plot_run(run: ReplanRun, loop: ClosedLoop, path: Any, title: str = "") -> Any:
-    """PNG: body-obstacle distance over time (the paper's Fig. 7 a-5 / b-5) and tip errors."""
+    """PNG: body-obstacle distance over time (the paper's Fig. 4, panels a-5 and b-5) and tip errors."""
     import io
 
     import matplotlib
@@ -1128,9 +1164,9 @@ def plot_run(run: ReplanRun, loop: ClosedLoop, path: Any, title: str = "") -> An
     fig = Figure(figsize=(8.0, 6.4), dpi=110)
     ax1, ax2 = fig.subplots(2, 1, sharex=True)
     if scene.n_obstacles:
-        d = per_obstacle_distance(run, loop.model, scene)
+        T, d = per_obstacle_distance(run, loop.model, scene)
         for i, o in enumerate(scene.obstacles):
-            ax1.plot(run.dense_t, d[:, i], lw=1.4, label=o.name or f"obstacle {i}")
+            ax1.plot(T, d[:, i], lw=1.4, label=o.name or f"obstacle {i}")
     ax1.axhline(scene.safety_distance, color="tab:orange", ls="--", lw=1, label=f"D_sf = {scene.safety_distance:g} mm")
     ax1.axhline(0.0, color="tab:red", lw=1)
     bad = run.distance[1:] < 0
@@ -1164,14 +1200,18 @@ def plot_run(run: ReplanRun, loop: ClosedLoop, path: Any, title: str = "") -> An
 def write_run(
     run: ReplanRun, loop: ClosedLoop, out_dir: Any, *, problem: Any = None, seed: int | None = None, html: bool = True
 ) -> dict[str, Any]:
-    """Write run.json, run.npz, run.png and (html=True) run.html into out_dir; returns the paths and the result."""
+    """Write run.json, run.npz, run.png and (html=True) run.html into out_dir.
+
+    Returns the paths (keys json, npz, png, html) and, under "result", the
+    result document as plain JSON data.
+    """
     from pathlib import Path
 
-    from crtraj.fileio import atomic_write_json, atomic_write_text
+    from crtraj.fileio import atomic_write_json, atomic_write_text, to_jsonable
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    result = result_dict(run, loop, problem, seed)
+    result = to_jsonable(result_dict(run, loop, problem, seed))
     paths: dict[str, Any] = {"json": atomic_write_json(out / "run.json", result)}
     paths["npz"] = save_npz(run, out / "run.npz")
     paths["png"] = plot_run(run, loop, out / "run.png")

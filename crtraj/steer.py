@@ -15,26 +15,31 @@ active flag (padding slots: a = 0, constraint ``d^2 >= 0``, no penalty).
 
 Scaling ``S = diag(L_1, L_1, ..., L_n, L_n, 1)``: a bending change du of
 segment k moves points by up to about ``L_k du`` mm, so ``S dx`` is in mm
-like the tip error and z, and one number (`max_step`, mm) bounds the step.
+like the tip error and z; one number (`max_step`, mm) bounds the step, and
+the solvers work in ``y = S x`` so their Hessians are well conditioned.
 
 Mapping of the paper's coefficients (given for an unstated unit system):
 ``w_d = (damping * damping_scale)^2`` and ``w_o = (obstacle_coefficient *
-obstacle_scale)^2`` with defaults damping_scale 0.1, obstacle_scale 0.03.
-With the paper's 0.3 / 20 (40) this gives w_d = 9e-4 and w_o = 0.36 (1.44):
-the tip term dominates (a 100 mm step is biased by ~0.1 mm), the obstacle
-term dominates the damping inside the 2-D null space (the body bends away
-from obstacles while the tip tracks, the paper's "null-space solutions"),
-and the damping picks the smallest such motion. The paper iterates eq. 17
-to convergence, where its damping only slows the approach; a single NLP
-with a small damping weight reaches the same fixed point in one solve.
+obstacle_scale)^2``, defaults damping_scale = obstacle_scale = 0.02, so the
+paper's 0.3 and 20 (40) give w_d = 3.6e-5 and w_o = 0.16 (0.64) per mm^2 of
+tip error. Only ratios matter: the tip term dominates both (measured on
+sim 1: the damping biases a 300 mm IK move by < 0.1 mm, the obstacle term
+the tip by < 0.01 mm), while inside the 2-D null space the obstacle term
+dominates the damping, so the body bends away from obstacles while the tip
+tracks (the paper's "null-space solutions") and the damping picks the
+smallest such motion. The paper iterates eq. 17, where the damping only
+slows the approach to the target; one NLP with a small damping weight
+reaches that fixed point in one solve.
 
-Safety between collision points: the constraints hold at `n_points`
-backbone points (the paper's ten). Between two neighbours the body may dip
-toward a sphere by the chord depth ``sqrt(rho^2 + h^2/4) - rho`` plus the
-arc's sagitta; with ten points on cdsr2 (h = 44 mm) that is a few mm, less
-than the 5 mm D_sf, so the dense body still clears the sphere surface plus
-the body radius (tests check this with 200 points). Set `margin` (mm) or
-`n_points` to make the dense body keep the full D_sf.
+Safety between collision points: the hard constraints hold at `n_points`
+backbone points (the paper's ten, 44 mm apart on cdsr2). Between two
+neighbours the arc can dip toward a sphere by the chord depth
+``sqrt(rho^2 + h^2/4) - rho`` (3.3 mm for the sim-1 spheres) plus the arc's
+sagitta (1.9 mm at theta = pi/2 per segment, 3.8 mm at theta = pi). D_sf =
+5 mm absorbs this, so the dense body stays outside every sphere surface
+plus the disc radius (the tests check 200 points); to keep the full D_sf
+densely as well, raise `margin` (mm, added to every keep-out radius) or
+`n_points`.
 """
 
 from __future__ import annotations
@@ -55,19 +60,20 @@ from crtraj.scene import PACK_WIDTH, Scene
 SOLVERS = ("ipopt", "sqp", "dls")
 QP_SOLVERS = ("daqp", "qrqp", "qpoases", "osqp", "proxqp", "highs")
 
-# Default IPOPT options (overridable from [steer.ipopt]). The NLP is tiny
-# (nx = 2n + 1 variables), so per-iteration overhead dominates: exact
-# Hessian (SX, expanded) converges in a handful of iterations; mumps is the
-# bundled linear solver.
+# Default IPOPT options (overridable from [steer.ipopt]; tol and max_iter
+# come from [steer]). The NLP is tiny (nx = 2n + 1 variables), so IPOPT's
+# per-iteration overhead dominates: the exact Hessian (SX) keeps iterations
+# at 5-8; the adaptive barrier took fewer iterations than monotone in our
+# measurements; bound_push/frac 1e-8 keep the warm start where it is; mumps
+# is the linear solver bundled with CasADi.
 IPOPT_DEFAULTS: dict[str, Any] = {
     "print_level": 0,
     "sb": "yes",
     "linear_solver": "mumps",
     "hessian_approximation": "exact",
-    "tol": 1e-8,
     "acceptable_tol": 1e-6,
     "acceptable_iter": 5,
-    "constr_viol_tol": 1e-6,
+    "constr_viol_tol": 1e-8,
     "mu_strategy": "adaptive",
     "mu_init": 1e-2,
     "bound_push": 1e-8,
@@ -78,11 +84,16 @@ IPOPT_DEFAULTS: dict[str, Any] = {
 SQP_DEFAULTS: dict[str, Any] = {
     "hessian_approximation": "exact",
     # "regularize" shifts the whole spectrum and made steps crawl (linear
-    # convergence, > 50 iterations); clipping only the negative eigenvalues of
-    # the 5 x 5 Hessian keeps Newton steps: ~6 iterations
-    "convexify_strategy": "eigen-clip",
+    # convergence, > 50 iterations); reflecting the negative eigenvalues of the
+    # 5 x 5 Hessian keeps Newton steps (~6 iterations) and, unlike clipping
+    # them to ~0, no near-flat direction sends the QP step to the bounds
+    "convexify_strategy": "eigen-reflect",
+    # CasADi's symmetric eigen solver stops after max_iter_eig sweeps and the
+    # SQP then aborts; 50 (the default) failed on 7% of the benchmark steers,
+    # 5000 on none, and converged cases stop early anyway
+    "max_iter_eig": 5000,
     "tol_pr": 1e-8,
-    "tol_du": 1e-8,
+    "tol_du": 1e-6,
     "min_step_size": 1e-12,
 }
 
@@ -117,12 +128,17 @@ class SteerOptions:
     tip error (mm) counted as reached. margin: extra keep-out (mm) added to
     every obstacle in the hard constraints. n_points: constrained backbone
     points (default the robot's collision_points). max_iter, tol: solver
-    iteration cap and tolerance (IPOPT `tol`; sqpmethod `tol_pr`/`tol_du`).
-    qpsol: QP solver of the sqp path. jit: compile the NLP functions with
-    gcc through CasADi's shell compiler. warm_start: start from the previous
-    solution's multipliers. predictor: start from one DLS step instead of
-    x_prev. feasibility_tolerance: constraint slack (mm) accepted by the
-    re-check. dls_gain, dls_iterations: K_P and iterations
+    iteration cap and tolerance (IPOPT `tol`; sqpmethod `tol_pr`; its
+    `tol_du` is 1e-6 in SQP_DEFAULTS). qpsol: QP solver of the sqp path.
+    jit: compile the NLP functions with gcc through CasADi's shell compiler
+    (falls back to no jit, with `SteerSolver.jit_message` saying why).
+    warm_start: start from the previous successful solve's multipliers
+    (default None = on for sqp, where it saved iterations, off for IPOPT,
+    where warm_start_init_point cost more time than the iteration it
+    saved). fallback: when the sqp path does not converge, re-solve with
+    IPOPT (result.solver is then "sqp>ipopt"). predictor: start from one
+    DLS step instead of x_prev. feasibility_tolerance: constraint slack (mm)
+    accepted by the re-check. dls_gain, dls_iterations: K_P and iterations
     of the dls path. ipopt, sqp: raw solver options overriding the defaults.
     """
 
@@ -136,12 +152,13 @@ class SteerOptions:
     margin: float = 0.0
     n_points: int | None = None
     max_iter: int = 100
-    tol: float = 1e-8
+    tol: float = 1e-6
     qpsol: str = "daqp"
     jit: bool = False
-    warm_start: bool = True
+    warm_start: bool | None = None
+    fallback: bool = True
     predictor: bool = True
-    feasibility_tolerance: float = 1e-6
+    feasibility_tolerance: float = 1e-5
     dls_gain: float = 1.0
     dls_iterations: int = 200
     ipopt: tuple[tuple[str, Any], ...] = field(default=())
@@ -173,6 +190,11 @@ class SteerOptions:
                 raise InputError(f"steer.{name}: must be finite")
 
     @property
+    def uses_warm_start(self) -> bool:
+        """The warm_start setting resolved per solver."""
+        return self.warm_start if self.warm_start is not None else self.solver == "sqp"
+
+    @property
     def damping_weight(self) -> float:
         """w_d = (damping * damping_scale)^2, weight of |S dx|^2 (mm^2)."""
         return (self.damping * self.damping_scale) ** 2
@@ -200,7 +222,8 @@ class SteerOptions:
             tol=t.float("tol", d.tol, gt=0.0),
             qpsol=t.str("qpsol", d.qpsol, choices=QP_SOLVERS),
             jit=t.bool("jit", d.jit),
-            warm_start=t.bool("warm_start", d.warm_start),
+            warm_start=t.bool("warm_start", None) if t.has("warm_start") else None,
+            fallback=t.bool("fallback", d.fallback),
             predictor=t.bool("predictor", d.predictor),
             feasibility_tolerance=t.float("feasibility_tolerance", d.feasibility_tolerance, ge=0.0),
             dls_gain=t.float("dls_gain", d.dls_gain, gt=0.0, le=1.0),
@@ -226,7 +249,7 @@ class SteerOptions:
             "tol": self.tol,
             "qpsol": self.qpsol,
             "jit": self.jit,
-            "warm_start": self.warm_start,
+            "fallback": self.fallback,
             "predictor": self.predictor,
             "feasibility_tolerance": self.feasibility_tolerance,
             "dls_gain": self.dls_gain,
@@ -234,6 +257,8 @@ class SteerOptions:
         }
         if self.n_points is not None:
             d["n_points"] = self.n_points
+        if self.warm_start is not None:
+            d["warm_start"] = self.warm_start
         if self.ipopt:
             d["ipopt"] = dict(self.ipopt)
         if self.sqp:
@@ -376,7 +401,11 @@ class SteerSolver:
     # ------------------------------------------------------------------ build
     def _build(self) -> None:
         o, nx, M = self.options, self.nx, self.max_obstacles
-        x = ca.SX.sym("x", nx)
+        # decision variable y = S x (mm): bending and z on one scale, so the
+        # Hessian is well conditioned for the QP solvers and IPOPT alike
+        y = ca.SX.sym("y", nx)
+        S = ca.DM(self.scale)
+        x = y / S
         x_prev = ca.SX.sym("x_prev", nx)
         target = ca.SX.sym("target", 3)
         obs = ca.SX.sym("obstacles", PACK_WIDTH * M)
@@ -390,8 +419,7 @@ class SteerSolver:
         P = fpts(x)
         tip = self.model.tip(x)
         glim = self.model.limits(x)
-        S = ca.DM(self.scale)
-        f = ca.sumsqr(tip - target) + w_d * ca.sumsqr(S * (x - x_prev))
+        f = ca.sumsqr(tip - target) + w_d * ca.sumsqr(y - S * x_prev)
         body = self.robot.body_radius + o.margin
         g_col = []
         pen = 0
@@ -411,11 +439,14 @@ class SteerSolver:
         self._lbg_lim, self._ubg_lim = lbg_lim, ubg_lim
         self._lbg = np.concatenate([lbg_lim, np.zeros(self.n_col)])
         self._ubg = np.concatenate([ubg_lim, np.full(self.n_col, np.inf)])
-        nlp = {"x": x, "p": p, "f": f, "g": ca.vertcat(glim, *g_col)}
+        nlp = {"x": y, "p": p, "f": f, "g": ca.vertcat(glim, *g_col)}
         # one call gives everything the predictor and the re-check need
-        self._check = ca.Function("steer_check", [x], [tip, ca.jacobian(tip, x), P, glim])
+        xs = ca.SX.sym("x", nx)
+        tip_s = self.model.tip(xs)
+        self._check = ca.Function("steer_check", [xs], [tip_s, ca.jacobian(tip_s, xs), fpts(xs), self.model.limits(xs)])
         self._solver = None
         self._solver_ws = None
+        self._fallback = None
         if o.solver == "dls":
             return
         common: dict[str, Any] = {"print_time": False, "error_on_fail": False, "calc_lam_p": False}
@@ -425,22 +456,28 @@ class SteerSolver:
             else:
                 common.update({"jit": True, "compiler": "shell", "jit_options": {"compiler": "gcc", "flags": ["-O2"]}})
                 self.jit_message = "jit: compiled with gcc -O2"
+        ip = dict(IPOPT_DEFAULTS)
+        ip.update({"tol": o.tol, "max_iter": o.max_iter})
+        ip.update(dict(o.ipopt))
         if o.solver == "ipopt":
-            ip = dict(IPOPT_DEFAULTS)
-            ip.update({"tol": o.tol, "max_iter": o.max_iter})
-            ip.update(dict(o.ipopt))
             self._solver = self._nlpsol("ipopt", nlp, {**common, "ipopt": ip}, "steer.ipopt")
-            if o.warm_start:
+            if o.uses_warm_start:
                 ws = {**ip, "warm_start_init_point": "yes"}
                 self._solver_ws = self._nlpsol("ipopt", nlp, {**common, "ipopt": ws}, "steer.ipopt")
             self._probe()  # IPOPT reads its options at the first solve: surface bad ones now
         else:
             sq = dict(SQP_DEFAULTS)
-            sq.update({"max_iter": o.max_iter, "tol_pr": o.tol, "tol_du": o.tol, "qpsol": o.qpsol})
+            sq.update({"max_iter": o.max_iter, "tol_pr": o.tol, "qpsol": o.qpsol})
             sq.update({"qpsol_options": _qp_options(o.qpsol), "print_header": False})
             sq.update({"print_iteration": False, "print_status": False})
             sq.update(dict(o.sqp))
             self._solver = self._nlpsol("sqpmethod", nlp, {**common, **sq}, "steer.sqp")
+            if o.fallback:
+                # rare sqp failures (a QP solver's inexact multipliers stall the
+                # dual test) are re-solved by IPOPT, built without jit
+                plain = {k: v for k, v in common.items() if k not in ("jit", "compiler", "jit_options")}
+                self._fallback = self._nlpsol("ipopt", nlp, {**plain, "ipopt": ip}, "steer.ipopt")
+                self._probe()
 
     def _nlpsol(self, plugin: str, nlp: dict[str, Any], opts: dict[str, Any], field_name: str) -> ca.Function:
         try:
@@ -459,10 +496,11 @@ class SteerSolver:
         tip = np.asarray(self.model.tip(x0), dtype=float).reshape(-1)
         p = self.parameters(x0, tip, self._pad(), 0.0)
         lbx, ubx = self.step_bounds(x0)
-        for solver in (self._solver, self._solver_ws):
-            if solver is None:
+        for solver in (self._solver, self._solver_ws, self._fallback):
+            if solver is None or (solver is self._solver and self.options.solver != "ipopt"):
                 continue
-            solver(x0=x0, p=p, lbx=lbx, ubx=ubx, lbg=self._lbg, ubg=self._ubg)
+            S = self.scale
+            solver(x0=x0 * S, p=p, lbx=lbx * S, ubx=ubx * S, lbg=self._lbg, ubg=self._ubg)
             if solver.stats().get("return_status", "") == "Invalid_Option":
                 keys = ", ".join(k for k, _ in self.options.ipopt) or "(defaults)"
                 raise InputError(f"steer.ipopt: IPOPT rejected an option (given: {keys})")
@@ -604,23 +642,40 @@ class SteerSolver:
         lbx, ubx = self.step_bounds(xp)
         if self.options.solver == "dls":
             x, converged, status, iters = self._solve_dls(xp, tg, tip0, J0, lbx, ubx)
+            used, note = "dls", ""
         else:
             if guess is None:
                 guess = self._dls_update(xp, tip0, J0, tg, lbx, ubx) if self.options.predictor else xp
             p = self.parameters(xp, tg, packed, dsf, damping_weight, obstacle_weight)
-            x, converged, status, iters = self._solve_nlp(p, packed, np.clip(guess, lbx, ubx), lbx, ubx)
-        return self._result(x, xp, tg, packed, dsf, scene, float(t), t_end, lbx, ubx, converged, status, iters, t_start)
+            lbg = self._lbg.copy()
+            # padding slots: free rows (lbg = -inf), no slack for the solver to carry
+            act = packed[PACK_WIDTH - 1 :: PACK_WIDTH] > 0
+            lbg[lbg.size - self.n_col :] = np.where(np.repeat(act, self.n_points), 0.0, -np.inf)
+            guess = np.clip(guess, lbx, ubx)
+            x, converged, status, iters = self._solve_nlp(self._solver, p, lbg, guess, lbx, ubx, warm=True)
+            used, note = self.options.solver, ""
+            if not converged and self._fallback is not None:
+                note = f"sqp: {status} after {iters} iterations; re-solved by IPOPT. "
+                x, converged, status, more = self._solve_nlp(self._fallback, p, lbg, guess, lbx, ubx, warm=False)
+                iters += more
+                used = "sqp>ipopt"
+        return self._result(
+            x, xp, tg, packed, dsf, scene, float(t), t_end, lbx, ubx, converged, status, iters, t_start, used, note
+        )
 
     def _solve_nlp(
-        self, p: np.ndarray, packed: np.ndarray, x0: np.ndarray, lbx: np.ndarray, ubx: np.ndarray
+        self,
+        solver: ca.Function,
+        p: np.ndarray,
+        lbg: np.ndarray,
+        x0: np.ndarray,
+        lbx: np.ndarray,
+        ubx: np.ndarray,
+        warm: bool,
     ) -> tuple[np.ndarray, bool, str, int]:
-        # padding slots: free rows (lbg = -inf) so the solver carries no slack for them
-        act = packed[PACK_WIDTH - 1 :: PACK_WIDTH] > 0
-        lbg = self._lbg.copy()
-        lbg[lbg.size - self.n_col :] = np.where(np.repeat(act, self.n_points), 0.0, -np.inf)
-        args: dict[str, Any] = {"x0": x0, "p": p, "lbx": lbx, "ubx": ubx, "lbg": lbg, "ubg": self._ubg}
-        solver = self._solver
-        if self.options.warm_start and self._lam_g is not None:
+        S = self.scale
+        args: dict[str, Any] = {"x0": x0 * S, "p": p, "lbx": lbx * S, "ubx": ubx * S, "lbg": lbg, "ubg": self._ubg}
+        if warm and self.options.uses_warm_start and self._lam_g is not None:
             args["lam_g0"] = self._lam_g
             args["lam_x0"] = self._lam_x
             if self._solver_ws is not None:
@@ -633,7 +688,7 @@ class SteerSolver:
         stats = solver.stats()
         # IPOPT relaxes bounds by ~1e-8 relative; project back so the re-check
         # judges the configuration that is actually returned
-        x = np.clip(np.asarray(sol["x"], dtype=float).reshape(-1), lbx, ubx)
+        x = np.clip(np.asarray(sol["x"], dtype=float).reshape(-1) / S, lbx, ubx)
         ok = bool(stats.get("success", False)) and bool(np.all(np.isfinite(x)))
         if ok:
             self._lam_g = np.asarray(sol["lam_g"], dtype=float).reshape(-1)
@@ -675,6 +730,8 @@ class SteerSolver:
         status: str,
         iters: int,
         t_start: float,
+        used: str,
+        note: str,
     ) -> SteerResult:
         o = self.options
         finite = bool(np.all(np.isfinite(x)))
@@ -713,17 +770,15 @@ class SteerSolver:
             converged=converged,
             safe=safe,
             status=status,
-            message=message,
+            message=note + message,
             iterations=iters,
             wall_time=time.perf_counter() - t_start,
             tip_error=err,
             min_clearance=clear,
-            solver=o.solver,
+            solver=used,
         )
 
-    def solve_many(
-        self, x_prevs: Any, targets: Any, obstacles: Scene | Any = None, **kwargs: Any
-    ) -> list[SteerResult]:
+    def solve_many(self, x_prevs: Any, targets: Any, obstacles: Scene | Any = None, **kwargs: Any) -> list[SteerResult]:
         """`solve` for each row of x_prevs (N, nx) and targets (N, 3); same obstacles and keywords."""
         X = np.asarray(x_prevs, dtype=float)
         T = np.asarray(targets, dtype=float)

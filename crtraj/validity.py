@@ -65,7 +65,7 @@ class MotionValidator:
         model: Model,
         scene: Any,
         *,
-        check_points: int = 21,
+        check_points: int = 15,
         resolution: float = 3.0,
         max_speed: float = 50.0,
         functions: dict[Any, Any] | None = None,

@@ -192,6 +192,6 @@ def test_plan_problem_overrides(sim1):
     run = plan_problem(problem, algorithm="rrtstar", seed=4, time_limit=30.0, model=model)
     assert run.options.algorithm == "rrtstar" and run.options.time_limit == 30.0
     assert run.result.seed == 4 and run.result.planner == "rrtstar"
-    assert run.steer_options is not None and run.document()["options"]["steer"]["n_points"] == 21
+    assert run.steer_options is not None and run.document()["options"]["steer"]["n_points"] == run.options.check_points
     assert isinstance(Problem.load(PAPER_STATIC).options(PlannerOptions, "planner"), PlannerOptions)
     assert isinstance(model, Model)

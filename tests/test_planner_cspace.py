@@ -112,6 +112,28 @@ def test_bad_input_raises(sim1, planner):
         planner.plan(task.goal, start_tip=task.start, stop=StopCondition(first_solution=True))
 
 
+@pytest.mark.parametrize("dynamic", [False, True])
+def test_tree_search_without_the_via_round(sim1, dynamic):
+    """RRT-Connect (static scene) and the timed forward tree (moving obstacles) on their own."""
+    problem, model, scene = sim1
+    task = problem.task
+    if dynamic:  # the same spheres, the lower one drifting 30 mm and breathing
+        lower = scene.obstacles[1]
+        scene = Scene(
+            (
+                scene.obstacles[0],
+                Obstacle(lower.center, lower.radius, amplitude=5.0, omega=0.5, to=(20.0, -70.0, 250.0), duration=6.0),
+            )
+        )
+    planner = CSpacePlanner(model, scene, PlannerOptions(via_points=0, time_limit=20.0))
+    assert planner.validator.static is not dynamic
+    for seed in (0, 1):
+        res = planner.plan(task.goal, start_tip=task.start, seed=seed, goal_tolerance=task.goal_tolerance)
+        assert res.counts["iterations"] >= 1 and res.counts["nodes"] >= 3
+        assert len(res.tree_edges) >= 2
+        assert_valid_plan(res, model, scene, task.goal, task.goal_tolerance)
+
+
 def test_no_solution_within_budget_is_reported(sim1):
     problem, model, scene = sim1
     task = problem.task

@@ -278,7 +278,8 @@ def test_smoothing_falls_back_when_the_spline_collides(sim1):
     spl = model.points(Y, 60).reshape(-1, 3)
     gap, _ = cKDTree(poly).query(spl)
     centre = spl[int(np.argmax(gap))]
-    radius = float(gap.max()) - robot.body_radius - 5.0 - 2.5  # the polyline keeps ~2.5 mm beyond D_sf
+    # the polyline keeps its sagitta bound, half the finest check spacing and 1 mm beyond D_sf
+    radius = float(gap.max()) - robot.body_radius - 5.0 - (v0.sagitta + v0.resolution / 2 + 1.0)
     assert radius > 2.0
     v = MotionValidator(model, Scene((Obstacle(tuple(centre), radius),)))
     post = PathPostprocessor(v, opts, np.random.default_rng(0))

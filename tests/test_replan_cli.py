@@ -68,3 +68,76 @@ def test_bad_problem_is_one_line_error(tmp_path, capsys):
     assert main(["replan", str(bad), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "replan.horizon" in err[0]
+
+
+def _short_problem(tmp_path: Path, duration: float) -> Path:
+    """Simulation 2, `duration` s long, starting 10 mm further from the upper sphere (a live start must
+    allow for the sphere growing while the first reference is planned)."""
+    text = PAPER.read_text().replace(
+        'robot = "robots/cdsr2.toml"', f'robot = "{PAPER.parent / "robots" / "cdsr2.toml"}"'
+    )
+    text = text.replace("duration = 60.0", f"duration = {duration}")
+    text = text.replace("start = [-50.0, 100.0, 390.0]", "start = [-50.0, 110.0, 400.0]")
+    p = tmp_path / "short.toml"
+    p.write_text(text)
+    return p
+
+
+def test_stream_writes_the_verified_run_to_a_device(tmp_path, capsys):
+    frames = tmp_path / "frames.bin"
+    out = tmp_path / "o"
+    rc = main(["replan", str(PAPER), "--out", str(out), "--no-html", "--quiet",
+               "--stream", f"file://{frames}", "--time-scale", "5"])  # fmt: skip
+    text = capsys.readouterr().out
+    assert rc == 0, text
+    assert "stream done" in text
+    assert frames.stat().st_size > 1000
+    assert (out / "stream.jsonl").stat().st_size > 0
+
+
+def test_live_feed_from_the_command_line(tmp_path, capsys):
+    import socket
+    import threading
+    import time
+
+    from crtraj.feed import ObstacleFeed
+
+    scene = Scene.from_table(Problem.load(PAPER).section("scene"))
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:  # a free port for the feed
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    stop = threading.Event()
+
+    def send() -> None:
+        t0 = time.monotonic()
+        while not stop.is_set():
+            t = time.monotonic() - t0
+            C, R = scene.states(t)
+            states = [
+                {"id": o.name, "center": C[i].tolist(), "radius": float(R[i]), "timestamp": t}
+                for i, o in enumerate(scene.obstacles)
+            ]
+            ObstacleFeed.send(("127.0.0.1", port), states)
+            time.sleep(0.01)
+
+    th = threading.Thread(target=send, daemon=True)
+    th.start()
+    try:
+        out = tmp_path / "live"
+        rc = main(["replan", str(_short_problem(tmp_path, 1.5)), "--out", str(out), "--no-html",
+                   "--feed", f"udp://127.0.0.1:{port}"])  # fmt: skip
+    finally:
+        stop.set()
+        th.join(1.0)
+    cap = capsys.readouterr()
+    text = cap.out
+    assert rc == 1, cap.err  # 1.5 s is not enough to reach the goal: reported, not hidden
+    assert f"udp://127.0.0.1:{port}" in text and "live obstacles" in text
+    res = json.loads((out / "run.json").read_text())
+    assert res["summary"]["live_obstacles"] is True
+    assert res["status"] == "timeout"
+    assert res["summary"]["safety_violations"] == 0
+    assert res["summary"]["status_counts"].get("move", 0) > 5
+    # the recorded obstacle states are what was sent (radii within the scene's breathing ranges)
+    radii = np.array([w["obstacles"]["radii"] for w in res["waypoints"]])
+    assert np.all(radii[:, 0] <= 70.5) and np.all(radii[:, 1] <= 60.5)
