@@ -215,7 +215,7 @@ class RRT:
             x_n, t_n = tree.x[n], float(tree.t[n])
             counts["steer_calls"] += 1
             res = self.steer.solve(x_n, target, sc, t=t_n, t_end=None if v.static else t_n + window, check_start=False)
-            if not res.success:
+            if not res.usable:
                 counts["steer_failed"] += 1
                 continue
             if not res.reached:

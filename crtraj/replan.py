@@ -100,7 +100,8 @@ class ReplanOptions:
     = CasADi sqpmethod with a QP solver `qpsol`), hessian ("gauss-newton"
     of the least-squares cost, or "exact"), max_iter, tol, max_solve_time
     (s, IPOPT's wall-time cap of one solve; sqpmethod is capped by
-    max_iter), safety (false drops the obstacle constraints).
+    max_iter), rescue (with solver "sqp": retry a failed solve once with
+    IPOPT, built alongside), safety (false drops the obstacle constraints).
 
     Closed loop (`crtraj.simulate.ClosedLoop`): duration (s of simulated time
     at most), replan_period (s between periodic reference replans; 0 = only
@@ -131,6 +132,7 @@ class ReplanOptions:
     max_iter: int = _INTS["max_iter"][0]
     tol: float = _FLOATS["tol"][0]
     max_solve_time: float = _FLOATS["max_solve_time"][0]
+    rescue: bool = True
     safety: bool = True
     duration: float = _FLOATS["duration"][0]
     replan_period: float = _FLOATS["replan_period"][0]
@@ -157,8 +159,9 @@ class ReplanOptions:
             raise InputError(f"replan.solver: must be one of {', '.join(SOLVERS)}; got {self.solver!r}")
         if self.qpsol not in QP_SOLVERS:
             raise InputError(f"replan.qpsol: must be one of {', '.join(QP_SOLVERS)}; got {self.qpsol!r}")
-        if not isinstance(self.safety, bool):
-            raise InputError(f"replan.safety: expected true or false, got {self.safety!r}")
+        for name in ("safety", "rescue"):
+            if not isinstance(getattr(self, name), bool):
+                raise InputError(f"replan.{name}: expected true or false, got {getattr(self, name)!r}")
         if self.hessian not in HESSIANS:
             raise InputError(f"replan.hessian: must be one of {', '.join(HESSIANS)}; got {self.hessian!r}")
         if self.solver == "sqp" and not ca.has_conic(self.qpsol):
@@ -173,6 +176,7 @@ class ReplanOptions:
         kw["qpsol"] = t.str("qpsol", "daqp", choices=QP_SOLVERS)
         kw["hessian"] = t.str("hessian", "gauss-newton", choices=HESSIANS)
         kw["safety"] = t.bool("safety", True)
+        kw["rescue"] = t.bool("rescue", True)
         t.finish()
         return cls(**kw)
 
@@ -308,7 +312,7 @@ class Replanner:
         self._np = int(p.numel())
         xv = ca.vec(X)
         nlp = {"x": xv, "p": p, "f": f, "g": gv}
-        common: dict[str, Any] = {"print_time": False, "error_on_fail": False, "record_time": True}
+        hess: dict[str, ca.Function] = {}
         if o.hessian == "gauss-newton":
             # Gauss-Newton Hessian of the least-squares cost: positive semidefinite, so every
             # QP of the SQP path is convex (daqp and qrqp need that), and much cheaper to
@@ -318,9 +322,18 @@ class Replanner:
             Jr = ca.jacobian(r_vec, xv)
             H = 2 * lam_f * (Jr.T @ Jr) + 1e-9 * ca.SX.eye(xv.numel())
             # ipopt wants the upper triangle, sqpmethod the full symmetric matrix
-            Hout = ca.triu(H) if o.solver == "ipopt" else H
-            common["hess_lag"] = ca.Function("nlp_hess_l", [xv, p, lam_f, lam_g], [Hout], {"cse": True})
-        if o.solver == "ipopt":
+            hess["ipopt"] = ca.Function("nlp_hess_l", [xv, p, lam_f, lam_g], [ca.triu(H)], {"cse": True})
+            hess["sqp"] = ca.Function("nlp_hess_l", [xv, p, lam_f, lam_g], [H], {"cse": True})
+        self.solver = self._solver(o.solver, nlp, hess.get(o.solver))
+        # the rescue: a failed sqpmethod solve is retried once with IPOPT (robust, slower)
+        self.rescue = self._solver("ipopt", nlp, hess.get("ipopt")) if o.solver == "sqp" and o.rescue else None
+
+    def _solver(self, kind: str, nlp: dict[str, Any], hess: ca.Function | None) -> ca.Function:
+        o = self.options
+        common: dict[str, Any] = {"print_time": False, "error_on_fail": False, "record_time": True}
+        if hess is not None:
+            common["hess_lag"] = hess
+        if kind == "ipopt":
             opts = {
                 **common,
                 "ipopt.print_level": 0,
@@ -337,33 +350,32 @@ class Replanner:
                 "ipopt.warm_start_mult_bound_push": 1e-6,
                 "ipopt.mu_init": 1e-3,
             }
-            self.solver = ca.nlpsol("replan", "ipopt", nlp, opts)
-        else:
-            qp_opts: dict[str, Any] = {"error_on_fail": False}
-            if o.qpsol == "qrqp":
-                qp_opts["print_iter"] = False
-                qp_opts["print_header"] = False
-                # qrqp's default of 1000 active-set iterations can stall one step for seconds
-                qp_opts["max_iter"] = 200
-            if o.qpsol == "osqp":
-                qp_opts["osqp"] = {"verbose": False}
-            if o.qpsol == "qpoases":
-                qp_opts["printLevel"] = "none"
-            opts = {
-                **common,
-                "qpsol": o.qpsol,
-                "qpsol_options": qp_opts,
-                "max_iter": o.max_iter,
-                "tol_pr": 1e-7,
-                "tol_du": o.tol,
-                "print_header": False,
-                "print_iteration": False,
-                "print_status": False,
-                "min_step_size": 1e-12,
-            }
-            if o.hessian == "exact":
-                opts["convexify_strategy"] = "regularize"
-            self.solver = ca.nlpsol("replan", "sqpmethod", nlp, opts)
+            return ca.nlpsol("replan_ipopt", "ipopt", nlp, opts)
+        qp_opts: dict[str, Any] = {"error_on_fail": False}
+        if o.qpsol == "qrqp":
+            qp_opts["print_iter"] = False
+            qp_opts["print_header"] = False
+            # qrqp's default of 1000 active-set iterations can stall one step for seconds
+            qp_opts["max_iter"] = 200
+        if o.qpsol == "osqp":
+            qp_opts["osqp"] = {"verbose": False}
+        if o.qpsol == "qpoases":
+            qp_opts["printLevel"] = "none"
+        opts = {
+            **common,
+            "qpsol": o.qpsol,
+            "qpsol_options": qp_opts,
+            "max_iter": o.max_iter,
+            "tol_pr": 1e-7,
+            "tol_du": o.tol,
+            "print_header": False,
+            "print_iteration": False,
+            "print_status": False,
+            "min_step_size": 1e-12,
+        }
+        if o.hessian == "exact":
+            opts["convexify_strategy"] = "regularize"
+        return ca.nlpsol("replan_sqp", "sqpmethod", nlp, opts)
 
     # -------------------------------------------------------------- obstacles
     def _inflated(self, centers: np.ndarray, radii: np.ndarray) -> np.ndarray:
@@ -470,16 +482,23 @@ class Replanner:
             args.update(x0=w["x"], lam_x0=w["lam_x"], lam_g0=w["lam_g"])
         else:
             args["x0"] = cold
-        r = self._call(args)
-        retried = False
+        r = self._call(self.solver, args)
+        tried = [r]
         if used_warm and not r["ok"]:
-            # a stale warm start can lead sqpmethod astray; one cold retry before declaring failure
-            retried = True
+            # a stale warm start can lead a solver astray: one cold retry before declaring failure
             args = {k: v for k, v in args.items() if k not in ("lam_x0", "lam_g0")}
             args["x0"] = cold
-            again = self._call(args)
-            again["wall"] += r["wall"]
-            r = again
+            r = self._call(self.solver, args)
+            tried.append(r)
+        rescued = False
+        if not r["ok"] and self.rescue is not None:
+            rescued = True
+            args = {k: v for k, v in args.items() if k not in ("lam_x0", "lam_g0")}
+            args["x0"] = cold
+            r = self._call(self.rescue, args)
+            r["status"] = f"{tried[-1]['status']}; rescue ipopt: {r['status']}"
+            tried.append(r)
+        r["wall"] = sum(x["wall"] for x in tried)
         self.solve_count += 1
         self._warm = (
             self._shifted(r["x"], np.asarray(r["sol"]["lam_x"]).ravel(), np.asarray(r["sol"]["lam_g"]).ravel())
@@ -498,7 +517,7 @@ class Replanner:
             min_distance=r["min_distance"],
             violation=r["violation"],
             warm=used_warm,
-            extra={"retried_cold": retried},
+            extra={"attempts": len(tried), "rescue": rescued},
         )
 
     def _warm_fits(self, x0: np.ndarray) -> bool:
@@ -508,13 +527,13 @@ class Replanner:
             return False
         return bool(np.all(np.abs(self._A @ (first - x0)) <= 2.0 * self.step_limit + 1e-9))
 
-    def _call(self, args: dict[str, Any]) -> dict[str, Any]:
+    def _call(self, solver: ca.Function, args: dict[str, Any]) -> dict[str, Any]:
         """One solver call and an independent look at what it returned."""
         N = self.N
         t_start = time.perf_counter()
-        sol = self.solver.call(args)
+        sol = solver.call(args)
         wall = time.perf_counter() - t_start
-        st = self.solver.stats()
+        st = solver.stats()
         xs = np.asarray(sol["x"]).ravel()
         gs = np.asarray(sol["g"]).ravel()
         finite = bool(np.all(np.isfinite(xs)) and np.all(np.isfinite(gs)))
@@ -561,6 +580,7 @@ class Replanner:
         """Sizes of the NLP (for result files and benchmarks)."""
         return {
             "solver": self.options.solver if self.options.solver == "ipopt" else f"sqpmethod+{self.options.qpsol}",
+            "rescue": "ipopt" if self.rescue is not None else None,
             "variables": self.nx * self.N,
             "parameters": self._np,
             "constraints": len(self._lbg),

@@ -258,8 +258,8 @@ class ReplanRun:
     """A closed-loop run. Arrays have one row per recorded time t[k] (k = 0..K).
 
     t (K+1,) s; x (K+1, nx) actual configurations; q (K+1, nq) actual actuator
-    positions (mm); q_command (K+1, nq) set-points held during the step
-    starting at t[k] (the last row repeats); tip (K+1, 3) mm; backbone
+    positions (mm); q_command (K+1, nq) the actuator set-point in force at
+    t[k] (mm); tip (K+1, 3) mm; backbone
     (K+1, P, 3) mm; centers (K+1, m, 3), radii (K+1, m) obstacle states (mm);
     clearance (K+1,) mm: min over the step ending at t[k] of the body
     clearance (distance to the obstacle surface minus body radius and D_sf),

@@ -273,8 +273,11 @@ class SteerResult:
     x: configuration (rad, mm); q: cable lengths and z (mm); tip: tip
     position (mm). converged: the solver's own success flag. safe: the
     re-check (collision points vs obstacles, limits, bounds) holds.
-    success = converged and safe: x is a trustworthy configuration.
-    reached: tip_error <= tolerance. status: the solver's own return status.
+    reached: tip_error <= tolerance. `usable` = converged and safe: x is a
+    trustworthy configuration (a partial step toward an unreachable target is
+    usable). `success` = usable and reached: the step did what was asked; an
+    unreachable target gives success False with the closest safe x.
+    status: the solver's own return status.
     message: one line for people. iterations; wall_time (s, whole call);
     tip_error (mm); min_clearance (mm, `Scene.clearance` at t, or the swept
     bound over [t, t_end]).
@@ -283,7 +286,6 @@ class SteerResult:
     x: np.ndarray
     q: np.ndarray
     tip: np.ndarray
-    success: bool
     reached: bool
     converged: bool
     safe: bool
@@ -295,12 +297,23 @@ class SteerResult:
     min_clearance: float
     solver: str
 
+    @property
+    def usable(self) -> bool:
+        """Converged and re-checked safe: x can be used, whether or not it reached the target."""
+        return self.converged and self.safe
+
+    @property
+    def success(self) -> bool:
+        """Usable and the tip reached the target within tolerance."""
+        return self.usable and self.reached
+
     def to_dict(self) -> dict[str, Any]:
         return {
             "x": self.x.tolist(),
             "q": self.q.tolist(),
             "tip": self.tip.tolist(),
             "success": self.success,
+            "usable": self.usable,
             "reached": self.reached,
             "converged": self.converged,
             "safe": self.safe,
@@ -744,8 +757,7 @@ class SteerSolver:
         in_limits = self._limits_ok(g)
         clear_ok = clear >= -o.feasibility_tolerance
         safe = finite and clear_ok and in_box and in_limits
-        success = converged and safe
-        reached = success and err <= o.tolerance
+        reached = finite and err <= o.tolerance
         if not finite:
             message = f"solver returned NaN ({status}); x_prev returned unchanged"
         elif not converged:
@@ -755,7 +767,7 @@ class SteerSolver:
             what += [] if in_limits else ["outside the robot's limits"]
             what += [] if in_box else ["outside the step bounds"]
             message = "converged but the re-check failed: " + ", ".join(what)
-        elif reached:
+        elif reached:  # converged and safe here
             message = f"reached: tip error {err:.3g} mm, clearance {clear:.3g} mm"
         else:
             moved = float(np.max(np.abs(x - xp) * self.scale))
@@ -765,7 +777,6 @@ class SteerSolver:
             x=x,
             q=self.robot.cables(x),
             tip=tip,
-            success=success,
             reached=reached,
             converged=converged,
             safe=safe,

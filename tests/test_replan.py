@@ -192,3 +192,34 @@ def test_options_from_table_validate_every_key():
         ReplanOptions(horizon=0)
     with pytest.raises(InputError, match=r"replan\.safety"):
         ReplanOptions.from_table(Table({"safety": "yes"}, "replan"))
+
+
+class _BrokenSolver:
+    """Stands in for a crashed sqpmethod: returns NaN and a failure status."""
+
+    def __init__(self, n: int, m: int) -> None:
+        self.n, self.m = n, m
+
+    def call(self, args):
+        nan = np.full(self.n, np.nan)
+        return {"x": nan, "g": np.full(self.m, np.nan), "f": np.nan, "lam_x": nan, "lam_g": np.full(self.m, np.nan)}
+
+    def stats(self):
+        return {"success": False, "return_status": "Injected_Breakdown", "iter_count": 3}
+
+
+@pytest.mark.parametrize("rescue", [True, False])
+def test_a_failed_fast_solve_is_rescued_by_ipopt_or_reported(model, scene, rescue):
+    rp = Replanner(
+        model, ReplanOptions(horizon=6, points=12, solver="sqp", rescue=rescue), max_obstacles=1, safety_distance=5.0
+    )
+    assert (rp.rescue is not None) == rescue
+    rp.solver = _BrokenSolver(rp.N * rp.nx, len(rp._lbg))
+    x0 = XS + 0.25 * (XG - XS)
+    res = rp.solve(x0, _straight_reference(x0, XG, rp.N, 0.12), rp.obstacles_from_scene(scene, 3.0))
+    assert res.status.startswith("Injected_Breakdown")
+    if rescue:
+        assert res.success and res.feasible and res.extra["rescue"]
+        assert "rescue ipopt: Solve_Succeeded" in res.status
+    else:
+        assert not res.success and not res.feasible
