@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import math
 import shutil
+import tempfile
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -467,7 +468,11 @@ class SteerSolver:
             if shutil.which("gcc") is None:
                 self.jit_message = "jit requested but gcc was not found: running without jit"
             else:
-                common.update({"jit": True, "compiler": "shell", "jit_options": {"compiler": "gcc", "flags": ["-O2"]}})
+                # CasADi's shell compiler writes its C and object files to the working
+                # directory unless told otherwise; keep them in a folder owned by this solver.
+                self._jit_dir = tempfile.TemporaryDirectory(prefix="crtraj-jit-")
+                jit_opts = {"compiler": "gcc", "flags": ["-O2"], "directory": self._jit_dir.name + "/"}
+                common.update({"jit": True, "compiler": "shell", "jit_options": jit_opts})
                 self.jit_message = "jit: compiled with gcc -O2"
         ip = dict(IPOPT_DEFAULTS)
         ip.update({"tol": o.tol, "max_iter": o.max_iter})
