@@ -30,6 +30,9 @@ from crtraj.transport import Transport
 pytestmark = pytest.mark.timeout(120)
 ROOT = Path(__file__).resolve().parent.parent
 ROBOT_FILE = ROOT / "problems" / "robots" / "cdsr2.toml"
+# Tests that are not about the watchdog use a longer one, so a loaded CI machine that
+# delays a telemetry packet by 100 ms cannot turn them into false "telemetry lost" failures.
+ROBUST = StreamOptions(watchdog=0.5, connect_timeout=5.0)
 
 
 # ------------------------------------------------------------------ helpers
@@ -87,7 +90,7 @@ def test_streamed_trajectory_arrives_in_order_and_device_ends_at_final_setpoint(
     log = tmp_path / "run.jsonl"
     path = SetpointPath.from_result(result, acts)
     with SimDevice(acts) as dev:
-        rep = Streamer.open(dev.url, acts, log=log).run_path(path)
+        rep = Streamer.open(dev.url, acts, ROBUST, log=log).run_path(path)
         time.sleep(0.2)
         final = dev.state()["positions"]
     assert rep.ok, rep.message
@@ -114,7 +117,7 @@ def test_lossy_corrupting_link_keeps_streaming_and_never_applies_a_damaged_frame
     log = tmp_path / "run.jsonl"
     path = SetpointPath.from_result(result, acts)
     with SimDevice(acts, faults=Faults(drop=0.1, corrupt=0.05), seed=7) as dev:
-        rep = Streamer.open(dev.url, acts, log=log).run_path(path)
+        rep = Streamer.open(dev.url, acts, ROBUST, log=log).run_path(path)
         time.sleep(0.2)
         st = dev.state()
     assert rep.ok, rep.message
@@ -176,7 +179,7 @@ def test_estop_stops_at_once_and_latches(acts, result, tmp_path):
     log = tmp_path / "run.jsonl"
     path = SetpointPath.from_result(result, acts)
     with SimDevice(acts) as dev:
-        s = Streamer.open(dev.url, acts, log=log)
+        s = Streamer.open(dev.url, acts, ROBUST, log=log)
         timer = threading.Timer(0.5, s.estop)
         timer.start()
         rep = s.run_path(path)
@@ -218,7 +221,7 @@ def test_device_with_stricter_limits_refusal_is_reported(robot, acts, result, tm
     strict = type(robot).from_table(Table(d, "robot")).actuators.for_robot(robot)
     path = SetpointPath.from_result(result, acts)
     with SimDevice(strict) as dev:
-        rep = Streamer.open(dev.url, acts).run_path(path)
+        rep = Streamer.open(dev.url, acts, ROBUST).run_path(path)
     assert rep.status == "refused" and "device refused" in rep.message
 
 
@@ -240,9 +243,9 @@ def test_path_away_from_the_device_needs_an_approach(robot, model, acts, tmp_pat
     res = make_result(robot, model, X1, 1.0, z0=-5.0)  # starts 5 mm below the device's z = 0
     path = SetpointPath.from_result(res, acts)
     with SimDevice(acts) as dev:
-        rep = Streamer.open(dev.url, acts).run_path(path)
+        rep = Streamer.open(dev.url, acts, ROBUST).run_path(path)
         assert rep.status == "refused" and "--approach" in rep.message and rep.moves == 0
-        rep = Streamer.open(dev.url, acts).run_path(path, approach=True)
+        rep = Streamer.open(dev.url, acts, ROBUST).run_path(path, approach=True)
         time.sleep(0.2)
         final = dev.state()["positions"]
     assert rep.ok, rep.message
