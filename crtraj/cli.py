@@ -50,9 +50,7 @@ def _cmd_export(args: argparse.Namespace) -> int:
     robot = load_robot(_resolve_robot(args.robot))
     model = Model(robot, n_points=args.points)
     rep = model.export(args.out, batch=args.batch, compile=not args.no_compile)
-    print(
-        f"exported robot '{robot.name}' ({robot.n_segments} segments, {model.n_points} points) to {rep.out_dir}"
-    )
+    print(f"exported robot '{robot.name}' ({robot.n_segments} segments, {model.n_points} points) to {rep.out_dir}")
     print(f"  {len(rep.casadi_files)} .casadi files, C source {rep.c_source.name}")
     print(f"  library: {rep.library.name if rep.library else 'none'} ({rep.compiler_message})")
     print(f"  manifest: {rep.out_dir / 'manifest.json'}")
@@ -76,7 +74,6 @@ def _add_view(sub: argparse._SubParsersAction) -> None:
 
 
 def _cmd_view(args: argparse.Namespace) -> int:
-    import time
 
     from crtraj.fileio import read_json
     from crtraj.viz import Visualizer
@@ -88,11 +85,20 @@ def _cmd_view(args: argparse.Namespace) -> int:
         path = vis.save_html(args.html)
         print(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB); open it in any browser, no server needed")
         return 0
+    n = len(result["waypoints"])
+    return _serve(result, f"{args.result} ({result.get('kind', 'plan')}, {n} waypoints)", not args.no_browser, play)
+
+
+def _serve(result: dict, label: str, open_browser: bool, play: bool | None = None) -> int:
+    """Serve a result in the meshcat view on 127.0.0.1 until Ctrl-C; returns 0."""
+    import time
+
+    from crtraj.viz import Visualizer
+
     try:  # Ctrl-C is the normal way out, whenever it comes; leaving the block stops the server
         with Visualizer.for_result(result, server=True, play=play) as vis:
-            n = len(result["waypoints"])
-            print(f"serving {args.result} ({result.get('kind', 'plan')}, {n} waypoints) at {vis.url}", flush=True)
-            if not args.no_browser:
+            print(f"serving {label} at {vis.url}", flush=True)
+            if open_browser:
                 vis.open()
             print("press Ctrl-C to stop", flush=True)
             while True:
@@ -265,6 +271,9 @@ def _add_plan(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=None, help="random seed (default: the problem's seed)")
     p.add_argument("--time-limit", type=float, default=None, help="planning time budget in s (default: [planner])")
     p.add_argument("--out", default=None, help="result JSON (default: out/plan-<name>.json)")
+    p.add_argument("--html", default=None, help="also write the standalone 3-D view to this HTML file")
+    p.add_argument("--view", action="store_true", help="afterwards, serve the 3-D view on 127.0.0.1 until Ctrl-C")
+    p.add_argument("--no-browser", action="store_true", help="with --view: only print the URL")
     p.set_defaults(func=_cmd_plan)
 
 
@@ -294,6 +303,16 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     steps = ", ".join(f"{k} {v * 1e3:.1f}" for k, v in r.timings.items() if k != "total")
     print(f"  time (ms): {steps}; setup {run.setup_time * 1e3:.0f} ms")
     print(f"  wrote {out}")
+    if args.html or args.view:
+        from crtraj.fileio import read_json
+
+        result = read_json(out)
+        if args.html:
+            from crtraj.viz import Visualizer
+
+            print(f"  wrote {Visualizer.for_result(result).save_html(args.html)}")
+        if args.view:
+            _serve(result, str(out), not args.no_browser)
     return 0 if r.success else 1
 
 
@@ -399,18 +418,9 @@ def _cmd_replan(args: argparse.Namespace) -> int:
     if args.stream:
         ok = _stream_run(args, problem, paths) and ok
     if args.view:
-        from crtraj.viz import Visualizer
+        from crtraj.fileio import read_json
 
-        with Visualizer.for_result(paths["result"], server=True) as vis:
-            print(f"serving the run at {vis.url}", flush=True)
-            if not args.no_browser:
-                vis.open()
-            print("press Ctrl-C to stop", flush=True)
-            try:
-                while True:
-                    time.sleep(3600)
-            except KeyboardInterrupt:
-                print("stopped", flush=True)
+        _serve(read_json(paths["result"]), "the run", not args.no_browser)
     return 0 if ok else 1
 
 

@@ -1,0 +1,45 @@
+"""The crtraj command as a user runs it: command list, plan with its standalone view, one-line errors."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+from crtraj.cli import build_parser, main
+
+PROBLEMS = Path(__file__).resolve().parent.parent / "problems"
+
+
+def test_every_documented_command_is_registered():
+    text = build_parser().format_help()
+    for cmd in ("export", "plan", "replan", "view", "stream", "sim-device", "bench"):
+        assert cmd in text, cmd
+
+
+def test_plan_writes_result_and_standalone_view(tmp_path, capsys):
+    out, html = tmp_path / "plan.json", tmp_path / "plan.html"
+    assert main(["plan", str(PROBLEMS / "paper_static.toml"), "--out", str(out), "--html", str(html)]) == 0
+    printed = capsys.readouterr().out
+    assert "exact" in printed and str(html) in printed
+    result = json.loads(out.read_text())
+    assert result["kind"] == "plan" and result["success"] is True
+    page = html.read_text()
+    # the standalone page embeds the scene: the robot's segments and the obstacles by name
+    assert "<html" in page.lower() and len(page) > 100_000
+    assert len(result["waypoints"]) >= 2
+
+
+def test_bad_problem_is_one_line(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text('robot = "robots/none.toml"\n')
+    proc = subprocess.run(
+        [sys.executable, "-m", "crtraj.cli", "plan", str(bad), "--out", str(tmp_path / "r.json")],
+        capture_output=True,
+        text=True,
+    )
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "none.toml: no such file" in lines[0]
+    assert not (tmp_path / "r.json").exists()
