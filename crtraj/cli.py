@@ -85,8 +85,7 @@ def _cmd_view(args: argparse.Namespace) -> int:
         path = vis.save_html(args.html)
         print(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB); open it in any browser, no server needed")
         return 0
-    n = len(result["waypoints"])
-    return _serve(result, f"{args.result} ({result.get('kind', 'plan')}, {n} waypoints)", not args.no_browser, play)
+    return _serve(result, str(args.result), not args.no_browser, play)
 
 
 def _serve(result: dict, label: str, open_browser: bool, play: bool | None = None) -> int:
@@ -97,7 +96,9 @@ def _serve(result: dict, label: str, open_browser: bool, play: bool | None = Non
 
     try:  # Ctrl-C is the normal way out, whenever it comes; leaving the block stops the server
         with Visualizer.for_result(result, server=True, play=play) as vis:
-            print(f"serving {label} at {vis.url}", flush=True)
+            # for_result has validated the result, so its waypoints exist
+            what = f"{result.get('kind', 'plan')}, {len(result['waypoints'])} waypoints"
+            print(f"serving {label} ({what}) at {vis.url}", flush=True)
             if open_browser:
                 vis.open()
             print("press Ctrl-C to stop", flush=True)

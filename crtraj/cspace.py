@@ -23,10 +23,16 @@ planner solves that part first and directly:
    reached, so the search is forward only: a timed tree grows from the
    start and every new node tries to connect to the nearest goal
    configuration (RRT-Connect's greedy connect toward the goal set).
-   Every motion is checked by `MotionValidator` (continuous body, over
-   the time the motion takes).
+   This tree may also wait: a node that stays at its parent's
+   configuration for a while (an extension waits first with probability
+   `wait_bias`; a failed connection is retried after a batch of waits), so
+   a sphere that blocks the way is waited out rather than only detoured.
+   Every motion and wait is checked by `MotionValidator` (continuous body,
+   over the time it takes).
 4. Shortcuts: batches of random shortcuts between two points of the path,
-   verified in one vectorised call, keeping the one that saves most.
+   verified in one vectorised call, keeping the one that saves most (with
+   moving obstacles a shortcut keeps the times of its ends, so only the new
+   motion is checked).
 5. Smoothing: a clamped cubic B-spline (scipy) whose control polygon is the
    shortcut path with extra control points `corner` mm either side of each
    corner, so only the corners are rounded. Its samples are convex
@@ -35,8 +41,11 @@ planner solves that part first and directly:
    between the samples) is verified again; if it is unsafe the corners are
    halved once, then the raw path is returned.
 
-The returned motion is timed: each straight motion lasts its body-motion
-bound divided by `max_speed`, starting at the query's t0.
+The returned motion is timed from the query's t0. In a static scene each
+straight motion lasts its body-motion bound divided by `max_speed`; among
+moving obstacles the path keeps the times the search verified it at (waits,
+and shortcuts that take the time of the detour they replace), never faster
+than `max_speed`.
 """
 
 from __future__ import annotations
@@ -56,6 +65,11 @@ from crtraj.safe_ik import SafeIK, format_statuses, resolve_start
 from crtraj.stop import StopClock, StopCondition
 from crtraj.tree import SearchTree
 from crtraj.validity import MotionValidator
+
+# Waits (s) tried at once before a straight motion to the goal set (moving obstacles).
+WAITS = np.array([0.25, 0.5, 1.0, 1.5, 2.0, 3.0, 4.0])
+# Longest random wait (s) of one tree extension.
+MAX_WAIT = 2.0
 
 
 class CSpacePlanner:
@@ -279,8 +293,14 @@ class _Run:
         y, self._samples = self._samples[0], self._samples[1:]
         return y
 
-    def search(self) -> np.ndarray | None:
-        """A path (K, nx) from the start to a goal configuration, or None."""
+    def search(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """A timed path (configurations (K, nx), times (K,) s) from the start to a goal configuration, or None."""
+        found = self._search()
+        if found is None or isinstance(found, tuple):
+            return found
+        return found, self.v.times(found, self.t0)
+
+    def _search(self) -> np.ndarray | tuple[np.ndarray, np.ndarray] | None:
         v = self.v
         # the straight motion to any goal configuration first
         G = len(self.goals)
@@ -441,8 +461,44 @@ class _Run:
             return path
         return path[::-1]
 
-    def _forward(self) -> np.ndarray | None:
-        """Timed forward RRT with greedy connection to the goal set (moving obstacles)."""
+    def _wait(self, tree: SearchTree, i: int, w: float) -> int:
+        """Add a node that stays at node i's configuration for w seconds, if that is safe; its index or -1."""
+        v = self.v
+        x_i, t_i = tree.x[i], float(tree.t[i])
+        self.counts["edge_checks"] = self.counts.get("edge_checks", 0) + 1
+        if not v.edges_valid(x_i[None], x_i[None], t_i, t_i + w)[0]:
+            return -1
+        return tree.add(tree.keys[i].copy(), x_i.copy(), t_i + w, float(tree.cost[i]), i)
+
+    def _wait_connect(self, tree: SearchTree, i: int, x_goal: np.ndarray) -> int:
+        """Wait at node i for one of `WAITS` seconds, then move straight to x_goal: the shortest wait
+        that is safe, checked for all waits in one vectorised call. The goal node's index or -1."""
+        v = self.v
+        x_i, t_i = tree.x[i], float(tree.t[i])
+        W = len(WAITS)
+        dur = float(v.motion_bound(x_goal - x_i)) / v.max_speed
+        XA = np.concatenate([np.repeat(x_i[None], W, axis=0), np.repeat(x_i[None], W, axis=0)])
+        XB = np.concatenate([np.repeat(x_i[None], W, axis=0), np.repeat(x_goal[None], W, axis=0)])
+        TA = np.concatenate([np.full(W, t_i), t_i + WAITS])
+        TB = np.concatenate([t_i + WAITS, t_i + WAITS + dur])
+        self.counts["edge_checks"] = self.counts.get("edge_checks", 0) + 2 * W
+        ok = v.edges_valid(XA, XB, TA, TB)
+        good = np.flatnonzero(ok[:W] & ok[W:])
+        if not len(good):
+            return -1
+        w = float(WAITS[good[0]])
+        j = tree.add(tree.keys[i].copy(), x_i.copy(), t_i + w, float(tree.cost[i]), i)
+        b = float(v.motion_bound(x_goal - x_i))
+        return tree.add(v.metric(x_goal), x_goal, t_i + w + dur, float(tree.cost[i]) + b, j)
+
+    def _forward(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """Timed forward RRT with greedy connection to the goal set (moving obstacles).
+
+        The robot may also wait: an extension first stays at its tree node for
+        a random time with probability `wait_bias`, and a failed connection to
+        the goal set is retried after each of `WAITS` (one batched check), so
+        a sphere that blocks the way for a while is waited out.
+        """
         v, o, rng, clock = self.v, self.o, self.rng, self.clock
         ts = SearchTree(self.p.robot.nx, self.p.robot.nx)
         ts.add(v.metric(self.x_start), self.x_start, self.t0, 0.0, -1)
@@ -454,36 +510,64 @@ class _Run:
         for g in self.goals:
             goal_tree.add(v.metric(g), g, 0.0, 0.0, -1)
         y_goals = v.metric(self.goals)
+        # waiting at the start for the nearest goal configuration, before any tree grows
+        g0 = int(np.argmin(v.motion_bound(self.goals - self.x_start)))
+        j = self._wait_connect(ts, 0, self.goals[g0])
+        if j >= 0:
+            return ts.x[ts.path_to(j)], ts.t[ts.path_to(j)]
         while not clock.should_stop(False):
             clock.tick()
             goal_sample = rng.random() < o.goal_bias
             y_rand = y_goals[rng.integers(len(y_goals))] if goal_sample else self._sample()
-            i_new = self._extend(ts, y_rand, timed=True)
+            if rng.random() < o.wait_bias:
+                i, d = ts.nearest(y_rand)
+                i = self._wait(ts, i, float(rng.uniform(0.0, MAX_WAIT)))
+                if i < 0 or d < 1e-9:
+                    continue
+                step = min(o.step, d)
+                y_i = ts.keys[i]
+                x_new = v.config_from_metric(y_i + (y_rand - y_i) * (step / d))
+                i_new = self._advance(ts, i, x_new, timed=True)[0]
+            else:
+                i_new = self._extend(ts, y_rand, timed=True)
             if i_new < 0:
                 continue
             g, _ = goal_tree.nearest(ts.keys[i_new])
             x_goal = self.goals[g]
             j, met = self._advance(ts, i_new, x_goal, timed=True)
+            if not met and rng.random() < o.wait_bias:
+                j = self._wait_connect(ts, i_new, x_goal)
+                met = j >= 0
             if met:
-                return ts.x[ts.path_to(j)]
+                path = ts.path_to(j)
+                return ts.x[path], ts.t[path]
         return None
 
     # ------------------------------------------------------------ post-process
-    def finish(self, path: np.ndarray) -> PlanResult:
+    def finish(self, path: tuple[np.ndarray, np.ndarray]) -> PlanResult:
+        X, T = path
         post = PathPostprocessor(self.v, self.o, self.rng, self.t0)
         t1 = time.perf_counter()
-        short = post.shortcut(path, self.deadline)
+        if self.v.static:  # no clock to keep: every motion at full speed
+            short = post.shortcut(X, self.deadline)
+            T_short = post.times(short)
+        else:
+            short, T_short = post.shortcut_timed(X, T, self.deadline)
         self.timings["shortcut"] = time.perf_counter() - t1
         t1 = time.perf_counter()
-        final, smoothed = post.smooth(short)
+        if self.v.static:
+            final, smoothed = post.smooth(short)
+            T_final = post.times(final)
+        else:
+            final, T_final, smoothed = post.smooth_timed(short, T_short)
         self.timings["smooth"] = time.perf_counter() - t1
-        if not post.valid(final):  # every piece was verified; only a wrong bound could get here
+        if not self.v.path_valid(final, T_final):  # every piece was verified; only a wrong bound could get here
             raise RuntimeError("internal error: the returned path failed its final verification")
         msg = (
             f"found a path after {self.clock.iterations} iterations; "
-            f"{len(path)} tree waypoints, {len(short)} after shortcuts, {'smoothed' if smoothed else 'not smoothed'}"
+            f"{len(X)} tree waypoints, {len(short)} after shortcuts, {'smoothed' if smoothed else 'not smoothed'}"
         )
-        return self._result(post, PlanStatus.EXACT, msg, final, path, smoothed)
+        return self._result(post, PlanStatus.EXACT, msg, (final, T_final), (X, T), smoothed)
 
     def approximate(self) -> PlanResult:
         """No connection: the path to the start-tree node whose tip is nearest the goal."""
@@ -496,16 +580,26 @@ class _Run:
         if d[best] >= d0:
             return self.fail(PlanStatus.TIMEOUT, f"no path: {self.clock.reason}")
         post = PathPostprocessor(self.v, self.o, self.rng, self.t0)
-        raw = ts.x[ts.path_to(best)]
-        final = post.resample(raw)
-        if not post.valid(final):
+        idx = ts.path_to(best)
+        raw = ts.x[idx]
+        raw_t = post.times(raw) if self.v.static else ts.t[idx]
+        final, T_final = post.resample_timed(raw, raw_t)
+        if not self.v.path_valid(final, T_final):
             raise RuntimeError("internal error: the approximate path failed its final verification")
         msg = f"no path to the goal ({self.clock.reason}); closest tip {d[best]:.1f} mm from the goal"
-        return self._result(post, PlanStatus.APPROXIMATE, msg, final, raw, False)
+        return self._result(post, PlanStatus.APPROXIMATE, msg, (final, T_final), (raw, raw_t), False)
 
     def _result(
-        self, post: PathPostprocessor, status: PlanStatus, msg: str, final: np.ndarray, raw: np.ndarray, smoothed: bool
+        self,
+        post: PathPostprocessor,
+        status: PlanStatus,
+        msg: str,
+        final_timed: tuple[np.ndarray, np.ndarray],
+        raw_timed: tuple[np.ndarray, np.ndarray],
+        smoothed: bool,
     ) -> PlanResult:
+        final, T = final_timed
+        raw, raw_t = raw_timed
         self.counts["nodes"] = int(sum(len(t) for t in self.trees))
         self.counts["collision_samples"] = self.v.n_samples - self.samples0
         self.timings["total"] = time.perf_counter() - self.clock.t_start
@@ -523,6 +617,8 @@ class _Run:
             tree_edges=tree_edges(self.model, self.trees),
             timings=self.timings,
             counts=self.counts,
+            T=T,
+            raw_t=raw_t,
         )
         return res
 

@@ -23,7 +23,10 @@ class PlannerOptions:
     (`crtraj.stop.StopCondition`); with first_solution false, rrt and
     rrtstar keep growing (rrtstar: improving) the tree until time or
     iterations run out; cspace returns its first path (then shortcuts it).
-    goal_bias: probability of sampling the goal. range: longest extension
+    goal_bias: probability of sampling the goal. wait_bias: cspace among
+    moving obstacles only: probability that a tree extension first waits at
+    its node (a random 0-2 s), and that a failed connection to the goal set
+    is retried after waits of 0.25-4 s. range: longest extension
     per iteration (mm; body motion for cspace, tip travel for rrt/rrtstar;
     None: 150 for cspace, 40 for rrt/rrtstar). rewire_radius: RRT* neighbour
     radius around a new tip (mm).
@@ -53,6 +56,7 @@ class PlannerOptions:
     max_iterations: int = 20000
     first_solution: bool = True
     goal_bias: float = 0.1
+    wait_bias: float = 0.3
     range: float | None = None
     rewire_radius: float = 80.0
     max_speed: float = 50.0
@@ -78,6 +82,7 @@ class PlannerOptions:
             "time_limit": self.time_limit > 0,
             "max_iterations": self.max_iterations >= 1,
             "goal_bias": 0.0 <= self.goal_bias <= 1.0,
+            "wait_bias": 0.0 <= self.wait_bias <= 1.0,
             "range": self.range is None or self.range > 0,
             "rewire_radius": self.rewire_radius > 0,
             "max_speed": self.max_speed > 0,
@@ -124,6 +129,7 @@ class PlannerOptions:
             max_iterations=t.int("max_iterations", d.max_iterations, ge=1),
             first_solution=t.bool("first_solution", d.first_solution),
             goal_bias=t.float("goal_bias", d.goal_bias, ge=0.0, le=1.0),
+            wait_bias=t.float("wait_bias", d.wait_bias, ge=0.0, le=1.0),
             range=t.float("range", None, gt=0.0),
             rewire_radius=t.float("rewire_radius", d.rewire_radius, gt=0.0),
             max_speed=t.float("max_speed", d.max_speed, gt=0.0),

@@ -17,6 +17,15 @@ to a `PathPostprocessor`, which
 - times it (each straight motion lasts its body-motion bound / max_speed)
   and builds the `PlanResult` (tips, cable lengths, tip travel, measured
   minimum clearance).
+
+Paths among moving obstacles may wait or move slower than max_speed, so
+they carry their own waypoint times T (the `*_timed` methods): their
+shortcuts keep the times of both ends (the new straight motion takes the
+time the detour took, never faster than max_speed since the body-motion
+bound is a norm), so only the new motion needs checking; their spline
+interpolates the times with the configurations (a B-spline's derivative is
+a convex combination of its control polygon's, so it keeps the polygon's
+speed bound), and it is verified at its own times.
 """
 
 from __future__ import annotations
@@ -124,6 +133,94 @@ class PathPostprocessor:
         np.logical_and.at(good, np.concatenate(owner), ok)
         return good
 
+    # ------------------------------------------------------------ timed paths
+    def resample_timed(self, X: np.ndarray, T: np.ndarray, step: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """`resample` of a timed path: times (s) interpolated linearly with the configurations."""
+        step = self.o.waypoint_step if step is None else step
+        if len(X) < 2:
+            return X, T
+        dX = np.diff(X, axis=0)
+        n = np.maximum(1, np.ceil(self.v.motion_bound(dX) / step)).astype(int)
+        e = np.repeat(np.arange(len(n)), n)
+        k = np.arange(n.sum()) - np.repeat(np.concatenate([[0], np.cumsum(n)[:-1]]), n) + 1
+        f = k / n[e]
+        return (
+            np.concatenate([X[:1], X[e] + f[:, None] * dX[e]]),
+            np.concatenate([T[:1], T[e] + f * np.diff(T)[e]]),
+        )
+
+    def shortcut_timed(
+        self, X: np.ndarray, T: np.ndarray, deadline: float | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Batched time-preserving shortcuts: the motion between the configurations at times a < b
+        (s) is replaced by one straight motion over [a, b]; only that motion is verified."""
+        v, o, rng = self.v, self.o, self.rng
+        checked = 0
+        for _ in range(o.shortcut_rounds):
+            if len(X) <= 2 or (deadline is not None and time.perf_counter() > deadline):
+                break
+            s = np.concatenate([[0.0], np.cumsum(v.motion_bound(np.diff(X, axis=0)))])
+            B = o.shortcut_batch
+            u = np.sort(T[0] + rng.random((B, 2)) * (T[-1] - T[0]), axis=1)
+            k = B // 3
+            if k:  # a third of the candidates join two waypoints
+                u[:k] = T[np.sort(rng.choice(len(X), size=(k, 2)), axis=1)]
+            P1, P2 = _at(X, T, u[:, 0]), _at(X, T, u[:, 1])
+            saving = np.interp(u[:, 1], T, s) - np.interp(u[:, 0], T, s) - v.motion_bound(P2 - P1)
+            # the new motion must not be faster than max_speed (it never is, up to round-off)
+            good = (saving > 1e-6) & (v.motion_bound(P2 - P1) <= v.max_speed * (u[:, 1] - u[:, 0]) * (1.0 - 1e-9))
+            u, P1, P2, saving = u[good], P1[good], P2[good], saving[good]
+            if not len(u):
+                continue
+            checked += len(u)
+            ok = v.edges_valid(P1, P2, u[:, 0], u[:, 1])
+            if ok.any():
+                best = np.flatnonzero(ok)[np.argmax(saving[ok])]
+                a, b = u[best]
+                i = int(np.searchsorted(T, a, side="right"))
+                j = int(np.searchsorted(T, b, side="left"))
+                X = np.concatenate([X[:i], P1[best][None], P2[best][None], X[j:]])
+                T = np.concatenate([T[:i], [a, b], T[j:]])
+                X, T = dedup_timed(X, T)
+        self.counts["shortcut_checks"] = self.counts.get("shortcut_checks", 0) + checked
+        return dedup_timed(X, T)
+
+    def smooth_timed(self, X: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+        """`smooth` of a timed path; returns (path, times, smoothed?)."""
+        if not self.o.smooth or len(X) < 3:
+            return (*self.resample_timed(X, T), False)
+        corner = self.o.corner
+        for _ in range(2):
+            Y, TY = self.spline_timed(X, T, corner)
+            self.counts["smooth_checks"] = self.counts.get("smooth_checks", 0) + 1
+            if self.v.path_valid(Y, TY):
+                return Y, TY, True
+            corner /= 2.0
+        return (*self.resample_timed(X, T), False)
+
+    def spline_timed(self, X: np.ndarray, T: np.ndarray, corner: float) -> tuple[np.ndarray, np.ndarray]:
+        """The corner-rounding B-spline of `spline` through (configuration, time) jointly; samples
+        at most waypoint_step mm of body motion and waypoint_step / max_speed s apart."""
+        v = self.v
+        XT = np.concatenate([X, T[:, None]], axis=1)
+        A, D = XT[:-1], np.diff(XT, axis=0)
+        L = v.motion_bound(D[:, :-1])
+        c = (np.minimum(corner, L / 3.0) / np.maximum(L, 1e-300))[:, None]
+        legs = np.stack([A + c * D, XT[1:] - c * D, XT[1:]], axis=1)
+        P = np.concatenate([XT[:1], legs.reshape(-1, XT.shape[1])])
+        k, n = 3, len(P)
+        knots = np.concatenate([np.zeros(k), np.linspace(0.0, 1.0, n - k + 1), np.ones(k)])
+        spl = BSpline(knots, P, k)
+        uu = np.linspace(0.0, 1.0, 40 * n)
+        F = spl(uu)
+        dF = np.diff(F, axis=0)
+        s = np.concatenate([[0.0], np.cumsum(np.maximum(v.motion_bound(dF[:, :-1]), v.max_speed * dF[:, -1]))])
+        m = max(2, int(np.ceil(s[-1] / self.o.waypoint_step)) + 1)
+        Y = spl(np.interp(np.linspace(0.0, s[-1], m), s, uu))
+        Y[0], Y[-1] = XT[0], XT[-1]
+        TY = np.maximum.accumulate(Y[:, -1])  # nondecreasing up to round-off
+        return Y[:, :-1], TY
+
     # --------------------------------------------------------------- smoothing
     def smooth(self, X: np.ndarray) -> tuple[np.ndarray, bool]:
         """B-spline corner rounding, verified; returns (path, smoothed?)."""
@@ -174,29 +271,33 @@ class PathPostprocessor:
         tree_edges: np.ndarray,
         timings: dict[str, float],
         counts: dict[str, int],
+        T: np.ndarray | None = None,
+        raw_t: np.ndarray | None = None,
     ) -> PlanResult:
-        """Assemble a `PlanResult` for the final path X (already verified)."""
+        """Assemble a `PlanResult` for the final path X (already verified); T, raw_t: the
+        waypoint times of a timed path (default: full speed from t0)."""
         model = self.v.model
         tips = model.tip_position(X)
         dense = self.resample(X, self.v.resolution)
         length = float(np.sum(np.linalg.norm(np.diff(model.tip_position(dense), axis=0), axis=1)))
         counts = {**counts, **self.counts}
+        T = self.times(X) if T is None else T
         return PlanResult(
             status=status,
             message=message,
             planner=planner,
             seed=seed,
-            t=self.times(X),
+            t=T,
             configs=X,
             tips=tips,
             cables=model.cables(X),
             length=length,
             cost=cost,
-            min_clearance=self.clearance(X),
+            min_clearance=self.v.path_clearance(X, T)[0],
             goal_error=float(np.linalg.norm(tips[-1] - goal)),
             smoothed=smoothed,
             raw_configs=raw,
-            raw_t=self.times(raw),
+            raw_t=self.times(raw) if raw_t is None else raw_t,
             goal_configs=goal_configs,
             tree_edges=tree_edges,
             timings=timings,
@@ -256,6 +357,15 @@ def _splice(X: np.ndarray, s: np.ndarray, a: float, b: float, p1: np.ndarray, p2
 def _at(X: np.ndarray, s: np.ndarray, u: np.ndarray) -> np.ndarray:
     """Points at arc positions u along the polyline X with cumulative arc s."""
     return np.stack([np.interp(u, s, X[:, j]) for j in range(X.shape[1])], axis=-1)
+
+
+def dedup_timed(X: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Drop consecutive duplicate waypoints of a timed path (a wait, same configuration at a later time, stays)."""
+    if len(X) < 2:
+        return X, T
+    moved = np.any(np.abs(np.diff(X, axis=0)) > 1e-12, axis=1) | (np.diff(T) > 1e-12)
+    keep = np.concatenate([[True], moved])
+    return X[keep], T[keep]
 
 
 def dedup(X: np.ndarray) -> np.ndarray:

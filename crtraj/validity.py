@@ -57,7 +57,11 @@ class MotionValidator:
     model: the robot's `Model`. scene: a `crtraj.scene.Scene`. check_points:
     backbone points per configuration (chord bound 1 above). resolution:
     largest body motion between edge samples (mm). max_speed: largest speed
-    of any body point (mm/s), which times every motion.
+    of any body point (mm/s), which times every motion at full speed (a
+    motion may take longer: waits and slow motions are checked over their
+    own times). time_resolution: moving obstacles only: an uncertified edge
+    interval longer than this (s) is split in time before it is declared
+    unsafe (waits and slow motions sweep obstacles over long windows).
     """
 
     def __init__(
@@ -68,6 +72,7 @@ class MotionValidator:
         check_points: int = 15,
         resolution: float = 3.0,
         max_speed: float = 50.0,
+        time_resolution: float = 0.25,
         functions: dict[Any, Any] | None = None,
     ) -> None:
         if check_points < 2:
@@ -76,12 +81,15 @@ class MotionValidator:
             raise InputError(f"resolution: must be > 0 mm, got {resolution}")
         if not (math.isfinite(max_speed) and max_speed > 0):
             raise InputError(f"max_speed: must be > 0 mm/s, got {max_speed}")
+        if not (math.isfinite(time_resolution) and time_resolution > 0):
+            raise InputError(f"time_resolution: must be > 0 s, got {time_resolution}")
         self.model = model
         self.robot = model.robot
         self.scene = scene
         self.check_points = int(check_points)
         self.resolution = float(resolution)
         self.max_speed = float(max_speed)
+        self.time_resolution = float(time_resolution)
         robot = self.robot
         n = robot.n_segments
         lengths = np.array([s.length for s in robot.segments])
@@ -147,12 +155,16 @@ class MotionValidator:
         return ca.Function("chord_clearance", [x, C, R], [ca.mmin(ca.horzcat(*per))], ["x", "C", "R"], ["d"])
 
     def _batches(self, N: int) -> list[tuple[int, int, int]]:
-        """(start, count, map size) blocks covering N configurations; sizes are powers of two >= 16."""
+        """(start, count, map size) blocks covering N configurations; sizes are powers of two.
+
+        A map evaluates every column, so small calls (the adaptive edge checks
+        make many) use small maps rather than padding.
+        """
         out = []
         start = 0
         while start < N:
             left = N - start
-            size = min(1024, max(16, 1 << int(np.ceil(np.log2(left)))))
+            size = min(1024, 1 << int(np.ceil(np.log2(left))))
             take = min(size, left)
             out.append((start, take, size))
             start += take
@@ -352,7 +364,10 @@ class MotionValidator:
         neither certified nor already unsafe (c < 0) are halved, down to
         `resolution`; what is still uncertified there is unsafe. So motions
         far from obstacles cost a few samples and only the parts near
-        obstacles are sampled finely.
+        obstacles are sampled finely. With moving obstacles an interval whose
+        time window is longer than `time_resolution` is split rather than
+        declared unsafe (the swept obstacle of a long window is large; a wait,
+        x_a = x_b, is certified piece by piece in time).
 
         Returns (f, lower): f (E,) in [0, 1], the motion is certified safe from
         its start to the fraction f (1: the whole motion); lower (E,), a lower
@@ -376,6 +391,8 @@ class MotionValidator:
         ta = k / n0[e]
         tb = (k + 1) / n0[e]
         finest = 0.5 * self.resolution * (1.0 + 1e-9)
+        # static scenes: every window is irrelevant, so no split in time
+        tres = np.inf if self.static else self.time_resolution * (1.0 + 1e-9)
         while len(e):
             tm = 0.5 * (ta + tb)
             h = 0.5 * bound[e] * (tb - ta)
@@ -383,7 +400,7 @@ class MotionValidator:
             c = self.clearance(X, TA[e] + ta * dT[e], TA[e] + tb * dT[e])
             ok = c >= h
             np.minimum.at(lower, e[ok], (c - h)[ok])
-            bad = ~ok & ((c < 0.0) | (h <= finest))
+            bad = ~ok & ((c < 0.0) | (h <= finest)) & (dT[e] * (tb - ta) <= tres)
             np.minimum.at(fail, e[bad], ta[bad])
             split = ~ok & ~bad
             split &= ta < fail[e] if prefix else fail[e] >= 1.0
