@@ -56,10 +56,11 @@ import platform
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from datetime import datetime, timezone
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any, Protocol
 
 import numpy as np
@@ -79,27 +80,31 @@ from crtraj.stop import StopCondition
 PLANNERS = ("rrt", "rrtstar", "cspace", "ompl-rrtstar", "ompl-rrtconnect")
 COUNTS = (1, 3, 5, 7)
 
-LABELS = {
-    "rrt": "RRT (Alg. 1)",
-    "rrtstar": "RRT* (Alg. 1)",
-    "cspace": "C-space (default)",
-    "ompl-rrtstar": "OMPL RRTstar",
-    "ompl-rrtconnect": "OMPL RRTConnect",
-}
+LABELS = MappingProxyType(
+    {
+        "rrt": "RRT (Alg. 1)",
+        "rrtstar": "RRT* (Alg. 1)",
+        "cspace": "C-space (default)",
+        "ompl-rrtstar": "OMPL RRTstar",
+        "ompl-rrtconnect": "OMPL RRTConnect",
+    }
+)
 
 # The paper's Table I (Luo et al., arXiv 2309.13813), i7-12700H laptop, Python.
-PAPER_TABLE1: dict[str, dict[str, tuple[float, ...]]] = {
-    "rrt": {
-        "time_s": (3.05, 4.77, 5.55, 6.36),
-        "success": (0.99, 0.97, 0.95, 0.90),
-        "path_mm": (715.36, 736.11, 785.46, 743.36),
-    },
-    "rrtstar": {
-        "time_s": (3.66, 4.82, 6.07, 7.30),
-        "success": (0.99, 0.89, 0.78, 0.65),
-        "path_mm": (609.07, 626.70, 625.46, 597.45),
-    },
-}
+PAPER_TABLE1: Mapping[str, dict[str, tuple[float, ...]]] = MappingProxyType(
+    {
+        "rrt": {
+            "time_s": (3.05, 4.77, 5.55, 6.36),
+            "success": (0.99, 0.97, 0.95, 0.90),
+            "path_mm": (715.36, 736.11, 785.46, 743.36),
+        },
+        "rrtstar": {
+            "time_s": (3.66, 4.82, 6.07, 7.30),
+            "success": (0.99, 0.89, 0.78, 0.65),
+            "path_mm": (609.07, 626.70, 625.46, 597.45),
+        },
+    }
+)
 PAPER_COUNTS = (1, 3, 5, 7)
 
 # Dense samples are checked in chunks of this many (memory ~ chunk * points * obstacles * 24 bytes).

@@ -19,6 +19,7 @@ import shutil
 import subprocess
 from dataclasses import dataclass
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any
 
 import casadi as ca
@@ -35,19 +36,21 @@ _SERIES_T = 1e-2
 
 
 # Units of every named input and output, for the export manifest.
-_UNITS = {
-    "x": "rad (bending vectors u_k), mm (z, last entry)",
-    "q": "mm (cable lengths, then z)",
-    "u_bar": "rad (effective bending vectors)",
-    "p": "mm",
-    "T": "homogeneous transform: rotation (1), translation (mm)",
-    "points": "mm (columns are backbone points, base to tip)",
-    "J": "mm/rad (bending columns), 1 (z column)",
-    "J_q": "mm/rad (bending columns), 1 (z column)",
-    "g": "rad^2 (|u_bar_k|^2 per segment), then mm (q - L per cable)",
-    "X": "columns are configurations x",
-    "P": "mm (3 rows; N blocks of n_points columns)",
-}
+_UNITS = MappingProxyType(
+    {
+        "x": "rad (bending vectors u_k), mm (z, last entry)",
+        "q": "mm (cable lengths, then z)",
+        "u_bar": "rad (effective bending vectors)",
+        "p": "mm",
+        "T": "homogeneous transform: rotation (1), translation (mm)",
+        "points": "mm (columns are backbone points, base to tip)",
+        "J": "mm/rad (bending columns), 1 (z column)",
+        "J_q": "mm/rad (bending columns), 1 (z column)",
+        "g": "rad^2 (|u_bar_k|^2 per segment), then mm (q - L per cable)",
+        "X": "columns are configurations x",
+        "P": "mm (3 rows; N blocks of n_points columns)",
+    }
+)
 
 
 def _f1_f2(t: ca.SX) -> tuple[ca.SX, ca.SX]:

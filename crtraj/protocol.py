@@ -21,6 +21,7 @@ import math
 import struct
 import zlib
 from dataclasses import dataclass, field
+from types import MappingProxyType
 
 import numpy as np
 
@@ -33,7 +34,7 @@ ESTOP = 3  # emergency stop: the device freezes and latches until restarted
 PING = 4  # no values: opens a session (telemetry goes to the sender; sequence numbers restart)
 TELEMETRY = 16  # device -> host
 
-KIND_NAMES = {MOVE: "move", HOLD: "hold", ESTOP: "estop", PING: "ping", TELEMETRY: "telemetry"}
+KIND_NAMES = MappingProxyType({MOVE: "move", HOLD: "hold", ESTOP: "estop", PING: "ping", TELEMETRY: "telemetry"})
 
 # Device status bits in telemetry frames.
 STATUS_HOLDING = 1  # last applied command was HOLD (or no command yet)

@@ -38,7 +38,9 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
+from types import MappingProxyType
 from typing import Any
 
 import casadi as ca
@@ -58,33 +60,37 @@ _PAD_CENTER = (0.0, 0.0, 1.0e6)
 _SLOT = 4
 
 # float options: default and bounds (shared by Python construction and TOML reading)
-_FLOATS: dict[str, tuple[float, dict[str, float]]] = {
-    "dt": (0.1, {"gt": 0.0, "le": 10.0}),
-    "margin": (1.5, {"ge": 0.0}),
-    "tip_weight": (1.0, {"ge": 0.0}),
-    "config_weight": (0.01, {"ge": 0.0}),
-    "velocity_weight": (0.02, {"ge": 0.0}),
-    "smooth_weight": (0.2, {"ge": 0.0}),
-    "terminal_weight": (10.0, {"ge": 0.0}),
-    "max_cable_speed": (8.0, {"gt": 0.0}),
-    "max_z_speed": (40.0, {"gt": 0.0}),
-    "tol": (1e-6, {"gt": 0.0}),
-    "max_solve_time": (0.5, {"gt": 0.0}),
-    "duration": (60.0, {"gt": 0.0}),
-    "replan_period": (0.0, {"ge": 0.0}),
-    "planner_time": (1.0, {"gt": 0.0}),
-    "stall_time": (3.0, {"gt": 0.0}),
-    "reference_speed": (0.7, {"gt": 0.0, "le": 1.0}),
-    "max_body_speed": (50.0, {"gt": 0.0}),
-    "check_resolution": (1.0, {"gt": 0.0}),
-    "settle_time": (0.5, {"ge": 0.0}),
-}
-_INTS: dict[str, tuple[int, dict[str, int]]] = {
-    "horizon": (10, {"ge": 1, "le": 200}),
-    "points": (16, {"ge": 2, "le": 200}),
-    "max_iter": (60, {"ge": 1}),
-    "check_points": (21, {"ge": 2, "le": 1000}),
-}
+_FLOATS: Mapping[str, tuple[float, dict[str, float]]] = MappingProxyType(
+    {
+        "dt": (0.1, {"gt": 0.0, "le": 10.0}),
+        "margin": (1.5, {"ge": 0.0}),
+        "tip_weight": (1.0, {"ge": 0.0}),
+        "config_weight": (0.01, {"ge": 0.0}),
+        "velocity_weight": (0.02, {"ge": 0.0}),
+        "smooth_weight": (0.2, {"ge": 0.0}),
+        "terminal_weight": (10.0, {"ge": 0.0}),
+        "max_cable_speed": (8.0, {"gt": 0.0}),
+        "max_z_speed": (40.0, {"gt": 0.0}),
+        "tol": (1e-6, {"gt": 0.0}),
+        "max_solve_time": (0.5, {"gt": 0.0}),
+        "duration": (60.0, {"gt": 0.0}),
+        "replan_period": (0.0, {"ge": 0.0}),
+        "planner_time": (1.0, {"gt": 0.0}),
+        "stall_time": (3.0, {"gt": 0.0}),
+        "reference_speed": (0.7, {"gt": 0.0, "le": 1.0}),
+        "max_body_speed": (50.0, {"gt": 0.0}),
+        "check_resolution": (1.0, {"gt": 0.0}),
+        "settle_time": (0.5, {"ge": 0.0}),
+    }
+)
+_INTS: Mapping[str, tuple[int, dict[str, int]]] = MappingProxyType(
+    {
+        "horizon": (10, {"ge": 1, "le": 200}),
+        "points": (16, {"ge": 2, "le": 200}),
+        "max_iter": (60, {"ge": 1}),
+        "check_points": (21, {"ge": 2, "le": 1000}),
+    }
+)
 
 
 @dataclass(frozen=True)

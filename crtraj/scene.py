@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
+from types import MappingProxyType
 from typing import Any
 
 import numpy as np
@@ -38,7 +39,7 @@ from crtraj.errors import InputError
 from crtraj.fields import Table
 
 PROFILES = ("linear", "sin", "cos")
-_PROFILE_CODE = {"linear": 0, "sin": 1, "cos": 2}
+_PROFILE_CODE = MappingProxyType({"linear": 0, "sin": 1, "cos": 2})
 
 # The paper's search space: 300 x 300 x 500 mm centred on the base axis. It
 # stands on the base's home plane z = 0 and reaches 500 mm up, which holds the

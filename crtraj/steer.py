@@ -48,7 +48,9 @@ import math
 import shutil
 import tempfile
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field
+from types import MappingProxyType
 from typing import Any
 
 import casadi as ca
@@ -67,36 +69,40 @@ QP_SOLVERS = ("daqp", "qrqp", "qpoases", "osqp", "proxqp", "highs")
 # at 5-8; the adaptive barrier took fewer iterations than monotone in our
 # measurements; bound_push/frac 1e-8 keep the warm start where it is; mumps
 # is the linear solver bundled with CasADi.
-IPOPT_DEFAULTS: dict[str, Any] = {
-    "print_level": 0,
-    "sb": "yes",
-    "linear_solver": "mumps",
-    "hessian_approximation": "exact",
-    "acceptable_tol": 1e-6,
-    "acceptable_iter": 5,
-    "constr_viol_tol": 1e-8,
-    "mu_strategy": "adaptive",
-    "mu_init": 1e-2,
-    "bound_push": 1e-8,
-    "bound_frac": 1e-8,
-}
+IPOPT_DEFAULTS: Mapping[str, Any] = MappingProxyType(
+    {
+        "print_level": 0,
+        "sb": "yes",
+        "linear_solver": "mumps",
+        "hessian_approximation": "exact",
+        "acceptable_tol": 1e-6,
+        "acceptable_iter": 5,
+        "constr_viol_tol": 1e-8,
+        "mu_strategy": "adaptive",
+        "mu_init": 1e-2,
+        "bound_push": 1e-8,
+        "bound_frac": 1e-8,
+    }
+)
 
 # Default sqpmethod options (overridable from [steer.sqp]).
-SQP_DEFAULTS: dict[str, Any] = {
-    "hessian_approximation": "exact",
-    # "regularize" shifts the whole spectrum and made steps crawl (linear
-    # convergence, > 50 iterations); reflecting the negative eigenvalues of the
-    # 5 x 5 Hessian keeps Newton steps (~6 iterations) and, unlike clipping
-    # them to ~0, no near-flat direction sends the QP step to the bounds
-    "convexify_strategy": "eigen-reflect",
-    # CasADi's symmetric eigen solver stops after max_iter_eig sweeps and the
-    # SQP then aborts; 50 (the default) failed on 7% of the benchmark steers,
-    # 5000 on none, and converged cases stop early anyway
-    "max_iter_eig": 5000,
-    "tol_pr": 1e-8,
-    "tol_du": 1e-6,
-    "min_step_size": 1e-12,
-}
+SQP_DEFAULTS: Mapping[str, Any] = MappingProxyType(
+    {
+        "hessian_approximation": "exact",
+        # "regularize" shifts the whole spectrum and made steps crawl (linear
+        # convergence, > 50 iterations); reflecting the negative eigenvalues of the
+        # 5 x 5 Hessian keeps Newton steps (~6 iterations) and, unlike clipping
+        # them to ~0, no near-flat direction sends the QP step to the bounds
+        "convexify_strategy": "eigen-reflect",
+        # CasADi's symmetric eigen solver stops after max_iter_eig sweeps and the
+        # SQP then aborts; 50 (the default) failed on 7% of the benchmark steers,
+        # 5000 on none, and converged cases stop early anyway
+        "max_iter_eig": 5000,
+        "tol_pr": 1e-8,
+        "tol_du": 1e-6,
+        "min_step_size": 1e-12,
+    }
+)
 
 _EPS_D2 = 1e-6  # mm^2, keeps the eq. 18 term finite if a point sits on a centre
 _G_SCALE = 1e-3  # 1/mm^2: collision constraints in units of 1000 mm^2, O(1..10)

@@ -55,7 +55,9 @@ set-point (``q_command``) and passes it back each period.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
+from types import MappingProxyType
 from typing import Any
 
 import casadi as ca
@@ -70,17 +72,19 @@ from crtraj.robot import Robot
 MODES = ("configuration", "tip")
 
 # Every float option: default and bounds (the same checks for TOML and Python use).
-_FLOATS: dict[str, tuple[float, dict[str, float]]] = {
-    "dt": (0.02, {"gt": 0.0, "le": 1.0}),
-    "servo_tau": (0.05, {"gt": 0.0, "le": 10.0}),
-    "servo_tau_z": (0.1, {"gt": 0.0, "le": 10.0}),
-    "max_cable_rate": (10.0, {"gt": 0.0}),
-    "max_z_rate": (50.0, {"gt": 0.0}),
-    "bending_error_scale": (0.01, {"gt": 0.0}),
-    "z_error_scale": (0.5, {"gt": 0.0}),
-    "effort_weight": (1.0, {"gt": 0.0}),
-    "damping": (0.3, {"ge": 0.0}),
-}
+_FLOATS: Mapping[str, tuple[float, dict[str, float]]] = MappingProxyType(
+    {
+        "dt": (0.02, {"gt": 0.0, "le": 1.0}),
+        "servo_tau": (0.05, {"gt": 0.0, "le": 10.0}),
+        "servo_tau_z": (0.1, {"gt": 0.0, "le": 10.0}),
+        "max_cable_rate": (10.0, {"gt": 0.0}),
+        "max_z_rate": (50.0, {"gt": 0.0}),
+        "bending_error_scale": (0.01, {"gt": 0.0}),
+        "z_error_scale": (0.5, {"gt": 0.0}),
+        "effort_weight": (1.0, {"gt": 0.0}),
+        "damping": (0.3, {"ge": 0.0}),
+    }
+)
 
 # Designs kept per control period (a caller that varies dt should not grow memory).
 _MAX_DESIGNS = 8
