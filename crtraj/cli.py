@@ -12,6 +12,7 @@ import argparse
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 from crtraj import __version__
 from crtraj.errors import InputError
@@ -348,19 +349,27 @@ def _add_replan(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--stream",
         metavar="udp://HOST:PORT",
-        help="afterwards, stream the verified run's actuation to a device (as crtraj stream does; "
-        "the robot file needs [robot.actuators])",
+        help="drive a device ([robot.actuators] in the robot file, [stream] section). Without --feed: after the "
+        "simulation, stream the verified run (as crtraj stream does). With --feed: live, while the loop runs - "
+        "the run starts where the device is, each step's verified motion is streamed as it is chosen (one "
+        "[stream] prebuffer, at least one replan step, ahead of the device; the feed is predicted that far "
+        "ahead), the device's telemetry is the measured configuration, a held step or a stale feed holds the "
+        "device, an unsafe step e-stops it, Ctrl-C holds it; the device then settles at the run's final "
+        "actuation",
     )
     p.add_argument(
         "--approach",
         action="store_true",
-        help="with --stream: first move from the device's position to the run's start (not collision checked)",
+        help="with --stream: first move from the device's position to the run's start (not collision checked); "
+        "with --feed and --stream: start the live run from the device's position even when it is not the task's "
+        "start (every move from there is verified; without it such a device is refused)",
     )
     p.add_argument(
         "--time-scale",
         type=float,
         default=1.0,
-        help="with --stream: play the run this many times slower (the device's acceleration limits may need it)",
+        help="with --stream, without --feed: play the run this many times slower (the device's acceleration "
+        "limits may need it)",
     )
     p.add_argument("--view", action="store_true", help="afterwards, serve the 3-D replay on 127.0.0.1 until Ctrl-C")
     p.add_argument("--no-browser", action="store_true", help="with --view: only print the URL")
@@ -392,9 +401,14 @@ def _cmd_replan(args: argparse.Namespace) -> int:
         ids = [o.name for o in Scene.from_table(problem.section("scene")).obstacles]
         feed = ObstacleFeed(port, max_age=args.feed_max_age, expected=ids)
         print(f"listening for obstacle states ({', '.join(ids)}) on udp://127.0.0.1:{feed.address[1]}", flush=True)
+    live = feed is not None and bool(args.stream)
+    link = None
     try:
-        loop = loop_from_problem(problem, safety=not args.no_safety, seed=seed, feed=feed)
+        lead, sopts = _live_stream_options(problem) if live else (0.0, None)
+        loop = loop_from_problem(problem, safety=not args.no_safety, seed=seed, feed=feed, lead=lead)
         o = loop.options
+        if live:
+            link = _open_live_stream(args, problem, loop, sopts, out)
         if not args.quiet:
             d = loop.replanner.describe()
             print(
@@ -403,12 +417,21 @@ def _cmd_replan(args: argparse.Namespace) -> int:
                 f"{d['solver']}, {d['variables']} variables, {d['constraints']} constraints",
                 flush=True,
             )
-        run = loop.run()
+        run = loop.run(device=link)
     finally:
+        if link is not None:
+            link.streamer.close()  # a no-op after a normal run: the run closed it
         if feed is not None:
             feed.close()
     paths = write_run(run, loop, out, problem=problem, seed=seed, html=not args.no_html)
     print(run.summary_line())
+    if link is not None:
+        rep = link.report
+        fe = "" if rep.final_error is None else f", final error {rep.final_error:.3g}"
+        print(
+            f"  live stream {rep.status}: {rep.message}; {rep.frames} frames ({rep.moves} move, {rep.holds} hold, "
+            f"{rep.estops} e-stop){fe}; {link.restarts} restarts; log {rep.log}"
+        )
     if not args.quiet:
         counts = ", ".join(f"{k} {v}" for k, v in run.summary()["status_counts"].items())
         print(f"  steps: {counts}; wall time {time.perf_counter() - t0:.2f} s")
@@ -416,13 +439,68 @@ def _cmd_replan(args: argparse.Namespace) -> int:
             if key in paths:
                 print(f"  {key:4s} {paths[key]}")
     ok = run.reached and (run.safety_violations == 0 or not o.safety)
-    if args.stream:
+    if link is not None:
+        ok = ok and link.report.ok
+    elif args.stream:
         ok = _stream_run(args, problem, paths) and ok
     if args.view:
         from crtraj.fileio import read_json
 
         _serve(read_json(paths["result"]), "the run", not args.no_browser)
+    if run.outcome == "interrupted":
+        return 130
     return 0 if ok else 1
+
+
+def _live_stream_options(problem: Any) -> tuple[float, Any]:
+    """(lead s, StreamOptions) of a live stream: the [stream] prebuffer, at least one replan step."""
+    import dataclasses
+
+    from crtraj.replan import ReplanOptions
+    from crtraj.stream import StreamOptions
+
+    sopts = problem.options(StreamOptions, "stream")
+    lead = max(sopts.prebuffer, problem.options(ReplanOptions, "replan").dt)
+    return lead, dataclasses.replace(sopts, prebuffer=lead)
+
+
+def _open_live_stream(args: argparse.Namespace, problem: Any, loop: Any, sopts: Any, out: Path) -> Any:
+    """Connect to the device for a live run (`crtraj.simulate.DeviceLink`); refuse a device that is not at the
+    task's start unless --approach."""
+    import numpy as np
+
+    from crtraj.simulate import DeviceLink
+    from crtraj.stream import Streamer, StreamError
+
+    robot = problem.robot
+    if robot.actuators is None:
+        raise InputError("robot.actuators: --stream needs a [robot.actuators] table in the robot file")
+    acts = robot.actuators.for_robot(robot)
+    target = args.stream if "://" in args.stream else f"udp://{args.stream}"
+    streamer = Streamer.open(target, acts, sopts, out / "stream.jsonl")
+    try:
+        streamer.start()
+        link = DeviceLink(streamer, loop.servo, loop.options.dt, lead=sopts.prebuffer)
+        here = streamer.position
+        start = acts.command(loop.tracker.initial_command(loop.x_start))
+        d = np.abs(here - start)
+        i = int(np.argmax(d))
+        tol = sopts.settle_tolerance
+        if d[i] > tol and not args.approach:
+            u = acts.units[i]
+            raise InputError(
+                f"--stream: the device's {acts.names[i]} is at {here[i]:.4g} {u}, the task starts at {start[i]:.4g} "
+                f"{u} ({d[i]:.3g} {u} apart, more than stream.settle_tolerance {tol:g}); move the robot to the "
+                "start, or pass --approach to start the run from where the device is"
+            )
+    except StreamError as exc:
+        streamer.close()
+        raise InputError(f"--stream: {exc}") from None
+    except BaseException:
+        streamer.close()
+        raise
+    print(f"streaming live to {streamer.transport.description} ({sopts.prebuffer:g} s ahead)", flush=True)
+    return link
 
 
 def _stream_run(args: argparse.Namespace, problem: object, paths: dict) -> bool:
@@ -430,12 +508,12 @@ def _stream_run(args: argparse.Namespace, problem: object, paths: dict) -> bool:
     from crtraj.setpoints import SetpointPath
     from crtraj.stream import Streamer, StreamOptions
 
-    robot = problem.robot  # type: ignore[attr-defined]
+    robot = problem.robot
     if robot.actuators is None:
         raise InputError("robot.actuators: --stream needs a [robot.actuators] table in the robot file")
     actuators = robot.actuators.for_robot(robot)
     target = args.stream if "://" in args.stream else f"udp://{args.stream}"
-    opts = problem.options(StreamOptions, "stream")  # type: ignore[attr-defined]
+    opts = problem.options(StreamOptions, "stream")
     log = Path(paths["json"]).parent / "stream.jsonl"
     path = SetpointPath.from_result(paths["result"], actuators).scaled(args.time_scale)
     print(f"streaming the run ({path.duration:.2f} s) to {target}", flush=True)

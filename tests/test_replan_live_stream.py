@@ -1,0 +1,295 @@
+"""`crtraj replan --feed --stream`: live streaming to a simulated device on 127.0.0.1 while the loop runs."""
+
+from __future__ import annotations
+
+import json
+import socket
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from crtraj.cli import main
+from crtraj.device import SimDevice
+from crtraj.feed import ObstacleFeed
+from crtraj.protocol import HOLD, MOVE
+from crtraj.scene import Obstacle
+from crtraj.simulate import DeviceLink, loop_from_problem
+from crtraj.stream import Streamer, StreamOptions
+from crtraj.tracking import ServoModel
+
+ROOT = Path(__file__).resolve().parent.parent
+ROBOT = ROOT / "problems" / "robots" / "cdsr2.toml"
+XS = np.array([0.3, 0.0, 0.0, 0.0, 0.0])
+XG = np.array([0.15, 0.12, -0.05, 0.05, -4.0])  # a nearby goal: about a second of motion
+BALL = Obstacle(center=(-3.5, 76.8, 394.4), radius=30.0, amplitude=8.0, omega=2.0, name="ball")
+
+
+def _problem(tmp_path: Path, model, duration: float) -> Path:
+    start, goal = model.tip_position(XS), model.tip_position(XG)
+    vec = lambda a: "[" + ", ".join(f"{v:.12g}" for v in a) + "]"  # noqa: E731
+    text = f"""
+name = "live"
+robot = "{ROBOT}"
+seed = 1
+[task]
+start = {vec(start)}
+goal = {vec(goal)}
+start_config = {vec(XS)}
+goal_tolerance = 0.5
+[scene]
+safety_distance = 5.0
+[[scene.obstacle]]
+name = "ball"
+center = {vec(BALL.center)}
+radius = {{ mean = 30.0, amplitude = 8.0, omega = 2.0, phase = 0.0 }}
+[replan]
+horizon = 6
+points = 12
+solver = "sqp"
+duration = {duration}
+planner_time = 0.5
+settle_time = 0.3
+[stream]
+watchdog = 0.5
+prebuffer = 0.2
+connect_timeout = 2.0
+settle_timeout = 4.0
+"""
+    p = tmp_path / "live.toml"
+    p.write_text(text)
+    return p
+
+
+def _free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class _Sender:
+    """A motion-capture bridge: the ball's state at 100 Hz until `stop_after` s (then silence)."""
+
+    def __init__(self, port: int, stop_after: float = 1e9) -> None:
+        self.port, self.stop_after = port, stop_after
+        self.stop = threading.Event()
+        self.stopped_at: float | None = None
+        self.thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        t0 = time.monotonic()
+        while not self.stop.is_set():
+            s = time.monotonic() - t0
+            if s > self.stop_after:
+                self.stopped_at = time.monotonic()
+                return
+            r = BALL.radius + BALL.amplitude * np.sin(BALL.omega * s)
+            msg = [{"id": "ball", "center": list(BALL.center), "radius": float(r), "timestamp": s}]
+            ObstacleFeed.send(("127.0.0.1", self.port), msg)
+            time.sleep(0.01)
+
+    def __enter__(self) -> _Sender:
+        self.thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop.set()
+        self.thread.join(1.0)
+
+
+def _actuators(robot):
+    return robot.actuators.for_robot(robot)
+
+
+def _device(robot, x0) -> SimDevice:
+    acts = _actuators(robot)
+    return SimDevice(acts, 0, initial=acts.command(robot.cables(x0)))
+
+
+def _log(path: Path) -> list[dict]:
+    return [json.loads(line) for line in path.read_text().splitlines()]
+
+
+def _assert_frames_within_limits(lines: list[dict], acts, dt: float) -> None:
+    """Independent re-check of every sent frame: positions, and velocity/acceleration of consecutive MOVEs."""
+    tx = [x for x in lines if x["type"] == "tx" and x["kind"] in ("move", "hold", "estop")]
+    V = np.array([x["values"] for x in tx])
+    assert np.all((acts.lower - 1e-9 <= V) & (acts.upper + 1e-9 >= V))
+    kinds = [x["kind"] for x in tx]
+    v_prev = np.zeros(acts.n)
+    for k in range(1, len(tx)):
+        if kinds[k] != "move":
+            v_prev = np.zeros(acts.n)
+            continue
+        v = (V[k] - V[k - 1]) / dt
+        assert np.all(np.abs(v) <= acts.vmax * (1 + 1e-6)), k
+        assert np.all(np.abs(v - v_prev) / dt <= acts.amax * (1 + 1e-6)), k
+        v_prev = v
+    assert not [x for x in lines if x["type"] == "event" and x["event"] == "refused"]
+
+
+def test_live_stream_reaches_the_goal_and_the_device_ends_there(tmp_path, robot, model, capsys):
+    port = _free_port()
+    acts = _actuators(robot)
+    out = tmp_path / "o"
+    with _device(robot, XS) as dev, _Sender(port):
+        rc = main(["replan", str(_problem(tmp_path, model, 6.0)), "--out", str(out), "--no-html",
+                   "--feed", f"udp://127.0.0.1:{port}", "--stream", dev.url])  # fmt: skip
+        time.sleep(0.2)
+        final = dev.state()
+    text = capsys.readouterr().out
+    assert rc == 0, text
+    assert "live stream done" in text
+    res = json.loads((out / "run.json").read_text())
+    assert res["status"] == "reached" and res["summary"]["safety_violations"] == 0
+    stream = res["stream"]["stream"]
+    assert stream["status"] == "done" and stream["moves"] > 50
+    # in order: the device applied strictly increasing sequence numbers and non-decreasing stamps
+    applied = list(dev.applied)
+    seqs = np.array([a.seq for a in applied])
+    assert np.all(np.diff(seqs) > 0)
+    moves = [a for a in applied if a.kind == MOVE]
+    assert len(moves) > 50
+    assert np.all(np.diff([a.stamp for a in moves]) > 0)
+    # played in real time: the device's wall clock and the stamps advance together
+    lag = np.array([a.wall - a.stamp for a in moves])
+    assert np.ptp(lag) < 1.0
+    # the device ends at the run's final actuation
+    q_end = np.array(res["waypoints"][-1]["q"])
+    np.testing.assert_allclose(final["positions"], acts.command(q_end), atol=0.01)
+    _assert_frames_within_limits(_log(out / "stream.jsonl"), acts, 0.01)
+
+
+def test_stale_feed_holds_the_device_with_hold_frames_only(tmp_path, robot, model, capsys):
+    port = _free_port()
+    acts = _actuators(robot)
+    out = tmp_path / "o"
+    with _device(robot, XS) as dev, _Sender(port, stop_after=1.2) as sender:
+        rc = main(["replan", str(_problem(tmp_path, model, 2.8)), "--out", str(out), "--no-html", "--quiet",
+                   "--feed", f"udp://127.0.0.1:{port}", "--stream", dev.url])  # fmt: skip
+        time.sleep(0.2)
+        final = dev.state()
+        t_dev0 = dev._t0  # the device's clock origin (monotonic)
+        stopped_at = sender.stopped_at
+    capsys.readouterr()
+    assert rc == 1  # the feed went silent before the goal: reported
+    res = json.loads((out / "run.json").read_text())
+    st = [w.get("status") for w in res["waypoints"][1:]]
+    assert "stale" in st and st[-1] == "stale"
+    assert res["summary"]["status_counts"].get("move", 0) >= 3
+    applied = list(dev.applied)
+    moves = [a for a in applied if a.kind == MOVE]
+    # streamed while the loop ran: moves applied before the feed even stopped
+    assert stopped_at is not None
+    assert sum(a.wall + t_dev0 < stopped_at for a in moves) >= 10
+    # once the loop held on the stale feed, the device got HOLD frames only, and it holds still
+    lines = _log(out / "stream.jsonl")
+    held = [x for x in lines if x["type"] == "event" and x["event"] == "held" and "stale" in x["message"]]
+    assert held, [x for x in lines if x["type"] == "event"]
+    t_held = held[0]["wall"]
+    after = [x for x in lines if x["type"] == "tx" and x["wall"] > t_held + 1e-3]
+    assert after and {x["kind"] for x in after} == {"hold"}
+    assert len({tuple(x["values"]) for x in after}) == 1
+    assert res["stream"]["stream"]["status"] == "held"
+    # the device ends where the run says it is (its telemetry became the measured configuration)
+    q_end = np.array(res["waypoints"][-1]["q"])
+    np.testing.assert_allclose(final["positions"], acts.command(q_end), atol=0.01)
+    _assert_frames_within_limits(lines, acts, 0.01)
+    assert all(a.kind in (MOVE, HOLD) for a in applied)
+
+
+def test_device_away_from_the_start_is_refused_unless_approach(tmp_path, robot, model, capsys):
+    port = _free_port()
+    problem = _problem(tmp_path, model, 0.6)
+    acts = _actuators(robot)
+    with SimDevice(acts, 0) as dev, _Sender(port):  # the device rests in the straight pose
+        rc = main(["replan", str(problem), "--out", str(tmp_path / "a"), "--no-html",
+                   "--feed", f"udp://127.0.0.1:{port}", "--stream", dev.url])  # fmt: skip
+        err = capsys.readouterr().err.strip().splitlines()
+        assert rc == 2
+        assert len(err) == 1 and "--stream" in err[0] and "--approach" in err[0] and "s1c1" in err[0]
+        rc = main(["replan", str(problem), "--out", str(tmp_path / "b"), "--no-html", "--quiet",
+                   "--feed", f"udp://127.0.0.1:{port}", "--stream", dev.url, "--approach"])  # fmt: skip
+    capsys.readouterr()
+    assert rc == 1  # 0.6 s is not enough to reach the goal
+    res = json.loads((tmp_path / "b" / "run.json").read_text())
+    # the run started where the device was: the straight pose, not the task's start
+    np.testing.assert_allclose(res["waypoints"][0]["x"], np.zeros(5), atol=1e-9)
+
+
+def test_ctrl_c_holds_the_device_and_ends_the_run(tmp_path, robot, model):
+    from crtraj.problem import Problem
+
+    port = _free_port()
+    problem = Problem.load(_problem(tmp_path, model, 5.0))
+    acts = _actuators(robot)
+    with _device(robot, XS) as dev, _Sender(port), ObstacleFeed(port, max_age=0.2, expected=["ball"]) as feed:
+        opts = StreamOptions(watchdog=0.5, prebuffer=0.2, connect_timeout=2.0)
+        loop = loop_from_problem(problem, feed=feed, lead=0.2)
+        streamer = Streamer.open(dev.url, acts, opts, tmp_path / "s.jsonl")
+        streamer.start()
+        link = DeviceLink(streamer, loop.servo, loop.options.dt)
+
+        def interrupt(k: int, t: float, status: str) -> None:
+            if k == 8:
+                raise KeyboardInterrupt
+
+        run = loop.run(device=link, progress=interrupt)
+    assert run.outcome == "interrupted" and run.steps == 9
+    assert link.report.status == "held" and "Ctrl-C" in link.report.message
+    kinds = [x["kind"] for x in _log(tmp_path / "s.jsonl") if x["type"] == "tx"]
+    assert kinds[-1] == "hold" and "move" in kinds
+
+
+class _FakeStreamer:
+    """The attributes of a started `Streamer` that `DeviceLink`'s set-point generation reads."""
+
+    def __init__(self, actuators, position) -> None:
+        self.actuators = actuators
+        self.options = StreamOptions(prebuffer=0.1)
+        self.position = position
+
+
+def test_follower_respects_limits_and_reproduces_the_verified_motion(robot):
+    acts = _actuators(robot)
+    servo = ServoModel(robot, 0.05, 0.1)
+    q0 = robot.cables(XS)
+    link = DeviceLink(_FakeStreamer(acts, acts.command(q0)), servo, 0.1)
+    link._p, link._last_target = acts.command(q0), acts.command(q0)
+    # the verified motion inside one step equals the servo's closed form, period by period
+    cmds = q0 + np.outer(np.arange(1, 6), np.append(np.full(6, 0.1), 1.5))
+    off = np.linspace(0.001, 0.1, 37)
+    Q = link.verified(q0, cmds, 0.02, off)
+    q = q0.copy()
+    for j in range(5):
+        inside = (off > j * 0.02 + 1e-12) & (off <= (j + 1) * 0.02 + 1e-12)
+        np.testing.assert_allclose(Q[inside], servo.trajectory(q, cmds[j], off[inside] - j * 0.02), atol=1e-12)
+        q = servo.advance(q, cmds[j], 0.02)
+    # a target with a velocity jump far beyond the limits: the set-points stay within them ...
+    rng = np.random.default_rng(3)
+    target = acts.command(q0) + np.cumsum(rng.normal(0.0, 0.05, (300, acts.n)), axis=0) * acts.vmax * 0.01
+    P = np.vstack([acts.command(q0)[None], link._follow(target)])
+    V = np.diff(P, axis=0) / 0.01
+    A = np.diff(np.vstack([np.zeros(acts.n), V]), axis=0) / 0.01
+    assert np.all(np.abs(V) <= acts.vmax) and np.all(np.abs(A) <= acts.amax)
+    # ... and reach a target that stops, at rest, without overshooting it by more than round-off
+    goal = target[-1]
+    tail = link._follow(np.repeat(goal[None], 400, axis=0))
+    np.testing.assert_allclose(tail[-1], goal, atol=1e-6)
+    np.testing.assert_allclose(link._v, 0.0, atol=1e-4)
+    # a smooth, feasible target is followed exactly
+    smooth = goal + np.outer(np.sin(np.linspace(0, 1, 100)), 0.001 * acts.vmax)
+    link._p, link._v, link._last_target = smooth[0], np.zeros(acts.n), smooth[0]
+    np.testing.assert_allclose(link._follow(smooth[1:]), smooth[1:], atol=1e-3 * acts.vmax.max())
+
+
+def test_stream_rate_must_divide_the_step(robot):
+    from crtraj.errors import InputError
+
+    acts = _actuators(robot)
+    fake = _FakeStreamer(acts, acts.command(robot.cables(XS)))
+    fake.options = StreamOptions(rate=35.0, prebuffer=0.1)  # 3.5 frames per 0.1 s step
+    with pytest.raises(InputError, match=r"stream\.rate"):
+        DeviceLink(fake, ServoModel(robot, 0.05, 0.1), 0.1)
