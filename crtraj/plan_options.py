@@ -39,7 +39,9 @@ class PlannerOptions:
     the safety-constrained IPOPT NLP takes over. ik_nlp_solves: at most
     this many NLP solves per IK query (the slow, rarely needed stage).
     goal_window: dynamic scenes only: half of the IK starts keep clear of
-    everything the obstacles sweep over [t0, t0 + goal_window] (s).
+    everything the obstacles sweep over [t0, t0 + goal_window] (s), by
+    projection only (no NLP: often infeasible); the other half, with the NLP
+    stage, keep clear at t0.
     via_points: cspace only: random intermediate configurations tried at
     once as start -> via -> goal before the trees grow (0: skip); half of
     them uniform, half scattered by `via_spread` (mm of body motion, normal

@@ -40,6 +40,9 @@ from crtraj.plan_options import PlannerOptions
 from crtraj.plan_result import PlanResult, PlanStatus
 from crtraj.validity import MotionValidator
 
+# Timed shortcuts are verified this many at a time, most saving first.
+SHORTCUT_CHUNK = 4
+
 
 class PathPostprocessor:
     """Post-processing of one query's path. validator: the query's checks; options:
@@ -172,16 +175,28 @@ class PathPostprocessor:
             u, P1, P2, saving = u[good], P1[good], P2[good], saving[good]
             if not len(u):
                 continue
-            checked += len(u)
-            ok = v.edges_valid(P1, P2, u[:, 0], u[:, 1])
-            if ok.any():
-                best = np.flatnonzero(ok)[np.argmax(saving[ok])]
+            # most saving first, a few at a time: the round keeps only the best valid one
+            order = np.argsort(-saving)
+            ok = np.zeros(len(u), dtype=bool)
+            for k0 in range(0, len(order), SHORTCUT_CHUNK):
+                idx = order[k0 : k0 + SHORTCUT_CHUNK]
+                checked += len(idx)
+                ok[idx] = v.edges_valid(P1[idx], P2[idx], u[idx, 0], u[idx, 1])
+                if ok[idx].any():
+                    break
+            # the pieces of the old motions that the splice cuts are checked as well, so every motion of
+            # the result is certified as it stands (a piece of a certified motion need not be)
+            for best in np.flatnonzero(ok)[np.argsort(-saving[ok])][:3]:
                 a, b = u[best]
                 i = int(np.searchsorted(T, a, side="right"))
                 j = int(np.searchsorted(T, b, side="left"))
-                X = np.concatenate([X[:i], P1[best][None], P2[best][None], X[j:]])
-                T = np.concatenate([T[:i], [a, b], T[j:]])
-                X, T = dedup_timed(X, T)
+                Xn = np.concatenate([X[:i], P1[best][None], P2[best][None], X[j:]])
+                Tn = np.concatenate([T[:i], [a, b], T[j:]])
+                checked += 2
+                ends = v.edges_valid(Xn[[i - 1, i + 1]], Xn[[i, i + 2]], Tn[[i - 1, i + 1]], Tn[[i, i + 2]])
+                if ends.all():
+                    X, T = dedup_timed(Xn, Tn)
+                    break
         self.counts["shortcut_checks"] = self.counts.get("shortcut_checks", 0) + checked
         return dedup_timed(X, T)
 
@@ -196,7 +211,14 @@ class PathPostprocessor:
             if self.v.path_valid(Y, TY):
                 return Y, TY, True
             corner /= 2.0
-        return (*self.resample_timed(X, T), False)
+        return (*self.resample_timed_verified(X, T), False)
+
+    def resample_timed_verified(self, X: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """`resample_timed`, verified; the path as it is when its pieces are not all certified."""
+        Y, TY = self.resample_timed(X, T)
+        if len(Y) == len(X) or self.v.path_valid(Y, TY):
+            return Y, TY
+        return X, T
 
     def spline_timed(self, X: np.ndarray, T: np.ndarray, corner: float) -> tuple[np.ndarray, np.ndarray]:
         """The corner-rounding B-spline of `spline` through (configuration, time) jointly; samples

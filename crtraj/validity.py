@@ -113,6 +113,9 @@ class MotionValidator:
         self._fns: dict[Any, Any] = {} if functions is None else functions
         speeds, rates = scene.speed_bounds()
         self.static = bool(np.all(speeds == 0.0) and np.all(rates == 0.0))
+        # how much the sphere swept over a window of dt seconds can exceed the sphere at any one of its
+        # instants: capsule length plus radius growth, <= (speed + rate) dt (mm/s)
+        self._enl_rate = float(np.max(speeds + rates)) if scene.n_obstacles else 0.0
         if scene.n_obstacles:
             c, r = scene.states(0.0)
             self._static_c, self._static_r = c, r
@@ -364,10 +367,11 @@ class MotionValidator:
         neither certified nor already unsafe (c < 0) are halved, down to
         `resolution`; what is still uncertified there is unsafe. So motions
         far from obstacles cost a few samples and only the parts near
-        obstacles are sampled finely. With moving obstacles an interval whose
-        time window is longer than `time_resolution` is split rather than
-        declared unsafe (the swept obstacle of a long window is large; a wait,
-        x_a = x_b, is certified piece by piece in time).
+        obstacles are sampled finely. With moving obstacles an uncertified
+        interval longer than `time_resolution` is split rather than declared
+        unsafe (the swept obstacle of a long window is large; a wait, x_a =
+        x_b, is certified piece by piece in time), unless its middle
+        configuration collides at every instant of the window.
 
         Returns (f, lower): f (E,) in [0, 1], the motion is certified safe from
         its start to the fraction f (1: the whole motion); lower (E,), a lower
@@ -400,7 +404,12 @@ class MotionValidator:
             c = self.clearance(X, TA[e] + ta * dT[e], TA[e] + tb * dT[e])
             ok = c >= h
             np.minimum.at(lower, e[ok], (c - h)[ok])
-            bad = ~ok & ((c < 0.0) | (h <= finest)) & (dT[e] * (tb - ta) <= tres)
+            # An uncertified interval is unsafe when its middle configuration collides at every time of
+            # the window (c + enl < 0: each instant's sphere lies within enl of the swept one) or when
+            # it is as fine as it gets in motion (h) and in time; otherwise it is split.
+            dt = dT[e] * (tb - ta)
+            hopeless = c + self._enl_rate * dt < 0.0
+            bad = ~ok & (hopeless | (((c < 0.0) | (h <= finest)) & (dt <= tres)))
             np.minimum.at(fail, e[bad], ta[bad])
             split = ~ok & ~bad
             split &= ta < fail[e] if prefix else fail[e] >= 1.0

@@ -221,3 +221,27 @@ def test_statistical_success_on_paper_table1_scenes(sim1):
             assert clear >= 0.0 and limit <= 1e-9
             ok += 1
     assert ok >= 19, f"only {ok}/20 scenes solved"
+
+
+def test_forward_tree_waits_and_keeps_its_times(sim1):
+    """With wait_bias 1 every extension of the timed tree waits first: the path carries its own times."""
+    problem, model, scene = sim1
+    task = problem.task
+    lower = scene.obstacles[1]
+    scene = Scene(
+        (
+            scene.obstacles[0],
+            Obstacle(lower.center, lower.radius, amplitude=5.0, omega=0.5, to=(20.0, -70.0, 250.0), duration=6.0),
+        )
+    )
+    planner = CSpacePlanner(model, scene, PlannerOptions(via_points=0, wait_bias=1.0, time_limit=20.0))
+    res = planner.plan(task.goal, start_tip=task.start, seed=0, goal_tolerance=task.goal_tolerance)
+    assert_valid_plan(res, model, scene, task.goal, task.goal_tolerance)
+    # the raw tree path waits somewhere: a repeated configuration at a later time
+    still = np.all(np.diff(res.raw_configs, axis=0) == 0.0, axis=1) & (np.diff(res.raw_t) > 0.0)
+    assert still.any()
+    raw_clear, raw_limit, _ = dense_path_check(model, scene, res.raw_t, res.raw_configs)
+    assert raw_clear >= 0.0 and raw_limit <= 1e-9
+    # no motion of the returned path is faster than max_speed
+    v = planner.validator
+    assert np.all(v.motion_bound(np.diff(res.configs, axis=0)) <= v.max_speed * np.diff(res.t) * (1 + 1e-6) + 1e-9)

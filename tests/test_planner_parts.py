@@ -12,7 +12,7 @@ from crtraj.errors import InputError
 from crtraj.fields import Table
 from crtraj.nn import NearestNeighbors
 from crtraj.plan_options import PlannerOptions
-from crtraj.postprocess import PathPostprocessor, dedup
+from crtraj.postprocess import PathPostprocessor, dedup, dedup_timed
 from crtraj.safe_ik import SafeIK
 from crtraj.scene import Obstacle, Scene
 from crtraj.stop import StopCondition
@@ -313,3 +313,74 @@ def test_planner_options_from_table_and_errors():
     assert PlannerOptions.from_table(Table(PlannerOptions(range=12.0).to_dict(), "planner")) == PlannerOptions(
         range=12.0
     )
+
+
+# ------------------------------------------------------------ waits and timed paths
+def _crossing_scene():
+    """A sphere that crosses the straight robot (base at z = 0) during [0, 4] s, then rests 150 mm away."""
+    return Scene(
+        (Obstacle((150.0, 0.0, 330.0), 40.0, amplitude=10.0, omega=1.0, to=(-150.0, 0.0, 330.0), duration=4.0),)
+    )
+
+
+def test_wait_edges_are_certified_in_time_and_agree_with_a_dense_check(sim1):
+    _, model, _ = sim1
+    scene = _crossing_scene()
+    v = MotionValidator(model, scene, time_resolution=0.25)
+    x = model.robot.straight(0.0)  # the sphere passes through the straight body at about t = 2 s
+    starts = np.linspace(0.0, 6.0, 13)
+    waits = np.array([0.5, 1.0, 2.0, 4.0])
+    TA = np.repeat(starts, len(waits))
+    TB = TA + np.tile(waits, len(starts))
+    X = np.repeat(x[None], len(TA), axis=0)
+    ok = v.edges_valid(X, X, TA, TB)
+    assert ok.any() and (~ok).any()
+    for ta, tb, good in zip(TA, TB, ok, strict=True):
+        clear, _, _ = dense_path_check(model, scene, np.array([ta, tb]), np.stack([x, x]), dt=0.005)
+        if good:
+            assert clear >= 0.0
+    # a wait over a window the sphere never comes near is certified even though the window is long
+    assert v.edges_valid(x[None], x[None], 10.0, 30.0)[0]
+    # the split in time: one coarse swept sphere over [0, 8] s covers the body, the pieces do not
+    assert v.clearance(x[None], 0.0, 8.0)[0] < 0.0
+    with pytest.raises(InputError, match="time_resolution"):
+        MotionValidator(model, scene, time_resolution=0.0)
+
+
+def test_timed_shortcut_and_spline_keep_times_speed_and_safety(sim1):
+    _, model, _ = sim1
+    # a moving, breathing sphere beside the motion (the validator checks times)
+    scene = Scene(
+        (Obstacle((150.0, 260.0, 200.0), 40.0, amplitude=10.0, omega=1.0, to=(-150.0, 260.0, 200.0), duration=4.0),)
+    )
+    v = MotionValidator(model, scene)
+    assert not v.static
+    X = _zigzag(v)
+    # a timed path with a wait in the middle and one slow motion
+    X = np.concatenate([X[:3], X[2:3], X[3:]])
+    dur = v.durations(X)
+    dur[2] = 0.7  # wait
+    dur[4] *= 2.5  # slow
+    T = 1.0 + np.concatenate([[0.0], np.cumsum(dur)])
+    post = PathPostprocessor(v, PlannerOptions(shortcut_rounds=6), np.random.default_rng(0), t0=1.0)
+    assert v.path_valid(X, T)
+    S, TS = post.shortcut_timed(X, T)
+    assert TS[0] == T[0] and TS[-1] == T[-1]  # shortcuts keep the times of their ends
+    np.testing.assert_array_equal(S[0], X[0])
+    np.testing.assert_array_equal(S[-1], X[-1])
+    assert np.sum(v.motion_bound(np.diff(S, axis=0))) < np.sum(v.motion_bound(np.diff(X, axis=0)))
+    assert np.all(v.motion_bound(np.diff(S, axis=0)) <= v.max_speed * np.diff(TS) * (1 + 1e-9) + 1e-12)
+    assert v.path_valid(S, TS)
+    Y, TY, smoothed = post.smooth_timed(X, T)
+    assert smoothed or len(Y) >= len(X)
+    assert TY[0] == T[0] and TY[-1] == T[-1] and np.all(np.diff(TY) >= 0.0)
+    assert np.all(v.within_limits(Y))
+    # the spline keeps the polygon's speed bound (up to round-off)
+    assert np.all(v.motion_bound(np.diff(Y, axis=0)) <= v.max_speed * np.diff(TY) * (1 + 1e-6) + 1e-9)
+    assert v.path_valid(Y, TY)
+    clear, limit, _ = dense_path_check(model, scene, TY, Y)
+    assert clear >= 0.0 and limit <= 1e-9
+    # a wait (same configuration, later time) survives timed dedup; an exact repeat does not
+    Z, TZ = dedup_timed(np.stack([X[0], X[0], X[0], X[1]]), np.array([0.0, 0.0, 1.0, 2.0]))
+    np.testing.assert_array_equal(TZ, [0.0, 1.0, 2.0])
+    assert len(Z) == 3
