@@ -54,9 +54,12 @@ from crtraj.fields import Table
 from crtraj.model import Model
 from crtraj.scene import Obstacle, Scene
 
-# Backbone points used by the screens: 64 points put < 7 mm of arc between
-# points on the 400 mm default robot.
-_SCREEN_POINTS = 64
+# Backbone points used by the screens: 128 points put < 3.2 mm of arc between
+# points on the 400 mm default robot. Every body point lies within half that
+# spacing (arc length >= distance) of a screened point, so the screens demand
+# that much clearance on top (`slack` in `_screens`): the continuous body, not
+# only the points, then keeps the safety distance.
+_SCREEN_POINTS = 128
 # Configurations drawn per batch when rejection-sampling start/goal poses.
 _BATCH = 256
 
@@ -336,14 +339,15 @@ class ScenarioGenerator:
         o = self.options
         scene = Scene(obstacles=(ob,), safety_distance=o.safety_distance, time_step=o.time_step)
         m = self.model
-        if float(scene.clearance_over(m, xs, 0.0, o.start_window, n_points=_SCREEN_POINTS)) < 0.0:
+        slack = self.robot.total_length / (2.0 * (_SCREEN_POINTS - 1))  # mm, see _SCREEN_POINTS
+        if float(scene.clearance_over(m, xs, 0.0, o.start_window, n_points=_SCREEN_POINTS)) < slack:
             return False
         # a window this long covers every phase of the radius and of either profile
         t_all = 4.0 * ob.duration + 2.0 * math.pi / max(ob.omega, 1e-9) + 1.0
         inflate = self.robot.body_radius + o.goal_margin
         if float(scene.clearance_points_over(pg[None, :], 0.0, t_all, inflate=inflate)) < 0.0:
             return False
-        return float(scene.clearance(m, xg, 0.0, n_points=_SCREEN_POINTS)) >= 0.0
+        return float(scene.clearance(m, xg, 0.0, n_points=_SCREEN_POINTS)) >= slack
 
     # ----------------------------------------------------------------- API
     def generate(self, n_obstacles: int, index: int) -> Scenario:
