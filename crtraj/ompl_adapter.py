@@ -126,12 +126,6 @@ class OMPLPlanner:
         self._iks: dict[int, SafeIK] = {}
 
     # ---------------------------------------------------------------- helpers
-    def _validator(self, scene: Scene) -> MotionValidator:
-        o = self.options
-        return MotionValidator(
-            self.model, scene, check_points=o.check_points, resolution=o.resolution, max_speed=o.max_speed
-        )
-
     def _ik(self, n_obstacles: int, v: MotionValidator) -> SafeIK:
         slots = _SLOTS * max(1, math.ceil(n_obstacles / _SLOTS))
         ik = self._iks.get(slots)
@@ -209,7 +203,7 @@ class OMPLPlanner:
         deadline = clock.t_start + stop.time_limit
         rng = np.random.default_rng(seed)
         sc = self.scene if scene is None else scene
-        v = self._validator(sc)
+        v = self.options.validator(self.model, sc)
         timings: dict[str, float] = {}
         counts: dict[str, int] = {"validity_checks": 0, "motion_checks": 0, "goal_samples": 0}
 

@@ -8,6 +8,7 @@ from typing import Any
 from crtraj.errors import InputError
 from crtraj.fields import Table
 from crtraj.stop import StopCondition
+from crtraj.validity import MotionValidator
 
 ALGORITHMS = ("cspace", "rrt", "rrtstar")
 
@@ -116,6 +117,17 @@ class PlannerOptions:
     def stop(self) -> StopCondition:
         """The stop condition these options describe."""
         return StopCondition(self.time_limit, self.max_iterations, self.first_solution)
+
+    def validator(self, model: Any, scene: Any, functions: dict[Any, Any] | None = None) -> MotionValidator:
+        """The `MotionValidator` these options describe for `scene` (functions: a shared CasADi cache)."""
+        return MotionValidator(
+            model,
+            scene,
+            check_points=self.check_points,
+            resolution=self.resolution,
+            max_speed=self.max_speed,
+            functions=functions,
+        )
 
     def with_(self, **changes: Any) -> PlannerOptions:
         """A copy with some fields changed (validated again)."""

@@ -38,12 +38,11 @@ from typing import Any
 
 import numpy as np
 
-from crtraj.errors import InputError
-from crtraj.fields import check_array
 from crtraj.model import Model
 from crtraj.plan_options import PlannerOptions
 from crtraj.plan_result import PlanResult, PlanStatus
 from crtraj.postprocess import PathPostprocessor, empty_result, tree_edges
+from crtraj.query import PlanQuery
 from crtraj.safe_ik import SafeIK, resolve_start
 from crtraj.steer import SteerOptions, SteerSolver
 from crtraj.stop import StopCondition
@@ -79,7 +78,7 @@ class RRT:
         self.scene = scene
         self.options = PlannerOptions(algorithm=self.name) if options is None else options
         self._functions: dict[Any, Any] = {}
-        self.validator = self._validator(scene)
+        self.validator = self.options.validator(model, scene, self._functions)
         M = max(scene.n_obstacles if max_obstacles is None else int(max_obstacles), scene.n_obstacles)
         so = SteerOptions() if steer_options is None else steer_options
         self.steer_options = replace(
@@ -89,17 +88,6 @@ class RRT:
         )
         self.steer = SteerSolver(model, M, self.steer_options)
         self.ik = SafeIK(model, self.validator, M)
-
-    def _validator(self, scene: Any) -> MotionValidator:
-        o = self.options
-        return MotionValidator(
-            self.model,
-            scene,
-            check_points=o.check_points,
-            resolution=o.resolution,
-            max_speed=o.max_speed,
-            functions=self._functions,
-        )
 
     def steer_margin(self, scene: Any) -> float:
         """Extra keep-out (mm) for the steer's points so its configurations pass the validator.
@@ -131,18 +119,25 @@ class RRT:
     ) -> PlanResult:
         """Plan from a start to a goal tip position (mm); same arguments as `CSpacePlanner.plan`."""
         o = self.options
-        goal = check_array(goal, "goal", (3,))
-        t0 = float(check_array(t0, "t0", ()))
-        if not goal_tolerance > 0:
-            raise InputError(f"goal_tolerance: must be > 0 mm, got {goal_tolerance}")
-        if (start_config is None) == (start_tip is None):
-            raise InputError("start: give exactly one of start_config or start_tip")
-        stop = o.stop() if stop is None else stop
-        stop.check_bounded()
-        clock = stop.start()
-        deadline = clock.t_start + (stop.time_limit if stop.time_limit is not None else np.inf)
-        rng = np.random.default_rng(seed)
-        v = self.validator if scene is None or scene is self.scene else self._validator(scene)
+        query = PlanQuery.begin(
+            o.stop(),
+            goal,
+            t0=t0,
+            goal_tolerance=goal_tolerance,
+            start_config=start_config,
+            start_tip=start_tip,
+            stop=stop,
+            seed=seed,
+        )
+        goal, t0, stop, clock, deadline, rng = (
+            query.goal,
+            query.t0,
+            query.stop,
+            query.clock,
+            query.deadline,
+            query.rng,
+        )
+        v = self.validator if scene is None or scene is self.scene else o.validator(self.model, scene, self._functions)
         sc = v.scene
         if sc.n_obstacles > self.steer.max_obstacles:  # grow the NLPs' obstacle slots (built once more)
             self.steer = SteerSolver(self.model, sc.n_obstacles, self.steer_options)
