@@ -49,14 +49,18 @@ def main() -> None:
     rng = np.random.default_rng(0)
     lo, hi = robot.config_box()
     X = rng.uniform(lo, hi, size=(args.n, robot.nx)) * np.r_[np.full(4, 0.4), 1.0]
-    print(f"machine: {platform.processor() or platform.machine()}, {platform.python_version()}, casadi {ca.__version__}")
+    print(
+        f"machine: {platform.processor() or platform.machine()}, {platform.python_version()}, casadi {ca.__version__}"
+    )
     print(f"robot {robot.name}: {robot.n_segments} segments, {model.n_points} backbone points, batch {args.n}\n")
 
     n_single = 2000
     report("single backbone call (numpy wrapper)", timed(lambda: [model.points(x) for x in X[:n_single]], 3), n_single)
     f = model.backbone
     report("single backbone call (raw CasADi Function)", timed(lambda: [f(x) for x in X[:n_single]], 3), n_single)
-    med_batch = report("batched backbone, in-process (Function.map)", timed(lambda: model.points(X), args.repeat), args.n)
+    med_batch = report(
+        "batched backbone, in-process (Function.map)", timed(lambda: model.points(X), args.repeat), args.n
+    )
     report("batched tip position, in-process", timed(lambda: model.tip_position(X), args.repeat), args.n)
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -76,7 +80,9 @@ def main() -> None:
             )
             ext1 = ca.external("backbone", str(rep.library))
             report("single backbone call, compiled export", timed(lambda: [ext1(x) for x in X[:n_single]], 3), n_single)
-    print(f"\ntarget >= 200,000 configs/s batched: in-process {med_batch / 2e5:.2f}x target, compiled {med_c / 2e5:.2f}x")
+    print(
+        f"\ntarget >= 200,000 configs/s batched: in-process {med_batch / 2e5:.2f}x target, compiled {med_c / 2e5:.2f}x"
+    )
 
 
 if __name__ == "__main__":
