@@ -37,11 +37,8 @@ ROOT = Path(__file__).resolve().parent.parent
 
 
 def paper_plan_time() -> float:
-    """The paper's simulation-1 planning time (s), from the shared reference file when present."""
-    for p in (ROOT.parent / "shared" / "reference" / "paper_results.toml", ROOT / "reference" / "paper_results.toml"):
-        if p.exists():
-            return float(read_toml(p)["static"]["plan_s"])
-    return 2.41  # paper, sec. IV-A
+    """The paper's simulation-1 planning time (s), from benchmarks/paper_results.toml."""
+    return float(read_toml(ROOT / "benchmarks" / "paper_results.toml")["static"]["plan_s"])
 
 
 def dense_clearance(model: Model, scene: Scene, t: np.ndarray, X: np.ndarray, dt: float = 0.01) -> float:
