@@ -16,6 +16,7 @@ from typing import Any
 
 from crtraj import __version__
 from crtraj.errors import InputError
+from crtraj.transport import TransportError
 
 DEFAULT_ROBOT = Path(__file__).resolve().parent.parent / "problems" / "robots" / "cdsr2.toml"
 
@@ -170,8 +171,9 @@ def _cmd_stream(args: argparse.Namespace) -> int:
     opts = Problem.load(args.problem).options(StreamOptions, "stream") if args.problem else StreamOptions()
     over = {k: v for k, v in (("rate", args.rate), ("watchdog", args.watchdog)) if v is not None}
     opts = dataclasses.replace(opts, **over)
+    _check_time_scale(result, args.time_scale)
     path = SetpointPath.from_result(result, actuators).scaled(args.time_scale)
-    if args.udp:
+    if args.udp is not None:
         host, port = parse_hostport(args.udp, "--udp")
         target = f"udp://{host}:{port}"
     elif args.serial:
@@ -385,8 +387,14 @@ def _cmd_replan(args: argparse.Namespace) -> int:
 
     if args.seed is not None and args.seed < 0:
         raise InputError(f"--seed: must be >= 0, got {args.seed}")
+    if args.stream and args.no_safety:
+        raise InputError(
+            "--stream: refused with --no-safety (a run without the collision-free terms never drives a device)"
+        )
     out = Path(args.out) if args.out else Path("out") / ("replan-no-safety" if args.no_safety else "replan")
     problem = Problem.load(args.problem)
+    if args.stream and not args.feed:  # refuse before the run, not after it
+        _check_time_scale({"scene": problem.raw.get("scene", {})}, args.time_scale)
     seed = problem.seed if args.seed is None else args.seed
     t0 = time.perf_counter()
     feed = None
@@ -442,7 +450,10 @@ def _cmd_replan(args: argparse.Namespace) -> int:
     if link is not None:
         ok = ok and link.report.ok
     elif args.stream:
-        ok = _stream_run(args, problem, paths) and ok
+        if ok:
+            ok = _stream_run(args, problem, paths)
+        else:  # a run that failed or broke the safety distance never reaches a device
+            print("  not streamed: the run did not reach the goal safely", flush=True)
     if args.view:
         from crtraj.fileio import read_json
 
@@ -503,6 +514,23 @@ def _open_live_stream(args: argparse.Namespace, problem: Any, loop: Any, sopts: 
     return link
 
 
+def _check_time_scale(result: dict | str | Path, time_scale: float) -> None:
+    """Refuse to slow down a run among moving or breathing obstacles: its slowed timing was never checked."""
+    if time_scale == 1.0:
+        return
+    from crtraj.fields import Table
+    from crtraj.fileio import read_json
+    from crtraj.scene import Scene
+
+    data = result if isinstance(result, dict) else read_json(result)
+    scene = Scene.from_table(Table(data.get("scene", {}), "scene"))
+    if any(ob.amplitude != 0.0 or ob.to is not None for ob in scene.obstacles):
+        raise InputError(
+            f"--time-scale: {time_scale:g} refused: the run's obstacles move or change size, and a slowed replay "
+            "was never checked against them (plan again with lower speed limits instead)"
+        )
+
+
 def _stream_run(args: argparse.Namespace, problem: object, paths: dict) -> bool:
     """Stream a replan run's actuation (its waypoints' q) to a device; True when the stream completed."""
     from crtraj.setpoints import SetpointPath
@@ -515,6 +543,7 @@ def _stream_run(args: argparse.Namespace, problem: object, paths: dict) -> bool:
     target = args.stream if "://" in args.stream else f"udp://{args.stream}"
     opts = problem.options(StreamOptions, "stream")
     log = Path(paths["json"]).parent / "stream.jsonl"
+    _check_time_scale(paths["result"], args.time_scale)
     path = SetpointPath.from_result(paths["result"], actuators).scaled(args.time_scale)
     print(f"streaming the run ({path.duration:.2f} s) to {target}", flush=True)
     rep = Streamer.open(target, actuators, opts, log).run_path(path, approach=args.approach)
@@ -605,6 +634,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except InputError as exc:
         print(f"crtraj: error: {exc}", file=sys.stderr)
         return 2
+    except TransportError as exc:  # the device or port, not the input: a run-time failure
+        print(f"crtraj: error: {exc}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print("crtraj: interrupted", file=sys.stderr)
         return 130

@@ -102,8 +102,12 @@ class MotionValidator:
         self.metric_inverse = np.linalg.inv(M)
         h = robot.total_length / (self.check_points - 1)
         kappa = max(s.theta_max / s.length for s in robot.segments)
-        half = min(kappa * h / 2.0, math.pi / 2.0)
-        self.sagitta = float((1.0 - math.cos(half)) / kappa)
+        half = kappa * h / 2.0
+        # An arc of curvature <= kappa strays at most (1 - cos(kappa h/2))/kappa from the chord between
+        # two points h apart, but only while kappa h/2 <= pi/2; beyond that fall back to h/2, which always
+        # holds: every body point is within h/2 of arc length (so of distance) from a check point.
+        sag = (1.0 - math.cos(half)) / kappa if half <= math.pi / 2.0 else h / 2.0
+        self.sagitta = float(sag)
         self.inflate = float(robot.body_radius + scene.safety_distance + self.sagitta)
         # adaptive edge checks start from intervals of this much body motion (mm)
         self.coarse = 16.0 * self.resolution
