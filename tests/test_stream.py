@@ -24,7 +24,7 @@ from crtraj.fields import Table
 from crtraj.fileio import atomic_write_json, to_jsonable
 from crtraj.protocol import ESTOP, HOLD, MOVE, Frame, read_stream_file
 from crtraj.setpoints import SetpointPath
-from crtraj.stream import Streamer, StreamError, StreamOptions
+from crtraj.stream import Streamer, StreamError, StreamOptions, _VirtualClock
 from crtraj.transport import Transport
 
 pytestmark = pytest.mark.timeout(120)
@@ -266,17 +266,6 @@ class _Capture(Transport):
         return []
 
 
-class _Clock:
-    def __init__(self) -> None:
-        self.now = 0.0
-
-    def __call__(self) -> float:
-        return self.now
-
-    def sleep(self, s: float) -> None:
-        self.now += max(s, 0.0)
-
-
 def _check_frames(frames, acts, start, dt):
     """Independent re-computation of every limit over the frames that left."""
     tol = 1e-9
@@ -319,7 +308,7 @@ def test_no_frame_ever_leaves_outside_its_limits(acts, steps, gaps, scale, start
     stamps = np.cumsum(gaps[: len(steps)])
     dt = 0.01
     # live source: no preflight, the runtime gate alone
-    cap, clock = _Capture(), _Clock()
+    cap, clock = _Capture(), _VirtualClock()
     s = Streamer(cap, acts, StreamOptions(), None, clock=clock, sleep=clock.sleep)
     s.start(start_v, background=False)
     s.send_path(stamps, vals)
