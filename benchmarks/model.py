@@ -16,8 +16,8 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
-from crtraj.model import Model
-from crtraj.problem import load_robot
+from crtraj.io.problem import load_robot
+from crtraj.model.kinematics import Model
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -2,7 +2,7 @@
 
 Targets (issue 4): the default planner (cspace) solves 20 of 20 seeds with a
 median plan time <= 50 ms. Beside it: the paper's own method, task-space
-RRT* with the safety-constrained steer (crtraj.planner.RRTStar), to its
+RRT* with the safety-constrained steer (crtraj.planning.rrt.RRTStar), to its
 first solution as the paper measures it, and optionally task-space RRT.
 
 Every reported plan time is the planner's own wall time for one query
@@ -25,13 +25,13 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
-from crtraj.model import Model
-from crtraj.plan_options import PlannerOptions
-from crtraj.planner import make_planner
-from crtraj.problem import Problem, read_toml
-from crtraj.scene import Scene
-from crtraj.steer import SteerOptions
-from crtraj.stop import StopCondition
+from crtraj.io.problem import Problem, read_toml
+from crtraj.model.kinematics import Model
+from crtraj.planning.options import PlannerOptions
+from crtraj.planning.rrt import make_planner
+from crtraj.planning.steer import SteerOptions
+from crtraj.planning.stop import StopCondition
+from crtraj.world.scene import Scene
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -24,9 +24,9 @@ from pathlib import Path
 
 import numpy as np
 
-from crtraj.problem import Problem, read_toml
-from crtraj.replan import ReplanOptions
-from crtraj.simulate import loop_from_problem
+from crtraj.control.horizon import ReplanOptions
+from crtraj.control.loop import loop_from_problem
+from crtraj.io.problem import Problem, read_toml
 
 ROOT = Path(__file__).resolve().parent.parent
 PAPER = read_toml(ROOT / "benchmarks" / "paper_results.toml")  # the paper's figures (a copy of its reference file)

@@ -22,11 +22,11 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
-from crtraj.fileio import atomic_write_json
-from crtraj.model import Model
-from crtraj.problem import Problem
-from crtraj.scene import Scene
-from crtraj.steer import SteerOptions, SteerSolver
+from crtraj.core.fileio import atomic_write_json
+from crtraj.io.problem import Problem
+from crtraj.model.kinematics import Model
+from crtraj.planning.steer import SteerOptions, SteerSolver
+from crtraj.world.scene import Scene
 
 ROOT = Path(__file__).resolve().parent.parent
 PAPER_IK_S = 0.47  # reference/paper_results.toml [static] ik_solve_s
@@ -148,7 +148,7 @@ def main() -> int:
 
 
 def _table(d: dict):
-    from crtraj.fields import Table
+    from crtraj.core.fields import Table
 
     return Table(d, "steer")
 

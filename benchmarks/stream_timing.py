@@ -14,12 +14,12 @@ from pathlib import Path
 
 import numpy as np
 
-from crtraj.device import SimDevice
-from crtraj.problem import load_robot
-from crtraj.protocol import MOVE, Frame
-from crtraj.safety import SafetyGate
-from crtraj.setpoints import SetpointPath
-from crtraj.stream import Streamer, StreamOptions
+from crtraj.hardware.limits import SafetyGate
+from crtraj.hardware.protocol import MOVE, Frame
+from crtraj.hardware.setpoints import SetpointPath
+from crtraj.hardware.sim_device import SimDevice
+from crtraj.hardware.stream import Streamer, StreamOptions
+from crtraj.io.problem import load_robot
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -24,8 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from crtraj.bench import LABELS, PAPER_COUNTS, PAPER_TABLE1, PLANNERS, BenchOptions, Table1Bench, check_available
-from crtraj.problem import load_robot
+from crtraj.bench.runner import LABELS, PAPER_COUNTS, PAPER_TABLE1, PLANNERS, BenchOptions, Table1Bench, check_available
+from crtraj.io.problem import load_robot
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -16,9 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
-from crtraj.model import Model
-from crtraj.problem import load_robot
-from crtraj.tracking import TrackingController, TrackingOptions
+from crtraj.control.tracking import TrackingController, TrackingOptions
+from crtraj.io.problem import load_robot
+from crtraj.model.kinematics import Model
 
 ROBOT = Path(__file__).resolve().parent.parent / "problems" / "robots" / "cdsr2.toml"
 

@@ -1,4 +1,4 @@
-"""Cost of drawing a run and exporting it as standalone HTML (crtraj.viz), by run length.
+"""Cost of drawing a run and exporting it as standalone HTML (crtraj.viz.view), by run length.
 
 No target in the issue; this documents what `crtraj view --html` and the replan
 script's run.html cost: drawing + building the animation (one key per waypoint),
@@ -18,10 +18,10 @@ from pathlib import Path
 import numpy as np
 import umsgpack
 
-from crtraj.fileio import to_jsonable
-from crtraj.model import Model
-from crtraj.problem import load_robot
-from crtraj.viz import Visualizer, _packb
+from crtraj.core.fileio import to_jsonable
+from crtraj.io.problem import load_robot
+from crtraj.model.kinematics import Model
+from crtraj.viz.view import Visualizer, _packb
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -15,8 +15,8 @@ from pathlib import Path
 from typing import Any
 
 from crtraj import __version__
-from crtraj.errors import InputError
-from crtraj.transport import TransportError
+from crtraj.core.errors import InputError
+from crtraj.hardware.transport import TransportError
 
 DEFAULT_ROBOT = Path(__file__).resolve().parent.parent / "problems" / "robots" / "cdsr2.toml"
 
@@ -44,8 +44,8 @@ def _add_export(sub: argparse._SubParsersAction) -> None:
 
 
 def _cmd_export(args: argparse.Namespace) -> int:
-    from crtraj.model import Model
-    from crtraj.problem import load_robot
+    from crtraj.io.problem import load_robot
+    from crtraj.model.kinematics import Model
 
     if args.batch < 1:
         raise InputError(f"--batch: must be >= 1, got {args.batch}")
@@ -77,8 +77,8 @@ def _add_view(sub: argparse._SubParsersAction) -> None:
 
 def _cmd_view(args: argparse.Namespace) -> int:
 
-    from crtraj.fileio import read_json
-    from crtraj.viz import Visualizer
+    from crtraj.core.fileio import read_json
+    from crtraj.viz.view import Visualizer
 
     result = read_json(args.result)
     play = False if args.no_play else None
@@ -94,7 +94,7 @@ def _serve(result: dict, label: str, open_browser: bool, play: bool | None = Non
     """Serve a result in the meshcat view on 127.0.0.1 until Ctrl-C; returns 0."""
     import time
 
-    from crtraj.viz import Visualizer
+    from crtraj.viz.view import Visualizer
 
     try:  # Ctrl-C is the normal way out, whenever it comes; leaving the block stops the server
         with Visualizer.for_result(result, server=True, play=play) as vis:
@@ -146,13 +146,13 @@ def _cmd_stream(args: argparse.Namespace) -> int:
     import dataclasses
     import time
 
-    from crtraj.fields import Table
-    from crtraj.fileio import read_json
-    from crtraj.problem import Problem, load_robot
-    from crtraj.robot import Robot
-    from crtraj.setpoints import SetpointPath
-    from crtraj.stream import Streamer, StreamOptions
-    from crtraj.transport import Transport, parse_hostport
+    from crtraj.core.fields import Table
+    from crtraj.core.fileio import read_json
+    from crtraj.hardware.setpoints import SetpointPath
+    from crtraj.hardware.stream import Streamer, StreamOptions
+    from crtraj.hardware.transport import Transport, parse_hostport
+    from crtraj.io.problem import Problem, load_robot
+    from crtraj.model.robot import Robot
 
     result = read_json(args.result)
     if not isinstance(result, dict) or not isinstance(result.get("robot"), dict):
@@ -230,9 +230,9 @@ def _add_sim_device(sub: argparse._SubParsersAction) -> None:
 
 
 def _cmd_sim_device(args: argparse.Namespace) -> int:
-    from crtraj.device import Faults, SimDevice
-    from crtraj.problem import load_robot
-    from crtraj.transport import parse_hostport
+    from crtraj.hardware.sim_device import Faults, SimDevice
+    from crtraj.hardware.transport import parse_hostport
+    from crtraj.io.problem import load_robot
 
     host, port = parse_hostport(args.udp, "--udp")
     robot = load_robot(_resolve_robot(args.robot))
@@ -284,8 +284,8 @@ def _add_plan(sub: argparse._SubParsersAction) -> None:
 def _cmd_plan(args: argparse.Namespace) -> int:
     import math
 
-    from crtraj.planner import plan_problem
-    from crtraj.problem import Problem
+    from crtraj.io.problem import Problem
+    from crtraj.planning.rrt import plan_problem
 
     if args.seed is not None and args.seed < 0:
         raise InputError(f"--seed: must be >= 0, got {args.seed}")
@@ -308,11 +308,11 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     print(f"  time (ms): {steps}; setup {run.setup_time * 1e3:.0f} ms")
     print(f"  wrote {out}")
     if args.html or args.view:
-        from crtraj.fileio import read_json
+        from crtraj.core.fileio import read_json
 
         result = read_json(out)
         if args.html:
-            from crtraj.viz import Visualizer
+            from crtraj.viz.view import Visualizer
 
             print(f"  wrote {Visualizer.for_result(result).save_html(args.html)}")
         if args.view:
@@ -344,7 +344,7 @@ def _add_replan(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--feed",
         metavar="udp://127.0.0.1:PORT",
-        help="take the obstacle states live from a UDP JSON feed (crtraj.feed; ids = the scene's obstacle names) "
+        help="take the obstacle states live from a UDP JSON feed (crtraj.world.feed; ids = the scene's obstacle names) "
         "and run in real time, predicting each obstacle at constant velocity",
     )
     p.add_argument("--feed-max-age", type=float, default=0.2, help="with --feed: hold when a state is older, s (0.2)")
@@ -382,8 +382,8 @@ def _add_replan(sub: argparse._SubParsersAction) -> None:
 def _cmd_replan(args: argparse.Namespace) -> int:
     import time
 
-    from crtraj.problem import Problem
-    from crtraj.simulate import loop_from_problem, write_run
+    from crtraj.control.loop import loop_from_problem, write_run
+    from crtraj.io.problem import Problem
 
     if args.seed is not None and args.seed < 0:
         raise InputError(f"--seed: must be >= 0, got {args.seed}")
@@ -399,9 +399,9 @@ def _cmd_replan(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     feed = None
     if args.feed:
-        from crtraj.feed import ObstacleFeed
-        from crtraj.scene import Scene
-        from crtraj.transport import parse_hostport
+        from crtraj.hardware.transport import parse_hostport
+        from crtraj.world.feed import ObstacleFeed
+        from crtraj.world.scene import Scene
 
         host, port = parse_hostport(args.feed.removeprefix("udp://"), "--feed")
         if host not in ("127.0.0.1", "localhost"):
@@ -455,7 +455,7 @@ def _cmd_replan(args: argparse.Namespace) -> int:
         else:  # a run that failed or broke the safety distance never reaches a device
             print("  not streamed: the run did not reach the goal safely", flush=True)
     if args.view:
-        from crtraj.fileio import read_json
+        from crtraj.core.fileio import read_json
 
         _serve(read_json(paths["result"]), "the run", not args.no_browser)
     if run.outcome == "interrupted":
@@ -467,8 +467,8 @@ def _live_stream_options(problem: Any) -> tuple[float, Any]:
     """(lead s, StreamOptions) of a live stream: the [stream] prebuffer, at least one replan step."""
     import dataclasses
 
-    from crtraj.replan import ReplanOptions
-    from crtraj.stream import StreamOptions
+    from crtraj.control.horizon import ReplanOptions
+    from crtraj.hardware.stream import StreamOptions
 
     sopts = problem.options(StreamOptions, "stream")
     lead = max(sopts.prebuffer, problem.options(ReplanOptions, "replan").dt)
@@ -476,12 +476,12 @@ def _live_stream_options(problem: Any) -> tuple[float, Any]:
 
 
 def _open_live_stream(args: argparse.Namespace, problem: Any, loop: Any, sopts: Any, out: Path) -> Any:
-    """Connect to the device for a live run (`crtraj.simulate.DeviceLink`); refuse a device that is not at the
+    """Connect to the device for a live run (`crtraj.control.loop.DeviceLink`); refuse a device that is not at the
     task's start unless --approach."""
     import numpy as np
 
-    from crtraj.simulate import DeviceLink
-    from crtraj.stream import Streamer, StreamError
+    from crtraj.control.loop import DeviceLink
+    from crtraj.hardware.stream import Streamer, StreamError
 
     robot = problem.robot
     if robot.actuators is None:
@@ -518,9 +518,9 @@ def _check_time_scale(result: dict | str | Path, time_scale: float) -> None:
     """Refuse to slow down a run among moving or breathing obstacles: its slowed timing was never checked."""
     if time_scale == 1.0:
         return
-    from crtraj.fields import Table
-    from crtraj.fileio import read_json
-    from crtraj.scene import Scene
+    from crtraj.core.fields import Table
+    from crtraj.core.fileio import read_json
+    from crtraj.world.scene import Scene
 
     data = result if isinstance(result, dict) else read_json(result)
     scene = Scene.from_table(Table(data.get("scene", {}), "scene"))
@@ -533,8 +533,8 @@ def _check_time_scale(result: dict | str | Path, time_scale: float) -> None:
 
 def _stream_run(args: argparse.Namespace, problem: object, paths: dict) -> bool:
     """Stream a replan run's actuation (its waypoints' q) to a device; True when the stream completed."""
-    from crtraj.setpoints import SetpointPath
-    from crtraj.stream import Streamer, StreamOptions
+    from crtraj.hardware.setpoints import SetpointPath
+    from crtraj.hardware.stream import Streamer, StreamOptions
 
     robot = problem.robot
     if robot.actuators is None:
@@ -594,7 +594,7 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
-    from crtraj.bench import run_cli
+    from crtraj.bench.runner import run_cli
 
     return run_cli(args)
 

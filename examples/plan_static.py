@@ -9,13 +9,13 @@ from pathlib import Path
 
 import numpy as np
 
-from crtraj.model import Model
-from crtraj.plan_options import PlannerOptions
-from crtraj.planner import ProblemPlan, make_planner
-from crtraj.problem import Problem
-from crtraj.scene import Scene
-from crtraj.steer import SteerOptions
-from crtraj.stop import StopCondition
+from crtraj.io.problem import Problem
+from crtraj.model.kinematics import Model
+from crtraj.planning.options import PlannerOptions
+from crtraj.planning.rrt import ProblemPlan, make_planner
+from crtraj.planning.steer import SteerOptions
+from crtraj.planning.stop import StopCondition
+from crtraj.world.scene import Scene
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from crtraj.problem import Problem
-from crtraj.simulate import loop_from_problem, write_run
+from crtraj.control.loop import loop_from_problem, write_run
+from crtraj.io.problem import Problem
 
 ROOT = Path(__file__).resolve().parent.parent
 out = Path(sys.argv[1]) if len(sys.argv) > 1 else Path("out") / "replan-example"

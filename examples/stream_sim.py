@@ -18,12 +18,12 @@ from pathlib import Path
 
 import numpy as np
 
-from crtraj.device import Faults, SimDevice
-from crtraj.fileio import atomic_write_json, to_jsonable
-from crtraj.model import Model
-from crtraj.problem import load_robot
-from crtraj.setpoints import SetpointPath
-from crtraj.stream import Streamer, StreamOptions
+from crtraj.core.fileio import atomic_write_json, to_jsonable
+from crtraj.hardware.setpoints import SetpointPath
+from crtraj.hardware.sim_device import Faults, SimDevice
+from crtraj.hardware.stream import Streamer, StreamOptions
+from crtraj.io.problem import load_robot
+from crtraj.model.kinematics import Model
 
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "out" / "stream_demo"

@@ -17,10 +17,10 @@ from pathlib import Path
 
 import numpy as np
 
-from crtraj.fileio import read_json
-from crtraj.model import Model
-from crtraj.problem import load_robot
-from crtraj.viz import Visualizer
+from crtraj.core.fileio import read_json
+from crtraj.io.problem import load_robot
+from crtraj.model.kinematics import Model
+from crtraj.viz.view import Visualizer
 
 ROBOT = Path(__file__).resolve().parent.parent / "problems" / "robots" / "cdsr2.toml"
 

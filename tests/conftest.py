@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from crtraj.model import Model
-from crtraj.problem import load_robot
+from crtraj.io.problem import load_robot
+from crtraj.model.kinematics import Model
 
 ROOT = Path(__file__).resolve().parent.parent
 PROBLEMS = ROOT / "problems"

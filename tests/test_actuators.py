@@ -7,10 +7,10 @@ import copy
 import numpy as np
 import pytest
 
-from crtraj.actuators import Actuators
-from crtraj.errors import InputError
-from crtraj.fields import Table
-from crtraj.robot import Robot
+from crtraj.core.errors import InputError
+from crtraj.core.fields import Table
+from crtraj.hardware.actuators import Actuators
+from crtraj.model.robot import Robot
 
 
 def _table(robot: Robot) -> dict:

@@ -14,7 +14,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from crtraj.bench import (
+from crtraj.bench.runner import (
     PAPER_TABLE1,
     BenchOptions,
     BenchReport,
@@ -22,13 +22,13 @@ from crtraj.bench import (
     Table1Bench,
     dense_check,
 )
+from crtraj.bench.scenarios import Scenario, ScenarioGenerator, ScenarioOptions
 from crtraj.cli import main
-from crtraj.errors import InputError
-from crtraj.plan_options import PlannerOptions
-from crtraj.plan_result import PlanResult, PlanStatus
-from crtraj.scenarios import Scenario, ScenarioGenerator, ScenarioOptions
-from crtraj.scene import Obstacle, Scene
-from crtraj.validity import MotionValidator
+from crtraj.core.errors import InputError
+from crtraj.planning.options import PlannerOptions
+from crtraj.planning.result import PlanResult, PlanStatus
+from crtraj.planning.validity import MotionValidator
+from crtraj.world.scene import Obstacle, Scene
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -208,7 +208,7 @@ def test_dense_check_catches_a_collision_between_waypoints(model):
 
 def test_dense_samples_keep_every_backbone_point_within_the_step(model):
     """A fast, large bend: consecutive dense samples move no backbone point more than `step` mm."""
-    from crtraj.bench import _dense_path
+    from crtraj.bench.runner import _dense_path
 
     xa = model.robot.straight(0.0)
     xb = xa.copy()
@@ -373,7 +373,7 @@ def test_dask_local_cluster_runs_the_bench(robot):
 
 # ------------------------------------------------------------------- OMPL
 def test_ompl_missing_gives_an_install_hint(monkeypatch):
-    from crtraj.ompl_adapter import import_ompl
+    from crtraj.planning.ompl import import_ompl
 
     monkeypatch.setitem(sys.modules, "ompl", None)
     with pytest.raises(InputError, match="pip install"):
@@ -382,8 +382,8 @@ def test_ompl_missing_gives_an_install_hint(monkeypatch):
 
 def test_ompl_plans_in_space_time_and_passes_the_dense_check(model, generator):
     pytest.importorskip("ompl")
-    from crtraj.ompl_adapter import OMPLPlanner
-    from crtraj.stop import StopCondition
+    from crtraj.planning.ompl import OMPLPlanner
+    from crtraj.planning.stop import StopCondition
 
     sc = generator.generate(1, 1)
     planner = OMPLPlanner(model, algorithm="RRTConnect")

@@ -8,9 +8,8 @@ import time
 import numpy as np
 import pytest
 
-from crtraj.device import Faults, SimDevice
-from crtraj.errors import InputError
-from crtraj.protocol import (
+from crtraj.core.errors import InputError
+from crtraj.hardware.protocol import (
     ESTOP,
     HOLD,
     MOVE,
@@ -22,6 +21,7 @@ from crtraj.protocol import (
     FrameError,
     Telemetry,
 )
+from crtraj.hardware.sim_device import Faults, SimDevice
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -171,7 +171,7 @@ def test_drop_corrupt_and_disconnect_faults(acts):
 
 
 def test_bad_device_options():
-    from crtraj.problem import load_robot
+    from crtraj.io.problem import load_robot
 
     r = load_robot("problems/robots/cdsr2.toml")
     a = r.actuators.for_robot(r)

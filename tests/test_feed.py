@@ -8,8 +8,8 @@ import time
 import numpy as np
 import pytest
 
-from crtraj.errors import InputError
-from crtraj.feed import ObstacleFeed, StaleFeedError
+from crtraj.core.errors import InputError
+from crtraj.world.feed import ObstacleFeed, StaleFeedError
 
 pytestmark = pytest.mark.timeout(30)
 

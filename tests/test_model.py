@@ -10,8 +10,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from crtraj.model import Model
-from crtraj.robot import Robot, Segment
+from crtraj.model.kinematics import Model
+from crtraj.model.robot import Robot, Segment
 
 XI = 2 * math.pi / 3
 
@@ -320,7 +320,7 @@ def test_limits_function_matches_numpy(model):
 
 
 def test_wrong_shape_is_an_input_error(model):
-    from crtraj.errors import InputError
+    from crtraj.core.errors import InputError
 
     with pytest.raises(InputError, match="x: expected shape"):
         model.tip_position(np.zeros(4))

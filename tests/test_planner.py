@@ -9,15 +9,15 @@ import pytest
 from test_planner_helpers import PAPER_STATIC, assert_valid_plan, paper_static
 
 from crtraj.cli import main
-from crtraj.model import Model
-from crtraj.plan_options import PlannerOptions
-from crtraj.plan_result import PlanStatus
-from crtraj.planner import RRT, RRTStar, make_planner, plan_problem
-from crtraj.problem import Problem
-from crtraj.robot import Robot
-from crtraj.scene import Scene
-from crtraj.steer import SteerOptions
-from crtraj.stop import StopCondition
+from crtraj.io.problem import Problem
+from crtraj.model.kinematics import Model
+from crtraj.model.robot import Robot
+from crtraj.planning.options import PlannerOptions
+from crtraj.planning.result import PlanStatus
+from crtraj.planning.rrt import RRT, RRTStar, make_planner, plan_problem
+from crtraj.planning.steer import SteerOptions
+from crtraj.planning.stop import StopCondition
+from crtraj.world.scene import Scene
 
 
 @pytest.fixture(scope="module")
@@ -104,7 +104,7 @@ def test_task_space_invalid_start_and_goal(sim1, rrt):
 
 def test_make_planner_picks_the_algorithm(sim1, steer_options):
     _, model, scene = sim1
-    from crtraj.cspace import CSpacePlanner
+    from crtraj.planning.cspace import CSpacePlanner
 
     assert isinstance(make_planner(model, scene), CSpacePlanner)
     assert type(make_planner(model, scene, PlannerOptions(algorithm="rrt"), steer_options)) is RRT
@@ -119,7 +119,7 @@ def test_plan_problem_document(sim1):
     assert doc["kind"] == "plan" and doc["status"] == "exact" and doc["success"] is True
     assert doc["problem"]["seed"] == problem.seed and doc["problem"]["name"] == "paper_static"
     assert doc["options"]["planner"]["algorithm"] == "cspace"
-    from crtraj.fields import Table
+    from crtraj.core.fields import Table
 
     assert Robot.from_table(Table(doc["robot"], "robot")) == problem.robot
     scene = Scene.from_table(Table(doc["scene"], "scene"))

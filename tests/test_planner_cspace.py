@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 from test_planner_helpers import assert_valid_plan, dense_path_check, paper_static
 
-from crtraj.cspace import CSpacePlanner
-from crtraj.errors import InputError
-from crtraj.plan_options import PlannerOptions
-from crtraj.plan_result import PlanStatus
-from crtraj.scene import Obstacle, Scene
-from crtraj.stop import StopCondition
+from crtraj.core.errors import InputError
+from crtraj.planning.cspace import CSpacePlanner
+from crtraj.planning.options import PlannerOptions
+from crtraj.planning.result import PlanStatus
+from crtraj.planning.stop import StopCondition
+from crtraj.world.scene import Obstacle, Scene
 
 
 @pytest.fixture(scope="module")
@@ -168,7 +168,7 @@ def test_moving_obstacles_are_avoided_in_time(sim1):
 
 def _random_static_scene(model, rng):
     """A solvable-looking query: start and goal tips of two random clear configurations, spheres between them."""
-    from crtraj.validity import MotionValidator
+    from crtraj.planning.validity import MotionValidator
 
     v0 = MotionValidator(model, Scene((Obstacle((0.0, 0.0, 2000.0), 1.0),)))
     while True:
@@ -207,7 +207,7 @@ def test_statistical_success_on_random_static_scenes(sim1):
 @pytest.mark.slow
 def test_statistical_success_on_paper_table1_scenes(sim1):
     """20 of the paper's Table I scenes (3 moving, breathing spheres): verified in time by the dense check."""
-    from crtraj.scenarios import ScenarioGenerator, ScenarioOptions
+    from crtraj.bench.scenarios import ScenarioGenerator, ScenarioOptions
 
     _, model, _ = sim1
     gen = ScenarioGenerator(model, ScenarioOptions(seed=0))

@@ -15,9 +15,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from crtraj.model import Model
-from crtraj.problem import Problem, load_robot
-from crtraj.scene import Obstacle, Scene
+from crtraj.io.problem import Problem, load_robot
+from crtraj.model.kinematics import Model
+from crtraj.world.scene import Obstacle, Scene
 
 ROOT = Path(__file__).resolve().parent.parent
 PAPER_STATIC = ROOT / "problems" / "paper_static.toml"

@@ -8,16 +8,16 @@ import pytest
 from scipy.spatial import cKDTree
 from test_planner_helpers import dense_path_check, paper_static
 
-from crtraj.errors import InputError
-from crtraj.fields import Table
-from crtraj.nn import NearestNeighbors
-from crtraj.plan_options import PlannerOptions
-from crtraj.postprocess import PathPostprocessor, dedup, dedup_timed
-from crtraj.safe_ik import SafeIK
-from crtraj.scene import Obstacle, Scene
-from crtraj.stop import StopCondition
-from crtraj.tree import SearchTree
-from crtraj.validity import MotionValidator
+from crtraj.core.errors import InputError
+from crtraj.core.fields import Table
+from crtraj.planning.nn import NearestNeighbors
+from crtraj.planning.options import PlannerOptions
+from crtraj.planning.postprocess import PathPostprocessor, dedup, dedup_timed
+from crtraj.planning.safe_ik import SafeIK
+from crtraj.planning.stop import StopCondition
+from crtraj.planning.tree import SearchTree
+from crtraj.planning.validity import MotionValidator
+from crtraj.world.scene import Obstacle, Scene
 
 
 @pytest.fixture(scope="module")

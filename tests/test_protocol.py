@@ -11,8 +11,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from crtraj.errors import InputError
-from crtraj.protocol import (
+from crtraj.core.errors import InputError
+from crtraj.hardware.protocol import (
     ESTOP,
     HOLD,
     MOVE,
@@ -26,7 +26,7 @@ from crtraj.protocol import (
     read_stream_file,
     stream_encode,
 )
-from crtraj.transport import Transport, TransportError, parse_hostport
+from crtraj.hardware.transport import Transport, TransportError, parse_hostport
 
 finite = st.floats(allow_nan=False, allow_infinity=False, width=64)
 values = st.lists(finite, min_size=0, max_size=16).map(np.array)

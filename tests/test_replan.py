@@ -1,4 +1,4 @@
-"""The horizon NLP (crtraj.replan.Replanner): constraints re-checked independently, options, parameters."""
+"""The horizon NLP (crtraj.control.horizon.Replanner): constraints re-checked independently, options, parameters."""
 
 from __future__ import annotations
 
@@ -7,10 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from crtraj.errors import InputError
-from crtraj.fields import Table
-from crtraj.replan import HorizonResult, Replanner, ReplanOptions
-from crtraj.scene import Obstacle, Scene
+from crtraj.control.horizon import HorizonResult, Replanner, ReplanOptions
+from crtraj.core.errors import InputError
+from crtraj.core.fields import Table
+from crtraj.world.scene import Obstacle, Scene
 
 XS = np.array([0.3, 0.0, 0.0, 0.0, 0.0])
 XG = np.array([-0.6, 0.5, -0.3, 0.2, -40.0])

@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 
 from crtraj.cli import main
-from crtraj.problem import Problem
-from crtraj.scene import Scene
+from crtraj.io.problem import Problem
+from crtraj.world.scene import Scene
 
 ROOT = Path(__file__).resolve().parent.parent
 PAPER = ROOT / "problems" / "paper_dynamic.toml"
@@ -109,7 +109,7 @@ def test_live_feed_from_the_command_line(tmp_path, capsys):
     import threading
     import time
 
-    from crtraj.feed import ObstacleFeed
+    from crtraj.world.feed import ObstacleFeed
 
     scene = Scene.from_table(Problem.load(PAPER).section("scene"))
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:  # a free port for the feed

@@ -1,4 +1,4 @@
-"""Replanning on live obstacle states (crtraj.feed.ObstacleFeed over UDP on 127.0.0.1), in real time."""
+"""Replanning on live obstacle states (crtraj.world.feed.ObstacleFeed over UDP on 127.0.0.1), in real time."""
 
 from __future__ import annotations
 
@@ -7,10 +7,10 @@ import time
 
 import numpy as np
 
-from crtraj.feed import ObstacleFeed
-from crtraj.replan import ReplanOptions
-from crtraj.scene import Obstacle, Scene
-from crtraj.simulate import ClosedLoop, FeedObstacles
+from crtraj.control.horizon import ReplanOptions
+from crtraj.control.loop import ClosedLoop, FeedObstacles
+from crtraj.world.feed import ObstacleFeed
+from crtraj.world.scene import Obstacle, Scene
 
 XS = np.array([0.3, 0.0, 0.0, 0.0, 0.0])
 XG = np.array([-0.6, 0.5, -0.3, 0.2, -40.0])
@@ -77,7 +77,7 @@ class _FakeFeed:
 
 
 def test_feed_snapshot_bounds_the_constant_velocity_prediction():
-    from crtraj.feed import FeedState
+    from crtraj.world.feed import FeedState
 
     c = np.array([[10.0, 20.0, 300.0], [-40.0, 0.0, 200.0]])
     v = np.array([[5.0, -3.0, 1.0], [0.0, 0.0, 0.0]])

@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 
 from crtraj.cli import main
-from crtraj.device import SimDevice
-from crtraj.feed import ObstacleFeed
-from crtraj.protocol import HOLD, MOVE
-from crtraj.scene import Obstacle
-from crtraj.simulate import DeviceLink, loop_from_problem
-from crtraj.stream import Streamer, StreamOptions
-from crtraj.tracking import ServoModel
+from crtraj.control.loop import DeviceLink, loop_from_problem
+from crtraj.control.tracking import ServoModel
+from crtraj.hardware.protocol import HOLD, MOVE
+from crtraj.hardware.sim_device import SimDevice
+from crtraj.hardware.stream import Streamer, StreamOptions
+from crtraj.world.feed import ObstacleFeed
+from crtraj.world.scene import Obstacle
 
 ROOT = Path(__file__).resolve().parent.parent
 ROBOT = ROOT / "problems" / "robots" / "cdsr2.toml"
@@ -220,7 +220,7 @@ def test_device_away_from_the_start_is_refused_unless_approach(tmp_path, robot, 
 
 
 def test_ctrl_c_holds_the_device_and_ends_the_run(tmp_path, robot, model):
-    from crtraj.problem import Problem
+    from crtraj.io.problem import Problem
 
     port = _free_port()
     problem = Problem.load(_problem(tmp_path, model, 5.0))
@@ -286,7 +286,7 @@ def test_follower_respects_limits_and_reproduces_the_verified_motion(robot):
 
 
 def test_stream_rate_must_divide_the_step(robot):
-    from crtraj.errors import InputError
+    from crtraj.core.errors import InputError
 
     acts = _actuators(robot)
     fake = _FakeStreamer(acts, acts.command(robot.cables(XS)))

@@ -1,4 +1,4 @@
-"""Closed-loop replanning (crtraj.simulate.ClosedLoop) on small seeded scenes, re-checked independently.
+"""Closed-loop replanning (crtraj.control.loop.ClosedLoop) on small seeded scenes, re-checked independently.
 
 The independent check replays the recorded actuator set-points through its
 own first-order servo formula, samples the actual motion on a fine time grid,
@@ -15,10 +15,10 @@ import math
 import numpy as np
 import pytest
 
-from crtraj.replan import HorizonResult, Replanner, ReplanOptions
-from crtraj.scene import Obstacle, Scene
-from crtraj.simulate import ClosedLoop, StepStatus
-from crtraj.tracking import TrackingOptions
+from crtraj.control.horizon import HorizonResult, Replanner, ReplanOptions
+from crtraj.control.loop import ClosedLoop, StepStatus
+from crtraj.control.tracking import TrackingOptions
+from crtraj.world.scene import Obstacle, Scene
 
 XS = np.array([0.3, 0.0, 0.0, 0.0, 0.0])
 XG = np.array([-0.6, 0.5, -0.3, 0.2, -40.0])
@@ -223,7 +223,7 @@ def test_start_in_collision_is_refused_without_moving(model):
 
 
 def test_result_files_round_trip(model, ball_run, tmp_path):
-    from crtraj.simulate import write_run
+    from crtraj.control.loop import write_run
 
     loop, run = ball_run
     paths = write_run(run, loop, tmp_path, html=False)

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from crtraj.cli import main
-from crtraj.errors import InputError
-from crtraj.fields import Table
-from crtraj.problem import Problem, load_robot
-from crtraj.robot import Robot
+from crtraj.core.errors import InputError
+from crtraj.core.fields import Table
+from crtraj.io.problem import Problem, load_robot
+from crtraj.model.robot import Robot
 
 GOOD = """
 [robot]

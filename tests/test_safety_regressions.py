@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 
 from crtraj.cli import main
-from crtraj.fields import Table
-from crtraj.model import Model
-from crtraj.problem import Problem
-from crtraj.scene import Scene
-from crtraj.validity import MotionValidator
+from crtraj.core.fields import Table
+from crtraj.io.problem import Problem
+from crtraj.model.kinematics import Model
+from crtraj.planning.validity import MotionValidator
+from crtraj.world.scene import Scene
 
 PROBLEMS = Path(__file__).resolve().parent.parent / "problems"
 

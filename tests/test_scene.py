@@ -10,10 +10,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from crtraj.errors import InputError
-from crtraj.fields import Table
-from crtraj.problem import Problem
-from crtraj.scene import DEFAULT_WORKSPACE, PACK_WIDTH, Obstacle, Scene
+from crtraj.core.errors import InputError
+from crtraj.core.fields import Table
+from crtraj.io.problem import Problem
+from crtraj.world.scene import DEFAULT_WORKSPACE, PACK_WIDTH, Obstacle, Scene
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -8,12 +8,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from crtraj.errors import InputError
-from crtraj.fields import Table
-from crtraj.model import Model
-from crtraj.problem import Problem
-from crtraj.scene import Obstacle, Scene
-from crtraj.steer import SteerOptions, SteerResult, SteerSolver, config_scale, dls_step
+from crtraj.core.errors import InputError
+from crtraj.core.fields import Table
+from crtraj.io.problem import Problem
+from crtraj.model.kinematics import Model
+from crtraj.planning.steer import SteerOptions, SteerResult, SteerSolver, config_scale, dls_step
+from crtraj.world.scene import Obstacle, Scene
 
 ROOT = Path(__file__).resolve().parent.parent
 DENSE = 200  # backbone points of the independent check
@@ -425,7 +425,7 @@ def test_jit_fast_path_matches(model, sqp):
 
 
 def test_jit_without_a_compiler_runs_plain(model, monkeypatch):
-    import crtraj.steer as steer_mod
+    import crtraj.planning.steer as steer_mod
 
     monkeypatch.setattr(steer_mod.shutil, "which", lambda name: None)
     solver = SteerSolver(model, 1, SteerOptions(solver="sqp", jit=True))

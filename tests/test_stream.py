@@ -18,14 +18,14 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from crtraj.cli import main
-from crtraj.device import Faults, SimDevice
-from crtraj.errors import InputError
-from crtraj.fields import Table
-from crtraj.fileio import atomic_write_json, to_jsonable
-from crtraj.protocol import ESTOP, HOLD, MOVE, Frame, read_stream_file
-from crtraj.setpoints import SetpointPath
-from crtraj.stream import Streamer, StreamError, StreamOptions, _VirtualClock
-from crtraj.transport import Transport
+from crtraj.core.errors import InputError
+from crtraj.core.fields import Table
+from crtraj.core.fileio import atomic_write_json, to_jsonable
+from crtraj.hardware.protocol import ESTOP, HOLD, MOVE, Frame, read_stream_file
+from crtraj.hardware.setpoints import SetpointPath
+from crtraj.hardware.sim_device import Faults, SimDevice
+from crtraj.hardware.stream import Streamer, StreamError, StreamOptions, _VirtualClock
+from crtraj.hardware.transport import Transport
 
 pytestmark = pytest.mark.timeout(120)
 ROOT = Path(__file__).resolve().parent.parent

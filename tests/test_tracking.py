@@ -12,12 +12,12 @@ import pytest
 import scipy.linalg
 from scipy.integrate import solve_ivp
 
-from crtraj.errors import InputError
-from crtraj.fields import Table
-from crtraj.model import Model
-from crtraj.problem import Problem, load_robot
-from crtraj.robot import Robot, Segment
-from crtraj.tracking import ServoModel, TrackingController, TrackingOptions
+from crtraj.control.tracking import ServoModel, TrackingController, TrackingOptions
+from crtraj.core.errors import InputError
+from crtraj.core.fields import Table
+from crtraj.io.problem import Problem, load_robot
+from crtraj.model.kinematics import Model
+from crtraj.model.robot import Robot, Segment
 
 ROBOT_FILE = Path(__file__).resolve().parent.parent / "problems" / "robots" / "cdsr2.toml"
 

@@ -1,4 +1,4 @@
-"""crtraj.viz and `crtraj view`: scene content, one key frame per waypoint, standalone HTML,
+"""crtraj.viz.view and `crtraj view`: scene content, one key frame per waypoint, standalone HTML,
 the 127.0.0.1-only server, and rendering in a real (headless Chromium) browser."""
 
 from __future__ import annotations
@@ -25,10 +25,10 @@ from matplotlib.colors import rgb_to_hsv
 from scipy.optimize import least_squares
 
 from crtraj.cli import main
-from crtraj.errors import InputError
-from crtraj.fields import Table
-from crtraj.fileio import atomic_write_json, to_jsonable
-from crtraj.viz import ViewOptions, Visualizer, _cylinder_quat
+from crtraj.core.errors import InputError
+from crtraj.core.fields import Table
+from crtraj.core.fileio import atomic_write_json, to_jsonable
+from crtraj.viz.view import ViewOptions, Visualizer, _cylinder_quat
 
 # paper simulation 1 / 2: start, goal and the two spheres (mm)
 START = np.array([-50.0, 100.0, 390.0])
@@ -332,7 +332,7 @@ def test_static_html_is_standalone_and_replays_the_scene(shown, tmp_path):
 
 def test_fast_packer_gives_meshcats_exact_bytes(shown):
     """crtraj packs commands with the C msgpack when present; meshcat's umsgpack must agree byte for byte."""
-    from crtraj.viz import _packb
+    from crtraj.viz.view import _packb
 
     cmds = shown.scene_commands()
     assert {c["type"] for c in cmds} >= {"set_object", "set_transform", "set_property", "set_animation"}
@@ -383,7 +383,7 @@ def _gone(pid, wait=10.0):
 
 
 def _server_children(pid):
-    """Pids of the crtraj.viz server processes started by process `pid` (Linux /proc)."""
+    """Pids of the crtraj.viz.view server processes started by process `pid` (Linux /proc)."""
     out = []
     for d in Path("/proc").iterdir():
         if d.name.isdigit():
@@ -392,7 +392,7 @@ def _server_children(pid):
                 cmd = (d / "cmdline").read_bytes().split(b"\0")
             except (FileNotFoundError, ProcessLookupError, IndexError):
                 continue
-            if ppid == pid and b"crtraj.viz" in cmd:
+            if ppid == pid and b"crtraj.viz.view" in cmd:
                 out.append(int(d.name))
     return out
 

@@ -1,0 +1,1 @@
+"""Benchmarks and scenario suites. Above: io."""

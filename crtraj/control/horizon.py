@@ -1,0 +1,597 @@
+"""Receding-horizon (MPC) replanner: one CasADi NLP over N future configurations, built once.
+
+At every control step the robot is at x_0 (measured). The NLP chooses the next
+N configurations x_1..x_N, one per step of length dt (s):
+
+    minimise   sum_k  w_tip |tip(x_k) - p_ref,k|^2                     (follow the reference path, mm^2)
+                    + w_cfg |S (x_k - x_ref,k)|^2                       (stay near the reference body shape)
+                    + w_vel |S (x_k - x_k-1)|^2                          (effort)
+                    + w_acc |S (x_k - 2 x_k-1 + x_k-2)|^2                (smoothness)
+               + w_term |tip(x_N) - p_ref,N|^2
+    subject to |p_j(x_k) - c_i,k| >= rho_i,k      every backbone point j, obstacle i, step k
+               limits(x_k) within the robot's bounds, x_k in robot.config_box()
+               |A_q (x_k - x_k-1)| <= v_max dt                          (per-actuator rate limits)
+
+S scales bending (rad) by the segment length so every term is in mm. Obstacle
+slot (c_i,k, rho_i,k) is one sphere that encloses everything obstacle i
+sweeps during [t_k-1, t_k+1] (`Scene.swept`, or a constant-velocity
+extrapolation of a live state), so both ends of each step's motion are kept
+clear of the obstacle over that whole step. The radius is inflated so that
+the continuous body, not only the n sampled points, keeps the safety
+distance D_sf (the `validity.MotionValidator` bounds):
+
+    rho = sqrt((R + D_sf + body_radius + sagitta(h) + margin)^2 + (h/2)^2)
+
+with h the arc spacing of the NLP's points: a point outside rho keeps every
+chord to its neighbour outside R + D_sf + body + sagitta + margin, and the
+arc stays within the sagitta of its chord. `margin` (mm) absorbs the servo
+lag of the real robot. With ``safety = false`` the obstacle constraints are
+left out (the paper's simulation 2, Fig. 4(b)).
+
+Obstacles, current state and reference are parameters of one `casadi.nlpsol`
+built at construction (the "compile once, call repeatedly" pattern of
+rockit's repeated_solve example); each solve is warm-started from the
+previous solution shifted by one step. Units: mm, rad, s.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, field, fields
+from types import MappingProxyType
+from typing import Any
+
+import casadi as ca
+import numpy as np
+
+from crtraj.core.errors import InputError
+from crtraj.core.fields import Table, check_float
+from crtraj.model.kinematics import Model
+
+SOLVERS = ("ipopt", "sqp")
+QP_SOLVERS = ("daqp", "qrqp", "osqp", "qpoases")
+HESSIANS = ("gauss-newton", "exact")
+
+# Padding obstacle slots: far up the z axis with radius 0; their constraints hold by ~1e6 mm.
+_PAD_CENTER = (0.0, 0.0, 1.0e6)
+# Width of one obstacle slot in the NLP parameter: centre (3) and inflated radius rho.
+_SLOT = 4
+
+# float options: default and bounds (shared by Python construction and TOML reading)
+_FLOATS: Mapping[str, tuple[float, dict[str, float]]] = MappingProxyType(
+    {
+        "dt": (0.1, {"gt": 0.0, "le": 10.0}),
+        "margin": (1.5, {"ge": 0.0}),
+        "tip_weight": (1.0, {"ge": 0.0}),
+        "config_weight": (0.01, {"ge": 0.0}),
+        "velocity_weight": (0.02, {"ge": 0.0}),
+        "smooth_weight": (0.2, {"ge": 0.0}),
+        "terminal_weight": (10.0, {"ge": 0.0}),
+        "max_cable_speed": (8.0, {"gt": 0.0}),
+        "max_z_speed": (40.0, {"gt": 0.0}),
+        "tol": (1e-6, {"gt": 0.0}),
+        "max_solve_time": (0.5, {"gt": 0.0}),
+        "duration": (60.0, {"gt": 0.0}),
+        "replan_period": (0.0, {"ge": 0.0}),
+        "planner_time": (1.0, {"gt": 0.0}),
+        "stall_time": (3.0, {"gt": 0.0}),
+        "reference_speed": (0.7, {"gt": 0.0, "le": 1.0}),
+        "max_body_speed": (50.0, {"gt": 0.0}),
+        "check_resolution": (1.0, {"gt": 0.0}),
+        "settle_time": (0.5, {"ge": 0.0}),
+    }
+)
+_INTS: Mapping[str, tuple[int, dict[str, int]]] = MappingProxyType(
+    {
+        "horizon": (10, {"ge": 1, "le": 200}),
+        "points": (16, {"ge": 2, "le": 200}),
+        "max_iter": (60, {"ge": 1}),
+        "check_points": (21, {"ge": 2, "le": 1000}),
+    }
+)
+
+
+@dataclass(frozen=True)
+class ReplanOptions:
+    """The ``[replan]`` problem section (units mm, rad, s).
+
+    Horizon NLP: horizon N (steps), dt (s per step), points (backbone points
+    constrained per configuration), margin (mm of clearance kept on top of
+    D_sf + body radius + sampling bounds, for servo lag), weights
+    (tip_weight, config_weight, velocity_weight, smooth_weight,
+    terminal_weight; see the module docstring), max_cable_speed and
+    max_z_speed (mm/s, the per-step rate limits), solver ("ipopt" or "sqp"
+    = CasADi sqpmethod with a QP solver `qpsol`), hessian ("gauss-newton"
+    of the least-squares cost, or "exact"), max_iter, tol, max_solve_time
+    (s, IPOPT's wall-time cap of one solve; sqpmethod is capped by
+    max_iter), rescue (with solver "sqp": retry a failed solve once with
+    IPOPT, built alongside), safety (false drops the obstacle constraints).
+
+    Closed loop (`crtraj.control.loop.ClosedLoop`): duration (s of simulated time
+    at most), replan_period (s between periodic reference replans; 0 = only
+    when needed), planner_time (s budget of one reference plan), stall_time
+    (s without progress before the reference is replanned), reference_speed
+    (fraction of the rate limits and of max_body_speed the reference is
+    timed with), max_body_speed (mm/s, fastest body point motion the
+    reference asks for, measured by `validity.MotionValidator.motion_bound`),
+    check_resolution (mm of body motion between verification samples),
+    check_points (backbone points of the verification), settle_time (s the
+    tip must stay within the goal tolerance before the run ends).
+    """
+
+    horizon: int = _INTS["horizon"][0]
+    dt: float = _FLOATS["dt"][0]
+    points: int = _INTS["points"][0]
+    margin: float = _FLOATS["margin"][0]
+    tip_weight: float = _FLOATS["tip_weight"][0]
+    config_weight: float = _FLOATS["config_weight"][0]
+    velocity_weight: float = _FLOATS["velocity_weight"][0]
+    smooth_weight: float = _FLOATS["smooth_weight"][0]
+    terminal_weight: float = _FLOATS["terminal_weight"][0]
+    max_cable_speed: float = _FLOATS["max_cable_speed"][0]
+    max_z_speed: float = _FLOATS["max_z_speed"][0]
+    solver: str = "ipopt"
+    qpsol: str = "daqp"
+    hessian: str = "gauss-newton"
+    max_iter: int = _INTS["max_iter"][0]
+    tol: float = _FLOATS["tol"][0]
+    max_solve_time: float = _FLOATS["max_solve_time"][0]
+    rescue: bool = True
+    safety: bool = True
+    duration: float = _FLOATS["duration"][0]
+    replan_period: float = _FLOATS["replan_period"][0]
+    planner_time: float = _FLOATS["planner_time"][0]
+    stall_time: float = _FLOATS["stall_time"][0]
+    reference_speed: float = _FLOATS["reference_speed"][0]
+    max_body_speed: float = _FLOATS["max_body_speed"][0]
+    check_resolution: float = _FLOATS["check_resolution"][0]
+    check_points: int = _INTS["check_points"][0]
+    settle_time: float = _FLOATS["settle_time"][0]
+
+    def __post_init__(self) -> None:
+        for name, (_, bounds) in _FLOATS.items():
+            check_float(getattr(self, name), f"replan.{name}", **bounds)
+        for name, (_, ib) in _INTS.items():
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)):
+                raise InputError(f"replan.{name}: expected an integer, got {v!r}")
+            if "ge" in ib and v < ib["ge"]:
+                raise InputError(f"replan.{name}: must be >= {ib['ge']}, got {v}")
+            if "le" in ib and v > ib["le"]:
+                raise InputError(f"replan.{name}: must be <= {ib['le']}, got {v}")
+        if self.solver not in SOLVERS:
+            raise InputError(f"replan.solver: must be one of {', '.join(SOLVERS)}; got {self.solver!r}")
+        if self.qpsol not in QP_SOLVERS:
+            raise InputError(f"replan.qpsol: must be one of {', '.join(QP_SOLVERS)}; got {self.qpsol!r}")
+        for name in ("safety", "rescue"):
+            if not isinstance(getattr(self, name), bool):
+                raise InputError(f"replan.{name}: expected true or false, got {getattr(self, name)!r}")
+        if self.hessian not in HESSIANS:
+            raise InputError(f"replan.hessian: must be one of {', '.join(HESSIANS)}; got {self.hessian!r}")
+        if self.solver == "sqp" and not ca.has_conic(self.qpsol):
+            raise InputError(f"replan.qpsol: QP solver {self.qpsol!r} is not available in this CasADi build")
+
+    @classmethod
+    def from_table(cls, t: Table) -> ReplanOptions:
+        """Read a ``[replan]`` table; unknown keys and bad values raise `InputError`."""
+        kw: dict[str, Any] = {name: t.float(name, d, **b) for name, (d, b) in _FLOATS.items()}
+        kw.update({name: t.int(name, d, **b) for name, (d, b) in _INTS.items()})
+        kw["solver"] = t.str("solver", "ipopt", choices=SOLVERS)
+        kw["qpsol"] = t.str("qpsol", "daqp", choices=QP_SOLVERS)
+        kw["hessian"] = t.str("hessian", "gauss-newton", choices=HESSIANS)
+        kw["safety"] = t.bool("safety", True)
+        kw["rescue"] = t.bool("rescue", True)
+        t.finish()
+        return cls(**kw)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain data in the TOML schema."""
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+
+@dataclass(frozen=True)
+class HorizonResult:
+    """One solve of the horizon NLP.
+
+    configs: (N, nx) planned configurations x_1..x_N (the solver's last
+    iterate even on failure). tips: (N, 3) mm. success: the solver converged
+    AND the returned point satisfies every constraint within 1e-6 (mm, rad).
+    status: the solver's own status text. iterations, wall_time (s).
+    min_distance: smallest value of the obstacle constraints (mm; >= 0 means
+    every sampled point is outside its inflated sphere; inf without
+    obstacles). violation: largest constraint violation (mixed units).
+    """
+
+    configs: np.ndarray
+    tips: np.ndarray
+    success: bool
+    status: str
+    iterations: int
+    wall_time: float
+    cost: float
+    min_distance: float
+    violation: float
+    warm: bool = False
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def feasible(self) -> bool:
+        """The returned configurations satisfy every constraint (within 1e-6), converged or not."""
+        return bool(np.all(np.isfinite(self.configs))) and self.violation <= 1e-6
+
+
+def sagitta(robot: Any, spacing: float) -> float:
+    """Largest distance (mm) of a backbone arc of length `spacing` (mm) from its chord."""
+    kappa = max(s.theta_max / s.length for s in robot.segments)
+    half = min(kappa * spacing / 2.0, math.pi / 2.0)
+    return float((1.0 - math.cos(half)) / kappa)
+
+
+class Replanner:
+    """The horizon NLP for one robot and at most `max_obstacles` obstacles, built once.
+
+    model: the robot's `Model`. options: `ReplanOptions`. safety_distance:
+    D_sf (mm, the scene's). Use `obstacles_from_scene` / `obstacles_from_states`
+    to make the obstacle parameter, then `solve`.
+    """
+
+    def __init__(
+        self, model: Model, options: ReplanOptions | None = None, *, max_obstacles: int, safety_distance: float
+    ) -> None:
+        self.model = model
+        self.robot = model.robot
+        self.options = ReplanOptions() if options is None else options
+        if isinstance(max_obstacles, bool) or not isinstance(max_obstacles, (int, np.integer)) or max_obstacles < 0:
+            raise InputError(f"max_obstacles: must be an integer >= 0, got {max_obstacles!r}")
+        self.max_obstacles = int(max_obstacles)
+        self.safety_distance = check_float(safety_distance, "safety_distance", ge=0.0)
+        o, r = self.options, self.robot
+        self.nx, self.nq, self.N = r.nx, r.nq, o.horizon
+        self.spacing = r.total_length / (o.points - 1)
+        self.inflate = self.safety_distance + r.body_radius + sagitta(r, self.spacing) + o.margin
+        A, _ = r.cable_matrix()
+        self._A = A
+        self.step_limit = np.append(np.full(3 * r.n_segments, o.max_cable_speed), o.max_z_speed) * o.dt  # mm
+        self._box = r.config_box()
+        self._scale = np.append(np.repeat([s.length for s in r.segments], 2), 1.0)
+        self._build()
+        self._warm: dict[str, np.ndarray] | None = None
+        self.solve_count = 0
+
+    # ------------------------------------------------------------------ build
+    def _build(self) -> None:
+        o, model = self.options, self.model
+        nx, N, M = self.nx, self.N, self.max_obstacles
+        X = ca.SX.sym("X", nx, N)
+        x0 = ca.SX.sym("x0", nx)
+        xm1 = ca.SX.sym("x_prev", nx)
+        Xr = ca.SX.sym("x_ref", nx, N)
+        Pr = ca.SX.sym("tip_ref", 3, N)
+        O = ca.SX.sym("obstacles", _SLOT * M, N)
+        S = ca.DM(self._scale)
+        Xall = ca.horzcat(xm1, x0, X)  # columns k = -1, 0, 1..N
+        tips = model.tip.map(N)(X)  # 3 x N
+        res = []
+        res.append(math.sqrt(o.tip_weight) * ca.vec(tips - Pr))
+        res.append(math.sqrt(o.config_weight) * ca.vec((X - Xr) * ca.repmat(S, 1, N)))
+        dX = Xall[:, 2:] - Xall[:, 1:-1]
+        res.append(math.sqrt(o.velocity_weight) * ca.vec(dX * ca.repmat(S, 1, N)))
+        ddX = Xall[:, 2:] - 2 * Xall[:, 1:-1] + Xall[:, :-2]
+        res.append(math.sqrt(o.smooth_weight) * ca.vec(ddX * ca.repmat(S, 1, N)))
+        res.append(math.sqrt(o.terminal_weight) * (tips[:, -1] - Pr[:, -1]))
+        r_vec = ca.vertcat(*res)
+        f = ca.sumsqr(r_vec)
+        g, lbg, ubg = [], [], []
+        # rate limits on every actuator (linear in x)
+        g.append(ca.vec(ca.DM(self._A) @ dX))
+        lbg.append(np.tile(-self.step_limit, N))
+        ubg.append(np.tile(self.step_limit, N))
+        # actuation limits
+        lim = model.limits.map(N)(X)
+        lo, hi = model.limit_bounds()
+        g.append(ca.vec(lim))
+        lbg.append(np.tile(lo, N))
+        ubg.append(np.tile(hi, N))
+        self._n_lin = int(sum(len(b) for b in lbg))
+        if o.safety and M > 0:
+            n = o.points
+            x = ca.SX.sym("x", nx)
+            ob = ca.SX.sym("ob", _SLOT * M)
+            pts = model.backbone_function(n)(x)  # 3 x n
+            d = []
+            for i in range(M):
+                c = ob[_SLOT * i : _SLOT * i + 3]
+                diff = pts - ca.repmat(c, 1, n)
+                d.append(ca.sqrt(ca.sum1(diff * diff) + 1e-9).T - ob[_SLOT * i + 3])
+            dist = ca.Function("horizon_distance", [x, ob], [ca.vertcat(*d)], {"cse": True})
+            D = dist.map(N)(X, O)  # (n M) x N
+            g.append(ca.vec(D))
+            lbg.append(np.zeros(n * M * N))
+            ubg.append(np.full(n * M * N, np.inf))
+        self._n_dist = int(o.points * M * N) if (o.safety and M > 0) else 0
+        gv = ca.vertcat(*g)
+        self._lbg = np.concatenate(lbg)
+        self._ubg = np.concatenate(ubg)
+        p = ca.vertcat(x0, xm1, ca.vec(Xr), ca.vec(Pr), ca.vec(O))
+        self._np = int(p.numel())
+        xv = ca.vec(X)
+        nlp = {"x": xv, "p": p, "f": f, "g": gv}
+        hess: dict[str, ca.Function] = {}
+        if o.hessian == "gauss-newton":
+            # Gauss-Newton Hessian of the least-squares cost: positive semidefinite, so every
+            # QP of the SQP path is convex (daqp and qrqp need that), and much cheaper to
+            # evaluate than the exact Hessian of hundreds of distance constraints.
+            lam_f = ca.SX.sym("lam_f")
+            lam_g = ca.SX.sym("lam_g", gv.numel())
+            Jr = ca.jacobian(r_vec, xv)
+            H = 2 * lam_f * (Jr.T @ Jr) + 1e-9 * ca.SX.eye(xv.numel())
+            # ipopt wants the upper triangle, sqpmethod the full symmetric matrix
+            hess["ipopt"] = ca.Function("nlp_hess_l", [xv, p, lam_f, lam_g], [ca.triu(H)], {"cse": True})
+            hess["sqp"] = ca.Function("nlp_hess_l", [xv, p, lam_f, lam_g], [H], {"cse": True})
+        self.solver = self._solver(o.solver, nlp, hess.get(o.solver))
+        # the rescue: a failed sqpmethod solve is retried once with IPOPT (robust, slower)
+        self.rescue = self._solver("ipopt", nlp, hess.get("ipopt")) if o.solver == "sqp" and o.rescue else None
+
+    def _solver(self, kind: str, nlp: dict[str, Any], hess: ca.Function | None) -> ca.Function:
+        o = self.options
+        common: dict[str, Any] = {"print_time": False, "error_on_fail": False, "record_time": True}
+        if hess is not None:
+            common["hess_lag"] = hess
+        if kind == "ipopt":
+            opts = {
+                **common,
+                "ipopt.print_level": 0,
+                "ipopt.sb": "yes",
+                "ipopt.max_iter": o.max_iter,
+                "ipopt.tol": o.tol,
+                "ipopt.constr_viol_tol": 1e-7,
+                "ipopt.acceptable_tol": 1e-4,
+                "ipopt.acceptable_constr_viol_tol": 1e-7,
+                "ipopt.max_wall_time": o.max_solve_time,
+                "ipopt.mu_strategy": "adaptive",
+                "ipopt.warm_start_init_point": "yes",
+                "ipopt.warm_start_bound_push": 1e-6,
+                "ipopt.warm_start_mult_bound_push": 1e-6,
+                "ipopt.mu_init": 1e-3,
+            }
+            return ca.nlpsol("replan_ipopt", "ipopt", nlp, opts)
+        qp_opts: dict[str, Any] = {"error_on_fail": False}
+        if o.qpsol == "qrqp":
+            qp_opts["print_iter"] = False
+            qp_opts["print_header"] = False
+            # qrqp's default of 1000 active-set iterations can stall one step for seconds
+            qp_opts["max_iter"] = 200
+        if o.qpsol == "osqp":
+            qp_opts["osqp"] = {"verbose": False}
+        if o.qpsol == "qpoases":
+            qp_opts["printLevel"] = "none"
+        opts = {
+            **common,
+            "qpsol": o.qpsol,
+            "qpsol_options": qp_opts,
+            "max_iter": o.max_iter,
+            "tol_pr": 1e-7,
+            "tol_du": o.tol,
+            "print_header": False,
+            "print_iteration": False,
+            "print_status": False,
+            "min_step_size": 1e-12,
+        }
+        if o.hessian == "exact":
+            opts["convexify_strategy"] = "regularize"
+        return ca.nlpsol("replan_sqp", "sqpmethod", nlp, opts)
+
+    # -------------------------------------------------------------- obstacles
+    def _inflated(self, centers: np.ndarray, radii: np.ndarray) -> np.ndarray:
+        """Obstacle parameter (N, SLOT*M) from sphere centres (N, m, 3) and radii (N, m) in mm."""
+        N, M = self.N, self.max_obstacles
+        m = centers.shape[1]
+        if m > M:
+            raise InputError(
+                f"scene.obstacle: {m} obstacles but the replanner was built for at most {M}; "
+                "rebuild it with a larger max_obstacles"
+            )
+        out = np.zeros((N, M, _SLOT))
+        out[:, :, :3] = _PAD_CENTER
+        out[:, :m, :3] = centers
+        rho = np.sqrt((np.maximum(radii, 0.0) + self.inflate) ** 2 + (self.spacing / 2.0) ** 2)
+        out[:, :m, 3] = rho
+        return out.reshape(N, _SLOT * M)
+
+    def step_windows(self, t0: float) -> tuple[np.ndarray, np.ndarray]:
+        """(lo, hi) time windows (N,) s that step k's configuration is kept clear over: [t_k-1, t_k+1]."""
+        k = np.arange(1, self.N + 1)
+        dt = self.options.dt
+        return t0 + (k - 1) * dt, t0 + (k + 1) * dt
+
+    def obstacles_from_scene(self, scene: Any, t0: float) -> np.ndarray:
+        """Obstacle parameter (N, 4 max_obstacles) for the scene's known motion, horizon starting at t0 (s)."""
+        lo, hi = self.step_windows(float(t0))
+        if scene.n_obstacles == 0:
+            return self._inflated(np.zeros((self.N, 0, 3)), np.zeros((self.N, 0)))
+        a, b, rmax = scene.swept(lo, hi)  # (N, M, 3), (N, M)
+        centers = 0.5 * (a + b)
+        radii = rmax + 0.5 * np.linalg.norm(b - a, axis=-1)
+        return self._inflated(centers, radii)
+
+    def obstacles_from_states(
+        self,
+        centers: np.ndarray,
+        radii: np.ndarray,
+        velocities: np.ndarray | None = None,
+        radius_rates: np.ndarray | None = None,
+        age: float = 0.0,
+    ) -> np.ndarray:
+        """Obstacle parameter from a live state, extrapolated at constant velocity.
+
+        centers (m, 3) mm, radii (m,) mm, velocities (m, 3) mm/s, radius_rates
+        (m,) mm/s, all measured `age` seconds before the horizon starts.
+        """
+        c = np.asarray(centers, dtype=float).reshape(-1, 3)
+        m = len(c)
+        r = np.asarray(radii, dtype=float).reshape(m)
+        v = np.zeros((m, 3)) if velocities is None else np.asarray(velocities, dtype=float).reshape(m, 3)
+        rd = np.zeros(m) if radius_rates is None else np.asarray(radius_rates, dtype=float).reshape(m)
+        lo, hi = self.step_windows(float(age))
+        ca_ = c[None] + lo[:, None, None] * v[None]
+        cb_ = c[None] + hi[:, None, None] * v[None]
+        rmax = np.maximum(r[None] + lo[:, None] * rd[None], r[None] + hi[:, None] * rd[None])
+        return self._inflated(0.5 * (ca_ + cb_), rmax + 0.5 * np.linalg.norm(cb_ - ca_, axis=-1))
+
+    # ------------------------------------------------------------------ solve
+    def reset(self) -> None:
+        """Forget the warm start (the next solve starts from the reference)."""
+        self._warm = None
+
+    def solve(
+        self,
+        x0: np.ndarray,
+        reference: np.ndarray,
+        obstacles: np.ndarray,
+        *,
+        x_prev: np.ndarray | None = None,
+        tip_reference: np.ndarray | None = None,
+        warm: bool = True,
+    ) -> HorizonResult:
+        """Plan x_1..x_N from the current configuration x0 (nx).
+
+        reference: (N, nx) reference configurations for steps 1..N.
+        obstacles: (N, 4 max_obstacles) from `obstacles_from_scene` /
+        `obstacles_from_states`. x_prev: configuration one step before x0
+        (smoothness; default x0). tip_reference: (N, 3) mm (default: tips of
+        the reference). warm: start from the previous solution shifted by one
+        step (when there is one).
+        """
+        N, nx = self.N, self.nx
+        x0 = np.asarray(x0, dtype=float).reshape(nx)
+        Xr = np.asarray(reference, dtype=float).reshape(N, nx)
+        xm1 = x0 if x_prev is None else np.asarray(x_prev, dtype=float).reshape(nx)
+        Pr = self.model.tip_position(Xr) if tip_reference is None else np.asarray(tip_reference, float).reshape(N, 3)
+        Ob = np.asarray(obstacles, dtype=float).reshape(N, _SLOT * self.max_obstacles)
+        for name, arr in (("x0", x0), ("reference", Xr), ("x_prev", xm1), ("tip_reference", Pr), ("obstacles", Ob)):
+            if not np.all(np.isfinite(arr)):
+                raise InputError(f"{name}: contains NaN or infinity")
+        p = np.concatenate([x0, xm1, Xr.ravel(), Pr.ravel(), Ob.ravel()])
+        args: dict[str, Any] = {
+            "p": p,
+            "lbx": np.tile(self._box[0], N),
+            "ubx": np.tile(self._box[1], N),
+            "lbg": self._lbg,
+            "ubg": self._ubg,
+        }
+        cold = np.tile(np.clip(x0, self._box[0], self._box[1]), N)  # hold still: rate- and limit-feasible
+        used_warm = warm and self._warm is not None and self._warm_fits(x0)
+        if used_warm:
+            w = self._warm
+            args.update(x0=w["x"], lam_x0=w["lam_x"], lam_g0=w["lam_g"])
+        else:
+            args["x0"] = cold
+        r = self._call(self.solver, args)
+        tried = [r]
+        if used_warm and not r["ok"]:
+            # a stale warm start can lead a solver astray: one cold retry before declaring failure
+            args = {k: v for k, v in args.items() if k not in ("lam_x0", "lam_g0")}
+            args["x0"] = cold
+            r = self._call(self.solver, args)
+            tried.append(r)
+        rescued = False
+        if not r["ok"] and self.rescue is not None:
+            rescued = True
+            args = {k: v for k, v in args.items() if k not in ("lam_x0", "lam_g0")}
+            args["x0"] = cold
+            r = self._call(self.rescue, args)
+            r["status"] = f"{tried[-1]['status']}; rescue ipopt: {r['status']}"
+            tried.append(r)
+        r["wall"] = sum(x["wall"] for x in tried)
+        self.solve_count += 1
+        self._warm = (
+            self._shifted(r["x"], np.asarray(r["sol"]["lam_x"]).ravel(), np.asarray(r["sol"]["lam_g"]).ravel())
+            if r["ok"]
+            else None
+        )
+        configs = r["x"].reshape(N, nx)
+        return HorizonResult(
+            configs=configs,
+            tips=self.model.tip_position(configs) if r["finite"] else np.full((N, 3), np.nan),
+            success=r["ok"],
+            status=r["status"],
+            iterations=r["iterations"],
+            wall_time=r["wall"],
+            cost=r["cost"],
+            min_distance=r["min_distance"],
+            violation=r["violation"],
+            warm=used_warm,
+            extra={"attempts": len(tried), "rescue": rescued},
+        )
+
+    def _warm_fits(self, x0: np.ndarray) -> bool:
+        """The shifted previous solution starts within reach of x0 (else it belongs to another situation)."""
+        first = self._warm["x"][: self.nx] if self._warm is not None else None
+        if first is None:
+            return False
+        return bool(np.all(np.abs(self._A @ (first - x0)) <= 2.0 * self.step_limit + 1e-9))
+
+    def _call(self, solver: ca.Function, args: dict[str, Any]) -> dict[str, Any]:
+        """One solver call and an independent look at what it returned."""
+        N = self.N
+        t_start = time.perf_counter()
+        sol = solver.call(args)
+        wall = time.perf_counter() - t_start
+        st = solver.stats()
+        xs = np.asarray(sol["x"]).ravel()
+        gs = np.asarray(sol["g"]).ravel()
+        finite = bool(np.all(np.isfinite(xs)) and np.all(np.isfinite(gs)))
+        if finite:
+            lo, hi = np.tile(self._box[0], N), np.tile(self._box[1], N)
+            viol = max(
+                float(np.max(self._lbg - gs, initial=0.0)),
+                float(np.max(gs - self._ubg, initial=0.0)),
+                float(np.max(lo - xs)),
+                float(np.max(xs - hi)),
+                0.0,
+            )
+        else:
+            viol = math.inf
+        return {
+            "sol": sol,
+            "x": xs,
+            "wall": wall,
+            "finite": finite,
+            "violation": viol,
+            "status": str(st.get("return_status", "unknown")),
+            "ok": bool(st.get("success", False)) and finite and viol <= 1e-6,
+            "iterations": int(st.get("iter_count", -1)),
+            "cost": float(sol["f"]) if finite else math.inf,
+            "min_distance": float(np.min(gs[self._n_lin :])) if (self._n_dist and finite) else math.inf,
+        }
+
+    def _shifted(self, xs: np.ndarray, lam_x: np.ndarray, lam_g: np.ndarray) -> dict[str, np.ndarray]:
+        """Previous solution moved one step earlier, the last step repeated (the next solve's start)."""
+        nx, N = self.nx, self.N
+
+        def shift(v: np.ndarray, width: int) -> np.ndarray:
+            b = v.reshape(N, width)
+            return np.concatenate([b[1:], b[-1:]]).ravel()
+
+        n_rate = self.nq * N
+        n_lim = (self._n_lin - n_rate) // N
+        parts = [shift(lam_g[:n_rate], self.nq), shift(lam_g[n_rate : self._n_lin], n_lim)]
+        if self._n_dist:
+            parts.append(shift(lam_g[self._n_lin :], self._n_dist // N))
+        return {"x": shift(xs, nx), "lam_x": shift(lam_x, nx), "lam_g": np.concatenate(parts)}
+
+    def describe(self) -> dict[str, Any]:
+        """Sizes of the NLP (for result files and benchmarks)."""
+        return {
+            "solver": self.options.solver if self.options.solver == "ipopt" else f"sqpmethod+{self.options.qpsol}",
+            "rescue": "ipopt" if self.rescue is not None else None,
+            "variables": self.nx * self.N,
+            "parameters": self._np,
+            "constraints": len(self._lbg),
+            "obstacle_constraints": self._n_dist,
+            "max_obstacles": self.max_obstacles,
+            "inflate_mm": self.inflate,
+            "point_spacing_mm": self.spacing,
+        }

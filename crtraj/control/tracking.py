@@ -1,0 +1,587 @@
+"""Tracking controller: planned configurations -> rate-limited actuator commands.
+
+The paper's proportional law (eq. 15-16), ``q_dot = J^+ (Phi_d_dot + K_P e)``,
+in crtraj's variables: the configuration error ``e = x_ref - x`` (bending
+vectors in rad, base translation z in mm) is turned into an actuator increment
+through the cable Jacobian ``J_q = dq/dx`` (`Model.jac_cables`, the paper's
+``J_Phi^+``: q = q0 + A x is linear, so ``J_q = A`` everywhere).
+
+K_P is designed with python-control, not guessed. Design model (per control
+period dt, exact zero-order-hold discretisation):
+
+* each actuator is a position servo with a first-order lag,
+  ``tau dq/dt = q_cmd - q`` (tau = ``servo_tau`` for the cables,
+  ``servo_tau_z`` for the base stage). All cables of a segment share tau, so in
+  configuration coordinates the servos are ``tau_j dx_j/dt = x_cmd,j - x_j``
+  exactly; ``control.c2d`` gives ``x[k+1] = Phi x[k] + Gamma x_cmd[k]`` with
+  ``Phi = exp(-dt/tau)``, ``Gamma = 1 - Phi``.
+* the controller holds a set-point and changes it by ``v[k]`` per period (the
+  paper's ``q_dot ~ Delta q``): ``x_cmd[k] = x_cmd[k-1] + v[k]``.
+* for a constant reference r the error state ``e = (r - x[k], r - x_cmd[k-1])``
+  (2 nx) follows ``e[k+1] = A e[k] - B v[k]`` with ``A = [[Phi, Gamma], [0, I]]``,
+  ``B = [[Gamma], [I]]``; ``control.dlqr`` on (A, B, Q, R) gives
+  ``v = K e = K_x (r - x) + K_c (r - x_cmd)``. With no servo lag the two blocks
+  act on the same error, so ``K_P = K_x + K_c`` is the paper's symmetric
+  positive-definite proportional gain (diagonal here, since every coordinate's
+  dynamics are decoupled).
+* with the planned rate ``x_reference_rate`` (paper eq. 15) the increment also
+  gets ``dt * x_ref_dot`` and the set-point leads the reference by
+  ``phi / (1 - phi)`` periods of motion, which is exactly the servo's lag on a
+  ramp: a constant-rate reference is then tracked with zero steady error
+  (without the rate, eq. 16, a ramp leaves a steady lag).
+* weights by Bryson's rule: Q penalises the configuration error with scale
+  ``bending_error_scale`` (rad) / ``z_error_scale`` (mm); R penalises the
+  per-period increment relative to the largest increment the rate limits allow
+  (``max_cable_rate dt / cable_radius`` rad, ``max_z_rate dt`` mm), times
+  ``effort_weight``.
+
+Commands are then rate-limited (every actuator's change per period at most
+``max_rate * dt``, by scaling the whole increment so the motion keeps its
+direction) and kept inside the robot's actuation limits (cable strokes,
+theta_max, z stroke): a command never leaves the feasible set, and a set-point
+that is already outside is never moved further out.
+
+``mode = "tip"`` adds the paper's eq. 13 and 17: the measured tip error is
+mapped to a configuration error with the damped least-squares pseudo-inverse
+of the task Jacobian ``J = d tip/dx`` (damping lambda), and the rest of the
+configuration error is kept in J's null space, so a tip sensor (motion
+capture) corrects model error while the body still follows the planned,
+collision-free configuration.
+
+Units: mm, rad, s. The controller is stateless: the caller owns the actuator
+set-point (``q_command``) and passes it back each period.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Any
+
+import casadi as ca
+import control
+import numpy as np
+
+from crtraj.core.errors import InputError
+from crtraj.core.fields import Table, check_float
+from crtraj.model.kinematics import Model
+from crtraj.model.robot import Robot
+
+MODES = ("configuration", "tip")
+
+# Every float option: default and bounds (the same checks for TOML and Python use).
+_FLOATS: Mapping[str, tuple[float, dict[str, float]]] = MappingProxyType(
+    {
+        "dt": (0.02, {"gt": 0.0, "le": 1.0}),
+        "servo_tau": (0.05, {"gt": 0.0, "le": 10.0}),
+        "servo_tau_z": (0.1, {"gt": 0.0, "le": 10.0}),
+        "max_cable_rate": (10.0, {"gt": 0.0}),
+        "max_z_rate": (50.0, {"gt": 0.0}),
+        "bending_error_scale": (0.01, {"gt": 0.0}),
+        "z_error_scale": (0.5, {"gt": 0.0}),
+        "effort_weight": (1.0, {"gt": 0.0}),
+        "damping": (0.3, {"ge": 0.0}),
+    }
+)
+
+# Designs kept per control period (a caller that varies dt should not grow memory).
+_MAX_DESIGNS = 8
+
+
+@dataclass(frozen=True)
+class TrackingOptions:
+    """The ``[tracking]`` problem section.
+
+    dt: control period the gain is designed for (s). mode: "configuration"
+    (track x_ref) or "tip" (also correct the measured tip error, eq. 17).
+    servo_tau / servo_tau_z: first-order lag of the cable servos / base stage (s).
+    max_cable_rate / max_z_rate: actuator rate limits (mm/s).
+    bending_error_scale (rad) / z_error_scale (mm): Bryson scales of Q.
+    effort_weight: multiplies R (larger = gentler). damping: DLS lambda of the
+    tip mode (mm/rad, paper: 0.3).
+    """
+
+    dt: float = _FLOATS["dt"][0]
+    mode: str = "configuration"
+    servo_tau: float = _FLOATS["servo_tau"][0]
+    servo_tau_z: float = _FLOATS["servo_tau_z"][0]
+    max_cable_rate: float = _FLOATS["max_cable_rate"][0]
+    max_z_rate: float = _FLOATS["max_z_rate"][0]
+    bending_error_scale: float = _FLOATS["bending_error_scale"][0]
+    z_error_scale: float = _FLOATS["z_error_scale"][0]
+    effort_weight: float = _FLOATS["effort_weight"][0]
+    damping: float = _FLOATS["damping"][0]
+
+    def __post_init__(self) -> None:
+        for name, (_, bounds) in _FLOATS.items():
+            check_float(getattr(self, name), f"tracking.{name}", **bounds)
+        if self.mode not in MODES:
+            raise InputError(f"tracking.mode: must be one of {', '.join(MODES)}; got {self.mode!r}")
+
+    @classmethod
+    def from_table(cls, t: Table) -> TrackingOptions:
+        """Read a ``[tracking]`` table; unknown keys and bad values raise `InputError`."""
+        kw: dict[str, Any] = {name: t.float(name, default, **bounds) for name, (default, bounds) in _FLOATS.items()}
+        kw["mode"] = t.str("mode", "configuration", choices=MODES)
+        t.finish()
+        return cls(**kw)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain data, the same schema as the TOML table."""
+        d: dict[str, Any] = {name: getattr(self, name) for name in _FLOATS}
+        d["mode"] = self.mode
+        return d
+
+
+@dataclass(frozen=True)
+class TrackingDesign:
+    """The LQR design for one control period dt (s).
+
+    State e = (x_ref - x, x_ref - x_cmd_prev) (2 nx), input v = set-point
+    increment (nx), ``e[k+1] = A e[k] - B v[k]``, ``v = K e``. phi: servo decay
+    per period per configuration coordinate (exp(-dt/tau)). S: Riccati solution.
+    """
+
+    dt: float
+    phi: np.ndarray
+    A: np.ndarray
+    B: np.ndarray
+    Q: np.ndarray
+    R: np.ndarray
+    K: np.ndarray
+    S: np.ndarray
+    eigenvalues: np.ndarray
+
+    @property
+    def lead(self) -> np.ndarray:
+        """phi / (1 - phi) per coordinate: periods a servo lags its set-point on a ramp."""
+        return self.phi / (1.0 - self.phi)
+
+    @property
+    def closed_loop(self) -> np.ndarray:
+        """A - B K, the error dynamics without saturation."""
+        return self.A - self.B @ self.K
+
+    def steps_to(self, error0: np.ndarray, tol: float) -> int:
+        """Periods after which |e| <= tol for good, from e0 (unsaturated, constant reference).
+
+        Uses |(A-BK)^k| <= cond(V) rho^k for A-BK = V D V^-1; if A-BK is not
+        diagonalisable, the first k with |(A-BK)^j| |e0| <= tol for the next 2 nx
+        periods too (then a numerical count, not a proof).
+        """
+        n0 = float(np.linalg.norm(error0))
+        if n0 <= tol:
+            return 0
+        Acl = self.closed_loop
+        lam, V = np.linalg.eig(Acl)
+        rho = float(np.max(np.abs(lam)))
+        kappa = float(np.linalg.cond(V))
+        if rho > 0.0 and math.isfinite(kappa) and kappa < 1e12:
+            return max(0, math.ceil(math.log(tol / (kappa * n0)) / math.log(rho)))
+        P = np.eye(len(Acl))
+        norms = []
+        for _ in range(100_000):
+            norms.append(np.linalg.norm(P, 2) * n0)
+            P = Acl @ P
+            m = 2 * self.K.shape[0]
+            if len(norms) > m and max(norms[-m - 1 :]) <= tol:
+                return len(norms) - m - 1
+        raise InputError(f"tracking: error does not reach {tol:g} within 100000 periods")
+
+
+@dataclass(frozen=True)
+class TrackingCommand:
+    """One controller output.
+
+    q: actuator set-point to send (nq: cable lengths mm, then z mm). x: its
+    configuration. error: configuration error the law acted on (rad / mm).
+    increment: set-point change in configuration (after limiting).
+    rate_scale: factor (<= 1) the rate limits applied. limit_scale: extra factor
+    (<= 1) that kept the set-point inside the actuation limits.
+    """
+
+    q: np.ndarray
+    x: np.ndarray
+    error: np.ndarray
+    increment: np.ndarray
+    rate_scale: float
+    limit_scale: float
+
+    @property
+    def rate_limited(self) -> bool:
+        return self.rate_scale < 1.0
+
+    @property
+    def limited(self) -> bool:
+        return self.limit_scale < 1.0
+
+
+class ServoModel:
+    """Actuator simulation: a first-order lag per actuator, discretised exactly.
+
+    ``tau dq/dt = q_cmd - q`` with the command held over each period, so
+    ``q(t) = q_cmd + (q0 - q_cmd) exp(-t/tau)``. q is the actuators' actual
+    position (nq, mm); ``config(q)`` gives the robot's actual configuration.
+    """
+
+    def __init__(self, robot: Robot, tau_cable: float, tau_z: float) -> None:
+        check_float(tau_cable, "tau_cable", gt=0.0)
+        check_float(tau_z, "tau_z", gt=0.0)
+        self.robot = robot
+        self.tau = np.append(np.full(3 * robot.n_segments, float(tau_cable)), float(tau_z))
+        _, self._q0 = robot.cable_matrix()
+        self._Binv = robot.cable_inverse()
+
+    def decay(self, dt: float) -> np.ndarray:
+        """exp(-dt/tau) per actuator: the share of the old position left after dt (s)."""
+        return np.exp(-dt / self.tau)
+
+    def advance(self, q: np.ndarray, q_command: np.ndarray, dt: float) -> np.ndarray:
+        """Actuator positions (mm) after holding `q_command` for dt (s)."""
+        d = self.decay(dt)
+        return q_command + d * (np.asarray(q, dtype=float) - q_command)
+
+    def trajectory(self, q: np.ndarray, q_command: np.ndarray, times: np.ndarray) -> np.ndarray:
+        """Actuator positions (len(times), nq) at times (s) within one held command (dense checks)."""
+        t = np.asarray(times, dtype=float).reshape(-1, 1)
+        return q_command + np.exp(-t / self.tau) * (np.asarray(q, dtype=float) - q_command)
+
+    def config(self, q: np.ndarray) -> np.ndarray:
+        """Configuration(s) x from actuator positions q (mm)."""
+        return (np.asarray(q, dtype=float) - self._q0) @ self._Binv.T
+
+
+@dataclass(frozen=True)
+class TrackingRun:
+    """A closed-loop simulation (`TrackingController.simulate`).
+
+    t (N+1,) s; x (N+1, nx) actual configurations; q (N+1, nq) actual actuator
+    positions; q_command (N, nq) set-points; x_reference (N, nx); tip (N+1, 3)
+    actual tip (mm); tip_reference (N+1, 3); tip_error (N+1,) mm, the distance of
+    the actual tip to the reference of that period (the last entry uses the
+    last reference); rate_limited, limited (N,) flags.
+    """
+
+    t: np.ndarray
+    x: np.ndarray
+    q: np.ndarray
+    q_command: np.ndarray
+    x_reference: np.ndarray
+    tip: np.ndarray
+    tip_reference: np.ndarray
+    tip_error: np.ndarray
+    rate_limited: np.ndarray
+    limited: np.ndarray
+    options: TrackingOptions = field(repr=False)
+
+    @property
+    def final_tip_error(self) -> float:
+        return float(self.tip_error[-1])
+
+    def summary(self) -> dict[str, Any]:
+        """Tip error statistics (mm) and limiter activity."""
+        e = self.tip_error
+        return {
+            "steps": len(self.q_command),
+            "dt_s": float(self.t[1] - self.t[0]) if len(self.t) > 1 else 0.0,
+            "final_tip_error_mm": float(e[-1]),
+            "max_tip_error_mm": float(np.max(e)),
+            "rms_tip_error_mm": float(np.sqrt(np.mean(e**2))),
+            "median_tip_error_mm": float(np.median(e)),
+            "p90_tip_error_mm": float(np.percentile(e, 90)),
+            "rate_limited_steps": int(np.sum(self.rate_limited)),
+            "limited_steps": int(np.sum(self.limited)),
+        }
+
+
+class TrackingController:
+    """LQR-designed proportional tracking law (paper eq. 15-17) with servo model.
+
+    Use once per control period::
+
+        ctl = TrackingController(model, options)
+        q_cmd = ctl.initial_command(x0)                 # servos settled at x0
+        cmd = ctl.step(x_measured, q_cmd, x_reference)  # -> TrackingCommand
+        q_cmd = cmd.q                                   # send to the actuators
+    """
+
+    def __init__(self, model: Model, options: TrackingOptions | None = None) -> None:
+        self.model = model
+        self.robot = model.robot
+        self.options = TrackingOptions() if options is None else options
+        o, r = self.options, self.robot
+        n = r.n_segments
+        self.nx, self.nq = r.nx, r.nq
+        # jac_cables is constant (q is linear in x); evaluate it once.
+        self._J_q = np.asarray(model.jac_cables(np.zeros(self.nx)))
+        _, self._q0 = r.cable_matrix()
+        self._Binv = r.cable_inverse()
+        self.servo = ServoModel(r, o.servo_tau, o.servo_tau_z)
+        self._tau_x = np.append(np.full(2 * n, o.servo_tau), o.servo_tau_z)
+        self._rates = np.append(np.full(3 * n, o.max_cable_rate), o.max_z_rate)  # mm/s per actuator
+        # Actuation limits on a set-point x: linear |A_cab x| <= stroke, z box, |C_k u| <= theta_max.
+        A_cab = self._J_q[: 3 * n]
+        strokes = np.repeat([r.cable_stroke(k) for k in range(n)], 3)
+        self._G = np.vstack([A_cab, -A_cab])
+        self._h = np.concatenate([strokes, strokes])
+        C = r.coupling_matrix()
+        self._C = [np.hstack([C[2 * k : 2 * k + 2], np.zeros((2, 1))]) for k in range(n)]
+        self._tmax2 = np.array([s.theta_max**2 for s in r.segments])
+        self._designs: dict[float, TrackingDesign] = {}
+        self.design()  # fail early on a bad design
+        # tip mode: one CasADi call per period gives tip(x), J(x) and tip(x_ref)
+        a, b = ca.SX.sym("x", self.nx), ca.SX.sym("x_ref", self.nx)
+        self._tip_jac = ca.Function("tip_jac", [a, b], [model.tip(a), model.jac_tip(a), model.tip(b)])
+
+    # ------------------------------------------------------------------ design
+    def design(self, dt: float | None = None) -> TrackingDesign:
+        """The LQR design for period dt (s; default options.dt), computed once per dt."""
+        dt = self.options.dt if dt is None else check_float(dt, "dt", gt=0.0)
+        d = self._designs.get(dt)
+        if d is None:
+            if len(self._designs) >= _MAX_DESIGNS:
+                self._designs.clear()
+            d = self._design(dt)
+            self._designs[dt] = d
+        return d
+
+    def _design(self, dt: float) -> TrackingDesign:
+        o, nx = self.options, self.nx
+        M = np.diag(1.0 / self._tau_x)
+        servo = control.c2d(control.ss(-M, M, np.eye(nx), np.zeros((nx, nx))), dt, method="zoh")
+        Phi, Gam = np.asarray(servo.A), np.asarray(servo.B)
+        A = np.block([[Phi, Gam], [np.zeros((nx, nx)), np.eye(nx)]])
+        B = np.vstack([Gam, np.eye(nx)])
+        n = self.robot.n_segments
+        err_scale = np.append(np.full(2 * n, o.bending_error_scale), o.z_error_scale)
+        step_scale = np.append(np.full(2 * n, o.max_cable_rate * dt / self.robot.cable_radius), o.max_z_rate * dt)
+        Q = np.diag(np.concatenate([1.0 / err_scale**2, np.zeros(nx)]))
+        R = o.effort_weight * np.diag(1.0 / step_scale**2)
+        sys_d = control.ss(A, B, np.eye(2 * nx), np.zeros((2 * nx, nx)), dt)
+        K, S, E = control.dlqr(sys_d, Q, R)
+        K, S, E = np.asarray(K), np.asarray(S), np.asarray(E)
+        if not np.all(np.abs(E) < 1.0):
+            raise InputError(f"tracking: LQR design for dt={dt:g} s is not stable (|eig| max {np.max(np.abs(E)):.6g})")
+        return TrackingDesign(dt, np.diag(Phi).copy(), A, B, Q, R, K, S, E)
+
+    @property
+    def gain(self) -> np.ndarray:
+        """LQR gain K (nx, 2 nx) at options.dt: v = K (x_ref - x, x_ref - x_cmd)."""
+        return self.design().K
+
+    @property
+    def proportional_gain(self) -> np.ndarray:
+        """The paper's K_P = K_x + K_c (nx, nx): the gain when the servos have settled."""
+        K = self.gain
+        return K[:, : self.nx] + K[:, self.nx :]
+
+    def closed_loop_eigenvalues(self, dt: float | None = None) -> np.ndarray:
+        """Eigenvalues of the discrete closed-loop error dynamics A - B K."""
+        return np.linalg.eigvals(self.design(dt).closed_loop)
+
+    # --------------------------------------------------------------- control
+    def initial_command(self, x: np.ndarray) -> np.ndarray:
+        """The set-point (nq, mm) of servos settled at configuration x."""
+        return self._q0 + self._J_q @ _vec(x, self.nx, "x")
+
+    def step(
+        self,
+        x_measured: np.ndarray,
+        q_command: np.ndarray,
+        x_reference: np.ndarray,
+        dt: float | None = None,
+        *,
+        x_reference_rate: np.ndarray | None = None,
+        tip_measured: np.ndarray | None = None,
+        tip_reference: np.ndarray | None = None,
+    ) -> TrackingCommand:
+        """One control period: the next actuator set-point.
+
+        x_measured: actual configuration (nx). q_command: set-point the actuators
+        hold now (nq, mm; from `initial_command` or the previous step).
+        x_reference: planned configuration for this period (nx). dt: period (s,
+        default options.dt). x_reference_rate: planned dx/dt (rad/s, mm/s): the
+        paper's eq. 15 feed-forward plus a set-point lead that cancels the servo
+        lag, so a ramp is tracked without steady error (None: eq. 16).
+        Tip mode only (an error in configuration mode): tip_measured (3, mm;
+        default: model tip of x_measured), tip_reference (3, mm; default: model
+        tip of x_reference).
+        """
+        d = self.design(dt)
+        nx = self.nx
+        xm = _vec(x_measured, nx, "x_measured")
+        qc = _vec(q_command, self.nq, "q_command")
+        xr = _vec(x_reference, nx, "x_reference")
+        xc = (qc - self._q0) @ self._Binv.T
+        tip_mode = self.options.mode == "tip"
+        if not tip_mode and (tip_measured is not None or tip_reference is not None):
+            raise InputError("tip_measured/tip_reference: only used with tracking.mode = 'tip'")
+        e = self._tip_error_config(xm, xr, tip_measured, tip_reference) if tip_mode else xr - xm
+        # e_c is measured against the same (effective) reference as e.
+        ec = e + xm - xc
+        ff = None
+        if x_reference_rate is not None:
+            ff = _vec(x_reference_rate, nx, "x_reference_rate") * d.dt
+            # on a ramp the servos lag their set-point by phi/(1-phi) periods' motion: lead by that
+            ec = ec + d.lead * ff
+        v = d.K[:, :nx] @ e + d.K[:, nx:] @ ec
+        if ff is not None:
+            v = v + ff
+        dq = self._J_q @ v
+        over = np.abs(dq) / (self._rates * d.dt)
+        worst = float(np.max(over))
+        rate_scale = 1.0 / worst if worst > 1.0 else 1.0
+        v = v * rate_scale
+        v, limit_scale = self._limit(xc, v)
+        q = qc + self._J_q @ v
+        return TrackingCommand(q, xc + v, e, v, rate_scale, limit_scale)
+
+    def _tip_error_config(
+        self, xm: np.ndarray, xr: np.ndarray, tip_measured: np.ndarray | None, tip_reference: np.ndarray | None
+    ) -> np.ndarray:
+        """Configuration error from the tip error (eq. 13, 17) plus the null-space part of x_ref - x."""
+        p_model, J, pr_model = self._tip_jac.call([xm, xr])
+        J = np.asarray(J)
+        pm = np.asarray(p_model).ravel() if tip_measured is None else _vec(tip_measured, 3, "tip_measured")
+        pr = np.asarray(pr_model).ravel() if tip_reference is None else _vec(tip_reference, 3, "tip_reference")
+        delta = xr - xm
+        lam2 = self.options.damping**2
+        # e = J+ e_p + (I - J+ J) delta with J+ = J^T (J J^T + lam^2 I)^-1
+        w = np.linalg.solve(J @ J.T + lam2 * np.eye(3), (pr - pm) - J @ delta)
+        return delta + J.T @ w
+
+    def _limit(self, xc: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, float]:
+        """Shrink the increment so the set-point stays within (or gets no further outside) the limits.
+
+        z is clipped on its own (independent stage); the bending part is scaled
+        by one factor so its direction is kept. The feasible set is convex, so
+        a line search along v is exact.
+        """
+        v = v.copy()
+        lo, hi = self.robot.z_range
+        z0, z1 = xc[-1], xc[-1] + v[-1]
+        z_new = min(max(z1, min(lo, z0)), max(hi, z0))
+        scale_z = 1.0
+        if z_new != z1:
+            scale_z = (z_new - z0) / v[-1] if v[-1] != 0.0 else 1.0
+            v[-1] = z_new - z0
+        vb = v.copy()
+        vb[-1] = 0.0
+        alpha = 1.0
+        g0 = self._G @ xc - self._h
+        gv = self._G @ vb
+        grow = gv > 0.0
+        if np.any(grow):
+            # rows already violated (g0 > 0) may not grow at all
+            room = np.where(g0[grow] <= 0.0, -g0[grow], 0.0)
+            alpha = min(alpha, float(np.min(room / gv[grow])))
+        for Ck, t2 in zip(self._C, self._tmax2, strict=True):
+            a_ = Ck @ vb
+            b_ = Ck @ xc
+            a = float(a_ @ a_)
+            if a == 0.0:
+                continue
+            b = float(a_ @ b_)
+            c = float(b_ @ b_) - t2
+            # inside: up to the root of |C_k (x + alpha v)|^2 = theta_max^2;
+            # outside: only moves that do not increase |C_k u| (a alpha^2 + 2 b alpha <= 0)
+            reach = (-b + math.sqrt(b * b - a * c)) / a if c <= 0.0 else max(0.0, -2.0 * b / a)
+            alpha = min(alpha, reach)
+        alpha = max(alpha, 0.0)
+        if alpha < 1.0:
+            v[:-1] *= alpha
+        return v, min(alpha, scale_z)
+
+    # ----------------------------------------------------------- reporting
+    def tip_error(
+        self, x: np.ndarray, x_reference: np.ndarray | None = None, *, tip_reference: np.ndarray | None = None
+    ) -> float | np.ndarray:
+        """Tip tracking error(s) (mm): |tip(x) - tip_ref|; x (nx,) -> float, (N, nx) -> (N,)."""
+        if (x_reference is None) == (tip_reference is None):
+            raise InputError("tip_error: give exactly one of x_reference or tip_reference")
+        p = self.model.tip_position(x)
+        pr = self.model.tip_position(x_reference) if tip_reference is None else np.asarray(tip_reference, float)
+        err = np.linalg.norm(p - pr, axis=-1)
+        return float(err) if np.ndim(err) == 0 else err
+
+    def simulate(
+        self,
+        x0: np.ndarray,
+        reference: np.ndarray,
+        steps: int | None = None,
+        *,
+        servo: ServoModel | None = None,
+        plant: Model | None = None,
+        feedforward: bool = False,
+    ) -> TrackingRun:
+        """Closed loop at options.dt from servos settled at x0 (nx).
+
+        reference: (N, nx) configuration per period, or (nx,) held for `steps`
+        periods. servo: actuator model of the simulated robot (default: the
+        design's). plant: model of the simulated robot used for the measured and
+        reported tip (default: the controller's model; a different one simulates
+        model error). feedforward: pass the reference's finite-difference rate.
+        """
+        dt = self.options.dt
+        ref = np.asarray(reference, dtype=float)
+        if ref.ndim == 2 and steps is not None and steps != len(ref):
+            raise InputError(f"steps: {steps} does not match the {len(ref)} reference configurations")
+        if ref.ndim == 1:
+            if steps is None or steps < 1:
+                raise InputError("steps: must be >= 1 when reference is a single configuration")
+            ref = np.broadcast_to(_vec(ref, self.nx, "reference"), (steps, self.nx))
+        elif ref.ndim != 2 or ref.shape[1] != self.nx or len(ref) < 1 or not np.all(np.isfinite(ref)):
+            raise InputError(f"reference: expected finite shape (N, {self.nx}), got {ref.shape}")
+        servo = self.servo if servo is None else servo
+        plant = self.model if plant is None else plant
+        N = len(ref)
+        # the intended tip is what the controller's model predicts for the plan
+        tip_ref = self.model.tip_position(ref)
+        q = self.initial_command(x0)
+        qc = q.copy()
+        Q = np.empty((N + 1, self.nq))
+        Qc = np.empty((N, self.nq))
+        X = np.empty((N + 1, self.nx))
+        rl = np.zeros(N, dtype=bool)
+        lim = np.zeros(N, dtype=bool)
+        Q[0] = q
+        tip_mode = self.options.mode == "tip"
+        rate = None
+        if feedforward:
+            rate = np.zeros_like(ref)
+            rate[:-1] = np.diff(ref, axis=0) / dt
+        for k in range(N):
+            x = servo.config(q)
+            X[k] = x
+            tm = np.asarray(plant.tip(x)).ravel() if tip_mode else None
+            cmd = self.step(
+                x,
+                qc,
+                ref[k],
+                dt,
+                x_reference_rate=None if rate is None else rate[k],
+                tip_measured=tm,
+                tip_reference=tip_ref[k] if tip_mode else None,
+            )
+            qc = cmd.q
+            Qc[k], rl[k], lim[k] = qc, cmd.rate_limited, cmd.limited
+            q = servo.advance(q, qc, dt)
+            Q[k + 1] = q
+        X[N] = servo.config(q)
+        tips = plant.tip_position(X)
+        tref = np.vstack([tip_ref, tip_ref[-1:]])
+        err = np.linalg.norm(tips - tref, axis=1)
+        t = dt * np.arange(N + 1)
+        return TrackingRun(t, X, Q, Qc, np.array(ref), tips, tref, err, rl, lim, self.options)
+
+
+def _vec(a: Any, n: int, name: str) -> np.ndarray:
+    """A finite float vector of length n (cheap check for the control loop)."""
+    v = np.asarray(a, dtype=float)
+    if v.shape != (n,):
+        raise InputError(f"{name}: expected {n} numbers, got shape {v.shape}")
+    if not np.all(np.isfinite(v)):
+        raise InputError(f"{name}: contains NaN or infinity")
+    return v

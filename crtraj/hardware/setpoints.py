@@ -1,0 +1,179 @@
+"""Planned trajectories as actuator set-points sampled at the streaming rate.
+
+The waypoints' actuation q(t) of a result file is converted to actuator values
+(`Actuators.command`) and interpolated with a shape-preserving cubic (PCHIP
+slopes, with zero slope at both ends so the motion starts and ends at rest).
+PCHIP never overshoots the waypoints, so interpolation invents no motion the
+plan did not contain, and its second derivative is bounded, so the sampled
+set-points have finite acceleration.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.interpolate import CubicHermiteSpline, PchipInterpolator
+
+from crtraj.core.errors import InputError
+from crtraj.core.fields import check_float
+from crtraj.core.fileio import read_json
+from crtraj.hardware.actuators import Actuators
+
+# Quintic smoothstep s(u) = 10u^3 - 15u^4 + 6u^5: peak |s'| = 15/8, peak |s''| = 10/sqrt(3).
+_SMOOTH_V = 15.0 / 8.0
+_SMOOTH_A = 10.0 / math.sqrt(3.0)
+
+
+def _smoothstep(u: np.ndarray) -> np.ndarray:
+    return u**3 * (10.0 - 15.0 * u + 6.0 * u**2)
+
+
+@dataclass(frozen=True)
+class SetpointPath:
+    """Actuator values over time: waypoint times t (s, strictly increasing) and values (N, n).
+
+    `sample(rate)` gives the set-points the streamer sends; `stamps` are
+    trajectory times (s), values in actuator units (rad, mm).
+    """
+
+    t: np.ndarray
+    values: np.ndarray
+    source: str = ""
+    approach_start: np.ndarray | None = None  # actuator values the approach move starts from
+    approach_time: float = 0.0  # s, duration of the approach move before t[0]
+
+    def __post_init__(self) -> None:
+        t = np.asarray(self.t, dtype=float)
+        v = np.asarray(self.values, dtype=float)
+        if t.ndim != 1 or t.size < 2:
+            raise InputError(f"{self.source}waypoints: need at least 2 waypoints, got {t.size}")
+        if v.shape[0] != t.size:
+            raise InputError(f"{self.source}waypoints: {t.size} times but {v.shape[0]} value rows")
+        for name, a in (("t", t), ("values", v)):
+            if not np.all(np.isfinite(a)):
+                raise InputError(f"{self.source}waypoints.{name}: contains NaN or infinity")
+        dt = np.diff(t)
+        bad = np.flatnonzero(~(dt > 0))
+        if bad.size:
+            k = int(bad[0]) + 1
+            raise InputError(f"{self._where(k)}.t: time must increase strictly (got {t[k]:g} s after {t[k - 1]:g} s)")
+        object.__setattr__(self, "t", t)
+        object.__setattr__(self, "values", v)
+
+    def _where(self, k: int) -> str:
+        return f"{self.source}waypoints[{k}]" if self.source else f"waypoints[{k}]"
+
+    @property
+    def duration(self) -> float:
+        return float(self.t[-1] - self.t[0])
+
+    # ---------------------------------------------------------- constructors
+    @classmethod
+    def from_actuation(cls, t: Any, q: Any, actuators: Actuators, source: str = "") -> SetpointPath:
+        """From waypoint times (s) and robot actuation q (N, nq) in mm."""
+        t_arr = np.asarray(t, dtype=float)
+        q_arr = np.asarray(q, dtype=float)
+        if q_arr.ndim != 2 or q_arr.shape[1] != actuators.n:
+            raise InputError(
+                f"{source}waypoints.q: expected {actuators.n} actuation values per waypoint "
+                f"({', '.join(actuators.names)}), got shape {q_arr.shape}"
+            )
+        bad = np.argwhere(~np.isfinite(q_arr))
+        if bad.size:
+            k, i = (int(x) for x in bad[0])
+            raise InputError(f"{source}waypoints[{k}].q[{i}]: must be finite, got {q_arr[k, i]}")
+        bad_t = np.flatnonzero(~np.isfinite(t_arr))
+        if bad_t.size:
+            k = int(bad_t[0])
+            raise InputError(f"{source}waypoints[{k}].t: must be finite, got {t_arr[k]}")
+        return cls(t_arr, actuators.command(q_arr), source)
+
+    @classmethod
+    def from_result(cls, result: dict[str, Any] | str | Path, actuators: Actuators) -> SetpointPath:
+        """From a result file (or its parsed JSON): the waypoints' t and q."""
+        src = ""
+        if not isinstance(result, dict):
+            src = f"{result}: "
+            result = read_json(result)
+            if not isinstance(result, dict):
+                raise InputError(f"{src}expected a JSON object (a crtraj result file)")
+        wps = result.get("waypoints")
+        if not isinstance(wps, list) or not wps:
+            raise InputError(f"{src}waypoints: missing or empty (is this a crtraj plan/replan result?)")
+        ts, qs = [], []
+        for k, w in enumerate(wps):
+            if not isinstance(w, dict) or "t" not in w or "q" not in w:
+                raise InputError(f"{src}waypoints[{k}]: needs 't' (s) and 'q' (actuation, mm)")
+            ts.append(check_float(w["t"], f"{src}waypoints[{k}].t") if w["t"] is not None else math.nan)
+            q = w["q"]
+            if not isinstance(q, list) or len(q) != actuators.n:
+                n = len(q) if isinstance(q, list) else type(q).__name__
+                raise InputError(
+                    f"{src}waypoints[{k}].q: expected {actuators.n} values ({', '.join(actuators.names)}), got {n}"
+                )
+            row = []
+            for i, x in enumerate(q):
+                if x is None:  # to_jsonable writes NaN as null
+                    raise InputError(f"{src}waypoints[{k}].q[{i}] ({actuators.names[i]}): must be finite, got null/NaN")
+                row.append(check_float(x, f"{src}waypoints[{k}].q[{i}] ({actuators.names[i]})"))
+            qs.append(row)
+        return cls.from_actuation(ts, qs, actuators, src)
+
+    # -------------------------------------------------------------- transforms
+    def scaled(self, factor: float) -> SetpointPath:
+        """The same path `factor` times slower (factor > 1 slows down)."""
+        if not (factor > 0 and math.isfinite(factor)):
+            raise InputError(f"--time-scale: must be > 0, got {factor}")
+        if self.approach_start is not None:
+            raise InputError("time scale: apply it before adding the approach move")
+        return SetpointPath(self.t[0] + (self.t - self.t[0]) * factor, self.values, self.source)
+
+    def with_approach(self, start: np.ndarray, actuators: Actuators, margin: float = 1.25) -> SetpointPath:
+        """Prepend a rest-to-rest quintic move from `start` (actuator values) to the first waypoint.
+
+        Its duration is the shortest for which every actuator keeps within
+        ``1/margin`` of its velocity and acceleration limits. The move is a
+        straight line in actuator space, which is a straight line in
+        configuration space too (the maps are affine): it is not collision
+        checked, so it is only used on request (``--approach``).
+        """
+        start = np.asarray(start, dtype=float)
+        d = np.abs(self.values[0] - start)
+        if not np.any(d > 0):
+            return self
+        T = margin * float(max(np.max(_SMOOTH_V * d / actuators.vmax), np.max(np.sqrt(_SMOOTH_A * d / actuators.amax))))
+        return replace(self, approach_start=start, approach_time=T)
+
+    @property
+    def start_time(self) -> float:
+        """Time of the first set-point (s): the first waypoint, earlier by the approach move if any."""
+        return float(self.t[0] - self.approach_time)
+
+    # --------------------------------------------------------------- sampling
+    def sample(self, rate: float) -> tuple[np.ndarray, np.ndarray]:
+        """Set-points every 1/rate s from `start_time` to the last waypoint (included).
+
+        Returns (stamps (M,), values (M, n)); stamps are ``start_time + k / rate``
+        except the last, which is the final waypoint time.
+        """
+        dt = 1.0 / rate
+        t0, t1 = self.start_time, float(self.t[-1])
+        m = math.ceil((t1 - t0) / dt - 1e-9)
+        stamps = t0 + dt * np.arange(m + 1)
+        stamps[-1] = t1
+        with np.errstate(over="ignore", divide="ignore", invalid="ignore"):  # subnormal steps: slope 0
+            slopes = PchipInterpolator(self.t, self.values, axis=0).derivative()(self.t)
+        slopes[0] = 0.0
+        slopes[-1] = 0.0
+        spline = CubicHermiteSpline(self.t, self.values, slopes, axis=0)
+        values = spline(np.maximum(stamps, self.t[0]))
+        if self.approach_start is not None:
+            early = stamps < self.t[0]
+            u = (stamps[early] - t0) / self.approach_time
+            a0 = self.approach_start
+            values[early] = a0 + _smoothstep(u)[:, None] * (self.values[0] - a0)
+        return stamps, values

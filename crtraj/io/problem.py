@@ -1,0 +1,161 @@
+"""Problem files (TOML): robot, task, scene and per-module options.
+
+A problem file names its robot (a path relative to the file, or an inline
+``[robot]`` table) and holds the sections ``[task]``, ``[scene]``,
+``[steer]``, ``[planner]``, ``[replan]``, ``[tracking]``, ``[stream]``.
+Each section is read by the module that owns it, through `Problem.options`,
+so a section's schema lives next to the code that uses it. Unknown top-level
+sections and unknown keys are errors that name the key.
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol, TypeVar
+
+import numpy as np
+
+from crtraj.core.errors import InputError
+from crtraj.core.fields import Table
+from crtraj.model.robot import Robot
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+SECTIONS = (
+    "name",
+    "description",
+    "robot",
+    "seed",
+    "task",
+    "scene",
+    "steer",
+    "planner",
+    "replan",
+    "tracking",
+    "stream",
+    "view",
+)
+
+T = TypeVar("T")
+
+
+class _FromTable(Protocol[T]):  # pragma: no cover - typing only
+    @classmethod
+    def from_table(cls, t: Table) -> T: ...
+
+
+def read_toml(path: str | Path) -> dict[str, Any]:
+    """Parse a TOML file; one-line `InputError` on a missing or malformed file."""
+    p = Path(path)
+    try:
+        with p.open("rb") as fh:
+            return tomllib.load(fh)
+    except FileNotFoundError:
+        raise InputError(f"{p}: no such file") from None
+    except IsADirectoryError:
+        raise InputError(f"{p}: is a folder, expected a TOML file") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError(f"{p}: not valid TOML ({exc})") from None
+
+
+def load_robot(path: str | Path) -> Robot:
+    """Read a robot file (a TOML file with a ``[robot]`` table)."""
+    data = read_toml(path)
+    top = Table(data, "")
+    for key in top.keys():
+        if key != "robot":
+            raise InputError(f"{key}: unknown key in robot file {path} (expected a [robot] table)")
+    if not top.has("robot"):
+        raise InputError(f"robot: missing; {path} needs a [robot] table")
+    robot = Robot.from_table(top.table("robot"))
+    top.finish()
+    return robot
+
+
+@dataclass(frozen=True)
+class Task:
+    """Start and goal tip positions (mm); an optional start configuration overrides IK."""
+
+    start: np.ndarray
+    goal: np.ndarray
+    start_config: np.ndarray | None = None
+    goal_tolerance: float = 1.0  # mm
+
+    @classmethod
+    def from_table(cls, t: Table, nx: int) -> Task:
+        start = np.array(t.vec("start", 3))
+        goal = np.array(t.vec("goal", 3))
+        sc = t.vec("start_config", nx, None)
+        tol = t.float("goal_tolerance", 1.0, gt=0.0)
+        t.finish()
+        return cls(start, goal, None if sc is None else np.array(sc), tol)
+
+    def to_dict(self) -> dict[str, Any]:
+        d: dict[str, Any] = {"start": self.start, "goal": self.goal, "goal_tolerance": self.goal_tolerance}
+        if self.start_config is not None:
+            d["start_config"] = self.start_config
+        return d
+
+
+@dataclass(frozen=True)
+class Problem:
+    """A parsed problem file. Sections other than robot and task stay as tables
+    until a module asks for them with `options(SomeOptions)`."""
+
+    name: str
+    robot: Robot
+    task: Task | None
+    seed: int
+    path: Path | None = None
+    description: str = ""
+    raw: dict[str, Any] = field(default_factory=dict, compare=False, repr=False)
+
+    @classmethod
+    def load(cls, path: str | Path) -> Problem:
+        """Read and validate a problem file."""
+        p = Path(path)
+        return cls.from_dict(read_toml(p), p)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any], path: Path | None = None) -> Problem:
+        top = Table(data, "")
+        for key in top.keys():
+            if key not in SECTIONS:
+                raise InputError(f"{key}: unknown section (known: {', '.join(SECTIONS)})")
+        robot_ref = top.raw("robot")
+        if isinstance(robot_ref, str):
+            base = path.parent if path is not None else Path.cwd()
+            robot = load_robot(base / robot_ref)
+        else:
+            robot = Robot.from_table(Table(robot_ref, "robot"))
+        task = None
+        if top.has("task"):
+            task = Task.from_table(top.table("task"), robot.nx)
+        seed = top.int("seed", 0, ge=0)
+        name = top.str("name", path.stem if path is not None else "problem")
+        desc = top.str("description", "")
+        for key in SECTIONS:
+            top.raw(key, None)  # sections are validated by their owners
+        top.finish()
+        prob = cls(name, robot, task, seed, path, desc, dict(data))
+        return prob
+
+    def section(self, name: str) -> Table:
+        """The raw table of section `name` (empty when absent)."""
+        if name not in SECTIONS:
+            raise InputError(f"{name}: unknown section")
+        return Table(self.raw.get(name, {}), name)
+
+    def options(self, cls: type[_FromTable[T]], section: str) -> T:
+        """Parse section `section` with ``cls.from_table`` (validates unknown keys)."""
+        return cls.from_table(self.section(section))
+
+    def require_task(self) -> Task:
+        if self.task is None:
+            raise InputError("task: missing; add [task] with start and goal (mm)")
+        return self.task

@@ -1,0 +1,406 @@
+"""OMPL's geometric planners (RRTstar, RRTConnect, RRT) on crtraj's problem, with crtraj's validity checker.
+
+OMPL (the ``ompl`` package from PyPI, 2.x; install the ``bench`` extra) is
+imported only when an `OMPLPlanner` is built. What OMPL sees:
+
+- State space: configuration space x time, as a 6-D (nx + 1) real vector
+  ``(y, tau)`` with ``y = M x`` the body-motion metric coordinates of
+  `crtraj.planning.validity.MotionValidator` (mm) and ``tau = w * max_speed * (t - t0)``
+  (mm; `time_weight` w), so OMPL's distances and path lengths are in mm.
+  Obstacles move and breathe, so validity depends on time; a geometric
+  planner can only respect that if time is part of the state (the
+  space-time formulation of OMPL's own STRRT*). Bounds: the bending discs
+  and z stroke in y, and the planning horizon in tau. The time weight sets
+  how wide the cone of reachable states is in OMPL's metric: with w = 1 a
+  random extension direction is rarely slow enough to be valid; w = 0.1
+  and range = 100 mm were the best of the settings tried on eight
+  scenarios (w in 0.05-1, range 100, 150, 300 mm and OMPL's default).
+- State validity: ``MotionValidator.state_valid(x, t)`` (limits, and the
+  continuous body clear of every obstacle at time t).
+- Motion validity: time must run forward no faster than the body speed limit
+  allows (``tau_2 - tau_1 >= B(x_2 - x_1)``, the validator's body-motion
+  bound), the end state within limits, and
+  ``MotionValidator.edge_clearance(x_1, x_2, t_1, t_2) >= 0``: exactly the
+  check crtraj's own planners apply to their edges. A motion may be slower
+  than the speed limit: OMPL may wait, crtraj's planners always move at it.
+- Goal: a `GoalSampleableRegion`: satisfied when the tip is within the goal
+  tolerance (distance = tip error, mm); samples are safe goal
+  configurations found by `crtraj.planning.safe_ik.SafeIK` exactly as the
+  configuration-space planner finds them (half the IK starts clear of the
+  goal window's swept obstacles, half clear at t0), each at a random arrival
+  time between the earliest the speed limit allows and the horizon.
+- RRTstar minimises OMPL's path length in (y, tau); its delayed collision
+  checking stays on, because with it RRTstar never reuses a neighbour ->
+  new motion check for the reverse direction (which time makes invalid).
+
+The returned `PlanResult` holds the OMPL path as timed waypoints (t = t0 +
+tau / (w max_speed)), straight in configuration space and linear in time between
+them, exactly what the validity checks covered. RRTConnect's path is
+simplified with OMPL's PathSimplifier in whatever time budget is left;
+RRTstar spends the whole budget improving its tree (it is an anytime planner),
+unless the stop condition asks for the first solution.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Any
+
+import numpy as np
+
+from crtraj.core.errors import InputError
+from crtraj.core.fields import check_array
+from crtraj.model.kinematics import Model
+from crtraj.planning.options import PlannerOptions
+from crtraj.planning.result import PlanResult, PlanStatus
+from crtraj.planning.safe_ik import SafeIK
+from crtraj.planning.stop import StopCondition
+from crtraj.planning.validity import MotionValidator
+from crtraj.world.scene import Scene
+
+ALGORITHMS = ("RRTstar", "RRTConnect", "RRT")
+
+# IK NLPs are built for multiples of this many obstacle slots.
+_SLOTS = 8
+
+
+def import_ompl() -> tuple[Any, Any, Any]:
+    """(ompl.base, ompl.geometric, ompl.util), or an `InputError` saying how to install OMPL."""
+    try:
+        from ompl import base as ob
+        from ompl import geometric as og
+        from ompl import util as ou
+    except ImportError as exc:
+        raise InputError(
+            f"OMPL planners need the 'ompl' package (2.x): pip install 'crtraj[bench]' or pip install ompl ({exc})"
+        ) from None
+    return ob, og, ou
+
+
+class OMPLPlanner:
+    """One OMPL planner for one robot; reuse it for many queries (like `crtraj.planning.cspace.CSpacePlanner`).
+
+    model: the robot's `Model`. scene: the default `Scene` (a query may pass
+    another). options: `PlannerOptions` shared with crtraj's planners (max
+    speed, collision resolution, check points, IK seeds, goal window,
+    goal_bias). algorithm: "RRTstar", "RRTConnect" or "RRT". horizon: latest
+    arrival time considered, after t0 (s). time_weight: w in tau = w *
+    max_speed * t (module docstring). range: OMPL's extension range (mm in
+    (y, tau); None keeps OMPL's default, 20 % of the space's extent).
+    simplify: run OMPL's PathSimplifier on the solution with the time left.
+    """
+
+    def __init__(
+        self,
+        model: Model,
+        scene: Scene | None = None,
+        options: PlannerOptions | None = None,
+        *,
+        algorithm: str = "RRTstar",
+        horizon: float = 60.0,
+        time_weight: float = 0.1,
+        range: float | None = 100.0,
+        simplify: bool = True,
+    ) -> None:
+        if algorithm not in ALGORITHMS:
+            raise InputError(f"algorithm: OMPL planner must be one of {', '.join(ALGORITHMS)}; got {algorithm!r}")
+        if not (math.isfinite(horizon) and horizon > 0):
+            raise InputError(f"horizon: must be a finite number > 0 (s), got {horizon!r}")
+        if not (math.isfinite(time_weight) and time_weight > 0):
+            raise InputError(f"time_weight: must be a finite number > 0, got {time_weight!r}")
+        if range is not None and not (math.isfinite(range) and range > 0):
+            raise InputError(f"range: must be a finite number > 0 (mm), got {range!r}")
+        self.ob, self.og, self.ou = import_ompl()
+        self.ou.setLogLevel(self.ou.LOG_NONE)  # OMPL's console chatter would interleave with progress bars
+        self.model = model
+        self.robot = model.robot
+        self.scene = scene if scene is not None else Scene()
+        self.options = options if options is not None else PlannerOptions()
+        self.algorithm = algorithm
+        self.name = f"ompl-{algorithm.lower()}"
+        self.horizon = float(horizon)
+        self.time_weight = float(time_weight)
+        self.range = range
+        self.simplify = bool(simplify)
+        self._iks: dict[int, SafeIK] = {}
+
+    # ---------------------------------------------------------------- helpers
+    def _ik(self, n_obstacles: int, v: MotionValidator) -> SafeIK:
+        slots = _SLOTS * max(1, math.ceil(n_obstacles / _SLOTS))
+        ik = self._iks.get(slots)
+        if ik is None:
+            ik = SafeIK(self.model, v, slots)
+            self._iks[slots] = ik
+        return ik
+
+    def _goal_configs(
+        self,
+        v: MotionValidator,
+        goal: np.ndarray,
+        xs: np.ndarray,
+        t0: float,
+        rng: np.random.Generator,
+        deadline: float,
+        goal_tolerance: float,
+        counts: dict[str, int],
+    ) -> np.ndarray:
+        """Safe configurations with the tip on the goal, found as the c-space planner finds them."""
+        o, sc = self.options, v.scene
+        ik = self._ik(sc.n_obstacles, v)
+        n = o.ik_seeds
+        seeds = np.concatenate([xs[None], v.sample(rng, n - 1)]) if n > 1 else xs[None]
+        kw: dict[str, Any] = {
+            "want": o.goal_configs,
+            "newton_iterations": o.ik_iterations,
+            "deadline": deadline,
+            "validator": v,
+            "tip_tolerance": min(1e-3, goal_tolerance),
+        }
+        if v.static or o.goal_window == 0:
+            parts = [ik.solve(goal, sc.pack(t0, ik.max_obstacles), seeds, t_check=(t0, t0), **kw)]
+        else:
+            t_end = t0 + o.goal_window
+            half = (len(seeds) + 1) // 2
+            parts = [
+                ik.solve(goal, sc.pack_over(t0, t_end, ik.max_obstacles), seeds[:half], t_check=(t0, t_end), **kw),
+                ik.solve(goal, sc.pack(t0, ik.max_obstacles), seeds[half:], t_check=(t0, t0), **kw),
+            ]
+        counts["ik_solves_goal"] = sum(len(b.solutions) for b in parts)
+        return np.concatenate([b.safe for b in parts])
+
+    # ------------------------------------------------------------------ query
+    def plan(
+        self,
+        goal: Any,
+        *,
+        start_config: Any,
+        t0: float = 0.0,
+        stop: StopCondition | None = None,
+        seed: int | None = None,
+        scene: Scene | None = None,
+        goal_tolerance: float = 1.0,
+    ) -> PlanResult:
+        """Plan from a start configuration (nx,) to a goal tip (3,) mm, starting at time t0 (s).
+
+        stop: must limit time (OMPL planners stop on wall time; an iteration
+        limit is not available through OMPL's Python API); first_solution
+        stops RRTstar at its first solution. seed: seeds the IK starts and
+        OMPL's random generator. Bad input raises `InputError`; an unsafe
+        start or an unreachable goal is a result status.
+        """
+        ob, og, ou = self.ob, self.og, self.ou
+        o = self.options
+        goal = check_array(goal, "goal", (3,))
+        xs = check_array(start_config, "start_config", (self.robot.nx,))
+        t0 = float(check_array(t0, "t0", ()))
+        if not (math.isfinite(goal_tolerance) and goal_tolerance > 0):
+            raise InputError(f"goal_tolerance: must be > 0 mm, got {goal_tolerance}")
+        stop = StopCondition(time_limit=o.time_limit) if stop is None else stop
+        if stop.time_limit is None:
+            raise InputError("stop.time_limit: OMPL planners need a time limit (s)")
+        clock = stop.start()
+        deadline = clock.t_start + stop.time_limit
+        rng = np.random.default_rng(seed)
+        sc = self.scene if scene is None else scene
+        v = self.options.validator(self.model, sc)
+        timings: dict[str, float] = {}
+        counts: dict[str, int] = {"validity_checks": 0, "motion_checks": 0, "goal_samples": 0}
+
+        def finish(
+            status: PlanStatus,
+            message: str,
+            X: np.ndarray | None = None,
+            T: np.ndarray | None = None,
+            goals: np.ndarray | None = None,
+        ) -> PlanResult:
+            timings["total"] = time.perf_counter() - clock.t_start
+            return self._result(status, message, seed, v, goal, X, T, goals, timings, counts)
+
+        # ---- start
+        viol = float(self.robot.limit_violation(xs)[0])
+        if viol > 1e-7:
+            return finish(PlanStatus.INVALID_START, f"start configuration violates the robot limits by {viol:.3g}")
+        c0 = float(v.clearance(xs[None], t0)[0])
+        if c0 < 0:
+            return finish(PlanStatus.INVALID_START, f"start configuration is in collision: clearance {c0:.2f} mm")
+
+        # ---- goal configurations
+        t1 = time.perf_counter()
+        goals = self._goal_configs(v, goal, xs, t0, rng, deadline, goal_tolerance, counts)
+        timings["goal_ik"] = time.perf_counter() - t1
+        if not len(goals):
+            return finish(PlanStatus.INVALID_GOAL, f"no safe configuration puts the tip on the goal {goal.tolist()} mm")
+
+        # ---- the OMPL problem in (y, tau)
+        speed = v.max_speed
+        tscale = self.time_weight * speed  # mm of tau per second
+        nx = self.robot.nx
+        n = self.robot.n_segments
+        space = ob.RealVectorStateSpace(nx + 1)
+        bounds = ob.RealVectorBounds(nx + 1)
+        tmax = np.array([s.theta_max for s in self.robot.segments])
+        for k in range(n):
+            r = float(v.weights[k] * tmax[k])
+            for j in (2 * k, 2 * k + 1):
+                bounds.setLow(j, -r)
+                bounds.setHigh(j, r)
+        bounds.setLow(nx - 1, float(self.robot.z_range[0]))
+        bounds.setHigh(nx - 1, float(max(self.robot.z_range[1], self.robot.z_range[0] + 1e-9)))
+        bounds.setLow(nx, 0.0)
+        bounds.setHigh(nx, tscale * self.horizon)
+        space.setBounds(bounds)
+        si = ob.SpaceInformation(space)
+
+        def unpack(s: Any) -> tuple[np.ndarray, float]:
+            y = np.array([s[i] for i in range(nx)])
+            return v.config_from_metric(y), t0 + s[nx] / tscale
+
+        class Validity(ob.StateValidityChecker):
+            def isValid(self, s: Any) -> bool:  # noqa: N802 (OMPL's name)
+                counts["validity_checks"] += 1
+                x, t = unpack(s)
+                return bool(v.state_valid(x[None], t)[0])
+
+        class Motion(ob.MotionValidator):
+            def checkMotion(self, s1: Any, s2: Any) -> bool:  # noqa: N802 (OMPL's name)
+                counts["motion_checks"] += 1
+                x1, t1_ = unpack(s1)
+                x2, t2_ = unpack(s2)
+                if (t2_ - t1_) * speed < float(v.motion_bound(x2 - x1)) - 1e-9:
+                    return False  # backwards in time, or faster than the body speed limit
+                if not bool(v.within_limits(x2[None])[0]):
+                    return False
+                per_edge, _, _ = v.edge_clearance(x1[None], x2[None], t1_, t2_)
+                return bool(per_edge[0] >= 0.0)
+
+        y_goals = v.metric(goals)
+        tau_min = v.motion_bound(goals - xs[None]) * (tscale / speed)  # earliest arrival at each goal
+        tau_max = tscale * self.horizon
+        model = self.model
+
+        class Goal(ob.GoalSampleableRegion):
+            def distanceGoal(self, s: Any) -> float:  # noqa: N802 (OMPL's name)
+                x, _ = unpack(s)
+                return float(np.linalg.norm(model.tip_position(x) - goal))
+
+            def sampleGoal(self, s: Any) -> None:  # noqa: N802 (OMPL's name)
+                counts["goal_samples"] += 1
+                k = int(rng.integers(len(y_goals)))
+                lo = min(float(tau_min[k]), tau_max)
+                tau = float(rng.uniform(lo, tau_max))
+                for i in range(nx):
+                    s[i] = float(y_goals[k, i])
+                s[nx] = tau
+
+            def maxSampleCount(self) -> int:  # noqa: N802 (OMPL's name)
+                return 1_000_000
+
+        si.setStateValidityChecker(Validity(si))
+        si.setMotionValidator(Motion(si))
+        si.setup()
+        pdef = ob.ProblemDefinition(si)
+        start = space.allocState()
+        for i, val in enumerate(v.metric(xs)):
+            start[i] = float(val)
+        start[nx] = 0.0
+        pdef.addStartState(start)
+        goal_region = Goal(si)
+        goal_region.setThreshold(float(goal_tolerance))
+        pdef.setGoal(goal_region)
+        if self.algorithm == "RRTstar":
+            pdef.setOptimizationObjective(ob.PathLengthOptimizationObjective(si))
+        planner = getattr(og, self.algorithm)(si)
+        if self.range is not None:
+            planner.setRange(float(self.range))
+        if self.algorithm in ("RRTstar", "RRT"):
+            planner.setGoalBias(float(o.goal_bias))
+        if self.algorithm == "RRTstar":
+            planner.setDelayCC(True)
+        planner.setProblemDefinition(pdef)
+        planner.setup()
+        if seed is not None:
+            ou.RNG.setSeed(int(seed) % 2_147_483_646 + 1)  # OMPL seeds must be positive 32-bit
+
+        # ---- solve
+        left = deadline - time.perf_counter()
+        if left <= 0:
+            return finish(PlanStatus.TIMEOUT, "no time left after the goal IK", goals=goals)
+        ptc = ob.timedPlannerTerminationCondition(left)
+        if stop.first_solution and self.algorithm == "RRTstar":
+            ptc = ob.plannerOrTerminationCondition(ptc, ob.exactSolnPlannerTerminationCondition(pdef))
+        t1 = time.perf_counter()
+        status = planner.solve(ptc)
+        timings["search"] = time.perf_counter() - t1
+        exact = status.getStatus() == ob.PlannerStatus.EXACT_SOLUTION and pdef.hasExactSolution()
+        if not pdef.hasSolution():
+            return finish(PlanStatus.TIMEOUT, f"OMPL {self.algorithm}: {status.asString()}", goals=goals)
+        path = pdef.getSolutionPath()
+        left = deadline - time.perf_counter()
+        if exact and self.simplify and left > 0:
+            t1 = time.perf_counter()
+            og.PathSimplifier(si, goal_region).simplify(path, left)
+            timings["simplify"] = time.perf_counter() - t1
+        S = np.array([[path.getState(i)[j] for j in range(nx + 1)] for i in range(path.getStateCount())])
+        X = v.config_from_metric(S[:, :nx])
+        T = t0 + S[:, nx] / tscale
+        X[0] = xs  # the metric round trip moves the start by round-off only
+        msg = f"OMPL {self.algorithm}: {status.asString()}; {len(X)} waypoints"
+        return finish(PlanStatus.EXACT if exact else PlanStatus.APPROXIMATE, msg, X, T, goals)
+
+    def _result(
+        self,
+        status: PlanStatus,
+        message: str,
+        seed: int | None,
+        v: MotionValidator,
+        goal: np.ndarray,
+        X: np.ndarray | None,
+        T: np.ndarray | None,
+        goals: np.ndarray | None,
+        timings: dict[str, float],
+        counts: dict[str, int],
+    ) -> PlanResult:
+        nx, nq = self.robot.nx, self.robot.nq
+        if X is None or T is None:
+            return PlanResult(
+                status=status,
+                message=message,
+                planner=self.name,
+                seed=seed,
+                t=np.zeros(0),
+                configs=np.zeros((0, nx)),
+                tips=np.zeros((0, 3)),
+                cables=np.zeros((0, nq)),
+                goal_configs=goals,
+                timings=dict(timings),
+                counts=dict(counts),
+            )
+        tips = self.model.tip_position(X)
+        goal_error = float(np.linalg.norm(tips[-1] - goal))
+        if status is PlanStatus.EXACT and not np.all(v.within_limits(X)):
+            status, message = PlanStatus.APPROXIMATE, message + "; a waypoint is out of limits"
+        clear = float(v.path_clearance(X, T)[0]) if len(X) > 1 else float(v.clearance(X, T[0])[0])
+        # tip travel along the straight motions, sampled every `resolution` of body motion
+        n_sub = np.maximum(1, np.ceil(v.motion_bound(np.diff(X, axis=0)) / v.resolution)).astype(int)
+        seg = np.repeat(np.arange(len(X) - 1), n_sub)
+        frac = (np.arange(n_sub.sum()) - np.repeat(np.cumsum(n_sub) - n_sub, n_sub) + 1) / n_sub[seg]
+        dense = [X[:1], X[seg] + frac[:, None] * (X[seg + 1] - X[seg])]
+        length = float(np.sum(np.linalg.norm(np.diff(self.model.tip_position(np.concatenate(dense)), axis=0), axis=1)))
+        return PlanResult(
+            status=status,
+            message=message,
+            planner=self.name,
+            seed=seed,
+            t=T,
+            configs=X,
+            tips=tips,
+            cables=self.model.cables(X),
+            length=length,
+            cost=float(np.sum(v.motion_bound(np.diff(X, axis=0)))),
+            min_clearance=clear,
+            goal_error=goal_error,
+            goal_configs=goals,
+            timings=dict(timings),
+            counts=dict(counts),
+        )

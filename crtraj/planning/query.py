@@ -1,0 +1,51 @@
+"""The checked inputs and clock of one planning query, shared by every planner."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from crtraj.core.errors import InputError
+from crtraj.core.fields import check_array
+from crtraj.planning.stop import StopCondition
+
+
+@dataclass(frozen=True)
+class PlanQuery:
+    """One query: goal tip (mm), start time t0 (s), stop condition and its running clock,
+    absolute deadline (perf_counter s, inf without a time limit) and the seeded generator."""
+
+    goal: np.ndarray
+    t0: float
+    stop: StopCondition
+    clock: Any
+    deadline: float
+    rng: np.random.Generator
+
+    @classmethod
+    def begin(
+        cls,
+        default_stop: StopCondition,
+        goal: Any,
+        *,
+        t0: Any,
+        goal_tolerance: float,
+        start_config: Any,
+        start_tip: Any,
+        stop: StopCondition | None,
+        seed: int | None,
+    ) -> PlanQuery:
+        """Validate a query's arguments (one-line `InputError`s) and start its clock."""
+        goal = check_array(goal, "goal", (3,))
+        t0 = float(check_array(t0, "t0", ()))
+        if not goal_tolerance > 0:
+            raise InputError(f"goal_tolerance: must be > 0 mm, got {goal_tolerance}")
+        if (start_config is None) == (start_tip is None):
+            raise InputError("start: give exactly one of start_config or start_tip")
+        stop = default_stop if stop is None else stop
+        stop.check_bounded()
+        clock = stop.start()
+        deadline = clock.t_start + (stop.time_limit if stop.time_limit is not None else np.inf)
+        return cls(goal, t0, stop, clock, deadline, np.random.default_rng(seed))

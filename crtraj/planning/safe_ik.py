@@ -1,0 +1,363 @@
+"""Safety-constrained inverse kinematics from many seeded starts.
+
+Finds configurations x whose tip is exactly on a target point and whose
+whole body keeps the safety distance from every obstacle, in two stages:
+
+1. Batch projection: every seed configuration takes damped-Newton steps onto
+   tip(x) = target at once (one CasADi call per step for all seeds), each
+   step the smallest body motion that removes the tip error, then back into
+   the bending discs and z stroke. Projections that the validator finds
+   safe are kept directly. This is where most goal configurations come from,
+   in a few milliseconds.
+2. The safety-constrained NLP, solved with IPOPT from the remaining
+   projections while fewer than the wanted number of safe configurations
+   exist:
+
+    minimise    |M (x - x_ref)|^2 / 1e4              (closest to the projection, body-motion units)
+    subject to  tip(x) = target                        (3 equalities, mm)
+                limits(x) within bounds                (bending discs, cable strokes, z stroke)
+                |p_i(x) - c_j|^2 >= (R_j + inflate)^2 + (h/2)^2   for every check point i, obstacle j
+
+   The last line makes every *chord* between neighbouring check points (arc
+   spacing h) clear R_j + inflate, which is what `MotionValidator` verifies,
+   so the NLP's solutions pass the planner's checks (they are re-verified
+   anyway). Obstacles, target and reference are parameters: the NLP is
+   built once per (model, max obstacles), on first use, and re-solved.
+
+Seeds pull toward their own random configurations, so the kept solutions
+spread over the robot's redundancy (3 tip equalities leave a 2-D family of
+goal configurations for the 5-DOF robot).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import casadi as ca
+import numpy as np
+
+from crtraj.core.fields import check_array
+from crtraj.model.kinematics import Model
+from crtraj.planning.validity import LIMIT_TOL, MotionValidator
+
+
+@dataclass(frozen=True)
+class IKSolution:
+    """Outcome of one start: configuration, IPOPT status and independent checks."""
+
+    x: np.ndarray
+    status: str
+    success: bool  # IPOPT converged
+    tip_error: float  # mm
+    clearance: float  # conservative body clearance (mm, minus D_sf) by MotionValidator
+    within_limits: bool
+    wall_time: float  # s
+
+    @property
+    def safe(self) -> bool:
+        return self.success and self.within_limits and self.clearance >= 0.0
+
+
+@dataclass(frozen=True)
+class IKBatch:
+    """All starts of one query and the safe, distinct solutions among them."""
+
+    solutions: tuple[IKSolution, ...]
+    safe: np.ndarray  # (G, nx) safe distinct configurations
+    wall_time: float
+    statuses: dict[str, int] = field(default_factory=dict)
+
+
+class SafeIK:
+    """Multi-start safe IK on one IPOPT NLP with obstacles as parameters.
+
+    model: the robot model. validator: supplies the check points, the metric,
+    the scene's safety distance and the final verification. max_obstacles: obstacle slots in the NLP
+    (a scene may use fewer). margin: extra clearance (mm) the NLP keeps on top
+    of the validator's, so solutions survive the validator's edge margins.
+    """
+
+    def __init__(
+        self,
+        model: Model,
+        validator: MotionValidator,
+        max_obstacles: int,
+        *,
+        margin: float | None = None,
+        tip_tolerance: float = 1e-3,
+        max_iter: int = 60,
+    ) -> None:
+        self.model = model
+        self.validator = validator
+        self.robot = model.robot
+        self.max_obstacles = int(max_obstacles)
+        self.margin = validator.resolution / 2.0 + 0.25 if margin is None else float(margin)
+        self.tip_tolerance = float(tip_tolerance)
+        self.max_iter = int(max_iter)
+        self._solver: ca.Function | None = None
+        self._lbg = self._ubg = np.zeros(0)
+        self._box = self.robot.config_box()
+        x = ca.SX.sym("x", self.robot.nx)
+        # batch projection (stage 1): tip and Jacobian in one call, mapped per batch size
+        self._tip_jac_single = ca.Function("tip_jac", [x], [model.tip(x), model.jac_tip(x)])
+        self._tip_jac: dict[int, ca.Function] = {}
+        Mx = validator.metric_matrix
+        self._W_inv = np.linalg.inv(Mx.T @ Mx)
+        self._damping = 1e-3
+        self._step = 150.0  # mm of tip error removed per Newton step at most
+
+    @property
+    def solver(self) -> ca.Function:
+        """The IPOPT NLP (built on first use, then reused for every solve)."""
+        if self._solver is None:
+            self._solver = self._build()
+        return self._solver
+
+    def _build(self) -> ca.Function:
+        from crtraj.world.scene import PACK_WIDTH
+
+        model, validator = self.model, self.validator
+        M = self.max_obstacles
+        n = validator.check_points
+        x = ca.SX.sym("x", self.robot.nx)
+        goal = ca.SX.sym("goal", 3)
+        obs = ca.SX.sym("obstacles", PACK_WIDTH * M)
+        xref = ca.SX.sym("x_ref", self.robot.nx)
+        inflate = ca.SX.sym("inflate")
+        Mm = ca.DM(validator.metric_matrix / 100.0)
+        f = ca.sumsqr(Mm @ (x - xref))
+        g = [model.tip(x) - goal, model.limits(x)]
+        lbg = [np.zeros(3), model.limit_bounds()[0]]
+        ubg = [np.zeros(3), model.limit_bounds()[1]]
+        if M:
+            pts = model.backbone_function(n)(x)  # 3 x n
+            h = self.robot.total_length / (n - 1)
+            cl = []
+            for j in range(M):
+                c = obs[PACK_WIDTH * j : PACK_WIDTH * j + 3]
+                r = obs[PACK_WIDTH * j + 3] + inflate
+                act = obs[PACK_WIDTH * j + 4]
+                d2 = ca.sum1((pts - ca.repmat(c, 1, n)) ** 2)
+                # padding slots have active = 0: the row is 0 >= 0 and inert
+                cl.append((act * ((d2 - (h / 2.0) ** 2) / (r * r) - 1.0)).T)
+            g.append(ca.vertcat(*cl))
+            lbg.append(np.zeros(n * M))
+            ubg.append(np.full(n * M, np.inf))
+        self._lbg = np.concatenate(lbg)
+        self._ubg = np.concatenate(ubg)
+        nlp = {"x": x, "p": ca.vertcat(goal, obs, xref, inflate), "f": f, "g": ca.vertcat(*g)}
+        opts = {
+            "ipopt.print_level": 0,
+            "print_time": False,
+            "ipopt.sb": "yes",
+            "ipopt.max_iter": self.max_iter,
+            "ipopt.tol": 1e-8,
+            "ipopt.constr_viol_tol": 1e-7,
+            "error_on_fail": False,
+        }
+        return ca.nlpsol("safe_ik", "ipopt", nlp, opts)
+
+    def project(self, target: np.ndarray, seeds: np.ndarray, iterations: int) -> tuple[np.ndarray, np.ndarray]:
+        """Batch damped-Newton projection of every seed onto tip(x) = target, ignoring obstacles.
+
+        Each step is the smallest body motion (metric M) that removes the tip
+        error (at most `step` mm of it), then the configuration is projected
+        back into the bending discs and z stroke. All seeds move at once:
+        one CasADi call per iteration evaluates every tip and Jacobian.
+        Returns (configurations (S, nx), tip errors (S,) mm).
+        """
+        X = np.atleast_2d(np.asarray(seeds, dtype=float)).copy()
+        S = X.shape[0]
+        f = self._tip_jac.get(S)
+        if f is None:
+            f = self._tip_jac_single.map(S, "serial")
+            self._tip_jac[S] = f
+        err = np.full(S, np.inf)
+        for _ in range(iterations + 1):
+            P, J = f(X.T)
+            P = np.asarray(P).T
+            J = np.asarray(J).reshape(3, S, self.robot.nx).transpose(1, 0, 2)
+            e = target - P
+            err = np.linalg.norm(e, axis=1)
+            if _ == iterations or np.all(err < self.tip_tolerance):
+                break
+            e *= np.minimum(1.0, self._step / np.maximum(err, 1e-300))[:, None]
+            JW = J @ self._W_inv
+            A = JW @ np.transpose(J, (0, 2, 1)) + self._damping * np.eye(3)
+            dx = np.einsum("nij,ni->nj", JW, np.linalg.solve(A, e[..., None])[..., 0])
+            X = self.validator.project_limits(X + dx)
+        return X, err
+
+    def solve(
+        self,
+        target: np.ndarray,
+        scene_pack: np.ndarray,
+        seeds: np.ndarray,
+        *,
+        t_check: tuple[float, float] = (0.0, 0.0),
+        want: int | None = None,
+        newton_iterations: int = 15,
+        dedup: float = 5.0,
+        deadline: float | None = None,
+        validator: MotionValidator | None = None,
+        tip_tolerance: float | None = None,
+        max_nlp: int | None = None,
+        always: tuple[int, ...] = (),
+    ) -> IKBatch:
+        """Safe configurations with the tip on `target` (mm), from seed configurations (S, nx).
+
+        Stage 1 projects every seed onto the tip constraint at once
+        (`project`) and keeps the projections that the validator finds safe
+        with the NLP's margin. Stage 2, while fewer than `want` distinct safe
+        configurations exist, solves the safety-constrained NLP with IPOPT from
+        the remaining projections (most promising first: highest clearance,
+        then smallest tip error). scene_pack: `Scene.pack` / `Scene.pack_over`
+        output for the NLP's obstacles; t_check: the time window (s) the
+        validator re-verifies every solution over. dedup: solutions closer
+        than this body motion (mm) to a kept one are dropped. deadline: a
+        `time.perf_counter()` value after which no further NLP is started.
+        validator: the scene to check against (default: the one given at construction;
+        it must share the robot, check points and resolution). tip_tolerance:
+        largest accepted tip error (mm; default the one given at construction).
+        max_nlp: at most this many NLP solves (default: one per remaining seed).
+        always: seed indices whose projection, if not safe, gets an NLP solve
+        first, even when enough configurations exist (e.g. the start
+        configuration as a seed: the safe goal configuration nearest to it).
+        """
+        t_start = time.perf_counter()
+        v = self.validator if validator is None else validator
+        tol = self.tip_tolerance if tip_tolerance is None else float(tip_tolerance)
+        target = np.asarray(target, dtype=float)
+        seeds = np.atleast_2d(np.asarray(seeds, dtype=float))
+        want = len(seeds) if want is None else int(want)
+        required = self.margin - 0.25  # the NLP keeps `margin`; allow for its tolerance
+        sols: list[IKSolution] = []
+        kept: list[np.ndarray] = []
+
+        def keep(x: np.ndarray) -> None:
+            if kept and np.min(v.motion_bound(np.array(kept) - x)) < dedup:
+                return
+            kept.append(x)
+
+        # project in blocks of Newton steps and stop as soon as enough safe configurations exist
+        S = len(seeds)
+        X = seeds.copy()
+        err = np.full(S, np.inf)
+        clear = np.full(S, -np.inf)
+        checked = np.zeros(S, dtype=bool)
+        good = np.zeros(S, dtype=bool)
+        done_it = 0
+        while True:
+            block = min(6 if done_it == 0 else 3, newton_iterations - done_it)
+            X, err = self.project(target, X, block)
+            done_it += block
+            new = ~checked & (err <= tol)
+            if new.any():
+                idx = np.flatnonzero(new)
+                clear[idx] = v.clearance(X[idx], t_check[0], t_check[1])
+                ok = v.within_limits(X[idx]) & (clear[idx] >= required)
+                good[idx] = ok
+                checked[idx] = True
+                for i in idx[ok]:
+                    sols.append(IKSolution(X[i], "projection", True, float(err[i]), float(clear[i]), True, 0.0))
+                    keep(X[i])
+            if len(kept) >= want or done_it >= newton_iterations:
+                break
+        converged = err <= tol
+        statuses: dict[str, int] = {"projection": int(good.sum())}
+        # most promising first: converged (by clearance), then by tip error
+        rest = np.flatnonzero(~good)
+        order = rest[np.lexsort((err[rest], -np.where(converged[rest], clear[rest], -np.inf)))]
+        forced = [i for i in always if 0 <= i < S and not good[i]]
+        order = np.concatenate([forced, [i for i in order if i not in forced]]).astype(int)
+        inflate = v.inflate + self.margin
+        if max_nlp is not None:
+            order = order[: max(0, int(max_nlp))]
+        for i in order:
+            if i not in forced and len(kept) >= want:
+                break
+            if deadline is not None and time.perf_counter() > deadline:
+                break
+            t1 = time.perf_counter()
+            # start from the projection, stay close to the seed itself
+            x0 = X[i]
+            p = np.concatenate([target, scene_pack, seeds[i], [inflate]])
+            r = self.solver(x0=x0, p=p, lbx=self._box[0], ubx=self._box[1], lbg=self._lbg, ubg=self._ubg)
+            st = self.solver.stats()
+            # IPOPT meets the limits to its tolerance (~1e-8); put the result exactly inside
+            xs = self.validator.project_limits(np.asarray(r["x"], dtype=float).reshape(1, -1))[0]
+            status = str(st.get("return_status", "unknown"))
+            statuses[status] = statuses.get(status, 0) + 1
+            ok = bool(st.get("success", False)) and bool(np.all(np.isfinite(xs)))
+            tip_err = float(np.linalg.norm(self.model.tip_position(xs) - target)) if ok else np.inf
+            ok = ok and tip_err <= tol
+            ins = bool(v.within_limits(xs[None])[0]) if ok else False
+            c = float(v.clearance(xs[None], t_check[0], t_check[1])[0]) if ok else -np.inf
+            sol = IKSolution(xs, status, ok, tip_err, c, ins, time.perf_counter() - t1)
+            sols.append(sol)
+            if sol.safe and c >= required:
+                keep(xs)
+        safe = np.array(kept) if kept else np.zeros((0, self.robot.nx))
+        return IKBatch(tuple(sols), safe, time.perf_counter() - t_start, statuses)
+
+
+def format_statuses(statuses: dict[str, int]) -> str:
+    """'Solve_Succeeded x3, Infeasible_Problem_Detected x2' (for messages)."""
+    return ", ".join(f"{k} x{n}" for k, n in statuses.items()) or "none tried"
+
+
+def resolve_start(
+    ik: SafeIK,
+    validator: MotionValidator,
+    *,
+    start_config: Any,
+    start_tip: Any,
+    t0: float,
+    rng: np.random.Generator,
+    seeds: int,
+    iterations: int,
+    deadline: float | None,
+    tip_tolerance: float,
+    max_nlp: int | None = None,
+) -> tuple[np.ndarray | None, str, int]:
+    """The start configuration of a query: checked when given, else safe IK for the start tip.
+
+    Returns (x or None, why it is invalid, IK solves). Among several safe IK
+    solutions the least bent one is taken (smallest bending body motion).
+    Bad input (shape, NaN) raises `InputError`.
+    """
+    robot = ik.robot
+    if start_config is not None:
+        xs = check_array(start_config, "start_config", (robot.nx,))
+        viol = float(robot.limit_violation(xs)[0])
+        if viol > LIMIT_TOL:
+            return None, f"start configuration violates the robot limits by {viol:.3g}", 0
+        c = float(validator.clearance(xs[None], t0)[0])
+        if c < 0:
+            return None, f"start configuration is in collision: body clearance {c:.2f} mm (below D_sf + margins)", 0
+        return xs, "", 0
+    st = check_array(start_tip, "start_tip", (3,))
+    batch = ik.solve(
+        st,
+        validator.scene.pack(t0, ik.max_obstacles),
+        validator.sample(rng, seeds),
+        t_check=(t0, t0),
+        want=1,
+        newton_iterations=iterations,
+        deadline=deadline,
+        validator=validator,
+        tip_tolerance=tip_tolerance,
+        max_nlp=max_nlp,
+    )
+    if not len(batch.safe):
+        return (
+            None,
+            f"no safe configuration puts the tip on the start {st.tolist()} mm "
+            f"({seeds} IK starts: {format_statuses(batch.statuses)})",
+            len(batch.solutions),
+        )
+    bend = batch.safe.copy()
+    bend[:, -1] = 0.0
+    return batch.safe[int(np.argmin(validator.motion_bound(bend)))], "", len(batch.solutions)

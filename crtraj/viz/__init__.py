@@ -1,0 +1,1 @@
+"""The meshcat browser view. Above: io."""
