@@ -10,6 +10,7 @@ import pytest
 from crtraj.control.horizon import HorizonResult, Replanner, ReplanOptions
 from crtraj.core.errors import InputError
 from crtraj.core.fields import Table
+from crtraj.world import packing
 from crtraj.world.scene import Obstacle, Scene
 
 XS = np.array([0.3, 0.0, 0.0, 0.0, 0.0])
@@ -105,7 +106,7 @@ def test_obstacle_slots_enclose_the_obstacle_over_each_window(model, planner):
     )
     scene = Scene(obstacles=(BALL, mover), safety_distance=5.0)
     t0 = 0.77
-    slots = planner.obstacles_from_scene(scene, t0).reshape(planner.N, 2, 4)
+    slots = planner.obstacles_from_scene(scene, t0).reshape(planner.N, 2, packing.WIDTH)
     lo, hi = planner.step_windows(t0)
     h = planner.spacing
     for k in range(planner.N):
@@ -119,7 +120,7 @@ def test_obstacle_slots_enclose_the_obstacle_over_each_window(model, planner):
 
 def test_padding_slots_are_inert(model, planner):
     scene = Scene(obstacles=(BALL,), safety_distance=5.0)
-    slots = planner.obstacles_from_scene(scene, 0.0).reshape(planner.N, 2, 4)
+    slots = planner.obstacles_from_scene(scene, 0.0).reshape(planner.N, 2, packing.WIDTH)
     assert np.all(slots[:, 1, 2] >= 1e5)  # far up the z axis
     too_many = Scene(obstacles=(BALL, BALL, BALL), safety_distance=5.0)
     with pytest.raises(InputError, match="at most 2"):
@@ -131,7 +132,7 @@ def test_constant_velocity_prediction_encloses_the_extrapolated_sphere(planner):
     v = np.array([[5.0, -3.0, 1.0]])
     r, rd = np.array([30.0]), np.array([-2.0])
     age = 0.05
-    slots = planner.obstacles_from_states(c, r, v, rd, age=age).reshape(planner.N, 2, 4)
+    slots = planner.obstacles_from_states(c, r, v, rd, age=age).reshape(planner.N, 2, packing.WIDTH)
     lo, hi = planner.step_windows(age)
     for k in range(planner.N):
         tt = np.linspace(lo[k], hi[k], 51)
@@ -171,7 +172,7 @@ def test_failed_solve_is_reported_as_failed(model):
 
 
 def test_bad_input_is_one_clear_error(planner):
-    ob = np.zeros((planner.N, 8))
+    ob = np.zeros((planner.N, packing.WIDTH * planner.max_obstacles))
     with pytest.raises(InputError, match="x0"):
         planner.solve(np.full(5, np.nan), np.zeros((planner.N, 5)), ob)
     with pytest.raises(InputError, match="max_obstacles"):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import casadi as ca
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -13,7 +14,9 @@ from hypothesis import strategies as st
 from crtraj.core.errors import InputError
 from crtraj.core.fields import Table
 from crtraj.io.problem import Problem
-from crtraj.world.scene import DEFAULT_WORKSPACE, PACK_WIDTH, Obstacle, Scene
+from crtraj.world import margin, packing
+from crtraj.world.obstacle import Obstacle
+from crtraj.world.scene import DEFAULT_WORKSPACE, Scene
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -175,7 +178,7 @@ def test_empty_scene_is_infinitely_clear(model):
     assert scene.n_obstacles == 0
     assert np.isinf(scene.clearance_points(np.zeros((3, 4, 3)), 0.0)).all()
     assert np.isinf(scene.clearance_over(model, model.robot.straight(), 0.0, 1.0))
-    np.testing.assert_array_equal(Scene.unpack(scene.pack(0.0, 2))[2], [0, 0])
+    np.testing.assert_array_equal(packing.unpack(scene.pack(0.0, 2))[2], [0, 0])
 
 
 def test_bad_points_and_times_raise():
@@ -262,8 +265,8 @@ def test_clearance_over_sees_motion_between_the_ends():
 def test_pack_layout_and_padding_is_inert():
     scene = moving_scene()
     packed = scene.pack(1.7, 6)
-    assert packed.shape == (6 * PACK_WIDTH,)
-    centers, radii, active = Scene.unpack(packed)
+    assert packed.shape == (6 * packing.WIDTH,)
+    centers, radii, active = packing.unpack(packed)
     c, r = scene.states(1.7)
     np.testing.assert_allclose(centers[:3], c)
     np.testing.assert_allclose(radii[:3], r)
@@ -288,10 +291,67 @@ def test_pack_too_many_obstacles_raises():
 
 def test_pack_over_encloses_the_swept_volume():
     scene = moving_scene()
-    centers, radii, _ = Scene.unpack(scene.pack_over(0.5, 2.5, 3))
+    centers, radii, _ = packing.unpack(scene.pack_over(0.5, 2.5, 3))
     C, R = scene.states(np.linspace(0.5, 2.5, 2001))
     reach = np.linalg.norm(C - centers, axis=-1) + R  # farthest surface point from the slot centre
     assert np.all(reach <= radii + 1e-9)
+
+
+def test_packing_keeps_leading_dims_and_slots_read_back_in_casadi():
+    # one row per horizon step, as the replanner packs: (N, m, 3) + (N, m) -> (N, WIDTH * M)
+    rng = np.random.default_rng(4)
+    c, r = rng.uniform(-100, 100, (7, 2, 3)), rng.uniform(1, 50, (7, 2))
+    packed = packing.pack(c, r, 3)
+    assert packed.shape == (7, 3 * packing.WIDTH)
+    cc, rr, aa = packing.unpack(packed)
+    np.testing.assert_array_equal(cc[:, :2], c)
+    np.testing.assert_array_equal(rr[:, :2], r)
+    np.testing.assert_array_equal(aa, np.tile([1.0, 1.0, 0.0], (7, 1)))
+    np.testing.assert_array_equal(cc[:, 2], np.tile(packing.PAD_CENTER, (7, 1)))
+    assert np.all(rr[:, 2] == 0.0)
+    # the NLPs index a CasADi symbol with `slot`: evaluated, it reads the same numbers as `unpack`
+    sym = ca.SX.sym("obs", 3 * packing.WIDTH)
+    row = packed[4]
+    for i in range(3):
+        ci, ri, ai = packing.slot(sym, i)
+        got = ca.Function("f", [sym], [ci, ri, ai])(row)
+        np.testing.assert_array_equal(np.asarray(got[0]).ravel(), cc[4, i])
+        assert float(got[1]) == rr[4, i] and float(got[2]) == aa[4, i]
+    np.testing.assert_array_equal(packing.active_flags(row), [True, True, False])
+    np.testing.assert_array_equal(packing.padding(2), packing.pack(np.zeros((0, 3)), np.zeros(0), 2))
+
+
+def test_slot_count_and_capacity():
+    assert [packing.slot_count(n) for n in (0, 1, 8, 9, 16, 17)] == [8, 8, 8, 16, 16, 24]
+    assert packing.check_capacity(np.int64(3), 3) == 3
+    for bad in (True, -1, 2.0):
+        with pytest.raises(InputError, match="max_obstacles"):
+            packing.check_capacity(bad, 0)
+    with pytest.raises(InputError, match="the replanner was built for at most 1"):
+        packing.pack(np.zeros((2, 3)), np.zeros(2), 1, "the replanner")
+
+
+def test_margin_forms_agree_and_match_the_scene_clearance():
+    # integers: every form is exact, so the three compositions must agree exactly
+    assert margin.inflation(5.0, 3.0, 2.0, 1.0) == 11.0
+    assert margin.keep_out_radius(40.0, 5.0, 3.0, 1.0) == 49.0
+    assert margin.clearance(20.0, 5.0, 3.0) == 12.0
+    # random values: equal up to rounding
+    rng = np.random.default_rng(5)
+    R, dsf, body, m, d = rng.uniform(0.1, 80.0, (5, 200))
+    np.testing.assert_allclose(margin.keep_out_radius(R, dsf, body, m), R + margin.inflation(dsf, body, 0.0, m), 1e-14)
+    np.testing.assert_allclose(margin.clearance(d, dsf, body), d - margin.inflation(dsf, body), atol=1e-12)
+    # the scene's clearance is |p - c| - R - body - D_sf, brute force
+    scene = Scene(obstacles=(Obstacle(center=(10.0, -20.0, 300.0), radius=40.0),), safety_distance=7.5)
+    pts = rng.uniform(-200, 200, (50, 1, 3)) + np.array([0.0, 0.0, 300.0])
+    dist = np.linalg.norm(pts[:, 0] - [10.0, -20.0, 300.0], axis=-1)
+    np.testing.assert_allclose(scene.clearance_points(pts, 0.0, inflate=3.0), dist - 40.0 - 3.0 - 7.5, atol=1e-12)
+
+
+def test_default_safety_distance_is_the_margin_default():
+    assert margin.DEFAULT_SAFETY_DISTANCE == 5.0  # the paper's D_sf
+    assert Scene().safety_distance == margin.DEFAULT_SAFETY_DISTANCE
+    assert Scene.from_table(Table({}, "scene")).safety_distance == margin.DEFAULT_SAFETY_DISTANCE
 
 
 # ------------------------------------------------------------- TOML I/O

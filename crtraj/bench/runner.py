@@ -75,6 +75,7 @@ from crtraj.model.robot import Robot
 from crtraj.planning.options import PlannerOptions
 from crtraj.planning.result import PlanResult, PlanStatus
 from crtraj.planning.stop import StopCondition
+from crtraj.world import packing
 from crtraj.world.scene import Scene
 
 PLANNERS = ("rrt", "rrtstar", "cspace", "ompl-rrtstar", "ompl-rrtconnect")
@@ -332,8 +333,6 @@ class BenchPlanner(Protocol):
 PlannerFactory = Callable[[Model, PlannerOptions], BenchPlanner]
 
 
-# Obstacle slots the planners' NLPs are built with (they grow on demand).
-_SLOTS = 8
 _CRTRAJ = ("rrt", "rrtstar", "cspace")
 
 
@@ -345,7 +344,7 @@ class _CrtrajPlanner:
         from crtraj.planning.rrt import make_planner
 
         self.options = options.with_(algorithm=algorithm)
-        self.planner = make_planner(model, Scene(), self.options, max_obstacles=_SLOTS)
+        self.planner = make_planner(model, Scene(), self.options, max_obstacles=packing.SLOTS)
 
     def plan(self, scenario: Scenario, *, time_limit: float, seed: int, goal_tolerance: float) -> PlanResult:
         o = self.options

@@ -49,15 +49,11 @@ import numpy as np
 from crtraj.core.errors import InputError
 from crtraj.core.fields import Table, check_float
 from crtraj.model.kinematics import Model
+from crtraj.world import margin, packing
 
 SOLVERS = ("ipopt", "sqp")
 QP_SOLVERS = ("daqp", "qrqp", "osqp", "qpoases")
 HESSIANS = ("gauss-newton", "exact")
-
-# Padding obstacle slots: far up the z axis with radius 0; their constraints hold by ~1e6 mm.
-_PAD_CENTER = (0.0, 0.0, 1.0e6)
-# Width of one obstacle slot in the NLP parameter: centre (3) and inflated radius rho.
-_SLOT = 4
 
 # float options: default and bounds (shared by Python construction and TOML reading)
 _FLOATS: Mapping[str, tuple[float, dict[str, float]]] = MappingProxyType(
@@ -250,7 +246,7 @@ class Replanner:
         o, r = self.options, self.robot
         self.nx, self.nq, self.N = r.nx, r.nq, o.horizon
         self.spacing = r.total_length / (o.points - 1)
-        self.inflate = self.safety_distance + r.body_radius + sagitta(r, self.spacing) + o.margin
+        self.inflate = margin.inflation(self.safety_distance, r.body_radius, sagitta(r, self.spacing), o.margin)
         A, _ = r.cable_matrix()
         self._A = A
         self.step_limit = np.append(np.full(3 * r.n_segments, o.max_cable_speed), o.max_z_speed) * o.dt  # mm
@@ -269,7 +265,7 @@ class Replanner:
         xm1 = ca.SX.sym("x_prev", nx)
         Xr = ca.SX.sym("x_ref", nx, N)
         Pr = ca.SX.sym("tip_ref", 3, N)
-        O = ca.SX.sym("obstacles", _SLOT * M, N)
+        O = ca.SX.sym("obstacles", packing.WIDTH * M, N)
         S = ca.DM(self._scale)
         Xall = ca.horzcat(xm1, x0, X)  # columns k = -1, 0, 1..N
         tips = model.tip.map(N)(X)  # 3 x N
@@ -298,13 +294,14 @@ class Replanner:
         if o.safety and M > 0:
             n = o.points
             x = ca.SX.sym("x", nx)
-            ob = ca.SX.sym("ob", _SLOT * M)
+            ob = ca.SX.sym("ob", packing.WIDTH * M)
             pts = model.backbone_function(n)(x)  # 3 x n
             d = []
             for i in range(M):
-                c = ob[_SLOT * i : _SLOT * i + 3]
+                # the slot's radius is the inflated rho (`_inflated`); padding has rho = 0 at 1e6 mm
+                c, rho, _ = packing.slot(ob, i)
                 diff = pts - ca.repmat(c, 1, n)
-                d.append(ca.sqrt(ca.sum1(diff * diff) + 1e-9).T - ob[_SLOT * i + 3])
+                d.append(ca.sqrt(ca.sum1(diff * diff) + 1e-9).T - rho)
             dist = ca.Function("horizon_distance", [x, ob], [ca.vertcat(*d)], {"cse": True})
             D = dist.map(N)(X, O)  # (n M) x N
             g.append(ca.vec(D))
@@ -385,20 +382,13 @@ class Replanner:
 
     # -------------------------------------------------------------- obstacles
     def _inflated(self, centers: np.ndarray, radii: np.ndarray) -> np.ndarray:
-        """Obstacle parameter (N, SLOT*M) from sphere centres (N, m, 3) and radii (N, m) in mm."""
-        N, M = self.N, self.max_obstacles
-        m = centers.shape[1]
-        if m > M:
-            raise InputError(
-                f"scene.obstacle: {m} obstacles but the replanner was built for at most {M}; "
-                "rebuild it with a larger max_obstacles"
-            )
-        out = np.zeros((N, M, _SLOT))
-        out[:, :, :3] = _PAD_CENTER
-        out[:, :m, :3] = centers
+        """Obstacle parameter (N, packing.WIDTH * M) from sphere centres (N, m, 3) and radii (N, m) in mm.
+
+        Each slot's radius is the inflated rho of the module docstring (the
+        NLP compares point distances with it directly).
+        """
         rho = np.sqrt((np.maximum(radii, 0.0) + self.inflate) ** 2 + (self.spacing / 2.0) ** 2)
-        out[:, :m, 3] = rho
-        return out.reshape(N, _SLOT * M)
+        return packing.pack(centers, rho, self.max_obstacles, "the replanner")
 
     def step_windows(self, t0: float) -> tuple[np.ndarray, np.ndarray]:
         """(lo, hi) time windows (N,) s that step k's configuration is kept clear over: [t_k-1, t_k+1]."""
@@ -407,13 +397,11 @@ class Replanner:
         return t0 + (k - 1) * dt, t0 + (k + 1) * dt
 
     def obstacles_from_scene(self, scene: Any, t0: float) -> np.ndarray:
-        """Obstacle parameter (N, 4 max_obstacles) for the scene's known motion, horizon starting at t0 (s)."""
+        """Obstacle parameter (N, packing.WIDTH * max_obstacles) for the scene's known motion, horizon from t0 (s)."""
         lo, hi = self.step_windows(float(t0))
         if scene.n_obstacles == 0:
             return self._inflated(np.zeros((self.N, 0, 3)), np.zeros((self.N, 0)))
-        a, b, rmax = scene.swept(lo, hi)  # (N, M, 3), (N, M)
-        centers = 0.5 * (a + b)
-        radii = rmax + 0.5 * np.linalg.norm(b - a, axis=-1)
+        centers, radii = scene.enclosing_spheres(lo, hi)  # (N, M, 3), (N, M)
         return self._inflated(centers, radii)
 
     def obstacles_from_states(
@@ -458,7 +446,7 @@ class Replanner:
         """Plan x_1..x_N from the current configuration x0 (nx).
 
         reference: (N, nx) reference configurations for steps 1..N.
-        obstacles: (N, 4 max_obstacles) from `obstacles_from_scene` /
+        obstacles: (N, packing.WIDTH * max_obstacles) from `obstacles_from_scene` /
         `obstacles_from_states`. x_prev: configuration one step before x0
         (smoothness; default x0). tip_reference: (N, 3) mm (default: tips of
         the reference). warm: start from the previous solution shifted by one
@@ -469,7 +457,13 @@ class Replanner:
         Xr = np.asarray(reference, dtype=float).reshape(N, nx)
         xm1 = x0 if x_prev is None else np.asarray(x_prev, dtype=float).reshape(nx)
         Pr = self.model.tip_position(Xr) if tip_reference is None else np.asarray(tip_reference, float).reshape(N, 3)
-        Ob = np.asarray(obstacles, dtype=float).reshape(N, _SLOT * self.max_obstacles)
+        Ob = np.asarray(obstacles, dtype=float)
+        if Ob.size != N * packing.WIDTH * self.max_obstacles:
+            raise InputError(
+                f"obstacles: expected shape ({N}, {packing.WIDTH * self.max_obstacles}) from obstacles_from_scene "
+                f"or obstacles_from_states, got {Ob.shape}"
+            )
+        Ob = Ob.reshape(N, packing.WIDTH * self.max_obstacles)
         for name, arr in (("x0", x0), ("reference", Xr), ("x_prev", xm1), ("tip_reference", Pr), ("obstacles", Ob)):
             if not np.all(np.isfinite(arr)):
                 raise InputError(f"{name}: contains NaN or infinity")

@@ -57,12 +57,10 @@ from crtraj.planning.result import PlanResult, PlanStatus
 from crtraj.planning.safe_ik import SafeIK
 from crtraj.planning.stop import StopCondition
 from crtraj.planning.validity import MotionValidator
+from crtraj.world import packing
 from crtraj.world.scene import Scene
 
 ALGORITHMS = ("RRTstar", "RRTConnect", "RRT")
-
-# IK NLPs are built for multiples of this many obstacle slots.
-_SLOTS = 8
 
 
 def import_ompl() -> tuple[Any, Any, Any]:
@@ -127,7 +125,7 @@ class OMPLPlanner:
 
     # ---------------------------------------------------------------- helpers
     def _ik(self, n_obstacles: int, v: MotionValidator) -> SafeIK:
-        slots = _SLOTS * max(1, math.ceil(n_obstacles / _SLOTS))
+        slots = packing.slot_count(n_obstacles)
         ik = self._iks.get(slots)
         if ik is None:
             ik = SafeIK(self.model, v, slots)

@@ -48,6 +48,7 @@ from crtraj.planning.steer import SteerOptions, SteerSolver
 from crtraj.planning.stop import StopCondition
 from crtraj.planning.tree import SearchTree
 from crtraj.planning.validity import MotionValidator
+from crtraj.world import margin
 
 
 class RRT:
@@ -100,7 +101,7 @@ class RRT:
         v = self.validator
         h = self.robot.total_length / (v.check_points - 1)
         rmin = min((o.radius - abs(o.amplitude) for o in scene.obstacles), default=0.0)
-        rho = max(rmin, 0.0) + scene.safety_distance + self.robot.body_radius
+        rho = margin.keep_out_radius(max(rmin, 0.0), scene.safety_distance, self.robot.body_radius)
         chord = math.sqrt(rho * rho + h * h / 4.0) - rho
         return chord + v.sagitta + v.resolution / 2.0 + 0.25
 

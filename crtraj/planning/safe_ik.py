@@ -41,6 +41,7 @@ import numpy as np
 from crtraj.core.fields import check_array
 from crtraj.model.kinematics import Model
 from crtraj.planning.validity import LIMIT_TOL, MotionValidator
+from crtraj.world import packing
 
 
 @dataclass(frozen=True)
@@ -116,14 +117,12 @@ class SafeIK:
         return self._solver
 
     def _build(self) -> ca.Function:
-        from crtraj.world.scene import PACK_WIDTH
-
         model, validator = self.model, self.validator
         M = self.max_obstacles
         n = validator.check_points
         x = ca.SX.sym("x", self.robot.nx)
         goal = ca.SX.sym("goal", 3)
-        obs = ca.SX.sym("obstacles", PACK_WIDTH * M)
+        obs = ca.SX.sym("obstacles", packing.WIDTH * M)
         xref = ca.SX.sym("x_ref", self.robot.nx)
         inflate = ca.SX.sym("inflate")
         Mm = ca.DM(validator.metric_matrix / 100.0)
@@ -136,9 +135,8 @@ class SafeIK:
             h = self.robot.total_length / (n - 1)
             cl = []
             for j in range(M):
-                c = obs[PACK_WIDTH * j : PACK_WIDTH * j + 3]
-                r = obs[PACK_WIDTH * j + 3] + inflate
-                act = obs[PACK_WIDTH * j + 4]
+                c, radius, act = packing.slot(obs, j)
+                r = radius + inflate
                 d2 = ca.sum1((pts - ca.repmat(c, 1, n)) ** 2)
                 # padding slots have active = 0: the row is 0 >= 0 and inert
                 cl.append((act * ((d2 - (h / 2.0) ** 2) / (r * r) - 1.0)).T)

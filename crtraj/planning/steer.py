@@ -58,7 +58,8 @@ import numpy as np
 
 from crtraj.core.errors import InputError
 from crtraj.core.fields import Table
-from crtraj.world.scene import PACK_WIDTH, Scene
+from crtraj.world import margin, packing
+from crtraj.world.scene import Scene
 
 SOLVERS = ("ipopt", "sqp", "dls")
 QP_SOLVERS = ("daqp", "qrqp", "qpoases", "osqp", "proxqp", "highs")
@@ -394,7 +395,7 @@ class SteerSolver:
     """The steer NLP of one robot, built once for up to `max_obstacles` obstacles.
 
     Parameters enter as one vector ``p = [x_prev (nx), target (3), packed
-    obstacles (PACK_WIDTH * max_obstacles, see `Scene.pack`), D_sf, w_d, w_o]``;
+    obstacles (packing.WIDTH * max_obstacles, see `Scene.pack`), D_sf, w_d, w_o]``;
     nothing is rebuilt between calls. Each solve starts from a DLS predictor
     (one eq. 17 step from x_prev, option `predictor`) unless x0 is given,
     and, with `warm_start`, from the multipliers of the previous successful
@@ -428,7 +429,7 @@ class SteerSolver:
         x = y / S
         x_prev = ca.SX.sym("x_prev", nx)
         target = ca.SX.sym("target", 3)
-        obs = ca.SX.sym("obstacles", PACK_WIDTH * M)
+        obs = ca.SX.sym("obstacles", packing.WIDTH * M)
         dsf = ca.SX.sym("safety_distance")
         w_d = ca.SX.sym("w_d")
         w_o = ca.SX.sym("w_o")
@@ -440,13 +441,11 @@ class SteerSolver:
         tip = self.model.tip(x)
         glim = self.model.limits(x)
         f = ca.sumsqr(tip - target) + w_d * ca.sumsqr(y - S * x_prev)
-        body = self.robot.body_radius + o.margin
         g_col = []
         pen = 0
         for i in range(M):
-            c = obs[PACK_WIDTH * i : PACK_WIDTH * i + 3]
-            rho = obs[PACK_WIDTH * i + 3] + dsf + body
-            act = obs[PACK_WIDTH * i + 4]
+            c, r, act = packing.slot(obs, i)
+            rho = margin.keep_out_radius(r, dsf, self.robot.body_radius, o.margin)
             for j in range(self.n_points):
                 d2 = ca.sumsqr(P[:, j] - c)
                 # inactive slots give the constant g = 1 (and lbg = -inf, see
@@ -530,7 +529,7 @@ class SteerSolver:
                 raise InputError(f"steer.ipopt: IPOPT rejected an option (given: {keys})")
 
     def _pad(self) -> np.ndarray:
-        return Scene().pack(0.0, self.max_obstacles)
+        return packing.padding(self.max_obstacles)
 
     # -------------------------------------------------------------- helpers
     def parameters(
@@ -581,7 +580,7 @@ class SteerSolver:
             if safety_distance is None:
                 safety_distance = 0.0
         else:
-            packed = _vec(obstacles, "obstacles", PACK_WIDTH * self.max_obstacles)
+            packed = _vec(obstacles, "obstacles", packing.WIDTH * self.max_obstacles)
         if safety_distance is None:
             raise InputError("safety_distance: required (mm) when obstacles are given as a packed vector")
         dsf = float(safety_distance)
@@ -599,12 +598,12 @@ class SteerSolver:
             if t_end is None:
                 return float(scene.clearance_points(pts, t, inflate=body))
             return float(scene.clearance_points_over(pts, t, t_end, inflate=body))
-        centers, radii, active = Scene.unpack(packed)
+        centers, radii, active = packing.unpack(packed)
         on = active > 0
         if not np.any(on):
             return math.inf
         d = np.linalg.norm(pts[:, None, :] - centers[on][None, :, :], axis=-1) - radii[on]
-        return float(d.min() - body - dsf)
+        return float(margin.clearance(d.min(), dsf, body))
 
     def predict(self, x_prev: np.ndarray, target: np.ndarray) -> np.ndarray:
         """One DLS step (eq. 17, scaled coordinates) from x_prev, inside the step bounds."""
@@ -673,7 +672,7 @@ class SteerSolver:
             p = self.parameters(xp, tg, packed, dsf, damping_weight, obstacle_weight)
             lbg = self._lbg.copy()
             # padding slots: free rows (lbg = -inf), no slack for the solver to carry
-            act = packed[PACK_WIDTH - 1 :: PACK_WIDTH] > 0
+            act = packing.active_flags(packed)
             lbg[lbg.size - self.n_col :] = np.where(np.repeat(act, self.n_points), 0.0, -np.inf)
             guess = np.clip(guess, lbx, ubx)
             x, converged, status, iters = self._solve_nlp(self._solver, p, lbg, guess, lbx, ubx, warm=True)

@@ -46,6 +46,7 @@ import numpy as np
 
 from crtraj.core.errors import InputError
 from crtraj.model.kinematics import Model
+from crtraj.world import margin
 
 # Limits may be violated by solver round-off; above this a configuration is out of limits.
 LIMIT_TOL = 1e-7
@@ -108,7 +109,7 @@ class MotionValidator:
         # holds: every body point is within h/2 of arc length (so of distance) from a check point.
         sag = (1.0 - math.cos(half)) / kappa if half <= math.pi / 2.0 else h / 2.0
         self.sagitta = float(sag)
-        self.inflate = float(robot.body_radius + scene.safety_distance + self.sagitta)
+        self.inflate = float(margin.inflation(scene.safety_distance, robot.body_radius, self.sagitta))
         # adaptive edge checks start from intervals of this much body motion (mm)
         self.coarse = 16.0 * self.resolution
         self.n_samples = 0  # configurations checked so far (a statistic)

@@ -1,25 +1,13 @@
-"""Spherical obstacles that move and breathe over time, and the robot's clearance to them.
+"""The scene: obstacles over time, the safety distance D_sf, the workspace, and clearance to them.
 
-Every obstacle is plain data, never code to evaluate (units mm, rad, s):
-
-    radius(t) = A + B sin(omega t + phase)              (B = 0: constant radius)
-    centre(t) = c0 + s(t) (to - c0)                     (no `to`: fixed centre)
-
-with the motion progress s(t) chosen by ``profile`` and ``duration`` D (the
-time at which the centre first reaches ``to``):
-
-    "linear": s = clip(t / D, 0, 1)                    one way, then rests at `to`
-    "cos":    s = (1 - cos(pi t / D)) / 2              ping-pong c0 -> to -> c0, period 2 D
-    "sin":    s = sin(pi t / (2 D))                    oscillates about c0 between to and 2 c0 - to, period 4 D
-
-So the paper's ``60 + 10 sin(a t)`` is A=60, B=10, omega=a, phase=0 and
-``45 + 15 cos(b t)`` is A=45, B=15, omega=b, phase=pi/2. Every centre moves
-on the straight line through c0 and `to`, which makes the swept volume over
-a time interval an exact capsule (see `Scene.clearance_points_over`).
+A `Scene` holds `crtraj.world.obstacle.Obstacle` s (plain data, their time
+functions are documented there) and evaluates all of them at once: centres
+and radii at given times, their exact ranges and swept capsules over an
+interval, and the robot's clearance.
 
 Clearance of a point p is ``|p - c(t)| - R(t) - inflate - D_sf``: positive
 means the point keeps the safety distance D_sf from the surface (with the
-robot's disc radius as `inflate`).
+robot's disc radius as `inflate`; see `crtraj.world.margin`).
 
 Time: `Scene.time_origin` is added to every time given to a scene, so
 ``scene.with_time_shift(dt)`` is the same scene seen ``dt`` seconds later
@@ -30,181 +18,20 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
-from types import MappingProxyType
 from typing import Any
 
 import numpy as np
 
 from crtraj.core.errors import InputError
 from crtraj.core.fields import Table
-
-PROFILES = ("linear", "sin", "cos")
-_PROFILE_CODE = MappingProxyType({"linear": 0, "sin": 1, "cos": 2})
+from crtraj.world import margin, packing
+from crtraj.world.obstacle import PROFILE_CODE, Obstacle, sin_range
 
 # The paper's search space: 300 x 300 x 500 mm centred on the base axis. It
 # stands on the base's home plane z = 0 and reaches 500 mm up, which holds the
 # straight 400 mm cdsr2 at full base extension (z = +100) and every point of
 # the paper's simulations (tip heights 170..390 mm, spheres 195..395 mm).
 DEFAULT_WORKSPACE = ((-150.0, -150.0, 0.0), (150.0, 150.0, 500.0))
-
-# Layout of one packed obstacle slot (see `Scene.pack`).
-PACK_WIDTH = 5
-# Padding slots sit this far up the z axis (mm) with radius 0 and active 0: a
-# solver that ignores the active flag still sees a constraint that holds by
-# 1e6 mm and a penalty ((R + D_sf + body) / d)^2 below 1e-10.
-PAD_CENTER = (0.0, 0.0, 1.0e6)
-
-
-@dataclass(frozen=True)
-class Obstacle:
-    """One sphere: radius ``A + B sin(omega t + phase)``, centre moving from `center` toward `to`.
-
-    center: c0 (mm), the centre at t = 0. radius: mean radius A (mm).
-    amplitude: B (mm), with |B| <= A so the radius never goes negative.
-    omega: rad/s. phase: rad. to: end point of the motion (mm) or None for a
-    fixed centre. duration: time (s) to first reach `to`. profile: "linear",
-    "sin" or "cos" (module docstring). name: a label for views and messages.
-    """
-
-    center: tuple[float, float, float]
-    radius: float
-    amplitude: float = 0.0
-    omega: float = 0.0
-    phase: float = 0.0
-    to: tuple[float, float, float] | None = None
-    duration: float = 1.0
-    profile: str = "linear"
-    name: str = ""
-
-    def __post_init__(self) -> None:
-        where = f"obstacle {self.name!r}" if self.name else "obstacle"
-        c = tuple(float(v) for v in self.center)
-        if len(c) != 3 or not all(math.isfinite(v) for v in c):
-            raise InputError(f"{where}.center: expected 3 finite numbers, got {self.center!r}")
-        object.__setattr__(self, "center", c)
-        if self.to is not None:
-            to = tuple(float(v) for v in self.to)
-            if len(to) != 3 or not all(math.isfinite(v) for v in to):
-                raise InputError(f"{where}.motion.to: expected 3 finite numbers, got {self.to!r}")
-            object.__setattr__(self, "to", to)
-        for key in ("radius", "amplitude", "omega", "phase", "duration"):
-            if not math.isfinite(getattr(self, key)):
-                raise InputError(f"{where}.{key}: must be finite, got {getattr(self, key)}")
-        if self.radius < 0:
-            raise InputError(f"{where}.radius: mean radius must be >= 0 mm, got {self.radius:g}")
-        if abs(self.amplitude) > self.radius:
-            raise InputError(
-                f"{where}.radius.amplitude: |amplitude| must be <= mean radius {self.radius:g} mm "
-                f"(the radius would go negative), got {self.amplitude:g}"
-            )
-        if not self.duration > 0:
-            raise InputError(f"{where}.motion.duration: must be > 0 s, got {self.duration:g}")
-        if self.profile not in PROFILES:
-            raise InputError(f"{where}.motion.profile: must be one of {', '.join(PROFILES)}; got {self.profile!r}")
-
-    # ----------------------------------------------------------- evaluation
-    @property
-    def displacement(self) -> np.ndarray:
-        """to - c0 (mm); zero for a fixed centre."""
-        if self.to is None:
-            return np.zeros(3)
-        return np.asarray(self.to) - np.asarray(self.center)
-
-    @property
-    def max_radius(self) -> float:
-        """Largest radius over all time (mm)."""
-        return self.radius + abs(self.amplitude)
-
-    @property
-    def center_speed_max(self) -> float:
-        """max_t |dc/dt| (mm/s): |d|/D (linear) or |d| pi / (2 D) (sin, cos)."""
-        dist = float(np.linalg.norm(self.displacement))
-        if self.profile == "linear":
-            return dist / self.duration
-        return dist * math.pi / (2.0 * self.duration)
-
-    @property
-    def radius_rate_max(self) -> float:
-        """max_t |dR/dt| = |B omega| (mm/s)."""
-        return abs(self.amplitude * self.omega)
-
-    # --------------------------------------------------------------- file I/O
-    @classmethod
-    def from_table(cls, t: Table) -> Obstacle:
-        """Read one ``[[scene.obstacle]]`` table (schema in `Scene.from_table`)."""
-        name = t.str("name", "")
-        center = t.vec("center", 3)
-        rv = t.raw("radius")
-        if isinstance(rv, dict):
-            rt = Table(rv, f"{t.path}.radius")
-            mean = rt.float("mean", ge=0.0)
-            amp = rt.float("amplitude", 0.0)
-            omega = rt.float("omega", 0.0)
-            phase = rt.float("phase", 0.0)
-            rt.finish()
-            if abs(amp) > mean:
-                raise rt.error("amplitude", f"|amplitude| must be <= mean {mean:g} mm, got {amp:g}")
-        else:
-            mean = t.float("radius", ge=0.0)
-            amp, omega, phase = 0.0, 0.0, 0.0
-        to: tuple[float, ...] | None = None
-        duration, profile = 1.0, "linear"
-        if t.has("motion"):
-            mt = t.table("motion")
-            to = mt.vec("to", 3)
-            profile = mt.str("profile", "linear", choices=PROFILES)
-            has_d, has_p = mt.has("duration"), mt.has("period")
-            if has_d and has_p:
-                raise mt.error("period", "give either duration or period, not both")
-            if has_p:
-                if profile == "linear":
-                    raise mt.error("period", "a linear motion has no period; give duration (s)")
-                period = mt.float("period", gt=0.0)
-                # time to first reach `to`: half a period for cos, a quarter for sin
-                duration = period / 2.0 if profile == "cos" else period / 4.0
-            else:
-                duration = mt.float("duration", gt=0.0)
-            mt.finish()
-        t.finish()
-        return cls(
-            center=(center[0], center[1], center[2]),
-            radius=mean,
-            amplitude=amp,
-            omega=omega,
-            phase=phase,
-            to=None if to is None else (to[0], to[1], to[2]),
-            duration=duration,
-            profile=profile,
-            name=name,
-        )
-
-    def to_dict(self) -> dict[str, Any]:
-        """Plain data in the TOML schema (round-trips through `from_table`)."""
-        d: dict[str, Any] = {}
-        if self.name:
-            d["name"] = self.name
-        d["center"] = list(self.center)
-        if self.amplitude == 0.0 and self.omega == 0.0 and self.phase == 0.0:
-            d["radius"] = self.radius
-        else:
-            d["radius"] = {"mean": self.radius, "amplitude": self.amplitude, "omega": self.omega, "phase": self.phase}
-        if self.to is not None:
-            d["motion"] = {"to": list(self.to), "duration": self.duration, "profile": self.profile}
-        return d
-
-
-def _sin_range(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Exact (min, max) of sin over [min(a,b), max(a,b)], elementwise."""
-    lo_t, hi_t = np.minimum(a, b), np.maximum(a, b)
-    sa, sb = np.sin(lo_t), np.sin(hi_t)
-    lo, hi = np.minimum(sa, sb), np.maximum(sa, sb)
-    two_pi = 2.0 * np.pi
-    # first crest (pi/2 + 2k pi) and trough (-pi/2 + 2k pi) at or after lo_t
-    crest = np.pi / 2 + two_pi * np.ceil((lo_t - np.pi / 2) / two_pi)
-    trough = -np.pi / 2 + two_pi * np.ceil((lo_t + np.pi / 2) / two_pi)
-    hi = np.where(crest <= hi_t, 1.0, hi)
-    lo = np.where(trough <= hi_t, -1.0, lo)
-    return lo, hi
 
 
 @dataclass(frozen=True)
@@ -215,7 +42,7 @@ class Scene:
     """
 
     obstacles: tuple[Obstacle, ...] = ()
-    safety_distance: float = 5.0
+    safety_distance: float = margin.DEFAULT_SAFETY_DISTANCE
     time_step: float = 1.0
     workspace_lo: tuple[float, float, float] = DEFAULT_WORKSPACE[0]
     workspace_hi: tuple[float, float, float] = DEFAULT_WORKSPACE[1]
@@ -246,7 +73,7 @@ class Scene:
             "c0": np.array([o.center for o in obs], dtype=float).reshape(-1, 3),
             "d": np.array([o.displacement for o in obs], dtype=float).reshape(-1, 3),
             "dur": np.array([o.duration for o in obs], dtype=float),
-            "code": np.array([_PROFILE_CODE[o.profile] for o in obs], dtype=int),
+            "code": np.array([PROFILE_CODE[o.profile] for o in obs], dtype=int),
             "A": np.array([o.radius for o in obs], dtype=float),
             "B": np.array([o.amplitude for o in obs], dtype=float),
             "w": np.array([o.omega for o in obs], dtype=float),
@@ -316,7 +143,7 @@ class Scene:
         a = self._arr
         tt0 = self._abs_time(t0, "t0")[..., None]
         tt1 = self._abs_time(t1, "t1")[..., None]
-        lo, hi = _sin_range(a["w"] * tt0 + a["p"], a["w"] * tt1 + a["p"])
+        lo, hi = sin_range(a["w"] * tt0 + a["p"], a["w"] * tt1 + a["p"])
         B = a["B"]
         return a["A"] + np.minimum(B * lo, B * hi), a["A"] + np.maximum(B * lo, B * hi)
 
@@ -328,9 +155,9 @@ class Scene:
         ta, tb = np.minimum(tt0, tt1), np.maximum(tt0, tt1)
         dur = a["dur"]
         lin0, lin1 = np.clip(ta / dur, 0.0, 1.0), np.clip(tb / dur, 0.0, 1.0)  # monotone
-        slo, shi = _sin_range(0.5 * np.pi * ta / dur, 0.5 * np.pi * tb / dur)
+        slo, shi = sin_range(0.5 * np.pi * ta / dur, 0.5 * np.pi * tb / dur)
         # (1 - cos th)/2 = (1 - sin(th + pi/2))/2
-        clo, chi = _sin_range(np.pi * ta / dur + np.pi / 2, np.pi * tb / dur + np.pi / 2)
+        clo, chi = sin_range(np.pi * ta / dur + np.pi / 2, np.pi * tb / dur + np.pi / 2)
         code = a["code"]
         smin = np.where(code == 0, lin0, np.where(code == 1, slo, 0.5 * (1.0 - chi)))
         smax = np.where(code == 0, lin1, np.where(code == 1, shi, 0.5 * (1.0 - clo)))
@@ -373,7 +200,7 @@ class Scene:
             c = centers[..., i, :][..., None, :]  # S+(1,3)
             dist = np.linalg.norm(p - c, axis=-1)  # broadcast(...,P)
             np.minimum(out, dist.min(axis=-1) - radii[..., i], out=out)
-        return out - inflate - self.safety_distance
+        return margin.clearance(out, self.safety_distance, inflate)
 
     def clearance_points_over(self, points: Any, t0: Any, t1: Any, inflate: float = 0.0) -> np.ndarray:
         """Conservative clearance (mm) of fixed points over the whole interval [t0, t1].
@@ -404,7 +231,7 @@ class Scene:
             u = np.clip(u, 0.0, 1.0)
             dist = np.linalg.norm(p - (ai + u[..., None] * ab), axis=-1)
             np.minimum(out, dist.min(axis=-1) - rmax[..., i], out=out)
-        bound = out - inflate - self.safety_distance
+        bound = margin.clearance(out, self.safety_distance, inflate)
         # mathematically already <= both ends; the min removes rounding doubt
         ends = np.minimum(self.clearance_points(p, t0, inflate), self.clearance_points(p, t1, inflate))
         return np.minimum(bound, ends)
@@ -429,16 +256,16 @@ class Scene:
 
     # ---------------------------------------------------------------- packing
     def pack(self, t: float, max_obstacles: int) -> np.ndarray:
-        """Obstacles at time t as a fixed-size solver parameter, shape (PACK_WIDTH * max_obstacles,).
+        """Obstacles at time t as solver slots (`crtraj.world.packing`), shape (packing.WIDTH * max_obstacles,).
 
-        Slot i is ``[cx, cy, cz, R, active]`` (mm, mm, mm, mm, 1). Slots past
-        `n_obstacles` are padding: centre PAD_CENTER (1e6 mm up the z axis),
-        radius 0, active 0, so they are inert with or without the flag.
+        Slot i is ``[cx, cy, cz, R, active]`` (mm, mm, mm, mm, 1) with the
+        obstacle's own radius R (not inflated). Slots past `n_obstacles` are
+        padding (inert with or without the flag).
         """
         if np.ndim(t) != 0:
             raise InputError(f"t: pack expects one time (s), got shape {np.shape(t)}")
         centers, radii = self.states(float(t))
-        return self._pack(centers, radii, max_obstacles)
+        return packing.pack(centers, radii, max_obstacles)
 
     def pack_over(self, t0: float, t1: float, max_obstacles: int) -> np.ndarray:
         """Like `pack`, but each slot is one fixed sphere enclosing the obstacle over [t0, t1].
@@ -446,32 +273,17 @@ class Scene:
         Centre: middle of the swept segment; radius: exact max radius plus half
         the segment length. Conservative (encloses the capsule of `swept`).
         """
-        a, b, rmax = self.swept(float(t0), float(t1))
-        centers = 0.5 * (a + b)
-        radii = rmax + 0.5 * np.linalg.norm(b - a, axis=-1)
-        return self._pack(centers, radii, max_obstacles)
+        centers, radii = self.enclosing_spheres(float(t0), float(t1))
+        return packing.pack(centers, radii, max_obstacles)
 
-    def _pack(self, centers: np.ndarray, radii: np.ndarray, max_obstacles: int) -> np.ndarray:
-        m = self.n_obstacles
-        if not isinstance(max_obstacles, (int, np.integer)) or max_obstacles < 0:
-            raise InputError(f"max_obstacles: must be an integer >= 0, got {max_obstacles!r}")
-        if m > max_obstacles:
-            raise InputError(
-                f"scene.obstacle: {m} obstacles but the solver was built for at most {max_obstacles}; "
-                "rebuild it with a larger max_obstacles"
-            )
-        slots = np.zeros((max_obstacles, PACK_WIDTH))
-        slots[:, :3] = PAD_CENTER
-        slots[:m, :3] = centers
-        slots[:m, 3] = radii
-        slots[:m, 4] = 1.0
-        return slots.reshape(-1)
+    def enclosing_spheres(self, t0: Any, t1: Any) -> tuple[np.ndarray, np.ndarray]:
+        """One sphere per obstacle enclosing all of it over [t0, t1]: (centres S + (M, 3), radii S + (M,)) mm.
 
-    @staticmethod
-    def unpack(packed: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(centres (K, 3), radii (K,), active (K,)) from a packed vector."""
-        v = np.asarray(packed, dtype=float).reshape(-1, PACK_WIDTH)
-        return v[:, :3], v[:, 3], v[:, 4]
+        Centre: middle of the swept segment (`swept`); radius: the exact max
+        radius over the interval plus half the segment length.
+        """
+        a, b, rmax = self.swept(t0, t1)
+        return 0.5 * (a + b), rmax + 0.5 * np.linalg.norm(b - a, axis=-1)
 
     # ---------------------------------------------------------------- helpers
     def with_time_shift(self, dt: float) -> Scene:
@@ -510,7 +322,7 @@ class Scene:
                 raise wt.error("hi", f"must be above lo on every axis, got lo {list(lo)}, hi {list(hi)}")
         scene = cls(
             obstacles=obstacles,
-            safety_distance=t.float("safety_distance", 5.0, ge=0.0),
+            safety_distance=t.float("safety_distance", margin.DEFAULT_SAFETY_DISTANCE, ge=0.0),
             time_step=t.float("time_step", 1.0, gt=0.0),
             workspace_lo=(lo[0], lo[1], lo[2]),
             workspace_hi=(hi[0], hi[1], hi[2]),
