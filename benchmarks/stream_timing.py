@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from crtraj.hardware.limits import SafetyGate
+from crtraj.hardware.limits import LimitsGate
 from crtraj.hardware.protocol import MOVE, Frame
 from crtraj.hardware.setpoints import SetpointPath
 from crtraj.hardware.sim_device import SimDevice
@@ -44,9 +44,9 @@ def main() -> None:
     X = x0 + (x1 - x0) * (0.5 - 0.5 * np.cos(np.pi * s))[:, None]
     path = SetpointPath.from_actuation(args.seconds * s, robot.cables(X), acts)
 
-    # per-tick CPU cost of the safety gate + frame encoding (no I/O)
+    # per-tick CPU cost of the limits gate + frame encoding (no I/O)
     stamps, values = path.sample(args.rate)
-    gate = SafetyGate(acts, 1.0 / args.rate)
+    gate = LimitsGate(acts, 1.0 / args.rate)
     gate.reset(values[0])
     t = time.perf_counter()
     for k in range(values.shape[0]):

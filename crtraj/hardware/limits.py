@@ -47,7 +47,7 @@ class Violation:
         return f"{self.actuator} {self.quantity} {self.value:.6g} {self.unit} exceeds limit {self.limit}{at}"
 
 
-class SafetyGate:
+class LimitsGate:
     """Checks frames against per-actuator limits, given the frames already sent.
 
     dt: nominal time between frames (s), the streamer's 1/rate.
@@ -88,7 +88,7 @@ class SafetyGate:
     def check(self, kind: int, values: np.ndarray, stamp: float = float("nan")) -> Violation | None:
         """The first violation of one frame, without changing the gate's state."""
         if self._prev is None:
-            raise RuntimeError("SafetyGate.check before reset(): the start position is unknown")
+            raise RuntimeError("LimitsGate.check before reset(): the start position is unknown")
         p = np.asarray(values, dtype=float)
         if p.shape != (self.actuators.n,):
             raise ValueError(f"expected {self.actuators.n} values, got shape {p.shape}")

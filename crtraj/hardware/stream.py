@@ -7,7 +7,7 @@ one control step at a time, from a replanner (`start`, `send_setpoint`,
 `finish`, `close`); between buffered set-points the stream interpolates
 linearly at the stream rate.
 
-Safety lives in one place, `_emit`: every frame passes `SafetyGate` before
+The actuator limits are enforced in one place, `_emit`: every frame passes `LimitsGate` before
 it reaches the transport. A refused set-point is reported, never clamped,
 and the stream latches a hold. The watchdog latches a hold when the source
 has no set-point for the current time for longer than ``watchdog`` (default
@@ -41,7 +41,7 @@ from crtraj.core.errors import InputError
 from crtraj.core.fields import Table
 from crtraj.core.fileio import to_jsonable
 from crtraj.hardware.actuators import Actuators
-from crtraj.hardware.limits import SafetyGate, Violation
+from crtraj.hardware.limits import LimitsGate, Violation
 from crtraj.hardware.protocol import (
     ESTOP,
     HOLD,
@@ -202,7 +202,7 @@ class _VirtualClock:
 
 
 class Streamer:
-    """Streams actuator set-points to a device at a fixed rate, safely.
+    """Streams actuator set-points to a device at a fixed rate, within the actuator limits.
 
     transport: the link (`Transport.open(url)`); actuators: limits and the
     cable/servo conversion (bound to the robot with `Actuators.for_robot`
@@ -229,7 +229,7 @@ class Streamer:
         self._realtime = transport.has_telemetry if realtime is None else realtime
         self._clock, self._sleep = clock, sleep
         self._log = _RunLog(log, self.options.fsync)
-        self._gate = SafetyGate(actuators, self._dt)
+        self._gate = LimitsGate(actuators, self._dt)
         self._lock = threading.RLock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -343,7 +343,7 @@ class Streamer:
 
     def _handshake(self) -> Telemetry:
         """PING until the first telemetry arrives. A PING carries no values and commands nothing,
-        so it bypasses the safety gate; every set-point frame goes through `_emit`."""
+        so it bypasses the limits gate; every set-point frame goes through `_emit`."""
         deadline = self._clock() + self.options.connect_timeout
         next_ping = self._clock()
         while True:
