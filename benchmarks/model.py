@@ -17,6 +17,7 @@ import casadi as ca
 import numpy as np
 
 from crtraj.io.problem import load_robot
+from crtraj.model.export import export_model
 from crtraj.model.kinematics import Model
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -65,7 +66,7 @@ def main() -> None:
 
     with tempfile.TemporaryDirectory() as tmp:
         batch = 4096
-        rep = model.export(tmp, batch=batch)
+        rep = export_model(model, tmp, batch=batch)
         if rep.library is None:
             print(f"compiled export: skipped ({rep.compiler_message})")
             med_c = float("nan")

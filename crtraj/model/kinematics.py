@@ -13,13 +13,6 @@ All lengths in mm, angles in rad.
 
 from __future__ import annotations
 
-import json
-import platform
-import shutil
-import subprocess
-from dataclasses import dataclass
-from pathlib import Path
-from types import MappingProxyType
 from typing import Any
 
 import casadi as ca
@@ -27,30 +20,11 @@ import numpy as np
 
 from crtraj.core.errors import InputError
 from crtraj.core.fields import check_array
-from crtraj.core.fileio import atomic_write_bytes, atomic_write_json
 from crtraj.model.robot import Robot
 
 # Below theta^2 = _SERIES_T the exact f1, f2 lose digits to cancellation; the
 # series truncation error there is < 1e-17.
 _SERIES_T = 1e-2
-
-
-# Units of every named input and output, for the export manifest.
-_UNITS = MappingProxyType(
-    {
-        "x": "rad (bending vectors u_k), mm (z, last entry)",
-        "q": "mm (cable lengths, then z)",
-        "u_bar": "rad (effective bending vectors)",
-        "p": "mm",
-        "T": "homogeneous transform: rotation (1), translation (mm)",
-        "points": "mm (columns are backbone points, base to tip)",
-        "J": "mm/rad (bending columns), 1 (z column)",
-        "J_q": "mm/rad (bending columns), 1 (z column)",
-        "g": "rad^2 (|u_bar_k|^2 per segment), then mm (q - L per cable)",
-        "X": "columns are configurations x",
-        "P": "mm (3 rows; N blocks of n_points columns)",
-    }
-)
 
 
 def _f1_f2(t: ca.SX) -> tuple[ca.SX, ca.SX]:
@@ -83,17 +57,6 @@ def _arc(ub: ca.SX, length: float, frac: float) -> tuple[ca.SX, ca.SX]:
     W = _skew([-v[1], v[0], 0])
     R = ca.SX.eye(3) + f2 * W + f1 * (W @ W)
     return p, R
-
-
-@dataclass(frozen=True)
-class ExportReport:
-    """What `Model.export` wrote: folder, files, and whether a library was compiled."""
-
-    out_dir: Path
-    casadi_files: tuple[Path, ...]
-    c_source: Path
-    library: Path | None
-    compiler_message: str
 
 
 class Model:
@@ -255,9 +218,9 @@ class Model:
         X = (Q - self._q0) @ self._B.T
         return X[0] if single else X
 
-    # ----------------------------------------------------------------- export
+    # --------------------------------------------------- exported functions
     def functions(self, batch: int = 1024) -> list[ca.Function]:
-        """Every exported function; `backbone_map` evaluates `batch` configurations."""
+        """Every function `crtraj.model.export` writes; `backbone_map` evaluates `batch` configurations."""
         bmap = self.backbone.map("backbone_map", "serial", batch, [], [])
         return [
             self.config_to_cables,
@@ -272,96 +235,6 @@ class Model:
             bmap,
         ]
 
-    def export(self, out_dir: str | Path, *, batch: int = 1024, compile: bool = True) -> ExportReport:
-        """Write .casadi files, C source, a shared library (if a C compiler exists) and manifest.json."""
-        from crtraj import __version__
-
-        out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
-        name = self.robot.name
-        funcs = self.functions(batch)
-        casadi_files = []
-        for f in funcs:
-            path = out / f"{f.name()}.casadi"
-            tmp = out / f".{f.name()}.casadi.tmp"
-            f.save(str(tmp))
-            tmp.replace(path)
-            casadi_files.append(path)
-        cname = f"{name}_model"
-        gen = ca.CodeGenerator(f"{cname}.c", {"with_header": True})
-        for f in funcs:
-            gen.add(f)
-        c_text = gen.dump()
-        c_path = out / f"{cname}.c"
-        atomic_write_bytes(c_path, c_text.encode("utf-8"))
-        # the header is generated next to the source by CasADi; rebuild it ourselves atomically
-        h_gen = ca.CodeGenerator(f"{cname}.c", {"with_header": True})
-        for f in funcs:
-            h_gen.add(f)
-        tmp_dir = out / f".gen-{name}"
-        tmp_dir.mkdir(exist_ok=True)
-        h_gen.generate(str(tmp_dir) + "/")
-        header = (tmp_dir / f"{cname}.h").read_bytes()
-        shutil.rmtree(tmp_dir, ignore_errors=True)
-        atomic_write_bytes(out / f"{cname}.h", header)
-        lib: Path | None = None
-        msg = "compilation skipped (--no-compile)"
-        if compile:
-            cc = shutil.which("cc") or shutil.which("gcc") or shutil.which("clang")
-            if cc is None:
-                msg = "no C compiler found (cc, gcc or clang): wrote C source only"
-            else:
-                suffix = ".dylib" if platform.system() == "Darwin" else ".so"
-                lib = out / f"lib{cname}{suffix}"
-                tmp_lib = out / f".lib{cname}.tmp{suffix}"
-                proc = subprocess.run(
-                    [cc, "-O2", "-shared", "-fPIC", "-o", str(tmp_lib), str(c_path), "-lm"],
-                    capture_output=True,
-                    text=True,
-                )
-                if proc.returncode != 0:
-                    tmp_lib.unlink(missing_ok=True)
-                    lib = None
-                    msg = f"C compiler {cc} failed: {proc.stderr.strip().splitlines()[-1:]}"
-                else:
-                    tmp_lib.replace(lib)
-                    msg = f"compiled with {cc}"
-        manifest = {
-            "crtraj_version": __version__,
-            "casadi_version": ca.__version__,
-            "robot": self.robot.to_dict(),
-            "n_points": self.n_points,
-            "arc_positions_mm": self.arc_positions(self.n_points),
-            "limits": {
-                "g_lower": self.limit_bounds()[0],
-                "g_upper": self.limit_bounds()[1],
-                "x_lower": self.robot.config_box()[0],
-                "x_upper": self.robot.config_box()[1],
-            },
-            "c_source": c_path.name,
-            "header": f"{cname}.h",
-            "library": lib.name if lib else None,
-            "compiler": msg,
-            "functions": [self._describe(f) for f in funcs],
-        }
-        atomic_write_json(out / "manifest.json", manifest)
-        return ExportReport(out, tuple(casadi_files), c_path, lib, msg)
-
-    @staticmethod
-    def _describe(f: ca.Function) -> dict[str, Any]:
-        def io(names: list[str], sparsity: Any) -> list[dict[str, Any]]:
-            return [
-                {"name": n, "shape": [sparsity(i).size1(), sparsity(i).size2()], "units": _UNITS.get(n, "")}
-                for i, n in enumerate(names)
-            ]
-
-        return {
-            "name": f.name(),
-            "file": f"{f.name()}.casadi",
-            "inputs": io(f.name_in(), f.sparsity_in),
-            "outputs": io(f.name_out(), f.sparsity_out),
-        }
-
     def limit_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """Bounds (lbg, ubg) of the `limits` function's output g."""
         n = self.robot.n_segments
@@ -369,7 +242,3 @@ class Model:
         hi = [s.theta_max**2 for s in self.robot.segments]
         strokes = np.repeat([self.robot.cable_stroke(k) for k in range(n)], 3)
         return np.concatenate([lo, -strokes]), np.concatenate([hi, strokes])
-
-    def manifest_text(self) -> str:
-        """Short JSON description of the functions (for `crtraj export --list`)."""
-        return json.dumps([self._describe(f) for f in self.functions(1)], indent=1)
