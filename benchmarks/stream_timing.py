@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.limits import LimitsGate
 from crtraj.hardware.protocol import MOVE, Frame
 from crtraj.hardware.setpoints import SetpointPath
@@ -38,7 +39,7 @@ def main() -> None:
     ap.add_argument("--rate", type=float, default=100.0)
     args = ap.parse_args()
     robot = load_robot(ROOT / "problems" / "robots" / "cdsr2.toml")
-    acts = robot.actuators.for_robot(robot)
+    acts = Actuators.from_robot(robot)
     x0, x1 = robot.straight(0.0), np.array([0.3, -0.2, 0.1, 0.4, -10.0])
     s = np.linspace(0, 1, 21)
     X = x0 + (x1 - x0) * (0.5 - 0.5 * np.cos(np.pi * s))[:, None]

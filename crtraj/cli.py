@@ -16,6 +16,7 @@ from typing import Any
 
 from crtraj import __version__
 from crtraj.core.errors import InputError
+from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.transport import TransportError
 
 DEFAULT_ROBOT = Path(__file__).resolve().parent.parent / "problems" / "robots" / "cdsr2.toml"
@@ -45,13 +46,14 @@ def _add_export(sub: argparse._SubParsersAction) -> None:
 
 def _cmd_export(args: argparse.Namespace) -> int:
     from crtraj.io.problem import load_robot
+    from crtraj.model.export import export_model
     from crtraj.model.kinematics import Model
 
     if args.batch < 1:
         raise InputError(f"--batch: must be >= 1, got {args.batch}")
     robot = load_robot(_resolve_robot(args.robot))
     model = Model(robot, n_points=args.points)
-    rep = model.export(args.out, batch=args.batch, compile=not args.no_compile)
+    rep = export_model(model, args.out, batch=args.batch, compile=not args.no_compile)
     print(f"exported robot '{robot.name}' ({robot.n_segments} segments, {model.n_points} points) to {rep.out_dir}")
     print(f"  {len(rep.casadi_files)} .casadi files, C source {rep.c_source.name}")
     print(f"  library: {rep.library.name if rep.library else 'none'} ({rep.compiler_message})")
@@ -158,16 +160,16 @@ def _cmd_stream(args: argparse.Namespace) -> int:
     if not isinstance(result, dict) or not isinstance(result.get("robot"), dict):
         raise InputError(f"{args.result}: robot: missing (is this a crtraj plan/replan result?)")
     robot = Robot.from_table(Table(result["robot"], "robot"))
-    acts = robot.actuators
+    source = robot
     if args.robot:
-        acts = load_robot(args.robot).actuators
-        if acts is None:
+        source = load_robot(args.robot)
+        if source.actuators is None:
             raise InputError(f"{args.robot}: robot.actuators: missing; add a [robot.actuators] table")
-    if acts is None:
+    if source.actuators is None:
         raise InputError(
             "robot.actuators: the result's robot has no [robot.actuators]; pass --robot problems/robots/cdsr2.toml"
         )
-    actuators = acts.for_robot(robot)
+    actuators = Actuators.from_robot(source).for_robot(robot)
     opts = Problem.load(args.problem).options(StreamOptions, "stream") if args.problem else StreamOptions()
     over = {k: v for k, v in (("rate", args.rate), ("watchdog", args.watchdog)) if v is not None}
     opts = dataclasses.replace(opts, **over)
@@ -239,7 +241,7 @@ def _cmd_sim_device(args: argparse.Namespace) -> int:
     if robot.actuators is None:
         raise InputError(f"{_resolve_robot(args.robot)}: robot.actuators: missing; add a [robot.actuators] table")
     faults = Faults(args.drop, args.corrupt, args.delay, args.disconnect_after, args.disconnect_for)
-    actuators = robot.actuators.for_robot(robot)
+    actuators = Actuators.from_robot(robot)
     dev = SimDevice(
         actuators, port, host=host, tau=args.tau, telemetry_rate=args.telemetry_rate, faults=faults, seed=args.seed
     )
@@ -486,7 +488,7 @@ def _open_live_stream(args: argparse.Namespace, problem: Any, loop: Any, sopts: 
     robot = problem.robot
     if robot.actuators is None:
         raise InputError("robot.actuators: --stream needs a [robot.actuators] table in the robot file")
-    acts = robot.actuators.for_robot(robot)
+    acts = Actuators.from_robot(robot)
     target = args.stream if "://" in args.stream else f"udp://{args.stream}"
     streamer = Streamer.open(target, acts, sopts, out / "stream.jsonl")
     try:
@@ -539,7 +541,7 @@ def _stream_run(args: argparse.Namespace, problem: object, paths: dict) -> bool:
     robot = problem.robot
     if robot.actuators is None:
         raise InputError("robot.actuators: --stream needs a [robot.actuators] table in the robot file")
-    actuators = robot.actuators.for_robot(robot)
+    actuators = Actuators.from_robot(robot)
     target = args.stream if "://" in args.stream else f"udp://{args.stream}"
     opts = problem.options(StreamOptions, "stream")
     log = Path(paths["json"]).parent / "stream.jsonl"

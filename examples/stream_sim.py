@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from crtraj.core.fileio import atomic_write_json, to_jsonable
+from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.setpoints import SetpointPath
 from crtraj.hardware.sim_device import Faults, SimDevice
 from crtraj.hardware.stream import Streamer, StreamOptions
@@ -43,7 +44,7 @@ def demo_result(robot, model, duration=3.0, n=16):
 def main() -> None:
     robot = load_robot(ROOT / "problems" / "robots" / "cdsr2.toml")
     model = Model(robot)
-    acts = robot.actuators.for_robot(robot)
+    acts = Actuators.from_robot(robot)
     result = demo_result(robot, model)
     atomic_write_json(OUT / "result.json", result)
     print(f"wrote {OUT / 'result.json'}; try: crtraj stream {OUT / 'result.json'} --dry-run {OUT / 'frames.bin'}")

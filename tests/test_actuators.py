@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import copy
+import json
+from collections.abc import Mapping
+from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -10,15 +14,21 @@ import pytest
 from crtraj.core.errors import InputError
 from crtraj.core.fields import Table
 from crtraj.hardware.actuators import Actuators
+from crtraj.io.problem import Problem, load_robot, read_toml
 from crtraj.model.robot import Robot
+
+ROOT = Path(__file__).resolve().parent.parent
 
 
 def _table(robot: Robot) -> dict:
-    return copy.deepcopy(robot.to_dict())
+    """The robot's table with every servo written out (Actuators.to_dict), ready to patch."""
+    d = copy.deepcopy(robot.to_dict())
+    d["actuators"] = Actuators.from_robot(robot).to_dict()
+    return d
 
 
 def test_cdsr2_actuators_match_the_robot_file(robot):
-    a = robot.actuators
+    a = Actuators.from_robot(robot)
     assert a.names == ("s1c1", "s1c2", "s1c3", "s2c1", "s2c2", "s2c3", "z")
     assert a.units == ("rad",) * 6 + ("mm",)
     np.testing.assert_array_equal(a.spool_radius, 10.0)
@@ -36,7 +46,7 @@ def test_command_closed_form_and_round_trip(robot):
     d["actuators"]["servo"]["s2c1"].update(sign=-1, zero_offset=0.25, spool_radius=8.0)
     d["actuators"]["z"].update(sign=-1, zero_offset=5.0)
     r = Robot.from_table(Table(d, "robot"))
-    a = r.actuators.for_robot(r)
+    a = Actuators.from_robot(r)
     rng = np.random.default_rng(3)
     X = rng.uniform(-0.3, 0.3, size=(20, r.nx))
     X[:, -1] = rng.uniform(-100, 50, 20)
@@ -56,9 +66,10 @@ def test_to_dict_round_trips(robot):
     d = _table(robot)
     d["actuators"]["servo"]["s1c3"]["position_limits"] = [-1.5, 1.0]
     r = Robot.from_table(Table(d, "robot"))
-    again = Actuators.from_table(Table(r.actuators.to_dict(), "robot.actuators"), 2)
+    parsed = Actuators.from_robot(r)
+    again = Actuators.from_table(Table(parsed.to_dict(), "robot.actuators"), 2)
     for name in ("spool_radius", "sign", "zero_offset", "lower", "upper", "vmax", "amax"):
-        np.testing.assert_array_equal(getattr(again, name), getattr(r.actuators, name))
+        np.testing.assert_array_equal(getattr(again, name), getattr(parsed, name))
     assert again.lower[2] == -1.5 and again.upper[2] == 1.0
     assert Robot.from_table(Table(r.to_dict(), "robot")).to_dict() == r.to_dict()
 
@@ -111,7 +122,7 @@ def test_missing_limit_names_the_key():
 
 
 def test_conversion_errors(robot):
-    a = robot.actuators
+    a = Actuators.from_table(Table(robot.actuators, "robot.actuators"), robot.n_segments)
     with pytest.raises(InputError, match="not bound to a robot"):
         a.command(np.zeros(7))
     b = a.for_robot(robot)
@@ -126,3 +137,51 @@ def test_conversion_errors(robot):
     one = Actuators.from_table(Table(_servo_defaults(), "robot.actuators"), 1)
     with pytest.raises(InputError, match="written for 1 segments"):
         one.for_robot(robot)
+
+
+def test_robot_keeps_the_raw_table_read_only(robot):
+    # the model layer holds the table as written, never parsed, and nobody can change it under the streamer
+    raw = robot.actuators
+    assert isinstance(raw, Mapping) and set(raw) == {
+        "spool_radius",
+        "zero_offset",
+        "sign",
+        "position_limits",
+        "velocity_limit",
+        "acceleration_limit",
+        "z",
+    }
+    with pytest.raises(TypeError):
+        raw["sign"] = -1  # type: ignore[index]
+    with pytest.raises(TypeError):
+        raw["z"]["sign"] = -1  # type: ignore[index]
+    assert raw["position_limits"] == (-2.0, 2.0)
+    # written back as plain data (JSON-able) that parses to the same actuators
+    d = robot.to_dict()
+    assert json.loads(json.dumps(d)) == d
+    again = Robot.from_table(Table(d, "robot"))
+    for name in ("spool_radius", "sign", "zero_offset", "lower", "upper", "vmax", "amax", "rest"):
+        np.testing.assert_array_equal(
+            getattr(Actuators.from_robot(again), name), getattr(Actuators.from_robot(robot), name)
+        )
+    with pytest.raises(InputError, match=r"robot\.actuators: expected a table, got list"):
+        replace(robot, actuators=[1, 2])
+    with pytest.raises(InputError, match=r"robot\.actuators: missing"):
+        Actuators.from_robot(replace(robot, actuators=None))
+
+
+def test_a_bad_actuator_key_fails_at_load_time(tmp_path):
+    # io.problem parses the table when the file is loaded: one line naming the key, before any planning
+    text = (ROOT / "problems" / "robots" / "cdsr2.toml").read_text() + "\n[robot.actuators.servo.s3c1]\nsign = -1\n"
+    bad = tmp_path / "bad.toml"
+    bad.write_text(text)
+    with pytest.raises(InputError) as exc:
+        load_robot(bad)
+    assert str(exc.value).startswith("robot.actuators.servo.s3c1: unknown actuator (known: s1c1")
+    assert "\n" not in str(exc.value)
+    inline = {"robot": read_toml(bad)["robot"], "task": {"start": [0, 0, 400], "goal": [0, 0, 390]}}
+    with pytest.raises(InputError, match=r"^robot\.actuators\.servo\.s3c1: unknown actuator"):
+        Problem.from_dict(inline)
+    # a robot without actuators still loads (planning needs none)
+    del inline["robot"]["actuators"]
+    assert Problem.from_dict(inline).robot.actuators is None

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from crtraj.core.errors import InputError
+from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.protocol import (
     ESTOP,
     HOLD,
@@ -28,7 +29,7 @@ pytestmark = pytest.mark.timeout(60)
 
 @pytest.fixture
 def acts(robot):
-    return robot.actuators.for_robot(robot)
+    return Actuators.from_robot(robot)
 
 
 class Host:
@@ -174,7 +175,7 @@ def test_bad_device_options():
     from crtraj.io.problem import load_robot
 
     r = load_robot("problems/robots/cdsr2.toml")
-    a = r.actuators.for_robot(r)
+    a = Actuators.from_robot(r)
     with pytest.raises(InputError, match=r"binds 127\.0\.0\.1 only"):
         SimDevice(a, host="0.0.0.0")
     with pytest.raises(InputError, match="--drop: must be in"):

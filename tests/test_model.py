@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import ast
 import math
+from pathlib import Path
 
 import casadi as ca
 import numpy as np
@@ -326,3 +328,28 @@ def test_wrong_shape_is_an_input_error(model):
         model.tip_position(np.zeros(4))
     with pytest.raises(InputError, match="NaN"):
         model.points(np.full(5, np.nan))
+
+
+# Layers, low to high (DESIGN.md); a module may import only its own layer and those below.
+_LAYERS = ("core", "model", "world", "planning", "control", "hardware", "io", "viz", "bench", "app")
+
+
+@pytest.mark.parametrize("package", ["model", "world"])
+def test_model_and_world_import_nothing_above_them_and_nothing_inside_functions(package):
+    root = Path(__file__).resolve().parent.parent / "crtraj"
+    allowed = set(_LAYERS[: _LAYERS.index(package) + 1])
+    for path in sorted((root / package).glob("*.py")):
+        tree = ast.parse(path.read_text())
+        for node in ast.walk(tree):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                inner = [n for n in ast.walk(node) if isinstance(n, (ast.Import, ast.ImportFrom))]
+                assert not inner, f"{path.name}:{inner[0].lineno if inner else 0}: import inside {node.name}()"
+            names = []
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.module:
+                names = [node.module]
+            for name in names:
+                parts = name.split(".")
+                if parts[0] == "crtraj" and len(parts) > 1:
+                    assert parts[1] in allowed, f"{path.name}:{node.lineno}: {package} imports {name} (a higher layer)"

@@ -14,6 +14,7 @@ import pytest
 from crtraj.cli import main
 from crtraj.control.loop import DeviceLink, loop_from_problem
 from crtraj.control.tracking import ServoModel
+from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.protocol import HOLD, MOVE
 from crtraj.hardware.sim_device import SimDevice
 from crtraj.hardware.stream import Streamer, StreamOptions
@@ -100,7 +101,7 @@ class _Sender:
 
 
 def _actuators(robot):
-    return robot.actuators.for_robot(robot)
+    return Actuators.from_robot(robot)
 
 
 def _device(robot, x0) -> SimDevice:

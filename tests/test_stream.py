@@ -21,6 +21,7 @@ from crtraj.cli import main
 from crtraj.core.errors import InputError
 from crtraj.core.fields import Table
 from crtraj.core.fileio import atomic_write_json, to_jsonable
+from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.protocol import ESTOP, HOLD, MOVE, Frame, read_stream_file
 from crtraj.hardware.setpoints import SetpointPath
 from crtraj.hardware.sim_device import Faults, SimDevice
@@ -38,7 +39,7 @@ ROBUST = StreamOptions(watchdog=0.5, connect_timeout=5.0)
 # ------------------------------------------------------------------ helpers
 @pytest.fixture(scope="module")
 def acts(robot):
-    return robot.actuators.for_robot(robot)
+    return Actuators.from_robot(robot)
 
 
 def make_result(robot, model, x1, duration, n=11, z0=0.0):
@@ -217,8 +218,9 @@ def test_transport_errors_stop_and_report(acts, result, tmp_path):
 
 def test_device_with_stricter_limits_refusal_is_reported(robot, acts, result, tmp_path):
     d = robot.to_dict()
+    d["actuators"] = Actuators.from_robot(robot).to_dict()  # every servo written out
     d["actuators"]["servo"]["s2c2"]["position_limits"] = [-0.01, 0.01]
-    strict = type(robot).from_table(Table(d, "robot")).actuators.for_robot(robot)
+    strict = Actuators.from_robot(type(robot).from_table(Table(d, "robot")))
     path = SetpointPath.from_result(result, acts)
     with SimDevice(strict) as dev:
         rep = Streamer.open(dev.url, acts, ROBUST).run_path(path)

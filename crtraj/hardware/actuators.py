@@ -154,6 +154,16 @@ class Actuators:
 
     # ------------------------------------------------------------- file I/O
     @classmethod
+    def from_robot(cls, robot: Any) -> Actuators:
+        """Parse `robot`'s raw ``[robot.actuators]`` table and bind it to the robot (`for_robot`).
+
+        One-line `InputError` naming the field when the table is missing or bad.
+        """
+        if robot.actuators is None:
+            raise InputError("robot.actuators: missing; add a [robot.actuators] table")
+        return cls.from_table(Table(robot.actuators, "robot.actuators"), robot.n_segments).for_robot(robot)
+
+    @classmethod
     def from_table(cls, t: Table, n_segments: int) -> Actuators:
         """Read ``[robot.actuators]``: shared servo keys, ``[servo.<name>]`` overrides and ``[z]``."""
         if n_segments < 1:

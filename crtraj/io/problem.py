@@ -19,6 +19,7 @@ import numpy as np
 
 from crtraj.core.errors import InputError
 from crtraj.core.fields import Table
+from crtraj.hardware.actuators import Actuators
 from crtraj.model.robot import Robot
 
 if sys.version_info >= (3, 11):
@@ -72,8 +73,15 @@ def load_robot(path: str | Path) -> Robot:
             raise InputError(f"{key}: unknown key in robot file {path} (expected a [robot] table)")
     if not top.has("robot"):
         raise InputError(f"robot: missing; {path} needs a [robot] table")
-    robot = Robot.from_table(top.table("robot"))
+    robot = _checked(Robot.from_table(top.table("robot")))
     top.finish()
+    return robot
+
+
+def _checked(robot: Robot) -> Robot:
+    """`robot`, after parsing its ``[robot.actuators]`` once so a bad key is a one-line error at load time."""
+    if robot.actuators is not None:
+        Actuators.from_robot(robot)
     return robot
 
 
@@ -132,7 +140,7 @@ class Problem:
             base = path.parent if path is not None else Path.cwd()
             robot = load_robot(base / robot_ref)
         else:
-            robot = Robot.from_table(Table(robot_ref, "robot"))
+            robot = _checked(Robot.from_table(Table(robot_ref, "robot")))
         task = None
         if top.has("task"):
             task = Task.from_table(top.table("task"), robot.nx)

@@ -15,7 +15,9 @@ so the maps are constant matrices, shared by the numpy and CasADi code.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
+from types import MappingProxyType
 from typing import Any
 
 import numpy as np
@@ -51,6 +53,9 @@ class Robot:
     (c = 0 is plain PCC, c = -1 the paper's eq. 10-11). body_radius: radius of
     the robot's discs (mm), added to the backbone for collision checks.
     collision_points: backbone points the solvers keep clear (paper: 10).
+    actuators: the raw ``[robot.actuators]`` table (an immutable mapping) or
+    None. The model never reads it; `crtraj.hardware.actuators.Actuators.from_robot`
+    parses it, and `crtraj.io.problem` validates it when a robot file is loaded.
     """
 
     name: str
@@ -61,7 +66,7 @@ class Robot:
     body_radius: float = 3.0
     collision_points: int = 10
     description: str = ""
-    actuators: Any = field(default=None, compare=False)
+    actuators: Mapping[str, Any] | None = field(default=None, compare=False)
 
     def __post_init__(self) -> None:
         if not self.segments:
@@ -85,6 +90,10 @@ class Robot:
                 raise InputError(f"{where}.theta_max: must be in (0, 2 pi], got {s.theta_max}")
             if s.cable_stroke is not None and not s.cable_stroke > 0:
                 raise InputError(f"{where}.cable_stroke: must be > 0, got {s.cable_stroke}")
+        if self.actuators is not None:
+            if not isinstance(self.actuators, Mapping):
+                raise InputError(f"robot.actuators: expected a table, got {type(self.actuators).__name__}")
+            object.__setattr__(self, "actuators", _frozen(self.actuators))
 
     # ------------------------------------------------------------------ sizes
     @property
@@ -221,11 +230,8 @@ class Robot:
         z = t.vec("z_range", 2, (0.0, 0.0))
         if z[0] > z[1]:
             raise t.error("z_range", f"must be [low, high] with low <= high, got {list(z)}")
-        actuators = None
-        if t.has("actuators"):
-            from crtraj.hardware.actuators import Actuators  # the streamer owns the actuator schema
-
-            actuators = Actuators.from_table(t.table("actuators"), len(segs))
+        # kept raw: the hardware layer owns the actuator schema (Actuators.from_robot)
+        actuators = t.raw("actuators", None)
         robot = cls(
             name=t.str("name"),
             cable_radius=t.float("cable_radius", gt=0.0),
@@ -258,5 +264,23 @@ class Robot:
         if self.description:
             d["description"] = self.description
         if self.actuators is not None:
-            d["actuators"] = self.actuators.to_dict()
+            d["actuators"] = _plain(self.actuators)
         return d
+
+
+def _frozen(v: Any) -> Any:
+    """A read-only deep copy of TOML data: tables become mappingproxies, arrays tuples."""
+    if isinstance(v, Mapping):
+        return MappingProxyType({str(k): _frozen(x) for k, x in v.items()})
+    if isinstance(v, (list, tuple)):
+        return tuple(_frozen(x) for x in v)
+    return v
+
+
+def _plain(v: Any) -> Any:
+    """The plain dicts and lists of `_frozen` data (for JSON and TOML writers)."""
+    if isinstance(v, Mapping):
+        return {k: _plain(x) for k, x in v.items()}
+    if isinstance(v, tuple):
+        return [_plain(x) for x in v]
+    return v
