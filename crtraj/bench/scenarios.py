@@ -52,7 +52,9 @@ import numpy as np
 from crtraj.core.errors import InputError
 from crtraj.core.fields import Table
 from crtraj.model.kinematics import Model
-from crtraj.world.scene import Obstacle, Scene
+from crtraj.world.margin import DEFAULT_SAFETY_DISTANCE
+from crtraj.world.obstacle import Obstacle
+from crtraj.world.scene import Scene
 
 # Backbone points used by the screens: 128 points put < 3.2 mm of arc between
 # points on the 400 mm default robot. Every body point lies within half that
@@ -102,7 +104,7 @@ class ScenarioOptions:
     min_tip_distance: float = 150.0
     tip_box_lo: tuple[float, float, float] = (-130.0, -130.0, 150.0)
     tip_box_hi: tuple[float, float, float] = (130.0, 130.0, 450.0)
-    safety_distance: float = 5.0
+    safety_distance: float = DEFAULT_SAFETY_DISTANCE
     time_step: float = 1.0
     start_window: float = 1.0
     goal_margin: float = 5.0

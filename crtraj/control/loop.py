@@ -44,7 +44,7 @@ from crtraj.core.errors import InputError
 from crtraj.core.fields import check_array
 from crtraj.model.kinematics import Model
 from crtraj.planning.validity import MotionValidator
-from crtraj.world.scene import Obstacle
+from crtraj.world.obstacle import Obstacle
 
 # backbone points used to measure (not decide) clearance and to record the body
 REPORT_POINTS = 41

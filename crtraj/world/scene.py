@@ -299,7 +299,7 @@ class Scene:
     def from_table(cls, t: Table) -> Scene:
         """Read ``[scene]``.
 
-        Keys: ``safety_distance`` (mm, default 5), ``time_step`` (s, default 1),
+        Keys: ``safety_distance`` (mm, default `margin.DEFAULT_SAFETY_DISTANCE` = 5), ``time_step`` (s, default 1),
         ``workspace = {lo = [x,y,z], hi = [x,y,z]}`` (mm, default the paper's
         300 x 300 x 500 box, x,y in [-150, 150], z in [0, 500]),
         ``time_origin`` (s, default 0), and ``[[scene.obstacle]]`` tables with
