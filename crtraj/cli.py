@@ -285,7 +285,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     import math
 
     from crtraj.io.problem import Problem
-    from crtraj.planning.rrt import plan_problem
+    from crtraj.app.plan import plan_problem
 
     if args.seed is not None and args.seed < 0:
         raise InputError(f"--seed: must be >= 0, got {args.seed}")
@@ -317,7 +317,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
             print(f"  wrote {Visualizer.for_result(result).save_html(args.html)}")
         if args.view:
             _serve(result, str(out), not args.no_browser)
-    return 0 if r.success else 1
+    return 0 if r.is_success() else 1
 
 
 # --------------------------------------------------------------------- replan

@@ -12,7 +12,8 @@ import numpy as np
 from crtraj.io.problem import Problem
 from crtraj.model.kinematics import Model
 from crtraj.planning.options import PlannerOptions
-from crtraj.planning.rrt import ProblemPlan, make_planner
+from crtraj.app.plan import ProblemPlan
+from crtraj.planning.registry import make_planner
 from crtraj.planning.steer import SteerOptions
 from crtraj.planning.stop import StopCondition
 from crtraj.world.scene import Scene

@@ -209,7 +209,7 @@ def test_safe_ik_nlp_stage_alone(sim1, validator):
     seeds = validator.sample(np.random.default_rng(1), 6)
     batch = ik.solve(problem.task.goal, scene.pack(0.0, 4), seeds, newton_iterations=0, want=6)
     assert "projection" in batch.statuses and batch.statuses["projection"] == 0
-    assert any(s.status == "Solve_Succeeded" for s in batch.solutions)
+    assert any(s.solver_status == "Solve_Succeeded" for s in batch.solutions)
     assert len(batch.safe) >= 1
     for x in batch.safe:
         assert np.linalg.norm(model.tip_position(x) - problem.task.goal) <= 1e-3
@@ -222,7 +222,7 @@ def test_safe_ik_unreachable_target(sim1, validator):
     far = np.array([0.0, 0.0, 900.0])  # beyond 400 mm of robot on a base that rises 100 mm
     batch = ik.solve(far, scene.pack(0.0, 2), validator.sample(np.random.default_rng(2), 8), max_nlp=2)
     assert len(batch.safe) == 0
-    assert sum(1 for s in batch.solutions if s.status != "projection") == 2
+    assert sum(1 for s in batch.solutions if s.solver_status != "projection") == 2
     assert not any(s.safe for s in batch.solutions)
 
 
