@@ -284,8 +284,8 @@ def _add_plan(sub: argparse._SubParsersAction) -> None:
 def _cmd_plan(args: argparse.Namespace) -> int:
     import math
 
-    from crtraj.io.problem import Problem
     from crtraj.app.plan import plan_problem
+    from crtraj.io.problem import Problem
 
     if args.seed is not None and args.seed < 0:
         raise InputError(f"--seed: must be >= 0, got {args.seed}")
@@ -594,9 +594,9 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
-    from crtraj.bench.runner import run_cli
+    from crtraj.app.bench import run_table1
 
-    return run_cli(args)
+    return run_table1(args)
 
 
 # Subcommands register themselves here in display order.

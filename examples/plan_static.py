@@ -9,10 +9,10 @@ from pathlib import Path
 
 import numpy as np
 
+from crtraj.app.plan import ProblemPlan
 from crtraj.io.problem import Problem
 from crtraj.model.kinematics import Model
 from crtraj.planning.options import PlannerOptions
-from crtraj.app.plan import ProblemPlan
 from crtraj.planning.registry import make_planner
 from crtraj.planning.steer import SteerOptions
 from crtraj.planning.stop import StopCondition

@@ -1259,8 +1259,8 @@ def loop_from_problem(
     executes each step after it is computed (`DeviceLink.lead`), so the feed is predicted that far ahead.
     """
     from crtraj.planning.options import PlannerOptions
-    from crtraj.planning.result import PlanStatus
     from crtraj.planning.registry import make_planner
+    from crtraj.planning.result import PlanStatus
     from crtraj.planning.steer import SteerOptions
     from crtraj.planning.stop import StopCondition
     from crtraj.world.scene import Scene

@@ -42,6 +42,7 @@ from crtraj.core.fields import check_array
 from crtraj.model.kinematics import Model
 from crtraj.planning.sampler import LIMIT_TOL
 from crtraj.planning.validity import MotionValidator
+from crtraj.world.scene import PACK_WIDTH
 
 
 @dataclass(frozen=True)
@@ -124,8 +125,6 @@ class SafeIK:
         return self._solver
 
     def _build(self) -> ca.Function:
-        from crtraj.world.scene import PACK_WIDTH
-
         model, validator = self.model, self.validator
         M = self.max_obstacles
         n = validator.check_points
