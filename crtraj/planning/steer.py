@@ -45,7 +45,6 @@ densely as well, raise `margin` (mm, added to every keep-out radius) or
 from __future__ import annotations
 
 import enum
-import filecmp
 import math
 import shutil
 import tempfile
@@ -495,7 +494,12 @@ class SteerSolver:
                 # directory unless told otherwise; keep them in a folder owned by this solver,
                 # which removes it (so CasADi's own clean-up is off: it would warn at exit).
                 self._jit_dir = tempfile.TemporaryDirectory(prefix="crtraj-jit-")
-                jit_opts = {"compiler": "gcc", "flags": ["-O2"], "directory": self._jit_dir.name + "/"}
+                jit_opts = {
+                    "compiler": "gcc",
+                    "flags": ["-O2"],
+                    "directory": self._jit_dir.name + "/",
+                    "cleanup": False,
+                }
                 common.update({"jit": True, "compiler": "shell", "jit_options": jit_opts, "jit_cleanup": False})
                 self.jit_message = "jit: compiled with gcc -O2"
         ip = dict(IPOPT_DEFAULTS)
@@ -848,20 +852,18 @@ def _qp_options(qpsol: str) -> dict[str, Any]:
 
 
 def _remove_stray_sources(private: Path) -> None:
-    """Delete the copies of the jit's C sources that CasADi's nlpsol also writes to the working directory.
+    """Delete the jit's C sources that CasADi's nlpsol writes to the working directory.
 
-    CasADi 3.6-3.8 generates an nlpsol's jit source in the working directory and
-    compiles a copy in the jit directory (measured: a plain Function honours the
-    directory, an nlpsol does not). A working-directory file is removed only when it
-    is byte-identical to a source of this solver's private folder (random names), so
-    no file of the user's is ever touched.
+    Measured with CasADi 3.8: an nlpsol built with jit reserves a unique name
+    ``jit_tmpXXXXXX.c`` in the jit directory (an empty file) but writes the
+    source under that name to the working directory (a plain Function honours
+    the directory). The names are random and reserved in this solver's private
+    folder, so a working-directory file of the same name is this build's source.
     """
-    for src in private.glob("jit_tmp*.c"):
-        stray = Path.cwd() / src.name
+    for placeholder in private.glob("jit_tmp*.c"):
         try:
-            if stray.is_file() and filecmp.cmp(stray, src, shallow=False):
-                stray.unlink()
-        except OSError:  # a read-only or vanished working directory: nothing to clean there
+            (Path.cwd() / placeholder.name).unlink(missing_ok=True)
+        except OSError:  # a read-only or vanished working directory: nothing was written there
             continue
 
 
