@@ -29,6 +29,31 @@ def _parse_list(text: str, name: str, conv: Callable[[str], Any]) -> tuple[Any, 
     return items
 
 
+def _executor(args: Any, bench: Table1Bench, workers: int) -> tuple[cf.Executor | None, Any, int]:
+    """(executor or None, Dask client or None, worker count) for --dask / --workers."""
+    client = None
+    executor: cf.Executor | None = None
+    if args.dask:
+        try:
+            from distributed import Client
+        except ImportError:
+            raise InputError("--dask: needs the 'distributed' package: pip install 'crtraj[bench]'") from None
+        try:
+            client = Client(args.dask, timeout="10s")
+        except OSError as exc:
+            raise InputError(f"--dask: cannot reach a Dask scheduler at {args.dask!r} ({exc})") from None
+        executor = client.get_executor()
+        workers = sum(client.nthreads().values())
+    elif workers > 0:
+        executor = cf.ProcessPoolExecutor(
+            max_workers=workers,
+            mp_context=multiprocessing.get_context("spawn"),
+            initializer=bench.initializer,
+            initargs=bench.initargs,
+        )
+    return executor, client, workers
+
+
 def run_table1(args: Any) -> int:
     """`crtraj bench table1 ...` (arguments from `crtraj.cli`); returns the exit code."""
     workers = os.cpu_count() or 1 if args.workers is None else args.workers
@@ -56,26 +81,7 @@ def run_table1(args: Any) -> int:
     bench = Table1Bench(robot, options, planner_options=planner_options)
     out = Path(args.out)
     total = len(options.counts) * options.scenarios * len(planners)
-    client = None
-    executor: cf.Executor | None = None
-    if args.dask:
-        try:
-            from distributed import Client
-        except ImportError:
-            raise InputError("--dask: needs the 'distributed' package: pip install 'crtraj[bench]'") from None
-        try:
-            client = Client(args.dask, timeout="10s")
-        except OSError as exc:
-            raise InputError(f"--dask: cannot reach a Dask scheduler at {args.dask!r} ({exc})") from None
-        executor = client.get_executor()
-        workers = sum(client.nthreads().values())
-    elif workers > 0:
-        executor = cf.ProcessPoolExecutor(
-            max_workers=workers,
-            mp_context=multiprocessing.get_context("spawn"),
-            initializer=bench.initializer,
-            initargs=bench.initargs,
-        )
+    executor, client, workers = _executor(args, bench, workers)
     where = f"Dask at {args.dask} ({workers} threads)" if args.dask else f"{workers or 'no'} worker processes"
     print(
         f"crtraj bench table1: {total} runs ({options.scenarios} scenarios x counts {list(options.counts)} x "

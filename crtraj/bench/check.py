@@ -91,6 +91,42 @@ def _dense_path(
     return times, configs, pts
 
 
+def _clearance_and_length(
+    model: Model, scene: Scene, times: np.ndarray, points: np.ndarray
+) -> tuple[float, float, float]:
+    """(smallest body-surface to sphere-surface distance (mm), when (s), tip travel (mm)) over dense samples.
+
+    Each backbone chord is checked as a segment against every sphere at the sample's own time.
+    """
+    nan = float("nan")
+    min_clr, t_worst = math.inf, nan
+    length = 0.0
+    prev_tip: np.ndarray | None = None
+    body = model.robot.body_radius
+    for a in range(0, len(times), _CHUNK):
+        tc, pts = times[a : a + _CHUNK], points[a : a + _CHUNK]  # (C,), (C, n, 3)
+        tips = pts[:, -1, :]
+        steps = np.linalg.norm(np.diff(tips, axis=0), axis=-1).sum()
+        if prev_tip is not None:
+            steps += np.linalg.norm(tips[0] - prev_tip)
+        length += float(steps)
+        prev_tip = tips[-1]
+        if scene.n_obstacles == 0:
+            continue
+        centers, radii = scene.states(tc)  # (C, M, 3), (C, M)
+        A = pts[:, :-1, None, :]  # (C, n-1, 1, 3)
+        AB = pts[:, 1:, None, :] - A
+        AC = centers[:, None, :, :] - A  # (C, n-1, M, 3)
+        den = np.maximum(np.einsum("...k,...k->...", AB, AB), 1e-300)
+        u = np.clip(np.einsum("...k,...k->...", AC, AB) / den, 0.0, 1.0)
+        dist = np.linalg.norm(AC - u[..., None] * AB, axis=-1)  # (C, n-1, M)
+        clr = (dist.min(axis=1) - radii).min(axis=-1) - body  # (C,)
+        i = int(np.argmin(clr))
+        if clr[i] < min_clr:
+            min_clr, t_worst = float(clr[i]), float(tc[i])
+    return min_clr, t_worst, length
+
+
 def dense_check(
     model: Model,
     scene: Scene,
@@ -128,31 +164,7 @@ def dense_check(
     if np.max(limit) > _LIMIT_TOL:
         i = int(np.argmax(limit))
         return fail(f"out of the robot's limits at t = {times[i]:.3f} s (violation {limit[i]:.3g})", s=len(times))
-    min_clr, t_worst = math.inf, nan
-    length = 0.0
-    prev_tip: np.ndarray | None = None
-    body = model.robot.body_radius
-    for a in range(0, len(times), _CHUNK):
-        tc, pts = times[a : a + _CHUNK], points[a : a + _CHUNK]  # (C,), (C, n, 3)
-        tips = pts[:, -1, :]
-        steps = np.linalg.norm(np.diff(tips, axis=0), axis=-1).sum()
-        if prev_tip is not None:
-            steps += np.linalg.norm(tips[0] - prev_tip)
-        length += float(steps)
-        prev_tip = tips[-1]
-        if scene.n_obstacles == 0:
-            continue
-        centers, radii = scene.states(tc)  # (C, M, 3), (C, M)
-        A = pts[:, :-1, None, :]  # (C, n-1, 1, 3)
-        AB = pts[:, 1:, None, :] - A
-        AC = centers[:, None, :, :] - A  # (C, n-1, M, 3)
-        den = np.maximum(np.einsum("...k,...k->...", AB, AB), 1e-300)
-        u = np.clip(np.einsum("...k,...k->...", AC, AB) / den, 0.0, 1.0)
-        dist = np.linalg.norm(AC - u[..., None] * AB, axis=-1)  # (C, n-1, M)
-        clr = (dist.min(axis=1) - radii).min(axis=-1) - body  # (C,)
-        i = int(np.argmin(clr))
-        if clr[i] < min_clr:
-            min_clr, t_worst = float(clr[i]), float(tc[i])
+    min_clr, t_worst, length = _clearance_and_length(model, scene, times, points)
     goal_error = float(np.linalg.norm(model.tip_position(X[-1]) - np.asarray(goal, dtype=float)))
     if min_clr <= margin:
         what = "collides with an obstacle" if min_clr <= 0.0 else f"comes within {margin:g} mm of an obstacle"

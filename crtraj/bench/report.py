@@ -80,6 +80,7 @@ class BenchReport:
         return len(both), float(np.mean([la[i] / lb[i] for i in both]))
 
     # --------------------------------------------------------------- files
+    # Long by design: it writes the report top to bottom, one table after another, as it reads.
     def markdown(self) -> str:
         o = self.options
         counts = o.counts

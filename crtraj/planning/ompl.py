@@ -170,6 +170,8 @@ class OMPLPlanner:
         return np.concatenate([b.safe for b in parts])
 
     # ------------------------------------------------------------------ query
+    # Long by design: OMPL's Python callbacks (validity, motion, goal) are classes that close over this
+    # query's validator, clock and generator; split apart they would need a per-query object holding them all.
     def plan(
         self,
         goal: Any,

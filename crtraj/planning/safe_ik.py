@@ -197,6 +197,7 @@ class SafeIK:
             X = self.validator.project_limits(X + dx)
         return X, err
 
+    # Long by design: the two IK stages share the seeds, the deadline and the running tally of safe solutions.
     def solve(
         self,
         target: np.ndarray,

@@ -435,6 +435,7 @@ class SteerSolver:
         self._build()
 
     # ------------------------------------------------------------------ build
+    # Long by design: one symbolic NLP, its constraints and the solver variants built from it in one place.
     def _build(self) -> None:
         o, nx, M = self.options, self.nx, self.max_obstacles
         # decision variable y = S x (mm): bending and z on one scale, so the
