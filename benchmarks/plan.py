@@ -28,7 +28,7 @@ import numpy as np
 from crtraj.io.problem import Problem, read_toml
 from crtraj.model.kinematics import Model
 from crtraj.planning.options import PlannerOptions
-from crtraj.planning.rrt import make_planner
+from crtraj.planning.registry import make_planner
 from crtraj.planning.steer import SteerOptions
 from crtraj.planning.stop import StopCondition
 from crtraj.world.scene import Scene
@@ -65,7 +65,7 @@ def run(label: str, planner, problem: Problem, model: Model, scene: Scene, seeds
     for seed in seeds:
         res = planner.plan(task.goal, start_tip=task.start, seed=seed, stop=stop, goal_tolerance=task.goal_tolerance)
         times.append(res.timings["total"])
-        if res.success:
+        if res.is_success():
             ok += 1
             c = dense_clearance(model, scene, res.t, res.configs)
             verified += c >= 0.0

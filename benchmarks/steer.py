@@ -73,7 +73,7 @@ def run(label: str, solver: SteerSolver, scene: Scene, X: np.ndarray, T: np.ndar
         "p90_ms": float(np.percentile(ms, 90)),
         "cpu_median_ms": float(np.median(cpu_ms)),
         "cpu_p90_ms": float(np.percentile(cpu_ms, 90)),
-        "success": float(np.mean([r.success for r in results])),
+        "success": float(np.mean([r.is_success() for r in results])),
         "reached": float(np.mean([r.reached for r in results])),
         "unsafe": int(sum(not r.safe for r in results)),
         "mean_iterations": float(np.mean([r.iterations for r in results])),

@@ -24,8 +24,10 @@ from pathlib import Path
 
 import numpy as np
 
-from crtraj.bench.runner import LABELS, PAPER_COUNTS, PAPER_TABLE1, PLANNERS, BenchOptions, Table1Bench, check_available
+from crtraj.bench.records import LABELS, PAPER_COUNTS, PAPER_TABLE1, PLANNERS, BenchOptions
+from crtraj.bench.runner import Table1Bench
 from crtraj.io.problem import load_robot
+from crtraj.planning.registry import BUILTIN
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -44,7 +46,7 @@ def main() -> None:
 
     planners = tuple(p.strip() for p in args.planners.split(",") if p.strip())
     for p in planners:
-        check_available(p)
+        BUILTIN.check_available(p)
     counts = tuple(int(c) for c in args.counts.split(","))
     robot = load_robot(ROOT / "problems" / "robots" / "cdsr2.toml")
     opts = BenchOptions(

@@ -286,8 +286,8 @@ def _add_plan(sub: argparse._SubParsersAction) -> None:
 def _cmd_plan(args: argparse.Namespace) -> int:
     import math
 
+    from crtraj.app.plan import plan_problem
     from crtraj.io.problem import Problem
-    from crtraj.planning.rrt import plan_problem
 
     if args.seed is not None and args.seed < 0:
         raise InputError(f"--seed: must be >= 0, got {args.seed}")
@@ -319,7 +319,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
             print(f"  wrote {Visualizer.for_result(result).save_html(args.html)}")
         if args.view:
             _serve(result, str(out), not args.no_browser)
-    return 0 if r.success else 1
+    return 0 if r.is_success() else 1
 
 
 # --------------------------------------------------------------------- replan
@@ -596,9 +596,9 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
-    from crtraj.bench.runner import run_cli
+    from crtraj.app.bench import run_table1
 
-    return run_cli(args)
+    return run_table1(args)
 
 
 # Subcommands register themselves here in display order.

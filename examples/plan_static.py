@@ -9,10 +9,11 @@ from pathlib import Path
 
 import numpy as np
 
+from crtraj.app.plan import ProblemPlan
 from crtraj.io.problem import Problem
 from crtraj.model.kinematics import Model
 from crtraj.planning.options import PlannerOptions
-from crtraj.planning.rrt import ProblemPlan, make_planner
+from crtraj.planning.registry import make_planner
 from crtraj.planning.steer import SteerOptions
 from crtraj.planning.stop import StopCondition
 from crtraj.world.scene import Scene

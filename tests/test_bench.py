@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import os
 import sys
 from pathlib import Path
 
@@ -14,19 +15,19 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from crtraj.bench.runner import (
-    PAPER_TABLE1,
-    BenchOptions,
-    BenchReport,
-    RunRecord,
-    Table1Bench,
-    dense_check,
-)
+from crtraj.bench.check import _dense_path, dense_check
+from crtraj.bench.records import PAPER_TABLE1, BenchOptions, RunRecord
+from crtraj.bench.report import BenchReport
+from crtraj.bench.runner import Table1Bench, bench_stop
 from crtraj.bench.scenarios import Scenario, ScenarioGenerator, ScenarioOptions
 from crtraj.cli import main
 from crtraj.core.errors import InputError
+from crtraj.planning.ompl import OMPLPlanner, import_ompl
 from crtraj.planning.options import PlannerOptions
+from crtraj.planning.registry import PlannerSpec
 from crtraj.planning.result import PlanResult, PlanStatus
+from crtraj.planning.safe_ik import SafeIK
+from crtraj.planning.stop import StopCondition
 from crtraj.planning.validity import MotionValidator
 from crtraj.world.scene import Obstacle, Scene
 
@@ -177,7 +178,7 @@ def test_dense_check_clearance_and_length_match_closed_forms(model):
     x1 = model.robot.straight(0.0)
     res = _result(model, [0.0, 4.0], [x0, x1])
     chk = dense_check(model, scene, res, x0, model.tip_position(x1), n_points=129)
-    assert chk.ok, chk.reason
+    assert chk.is_success(), chk.reason
     assert chk.min_clearance == pytest.approx(50.0 - 20.0 - model.robot.body_radius, abs=1e-9)
     assert chk.length == pytest.approx(100.0, abs=1e-9)  # the tip rises 100 mm
     assert chk.goal_error == pytest.approx(0.0, abs=1e-9)
@@ -196,20 +197,18 @@ def test_dense_check_catches_a_collision_between_waypoints(model):
     )
     res = _result(model, [0.0, 1.0], [xa, xb])
     chk = dense_check(model, scene, res, xa, model.tip_position(xb))
-    assert not chk.ok and "collides" in chk.reason
+    assert not chk.is_success() and "collides" in chk.reason
     # the moving sphere sits on the axis at z = 300 at t = 0 and leaves it: a slow motion is clear,
     # yet with a fast one the robot reaches z = 300 while the sphere is still there
     slow = _result(model, [0.0, 1.0, 11.0], [xa, xa, xb])
-    assert dense_check(model, moving, slow, xa, model.tip_position(xb)).ok
+    assert dense_check(model, moving, slow, xa, model.tip_position(xb)).is_success()
     fast = _result(model, [0.0, 1.0], [xa, xb])
     chk = dense_check(model, moving, fast, xa, model.tip_position(xb))
-    assert not chk.ok and "collides" in chk.reason and chk.t_worst <= 1.0
+    assert not chk.is_success() and "collides" in chk.reason and chk.t_worst <= 1.0
 
 
 def test_dense_samples_keep_every_backbone_point_within_the_step(model):
     """A fast, large bend: consecutive dense samples move no backbone point more than `step` mm."""
-    from crtraj.bench.runner import _dense_path
-
     xa = model.robot.straight(0.0)
     xb = xa.copy()
     xb[:4] = [1.2, -0.4, 0.3, 1.0]
@@ -233,42 +232,59 @@ def test_dense_check_rejects_malformed_paths(model):
     bent = xb.copy()
     bent[0] = 4.0  # theta far above pi: out of limits
     assert "limits" in dense_check(model, scene, _result(model, [0, 1], [xa, bent]), xa, goal).reason
-    assert dense_check(model, scene, _result(model, [0, 1], [xa, xb]), xa, goal).ok
+    assert dense_check(model, scene, _result(model, [0, 1], [xa, xb]), xa, goal).is_success()
 
 
 # ------------------------------------------------------------ fake planners
-class StraightToWitness:
-    """Claims an exact solution: straight motion from the start to the goal witness at 20 mm/s of tip."""
+class StraightToGoal:
+    """Claims an exact solution: the straight motion from the start to a goal configuration (safe IK in
+    an empty scene, so it ignores obstacles) at 20 mm/s of tip. A `Planner` like crtraj's own."""
 
-    def __init__(self, model, options):
+    name = "straight"
+
+    def __init__(self, model):
         self.model = model
+        self.v = MotionValidator(model, Scene())
+        self.ik = SafeIK(model, self.v, 1)
 
-    def plan(self, scenario, *, time_limit, seed, goal_tolerance):
-        d = np.linalg.norm(scenario.goal - scenario.start_tip)
-        return _result(self.model, [0.0, d / 20.0], [scenario.start, scenario.goal_config])
+    def goal_config(self, goal, x0, seed):
+        seeds = np.concatenate([x0[None], self.v.sample(np.random.default_rng(seed), 15)])
+        batch = self.ik.solve(goal, Scene().pack(0.0, 1), seeds, want=1, validator=self.v, tip_tolerance=1e-4)
+        return batch.safe[0]
+
+    def plan(self, goal, *, start_config=None, start_tip=None, t0=0.0, stop=None, seed=None, scene=None, **kw):
+        x0 = np.asarray(start_config, dtype=float)
+        d = np.linalg.norm(goal - self.model.tip_position(x0))
+        return _result(self.model, [t0, t0 + d / 20.0], [x0, self.goal_config(goal, x0, seed)])
 
 
-class Collider:
+class Collider(StraightToGoal):
     """Claims an exact solution through a configuration whose body is inside an obstacle at t = 1 s."""
 
-    def __init__(self, model, options):
-        self.model = model
+    name = "collider"
 
-    def plan(self, scenario, *, time_limit, seed, goal_tolerance):
-        if scenario.scene.n_obstacles == 0:  # nothing to hit: behave honestly
-            return StraightToWitness(self.model, None).plan(
-                scenario, time_limit=time_limit, seed=seed, goal_tolerance=goal_tolerance
-            )
-        X = MotionValidator(self.model, Scene()).sample(np.random.default_rng(seed), 3000)
+    def plan(self, goal, *, start_config=None, start_tip=None, t0=0.0, stop=None, seed=None, scene=None, **kw):
+        if scene.n_obstacles == 0:  # nothing to hit: behave honestly
+            return super().plan(goal, start_config=start_config, seed=seed, scene=scene)
+        X = self.v.sample(np.random.default_rng(seed), 3000)
         P = self.model.points(X, 64)
-        c, r = scenario.scene.states(1.0)
+        c, r = scene.states(1.0)
         depth = (np.linalg.norm(P[:, :, None, :] - c[None, None], axis=-1) - r).min(axis=(1, 2))
         x_bad = X[int(np.argmin(depth))]
         assert depth.min() < -5.0
-        return _result(self.model, [0.0, 1.0, 2.0], [scenario.start, x_bad, scenario.goal_config])
+        x0 = np.asarray(start_config, dtype=float)
+        return _result(self.model, [0.0, 1.0, 2.0], [x0, x_bad, self.goal_config(goal, x0, seed)])
 
 
-FAKES = {"straight": StraightToWitness, "collider": Collider}
+def _straight(model, scene, options, steer_options, max_obstacles):
+    return StraightToGoal(model)
+
+
+def _collider(model, scene, options, steer_options, max_obstacles):
+    return Collider(model)
+
+
+FAKES = (PlannerSpec("straight", _straight), PlannerSpec("collider", _collider))
 
 
 def test_a_claimed_success_that_collides_counts_as_a_failure(robot):
@@ -366,38 +382,54 @@ def test_dask_local_cluster_runs_the_bench(robot):
     # the same runs in this process give the same verdicts (the scenarios are seeded)
     local = bench.run(None, progress=False)
     key = lambda r: (r.planner, r.n_obstacles, r.index)  # noqa: E731
-    assert [(key(r), r.success, r.check) for r in sorted(report.records, key=key)] == [
-        (key(r), r.success, r.check) for r in sorted(local.records, key=key)
+    assert [(key(r), r.is_success(), r.check) for r in sorted(report.records, key=key)] == [
+        (key(r), r.is_success(), r.check) for r in sorted(local.records, key=key)
     ]
 
 
 # ------------------------------------------------------------------- OMPL
 def test_ompl_missing_gives_an_install_hint(monkeypatch):
-    from crtraj.planning.ompl import import_ompl
-
     monkeypatch.setitem(sys.modules, "ompl", None)
     with pytest.raises(InputError, match="pip install"):
         import_ompl()
 
 
-def test_ompl_plans_in_space_time_and_passes_the_dense_check(model, generator):
-    pytest.importorskip("ompl")
-    from crtraj.planning.ompl import OMPLPlanner
-    from crtraj.planning.stop import StopCondition
+def require_ompl() -> None:
+    """OMPL is an optional extra: missing, its tests fail under CI=true (standards) and skip elsewhere."""
+    try:
+        import_ompl()
+    except InputError as exc:
+        if os.environ.get("CI") == "true":
+            pytest.fail(f"CI=true: {exc}")
+        pytest.skip(str(exc))
 
+
+def test_ompl_plans_in_space_time_and_passes_the_dense_check(model, generator):
+    require_ompl()
     sc = generator.generate(1, 1)
     planner = OMPLPlanner(model, algorithm="RRTConnect")
-    res = planner.plan(sc.goal, start_config=sc.start, scene=sc.scene, stop=StopCondition(time_limit=5.0), seed=3)
-    assert res.status in (PlanStatus.EXACT, PlanStatus.APPROXIMATE, PlanStatus.TIMEOUT)
-    if res.has_path:
-        assert np.all(np.diff(res.t) >= 0)  # time runs forward along the path
-        np.testing.assert_allclose(res.configs[0], sc.start)
-    if res.success:
-        chk = dense_check(model, sc.scene, res, sc.start, sc.goal)
-        assert chk.ok, chk.reason
-        assert res.goal_error <= 1.0
+    # a generous budget: RRTConnect stops at its first solution, the limit only bounds a failure
+    res = planner.plan(sc.goal, start_config=sc.start, scene=sc.scene, stop=StopCondition(time_limit=30.0), seed=3)
+    assert res.is_success(), res.message  # one sphere beside the way: solvable
+    assert np.all(np.diff(res.t) >= 0)  # time runs forward along the path
+    np.testing.assert_allclose(res.configs[0], sc.start)
+    chk = dense_check(model, sc.scene, res, sc.start, sc.goal)
+    assert chk.is_success(), chk.reason
+    assert res.goal_error <= 1.0
     with pytest.raises(InputError, match="time_limit"):
         planner.plan(sc.goal, start_config=sc.start, scene=sc.scene, stop=StopCondition(max_iterations=10))
+    with pytest.raises(InputError, match="start_config"):
+        planner.plan(sc.goal, start_tip=sc.start_tip, scene=sc.scene, stop=StopCondition(time_limit=1.0))
+
+
+def test_bench_calls_every_builtin_planner_through_the_registry(robot):
+    """The bench has no adapters: each built-in name builds a `Planner` whose stop matches its registry entry."""
+    bench = Table1Bench(robot, BenchOptions(scenarios=1, planners=("cspace",)))
+    reg = bench.spec.registry
+    assert reg.names[:5] == ("rrt", "rrtstar", "cspace", "ompl-rrtstar", "ompl-rrtconnect")
+    o = bench.planner_options
+    assert bench_stop(reg.spec("cspace"), o, 2.0) == StopCondition(2.0, o.max_iterations, o.first_solution)
+    assert bench_stop(reg.spec("ompl-rrtstar"), o, 2.0) == StopCondition(time_limit=2.0)
 
 
 @pytest.mark.slow

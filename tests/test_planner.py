@@ -8,13 +8,17 @@ import numpy as np
 import pytest
 from test_planner_helpers import PAPER_STATIC, assert_valid_plan, paper_static
 
+from crtraj.app.plan import plan_problem
 from crtraj.cli import main
+from crtraj.core.errors import InputError
 from crtraj.io.problem import Problem
-from crtraj.model.kinematics import Model
 from crtraj.model.robot import Robot
+from crtraj.planning.base import Planner
+from crtraj.planning.cspace import CSpacePlanner
 from crtraj.planning.options import PlannerOptions
+from crtraj.planning.registry import BUILTIN, make_planner
 from crtraj.planning.result import PlanStatus
-from crtraj.planning.rrt import RRT, RRTStar, make_planner, plan_problem
+from crtraj.planning.rrt import RRT, RRTStar
 from crtraj.planning.steer import SteerOptions
 from crtraj.planning.stop import StopCondition
 from crtraj.world.scene import Scene
@@ -102,13 +106,29 @@ def test_task_space_invalid_start_and_goal(sim1, rrt):
     assert res.status is PlanStatus.INVALID_GOAL and "search space" in res.message
 
 
-def test_make_planner_picks_the_algorithm(sim1, steer_options):
-    _, model, scene = sim1
-    from crtraj.planning.cspace import CSpacePlanner
-
-    assert isinstance(make_planner(model, scene), CSpacePlanner)
-    assert type(make_planner(model, scene, PlannerOptions(algorithm="rrt"), steer_options)) is RRT
-    assert type(make_planner(model, scene, PlannerOptions(algorithm="rrtstar"), steer_options)) is RRTStar
+def test_make_planner_builds_the_named_algorithm(sim1, steer_options, rrt):
+    """The registry's planner plans exactly as the class built by hand (same seed, same waypoints)."""
+    problem, model, scene = sim1
+    task = problem.task
+    by_name = make_planner(model, scene)
+    by_hand = CSpacePlanner(model, scene, PlannerOptions())
+    a = by_name.plan(task.goal, start_tip=task.start, seed=7, goal_tolerance=task.goal_tolerance)
+    b = by_hand.plan(task.goal, start_tip=task.start, seed=7, goal_tolerance=task.goal_tolerance)
+    assert a.is_success() and a.planner == "cspace"
+    np.testing.assert_array_equal(a.configs, b.configs)
+    np.testing.assert_array_equal(a.t, b.t)
+    # the task-space planners: the same query as the fixture gives the same tree and path
+    stop = StopCondition(max_iterations=60)
+    rrt_named = make_planner(model, scene, PlannerOptions(algorithm="rrt", time_limit=60.0), steer_options)
+    c = rrt_named.plan(task.goal, start_tip=task.start, seed=2, stop=stop)
+    d = rrt.plan(task.goal, start_tip=task.start, seed=2, stop=stop)
+    assert c.planner == d.planner == "rrt"
+    np.testing.assert_array_equal(c.tree_edges, d.tree_edges)
+    np.testing.assert_array_equal(c.configs, d.configs)
+    star = BUILTIN.build("rrtstar", model, scene, PlannerOptions(), steer_options)
+    assert star.name == "rrtstar" and star.rewire and isinstance(star, Planner)
+    with pytest.raises(InputError, match=r"^planners: unknown planner 'prm'; choose from rrt, rrtstar, cspace"):
+        BUILTIN.build("prm", model, scene)
 
 
 # ------------------------------------------------------------------ problem files and CLI
@@ -193,5 +213,19 @@ def test_plan_problem_overrides(sim1):
     assert run.options.algorithm == "rrtstar" and run.options.time_limit == 30.0
     assert run.result.seed == 4 and run.result.planner == "rrtstar"
     assert run.steer_options is not None and run.document()["options"]["steer"]["n_points"] == run.options.check_points
-    assert isinstance(Problem.load(PAPER_STATIC).options(PlannerOptions, "planner"), PlannerOptions)
-    assert isinstance(model, Model)
+    # the file's [planner] section as written, the rest at its defaults
+    read = Problem.load(PAPER_STATIC).options(PlannerOptions, "planner")
+    assert read == PlannerOptions(
+        algorithm="cspace",
+        time_limit=5.0,
+        max_iterations=20000,
+        max_speed=50.0,
+        resolution=3.0,
+        check_points=15,
+        goal_bias=0.1,
+        rewire_radius=80.0,
+        smooth=True,
+        waypoint_step=20.0,
+    )
+    # the override reached the planner: a task-space tree (tip-space edges rooted at the start tip)
+    assert run.result.counts["steer_calls"] >= 1 and run.result.tree_edges.shape[1:] == (2, 3)

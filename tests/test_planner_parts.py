@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
-from test_planner_helpers import dense_path_check, paper_static
+from test_planner_helpers import body_motion_bound, dense_path_check, full_speed_times, paper_static
 
 from crtraj.core.errors import InputError
 from crtraj.core.fields import Table
@@ -209,7 +209,7 @@ def test_safe_ik_nlp_stage_alone(sim1, validator):
     seeds = validator.sample(np.random.default_rng(1), 6)
     batch = ik.solve(problem.task.goal, scene.pack(0.0, 4), seeds, newton_iterations=0, want=6)
     assert "projection" in batch.statuses and batch.statuses["projection"] == 0
-    assert any(s.status == "Solve_Succeeded" for s in batch.solutions)
+    assert any(s.solver_status == "Solve_Succeeded" for s in batch.solutions)
     assert len(batch.safe) >= 1
     for x in batch.safe:
         assert np.linalg.norm(model.tip_position(x) - problem.task.goal) <= 1e-3
@@ -222,7 +222,7 @@ def test_safe_ik_unreachable_target(sim1, validator):
     far = np.array([0.0, 0.0, 900.0])  # beyond 400 mm of robot on a base that rises 100 mm
     batch = ik.solve(far, scene.pack(0.0, 2), validator.sample(np.random.default_rng(2), 8), max_nlp=2)
     assert len(batch.safe) == 0
-    assert sum(1 for s in batch.solutions if s.status != "projection") == 2
+    assert sum(1 for s in batch.solutions if s.solver_status != "projection") == 2
     assert not any(s.safe for s in batch.solutions)
 
 
@@ -259,7 +259,7 @@ def test_shortcut_and_spline_keep_the_path_safe_and_shorter(sim1):
     assert np.max(v.motion_bound(np.diff(Y, axis=0))) <= post.o.waypoint_step + 1e-9
     T = post.times(Y)
     assert T[0] == 2.0
-    np.testing.assert_allclose(np.diff(T), v.motion_bound(np.diff(Y, axis=0)) / v.max_speed)
+    np.testing.assert_allclose(T, full_speed_times(model.robot, Y, v.max_speed, 2.0))
     Z, smoothed = post.smooth(X)
     assert smoothed and post.valid(Z)
 
@@ -369,14 +369,14 @@ def test_timed_shortcut_and_spline_keep_times_speed_and_safety(sim1):
     np.testing.assert_array_equal(S[0], X[0])
     np.testing.assert_array_equal(S[-1], X[-1])
     assert np.sum(v.motion_bound(np.diff(S, axis=0))) < np.sum(v.motion_bound(np.diff(X, axis=0)))
-    assert np.all(v.motion_bound(np.diff(S, axis=0)) <= v.max_speed * np.diff(TS) * (1 + 1e-9) + 1e-12)
+    assert np.all(body_motion_bound(model.robot, np.diff(S, axis=0)) <= v.max_speed * np.diff(TS) * (1 + 1e-9) + 1e-12)
     assert v.path_valid(S, TS)
     Y, TY, smoothed = post.smooth_timed(X, T)
     assert smoothed or len(Y) >= len(X)
     assert TY[0] == T[0] and TY[-1] == T[-1] and np.all(np.diff(TY) >= 0.0)
     assert np.all(v.within_limits(Y))
     # the spline keeps the polygon's speed bound (up to round-off)
-    assert np.all(v.motion_bound(np.diff(Y, axis=0)) <= v.max_speed * np.diff(TY) * (1 + 1e-6) + 1e-9)
+    assert np.all(body_motion_bound(model.robot, np.diff(Y, axis=0)) <= v.max_speed * np.diff(TY) * (1 + 1e-6) + 1e-9)
     assert v.path_valid(Y, TY)
     clear, limit, _ = dense_path_check(model, scene, TY, Y)
     assert clear >= 0.0 and limit <= 1e-9

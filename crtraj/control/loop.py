@@ -102,7 +102,7 @@ class PlannerReference:
     """Reference source backed by crtraj's planner: plans from the current configuration at time t.
 
     planner: a planner with ``plan(goal, start_config=, t0=, stop=, seed=, scene=, goal_tolerance=)``
-    (`crtraj.planning.rrt.make_planner`). goal: tip (mm). stop: a bounded
+    (`crtraj.planning.registry.make_planner`). goal: tip (mm). stop: a bounded
     `crtraj.planning.stop.StopCondition` per plan. seed: base seed; each call uses the
     next one so runs reproduce exactly. scene: always plan among these
     obstacles (e.g. none, for a run without the collision-free terms);
@@ -140,7 +140,7 @@ class PlannerReference:
             goal_tolerance=self.goal_tolerance,
         )
         self.calls += 1
-        configs = res.configs if res.success else np.zeros((0, len(x)))
+        configs = res.configs if res.is_success() else np.zeros((0, len(x)))
         return ReferencePlan(configs, str(res.status), res.message, time.perf_counter() - t1, res.tree_edges)
 
 
@@ -1249,7 +1249,7 @@ def loop_from_problem(
     """A `ClosedLoop` for a problem file: its robot, scene, task and ``[replan]``, ``[tracking]``,
     ``[planner]``, ``[steer]`` sections. The start configuration is the task's ``start_config`` or the
     planner's safe IK for the start tip; references come from the planner ``[planner] algorithm`` names
-    (`crtraj.planning.rrt.make_planner`; default the configuration-space planner), each limited to
+    (`crtraj.planning.registry.make_planner`; default the configuration-space planner), each limited to
     ``replan.planner_time`` seconds.
 
     safety=False drops the collision-free terms (NLP constraints, verification, and obstacles in
@@ -1259,8 +1259,8 @@ def loop_from_problem(
     executes each step after it is computed (`DeviceLink.lead`), so the feed is predicted that far ahead.
     """
     from crtraj.planning.options import PlannerOptions
+    from crtraj.planning.registry import make_planner
     from crtraj.planning.result import PlanStatus
-    from crtraj.planning.rrt import make_planner
     from crtraj.planning.steer import SteerOptions
     from crtraj.planning.stop import StopCondition
     from crtraj.world.scene import Scene
@@ -1315,7 +1315,7 @@ def loop_from_problem(
             raise InputError(f"task.start: {res.message}")
         if res.has_path:
             x0 = res.configs[0]
-            if res.success and opts.safety:
+            if res.is_success() and opts.safety:
                 first = ReferencePlan(
                     res.configs, str(res.status), res.message, res.timings.get("total", 0.0), res.tree_edges
                 )

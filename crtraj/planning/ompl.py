@@ -168,11 +168,14 @@ class OMPLPlanner:
         return np.concatenate([b.safe for b in parts])
 
     # ------------------------------------------------------------------ query
+    # Long by design: OMPL's Python callbacks (validity, motion, goal) are classes that close over this
+    # query's validator, clock and generator; split apart they would need a per-query object holding them all.
     def plan(
         self,
         goal: Any,
         *,
-        start_config: Any,
+        start_config: Any = None,
+        start_tip: Any = None,
         t0: float = 0.0,
         stop: StopCondition | None = None,
         seed: int | None = None,
@@ -180,6 +183,9 @@ class OMPLPlanner:
         goal_tolerance: float = 1.0,
     ) -> PlanResult:
         """Plan from a start configuration (nx,) to a goal tip (3,) mm, starting at time t0 (s).
+
+        The `crtraj.planning.base.Planner` call; a start tip is not supported
+        (OMPL plans from a configuration: give start_config).
 
         stop: must limit time (OMPL planners stop on wall time; an iteration
         limit is not available through OMPL's Python API); first_solution
@@ -189,6 +195,8 @@ class OMPLPlanner:
         """
         ob, og, ou = self.ob, self.og, self.ou
         o = self.options
+        if start_tip is not None or start_config is None:
+            raise InputError("start_config: OMPL planners start from a configuration (start_tip is not supported)")
         goal = check_array(goal, "goal", (3,))
         xs = check_array(start_config, "start_config", (self.robot.nx,))
         t0 = float(check_array(t0, "t0", ()))

@@ -63,13 +63,9 @@ class PlanResult:
     timings: dict[str, float] = field(default_factory=dict)
     counts: dict[str, int] = field(default_factory=dict)
 
-    @property
-    def success(self) -> bool:
-        """True only for an exact solution."""
-        return self.status is PlanStatus.EXACT
-
     def is_success(self) -> bool:
-        return self.success
+        """True only for an exact solution (a verified path that reaches the goal)."""
+        return self.status is PlanStatus.EXACT
 
     @property
     def has_path(self) -> bool:
@@ -93,7 +89,7 @@ class PlanResult:
         """Short figures for printing and for the result file."""
         return {
             "status": str(self.status),
-            "success": self.success,
+            "success": self.is_success(),
             "planner": self.planner,
             "seed": self.seed,
             "waypoints": len(self.t),

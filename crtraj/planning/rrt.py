@@ -32,18 +32,17 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, replace
-from pathlib import Path
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 
 from crtraj.model.kinematics import Model
+from crtraj.planning.base import PlannerBase, QueryStart
 from crtraj.planning.options import PlannerOptions
-from crtraj.planning.postprocess import PathPostprocessor, empty_result, tree_edges
-from crtraj.planning.query import PlanQuery
+from crtraj.planning.postprocess import PathPostprocessor, tree_edges
 from crtraj.planning.result import PlanResult, PlanStatus
-from crtraj.planning.safe_ik import SafeIK, resolve_start
+from crtraj.planning.safe_ik import SafeIK
 from crtraj.planning.steer import SteerOptions, SteerSolver
 from crtraj.planning.stop import StopCondition
 from crtraj.planning.tree import SearchTree
@@ -51,7 +50,7 @@ from crtraj.planning.validity import MotionValidator
 from crtraj.world import margin
 
 
-class RRT:
+class RRT(PlannerBase):
     """Task-space RRT with a safety-constrained steer (paper Algorithm 1, no rewiring).
 
     model: the robot's `Model`. scene: the default `crtraj.world.scene.Scene`.
@@ -74,12 +73,7 @@ class RRT:
         *,
         max_obstacles: int | None = None,
     ) -> None:
-        self.model = model
-        self.robot = model.robot
-        self.scene = scene
-        self.options = PlannerOptions(algorithm=self.name) if options is None else options
-        self._functions: dict[Any, Any] = {}
-        self.validator = self.options.validator(model, scene, self._functions)
+        super().__init__(model, scene, PlannerOptions(algorithm=self.name) if options is None else options)
         M = max(scene.n_obstacles if max_obstacles is None else int(max_obstacles), scene.n_obstacles)
         so = SteerOptions() if steer_options is None else steer_options
         self.steer_options = replace(
@@ -119,79 +113,47 @@ class RRT:
         goal_tolerance: float = 1.0,
     ) -> PlanResult:
         """Plan from a start to a goal tip position (mm); same arguments as `CSpacePlanner.plan`."""
-        o = self.options
-        query = PlanQuery.begin(
-            o.stop(),
+        q = self._begin(
             goal,
-            t0=t0,
-            goal_tolerance=goal_tolerance,
             start_config=start_config,
             start_tip=start_tip,
+            t0=t0,
             stop=stop,
             seed=seed,
+            scene=scene,
+            goal_tolerance=goal_tolerance,
+            counts={"steer_calls": 0, "steer_failed": 0, "not_reached": 0, "edge_rejected": 0},
         )
-        goal, t0, stop, clock, deadline, rng = (
-            query.goal,
-            query.t0,
-            query.stop,
-            query.clock,
-            query.deadline,
-            query.rng,
-        )
-        v = self.validator if scene is None or scene is self.scene else o.validator(self.model, scene, self._functions)
+        if q.x_start is None:
+            return self._fail(q, PlanStatus.INVALID_START, q.why)
+        why = self._goal_problem(q.query.goal, q.validator.scene, q.query.t0)
+        if why:
+            return self._fail(q, PlanStatus.INVALID_GOAL, why)
+        t1 = time.perf_counter()
+        tree, best, best_cost = self._search(q, q.x_start)
+        q.timings["search"] = time.perf_counter() - t1
+        return self._finish(q, tree, best, best_cost)
+
+    def _prepare(self, v: MotionValidator) -> None:
         sc = v.scene
         if sc.n_obstacles > self.steer.max_obstacles:  # grow the NLPs' obstacle slots (built once more)
             self.steer = SteerSolver(self.model, sc.n_obstacles, self.steer_options)
             self.ik = SafeIK(self.model, self.validator, sc.n_obstacles)
         self.steer.reset_warm_start()  # the same seed must give the same plan
-        timings: dict[str, float] = {}
-        counts: dict[str, int] = {"steer_calls": 0, "steer_failed": 0, "not_reached": 0, "edge_rejected": 0}
+
+    def _fail(self, q: QueryStart, status: PlanStatus, msg: str, trees: list[SearchTree] | None = None) -> PlanResult:
+        q.counts["iterations"] = q.query.clock.iterations
+        return q.fail(status, msg, planner=self.name, robot=self.robot, tree_edges=self._edges(trees or []))
+
+    def _search(self, q: QueryStart, xs: np.ndarray) -> tuple[SearchTree, int, float]:
+        """Grow the tree (Algorithm 1) until the stop condition; (tree, goal node or -1, its cost)."""
+        o, v, counts = self.options, q.validator, q.counts
+        sc = v.scene
+        goal, t0, clock, rng = q.query.goal, q.query.t0, q.query.clock, q.query.rng
+        goal_tolerance = q.goal_tolerance
         samples0 = v.n_samples
-
-        def fail(status: PlanStatus, msg: str, trees: list[SearchTree] | None = None) -> PlanResult:
-            timings["total"] = time.perf_counter() - clock.t_start
-            counts["iterations"] = clock.iterations
-            return empty_result(
-                status,
-                msg,
-                planner=self.name,
-                seed=seed,
-                robot=self.robot,
-                tree_edges=self._edges(trees or []),
-                timings=timings,
-                counts=counts,
-            )
-
-        # ---- start and goal
-        t1 = time.perf_counter()
-        xs, why, n_ik = resolve_start(
-            self.ik,
-            v,
-            start_config=start_config,
-            start_tip=start_tip,
-            t0=t0,
-            rng=rng,
-            seeds=o.ik_seeds,
-            iterations=o.ik_iterations,
-            deadline=deadline,
-            tip_tolerance=min(1e-3, goal_tolerance),
-            max_nlp=o.ik_nlp_solves,
-        )
-        timings["start_ik"] = time.perf_counter() - t1
-        counts["ik_solves_start"] = n_ik
-        if xs is None:
-            return fail(PlanStatus.INVALID_START, why)
-        why = self._goal_problem(goal, sc, t0)
-        if why:
-            return fail(PlanStatus.INVALID_GOAL, why)
-
-        # ---- search (Algorithm 1)
-        t1 = time.perf_counter()
         tree = SearchTree(3, self.robot.nx)
-        tips: list[np.ndarray] = []
-        tip0 = self.model.tip_position(xs)
-        tree.add(tip0, xs, t0, 0.0, -1)
-        tips.append(tip0)
+        tree.add(self.model.tip_position(xs), xs, t0, 0.0, -1)
         lo, hi = sc.workspace
         step = o.step
         window = 3.0 * step / v.max_speed  # time window the steer keeps clear over (moving obstacles)
@@ -203,35 +165,10 @@ class RRT:
             # line 5: the sample must be obstacle-free
             if sc.n_obstacles and float(sc.clearance_points(P[None, None, :], t0)[0]) < 0.0:
                 continue
-            n, d = tree.nearest(P)
-            if d < 1e-9:
+            i_new = self._extend(q, tree, P, step, window)
+            if i_new < 0:
                 continue
-            tip_n = tree.keys[n]
-            target = tip_n + (P - tip_n) * min(1.0, step / d)
-            x_n, t_n = tree.x[n], float(tree.t[n])
-            counts["steer_calls"] += 1
-            res = self.steer.solve(x_n, target, sc, t=t_n, t_end=None if v.static else t_n + window, check_start=False)
-            if not res.usable:
-                counts["steer_failed"] += 1
-                continue
-            if not res.reached:
-                counts["not_reached"] += 1
-                continue
-            # the steer meets the limits to its solver tolerance; put the node exactly inside
-            x_new = v.project_limits(res.x)[0]
-            dur = float(v.motion_bound(x_new - x_n)) / v.max_speed
-            if not v.edges_valid(x_n[None], x_new[None], t_n, t_n + dur)[0]:
-                counts["edge_rejected"] += 1
-                continue
-            tip_new = self.model.tip_position(x_new)
-            parent, cost = n, float(tree.cost[n]) + float(np.linalg.norm(tip_new - tip_n))
-            if self.rewire:
-                parent, cost = self._choose_parent(tree, v, tip_new, x_new, parent, cost)
-            t_new = float(tree.t[parent]) + float(v.motion_bound(x_new - tree.x[parent])) / v.max_speed
-            i_new = tree.add(tip_new, x_new, t_new, cost, parent)
-            tips.append(tip_new)
-            if self.rewire:
-                counts["rewired"] = counts.get("rewired", 0) + self._rewire(tree, v, i_new)
+            tip_new = tree.keys[i_new]
             # the goal check (line 12), over every goal node: rewiring may lower their costs
             if np.linalg.norm(tip_new - goal) <= goal_tolerance and best < 0:
                 best = i_new
@@ -240,18 +177,56 @@ class RRT:
                 if len(near_goal):
                     k = near_goal[np.argmin(tree.cost[near_goal])]
                     best, best_cost = int(k), float(tree.cost[k])
-        timings["search"] = time.perf_counter() - t1
         counts["iterations"] = clock.iterations
         counts["nodes"] = len(tree)
         counts["collision_samples"] = v.n_samples - samples0
+        return tree, best, best_cost
 
-        post = PathPostprocessor(v, o, rng, t0)
+    def _extend(self, q: QueryStart, tree: SearchTree, P: np.ndarray, step: float, window: float) -> int:
+        """Steer from the node nearest P toward P (at most `step` mm of tip travel) and add the
+        verified node (RRT*: with its cheapest parent, then rewire); its index or -1."""
+        v, counts = q.validator, q.counts
+        n, d = tree.nearest(P)
+        if d < 1e-9:
+            return -1
+        tip_n = tree.keys[n]
+        target = tip_n + (P - tip_n) * min(1.0, step / d)
+        x_n, t_n = tree.x[n], float(tree.t[n])
+        counts["steer_calls"] += 1
+        t_end = None if v.static else t_n + window
+        res = self.steer.solve(x_n, target, v.scene, t=t_n, t_end=t_end, check_start=False)
+        if not (res.converged and res.safe):
+            counts["steer_failed"] += 1
+            return -1
+        if not res.reached:
+            counts["not_reached"] += 1
+            return -1
+        # the steer meets the limits to its solver tolerance; put the node exactly inside
+        x_new = v.project_limits(res.x)[0]
+        dur = float(v.motion_bound(x_new - x_n)) / v.max_speed
+        if not v.edges_valid(x_n[None], x_new[None], t_n, t_n + dur)[0]:
+            counts["edge_rejected"] += 1
+            return -1
+        tip_new = self.model.tip_position(x_new)
+        parent, cost = n, float(tree.cost[n]) + float(np.linalg.norm(tip_new - tip_n))
+        if self.rewire:
+            parent, cost = self._choose_parent(tree, v, tip_new, x_new, parent, cost)
+        t_new = float(tree.t[parent]) + float(v.motion_bound(x_new - tree.x[parent])) / v.max_speed
+        i_new = tree.add(tip_new, x_new, t_new, cost, parent)
+        if self.rewire:
+            counts["rewired"] = counts.get("rewired", 0) + self._rewire(tree, v, i_new)
+        return i_new
+
+    def _finish(self, q: QueryStart, tree: SearchTree, best: int, best_cost: float) -> PlanResult:
+        """The verified path to the goal node (or, approximate, to the node nearest the goal)."""
+        v, clock, goal, timings = q.validator, q.query.clock, q.query.goal, q.timings
+        post = PathPostprocessor(v, self.options, q.query.rng, q.query.t0)
         if best < 0:
             # approximate: the node whose tip came closest to the goal
             d_goal = np.linalg.norm(tree.keys - goal, axis=1)
             k = int(np.argmin(d_goal))
             if k == 0:
-                return fail(PlanStatus.TIMEOUT, f"no path: {clock.reason}", [tree])
+                return self._fail(q, PlanStatus.TIMEOUT, f"no path: {clock.reason}", [tree])
             status = PlanStatus.APPROXIMATE
             msg = f"no path to the goal ({clock.reason}); closest tip {d_goal[k]:.1f} mm from the goal"
             best, best_cost = k, float(tree.cost[k])
@@ -269,7 +244,7 @@ class RRT:
             status=status,
             message=msg,
             planner=self.name,
-            seed=seed,
+            seed=q.seed,
             goal=goal,
             X=final,
             raw=raw,
@@ -278,7 +253,7 @@ class RRT:
             goal_configs=None,
             tree_edges=self._edges([tree]),
             timings=timings,
-            counts=counts,
+            counts=q.counts,
         )
 
     def _goal_problem(self, goal: np.ndarray, scene: Any, t0: float) -> str:
@@ -375,136 +350,3 @@ class RRTStar(RRT):
 
     name = "rrtstar"
     rewire = True
-
-
-def make_planner(
-    model: Model,
-    scene: Any,
-    options: PlannerOptions | None = None,
-    steer_options: SteerOptions | None = None,
-    *,
-    max_obstacles: int | None = None,
-) -> Any:
-    """The planner `options.algorithm` names: `CSpacePlanner`, `RRT` or `RRTStar`.
-
-    Every planner has ``plan(goal, *, start_config=None, start_tip=None,
-    t0=0.0, stop=None, seed=None, scene=None, goal_tolerance=1.0) ->
-    PlanResult`` (see `crtraj.planning.cspace.CSpacePlanner.plan`).
-    """
-    o = PlannerOptions() if options is None else options
-    if o.algorithm == "cspace":
-        from crtraj.planning.cspace import CSpacePlanner
-
-        return CSpacePlanner(model, scene, o, max_obstacles=max_obstacles)
-    cls = RRTStar if o.algorithm == "rrtstar" else RRT
-    return cls(model, scene, o, steer_options, max_obstacles=max_obstacles)
-
-
-# ------------------------------------------------------------- problem files
-@dataclass(frozen=True)
-class ProblemPlan:
-    """One planning run of a problem file: the inputs, the result and the setup time (s)."""
-
-    problem: Any
-    model: Model
-    scene: Any
-    options: PlannerOptions
-    steer_options: SteerOptions | None
-    result: PlanResult
-    setup_time: float
-
-    def document(self) -> dict[str, Any]:
-        """The self-describing result file (kind "plan"; schema in the README), as plain JSON data."""
-        import datetime
-
-        import casadi as ca
-
-        from crtraj import __version__
-        from crtraj.core.fileio import to_jsonable
-
-        p, r, model, scene = self.problem, self.result, self.model, self.scene
-        waypoints = []
-        if len(r.t):
-            backbone = model.points(r.configs)
-            centers, radii = scene.states(r.t)
-            for k in range(len(r.t)):
-                waypoints.append(
-                    {
-                        "t": float(r.t[k]),
-                        "tip": r.tips[k],
-                        "x": r.configs[k],
-                        "q": r.cables[k],
-                        "backbone": backbone[k],
-                        "obstacles": {"centers": centers[k].reshape(-1, 3), "radii": radii[k].reshape(-1)},
-                    }
-                )
-        options: dict[str, Any] = {"planner": self.options.to_dict()}
-        if self.steer_options is not None:
-            options["steer"] = self.steer_options.to_dict()
-        doc: dict[str, Any] = {
-            "kind": "plan",
-            "crtraj_version": __version__,
-            "casadi_version": ca.__version__,
-            "numpy_version": np.__version__,
-            "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-            "problem": {"name": p.name, "path": None if p.path is None else str(p.path), "seed": r.seed},
-            "robot": model.robot.to_dict(),
-            "scene": scene.to_dict(),
-            "task": p.require_task().to_dict(),
-            "options": options,
-            "status": str(r.status),
-            "success": r.success,
-            "message": r.message,
-            "timing": {**{f"{k}_s": v for k, v in r.timings.items()}, "setup_s": self.setup_time},
-            "summary": r.summary(),
-            "waypoints": waypoints,
-            "tree": {"edges": r.tree_edges},
-        }
-        if r.raw_configs is not None and len(r.raw_configs):
-            doc["raw_path"] = {"t": r.raw_t, "x": r.raw_configs, "tip": model.tip_position(r.raw_configs)}
-        if r.goal_configs is not None and len(r.goal_configs):
-            doc["goal_configs"] = r.goal_configs
-        return to_jsonable(doc)
-
-    def write(self, path: str | Path) -> Path:
-        """Write `document()` as JSON, atomically."""
-        from crtraj.core.fileio import atomic_write_json
-
-        return atomic_write_json(path, self.document())
-
-
-def plan_problem(
-    problem: Any,
-    *,
-    algorithm: str | None = None,
-    seed: int | None = None,
-    time_limit: float | None = None,
-    model: Model | None = None,
-) -> ProblemPlan:
-    """Plan a problem file's task with its ``[scene]``, ``[planner]`` and ``[steer]`` sections.
-
-    algorithm, seed, time_limit (s) override the file. The start is
-    ``task.start_config`` when given, else a safe IK solution for ``task.start``.
-    """
-    from crtraj.world.scene import Scene
-
-    task = problem.require_task()
-    t1 = time.perf_counter()
-    scene = problem.options(Scene, "scene")
-    options = problem.options(PlannerOptions, "planner")
-    changes: dict[str, Any] = {}
-    if algorithm is not None:
-        changes["algorithm"] = algorithm
-    if time_limit is not None:
-        changes["time_limit"] = float(time_limit)
-    if changes:
-        options = options.with_(**changes)
-    steer_options = problem.options(SteerOptions, "steer")
-    model = Model(problem.robot) if model is None else model
-    planner = make_planner(model, scene, options, steer_options)
-    setup = time.perf_counter() - t1
-    seed = problem.seed if seed is None else int(seed)
-    start = {"start_config": task.start_config} if task.start_config is not None else {"start_tip": task.start}
-    result = planner.plan(task.goal, seed=seed, goal_tolerance=task.goal_tolerance, **start)
-    used_steer = getattr(planner, "steer_options", None)
-    return ProblemPlan(problem, model, scene, options, used_steer, result, setup)

@@ -40,17 +40,22 @@ import numpy as np
 
 from crtraj.core.fields import check_array
 from crtraj.model.kinematics import Model
-from crtraj.planning.validity import LIMIT_TOL, MotionValidator
+from crtraj.planning.sampler import LIMIT_TOL
+from crtraj.planning.validity import MotionValidator
 from crtraj.world import packing
 
 
 @dataclass(frozen=True)
 class IKSolution:
-    """Outcome of one start: configuration, IPOPT status and independent checks."""
+    """Outcome of one start: configuration, IPOPT status and independent checks.
+
+    `is_success()`: converged with the tip on the target, within limits and
+    clear of the obstacles (`safe`).
+    """
 
     x: np.ndarray
-    status: str
-    success: bool  # IPOPT converged
+    solver_status: str  # IPOPT's return status
+    converged: bool  # IPOPT converged and the tip is within tolerance
     tip_error: float  # mm
     clearance: float  # conservative body clearance (mm, minus D_sf) by MotionValidator
     within_limits: bool
@@ -58,7 +63,10 @@ class IKSolution:
 
     @property
     def safe(self) -> bool:
-        return self.success and self.within_limits and self.clearance >= 0.0
+        return self.converged and self.within_limits and self.clearance >= 0.0
+
+    def is_success(self) -> bool:
+        return self.safe
 
 
 @dataclass(frozen=True)
@@ -188,6 +196,7 @@ class SafeIK:
             X = self.validator.project_limits(X + dx)
         return X, err
 
+    # Long by design: the two IK stages share the seeds, the deadline and the running tally of safe solutions.
     def solve(
         self,
         target: np.ndarray,

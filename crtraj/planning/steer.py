@@ -44,12 +44,14 @@ densely as well, raise `margin` (mm, added to every keep-out radius) or
 
 from __future__ import annotations
 
+import enum
 import math
 import shutil
 import tempfile
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
@@ -274,6 +276,18 @@ class SteerOptions:
         return d
 
 
+class SteerStatus(str, enum.Enum):
+    """Outcome of one steer step."""
+
+    REACHED = "reached"  # converged, re-checked safe, tip on the target: the step did what was asked
+    PARTIAL = "partial"  # converged and safe, but the tip stopped short (an unreachable target): x is usable
+    UNSAFE = "unsafe"  # the solver converged but the re-check (points, limits, bounds) fails
+    FAILED = "failed"  # the solver did not converge
+
+    def __str__(self) -> str:
+        return self.value
+
+
 @dataclass(frozen=True)
 class SteerResult:
     """Outcome of one steer step.
@@ -281,11 +295,10 @@ class SteerResult:
     x: configuration (rad, mm); q: cable lengths and z (mm); tip: tip
     position (mm). converged: the solver's own success flag. safe: the
     re-check (collision points vs obstacles, limits, bounds) holds.
-    reached: tip_error <= tolerance. `usable` = converged and safe: x is a
-    trustworthy configuration (a partial step toward an unreachable target is
-    usable). `success` = usable and reached: the step did what was asked; an
-    unreachable target gives success False with the closest safe x.
-    status: the solver's own return status.
+    reached: tip_error <= tolerance. `status` sums them up (`SteerStatus`):
+    PARTIAL means converged and safe, a trustworthy x that stopped short of
+    an unreachable target; `is_success()` only for REACHED.
+    solver_status: the solver's own return status.
     message: one line for people. iterations; wall_time (s, whole call);
     tip_error (mm); min_clearance (mm, `Scene.clearance` at t, or the swept
     bound over [t, t_end]).
@@ -297,7 +310,7 @@ class SteerResult:
     reached: bool
     converged: bool
     safe: bool
-    status: str
+    solver_status: str
     message: str
     iterations: int
     wall_time: float
@@ -306,26 +319,29 @@ class SteerResult:
     solver: str
 
     @property
-    def usable(self) -> bool:
-        """Converged and re-checked safe: x can be used, whether or not it reached the target."""
-        return self.converged and self.safe
+    def status(self) -> SteerStatus:
+        """REACHED, PARTIAL (usable x, target not reached), UNSAFE or FAILED."""
+        if not self.converged:
+            return SteerStatus.FAILED
+        if not self.safe:
+            return SteerStatus.UNSAFE
+        return SteerStatus.REACHED if self.reached else SteerStatus.PARTIAL
 
-    @property
-    def success(self) -> bool:
-        """Usable and the tip reached the target within tolerance."""
-        return self.usable and self.reached
+    def is_success(self) -> bool:
+        """Converged, re-checked safe and the tip reached the target within tolerance."""
+        return self.status is SteerStatus.REACHED
 
     def to_dict(self) -> dict[str, Any]:
         return {
             "x": self.x.tolist(),
             "q": self.q.tolist(),
             "tip": self.tip.tolist(),
-            "success": self.success,
-            "usable": self.usable,
+            "status": str(self.status),
+            "success": self.is_success(),
             "reached": self.reached,
             "converged": self.converged,
             "safe": self.safe,
-            "status": self.status,
+            "solver_status": self.solver_status,
             "message": self.message,
             "iterations": self.iterations,
             "wall_time": self.wall_time,
@@ -420,6 +436,7 @@ class SteerSolver:
         self._build()
 
     # ------------------------------------------------------------------ build
+    # Long by design: one symbolic NLP, its constraints and the solver variants built from it in one place.
     def _build(self) -> None:
         o, nx, M = self.options, self.nx, self.max_obstacles
         # decision variable y = S x (mm): bending and z on one scale, so the
@@ -474,10 +491,16 @@ class SteerSolver:
                 self.jit_message = "jit requested but gcc was not found: running without jit"
             else:
                 # CasADi's shell compiler writes its C and object files to the working
-                # directory unless told otherwise; keep them in a folder owned by this solver.
+                # directory unless told otherwise; keep them in a folder owned by this solver,
+                # which removes it (so CasADi's own clean-up is off: it would warn at exit).
                 self._jit_dir = tempfile.TemporaryDirectory(prefix="crtraj-jit-")
-                jit_opts = {"compiler": "gcc", "flags": ["-O2"], "directory": self._jit_dir.name + "/"}
-                common.update({"jit": True, "compiler": "shell", "jit_options": jit_opts})
+                jit_opts = {
+                    "compiler": "gcc",
+                    "flags": ["-O2"],
+                    "directory": self._jit_dir.name + "/",
+                    "cleanup": False,
+                }
+                common.update({"jit": True, "compiler": "shell", "jit_options": jit_opts, "jit_cleanup": False})
                 self.jit_message = "jit: compiled with gcc -O2"
         ip = dict(IPOPT_DEFAULTS)
         ip.update({"tol": o.tol, "max_iter": o.max_iter})
@@ -504,7 +527,7 @@ class SteerSolver:
 
     def _nlpsol(self, plugin: str, nlp: dict[str, Any], opts: dict[str, Any], field_name: str) -> ca.Function:
         try:
-            return ca.nlpsol(f"steer_{plugin}", plugin, nlp, opts)
+            solver = ca.nlpsol(f"steer_{plugin}", plugin, nlp, opts)
         except RuntimeError as exc:
             text = str(exc)
             if opts.get("jit"):
@@ -513,6 +536,9 @@ class SteerSolver:
                 opts = {k: v for k, v in opts.items() if k not in ("jit", "compiler", "jit_options")}
                 return self._nlpsol(plugin, nlp, opts, field_name)
             raise InputError(f"{field_name}: solver rejected the options ({_last_line(text)})") from None
+        if opts.get("jit"):
+            _remove_stray_sources(Path(self._jit_dir.name))
+        return solver
 
     def _probe(self) -> None:
         x0 = self.robot.straight()
@@ -790,7 +816,7 @@ class SteerSolver:
             reached=reached,
             converged=converged,
             safe=safe,
-            status=status,
+            solver_status=status,
             message=note + message,
             iterations=iters,
             wall_time=time.perf_counter() - t_start,
@@ -823,6 +849,22 @@ def _qp_options(qpsol: str) -> dict[str, Any]:
         "highs": {"highs": {"output_flag": False}},
     }
     return {"error_on_fail": False, **quiet[qpsol]}
+
+
+def _remove_stray_sources(private: Path) -> None:
+    """Delete the jit's C sources that CasADi's nlpsol writes to the working directory.
+
+    Measured with CasADi 3.8: an nlpsol built with jit reserves a unique name
+    ``jit_tmpXXXXXX.c`` in the jit directory (an empty file) but writes the
+    source under that name to the working directory (a plain Function honours
+    the directory). The names are random and reserved in this solver's private
+    folder, so a working-directory file of the same name is this build's source.
+    """
+    for placeholder in private.glob("jit_tmp*.c"):
+        try:
+            (Path.cwd() / placeholder.name).unlink(missing_ok=True)
+        except OSError:  # a read-only or vanished working directory: nothing was written there
+            continue
 
 
 def _last_line(text: str) -> str:

@@ -1,8 +1,12 @@
-"""Conservative, vectorised collision checks of whole-body motions in configuration space.
+"""Motion validity: conservative, vectorised collision checks of whole-body motions in configuration space.
 
 `MotionValidator` answers the planners' two questions (OMPL's state validity
-and motion validity): is configuration x safe over a time window, and is the
-straight motion from x_a to x_b (linear in x) safe over the time it takes?
+and motion validity): is configuration x safe over a time window
+(`crtraj.planning.state_validity`), and is the straight motion from x_a to
+x_b (linear in x) safe over the time it takes (here)? It is the one handle
+the planners pass around, like OMPL's SpaceInformation: it also gives the
+body-motion metric (`crtraj.planning.metric`) and the sampler
+(`crtraj.planning.sampler`) its checks are built on.
 "Safe" means the *continuous* body keeps the scene's safety distance D_sf
 plus the disc radius from every obstacle, not only a few sampled points.
 Three bounds make discrete checks imply that:
@@ -41,15 +45,13 @@ from __future__ import annotations
 import math
 from typing import Any
 
-import casadi as ca
 import numpy as np
 
 from crtraj.core.errors import InputError
 from crtraj.model.kinematics import Model
-from crtraj.world import margin
-
-# Limits may be violated by solver round-off; above this a configuration is out of limits.
-LIMIT_TOL = 1e-7
+from crtraj.planning.metric import BodyMetric
+from crtraj.planning.sampler import ConfigSampler
+from crtraj.planning.state_validity import StateValidityChecker
 
 
 class MotionValidator:
@@ -63,6 +65,11 @@ class MotionValidator:
     own times). time_resolution: moving obstacles only: an uncertified edge
     interval longer than this (s) is split in time before it is declared
     unsafe (waits and slow motions sweep obstacles over long windows).
+    functions: a CasADi function cache shared by a planner's validators.
+
+    Parts: `state` (`StateValidityChecker`), `space` (`BodyMetric`),
+    `sampler` (`ConfigSampler`); the methods below that only forward to them
+    keep the planners' code to one handle.
     """
 
     def __init__(
@@ -87,180 +94,62 @@ class MotionValidator:
         self.model = model
         self.robot = model.robot
         self.scene = scene
-        self.check_points = int(check_points)
+        self.state = StateValidityChecker(model, scene, check_points, functions)
+        self.space = BodyMetric(self.robot, max_speed)
+        self.sampler = ConfigSampler(self.robot)
+        self.check_points = self.state.check_points
         self.resolution = float(resolution)
-        self.max_speed = float(max_speed)
+        self.max_speed = self.space.max_speed
         self.time_resolution = float(time_resolution)
-        robot = self.robot
-        n = robot.n_segments
-        lengths = np.array([s.length for s in robot.segments])
-        self.weights = lengths / 2.0 + (np.cumsum(lengths[::-1])[::-1] - lengths)  # w_k (mm/rad)
-        # y = M x: blocks w_k u_bar_k, then z; body motion <= block-l1 norm of dy
-        M = np.zeros((robot.nx, robot.nx))
-        M[: 2 * n, : 2 * n] = np.repeat(self.weights, 2)[:, None] * robot.coupling_matrix()
-        M[-1, -1] = 1.0
-        self.metric_matrix = M
-        self.metric_inverse = np.linalg.inv(M)
-        h = robot.total_length / (self.check_points - 1)
-        kappa = max(s.theta_max / s.length for s in robot.segments)
-        half = kappa * h / 2.0
-        # An arc of curvature <= kappa strays at most (1 - cos(kappa h/2))/kappa from the chord between
-        # two points h apart, but only while kappa h/2 <= pi/2; beyond that fall back to h/2, which always
-        # holds: every body point is within h/2 of arc length (so of distance) from a check point.
-        sag = (1.0 - math.cos(half)) / kappa if half <= math.pi / 2.0 else h / 2.0
-        self.sagitta = float(sag)
-        self.inflate = float(margin.inflation(scene.safety_distance, robot.body_radius, self.sagitta))
+        self.weights = self.space.weights
+        self.metric_matrix = self.space.metric_matrix
+        self.sagitta = self.state.sagitta
+        self.inflate = self.state.inflate
+        self.static = self.state.static
         # adaptive edge checks start from intervals of this much body motion (mm)
         self.coarse = 16.0 * self.resolution
-        self.n_samples = 0  # configurations checked so far (a statistic)
-        # CasADi functions by (kind, check points, obstacles, batch size); a
-        # planner passes one dict to all its validators so scenes share them
-        self._fns: dict[Any, Any] = {} if functions is None else functions
-        speeds, rates = scene.speed_bounds()
-        self.static = bool(np.all(speeds == 0.0) and np.all(rates == 0.0))
-        # how much the sphere swept over a window of dt seconds can exceed the sphere at any one of its
-        # instants: capsule length plus radius growth, <= (speed + rate) dt (mm/s)
-        self._enl_rate = float(np.max(speeds + rates)) if scene.n_obstacles else 0.0
-        if scene.n_obstacles:
-            c, r = scene.states(0.0)
-            self._static_c, self._static_r = c, r
 
-    # -------------------------------------------------------------- kinematics
-    def _mapped(self, kind: str, size: int) -> Any:
-        """The per-configuration function `kind` mapped over `size` configurations (built once)."""
-        n, M = self.check_points, self.scene.n_obstacles
-        key = (kind, n, M if kind == "clearance" else 0, size)
-        f = self._fns.get(key)
-        if f is None:
-            base = self._fns.get((kind, n, key[2], 1))
-            if base is None:
-                base = self._clearance_function(n, M) if kind == "clearance" else self.model.backbone_function(n)
-                self._fns[(kind, n, key[2], 1)] = base
-            f = base.map(size, "serial")
-            self._fns[key] = f
-        return f
+    @property
+    def n_samples(self) -> int:
+        """Configurations checked so far (a statistic)."""
+        return self.state.n_samples
 
-    def _clearance_function(self, n: int, M: int) -> Any:
-        """CasADi x (nx), C (3 x M), R (1 x M) -> min over chords and obstacles of dist - R (mm).
-
-        The chords join n backbone points evenly spread in arc length; the
-        distance is from each obstacle centre to each chord *segment*. One
-        fused SX function: the numbers never leave CasADi's VM per point.
-        """
-        x = ca.SX.sym("x", self.robot.nx)
-        C = ca.SX.sym("C", 3, M)
-        R = ca.SX.sym("R", 1, M)
-        P = self.model.backbone_function(n)(x)  # 3 x n
-        A = P[:, :-1]
-        AB = P[:, 1:] - A
-        den = ca.fmax(ca.sum1(AB * AB), 1e-300)
-        per = []
-        for j in range(M):
-            AC = ca.repmat(C[:, j], 1, n - 1) - A
-            u = ca.fmin(ca.fmax(ca.sum1(AC * AB) / den, 0.0), 1.0)
-            D = AC - AB * ca.repmat(u, 3, 1)
-            per.append(ca.mmin(ca.sqrt(ca.sum1(D * D))) - R[j])
-        return ca.Function("chord_clearance", [x, C, R], [ca.mmin(ca.horzcat(*per))], ["x", "C", "R"], ["d"])
-
-    def _batches(self, N: int) -> list[tuple[int, int, int]]:
-        """(start, count, map size) blocks covering N configurations; sizes are powers of two.
-
-        A map evaluates every column, so small calls (the adaptive edge checks
-        make many) use small maps rather than padding.
-        """
-        out = []
-        start = 0
-        while start < N:
-            left = N - start
-            size = min(1024, 1 << int(np.ceil(np.log2(left))))
-            take = min(size, left)
-            out.append((start, take, size))
-            start += take
-        return out
-
-    def points(self, X: np.ndarray) -> np.ndarray:
-        """Check points (N, check_points, 3) of configurations X (N, nx), mm."""
-        X = np.atleast_2d(np.asarray(X, dtype=float))
-        n = self.check_points
-        out = np.empty((X.shape[0], n, 3))
-        for start, take, size in self._batches(X.shape[0]):
-            block = np.zeros((self.robot.nx, size))
-            block[:, :take] = X[start : start + take].T
-            res = self._mapped("backbone", size)(block).full()  # 3 x (size * n)
-            out[start : start + take] = res.reshape(3, size, n).transpose(1, 2, 0)[:take]
-        return out
-
-    # ----------------------------------------------------------------- metric
+    # ------------------------------------------------- forwarded to the parts
     def metric(self, x: np.ndarray) -> np.ndarray:
-        """y = M x (mm units): the space the planners measure distances in."""
-        return np.asarray(x, dtype=float) @ self.metric_matrix.T
+        """y = M x (mm): `BodyMetric.metric`."""
+        return self.space.metric(x)
 
     def config_from_metric(self, y: np.ndarray) -> np.ndarray:
-        """x from y = M x."""
-        return np.asarray(y, dtype=float) @ self.metric_inverse.T
+        """x from y = M x: `BodyMetric.config_from_metric`."""
+        return self.space.config_from_metric(y)
 
     def motion_bound(self, dx: np.ndarray) -> np.ndarray:
-        """Upper bound (mm) on how far any body point moves for a change dx (..., nx)."""
-        dy = np.asarray(dx, dtype=float) @ self.metric_matrix.T
-        n = self.robot.n_segments
-        blocks = np.linalg.norm(dy[..., : 2 * n].reshape(*dy.shape[:-1], n, 2), axis=-1)
-        return blocks.sum(axis=-1) + np.abs(dy[..., -1])
+        """Largest body-point motion (mm) for a change dx: `BodyMetric.motion_bound`."""
+        return self.space.motion_bound(dx)
 
     def durations(self, X: np.ndarray) -> np.ndarray:
-        """Duration (s) of each straight motion between consecutive rows of X (K, nx) -> (K-1,)."""
-        return self.motion_bound(np.diff(np.asarray(X, dtype=float), axis=0)) / self.max_speed
+        """Full-speed duration (s) of each motion of a path: `BodyMetric.durations`."""
+        return self.space.durations(X)
 
     def times(self, X: np.ndarray, t0: float = 0.0) -> np.ndarray:
-        """Waypoint times (s) of a path through X starting at t0."""
-        return t0 + np.concatenate([[0.0], np.cumsum(self.durations(X))])
+        """Full-speed waypoint times (s) from t0: `BodyMetric.times`."""
+        return self.space.times(X, t0)
 
     def sample(self, rng: np.random.Generator, n: int) -> np.ndarray:
-        """n configurations drawn uniformly within the limits (n, nx).
-
-        Each effective bending vector is uniform in its disc |u_bar_k| <=
-        theta_max_k and z uniform in its stroke; draws that break a cable
-        stroke are redrawn (none do for the default robot).
-        """
-        robot = self.robot
-        k = robot.n_segments
-        tmax = np.array([s.theta_max for s in robot.segments])
-        C_inv = np.linalg.inv(robot.coupling_matrix())
-        out = np.empty((0, robot.nx))
-        while len(out) < n:
-            m = max(n - len(out), 8)
-            rad = tmax * np.sqrt(rng.random((m, k)))
-            ang = 2.0 * np.pi * rng.random((m, k))
-            ub = np.stack([rad * np.cos(ang), rad * np.sin(ang)], axis=-1).reshape(m, 2 * k)
-            z = rng.uniform(robot.z_range[0], robot.z_range[1], size=(m, 1))
-            X = np.concatenate([ub @ C_inv.T, z], axis=1)
-            out = np.concatenate([out, X[self.within_limits(X)]])
-        return out[:n]
+        """n configurations uniform within the limits: `ConfigSampler.sample`."""
+        return self.sampler.sample(rng, n)
 
     def project_limits(self, X: np.ndarray) -> np.ndarray:
-        """Configurations (N, nx) moved into the bending discs |u_bar_k| <= theta_max_k and the z stroke.
+        """Configurations moved into the limits: `ConfigSampler.project_limits`."""
+        return self.sampler.project_limits(X)
 
-        Radial scaling of each effective bending vector and clipping of z:
-        the nearest such point in those coordinates; solver round-off
-        (~1e-8 outside a limit) becomes exactly inside. Cable strokes are
-        not projected; with the default strokes (2 r theta_max) the discs imply them.
-        """
-        X = np.atleast_2d(np.asarray(X, dtype=float))
-        robot = self.robot
-        n = robot.n_segments
-        C = robot.coupling_matrix()
-        tmax = np.array([s.theta_max for s in robot.segments])
-        ub = (X[:, : 2 * n] @ C.T).reshape(-1, n, 2)
-        norm = np.linalg.norm(ub, axis=-1)
-        ub = ub * np.minimum(1.0, tmax / np.maximum(norm, 1e-300))[..., None]
-        out = X.copy()
-        out[:, : 2 * n] = ub.reshape(-1, 2 * n) @ np.linalg.inv(C).T
-        out[:, -1] = np.clip(X[:, -1], robot.z_range[0], robot.z_range[1])
-        return out
-
-    # -------------------------------------------------------------- clearance
     def within_limits(self, X: np.ndarray) -> np.ndarray:
-        """True per configuration when it respects every limit (bool (N,))."""
-        return self.robot.limit_violation(X) <= LIMIT_TOL
+        """True per configuration within every limit: `ConfigSampler.within_limits`."""
+        return self.sampler.within_limits(X)
+
+    def points(self, X: np.ndarray) -> np.ndarray:
+        """Check points (N, check_points, 3) mm: `StateValidityChecker.points`."""
+        return self.state.points(X)
 
     def clearance(
         self,
@@ -269,44 +158,12 @@ class MotionValidator:
         t_hi: float | np.ndarray | None = None,
         margin: float | np.ndarray = 0.0,
     ) -> np.ndarray:
-        """Conservative clearance (mm, minus D_sf) of the continuous body of each configuration.
-
-        X (N, nx), held over the window [t_lo, t_hi] (s; scalars or (N,),
-        t_hi defaults to t_lo); `margin` (mm) is subtracted as well. >= 0 is safe.
-        """
-        X = np.atleast_2d(np.asarray(X, dtype=float))
-        N = X.shape[0]
-        if self.scene.n_obstacles == 0:
-            return np.full(N, np.inf)
-        M = self.scene.n_obstacles
-        if self.static:
-            C = self._static_c.T  # (3, M): broadcast to every configuration
-            R = self._static_r[None, :]
-        else:
-            lo = np.broadcast_to(np.asarray(t_lo, dtype=float), (N,))
-            hi = lo if t_hi is None else np.broadcast_to(np.asarray(t_hi, dtype=float), (N,))
-            a, b, rmax = self.scene.swept(lo, hi)  # (N, M, 3), (N, M)
-            C = (0.5 * (a + b)).transpose(2, 0, 1).reshape(3, N * M)  # M columns per configuration
-            R = (rmax + 0.5 * np.linalg.norm(b - a, axis=-1)).reshape(1, N * M)
-        out = np.empty(N)
-        self.n_samples += N
-        for start, take, size in self._batches(N):
-            block = np.zeros((self.robot.nx, size))
-            block[:, :take] = X[start : start + take].T
-            if self.static:
-                Cb, Rb = C, R
-            else:
-                Cb = np.zeros((3, size * M))
-                Rb = np.zeros((1, size * M))
-                Cb[:, : take * M] = C[:, start * M : (start + take) * M]
-                Rb[:, : take * M] = R[:, start * M : (start + take) * M]
-            out[start : start + take] = self._mapped("clearance", size)(block, Cb, Rb).full().ravel()[:take]
-        return out - self.inflate - margin
+        """Conservative body clearance (mm, minus D_sf) over [t_lo, t_hi]: `StateValidityChecker.clearance`."""
+        return self.state.clearance(X, t_lo, t_hi, margin)
 
     def state_valid(self, X: np.ndarray, t: float | np.ndarray = 0.0) -> np.ndarray:
-        """Within limits and clear at time t (bool (N,))."""
-        X = np.atleast_2d(np.asarray(X, dtype=float))
-        return self.within_limits(X) & (self.clearance(X, t) >= 0.0)
+        """Within limits and clear at time t: `StateValidityChecker.state_valid`."""
+        return self.state.state_valid(X, t)
 
     # ------------------------------------------------------------------ edges
     def _samples(
@@ -353,6 +210,7 @@ class MotionValidator:
         np.minimum.at(per_edge, e, c)
         return per_edge, c, e
 
+    # Over 60 lines by its docstring (the certification argument); the loop is one vectorised refinement.
     def check_edges(
         self,
         XA: np.ndarray,
@@ -413,7 +271,7 @@ class MotionValidator:
             # the window (c + enl < 0: each instant's sphere lies within enl of the swept one) or when
             # it is as fine as it gets in motion (h) and in time; otherwise it is split.
             dt = dT[e] * (tb - ta)
-            hopeless = c + self._enl_rate * dt < 0.0
+            hopeless = c + self.state.enlargement_rate * dt < 0.0
             bad = ~ok & (hopeless | (((c < 0.0) | (h <= finest)) & (dt <= tres)))
             np.minimum.at(fail, e[bad], ta[bad])
             split = ~ok & ~bad

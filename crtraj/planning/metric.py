@@ -1,0 +1,64 @@
+"""The body-motion metric of configuration space, and the timing it implies.
+
+No backbone point moves more than ``B(dx) = sum_k w_k |d u_bar_k| + |dz|``
+(mm) when the configuration changes by dx (u_bar: the effective bending
+vectors, ``w_k = L_k / 2 + sum_{j>k} L_j``; the proof is bound 2 in
+`crtraj.planning.validity`). In ``y = M x`` (blocks ``w_k u_bar_k``, then
+z) B is the block-l1 norm of dy, so the planners measure distances in y
+(mm). A straight motion lasts ``B(dx) / max_speed`` seconds: no point of the
+body moves faster than `max_speed` (mm/s).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from crtraj.core.errors import InputError
+
+
+class BodyMetric:
+    """Body-motion bound, metric coordinates and full-speed timing of one robot.
+
+    robot: the `Robot`. max_speed: largest speed of any body point (mm/s).
+    """
+
+    def __init__(self, robot: Any, max_speed: float) -> None:
+        if not (math.isfinite(max_speed) and max_speed > 0):
+            raise InputError(f"max_speed: must be > 0 mm/s, got {max_speed}")
+        self.robot = robot
+        self.max_speed = float(max_speed)
+        n = robot.n_segments
+        lengths = np.array([s.length for s in robot.segments])
+        self.weights = lengths / 2.0 + (np.cumsum(lengths[::-1])[::-1] - lengths)  # w_k (mm/rad)
+        # y = M x: blocks w_k u_bar_k, then z; body motion <= block-l1 norm of dy
+        M = np.zeros((robot.nx, robot.nx))
+        M[: 2 * n, : 2 * n] = np.repeat(self.weights, 2)[:, None] * robot.coupling_matrix()
+        M[-1, -1] = 1.0
+        self.metric_matrix = M
+        self.metric_inverse = np.linalg.inv(M)
+
+    def metric(self, x: np.ndarray) -> np.ndarray:
+        """y = M x (mm units): the space the planners measure distances in."""
+        return np.asarray(x, dtype=float) @ self.metric_matrix.T
+
+    def config_from_metric(self, y: np.ndarray) -> np.ndarray:
+        """x from y = M x."""
+        return np.asarray(y, dtype=float) @ self.metric_inverse.T
+
+    def motion_bound(self, dx: np.ndarray) -> np.ndarray:
+        """Upper bound (mm) on how far any body point moves for a change dx (..., nx)."""
+        dy = np.asarray(dx, dtype=float) @ self.metric_matrix.T
+        n = self.robot.n_segments
+        blocks = np.linalg.norm(dy[..., : 2 * n].reshape(*dy.shape[:-1], n, 2), axis=-1)
+        return blocks.sum(axis=-1) + np.abs(dy[..., -1])
+
+    def durations(self, X: np.ndarray) -> np.ndarray:
+        """Duration (s) of each straight motion between consecutive rows of X (K, nx) -> (K-1,)."""
+        return self.motion_bound(np.diff(np.asarray(X, dtype=float), axis=0)) / self.max_speed
+
+    def times(self, X: np.ndarray, t0: float = 0.0) -> np.ndarray:
+        """Waypoint times (s) of a path through X starting at t0."""
+        return t0 + np.concatenate([[0.0], np.cumsum(self.durations(X))])

@@ -1,0 +1,69 @@
+"""Configurations within the robot's limits: uniform sampling, projection, the limit test.
+
+All limits in crtraj are convex in x (discs in the effective bending vectors
+u_bar, cable strokes, z stroke), so a straight motion between two
+configurations within limits stays within limits.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+# Limits may be violated by solver round-off; above this a configuration is out of limits.
+LIMIT_TOL = 1e-7
+
+
+class ConfigSampler:
+    """Samples and projections within the limits of `robot` (units rad, mm)."""
+
+    def __init__(self, robot: Any) -> None:
+        self.robot = robot
+
+    def within_limits(self, X: np.ndarray) -> np.ndarray:
+        """True per configuration when it respects every limit (bool (N,))."""
+        return self.robot.limit_violation(X) <= LIMIT_TOL
+
+    def sample(self, rng: np.random.Generator, n: int) -> np.ndarray:
+        """n configurations drawn uniformly within the limits (n, nx).
+
+        Each effective bending vector is uniform in its disc |u_bar_k| <=
+        theta_max_k and z uniform in its stroke; draws that break a cable
+        stroke are redrawn (none do for the default robot).
+        """
+        robot = self.robot
+        k = robot.n_segments
+        tmax = np.array([s.theta_max for s in robot.segments])
+        C_inv = np.linalg.inv(robot.coupling_matrix())
+        out = np.empty((0, robot.nx))
+        while len(out) < n:
+            m = max(n - len(out), 8)
+            rad = tmax * np.sqrt(rng.random((m, k)))
+            ang = 2.0 * np.pi * rng.random((m, k))
+            ub = np.stack([rad * np.cos(ang), rad * np.sin(ang)], axis=-1).reshape(m, 2 * k)
+            z = rng.uniform(robot.z_range[0], robot.z_range[1], size=(m, 1))
+            X = np.concatenate([ub @ C_inv.T, z], axis=1)
+            out = np.concatenate([out, X[self.within_limits(X)]])
+        return out[:n]
+
+    def project_limits(self, X: np.ndarray) -> np.ndarray:
+        """Configurations (N, nx) moved into the bending discs |u_bar_k| <= theta_max_k and the z stroke.
+
+        Radial scaling of each effective bending vector and clipping of z:
+        the nearest such point in those coordinates; solver round-off
+        (~1e-8 outside a limit) becomes exactly inside. Cable strokes are
+        not projected; with the default strokes (2 r theta_max) the discs imply them.
+        """
+        X = np.atleast_2d(np.asarray(X, dtype=float))
+        robot = self.robot
+        n = robot.n_segments
+        C = robot.coupling_matrix()
+        tmax = np.array([s.theta_max for s in robot.segments])
+        ub = (X[:, : 2 * n] @ C.T).reshape(-1, n, 2)
+        norm = np.linalg.norm(ub, axis=-1)
+        ub = ub * np.minimum(1.0, tmax / np.maximum(norm, 1e-300))[..., None]
+        out = X.copy()
+        out[:, : 2 * n] = ub.reshape(-1, 2 * n) @ np.linalg.inv(C).T
+        out[:, -1] = np.clip(X[:, -1], robot.z_range[0], robot.z_range[1])
+        return out
