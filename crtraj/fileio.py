@@ -1,36 +1,114 @@
-"""Atomic file writes and JSON encoding of results.
+"""Atomic file and folder writes, output-path checks and JSON encoding of results.
 
-A result that was already written must survive a later crash or bad input, so
-every file crtraj writes goes to a temporary file in the same folder and is
-renamed over the target only when complete.
+A result that was already written must survive a later crash, a kill or bad
+input, so every file crtraj writes goes to a temporary file in the same folder
+and is renamed over the target only when complete (`atomic_write_bytes`,
+`StagedFile`). A run that writes several files (run.json, run.npz, run.png,
+run.html) writes them into a temporary sibling folder that replaces the old
+folder in one step (`StagedDir`): readers see the old set or the new set,
+never a mix.
+
+Test hook: with the environment variables ``CRTRAJ_PAUSE_AT=<point>`` and
+``CRTRAJ_PAUSE_SIGNAL=<file>`` set, the writer creates <file> when it reaches
+<point> and then waits forever, so a test can kill it there without racing a
+timer. Points: ``file-partial`` (half of a temporary file written),
+``file-written`` (temporary file complete, not yet renamed), ``file-renamed``
+(the file replaced, nothing after it done yet), ``dir-staged``
+(new folder complete, not yet swapped in), ``dir-aside`` (only without an
+atomic exchange: old folder renamed aside, new one not yet in) and
+``dir-swapped`` (new folder in place, old one not yet removed).
 """
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
+import errno
 import json
 import math
 import os
+import shutil
 import tempfile
+import threading
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from crtraj.errors import InputError
+
+_RENAME_EXCHANGE = 2  # linux/fs.h: swap two paths atomically (renameat2, Linux >= 3.15)
+_AT_FDCWD = -100
+
+
+def checkpoint(point: str) -> None:
+    """The kill-test hook (see the module docstring); a no-op unless CRTRAJ_PAUSE_AT names `point`."""
+    if os.environ.get("CRTRAJ_PAUSE_AT") != point:
+        return
+    signal_file = os.environ.get("CRTRAJ_PAUSE_SIGNAL")
+    if signal_file:
+        Path(signal_file).write_text(f"{os.getpid()} {point}\n", encoding="utf-8")
+    threading.Event().wait()  # until killed
+
+
+def _fsync_dir(path: Path) -> None:
+    """Make a rename in `path` durable (directories cannot be fsynced on every platform: best effort)."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def _umask() -> int | None:
+    """The process umask, read without changing it (os.umask would race with other threads)."""
+    try:
+        for line in Path("/proc/self/status").read_text(encoding="ascii").splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
+def _usual_mode(path: Path, directory: bool = False) -> None:
+    """Give a temporary file or folder (created 0600 / 0700) the mode a plain open() or mkdir() would."""
+    mask = _umask()
+    if mask is not None:
+        os.chmod(path, (0o777 if directory else 0o666) & ~mask)
+
+
+def _write_synced(fh: Any, data: bytes) -> None:
+    half = len(data) // 2
+    fh.write(data[:half])
+    fh.flush()
+    checkpoint("file-partial")
+    fh.write(data[half:])
+    fh.flush()
+    os.fsync(fh.fileno())
+
 
 def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> Path:
-    """Write `data` to `path` atomically (temp file + fsync + rename)."""
+    """Write `data` to `path` atomically (temp file in the same folder + fsync + rename)."""
     target = Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
     try:
+        _usual_mode(Path(tmp))
         with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
+            _write_synced(fh, data)
+        checkpoint("file-written")
         os.replace(tmp, target)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+    _fsync_dir(target.parent)
+    checkpoint("file-renamed")
     return target
 
 
@@ -64,6 +142,221 @@ def to_jsonable(obj: Any) -> Any:
 def atomic_write_json(path: str | os.PathLike[str], obj: Any) -> Path:
     """Write `obj` as indented JSON atomically."""
     return atomic_write_text(path, json.dumps(to_jsonable(obj), indent=1, allow_nan=False) + "\n")
+
+
+def _fsync_file(path: Path) -> None:
+    with open(path, "rb") as fh:
+        os.fsync(fh.fileno())
+
+
+class StagedFile:
+    """A temporary file beside `target` that replaces it only on `commit()`.
+
+    Write to `path` (any way: it is a plain file); `commit()` fsyncs it and
+    renames it over the target. Leaving the ``with`` block without a commit
+    (an error, a refused run) removes it, so the target is never truncated.
+    """
+
+    def __init__(self, target: str | os.PathLike[str]) -> None:
+        self.target = Path(target)
+        self.target.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{self.target.name}.", suffix=".tmp", dir=self.target.parent)
+        os.close(fd)
+        self.path = Path(tmp)
+        _usual_mode(self.path)
+        self.committed = False
+
+    def write(self, data: bytes) -> None:
+        """Fill the staged file with `data` (replacing what it held)."""
+        with open(self.path, "wb") as fh:
+            _write_synced(fh, data)
+
+    def commit(self) -> Path:
+        """Make the staged file the target (atomic rename); returns the target."""
+        _fsync_file(self.path)
+        checkpoint("file-written")
+        os.replace(self.path, self.target)
+        _fsync_dir(self.target.parent)
+        self.committed = True
+        checkpoint("file-renamed")
+        return self.target
+
+    def discard(self) -> None:
+        if not self.committed:
+            self.path.unlink(missing_ok=True)
+
+    def __enter__(self) -> StagedFile:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.discard()
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap two paths in one atomic step (Linux renameat2 RENAME_EXCHANGE); False where unsupported."""
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or None, use_errno=True)
+        fn = libc.renameat2
+    except (OSError, AttributeError):
+        return False
+    fn.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
+    if fn(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE) == 0:
+        return True
+    err = ctypes.get_errno()
+    if err in (errno.ENOSYS, errno.EINVAL, errno.EOPNOTSUPP):  # kernel or file system without exchange
+        return False
+    raise OSError(err, os.strerror(err), str(b))
+
+
+def _asides(target: Path) -> list[Path]:
+    return sorted(target.parent.glob(f".{target.name}.old-*"), key=lambda p: p.stat().st_mtime)
+
+
+def recover_dir(target: str | os.PathLike[str]) -> None:
+    """Undo a folder swap interrupted between its two renames (only where no atomic exchange exists):
+    when `target` is missing and its previous version was set aside, put it back."""
+    t = Path(target)
+    if not t.exists():
+        asides = _asides(t)
+        if asides:
+            os.rename(asides[-1], t)
+
+
+class StagedDir:
+    """A temporary folder beside `target` that replaces it as a whole on `commit()`.
+
+    Write every file of the set into `path`; `commit()` fsyncs them and swaps
+    the folder into place in one atomic step (renameat2 RENAME_EXCHANGE; else
+    the old folder is renamed aside, the new one in, and `recover_dir` undoes
+    an interruption between the two), then removes the old folder. `replaceable`:
+    the only file names an existing target may hold (a folder with anything
+    else in it is never replaced: it is not a crtraj output). Leaving the
+    ``with`` block without a commit removes the staged folder.
+    """
+
+    def __init__(self, target: str | os.PathLike[str], replaceable: frozenset[str]) -> None:
+        t = Path(target)
+        self.target = t.resolve() if t.is_symlink() else t
+        self.replaceable = replaceable
+        self.target.parent.mkdir(parents=True, exist_ok=True)
+        recover_dir(self.target)
+        self.path = Path(tempfile.mkdtemp(prefix=f".{self.target.name}.", suffix=".tmp", dir=self.target.parent))
+        _usual_mode(self.path, directory=True)
+        self.committed = False
+
+    def commit(self, target: str | os.PathLike[str] | None = None) -> Path:
+        """Swap the staged folder in as `target` (default: the target given at construction; it must
+        be a sibling of it, e.g. ``replan.failed``); returns the path."""
+        dest = self.target if target is None else Path(target)
+        if dest.parent.resolve() != self.path.parent.resolve():
+            raise ValueError(f"{dest}: must be in {self.path.parent}")
+        for p in self.path.rglob("*"):
+            if p.is_file():
+                _fsync_file(p)
+        _fsync_dir(self.path)
+        checkpoint("dir-staged")
+        recover_dir(dest)
+        if dest.exists():
+            check_output_dir(dest, str(dest), self.replaceable)
+            if _exchange(self.path, dest):
+                old = self.path  # now holds the previous folder
+                _fsync_dir(dest.parent)
+            else:
+                old = dest.parent / f".{dest.name}.old-{os.getpid()}-{os.urandom(4).hex()}"
+                os.rename(dest, old)
+                checkpoint("dir-aside")
+                os.rename(self.path, dest)
+                _fsync_dir(dest.parent)
+            self.committed = True
+            checkpoint("dir-swapped")
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.rename(self.path, dest)
+            _fsync_dir(dest.parent)
+            self.committed = True
+        return dest
+
+    def discard(self) -> None:
+        if not self.committed:
+            shutil.rmtree(self.path, ignore_errors=True)
+
+    def __enter__(self) -> StagedDir:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.discard()
+
+
+# ------------------------------------------------------- output path checks
+def _writable_ancestor(p: Path, what: str) -> None:
+    """The nearest existing ancestor of `p` must be a folder we can create files in (probed, so the
+    answer is right for root and read-only file systems too)."""
+    a = p.parent
+    while not (a.exists() or a.is_symlink()) and a != a.parent:
+        a = a.parent
+    if not a.is_dir():
+        raise InputError(f"{what}: cannot write {p}: {a} is a file, not a folder")
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".crtraj-probe.", dir=a)
+    except OSError as exc:
+        raise InputError(f"{what}: cannot write {p}: {a}: {exc.strerror or exc}") from None
+    os.close(fd)
+    os.unlink(probe)
+
+
+def check_output_file(path: str | os.PathLike[str], what: str) -> Path:
+    """Refuse, before any work, an output file that cannot be written; one line naming `what`
+    (e.g. ``--out``)."""
+    p = Path(path)
+    try:
+        if p.is_dir():
+            raise InputError(f"{what}: {p} is a folder; give a file name")
+        _writable_ancestor(p, what)
+    except OSError as exc:
+        raise InputError(f"{what}: cannot write {p}: {exc.strerror or exc}") from None
+    return p
+
+
+def check_output_dir(path: str | os.PathLike[str], what: str, replaceable: frozenset[str]) -> Path:
+    """Refuse, before any work, an output folder that cannot be written or that holds files other
+    than `replaceable` (it would be replaced as a whole); one line naming `what`."""
+    p = Path(path)
+    try:
+        if p.exists() and not p.is_dir():
+            raise InputError(f"{what}: {p} exists and is not a folder")
+        if p.is_dir():
+            foreign = sorted(n for n in os.listdir(p) if n not in replaceable)
+            if foreign:
+                shown = ", ".join(foreign[:3]) + (", ..." if len(foreign) > 3 else "")
+                raise InputError(
+                    f"{what}: {p} holds files crtraj did not write ({shown}); it is replaced as a whole, "
+                    "so give a new folder"
+                )
+        _writable_ancestor(p, what)
+    except OSError as exc:
+        raise InputError(f"{what}: cannot write {p}: {exc.strerror or exc}") from None
+    return p
+
+
+def failed_sibling(path: str | os.PathLike[str]) -> Path:
+    """Where a failed result goes when `path` holds a successful one: ``p.json`` -> ``p.failed.json``,
+    ``out/replan`` -> ``out/replan.failed``."""
+    p = Path(path)
+    if p.suffix and p.stem:
+        return p.with_name(f"{p.stem}.failed{p.suffix}")
+    return p.with_name(f"{p.name}.failed")
+
+
+def is_successful_result(path: str | os.PathLike[str]) -> bool:
+    """True when `path` (a result JSON, or a folder with run.json) holds a crtraj result with success true."""
+    p = Path(path)
+    if p.is_dir():
+        p = p / "run.json"
+    try:
+        doc = json.loads(p.read_bytes())
+    except (OSError, ValueError, RecursionError):
+        return False
+    return isinstance(doc, dict) and doc.get("success") is True
 
 
 def read_json(path: str | os.PathLike[str]) -> Any:

@@ -49,6 +49,20 @@ from crtraj.validity import MotionValidator
 # backbone points used to measure (not decide) clearance and to record the body
 REPORT_POINTS = 41
 
+# every file a run folder may hold (`write_run`, and a streamed run's log): a folder with anything
+# else in it is not a run folder and is never replaced
+RUN_FILES = frozenset({"run.json", "run.npz", "run.png", "run.html", "stream.jsonl"})
+
+
+class UnsolvableTaskError(Exception):
+    """A well-formed task the loop cannot start: `status` is "invalid_start" (no safe start
+    configuration) or "invalid_goal" (no configuration can ever put the tip on the goal safely).
+    Not an input error: the command exits 1 with the status, as `crtraj plan` does."""
+
+    def __init__(self, status: str, message: str) -> None:
+        super().__init__(message)
+        self.status = status
+
 
 class StepStatus(str, enum.Enum):
     """What the loop did in one control step."""
@@ -1304,6 +1318,7 @@ def loop_from_problem(
             for i, o in enumerate(snap.obstacles)
         )
     first: ReferencePlan | None = None
+    res = None
     if task.start_config is not None:
         x0 = np.asarray(task.start_config, dtype=float)
     else:
@@ -1312,7 +1327,7 @@ def loop_from_problem(
             task.goal, start_tip=task.start, t0=0.0, seed=seed, goal_tolerance=task.goal_tolerance, scene=scene0
         )
         if res.status is PlanStatus.INVALID_START:
-            raise InputError(f"task.start: {res.message}")
+            raise UnsolvableTaskError("invalid_start", f"task.start: {res.message}")
         if res.has_path:
             x0 = res.configs[0]
             if res.success and opts.safety:
@@ -1322,8 +1337,10 @@ def loop_from_problem(
         else:
             only = planner.plan(task.start, start_tip=task.start, t0=0.0, seed=seed, goal_tolerance=1.0, scene=scene0)
             if not only.has_path:
-                raise InputError(f"task.start: {only.message}")
+                raise UnsolvableTaskError("invalid_start", f"task.start: {only.message}")
             x0 = only.configs[0]
+    moving = feed is not None or any(o.amplitude != 0.0 or o.to is not None for o in scene.obstacles)
+    _check_goal(planner, task, x0, scene0, seed, res, among_obstacles=opts.safety and not moving)
     reference = PlannerReference(
         planner,
         task.goal,
@@ -1345,6 +1362,36 @@ def loop_from_problem(
         obstacles=source,
         extra_options={"planner": popts, "steer": problem.options(SteerOptions, "steer")},
     )
+
+
+def _check_goal(
+    planner: Any, task: Any, x0: np.ndarray, scene: Any, seed: int, res: Any, *, among_obstacles: bool
+) -> None:
+    """Fail fast, as `crtraj plan` does, when no configuration can ever put the tip on the goal safely
+    (`UnsolvableTaskError` "invalid_goal"), instead of running the loop until its duration ends.
+
+    among_obstacles (static obstacles, with the safety terms): the planner's goal IK among them
+    decides. Obstacles that move or breathe, or come from a live feed, may uncover the goal later,
+    so then only a goal the robot cannot reach even with no obstacles at all is refused. res: the
+    planner's result from x0 among `scene`, when there is one.
+    """
+    from crtraj.plan_result import PlanStatus
+    from crtraj.stop import StopCondition
+
+    if not among_obstacles:
+        scene, res = scene.with_obstacles(()), None
+    if res is None:  # the goal IK runs before any search; one search iteration bounds the cost
+        res = planner.plan(
+            task.goal,
+            start_config=x0,
+            t0=0.0,
+            seed=seed,
+            goal_tolerance=task.goal_tolerance,
+            scene=scene,
+            stop=StopCondition(max_iterations=1),
+        )
+    if res.status is PlanStatus.INVALID_GOAL:
+        raise UnsolvableTaskError("invalid_goal", f"task.goal: {res.message}")
 
 
 # ------------------------------------------------------------------- outputs
@@ -1515,20 +1562,17 @@ def plot_run(run: ReplanRun, loop: ClosedLoop, path: Any, title: str = "") -> An
     return atomic_write_bytes(path, buf.getvalue())
 
 
-def write_run(
-    run: ReplanRun, loop: ClosedLoop, out_dir: Any, *, problem: Any = None, seed: int | None = None, html: bool = True
+def write_run_files(
+    run: ReplanRun, loop: ClosedLoop, folder: Any, *, problem: Any = None, seed: int | None = None, html: bool = True
 ) -> dict[str, Any]:
-    """Write run.json, run.npz, run.png and (html=True) run.html into out_dir.
-
-    Returns the paths (keys json, npz, png, html) and, under "result", the
-    result document as plain JSON data.
-    """
+    """Write run.json, run.npz, run.png and (html=True) run.html into an existing folder, one file at a
+    time (`write_run` stages them and swaps the folder in whole). Returns the paths (keys json, npz, png,
+    html) and, under "result", the result document as plain JSON data."""
     from pathlib import Path
 
     from crtraj.fileio import atomic_write_json, atomic_write_text, to_jsonable
 
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    out = Path(folder)
     result = to_jsonable(result_dict(run, loop, problem, seed))
     paths: dict[str, Any] = {"json": atomic_write_json(out / "run.json", result)}
     paths["npz"] = save_npz(run, out / "run.npz")
@@ -1543,3 +1587,22 @@ def write_run(
             vis.close()
     paths["result"] = result
     return paths
+
+
+def write_run(
+    run: ReplanRun, loop: ClosedLoop, out_dir: Any, *, problem: Any = None, seed: int | None = None, html: bool = True
+) -> dict[str, Any]:
+    """Write run.json, run.npz, run.png and (html=True) run.html into out_dir, as one set: they are
+    written into a temporary sibling folder that then replaces out_dir in one atomic step
+    (`crtraj.fileio.StagedDir`), so a crash or kill leaves the previous set or the new one, never a
+    mix. out_dir must be new, or hold only files named in `RUN_FILES`.
+
+    Returns the paths (keys json, npz, png, html) and, under "result", the result document as plain
+    JSON data.
+    """
+    from crtraj.fileio import StagedDir
+
+    with StagedDir(out_dir, RUN_FILES) as stage:
+        paths = write_run_files(run, loop, stage.path, problem=problem, seed=seed, html=html)
+        dest = stage.commit()
+    return {k: (dest / v.name if k != "result" else v) for k, v in paths.items()}
