@@ -1,9 +1,14 @@
 """The ``crtraj`` command.
 
 Each subcommand is a small function that parses its arguments, calls the
-library, prints a short summary and returns an exit code. User errors
-(`InputError`) print one line ``crtraj: error: ...`` and exit 2; a failed
-plan or solve exits 1 with its status printed.
+library, prints a short summary and returns an exit code. One rule for every
+command: user input errors (malformed files, flags, output paths; `InputError`)
+print one line ``crtraj: error: ...`` and exit 2, before any long work; a
+well-formed task that cannot be solved (invalid_start, invalid_goal, timeout,
+collision, ...) exits 1, prints its status and one stderr line
+``crtraj: <command> failed: <status>: ...``. Outputs are staged and renamed
+into place (`crtraj.fileio`); a failed result never replaces a successful one
+at the same --out unless --overwrite-failed: it goes beside it (NAME.failed).
 """
 
 from __future__ import annotations
