@@ -1378,6 +1378,8 @@ def _check_goal(
     from crtraj.plan_result import PlanStatus
     from crtraj.stop import StopCondition
 
+    if res is not None and res.status not in (PlanStatus.INVALID_GOAL, PlanStatus.INVALID_START):
+        return  # the goal IK found a safe goal configuration: reachable
     if not among_obstacles:
         scene, res = scene.with_obstacles(()), None
     if res is None:  # the goal IK runs before any search; one search iteration bounds the cost
