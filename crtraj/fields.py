@@ -203,6 +203,8 @@ def check_vec(v: Any, name: str, n: int | None = None, *, limit: float = MAX_MAG
 
 def check_array(v: Any, name: str, shape: tuple[int | None, ...], *, limit: float = MAX_MAGNITUDE) -> np.ndarray:
     """Convert to a finite float64 array of `shape` (None = any length) with every ``|x| <= limit``."""
+    if not _only_numbers(v):  # numpy would turn "12" into 12.0 and true into 1.0
+        raise InputError(f"{name}: expected numbers of shape {_shape_text(shape)}")
     try:
         a = np.asarray(v, dtype=float)
     except (TypeError, ValueError, OverflowError):
@@ -226,6 +228,26 @@ def check_name(v: Any, name: str, max_len: int = 100) -> str:
     if not v.isprintable() or any(c in v for c in "/\\:") or v.startswith("."):
         raise InputError(f"{name}: {_short(v)} cannot be part of a file name (no / \\ : or leading dot)")
     return v
+
+
+def _only_numbers(v: Any) -> bool:
+    """True when `v` is a number or (nested) lists of numbers only: no bool, str, None or dict.
+
+    Iterative, so that deeply nested input cannot exhaust the stack.
+    """
+    if isinstance(v, np.ndarray):
+        return v.dtype.kind in "fiu"
+    stack = [v]
+    while stack:
+        item = stack.pop()
+        if isinstance(item, (list, tuple)):
+            stack.extend(item)
+        elif isinstance(item, np.ndarray):
+            if item.dtype.kind not in "fiu":
+                return False
+        elif isinstance(item, bool) or not isinstance(item, (int, float, np.integer, np.floating)):
+            return False
+    return True
 
 
 def _key_text(key: Any, width: int = 60) -> str:

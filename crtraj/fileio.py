@@ -101,14 +101,10 @@ def read_text(path: str | os.PathLike[str], *, max_bytes: int, kind: str) -> str
     """
     p = Path(path)
     try:
+        # stat before open: opening a FIFO for reading blocks until a writer comes
+        _check_regular(p, os.stat(p), max_bytes, kind)
         with p.open("rb") as fh:
-            st = os.fstat(fh.fileno())
-            if stat.S_ISDIR(st.st_mode):
-                raise InputError(f"{p}: is a folder, expected a {kind} file")
-            if not stat.S_ISREG(st.st_mode):
-                raise InputError(f"{p}: not a regular file, expected a {kind} file")
-            if st.st_size > max_bytes:
-                raise InputError(f"{p}: {st.st_size} bytes, larger than the {max_bytes} bytes a {kind} input may have")
+            _check_regular(p, os.fstat(fh.fileno()), max_bytes, kind)  # the same file, now that it is open
             data = fh.read(max_bytes + 1)  # the size may change after fstat
     except InputError:
         raise
@@ -130,6 +126,15 @@ def read_text(path: str | os.PathLike[str], *, max_bytes: int, kind: str) -> str
         raise InputError(
             f"{p}: not UTF-8 text (byte {exc.start} is 0x{data[exc.start]:02x}); not a {kind} file?"
         ) from None
+
+
+def _check_regular(p: Path, st: os.stat_result, max_bytes: int, kind: str) -> None:
+    if stat.S_ISDIR(st.st_mode):
+        raise InputError(f"{p}: is a folder, expected a {kind} file")
+    if not stat.S_ISREG(st.st_mode):
+        raise InputError(f"{p}: not a regular file, expected a {kind} file")
+    if st.st_size > max_bytes:
+        raise InputError(f"{p}: {st.st_size} bytes, larger than the {max_bytes} bytes a {kind} input may have")
 
 
 def check_depth(data: Any, name: str, max_depth: int = MAX_DEPTH) -> None:

@@ -64,8 +64,14 @@ BAD = [
     (GOOD.replace("cable_radius = 2.5", "cable_radius = 1e-300"), "robot.cable_radius: must be >= 0.001"),
     (GOOD.replace("length = 200.0", "length = 1e308"), "robot.segment[0].length: must be within +-1e+06"),
     (GOOD.replace("coupling = 0.0", "coupling = 1e300"), "robot.coupling: must be within +-10"),
-    (GOOD.replace("coupling = 0.0", "coupling = 0.0\ncollision_points = 100000"), "robot.collision_points: must be <= 200"),
-    (GOOD.replace("coupling = 0.0", "coupling = 0.0\ncollision_points = 99999999999999999999999"), "robot.collision_points: must be <= 200"),
+    (
+        GOOD.replace("coupling = 0.0", "coupling = 0.0\ncollision_points = 100000"),
+        "robot.collision_points: must be <= 200",
+    ),
+    (
+        GOOD.replace("coupling = 0.0", "coupling = 0.0\ncollision_points = 99999999999999999999999"),
+        "robot.collision_points: must be <= 200, got an integer of 23 digits",
+    ),
     (GOOD + "[[robot.segment]]\nlength = 1.0\n" * 16, "robot.segment: at most 16 entries, got 18"),
     (GOOD.replace('name = "r"', 'name = "../../x"'), "robot.name: '../../x' cannot be part of a file name"),
     (GOOD.replace("z_range = [-150.0, 100.0]", "z_range = [-1e300, 100.0]"), "robot.z_range[0]: must be within"),
