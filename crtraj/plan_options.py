@@ -7,6 +7,8 @@ from dataclasses import asdict, dataclass, replace
 from types import MappingProxyType
 from typing import Any
 
+import numpy as np
+
 from crtraj.errors import InputError
 from crtraj.fields import MAX_LENGTH, MAX_TIME, Table
 from crtraj.stop import StopCondition
@@ -120,14 +122,17 @@ class PlannerOptions:
             raise InputError(f"planner.algorithm: must be one of {', '.join(ALGORITHMS)}; got {self.algorithm!r}")
         for key, (lo, hi) in _INT_BOUNDS.items():
             v = getattr(self, key)
-            if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not lo <= v <= hi:
                 raise InputError(f"planner.{key}: must be an integer in [{lo}, {hi}], got {v!r}")
         for key, (lo, hi, lo_open) in _FLOAT_BOUNDS.items():
             v = getattr(self, key)
             if v is None and key == "range":
                 continue
             ok = (
-                isinstance(v, (int, float)) and not isinstance(v, bool) and (v > lo if lo_open else v >= lo) and v <= hi
+                isinstance(v, (int, float, np.integer))
+                and not isinstance(v, bool)
+                and (v > lo if lo_open else v >= lo)
+                and v <= hi
             )
             if not ok:
                 bracket = "(" if lo_open else "["

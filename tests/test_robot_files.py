@@ -70,7 +70,7 @@ BAD = [
     ),
     (
         GOOD.replace("coupling = 0.0", "coupling = 0.0\ncollision_points = 99999999999999999999999"),
-        "robot.collision_points: must be <= 200, got an integer of 23 digits",
+        "robot.collision_points: must be <= 200, got 99999999999999999999999",
     ),
     (GOOD + "[[robot.segment]]\nlength = 1.0\n" * 16, "robot.segment: at most 16 entries, got 18"),
     (GOOD.replace('name = "r"', 'name = "../../x"'), "robot.name: '../../x' cannot be part of a file name"),
