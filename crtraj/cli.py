@@ -20,7 +20,7 @@ import os
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 from crtraj import __version__
 from crtraj.errors import InputError
@@ -53,18 +53,25 @@ def _add_export(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--robot", help="robot TOML file (default: problems/robots/cdsr2.toml)")
     p.add_argument("--out", default="out/export", help="output folder (default: out/export)")
-    p.add_argument("--points", type=int, default=None, help="backbone points (default: robot.collision_points)")
-    p.add_argument("--batch", type=int, default=1024, help="configurations per backbone_map call (default 1024)")
+    p.add_argument(
+        "--points", type=int, default=None, help="backbone points, 2..1000 (default: robot.collision_points)"
+    )
+    p.add_argument(
+        "--batch", type=int, default=1024, help="configurations per backbone_map call, 1..1000000 (default 1024)"
+    )
     p.add_argument("--no-compile", action="store_true", help="write C source only, do not compile")
     p.set_defaults(func=_cmd_export)
 
 
 def _cmd_export(args: argparse.Namespace) -> int:
-    from crtraj.model import Model
+    from crtraj.model import MAX_BATCH, MAX_POINTS, Model
     from crtraj.problem import load_robot
 
-    if args.batch < 1:
-        raise InputError(f"--batch: must be >= 1, got {args.batch}")
+    # sizes first: a huge --batch or --points would build (or allocate) for minutes before failing
+    if not 1 <= args.batch <= MAX_BATCH:
+        raise InputError(f"--batch: must be in [1, {MAX_BATCH}], got {args.batch}")
+    if args.points is not None and not 2 <= args.points <= MAX_POINTS:
+        raise InputError(f"--points: must be in [2, {MAX_POINTS}], got {args.points}")
     robot = load_robot(_resolve_robot(args.robot))
     model = Model(robot, n_points=args.points)
     rep = model.export(args.out, batch=args.batch, compile=not args.no_compile)
@@ -147,7 +154,9 @@ def _add_stream(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--watchdog", type=float, default=None, help="hold after this long without telemetry, s (0.1)")
     p.add_argument("--robot", help="robot TOML whose [robot.actuators] to use (default: the result's robot)")
     p.add_argument("--problem", help="problem TOML whose [stream] section sets the defaults")
-    p.add_argument("--time-scale", type=float, default=1.0, help="play the trajectory this many times slower")
+    p.add_argument(
+        "--time-scale", type=float, default=1.0, help="play the trajectory this many times slower (0.001..1000)"
+    )
     p.add_argument(
         "--approach",
         action="store_true",
@@ -166,10 +175,11 @@ def _cmd_stream(args: argparse.Namespace) -> int:
     from crtraj.fileio import read_json
     from crtraj.problem import Problem, load_robot
     from crtraj.robot import Robot
-    from crtraj.setpoints import SetpointPath
+    from crtraj.setpoints import SetpointPath, check_time_scale
     from crtraj.stream import Streamer, StreamOptions
     from crtraj.transport import Transport, parse_hostport
 
+    check_time_scale(args.time_scale)
     result = read_json(args.result)
     if not isinstance(result, dict) or not isinstance(result.get("robot"), dict):
         raise InputError(f"{args.result}: robot: missing (is this a crtraj plan/replan result?)")
@@ -451,8 +461,8 @@ def _add_replan(sub: argparse._SubParsersAction) -> None:
         "--time-scale",
         type=float,
         default=1.0,
-        help="with --stream, without --feed: play the run this many times slower (the device's acceleration "
-        "limits may need it)",
+        help="with --stream, without --feed: play the run this many times slower, 0.001..1000 (the device's "
+        "acceleration limits may need it)",
     )
     p.add_argument("--view", action="store_true", help="afterwards, serve the 3-D replay on 127.0.0.1 until Ctrl-C")
     p.add_argument("--no-browser", action="store_true", help="with --view: only print the URL")
@@ -464,8 +474,10 @@ def _cmd_replan(args: argparse.Namespace) -> int:
     import time
 
     from crtraj.problem import Problem
+    from crtraj.setpoints import check_time_scale
     from crtraj.simulate import RUN_FILES, UnsolvableTaskError, loop_from_problem, write_run_files
 
+    check_time_scale(args.time_scale)
     if args.seed is not None and args.seed < 0:
         raise InputError(f"--seed: must be >= 0, got {args.seed}")
     if args.stream and args.no_safety:
@@ -719,8 +731,16 @@ _COMMANDS: tuple[Callable[[argparse._SubParsersAction], None], ...] = (
 )
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors (``crtraj: error: ...``, exit 2) like every other crtraj error;
+    subcommand parsers inherit it. `--help` still prints the usage."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"crtraj: error: {_one_line(message)} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="crtraj",
         description="Safety-constrained motion planning for cable-driven continuum robots.",
     )
@@ -729,6 +749,13 @@ def build_parser() -> argparse.ArgumentParser:
     for add in _COMMANDS:
         add(sub)
     return parser
+
+
+def _one_line(exc: BaseException, width: int = 1000) -> str:
+    """An error message as exactly one line: a message quoting a file name or value with a newline or
+    control character in it must not spill onto a second line."""
+    text = "".join(c if c.isprintable() else repr(c)[1:-1] for c in " ".join(str(exc).splitlines()))
+    return text if len(text) <= width else text[: width - 3] + "..."
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -740,10 +767,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return int(args.func(args) or 0)
     except InputError as exc:
-        print(f"crtraj: error: {exc}", file=sys.stderr)
+        print(f"crtraj: error: {_one_line(exc)}", file=sys.stderr)
         return 2
     except TransportError as exc:  # the device or port, not the input: a run-time failure
-        print(f"crtraj: error: {exc}", file=sys.stderr)
+        print(f"crtraj: error: {_one_line(exc)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         print("crtraj: interrupted", file=sys.stderr)

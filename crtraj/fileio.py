@@ -17,6 +17,12 @@ timer. Points: ``file-partial`` (half of a temporary file written),
 (new folder complete, not yet swapped in), ``dir-aside`` (only without an
 atomic exchange: old folder renamed aside, new one not yet in) and
 ``dir-swapped`` (new folder in place, old one not yet removed).
+
+Every file crtraj reads (problem and robot TOML, result JSON) goes through
+`read_text`: it must be a regular file of at most a documented size
+(`MAX_TOML_BYTES`, `MAX_JSON_BYTES`), UTF-8 text, and nested at most
+`MAX_DEPTH` levels deep. Anything else is one `InputError` line naming the
+file, never a traceback, a hang on a pipe or device, or a recursion error.
 """
 
 from __future__ import annotations
@@ -28,6 +34,8 @@ import json
 import math
 import os
 import shutil
+import stat
+import sys
 import tempfile
 import threading
 from pathlib import Path
@@ -91,6 +99,22 @@ def _write_synced(fh: Any, data: bytes) -> None:
     fh.write(data[half:])
     fh.flush()
     os.fsync(fh.fileno())
+
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+# Problem and robot files are hand-written tables: a few kB. 4 MiB leaves
+# room for generated scenes without letting a wrong file exhaust memory.
+MAX_TOML_BYTES = 4 * 1024 * 1024
+# Result JSON (plan, replan, bench): a long replan run with backbone points
+# per waypoint is a few MB; 256 MiB bounds the memory a parse can take.
+MAX_JSON_BYTES = 256 * 1024 * 1024
+# Deepest nesting of tables/arrays in any input file. crtraj's schemas go 4
+# levels deep (tree.edges: list of pairs of points); parsers recurse per level.
+MAX_DEPTH = 32
 
 
 def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> Path:
@@ -359,14 +383,105 @@ def is_successful_result(path: str | os.PathLike[str]) -> bool:
     return isinstance(doc, dict) and doc.get("success") is True
 
 
-def read_json(path: str | os.PathLike[str]) -> Any:
-    """Read a JSON file; raise `InputError` with the path on failure."""
-    from crtraj.errors import InputError
+def read_text(path: str | os.PathLike[str], *, max_bytes: int, kind: str) -> str:
+    """The UTF-8 text of a regular file of at most `max_bytes` bytes.
 
+    kind names the expected format in messages ("TOML", "JSON"). Raises
+    `InputError` naming the file for a missing file, a folder, a pipe or
+    device (which could block forever), an oversized file and text that is
+    not UTF-8 (a UTF-8 byte-order mark is accepted and dropped).
+    """
     p = Path(path)
     try:
-        return json.loads(p.read_text(encoding="utf-8"))
+        # stat before open: opening a FIFO for reading blocks until a writer comes
+        _check_regular(p, os.stat(p), max_bytes, kind)
+        with p.open("rb") as fh:
+            _check_regular(p, os.fstat(fh.fileno()), max_bytes, kind)  # the same file, now that it is open
+            data = fh.read(max_bytes + 1)  # the size may change after fstat
+    except InputError:
+        raise
     except FileNotFoundError:
         raise InputError(f"{p}: no such file") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(f"{p}: not valid JSON ({exc})") from None
+    except IsADirectoryError:
+        raise InputError(f"{p}: is a folder, expected a {kind} file") from None
+    except OSError as exc:
+        raise InputError(f"{p}: cannot read ({exc.strerror or exc})") from None
+    except ValueError:  # a NUL byte in the name
+        raise InputError(f"{p!r}: not a valid file name") from None
+    if len(data) > max_bytes:
+        raise InputError(f"{p}: larger than the {max_bytes} bytes a {kind} input may have")
+    if data.startswith((b"\xff\xfe", b"\xfe\xff")):
+        raise InputError(f"{p}: not UTF-8 text (it looks like UTF-16); save it as UTF-8")
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise InputError(
+            f"{p}: not UTF-8 text (byte {exc.start} is 0x{data[exc.start]:02x}); not a {kind} file?"
+        ) from None
+
+
+def _check_regular(p: Path, st: os.stat_result, max_bytes: int, kind: str) -> None:
+    if stat.S_ISDIR(st.st_mode):
+        raise InputError(f"{p}: is a folder, expected a {kind} file")
+    if not stat.S_ISREG(st.st_mode):
+        raise InputError(f"{p}: not a regular file, expected a {kind} file")
+    if st.st_size > max_bytes:
+        raise InputError(f"{p}: {st.st_size} bytes, larger than the {max_bytes} bytes a {kind} input may have")
+
+
+def check_depth(data: Any, name: str, max_depth: int = MAX_DEPTH) -> None:
+    """Raise `InputError` when lists/dicts in `data` nest deeper than `max_depth` levels.
+
+    Iterative, so it works on data too deep for recursive code, which is
+    exactly what it protects (encoders, validators, numpy conversion).
+    """
+    stack: list[tuple[Any, int]] = [(data, 0)]
+    while stack:
+        item, depth = stack.pop()
+        if isinstance(item, dict):
+            children = item.values()
+        elif isinstance(item, list):
+            children = item
+        else:
+            continue
+        if depth >= max_depth:
+            raise InputError(f"{name}: nested deeper than {max_depth} levels")
+        stack.extend((c, depth + 1) for c in children if isinstance(c, (dict, list)))
+
+
+def read_json(path: str | os.PathLike[str], max_bytes: int = MAX_JSON_BYTES) -> Any:
+    """Read a JSON file of at most `max_bytes` bytes; raise `InputError` with the path on failure."""
+    p = Path(path)
+    text = read_text(p, max_bytes=max_bytes, kind="JSON")
+    try:
+        data = json.loads(text)
+    except RecursionError:
+        raise InputError(f"{p}: not valid JSON (nested deeper than {MAX_DEPTH} levels)") from None
+    except MemoryError:
+        raise InputError(f"{p}: too large to parse") from None
+    except ValueError as exc:  # JSONDecodeError, and integers of more than 4300 digits
+        raise InputError(f"{p}: not valid JSON ({_first_line(exc)})") from None
+    check_depth(data, str(p))
+    return data
+
+
+def read_toml(path: str | os.PathLike[str], max_bytes: int = MAX_TOML_BYTES) -> dict[str, Any]:
+    """Parse a TOML file of at most `max_bytes` bytes; one-line `InputError` on any bad file."""
+    p = Path(path)
+    text = read_text(p, max_bytes=max_bytes, kind="TOML")
+    try:
+        data = tomllib.loads(text)
+    except RecursionError:
+        raise InputError(f"{p}: not valid TOML (nested deeper than {MAX_DEPTH} levels)") from None
+    except MemoryError:
+        raise InputError(f"{p}: too large to parse") from None
+    except ValueError as exc:  # TOMLDecodeError, and integers of more than 4300 digits
+        raise InputError(f"{p}: not valid TOML ({_first_line(exc)})") from None
+    check_depth(data, str(p))
+    return data
+
+
+def _first_line(exc: BaseException, width: int = 200) -> str:
+    """A parser's message cut to one line of at most `width` characters."""
+    text = " ".join(str(exc).split())
+    return text if len(text) <= width else text[: width - 3] + "..."

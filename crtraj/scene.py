@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 
 from crtraj.errors import InputError
-from crtraj.fields import Table
+from crtraj.fields import MAX_TIME, Table
 
 PROFILES = ("linear", "sin", "cos")
 _PROFILE_CODE = MappingProxyType({"linear": 0, "sin": 1, "cos": 2})
@@ -53,6 +53,18 @@ PACK_WIDTH = 5
 # solver that ignores the active flag still sees a constraint that holds by
 # 1e6 mm and a penalty ((R + D_sf + body) / d)^2 below 1e-10.
 PAD_CENTER = (0.0, 0.0, 1.0e6)
+# Most obstacles a scene may have: every solver carries one slot per obstacle
+# (the paper's scenes have at most 7).
+MAX_OBSTACLES = 100
+# Largest radius frequency (rad/s): a sphere breathing faster than ~160 Hz is
+# not a physical obstacle, and larger values only lose precision in sin().
+MAX_OMEGA = 1.0e3
+# Coordinates of obstacles and workspace are at most this far from the base (mm):
+# padding slots sit at PAD_CENTER and must stay outside every real scene.
+MAX_COORDINATE = 1.0e5
+# Shortest motion duration or period (s): a sphere crossing the workspace in
+# less than a millisecond is not physical.
+MIN_DURATION = 1.0e-3
 
 
 @dataclass(frozen=True)
@@ -132,26 +144,26 @@ class Obstacle:
     @classmethod
     def from_table(cls, t: Table) -> Obstacle:
         """Read one ``[[scene.obstacle]]`` table (schema in `Scene.from_table`)."""
-        name = t.str("name", "")
-        center = t.vec("center", 3)
+        name = t.str("name", "", max_len=100)
+        center = t.vec("center", 3, limit=MAX_COORDINATE)
         rv = t.raw("radius")
         if isinstance(rv, dict):
             rt = Table(rv, f"{t.path}.radius")
-            mean = rt.float("mean", ge=0.0)
-            amp = rt.float("amplitude", 0.0)
-            omega = rt.float("omega", 0.0)
-            phase = rt.float("phase", 0.0)
+            mean = rt.float("mean", ge=0.0, limit=MAX_COORDINATE)
+            amp = rt.float("amplitude", 0.0, limit=MAX_COORDINATE)
+            omega = rt.float("omega", 0.0, limit=MAX_OMEGA)
+            phase = rt.float("phase", 0.0, limit=1e3)
             rt.finish()
             if abs(amp) > mean:
                 raise rt.error("amplitude", f"|amplitude| must be <= mean {mean:g} mm, got {amp:g}")
         else:
-            mean = t.float("radius", ge=0.0)
+            mean = t.float("radius", ge=0.0, limit=MAX_COORDINATE)
             amp, omega, phase = 0.0, 0.0, 0.0
         to: tuple[float, ...] | None = None
         duration, profile = 1.0, "linear"
         if t.has("motion"):
             mt = t.table("motion")
-            to = mt.vec("to", 3)
+            to = mt.vec("to", 3, limit=MAX_COORDINATE)
             profile = mt.str("profile", "linear", choices=PROFILES)
             has_d, has_p = mt.has("duration"), mt.has("period")
             if has_d and has_p:
@@ -159,11 +171,11 @@ class Obstacle:
             if has_p:
                 if profile == "linear":
                     raise mt.error("period", "a linear motion has no period; give duration (s)")
-                period = mt.float("period", gt=0.0)
+                period = mt.float("period", ge=MIN_DURATION, limit=MAX_TIME)
                 # time to first reach `to`: half a period for cos, a quarter for sin
                 duration = period / 2.0 if profile == "cos" else period / 4.0
             else:
-                duration = mt.float("duration", gt=0.0)
+                duration = mt.float("duration", ge=MIN_DURATION, limit=MAX_TIME)
             mt.finish()
         t.finish()
         return cls(
@@ -209,14 +221,13 @@ def _sin_range(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 @dataclass(frozen=True)
 class Scene:
-    """Obstacles, safety distance D_sf (mm), planning time step (s) and workspace box (mm).
+    """Obstacles, safety distance D_sf (mm) and workspace box (mm).
 
     Read from a problem file's ``[scene]`` table with `Scene.from_table`.
     """
 
     obstacles: tuple[Obstacle, ...] = ()
     safety_distance: float = 5.0
-    time_step: float = 1.0
     workspace_lo: tuple[float, float, float] = DEFAULT_WORKSPACE[0]
     workspace_hi: tuple[float, float, float] = DEFAULT_WORKSPACE[1]
     time_origin: float = 0.0
@@ -229,8 +240,6 @@ class Scene:
                 raise InputError(f"scene.obstacle: expected Obstacle objects, got {type(o).__name__}")
         if not (math.isfinite(self.safety_distance) and self.safety_distance >= 0):
             raise InputError(f"scene.safety_distance: must be >= 0 mm, got {self.safety_distance}")
-        if not (math.isfinite(self.time_step) and self.time_step > 0):
-            raise InputError(f"scene.time_step: must be > 0 s, got {self.time_step}")
         if not math.isfinite(self.time_origin):
             raise InputError(f"scene.time_origin: must be finite, got {self.time_origin}")
         lo = tuple(float(v) for v in self.workspace_lo)
@@ -479,7 +488,7 @@ class Scene:
         return replace(self, time_origin=self.time_origin + float(dt))
 
     def with_obstacles(self, obstacles: Any) -> Scene:
-        """A copy with a different obstacle list (same D_sf, time step, workspace, clock)."""
+        """A copy with a different obstacle list (same D_sf, workspace, clock)."""
         return replace(self, obstacles=tuple(obstacles))
 
     # --------------------------------------------------------------- file I/O
@@ -487,14 +496,17 @@ class Scene:
     def from_table(cls, t: Table) -> Scene:
         """Read ``[scene]``.
 
-        Keys: ``safety_distance`` (mm, default 5), ``time_step`` (s, default 1),
+        Keys: ``safety_distance`` (mm, default 5),
         ``workspace = {lo = [x,y,z], hi = [x,y,z]}`` (mm, default the paper's
         300 x 300 x 500 box, x,y in [-150, 150], z in [0, 500]),
         ``time_origin`` (s, default 0), and ``[[scene.obstacle]]`` tables with
         ``center`` (mm), ``radius`` (mm, or ``{mean, amplitude, omega, phase}``),
         optional ``motion = {to, duration | period, profile}`` and ``name``.
         """
-        obstacles = tuple(Obstacle.from_table(ot) for ot in t.tables("obstacle"))
+        if t.has("time_step"):  # documented once, never used: refuse it rather than ignore it
+            t.raw("time_step")
+            raise t.error("time_step", "no longer supported (it had no effect); remove it")
+        obstacles = tuple(Obstacle.from_table(ot) for ot in t.tables("obstacle", most=MAX_OBSTACLES))
         names = [o.name for o in obstacles if o.name]
         if len(set(names)) != len(names):
             dup = next(n for n in names if names.count(n) > 1)
@@ -502,19 +514,18 @@ class Scene:
         lo, hi = DEFAULT_WORKSPACE
         if t.has("workspace"):
             wt = t.table("workspace")
-            lo = wt.vec("lo", 3, lo)
-            hi = wt.vec("hi", 3, hi)
+            lo = wt.vec("lo", 3, lo, limit=MAX_COORDINATE)
+            hi = wt.vec("hi", 3, hi, limit=MAX_COORDINATE)
             wt.finish()
             bad = [i for i in range(3) if not lo[i] < hi[i]]
             if bad:
                 raise wt.error("hi", f"must be above lo on every axis, got lo {list(lo)}, hi {list(hi)}")
         scene = cls(
             obstacles=obstacles,
-            safety_distance=t.float("safety_distance", 5.0, ge=0.0),
-            time_step=t.float("time_step", 1.0, gt=0.0),
+            safety_distance=t.float("safety_distance", 5.0, ge=0.0, limit=MAX_COORDINATE),
             workspace_lo=(lo[0], lo[1], lo[2]),
             workspace_hi=(hi[0], hi[1], hi[2]),
-            time_origin=t.float("time_origin", 0.0),
+            time_origin=t.float("time_origin", 0.0, limit=MAX_TIME),
         )
         t.finish()
         return scene
@@ -523,7 +534,6 @@ class Scene:
         """Plain data in the ``[scene]`` schema (round-trips through `from_table`)."""
         d: dict[str, Any] = {
             "safety_distance": self.safety_distance,
-            "time_step": self.time_step,
             "workspace": {"lo": list(self.workspace_lo), "hi": list(self.workspace_hi)},
         }
         if self.time_origin != 0.0:
