@@ -38,6 +38,7 @@ SECTIONS = (
     "replan",
     "tracking",
     "stream",
+    "feed",
     "view",
 )
 
