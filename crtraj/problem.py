@@ -33,6 +33,7 @@ SECTIONS = (
     "replan",
     "tracking",
     "stream",
+    "feed",
     "view",
 )
 

@@ -39,6 +39,7 @@ from typing import Any
 import numpy as np
 
 from crtraj.errors import InputError
+from crtraj.feed import FeedOptions
 from crtraj.fields import check_array
 from crtraj.model import Model
 from crtraj.replan import HorizonResult, Replanner, ReplanOptions
@@ -176,16 +177,20 @@ class FeedObstacles:
 
     Each step turns the newest states into a `Scene` valid over the next
     `window` seconds: every centre moves on a straight line at its measured
-    velocity (extrapolated from the message's age to now). A growing radius
-    r + r' tau is bounded over the window by ``r + r' W sin(pi tau / (2 W))``
-    (the sine's arc lies above its chord), or held at r + r' W when that
-    sine is not allowed (amplitude above the mean radius); a shrinking radius
-    is held at its current value. template: a `Scene` giving D_sf, the
-    workspace and the expected obstacles (their names are the feed ids). A
-    stale feed (an id missing or older than the feed's max_age) gives no
-    scene, and the loop holds still. lead: s between reading the feed for
+    velocity (extrapolated from the measurement's age to now; the feed fits
+    it over a time window and bounds it by its max_speed). The keep-out
+    radius grows from the last measured radius at g = max(radius rate,
+    |velocity|) (`FeedState.keep_out_growth`), so the keep-out sphere always
+    contains the last measured sphere, however wrong the velocity. r + g tau
+    is bounded over the window by ``r + g W sin(pi tau / (2 W))`` (the
+    sine's arc lies above its chord), or held at r + g W when that sine is
+    not allowed (amplitude above the mean radius). template: a `Scene` giving
+    D_sf, the workspace and the expected obstacles (their names are the feed
+    ids). A stale feed (an id missing or older than the feed's max_age) gives
+    no scene, and the loop holds still. lead: s between reading the feed for
     a step and the device executing that step (a streamed run's buffer,
     `DeviceLink.lead`); loop time t is then predicted `lead` s ahead of now.
+    The feed's rejected messages reach the run's record through `new_events`.
     """
 
     live = True
@@ -201,6 +206,7 @@ class FeedObstacles:
         if not all(names):
             raise InputError("scene.obstacle: with a live feed every obstacle needs a name (its feed id)")
         self.ids = tuple(names)
+        self._seen = 0  # feed events already handed to the loop
 
     def at(self, t: float) -> tuple[Any, str]:
         st = self.feed.latest()
@@ -211,13 +217,14 @@ class FeedObstacles:
             return None, f"obstacle feed stale: no state for {', '.join(missing)}"
         idx = [st.ids.index(i) for i in self.ids]
         W = self.window
+        growth = st.keep_out_growth()
         obs = []
         for j, name in zip(idx, self.ids, strict=True):
             v = st.velocities[j]
             c = st.centers[j] + st.ages[j] * v  # where it is now
-            rate = float(st.radius_rates[j])
-            r_now = max(0.0, float(st.radii[j] + st.ages[j] * rate))
-            grow = max(rate, 0.0) * W
+            g = float(growth[j])
+            r_now = float(st.radii[j] + st.ages[j] * g)
+            grow = g * W
             if grow <= r_now:
                 radius = {"radius": r_now, "amplitude": grow, "omega": math.pi / (2.0 * W)}
             else:
@@ -228,6 +235,24 @@ class FeedObstacles:
             )
         # the snapshot's own clock starts now: loop time t maps to its time `lead`
         return replace(self.template, obstacles=tuple(obs), time_origin=self.lead - float(t)), ""
+
+    def new_events(self) -> list[Any]:
+        """The feed's events (`crtraj.feed.FeedEvent`) recorded since the last call."""
+        events = getattr(self.feed, "events", None)
+        if events is None:
+            return []
+        out = events(self._seen)
+        self._seen += len(out)
+        return out
+
+    def describe(self) -> dict[str, Any]:
+        """The feed's counters and options (`ObstacleFeed.describe` without its event list)."""
+        d = getattr(self.feed, "describe", None)
+        if d is None:
+            return {}
+        info = d()
+        info.pop("events", None)
+        return info
 
 
 class DeviceLink:
@@ -540,7 +565,9 @@ class ReplanRun:
     length control_dt (s), from t = 0: with the servo model and q[0] they
     reproduce the actual motion at any instant (for independent re-checks).
     reference_tips: tip polylines of every reference path used, with the
-    step index each started at.
+    step index each started at. feed: a live feed's counters, options and
+    every rejected or clamped message (loop time t, receiver time, kind,
+    reason); {} without a feed.
     """
 
     t: np.ndarray
@@ -582,6 +609,7 @@ class ReplanRun:
     late_steps: int = 0
     live: bool = False
     device: dict[str, Any] = field(default_factory=dict)  # `DeviceLink.describe` of a live-streamed run
+    feed: dict[str, Any] = field(default_factory=dict)  # a live feed's counters and rejections (`_Log.feed_record`)
 
     @property
     def steps(self) -> int:
@@ -631,6 +659,8 @@ class ReplanRun:
             "planner_time_s": float(np.sum(self.plan_time)),
             "status_counts": counts,
             "live_obstacles": self.live,
+            "feed_rejected": int(self.feed.get("rejected", 0)),
+            "feed_events": dict(self.feed.get("counts", {})),
             "late_steps": self.late_steps,
             "setup_s": self.setup_time,
             "wall_time_s": self.wall_time,
@@ -832,6 +862,8 @@ class ClosedLoop:
         progress: Callable[[int, float, str], None] | None = None,
         realtime: bool | None = None,
         device: DeviceLink | None = None,
+        clock: Callable[[], float] | None = None,
+        sleep: Callable[[float], None] | None = None,
     ) -> ReplanRun:
         """Simulate from the start configuration until the goal is held, or `duration` runs out.
 
@@ -844,8 +876,13 @@ class ClosedLoop:
         step holds the device, an unsafe step e-stops it and ends the run, and
         Ctrl-C holds it and ends the run (outcome "interrupted"). The link is
         finished (device settled at the final actuation) and closed on return.
+        clock, sleep: the time (s) and the sleep that pace a real-time run without a device and
+        bound the wait for a live feed's first states (default: the wall clock); a virtual clock
+        shared with the feed makes a live run independent of the machine's speed.
         """
         t_wall = time.perf_counter()
+        clock = time.perf_counter if clock is None else clock
+        sleep = time.sleep if sleep is None else sleep
         o, rp = self.options, self.replanner
         live = bool(getattr(self.obstacles, "live", False))
         realtime = live if realtime is None or device is not None else bool(realtime)
@@ -855,10 +892,11 @@ class ClosedLoop:
         rp.reset()
         log = _Log()
         scene0, why = self.obstacles.at(0.0)
-        deadline = time.perf_counter() + 2.0
-        while scene0 is None and live and time.perf_counter() < deadline:
-            time.sleep(0.01)  # give a live feed a moment to deliver its first states
+        deadline = clock() + 2.0
+        while scene0 is None and live and clock() < deadline:
+            sleep(0.01)  # give a live feed a moment to deliver its first states
             scene0, why = self.obstacles.at(0.0)
+        log.feed_events(self.obstacles, 0.0)
         if scene0 is None:
             log.record(
                 0.0,
@@ -892,11 +930,11 @@ class ClosedLoop:
         if o.safety and b0 < 0.0:
             msg = f"the start configuration is not clear of the obstacles at t = 0 (bound {b0:.2f} mm)"
             return self._finish(log, st, False, "invalid_start", msg, t_wall, device)
-        t_clock = time.perf_counter()
+        t_clock = clock()
         if device is not None:
-            device.begin(t_clock)
+            device.begin(time.perf_counter())
         try:
-            return self._steps(log, st, t_wall, t_clock, realtime, progress, device)
+            return self._steps(log, st, t_wall, (clock, sleep, t_clock), realtime, progress, device)
         except KeyboardInterrupt:
             if device is None:
                 raise
@@ -908,13 +946,14 @@ class ClosedLoop:
         log: _Log,
         st: _State,
         t_wall: float,
-        t_clock: float,
+        pacing: tuple[Callable[[], float], Callable[[float], None], float],
         realtime: bool,
         progress: Callable[[int, float, str], None] | None,
         device: DeviceLink | None,
     ) -> ReplanRun:
-        """The control steps of `run` after the start checks."""
+        """The control steps of `run` after the start checks. pacing: (clock, sleep, clock at t = 0)."""
         o, rp, dt = self.options, self.replanner, self.options.dt
+        clock, sleep, t_clock = pacing
         settled_since: float | None = None
         reached = False
         for k in range(math.ceil(o.duration / dt - 1e-9)):
@@ -927,6 +966,7 @@ class ClosedLoop:
                 st.q, st.qc, _ = device.measure(t, st.q, st.qc)
                 st.x = self.servo.config(st.q)
             scene_t, why = self.obstacles.at(t)
+            log.feed_events(self.obstacles, t)
             if scene_t is None:
                 # no trustworthy obstacle state: keep the actuators where they are and say so
                 status, res = StepStatus.STALE, _skipped(self.replanner, f"skipped: {why}")
@@ -974,9 +1014,9 @@ class ClosedLoop:
             if device is not None:
                 log.late += device.pace(st.t)
             elif realtime:
-                lag = time.perf_counter() - t_clock - st.t
+                lag = clock() - t_clock - st.t
                 if lag < 0.0:
-                    time.sleep(-lag)
+                    sleep(-lag)
                 elif lag > dt:
                     log.late += 1
         outcome = "reached" if reached else "timeout"
@@ -1136,6 +1176,7 @@ class ClosedLoop:
             late_steps=log.late,
             live=bool(getattr(self.obstacles, "live", False)),
             device={} if device is None else device.describe(),
+            feed=log.feed_record(self.obstacles),
         )
 
 
@@ -1204,6 +1245,21 @@ class _Log:
         self.centers: list[np.ndarray] = []
         self.radii: list[np.ndarray] = []
         self.late = 0  # real-time steps that finished more than one step late
+        self.feed: list[dict[str, Any]] = []  # the live feed's rejected/clamped messages, with loop time
+
+    def feed_events(self, source: Any, t: float) -> None:
+        """Record the live feed's new events (rejected or clamped messages) at loop time t (s)."""
+        new = getattr(source, "new_events", None)
+        if new is not None:
+            self.feed.extend({"t": float(t), **e.to_dict()} for e in new())
+
+    def feed_record(self, source: Any) -> dict[str, Any]:
+        """The feed section of a live run: counters, options and every recorded event ({} without a feed)."""
+        describe = getattr(source, "describe", None)
+        if describe is None:
+            return {}
+        self.feed_events(source, self.t[-1] if self.t else 0.0)
+        return {**describe(), "events": list(self.feed)}
 
     def record(
         self,
@@ -1269,7 +1325,8 @@ def loop_from_problem(
     safety=False drops the collision-free terms (NLP constraints, verification, and obstacles in
     the reference planner), as in the paper's Fig. 4(b). seed overrides the problem's seed.
     feed: a `crtraj.feed.ObstacleFeed`: obstacle states come from it, live (`FeedObstacles`; the
-    scene's obstacle names are the feed ids), and the run is paced in real time. lead: s the device
+    scene's obstacle names are the feed ids; the ``[feed]`` section, `crtraj.feed.FeedOptions`,
+    configures it), and the run is paced in real time. lead: s the device
     executes each step after it is computed (`DeviceLink.lead`), so the feed is predicted that far ahead.
     """
     from crtraj.plan_options import PlannerOptions
@@ -1289,11 +1346,15 @@ def loop_from_problem(
     tracking = problem.options(TrackingOptions, "tracking")
     popts = problem.options(PlannerOptions, "planner")
     scene = Scene.from_table(problem.section("scene"))
+    feed_options = problem.options(FeedOptions, "feed")
     model = Model(problem.robot)
     planner = make_planner(model, scene, popts, problem.options(SteerOptions, "steer"))
     source: Any = None
     scene0 = scene
+    extra: dict[str, Any] = {"planner": popts, "steer": problem.options(SteerOptions, "steer")}
     if feed is not None:
+        feed.configure(feed_options)  # the problem's velocity bound and timestamp window
+        extra["feed"] = feed_options
         source = FeedObstacles(feed, scene, window=max(2.0 * opts.horizon * opts.dt, 2.0) + 2.0 * opts.dt, lead=lead)
         t_end = time.perf_counter() + 2.0
         snap, why = source.at(0.0)
@@ -1360,7 +1421,7 @@ def loop_from_problem(
         goal_tolerance=task.goal_tolerance,
         initial_reference=None if feed is not None else first,
         obstacles=source,
-        extra_options={"planner": popts, "steer": problem.options(SteerOptions, "steer")},
+        extra_options=extra,
     )
 
 
@@ -1481,6 +1542,8 @@ def result_dict(run: ReplanRun, loop: ClosedLoop, problem: Any = None, seed: int
         "nlp": run.nlp,
         "waypoints": wps,
     }
+    if run.feed:
+        out["feed"] = run.feed  # the live feed: counters, options, every rejected or clamped message
     if run.device:
         out["stream"] = run.device  # the live device stream (`DeviceLink.describe`)
     if len(run.tree_edges):
