@@ -68,7 +68,7 @@ def test_undecodable_toml_is_one_line_for_every_reader(command, data, tmp_path, 
     kept = _kept(tmp_path)
     argv = {
         "plan": ["plan", str(f), "--out", str(tmp_path / "keep" / "plan.json")],
-        "replan": ["replan", str(f), "--out", str(tmp_path / "keep"), "--quiet"],
+        "replan": ["replan", str(f), "--out", str(tmp_path / "keep" / "run"), "--quiet"],
         "export": ["export", "--robot", str(f), "--out", str(tmp_path / "keep"), "--no-compile"],
         "bench": ["bench", "table1", "--robot", str(f), "--out", str(tmp_path / "keep"), "--workers", "0"],
         "stream": ["stream", "r.json", "--robot", str(f), "--dry-run", str(tmp_path / "keep" / "plan.json")],

@@ -254,7 +254,8 @@ def test_feed_options():
     for bad, msg in (
         ({"max_speed": 0.0}, r"feed\.max_speed: must be > 0"),
         ({"max_speed": float("nan")}, r"feed\.max_speed: must be finite"),
-        ({"max_speed": 1e300}, r"feed\.max_speed: must be <= 100000"),
+        ({"max_speed": 1e6}, r"feed\.max_speed: must be <= 100000"),
+        ({"max_speed": 1e300}, r"feed\.max_speed: must be within"),
         ({"min_span": 1.0}, r"feed\.min_span: must not exceed feed\.velocity_window"),
         ({"colour": 1}, r"feed\.colour: unknown key"),
     ):
