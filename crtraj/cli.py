@@ -1,21 +1,37 @@
 """The ``crtraj`` command.
 
 Each subcommand is a small function that parses its arguments, calls the
-library, prints a short summary and returns an exit code. User errors
-(`InputError`) print one line ``crtraj: error: ...`` and exit 2; a failed
-plan or solve exits 1 with its status printed.
+library, prints a short summary and returns an exit code. One rule for every
+command: user input errors (malformed files, flags, output paths; `InputError`)
+print one line ``crtraj: error: ...`` and exit 2, before any long work; a
+well-formed task that cannot be solved (invalid_start, invalid_goal, timeout,
+collision, ...) exits 1, prints its status and one stderr line
+``crtraj: <command> failed: <status>: ...``. Outputs are staged and renamed
+into place (`crtraj.core.fileio`); a failed result never replaces a successful one
+at the same --out unless --overwrite-failed: it goes beside it (NAME.failed).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import json
+import os
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 from crtraj import __version__
 from crtraj.core.errors import InputError
+from crtraj.core.fileio import (
+    StagedDir,
+    StagedFile,
+    check_output_dir,
+    check_output_file,
+    failed_sibling,
+    is_successful_result,
+)
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.transport import TransportError
 
@@ -38,8 +54,12 @@ def _add_export(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--robot", help="robot TOML file (default: problems/robots/cdsr2.toml)")
     p.add_argument("--out", default="out/export", help="output folder (default: out/export)")
-    p.add_argument("--points", type=int, default=None, help="backbone points (default: robot.collision_points)")
-    p.add_argument("--batch", type=int, default=1024, help="configurations per backbone_map call (default 1024)")
+    p.add_argument(
+        "--points", type=int, default=None, help="backbone points, 2..1000 (default: robot.collision_points)"
+    )
+    p.add_argument(
+        "--batch", type=int, default=1024, help="configurations per backbone_map call, 1..1000000 (default 1024)"
+    )
     p.add_argument("--no-compile", action="store_true", help="write C source only, do not compile")
     p.set_defaults(func=_cmd_export)
 
@@ -47,10 +67,13 @@ def _add_export(sub: argparse._SubParsersAction) -> None:
 def _cmd_export(args: argparse.Namespace) -> int:
     from crtraj.io.problem import load_robot
     from crtraj.model.export import export_model
-    from crtraj.model.kinematics import Model
+    from crtraj.model.kinematics import MAX_BATCH, MAX_POINTS, Model
 
-    if args.batch < 1:
-        raise InputError(f"--batch: must be >= 1, got {args.batch}")
+    # sizes first: a huge --batch or --points would build (or allocate) for minutes before failing
+    if not 1 <= args.batch <= MAX_BATCH:
+        raise InputError(f"--batch: must be in [1, {MAX_BATCH}], got {args.batch}")
+    if args.points is not None and not 2 <= args.points <= MAX_POINTS:
+        raise InputError(f"--points: must be in [2, {MAX_POINTS}], got {args.points}")
     robot = load_robot(_resolve_robot(args.robot))
     model = Model(robot, n_points=args.points)
     rep = export_model(model, args.out, batch=args.batch, compile=not args.no_compile)
@@ -133,7 +156,9 @@ def _add_stream(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--watchdog", type=float, default=None, help="hold after this long without telemetry, s (0.1)")
     p.add_argument("--robot", help="robot TOML whose [robot.actuators] to use (default: the result's robot)")
     p.add_argument("--problem", help="problem TOML whose [stream] section sets the defaults")
-    p.add_argument("--time-scale", type=float, default=1.0, help="play the trajectory this many times slower")
+    p.add_argument(
+        "--time-scale", type=float, default=1.0, help="play the trajectory this many times slower (0.001..1000)"
+    )
     p.add_argument(
         "--approach",
         action="store_true",
@@ -150,12 +175,13 @@ def _cmd_stream(args: argparse.Namespace) -> int:
 
     from crtraj.core.fields import Table
     from crtraj.core.fileio import read_json
-    from crtraj.hardware.setpoints import SetpointPath
+    from crtraj.hardware.setpoints import SetpointPath, check_time_scale
     from crtraj.hardware.stream import Streamer, StreamOptions
     from crtraj.hardware.transport import Transport, parse_hostport
     from crtraj.io.problem import Problem, load_robot
     from crtraj.model.robot import Robot
 
+    check_time_scale(args.time_scale)
     result = read_json(args.result)
     if not isinstance(result, dict) or not isinstance(result.get("robot"), dict):
         raise InputError(f"{args.result}: robot: missing (is this a crtraj plan/replan result?)")
@@ -175,22 +201,31 @@ def _cmd_stream(args: argparse.Namespace) -> int:
     opts = dataclasses.replace(opts, **over)
     _check_time_scale(result, args.time_scale)
     path = SetpointPath.from_result(result, actuators).scaled(args.time_scale)
+    log = args.log or Path("out") / "stream" / f"{Path(args.result).stem}-{time.strftime('%Y%m%d-%H%M%S')}.jsonl"
+    _refuse_overwriting_input(args.result, ("--log", log), ("--dry-run", args.dry_run))
+    frames = None
     if args.udp is not None:
         host, port = parse_hostport(args.udp, "--udp")
         target = f"udp://{host}:{port}"
     elif args.serial:
         target = f"serial://{args.serial}?baud={args.baud}"
     else:
-        target = f"file://{Path(args.dry_run).resolve()}"
-    log = args.log or Path("out") / "stream" / f"{Path(args.result).stem}-{time.strftime('%Y%m%d-%H%M%S')}.jsonl"
-    transport = Transport.open(target, baud=args.baud)
-    n = round(path.duration * opts.rate) + 1
-    print(
-        f"streaming {args.result} ({len(path.t)} waypoints, {path.duration:.2f} s, ~{n} set-points at "
-        f"{opts.rate:g} Hz) to {transport.description}",
-        flush=True,
-    )
-    rep = Streamer(transport, actuators, opts, log).run_path(path, approach=args.approach)
+        # the frames go to a temporary file that replaces FILE only when the stream completes:
+        # a refused or failed dry run leaves FILE as it was
+        frames = StagedFile(check_output_file(args.dry_run, "--dry-run"))
+        target = f"file://{frames.path.resolve()}"
+    with frames or contextlib.nullcontext():
+        transport = Transport.open(target, baud=args.baud)
+        to = f"file://{Path(args.dry_run).resolve()}" if frames is not None else transport.description
+        n = round(path.duration * opts.rate) + 1
+        print(
+            f"streaming {args.result} ({len(path.t)} waypoints, {path.duration:.2f} s, ~{n} set-points at "
+            f"{opts.rate:g} Hz) to {to}",
+            flush=True,
+        )
+        rep = Streamer(transport, actuators, opts, log).run_path(path, approach=args.approach)
+        if frames is not None and rep.ok:
+            frames.commit()
     dev = ", ".join(f"{k} {v}" for k, v in rep.device.items())
     fe = "" if rep.final_error is None else f", final error {rep.final_error:.3g}"
     print(f"{rep.status}: {rep.message}")
@@ -203,9 +238,27 @@ def _cmd_stream(args: argparse.Namespace) -> int:
     if rep.late_ticks:
         print(f"  {rep.late_ticks} ticks late (max {rep.max_lateness * 1000:.1f} ms)")
     print(f"  log: {rep.log}")
-    if args.dry_run:
+    if args.dry_run and rep.ok:
         print(f"  frames: {args.dry_run} (COBS + 0x00 delimited, see docs/protocol.md)")
+    elif args.dry_run:
+        print(f"  frames: none written ({args.dry_run} left as it was: the stream did not complete)")
     return 0 if rep.ok else 1
+
+
+def _refuse_overwriting_input(result: str, *outputs: tuple[str, Any]) -> None:
+    """An output path that is the input result (or an earlier output) would destroy it: refuse, one line."""
+    seen = {"RESULT": Path(result)}
+    for flag, out in outputs:
+        if out is None:
+            continue
+        for name, other in seen.items():
+            try:
+                same = os.path.samefile(out, other) if Path(out).exists() and other.exists() else False
+            except OSError:
+                same = False
+            if same or Path(out).resolve() == other.resolve():
+                raise InputError(f"{flag}: {out} is the same file as {name}; choose another file")
+        seen[flag] = Path(out)
 
 
 # ----------------------------------------------------------------- sim-device
@@ -277,7 +330,15 @@ def _add_plan(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=None, help="random seed (default: the problem's seed)")
     p.add_argument("--time-limit", type=float, default=None, help="planning time budget in s (default: [planner])")
     p.add_argument("--out", default=None, help="result JSON (default: out/plan-<name>.json)")
-    p.add_argument("--html", default=None, help="also write the standalone 3-D view to this HTML file")
+    p.add_argument(
+        "--html", default=None, help="also write the standalone 3-D view to this HTML file (successful plans only)"
+    )
+    p.add_argument(
+        "--overwrite-failed",
+        action="store_true",
+        help="let a failed plan replace a successful result at --out (default: it is written beside it, "
+        "as NAME.failed.json)",
+    )
     p.add_argument("--view", action="store_true", help="afterwards, serve the 3-D view on 127.0.0.1 until Ctrl-C")
     p.add_argument("--no-browser", action="store_true", help="with --view: only print the URL")
     p.set_defaults(func=_cmd_plan)
@@ -294,10 +355,34 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     if args.time_limit is not None and not (math.isfinite(args.time_limit) and args.time_limit > 0):
         raise InputError(f"--time-limit: must be a number > 0 (s), got {args.time_limit}")
     problem = Problem.load(args.problem)
+    out = Path(args.out) if args.out else Path("out") / f"plan-{problem.name}.json"
+    check_output_file(out, "--out")  # before the (possibly long) plan, not after it
+    if args.html:
+        check_output_file(args.html, "--html")
+        if Path(args.html).resolve() == out.resolve():
+            raise InputError(f"--html: {args.html} is the same file as --out; choose another file")
     run = plan_problem(problem, algorithm=args.planner, seed=args.seed, time_limit=args.time_limit)
     r = run.result
-    out = Path(args.out) if args.out else Path("out") / f"plan-{problem.name}.json"
-    run.write(out)
+    doc = run.document()
+    # a failed plan never replaces a successful one unless asked: it goes beside it
+    dest = out
+    if not r.is_success() and not args.overwrite_failed and is_successful_result(out):
+        dest = failed_sibling(out)
+    with contextlib.ExitStack() as stack:
+        staged = [stack.enter_context(StagedFile(dest))]
+        staged[0].write((json.dumps(doc, indent=1, allow_nan=False) + "\n").encode("utf-8"))
+        if args.html and r.is_success():
+            from crtraj.viz.view import Visualizer
+
+            vis = Visualizer.for_result(doc)
+            try:
+                html = vis.static_html()
+            finally:
+                vis.close()
+            staged.append(stack.enter_context(StagedFile(args.html)))
+            staged[1].write(html.encode("utf-8"))
+        for f in staged:  # both complete before either replaces anything
+            f.commit()
     print(f"{problem.name}: {r.status} with {r.planner} (seed {r.seed}) in {r.timings.get('total', 0.0) * 1e3:.1f} ms")
     print(f"  {r.message}")
     if r.has_path:
@@ -308,17 +393,18 @@ def _cmd_plan(args: argparse.Namespace) -> int:
         )
     steps = ", ".join(f"{k} {v * 1e3:.1f}" for k, v in r.timings.items() if k != "total")
     print(f"  time (ms): {steps}; setup {run.setup_time * 1e3:.0f} ms")
-    print(f"  wrote {out}")
-    if args.html or args.view:
-        from crtraj.core.fileio import read_json
-
-        result = read_json(out)
-        if args.html:
-            from crtraj.viz.view import Visualizer
-
-            print(f"  wrote {Visualizer.for_result(result).save_html(args.html)}")
-        if args.view:
-            _serve(result, str(out), not args.no_browser)
+    if dest != out:
+        print(f"  wrote {dest} (failed; {out} holds a successful plan and was kept: --overwrite-failed replaces it)")
+    else:
+        print(f"  wrote {dest}")
+    if args.html:
+        print(f"  wrote {args.html}" if r.is_success() else f"  no HTML written: the plan failed ({r.status})")
+    if r.is_success() and args.view:
+        _serve(doc, str(out), not args.no_browser)
+    elif args.view:
+        print(f"  not viewed: the plan failed ({r.status})")
+    if not r.is_success():
+        print(f"crtraj: plan failed: {r.status}: {r.message} (result in {dest})", file=sys.stderr)
     return 0 if r.is_success() else 1
 
 
@@ -343,6 +429,11 @@ def _add_replan(sub: argparse._SubParsersAction) -> None:
         "planner), as in the paper's Fig. 4(b): the body then runs into the obstacles",
     )
     p.add_argument("--no-html", action="store_true", help="do not write run.html")
+    p.add_argument(
+        "--overwrite-failed",
+        action="store_true",
+        help="let a failed run replace a successful one in --out (default: it is written beside it, as OUT.failed)",
+    )
     p.add_argument(
         "--feed",
         metavar="udp://127.0.0.1:PORT",
@@ -372,8 +463,8 @@ def _add_replan(sub: argparse._SubParsersAction) -> None:
         "--time-scale",
         type=float,
         default=1.0,
-        help="with --stream, without --feed: play the run this many times slower (the device's acceleration "
-        "limits may need it)",
+        help="with --stream, without --feed: play the run this many times slower, 0.001..1000 (the device's "
+        "acceleration limits may need it)",
     )
     p.add_argument("--view", action="store_true", help="afterwards, serve the 3-D replay on 127.0.0.1 until Ctrl-C")
     p.add_argument("--no-browser", action="store_true", help="with --view: only print the URL")
@@ -384,9 +475,11 @@ def _add_replan(sub: argparse._SubParsersAction) -> None:
 def _cmd_replan(args: argparse.Namespace) -> int:
     import time
 
-    from crtraj.control.loop import loop_from_problem, write_run
+    from crtraj.control.loop import RUN_FILES, UnsolvableTaskError, loop_from_problem, write_run_files
+    from crtraj.hardware.setpoints import check_time_scale
     from crtraj.io.problem import Problem
 
+    check_time_scale(args.time_scale)
     if args.seed is not None and args.seed < 0:
         raise InputError(f"--seed: must be >= 0, got {args.seed}")
     if args.stream and args.no_safety:
@@ -394,6 +487,7 @@ def _cmd_replan(args: argparse.Namespace) -> int:
             "--stream: refused with --no-safety (a run without the collision-free terms never drives a device)"
         )
     out = Path(args.out) if args.out else Path("out") / ("replan-no-safety" if args.no_safety else "replan")
+    check_output_dir(out, "--out", RUN_FILES)  # before the (possibly long) run, not after it
     problem = Problem.load(args.problem)
     if args.stream and not args.feed:  # refuse before the run, not after it
         _check_time_scale({"scene": problem.raw.get("scene", {})}, args.time_scale)
@@ -413,34 +507,55 @@ def _cmd_replan(args: argparse.Namespace) -> int:
         print(f"listening for obstacle states ({', '.join(ids)}) on udp://127.0.0.1:{feed.address[1]}", flush=True)
     live = feed is not None and bool(args.stream)
     link = None
-    try:
-        lead, sopts = _live_stream_options(problem) if live else (0.0, None)
-        loop = loop_from_problem(problem, safety=not args.no_safety, seed=seed, feed=feed, lead=lead)
-        o = loop.options
-        if live:
-            link = _open_live_stream(args, problem, loop, sopts, out)
-        if not args.quiet:
-            d = loop.replanner.describe()
-            print(
-                f"replanning '{problem.name}' (seed {seed}, {'with' if o.safety else 'WITHOUT'} collision-free "
-                f"terms{', live obstacles, real time' if feed is not None else ''}): horizon {o.horizon} x {o.dt:g} s, "
-                f"{d['solver']}, {d['variables']} variables, {d['constraints']} constraints",
-                flush=True,
-            )
-        run = loop.run(device=link)
-    finally:
+    with contextlib.ExitStack() as stack:
+        try:
+            lead, sopts = _live_stream_options(problem) if live else (0.0, None)
+            try:
+                loop = loop_from_problem(problem, safety=not args.no_safety, seed=seed, feed=feed, lead=lead)
+            except UnsolvableTaskError as exc:
+                print(f"{exc.status}: {exc}; no run, nothing written to {out}")
+                print(f"crtraj: replan failed: {exc.status}: {exc}", file=sys.stderr)
+                return 1
+            o = loop.options
+            # every file of the run, a live stream's log too, goes into a temporary sibling folder that
+            # replaces --out as a whole at the end: a kill never leaves a mix of old and new files
+            stage = stack.enter_context(StagedDir(out, RUN_FILES))
+            if live:
+                link = _open_live_stream(args, problem, loop, sopts, stage.path)
+            if not args.quiet:
+                d = loop.replanner.describe()
+                print(
+                    f"replanning '{problem.name}' (seed {seed}, {'with' if o.safety else 'WITHOUT'} collision-free "
+                    f"terms{', live obstacles, real time' if feed is not None else ''}): horizon {o.horizon} x "
+                    f"{o.dt:g} s, {d['solver']}, {d['variables']} variables, {d['constraints']} constraints",
+                    flush=True,
+                )
+            run = loop.run(device=link)
+        finally:
+            if link is not None:
+                link.streamer.close()  # a no-op after a normal run: the run closed it
+            if feed is not None:
+                feed.close()
+        ok = run.reached and (run.safety_violations == 0 or not o.safety)
         if link is not None:
-            link.streamer.close()  # a no-op after a normal run: the run closed it
-        if feed is not None:
-            feed.close()
-    paths = write_run(run, loop, out, problem=problem, seed=seed, html=not args.no_html)
-    print(run.summary_line())
+            ok = ok and link.report.ok
+        staged = write_run_files(run, loop, stage.path, problem=problem, seed=seed, html=not args.no_html)
+        # a failed run never replaces a successful one unless asked: it goes beside it (NAME.failed)
+        dest = out
+        if not ok and not args.overwrite_failed and is_successful_result(out):
+            dest = failed_sibling(out)
+        dest = stage.commit(dest)
+    paths = {k: (v if k == "result" else dest / Path(v).name) for k, v in staged.items()}
+    line = run.summary_line()
+    if dest != out:
+        line += f"; failed run written to {dest} ({out} holds a successful run, kept: --overwrite-failed replaces it)"
+    print(line)
     if link is not None:
         rep = link.report
         fe = "" if rep.final_error is None else f", final error {rep.final_error:.3g}"
         print(
             f"  live stream {rep.status}: {rep.message}; {rep.frames} frames ({rep.moves} move, {rep.holds} hold, "
-            f"{rep.estops} e-stop){fe}; {link.restarts} restarts; log {rep.log}"
+            f"{rep.estops} e-stop){fe}; {link.restarts} restarts; log {dest / 'stream.jsonl'}"
         )
     if not args.quiet:
         counts = ", ".join(f"{k} {v}" for k, v in run.summary()["status_counts"].items())
@@ -448,21 +563,26 @@ def _cmd_replan(args: argparse.Namespace) -> int:
         for key in ("json", "npz", "png", "html"):
             if key in paths:
                 print(f"  {key:4s} {paths[key]}")
-    ok = run.reached and (run.safety_violations == 0 or not o.safety)
-    if link is not None:
-        ok = ok and link.report.ok
-    elif args.stream:
+    streamed = True
+    if link is None and args.stream:
         if ok:
-            ok = _stream_run(args, problem, paths)
+            streamed = _stream_run(args, problem, paths)
         else:  # a run that failed or broke the safety distance never reaches a device
             print("  not streamed: the run did not reach the goal safely", flush=True)
     if args.view:
-        from crtraj.core.fileio import read_json
-
-        _serve(read_json(paths["result"]), "the run", not args.no_browser)
+        _serve(paths["result"], "the run", not args.no_browser)
     if run.outcome == "interrupted":
         return 130
-    return 0 if ok else 1
+    if not ok:
+        why = f"{run.outcome}: {run.message}"
+        if run.reached and run.safety_violations:
+            why = f"unsafe: {run.safety_violations} steps closer than D_sf"
+        elif link is not None and run.reached:
+            why = f"live stream {link.report.status}: {link.report.message}"
+        print(f"crtraj: replan failed: {why} (run in {dest})", file=sys.stderr)
+    elif not streamed:
+        print(f"crtraj: replan: the run succeeded (in {dest}) but the stream did not complete", file=sys.stderr)
+    return 0 if ok and streamed else 1
 
 
 def _live_stream_options(problem: Any) -> tuple[float, Any]:
@@ -613,8 +733,16 @@ _COMMANDS: tuple[Callable[[argparse._SubParsersAction], None], ...] = (
 )
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors (``crtraj: error: ...``, exit 2) like every other crtraj error;
+    subcommand parsers inherit it. `--help` still prints the usage."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"crtraj: error: {_one_line(message)} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="crtraj",
         description="Safety-constrained motion planning for cable-driven continuum robots.",
     )
@@ -623,6 +751,13 @@ def build_parser() -> argparse.ArgumentParser:
     for add in _COMMANDS:
         add(sub)
     return parser
+
+
+def _one_line(exc: BaseException, width: int = 1000) -> str:
+    """An error message as exactly one line: a message quoting a file name or value with a newline or
+    control character in it must not spill onto a second line."""
+    text = "".join(c if c.isprintable() else repr(c)[1:-1] for c in " ".join(str(exc).splitlines()))
+    return text if len(text) <= width else text[: width - 3] + "..."
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -634,10 +769,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return int(args.func(args) or 0)
     except InputError as exc:
-        print(f"crtraj: error: {exc}", file=sys.stderr)
+        print(f"crtraj: error: {_one_line(exc)}", file=sys.stderr)
         return 2
     except TransportError as exc:  # the device or port, not the input: a run-time failure
-        print(f"crtraj: error: {exc}", file=sys.stderr)
+        print(f"crtraj: error: {_one_line(exc)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         print("crtraj: interrupted", file=sys.stderr)

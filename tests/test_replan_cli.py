@@ -104,42 +104,70 @@ def test_stream_writes_the_verified_run_to_a_device(tmp_path, capsys):
     assert not out2.exists() and not (tmp_path / "f2.bin").exists()
 
 
-def test_live_feed_from_the_command_line(tmp_path, capsys):
+def test_live_feed_from_the_command_line(tmp_path, capsys, monkeypatch):
+    """Sequenced with events, not timing: the bridge sends the scene frozen at its t = 0 state until the loop
+    has passed its start check, and the loop reads the feed only after the first state has arrived, so the
+    outcome does not depend on how long building the loop takes on a loaded machine."""
     import socket
     import threading
     import time
 
+    import crtraj.world.feed
+    from crtraj.control.loop import ClosedLoop
     from crtraj.world.feed import ObstacleFeed
 
     scene = Scene.from_table(Problem.load(PAPER).section("scene"))
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:  # a free port for the feed
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    stop = threading.Event()
+    stop, started = threading.Event(), threading.Event()
+    feeds: list[ObstacleFeed] = []
+
+    class FirstStateFeed(ObstacleFeed):
+        """The CLI's feed, returned only once the bridge's first state has been received."""
+
+        def __init__(self, *args, **kwargs) -> None:
+            super().__init__(*args, **kwargs)
+            feeds.append(self)
+            assert self.wait_for(1, timeout=60.0), "the bridge never reached the feed"
+
+    steps = ClosedLoop._steps
+
+    def steps_after_start_check(self, *args, **kwargs):
+        started.set()  # the start configuration has been checked against the t = 0 state
+        return steps(self, *args, **kwargs)
+
+    monkeypatch.setattr(crtraj.world.feed, "ObstacleFeed", FirstStateFeed)
+    monkeypatch.setattr(ClosedLoop, "_steps", steps_after_start_check)
 
     def send() -> None:
         t0 = time.monotonic()
+        t_start: float | None = None
         while not stop.is_set():
-            t = time.monotonic() - t0
+            now = time.monotonic()
+            if t_start is None and started.is_set():
+                t_start = now
+            t = 0.0 if t_start is None else now - t_start  # obstacle time: frozen until the run starts
             C, R = scene.states(t)
             states = [
-                {"id": o.name, "center": C[i].tolist(), "radius": float(R[i]), "timestamp": t}
+                {"id": o.name, "center": C[i].tolist(), "radius": float(R[i]), "timestamp": now - t0}
                 for i, o in enumerate(scene.obstacles)
             ]
             ObstacleFeed.send(("127.0.0.1", port), states)
-            time.sleep(0.01)
+            stop.wait(0.01)
 
     th = threading.Thread(target=send, daemon=True)
     th.start()
     try:
         out = tmp_path / "live"
         rc = main(["replan", str(_short_problem(tmp_path, 1.5)), "--out", str(out), "--no-html",
-                   "--feed", f"udp://127.0.0.1:{port}"])  # fmt: skip
+                   "--feed", f"udp://127.0.0.1:{port}", "--feed-max-age", "1.0"])  # fmt: skip
     finally:
         stop.set()
-        th.join(1.0)
+        th.join(5.0)
     cap = capsys.readouterr()
     text = cap.out
+    assert feeds and started.is_set()
     assert rc == 1, cap.err  # 1.5 s is not enough to reach the goal: reported, not hidden
     assert f"udp://127.0.0.1:{port}" in text and "live obstacles" in text
     res = json.loads((out / "run.json").read_text())
@@ -147,6 +175,7 @@ def test_live_feed_from_the_command_line(tmp_path, capsys):
     assert res["status"] == "timeout"
     assert res["summary"]["safety_violations"] == 0
     assert res["summary"]["status_counts"].get("move", 0) > 5
+    assert res["feed"]["rejected"] == 0 and res["feed"]["accepted"] > 10 and res["options"]["feed"]["max_speed"] > 0
     # the recorded obstacle states are what was sent (radii within the scene's breathing ranges)
     radii = np.array([w["obstacles"]["radii"] for w in res["waypoints"]])
     assert np.all(radii[:, 0] <= 70.5) and np.all(radii[:, 1] <= 60.5)

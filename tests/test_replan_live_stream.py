@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from feed_clock import VirtualClock
 
 from crtraj.cli import main
 from crtraj.control.loop import DeviceLink, loop_from_problem
@@ -71,25 +72,22 @@ def _free_port() -> int:
 
 
 class _Sender:
-    """A motion-capture bridge: the ball's state at 100 Hz until `stop_after` s (then silence)."""
+    """A motion-capture bridge for the command-line runs: the ball's state at about 100 Hz of wall time
+    (those runs use a generous --feed-max-age, so a starved sender thread cannot change their outcome)."""
 
-    def __init__(self, port: int, stop_after: float = 1e9) -> None:
-        self.port, self.stop_after = port, stop_after
+    def __init__(self, port: int) -> None:
+        self.port = port
         self.stop = threading.Event()
-        self.stopped_at: float | None = None
         self.thread = threading.Thread(target=self._run, daemon=True)
 
     def _run(self) -> None:
         t0 = time.monotonic()
         while not self.stop.is_set():
             s = time.monotonic() - t0
-            if s > self.stop_after:
-                self.stopped_at = time.monotonic()
-                return
             r = BALL.radius + BALL.amplitude * np.sin(BALL.omega * s)
             msg = [{"id": "ball", "center": list(BALL.center), "radius": float(r), "timestamp": s}]
             ObstacleFeed.send(("127.0.0.1", self.port), msg)
-            time.sleep(0.01)
+            self.stop.wait(0.01)
 
     def __enter__(self) -> _Sender:
         self.thread.start()
@@ -137,7 +135,7 @@ def test_live_stream_reaches_the_goal_and_the_device_ends_there(tmp_path, robot,
     out = tmp_path / "o"
     with _device(robot, XS) as dev, _Sender(port):
         rc = main(["replan", str(_problem(tmp_path, model, 6.0)), "--out", str(out), "--no-html",
-                   "--feed", f"udp://127.0.0.1:{port}", "--stream", dev.url])  # fmt: skip
+                   "--feed", f"udp://127.0.0.1:{port}", "--feed-max-age", "1.0", "--stream", dev.url])  # fmt: skip
         time.sleep(0.2)
         final = dev.state()
     text = capsys.readouterr().out
@@ -163,42 +161,74 @@ def test_live_stream_reaches_the_goal_and_the_device_ends_there(tmp_path, robot,
     _assert_frames_within_limits(_log(out / "stream.jsonl"), acts, 0.01)
 
 
-def test_stale_feed_holds_the_device_with_hold_frames_only(tmp_path, robot, model, capsys):
-    port = _free_port()
+def test_stale_feed_holds_the_device_with_hold_frames_only(tmp_path, robot, model):
+    """The feed runs on the loop's own time (a virtual clock set to each step's time), and the bridge is the
+    loop's progress callback: it sends one state per step, received before the next step, until the device has
+    applied moves; then it falls silent. The feed is then stale exactly max_age of loop time later, however
+    loaded the machine is."""
+    from crtraj.io.problem import Problem
+
+    problem = Problem.load(_problem(tmp_path, model, 2.8))
     acts = _actuators(robot)
-    out = tmp_path / "o"
-    with _device(robot, XS) as dev, _Sender(port, stop_after=1.2) as sender:
-        rc = main(["replan", str(_problem(tmp_path, model, 2.8)), "--out", str(out), "--no-html", "--quiet",
-                   "--feed", f"udp://127.0.0.1:{port}", "--stream", dev.url])  # fmt: skip
-        time.sleep(0.2)
+    clock = VirtualClock(50.0)
+    t0 = clock()
+    with _device(robot, XS) as dev, ObstacleFeed(0, max_age=0.25, expected=["ball"], clock=clock) as feed:
+        sent = [0]
+
+        def send(t: float) -> None:
+            r = BALL.radius + BALL.amplitude * np.sin(BALL.omega * t)
+            ObstacleFeed.send(feed.address, [{"id": "ball", "center": list(BALL.center), "radius": r, "timestamp": t}])
+            sent[0] += 1
+            assert feed.wait_for(sent[0])
+
+        send(0.0)
+        sopts = problem.options(StreamOptions, "stream")
+        loop = loop_from_problem(problem, feed=feed, lead=sopts.prebuffer)
+        streamer = Streamer.open(dev.url, acts, sopts, tmp_path / "stream.jsonl")
+        streamer.start()
+        link = DeviceLink(streamer, loop.servo, loop.options.dt, lead=sopts.prebuffer)
+        statuses: list[str] = []
+        stopped: dict[str, float] = {}
+
+        def bridge(k: int, t: float, status: str) -> None:
+            clock.advance_to(t0 + t)
+            statuses.append(status)
+            if not stopped:
+                applied = sum(a.kind == MOVE for a in list(dev.applied))
+                if statuses.count("move") >= 3 and applied >= 10:
+                    stopped.update(t=t, wall=time.monotonic(), applied=applied)
+                    return
+                send(t)
+
+        run = loop.run(device=link, progress=bridge)
+        time.sleep(0.2)  # let the last telemetry arrive (the device holds still: nothing depends on it)
         final = dev.state()
         t_dev0 = dev._t0  # the device's clock origin (monotonic)
-        stopped_at = sender.stopped_at
-    capsys.readouterr()
-    assert rc == 1  # the feed went silent before the goal: reported
-    res = json.loads((out / "run.json").read_text())
-    st = [w.get("status") for w in res["waypoints"][1:]]
-    assert "stale" in st and st[-1] == "stale"
-    assert res["summary"]["status_counts"].get("move", 0) >= 3
+    assert stopped, statuses  # the device applied moves while the feed was live: streamed during the run
+    assert run.outcome == "timeout" and not run.reached  # the feed went silent before the goal: reported
+    st = list(run.status)
+    # the last state was sent at stopped t - 0.1 s: stale exactly from the first step whose feed state is older
+    # than max_age (0.25 s) of loop time, the step starting 0.3 s after it
+    k_stale = round((stopped["t"] + 0.2) / 0.1)
+    assert all(s != "stale" for s in st[:k_stale]) and all(s == "stale" for s in st[k_stale:]), (stopped, st)
+    assert st.count("move") >= 3
     applied = list(dev.applied)
     moves = [a for a in applied if a.kind == MOVE]
-    # streamed while the loop ran: moves applied before the feed even stopped
-    assert stopped_at is not None
-    assert sum(a.wall + t_dev0 < stopped_at for a in moves) >= 10
+    assert sum(a.wall + t_dev0 < stopped["wall"] for a in moves) >= stopped["applied"] >= 10
     # once the loop held on the stale feed, the device got HOLD frames only, and it holds still
-    lines = _log(out / "stream.jsonl")
+    lines = _log(tmp_path / "stream.jsonl")
     held = [x for x in lines if x["type"] == "event" and x["event"] == "held" and "stale" in x["message"]]
     assert held, [x for x in lines if x["type"] == "event"]
     t_held = held[0]["wall"]
     after = [x for x in lines if x["type"] == "tx" and x["wall"] > t_held + 1e-3]
     assert after and {x["kind"] for x in after} == {"hold"}
     assert len({tuple(x["values"]) for x in after}) == 1
-    assert res["stream"]["stream"]["status"] == "held"
+    assert link.report.status == "held" and run.device["stream"]["status"] == "held"
     # the device ends where the run says it is (its telemetry became the measured configuration)
-    q_end = np.array(res["waypoints"][-1]["q"])
-    np.testing.assert_allclose(final["positions"], acts.command(q_end), atol=0.01)
+    np.testing.assert_allclose(final["positions"], acts.command(run.q[-1]), atol=0.01)
     _assert_frames_within_limits(lines, acts, 0.01)
     assert all(a.kind in (MOVE, HOLD) for a in applied)
+    assert run.feed["rejected"] == 0 and run.feed["accepted"] == sent[0]
 
 
 def test_device_away_from_the_start_is_refused_unless_approach(tmp_path, robot, model, capsys):
@@ -207,12 +237,13 @@ def test_device_away_from_the_start_is_refused_unless_approach(tmp_path, robot, 
     acts = _actuators(robot)
     with SimDevice(acts, 0) as dev, _Sender(port):  # the device rests in the straight pose
         rc = main(["replan", str(problem), "--out", str(tmp_path / "a"), "--no-html",
-                   "--feed", f"udp://127.0.0.1:{port}", "--stream", dev.url])  # fmt: skip
+                   "--feed", f"udp://127.0.0.1:{port}", "--feed-max-age", "1.0", "--stream", dev.url])  # fmt: skip
         err = capsys.readouterr().err.strip().splitlines()
         assert rc == 2
         assert len(err) == 1 and "--stream" in err[0] and "--approach" in err[0] and "s1c1" in err[0]
         rc = main(["replan", str(problem), "--out", str(tmp_path / "b"), "--no-html", "--quiet",
-                   "--feed", f"udp://127.0.0.1:{port}", "--stream", dev.url, "--approach"])  # fmt: skip
+                   "--feed", f"udp://127.0.0.1:{port}", "--feed-max-age", "1.0", "--stream", dev.url,
+                   "--approach"])  # fmt: skip
     capsys.readouterr()
     assert rc == 1  # 0.6 s is not enough to reach the goal
     res = json.loads((tmp_path / "b" / "run.json").read_text())
@@ -223,10 +254,17 @@ def test_device_away_from_the_start_is_refused_unless_approach(tmp_path, robot, 
 def test_ctrl_c_holds_the_device_and_ends_the_run(tmp_path, robot, model):
     from crtraj.io.problem import Problem
 
-    port = _free_port()
     problem = Problem.load(_problem(tmp_path, model, 5.0))
     acts = _actuators(robot)
-    with _device(robot, XS) as dev, _Sender(port), ObstacleFeed(port, max_age=0.2, expected=["ball"]) as feed:
+    clock = VirtualClock(0.0)  # the feed on loop time: one state per step, received before the next step
+    with _device(robot, XS) as dev, ObstacleFeed(0, max_age=0.2, expected=["ball"], clock=clock) as feed:
+
+        def send(t: float, n: int) -> None:
+            r = BALL.radius + BALL.amplitude * np.sin(BALL.omega * t)
+            ObstacleFeed.send(feed.address, [{"id": "ball", "center": list(BALL.center), "radius": r, "timestamp": t}])
+            assert feed.wait_for(n)
+
+        send(0.0, 1)
         opts = StreamOptions(watchdog=0.5, prebuffer=0.2, connect_timeout=2.0)
         loop = loop_from_problem(problem, feed=feed, lead=0.2)
         streamer = Streamer.open(dev.url, acts, opts, tmp_path / "s.jsonl")
@@ -236,9 +274,12 @@ def test_ctrl_c_holds_the_device_and_ends_the_run(tmp_path, robot, model):
         def interrupt(k: int, t: float, status: str) -> None:
             if k == 8:
                 raise KeyboardInterrupt
+            clock.advance_to(t)
+            send(t, k + 2)
 
         run = loop.run(device=link, progress=interrupt)
     assert run.outcome == "interrupted" and run.steps == 9
+    assert "stale" not in run.status
     assert link.report.status == "held" and "Ctrl-C" in link.report.message
     kinds = [x["kind"] for x in _log(tmp_path / "s.jsonl") if x["type"] == "tx"]
     assert kinds[-1] == "hold" and "move" in kinds

@@ -374,7 +374,7 @@ def test_period_is_converted_to_duration():
 
 def test_defaults():
     scene = Scene.from_table(Table({}, "scene"))
-    assert scene.safety_distance == 5.0 and scene.time_step == 1.0
+    assert scene.safety_distance == 5.0 and not hasattr(scene, "time_step")
     lo, hi = scene.workspace
     np.testing.assert_array_equal(lo, DEFAULT_WORKSPACE[0])
     np.testing.assert_array_equal(hi - lo, [300, 300, 500])
@@ -398,6 +398,15 @@ def _mo(**motion) -> dict:
     [
         ({"safety_distance": -1}, "scene.safety_distance"),
         ({"time_step": 0}, "scene.time_step"),
+        ({"time_step": 1.0}, "scene.time_step"),
+        (_ob(center=[1e308, 0, 0]), "scene.obstacle[0].center[0]"),
+        (_ob(center=[0, 0, 10**400]), "scene.obstacle[0].center[2]"),
+        (_ob(radius=1e300), "scene.obstacle[0].radius"),
+        ({"obstacle": [{"center": [0, 0, 0], "radius": 1}] * 101}, "scene.obstacle"),
+        (_mo(duration=1e-300), "scene.obstacle[0].motion.duration"),
+        (_ob(radius={"mean": 5, "amplitude": 1, "omega": 1e300}), "scene.obstacle[0].radius.omega"),
+        ({"workspace": {"lo": [-1e300, 0, 0], "hi": [1, 1, 1]}}, "scene.workspace.lo[0]"),
+        ({"time_origin": 1e300}, "scene.time_origin"),
         ({"colour": "red"}, "scene.colour"),
         ({"workspace": {"lo": [0, 0, 0], "hi": [1, 1]}}, "scene.workspace.hi"),
         ({"workspace": {"lo": [0, 0, 5], "hi": [1, 1, 1]}}, "scene.workspace.hi"),

@@ -351,7 +351,13 @@ def test_fast_packer_gives_meshcats_exact_bytes(shown):
         (lambda r: r["waypoints"][4].pop("obstacles"), r"^waypoints\[4\]\.obstacles: 0 obstacles, but"),
         (lambda r: r["tree"].update(edges=[[1, 2, 3]]), r"^tree\.edges: expected shape"),
         (lambda r: r.update(kind="fly"), r"^kind: must be plan or replan"),
-        (lambda r: r["robot"].update(cable_radius=-1), r"^robot\.cable_radius: must be > 0"),
+        (lambda r: r["robot"].update(cable_radius=-1), r"^robot\.cable_radius: must be >= 0.001"),
+        (lambda r: r["waypoints"][1].update(t=1e300), r"^waypoints\[1\]\.t: must be within \+-1e\+06"),
+        (
+            lambda r: r["waypoints"][1]["obstacles"]["centers"][0].__setitem__(0, 1e308),
+            r"^waypoints\[1\]\.obstacles\.centers: values must be within",
+        ),
+        (lambda r: r["waypoints"][1].update(x=["1", 0, 0, 0, 0]), r"^waypoints\[1\]\.x: expected numbers"),
     ],
 )
 def test_bad_result_names_the_field(result, edit, message):

@@ -17,7 +17,8 @@ How the paper's text maps to the generator (units mm, rad, s):
   rho ~ U[0, A] in a random direction, so the obstacle crosses the straight
   path at some time; the motion axis is the start -> goal direction tilted
   by a random angle up to 30 degrees.
-- "time is discretised into steps of 1 s": ``Scene.time_step = 1``.
+- "time is discretised into steps of 1 s": crtraj's planners and checks work
+  in continuous time (swept capsules), so there is no scene time step.
 
 Start and goal (the paper does not say how it drew them):
 
@@ -50,11 +51,16 @@ from typing import Any
 import numpy as np
 
 from crtraj.core.errors import InputError
-from crtraj.core.fields import Table
+from crtraj.core.fields import MAX_LENGTH, MAX_SEED, MAX_TIME, Table
 from crtraj.model.kinematics import Model
 from crtraj.world.margin import DEFAULT_SAFETY_DISTANCE
 from crtraj.world.obstacle import Obstacle
-from crtraj.world.scene import Scene
+from crtraj.world.scene import MAX_OBSTACLES, Scene
+
+# Most start/goal draws of one scenario (default 200), and the largest scenario
+# index (bench runs at most a few hundred per obstacle count).
+MAX_ATTEMPTS = 100_000
+MAX_INDEX = 1_000_000
 
 # Backbone points used by the screens: 128 points put < 3.2 mm of arc between
 # points on the 400 mm default robot. Every body point lies within half that
@@ -87,7 +93,7 @@ class ScenarioOptions:
     is centred. max_tilt: largest angle between the motion axis and the
     start -> goal direction (rad). min_tip_distance: start to goal tip (mm).
     tip_box_lo/hi: box the start and goal tips are drawn in (mm).
-    safety_distance: the scene's D_sf (mm). time_step: the scene's step (s).
+    safety_distance: the scene's D_sf (mm).
     start_window: time the start body must stay clear (s). goal_margin:
     extra clearance of the goal tip (mm). max_attempts: obstacle draws before
     the start and goal are redrawn.
@@ -105,7 +111,6 @@ class ScenarioOptions:
     tip_box_lo: tuple[float, float, float] = (-130.0, -130.0, 150.0)
     tip_box_hi: tuple[float, float, float] = (130.0, 130.0, 450.0)
     safety_distance: float = DEFAULT_SAFETY_DISTANCE
-    time_step: float = 1.0
     start_window: float = 1.0
     goal_margin: float = 5.0
     max_attempts: int = 200
@@ -133,18 +138,17 @@ class ScenarioOptions:
             v = getattr(self, key)
             if not (math.isfinite(v) and v >= 0):
                 raise InputError(f"{key}: must be a finite number >= 0, got {v!r}")
-        for key in ("time_step", "start_window"):
-            v = getattr(self, key)
-            if not (math.isfinite(v) and v > 0):
-                raise InputError(f"{key}: must be a finite number > 0 (s), got {v!r}")
+        if not (math.isfinite(self.start_window) and 0 < self.start_window <= MAX_TIME):
+            raise InputError(f"start_window: must be a number in (0, {MAX_TIME:g}] (s), got {self.start_window!r}")
         lo = tuple(float(v) for v in self.tip_box_lo)
         hi = tuple(float(v) for v in self.tip_box_hi)
         if len(lo) != 3 or len(hi) != 3 or any(not a < b for a, b in zip(lo, hi, strict=True)):
             raise InputError(f"tip_box: lo must be below hi on every axis, got lo {list(lo)}, hi {list(hi)}")
         object.__setattr__(self, "tip_box_lo", lo)
         object.__setattr__(self, "tip_box_hi", hi)
-        if isinstance(self.max_attempts, bool) or not isinstance(self.max_attempts, int) or self.max_attempts < 1:
-            raise InputError(f"max_attempts: must be an integer >= 1, got {self.max_attempts!r}")
+        ma = self.max_attempts
+        if isinstance(ma, bool) or not isinstance(ma, int) or not 1 <= ma <= MAX_ATTEMPTS:
+            raise InputError(f"max_attempts: must be an integer in [1, {MAX_ATTEMPTS}], got {ma!r}")
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -160,7 +164,6 @@ class ScenarioOptions:
             "tip_box_lo": list(self.tip_box_lo),
             "tip_box_hi": list(self.tip_box_hi),
             "safety_distance": self.safety_distance,
-            "time_step": self.time_step,
             "start_window": self.start_window,
             "goal_margin": self.goal_margin,
             "max_attempts": self.max_attempts,
@@ -170,8 +173,11 @@ class ScenarioOptions:
     def from_dict(cls, d: dict[str, Any]) -> ScenarioOptions:
         """Inverse of `to_dict` (unknown keys raise)."""
         t = Table(d, "scenarios")
+        if t.has("time_step"):
+            t.raw("time_step")
+            raise t.error("time_step", "no longer supported (it had no effect); remove it")
         out = cls(
-            seed=t.int("seed", 0, ge=0),
+            seed=t.int("seed", 0, ge=0, le=MAX_SEED),
             radius_mean=t.vec("radius_mean", 2, cls.radius_mean),
             radius_amplitude=t.vec("radius_amplitude", 2, cls.radius_amplitude),
             omega=t.float("omega", cls.omega),
@@ -183,10 +189,9 @@ class ScenarioOptions:
             tip_box_lo=t.vec("tip_box_lo", 3, cls.tip_box_lo),
             tip_box_hi=t.vec("tip_box_hi", 3, cls.tip_box_hi),
             safety_distance=t.float("safety_distance", cls.safety_distance),
-            time_step=t.float("time_step", cls.time_step),
             start_window=t.float("start_window", cls.start_window),
             goal_margin=t.float("goal_margin", cls.goal_margin),
-            max_attempts=t.int("max_attempts", cls.max_attempts, ge=1),
+            max_attempts=t.int("max_attempts", cls.max_attempts, ge=1, le=MAX_ATTEMPTS),
         )
         t.finish()
         return out
@@ -236,15 +241,15 @@ class Scenario:
     def from_dict(cls, d: dict[str, Any]) -> Scenario:
         t = Table(d, "scenario")
         out = cls(
-            n_obstacles=t.int("n_obstacles", ge=0),
-            index=t.int("index", ge=0),
-            seed=t.int("seed", ge=0),
+            n_obstacles=t.int("n_obstacles", ge=0, le=MAX_OBSTACLES),
+            index=t.int("index", ge=0, le=MAX_INDEX),
+            seed=t.int("seed", ge=0, le=MAX_SEED),
             scene=Scene.from_table(Table(t.raw("scene"), "scenario.scene")),
-            start=np.array(t.vec("start_config")),
-            start_tip=np.array(t.vec("start_tip", 3)),
-            goal=np.array(t.vec("goal_tip", 3)),
-            goal_config=np.array(t.vec("goal_config")),
-            attempts=t.int("attempts", 1, ge=1),
+            start=np.array(t.vec("start_config", limit=MAX_LENGTH)),
+            start_tip=np.array(t.vec("start_tip", 3, limit=MAX_LENGTH)),
+            goal=np.array(t.vec("goal_tip", 3, limit=MAX_LENGTH)),
+            goal_config=np.array(t.vec("goal_config", limit=MAX_LENGTH)),
+            attempts=t.int("attempts", 1, ge=1, le=MAX_ATTEMPTS),
         )
         t.finish()
         if out.scene.n_obstacles != out.n_obstacles:
@@ -339,7 +344,7 @@ class ScenarioGenerator:
     def _screens(self, ob: Obstacle, xs: np.ndarray, pg: np.ndarray, xg: np.ndarray) -> bool:
         """True when one obstacle passes every screen of the module docstring."""
         o = self.options
-        scene = Scene(obstacles=(ob,), safety_distance=o.safety_distance, time_step=o.time_step)
+        scene = Scene(obstacles=(ob,), safety_distance=o.safety_distance)
         m = self.model
         slack = self.robot.total_length / (2.0 * (_SCREEN_POINTS - 1))  # mm, see _SCREEN_POINTS
         if float(scene.clearance_over(m, xs, 0.0, o.start_window, n_points=_SCREEN_POINTS)) < slack:
@@ -380,7 +385,7 @@ class ScenarioGenerator:
                     break
             if len(obstacles) == n_obstacles:
                 break
-        scene = Scene(obstacles=tuple(obstacles), safety_distance=o.safety_distance, time_step=o.time_step)
+        scene = Scene(obstacles=tuple(obstacles), safety_distance=o.safety_distance)
         return Scenario(
             n_obstacles=int(n_obstacles),
             index=int(index),

@@ -47,7 +47,7 @@ import casadi as ca
 import numpy as np
 
 from crtraj.core.errors import InputError
-from crtraj.core.fields import Table, check_float
+from crtraj.core.fields import MAX_LENGTH, MAX_TIME, Table, check_float
 from crtraj.model.kinematics import Model
 from crtraj.world import margin, packing
 
@@ -55,10 +55,13 @@ SOLVERS = ("ipopt", "sqp")
 QP_SOLVERS = ("daqp", "qrqp", "osqp", "qpoases")
 HESSIANS = ("gauss-newton", "exact")
 
+# Most closed-loop steps of one run (duration / dt): each is one NLP solve.
+MAX_STEPS = 100_000
+
 # float options: default and bounds (shared by Python construction and TOML reading)
 _FLOATS: Mapping[str, tuple[float, dict[str, float]]] = MappingProxyType(
     {
-        "dt": (0.1, {"gt": 0.0, "le": 10.0}),
+        "dt": (0.1, {"ge": 1e-3, "le": 10.0}),
         "margin": (1.5, {"ge": 0.0}),
         "tip_weight": (1.0, {"ge": 0.0}),
         "config_weight": (0.01, {"ge": 0.0}),
@@ -67,23 +70,23 @@ _FLOATS: Mapping[str, tuple[float, dict[str, float]]] = MappingProxyType(
         "terminal_weight": (10.0, {"ge": 0.0}),
         "max_cable_speed": (8.0, {"gt": 0.0}),
         "max_z_speed": (40.0, {"gt": 0.0}),
-        "tol": (1e-6, {"gt": 0.0}),
-        "max_solve_time": (0.5, {"gt": 0.0}),
-        "duration": (60.0, {"gt": 0.0}),
-        "replan_period": (0.0, {"ge": 0.0}),
-        "planner_time": (1.0, {"gt": 0.0}),
-        "stall_time": (3.0, {"gt": 0.0}),
+        "tol": (1e-6, {"gt": 0.0, "le": 1.0}),
+        "max_solve_time": (0.5, {"gt": 0.0, "le": 3600.0}),
+        "duration": (60.0, {"gt": 0.0, "le": MAX_TIME}),
+        "replan_period": (0.0, {"ge": 0.0, "le": MAX_TIME}),
+        "planner_time": (1.0, {"gt": 0.0, "le": 3600.0}),
+        "stall_time": (3.0, {"gt": 0.0, "le": MAX_TIME}),
         "reference_speed": (0.7, {"gt": 0.0, "le": 1.0}),
         "max_body_speed": (50.0, {"gt": 0.0}),
-        "check_resolution": (1.0, {"gt": 0.0}),
-        "settle_time": (0.5, {"ge": 0.0}),
+        "check_resolution": (1.0, {"ge": 0.01, "le": MAX_LENGTH}),
+        "settle_time": (0.5, {"ge": 0.0, "le": MAX_TIME}),
     }
 )
 _INTS: Mapping[str, tuple[int, dict[str, int]]] = MappingProxyType(
     {
         "horizon": (10, {"ge": 1, "le": 200}),
         "points": (16, {"ge": 2, "le": 200}),
-        "max_iter": (60, {"ge": 1}),
+        "max_iter": (60, {"ge": 1, "le": 100_000}),
         "check_points": (21, {"ge": 2, "le": 1000}),
     }
 )
@@ -157,6 +160,12 @@ class ReplanOptions:
                 raise InputError(f"replan.{name}: must be >= {ib['ge']}, got {v}")
             if "le" in ib and v > ib["le"]:
                 raise InputError(f"replan.{name}: must be <= {ib['le']}, got {v}")
+        steps = math.ceil(self.duration / self.dt - 1e-9)
+        if steps > MAX_STEPS:
+            raise InputError(
+                f"replan.duration: {self.duration:g} s is {steps} steps of dt {self.dt:g} s, more than {MAX_STEPS}; "
+                "shorten it or raise dt"
+            )
         if self.solver not in SOLVERS:
             raise InputError(f"replan.solver: must be one of {', '.join(SOLVERS)}; got {self.solver!r}")
         if self.qpsol not in QP_SOLVERS:

@@ -44,10 +44,25 @@ from crtraj.core.errors import InputError
 from crtraj.core.fields import check_array
 from crtraj.model.kinematics import Model
 from crtraj.planning.validity import MotionValidator
+from crtraj.world.feed import FeedOptions
 from crtraj.world.obstacle import Obstacle
 
 # backbone points used to measure (not decide) clearance and to record the body
 REPORT_POINTS = 41
+
+# every file a run folder may hold (`write_run`, and a streamed run's log): a folder with anything
+# else in it is not a run folder and is never replaced
+RUN_FILES = frozenset({"run.json", "run.npz", "run.png", "run.html", "stream.jsonl"})
+
+
+class UnsolvableTaskError(Exception):
+    """A well-formed task the loop cannot start: `status` is "invalid_start" (no safe start
+    configuration) or "invalid_goal" (no configuration can ever put the tip on the goal safely).
+    Not an input error: the command exits 1 with the status, as `crtraj plan` does."""
+
+    def __init__(self, status: str, message: str) -> None:
+        super().__init__(message)
+        self.status = status
 
 
 class StepStatus(str, enum.Enum):
@@ -162,16 +177,20 @@ class FeedObstacles:
 
     Each step turns the newest states into a `Scene` valid over the next
     `window` seconds: every centre moves on a straight line at its measured
-    velocity (extrapolated from the message's age to now). A growing radius
-    r + r' tau is bounded over the window by ``r + r' W sin(pi tau / (2 W))``
-    (the sine's arc lies above its chord), or held at r + r' W when that
-    sine is not allowed (amplitude above the mean radius); a shrinking radius
-    is held at its current value. template: a `Scene` giving D_sf, the
-    workspace and the expected obstacles (their names are the feed ids). A
-    stale feed (an id missing or older than the feed's max_age) gives no
-    scene, and the loop holds still. lead: s between reading the feed for
+    velocity (extrapolated from the measurement's age to now; the feed fits
+    it over a time window and bounds it by its max_speed). The keep-out
+    radius grows from the last measured radius at g = max(radius rate,
+    |velocity|) (`FeedState.keep_out_growth`), so the keep-out sphere always
+    contains the last measured sphere, however wrong the velocity. r + g tau
+    is bounded over the window by ``r + g W sin(pi tau / (2 W))`` (the
+    sine's arc lies above its chord), or held at r + g W when that sine is
+    not allowed (amplitude above the mean radius). template: a `Scene` giving
+    D_sf, the workspace and the expected obstacles (their names are the feed
+    ids). A stale feed (an id missing or older than the feed's max_age) gives
+    no scene, and the loop holds still. lead: s between reading the feed for
     a step and the device executing that step (a streamed run's buffer,
     `DeviceLink.lead`); loop time t is then predicted `lead` s ahead of now.
+    The feed's rejected messages reach the run's record through `new_events`.
     """
 
     live = True
@@ -187,6 +206,7 @@ class FeedObstacles:
         if not all(names):
             raise InputError("scene.obstacle: with a live feed every obstacle needs a name (its feed id)")
         self.ids = tuple(names)
+        self._seen = 0  # feed events already handed to the loop
 
     def at(self, t: float) -> tuple[Any, str]:
         st = self.feed.latest()
@@ -197,13 +217,14 @@ class FeedObstacles:
             return None, f"obstacle feed stale: no state for {', '.join(missing)}"
         idx = [st.ids.index(i) for i in self.ids]
         W = self.window
+        growth = st.keep_out_growth()
         obs = []
         for j, name in zip(idx, self.ids, strict=True):
             v = st.velocities[j]
             c = st.centers[j] + st.ages[j] * v  # where it is now
-            rate = float(st.radius_rates[j])
-            r_now = max(0.0, float(st.radii[j] + st.ages[j] * rate))
-            grow = max(rate, 0.0) * W
+            g = float(growth[j])
+            r_now = float(st.radii[j] + st.ages[j] * g)
+            grow = g * W
             if grow <= r_now:
                 radius = {"radius": r_now, "amplitude": grow, "omega": math.pi / (2.0 * W)}
             else:
@@ -214,6 +235,24 @@ class FeedObstacles:
             )
         # the snapshot's own clock starts now: loop time t maps to its time `lead`
         return replace(self.template, obstacles=tuple(obs), time_origin=self.lead - float(t)), ""
+
+    def new_events(self) -> list[Any]:
+        """The feed's events (`crtraj.world.feed.FeedEvent`) recorded since the last call."""
+        events = getattr(self.feed, "events", None)
+        if events is None:
+            return []
+        out = events(self._seen)
+        self._seen += len(out)
+        return out
+
+    def describe(self) -> dict[str, Any]:
+        """The feed's counters and options (`ObstacleFeed.describe` without its event list)."""
+        d = getattr(self.feed, "describe", None)
+        if d is None:
+            return {}
+        info = d()
+        info.pop("events", None)
+        return info
 
 
 class DeviceLink:
@@ -526,7 +565,9 @@ class ReplanRun:
     length control_dt (s), from t = 0: with the servo model and q[0] they
     reproduce the actual motion at any instant (for independent re-checks).
     reference_tips: tip polylines of every reference path used, with the
-    step index each started at.
+    step index each started at. feed: a live feed's counters, options and
+    every rejected or clamped message (loop time t, receiver time, kind,
+    reason); {} without a feed.
     """
 
     t: np.ndarray
@@ -568,6 +609,7 @@ class ReplanRun:
     late_steps: int = 0
     live: bool = False
     device: dict[str, Any] = field(default_factory=dict)  # `DeviceLink.describe` of a live-streamed run
+    feed: dict[str, Any] = field(default_factory=dict)  # a live feed's counters and rejections (`_Log.feed_record`)
 
     @property
     def steps(self) -> int:
@@ -617,6 +659,8 @@ class ReplanRun:
             "planner_time_s": float(np.sum(self.plan_time)),
             "status_counts": counts,
             "live_obstacles": self.live,
+            "feed_rejected": int(self.feed.get("rejected", 0)),
+            "feed_events": dict(self.feed.get("counts", {})),
             "late_steps": self.late_steps,
             "setup_s": self.setup_time,
             "wall_time_s": self.wall_time,
@@ -818,6 +862,8 @@ class ClosedLoop:
         progress: Callable[[int, float, str], None] | None = None,
         realtime: bool | None = None,
         device: DeviceLink | None = None,
+        clock: Callable[[], float] | None = None,
+        sleep: Callable[[float], None] | None = None,
     ) -> ReplanRun:
         """Simulate from the start configuration until the goal is held, or `duration` runs out.
 
@@ -830,8 +876,13 @@ class ClosedLoop:
         step holds the device, an unsafe step e-stops it and ends the run, and
         Ctrl-C holds it and ends the run (outcome "interrupted"). The link is
         finished (device settled at the final actuation) and closed on return.
+        clock, sleep: the time (s) and the sleep that pace a real-time run without a device and
+        bound the wait for a live feed's first states (default: the wall clock); a virtual clock
+        shared with the feed makes a live run independent of the machine's speed.
         """
         t_wall = time.perf_counter()
+        clock = time.perf_counter if clock is None else clock
+        sleep = time.sleep if sleep is None else sleep
         o, rp = self.options, self.replanner
         live = bool(getattr(self.obstacles, "live", False))
         realtime = live if realtime is None or device is not None else bool(realtime)
@@ -841,10 +892,11 @@ class ClosedLoop:
         rp.reset()
         log = _Log()
         scene0, why = self.obstacles.at(0.0)
-        deadline = time.perf_counter() + 2.0
-        while scene0 is None and live and time.perf_counter() < deadline:
-            time.sleep(0.01)  # give a live feed a moment to deliver its first states
+        deadline = clock() + 2.0
+        while scene0 is None and live and clock() < deadline:
+            sleep(0.01)  # give a live feed a moment to deliver its first states
             scene0, why = self.obstacles.at(0.0)
+        log.feed_events(self.obstacles, 0.0)
         if scene0 is None:
             log.record(
                 0.0,
@@ -878,11 +930,11 @@ class ClosedLoop:
         if o.safety and b0 < 0.0:
             msg = f"the start configuration is not clear of the obstacles at t = 0 (bound {b0:.2f} mm)"
             return self._finish(log, st, False, "invalid_start", msg, t_wall, device)
-        t_clock = time.perf_counter()
+        t_clock = clock()
         if device is not None:
-            device.begin(t_clock)
+            device.begin(time.perf_counter())
         try:
-            return self._steps(log, st, t_wall, t_clock, realtime, progress, device)
+            return self._steps(log, st, t_wall, (clock, sleep, t_clock), realtime, progress, device)
         except KeyboardInterrupt:
             if device is None:
                 raise
@@ -894,13 +946,14 @@ class ClosedLoop:
         log: _Log,
         st: _State,
         t_wall: float,
-        t_clock: float,
+        pacing: tuple[Callable[[], float], Callable[[float], None], float],
         realtime: bool,
         progress: Callable[[int, float, str], None] | None,
         device: DeviceLink | None,
     ) -> ReplanRun:
-        """The control steps of `run` after the start checks."""
+        """The control steps of `run` after the start checks. pacing: (clock, sleep, clock at t = 0)."""
         o, rp, dt = self.options, self.replanner, self.options.dt
+        clock, sleep, t_clock = pacing
         settled_since: float | None = None
         reached = False
         for k in range(math.ceil(o.duration / dt - 1e-9)):
@@ -913,6 +966,7 @@ class ClosedLoop:
                 st.q, st.qc, _ = device.measure(t, st.q, st.qc)
                 st.x = self.servo.config(st.q)
             scene_t, why = self.obstacles.at(t)
+            log.feed_events(self.obstacles, t)
             if scene_t is None:
                 # no trustworthy obstacle state: keep the actuators where they are and say so
                 status, res = StepStatus.STALE, _skipped(self.replanner, f"skipped: {why}")
@@ -960,9 +1014,9 @@ class ClosedLoop:
             if device is not None:
                 log.late += device.pace(st.t)
             elif realtime:
-                lag = time.perf_counter() - t_clock - st.t
+                lag = clock() - t_clock - st.t
                 if lag < 0.0:
-                    time.sleep(-lag)
+                    sleep(-lag)
                 elif lag > dt:
                     log.late += 1
         outcome = "reached" if reached else "timeout"
@@ -1122,6 +1176,7 @@ class ClosedLoop:
             late_steps=log.late,
             live=bool(getattr(self.obstacles, "live", False)),
             device={} if device is None else device.describe(),
+            feed=log.feed_record(self.obstacles),
         )
 
 
@@ -1190,6 +1245,21 @@ class _Log:
         self.centers: list[np.ndarray] = []
         self.radii: list[np.ndarray] = []
         self.late = 0  # real-time steps that finished more than one step late
+        self.feed: list[dict[str, Any]] = []  # the live feed's rejected/clamped messages, with loop time
+
+    def feed_events(self, source: Any, t: float) -> None:
+        """Record the live feed's new events (rejected or clamped messages) at loop time t (s)."""
+        new = getattr(source, "new_events", None)
+        if new is not None:
+            self.feed.extend({"t": float(t), **e.to_dict()} for e in new())
+
+    def feed_record(self, source: Any) -> dict[str, Any]:
+        """The feed section of a live run: counters, options and every recorded event ({} without a feed)."""
+        describe = getattr(source, "describe", None)
+        if describe is None:
+            return {}
+        self.feed_events(source, self.t[-1] if self.t else 0.0)
+        return {**describe(), "events": list(self.feed)}
 
     def record(
         self,
@@ -1255,7 +1325,8 @@ def loop_from_problem(
     safety=False drops the collision-free terms (NLP constraints, verification, and obstacles in
     the reference planner), as in the paper's Fig. 4(b). seed overrides the problem's seed.
     feed: a `crtraj.world.feed.ObstacleFeed`: obstacle states come from it, live (`FeedObstacles`; the
-    scene's obstacle names are the feed ids), and the run is paced in real time. lead: s the device
+    scene's obstacle names are the feed ids; the ``[feed]`` section, `crtraj.world.feed.FeedOptions`,
+    configures it), and the run is paced in real time. lead: s the device
     executes each step after it is computed (`DeviceLink.lead`), so the feed is predicted that far ahead.
     """
     from crtraj.planning.options import PlannerOptions
@@ -1275,11 +1346,15 @@ def loop_from_problem(
     tracking = problem.options(TrackingOptions, "tracking")
     popts = problem.options(PlannerOptions, "planner")
     scene = Scene.from_table(problem.section("scene"))
+    feed_options = problem.options(FeedOptions, "feed")
     model = Model(problem.robot)
     planner = make_planner(model, scene, popts, problem.options(SteerOptions, "steer"))
     source: Any = None
     scene0 = scene
+    extra: dict[str, Any] = {"planner": popts, "steer": problem.options(SteerOptions, "steer")}
     if feed is not None:
+        feed.configure(feed_options)  # the problem's velocity bound and timestamp window
+        extra["feed"] = feed_options
         source = FeedObstacles(feed, scene, window=max(2.0 * opts.horizon * opts.dt, 2.0) + 2.0 * opts.dt, lead=lead)
         t_end = time.perf_counter() + 2.0
         snap, why = source.at(0.0)
@@ -1304,6 +1379,7 @@ def loop_from_problem(
             for i, o in enumerate(snap.obstacles)
         )
     first: ReferencePlan | None = None
+    res = None
     if task.start_config is not None:
         x0 = np.asarray(task.start_config, dtype=float)
     else:
@@ -1312,7 +1388,7 @@ def loop_from_problem(
             task.goal, start_tip=task.start, t0=0.0, seed=seed, goal_tolerance=task.goal_tolerance, scene=scene0
         )
         if res.status is PlanStatus.INVALID_START:
-            raise InputError(f"task.start: {res.message}")
+            raise UnsolvableTaskError("invalid_start", f"task.start: {res.message}")
         if res.has_path:
             x0 = res.configs[0]
             if res.is_success() and opts.safety:
@@ -1322,8 +1398,10 @@ def loop_from_problem(
         else:
             only = planner.plan(task.start, start_tip=task.start, t0=0.0, seed=seed, goal_tolerance=1.0, scene=scene0)
             if not only.has_path:
-                raise InputError(f"task.start: {only.message}")
+                raise UnsolvableTaskError("invalid_start", f"task.start: {only.message}")
             x0 = only.configs[0]
+    moving = feed is not None or any(o.amplitude != 0.0 or o.to is not None for o in scene.obstacles)
+    _check_goal(planner, task, x0, scene0, seed, res, among_obstacles=opts.safety and not moving)
     reference = PlannerReference(
         planner,
         task.goal,
@@ -1343,8 +1421,40 @@ def loop_from_problem(
         goal_tolerance=task.goal_tolerance,
         initial_reference=None if feed is not None else first,
         obstacles=source,
-        extra_options={"planner": popts, "steer": problem.options(SteerOptions, "steer")},
+        extra_options=extra,
     )
+
+
+def _check_goal(
+    planner: Any, task: Any, x0: np.ndarray, scene: Any, seed: int, res: Any, *, among_obstacles: bool
+) -> None:
+    """Fail fast, as `crtraj plan` does, when no configuration can ever put the tip on the goal safely
+    (`UnsolvableTaskError` "invalid_goal"), instead of running the loop until its duration ends.
+
+    among_obstacles (static obstacles, with the safety terms): the planner's goal IK among them
+    decides. Obstacles that move or breathe, or come from a live feed, may uncover the goal later,
+    so then only a goal the robot cannot reach even with no obstacles at all is refused. res: the
+    planner's result from x0 among `scene`, when there is one.
+    """
+    from crtraj.planning.result import PlanStatus
+    from crtraj.planning.stop import StopCondition
+
+    if res is not None and res.status not in (PlanStatus.INVALID_GOAL, PlanStatus.INVALID_START):
+        return  # the goal IK found a safe goal configuration: reachable
+    if not among_obstacles:
+        scene, res = scene.with_obstacles(()), None
+    if res is None:  # the goal IK runs before any search; one search iteration bounds the cost
+        res = planner.plan(
+            task.goal,
+            start_config=x0,
+            t0=0.0,
+            seed=seed,
+            goal_tolerance=task.goal_tolerance,
+            scene=scene,
+            stop=StopCondition(max_iterations=1),
+        )
+    if res.status is PlanStatus.INVALID_GOAL:
+        raise UnsolvableTaskError("invalid_goal", f"task.goal: {res.message}")
 
 
 # ------------------------------------------------------------------- outputs
@@ -1432,6 +1542,8 @@ def result_dict(run: ReplanRun, loop: ClosedLoop, problem: Any = None, seed: int
         "nlp": run.nlp,
         "waypoints": wps,
     }
+    if run.feed:
+        out["feed"] = run.feed  # the live feed: counters, options, every rejected or clamped message
     if run.device:
         out["stream"] = run.device  # the live device stream (`DeviceLink.describe`)
     if len(run.tree_edges):
@@ -1515,20 +1627,17 @@ def plot_run(run: ReplanRun, loop: ClosedLoop, path: Any, title: str = "") -> An
     return atomic_write_bytes(path, buf.getvalue())
 
 
-def write_run(
-    run: ReplanRun, loop: ClosedLoop, out_dir: Any, *, problem: Any = None, seed: int | None = None, html: bool = True
+def write_run_files(
+    run: ReplanRun, loop: ClosedLoop, folder: Any, *, problem: Any = None, seed: int | None = None, html: bool = True
 ) -> dict[str, Any]:
-    """Write run.json, run.npz, run.png and (html=True) run.html into out_dir.
-
-    Returns the paths (keys json, npz, png, html) and, under "result", the
-    result document as plain JSON data.
-    """
+    """Write run.json, run.npz, run.png and (html=True) run.html into an existing folder, one file at a
+    time (`write_run` stages them and swaps the folder in whole). Returns the paths (keys json, npz, png,
+    html) and, under "result", the result document as plain JSON data."""
     from pathlib import Path
 
     from crtraj.core.fileio import atomic_write_json, atomic_write_text, to_jsonable
 
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    out = Path(folder)
     result = to_jsonable(result_dict(run, loop, problem, seed))
     paths: dict[str, Any] = {"json": atomic_write_json(out / "run.json", result)}
     paths["npz"] = save_npz(run, out / "run.npz")
@@ -1543,3 +1652,22 @@ def write_run(
             vis.close()
     paths["result"] = result
     return paths
+
+
+def write_run(
+    run: ReplanRun, loop: ClosedLoop, out_dir: Any, *, problem: Any = None, seed: int | None = None, html: bool = True
+) -> dict[str, Any]:
+    """Write run.json, run.npz, run.png and (html=True) run.html into out_dir, as one set: they are
+    written into a temporary sibling folder that then replaces out_dir in one atomic step
+    (`crtraj.core.fileio.StagedDir`), so a crash or kill leaves the previous set or the new one, never a
+    mix. out_dir must be new, or hold only files named in `RUN_FILES`.
+
+    Returns the paths (keys json, npz, png, html) and, under "result", the result document as plain
+    JSON data.
+    """
+    from crtraj.core.fileio import StagedDir
+
+    with StagedDir(out_dir, RUN_FILES) as stage:
+        paths = write_run_files(run, loop, stage.path, problem=problem, seed=seed, html=html)
+        dest = stage.commit()
+    return {k: (dest / v.name if k != "result" else v) for k, v in paths.items()}

@@ -3,6 +3,12 @@
 Every option dataclass in crtraj reads its section through `Table`, so unknown
 keys, wrong types, NaN and out-of-range values all fail the same way: one
 `InputError` line such as ``robot.segment[1].length: must be > 0, got -3``.
+
+Every number read from a file is bounded, so no value can overflow or make
+work explode downstream: floats are finite and at most `MAX_MAGNITUDE` in
+absolute value unless a field sets a tighter `limit` (lengths and coordinates
+`MAX_LENGTH` mm, times `MAX_TIME` s), and every integer field states its own
+upper bound (`Table.int` has no default for `le`).
 """
 
 from __future__ import annotations
@@ -16,6 +22,16 @@ import numpy as np
 from crtraj.core.errors import InputError
 
 _MISSING = object()
+
+# Largest |value| of any number read from a file, whatever its unit: far above
+# any physical quantity crtraj uses, far below float overflow (1e308).
+MAX_MAGNITUDE = 1.0e9
+# Largest |length| or |coordinate| (mm): a kilometre.
+MAX_LENGTH = 1.0e6
+# Largest time or duration (s): about 11.6 days.
+MAX_TIME = 1.0e6
+# Seeds are 32-bit unsigned integers.
+MAX_SEED = 2**32 - 1
 
 
 def _is_number(v: Any) -> bool:
@@ -39,6 +55,7 @@ class Table:
         self._read: set[str] = set()
 
     def _name(self, key: str) -> str:
+        key = _key_text(key)
         return f"{self.path}.{key}" if self.path else key
 
     def error(self, key: str, msg: str) -> InputError:
@@ -68,55 +85,68 @@ class Table:
         ge: float | None = None,
         lt: float | None = None,
         le: float | None = None,
+        limit: float = MAX_MAGNITUDE,
     ) -> float:
+        """A finite number with ``|value| <= limit`` and the given bounds."""
         v = self.raw(key, default)
         if v is None and default is None:
             return None  # type: ignore[return-value]
-        return check_float(v, self._name(key), gt=gt, ge=ge, lt=lt, le=le)
+        return check_float(v, self._name(key), gt=gt, ge=ge, lt=lt, le=le, limit=limit)
 
-    def int(self, key: str, default: Any = _MISSING, *, ge: int | None = None, le: int | None = None) -> int:
+    def int(self, key: str, default: Any = _MISSING, *, ge: int | None = None, le: int) -> int:
+        """An integer in ``[ge, le]``; `le` is required so that every size-like field is bounded."""
         v = self.raw(key, default)
         if v is None and default is None:
             return None  # type: ignore[return-value]
         if not isinstance(v, int) or isinstance(v, bool):
-            raise InputError(f"{self._name(key)}: expected an integer, got {v!r}")
+            raise InputError(f"{self._name(key)}: expected an integer, got {_short(v)}")
         if ge is not None and v < ge:
             raise InputError(f"{self._name(key)}: must be >= {ge}, got {v}")
-        if le is not None and v > le:
-            raise InputError(f"{self._name(key)}: must be <= {le}, got {v}")
+        if v > le:
+            raise InputError(f"{self._name(key)}: must be <= {le}, got {_short(v)}")
         return v
 
     def bool(self, key: str, default: Any = _MISSING) -> bool:
         v = self.raw(key, default)
         if not isinstance(v, bool):
-            raise InputError(f"{self._name(key)}: expected true or false, got {v!r}")
+            raise InputError(f"{self._name(key)}: expected true or false, got {_short(v)}")
         return v
 
-    def str(self, key: str, default: Any = _MISSING, *, choices: Sequence[str] | None = None) -> str:
+    def str(
+        self, key: str, default: Any = _MISSING, *, choices: Sequence[str] | None = None, max_len: int = 10_000
+    ) -> str:
+        """A string of at most `max_len` characters (one of `choices` when given)."""
         v = self.raw(key, default)
         if v is None and default is None:
             return None  # type: ignore[return-value]
         if not isinstance(v, str):
-            raise InputError(f"{self._name(key)}: expected a string, got {v!r}")
+            raise InputError(f"{self._name(key)}: expected a string, got {_short(v)}")
+        if len(v) > max_len:
+            raise InputError(f"{self._name(key)}: longer than {max_len} characters ({len(v)})")
         if choices is not None and v not in choices:
-            raise InputError(f"{self._name(key)}: must be one of {', '.join(choices)}; got {v!r}")
+            raise InputError(f"{self._name(key)}: must be one of {', '.join(choices)}; got {_short(v)}")
         return v
 
-    def vec(self, key: str, n: int | None = None, default: Any = _MISSING) -> tuple[float, ...]:
+    def vec(
+        self, key: str, n: int | None = None, default: Any = _MISSING, *, limit: float = MAX_MAGNITUDE
+    ) -> tuple[float, ...]:
+        """A list of finite numbers (`n` of them when given), each with ``|x| <= limit``."""
         v = self.raw(key, default)
         if v is None and default is None:
             return None  # type: ignore[return-value]
-        return check_vec(v, self._name(key), n)
+        return check_vec(v, self._name(key), n, limit=limit)
 
     def table(self, key: str) -> Table:
         """The sub-table `key`, empty when absent."""
         return Table(self.raw(key, {}), self._name(key))
 
-    def tables(self, key: str) -> list[Table]:
-        """An array of tables (``[[key]]``), empty when absent."""
+    def tables(self, key: str, *, most: int) -> list[Table]:
+        """An array of at most `most` tables (``[[key]]``), empty when absent."""
         v = self.raw(key, [])
         if isinstance(v, Mapping) or not isinstance(v, list):
-            raise InputError(f"{self._name(key)}: expected an array of tables ([[{key}]])")
+            raise InputError(f"{self._name(key)}: expected an array of tables ([[{_key_text(key)}]])")
+        if len(v) > most:
+            raise InputError(f"{self._name(key)}: at most {most} entries, got {len(v)}")
         return [Table(item, f"{self._name(key)}[{i}]") for i, item in enumerate(v)]
 
     def finish(self) -> None:
@@ -136,13 +166,19 @@ def check_float(
     ge: float | None = None,
     lt: float | None = None,
     le: float | None = None,
+    limit: float = MAX_MAGNITUDE,
 ) -> float:
-    """Validate one finite number; raise `InputError` naming `name`."""
+    """Validate one finite number with ``|v| <= limit``; raise `InputError` naming `name`."""
     if not _is_number(v):
-        raise InputError(f"{name}: expected a number, got {v!r}")
-    f = float(v)
+        raise InputError(f"{name}: expected a number, got {_short(v)}")
+    try:
+        f = float(v)
+    except OverflowError:  # an int beyond float range
+        raise InputError(f"{name}: must be within +-{limit:g}, got {_short(v)}") from None
     if not math.isfinite(f):
         raise InputError(f"{name}: must be finite, got {f}")
+    if abs(f) > limit:
+        raise InputError(f"{name}: must be within +-{limit:g}, got {f:g}")
     if gt is not None and not f > gt:
         raise InputError(f"{name}: must be > {gt:g}, got {f:g}")
     if ge is not None and not f >= ge:
@@ -154,28 +190,81 @@ def check_float(
     return f
 
 
-def check_vec(v: Any, name: str, n: int | None = None) -> tuple[float, ...]:
-    """Validate a list of finite numbers (of length `n` when given)."""
+def check_vec(v: Any, name: str, n: int | None = None, *, limit: float = MAX_MAGNITUDE) -> tuple[float, ...]:
+    """Validate a list of finite numbers (of length `n` when given), each with ``|x| <= limit``."""
     if isinstance(v, np.ndarray):
         v = v.tolist()
     if not isinstance(v, (list, tuple)):
-        raise InputError(f"{name}: expected a list of numbers, got {v!r}")
+        raise InputError(f"{name}: expected a list of numbers, got {_short(v)}")
     if n is not None and len(v) != n:
         raise InputError(f"{name}: expected {n} numbers, got {len(v)}")
-    return tuple(check_float(x, f"{name}[{i}]") for i, x in enumerate(v))
+    return tuple(check_float(x, f"{name}[{i}]", limit=limit) for i, x in enumerate(v))
 
 
-def check_array(v: Any, name: str, shape: tuple[int | None, ...]) -> np.ndarray:
-    """Convert to a finite float64 array of `shape` (None = any length)."""
+def check_array(v: Any, name: str, shape: tuple[int | None, ...], *, limit: float = MAX_MAGNITUDE) -> np.ndarray:
+    """Convert to a finite float64 array of `shape` (None = any length) with every ``|x| <= limit``."""
+    if not _only_numbers(v):  # numpy would turn "12" into 12.0 and true into 1.0
+        raise InputError(f"{name}: expected numbers of shape {_shape_text(shape)}")
     try:
         a = np.asarray(v, dtype=float)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise InputError(f"{name}: expected numbers of shape {_shape_text(shape)}") from None
     if a.ndim != len(shape) or any(s is not None and s != a.shape[i] for i, s in enumerate(shape)):
         raise InputError(f"{name}: expected shape {_shape_text(shape)}, got {a.shape}")
     if not np.all(np.isfinite(a)):
         raise InputError(f"{name}: contains NaN or infinity")
+    if a.size and float(np.max(np.abs(a))) > limit:
+        raise InputError(f"{name}: values must be within +-{limit:g}, got {float(np.max(np.abs(a))):g}")
     return a
+
+
+def check_name(v: Any, name: str, max_len: int = 100) -> str:
+    """A name that becomes part of file names: 1..max_len printable characters, no path separator,
+    no leading dot."""
+    if not isinstance(v, str):
+        raise InputError(f"{name}: expected a string, got {_short(v)}")
+    if not v or len(v) > max_len:
+        raise InputError(f"{name}: must be 1 to {max_len} characters, got {len(v)}")
+    if not v.isprintable() or any(c in v for c in "/\\:") or v.startswith("."):
+        raise InputError(f"{name}: {_short(v)} cannot be part of a file name (no / \\ : or leading dot)")
+    return v
+
+
+def _only_numbers(v: Any) -> bool:
+    """True when `v` is a number or (nested) lists of numbers only: no bool, str, None or dict.
+
+    Iterative, so that deeply nested input cannot exhaust the stack.
+    """
+    if isinstance(v, np.ndarray):
+        return v.dtype.kind in "fiu"
+    stack = [v]
+    while stack:
+        item = stack.pop()
+        if isinstance(item, (list, tuple)):
+            stack.extend(item)
+        elif isinstance(item, np.ndarray):
+            if item.dtype.kind not in "fiu":
+                return False
+        elif isinstance(item, bool) or not isinstance(item, (int, float, np.integer, np.floating)):
+            return False
+    return True
+
+
+def _key_text(key: Any, width: int = 60) -> str:
+    """A key as it can appear in a one-line message: quoted when it holds odd characters, cut when long."""
+    text = str(key)
+    if not text.isprintable() or not text or len(text) > width:
+        text = _short(text, width)
+    return text
+
+
+def _short(v: Any, width: int = 60) -> str:
+    """`repr` of a bad value, cut to `width` characters so that an error stays one short line."""
+    if isinstance(v, int) and not isinstance(v, bool) and abs(v) > 10**30:
+        return f"an integer of {len(str(abs(v)))} digits"
+    text = repr(v)
+    text = text.replace("\n", " ").replace("\r", " ")
+    return text if len(text) <= width else text[: width - 3] + "..."
 
 
 def _shape_text(shape: tuple[int | None, ...]) -> str:

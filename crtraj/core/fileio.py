@@ -1,36 +1,138 @@
-"""Atomic file writes and JSON encoding of results.
+"""Atomic file and folder writes, output-path checks and JSON encoding of results.
 
-A result that was already written must survive a later crash or bad input, so
-every file crtraj writes goes to a temporary file in the same folder and is
-renamed over the target only when complete.
+A result that was already written must survive a later crash, a kill or bad
+input, so every file crtraj writes goes to a temporary file in the same folder
+and is renamed over the target only when complete (`atomic_write_bytes`,
+`StagedFile`). A run that writes several files (run.json, run.npz, run.png,
+run.html) writes them into a temporary sibling folder that replaces the old
+folder in one step (`StagedDir`): readers see the old set or the new set,
+never a mix.
+
+Test hook: with the environment variables ``CRTRAJ_PAUSE_AT=<point>`` and
+``CRTRAJ_PAUSE_SIGNAL=<file>`` set, the writer creates <file> when it reaches
+<point> and then waits forever, so a test can kill it there without racing a
+timer. Points: ``file-partial`` (half of a temporary file written),
+``file-written`` (temporary file complete, not yet renamed), ``file-renamed``
+(the file replaced, nothing after it done yet), ``dir-staged``
+(new folder complete, not yet swapped in), ``dir-aside`` (only without an
+atomic exchange: old folder renamed aside, new one not yet in) and
+``dir-swapped`` (new folder in place, old one not yet removed).
+
+Every file crtraj reads (problem and robot TOML, result JSON) goes through
+`read_text`: it must be a regular file of at most a documented size
+(`MAX_TOML_BYTES`, `MAX_JSON_BYTES`), UTF-8 text, and nested at most
+`MAX_DEPTH` levels deep. Anything else is one `InputError` line naming the
+file, never a traceback, a hang on a pipe or device, or a recursion error.
 """
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
+import errno
 import json
 import math
 import os
+import shutil
+import stat
+import sys
 import tempfile
+import threading
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from crtraj.core.errors import InputError
+
+_RENAME_EXCHANGE = 2  # linux/fs.h: swap two paths atomically (renameat2, Linux >= 3.15)
+_AT_FDCWD = -100
+
+
+def checkpoint(point: str) -> None:
+    """The kill-test hook (see the module docstring); a no-op unless CRTRAJ_PAUSE_AT names `point`."""
+    if os.environ.get("CRTRAJ_PAUSE_AT") != point:
+        return
+    signal_file = os.environ.get("CRTRAJ_PAUSE_SIGNAL")
+    if signal_file:
+        Path(signal_file).write_text(f"{os.getpid()} {point}\n", encoding="utf-8")
+    threading.Event().wait()  # until killed
+
+
+def _fsync_dir(path: Path) -> None:
+    """Make a rename in `path` durable (directories cannot be fsynced on every platform: best effort)."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def _umask() -> int | None:
+    """The process umask, read without changing it (os.umask would race with other threads)."""
+    try:
+        for line in Path("/proc/self/status").read_text(encoding="ascii").splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
+def _usual_mode(path: Path, directory: bool = False) -> None:
+    """Give a temporary file or folder (created 0600 / 0700) the mode a plain open() or mkdir() would."""
+    mask = _umask()
+    if mask is not None:
+        os.chmod(path, (0o777 if directory else 0o666) & ~mask)
+
+
+def _write_synced(fh: Any, data: bytes) -> None:
+    half = len(data) // 2
+    fh.write(data[:half])
+    fh.flush()
+    checkpoint("file-partial")
+    fh.write(data[half:])
+    fh.flush()
+    os.fsync(fh.fileno())
+
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+# Problem and robot files are hand-written tables: a few kB. 4 MiB leaves
+# room for generated scenes without letting a wrong file exhaust memory.
+MAX_TOML_BYTES = 4 * 1024 * 1024
+# Result JSON (plan, replan, bench): a long replan run with backbone points
+# per waypoint is a few MB; 256 MiB bounds the memory a parse can take.
+MAX_JSON_BYTES = 256 * 1024 * 1024
+# Deepest nesting of tables/arrays in any input file. crtraj's schemas go 4
+# levels deep (tree.edges: list of pairs of points); parsers recurse per level.
+MAX_DEPTH = 32
+
 
 def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> Path:
-    """Write `data` to `path` atomically (temp file + fsync + rename)."""
+    """Write `data` to `path` atomically (temp file in the same folder + fsync + rename)."""
     target = Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
     try:
+        _usual_mode(Path(tmp))
         with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
+            _write_synced(fh, data)
+        checkpoint("file-written")
         os.replace(tmp, target)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+    _fsync_dir(target.parent)
+    checkpoint("file-renamed")
     return target
 
 
@@ -66,14 +168,320 @@ def atomic_write_json(path: str | os.PathLike[str], obj: Any) -> Path:
     return atomic_write_text(path, json.dumps(to_jsonable(obj), indent=1, allow_nan=False) + "\n")
 
 
-def read_json(path: str | os.PathLike[str]) -> Any:
-    """Read a JSON file; raise `InputError` with the path on failure."""
-    from crtraj.core.errors import InputError
+def _fsync_file(path: Path) -> None:
+    with open(path, "rb") as fh:
+        os.fsync(fh.fileno())
 
+
+class StagedFile:
+    """A temporary file beside `target` that replaces it only on `commit()`.
+
+    Write to `path` (any way: it is a plain file); `commit()` fsyncs it and
+    renames it over the target. Leaving the ``with`` block without a commit
+    (an error, a refused run) removes it, so the target is never truncated.
+    """
+
+    def __init__(self, target: str | os.PathLike[str]) -> None:
+        self.target = Path(target)
+        self.target.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{self.target.name}.", suffix=".tmp", dir=self.target.parent)
+        os.close(fd)
+        self.path = Path(tmp)
+        _usual_mode(self.path)
+        self.committed = False
+
+    def write(self, data: bytes) -> None:
+        """Fill the staged file with `data` (replacing what it held)."""
+        with open(self.path, "wb") as fh:
+            _write_synced(fh, data)
+
+    def commit(self) -> Path:
+        """Make the staged file the target (atomic rename); returns the target."""
+        _fsync_file(self.path)
+        checkpoint("file-written")
+        os.replace(self.path, self.target)
+        _fsync_dir(self.target.parent)
+        self.committed = True
+        checkpoint("file-renamed")
+        return self.target
+
+    def discard(self) -> None:
+        if not self.committed:
+            self.path.unlink(missing_ok=True)
+
+    def __enter__(self) -> StagedFile:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.discard()
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap two paths in one atomic step (Linux renameat2 RENAME_EXCHANGE); False where unsupported."""
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or None, use_errno=True)
+        fn = libc.renameat2
+    except (OSError, AttributeError):
+        return False
+    fn.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
+    if fn(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE) == 0:
+        return True
+    err = ctypes.get_errno()
+    if err in (errno.ENOSYS, errno.EINVAL, errno.EOPNOTSUPP):  # kernel or file system without exchange
+        return False
+    raise OSError(err, os.strerror(err), str(b))
+
+
+def _asides(target: Path) -> list[Path]:
+    return sorted(target.parent.glob(f".{target.name}.old-*"), key=lambda p: p.stat().st_mtime)
+
+
+def recover_dir(target: str | os.PathLike[str]) -> None:
+    """Undo a folder swap interrupted between its two renames (only where no atomic exchange exists):
+    when `target` is missing and its previous version was set aside, put it back."""
+    t = Path(target)
+    if not t.exists():
+        asides = _asides(t)
+        if asides:
+            os.rename(asides[-1], t)
+
+
+class StagedDir:
+    """A temporary folder beside `target` that replaces it as a whole on `commit()`.
+
+    Write every file of the set into `path`; `commit()` fsyncs them and swaps
+    the folder into place in one atomic step (renameat2 RENAME_EXCHANGE; else
+    the old folder is renamed aside, the new one in, and `recover_dir` undoes
+    an interruption between the two), then removes the old folder. `replaceable`:
+    the only file names an existing target may hold (a folder with anything
+    else in it is never replaced: it is not a crtraj output). Leaving the
+    ``with`` block without a commit removes the staged folder.
+    """
+
+    def __init__(self, target: str | os.PathLike[str], replaceable: frozenset[str]) -> None:
+        t = Path(target)
+        self.target = t.resolve() if t.is_symlink() else t
+        self.replaceable = replaceable
+        self.target.parent.mkdir(parents=True, exist_ok=True)
+        recover_dir(self.target)
+        self.path = Path(tempfile.mkdtemp(prefix=f".{self.target.name}.", suffix=".tmp", dir=self.target.parent))
+        _usual_mode(self.path, directory=True)
+        self.committed = False
+
+    def commit(self, target: str | os.PathLike[str] | None = None) -> Path:
+        """Swap the staged folder in as `target` (default: the target given at construction; it must
+        be a sibling of it, e.g. ``replan.failed``); returns the path."""
+        dest = self.target if target is None else Path(target)
+        if dest.parent.resolve() != self.path.parent.resolve():
+            raise ValueError(f"{dest}: must be in {self.path.parent}")
+        for p in self.path.rglob("*"):
+            if p.is_file():
+                _fsync_file(p)
+        _fsync_dir(self.path)
+        checkpoint("dir-staged")
+        recover_dir(dest)
+        if dest.exists():
+            check_output_dir(dest, str(dest), self.replaceable)
+            if _exchange(self.path, dest):
+                old = self.path  # now holds the previous folder
+                _fsync_dir(dest.parent)
+            else:
+                old = dest.parent / f".{dest.name}.old-{os.getpid()}-{os.urandom(4).hex()}"
+                os.rename(dest, old)
+                checkpoint("dir-aside")
+                os.rename(self.path, dest)
+                _fsync_dir(dest.parent)
+            self.committed = True
+            checkpoint("dir-swapped")
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.rename(self.path, dest)
+            _fsync_dir(dest.parent)
+            self.committed = True
+        return dest
+
+    def discard(self) -> None:
+        if not self.committed:
+            shutil.rmtree(self.path, ignore_errors=True)
+
+    def __enter__(self) -> StagedDir:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.discard()
+
+
+# ------------------------------------------------------- output path checks
+def _writable_ancestor(p: Path, what: str) -> None:
+    """The nearest existing ancestor of `p` must be a folder we can create files in (probed, so the
+    answer is right for root and read-only file systems too)."""
+    a = p.parent
+    while not (a.exists() or a.is_symlink()) and a != a.parent:
+        a = a.parent
+    if not a.is_dir():
+        raise InputError(f"{what}: cannot write {p}: {a} is a file, not a folder")
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".crtraj-probe.", dir=a)
+    except OSError as exc:
+        raise InputError(f"{what}: cannot write {p}: {a}: {exc.strerror or exc}") from None
+    os.close(fd)
+    os.unlink(probe)
+
+
+def check_output_file(path: str | os.PathLike[str], what: str) -> Path:
+    """Refuse, before any work, an output file that cannot be written; one line naming `what`
+    (e.g. ``--out``)."""
     p = Path(path)
     try:
-        return json.loads(p.read_text(encoding="utf-8"))
+        if p.is_dir():
+            raise InputError(f"{what}: {p} is a folder; give a file name")
+        _writable_ancestor(p, what)
+    except OSError as exc:
+        raise InputError(f"{what}: cannot write {p}: {exc.strerror or exc}") from None
+    return p
+
+
+def check_output_dir(path: str | os.PathLike[str], what: str, replaceable: frozenset[str]) -> Path:
+    """Refuse, before any work, an output folder that cannot be written or that holds files other
+    than `replaceable` (it would be replaced as a whole); one line naming `what`."""
+    p = Path(path)
+    try:
+        if p.exists() and not p.is_dir():
+            raise InputError(f"{what}: {p} exists and is not a folder")
+        if p.is_dir():
+            foreign = sorted(n for n in os.listdir(p) if n not in replaceable)
+            if foreign:
+                shown = ", ".join(foreign[:3]) + (", ..." if len(foreign) > 3 else "")
+                raise InputError(
+                    f"{what}: {p} holds files crtraj did not write ({shown}); it is replaced as a whole, "
+                    "so give a new folder"
+                )
+        _writable_ancestor(p, what)
+    except OSError as exc:
+        raise InputError(f"{what}: cannot write {p}: {exc.strerror or exc}") from None
+    return p
+
+
+def failed_sibling(path: str | os.PathLike[str]) -> Path:
+    """Where a failed result goes when `path` holds a successful one: ``p.json`` -> ``p.failed.json``,
+    ``out/replan`` -> ``out/replan.failed``."""
+    p = Path(path)
+    if p.suffix and p.stem:
+        return p.with_name(f"{p.stem}.failed{p.suffix}")
+    return p.with_name(f"{p.name}.failed")
+
+
+def is_successful_result(path: str | os.PathLike[str]) -> bool:
+    """True when `path` (a result JSON, or a folder with run.json) holds a crtraj result with success true."""
+    p = Path(path)
+    if p.is_dir():
+        p = p / "run.json"
+    try:
+        doc = json.loads(p.read_bytes())
+    except (OSError, ValueError, RecursionError):
+        return False
+    return isinstance(doc, dict) and doc.get("success") is True
+
+
+def read_text(path: str | os.PathLike[str], *, max_bytes: int, kind: str) -> str:
+    """The UTF-8 text of a regular file of at most `max_bytes` bytes.
+
+    kind names the expected format in messages ("TOML", "JSON"). Raises
+    `InputError` naming the file for a missing file, a folder, a pipe or
+    device (which could block forever), an oversized file and text that is
+    not UTF-8 (a UTF-8 byte-order mark is accepted and dropped).
+    """
+    p = Path(path)
+    try:
+        # stat before open: opening a FIFO for reading blocks until a writer comes
+        _check_regular(p, os.stat(p), max_bytes, kind)
+        with p.open("rb") as fh:
+            _check_regular(p, os.fstat(fh.fileno()), max_bytes, kind)  # the same file, now that it is open
+            data = fh.read(max_bytes + 1)  # the size may change after fstat
+    except InputError:
+        raise
     except FileNotFoundError:
         raise InputError(f"{p}: no such file") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(f"{p}: not valid JSON ({exc})") from None
+    except IsADirectoryError:
+        raise InputError(f"{p}: is a folder, expected a {kind} file") from None
+    except OSError as exc:
+        raise InputError(f"{p}: cannot read ({exc.strerror or exc})") from None
+    except ValueError:  # a NUL byte in the name
+        raise InputError(f"{p!r}: not a valid file name") from None
+    if len(data) > max_bytes:
+        raise InputError(f"{p}: larger than the {max_bytes} bytes a {kind} input may have")
+    if data.startswith((b"\xff\xfe", b"\xfe\xff")):
+        raise InputError(f"{p}: not UTF-8 text (it looks like UTF-16); save it as UTF-8")
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise InputError(
+            f"{p}: not UTF-8 text (byte {exc.start} is 0x{data[exc.start]:02x}); not a {kind} file?"
+        ) from None
+
+
+def _check_regular(p: Path, st: os.stat_result, max_bytes: int, kind: str) -> None:
+    if stat.S_ISDIR(st.st_mode):
+        raise InputError(f"{p}: is a folder, expected a {kind} file")
+    if not stat.S_ISREG(st.st_mode):
+        raise InputError(f"{p}: not a regular file, expected a {kind} file")
+    if st.st_size > max_bytes:
+        raise InputError(f"{p}: {st.st_size} bytes, larger than the {max_bytes} bytes a {kind} input may have")
+
+
+def check_depth(data: Any, name: str, max_depth: int = MAX_DEPTH) -> None:
+    """Raise `InputError` when lists/dicts in `data` nest deeper than `max_depth` levels.
+
+    Iterative, so it works on data too deep for recursive code, which is
+    exactly what it protects (encoders, validators, numpy conversion).
+    """
+    stack: list[tuple[Any, int]] = [(data, 0)]
+    while stack:
+        item, depth = stack.pop()
+        if isinstance(item, dict):
+            children = item.values()
+        elif isinstance(item, list):
+            children = item
+        else:
+            continue
+        if depth >= max_depth:
+            raise InputError(f"{name}: nested deeper than {max_depth} levels")
+        stack.extend((c, depth + 1) for c in children if isinstance(c, (dict, list)))
+
+
+def read_json(path: str | os.PathLike[str], max_bytes: int = MAX_JSON_BYTES) -> Any:
+    """Read a JSON file of at most `max_bytes` bytes; raise `InputError` with the path on failure."""
+    p = Path(path)
+    text = read_text(p, max_bytes=max_bytes, kind="JSON")
+    try:
+        data = json.loads(text)
+    except RecursionError:
+        raise InputError(f"{p}: not valid JSON (nested deeper than {MAX_DEPTH} levels)") from None
+    except MemoryError:
+        raise InputError(f"{p}: too large to parse") from None
+    except ValueError as exc:  # JSONDecodeError, and integers of more than 4300 digits
+        raise InputError(f"{p}: not valid JSON ({_first_line(exc)})") from None
+    check_depth(data, str(p))
+    return data
+
+
+def read_toml(path: str | os.PathLike[str], max_bytes: int = MAX_TOML_BYTES) -> dict[str, Any]:
+    """Parse a TOML file of at most `max_bytes` bytes; one-line `InputError` on any bad file."""
+    p = Path(path)
+    text = read_text(p, max_bytes=max_bytes, kind="TOML")
+    try:
+        data = tomllib.loads(text)
+    except RecursionError:
+        raise InputError(f"{p}: not valid TOML (nested deeper than {MAX_DEPTH} levels)") from None
+    except MemoryError:
+        raise InputError(f"{p}: too large to parse") from None
+    except ValueError as exc:  # TOMLDecodeError, and integers of more than 4300 digits
+        raise InputError(f"{p}: not valid TOML ({_first_line(exc)})") from None
+    check_depth(data, str(p))
+    return data
+
+
+def _first_line(exc: BaseException, width: int = 200) -> str:
+    """A parser's message cut to one line of at most `width` characters."""
+    text = " ".join(str(exc).split())
+    return text if len(text) <= width else text[: width - 3] + "..."

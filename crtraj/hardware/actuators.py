@@ -25,7 +25,12 @@ from typing import Any
 import numpy as np
 
 from crtraj.core.errors import InputError
-from crtraj.core.fields import Table, check_array
+from crtraj.core.fields import MAX_LENGTH, Table, check_array
+
+# Smallest spool radius (mm): below it one radian of servo is less than a micrometre of cable.
+MIN_SPOOL = 1e-3
+# Largest speed or acceleration limit (rad/s, mm/s, rad/s^2, mm/s^2).
+MAX_RATE = 1e6
 
 
 def _sign(t: Table, key: str, default: Any) -> float:
@@ -36,7 +41,7 @@ def _sign(t: Table, key: str, default: Any) -> float:
 
 
 def _limits(t: Table, key: str) -> tuple[float, float]:
-    lo, hi = t.vec(key, 2)
+    lo, hi = t.vec(key, 2, limit=MAX_LENGTH)
     if lo > hi:
         raise t.error(key, f"must be [low, high] with low <= high, got [{lo:g}, {hi:g}]")
     return lo, hi
@@ -55,12 +60,16 @@ def _read_actuator(t: Table, base: dict[str, Any], spool: bool) -> dict[str, Any
     """Read one actuator's keys from `t`, falling back to `base` (the shared servo defaults)."""
     d: dict[str, Any] = {}
     if spool:
-        d["spool_radius"] = _pick(t, "spool_radius", base, lambda: t.float("spool_radius", gt=0.0))
-    d["zero_offset"] = t.float("zero_offset", base.get("zero_offset", 0.0))
+        d["spool_radius"] = _pick(
+            t, "spool_radius", base, lambda: t.float("spool_radius", ge=MIN_SPOOL, limit=MAX_LENGTH)
+        )
+    d["zero_offset"] = t.float("zero_offset", base.get("zero_offset", 0.0), limit=MAX_LENGTH)
     d["sign"] = _sign(t, "sign", base.get("sign", 1))
     d["position_limits"] = _pick(t, "position_limits", base, lambda: _limits(t, "position_limits"))
-    d["velocity_limit"] = _pick(t, "velocity_limit", base, lambda: t.float("velocity_limit", gt=0.0))
-    d["acceleration_limit"] = _pick(t, "acceleration_limit", base, lambda: t.float("acceleration_limit", gt=0.0))
+    d["velocity_limit"] = _pick(t, "velocity_limit", base, lambda: t.float("velocity_limit", gt=0.0, limit=MAX_RATE))
+    d["acceleration_limit"] = _pick(
+        t, "acceleration_limit", base, lambda: t.float("acceleration_limit", gt=0.0, limit=MAX_RATE)
+    )
     return d
 
 
@@ -170,12 +179,12 @@ class Actuators:
             raise t.error("", "needs at least one segment")
         base: dict[str, Any] = {}
         if t.has("spool_radius"):
-            base["spool_radius"] = t.float("spool_radius", gt=0.0)
-        base["zero_offset"] = t.float("zero_offset", 0.0)
+            base["spool_radius"] = t.float("spool_radius", ge=MIN_SPOOL, limit=MAX_LENGTH)
+        base["zero_offset"] = t.float("zero_offset", 0.0, limit=MAX_LENGTH)
         base["sign"] = _sign(t, "sign", 1)
         base["position_limits"] = _limits(t, "position_limits") if t.has("position_limits") else None
         for key in ("velocity_limit", "acceleration_limit"):
-            base[key] = t.float(key, gt=0.0) if t.has(key) else None
+            base[key] = t.float(key, gt=0.0, limit=MAX_RATE) if t.has(key) else None
         names = [f"s{k + 1}c{i + 1}" for k in range(n_segments) for i in range(3)]
         over = t.table("servo")
         for key in over.keys():

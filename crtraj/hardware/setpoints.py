@@ -19,13 +19,26 @@ import numpy as np
 from scipy.interpolate import CubicHermiteSpline, PchipInterpolator
 
 from crtraj.core.errors import InputError
-from crtraj.core.fields import check_float
+from crtraj.core.fields import MAX_LENGTH, MAX_TIME, check_float
 from crtraj.core.fileio import read_json
 from crtraj.hardware.actuators import Actuators
+
+# `--time-scale` range: at most 1000 times slower (or faster); beyond that a
+# replay is either a different experiment or a flood of set-points.
+MIN_TIME_SCALE = 1.0e-3
+MAX_TIME_SCALE = 1.0e3
+# Most set-points one path may be sampled into (5.5 h at 100 Hz): bounds the
+# memory of `sample` (stamps and values) before it allocates anything.
+MAX_SETPOINTS = 2_000_000
 
 # Quintic smoothstep s(u) = 10u^3 - 15u^4 + 6u^5: peak |s'| = 15/8, peak |s''| = 10/sqrt(3).
 _SMOOTH_V = 15.0 / 8.0
 _SMOOTH_A = 10.0 / math.sqrt(3.0)
+
+
+def check_time_scale(factor: Any, name: str = "--time-scale") -> float:
+    """Validate a replay slow-down factor: a finite number in [MIN_TIME_SCALE, MAX_TIME_SCALE]."""
+    return check_float(factor, name, ge=MIN_TIME_SCALE, le=MAX_TIME_SCALE)
 
 
 def _smoothstep(u: np.ndarray) -> np.ndarray:
@@ -108,7 +121,7 @@ class SetpointPath:
         for k, w in enumerate(wps):
             if not isinstance(w, dict) or "t" not in w or "q" not in w:
                 raise InputError(f"{src}waypoints[{k}]: needs 't' (s) and 'q' (actuation, mm)")
-            ts.append(check_float(w["t"], f"{src}waypoints[{k}].t") if w["t"] is not None else math.nan)
+            ts.append(check_float(w["t"], f"{src}waypoints[{k}].t", limit=MAX_TIME) if w["t"] is not None else math.nan)
             q = w["q"]
             if not isinstance(q, list) or len(q) != actuators.n:
                 n = len(q) if isinstance(q, list) else type(q).__name__
@@ -119,15 +132,14 @@ class SetpointPath:
             for i, x in enumerate(q):
                 if x is None:  # to_jsonable writes NaN as null
                     raise InputError(f"{src}waypoints[{k}].q[{i}] ({actuators.names[i]}): must be finite, got null/NaN")
-                row.append(check_float(x, f"{src}waypoints[{k}].q[{i}] ({actuators.names[i]})"))
+                row.append(check_float(x, f"{src}waypoints[{k}].q[{i}] ({actuators.names[i]})", limit=MAX_LENGTH))
             qs.append(row)
         return cls.from_actuation(ts, qs, actuators, src)
 
     # -------------------------------------------------------------- transforms
     def scaled(self, factor: float) -> SetpointPath:
         """The same path `factor` times slower (factor > 1 slows down)."""
-        if not (factor > 0 and math.isfinite(factor)):
-            raise InputError(f"--time-scale: must be > 0, got {factor}")
+        check_time_scale(factor)
         if self.approach_start is not None:
             raise InputError("time scale: apply it before adding the approach move")
         return SetpointPath(self.t[0] + (self.t - self.t[0]) * factor, self.values, self.source)
@@ -160,8 +172,15 @@ class SetpointPath:
         Returns (stamps (M,), values (M, n)); stamps are ``start_time + k / rate``
         except the last, which is the final waypoint time.
         """
+        check_float(rate, "rate", gt=0.0)
         dt = 1.0 / rate
         t0, t1 = self.start_time, float(self.t[-1])
+        n = (t1 - t0) * rate
+        if not n <= MAX_SETPOINTS:  # also catches inf and NaN, before anything is allocated
+            raise InputError(
+                f"{self.source}waypoints: {t1 - t0:g} s at {rate:g} Hz is more than {MAX_SETPOINTS} set-points; "
+                "shorten the run, lower the rate or the time scale"
+            )
         m = math.ceil((t1 - t0) / dt - 1e-9)
         stamps = t0 + dt * np.arange(m + 1)
         stamps[-1] = t1

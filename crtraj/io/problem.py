@@ -10,7 +10,6 @@ sections and unknown keys are errors that name the key.
 
 from __future__ import annotations
 
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol, TypeVar
@@ -18,14 +17,10 @@ from typing import Any, Protocol, TypeVar
 import numpy as np
 
 from crtraj.core.errors import InputError
-from crtraj.core.fields import Table
+from crtraj.core.fields import MAX_LENGTH, MAX_SEED, Table, check_name
+from crtraj.core.fileio import read_toml
 from crtraj.hardware.actuators import Actuators
 from crtraj.model.robot import Robot
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib
 
 SECTIONS = (
     "name",
@@ -39,29 +34,25 @@ SECTIONS = (
     "replan",
     "tracking",
     "stream",
+    "feed",
     "view",
 )
 
 T = TypeVar("T")
 
+MAX_DESCRIPTION = 10_000
+
+
+def _file_name(ref: str, key: str) -> str:
+    """A file reference from a problem file: non-empty, no NUL byte, of a sane length."""
+    if not ref or "\0" in ref or len(ref) > 4096:
+        raise InputError(f"{key}: expected a file name (relative to the problem file), got {ref[:60]!r}")
+    return ref
+
 
 class _FromTable(Protocol[T]):  # pragma: no cover - typing only
     @classmethod
     def from_table(cls, t: Table) -> T: ...
-
-
-def read_toml(path: str | Path) -> dict[str, Any]:
-    """Parse a TOML file; one-line `InputError` on a missing or malformed file."""
-    p = Path(path)
-    try:
-        with p.open("rb") as fh:
-            return tomllib.load(fh)
-    except FileNotFoundError:
-        raise InputError(f"{p}: no such file") from None
-    except IsADirectoryError:
-        raise InputError(f"{p}: is a folder, expected a TOML file") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise InputError(f"{p}: not valid TOML ({exc})") from None
 
 
 def load_robot(path: str | Path) -> Robot:
@@ -96,10 +87,10 @@ class Task:
 
     @classmethod
     def from_table(cls, t: Table, nx: int) -> Task:
-        start = np.array(t.vec("start", 3))
-        goal = np.array(t.vec("goal", 3))
-        sc = t.vec("start_config", nx, None)
-        tol = t.float("goal_tolerance", 1.0, gt=0.0)
+        start = np.array(t.vec("start", 3, limit=MAX_LENGTH))
+        goal = np.array(t.vec("goal", 3, limit=MAX_LENGTH))
+        sc = t.vec("start_config", nx, None, limit=MAX_LENGTH)
+        tol = t.float("goal_tolerance", 1.0, gt=0.0, limit=MAX_LENGTH)
         t.finish()
         return cls(start, goal, None if sc is None else np.array(sc), tol)
 
@@ -138,15 +129,15 @@ class Problem:
         robot_ref = top.raw("robot")
         if isinstance(robot_ref, str):
             base = path.parent if path is not None else Path.cwd()
-            robot = load_robot(base / robot_ref)
+            robot = load_robot(base / _file_name(robot_ref, "robot"))
         else:
             robot = _checked(Robot.from_table(Table(robot_ref, "robot")))
         task = None
         if top.has("task"):
             task = Task.from_table(top.table("task"), robot.nx)
-        seed = top.int("seed", 0, ge=0)
-        name = top.str("name", path.stem if path is not None else "problem")
-        desc = top.str("description", "")
+        seed = top.int("seed", 0, ge=0, le=MAX_SEED)
+        name = check_name(top.str("name", path.stem if path is not None else "problem"), "name")
+        desc = top.str("description", "", max_len=MAX_DESCRIPTION)
         for key in SECTIONS:
             top.raw(key, None)  # sections are validated by their owners
         top.finish()

@@ -26,6 +26,12 @@ from crtraj.model.robot import Robot
 # series truncation error there is < 1e-17.
 _SERIES_T = 1e-2
 
+# Most backbone points of one model function (the solvers use 10-21; dense
+# checks up to a few hundred). The symbolic FK grows linearly with it.
+MAX_POINTS = 1000
+# Most configurations of one exported backbone_map call.
+MAX_BATCH = 1_000_000
+
 
 def _f1_f2(t: ca.SX) -> tuple[ca.SX, ca.SX]:
     """f1 = (1-cos th)/th^2 and f2 = sin th/th as smooth functions of t = th^2."""
@@ -75,8 +81,8 @@ class Model:
     def __init__(self, robot: Robot, n_points: int | None = None) -> None:
         self.robot = robot
         self.n_points = int(robot.collision_points if n_points is None else n_points)
-        if self.n_points < 2:
-            raise InputError(f"n_points: must be >= 2, got {self.n_points}")
+        if not 2 <= self.n_points <= MAX_POINTS:
+            raise InputError(f"n_points: must be in [2, {MAX_POINTS}], got {self.n_points}")
         self.nx, self.nq = robot.nx, robot.nq
         self._x = ca.SX.sym("x", self.nx)
         A, q0 = robot.cable_matrix()
@@ -220,7 +226,9 @@ class Model:
 
     # --------------------------------------------------- exported functions
     def functions(self, batch: int = 1024) -> list[ca.Function]:
-        """Every function `crtraj.model.export` writes; `backbone_map` evaluates `batch` configurations."""
+        """Every exported function; `backbone_map` evaluates `batch` configurations (1..MAX_BATCH)."""
+        if isinstance(batch, bool) or not isinstance(batch, int) or not 1 <= batch <= MAX_BATCH:
+            raise InputError(f"batch: must be an integer in [1, {MAX_BATCH}], got {batch!r}")
         bmap = self.backbone.map("backbone_map", "serial", batch, [], [])
         return [
             self.config_to_cables,

@@ -23,9 +23,18 @@ from typing import Any
 import numpy as np
 
 from crtraj.core.errors import InputError
-from crtraj.core.fields import Table
+from crtraj.core.fields import MAX_LENGTH, Table, check_name
 
 CABLE_SPACING = 2.0 * math.pi / 3.0  # rad, paper's xi: three cables 120 degrees apart
+# Size bounds, checked before any model is built: every solver's size grows
+# with them (the paper's robot: 2 segments, 10 collision points).
+MAX_SEGMENTS = 16
+MAX_COLLISION_POINTS = 200
+# Smallest length a robot dimension may have (mm): 1 um, far below any real
+# cable radius or segment, far above values that make the maps ill-conditioned.
+MIN_DIMENSION = 1e-3
+# Largest |coupling gain|: the paper's is -1; powers of c up to MAX_SEGMENTS stay finite.
+MAX_COUPLING = 10.0
 
 
 @dataclass(frozen=True)
@@ -80,8 +89,12 @@ class Robot:
             raise InputError(f"robot.coupling: must be finite, got {self.coupling}")
         if self.body_radius < 0:
             raise InputError(f"robot.body_radius: must be >= 0, got {self.body_radius}")
-        if self.collision_points < 2:
-            raise InputError(f"robot.collision_points: must be >= 2, got {self.collision_points}")
+        if not 2 <= self.collision_points <= MAX_COLLISION_POINTS:
+            raise InputError(
+                f"robot.collision_points: must be in [2, {MAX_COLLISION_POINTS}], got {self.collision_points}"
+            )
+        if len(self.segments) > MAX_SEGMENTS:
+            raise InputError(f"robot.segment: at most {MAX_SEGMENTS} segments, got {len(self.segments)}")
         for k, s in enumerate(self.segments):
             where = f"robot.segment[{k}]"
             if not (s.length > 0 and math.isfinite(s.length)):
@@ -214,33 +227,33 @@ class Robot:
     def from_table(cls, t: Table) -> Robot:
         """Read a ``[robot]`` table (see problems/robots/cdsr2.toml for the schema)."""
         segs = []
-        seg_tables = t.tables("segment")
+        seg_tables = t.tables("segment", most=MAX_SEGMENTS)
         if not seg_tables:
             raise t.error("segment", "missing: at least one [[robot.segment]] is required")
         for st in seg_tables:
             segs.append(
                 Segment(
-                    length=st.float("length", gt=0.0),
+                    length=st.float("length", ge=MIN_DIMENSION, limit=MAX_LENGTH),
                     theta_max=st.float("theta_max", math.pi, gt=0.0, le=2 * math.pi),
-                    cable_phase=st.float("cable_phase", 0.0),
-                    cable_stroke=st.float("cable_stroke", None, gt=0.0),
+                    cable_phase=st.float("cable_phase", 0.0, limit=1e3),
+                    cable_stroke=st.float("cable_stroke", None, ge=MIN_DIMENSION, limit=MAX_LENGTH),
                 )
             )
             st.finish()
-        z = t.vec("z_range", 2, (0.0, 0.0))
+        z = t.vec("z_range", 2, (0.0, 0.0), limit=MAX_LENGTH)
         if z[0] > z[1]:
             raise t.error("z_range", f"must be [low, high] with low <= high, got {list(z)}")
         # kept raw: the hardware layer owns the actuator schema (Actuators.from_robot)
         actuators = t.raw("actuators", None)
         robot = cls(
-            name=t.str("name"),
-            cable_radius=t.float("cable_radius", gt=0.0),
+            name=check_name(t.str("name"), t.path + ".name" if t.path else "name"),
+            cable_radius=t.float("cable_radius", ge=MIN_DIMENSION, limit=MAX_LENGTH),
             segments=tuple(segs),
             z_range=(z[0], z[1]),
-            coupling=t.float("coupling", 0.0),
-            body_radius=t.float("body_radius", 3.0, ge=0.0),
-            collision_points=t.int("collision_points", 10, ge=2),
-            description=t.str("description", ""),
+            coupling=t.float("coupling", 0.0, limit=MAX_COUPLING),
+            body_radius=t.float("body_radius", 3.0, ge=0.0, limit=MAX_LENGTH),
+            collision_points=t.int("collision_points", 10, ge=2, le=MAX_COLLISION_POINTS),
+            description=t.str("description", "", max_len=10_000),
             actuators=actuators,
         )
         t.finish()

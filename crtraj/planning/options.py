@@ -2,15 +2,54 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, replace
+from types import MappingProxyType
 from typing import Any
 
+import numpy as np
+
 from crtraj.core.errors import InputError
-from crtraj.core.fields import Table
+from crtraj.core.fields import MAX_LENGTH, MAX_TIME, Table
 from crtraj.planning.stop import StopCondition
 from crtraj.planning.validity import MotionValidator
 
 ALGORITHMS = ("cspace", "rrt", "rrtstar")
+
+# Bounds of every integer option: [low, high]. The highs keep one planner call
+# within memory and a bounded number of solver calls; each is far above what
+# the paper's problems use (the defaults).
+_INT_BOUNDS: Mapping[str, tuple[int, int]] = MappingProxyType(
+    {
+        "max_iterations": (1, 10_000_000),
+        "check_points": (2, 1000),
+        "ik_seeds": (1, 10_000),
+        "goal_configs": (1, 1000),
+        "ik_iterations": (0, 10_000),
+        "ik_nlp_solves": (0, 1000),
+        "via_points": (0, 10_000),
+        "shortcut_rounds": (0, 1000),
+        "shortcut_batch": (1, 10_000),
+    }
+)
+# Bounds of every float option: (low, high, low excluded). Step sizes have a
+# positive floor so that the number of collision checks and waypoints along
+# a motion stays bounded (a 1e-300 mm resolution would never finish).
+_FLOAT_BOUNDS: Mapping[str, tuple[float, float, bool]] = MappingProxyType(
+    {
+        "time_limit": (0.0, MAX_TIME, True),
+        "goal_bias": (0.0, 1.0, False),
+        "wait_bias": (0.0, 1.0, False),
+        "range": (1e-3, MAX_LENGTH, False),
+        "rewire_radius": (0.0, MAX_LENGTH, True),
+        "max_speed": (1e-3, MAX_LENGTH, False),
+        "resolution": (0.1, MAX_LENGTH, False),
+        "goal_window": (0.0, MAX_TIME, False),
+        "via_spread": (0.0, MAX_LENGTH, True),
+        "corner": (1e-3, MAX_LENGTH, False),
+        "waypoint_step": (0.1, MAX_LENGTH, False),
+    }
+)
 
 
 @dataclass(frozen=True)
@@ -81,31 +120,23 @@ class PlannerOptions:
     def __post_init__(self) -> None:
         if self.algorithm not in ALGORITHMS:
             raise InputError(f"planner.algorithm: must be one of {', '.join(ALGORITHMS)}; got {self.algorithm!r}")
-        checks = {
-            "time_limit": self.time_limit > 0,
-            "max_iterations": self.max_iterations >= 1,
-            "goal_bias": 0.0 <= self.goal_bias <= 1.0,
-            "wait_bias": 0.0 <= self.wait_bias <= 1.0,
-            "range": self.range is None or self.range > 0,
-            "rewire_radius": self.rewire_radius > 0,
-            "max_speed": self.max_speed > 0,
-            "resolution": self.resolution > 0,
-            "check_points": self.check_points >= 2,
-            "ik_seeds": self.ik_seeds >= 1,
-            "goal_configs": self.goal_configs >= 1,
-            "ik_iterations": self.ik_iterations >= 0,
-            "ik_nlp_solves": self.ik_nlp_solves >= 0,
-            "goal_window": self.goal_window >= 0,
-            "via_points": self.via_points >= 0,
-            "via_spread": self.via_spread > 0,
-            "shortcut_rounds": self.shortcut_rounds >= 0,
-            "shortcut_batch": self.shortcut_batch >= 1,
-            "corner": self.corner > 0,
-            "waypoint_step": self.waypoint_step > 0,
-        }
-        for key, ok in checks.items():
+        for key, (lo, hi) in _INT_BOUNDS.items():
+            v = getattr(self, key)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not lo <= v <= hi:
+                raise InputError(f"planner.{key}: must be an integer in [{lo}, {hi}], got {v!r}")
+        for key, (lo, hi, lo_open) in _FLOAT_BOUNDS.items():
+            v = getattr(self, key)
+            if v is None and key == "range":
+                continue
+            ok = (
+                isinstance(v, (int, float, np.integer))
+                and not isinstance(v, bool)
+                and (v > lo if lo_open else v >= lo)
+                and v <= hi
+            )
             if not ok:
-                raise InputError(f"planner.{key}: out of range, got {getattr(self, key)!r}")
+                bracket = "(" if lo_open else "["
+                raise InputError(f"planner.{key}: must be a number in {bracket}{lo:g}, {hi:g}], got {v!r}")
 
     @property
     def step(self) -> float:
@@ -139,28 +170,28 @@ class PlannerOptions:
         d = cls()
         opts = cls(
             algorithm=t.str("algorithm", d.algorithm, choices=ALGORITHMS),
-            time_limit=t.float("time_limit", d.time_limit, gt=0.0),
-            max_iterations=t.int("max_iterations", d.max_iterations, ge=1),
+            time_limit=_float(t, "time_limit", d.time_limit),
+            max_iterations=_int(t, "max_iterations", d.max_iterations),
             first_solution=t.bool("first_solution", d.first_solution),
-            goal_bias=t.float("goal_bias", d.goal_bias, ge=0.0, le=1.0),
-            wait_bias=t.float("wait_bias", d.wait_bias, ge=0.0, le=1.0),
-            range=t.float("range", None, gt=0.0),
-            rewire_radius=t.float("rewire_radius", d.rewire_radius, gt=0.0),
-            max_speed=t.float("max_speed", d.max_speed, gt=0.0),
-            resolution=t.float("resolution", d.resolution, gt=0.0),
-            check_points=t.int("check_points", d.check_points, ge=2),
-            ik_seeds=t.int("ik_seeds", d.ik_seeds, ge=1),
-            goal_configs=t.int("goal_configs", d.goal_configs, ge=1),
-            ik_iterations=t.int("ik_iterations", d.ik_iterations, ge=0),
-            ik_nlp_solves=t.int("ik_nlp_solves", d.ik_nlp_solves, ge=0),
-            goal_window=t.float("goal_window", d.goal_window, ge=0.0),
-            via_points=t.int("via_points", d.via_points, ge=0),
-            via_spread=t.float("via_spread", d.via_spread, gt=0.0),
-            shortcut_rounds=t.int("shortcut_rounds", d.shortcut_rounds, ge=0),
-            shortcut_batch=t.int("shortcut_batch", d.shortcut_batch, ge=1),
+            goal_bias=_float(t, "goal_bias", d.goal_bias),
+            wait_bias=_float(t, "wait_bias", d.wait_bias),
+            range=_float(t, "range", None),
+            rewire_radius=_float(t, "rewire_radius", d.rewire_radius),
+            max_speed=_float(t, "max_speed", d.max_speed),
+            resolution=_float(t, "resolution", d.resolution),
+            check_points=_int(t, "check_points", d.check_points),
+            ik_seeds=_int(t, "ik_seeds", d.ik_seeds),
+            goal_configs=_int(t, "goal_configs", d.goal_configs),
+            ik_iterations=_int(t, "ik_iterations", d.ik_iterations),
+            ik_nlp_solves=_int(t, "ik_nlp_solves", d.ik_nlp_solves),
+            goal_window=_float(t, "goal_window", d.goal_window),
+            via_points=_int(t, "via_points", d.via_points),
+            via_spread=_float(t, "via_spread", d.via_spread),
+            shortcut_rounds=_int(t, "shortcut_rounds", d.shortcut_rounds),
+            shortcut_batch=_int(t, "shortcut_batch", d.shortcut_batch),
             smooth=t.bool("smooth", d.smooth),
-            corner=t.float("corner", d.corner, gt=0.0),
-            waypoint_step=t.float("waypoint_step", d.waypoint_step, gt=0.0),
+            corner=_float(t, "corner", d.corner),
+            waypoint_step=_float(t, "waypoint_step", d.waypoint_step),
         )
         t.finish()
         return opts
@@ -170,3 +201,17 @@ class PlannerOptions:
         if d["range"] is None:
             d.pop("range")
         return d
+
+
+def _float(t: Table, key: str, default: float | None) -> float:
+    """Read float option `key` with its `_FLOAT_BOUNDS`."""
+    lo, hi, lo_open = _FLOAT_BOUNDS[key]
+    if lo_open:
+        return t.float(key, default, gt=lo, le=hi)
+    return t.float(key, default, ge=lo, le=hi)
+
+
+def _int(t: Table, key: str, default: int) -> int:
+    """Read integer option `key` with its `_INT_BOUNDS`."""
+    lo, hi = _INT_BOUNDS[key]
+    return t.int(key, default, ge=lo, le=hi)

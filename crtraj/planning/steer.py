@@ -59,7 +59,8 @@ import casadi as ca
 import numpy as np
 
 from crtraj.core.errors import InputError
-from crtraj.core.fields import Table
+from crtraj.core.fields import MAX_LENGTH, Table
+from crtraj.model.robot import MAX_COLLISION_POINTS
 from crtraj.world import margin, packing
 from crtraj.world.scene import Scene
 
@@ -119,6 +120,11 @@ def _pairs(t: Table) -> tuple[tuple[str, Any], ...]:
         if isinstance(v, (bool, int, float, str)):
             if isinstance(v, float) and not math.isfinite(v):
                 raise t.error(key, f"must be finite, got {v}")
+            # solver options are counts, levels and tolerances; IPOPT's own "infinity" is 1e19
+            if isinstance(v, (int, float)) and not isinstance(v, bool) and abs(v) > 1e20:
+                raise t.error(key, f"must be within +-1e20, got {float(v):g}")
+            if isinstance(v, str) and len(v) > 1000:
+                raise t.error(key, "longer than 1000 characters")
             out.append((key, v))
         else:
             raise t.error(key, f"expected a string, number or boolean, got {v!r}")
@@ -224,11 +230,11 @@ class SteerOptions:
             obstacle_coefficient=t.float("obstacle_coefficient", d.obstacle_coefficient, ge=0.0),
             damping_scale=t.float("damping_scale", d.damping_scale, gt=0.0),
             obstacle_scale=t.float("obstacle_scale", d.obstacle_scale, gt=0.0),
-            max_step=t.float("max_step", d.max_step, gt=0.0),
-            tolerance=t.float("tolerance", d.tolerance, gt=0.0),
-            margin=t.float("margin", d.margin, ge=0.0),
-            n_points=t.int("n_points", None, ge=2),
-            max_iter=t.int("max_iter", d.max_iter, ge=1),
+            max_step=t.float("max_step", d.max_step, gt=0.0, limit=MAX_LENGTH),
+            tolerance=t.float("tolerance", d.tolerance, gt=0.0, limit=MAX_LENGTH),
+            margin=t.float("margin", d.margin, ge=0.0, limit=MAX_LENGTH),
+            n_points=t.int("n_points", None, ge=2, le=MAX_COLLISION_POINTS),
+            max_iter=t.int("max_iter", d.max_iter, ge=1, le=100_000),
             tol=t.float("tol", d.tol, gt=0.0),
             qpsol=t.str("qpsol", d.qpsol, choices=QP_SOLVERS),
             jit=t.bool("jit", d.jit),
@@ -237,7 +243,7 @@ class SteerOptions:
             predictor=t.bool("predictor", d.predictor),
             feasibility_tolerance=t.float("feasibility_tolerance", d.feasibility_tolerance, ge=0.0),
             dls_gain=t.float("dls_gain", d.dls_gain, gt=0.0, le=1.0),
-            dls_iterations=t.int("dls_iterations", d.dls_iterations, ge=1),
+            dls_iterations=t.int("dls_iterations", d.dls_iterations, ge=1, le=100_000),
             ipopt=_pairs(t.table("ipopt")),
             sqp=_pairs(t.table("sqp")),
         )

@@ -51,8 +51,9 @@ import numpy as np
 import umsgpack
 
 from crtraj.core.errors import InputError
-from crtraj.core.fields import Table, check_array, check_float
+from crtraj.core.fields import MAX_LENGTH, MAX_TIME, Table, check_array, check_float
 from crtraj.core.fileio import atomic_write_text
+from crtraj.world.scene import MAX_OBSTACLES
 
 if TYPE_CHECKING:
     from crtraj.model.kinematics import Model
@@ -79,6 +80,10 @@ _ROOT = "/meshcat"  # meshcat's conventional root of user content; deleting it k
 # Rotation about x by +90 deg, (w, x, y, z): takes a three.js cylinder's y axis onto z.
 _Q_Y_TO_Z = np.array([math.cos(math.pi / 4), math.sin(math.pi / 4), 0.0, 0.0])
 _COLOR_RE = re.compile(r"^#[0-9a-fA-F]{6}$")
+# Largest run a view draws: each waypoint is an animation frame of the HTML
+# (a 60 s replan run has a few thousand), each tree edge a line segment.
+MAX_WAYPOINTS = 100_000
+MAX_EDGES = 1_000_000
 
 
 # ---------------------------------------------------------------------- options
@@ -193,8 +198,10 @@ def _obstacles(obs: Any, where: str) -> tuple[np.ndarray, np.ndarray]:
     if isinstance(centers, list) and not centers:
         c = np.zeros((0, 3))
     else:
-        c = check_array(centers, f"{where}.centers", (None, 3))
-    r = check_array(radii, f"{where}.radii", (c.shape[0],))
+        c = check_array(centers, f"{where}.centers", (None, 3), limit=MAX_LENGTH)
+    if c.shape[0] > MAX_OBSTACLES:
+        raise InputError(f"{where}.centers: at most {MAX_OBSTACLES} obstacles, got {c.shape[0]}")
+    r = check_array(radii, f"{where}.radii", (c.shape[0],), limit=MAX_LENGTH)
     if np.any(r < 0):
         raise InputError(f"{where}.radii: must be >= 0, got {r.min():g}")
     return c, r
@@ -210,6 +217,8 @@ def _parse_run(result: Any, nx: int) -> _Run:
     wps = _field(result, "waypoints", "")
     if not isinstance(wps, list) or not wps:
         raise InputError("waypoints: expected a non-empty list of waypoints")
+    if len(wps) > MAX_WAYPOINTS:
+        raise InputError(f"waypoints: at most {MAX_WAYPOINTS} can be drawn, got {len(wps)}")
     n = len(wps)
     t = np.empty(n)
     x = np.empty((n, nx))
@@ -218,12 +227,12 @@ def _parse_run(result: Any, nx: int) -> _Run:
     radii: list[np.ndarray] = []
     for i, w in enumerate(wps):
         where = f"waypoints[{i}]"
-        t[i] = check_float(_field(w, "t", where), f"{where}.t")
+        t[i] = check_float(_field(w, "t", where), f"{where}.t", limit=MAX_TIME)
         if i and t[i] < t[i - 1]:
             raise InputError(f"{where}.t: time goes backwards ({t[i]:g} s after {t[i - 1]:g} s)")
-        x[i] = check_array(_field(w, "x", where), f"{where}.x", (nx,))
+        x[i] = check_array(_field(w, "x", where), f"{where}.x", (nx,), limit=MAX_LENGTH)
         if w.get("tip") is not None:
-            tip[i] = check_array(w["tip"], f"{where}.tip", (3,))
+            tip[i] = check_array(w["tip"], f"{where}.tip", (3,), limit=MAX_LENGTH)
         c, r = _obstacles(w.get("obstacles"), f"{where}.obstacles")
         if centers and c.shape[0] != centers[0].shape[0]:
             raise InputError(f"{where}.obstacles: {c.shape[0]} obstacles, but waypoints[0] has {centers[0].shape[0]}")
@@ -233,18 +242,24 @@ def _parse_run(result: Any, nx: int) -> _Run:
     start = goal = None
     if isinstance(task, Mapping):
         if task.get("start") is not None:
-            start = check_array(task["start"], "task.start", (3,))
+            start = check_array(task["start"], "task.start", (3,), limit=MAX_LENGTH)
         if task.get("goal") is not None:
-            goal = check_array(task["goal"], "task.goal", (3,))
+            goal = check_array(task["goal"], "task.goal", (3,), limit=MAX_LENGTH)
     reference = edges = None
     ref = result.get("reference")
     if ref:
-        reference = check_array(_field(ref, "tip", "reference"), "reference.tip", (None, 3))
+        reference = check_array(_field(ref, "tip", "reference"), "reference.tip", (None, 3), limit=MAX_LENGTH)
+        if reference.shape[0] > MAX_WAYPOINTS:
+            raise InputError(f"reference.tip: at most {MAX_WAYPOINTS} points can be drawn, got {reference.shape[0]}")
     tree = result.get("tree")
     if tree:
         raw_edges = _field(tree, "edges", "tree")
+        if not isinstance(raw_edges, list):
+            raise InputError("tree.edges: expected a list of [[x, y, z], [x, y, z]] pairs (mm)")
+        if len(raw_edges) > MAX_EDGES:
+            raise InputError(f"tree.edges: at most {MAX_EDGES} can be drawn, got {len(raw_edges)}")
         if len(raw_edges):
-            edges = check_array(raw_edges, "tree.edges", (None, 2, 3))
+            edges = check_array(raw_edges, "tree.edges", (None, 2, 3), limit=MAX_LENGTH)
     return _Run(kind, t, x, tip, np.stack(centers), np.stack(radii), start, goal, reference, edges)
 
 
@@ -253,8 +268,8 @@ def _workspace(scene: Any) -> tuple[np.ndarray, np.ndarray] | None:
     ws = scene.get("workspace") if isinstance(scene, Mapping) else None
     if not isinstance(ws, Mapping) or "lo" not in ws or "hi" not in ws:
         return None
-    lo = check_array(ws["lo"], "scene.workspace.lo", (3,))
-    hi = check_array(ws["hi"], "scene.workspace.hi", (3,))
+    lo = check_array(ws["lo"], "scene.workspace.lo", (3,), limit=MAX_LENGTH)
+    hi = check_array(ws["hi"], "scene.workspace.hi", (3,), limit=MAX_LENGTH)
     if np.any(lo >= hi):
         raise InputError(f"scene.workspace: lo must be below hi, got lo={lo.tolist()} hi={hi.tolist()}")
     return lo, hi

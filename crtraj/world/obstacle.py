@@ -31,11 +31,20 @@ from typing import Any
 import numpy as np
 
 from crtraj.core.errors import InputError
-from crtraj.core.fields import Table
+from crtraj.core.fields import MAX_TIME, Table
 
 PROFILES = ("linear", "sin", "cos")
 # Integer code of each motion profile (vectorised evaluation in `Scene`).
 PROFILE_CODE = MappingProxyType({"linear": 0, "sin": 1, "cos": 2})
+# Largest radius frequency (rad/s): a sphere breathing faster than ~160 Hz is
+# not a physical obstacle, and larger values only lose precision in sin().
+MAX_OMEGA = 1.0e3
+# Coordinates of obstacles and workspace are at most this far from the base (mm):
+# padding slots (`crtraj.world.packing`) sit far beyond and must stay outside every real scene.
+MAX_COORDINATE = 1.0e5
+# Shortest motion duration or period (s): a sphere crossing the workspace in
+# less than a millisecond is not physical.
+MIN_DURATION = 1.0e-3
 
 
 @dataclass(frozen=True)
@@ -115,26 +124,26 @@ class Obstacle:
     @classmethod
     def from_table(cls, t: Table) -> Obstacle:
         """Read one ``[[scene.obstacle]]`` table (schema in `Scene.from_table`)."""
-        name = t.str("name", "")
-        center = t.vec("center", 3)
+        name = t.str("name", "", max_len=100)
+        center = t.vec("center", 3, limit=MAX_COORDINATE)
         rv = t.raw("radius")
         if isinstance(rv, dict):
             rt = Table(rv, f"{t.path}.radius")
-            mean = rt.float("mean", ge=0.0)
-            amp = rt.float("amplitude", 0.0)
-            omega = rt.float("omega", 0.0)
-            phase = rt.float("phase", 0.0)
+            mean = rt.float("mean", ge=0.0, limit=MAX_COORDINATE)
+            amp = rt.float("amplitude", 0.0, limit=MAX_COORDINATE)
+            omega = rt.float("omega", 0.0, limit=MAX_OMEGA)
+            phase = rt.float("phase", 0.0, limit=1e3)
             rt.finish()
             if abs(amp) > mean:
                 raise rt.error("amplitude", f"|amplitude| must be <= mean {mean:g} mm, got {amp:g}")
         else:
-            mean = t.float("radius", ge=0.0)
+            mean = t.float("radius", ge=0.0, limit=MAX_COORDINATE)
             amp, omega, phase = 0.0, 0.0, 0.0
         to: tuple[float, ...] | None = None
         duration, profile = 1.0, "linear"
         if t.has("motion"):
             mt = t.table("motion")
-            to = mt.vec("to", 3)
+            to = mt.vec("to", 3, limit=MAX_COORDINATE)
             profile = mt.str("profile", "linear", choices=PROFILES)
             has_d, has_p = mt.has("duration"), mt.has("period")
             if has_d and has_p:
@@ -142,11 +151,11 @@ class Obstacle:
             if has_p:
                 if profile == "linear":
                     raise mt.error("period", "a linear motion has no period; give duration (s)")
-                period = mt.float("period", gt=0.0)
+                period = mt.float("period", ge=MIN_DURATION, limit=MAX_TIME)
                 # time to first reach `to`: half a period for cos, a quarter for sin
                 duration = period / 2.0 if profile == "cos" else period / 4.0
             else:
-                duration = mt.float("duration", gt=0.0)
+                duration = mt.float("duration", ge=MIN_DURATION, limit=MAX_TIME)
             mt.finish()
         t.finish()
         return cls(

@@ -23,9 +23,9 @@ from typing import Any
 import numpy as np
 
 from crtraj.core.errors import InputError
-from crtraj.core.fields import Table
+from crtraj.core.fields import MAX_TIME, Table
 from crtraj.world import margin, packing
-from crtraj.world.obstacle import PROFILE_CODE, Obstacle, sin_range
+from crtraj.world.obstacle import MAX_COORDINATE, PROFILE_CODE, Obstacle, sin_range
 
 # The paper's search space: 300 x 300 x 500 mm centred on the base axis. It
 # stands on the base's home plane z = 0 and reaches 500 mm up, which holds the
@@ -33,17 +33,20 @@ from crtraj.world.obstacle import PROFILE_CODE, Obstacle, sin_range
 # the paper's simulations (tip heights 170..390 mm, spheres 195..395 mm).
 DEFAULT_WORKSPACE = ((-150.0, -150.0, 0.0), (150.0, 150.0, 500.0))
 
+# Most obstacles a scene may have: every solver carries one slot per obstacle
+# (the paper's scenes have at most 7).
+MAX_OBSTACLES = 100
+
 
 @dataclass(frozen=True)
 class Scene:
-    """Obstacles, safety distance D_sf (mm), planning time step (s) and workspace box (mm).
+    """Obstacles, safety distance D_sf (mm) and workspace box (mm).
 
     Read from a problem file's ``[scene]`` table with `Scene.from_table`.
     """
 
     obstacles: tuple[Obstacle, ...] = ()
     safety_distance: float = margin.DEFAULT_SAFETY_DISTANCE
-    time_step: float = 1.0
     workspace_lo: tuple[float, float, float] = DEFAULT_WORKSPACE[0]
     workspace_hi: tuple[float, float, float] = DEFAULT_WORKSPACE[1]
     time_origin: float = 0.0
@@ -56,8 +59,6 @@ class Scene:
                 raise InputError(f"scene.obstacle: expected Obstacle objects, got {type(o).__name__}")
         if not (math.isfinite(self.safety_distance) and self.safety_distance >= 0):
             raise InputError(f"scene.safety_distance: must be >= 0 mm, got {self.safety_distance}")
-        if not (math.isfinite(self.time_step) and self.time_step > 0):
-            raise InputError(f"scene.time_step: must be > 0 s, got {self.time_step}")
         if not math.isfinite(self.time_origin):
             raise InputError(f"scene.time_origin: must be finite, got {self.time_origin}")
         lo = tuple(float(v) for v in self.workspace_lo)
@@ -291,7 +292,7 @@ class Scene:
         return replace(self, time_origin=self.time_origin + float(dt))
 
     def with_obstacles(self, obstacles: Any) -> Scene:
-        """A copy with a different obstacle list (same D_sf, time step, workspace, clock)."""
+        """A copy with a different obstacle list (same D_sf, workspace, clock)."""
         return replace(self, obstacles=tuple(obstacles))
 
     # --------------------------------------------------------------- file I/O
@@ -299,14 +300,17 @@ class Scene:
     def from_table(cls, t: Table) -> Scene:
         """Read ``[scene]``.
 
-        Keys: ``safety_distance`` (mm, default `margin.DEFAULT_SAFETY_DISTANCE` = 5), ``time_step`` (s, default 1),
+        Keys: ``safety_distance`` (mm, default `margin.DEFAULT_SAFETY_DISTANCE` = 5),
         ``workspace = {lo = [x,y,z], hi = [x,y,z]}`` (mm, default the paper's
         300 x 300 x 500 box, x,y in [-150, 150], z in [0, 500]),
         ``time_origin`` (s, default 0), and ``[[scene.obstacle]]`` tables with
         ``center`` (mm), ``radius`` (mm, or ``{mean, amplitude, omega, phase}``),
         optional ``motion = {to, duration | period, profile}`` and ``name``.
         """
-        obstacles = tuple(Obstacle.from_table(ot) for ot in t.tables("obstacle"))
+        if t.has("time_step"):  # documented once, never used: refuse it rather than ignore it
+            t.raw("time_step")
+            raise t.error("time_step", "no longer supported (it had no effect); remove it")
+        obstacles = tuple(Obstacle.from_table(ot) for ot in t.tables("obstacle", most=MAX_OBSTACLES))
         names = [o.name for o in obstacles if o.name]
         if len(set(names)) != len(names):
             dup = next(n for n in names if names.count(n) > 1)
@@ -314,19 +318,18 @@ class Scene:
         lo, hi = DEFAULT_WORKSPACE
         if t.has("workspace"):
             wt = t.table("workspace")
-            lo = wt.vec("lo", 3, lo)
-            hi = wt.vec("hi", 3, hi)
+            lo = wt.vec("lo", 3, lo, limit=MAX_COORDINATE)
+            hi = wt.vec("hi", 3, hi, limit=MAX_COORDINATE)
             wt.finish()
             bad = [i for i in range(3) if not lo[i] < hi[i]]
             if bad:
                 raise wt.error("hi", f"must be above lo on every axis, got lo {list(lo)}, hi {list(hi)}")
         scene = cls(
             obstacles=obstacles,
-            safety_distance=t.float("safety_distance", margin.DEFAULT_SAFETY_DISTANCE, ge=0.0),
-            time_step=t.float("time_step", 1.0, gt=0.0),
+            safety_distance=t.float("safety_distance", margin.DEFAULT_SAFETY_DISTANCE, ge=0.0, limit=MAX_COORDINATE),
             workspace_lo=(lo[0], lo[1], lo[2]),
             workspace_hi=(hi[0], hi[1], hi[2]),
-            time_origin=t.float("time_origin", 0.0),
+            time_origin=t.float("time_origin", 0.0, limit=MAX_TIME),
         )
         t.finish()
         return scene
@@ -335,7 +338,6 @@ class Scene:
         """Plain data in the ``[scene]`` schema (round-trips through `from_table`)."""
         d: dict[str, Any] = {
             "safety_distance": self.safety_distance,
-            "time_step": self.time_step,
             "workspace": {"lo": list(self.workspace_lo), "hi": list(self.workspace_hi)},
         }
         if self.time_origin != 0.0:
