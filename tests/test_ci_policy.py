@@ -159,3 +159,15 @@ def test_multiset_compare_finds_a_pairing_greedy_nearest_misses():
     assert_same_multiset([0.0, 1.0], [0.6, 1.6], atol=0.6 + 1e-12)
     with pytest.raises(AssertionError):
         assert_same_multiset([0.0, 1.0], [0.6, 1.6], atol=0.5)
+
+
+# --------------------------------------------------------------------- .ci/run
+def test_ci_script_runs_exactly_the_readme_test_command():
+    readme = (TESTS.parent / "README.md").read_text(encoding="utf-8")
+    block = readme.split("```bash\n", 1)[1].split("```", 1)[0].splitlines()
+    command = block[block.index(next(line for line in block if line.startswith("# 2."))) + 1]
+    assert "pytest" in command
+    script = (TESTS.parent / ".ci" / "run").read_text(encoding="utf-8").splitlines()
+    between = script[script.index("# --- the README's test command ---") + 1 :]
+    assert between[1] == f"{command} || rc=$?", between[:3]
+    assert "export CI=true" in script
