@@ -19,6 +19,9 @@ from crtraj.problem import load_robot
 
 ROOT = Path(__file__).resolve().parent.parent
 PROBLEMS = ROOT / "problems"
+# A planner's wall-time limit in tests that expect a plan: only a hang bound. The iteration limit
+# (PlannerOptions.max_iterations) and the seed decide the outcome, so it is the same on a slow machine.
+PLANNER_HANG_S = 600.0
 
 
 @pytest.fixture(scope="session")
