@@ -19,8 +19,9 @@ from crtraj.problem import load_robot
 
 ROOT = Path(__file__).resolve().parent.parent
 PROBLEMS = ROOT / "problems"
-# A planner's wall-time limit in tests that expect a plan: only a hang bound. The iteration limit
-# (PlannerOptions.max_iterations) and the seed decide the outcome, so it is the same on a slow machine.
+# A planner's or solver's wall-time limit in tests that expect a result: only a hang bound. The iteration
+# limits (PlannerOptions.max_iterations, ReplanOptions.max_iter) and the seed decide the outcome, so it is
+# the same on a slow machine.
 PLANNER_HANG_S = 600.0
 
 
