@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import require_module
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -347,7 +348,7 @@ def test_cli_reports_bad_arguments_in_one_line(capsys, tmp_path):
 
 # ----------------------------------------------------------------- executors
 def test_dask_local_cluster_runs_the_bench(robot):
-    distributed = pytest.importorskip("distributed")
+    distributed = require_module("distributed", hint="pip install -e '.[bench]'")
     with (
         distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cluster,
         distributed.Client(cluster) as client,
@@ -380,7 +381,7 @@ def test_ompl_missing_gives_an_install_hint(monkeypatch):
 
 
 def test_ompl_plans_in_space_time_and_passes_the_dense_check(model, generator):
-    pytest.importorskip("ompl")
+    require_module("ompl", hint="pip install -e '.[bench]'")
     from crtraj.ompl_adapter import OMPLPlanner
     from crtraj.stop import StopCondition
 
@@ -432,7 +433,7 @@ def test_cli_two_scenario_run_of_every_planner(tmp_path, capsys):
 
 
 def test_cli_dask_address_runs_on_the_cluster(tmp_path, capsys):
-    distributed = pytest.importorskip("distributed")
+    distributed = require_module("distributed", hint="pip install -e '.[bench]'")
     with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cl:
         out = tmp_path / "dask"
         code = main(
