@@ -15,10 +15,10 @@ from pathlib import Path
 
 import casadi as ca
 import numpy as np
-from crtraj.model.export import export_model
-from crtraj.model.kinematics import Model
 
 from crtraj.io.problem import load_robot
+from crtraj.model.export import export_model
+from crtraj.model.kinematics import Model
 
 ROOT = Path(__file__).resolve().parent.parent
 

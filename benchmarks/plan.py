@@ -24,9 +24,9 @@ from pathlib import Path
 
 import casadi as ca
 import numpy as np
-from crtraj.model.kinematics import Model
 
 from crtraj.io.problem import Problem, read_toml
+from crtraj.model.kinematics import Model
 from crtraj.planning.options import PlannerOptions
 from crtraj.planning.registry import make_planner
 from crtraj.planning.steer import SteerOptions

@@ -21,10 +21,10 @@ from pathlib import Path
 
 import casadi as ca
 import numpy as np
-from crtraj.model.kinematics import Model
 
 from crtraj.core.fileio import atomic_write_json
 from crtraj.io.problem import Problem
+from crtraj.model.kinematics import Model
 from crtraj.planning.steer import SteerOptions, SteerSolver
 from crtraj.world.scene import Scene
 

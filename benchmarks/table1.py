@@ -23,9 +23,9 @@ import time
 from pathlib import Path
 
 import numpy as np
+
 from crtraj.bench.records import LABELS, PAPER_COUNTS, PAPER_TABLE1, PLANNERS, BenchOptions
 from crtraj.bench.runner import Table1Bench
-
 from crtraj.io.problem import load_robot
 from crtraj.planning.registry import BUILTIN
 

@@ -15,10 +15,10 @@ import time
 from pathlib import Path
 
 import numpy as np
-from crtraj.model.kinematics import Model
 
 from crtraj.control.tracking import TrackingController, TrackingOptions
 from crtraj.io.problem import load_robot
+from crtraj.model.kinematics import Model
 
 ROBOT = Path(__file__).resolve().parent.parent / "problems" / "robots" / "cdsr2.toml"
 

@@ -17,11 +17,11 @@ from pathlib import Path
 
 import numpy as np
 import umsgpack
-from crtraj.model.kinematics import Model
-from crtraj.viz.view import Visualizer, _packb
 
 from crtraj.core.fileio import to_jsonable
 from crtraj.io.problem import load_robot
+from crtraj.model.kinematics import Model
+from crtraj.viz.view import Visualizer, _packb
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -8,10 +8,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from crtraj.model.kinematics import Model
 
 from crtraj.app.plan import ProblemPlan
 from crtraj.io.problem import Problem
+from crtraj.model.kinematics import Model
 from crtraj.planning.options import PlannerOptions
 from crtraj.planning.registry import make_planner
 from crtraj.planning.steer import SteerOptions

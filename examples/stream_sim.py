@@ -17,7 +17,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-from crtraj.model.kinematics import Model
 
 from crtraj.core.fileio import atomic_write_json, to_jsonable
 from crtraj.hardware.actuators import Actuators
@@ -25,6 +24,7 @@ from crtraj.hardware.setpoints import SetpointPath
 from crtraj.hardware.sim_device import Faults, SimDevice
 from crtraj.hardware.stream import Streamer, StreamOptions
 from crtraj.io.problem import load_robot
+from crtraj.model.kinematics import Model
 
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "out" / "stream_demo"

@@ -16,11 +16,11 @@ import time
 from pathlib import Path
 
 import numpy as np
-from crtraj.model.kinematics import Model
-from crtraj.viz.view import Visualizer
 
 from crtraj.core.fileio import read_json
 from crtraj.io.problem import load_robot
+from crtraj.model.kinematics import Model
+from crtraj.viz.view import Visualizer
 
 ROBOT = Path(__file__).resolve().parent.parent / "problems" / "robots" / "cdsr2.toml"
 

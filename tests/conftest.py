@@ -1,16 +1,28 @@
-"""Shared fixtures: the default robot and its model, built once per session."""
+"""Shared fixtures and helpers: the default robot and its model (built once per session), the CI
+policy for tests that need a tool or an optional extra, and an order-free comparison of numbers."""
 
 from __future__ import annotations
 
+import importlib
+import os
+import shutil
 from pathlib import Path
+from types import ModuleType
+from typing import NoReturn
 
+import numpy as np
 import pytest
+from scipy.optimize import linear_sum_assignment
 
 from crtraj.io.problem import load_robot
 from crtraj.model.kinematics import Model
 
 ROOT = Path(__file__).resolve().parent.parent
 PROBLEMS = ROOT / "problems"
+# A planner's or solver's wall-time limit in tests that expect a result: only a hang bound. The iteration
+# limits (PlannerOptions.max_iterations, ReplanOptions.max_iter) and the seed decide the outcome, so it is
+# the same on a slow machine.
+PLANNER_HANG_S = 600.0
 
 
 @pytest.fixture(scope="session")
@@ -21,3 +33,52 @@ def robot():
 @pytest.fixture(scope="session")
 def model(robot):
     return Model(robot)
+
+
+# ------------------------------------------------------------------ CI policy
+def in_ci() -> bool:
+    """True when the CI environment variable says so (CI=true, as GitHub Actions and .ci/run set it)."""
+    return os.environ.get("CI", "").strip().lower() in ("true", "1", "yes")
+
+
+def missing(what: str) -> NoReturn:
+    """Skip the calling test because `what` is missing here; under CI=true fail it instead, since
+    CI must run every test (a skipped test there is a silently untested feature)."""
+    if in_ci():
+        pytest.fail(f"{what} (CI=true: required here, not skipped)", pytrace=False)
+    pytest.skip(what)
+
+
+def require_tool(*names: str, hint: str = "") -> str:
+    """Full path of the first of `names` found on PATH; skips locally (fails under CI=true) if none is."""
+    for name in names:
+        path = shutil.which(name)
+        if path:
+            return path
+    missing(f"none of {', '.join(names)} is on PATH" + (f" ({hint})" if hint else ""))
+
+
+def require_module(name: str, hint: str = "") -> ModuleType:
+    """The imported optional module `name`; skips locally (fails under CI=true) if it cannot be imported."""
+    try:
+        return importlib.import_module(name)
+    except ImportError as exc:
+        missing(f"optional module {name} is not importable: {exc}" + (f" ({hint})" if hint else ""))
+
+
+# ------------------------------------------------------------ order-free compare
+def assert_same_multiset(actual, expected, atol: float) -> None:
+    """Assert two 1-D arrays of (complex) numbers are equal as multisets within `atol`.
+
+    Pairs them by an optimal assignment that minimises the number of pairs farther apart than `atol`
+    (zero whenever any pairing within `atol` exists), so the verdict does not depend on how ties or
+    near-ties (a conjugate pair whose real parts differ in the last bit) happen to be sorted.
+    """
+    a = np.asarray(actual).reshape(-1)
+    b = np.asarray(expected).reshape(-1)
+    assert a.shape == b.shape, f"{a.size} values, expected {b.size}"
+    cost = np.abs(a[:, None] - b[None, :])
+    rows, cols = linear_sum_assignment((cost > atol).astype(float))
+    worst = int(np.argmax(cost[rows, cols]))
+    d = cost[rows[worst], cols[worst]]
+    assert d <= atol, f"{a[rows[worst]]} has no partner within {atol} (nearest unused: {b[cols[worst]]}, |d| = {d:.3g})"

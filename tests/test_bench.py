@@ -6,12 +6,12 @@ from __future__ import annotations
 import csv
 import json
 import math
-import os
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import require_module
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -363,7 +363,7 @@ def test_cli_reports_bad_arguments_in_one_line(capsys, tmp_path):
 
 # ----------------------------------------------------------------- executors
 def test_dask_local_cluster_runs_the_bench(robot):
-    distributed = pytest.importorskip("distributed")
+    distributed = require_module("distributed", hint="pip install -e '.[bench]'")
     with (
         distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cluster,
         distributed.Client(cluster) as client,
@@ -393,18 +393,8 @@ def test_ompl_missing_gives_an_install_hint(monkeypatch):
         import_ompl()
 
 
-def require_ompl() -> None:
-    """OMPL is an optional extra: missing, its tests fail under CI=true (standards) and skip elsewhere."""
-    try:
-        import_ompl()
-    except InputError as exc:
-        if os.environ.get("CI") == "true":
-            pytest.fail(f"CI=true: {exc}")
-        pytest.skip(str(exc))
-
-
 def test_ompl_plans_in_space_time_and_passes_the_dense_check(model, generator):
-    require_ompl()
+    require_module("ompl", hint="pip install -e '.[bench]'")
     sc = generator.generate(1, 1)
     planner = OMPLPlanner(model, algorithm="RRTConnect")
     # a generous budget: RRTConnect stops at its first solution, the limit only bounds a failure
@@ -464,7 +454,7 @@ def test_cli_two_scenario_run_of_every_planner(tmp_path, capsys):
 
 
 def test_cli_dask_address_runs_on_the_cluster(tmp_path, capsys):
-    distributed = pytest.importorskip("distributed")
+    distributed = require_module("distributed", hint="pip install -e '.[bench]'")
     with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cl:
         out = tmp_path / "dask"
         code = main(

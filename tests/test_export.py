@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import json
-import shutil
 
 import casadi as ca
 import numpy as np
 import pytest
+from conftest import require_tool
 
 from crtraj.cli import main
 
@@ -59,8 +59,8 @@ def test_casadi_files_round_trip(exported, model):
             np.testing.assert_allclose(np.asarray(loaded(x)), np.asarray(ref(x)), atol=1e-10, rtol=0)
 
 
-@pytest.mark.skipif(shutil.which("cc") is None and shutil.which("gcc") is None, reason="no C compiler on this machine")
 def test_compiled_library_round_trip(exported, model):
+    require_tool("cc", "gcc", "clang", hint="Debian: apt-get install gcc")
     man = json.loads((exported / "manifest.json").read_text())
     lib = exported / man["library"]
     assert lib.is_file()

@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+from conftest import PLANNER_HANG_S
 from test_planner_helpers import PAPER_STATIC, assert_valid_plan, paper_static
 
 from crtraj.app.plan import plan_problem
@@ -38,13 +39,13 @@ def steer_options(sim1):
 @pytest.fixture(scope="module")
 def rrt(sim1, steer_options):
     _, model, scene = sim1
-    return RRT(model, scene, PlannerOptions(algorithm="rrt", time_limit=60.0), steer_options)
+    return RRT(model, scene, PlannerOptions(algorithm="rrt", time_limit=PLANNER_HANG_S), steer_options)
 
 
 @pytest.fixture(scope="module")
 def rrtstar(sim1, steer_options):
     _, model, scene = sim1
-    return RRTStar(model, scene, PlannerOptions(algorithm="rrtstar", time_limit=60.0), steer_options)
+    return RRTStar(model, scene, PlannerOptions(algorithm="rrtstar", time_limit=PLANNER_HANG_S), steer_options)
 
 
 def test_rrt_plan_is_valid(sim1, rrt):
@@ -172,7 +173,7 @@ def test_cli_plan_writes_the_result(tmp_path, capsys):
 
 def test_cli_plan_rrt_and_errors(tmp_path, capsys):
     out = tmp_path / "rrt.json"
-    rc = main(["plan", str(PAPER_STATIC), "--planner", "rrt", "--time-limit", "30", "--out", str(out)])
+    rc = main(["plan", str(PAPER_STATIC), "--planner", "rrt", "--time-limit", str(PLANNER_HANG_S), "--out", str(out)])
     assert rc == 0 and json.loads(out.read_text())["summary"]["planner"] == "rrt"
     capsys.readouterr()
     assert main(["plan", str(tmp_path / "missing.toml")]) == 2

@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import math
-import os
-import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import require_tool
 
 from crtraj.core.errors import InputError
 from crtraj.core.fields import Table
@@ -415,17 +414,9 @@ def test_problem_file_steer_sections(model):
         assert opts.damping == 0.3 and opts.obstacle_coefficient == mu
 
 
-def require_gcc() -> None:
-    """A missing compiler fails the jit tests under CI=true (standards), and skips them elsewhere."""
-    if shutil.which("gcc") is None:
-        if os.environ.get("CI") == "true":
-            pytest.fail("CI=true: the steer jit test needs gcc on PATH")
-        pytest.skip("gcc not found: the jit path cannot be compiled here")
-
-
 @pytest.mark.slow
 def test_jit_compiles_privately_and_matches_plain(model, sqp, tmp_path, monkeypatch):
-    require_gcc()
+    require_tool("gcc", hint="Debian: apt-get install gcc")  # without it jit compares plain with plain
     monkeypatch.chdir(tmp_path)  # CasADi's nlpsol jit writes its C source to the working directory
     jit = SteerSolver(model, 4, SteerOptions(solver="sqp", jit=True))
     assert jit.jit_message == "jit: compiled with gcc -O2"

@@ -8,7 +8,6 @@ import json
 import os
 import queue
 import re
-import shutil
 import signal
 import subprocess
 import sys
@@ -21,6 +20,7 @@ import matplotlib.image as mpimg
 import numpy as np
 import pytest
 import umsgpack
+from conftest import require_tool
 from matplotlib.colors import rgb_to_hsv
 from scipy.optimize import least_squares
 
@@ -552,36 +552,206 @@ def test_cli_view_serves_until_ctrl_c(result, tmp_path):
 
 
 # --------------------------------------------------------------- browser
-CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser") or shutil.which("google-chrome")
-needs_chromium = pytest.mark.skipif(
-    CHROMIUM is None, reason="Chromium not found (Debian: apt-get install chromium); real-browser tests skipped"
+# Headless Chromium is driven over the DevTools protocol on a pipe: a page is captured once a condition
+# holds in it (every scene command handled, the animation loaded and, if it plays, finished), never after
+# a fixed or virtual-time window, so a slow machine only takes longer. BROWSER_HANG_S bounds a hang only.
+BROWSER_HANG_S = 600.0
+CHROMIUM_FLAGS = (
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--disable-dev-shm-usage",
+    "--hide-scrollbars",
+    # WebGL with --disable-gpu runs on SwiftShader; newer Chromium wants it allowed explicitly
+    "--use-angle=swiftshader",
+    "--enable-unsafe-swiftshader",
+    "--window-size=1024,768",
+    "--remote-debugging-pipe",
 )
 
+# Runs in every page before its own scripts: counts the meshcat commands the viewer has handled (meshcat's
+# bundle assigns self.MeshCat once; the setter wraps Viewer.handle_command then) and records page errors.
+_PAGE_HOOK = """
+(() => {
+  const state = (window.__crtraj = { handled: 0, errors: [] });
+  addEventListener("error", (e) => state.errors.push(String(e.message)));
+  addEventListener("unhandledrejection", (e) => state.errors.push(String(e.reason)));
+  let lib;
+  Object.defineProperty(window, "MeshCat", {
+    configurable: true,
+    get: () => lib,
+    set(value) {
+      lib = value;
+      const handle = value.Viewer.prototype.handle_command;
+      value.Viewer.prototype.handle_command = function (cmd) {
+        handle.call(this, cmd);
+        state.handled += 1;
+      };
+    },
+  });
+})();
+"""
 
-def _screenshot(page: Path | str, png: Path, budget_ms: int) -> np.ndarray:
-    """Render `page` (an HTML file or a URL) in headless Chromium (software WebGL); RGB (H, W, 3) in [0, 1]."""
-    profile = png.with_suffix(".profile")
-    cmd = [
-        CHROMIUM,
-        "--headless",
-        "--no-sandbox",
-        "--disable-gpu",
-        "--disable-background-networking",
-        "--no-first-run",
-        "--disable-component-update",
-        "--disable-sync",
-        # WebGL with --disable-gpu runs on SwiftShader; newer Chromium wants it allowed explicitly
-        "--use-angle=swiftshader",
-        "--enable-unsafe-swiftshader",
-        f"--user-data-dir={profile}",
-        f"--screenshot={png}",
-        "--window-size=1024,768",
-        f"--virtual-time-budget={budget_ms}",
-        page.resolve().as_uri() if isinstance(page, Path) else page,
-    ]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=180)
-    assert proc.returncode == 0 and png.exists(), proc.stderr[-2000:]
-    return mpimg.imread(png)[..., :3]
+# Resolves once N commands are handled and the animation is loaded and not playing (paused, or played to
+# its end: meshcat stops playing when every action has finished), after two more frames so the final pose
+# is on screen; rejects at the first page error.
+_PAGE_READY = """
+new Promise((resolve, reject) => {
+  const s = window.__crtraj;
+  const check = () => {
+    if (s.errors.length) return reject(new Error(s.errors.join("; ")));
+    const v = window.viewer;
+    if (v && s.handled >= %d && v.animator.actions.length > 0 && !v.animator.playing) {
+      v.set_dirty();
+      requestAnimationFrame(() => requestAnimationFrame(() => resolve({ handled: s.handled, time: v.animator.time })));
+    } else {
+      requestAnimationFrame(check);
+    }
+  };
+  check();
+})
+"""
+
+
+_FD_TRAMPOLINE = """
+import fcntl, os, sys
+r, w = (int(a) for a in sys.argv[1:3])
+moved = [fcntl.fcntl(fd, fcntl.F_DUPFD_CLOEXEC, 5) for fd in (r, w)]  # off 3 and 4 first
+for fd in (r, w):
+    os.close(fd)
+os.dup2(moved[0], 3)
+os.dup2(moved[1], 4)
+for fd in moved:
+    os.close(fd)
+os.execv(sys.argv[3], sys.argv[3:])
+"""
+
+
+class _Browser:
+    """One headless Chromium; `capture` opens a page in a new tab and returns its picture."""
+
+    def __init__(self, exe: str, profile: Path):
+        profile.mkdir(parents=True, exist_ok=True)
+        # the DevTools pipe: Chromium reads commands on its fd 3 and writes replies on its fd 4; a Python
+        # trampoline moves the pipe ends there and execs Chromium (subprocess can only keep fd numbers)
+        to_r, to_w = os.pipe()
+        from_r, from_w = os.pipe()
+        self._log = (profile / "chromium.log").open("wb")
+        self.proc = subprocess.Popen(
+            [sys.executable, "-c", _FD_TRAMPOLINE, str(to_r), str(from_w), exe,
+             *CHROMIUM_FLAGS, f"--user-data-dir={profile}", "about:blank"],
+            stdin=subprocess.DEVNULL, stdout=self._log, stderr=subprocess.STDOUT, pass_fds=(to_r, from_w),
+        )  # fmt: skip
+        self._log_path = profile / "chromium.log"
+        os.close(to_r)
+        os.close(from_w)
+        self._out = os.fdopen(to_w, "wb", buffering=0)
+        self._replies: queue.Queue = queue.Queue()
+        self._next_id = 0
+        self._events: list[dict] = []
+        threading.Thread(target=self._read, args=(from_r,), daemon=True).start()
+
+    def _read(self, fd: int) -> None:
+        buf = b""
+        with os.fdopen(fd, "rb", buffering=0) as f:
+            while chunk := f.read(1 << 20):
+                *msgs, buf = (buf + chunk).split(b"\0")
+                for m in msgs:
+                    self._replies.put(json.loads(m))
+        self._replies.put(None)  # Chromium closed the pipe
+
+    def _fail(self, what: str) -> AssertionError:
+        tail = self._log_path.read_text(errors="replace")[-3000:]
+        return AssertionError(f"chromium: {what}; exit code {self.proc.poll()}; log tail:\n{tail}")
+
+    def _next(self, what: str, deadline: float) -> dict:
+        """The next message from Chromium; fails at the hang bound or when the pipe closes."""
+        try:
+            msg = self._replies.get(timeout=max(0.0, deadline - time.monotonic()))
+        except queue.Empty:
+            raise self._fail(f"no {what} within {BROWSER_HANG_S:.0f} s (hung)") from None
+        if msg is None:
+            self._replies.put(None)
+            raise self._fail(f"pipe closed while waiting for {what}")
+        return msg
+
+    def call(self, method: str, session: str | None = None, **params):
+        """Send one DevTools command and wait for its reply (events meanwhile are kept for `wait_event`)."""
+        self._next_id += 1
+        msg = {"id": self._next_id, "method": method, "params": params}
+        if session:
+            msg["sessionId"] = session
+        self._out.write(json.dumps(msg).encode() + b"\0")
+        deadline = time.monotonic() + BROWSER_HANG_S  # a hang bound, never a window a slow page could miss
+        while True:
+            reply = self._next(f"reply to {method}", deadline)
+            if reply.get("id") == self._next_id:
+                if "error" in reply:
+                    raise self._fail(f"{method}: {reply['error']}")
+                return reply["result"]
+            if "method" in reply:
+                self._events.append(reply)
+
+    def wait_event(self, method: str, session: str) -> dict:
+        """Wait for the event `method` of `session` (one already received counts)."""
+        deadline = time.monotonic() + BROWSER_HANG_S
+        while True:
+            for i, ev in enumerate(self._events):
+                if ev["method"] == method and ev.get("sessionId") == session:
+                    return self._events.pop(i)
+            ev = self._next(f"event {method}", deadline)
+            if "method" in ev:
+                self._events.append(ev)
+
+    def capture(self, page: Path | str, n_commands: int, png: Path) -> tuple[np.ndarray, dict]:
+        """Open `page` (an HTML file or a URL), wait until its viewer has handled `n_commands` meshcat
+        commands and its animation is at rest, and return the picture, RGB (768, 1024, 3) in [0, 1],
+        and the page's state ({"handled": commands, "time": animation time in s})."""
+        target = self.call("Target.createTarget", url="about:blank")["targetId"]
+        session = self.call("Target.attachToTarget", targetId=target, flatten=True)["sessionId"]
+        try:
+            self.call("Emulation.setDeviceMetricsOverride", session, width=1024, height=768,
+                      deviceScaleFactor=1, mobile=False)  # fmt: skip
+            self.call("Page.addScriptToEvaluateOnNewDocument", session, source=_PAGE_HOOK)
+            self.call("Page.enable", session)
+            self.call("Page.navigate", session, url=page.resolve().as_uri() if isinstance(page, Path) else page)
+            self.wait_event("Page.loadEventFired", session)  # the page's own document (and hook) is in place
+            ready = self.call("Runtime.evaluate", session, expression=_PAGE_READY % n_commands,
+                              awaitPromise=True, returnByValue=True)  # fmt: skip
+            if "exceptionDetails" in ready:
+                raise self._fail(f"page {page}: {ready['exceptionDetails']}")
+            shot = self.call("Page.captureScreenshot", session, format="png")
+        finally:
+            self.call("Target.closeTarget", targetId=target)
+            self._events = [ev for ev in self._events if ev.get("sessionId") != session]
+        png.write_bytes(base64.b64decode(shot["data"]))
+        return mpimg.imread(png)[..., :3], ready["result"]["value"]
+
+    def close(self) -> None:
+        try:
+            if self.proc.poll() is None:
+                self.call("Browser.close")
+            self.proc.wait(timeout=BROWSER_HANG_S)
+        except (AssertionError, OSError, subprocess.TimeoutExpired):
+            self.proc.kill()
+            self.proc.wait()
+        finally:
+            self._out.close()
+            self._log.close()
+
+
+@pytest.fixture(scope="module")
+def browser(tmp_path_factory):
+    """A headless Chromium for this module's browser tests; skips locally (fails under CI=true) without one."""
+    exe = require_tool("chromium", "chromium-browser", "google-chrome", hint="Debian: apt-get install chromium")
+    b = _Browser(exe, tmp_path_factory.mktemp("chromium") / "profile")
+    yield b
+    b.close()
 
 
 def _mask(img, hue_lo, hue_hi, min_sat):
@@ -603,10 +773,13 @@ def _centroid(mask):
     return np.array([xs.mean(), ys.mean()])
 
 
-@needs_chromium
-def test_browser_renders_robot_and_obstacles(model, result, tmp_path):
-    html = Visualizer.for_result(result, play=False).save_html(tmp_path / "sim1.html")
-    img = _screenshot(html, tmp_path / "sim1.png", 4000)
+def _n_commands(vis: Visualizer) -> int:
+    return len(vis.scene_commands())
+
+
+def test_browser_renders_robot_and_obstacles(browser, model, result, tmp_path):
+    vis = Visualizer.for_result(result, play=False)
+    img, _ = browser.capture(vis.save_html(tmp_path / "sim1.html"), _n_commands(vis), tmp_path / "sim1.png")
     assert img.shape == (768, 1024, 3)
     # not blank: a failed WebGL context leaves one flat colour
     assert img.reshape(-1, 3).std(axis=0).max() > 0.05
@@ -615,23 +788,22 @@ def test_browser_renders_robot_and_obstacles(model, result, tmp_path):
     assert n_blue > 80 and n_green > 80, (n_blue, n_green)
     assert n_red > 3000, n_red
     # control: the same run without obstacles has no obstacle colour, robot colours stay
-    bare = Visualizer.for_result(make_result(model, obstacles=False), play=False).save_html(tmp_path / "bare.html")
-    img2 = _screenshot(bare, tmp_path / "bare.png", 4000)
+    bare = Visualizer.for_result(make_result(model, obstacles=False), play=False)
+    img2, _ = browser.capture(bare.save_html(tmp_path / "bare.html"), _n_commands(bare), tmp_path / "bare.png")
     assert int(_mask(img2, *RED).sum()) < 50
     assert int(_mask(img2, *BLUE).sum()) > 80 and int(_mask(img2, *GREEN).sum()) > 80
 
 
-@needs_chromium
-def test_browser_animation_carries_robot_from_start_to_goal(model, tmp_path):
-    """Paused, the tip segment is at the start marker; played through (2 s run, 5 s of virtual
-    time), it is at the goal marker."""
+def test_browser_animation_carries_robot_from_start_to_goal(browser, model, tmp_path):
+    """Paused, the tip segment is at the start marker; played (a 2 s run, in real time) until meshcat
+    reports the animation finished, it is at the goal marker."""
     result = make_result(model, duration=2.0)
-    paused = _screenshot(
-        Visualizer.for_result(result, play=False).save_html(tmp_path / "a.html"), tmp_path / "a.png", 4000
-    )
-    played = _screenshot(
-        Visualizer.for_result(result, play=True).save_html(tmp_path / "b.html"), tmp_path / "b.png", 5000
-    )
+    still = Visualizer.for_result(result, play=False)
+    paused, state0 = browser.capture(still.save_html(tmp_path / "a.html"), _n_commands(still), tmp_path / "a.png")
+    moving = Visualizer.for_result(result, play=True)
+    played, state1 = browser.capture(moving.save_html(tmp_path / "b.html"), _n_commands(moving), tmp_path / "b.png")
+    # the page's own animation clock: at the start when paused, at the end (2 s) once played through
+    assert state0["time"] == 0.0 and state1["time"] == pytest.approx(2.0, abs=1e-6), (state0, state1)
     # marker pixels, found where nothing covers them: before the run, the robot is away from the goal
     # and the start marker is outside the obstacles
     start_px, goal_px = _centroid(_mask(paused, *AMBER)), _centroid(_mask(paused, *MAGENTA))
@@ -644,13 +816,13 @@ def test_browser_animation_carries_robot_from_start_to_goal(model, tmp_path):
         assert d_near < 15 and d_far > 100, (d_near, d_far)
 
 
-@needs_chromium
-def test_browser_live_server_page_matches_standalone_page(result, tmp_path):
+def test_browser_live_server_page_matches_standalone_page(browser, result, tmp_path):
     """The page served over the websocket renders the same picture as the standalone file."""
     vis = Visualizer.for_result(result, server=True, play=False)
     try:
-        live = _screenshot(vis.url, tmp_path / "live.png", 4000)
-        static = _screenshot(vis.save_html(tmp_path / "static.html"), tmp_path / "static.png", 4000)
+        n = _n_commands(vis)
+        live, _ = browser.capture(vis.url, n, tmp_path / "live.png")
+        static, _ = browser.capture(vis.save_html(tmp_path / "static.html"), n, tmp_path / "static.png")
     finally:
         vis.close()
     assert int(_mask(live, *GREEN).sum()) > 80 and int(_mask(live, *RED).sum()) > 3000
