@@ -238,6 +238,11 @@ class DeviceCore:
         self.applied: deque[Applied] = deque(maxlen=history)
         self.violations: deque[LimitViolation] = deque(maxlen=1000)
 
+    @property
+    def time(self) -> float:
+        """Device time (s) the physics has reached; it never goes back."""
+        return self._t
+
     # -------------------------------------------------------------- physics
     def advance(self, now: float) -> None:
         """Integrate the servos up to device time `now` (s); earlier times are ignored."""
@@ -272,6 +277,7 @@ class DeviceCore:
         if not isinstance(msg, Frame):
             self.counts["crc_errors"] += 1  # telemetry is never addressed to a device
             return False
+        now = max(float(now), self._t)  # a clock that steps back must not rewind the servos
         self.advance(now)
         if msg.kind == PING:
             return self._ping(msg, now)
@@ -368,6 +374,7 @@ class DeviceCore:
         """The telemetry frame for device time `now` (None before any session)."""
         if self._session == 0:
             return None
+        now = max(float(now), self._t)
         self.advance(now)
         self._tel_seq += 1
         c = self.counts

@@ -100,7 +100,7 @@ class StreamOptions:
     ack_timeout: longest time a set-point may stay unacknowledged while
     telemetry arrives (s). following_tolerance: largest |measured -
     acknowledged set-point| per actuator while moving (rad or mm; the
-    simulated device's servos lag up to v^2 / (2 a) + tau v behind a ramp).
+    simulated device at its limits lags up to ~3.1 mm behind a z ramp: v^2 / (2 a) + tau v + one period).
     fsync: also fsync the run log after every line (survives power loss,
     slower)."""
 
@@ -111,7 +111,7 @@ class StreamOptions:
     settle_tolerance: float = 0.01
     settle_timeout: float = 2.0
     ack_timeout: float = 0.25
-    following_tolerance: float = 3.0
+    following_tolerance: float = 5.0
     fsync: bool = False
 
     def __post_init__(self) -> None:

@@ -24,6 +24,7 @@ class CoreLink(Transport):
     def __init__(self, core: DeviceCore, clock: _VirtualClock, telemetry_dt: float = 0.01) -> None:
         self.core = core
         self.clock = clock
+        clock.now = max(clock.now, core.time)  # one device, one monotonic clock across runs
         self.telemetry_dt = telemetry_dt
         self._next_tel = clock()
         self.sent: list[bytes] = []
