@@ -793,6 +793,7 @@ class Streamer:
     def _poll_telemetry(self, now: float) -> None:
         if not self.transport.has_telemetry:
             return
+        newest: Telemetry | None = None
         for data in self.transport.receive():
             try:
                 msg = Frame.decode(data)
@@ -855,7 +856,12 @@ class Streamer:
                 self._event("device-limited", f"device flagged {msg.limited - self._limited_base} set-point(s)")
                 self._limited_base = msg.limited
             if self._state in _CHECKED:
-                self._check_following(msg, now)
+                self._check_following(msg)
+            newest = msg
+        # after the whole batch: telemetry that queued up while this thread was starved must not
+        # make frames it sent just before the stall look unacknowledged
+        if newest is not None and self._state in _CHECKED:
+            self._check_acks(newest, now)
 
     def _take_ack(self, ack: int) -> None:
         """Drop the set-points the device acknowledged; remember the values of the acknowledged one."""
@@ -867,8 +873,8 @@ class Streamer:
             if seq == ack:
                 self._acked_values = values
 
-    def _check_following(self, tel: Telemetry, now: float) -> None:
-        """Latch a hold when acknowledgements stop advancing or the device does not follow."""
+    def _check_acks(self, tel: Telemetry, now: float) -> None:
+        """Latch a hold when the device's acknowledgements stop advancing (it ignores our frames)."""
         if self._unacked and now - self._unacked[0][1] > self.options.ack_timeout:
             seq, sent, _ = self._unacked[0]
             self._latch(
@@ -878,7 +884,9 @@ class Streamer:
                 now,
                 "ack-stalled",
             )
-            return
+
+    def _check_following(self, tel: Telemetry) -> None:
+        """Latch a hold when the measured positions do not follow the acknowledged set-point."""
         if self._acked_values is None:
             return
         err = np.abs(tel.positions - self._acked_values)
@@ -889,7 +897,7 @@ class Streamer:
                 f"following error: {self.actuators.names[i]} measured {tel.positions[i]:.4g} {u}, "
                 f"commanded {self._acked_values[i]:.4g} {u} (|error| {err[i]:.4g} > following_tolerance "
                 f"{self.options.following_tolerance:g})",
-                now,
+                self._clock(),
                 "following-error",
             )
 

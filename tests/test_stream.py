@@ -33,8 +33,9 @@ pytestmark = pytest.mark.timeout(120)
 ROOT = Path(__file__).resolve().parent.parent
 ROBOT_FILE = ROOT / "problems" / "robots" / "cdsr2.toml"
 # Tests that are not about the watchdog use a longer one, so a loaded CI machine that
-# delays a telemetry packet by 100 ms cannot turn them into false "telemetry lost" failures.
-ROBUST = StreamOptions(watchdog=0.5, connect_timeout=5.0, ack_timeout=0.5)
+# delays a telemetry packet by 100 ms cannot turn them into false "telemetry lost" failures;
+# likewise for the acknowledgement and following-error checks (tested on the virtual clock).
+ROBUST = StreamOptions(watchdog=0.5, connect_timeout=5.0, ack_timeout=0.5, following_tolerance=20.0)
 
 
 # ------------------------------------------------------------------ helpers
