@@ -433,7 +433,9 @@ def test_cli_streams_to_sim_device_subprocess(result, tmp_path, capsys):
         assert line.startswith("sim-device listening on udp://127.0.0.1:")
         addr = line.split("udp://")[1].split()[0]
         log = tmp_path / "run.jsonl"
-        code, out, _ = _run_cli(["stream", _write(tmp_path, result), "--udp", addr, "--log", str(log)], capsys)
+        # a 1 s watchdog: this test is about the CLI, not about a loaded machine starving the device process
+        argv = ["stream", _write(tmp_path, result), "--udp", addr, "--log", str(log), "--watchdog", "1.0"]
+        code, out, _ = _run_cli(argv, capsys)
         assert code == 0, out
         assert out.splitlines()[1] == "done: completed"
         # crash safety: kill a streaming CLI mid-run; the record holds complete lines up to the kill
@@ -454,6 +456,8 @@ def test_cli_streams_to_sim_device_subprocess(result, tmp_path, capsys):
                 "--time-scale",
                 "10",
                 "--approach",
+                "--watchdog",
+                "1.0",
             ],
             cwd=ROOT,
             stdout=subprocess.DEVNULL,
