@@ -24,6 +24,9 @@ from crtraj.hardware.protocol import (
     cobs_decode,
     cobs_encode,
     read_stream_file,
+    seq_after,
+    seq_distance,
+    seq_next,
     stream_encode,
 )
 from crtraj.hardware.transport import Transport, TransportError, parse_hostport
@@ -32,37 +35,50 @@ finite = st.floats(allow_nan=False, allow_infinity=False, width=64)
 values = st.lists(finite, min_size=0, max_size=16).map(np.array)
 
 
-@given(st.sampled_from([MOVE, HOLD, ESTOP]), st.integers(0, 2**32 - 1), finite, values)
-def test_frame_round_trip(kind, seq, stamp, v):
-    f = Frame.decode(Frame(kind, seq, stamp, v).encode())
+@given(st.sampled_from([MOVE, HOLD, ESTOP]), st.integers(0, 2**32 - 1), finite, values, st.integers(0, 2**32 - 1))
+def test_frame_round_trip(kind, seq, stamp, v, session):
+    f = Frame.decode(Frame(kind, seq, stamp, v, session).encode())
     assert isinstance(f, Frame)
-    assert (f.kind, f.seq, f.stamp) == (kind, seq, stamp)
+    assert (f.kind, f.seq, f.stamp, f.session) == (kind, seq, stamp, session)
     np.testing.assert_array_equal(f.values, v)
 
 
 def test_layout_matches_the_documented_bytes():
     v = np.array([0.5, -1.25, 3.0])
-    data = Frame(MOVE, 7, 1.5, v).encode()
-    assert len(data) == 18 + 8 * 3 + 4
-    assert data[:2] == b"CR" and data[2] == 1 and data[3] == MOVE
-    assert struct.unpack_from("<HId", data, 4) == (3, 7, 1.5)
-    assert struct.unpack_from("<3d", data, 18) == (0.5, -1.25, 3.0)
+    data = Frame(MOVE, 7, 1.5, v, 0xA1B2C3D4).encode()
+    assert len(data) == 22 + 8 * 3 + 4
+    assert data[:2] == b"CR" and data[2] == 2 and data[3] == MOVE
+    assert struct.unpack_from("<HIId", data, 4) == (3, 0xA1B2C3D4, 7, 1.5)
+    assert struct.unpack_from("<3d", data, 22) == (0.5, -1.25, 3.0)
     assert struct.unpack_from("<I", data, len(data) - 4)[0] == zlib.crc32(data[:-4])
+    tel = Telemetry(3, 0.5, 7, 16, np.array([1.0]), 1, 2, 3, 4, 5, 6, session=9).encode()
+    assert len(tel) == 22 + 32 + 8 + 4
+    assert struct.unpack_from("<IHHIIIIII", tel, 22) == (7, 16, 0, 1, 2, 3, 4, 5, 6)
+    assert struct.unpack_from("<d", tel, 54) == (1.0,)
+
+
+def test_serial_number_arithmetic_wraps_around():
+    # RFC 1982 with 32 bits: 0 follows 0xFFFFFFFF, and "newer" means less than half the circle ahead
+    assert seq_after(0, 0xFFFFFFFF) and seq_after(5, 0xFFFFFFF0) and not seq_after(0xFFFFFFFF, 0)
+    assert not seq_after(7, 7)
+    assert seq_after(2**31 - 1, 0) and not seq_after(2**31, 0) and not seq_after(2**31 + 1, 0)
+    assert seq_next(0xFFFFFFFF) == 0 and seq_next(0xFFFFFFFE, 3) == 1
+    assert seq_distance(1, 0xFFFFFFFF) == 2 and seq_distance(0xFFFFFFFF, 0) == 2**32 - 1
 
 
 @given(
     st.integers(0, 2**32 - 1),
     st.integers(0, 2**32 - 1),
     st.integers(0, 0xFFFF),
-    st.lists(st.integers(0, 2**32 - 1), min_size=4, max_size=4),
+    st.lists(st.integers(0, 2**32 - 1), min_size=6, max_size=6),
     values,
 )
 def test_telemetry_round_trip(seq, ack, status, counters, p):
-    t = Telemetry(seq, 2.5, ack, status, p, *counters)
+    t = Telemetry(seq, 2.5, ack, status, p, *counters, session=seq ^ 0x5A5A5A5A)
     back = Frame.decode(t.encode())
     assert isinstance(back, Telemetry)
-    assert (back.seq, back.ack, back.status) == (seq, ack, status)
-    assert [back.crc_errors, back.missed, back.stale, back.refused] == counters
+    assert (back.seq, back.ack, back.status, back.session) == (seq, ack, status, seq ^ 0x5A5A5A5A)
+    assert list(back.counters().values()) == counters
     np.testing.assert_array_equal(back.positions, p)
 
 
@@ -97,11 +113,18 @@ def test_malformed_frames_name_the_problem():
     with pytest.raises(FrameError, match="length mismatch"):
         Frame.decode(_reseal(good[:-4] + b"\x00" * 8))
     nan_body = bytearray(good[:-4])
-    nan_body[18:26] = struct.pack("<d", float("nan"))
+    nan_body[22:30] = struct.pack("<d", float("nan"))
     with pytest.raises(FrameError, match="non-finite value"):
         Frame.decode(_reseal(bytes(nan_body)))
-    ping = Frame.decode(Frame(PING, 0, 0.0, np.zeros(0)).encode())
-    assert ping.kind == PING and ping.values.size == 0
+    with pytest.raises(FrameError, match="too many values"):
+        Frame.decode(_reseal(good[:4] + struct.pack("<H", 1025) + good[6:-4]))
+    with pytest.raises(FrameError, match="too long"):
+        Frame.decode(bytes(70000))
+    ping = Frame.decode(Frame.ping(77, 5, 0.01).encode())
+    assert (ping.kind, ping.session, ping.seq, ping.values.tolist()) == (PING, 77, 5, [0.01])
+    for bad_period in ([], [0.0], [11.0], [0.01, 0.01]):
+        with pytest.raises(FrameError, match="PING must carry one period"):
+            Frame.decode(Frame(PING, 0, 0.0, np.array(bad_period), 77).encode())
 
 
 @pytest.mark.parametrize(

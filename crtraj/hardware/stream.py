@@ -14,6 +14,14 @@ has no set-point for the current time for longer than ``watchdog`` (default
 100 ms), or when telemetry stops for that long. `estop` sends an emergency
 stop at once. Any transport error stops the stream and is reported.
 
+Every run opens its own session (a random number, see docs/protocol.md), so
+frames of an earlier run or a forged high sequence number cannot lock it
+out. While the device should be moving, the streamer also checks that its
+acknowledgements advance (every set-point acknowledged within
+``ack_timeout``) and that its measured positions follow the acknowledged
+set-point within ``following_tolerance``; either failure latches a hold at
+once, with status ``ack-stalled`` or ``following-error`` and the reason.
+
 Every run is recorded as JSON lines (header, each frame sent, each telemetry
 frame received, events, final report), flushed line by line so a crash loses
 at most the line being written. Times in s, values in actuator units (rad
@@ -27,8 +35,10 @@ import contextlib
 import json
 import math
 import os
+import secrets
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from datetime import datetime, timezone
@@ -47,11 +57,13 @@ from crtraj.hardware.protocol import (
     HOLD,
     KIND_NAMES,
     MOVE,
-    PING,
+    SEQ_MOD,
     STATUS_ESTOP,
     Frame,
     FrameError,
     Telemetry,
+    seq_after,
+    seq_next,
 )
 from crtraj.hardware.setpoints import SetpointPath
 from crtraj.hardware.transport import Transport, TransportError
@@ -69,6 +81,8 @@ IDLE, WAITING, STREAMING, SETTLING, HELD, DONE, ESTOPPED, ERROR, CLOSED = (
     "closed",
 )
 _TERMINAL = (DONE, ESTOPPED, ERROR, CLOSED)
+_CHECKED = (WAITING, STREAMING, SETTLING)  # states in which the device must follow
+_MAX_UNACKED = 1 << 16
 
 
 class StreamError(RuntimeError):
@@ -83,6 +97,10 @@ class StreamOptions:
     buffered set-point span (s) before a live source starts moving.
     settle_tolerance: largest |measured - final| per actuator that counts as
     arrived (rad or mm); settle_timeout: how long to wait for it (s).
+    ack_timeout: longest time a set-point may stay unacknowledged while
+    telemetry arrives (s). following_tolerance: largest |measured -
+    acknowledged set-point| per actuator while moving (rad or mm; the
+    simulated device at its limits lags up to ~3.1 mm behind a z ramp: v^2 / (2 a) + tau v + one period).
     fsync: also fsync the run log after every line (survives power loss,
     slower)."""
 
@@ -92,10 +110,13 @@ class StreamOptions:
     prebuffer: float = 0.1
     settle_tolerance: float = 0.01
     settle_timeout: float = 2.0
+    ack_timeout: float = 0.25
+    following_tolerance: float = 5.0
     fsync: bool = False
 
     def __post_init__(self) -> None:
-        for name in ("rate", "watchdog", "connect_timeout", "settle_tolerance", "settle_timeout"):
+        names = ("rate", "watchdog", "connect_timeout", "settle_tolerance", "settle_timeout")
+        for name in (*names, "ack_timeout", "following_tolerance"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise InputError(f"stream.{name}: must be > 0, got {v!r}")
@@ -118,6 +139,8 @@ class StreamOptions:
             prebuffer=t.float("prebuffer", d.prebuffer, ge=0.0),
             settle_tolerance=t.float("settle_tolerance", d.settle_tolerance, gt=0.0),
             settle_timeout=t.float("settle_timeout", d.settle_timeout, gt=0.0),
+            ack_timeout=t.float("ack_timeout", d.ack_timeout, gt=0.0),
+            following_tolerance=t.float("following_tolerance", d.following_tolerance, gt=0.0),
             fsync=t.bool("fsync", d.fsync),
         )
         t.finish()
@@ -129,7 +152,8 @@ class StreamOptions:
 
 @dataclass(frozen=True)
 class StreamReport:
-    """Outcome of a run. status: done | held | estop | error | refused | closed."""
+    """Outcome of a run. status: done | held | estop | error | refused | closed | stalled |
+    telemetry-lost | ack-stalled | following-error | not-settled | interrupted."""
 
     status: str
     message: str
@@ -209,6 +233,9 @@ class Streamer:
     when set-points are given as actuation q); log: JSON-lines run record
     path (None: no record). realtime: pace `run_path` by the wall clock
     (default: only when the transport has telemetry, so a dry run is instant).
+    clock, sleep: time source (s) and its sleep (tests inject a virtual clock).
+    session: this run's session number (default: random, non-zero); first_seq:
+    the PING's sequence number (set-points follow from first_seq + 1, wrapping).
     """
 
     def __init__(
@@ -221,7 +248,14 @@ class Streamer:
         realtime: bool | None = None,
         clock: Callable[[], float] = time.monotonic,
         sleep: Callable[[float], None] = time.sleep,
+        session: int | None = None,
+        first_seq: int = 0,
     ) -> None:
+        if session is not None and not 0 < session < SEQ_MOD:
+            raise ValueError(f"session must be in 1..{SEQ_MOD - 1}, got {session}")
+        if not 0 <= first_seq < SEQ_MOD:
+            raise ValueError(f"first_seq must be in 0..{SEQ_MOD - 1}, got {first_seq}")
+        self.session = secrets.randbelow(SEQ_MOD - 1) + 1 if session is None else int(session)
         self.transport = transport
         self.actuators = actuators
         self.options = options or StreamOptions()
@@ -236,7 +270,13 @@ class Streamer:
         self._state = IDLE
         self._reason = ""
         self._status_override: str | None = None
-        self._seq = 0
+        self._seq = first_seq
+        self._first_seq = first_seq
+        # set-points not yet acknowledged: (seq, send time, values); the last acknowledged one
+        self._unacked: deque[tuple[int, float, np.ndarray]] = deque()
+        self._ack = first_seq
+        self._acked_values: np.ndarray | None = None
+        self._limited_base: int | None = None
         self._counts = {"frames": 0, MOVE: 0, HOLD: 0, ESTOP: 0, "telemetry": 0, "telemetry_errors": 0}
         self._bt: list[float] = []
         self._bv: list[np.ndarray] = []
@@ -249,7 +289,7 @@ class Streamer:
         self._settle_since: float | None = None
         self._final_sent = False
         self._final_error: float | None = None
-        self._last_move_seq = 0
+        self._last_move_seq = first_seq
         self._last_tel: Telemetry | None = None
         self._last_tel_time = 0.0
         self._refused_base: int | None = None
@@ -315,6 +355,7 @@ class Streamer:
                 "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
                 "crtraj_version": _version(),
                 "transport": self.transport.description,
+                "session": self.session,
                 "options": self.options.to_dict(),
                 "actuators": self.actuators.to_dict(),
                 "names": list(self.actuators.names),
@@ -349,8 +390,9 @@ class Streamer:
         while True:
             try:
                 if self._clock() >= next_ping:
-                    self.transport.send(Frame(PING, 0, 0.0, np.zeros(0)).encode())
-                    self._log.write({"type": "tx", "wall": self._clock() - self._t_start, "seq": 0, "kind": "ping"})
+                    self.transport.send(Frame.ping(self.session, self._first_seq, self._dt).encode())
+                    wall = self._clock() - self._t_start
+                    self._log.write({"type": "tx", "wall": wall, "seq": self._first_seq, "kind": "ping"})
                     next_ping += 0.05
                 self._poll_telemetry(self._clock())
             except TransportError as exc:
@@ -661,7 +703,7 @@ class Streamer:
         if not self.transport.has_telemetry:
             self._finish_ok(None)
             return
-        if tel is not None and tel.ack >= self._last_move_seq:
+        if tel is not None and not seq_after(self._last_move_seq, tel.ack):
             err = float(np.max(np.abs(tel.positions - self._gate.position)))
             if err <= self.options.settle_tolerance:
                 self._finish_ok(err)
@@ -714,11 +756,15 @@ class Streamer:
                 self._reason = f"internal: {KIND_NAMES[kind]} frame refused: {v.message()}"
                 self._event("error", self._reason)
             return False
-        frame = Frame(kind, self._seq + 1, stamp, values)
+        frame = Frame(kind, seq_next(self._seq), stamp, values, self.session)
         self.transport.send(frame.encode())
-        self._seq += 1
+        self._seq = frame.seq
         if kind == MOVE:
             self._last_move_seq = self._seq
+        if self.transport.has_telemetry:
+            self._unacked.append((frame.seq, self._clock(), values))
+            if len(self._unacked) > _MAX_UNACKED:  # a dead link while held: keep the newest only
+                self._unacked.popleft()
         self._gate.commit(kind, values)
         self._counts["frames"] += 1
         self._counts[kind] += 1
@@ -747,6 +793,7 @@ class Streamer:
     def _poll_telemetry(self, now: float) -> None:
         if not self.transport.has_telemetry:
             return
+        newest: Telemetry | None = None
         for data in self.transport.receive():
             try:
                 msg = Frame.decode(data)
@@ -758,7 +805,13 @@ class Streamer:
                 self._counts["telemetry_errors"] += 1
                 self._log.write({"type": "rx-bad", "wall": now - self._t_start, "error": "not a telemetry frame"})
                 continue
-            if self._last_tel is not None and msg.seq <= self._last_tel.seq:
+            if msg.session != self.session:
+                self._counts["telemetry_errors"] += 1
+                self._log.write(
+                    {"type": "rx-bad", "wall": now - self._t_start, "error": f"telemetry of session {msg.session}"}
+                )
+                continue
+            if self._last_tel is not None and not seq_after(msg.seq, self._last_tel.seq):
                 continue  # reordered or duplicated: keep the newest
             if msg.positions.size != self.actuators.n:
                 self._counts["telemetry_errors"] += 1
@@ -783,6 +836,9 @@ class Streamer:
             )
             if self._refused_base is None:
                 self._refused_base = msg.refused
+            if self._limited_base is None:
+                self._limited_base = msg.limited
+            self._take_ack(msg.ack)
             if self._state in (WAITING, STREAMING, SETTLING, HELD):
                 if msg.status & STATUS_ESTOP:
                     self._state = ESTOPPED
@@ -794,6 +850,56 @@ class Streamer:
                     self._latch(
                         "device refused a set-point (its limits are stricter than the robot file's)", now, "refused"
                     )
+            if msg.limited > self._limited_base:
+                # the device's servo limited a step (it still follows, slower): the following-error
+                # check decides whether that matters
+                self._event("device-limited", f"device flagged {msg.limited - self._limited_base} set-point(s)")
+                self._limited_base = msg.limited
+            if self._state in _CHECKED:
+                self._check_following(msg)
+            newest = msg
+        # after the whole batch: telemetry that queued up while this thread was starved must not
+        # make frames it sent just before the stall look unacknowledged
+        if newest is not None and self._state in _CHECKED:
+            self._check_acks(newest, now)
+
+    def _take_ack(self, ack: int) -> None:
+        """Drop the set-points the device acknowledged; remember the values of the acknowledged one."""
+        if seq_after(ack, self._seq) or not seq_after(ack, self._ack):
+            return  # not one we sent, or no news
+        self._ack = ack
+        while self._unacked and not seq_after(self._unacked[0][0], ack):
+            seq, _, values = self._unacked.popleft()
+            if seq == ack:
+                self._acked_values = values
+
+    def _check_acks(self, tel: Telemetry, now: float) -> None:
+        """Latch a hold when the device's acknowledgements stop advancing (it ignores our frames)."""
+        if self._unacked and now - self._unacked[0][1] > self.options.ack_timeout:
+            seq, sent, _ = self._unacked[0]
+            self._latch(
+                f"device stopped acknowledging: set-point seq {seq} unacknowledged after "
+                f"{(now - sent) * 1000:.0f} ms (last ack {tel.ack}; device counts stale {tel.stale}, "
+                f"other session {tel.foreign})",
+                now,
+                "ack-stalled",
+            )
+
+    def _check_following(self, tel: Telemetry) -> None:
+        """Latch a hold when the measured positions do not follow the acknowledged set-point."""
+        if self._acked_values is None:
+            return
+        err = np.abs(tel.positions - self._acked_values)
+        i = int(np.argmax(err))
+        if err[i] > self.options.following_tolerance:
+            u = self.actuators.units[i]
+            self._latch(
+                f"following error: {self.actuators.names[i]} measured {tel.positions[i]:.4g} {u}, "
+                f"commanded {self._acked_values[i]:.4g} {u} (|error| {err[i]:.4g} > following_tolerance "
+                f"{self.options.following_tolerance:g})",
+                self._clock(),
+                "following-error",
+            )
 
     # ---------------------------------------------------------------- close
     def _event(self, name: str, message: str) -> None:
