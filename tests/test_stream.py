@@ -576,7 +576,7 @@ def test_device_that_does_not_follow_is_held_with_a_following_error(robot, acts,
     log = tmp_path / "run.jsonl"
     d = robot.to_dict()
     d["actuators"]["z"]["velocity_limit"] = 2.0
-    slow = type(robot).from_table(Table(d, "robot")).actuators.for_robot(robot)
+    slow = Actuators.from_robot(type(robot).from_table(Table(d, "robot")))
     opts = StreamOptions(following_tolerance=0.5)
     path = SetpointPath.from_result(result, acts)
     _, _, rep = core_run(acts, path, core=DeviceCore(slow), opts=opts, log=log)
