@@ -7,14 +7,18 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from types import MappingProxyType
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
+from crtraj.bench.scenarios import MAX_INDEX
 from crtraj.core.errors import InputError
+from crtraj.core.fields import MAX_LENGTH, MAX_SEED, MAX_TIME, Table
+from crtraj.core.options import Options, option
 from crtraj.planning.registry import BUILTIN
+from crtraj.world.scene import MAX_OBSTACLES
 
 PLANNERS = BUILTIN.names
 COUNTS = (1, 3, 5, 7)
@@ -41,12 +45,17 @@ PAPER_COUNTS = (1, 3, 5, 7)
 
 
 # --------------------------------------------------------------------- options
-@dataclass(frozen=True)
-class BenchOptions:
-    """What to run and how to judge it (units mm, s).
+# Most planners in one benchmark (names are registry entries; duplicates are refused).
+MAX_PLANNERS = 64
 
-    counts: obstacle counts (the table's columns). scenarios: scenarios per
-    count. planners: names from `PLANNERS` (or registered extras).
+
+@dataclass(frozen=True)
+class BenchOptions(Options):
+    """What to run and how to judge it (units mm, s); the ``[bench]`` section.
+
+    counts: obstacle counts (the table's columns, distinct, each at most
+    `MAX_OBSTACLES`). scenarios: scenarios per count. planners: names from
+    `PLANNERS` (or registered extras), distinct.
     time_limit: wall-time budget per run (s), the same for every planner.
     seed: seed of the scenarios and of every planner run. goal_tolerance:
     tip-to-goal distance that counts as arrival (mm). verify_points:
@@ -57,52 +66,50 @@ class BenchOptions:
     scene's safety distance).
     """
 
-    counts: tuple[int, ...] = COUNTS
-    scenarios: int = 100
-    planners: tuple[str, ...] = PLANNERS
-    time_limit: float = 5.0
-    seed: int = 0
-    goal_tolerance: float = 1.0
-    verify_points: int = 128
-    verify_dt: float = 0.01
-    verify_step: float = 1.0
-    verify_margin: float = 0.0
+    SECTION: ClassVar[str] = "bench"
 
-    def __post_init__(self) -> None:
-        counts = tuple(self.counts)
-        if not counts or any(isinstance(c, bool) or not isinstance(c, (int, np.integer)) or c < 0 for c in counts):
-            raise InputError(f"counts: expected obstacle counts >= 0, got {list(counts)!r}")
+    counts: tuple[int, ...] = option(COUNTS, read=False)
+    # scenario indices run 0 .. scenarios - 1, and a scenario's index is at most MAX_INDEX
+    scenarios: int = option(100, ge=1, le=MAX_INDEX)
+    planners: tuple[str, ...] = option(PLANNERS, read=False)
+    time_limit: float = option(5.0, gt=0.0, le=MAX_TIME)
+    seed: int = option(0, ge=0, le=MAX_SEED)
+    goal_tolerance: float = option(1.0, gt=0.0, le=MAX_LENGTH)
+    # the dense check holds (samples x verify_points x 3) floats at once: bounded before any run starts
+    verify_points: int = option(128, ge=2, le=1000)
+    verify_dt: float = option(0.01, gt=0.0, le=MAX_TIME)
+    verify_step: float = option(1.0, gt=0.0, le=MAX_LENGTH)
+    verify_margin: float = option(0.0, ge=0.0, le=MAX_LENGTH)
+
+    def _check(self) -> None:
+        counts = self.counts
+        if not isinstance(counts, (tuple, list)) or not counts or len(counts) > MAX_OBSTACLES + 1:
+            raise InputError(f"bench.counts: expected 1 to {MAX_OBSTACLES + 1} obstacle counts, got {counts!r:.60}")
+        for c in counts:
+            if isinstance(c, bool) or not isinstance(c, (int, np.integer)) or not 0 <= c <= MAX_OBSTACLES:
+                raise InputError(f"bench.counts: each must be an integer in [0, {MAX_OBSTACLES}], got {c!r:.40}")
         if len(set(counts)) != len(counts):
-            raise InputError(f"counts: duplicate obstacle count in {list(counts)}")
+            raise InputError(f"bench.counts: duplicate obstacle count in {list(counts)}")
         object.__setattr__(self, "counts", tuple(int(c) for c in counts))
-        if isinstance(self.scenarios, bool) or not isinstance(self.scenarios, int) or self.scenarios < 1:
-            raise InputError(f"scenarios: must be an integer >= 1, got {self.scenarios!r}")
-        planners = tuple(self.planners)
-        if not planners:
-            raise InputError("planners: at least one planner is required")
+        planners = self.planners
+        if not isinstance(planners, (tuple, list)) or not planners or len(planners) > MAX_PLANNERS:
+            raise InputError(f"bench.planners: expected 1 to {MAX_PLANNERS} planner names, got {planners!r:.60}")
+        for p in planners:
+            if not isinstance(p, str) or not p or len(p) > 100:
+                raise InputError(f"bench.planners: a planner name is 1 to 100 characters, got {p!r:.60}")
         if len(set(planners)) != len(planners):
-            raise InputError(f"planners: duplicate planner in {list(planners)}")
-        object.__setattr__(self, "planners", planners)
-        if not (math.isfinite(self.time_limit) and self.time_limit > 0):
-            raise InputError(f"time_limit: must be a finite number > 0 (s), got {self.time_limit!r}")
-        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
-            raise InputError(f"seed: must be an integer >= 0, got {self.seed!r}")
-        if not (math.isfinite(self.goal_tolerance) and self.goal_tolerance > 0):
-            raise InputError(f"goal_tolerance: must be > 0 mm, got {self.goal_tolerance!r}")
-        if isinstance(self.verify_points, bool) or not isinstance(self.verify_points, int) or self.verify_points < 2:
-            raise InputError(f"verify_points: must be an integer >= 2, got {self.verify_points!r}")
-        for key in ("verify_dt", "verify_step"):
-            v = getattr(self, key)
-            if not (math.isfinite(v) and v > 0):
-                raise InputError(f"{key}: must be a finite number > 0, got {v!r}")
-        if not (math.isfinite(self.verify_margin) and self.verify_margin >= 0):
-            raise InputError(f"verify_margin: must be >= 0 mm, got {self.verify_margin!r}")
+            raise InputError(f"bench.planners: duplicate planner in {list(planners)}")
+        object.__setattr__(self, "planners", tuple(planners))
 
-    def to_dict(self) -> dict[str, Any]:
-        d = asdict(self)
-        d["counts"] = list(self.counts)
-        d["planners"] = list(self.planners)
-        return d
+    @classmethod
+    def _read_extra(cls, t: Table) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        for key, default in (("counts", COUNTS), ("planners", PLANNERS)):
+            v = t.raw(key, default)
+            if not isinstance(v, (list, tuple)):
+                raise t.error(key, f"expected a list, got {v!r:.60}")
+            out[key] = tuple(v)
+        return out
 
 
 # ------------------------------------------------------------------ records

@@ -45,13 +45,14 @@ its own, in any process, in any order.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-from typing import Any
+from dataclasses import dataclass, fields
+from typing import Any, ClassVar
 
 import numpy as np
 
 from crtraj.core.errors import InputError
-from crtraj.core.fields import MAX_LENGTH, MAX_SEED, MAX_TIME, Table
+from crtraj.core.fields import MAX_LENGTH, MAX_SEED, MAX_TIME, Table, check_vec
+from crtraj.core.options import Options, option
 from crtraj.model.kinematics import Model
 from crtraj.world.margin import DEFAULT_SAFETY_DISTANCE
 from crtraj.world.obstacle import Obstacle
@@ -72,19 +73,22 @@ _SCREEN_POINTS = 128
 _BATCH = 256
 
 
-def _range(name: str, v: Any, lo_ok: float = -math.inf) -> tuple[float, float]:
-    try:
-        a, b = (float(v[0]), float(v[1]))
-    except (TypeError, ValueError, IndexError):
-        raise InputError(f"{name}: expected [low, high], got {v!r}") from None
-    if len(v) != 2 or not (math.isfinite(a) and math.isfinite(b)) or a > b or a < lo_ok:
-        raise InputError(f"{name}: expected finite [low, high] with {lo_ok:g} <= low <= high, got {list(v)!r}")
+def _range(name: str, v: Any, lo_ok: float = 0.0) -> tuple[float, float]:
+    """A [low, high] pair of finite numbers with lo_ok <= low <= high."""
+    a, b = check_vec(v, name, 2)
+    if not lo_ok <= a <= b:
+        raise InputError(f"{name}: expected finite [low, high] with {lo_ok:g} <= low <= high, got {[a, b]!r}")
     return a, b
 
 
+# [low, high] ranges and the tip box corners: read as lists, checked in `ScenarioOptions._check`
+_RANGES = ("radius_mean", "radius_amplitude", "travel", "mean_speed", "fraction")
+_BOX = ("tip_box_lo", "tip_box_hi")
+
+
 @dataclass(frozen=True)
-class ScenarioOptions:
-    """Bounds of the random scenes; the defaults are the paper's (module docstring).
+class ScenarioOptions(Options):
+    """Bounds of the random scenes, the ``[scenarios]`` section; the defaults are the paper's (module docstring).
 
     radius_mean, radius_amplitude: ranges of A and B (mm). omega: radius
     frequency (rad/s). travel: range of the centre's motion extent L (mm).
@@ -99,102 +103,54 @@ class ScenarioOptions:
     the start and goal are redrawn.
     """
 
-    seed: int = 0
-    radius_mean: tuple[float, float] = (30.0, 50.0)
-    radius_amplitude: tuple[float, float] = (10.0, 20.0)
-    omega: float = 1.0
-    travel: tuple[float, float] = (50.0, 100.0)
-    mean_speed: tuple[float, float] = (5.0, 15.0)
-    fraction: tuple[float, float] = (0.2, 0.8)
-    max_tilt: float = math.radians(30.0)
-    min_tip_distance: float = 150.0
-    tip_box_lo: tuple[float, float, float] = (-130.0, -130.0, 150.0)
-    tip_box_hi: tuple[float, float, float] = (130.0, 130.0, 450.0)
-    safety_distance: float = DEFAULT_SAFETY_DISTANCE
-    start_window: float = 1.0
-    goal_margin: float = 5.0
-    max_attempts: int = 200
+    SECTION: ClassVar[str] = "scenarios"
 
-    def __post_init__(self) -> None:
-        if isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer)) or self.seed < 0:
-            raise InputError(f"seed: must be an integer >= 0, got {self.seed!r}")
-        object.__setattr__(self, "radius_mean", _range("radius_mean", self.radius_mean, 0.0))
-        object.__setattr__(self, "radius_amplitude", _range("radius_amplitude", self.radius_amplitude, 0.0))
+    seed: int = option(0, ge=0, le=MAX_SEED)
+    radius_mean: tuple[float, float] = option((30.0, 50.0), read=False)
+    radius_amplitude: tuple[float, float] = option((10.0, 20.0), read=False)
+    omega: float = option(1.0, ge=0.0)
+    travel: tuple[float, float] = option((50.0, 100.0), read=False)
+    mean_speed: tuple[float, float] = option((5.0, 15.0), read=False)
+    fraction: tuple[float, float] = option((0.2, 0.8), read=False)
+    max_tilt: float = option(math.radians(30.0), ge=0.0)
+    min_tip_distance: float = option(150.0, ge=0.0)
+    tip_box_lo: tuple[float, float, float] = option((-130.0, -130.0, 150.0), read=False)
+    tip_box_hi: tuple[float, float, float] = option((130.0, 130.0, 450.0), read=False)
+    safety_distance: float = option(DEFAULT_SAFETY_DISTANCE, ge=0.0)
+    start_window: float = option(1.0, gt=0.0, le=MAX_TIME)
+    goal_margin: float = option(5.0, ge=0.0)
+    max_attempts: int = option(200, ge=1, le=MAX_ATTEMPTS)
+
+    def _check(self) -> None:
+        # numpy integers pass the base check; store Python ints so that to_dict gives JSON data
+        object.__setattr__(self, "seed", int(self.seed))
+        object.__setattr__(self, "max_attempts", int(self.max_attempts))
+        for key in _RANGES:
+            object.__setattr__(self, key, _range(f"scenarios.{key}", getattr(self, key)))
         if self.radius_amplitude[1] > self.radius_mean[0]:
             raise InputError(
-                f"radius_amplitude: largest B {self.radius_amplitude[1]:g} mm exceeds smallest A "
+                f"scenarios.radius_amplitude: largest B {self.radius_amplitude[1]:g} mm exceeds smallest A "
                 f"{self.radius_mean[0]:g} mm (the radius would go negative)"
             )
-        object.__setattr__(self, "travel", _range("travel", self.travel, 0.0))
-        speed = _range("mean_speed", self.mean_speed, 0.0)
-        if not speed[0] > 0:
-            raise InputError(f"mean_speed: low must be > 0 mm/s, got {speed[0]:g}")
-        object.__setattr__(self, "mean_speed", speed)
-        frac = _range("fraction", self.fraction, 0.0)
-        if frac[1] > 1.0:
-            raise InputError(f"fraction: must lie within [0, 1], got {list(frac)}")
-        object.__setattr__(self, "fraction", frac)
-        for key in ("omega", "max_tilt", "min_tip_distance", "safety_distance", "goal_margin"):
-            v = getattr(self, key)
-            if not (math.isfinite(v) and v >= 0):
-                raise InputError(f"{key}: must be a finite number >= 0, got {v!r}")
-        if not (math.isfinite(self.start_window) and 0 < self.start_window <= MAX_TIME):
-            raise InputError(f"start_window: must be a number in (0, {MAX_TIME:g}] (s), got {self.start_window!r}")
-        lo = tuple(float(v) for v in self.tip_box_lo)
-        hi = tuple(float(v) for v in self.tip_box_hi)
-        if len(lo) != 3 or len(hi) != 3 or any(not a < b for a, b in zip(lo, hi, strict=True)):
-            raise InputError(f"tip_box: lo must be below hi on every axis, got lo {list(lo)}, hi {list(hi)}")
+        if not self.mean_speed[0] > 0:
+            raise InputError(f"scenarios.mean_speed: low must be > 0 mm/s, got {self.mean_speed[0]:g}")
+        if self.fraction[1] > 1.0:
+            raise InputError(f"scenarios.fraction: must lie within [0, 1], got {list(self.fraction)}")
+        lo, hi = (check_vec(getattr(self, key), f"scenarios.{key}", 3, limit=MAX_LENGTH) for key in _BOX)
+        if any(not a < b for a, b in zip(lo, hi, strict=True)):
+            raise InputError(
+                f"scenarios.tip_box_lo: must be below tip_box_hi on every axis, got lo {list(lo)}, hi {list(hi)}"
+            )
         object.__setattr__(self, "tip_box_lo", lo)
         object.__setattr__(self, "tip_box_hi", hi)
-        ma = self.max_attempts
-        if isinstance(ma, bool) or not isinstance(ma, int) or not 1 <= ma <= MAX_ATTEMPTS:
-            raise InputError(f"max_attempts: must be an integer in [1, {MAX_ATTEMPTS}], got {ma!r}")
-
-    def to_dict(self) -> dict[str, Any]:
-        return {
-            "seed": int(self.seed),
-            "radius_mean": list(self.radius_mean),
-            "radius_amplitude": list(self.radius_amplitude),
-            "omega": self.omega,
-            "travel": list(self.travel),
-            "mean_speed": list(self.mean_speed),
-            "fraction": list(self.fraction),
-            "max_tilt": self.max_tilt,
-            "min_tip_distance": self.min_tip_distance,
-            "tip_box_lo": list(self.tip_box_lo),
-            "tip_box_hi": list(self.tip_box_hi),
-            "safety_distance": self.safety_distance,
-            "start_window": self.start_window,
-            "goal_margin": self.goal_margin,
-            "max_attempts": self.max_attempts,
-        }
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> ScenarioOptions:
-        """Inverse of `to_dict` (unknown keys raise)."""
-        t = Table(d, "scenarios")
+    def _read_extra(cls, t: Table) -> dict[str, Any]:
         if t.has("time_step"):
             t.raw("time_step")
             raise t.error("time_step", "no longer supported (it had no effect); remove it")
-        out = cls(
-            seed=t.int("seed", 0, ge=0, le=MAX_SEED),
-            radius_mean=t.vec("radius_mean", 2, cls.radius_mean),
-            radius_amplitude=t.vec("radius_amplitude", 2, cls.radius_amplitude),
-            omega=t.float("omega", cls.omega),
-            travel=t.vec("travel", 2, cls.travel),
-            mean_speed=t.vec("mean_speed", 2, cls.mean_speed),
-            fraction=t.vec("fraction", 2, cls.fraction),
-            max_tilt=t.float("max_tilt", cls.max_tilt),
-            min_tip_distance=t.float("min_tip_distance", cls.min_tip_distance),
-            tip_box_lo=t.vec("tip_box_lo", 3, cls.tip_box_lo),
-            tip_box_hi=t.vec("tip_box_hi", 3, cls.tip_box_hi),
-            safety_distance=t.float("safety_distance", cls.safety_distance),
-            start_window=t.float("start_window", cls.start_window),
-            goal_margin=t.float("goal_margin", cls.goal_margin),
-            max_attempts=t.int("max_attempts", cls.max_attempts, ge=1, le=MAX_ATTEMPTS),
-        )
-        t.finish()
-        return out
+        defaults = {f.name: f.default for f in fields(cls)}
+        return {key: t.vec(key, len(defaults[key]), defaults[key]) for key in (*_RANGES, *_BOX)}
 
 
 @dataclass(frozen=True, eq=False)

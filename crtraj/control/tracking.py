@@ -55,43 +55,27 @@ set-point (``q_command``) and passes it back each period.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
 from dataclasses import dataclass, field
-from types import MappingProxyType
-from typing import Any
+from typing import Any, ClassVar
 
 import casadi as ca
 import control
 import numpy as np
 
 from crtraj.core.errors import InputError
-from crtraj.core.fields import Table, check_float
+from crtraj.core.fields import check_float
+from crtraj.core.options import Options, option
 from crtraj.model.kinematics import Model
 from crtraj.model.robot import Robot
 
 MODES = ("configuration", "tip")
-
-# Every float option: default and bounds (the same checks for TOML and Python use).
-_FLOATS: Mapping[str, tuple[float, dict[str, float]]] = MappingProxyType(
-    {
-        "dt": (0.02, {"gt": 0.0, "le": 1.0}),
-        "servo_tau": (0.05, {"gt": 0.0, "le": 10.0}),
-        "servo_tau_z": (0.1, {"gt": 0.0, "le": 10.0}),
-        "max_cable_rate": (10.0, {"gt": 0.0}),
-        "max_z_rate": (50.0, {"gt": 0.0}),
-        "bending_error_scale": (0.01, {"gt": 0.0}),
-        "z_error_scale": (0.5, {"gt": 0.0}),
-        "effort_weight": (1.0, {"gt": 0.0}),
-        "damping": (0.3, {"ge": 0.0}),
-    }
-)
 
 # Designs kept per control period (a caller that varies dt should not grow memory).
 _MAX_DESIGNS = 8
 
 
 @dataclass(frozen=True)
-class TrackingOptions:
+class TrackingOptions(Options):
     """The ``[tracking]`` problem section.
 
     dt: control period the gain is designed for (s). mode: "configuration"
@@ -103,36 +87,18 @@ class TrackingOptions:
     tip mode (mm/rad, paper: 0.3).
     """
 
-    dt: float = _FLOATS["dt"][0]
-    mode: str = "configuration"
-    servo_tau: float = _FLOATS["servo_tau"][0]
-    servo_tau_z: float = _FLOATS["servo_tau_z"][0]
-    max_cable_rate: float = _FLOATS["max_cable_rate"][0]
-    max_z_rate: float = _FLOATS["max_z_rate"][0]
-    bending_error_scale: float = _FLOATS["bending_error_scale"][0]
-    z_error_scale: float = _FLOATS["z_error_scale"][0]
-    effort_weight: float = _FLOATS["effort_weight"][0]
-    damping: float = _FLOATS["damping"][0]
+    SECTION: ClassVar[str] = "tracking"
 
-    def __post_init__(self) -> None:
-        for name, (_, bounds) in _FLOATS.items():
-            check_float(getattr(self, name), f"tracking.{name}", **bounds)
-        if self.mode not in MODES:
-            raise InputError(f"tracking.mode: must be one of {', '.join(MODES)}; got {self.mode!r}")
-
-    @classmethod
-    def from_table(cls, t: Table) -> TrackingOptions:
-        """Read a ``[tracking]`` table; unknown keys and bad values raise `InputError`."""
-        kw: dict[str, Any] = {name: t.float(name, default, **bounds) for name, (default, bounds) in _FLOATS.items()}
-        kw["mode"] = t.str("mode", "configuration", choices=MODES)
-        t.finish()
-        return cls(**kw)
-
-    def to_dict(self) -> dict[str, Any]:
-        """Plain data, the same schema as the TOML table."""
-        d: dict[str, Any] = {name: getattr(self, name) for name in _FLOATS}
-        d["mode"] = self.mode
-        return d
+    dt: float = option(0.02, gt=0.0, le=1.0)
+    mode: str = option("configuration", choices=MODES)
+    servo_tau: float = option(0.05, gt=0.0, le=10.0)
+    servo_tau_z: float = option(0.1, gt=0.0, le=10.0)
+    max_cable_rate: float = option(10.0, gt=0.0)
+    max_z_rate: float = option(50.0, gt=0.0)
+    bending_error_scale: float = option(0.01, gt=0.0)
+    z_error_scale: float = option(0.5, gt=0.0)
+    effort_weight: float = option(1.0, gt=0.0)
+    damping: float = option(0.3, ge=0.0)
 
 
 @dataclass(frozen=True)

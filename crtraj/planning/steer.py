@@ -50,16 +50,17 @@ import shutil
 import tempfile
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from types import MappingProxyType
-from typing import Any
+from typing import Any, ClassVar
 
 import casadi as ca
 import numpy as np
 
 from crtraj.core.errors import InputError
 from crtraj.core.fields import MAX_LENGTH, Table
+from crtraj.core.options import Options, option
 from crtraj.model.robot import MAX_COLLISION_POINTS
 from crtraj.world import margin, packing
 from crtraj.world.scene import Scene
@@ -112,28 +113,60 @@ _EPS_D2 = 1e-6  # mm^2, keeps the eq. 18 term finite if a point sits on a centre
 _G_SCALE = 1e-3  # 1/mm^2: collision constraints in units of 1000 mm^2, O(1..10)
 
 
+# Most raw solver options per [steer.ipopt] / [steer.sqp] table (each solver knows a few hundred).
+MAX_SOLVER_OPTIONS = 1000
+
+
+def _bad_solver_value(v: Any) -> str | None:
+    """Why `v` is not a raw solver option value (a string, a finite number or a boolean), or None."""
+    if not isinstance(v, (bool, int, float, str)):
+        return f"expected a string, number or boolean, got {v!r:.60}"
+    if isinstance(v, float) and not math.isfinite(v):
+        return f"must be finite, got {v}"
+    # solver options are counts, levels and tolerances; IPOPT's own "infinity" is 1e19
+    if isinstance(v, (int, float)) and not isinstance(v, bool) and abs(v) > 1e20:
+        return f"must be within +-1e20, got {float(v):g}"
+    if isinstance(v, str) and len(v) > 1000:
+        return "longer than 1000 characters"
+    return None
+
+
 def _pairs(t: Table) -> tuple[tuple[str, Any], ...]:
-    """Solver option overrides: every value a string, number or boolean."""
+    """Solver option overrides read from a TOML table: every value a string, number or boolean."""
+    keys = t.keys()
+    if len(keys) > MAX_SOLVER_OPTIONS:
+        raise InputError(f"{t.path}: at most {MAX_SOLVER_OPTIONS} solver options, got {len(keys)}")
     out = []
-    for key in t.keys():
+    for key in keys:
         v = t.raw(key)
-        if isinstance(v, (bool, int, float, str)):
-            if isinstance(v, float) and not math.isfinite(v):
-                raise t.error(key, f"must be finite, got {v}")
-            # solver options are counts, levels and tolerances; IPOPT's own "infinity" is 1e19
-            if isinstance(v, (int, float)) and not isinstance(v, bool) and abs(v) > 1e20:
-                raise t.error(key, f"must be within +-1e20, got {float(v):g}")
-            if isinstance(v, str) and len(v) > 1000:
-                raise t.error(key, "longer than 1000 characters")
-            out.append((key, v))
-        else:
-            raise t.error(key, f"expected a string, number or boolean, got {v!r}")
+        problem = _bad_solver_value(v)
+        if problem is not None:
+            raise t.error(key, problem)
+        out.append((key, v))
     t.finish()
     return tuple(out)
 
 
+def _check_pairs(pairs: Any, name: str) -> tuple[tuple[str, Any], ...]:
+    """The same rules for overrides given in Python, as a sequence of (name, value) pairs."""
+    if not isinstance(pairs, (tuple, list)) or len(pairs) > MAX_SOLVER_OPTIONS:
+        raise InputError(f"{name}: expected at most {MAX_SOLVER_OPTIONS} (name, value) pairs, got {pairs!r:.60}")
+    out = []
+    for i, pair in enumerate(pairs):
+        if not (isinstance(pair, (tuple, list)) and len(pair) == 2 and isinstance(pair[0], str)):
+            raise InputError(f"{name}[{i}]: expected a (name, value) pair, got {pair!r:.60}")
+        key, v = pair
+        if not key or len(key) > 200 or not key.isprintable():
+            raise InputError(f"{name}[{i}]: an option name is 1 to 200 printable characters, got {key!r:.60}")
+        problem = _bad_solver_value(v)
+        if problem is not None:
+            raise InputError(f"{name}.{key}: {problem}")
+        out.append((key, v))
+    return tuple(out)
+
+
 @dataclass(frozen=True)
-class SteerOptions:
+class SteerOptions(Options):
     """Options of the ``[steer]`` section (units mm, rad, s).
 
     solver: "ipopt" (default), "sqp" (CasADi sqpmethod + `qpsol`, the fast
@@ -155,55 +188,54 @@ class SteerOptions:
     IPOPT (result.solver is then "sqp>ipopt"). predictor: start from one
     DLS step instead of x_prev. feasibility_tolerance: constraint slack (mm)
     accepted by the re-check. dls_gain, dls_iterations: K_P and iterations
-    of the dls path. ipopt, sqp: raw solver options overriding the defaults.
+    of the dls path. ipopt, sqp: raw solver options overriding the defaults
+    (``[steer.ipopt]`` / ``[steer.sqp]`` tables; (name, value) pairs in Python).
     """
 
-    solver: str = "ipopt"
-    damping: float = 0.3
-    obstacle_coefficient: float = 20.0
-    damping_scale: float = 0.02
-    obstacle_scale: float = 0.02
-    max_step: float = 100.0
-    tolerance: float = 0.5
-    margin: float = 0.0
-    n_points: int | None = None
-    max_iter: int = 100
-    tol: float = 1e-6
-    qpsol: str = "daqp"
-    jit: bool = False
-    warm_start: bool | None = None
-    fallback: bool = True
-    predictor: bool = True
-    feasibility_tolerance: float = 1e-5
-    dls_gain: float = 1.0
-    dls_iterations: int = 200
-    ipopt: tuple[tuple[str, Any], ...] = field(default=())
-    sqp: tuple[tuple[str, Any], ...] = field(default=())
+    SECTION: ClassVar[str] = "steer"
 
-    def __post_init__(self) -> None:
-        checks = [
-            ("solver", self.solver in SOLVERS, f"must be one of {', '.join(SOLVERS)}; got {self.solver!r}"),
-            ("qpsol", self.qpsol in QP_SOLVERS, f"must be one of {', '.join(QP_SOLVERS)}; got {self.qpsol!r}"),
-            ("damping", self.damping >= 0, f"must be >= 0, got {self.damping}"),
-            ("obstacle_coefficient", self.obstacle_coefficient >= 0, f"must be >= 0, got {self.obstacle_coefficient}"),
-            ("damping_scale", self.damping_scale > 0, f"must be > 0, got {self.damping_scale}"),
-            ("obstacle_scale", self.obstacle_scale > 0, f"must be > 0, got {self.obstacle_scale}"),
-            ("max_step", self.max_step > 0, f"must be > 0 mm, got {self.max_step}"),
-            ("tolerance", self.tolerance > 0, f"must be > 0 mm, got {self.tolerance}"),
-            ("margin", self.margin >= 0, f"must be >= 0 mm, got {self.margin}"),
-            ("n_points", self.n_points is None or self.n_points >= 2, f"must be >= 2, got {self.n_points}"),
-            ("max_iter", self.max_iter >= 1, f"must be >= 1, got {self.max_iter}"),
-            ("tol", self.tol > 0, f"must be > 0, got {self.tol}"),
-            ("feasibility_tolerance", self.feasibility_tolerance >= 0, "must be >= 0 mm"),
-            ("dls_gain", 0 < self.dls_gain <= 1, f"must be in (0, 1], got {self.dls_gain}"),
-            ("dls_iterations", self.dls_iterations >= 1, f"must be >= 1, got {self.dls_iterations}"),
-        ]
-        for name, ok, msg in checks:
-            if not ok:
-                raise InputError(f"steer.{name}: {msg}")
-        for name in ("damping", "obstacle_coefficient", "max_step", "tolerance", "margin", "tol"):
-            if not math.isfinite(getattr(self, name)):
-                raise InputError(f"steer.{name}: must be finite")
+    solver: str = option("ipopt", choices=SOLVERS)
+    damping: float = option(0.3, ge=0.0)
+    obstacle_coefficient: float = option(20.0, ge=0.0)
+    damping_scale: float = option(0.02, gt=0.0)
+    obstacle_scale: float = option(0.02, gt=0.0)
+    max_step: float = option(100.0, gt=0.0, limit=MAX_LENGTH)
+    tolerance: float = option(0.5, gt=0.0, limit=MAX_LENGTH)
+    margin: float = option(0.0, ge=0.0, limit=MAX_LENGTH)
+    n_points: int | None = option(None, ge=2, le=MAX_COLLISION_POINTS)
+    max_iter: int = option(100, ge=1, le=100_000)
+    tol: float = option(1e-6, gt=0.0)
+    qpsol: str = option("daqp", choices=QP_SOLVERS)
+    jit: bool = option(False)
+    warm_start: bool | None = option(None)
+    fallback: bool = option(True)
+    predictor: bool = option(True)
+    feasibility_tolerance: float = option(1e-5, ge=0.0)
+    dls_gain: float = option(1.0, gt=0.0, le=1.0)
+    dls_iterations: int = option(200, ge=1, le=100_000)
+    ipopt: tuple[tuple[str, Any], ...] = option((), read=False)
+    sqp: tuple[tuple[str, Any], ...] = option((), read=False)
+
+    def _check(self) -> None:
+        object.__setattr__(self, "ipopt", _check_pairs(self.ipopt, "steer.ipopt"))
+        object.__setattr__(self, "sqp", _check_pairs(self.sqp, "steer.sqp"))
+
+    @classmethod
+    def _read_extra(cls, t: Table) -> dict[str, Any]:
+        return {"ipopt": _pairs(t.table("ipopt")), "sqp": _pairs(t.table("sqp"))}
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain data in the ``[steer]`` schema (round-trips through `from_table`).
+
+        Own override: the raw solver options are sub-tables in the file (``[steer.ipopt]``), not the
+        list of pairs the base would write; empty ones are left out.
+        """
+        d = super().to_dict()
+        for key in ("ipopt", "sqp"):
+            pairs = d.pop(key)
+            if pairs:
+                d[key] = {k: v for k, v in pairs}
+        return d
 
     @property
     def uses_warm_start(self) -> bool:
@@ -219,67 +251,6 @@ class SteerOptions:
     def obstacle_weight(self) -> float:
         """w_o = (obstacle_coefficient * obstacle_scale)^2, weight of the eq. 18 sum (mm^2)."""
         return (self.obstacle_coefficient * self.obstacle_scale) ** 2
-
-    @classmethod
-    def from_table(cls, t: Table) -> SteerOptions:
-        """Read ``[steer]`` (keys as the fields; ``[steer.ipopt]``/``[steer.sqp]`` raw solver options)."""
-        d = cls()
-        opts = cls(
-            solver=t.str("solver", d.solver, choices=SOLVERS),
-            damping=t.float("damping", d.damping, ge=0.0),
-            obstacle_coefficient=t.float("obstacle_coefficient", d.obstacle_coefficient, ge=0.0),
-            damping_scale=t.float("damping_scale", d.damping_scale, gt=0.0),
-            obstacle_scale=t.float("obstacle_scale", d.obstacle_scale, gt=0.0),
-            max_step=t.float("max_step", d.max_step, gt=0.0, limit=MAX_LENGTH),
-            tolerance=t.float("tolerance", d.tolerance, gt=0.0, limit=MAX_LENGTH),
-            margin=t.float("margin", d.margin, ge=0.0, limit=MAX_LENGTH),
-            n_points=t.int("n_points", None, ge=2, le=MAX_COLLISION_POINTS),
-            max_iter=t.int("max_iter", d.max_iter, ge=1, le=100_000),
-            tol=t.float("tol", d.tol, gt=0.0),
-            qpsol=t.str("qpsol", d.qpsol, choices=QP_SOLVERS),
-            jit=t.bool("jit", d.jit),
-            warm_start=t.bool("warm_start", None) if t.has("warm_start") else None,
-            fallback=t.bool("fallback", d.fallback),
-            predictor=t.bool("predictor", d.predictor),
-            feasibility_tolerance=t.float("feasibility_tolerance", d.feasibility_tolerance, ge=0.0),
-            dls_gain=t.float("dls_gain", d.dls_gain, gt=0.0, le=1.0),
-            dls_iterations=t.int("dls_iterations", d.dls_iterations, ge=1, le=100_000),
-            ipopt=_pairs(t.table("ipopt")),
-            sqp=_pairs(t.table("sqp")),
-        )
-        t.finish()
-        return opts
-
-    def to_dict(self) -> dict[str, Any]:
-        """Plain data in the ``[steer]`` schema (round-trips through `from_table`)."""
-        d: dict[str, Any] = {
-            "solver": self.solver,
-            "damping": self.damping,
-            "obstacle_coefficient": self.obstacle_coefficient,
-            "damping_scale": self.damping_scale,
-            "obstacle_scale": self.obstacle_scale,
-            "max_step": self.max_step,
-            "tolerance": self.tolerance,
-            "margin": self.margin,
-            "max_iter": self.max_iter,
-            "tol": self.tol,
-            "qpsol": self.qpsol,
-            "jit": self.jit,
-            "fallback": self.fallback,
-            "predictor": self.predictor,
-            "feasibility_tolerance": self.feasibility_tolerance,
-            "dls_gain": self.dls_gain,
-            "dls_iterations": self.dls_iterations,
-        }
-        if self.n_points is not None:
-            d["n_points"] = self.n_points
-        if self.warm_start is not None:
-            d["warm_start"] = self.warm_start
-        if self.ipopt:
-            d["ipopt"] = dict(self.ipopt)
-        if self.sqp:
-            d["sqp"] = dict(self.sqp)
-        return d
 
 
 class SteerStatus(str, enum.Enum):

@@ -50,13 +50,13 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field, fields
-from typing import Any
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
 
 import numpy as np
 
 from crtraj.core.errors import InputError
-from crtraj.core.fields import Table
+from crtraj.core.options import Options, option
 
 _KEYS = ("id", "center", "radius", "timestamp")
 
@@ -75,50 +75,31 @@ class StaleFeedError(RuntimeError):
 
 
 @dataclass(frozen=True)
-class FeedOptions:
+class FeedOptions(Options):
     """The ``[feed]`` problem section (units mm, s).
 
     max_speed: mm/s, the fastest an obstacle's centre or radius may change;
     faster estimates are clamped to it (default 500 mm/s, a brisk hand).
     velocity_window: s of sender time the velocity is fitted over (0.25).
     min_span: s the fitted messages must span before any velocity is
-    estimated (0.05; shorter spans give zero velocity). max_skew: s a
-    message's timestamp may map away from its arrival on the receiver's clock
-    before it is rejected (0.5).
+    estimated (0.05; shorter spans give zero velocity; at most
+    velocity_window). max_skew: s a message's timestamp may map away from its
+    arrival on the receiver's clock before it is rejected (0.5).
     """
 
-    max_speed: float = 500.0
-    velocity_window: float = 0.25
-    min_span: float = 0.05
-    max_skew: float = 0.5
+    SECTION: ClassVar[str] = "feed"
 
-    def __post_init__(self) -> None:
-        for f in fields(self):
-            v = getattr(self, f.name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise InputError(f"feed.{f.name}: must be a finite number > 0, got {v!r}")
+    max_speed: float = option(500.0, gt=0.0, le=1.0e5)
+    velocity_window: float = option(0.25, gt=0.0, le=10.0)
+    min_span: float = option(0.05, gt=0.0, le=10.0)
+    max_skew: float = option(0.5, gt=0.0, le=60.0)
+
+    def _check(self) -> None:
         if self.min_span > self.velocity_window:
             raise InputError(
                 f"feed.min_span: must not exceed feed.velocity_window ({self.velocity_window:g} s), "
                 f"got {self.min_span:g}"
             )
-
-    @classmethod
-    def from_table(cls, t: Table) -> FeedOptions:
-        """Read a ``[feed]`` table; unknown keys and bad values raise `InputError`."""
-        d = cls()
-        kw = {
-            "max_speed": t.float("max_speed", d.max_speed, gt=0.0, le=1.0e5),
-            "velocity_window": t.float("velocity_window", d.velocity_window, gt=0.0, le=10.0),
-            "min_span": t.float("min_span", d.min_span, gt=0.0, le=10.0),
-            "max_skew": t.float("max_skew", d.max_skew, gt=0.0, le=60.0),
-        }
-        t.finish()
-        return cls(**kw)
-
-    def to_dict(self) -> dict[str, Any]:
-        """Plain data in the TOML schema."""
-        return {f.name: getattr(self, f.name) for f in fields(self)}
 
 
 @dataclass(frozen=True)
