@@ -262,7 +262,6 @@ def test_large_int_bounds_from_a_file():
 # Known defect of the shared reader (crtraj/core/options.py, not part of this conversion): for an object built
 # in Python, _check_int formats an int bound with :g ("must be <= 1e+06", "<= 4.29497e+09"), while the file
 # reader writes it whole ("<= 1000000"). Strict: this fails once the reader is fixed; then drop the mark.
-@pytest.mark.xfail(strict=True, reason="core.options._check_int formats int bounds >= 1e6 with :g")
 def test_large_int_bounds_read_the_same_from_python():
     for bad, msg in _LARGE_INT_BOUNDS:
         with pytest.raises(InputError) as info:

@@ -98,6 +98,7 @@ class Options:
                     raise InputError(f"{name}: expected true or false, got {value!r}")
             elif typ is int:
                 _check_int(value, name, spec)
+                object.__setattr__(self, f.name, int(value))  # a numpy integer is stored as the file would give it
             elif typ is float:
                 # store a float even when built with an int (1 -> 1.0), as a file would give
                 v = check_float(value, name, gt=spec.gt, ge=spec.ge, lt=spec.lt, le=spec.le, limit=spec.limit)
@@ -166,12 +167,17 @@ def _check_int(value: Any, name: str, spec: Bounds) -> None:
     if (isinstance(value, bool) or not isinstance(value, int)) and not numpy_int:
         raise InputError(f"{name}: expected an integer, got {value!r}")
     v = int(value)
+    # integral bounds print as integers, as the file reader prints them (1000000, not 1e+06)
     if spec.ge is not None and v < spec.ge:
-        raise InputError(f"{name}: must be >= {spec.ge:g}, got {v}")
+        raise InputError(f"{name}: must be >= {_bound(spec.ge)}, got {v}")
     if spec.gt is not None and v <= spec.gt:
-        raise InputError(f"{name}: must be > {spec.gt:g}, got {v}")
+        raise InputError(f"{name}: must be > {_bound(spec.gt)}, got {v}")
     if spec.le is not None and v > spec.le:
-        raise InputError(f"{name}: must be <= {spec.le:g}, got {v}")
+        raise InputError(f"{name}: must be <= {_bound(spec.le)}, got {v}")
+
+
+def _bound(b: float) -> str:
+    return str(int(b)) if float(b).is_integer() else f"{b:g}"
 
 
 def _check_str(value: Any, name: str, spec: Bounds) -> None:
