@@ -14,9 +14,11 @@ import numpy as np
 from feed_clock import VirtualClock
 
 from crtraj.control.horizon import ReplanOptions
-from crtraj.control.loop import ClosedLoop, FeedObstacles, result_dict
+from crtraj.control.loop import ClosedLoop, RunStatus, result_dict
+from crtraj.control.loop_options import LoopOptions
 from crtraj.world.feed import ObstacleFeed
 from crtraj.world.scene import Obstacle, Scene
+from crtraj.world.sources import FeedObstacles
 
 XS = np.array([0.3, 0.0, 0.0, 0.0, 0.0])
 XG = np.array([-0.6, 0.5, -0.3, 0.2, -40.0])
@@ -53,21 +55,31 @@ class _Bridge:
 
 def test_live_feed_run_moves_safely_and_holds_when_the_feed_goes_stale(model):
     scene = Scene(obstacles=(BALL,), safety_distance=5.0)
-    opts = ReplanOptions(horizon=6, points=12, solver="sqp", duration=2.5)
+    opts = ReplanOptions(horizon=6, points=12, solver="sqp")
+    lopts = LoopOptions(duration=2.5)
     clock = VirtualClock(1000.0)
     with ObstacleFeed(0, max_age=0.1, expected=["ball"], clock=clock) as feed:
         bridge = _Bridge(feed, clock, stop_after=1.15)
         clock.every(0.01, bridge)
         clock.sleep(0.0)  # the first state arrives before the loop is built; building takes no virtual time
         source = FeedObstacles(feed, scene, window=1.5)
-        loop = ClosedLoop(model, scene, model.tip_position(XG), XS, options=opts, goal_config=XG, obstacles=source)
+        loop = ClosedLoop(
+            model,
+            scene,
+            model.tip_position(XG),
+            XS,
+            options=opts,
+            loop_options=lopts,
+            goal_config=XG,
+            obstacles=source,
+        )
         t_start = clock()
         run = loop.run(clock=clock, sleep=clock.sleep)
         took = clock() - t_start
     assert run.live
     # paced in real time on the shared clock: every step waited for its time (2.5 s of loop time)
     assert abs(took - 2.5) < 1e-6 and run.late_steps == 0
-    st = np.array(run.status)
+    st = np.array(run.step_status)
     # while the feed is fresh the robot moves, every move verified against the live states
     early = run.t[1:] <= 1.2 + 1e-9
     assert set(st[early]) <= {"move", "suboptimal"}
@@ -100,16 +112,26 @@ def test_live_feed_run_moves_safely_and_holds_when_the_feed_goes_stale(model):
 
 def test_live_run_without_any_state_ends_with_no_obstacles_on_virtual_time(model):
     scene = Scene(obstacles=(BALL,), safety_distance=5.0)
-    opts = ReplanOptions(horizon=6, points=12, solver="sqp", duration=1.0)
+    opts = ReplanOptions(horizon=6, points=12, solver="sqp")
+    lopts = LoopOptions(duration=1.0)
     clock = VirtualClock(0.0)
     with ObstacleFeed(0, max_age=0.1, expected=["ball"], clock=clock) as feed:
         source = FeedObstacles(feed, scene, window=1.5)
-        loop = ClosedLoop(model, scene, model.tip_position(XG), XS, options=opts, goal_config=XG, obstacles=source)
+        loop = ClosedLoop(
+            model,
+            scene,
+            model.tip_position(XG),
+            XS,
+            options=opts,
+            loop_options=lopts,
+            goal_config=XG,
+            obstacles=source,
+        )
         ObstacleFeed.send(feed.address, [{"id": "intruder", "center": [0, 0, 0], "radius": 1.0, "timestamp": 0.0}])
         assert feed.wait_for(1)
         run = loop.run(clock=clock, sleep=clock.sleep)
     # waited 2 s of the injected clock for a first state, then said why
-    assert run.outcome == "no_obstacles" and clock() >= 2.0
+    assert run.status is RunStatus.NO_OBSTACLES and clock() >= 2.0
     assert "no obstacle state received yet" in run.message
     assert run.feed["counts"] == {"unknown_id": 1} and run.feed["events"][0]["kind"] == "unknown_id"
 

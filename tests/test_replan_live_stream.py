@@ -12,10 +12,12 @@ import numpy as np
 import pytest
 from feed_clock import VirtualClock
 
+from crtraj.app.replan import loop_from_problem
 from crtraj.cli import main
-from crtraj.control.loop import DeviceLink, loop_from_problem
+from crtraj.control.loop import RunStatus
 from crtraj.control.tracking import ServoModel
 from crtraj.hardware.actuators import Actuators
+from crtraj.hardware.link import DeviceLink
 from crtraj.hardware.protocol import HOLD, MOVE
 from crtraj.hardware.sim_device import SimDevice
 from crtraj.hardware.stream import Streamer, StreamOptions
@@ -51,6 +53,7 @@ radius = {{ mean = 30.0, amplitude = 8.0, omega = 2.0, phase = 0.0 }}
 horizon = 6
 points = 12
 solver = "sqp"
+[loop]
 duration = {duration}
 planner_time = 0.5
 settle_time = 0.3
@@ -205,8 +208,8 @@ def test_stale_feed_holds_the_device_with_hold_frames_only(tmp_path, robot, mode
         final = dev.state()
         t_dev0 = dev._t0  # the device's clock origin (monotonic)
     assert stopped, statuses  # the device applied moves while the feed was live: streamed during the run
-    assert run.outcome == "timeout" and not run.reached  # the feed went silent before the goal: reported
-    st = list(run.status)
+    assert run.status is RunStatus.TIMEOUT and not run.reached  # the feed went silent before the goal: reported
+    st = list(run.step_status)
     # the last state was sent at stopped t - 0.1 s: stale exactly from the first step whose feed state is older
     # than max_age (0.25 s) of loop time, the step starting 0.3 s after it
     k_stale = round((stopped["t"] + 0.2) / 0.1)
@@ -278,8 +281,8 @@ def test_ctrl_c_holds_the_device_and_ends_the_run(tmp_path, robot, model):
             send(t, k + 2)
 
         run = loop.run(device=link, progress=interrupt)
-    assert run.outcome == "interrupted" and run.steps == 9
-    assert "stale" not in run.status
+    assert run.status is RunStatus.INTERRUPTED and run.steps == 9
+    assert "stale" not in run.step_status
     assert link.report.status == "held" and "Ctrl-C" in link.report.message
     kinds = [x["kind"] for x in _log(tmp_path / "s.jsonl") if x["type"] == "tx"]
     assert kinds[-1] == "hold" and "move" in kinds

@@ -470,20 +470,7 @@ class Replanner:
         """
         N, nx = self.N, self.nx
         x0 = np.asarray(x0, dtype=float).reshape(nx)
-        Xr = np.asarray(reference, dtype=float).reshape(N, nx)
-        xm1 = x0 if x_prev is None else np.asarray(x_prev, dtype=float).reshape(nx)
-        Pr = self.model.tip_position(Xr) if tip_reference is None else np.asarray(tip_reference, float).reshape(N, 3)
-        Ob = np.asarray(obstacles, dtype=float)
-        if Ob.size != N * packing.WIDTH * self.max_obstacles:
-            raise InputError(
-                f"obstacles: expected shape ({N}, {packing.WIDTH * self.max_obstacles}) from obstacles_from_scene "
-                f"or obstacles_from_states, got {Ob.shape}"
-            )
-        Ob = Ob.reshape(N, packing.WIDTH * self.max_obstacles)
-        for name, arr in (("x0", x0), ("reference", Xr), ("x_prev", xm1), ("tip_reference", Pr), ("obstacles", Ob)):
-            if not np.all(np.isfinite(arr)):
-                raise InputError(f"{name}: contains NaN or infinity")
-        p = np.concatenate([x0, xm1, Xr.ravel(), Pr.ravel(), Ob.ravel()])
+        p = self._parameters(x0, reference, obstacles, x_prev, tip_reference)
         args: dict[str, Any] = {
             "p": p,
             "lbx": np.tile(self._box[0], N),
@@ -535,6 +522,26 @@ class Replanner:
             warm=used_warm,
             extra={"attempts": len(tried), "rescue": rescued},
         )
+
+    def _parameters(
+        self, x0: np.ndarray, reference: Any, obstacles: Any, x_prev: Any, tip_reference: Any
+    ) -> np.ndarray:
+        """The NLP's parameter vector from `solve`'s inputs; `InputError` for a wrong shape or NaN."""
+        N, nx = self.N, self.nx
+        Xr = np.asarray(reference, dtype=float).reshape(N, nx)
+        xm1 = x0 if x_prev is None else np.asarray(x_prev, dtype=float).reshape(nx)
+        Pr = self.model.tip_position(Xr) if tip_reference is None else np.asarray(tip_reference, float).reshape(N, 3)
+        Ob = np.asarray(obstacles, dtype=float)
+        if Ob.size != N * packing.WIDTH * self.max_obstacles:
+            raise InputError(
+                f"obstacles: expected shape ({N}, {packing.WIDTH * self.max_obstacles}) from obstacles_from_scene "
+                f"or obstacles_from_states, got {Ob.shape}"
+            )
+        Ob = Ob.reshape(N, packing.WIDTH * self.max_obstacles)
+        for name, arr in (("x0", x0), ("reference", Xr), ("x_prev", xm1), ("tip_reference", Pr), ("obstacles", Ob)):
+            if not np.all(np.isfinite(arr)):
+                raise InputError(f"{name}: contains NaN or infinity")
+        return np.concatenate([x0, xm1, Xr.ravel(), Pr.ravel(), Ob.ravel()])
 
     def _warm_fits(self, x0: np.ndarray) -> bool:
         """The shifted previous solution starts within reach of x0 (else it belongs to another situation)."""
