@@ -134,37 +134,3 @@ def test_live_run_without_any_state_ends_with_no_obstacles_on_virtual_time(model
     assert run.status is RunStatus.NO_OBSTACLES and clock() >= 2.0
     assert "no obstacle state received yet" in run.message
     assert run.feed["counts"] == {"unknown_id": 1} and run.feed["events"][0]["kind"] == "unknown_id"
-
-
-class _FakeFeed:
-    """An ObstacleFeed stand-in that returns one fixed state."""
-
-    def __init__(self, state) -> None:
-        self.state = state
-
-    def latest(self):
-        return self.state
-
-
-def test_feed_snapshot_bounds_the_constant_velocity_prediction():
-    from crtraj.world.feed import FeedState
-
-    c = np.array([[10.0, 20.0, 300.0], [-40.0, 0.0, 200.0]])
-    v = np.array([[5.0, -3.0, 1.0], [0.0, 0.0, 0.0]])
-    r = np.array([30.0, 20.0])
-    rd = np.array([6.0, -4.0])  # one grows, one shrinks
-    ages = np.array([0.03, 0.05])
-    state = FeedState(("a", "b"), c, r, v, rd, np.zeros(2), ages, 0.05, False)
-    template = Scene(obstacles=(Obstacle((0, 0, 0), 1.0, name="a"), Obstacle((0, 0, 0), 1.0, name="b")))
-    W, t = 1.2, 7.3
-    snap, why = FeedObstacles(_FakeFeed(state), template, window=W).at(t)
-    assert why == ""
-    tau = np.linspace(0.0, W, 61)
-    C, R = snap.states(t + tau)
-    for j in range(2):
-        # centre exactly on the extrapolated line, radius never below the extrapolated one
-        np.testing.assert_allclose(C[:, j], c[j] + (ages[j] + tau)[:, None] * v[j], atol=1e-9)
-        assert np.all(R[:, j] >= r[j] + (ages[j] + tau) * rd[j] - 1e-9)
-    stale = FeedState(("a",), c[:1], r[:1], v[:1], rd[:1], np.zeros(1), ages[:1], 0.05, False)
-    snap, why = FeedObstacles(_FakeFeed(stale), template, window=W).at(t)
-    assert snap is None and "no state for b" in why

@@ -18,6 +18,7 @@ import pytest
 from crtraj.control.horizon import HorizonResult, HorizonStatus, Replanner, ReplanOptions
 from crtraj.control.loop import ClosedLoop, RunStatus, StepStatus, write_run
 from crtraj.control.loop_options import LoopOptions
+from crtraj.control.ports import Device, DeviceError
 from crtraj.control.tracking import TrackingOptions
 from crtraj.world.scene import Obstacle, Scene
 
@@ -312,3 +313,61 @@ def test_seeded_random_scenes_never_violate_clearance(model, seed):
     clear = _independent_clearance(run, model, scene, loop.tracking_options)
     assert clear.min() > 0.0, (seed, clear.min(), run.summary_line())
     assert "unsafe" not in run.step_status
+
+
+class _RefusingDevice:
+    """A device port stand-in: no telemetry, never lost, and every move is refused (`DeviceError`), as a
+    stream held meanwhile would; or, with `error`, a move fails with that exception instead."""
+
+    def __init__(self, q0: np.ndarray, error: Exception | None = None) -> None:
+        self.q0, self.error = q0, error
+        self.refused, self.holds, self.finished = 0, [], None
+
+    def start_actuation(self) -> np.ndarray:
+        return self.q0.copy()
+
+    def begin(self, t_origin: float) -> None:
+        pass
+
+    def problem(self) -> str:
+        return ""
+
+    def measure(self, t, q, qc):
+        return q, qc, False
+
+    def move(self, t, q0, commands, control_dt) -> None:
+        if self.error is not None:
+            raise self.error
+        self.refused += 1
+        raise DeviceError("stream held: source stalled")
+
+    def pace(self, t: float) -> bool:
+        return False
+
+    def hold(self, reason: str) -> None:
+        self.holds.append(reason)
+
+    def estop(self, reason: str) -> None:
+        raise AssertionError(f"no step of this run is unsafe: {reason}")
+
+    def finish(self, q_final):
+        self.finished = np.array(q_final)
+
+    def describe(self) -> dict:
+        return {"refused": self.refused}
+
+
+def test_loop_catches_only_device_errors_from_a_device(model, ball_scene):
+    loop = _loop(model, ball_scene, duration=1.0)
+    q0 = loop.tracker.initial_command(XS)
+    dev = _RefusingDevice(q0)
+    assert isinstance(dev, Device)
+    run = loop.run(device=dev)
+    # a refused move does not end the run (the device's `problem()` decides that): every step ran
+    assert run.status is RunStatus.TIMEOUT and run.steps == 10
+    sent = [s for s in run.step_status if s in ("move", "suboptimal", "fallback")]
+    assert dev.refused == len(sent) > 0 and run.device == {"refused": len(sent)}
+    np.testing.assert_array_equal(dev.finished, run.q[-1])  # finished at the final actuation
+    # anything else from a device is not the loop's to swallow
+    with pytest.raises(ZeroDivisionError):
+        _loop(model, ball_scene, duration=1.0).run(device=_RefusingDevice(q0, ZeroDivisionError("device bug")))
