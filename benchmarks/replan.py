@@ -24,8 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
+from crtraj.app.replan import loop_from_problem
 from crtraj.control.horizon import ReplanOptions
-from crtraj.control.loop import loop_from_problem
 from crtraj.io.problem import Problem, read_toml
 
 ROOT = Path(__file__).resolve().parent.parent

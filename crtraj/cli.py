@@ -23,16 +23,16 @@ from pathlib import Path
 from typing import Any, NoReturn
 
 from crtraj import __version__
+from crtraj.app.replan import ReplanRequest, run_replan
 from crtraj.core.errors import InputError
 from crtraj.core.fileio import (
-    StagedDir,
     StagedFile,
-    check_output_dir,
     check_output_file,
     failed_sibling,
     is_successful_result,
 )
 from crtraj.hardware.actuators import Actuators
+from crtraj.hardware.admission import check_replay_time_scale
 from crtraj.hardware.transport import TransportError
 
 DEFAULT_ROBOT = Path(__file__).resolve().parent.parent / "problems" / "robots" / "cdsr2.toml"
@@ -199,7 +199,7 @@ def _cmd_stream(args: argparse.Namespace) -> int:
     opts = Problem.load(args.problem).options(StreamOptions, "stream") if args.problem else StreamOptions()
     over = {k: v for k, v in (("rate", args.rate), ("watchdog", args.watchdog)) if v is not None}
     opts = dataclasses.replace(opts, **over)
-    _check_time_scale(result, args.time_scale)
+    check_replay_time_scale(result, args.time_scale)
     path = SetpointPath.from_result(result, actuators).scaled(args.time_scale)
     log = args.log or Path("out") / "stream" / f"{Path(args.result).stem}-{time.strftime('%Y%m%d-%H%M%S')}.jsonl"
     _refuse_overwriting_input(args.result, ("--log", log), ("--dry-run", args.dry_run))
@@ -414,7 +414,8 @@ def _add_replan(sub: argparse._SubParsersAction) -> None:
         "replan",
         help="run the receding-horizon replanner in closed loop among moving obstacles (paper simulation 2)",
         description="Simulate the robot from the task's start to its goal among the scene's moving, breathing "
-        "obstacles: a horizon NLP (the [replan] section) re-solved every step from the measured configuration, "
+        "obstacles: a horizon NLP (the [replan] section) re-solved every step from the measured configuration ([loop]: "
+        "duration, reference timing, verification), "
         "a reference path re-planned when needed, the tracking controller and servo model ([tracking]), and "
         "every applied move verified densely in time. Writes run.json, run.npz, run.png (body-obstacle "
         "distance and tip error over time) and run.html (standalone 3-D replay) into --out.",
@@ -473,204 +474,22 @@ def _add_replan(sub: argparse._SubParsersAction) -> None:
 
 
 def _cmd_replan(args: argparse.Namespace) -> int:
-    import time
-
-    from crtraj.control.loop import RUN_FILES, UnsolvableTaskError, loop_from_problem, write_run_files
-    from crtraj.hardware.setpoints import check_time_scale
-    from crtraj.io.problem import Problem
-
-    check_time_scale(args.time_scale)
-    if args.seed is not None and args.seed < 0:
-        raise InputError(f"--seed: must be >= 0, got {args.seed}")
-    if args.stream and args.no_safety:
-        raise InputError(
-            "--stream: refused with --no-safety (a run without the collision-free terms never drives a device)"
-        )
-    out = Path(args.out) if args.out else Path("out") / ("replan-no-safety" if args.no_safety else "replan")
-    check_output_dir(out, "--out", RUN_FILES)  # before the (possibly long) run, not after it
-    problem = Problem.load(args.problem)
-    if args.stream and not args.feed:  # refuse before the run, not after it
-        _check_time_scale({"scene": problem.raw.get("scene", {})}, args.time_scale)
-    seed = problem.seed if args.seed is None else args.seed
-    t0 = time.perf_counter()
-    feed = None
-    if args.feed:
-        from crtraj.hardware.transport import parse_hostport
-        from crtraj.world.feed import ObstacleFeed
-        from crtraj.world.scene import Scene
-
-        host, port = parse_hostport(args.feed.removeprefix("udp://"), "--feed")
-        if host not in ("127.0.0.1", "localhost"):
-            raise InputError(f"--feed: the feed listens on 127.0.0.1 only, got host {host!r}")
-        ids = [o.name for o in Scene.from_table(problem.section("scene")).obstacles]
-        feed = ObstacleFeed(port, max_age=args.feed_max_age, expected=ids)
-        print(f"listening for obstacle states ({', '.join(ids)}) on udp://127.0.0.1:{feed.address[1]}", flush=True)
-    live = feed is not None and bool(args.stream)
-    link = None
-    with contextlib.ExitStack() as stack:
-        try:
-            lead, sopts = _live_stream_options(problem) if live else (0.0, None)
-            try:
-                loop = loop_from_problem(problem, safety=not args.no_safety, seed=seed, feed=feed, lead=lead)
-            except UnsolvableTaskError as exc:
-                print(f"{exc.status}: {exc}; no run, nothing written to {out}")
-                print(f"crtraj: replan failed: {exc.status}: {exc}", file=sys.stderr)
-                return 1
-            o = loop.options
-            # every file of the run, a live stream's log too, goes into a temporary sibling folder that
-            # replaces --out as a whole at the end: a kill never leaves a mix of old and new files
-            stage = stack.enter_context(StagedDir(out, RUN_FILES))
-            if live:
-                link = _open_live_stream(args, problem, loop, sopts, stage.path)
-            if not args.quiet:
-                d = loop.replanner.describe()
-                print(
-                    f"replanning '{problem.name}' (seed {seed}, {'with' if o.safety else 'WITHOUT'} collision-free "
-                    f"terms{', live obstacles, real time' if feed is not None else ''}): horizon {o.horizon} x "
-                    f"{o.dt:g} s, {d['solver']}, {d['variables']} variables, {d['constraints']} constraints",
-                    flush=True,
-                )
-            run = loop.run(device=link)
-        finally:
-            if link is not None:
-                link.streamer.close()  # a no-op after a normal run: the run closed it
-            if feed is not None:
-                feed.close()
-        ok = run.reached and (run.safety_violations == 0 or not o.safety)
-        if link is not None:
-            ok = ok and link.report.ok
-        staged = write_run_files(run, loop, stage.path, problem=problem, seed=seed, html=not args.no_html)
-        # a failed run never replaces a successful one unless asked: it goes beside it (NAME.failed)
-        dest = out
-        if not ok and not args.overwrite_failed and is_successful_result(out):
-            dest = failed_sibling(out)
-        dest = stage.commit(dest)
-    paths = {k: (v if k == "result" else dest / Path(v).name) for k, v in staged.items()}
-    line = run.summary_line()
-    if dest != out:
-        line += f"; failed run written to {dest} ({out} holds a successful run, kept: --overwrite-failed replaces it)"
-    print(line)
-    if link is not None:
-        rep = link.report
-        fe = "" if rep.final_error is None else f", final error {rep.final_error:.3g}"
-        print(
-            f"  live stream {rep.status}: {rep.message}; {rep.frames} frames ({rep.moves} move, {rep.holds} hold, "
-            f"{rep.estops} e-stop){fe}; {link.restarts} restarts; log {dest / 'stream.jsonl'}"
-        )
-    if not args.quiet:
-        counts = ", ".join(f"{k} {v}" for k, v in run.summary()["status_counts"].items())
-        print(f"  steps: {counts}; wall time {time.perf_counter() - t0:.2f} s")
-        for key in ("json", "npz", "png", "html"):
-            if key in paths:
-                print(f"  {key:4s} {paths[key]}")
-    streamed = True
-    if link is None and args.stream:
-        if ok:
-            streamed = _stream_run(args, problem, paths)
-        else:  # a run that failed or broke the safety distance never reaches a device
-            print("  not streamed: the run did not reach the goal safely", flush=True)
-    if args.view:
-        _serve(paths["result"], "the run", not args.no_browser)
-    if run.outcome == "interrupted":
-        return 130
-    if not ok:
-        why = f"{run.outcome}: {run.message}"
-        if run.reached and run.safety_violations:
-            why = f"unsafe: {run.safety_violations} steps closer than D_sf"
-        elif link is not None and run.reached:
-            why = f"live stream {link.report.status}: {link.report.message}"
-        print(f"crtraj: replan failed: {why} (run in {dest})", file=sys.stderr)
-    elif not streamed:
-        print(f"crtraj: replan: the run succeeded (in {dest}) but the stream did not complete", file=sys.stderr)
-    return 0 if ok and streamed else 1
-
-
-def _live_stream_options(problem: Any) -> tuple[float, Any]:
-    """(lead s, StreamOptions) of a live stream: the [stream] prebuffer, at least one replan step."""
-    import dataclasses
-
-    from crtraj.control.horizon import ReplanOptions
-    from crtraj.hardware.stream import StreamOptions
-
-    sopts = problem.options(StreamOptions, "stream")
-    lead = max(sopts.prebuffer, problem.options(ReplanOptions, "replan").dt)
-    return lead, dataclasses.replace(sopts, prebuffer=lead)
-
-
-def _open_live_stream(args: argparse.Namespace, problem: Any, loop: Any, sopts: Any, out: Path) -> Any:
-    """Connect to the device for a live run (`crtraj.control.loop.DeviceLink`); refuse a device that is not at the
-    task's start unless --approach."""
-    import numpy as np
-
-    from crtraj.control.loop import DeviceLink
-    from crtraj.hardware.stream import Streamer, StreamError
-
-    robot = problem.robot
-    if robot.actuators is None:
-        raise InputError("robot.actuators: --stream needs a [robot.actuators] table in the robot file")
-    acts = Actuators.from_robot(robot)
-    target = args.stream if "://" in args.stream else f"udp://{args.stream}"
-    streamer = Streamer.open(target, acts, sopts, out / "stream.jsonl")
-    try:
-        streamer.start()
-        link = DeviceLink(streamer, loop.servo, loop.options.dt, lead=sopts.prebuffer)
-        here = streamer.position
-        start = acts.command(loop.tracker.initial_command(loop.x_start))
-        d = np.abs(here - start)
-        i = int(np.argmax(d))
-        tol = sopts.settle_tolerance
-        if d[i] > tol and not args.approach:
-            u = acts.units[i]
-            raise InputError(
-                f"--stream: the device's {acts.names[i]} is at {here[i]:.4g} {u}, the task starts at {start[i]:.4g} "
-                f"{u} ({d[i]:.3g} {u} apart, more than stream.settle_tolerance {tol:g}); move the robot to the "
-                "start, or pass --approach to start the run from where the device is"
-            )
-    except StreamError as exc:
-        streamer.close()
-        raise InputError(f"--stream: {exc}") from None
-    except BaseException:
-        streamer.close()
-        raise
-    print(f"streaming live to {streamer.transport.description} ({sopts.prebuffer:g} s ahead)", flush=True)
-    return link
-
-
-def _check_time_scale(result: dict | str | Path, time_scale: float) -> None:
-    """Refuse to slow down a run among moving or breathing obstacles: its slowed timing was never checked."""
-    if time_scale == 1.0:
-        return
-    from crtraj.core.fields import Table
-    from crtraj.core.fileio import read_json
-    from crtraj.world.scene import Scene
-
-    data = result if isinstance(result, dict) else read_json(result)
-    scene = Scene.from_table(Table(data.get("scene", {}), "scene"))
-    if any(ob.amplitude != 0.0 or ob.to is not None for ob in scene.obstacles):
-        raise InputError(
-            f"--time-scale: {time_scale:g} refused: the run's obstacles move or change size, and a slowed replay "
-            "was never checked against them (plan again with lower speed limits instead)"
-        )
-
-
-def _stream_run(args: argparse.Namespace, problem: object, paths: dict) -> bool:
-    """Stream a replan run's actuation (its waypoints' q) to a device; True when the stream completed."""
-    from crtraj.hardware.setpoints import SetpointPath
-    from crtraj.hardware.stream import Streamer, StreamOptions
-
-    robot = problem.robot
-    if robot.actuators is None:
-        raise InputError("robot.actuators: --stream needs a [robot.actuators] table in the robot file")
-    actuators = Actuators.from_robot(robot)
-    target = args.stream if "://" in args.stream else f"udp://{args.stream}"
-    opts = problem.options(StreamOptions, "stream")
-    log = Path(paths["json"]).parent / "stream.jsonl"
-    _check_time_scale(paths["result"], args.time_scale)
-    path = SetpointPath.from_result(paths["result"], actuators).scaled(args.time_scale)
-    print(f"streaming the run ({path.duration:.2f} s) to {target}", flush=True)
-    rep = Streamer.open(target, actuators, opts, log).run_path(path, approach=args.approach)
-    print(f"  stream {rep.status}: {rep.message}; {rep.frames} frames; log {rep.log}")
-    return rep.ok
+    req = ReplanRequest(
+        problem=Path(args.problem),
+        out=Path(args.out) if args.out else None,
+        seed=args.seed,
+        safety=not args.no_safety,
+        html=not args.no_html,
+        overwrite_failed=args.overwrite_failed,
+        feed=args.feed,
+        feed_max_age=args.feed_max_age,
+        stream=args.stream,
+        approach=args.approach,
+        time_scale=args.time_scale,
+        quiet=args.quiet,
+    )
+    view = (lambda result: _serve(result, "the run", not args.no_browser)) if args.view else None
+    return run_replan(req, view=view)
 
 
 # ---------------------------------------------------------------------- bench

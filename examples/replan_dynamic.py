@@ -11,7 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from crtraj.control.loop import loop_from_problem, write_run
+from crtraj.app.replan import loop_from_problem
+from crtraj.control.loop import write_run
 from crtraj.io.problem import Problem
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -35,6 +36,6 @@ x0 = run.x[10]
 reference = run.x[11 : 11 + rp.N]  # e.g. where the robot went next
 res = rp.solve(x0, reference, rp.obstacles_from_scene(scene, t0=run.t[10]), x_prev=run.x[9])
 print(
-    f"horizon NLP: {res.status}, {res.iterations} iterations, {res.wall_time * 1e3:.2f} ms, "
+    f"horizon NLP: {res.status} ({res.solver_status}), {res.iterations} iterations, {res.wall_time * 1e3:.2f} ms, "
     f"next configuration {res.configs[0].round(3)}"
 )

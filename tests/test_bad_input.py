@@ -14,12 +14,14 @@ import numpy as np
 import pytest
 
 from crtraj import cli
-from crtraj.control.horizon import ReplanOptions
+from crtraj.control.horizon import MOVED_TO_LOOP, ReplanOptions
+from crtraj.control.loop_options import LoopOptions
 from crtraj.core.errors import InputError
 from crtraj.core.fields import Table, check_array
 from crtraj.core.fileio import MAX_DEPTH, read_json, read_toml
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.setpoints import MAX_SETPOINTS, SetpointPath
+from crtraj.io.problem import Problem
 
 ROOT = Path(__file__).resolve().parent.parent
 STATIC = (ROOT / "problems" / "paper_static.toml").read_text()
@@ -168,6 +170,22 @@ def test_bad_problem_values_are_one_line(old, new, needle, tmp_path, capsys):
     assert {p: p.read_bytes() for p in kept} == kept
 
 
+@pytest.mark.parametrize("key", MOVED_TO_LOOP)
+def test_loop_key_in_replan_section_says_it_moved(key, tmp_path, capsys):
+    # an old problem file with a closed-loop key under [replan]: one line naming it and its new section,
+    # before any planning, and the run folder is not created
+    text = STATIC.replace("[planner]", f"[replan]\n{key} = 2\n\n[planner]", 1)
+    p = _problem(tmp_path, text)
+    out = tmp_path / "run"
+    err = _one_line(capsys, ["replan", str(p), "--out", str(out), "--no-html"], "")
+    assert err == f"crtraj: error: replan.{key}: moved to the [loop] section; write it under [loop]\n"
+    assert not out.exists()
+    # the same key under [loop] is read there
+    value = 1 if key == "reference_speed" else 2
+    moved = _problem(tmp_path, STATIC.replace("[planner]", f"[loop]\n{key} = {value}\n\n[planner]", 1), "q.toml")
+    assert Problem.load(moved).options(LoopOptions, "loop").to_dict()[key] == value
+
+
 def test_scene_time_step_message_is_exact(tmp_path, capsys):
     p = _problem(tmp_path, STATIC.replace("safety_distance = 5.0", "time_step = 1.0\nsafety_distance = 5.0"))
     err = _one_line(capsys, ["plan", str(p)], "")
@@ -271,8 +289,9 @@ def test_setpoint_count_is_bounded_before_allocating(model):
 
 
 def test_replan_step_count_is_bounded():
-    with pytest.raises(InputError, match=r"replan\.duration: 1e\+06 s is 1000000000 steps of dt 0\.001 s"):
-        ReplanOptions(duration=1e6, dt=1e-3)
+    with pytest.raises(InputError, match=r"loop\.duration: 1e\+06 s is 1000000000 steps of replan\.dt 0\.001 s"):
+        LoopOptions(duration=1e6).steps(1e-3)
+    assert LoopOptions(duration=1e4).steps(0.1) == 100_000  # the bound itself is allowed
     with pytest.raises(InputError, match=r"replan\.dt: must be >= 0\.001"):
         ReplanOptions.from_table(Table({"dt": 1e-300}, "replan"))
     with pytest.raises(InputError, match=r"replan\.max_iter: must be <= 100000"):

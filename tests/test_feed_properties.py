@@ -16,9 +16,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from crtraj.control.loop import FeedObstacles
 from crtraj.world.feed import FeedOptions, ObstacleFeed
 from crtraj.world.scene import Obstacle, Scene
+from crtraj.world.sources import FeedObstacles
 
 pytestmark = pytest.mark.timeout(300)
 

@@ -13,8 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from crtraj.app.replan import loop_from_problem
 from crtraj.cli import main
-from crtraj.control.loop import RUN_FILES, ClosedLoop, loop_from_problem, write_run
+from crtraj.control.loop import RUN_FILES, ClosedLoop, write_run
 from crtraj.core import fileio
 from crtraj.core.errors import InputError
 from crtraj.hardware.protocol import MOVE, read_stream_file
@@ -160,7 +161,7 @@ def test_bad_out_is_one_line_before_any_work(tmp_path, capsys, monkeypatch, comm
         raise AssertionError("the run started before --out was checked")
 
     monkeypatch.setattr("crtraj.app.plan.plan_problem", never)
-    monkeypatch.setattr("crtraj.control.loop.loop_from_problem", never)
+    monkeypatch.setattr("crtraj.app.replan.loop_from_problem", never)
     afile = tmp_path / "afile"
     afile.write_text("keep me")
     foreign = tmp_path / "mine"
@@ -294,7 +295,7 @@ def test_failed_replan_never_replaces_a_good_run(tmp_path, good_run, capsys):
     out = tmp_path / "run"
     shutil.copytree(good_run, out)
     good = _digest(out)
-    short = _variant(tmp_path, STATIC, "short", **{"[planner]": "[replan]\nduration = 0.5\n\n[planner]"})
+    short = _variant(tmp_path, STATIC, "short", **{"[planner]": "[loop]\nduration = 0.5\n\n[planner]"})
     assert main(["replan", str(short), "--out", str(out), "--quiet", "--no-html"]) == 1
     text, err = _one_err_line(capsys)
     failed = tmp_path / "run.failed"
@@ -315,15 +316,13 @@ def test_write_run_replaces_the_folder_as_a_whole(tmp_path, good_run):
     out = tmp_path / "run"
     shutil.copytree(good_run, out)
     (out / "stream.jsonl").write_text("{}\n")  # a file the next run does not write
-    problem = Problem.load(
-        _variant(tmp_path, STATIC, "short", **{"[planner]": "[replan]\nduration = 0.3\n\n[planner]"})
-    )
+    problem = Problem.load(_variant(tmp_path, STATIC, "short", **{"[planner]": "[loop]\nduration = 0.3\n\n[planner]"}))
 
     loop = loop_from_problem(problem)
     run = loop.run()
     paths = write_run(run, loop, out, problem=problem, html=False)
     assert sorted(p.name for p in out.iterdir()) == ["run.json", "run.npz", "run.png"]  # no old file left
-    assert paths["json"] == out / "run.json" and check_run_folder(out)["status"] == run.outcome
+    assert paths["json"] == out / "run.json" and check_run_folder(out)["status"] == str(run.status)
     _no_temporaries(tmp_path)
 
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from conftest import PLANNER_HANG_S
 
-from crtraj.control.horizon import HorizonResult, Replanner, ReplanOptions
+from crtraj.control.horizon import HorizonResult, HorizonStatus, Replanner, ReplanOptions, horizon_status
 from crtraj.core.errors import InputError
 from crtraj.core.fields import Table
 from crtraj.world import packing
@@ -49,7 +49,7 @@ def test_solution_keeps_every_constraint_on_an_independent_dense_check(model, sc
     Xr = _straight_reference(x0, XG, N, 0.12)
     assert np.min(scene.clearance(model, Xr, t0, 100)) < -5.0  # the reference itself collides
     res = planner.solve(x0, Xr, planner.obstacles_from_scene(scene, t0))
-    assert res.success, res.status
+    assert res.is_success() and res.status is HorizonStatus.SOLVED, res.solver_status
     assert res.feasible
     X = res.configs
     # dense in arc length: 200 points per configuration, D_sf + disc radius from the ball's surface
@@ -78,7 +78,7 @@ def test_without_safety_the_same_problem_runs_into_the_obstacle(model, scene):
     )
     x0 = XS + 0.25 * (XG - XS)
     res = rp.solve(x0, _straight_reference(x0, XG, rp.N, 0.12), rp.obstacles_from_scene(scene, 3.0))
-    assert res.success
+    assert res.is_success()
     assert math.isinf(res.min_distance)  # no obstacle constraints in this NLP
     assert np.min(scene.clearance(model, res.configs, 3.0, 100)) < 0.0
 
@@ -91,7 +91,7 @@ def test_both_solvers_agree(model, scene, solver):
     x0 = XS + 0.25 * (XG - XS)
     Xr = _straight_reference(x0, XG, rp.N, 0.12)
     res = rp.solve(x0, Xr, rp.obstacles_from_scene(scene, 3.0))
-    assert res.success, res.status
+    assert res.is_success(), res.solver_status
     tight = replace(opts, solver="ipopt", tol=1e-9)
     ref = Replanner(model, tight, max_obstacles=1, safety_distance=5.0).solve(x0, Xr, rp.obstacles_from_scene(scene, 3))
     assert abs(res.cost - ref.cost) <= 1e-3 * max(1.0, ref.cost)
@@ -151,10 +151,10 @@ def test_warm_start_reuses_the_shifted_solution(model, scene):
     Xr = _straight_reference(x0, XG, rp.N, 0.1)
     ob = rp.obstacles_from_scene(scene, 0.0)
     cold = rp.solve(x0, Xr, ob)
-    assert cold.success and not cold.warm
+    assert cold.is_success() and not cold.warm
     again = rp.solve(x0, Xr, ob)
     assert again.warm
-    assert again.success
+    assert again.is_success()
     np.testing.assert_allclose(again.configs, cold.configs, atol=1e-5)
     rp.reset()
     assert not rp.solve(x0, Xr, ob).warm
@@ -169,9 +169,10 @@ def test_failed_solve_is_reported_as_failed(model):
     x0 = np.zeros(5)  # straight up the z axis, through the sphere
     res = rp.solve(x0, np.repeat(x0[None], 4, axis=0), rp.obstacles_from_scene(scene, 0.0))
     assert isinstance(res, HorizonResult)
-    assert not res.success
+    assert not res.is_success()
     assert not res.feasible
-    assert res.status and res.status != "Solve_Succeeded"
+    assert res.status is HorizonStatus.FAILED
+    assert res.solver_status and res.solver_status != "Solve_Succeeded"
 
 
 def test_bad_input_is_one_clear_error(planner):
@@ -221,9 +222,20 @@ def test_a_failed_fast_solve_is_rescued_by_ipopt_or_reported(model, scene, rescu
     rp.solver = _BrokenSolver(rp.N * rp.nx, len(rp._lbg))
     x0 = XS + 0.25 * (XG - XS)
     res = rp.solve(x0, _straight_reference(x0, XG, rp.N, 0.12), rp.obstacles_from_scene(scene, 3.0))
-    assert res.status.startswith("Injected_Breakdown")
+    assert res.solver_status.startswith("Injected_Breakdown")
     if rescue:
-        assert res.success and res.feasible and res.extra["rescue"]
-        assert "rescue ipopt: Solve_Succeeded" in res.status
+        assert res.is_success() and res.feasible and res.extra["rescue"]
+        assert "rescue ipopt: Solve_Succeeded" in res.solver_status
     else:
-        assert not res.success and not res.feasible
+        assert not res.is_success() and not res.feasible
+
+
+def test_horizon_status_is_one_word_for_the_solve():
+    # converged and within the constraints: solved; a feasible point at a limit: feasible; anything else failed
+    ok = np.zeros((3, 5))
+    assert horizon_status(True, ok, 0.0) is HorizonStatus.SOLVED
+    assert horizon_status(False, ok, 1e-7) is HorizonStatus.FEASIBLE
+    assert horizon_status(True, ok, 1e-3) is HorizonStatus.FAILED
+    assert horizon_status(True, np.full((3, 5), np.nan), 0.0) is HorizonStatus.FAILED
+    res = HorizonResult(ok, ok[:, :3], HorizonStatus.FEASIBLE, "Maximum_Iterations_Exceeded", 60, 0.1, 1.0, 2.0, 0.0)
+    assert res.feasible and not res.is_success()

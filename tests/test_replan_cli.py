@@ -112,7 +112,7 @@ def test_live_feed_from_the_command_line(tmp_path, capsys, monkeypatch):
     import threading
     import time
 
-    import crtraj.world.feed
+    import crtraj.app.replan
     from crtraj.control.loop import ClosedLoop
     from crtraj.world.feed import ObstacleFeed
 
@@ -137,7 +137,7 @@ def test_live_feed_from_the_command_line(tmp_path, capsys, monkeypatch):
         started.set()  # the start configuration has been checked against the t = 0 state
         return steps(self, *args, **kwargs)
 
-    monkeypatch.setattr(crtraj.world.feed, "ObstacleFeed", FirstStateFeed)
+    monkeypatch.setattr(crtraj.app.replan, "ObstacleFeed", FirstStateFeed)  # the feed `crtraj replan` opens
     monkeypatch.setattr(ClosedLoop, "_steps", steps_after_start_check)
 
     def send() -> None:

@@ -14,9 +14,11 @@ import numpy as np
 from feed_clock import VirtualClock
 
 from crtraj.control.horizon import ReplanOptions
-from crtraj.control.loop import ClosedLoop, FeedObstacles, result_dict
+from crtraj.control.loop import ClosedLoop, RunStatus, result_dict
+from crtraj.control.loop_options import LoopOptions
 from crtraj.world.feed import ObstacleFeed
 from crtraj.world.scene import Obstacle, Scene
+from crtraj.world.sources import FeedObstacles
 
 XS = np.array([0.3, 0.0, 0.0, 0.0, 0.0])
 XG = np.array([-0.6, 0.5, -0.3, 0.2, -40.0])
@@ -53,21 +55,31 @@ class _Bridge:
 
 def test_live_feed_run_moves_safely_and_holds_when_the_feed_goes_stale(model):
     scene = Scene(obstacles=(BALL,), safety_distance=5.0)
-    opts = ReplanOptions(horizon=6, points=12, solver="sqp", duration=2.5)
+    opts = ReplanOptions(horizon=6, points=12, solver="sqp")
+    lopts = LoopOptions(duration=2.5)
     clock = VirtualClock(1000.0)
     with ObstacleFeed(0, max_age=0.1, expected=["ball"], clock=clock) as feed:
         bridge = _Bridge(feed, clock, stop_after=1.15)
         clock.every(0.01, bridge)
         clock.sleep(0.0)  # the first state arrives before the loop is built; building takes no virtual time
         source = FeedObstacles(feed, scene, window=1.5)
-        loop = ClosedLoop(model, scene, model.tip_position(XG), XS, options=opts, goal_config=XG, obstacles=source)
+        loop = ClosedLoop(
+            model,
+            scene,
+            model.tip_position(XG),
+            XS,
+            options=opts,
+            loop_options=lopts,
+            goal_config=XG,
+            obstacles=source,
+        )
         t_start = clock()
         run = loop.run(clock=clock, sleep=clock.sleep)
         took = clock() - t_start
     assert run.live
     # paced in real time on the shared clock: every step waited for its time (2.5 s of loop time)
     assert abs(took - 2.5) < 1e-6 and run.late_steps == 0
-    st = np.array(run.status)
+    st = np.array(run.step_status)
     # while the feed is fresh the robot moves, every move verified against the live states
     early = run.t[1:] <= 1.2 + 1e-9
     assert set(st[early]) <= {"move", "suboptimal"}
@@ -100,49 +112,25 @@ def test_live_feed_run_moves_safely_and_holds_when_the_feed_goes_stale(model):
 
 def test_live_run_without_any_state_ends_with_no_obstacles_on_virtual_time(model):
     scene = Scene(obstacles=(BALL,), safety_distance=5.0)
-    opts = ReplanOptions(horizon=6, points=12, solver="sqp", duration=1.0)
+    opts = ReplanOptions(horizon=6, points=12, solver="sqp")
+    lopts = LoopOptions(duration=1.0)
     clock = VirtualClock(0.0)
     with ObstacleFeed(0, max_age=0.1, expected=["ball"], clock=clock) as feed:
         source = FeedObstacles(feed, scene, window=1.5)
-        loop = ClosedLoop(model, scene, model.tip_position(XG), XS, options=opts, goal_config=XG, obstacles=source)
+        loop = ClosedLoop(
+            model,
+            scene,
+            model.tip_position(XG),
+            XS,
+            options=opts,
+            loop_options=lopts,
+            goal_config=XG,
+            obstacles=source,
+        )
         ObstacleFeed.send(feed.address, [{"id": "intruder", "center": [0, 0, 0], "radius": 1.0, "timestamp": 0.0}])
         assert feed.wait_for(1)
         run = loop.run(clock=clock, sleep=clock.sleep)
     # waited 2 s of the injected clock for a first state, then said why
-    assert run.outcome == "no_obstacles" and clock() >= 2.0
+    assert run.status is RunStatus.NO_OBSTACLES and clock() >= 2.0
     assert "no obstacle state received yet" in run.message
     assert run.feed["counts"] == {"unknown_id": 1} and run.feed["events"][0]["kind"] == "unknown_id"
-
-
-class _FakeFeed:
-    """An ObstacleFeed stand-in that returns one fixed state."""
-
-    def __init__(self, state) -> None:
-        self.state = state
-
-    def latest(self):
-        return self.state
-
-
-def test_feed_snapshot_bounds_the_constant_velocity_prediction():
-    from crtraj.world.feed import FeedState
-
-    c = np.array([[10.0, 20.0, 300.0], [-40.0, 0.0, 200.0]])
-    v = np.array([[5.0, -3.0, 1.0], [0.0, 0.0, 0.0]])
-    r = np.array([30.0, 20.0])
-    rd = np.array([6.0, -4.0])  # one grows, one shrinks
-    ages = np.array([0.03, 0.05])
-    state = FeedState(("a", "b"), c, r, v, rd, np.zeros(2), ages, 0.05, False)
-    template = Scene(obstacles=(Obstacle((0, 0, 0), 1.0, name="a"), Obstacle((0, 0, 0), 1.0, name="b")))
-    W, t = 1.2, 7.3
-    snap, why = FeedObstacles(_FakeFeed(state), template, window=W).at(t)
-    assert why == ""
-    tau = np.linspace(0.0, W, 61)
-    C, R = snap.states(t + tau)
-    for j in range(2):
-        # centre exactly on the extrapolated line, radius never below the extrapolated one
-        np.testing.assert_allclose(C[:, j], c[j] + (ages[j] + tau)[:, None] * v[j], atol=1e-9)
-        assert np.all(R[:, j] >= r[j] + (ages[j] + tau) * rd[j] - 1e-9)
-    stale = FeedState(("a",), c[:1], r[:1], v[:1], rd[:1], np.zeros(1), ages[:1], 0.05, False)
-    snap, why = FeedObstacles(_FakeFeed(stale), template, window=W).at(t)
-    assert snap is None and "no state for b" in why

@@ -9,13 +9,13 @@ import time
 from pathlib import Path
 
 import numpy as np
-import pytest
 from feed_clock import VirtualClock
 
+from crtraj.app.replan import loop_from_problem
 from crtraj.cli import main
-from crtraj.control.loop import DeviceLink, loop_from_problem
-from crtraj.control.tracking import ServoModel
+from crtraj.control.loop import RunStatus
 from crtraj.hardware.actuators import Actuators
+from crtraj.hardware.link import DeviceLink
 from crtraj.hardware.protocol import HOLD, MOVE
 from crtraj.hardware.sim_device import SimDevice
 from crtraj.hardware.stream import Streamer, StreamOptions
@@ -51,6 +51,7 @@ radius = {{ mean = 30.0, amplitude = 8.0, omega = 2.0, phase = 0.0 }}
 horizon = 6
 points = 12
 solver = "sqp"
+[loop]
 duration = {duration}
 planner_time = 0.5
 settle_time = 0.3
@@ -205,8 +206,8 @@ def test_stale_feed_holds_the_device_with_hold_frames_only(tmp_path, robot, mode
         final = dev.state()
         t_dev0 = dev._t0  # the device's clock origin (monotonic)
     assert stopped, statuses  # the device applied moves while the feed was live: streamed during the run
-    assert run.outcome == "timeout" and not run.reached  # the feed went silent before the goal: reported
-    st = list(run.status)
+    assert run.status is RunStatus.TIMEOUT and not run.reached  # the feed went silent before the goal: reported
+    st = list(run.step_status)
     # the last state was sent at stopped t - 0.1 s: stale exactly from the first step whose feed state is older
     # than max_age (0.25 s) of loop time, the step starting 0.3 s after it
     k_stale = round((stopped["t"] + 0.2) / 0.1)
@@ -278,60 +279,8 @@ def test_ctrl_c_holds_the_device_and_ends_the_run(tmp_path, robot, model):
             send(t, k + 2)
 
         run = loop.run(device=link, progress=interrupt)
-    assert run.outcome == "interrupted" and run.steps == 9
-    assert "stale" not in run.status
+    assert run.status is RunStatus.INTERRUPTED and run.steps == 9
+    assert "stale" not in run.step_status
     assert link.report.status == "held" and "Ctrl-C" in link.report.message
     kinds = [x["kind"] for x in _log(tmp_path / "s.jsonl") if x["type"] == "tx"]
     assert kinds[-1] == "hold" and "move" in kinds
-
-
-class _FakeStreamer:
-    """The attributes of a started `Streamer` that `DeviceLink`'s set-point generation reads."""
-
-    def __init__(self, actuators, position) -> None:
-        self.actuators = actuators
-        self.options = StreamOptions(prebuffer=0.1)
-        self.position = position
-
-
-def test_follower_respects_limits_and_reproduces_the_verified_motion(robot):
-    acts = _actuators(robot)
-    servo = ServoModel(robot, 0.05, 0.1)
-    q0 = robot.cables(XS)
-    link = DeviceLink(_FakeStreamer(acts, acts.command(q0)), servo, 0.1)
-    link._p, link._last_target = acts.command(q0), acts.command(q0)
-    # the verified motion inside one step equals the servo's closed form, period by period
-    cmds = q0 + np.outer(np.arange(1, 6), np.append(np.full(6, 0.1), 1.5))
-    off = np.linspace(0.001, 0.1, 37)
-    Q = link.verified(q0, cmds, 0.02, off)
-    q = q0.copy()
-    for j in range(5):
-        inside = (off > j * 0.02 + 1e-12) & (off <= (j + 1) * 0.02 + 1e-12)
-        np.testing.assert_allclose(Q[inside], servo.trajectory(q, cmds[j], off[inside] - j * 0.02), atol=1e-12)
-        q = servo.advance(q, cmds[j], 0.02)
-    # a target with a velocity jump far beyond the limits: the set-points stay within them ...
-    rng = np.random.default_rng(3)
-    target = acts.command(q0) + np.cumsum(rng.normal(0.0, 0.05, (300, acts.n)), axis=0) * acts.vmax * 0.01
-    P = np.vstack([acts.command(q0)[None], link._follow(target)])
-    V = np.diff(P, axis=0) / 0.01
-    A = np.diff(np.vstack([np.zeros(acts.n), V]), axis=0) / 0.01
-    assert np.all(np.abs(V) <= acts.vmax) and np.all(np.abs(A) <= acts.amax)
-    # ... and reach a target that stops, at rest, without overshooting it by more than round-off
-    goal = target[-1]
-    tail = link._follow(np.repeat(goal[None], 400, axis=0))
-    np.testing.assert_allclose(tail[-1], goal, atol=1e-6)
-    np.testing.assert_allclose(link._v, 0.0, atol=1e-4)
-    # a smooth, feasible target is followed exactly
-    smooth = goal + np.outer(np.sin(np.linspace(0, 1, 100)), 0.001 * acts.vmax)
-    link._p, link._v, link._last_target = smooth[0], np.zeros(acts.n), smooth[0]
-    np.testing.assert_allclose(link._follow(smooth[1:]), smooth[1:], atol=1e-3 * acts.vmax.max())
-
-
-def test_stream_rate_must_divide_the_step(robot):
-    from crtraj.core.errors import InputError
-
-    acts = _actuators(robot)
-    fake = _FakeStreamer(acts, acts.command(robot.cables(XS)))
-    fake.options = StreamOptions(rate=35.0, prebuffer=0.1)  # 3.5 frames per 0.1 s step
-    with pytest.raises(InputError, match=r"stream\.rate"):
-        DeviceLink(fake, ServoModel(robot, 0.05, 0.1), 0.1)

@@ -36,6 +36,7 @@ previous solution shifted by one step. Units: mm, rad, s.
 
 from __future__ import annotations
 
+import enum
 import math
 import time
 from collections.abc import Mapping
@@ -47,7 +48,7 @@ import casadi as ca
 import numpy as np
 
 from crtraj.core.errors import InputError
-from crtraj.core.fields import MAX_LENGTH, MAX_TIME, Table, check_float
+from crtraj.core.fields import Table, check_float
 from crtraj.model.kinematics import Model
 from crtraj.world import margin, packing
 
@@ -55,8 +56,19 @@ SOLVERS = ("ipopt", "sqp")
 QP_SOLVERS = ("daqp", "qrqp", "osqp", "qpoases")
 HESSIANS = ("gauss-newton", "exact")
 
-# Most closed-loop steps of one run (duration / dt): each is one NLP solve.
-MAX_STEPS = 100_000
+# Keys of the closed loop's own options, once read from [replan]: now the [loop] section
+# (`crtraj.control.loop_options.LoopOptions`). An old file that still has one gets a one-line error.
+MOVED_TO_LOOP = (
+    "duration",
+    "replan_period",
+    "planner_time",
+    "stall_time",
+    "reference_speed",
+    "max_body_speed",
+    "check_resolution",
+    "check_points",
+    "settle_time",
+)
 
 # float options: default and bounds (shared by Python construction and TOML reading)
 _FLOATS: Mapping[str, tuple[float, dict[str, float]]] = MappingProxyType(
@@ -72,14 +84,6 @@ _FLOATS: Mapping[str, tuple[float, dict[str, float]]] = MappingProxyType(
         "max_z_speed": (40.0, {"gt": 0.0}),
         "tol": (1e-6, {"gt": 0.0, "le": 1.0}),
         "max_solve_time": (0.5, {"gt": 0.0, "le": 3600.0}),
-        "duration": (60.0, {"gt": 0.0, "le": MAX_TIME}),
-        "replan_period": (0.0, {"ge": 0.0, "le": MAX_TIME}),
-        "planner_time": (1.0, {"gt": 0.0, "le": 3600.0}),
-        "stall_time": (3.0, {"gt": 0.0, "le": MAX_TIME}),
-        "reference_speed": (0.7, {"gt": 0.0, "le": 1.0}),
-        "max_body_speed": (50.0, {"gt": 0.0}),
-        "check_resolution": (1.0, {"ge": 0.01, "le": MAX_LENGTH}),
-        "settle_time": (0.5, {"ge": 0.0, "le": MAX_TIME}),
     }
 )
 _INTS: Mapping[str, tuple[int, dict[str, int]]] = MappingProxyType(
@@ -87,7 +91,6 @@ _INTS: Mapping[str, tuple[int, dict[str, int]]] = MappingProxyType(
         "horizon": (10, {"ge": 1, "le": 200}),
         "points": (16, {"ge": 2, "le": 200}),
         "max_iter": (60, {"ge": 1, "le": 100_000}),
-        "check_points": (21, {"ge": 2, "le": 1000}),
     }
 )
 
@@ -108,16 +111,8 @@ class ReplanOptions:
     max_iter), rescue (with solver "sqp": retry a failed solve once with
     IPOPT, built alongside), safety (false drops the obstacle constraints).
 
-    Closed loop (`crtraj.control.loop.ClosedLoop`): duration (s of simulated time
-    at most), replan_period (s between periodic reference replans; 0 = only
-    when needed), planner_time (s budget of one reference plan), stall_time
-    (s without progress before the reference is replanned), reference_speed
-    (fraction of the rate limits and of max_body_speed the reference is
-    timed with), max_body_speed (mm/s, fastest body point motion the
-    reference asks for, measured by `validity.MotionValidator.motion_bound`),
-    check_resolution (mm of body motion between verification samples),
-    check_points (backbone points of the verification), settle_time (s the
-    tip must stay within the goal tolerance before the run ends).
+    The closed loop's options are the ``[loop]`` section
+    (`crtraj.control.loop_options.LoopOptions`).
     """
 
     horizon: int = _INTS["horizon"][0]
@@ -139,15 +134,6 @@ class ReplanOptions:
     max_solve_time: float = _FLOATS["max_solve_time"][0]
     rescue: bool = True
     safety: bool = True
-    duration: float = _FLOATS["duration"][0]
-    replan_period: float = _FLOATS["replan_period"][0]
-    planner_time: float = _FLOATS["planner_time"][0]
-    stall_time: float = _FLOATS["stall_time"][0]
-    reference_speed: float = _FLOATS["reference_speed"][0]
-    max_body_speed: float = _FLOATS["max_body_speed"][0]
-    check_resolution: float = _FLOATS["check_resolution"][0]
-    check_points: int = _INTS["check_points"][0]
-    settle_time: float = _FLOATS["settle_time"][0]
 
     def __post_init__(self) -> None:
         for name, (_, bounds) in _FLOATS.items():
@@ -160,12 +146,6 @@ class ReplanOptions:
                 raise InputError(f"replan.{name}: must be >= {ib['ge']}, got {v}")
             if "le" in ib and v > ib["le"]:
                 raise InputError(f"replan.{name}: must be <= {ib['le']}, got {v}")
-        steps = math.ceil(self.duration / self.dt - 1e-9)
-        if steps > MAX_STEPS:
-            raise InputError(
-                f"replan.duration: {self.duration:g} s is {steps} steps of dt {self.dt:g} s, more than {MAX_STEPS}; "
-                "shorten it or raise dt"
-            )
         if self.solver not in SOLVERS:
             raise InputError(f"replan.solver: must be one of {', '.join(SOLVERS)}; got {self.solver!r}")
         if self.qpsol not in QP_SOLVERS:
@@ -181,6 +161,9 @@ class ReplanOptions:
     @classmethod
     def from_table(cls, t: Table) -> ReplanOptions:
         """Read a ``[replan]`` table; unknown keys and bad values raise `InputError`."""
+        for name in MOVED_TO_LOOP:
+            if t.has(name):
+                raise InputError(f"replan.{name}: moved to the [loop] section; write it under [loop]")
         kw: dict[str, Any] = {name: t.float(name, d, **b) for name, (d, b) in _FLOATS.items()}
         kw.update({name: t.int(name, d, **b) for name, (d, b) in _INTS.items()})
         kw["solver"] = t.str("solver", "ipopt", choices=SOLVERS)
@@ -196,23 +179,35 @@ class ReplanOptions:
         return {f.name: getattr(self, f.name) for f in fields(self)}
 
 
+class HorizonStatus(str, enum.Enum):
+    """Outcome of one horizon NLP solve."""
+
+    SOLVED = "solved"  # the solver converged AND its point satisfies every constraint (within 1e-6)
+    FEASIBLE = "feasible"  # not converged (iteration/time limit), but the last iterate satisfies every constraint
+    FAILED = "failed"  # no usable point: constraints violated, or NaN/inf
+    SKIPPED = "skipped"  # not solved at all (e.g. no trustworthy obstacle state); solver_status says why
+
+    def __str__(self) -> str:
+        return self.value
+
+
 @dataclass(frozen=True)
 class HorizonResult:
     """One solve of the horizon NLP.
 
     configs: (N, nx) planned configurations x_1..x_N (the solver's last
-    iterate even on failure). tips: (N, 3) mm. success: the solver converged
-    AND the returned point satisfies every constraint within 1e-6 (mm, rad).
-    status: the solver's own status text. iterations, wall_time (s).
-    min_distance: smallest value of the obstacle constraints (mm; >= 0 means
-    every sampled point is outside its inflated sphere; inf without
-    obstacles). violation: largest constraint violation (mixed units).
+    iterate even on failure). tips: (N, 3) mm. status: `HorizonStatus`
+    (`is_success()`: SOLVED). solver_status: the solver's own status text.
+    iterations, wall_time (s). min_distance: smallest value of the obstacle
+    constraints (mm; >= 0 means every sampled point is outside its inflated
+    sphere; inf without obstacles). violation: largest constraint violation
+    (mixed units).
     """
 
     configs: np.ndarray
     tips: np.ndarray
-    success: bool
-    status: str
+    status: HorizonStatus
+    solver_status: str
     iterations: int
     wall_time: float
     cost: float
@@ -221,10 +216,22 @@ class HorizonResult:
     warm: bool = False
     extra: dict[str, Any] = field(default_factory=dict)
 
+    def is_success(self) -> bool:
+        """The solver converged to a point that satisfies every constraint."""
+        return self.status is HorizonStatus.SOLVED
+
     @property
     def feasible(self) -> bool:
-        """The returned configurations satisfy every constraint (within 1e-6), converged or not."""
-        return bool(np.all(np.isfinite(self.configs))) and self.violation <= 1e-6
+        """The returned configurations satisfy every constraint (within 1e-6), converged or not: a move
+        the loop may use (SOLVED or FEASIBLE)."""
+        return self.status in (HorizonStatus.SOLVED, HorizonStatus.FEASIBLE)
+
+
+def horizon_status(converged: bool, configs: np.ndarray, violation: float) -> HorizonStatus:
+    """The status of a solve: converged (and within the constraints), else feasible or failed."""
+    if not (bool(np.all(np.isfinite(configs))) and violation <= 1e-6):
+        return HorizonStatus.FAILED
+    return HorizonStatus.SOLVED if converged else HorizonStatus.FEASIBLE
 
 
 def sagitta(robot: Any, spacing: float) -> float:
@@ -463,20 +470,7 @@ class Replanner:
         """
         N, nx = self.N, self.nx
         x0 = np.asarray(x0, dtype=float).reshape(nx)
-        Xr = np.asarray(reference, dtype=float).reshape(N, nx)
-        xm1 = x0 if x_prev is None else np.asarray(x_prev, dtype=float).reshape(nx)
-        Pr = self.model.tip_position(Xr) if tip_reference is None else np.asarray(tip_reference, float).reshape(N, 3)
-        Ob = np.asarray(obstacles, dtype=float)
-        if Ob.size != N * packing.WIDTH * self.max_obstacles:
-            raise InputError(
-                f"obstacles: expected shape ({N}, {packing.WIDTH * self.max_obstacles}) from obstacles_from_scene "
-                f"or obstacles_from_states, got {Ob.shape}"
-            )
-        Ob = Ob.reshape(N, packing.WIDTH * self.max_obstacles)
-        for name, arr in (("x0", x0), ("reference", Xr), ("x_prev", xm1), ("tip_reference", Pr), ("obstacles", Ob)):
-            if not np.all(np.isfinite(arr)):
-                raise InputError(f"{name}: contains NaN or infinity")
-        p = np.concatenate([x0, xm1, Xr.ravel(), Pr.ravel(), Ob.ravel()])
+        p = self._parameters(x0, reference, obstacles, x_prev, tip_reference)
         args: dict[str, Any] = {
             "p": p,
             "lbx": np.tile(self._box[0], N),
@@ -518,8 +512,8 @@ class Replanner:
         return HorizonResult(
             configs=configs,
             tips=self.model.tip_position(configs) if r["finite"] else np.full((N, 3), np.nan),
-            success=r["ok"],
-            status=r["status"],
+            status=horizon_status(r["ok"], configs, r["violation"]),
+            solver_status=r["status"],
             iterations=r["iterations"],
             wall_time=r["wall"],
             cost=r["cost"],
@@ -528,6 +522,26 @@ class Replanner:
             warm=used_warm,
             extra={"attempts": len(tried), "rescue": rescued},
         )
+
+    def _parameters(
+        self, x0: np.ndarray, reference: Any, obstacles: Any, x_prev: Any, tip_reference: Any
+    ) -> np.ndarray:
+        """The NLP's parameter vector from `solve`'s inputs; `InputError` for a wrong shape or NaN."""
+        N, nx = self.N, self.nx
+        Xr = np.asarray(reference, dtype=float).reshape(N, nx)
+        xm1 = x0 if x_prev is None else np.asarray(x_prev, dtype=float).reshape(nx)
+        Pr = self.model.tip_position(Xr) if tip_reference is None else np.asarray(tip_reference, float).reshape(N, 3)
+        Ob = np.asarray(obstacles, dtype=float)
+        if Ob.size != N * packing.WIDTH * self.max_obstacles:
+            raise InputError(
+                f"obstacles: expected shape ({N}, {packing.WIDTH * self.max_obstacles}) from obstacles_from_scene "
+                f"or obstacles_from_states, got {Ob.shape}"
+            )
+        Ob = Ob.reshape(N, packing.WIDTH * self.max_obstacles)
+        for name, arr in (("x0", x0), ("reference", Xr), ("x_prev", xm1), ("tip_reference", Pr), ("obstacles", Ob)):
+            if not np.all(np.isfinite(arr)):
+                raise InputError(f"{name}: contains NaN or infinity")
+        return np.concatenate([x0, xm1, Xr.ravel(), Pr.ravel(), Ob.ravel()])
 
     def _warm_fits(self, x0: np.ndarray) -> bool:
         """The shifted previous solution starts within reach of x0 (else it belongs to another situation)."""

@@ -2,7 +2,7 @@
 
 A problem file names its robot (a path relative to the file, or an inline
 ``[robot]`` table) and holds the sections ``[task]``, ``[scene]``,
-``[steer]``, ``[planner]``, ``[replan]``, ``[tracking]``, ``[stream]``.
+``[steer]``, ``[planner]``, ``[replan]``, ``[loop]``, ``[tracking]``, ``[stream]``.
 Each section is read by the module that owns it, through `Problem.options`,
 so a section's schema lives next to the code that uses it. Unknown top-level
 sections and unknown keys are errors that name the key.
@@ -32,6 +32,7 @@ SECTIONS = (
     "steer",
     "planner",
     "replan",
+    "loop",
     "tracking",
     "stream",
     "feed",

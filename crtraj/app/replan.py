@@ -1,0 +1,445 @@
+"""Use case: run a problem's closed loop and write the run (`crtraj replan`).
+
+`loop_from_problem` wires a `crtraj.control.loop.ClosedLoop` from a problem file (robot, scene, task
+and the ``[replan]``, ``[loop]``, ``[tracking]``, ``[planner]``, ``[steer]``, ``[feed]`` sections).
+`run_replan` is the whole command: admission checks, an optional live obstacle feed and live device,
+the run, its files (staged, so a failed run never replaces a successful one), the summary, and an
+optional stream of the verified run afterwards. Units: mm, rad, s.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from crtraj.control.horizon import ReplanOptions
+from crtraj.control.loop import RUN_FILES, ClosedLoop, ReplanRun, RunStatus, write_run_files
+from crtraj.control.loop_options import LoopOptions
+from crtraj.control.reference import PlannerReference, ReferencePlan
+from crtraj.control.tracking import TrackingOptions
+from crtraj.core.errors import InputError
+from crtraj.core.fileio import StagedDir, check_output_dir, failed_sibling, is_successful_result
+from crtraj.hardware.actuators import Actuators
+from crtraj.hardware.admission import check_replay_time_scale, check_stream_safety
+from crtraj.hardware.link import DeviceLink
+from crtraj.hardware.setpoints import SetpointPath, check_time_scale
+from crtraj.hardware.stream import Streamer, StreamError, StreamOptions
+from crtraj.hardware.transport import parse_hostport
+from crtraj.io.problem import Problem
+from crtraj.model.kinematics import Model
+from crtraj.planning.options import PlannerOptions
+from crtraj.planning.registry import make_planner
+from crtraj.planning.result import PlanStatus
+from crtraj.planning.steer import SteerOptions
+from crtraj.planning.stop import StopCondition
+from crtraj.world.feed import FeedOptions, ObstacleFeed
+from crtraj.world.scene import Scene
+from crtraj.world.sources import FeedObstacles
+
+
+class UnsolvableTaskError(Exception):
+    """A well-formed task the loop cannot start: `status` is `PlanStatus.INVALID_START` (no safe start
+    configuration) or `PlanStatus.INVALID_GOAL` (no configuration can ever put the tip on the goal safely).
+    Not an input error: the command exits 1 with the status, as `crtraj plan` does."""
+
+    def __init__(self, status: PlanStatus, message: str) -> None:
+        super().__init__(message)
+        self.status = status
+
+
+# ------------------------------------------------------------------ wiring
+def loop_from_problem(
+    problem: Any,
+    *,
+    safety: bool | None = None,
+    seed: int | None = None,
+    options: ReplanOptions | None = None,
+    loop_options: LoopOptions | None = None,
+    feed: Any = None,
+    lead: float = 0.0,
+) -> ClosedLoop:
+    """A `ClosedLoop` for a problem file: its robot, scene, task and ``[replan]``, ``[loop]``,
+    ``[tracking]``, ``[planner]``, ``[steer]`` sections. The start configuration is the task's
+    ``start_config`` or the planner's safe IK for the start tip; references come from the planner
+    ``[planner] algorithm`` names (`crtraj.planning.registry.make_planner`; default the
+    configuration-space planner), each limited to ``loop.planner_time`` seconds.
+
+    safety=False drops the collision-free terms (NLP constraints, verification, and obstacles in
+    the reference planner), as in the paper's Fig. 4(b). seed overrides the problem's seed.
+    feed: a `crtraj.world.feed.ObstacleFeed`: obstacle states come from it, live (`FeedObstacles`; the
+    scene's obstacle names are the feed ids; the ``[feed]`` section, `crtraj.world.feed.FeedOptions`,
+    configures it), and the run is paced in real time. lead: s the device
+    executes each step after it is computed (`DeviceLink.lead`), so the feed is predicted that far ahead.
+    """
+    task = problem.require_task()
+    seed = problem.seed if seed is None else int(seed)
+    if seed < 0:
+        raise InputError(f"--seed: must be >= 0, got {seed}")
+    opts = problem.options(ReplanOptions, "replan") if options is None else options
+    if safety is not None:
+        opts = replace(opts, safety=bool(safety))
+    lopts = problem.options(LoopOptions, "loop") if loop_options is None else loop_options
+    lopts.steps(opts.dt)  # refuse a huge run before any planning
+    tracking = problem.options(TrackingOptions, "tracking")
+    popts = problem.options(PlannerOptions, "planner")
+    sopts = problem.options(SteerOptions, "steer")
+    scene = Scene.from_table(problem.section("scene"))
+    feed_options = problem.options(FeedOptions, "feed")  # checked even without a feed
+    model = Model(problem.robot)
+    planner = make_planner(model, scene, popts, sopts)
+    source: FeedObstacles | None = None
+    scene0 = scene
+    extra: dict[str, Any] = {"planner": popts, "steer": sopts}
+    if feed is not None:
+        feed.configure(feed_options)  # the problem's velocity bound and timestamp window
+        extra["feed"] = feed_options
+        source = FeedObstacles(feed, scene, window=max(2.0 * opts.horizon * opts.dt, 2.0) + 2.0 * opts.dt, lead=lead)
+        scene0 = _start_scene(source)
+    x0, first, res = _start_config(planner, task, scene0, seed, opts.safety)
+    moving = feed is not None or any(o.amplitude != 0.0 or o.to is not None for o in scene.obstacles)
+    _check_goal(planner, task, x0, scene0, seed, res, among_obstacles=opts.safety and not moving)
+    reference = PlannerReference(
+        planner,
+        task.goal,
+        goal_tolerance=task.goal_tolerance,
+        stop=popts.stop() | StopCondition(time_limit=lopts.planner_time),
+        seed=seed,
+        scene=None if opts.safety else scene.with_obstacles(()),
+    )
+    return ClosedLoop(
+        model,
+        scene,
+        task.goal,
+        x0,
+        options=opts,
+        loop_options=lopts,
+        tracking=tracking,
+        reference=reference,
+        goal_tolerance=task.goal_tolerance,
+        initial_reference=None if feed is not None else first,
+        obstacles=source,
+        extra_options=extra,
+    )
+
+
+def _start_scene(source: FeedObstacles) -> Any:
+    """The obstacles to find a start configuration among, from a live feed's first snapshot: everything
+    the obstacles may cover over the next half second (the run starts a moment after the snapshot)."""
+    t_end = time.perf_counter() + 2.0
+    snap, why = source.at(0.0)
+    while snap is None and time.perf_counter() < t_end:
+        time.sleep(0.01)
+        snap, why = source.at(0.0)
+    if snap is None:
+        raise InputError(f"--feed: {why}")
+    a, b, rmax = snap.swept(0.0, 0.5)
+    return snap.with_obstacles(
+        replace(
+            o,
+            center=tuple(0.5 * (a[i] + b[i])),
+            radius=float(rmax[i] + 0.5 * np.linalg.norm(b[i] - a[i])),
+            amplitude=0.0,
+            omega=0.0,
+            phase=0.0,
+            to=None,
+        )
+        for i, o in enumerate(snap.obstacles)
+    )
+
+
+def _start_config(
+    planner: Any, task: Any, scene0: Any, seed: int, safety: bool
+) -> tuple[np.ndarray, ReferencePlan | None, Any]:
+    """(start configuration, a first reference plan from it or None, the planner's result or None).
+
+    The task's start_config, else the planner's safe IK for the start tip among `scene0`; its plan to
+    the goal is reused as the first reference when it succeeded (with the safety terms only)."""
+    if task.start_config is not None:
+        return np.asarray(task.start_config, dtype=float), None, None
+    tol = task.goal_tolerance
+    res = planner.plan(task.goal, start_tip=task.start, t0=0.0, seed=seed, goal_tolerance=tol, scene=scene0)
+    if res.status is PlanStatus.INVALID_START:
+        raise UnsolvableTaskError(PlanStatus.INVALID_START, f"task.start: {res.message}")
+    if not res.has_path:
+        only = planner.plan(task.start, start_tip=task.start, t0=0.0, seed=seed, goal_tolerance=1.0, scene=scene0)
+        if not only.has_path:
+            raise UnsolvableTaskError(PlanStatus.INVALID_START, f"task.start: {only.message}")
+        return only.configs[0], None, res
+    first = None
+    if res.is_success() and safety:
+        first = ReferencePlan(res.configs, res.status, res.message, res.timings.get("total", 0.0), res.tree_edges)
+    return res.configs[0], first, res
+
+
+def _check_goal(
+    planner: Any, task: Any, x0: np.ndarray, scene: Any, seed: int, res: Any, *, among_obstacles: bool
+) -> None:
+    """Fail fast, as `crtraj plan` does, when no configuration can ever put the tip on the goal safely
+    (`UnsolvableTaskError` "invalid_goal"), instead of running the loop until its duration ends.
+
+    among_obstacles (static obstacles, with the safety terms): the planner's goal IK among them
+    decides. Obstacles that move or breathe, or come from a live feed, may uncover the goal later,
+    so then only a goal the robot cannot reach even with no obstacles at all is refused. res: the
+    planner's result from x0 among `scene`, when there is one.
+    """
+    if res is not None and res.status not in (PlanStatus.INVALID_GOAL, PlanStatus.INVALID_START):
+        return  # the goal IK found a safe goal configuration: reachable
+    if not among_obstacles:
+        scene, res = scene.with_obstacles(()), None
+    if res is None:  # the goal IK runs before any search; one search iteration bounds the cost
+        res = planner.plan(
+            task.goal,
+            start_config=x0,
+            t0=0.0,
+            seed=seed,
+            goal_tolerance=task.goal_tolerance,
+            scene=scene,
+            stop=StopCondition(max_iterations=1),
+        )
+    if res.status is PlanStatus.INVALID_GOAL:
+        raise UnsolvableTaskError(PlanStatus.INVALID_GOAL, f"task.goal: {res.message}")
+
+
+# --------------------------------------------------------------- the command
+@dataclass(frozen=True)
+class ReplanRequest:
+    """One `crtraj replan` run.
+
+    problem: problem TOML. out: run folder (default out/replan, or out/replan-no-safety without
+    safety). seed: overrides the problem's. safety: false drops the collision-free terms. html: write
+    run.html. overwrite_failed: a failed run may replace a successful one in out. feed: a UDP obstacle
+    feed address (udp://127.0.0.1:PORT) to run live in real time; feed_max_age: s after which a feed
+    state is stale. stream: a device address: live with a feed, else the verified run is streamed
+    afterwards. approach: the device may start away from the task's start. time_scale: replay slow-down
+    (streamed afterwards only). quiet: print only the summary line.
+    """
+
+    problem: Path
+    out: Path | None = None
+    seed: int | None = None
+    safety: bool = True
+    html: bool = True
+    overwrite_failed: bool = False
+    feed: str | None = None
+    feed_max_age: float = 0.2
+    stream: str | None = None
+    approach: bool = False
+    time_scale: float = 1.0
+    quiet: bool = False
+
+
+@dataclass(frozen=True)
+class _Written:
+    """A finished run and where it went."""
+
+    run: ReplanRun
+    loop: ClosedLoop
+    link: DeviceLink | None
+    ok: bool  # reached (safely, with the safety terms), and a live stream completed
+    dest: Path
+    paths: dict[str, Any]
+
+
+def run_replan(req: ReplanRequest, *, view: Callable[[dict[str, Any]], None] | None = None) -> int:
+    """Run `req` as ``crtraj replan`` does, printing its progress and summary; returns the exit code
+    (0 success, 1 failed or unsolvable, 130 interrupted). Bad input raises `InputError` before any long
+    work. view: called with the result document afterwards (e.g. to serve the 3-D replay)."""
+    check_time_scale(req.time_scale)
+    if req.seed is not None and req.seed < 0:
+        raise InputError(f"--seed: must be >= 0, got {req.seed}")
+    if req.stream:
+        check_stream_safety(req.safety)
+    out = req.out if req.out is not None else Path("out") / ("replan" if req.safety else "replan-no-safety")
+    check_output_dir(out, "--out", RUN_FILES)  # before the (possibly long) run, not after it
+    problem = Problem.load(req.problem)
+    if req.stream and not req.feed:  # refuse before the run, not after it
+        check_replay_time_scale({"scene": problem.raw.get("scene", {})}, req.time_scale)
+    seed = problem.seed if req.seed is None else req.seed
+    t0 = time.perf_counter()
+    feed = _open_feed(req.feed, req.feed_max_age, problem) if req.feed else None
+    done = _run_and_write(req, problem, seed, feed, out)
+    if done is None:
+        return 1
+    _print_summary(req, done, out, t0)
+    streamed = True
+    if done.link is None and req.stream:
+        if done.ok:
+            streamed = _stream_run(req, problem, done.paths)
+        else:  # a run that failed or broke the safety distance never reaches a device
+            print("  not streamed: the run did not reach the goal safely", flush=True)
+    if view is not None:
+        view(done.paths["result"])
+    return _exit_code(done, streamed)
+
+
+def _open_feed(address: str, max_age: float, problem: Problem) -> ObstacleFeed:
+    """Listen for the scene's obstacles on 127.0.0.1 (`ObstacleFeed`); the obstacle names are the ids."""
+    host, port = parse_hostport(address.removeprefix("udp://"), "--feed")
+    if host not in ("127.0.0.1", "localhost"):
+        raise InputError(f"--feed: the feed listens on 127.0.0.1 only, got host {host!r}")
+    ids = [o.name for o in Scene.from_table(problem.section("scene")).obstacles]
+    feed = ObstacleFeed(port, max_age=max_age, expected=ids)
+    print(f"listening for obstacle states ({', '.join(ids)}) on udp://127.0.0.1:{feed.address[1]}", flush=True)
+    return feed
+
+
+def _run_and_write(req: ReplanRequest, problem: Problem, seed: int, feed: Any, out: Path) -> _Written | None:
+    """Build the loop, run it (live with a feed and a device) and write its files; None when the task
+    is unsolvable (said on stdout and stderr, nothing written)."""
+    live = feed is not None and bool(req.stream)
+    link = None
+    with contextlib.ExitStack() as stack:
+        try:
+            lead, sopts = _live_stream_options(problem) if live else (0.0, None)
+            try:
+                loop = loop_from_problem(problem, safety=req.safety, seed=seed, feed=feed, lead=lead)
+            except UnsolvableTaskError as exc:
+                print(f"{exc.status}: {exc}; no run, nothing written to {out}")
+                print(f"crtraj: replan failed: {exc.status}: {exc}", file=sys.stderr)
+                return None
+            # every file of the run, a live stream's log too, goes into a temporary sibling folder that
+            # replaces `out` as a whole at the end: a kill never leaves a mix of old and new files
+            stage = stack.enter_context(StagedDir(out, RUN_FILES))
+            if live:
+                link = _open_live_stream(req.stream or "", req.approach, problem, loop, sopts, stage.path)
+            if not req.quiet:
+                _print_header(problem, seed, loop, live_obstacles=feed is not None)
+            run = loop.run(device=link)
+        finally:
+            if link is not None:
+                link.streamer.close()  # a no-op after a normal run: the run closed it
+            if feed is not None:
+                feed.close()
+        ok = run.reached and (run.safety_violations == 0 or not loop.options.safety)
+        if link is not None:
+            ok = ok and link.report.ok
+        staged = write_run_files(run, loop, stage.path, problem=problem, seed=seed, html=req.html)
+        # a failed run never replaces a successful one unless asked: it goes beside it (NAME.failed)
+        dest = out
+        if not ok and not req.overwrite_failed and is_successful_result(out):
+            dest = failed_sibling(out)
+        dest = stage.commit(dest)
+    paths = {k: (v if k == "result" else dest / Path(v).name) for k, v in staged.items()}
+    return _Written(run, loop, link, ok, dest, paths)
+
+
+def _print_header(problem: Problem, seed: int, loop: ClosedLoop, *, live_obstacles: bool) -> None:
+    o, d = loop.options, loop.replanner.describe()
+    print(
+        f"replanning '{problem.name}' (seed {seed}, {'with' if o.safety else 'WITHOUT'} collision-free "
+        f"terms{', live obstacles, real time' if live_obstacles else ''}): horizon {o.horizon} x "
+        f"{o.dt:g} s, {d['solver']}, {d['variables']} variables, {d['constraints']} constraints",
+        flush=True,
+    )
+
+
+def _print_summary(req: ReplanRequest, done: _Written, out: Path, t0: float) -> None:
+    """The summary line, the live stream's line, and (not quiet) step counts and file paths."""
+    run, link, dest = done.run, done.link, done.dest
+    line = run.summary_line()
+    if dest != out:
+        line += f"; failed run written to {dest} ({out} holds a successful run, kept: --overwrite-failed replaces it)"
+    print(line)
+    if link is not None:
+        rep = link.report
+        fe = "" if rep.final_error is None else f", final error {rep.final_error:.3g}"
+        print(
+            f"  live stream {rep.status}: {rep.message}; {rep.frames} frames ({rep.moves} move, {rep.holds} hold, "
+            f"{rep.estops} e-stop){fe}; {link.restarts} restarts; log {dest / 'stream.jsonl'}"
+        )
+    if not req.quiet:
+        counts = ", ".join(f"{k} {v}" for k, v in run.summary()["status_counts"].items())
+        print(f"  steps: {counts}; wall time {time.perf_counter() - t0:.2f} s")
+        for key in ("json", "npz", "png", "html"):
+            if key in done.paths:
+                print(f"  {key:4s} {done.paths[key]}")
+
+
+def _exit_code(done: _Written, streamed: bool) -> int:
+    """0 when the run reached the goal safely (and any stream completed), 130 interrupted, else 1 with
+    one stderr line saying why."""
+    run, link, dest = done.run, done.link, done.dest
+    if run.status is RunStatus.INTERRUPTED:
+        return 130
+    if not done.ok:
+        why = f"{run.status}: {run.message}"
+        if run.reached and run.safety_violations:
+            why = f"unsafe: {run.safety_violations} steps closer than D_sf"
+        elif link is not None and run.reached:
+            why = f"live stream {link.report.status}: {link.report.message}"
+        print(f"crtraj: replan failed: {why} (run in {dest})", file=sys.stderr)
+    elif not streamed:
+        print(f"crtraj: replan: the run succeeded (in {dest}) but the stream did not complete", file=sys.stderr)
+    return 0 if done.ok and streamed else 1
+
+
+# ------------------------------------------------------------------ devices
+def _live_stream_options(problem: Problem) -> tuple[float, StreamOptions]:
+    """(lead s, StreamOptions) of a live stream: the [stream] prebuffer, at least one replan step."""
+    sopts = problem.options(StreamOptions, "stream")
+    lead = max(sopts.prebuffer, problem.options(ReplanOptions, "replan").dt)
+    return lead, dataclasses.replace(sopts, prebuffer=lead)
+
+
+def _stream_target(address: str) -> str:
+    return address if "://" in address else f"udp://{address}"
+
+
+def _actuators(problem: Problem) -> Actuators:
+    if problem.robot.actuators is None:
+        raise InputError("robot.actuators: --stream needs a [robot.actuators] table in the robot file")
+    return Actuators.from_robot(problem.robot)
+
+
+def _open_live_stream(
+    address: str, approach: bool, problem: Problem, loop: ClosedLoop, sopts: Any, out: Path
+) -> DeviceLink:
+    """Connect to the device for a live run (`DeviceLink`, its log in out/stream.jsonl); refuse a device
+    that is not at the task's start unless approach."""
+    acts = _actuators(problem)
+    streamer = Streamer.open(_stream_target(address), acts, sopts, out / "stream.jsonl")
+    try:
+        streamer.start()
+        link = DeviceLink(streamer, loop.servo, loop.options.dt, lead=sopts.prebuffer)
+        here = streamer.position
+        start = acts.command(loop.tracker.initial_command(loop.x_start))
+        d = np.abs(here - start)
+        i = int(np.argmax(d))
+        tol = sopts.settle_tolerance
+        if d[i] > tol and not approach:
+            u = acts.units[i]
+            raise InputError(
+                f"--stream: the device's {acts.names[i]} is at {here[i]:.4g} {u}, the task starts at {start[i]:.4g} "
+                f"{u} ({d[i]:.3g} {u} apart, more than stream.settle_tolerance {tol:g}); move the robot to the "
+                "start, or pass --approach to start the run from where the device is"
+            )
+    except StreamError as exc:
+        streamer.close()
+        raise InputError(f"--stream: {exc}") from None
+    except BaseException:
+        streamer.close()
+        raise
+    print(f"streaming live to {streamer.transport.description} ({sopts.prebuffer:g} s ahead)", flush=True)
+    return link
+
+
+def _stream_run(req: ReplanRequest, problem: Problem, paths: dict[str, Any]) -> bool:
+    """Stream a finished run's actuation (its waypoints' q) to the device; True when the stream completed."""
+    actuators = _actuators(problem)
+    target = _stream_target(req.stream or "")
+    opts = problem.options(StreamOptions, "stream")
+    log = Path(paths["json"]).parent / "stream.jsonl"
+    check_replay_time_scale(paths["result"], req.time_scale)
+    path = SetpointPath.from_result(paths["result"], actuators).scaled(req.time_scale)
+    print(f"streaming the run ({path.duration:.2f} s) to {target}", flush=True)
+    rep = Streamer.open(target, actuators, opts, log).run_path(path, approach=req.approach)
+    print(f"  stream {rep.status}: {rep.message}; {rep.frames} frames; log {rep.log}")
+    return rep.ok

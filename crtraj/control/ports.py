@@ -1,0 +1,95 @@
+"""Ports of the closed loop: what it needs from an obstacle source and from a device.
+
+The loop (`crtraj.control.loop.ClosedLoop`) talks to the world and to hardware only through these
+protocols, so it never imports hardware or viewing code. Implementations live in the layer that owns
+them: `crtraj.world.sources` (obstacle sources) and `crtraj.hardware.link` (a device driven through the
+streamer). Units: mm, rad, s.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+
+
+class DeviceError(RuntimeError):
+    """A device could not take a command (held, stopped or disconnected meanwhile); the message says why.
+    The loop catches only this from a device; whether the device is lost for good is `Device.problem`'s
+    answer at the next step."""
+
+
+@runtime_checkable
+class ObstacleSource(Protocol):
+    """Where the obstacle states of each step come from.
+
+    live: the states are measured as the run goes (only meaningful in real time) rather than known
+    in advance.
+    """
+
+    live: bool
+
+    def at(self, t: float) -> tuple[Any, str]:
+        """(the obstacles as a `crtraj.world.scene.Scene` valid from loop time t (s), '') or
+        (None, why there is no trustworthy state)."""
+        ...
+
+    def new_events(self) -> list[Any]:
+        """Events (objects with ``to_dict()``) the source recorded since the last call, e.g. rejected
+        feed messages; [] for a source without any."""
+        ...
+
+    def describe(self) -> dict[str, Any]:
+        """Counters and options of a live source for the run record ({} for a known-motion source)."""
+        ...
+
+
+@runtime_checkable
+class Device(Protocol):
+    """A device the loop drives live: its telemetry is the measured state, each verified move is sent.
+
+    Actuation q is in mm (cables, base stage); times are loop time in s. Any method may raise
+    `DeviceError` when the device cannot take a command.
+    """
+
+    def start_actuation(self) -> np.ndarray:
+        """Where the device is at the start (actuation q, mm)."""
+        ...
+
+    def begin(self, t_origin: float) -> None:
+        """Start the device's clock: loop time 0 is wall time t_origin (`time.perf_counter`, s)."""
+        ...
+
+    def problem(self) -> str:
+        """Why the loop cannot drive the device any more ('' when it can)."""
+        ...
+
+    def measure(self, t: float, q: np.ndarray, qc: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+        """(measured actuation, command in force, whether telemetry gave them) at loop time t; the
+        model's q, qc come back unchanged when there is no telemetry."""
+        ...
+
+    def move(self, t: float, q0: np.ndarray, commands: np.ndarray, control_dt: float) -> None:
+        """Send the verified motion of the step starting at t from q0 under `commands` (one per control
+        period of control_dt s); `DeviceError` when it was not sent."""
+        ...
+
+    def pace(self, t: float) -> bool:
+        """Wait until loop time t is due; True when the loop is more than one step late."""
+        ...
+
+    def hold(self, reason: str) -> None:
+        """Stop at the last sent position (recoverable: the next move resumes)."""
+        ...
+
+    def estop(self, reason: str) -> None:
+        """Emergency stop (final)."""
+        ...
+
+    def finish(self, q_final: np.ndarray) -> Any:
+        """Bring the device to rest at q_final (mm) and close it; returns the device's report."""
+        ...
+
+    def describe(self) -> dict[str, Any]:
+        """What the device did, for the run record."""
+        ...

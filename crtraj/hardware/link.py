@@ -1,0 +1,257 @@
+"""The closed loop's device port on real hardware: `DeviceLink` streams each verified step live.
+
+Units: actuation q in mm, actuator values in rad / mm, times in s.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+
+from crtraj.control.ports import DeviceError
+from crtraj.core.errors import InputError
+from crtraj.hardware.stream import StreamError
+
+
+class DeviceLink:
+    """Drives a device live from the loop, through a started `crtraj.hardware.stream.Streamer`;
+    implements `crtraj.control.ports.Device` (the loop's device port).
+
+    Stream time is loop time. Each step's verified actuator motion (the
+    servo model's response to the step's commands, sampled at the stream's
+    rate) passes an acceleration-limited follower (every frame within 98 % of
+    each actuator's velocity and acceleration limits, so joins between steps
+    and restarts from rest never trip the streamer's gate) and is queued
+    `lead` s before the device plays it: the loop computes step t at wall
+    time S + t - lead while the device is at stream time t - lead.
+
+    The measured configuration: while streaming, the device's telemetry at
+    stream time tau, propagated to the step's start through the set-points
+    already in flight with the servo model (the telemetry's deviation from
+    the verified motion decays as the servo's lag); while held or waiting,
+    the telemetry itself, with the held position as the command in force.
+    `hold` latches the stream's hold (HOLD frames at the last sent
+    position); the next move resumes from there, at rest. `estop` is final.
+    Units: actuation q in mm, actuator values in rad / mm, times in s.
+    """
+
+    # late-loop holds the link may resume from; any other hold (telemetry lost, device refusal) ends the run
+    _RECOVERABLE = ("source stalled", "set-point refused")
+
+    def __init__(self, streamer: Any, servo: Any, dt: float, *, lead: float | None = None) -> None:
+        self.streamer = streamer
+        self.actuators = streamer.actuators
+        self.servo = servo
+        o = streamer.options
+        self.fdt = o.dt
+        n = dt * o.rate
+        if abs(n - round(n)) > 1e-9 or round(n) < 1:
+            raise InputError(f"stream.rate: must give whole frames per replan step of {dt:g} s, got {o.rate:g} Hz")
+        self.frames_per_step = round(n)
+        self.lead = max(o.prebuffer, dt) if lead is None else float(lead)
+        if o.prebuffer < self.lead - 1e-9:
+            raise InputError(f"stream.prebuffer: must be >= the link's lead {self.lead:g} s, got {o.prebuffer:g}")
+        self._vmax = 0.98 * self.actuators.vmax
+        self._amax = 0.98 * self.actuators.amax
+        self._p: np.ndarray | None = None  # last queued set-point (actuator values) and its velocity
+        self._v = np.zeros(self.actuators.n)
+        self._S: float | None = None  # the stream plays stamp tau at wall time S + tau
+        self._first: float | None = None  # first stamp queued since the stream (re)started
+        self._origin: float | None = None  # the loop computes step t at wall time origin + t
+        self._hist_t = np.zeros(0)
+        self._hist_q = np.zeros((0, self.actuators.n))
+        self._requested = False
+        self._moving = False  # motion queued since the stream (re)started
+        self._last_target: np.ndarray | None = None
+        self.measured_steps = 0
+        self.max_deviation = np.zeros(self.actuators.n)  # largest |set-point - verified motion| (rad, mm)
+        self.restarts = 0
+        self.holds = 0
+        self.report: Any = None
+
+    # --------------------------------------------------------------- state
+    def start_actuation(self) -> np.ndarray:
+        """Where the device is (its start telemetry, as actuation q in mm)."""
+        p = self.streamer.position
+        if p is None:
+            raise InputError("--stream: the streamer has not started (no device position)")
+        return self.actuators.actuation(p)
+
+    def begin(self, t_origin: float) -> None:
+        """Queue the device's position at stream time 0 (at rest); pace by t_origin until the stream runs."""
+        self._origin = t_origin
+        self._restart(0.0)
+
+    def _restart(self, t: float) -> None:
+        self._p = np.asarray(self.streamer.position, dtype=float)
+        self._v = np.zeros(self.actuators.n)
+        self._S, self._first, self._moving, self._last_target = None, t, False, self._p
+        self.streamer.send_values(t, self._p)
+        self._remember(np.array([t]), self.actuators.actuation(self._p)[None])
+
+    def _remember(self, stamps: np.ndarray, Q: np.ndarray) -> None:
+        keep = self._hist_t > stamps[0] - 2.0 * self.lead - 1.0
+        self._hist_t = np.concatenate([self._hist_t[keep], stamps])
+        self._hist_q = np.concatenate([self._hist_q[keep], Q])
+
+    def problem(self) -> str:
+        """Why the loop cannot drive the device any more ('' when it can)."""
+        s = self.streamer
+        if s.state in ("estop", "error", "done", "closed"):
+            return f"device stream {s.state}: {s.reason}"
+        if s.state == "held" and not self._requested and not s.reason.startswith(self._RECOVERABLE):
+            return f"device held: {s.reason}"
+        return ""
+
+    def measure(self, t: float, q: np.ndarray, qc: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+        """The measured actuation and the command in force at loop time t (mm), and whether the
+        device's telemetry gave them (else the servo model's q, qc are returned unchanged)."""
+        s = self.streamer
+        tel = s.telemetry
+        if tel is None or s.position is None:
+            return q, qc, False
+        q_tel = self.actuators.actuation(tel.positions)
+        if s.state == "held" or not self._moving:
+            # at rest, or braking to rest, at the last sent position
+            self._S = None
+            self.measured_steps += 1
+            return q_tel, self.actuators.actuation(s.position), True
+        if self._S is None or len(self._hist_t) < 2:
+            return q, qc, False  # motion queued, the stream not yet running: the model knows best
+        tau = min(time.perf_counter() - self._S, t)
+        if tau < self._hist_t[0]:
+            return q, qc, False
+        ref = np.array([np.interp(tau, self._hist_t, self._hist_q[:, i]) for i in range(self.actuators.n)])
+        self.measured_steps += 1
+        return q + self.servo.decay(max(t - tau, 0.0)) * (q_tel - ref), qc, True
+
+    # -------------------------------------------------------------- motion
+    def move(self, t: float, q0: np.ndarray, commands: np.ndarray, control_dt: float) -> None:
+        """Queue the verified motion of the step starting at loop time t from actuation q0 (mm) under
+        `commands` (one per control period of control_dt s). `DeviceError` (why) when it was not sent."""
+        s = self.streamer
+        if s.state == "held":
+            s.resume()
+            self._requested = False
+            self.restarts += 1
+            self._restart(t)
+        n = self.frames_per_step
+        stamps = t + self.fdt * np.arange(1, n + 1)
+        Q = self.verified(q0, commands, control_dt, self.fdt * np.arange(1, n + 1))
+        target = self.actuators.command(Q)
+        values = self._follow(target)
+        self.max_deviation = np.maximum(self.max_deviation, np.max(np.abs(values - target), axis=0))
+        try:
+            s.send_path(stamps, values)
+        except StreamError as exc:  # held or stopped meanwhile; `problem` says whether that is final
+            raise DeviceError(str(exc)) from exc
+        self._moving = True
+        self._remember(stamps, Q)
+        self._clock_after_queue(t, stamps[-1])
+
+    def verified(self, q0: np.ndarray, commands: np.ndarray, h: float, offsets: np.ndarray) -> np.ndarray:
+        """Actuation (len(offsets), nq) of the servo model at `offsets` s into the step (0 < offset <= n h)."""
+        C = np.asarray(commands, dtype=float)
+        starts = [np.asarray(q0, dtype=float)]
+        for c in C[:-1]:
+            starts.append(self.servo.advance(starts[-1], c, h))
+        j = np.clip(np.ceil(offsets / h - 1e-9).astype(int) - 1, 0, len(C) - 1)
+        tau = (offsets - j * h)[:, None]
+        Q0 = np.array(starts)[j]
+        return C[j] + np.exp(-tau / self.servo.tau) * (Q0 - C[j])
+
+    def _follow(self, target: np.ndarray) -> np.ndarray:
+        """Set-points tracking `target` (frames, n) with |v| <= vmax and |dv| <= amax dt per frame.
+
+        The target's own frame velocity is fed forward; the remaining error is closed at the
+        speed from which it can still brake to zero (sqrt(2 a e)), so the follower does not
+        overshoot a target that stops."""
+        dt, vmax, amax = self.fdt, self._vmax, self._amax
+        p, v = self._p, self._v
+        prev = p if self._last_target is None else self._last_target
+        out = np.empty_like(target)
+        for k, d in enumerate(target):
+            vt = (d - prev) / dt
+            e = d - (p + vt * dt)
+            corr = np.sign(e) * np.minimum(np.abs(e) / dt, np.sqrt(amax * np.abs(e)))
+            v_new = np.clip(v + np.clip(vt + corr - v, -amax * dt, amax * dt), -vmax, vmax)
+            p = p + v_new * dt
+            v, prev = v_new, d
+            out[k] = p
+        self._p, self._v, self._last_target = p, v, prev
+        return out
+
+    def _clock_after_queue(self, t: float, last: float) -> None:
+        now = time.perf_counter()
+        s = self.streamer
+        if self._S is None:
+            if self._first is not None and last - self._first >= s.options.prebuffer - 1e-9:
+                # the stream starts on its next tick (within one period) from the first stamp
+                self._S = now + 0.5 * self.fdt - self._first
+                self._origin = self._S - self.lead
+        elif now > self._S + t:
+            # queued after the stream needed it: the stream waited at stamp t until now
+            self._S = now - t
+            self._origin = self._S - self.lead
+
+    def pace(self, t: float) -> bool:
+        """Sleep until loop time t is due; True when the loop is more than one step late."""
+        origin = self._origin
+        if origin is None:
+            return False
+        lag = time.perf_counter() - origin - t
+        if lag < 0.0:
+            time.sleep(-lag)
+        return lag > self.frames_per_step * self.fdt
+
+    # ------------------------------------------------------------- control
+    def hold(self, reason: str) -> None:
+        """Latch the stream's hold (the device stops at the last sent set-point)."""
+        s = self.streamer
+        if s.state not in ("held", "estop", "error", "done", "closed"):
+            s.hold(reason)
+            self.holds += 1
+        self._requested = True
+        self._S, self._moving = None, False
+        if s.position is not None:
+            self._p, self._v = np.asarray(s.position, dtype=float), np.zeros(self.actuators.n)
+            self._last_target = self._p
+
+    def estop(self, reason: str) -> None:
+        self.streamer.estop(reason)
+
+    def finish(self, q_final: np.ndarray, timeout: float = 10.0) -> Any:
+        """Bring the set-points to rest at q_final (mm), let the device settle, close; the `StreamReport`.
+        A held or stopped stream is only closed (the device stays where it is)."""
+        s = self.streamer
+        if s.state in ("waiting", "streaming") and self._p is not None:
+            goal = self.actuators.command(np.asarray(q_final, dtype=float))
+            tail = []
+            for _ in range(int(timeout / self.fdt)):
+                tail.append(self._follow(goal[None])[0])
+                if np.all(np.abs(tail[-1] - goal) <= 1e-6) and np.all(np.abs(self._v) * self.fdt <= 1e-6):
+                    tail.append(goal)  # the last micro-step, far inside every limit
+                    break
+            t = float(self._hist_t[-1]) if len(self._hist_t) else 0.0
+            try:
+                s.send_path(t + self.fdt * np.arange(1, len(tail) + 1), np.array(tail))
+                s.finish()
+                s.wait(len(tail) * self.fdt + self.lead + s.options.settle_timeout + 2.0)
+            except StreamError:
+                pass  # stopped meanwhile: the report says why
+        self.report = s.close()
+        return self.report
+
+    def describe(self) -> dict[str, Any]:
+        """What the link did, for the run record: the stream report and the follower's deviation."""
+        rep = self.report.to_dict() if self.report is not None else {}
+        return {
+            "stream": rep,
+            "lead_s": self.lead,
+            "max_setpoint_deviation": dict(zip(self.actuators.names, self.max_deviation.tolist(), strict=True)),
+            "restarts": self.restarts,
+            "holds": self.holds,
+            "measured_steps": self.measured_steps,
+        }

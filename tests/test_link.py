@@ -1,0 +1,92 @@
+"""The device port on hardware (crtraj.hardware.link.DeviceLink): set-point generation and its errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from crtraj.control.ports import Device, DeviceError
+from crtraj.control.tracking import ServoModel
+from crtraj.core.errors import InputError
+from crtraj.hardware.actuators import Actuators
+from crtraj.hardware.link import DeviceLink
+from crtraj.hardware.stream import StreamError, StreamOptions
+
+XS = np.array([0.3, 0.0, 0.0, 0.0, 0.0])
+
+
+class _FakeStreamer:
+    """The attributes of a started `Streamer` that `DeviceLink`'s set-point generation reads."""
+
+    def __init__(self, actuators, position) -> None:
+        self.actuators = actuators
+        self.options = StreamOptions(prebuffer=0.1)
+        self.position = position
+
+
+def test_follower_respects_limits_and_reproduces_the_verified_motion(robot):
+    acts = Actuators.from_robot(robot)
+    servo = ServoModel(robot, 0.05, 0.1)
+    q0 = robot.cables(XS)
+    link = DeviceLink(_FakeStreamer(acts, acts.command(q0)), servo, 0.1)
+    link._p, link._last_target = acts.command(q0), acts.command(q0)
+    # the verified motion inside one step equals the servo's closed form, period by period
+    cmds = q0 + np.outer(np.arange(1, 6), np.append(np.full(6, 0.1), 1.5))
+    off = np.linspace(0.001, 0.1, 37)
+    Q = link.verified(q0, cmds, 0.02, off)
+    q = q0.copy()
+    for j in range(5):
+        inside = (off > j * 0.02 + 1e-12) & (off <= (j + 1) * 0.02 + 1e-12)
+        np.testing.assert_allclose(Q[inside], servo.trajectory(q, cmds[j], off[inside] - j * 0.02), atol=1e-12)
+        q = servo.advance(q, cmds[j], 0.02)
+    # a target with a velocity jump far beyond the limits: the set-points stay within them ...
+    rng = np.random.default_rng(3)
+    target = acts.command(q0) + np.cumsum(rng.normal(0.0, 0.05, (300, acts.n)), axis=0) * acts.vmax * 0.01
+    P = np.vstack([acts.command(q0)[None], link._follow(target)])
+    V = np.diff(P, axis=0) / 0.01
+    A = np.diff(np.vstack([np.zeros(acts.n), V]), axis=0) / 0.01
+    assert np.all(np.abs(V) <= acts.vmax) and np.all(np.abs(A) <= acts.amax)
+    # ... and reach a target that stops, at rest, without overshooting it by more than round-off
+    goal = target[-1]
+    tail = link._follow(np.repeat(goal[None], 400, axis=0))
+    np.testing.assert_allclose(tail[-1], goal, atol=1e-6)
+    np.testing.assert_allclose(link._v, 0.0, atol=1e-4)
+    # a smooth, feasible target is followed exactly
+    smooth = goal + np.outer(np.sin(np.linspace(0, 1, 100)), 0.001 * acts.vmax)
+    link._p, link._v, link._last_target = smooth[0], np.zeros(acts.n), smooth[0]
+    np.testing.assert_allclose(link._follow(smooth[1:]), smooth[1:], atol=1e-3 * acts.vmax.max())
+
+
+def test_stream_rate_must_divide_the_step(robot):
+    acts = Actuators.from_robot(robot)
+    fake = _FakeStreamer(acts, acts.command(robot.cables(XS)))
+    fake.options = StreamOptions(rate=35.0, prebuffer=0.1)  # 3.5 frames per 0.1 s step
+    with pytest.raises(InputError, match=r"stream\.rate"):
+        DeviceLink(fake, ServoModel(robot, 0.05, 0.1), 0.1)
+
+
+class _RefusingStreamer(_FakeStreamer):
+    """A started stream that was held meanwhile: it refuses every set-point."""
+
+    state = "streaming"
+    reason = ""
+
+    def send_values(self, t, values) -> None:
+        pass
+
+    def send_path(self, stamps, values) -> None:
+        raise StreamError("stream held: source stalled")
+
+
+def test_a_refused_move_is_a_device_error_and_nothing_is_remembered(robot):
+    acts = Actuators.from_robot(robot)
+    q0 = robot.cables(XS)
+    link = DeviceLink(_RefusingStreamer(acts, acts.command(q0)), ServoModel(robot, 0.05, 0.1), 0.1)
+    assert isinstance(link, Device)  # the loop's device port
+    link.begin(0.0)
+    history = len(link._hist_t)
+    cmds = np.repeat((q0 + 0.05)[None], 5, axis=0)
+    with pytest.raises(DeviceError, match="stream held: source stalled") as info:
+        link.move(0.0, q0, cmds, 0.02)
+    assert isinstance(info.value.__cause__, StreamError)  # wrapped, not swallowed
+    assert len(link._hist_t) == history and not link._moving  # a move not sent is not taken as sent
