@@ -47,6 +47,7 @@ from typing import Any
 
 import numpy as np
 
+from crtraj import __version__
 from crtraj.core.errors import InputError
 from crtraj.core.fields import Table
 from crtraj.core.fileio import to_jsonable
@@ -967,6 +968,5 @@ class Streamer:
 
 
 def _version() -> str:
-    from crtraj import __version__
 
     return __version__

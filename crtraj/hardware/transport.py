@@ -14,6 +14,8 @@ import socket
 from pathlib import Path
 from urllib.parse import parse_qs, urlsplit
 
+import serial
+
 from crtraj.core.errors import InputError
 from crtraj.hardware.protocol import StreamDecoder, stream_encode
 
@@ -130,7 +132,6 @@ class _SerialTransport(Transport):
     """COBS-framed frames over a serial port (pyserial; ``loop://`` for a loopback)."""
 
     def __init__(self, device: str, baud: int = 115200) -> None:
-        import serial
 
         if baud <= 0:
             raise InputError(f"--baud: must be > 0, got {baud}")
