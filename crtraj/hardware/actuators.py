@@ -26,6 +26,7 @@ import numpy as np
 
 from crtraj.core.errors import InputError
 from crtraj.core.fields import MAX_LENGTH, Table, check_array
+from crtraj.planning.rate_limits import RateLimits
 
 # Smallest spool radius (mm): below it one radian of servo is less than a micrometre of cable.
 MIN_SPOOL = 1e-3
@@ -155,6 +156,14 @@ class Actuators:
         a2 = check_array(a.reshape(1, -1) if a.ndim == 1 else a, name, (None, self.n))
         q = self._rest() + (a2 - self.zero_offset) / self.scale
         return q[0] if a.ndim == 1 else q
+
+    def rate_limits(self, robot: Any) -> RateLimits:
+        """The speed and acceleration limits as linear limits on configuration motion of `robot`.
+
+        value = offset + scale (q - rest), q = q0 + A x: d value / d x = diag(scale) A.
+        """
+        A, _ = robot.cable_matrix()
+        return RateLimits(self.scale[:, None] * np.asarray(A, dtype=float), self.vmax, self.amax, self.names)
 
     def position_violation(self, values: np.ndarray) -> np.ndarray:
         """How far each value is outside its position limits (<= 0 inside), same shape as values."""
