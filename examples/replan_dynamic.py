@@ -11,7 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from crtraj.control.loop import loop_from_problem, write_run
+from crtraj.app.run_output import write_run
+from crtraj.control.loop import loop_from_problem
 from crtraj.io.problem import Problem
 
 ROOT = Path(__file__).resolve().parent.parent

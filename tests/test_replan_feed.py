@@ -14,7 +14,8 @@ import numpy as np
 from feed_clock import VirtualClock
 
 from crtraj.control.horizon import ReplanOptions
-from crtraj.control.loop import ClosedLoop, FeedObstacles, result_dict
+from crtraj.control.loop import ClosedLoop, FeedObstacles
+from crtraj.io.results import run_document
 from crtraj.world.feed import ObstacleFeed
 from crtraj.world.scene import Obstacle, Scene
 
@@ -94,7 +95,7 @@ def test_live_feed_run_moves_safely_and_holds_when_the_feed_goes_stale(model):
     assert set(kinds) == {"oversize", "timestamp", "unknown_id"}
     assert "'intruder'" in kinds["unknown_id"]["message"] and "60000 bytes" in kinds["oversize"]["message"]
     assert all(0.2 <= e["t"] <= 0.4 for e in feed_rec["events"])  # sent at 0.3 s, logged at the next step
-    res = result_dict(run, loop)
+    res = run_document(run, loop)
     assert res["feed"]["counts"] == feed_rec["counts"] and res["summary"]["feed_events"] == feed_rec["counts"]
 
 

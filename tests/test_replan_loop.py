@@ -15,6 +15,7 @@ import math
 import numpy as np
 import pytest
 
+from crtraj.app.run_output import write_run
 from crtraj.control.horizon import HorizonResult, Replanner, ReplanOptions
 from crtraj.control.loop import ClosedLoop, StepStatus
 from crtraj.control.tracking import TrackingOptions
@@ -223,8 +224,6 @@ def test_start_in_collision_is_refused_without_moving(model):
 
 
 def test_result_files_round_trip(model, ball_run, tmp_path):
-    from crtraj.control.loop import write_run
-
     loop, run = ball_run
     paths = write_run(run, loop, tmp_path, html=False)
     res = json.loads((tmp_path / "run.json").read_text())

@@ -41,12 +41,13 @@ def admit_result(
     (default: the result's own robot, which must then have them).
     time_scale: play the motion this many times slower.
     """
-    res = read_result(result)
-    device = res.robot
-    if robot_file is not None:
+    device = None
+    if robot_file is not None:  # the flag's file first: a bad --robot is named before the result is read
         device = load_robot(robot_file)
         if device.actuators is None:
             raise InputError(f"{robot_file}: robot.actuators: missing; add a [robot.actuators] table")
+    res = read_result(result)
+    device = res.robot if device is None else device
     if device.actuators is None:
         raise InputError(
             "robot.actuators: the result's robot has no [robot.actuators]; pass --robot problems/robots/cdsr2.toml"
