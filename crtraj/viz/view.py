@@ -14,8 +14,9 @@ Every command is also applied to an in-process copy of meshcat's own scene
 tree (the server's code, run without sockets), so `static_html` and
 `save_html` work with or without a server and give exactly the page meshcat's
 server would give. A server, when asked for, is meshcat's, started as a child
-process with its web and ZMQ sockets bound to 127.0.0.1 only (meshcat 0.3.2
-would listen on every interface), and it exits when this process does.
+process (`crtraj.viz.server`) with its web and ZMQ sockets bound to 127.0.0.1
+only (meshcat 0.3.2 would listen on every interface), and it exits when this
+process does. Results are read and validated by `crtraj.io.results`.
 
 Jupyter: make ``vis.jupyter_cell()`` the last expression of a cell. With a
 server it embeds the live page (an iframe on 127.0.0.1, so the browser must run
