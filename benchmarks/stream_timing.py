@@ -15,12 +15,13 @@ from pathlib import Path
 import numpy as np
 
 from crtraj.hardware.actuators import Actuators
+from crtraj.hardware.admission import MotionRecord, admit
 from crtraj.hardware.limits import LimitsGate
 from crtraj.hardware.protocol import MOVE, Frame
-from crtraj.hardware.setpoints import SetpointPath
 from crtraj.hardware.sim_device import SimDevice
 from crtraj.hardware.stream import Streamer, StreamOptions
 from crtraj.io.problem import load_robot
+from crtraj.world.scene import Scene
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -43,7 +44,10 @@ def main() -> None:
     x0, x1 = robot.straight(0.0), np.array([0.3, -0.2, 0.1, 0.4, -10.0])
     s = np.linspace(0, 1, 21)
     X = x0 + (x1 - x0) * (0.5 - 0.5 * np.cos(np.pi * s))[:, None]
-    path = SetpointPath.from_actuation(args.seconds * s, robot.cables(X), acts)
+    # a synthetic motion among no obstacles, admitted as a successful plan of this robot would be
+    record = MotionRecord("", "plan", "success", True, True, 0, 0, robot, Scene(), args.seconds * s, robot.cables(X))
+    motion = admit(record, acts)
+    path = motion.path
 
     # per-tick CPU cost of the limits gate + frame encoding (no I/O)
     stamps, values = path.sample(args.rate)
@@ -62,7 +66,7 @@ def main() -> None:
 
     with tempfile.TemporaryDirectory() as tmp, SimDevice(acts) as dev:
         log = Path(tmp) / "run.jsonl"
-        rep = Streamer.open(dev.url, acts, StreamOptions(rate=args.rate), log=log).run_path(path)
+        rep = Streamer.open(dev.url, acts, StreamOptions(rate=args.rate), log=log).run_path(motion)
         lines = [json.loads(x) for x in log.read_text().splitlines()]
     tx = [r for r in lines if r["type"] == "tx" and r["kind"] == "move"]
     rx = [r for r in lines if r["type"] == "rx"]

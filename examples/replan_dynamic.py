@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from crtraj.app.replan import loop_from_problem
-from crtraj.control.loop import write_run
+from crtraj.app.run_output import write_run
 from crtraj.io.problem import Problem
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -4,8 +4,9 @@ Run: python examples/stream_sim.py        (about 6 s; everything stays on 127.0.
 
 1. Builds a plan-style result (waypoints with t and q) from the real model:
    the straight robot bends both segments and lowers its base by 8 mm in 3 s.
-2. Streams it with `Streamer.run_path` to a `SimDevice` that drops 5 % of the
-   datagrams and corrupts 2 %, and prints the report.
+2. Admits it (`crtraj.hardware.admission.admit`) and streams it with
+   `Streamer.run_path` to a `SimDevice` that drops 5 % of the datagrams and
+   corrupts 2 %, and prints the report.
 3. Streams a live sequence with the control-step API (`start`,
    `send_setpoint`, `finish`, `close`): each step sends the next set-point
    of a circling bend, 0.3 s ahead of the stream.
@@ -20,11 +21,13 @@ import numpy as np
 
 from crtraj.core.fileio import atomic_write_json, to_jsonable
 from crtraj.hardware.actuators import Actuators
-from crtraj.hardware.setpoints import SetpointPath
+from crtraj.hardware.admission import admit
 from crtraj.hardware.sim_device import Faults, SimDevice
 from crtraj.hardware.stream import Streamer, StreamOptions
 from crtraj.io.problem import load_robot
+from crtraj.io.results import read_result
 from crtraj.model.kinematics import Model
+from crtraj.world.scene import Scene
 
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "out" / "stream_demo"
@@ -38,7 +41,8 @@ def demo_result(robot, model, duration=3.0, n=16):
     X = x0 + (x1 - x0) * (0.5 - 0.5 * np.cos(np.pi * s))[:, None]
     Q, P = model.cables(X), model.tip_position(X)
     wps = [{"t": duration * s[k], "tip": P[k], "x": X[k], "q": Q[k]} for k in range(n)]
-    return to_jsonable({"kind": "plan", "robot": robot.to_dict(), "status": "success", "waypoints": wps})
+    doc = {"kind": "plan", "robot": robot.to_dict(), "scene": Scene().to_dict(), "status": "success", "success": True}
+    return to_jsonable(doc | {"waypoints": wps})
 
 
 def main() -> None:
@@ -51,8 +55,8 @@ def main() -> None:
 
     with SimDevice(acts, faults=Faults(drop=0.05, corrupt=0.02), seed=1) as dev:
         # --- 1. a whole planned trajectory
-        path = SetpointPath.from_result(result, acts)
-        rep = Streamer.open(dev.url, acts, log=OUT / "run_path.jsonl").run_path(path)
+        motion = admit(read_result(result).motion_record(), acts)  # refuses failed, colliding, ... results
+        rep = Streamer.open(dev.url, acts, log=OUT / "run_path.jsonl").run_path(motion)
         print(
             f"run_path: {rep.status} ({rep.message}); {rep.moves} set-points, device {rep.device}, "
             f"final error {rep.final_error:.2g}"

@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from crtraj.core.fileio import read_json
 from crtraj.io.problem import load_robot
+from crtraj.io.results import read_result
 from crtraj.model.kinematics import Model
 from crtraj.viz.view import Visualizer
 
@@ -27,7 +27,7 @@ ROBOT = Path(__file__).resolve().parent.parent / "problems" / "robots" / "cdsr2.
 
 def serve(result_path: str) -> None:
     """Replay a result with meshcat's time slider until Ctrl-C."""
-    result = read_json(result_path)
+    result = read_result(result_path)  # validated: one line naming the field if the file is off the schema
     with Visualizer.for_result(result, server=True, open=True) as vis:
         print(f"{result_path}: {vis.url}  (Ctrl-C to stop)")
         try:
@@ -39,7 +39,7 @@ def serve(result_path: str) -> None:
 
 def export(result_path: str, html_path: str) -> None:
     """The same page as one self-contained file (what `crtraj view --html` writes)."""
-    path = Visualizer.for_result(read_json(result_path)).save_html(html_path)
+    path = Visualizer.for_result(read_result(result_path)).save_html(html_path)
     print(f"wrote {path}")
 
 

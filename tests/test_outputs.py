@@ -14,12 +14,14 @@ import numpy as np
 import pytest
 
 from crtraj.app.replan import loop_from_problem
+from crtraj.app.run_output import write_run
 from crtraj.cli import main
-from crtraj.control.loop import RUN_FILES, ClosedLoop, write_run
+from crtraj.control.loop import ClosedLoop
 from crtraj.core import fileio
 from crtraj.core.errors import InputError
 from crtraj.hardware.protocol import MOVE, read_stream_file
 from crtraj.io.problem import Problem
+from crtraj.io.run_files import RUN_FILES
 from crtraj.model.kinematics import Model
 from crtraj.world.scene import Scene
 

@@ -14,8 +14,9 @@ import numpy as np
 from feed_clock import VirtualClock
 
 from crtraj.control.horizon import ReplanOptions
-from crtraj.control.loop import ClosedLoop, RunStatus, result_dict
+from crtraj.control.loop import ClosedLoop, RunStatus
 from crtraj.control.loop_options import LoopOptions
+from crtraj.io.results import run_document
 from crtraj.world.feed import ObstacleFeed
 from crtraj.world.scene import Obstacle, Scene
 from crtraj.world.sources import FeedObstacles
@@ -106,7 +107,7 @@ def test_live_feed_run_moves_safely_and_holds_when_the_feed_goes_stale(model):
     assert set(kinds) == {"oversize", "timestamp", "unknown_id"}
     assert "'intruder'" in kinds["unknown_id"]["message"] and "60000 bytes" in kinds["oversize"]["message"]
     assert all(0.2 <= e["t"] <= 0.4 for e in feed_rec["events"])  # sent at 0.3 s, logged at the next step
-    res = result_dict(run, loop)
+    res = run_document(run, loop)
     assert res["feed"]["counts"] == feed_rec["counts"] and res["summary"]["feed_events"] == feed_rec["counts"]
 
 

@@ -15,8 +15,9 @@ import math
 import numpy as np
 import pytest
 
+from crtraj.app.run_output import write_run
 from crtraj.control.horizon import HorizonResult, HorizonStatus, Replanner, ReplanOptions
-from crtraj.control.loop import ClosedLoop, RunStatus, StepStatus, write_run
+from crtraj.control.loop import ClosedLoop, RunStatus, StepStatus
 from crtraj.control.loop_options import LoopOptions
 from crtraj.control.ports import Device, DeviceError
 from crtraj.control.tracking import TrackingOptions

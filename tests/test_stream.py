@@ -24,11 +24,13 @@ from crtraj.core.errors import InputError
 from crtraj.core.fields import Table
 from crtraj.core.fileio import atomic_write_json, to_jsonable
 from crtraj.hardware.actuators import Actuators
+from crtraj.hardware.admission import MotionRecord, admit
 from crtraj.hardware.protocol import ESTOP, HOLD, MOVE, PING, Frame, Telemetry, read_stream_file
-from crtraj.hardware.setpoints import SetpointPath
 from crtraj.hardware.sim_device import DeviceCore, Faults, SimDevice
 from crtraj.hardware.stream import Streamer, StreamError, StreamOptions, _VirtualClock
 from crtraj.hardware.transport import Transport
+from crtraj.io.results import read_result
+from crtraj.world.scene import Scene
 
 pytestmark = pytest.mark.timeout(120)
 ROOT = Path(__file__).resolve().parent.parent
@@ -56,7 +58,13 @@ def make_result(robot, model, x1, duration, n=11, z0=0.0):
         {"t": float(duration * si), "tip": P[k], "x": X[k], "q": Q[k], "backbone": B[k], "obstacles": {}}
         for k, si in enumerate(s)
     ]
-    return to_jsonable({"kind": "plan", "robot": robot.to_dict(), "status": "success", "waypoints": wps})
+    doc = {"kind": "plan", "robot": robot.to_dict(), "scene": Scene().to_dict(), "status": "success", "success": True}
+    return to_jsonable(doc | {"waypoints": wps})
+
+
+def admitted(result, acts, time_scale=1.0):
+    """The result's motion as admission lets it through (what `crtraj stream` streams)."""
+    return admit(read_result(result).motion_record(), acts, time_scale=time_scale)
 
 
 X1 = np.array([0.3, -0.2, 0.1, 0.4, -8.0])
@@ -92,7 +100,7 @@ def assert_applied_frames_are_sent_frames(dev: SimDevice, log: Path) -> list[dic
 # ------------------------------------------------------------ end to end
 def test_streamed_trajectory_arrives_in_order_and_device_ends_at_final_setpoint(acts, result, tmp_path):
     log = tmp_path / "run.jsonl"
-    path = SetpointPath.from_result(result, acts)
+    path = admitted(result, acts)
     with SimDevice(acts) as dev:
         rep = Streamer.open(dev.url, acts, ROBUST, log=log).run_path(path)
         time.sleep(0.2)
@@ -119,7 +127,7 @@ def test_streamed_trajectory_arrives_in_order_and_device_ends_at_final_setpoint(
 
 def test_lossy_corrupting_link_keeps_streaming_and_never_applies_a_damaged_frame(acts, result, tmp_path):
     log = tmp_path / "run.jsonl"
-    path = SetpointPath.from_result(result, acts)
+    path = admitted(result, acts)
     with SimDevice(acts, faults=Faults(drop=0.1, corrupt=0.05), seed=7) as dev:
         rep = Streamer.open(dev.url, acts, ROBUST, log=log).run_path(path)
         time.sleep(0.2)
@@ -167,7 +175,7 @@ def test_stalled_source_holds_within_the_watchdog_time(acts, tmp_path):
 
 def test_silent_device_triggers_hold_within_the_watchdog_time(acts, result, tmp_path):
     log = tmp_path / "run.jsonl"
-    path = SetpointPath.from_result(result, acts)
+    path = admitted(result, acts)
     with SimDevice(acts, faults=Faults(disconnect_after=0.5, disconnect_for=30.0)) as dev:
         rep = Streamer.open(dev.url, acts, log=log).run_path(path)
     assert rep.status == "telemetry-lost", rep.message
@@ -181,7 +189,7 @@ def test_silent_device_triggers_hold_within_the_watchdog_time(acts, result, tmp_
 
 def test_estop_stops_at_once_and_latches(acts, result, tmp_path):
     log = tmp_path / "run.jsonl"
-    path = SetpointPath.from_result(result, acts)
+    path = admitted(result, acts)
     with SimDevice(acts) as dev:
         s = Streamer.open(dev.url, acts, ROBUST, log=log)
         timer = threading.Timer(0.5, s.estop)
@@ -199,7 +207,7 @@ def test_estop_stops_at_once_and_latches(acts, result, tmp_path):
 
 
 def test_transport_errors_stop_and_report(acts, result, tmp_path):
-    path = SetpointPath.from_result(result, acts)
+    path = admitted(result, acts)
     # nothing listens: ICMP port unreachable surfaces as a transport error
     probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     probe.bind(("127.0.0.1", 0))
@@ -224,7 +232,7 @@ def test_device_with_stricter_limits_refusal_is_reported(robot, acts, result, tm
     d["actuators"] = Actuators.from_robot(robot).to_dict()  # every servo written out
     d["actuators"]["servo"]["s2c2"]["position_limits"] = [-0.01, 0.01]
     strict = Actuators.from_robot(type(robot).from_table(Table(d, "robot")))
-    path = SetpointPath.from_result(result, acts)
+    path = admitted(result, acts)
     with SimDevice(strict) as dev:
         rep = Streamer.open(dev.url, acts, ROBUST).run_path(path)
     assert rep.status == "refused" and "device refused" in rep.message
@@ -233,20 +241,20 @@ def test_device_with_stricter_limits_refusal_is_reported(robot, acts, result, tm
 # ------------------------------------------------------- limits, refusal
 def test_too_fast_path_is_refused_before_anything_is_sent(robot, model, acts, tmp_path):
     fast = make_result(robot, model, X1, 0.3)
-    path = SetpointPath.from_result(fast, acts)
+    path = admitted(fast, acts)
     dry = tmp_path / "frames.bin"
     rep = Streamer.open(f"file://{dry}", acts).run_path(path)
     assert rep.status == "refused" and rep.frames == 0
     assert "refused before sending: z " in rep.message and "exceeds limit" in rep.message
     scale = float(rep.message.split("--time-scale ")[1])
-    rep2 = Streamer.open(f"file://{dry}", acts).run_path(path.scaled(scale))
+    rep2 = Streamer.open(f"file://{dry}", acts).run_path(admitted(fast, acts, time_scale=scale))
     assert rep2.ok, rep2.message
     assert dry.stat().st_size > 0
 
 
 def test_path_away_from_the_device_needs_an_approach(robot, model, acts, tmp_path):
     res = make_result(robot, model, X1, 1.0, z0=-5.0)  # starts 5 mm below the device's z = 0
-    path = SetpointPath.from_result(res, acts)
+    path = admitted(res, acts)
     with SimDevice(acts) as dev:
         rep = Streamer.open(dev.url, acts, ROBUST).run_path(path)
         assert rep.status == "refused" and "--approach" in rep.message and rep.moves == 0
@@ -305,7 +313,7 @@ steps = st.lists(
     scale=st.sampled_from([0.001, 0.02, 0.3, 3.0]),
     start=st.lists(st.floats(-2.5, 2.5), min_size=7, max_size=7),
 )
-def test_no_frame_ever_leaves_outside_its_limits(acts, steps, gaps, scale, start):
+def test_no_frame_ever_leaves_outside_its_limits(robot, acts, steps, gaps, scale, start):
     """Whatever the set-points (random walks of any speed, even outside the limits), every frame that
     leaves respects position, velocity and acceleration limits; refused set-points stop the motion."""
     start_v = np.clip(np.array(start) * np.r_[[1.0] * 6, [40.0]], acts.lower, acts.upper)
@@ -324,8 +332,9 @@ def test_no_frame_ever_leaves_outside_its_limits(acts, steps, gaps, scale, start
     _check_frames(cap.frames, acts, start_v, dt)
     # whole path: preflight refuses (nothing sent) or every frame is within limits
     cap2 = _Capture()
-    path = SetpointPath(np.r_[0.0, stamps], np.vstack([start_v, vals]))
-    rep2 = Streamer(cap2, acts, StreamOptions()).run_path(path)
+    t, v = np.r_[0.0, stamps], np.vstack([start_v, vals])
+    record = MotionRecord("", "plan", "success", True, True, 0, 0, robot, Scene(), t, acts.actuation(v))
+    rep2 = Streamer(cap2, acts, StreamOptions()).run_path(admit(record, acts))
     assert rep2.status in ("done", "refused")
     if rep2.status == "refused":
         assert cap2.frames == []
@@ -348,11 +357,13 @@ def _run_cli(argv, capsys):
 @pytest.mark.parametrize(
     ("mutate", "message"),
     [
-        (lambda r: r["waypoints"][3]["q"].__setitem__(2, None), "waypoints[3].q[2] (s1c3): must be finite"),
-        (lambda r: r["waypoints"][4].__setitem__("t", 0.1), "waypoints[4].t: time must increase strictly"),
-        (lambda r: r["waypoints"][0]["q"].pop(), "waypoints[0].q: expected 7 values (s1c1, s1c2"),
-        (lambda r: r["waypoints"][1].pop("t"), "waypoints[1]: needs 't' (s) and 'q'"),
-        (lambda r: r.__setitem__("waypoints", []), "waypoints: missing or empty"),
+        (lambda r: r["waypoints"][3]["q"].__setitem__(2, None), "waypoints[3].q[2]: must be finite"),
+        (lambda r: r["waypoints"][4].__setitem__("t", 0.1), "waypoints[4].t: time goes backwards"),
+        (lambda r: r["waypoints"][4].__setitem__("t", r["waypoints"][3]["t"]), "waypoints[4].t: time must increase"),
+        (lambda r: r["waypoints"][0]["q"].pop(), "waypoints[0].q: expected 7 values (3 cables per segment"),
+        (lambda r: r["waypoints"][1].pop("t"), "waypoints[1].t: missing (required)"),
+        (lambda r: r["waypoints"][2].pop("q"), "waypoints[2].q: missing (required)"),
+        (lambda r: r.__setitem__("waypoints", []), "waypoints: expected a non-empty list"),
         (lambda r: r["robot"].pop("actuators"), "robot.actuators: the result's robot has no [robot.actuators]"),
     ],
 )
@@ -491,7 +502,7 @@ def core_run(acts, path, *, core=None, opts=None, log=None, intercept=None, appr
 
 
 def test_core_link_run_is_done_and_frames_carry_one_random_session(acts, result, tmp_path):
-    path = SetpointPath.from_result(result, acts)
+    path = admitted(result, acts)
     s, link, rep = core_run(acts, path, log=tmp_path / "run.jsonl")
     assert rep.ok, rep.message
     frames = [Frame.decode(b) for b in link.sent]
@@ -504,7 +515,7 @@ def test_core_link_run_is_done_and_frames_carry_one_random_session(acts, result,
 
 def test_forged_max_sequence_frame_does_not_lock_out_the_run(acts, result, tmp_path):
     """Issue 11: one MOVE frame with seq 0xFFFFFFFF locked the host out for the rest of the run."""
-    path = SetpointPath.from_result(result, acts)
+    path = admitted(result, acts)
     state = {"n": 0}
     holder: dict = {}
 
@@ -531,7 +542,7 @@ def test_forged_max_sequence_frame_does_not_lock_out_the_run(acts, result, tmp_p
 def test_sequence_numbers_wrap_and_a_restarted_streamer_is_not_locked_out(acts, result):
     """A run whose sequence numbers wrap past 0xFFFFFFFF completes, and so does the next run
     (a new session) on the same device, whatever sequence numbers the first one left behind."""
-    path = SetpointPath.from_result(result, acts)
+    path = admitted(result, acts)
     core = DeviceCore(acts)
     _, _, rep = core_run(acts, path, core=core, first_seq=0xFFFFFFFF - 40)
     assert rep.ok, rep.message
@@ -549,7 +560,7 @@ def test_device_that_stops_acknowledging_is_held_at_once(acts, result, tmp_path)
     """The device stops applying set-points (as it did after the forged frame): the streamer holds
     within ack_timeout of the first unacknowledged frame and reports why, not `not-settled` at the end."""
     log = tmp_path / "run.jsonl"
-    path = SetpointPath.from_result(result, acts)
+    path = admitted(result, acts)
     opts = StreamOptions(ack_timeout=0.2)
     sent = {"n": 0}
 
@@ -578,7 +589,7 @@ def test_device_that_does_not_follow_is_held_with_a_following_error(robot, acts,
     d["actuators"]["z"]["velocity_limit"] = 2.0
     slow = Actuators.from_robot(type(robot).from_table(Table(d, "robot")))
     opts = StreamOptions(following_tolerance=0.5)
-    path = SetpointPath.from_result(result, acts)
+    path = admitted(result, acts)
     _, _, rep = core_run(acts, path, core=DeviceCore(slow), opts=opts, log=log)
     assert rep.status == "following-error", rep.message
     assert rep.message.startswith("following error: z measured ") and "> following_tolerance 0.5" in rep.message
@@ -597,7 +608,7 @@ def test_device_that_does_not_follow_is_held_with_a_following_error(robot, acts,
 def test_hostile_telemetry_never_crashes_or_stops_the_streamer(acts, result, data):
     """Garbage, truncated and re-sealed datagrams, and well-formed telemetry of another session, mixed
     into the device's telemetry: the run still completes, and every bad datagram is counted."""
-    path = SetpointPath.from_result(result, acts)
+    path = admitted(result, acts)
     junk = data.draw(st.lists(hostile_datagrams(acts), min_size=1, max_size=8))
     foreign = Telemetry(10**6, 0.0, 3, 0, acts.upper, session=1).encode()
     clock = _VirtualClock()

@@ -389,7 +389,7 @@ def _gone(pid, wait=10.0):
 
 
 def _server_children(pid):
-    """Pids of the crtraj.viz.view server processes started by process `pid` (Linux /proc)."""
+    """Pids of the crtraj.viz.server processes started by process `pid` (Linux /proc)."""
     out = []
     for d in Path("/proc").iterdir():
         if d.name.isdigit():
@@ -398,7 +398,7 @@ def _server_children(pid):
                 cmd = (d / "cmdline").read_bytes().split(b"\0")
             except (FileNotFoundError, ProcessLookupError, IndexError):
                 continue
-            if ppid == pid and b"crtraj.viz.view" in cmd:
+            if ppid == pid and b"crtraj.viz.server" in cmd:
                 out.append(int(d.name))
     return out
 

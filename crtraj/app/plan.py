@@ -2,17 +2,21 @@
 
 from __future__ import annotations
 
-import datetime
+import argparse
+import contextlib
+import json
+import math
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import casadi as ca
-import numpy as np
-
-from crtraj import __version__
-from crtraj.core.fileio import atomic_write_json, to_jsonable
+from crtraj.app.view import serve, static_html
+from crtraj.core.errors import InputError
+from crtraj.core.fileio import StagedFile, atomic_write_json, check_output_file, failed_sibling, is_successful_result
+from crtraj.io.problem import Problem
+from crtraj.io.results import plan_document
 from crtraj.model.kinematics import Model
 from crtraj.planning.options import PlannerOptions
 from crtraj.planning.registry import make_planner
@@ -34,50 +38,11 @@ class ProblemPlan:
     setup_time: float
 
     def document(self) -> dict[str, Any]:
-        """The self-describing result file (kind "plan"; schema in the README), as plain JSON data."""
-        p, r, model, scene = self.problem, self.result, self.model, self.scene
-        waypoints = []
-        if len(r.t):
-            backbone = model.points(r.configs)
-            centers, radii = scene.states(r.t)
-            for k in range(len(r.t)):
-                waypoints.append(
-                    {
-                        "t": float(r.t[k]),
-                        "tip": r.tips[k],
-                        "x": r.configs[k],
-                        "q": r.cables[k],
-                        "backbone": backbone[k],
-                        "obstacles": {"centers": centers[k].reshape(-1, 3), "radii": radii[k].reshape(-1)},
-                    }
-                )
+        """The result document (kind "plan", `crtraj.io.results`), as plain JSON data."""
         options: dict[str, Any] = {"planner": self.options.to_dict()}
         if self.steer_options is not None:
             options["steer"] = self.steer_options.to_dict()
-        doc: dict[str, Any] = {
-            "kind": "plan",
-            "crtraj_version": __version__,
-            "casadi_version": ca.__version__,
-            "numpy_version": np.__version__,
-            "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-            "problem": {"name": p.name, "path": None if p.path is None else str(p.path), "seed": r.seed},
-            "robot": model.robot.to_dict(),
-            "scene": scene.to_dict(),
-            "task": p.require_task().to_dict(),
-            "options": options,
-            "status": str(r.status),
-            "success": r.is_success(),
-            "message": r.message,
-            "timing": {**{f"{k}_s": v for k, v in r.timings.items()}, "setup_s": self.setup_time},
-            "summary": r.summary(),
-            "waypoints": waypoints,
-            "tree": {"edges": r.tree_edges},
-        }
-        if r.raw_configs is not None and len(r.raw_configs):
-            doc["raw_path"] = {"t": r.raw_t, "x": r.raw_configs, "tip": model.tip_position(r.raw_configs)}
-        if r.goal_configs is not None and len(r.goal_configs):
-            doc["goal_configs"] = r.goal_configs
-        return to_jsonable(doc)
+        return plan_document(self.problem, self.model, self.scene, self.result, options, self.setup_time)
 
     def write(self, path: str | Path) -> Path:
         """Write `document()` as JSON, atomically."""
@@ -117,3 +82,68 @@ def plan_problem(
     result = planner.plan(task.goal, seed=seed, goal_tolerance=task.goal_tolerance, **start)
     used_steer = getattr(planner, "steer_options", None)
     return ProblemPlan(problem, model, scene, options, used_steer, result, setup)
+
+
+def _check_plan_args(args: argparse.Namespace) -> tuple[Problem, Path]:
+    """Validate the flags and the problem before the (possibly long) plan; returns (problem, --out)."""
+    if args.seed is not None and args.seed < 0:
+        raise InputError(f"--seed: must be >= 0, got {args.seed}")
+    if args.time_limit is not None and not (math.isfinite(args.time_limit) and args.time_limit > 0):
+        raise InputError(f"--time-limit: must be a number > 0 (s), got {args.time_limit}")
+    problem = Problem.load(args.problem)
+    out = Path(args.out) if args.out else Path("out") / f"plan-{problem.name}.json"
+    check_output_file(out, "--out")
+    if args.html:
+        check_output_file(args.html, "--html")
+        if Path(args.html).resolve() == out.resolve():
+            raise InputError(f"--html: {args.html} is the same file as --out; choose another file")
+    return problem, out
+
+
+def _write_outputs(doc: dict[str, Any], success: bool, out: Path, args: argparse.Namespace) -> Path:
+    """Write the result (and --html of a successful plan), both staged; returns where the result went."""
+    # a failed plan never replaces a successful one unless asked: it goes beside it
+    dest = out
+    if not success and not args.overwrite_failed and is_successful_result(out):
+        dest = failed_sibling(out)
+    with contextlib.ExitStack() as stack:
+        staged = [stack.enter_context(StagedFile(dest))]
+        staged[0].write((json.dumps(doc, indent=1, allow_nan=False) + "\n").encode("utf-8"))
+        if args.html and success:
+            staged.append(stack.enter_context(StagedFile(args.html)))
+            staged[1].write(static_html(doc).encode("utf-8"))
+        for f in staged:  # both complete before either replaces anything
+            f.commit()
+    return dest
+
+
+def plan_command(args: argparse.Namespace) -> int:
+    """`crtraj plan PROBLEM ...` (arguments from `crtraj.cli`); returns the exit code."""
+    problem, out = _check_plan_args(args)
+    run = plan_problem(problem, algorithm=args.planner, seed=args.seed, time_limit=args.time_limit)
+    r = run.result
+    doc = run.document()
+    dest = _write_outputs(doc, r.is_success(), out, args)
+    print(f"{problem.name}: {r.status} with {r.planner} (seed {r.seed}) in {r.timings.get('total', 0.0) * 1e3:.1f} ms")
+    print(f"  {r.message}")
+    if r.has_path:
+        print(
+            f"  tip path {r.length:.1f} mm over {r.duration:.2f} s, {len(r.t)} waypoints, "
+            f"min clearance {r.min_clearance:.2f} mm (beyond D_sf {run.scene.safety_distance:g} mm), "
+            f"goal error {r.goal_error:.3f} mm"
+        )
+    steps = ", ".join(f"{k} {v * 1e3:.1f}" for k, v in r.timings.items() if k != "total")
+    print(f"  time (ms): {steps}; setup {run.setup_time * 1e3:.0f} ms")
+    if dest != out:
+        print(f"  wrote {dest} (failed; {out} holds a successful plan and was kept: --overwrite-failed replaces it)")
+    else:
+        print(f"  wrote {dest}")
+    if args.html:
+        print(f"  wrote {args.html}" if r.is_success() else f"  no HTML written: the plan failed ({r.status})")
+    if r.is_success() and args.view:
+        serve(doc, str(out), not args.no_browser)
+    elif args.view:
+        print(f"  not viewed: the plan failed ({r.status})")
+    if not r.is_success():
+        print(f"crtraj: plan failed: {r.status}: {r.message} (result in {dest})", file=sys.stderr)
+    return 0 if r.is_success() else 1

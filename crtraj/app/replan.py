@@ -20,20 +20,24 @@ from typing import Any
 
 import numpy as np
 
+from crtraj.app.run_output import write_run_files
+from crtraj.app.view import serve
 from crtraj.control.horizon import ReplanOptions
-from crtraj.control.loop import RUN_FILES, ClosedLoop, ReplanRun, RunStatus, write_run_files
+from crtraj.control.loop import ClosedLoop, ReplanRun, RunStatus
 from crtraj.control.loop_options import LoopOptions
 from crtraj.control.reference import PlannerReference, ReferencePlan
 from crtraj.control.tracking import TrackingOptions
 from crtraj.core.errors import InputError
 from crtraj.core.fileio import StagedDir, check_output_dir, failed_sibling, is_successful_result
 from crtraj.hardware.actuators import Actuators
-from crtraj.hardware.admission import check_replay_time_scale, check_stream_safety
+from crtraj.hardware.admission import admit, check_replay_time_scale, check_stream_safety
 from crtraj.hardware.link import DeviceLink
-from crtraj.hardware.setpoints import SetpointPath, check_time_scale
+from crtraj.hardware.setpoints import check_time_scale
 from crtraj.hardware.stream import Streamer, StreamError, StreamOptions
 from crtraj.hardware.transport import parse_hostport
 from crtraj.io.problem import Problem
+from crtraj.io.results import read_result
+from crtraj.io.run_files import RUN_FILES
 from crtraj.model.kinematics import Model
 from crtraj.planning.options import PlannerOptions
 from crtraj.planning.registry import make_planner
@@ -261,7 +265,7 @@ def run_replan(req: ReplanRequest, *, view: Callable[[dict[str, Any]], None] | N
     check_output_dir(out, "--out", RUN_FILES)  # before the (possibly long) run, not after it
     problem = Problem.load(req.problem)
     if req.stream and not req.feed:  # refuse before the run, not after it
-        check_replay_time_scale({"scene": problem.raw.get("scene", {})}, req.time_scale)
+        check_replay_time_scale(problem.options(Scene, "scene"), req.time_scale)
     seed = problem.seed if req.seed is None else req.seed
     t0 = time.perf_counter()
     feed = _open_feed(req.feed, req.feed_max_age, problem) if req.feed else None
@@ -437,9 +441,31 @@ def _stream_run(req: ReplanRequest, problem: Problem, paths: dict[str, Any]) -> 
     target = _stream_target(req.stream or "")
     opts = problem.options(StreamOptions, "stream")
     log = Path(paths["json"]).parent / "stream.jsonl"
-    check_replay_time_scale(paths["result"], req.time_scale)
-    path = SetpointPath.from_result(paths["result"], actuators).scaled(req.time_scale)
-    print(f"streaming the run ({path.duration:.2f} s) to {target}", flush=True)
-    rep = Streamer.open(target, actuators, opts, log).run_path(path, approach=req.approach)
+    # the run's motion is admitted like any result (the refusals live in the library, not in the CLI)
+    motion = admit(
+        read_result(paths["result"]).motion_record(), actuators, robot=problem.robot, time_scale=req.time_scale
+    )
+    print(f"streaming the run ({motion.path.duration:.2f} s) to {target}", flush=True)
+    rep = Streamer.open(target, actuators, opts, log).run_path(motion, approach=req.approach)
     print(f"  stream {rep.status}: {rep.message}; {rep.frames} frames; log {rep.log}")
     return rep.ok
+
+
+def replan_command(args: Any) -> int:
+    """The `crtraj replan` use case: the parsed command line as a `ReplanRequest`, then `run_replan`."""
+    req = ReplanRequest(
+        problem=Path(args.problem),
+        out=Path(args.out) if args.out else None,
+        seed=args.seed,
+        safety=not args.no_safety,
+        html=not args.no_html,
+        overwrite_failed=args.overwrite_failed,
+        feed=args.feed,
+        feed_max_age=args.feed_max_age,
+        stream=args.stream,
+        approach=args.approach,
+        time_scale=args.time_scale,
+        quiet=args.quiet,
+    )
+    view = (lambda result: serve(result, "the run", not args.no_browser)) if args.view else None
+    return run_replan(req, view=view)

@@ -1,6 +1,7 @@
 """Planned trajectories as actuator set-points sampled at the streaming rate.
 
-The waypoints' actuation q(t) of a result file is converted to actuator values
+The waypoints' actuation q(t) of a result (read by `crtraj.io.results`, admitted by
+`crtraj.hardware.admission`) is converted to actuator values
 (`Actuators.command`) and interpolated with a shape-preserving cubic (PCHIP
 slopes, with zero slope at both ends so the motion starts and ends at rest).
 PCHIP never overshoots the waypoints, so interpolation invents no motion the
@@ -12,15 +13,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 from scipy.interpolate import CubicHermiteSpline, PchipInterpolator
 
 from crtraj.core.errors import InputError
-from crtraj.core.fields import MAX_LENGTH, MAX_TIME, check_float
-from crtraj.core.fileio import read_json
+from crtraj.core.fields import check_float
 from crtraj.hardware.actuators import Actuators
 
 # `--time-scale` range: at most 1000 times slower (or faster); beyond that a
@@ -104,37 +103,6 @@ class SetpointPath:
             k = int(bad_t[0])
             raise InputError(f"{source}waypoints[{k}].t: must be finite, got {t_arr[k]}")
         return cls(t_arr, actuators.command(q_arr), source)
-
-    @classmethod
-    def from_result(cls, result: dict[str, Any] | str | Path, actuators: Actuators) -> SetpointPath:
-        """From a result file (or its parsed JSON): the waypoints' t and q."""
-        src = ""
-        if not isinstance(result, dict):
-            src = f"{result}: "
-            result = read_json(result)
-            if not isinstance(result, dict):
-                raise InputError(f"{src}expected a JSON object (a crtraj result file)")
-        wps = result.get("waypoints")
-        if not isinstance(wps, list) or not wps:
-            raise InputError(f"{src}waypoints: missing or empty (is this a crtraj plan/replan result?)")
-        ts, qs = [], []
-        for k, w in enumerate(wps):
-            if not isinstance(w, dict) or "t" not in w or "q" not in w:
-                raise InputError(f"{src}waypoints[{k}]: needs 't' (s) and 'q' (actuation, mm)")
-            ts.append(check_float(w["t"], f"{src}waypoints[{k}].t", limit=MAX_TIME) if w["t"] is not None else math.nan)
-            q = w["q"]
-            if not isinstance(q, list) or len(q) != actuators.n:
-                n = len(q) if isinstance(q, list) else type(q).__name__
-                raise InputError(
-                    f"{src}waypoints[{k}].q: expected {actuators.n} values ({', '.join(actuators.names)}), got {n}"
-                )
-            row = []
-            for i, x in enumerate(q):
-                if x is None:  # to_jsonable writes NaN as null
-                    raise InputError(f"{src}waypoints[{k}].q[{i}] ({actuators.names[i]}): must be finite, got null/NaN")
-                row.append(check_float(x, f"{src}waypoints[{k}].q[{i}] ({actuators.names[i]})", limit=MAX_LENGTH))
-            qs.append(row)
-        return cls.from_actuation(ts, qs, actuators, src)
 
     # -------------------------------------------------------------- transforms
     def scaled(self, factor: float) -> SetpointPath:

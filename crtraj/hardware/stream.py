@@ -2,7 +2,8 @@
 
 `Streamer` sends one frame every 1/rate s (default 100 Hz) over a
 `Transport` (UDP, serial or a dry-run file) and reads the device's telemetry.
-Set-points come either from a whole planned trajectory (`run_path`) or,
+Set-points come either from a whole admitted motion (`run_path`: only what
+`crtraj.hardware.admission.admit` let through) or,
 one control step at a time, from a replanner (`start`, `send_setpoint`,
 `finish`, `close`); between buffered set-points the stream interpolates
 linearly at the stream rate.
@@ -48,10 +49,11 @@ from typing import Any
 import numpy as np
 
 from crtraj import __version__
-from crtraj.core.errors import InputError
+from crtraj.core.errors import AdmissionError, InputError
 from crtraj.core.fields import Table
 from crtraj.core.fileio import to_jsonable
 from crtraj.hardware.actuators import Actuators
+from crtraj.hardware.admission import AdmittedMotion
 from crtraj.hardware.limits import LimitsGate, Violation
 from crtraj.hardware.protocol import (
     ESTOP,
@@ -354,7 +356,7 @@ class Streamer:
             {
                 "type": "header",
                 "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-                "crtraj_version": _version(),
+                "crtraj_version": __version__,
                 "transport": self.transport.description,
                 "session": self.session,
                 "options": self.options.to_dict(),
@@ -512,15 +514,25 @@ class Streamer:
 
     # ------------------------------------------------------------ whole path
     def run_path(
-        self, path: SetpointPath, *, approach: bool = False, initial: np.ndarray | None = None
+        self, motion: AdmittedMotion, *, approach: bool = False, initial: np.ndarray | None = None
     ) -> StreamReport:
-        """Stream a whole planned trajectory in the calling thread and close; returns the report.
+        """Stream a whole admitted motion in the calling thread and close; returns the report.
 
-        The sampled set-points are checked against every limit before the
+        motion: made by `crtraj.hardware.admission.admit` for this streamer's
+        actuators; anything else raises `AdmissionError` before anything is
+        sent. The sampled set-points are checked against every limit before the
         first frame leaves (status ``refused`` with the reason otherwise).
         approach: first move from the device's position to the path's start
         (a straight line in actuator space, not collision checked).
         """
+        if not isinstance(motion, AdmittedMotion):
+            raise AdmissionError(
+                f"run_path: streams only a motion admitted by crtraj.hardware.admission.admit, "
+                f"got {type(motion).__name__}"
+            )
+        if not motion.admitted_for(self.actuators):
+            raise AdmissionError("run_path: the motion was admitted for other actuators than this streamer's")
+        path = motion.path
         if not self._realtime:
             vc = _VirtualClock()
             self._clock, self._sleep = vc, vc.sleep
@@ -965,8 +977,3 @@ class Streamer:
                 self._state = CLOSED
             self._report = report
             return report
-
-
-def _version() -> str:
-
-    return __version__

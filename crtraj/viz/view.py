@@ -14,8 +14,9 @@ Every command is also applied to an in-process copy of meshcat's own scene
 tree (the server's code, run without sockets), so `static_html` and
 `save_html` work with or without a server and give exactly the page meshcat's
 server would give. A server, when asked for, is meshcat's, started as a child
-process with its web and ZMQ sockets bound to 127.0.0.1 only (meshcat 0.3.2
-would listen on every interface), and it exits when this process does.
+process (`crtraj.viz.server`) with its web and ZMQ sockets bound to 127.0.0.1
+only (meshcat 0.3.2 would listen on every interface), and it exits when this
+process does. Results are read and validated by `crtraj.io.results`.
 
 Jupyter: make ``vis.jupyter_cell()`` the last expression of a cell. With a
 server it embeds the live page (an iframe on 127.0.0.1, so the browser must run
@@ -31,32 +32,28 @@ float32), and ``meshcat.Visualizer.close()`` raises (the window here closes).
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 import os
 import re
 import subprocess
-import sys
-import tempfile
-import threading
-import time
 import warnings
 import weakref
 import webbrowser
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
+import msgpack
 import numpy as np
 import umsgpack
+import zmq
 
 from crtraj.core.errors import InputError
-from crtraj.core.fields import MAX_LENGTH, MAX_TIME, Table, check_array, check_float
+from crtraj.core.fields import Table, check_array, check_float
 from crtraj.core.fileio import atomic_write_text
-from crtraj.world.scene import MAX_OBSTACLES
-
-if TYPE_CHECKING:
-    from crtraj.model.kinematics import Model
+from crtraj.io.results import Result, read_result
+from crtraj.model.kinematics import Model
+from crtraj.viz.view import server as meshcat_server
 
 with warnings.catch_warnings():
     # meshcat's server module installs a pyzmq < 17 event-loop shim and pyzmq warns about it
@@ -67,12 +64,7 @@ with warnings.catch_warnings():
     from meshcat.servers.tree import SceneTree, walk
     from meshcat.servers.zmqserver import ZMQWebSocketBridge
 
-try:  # the C msgpack packs a long animation ~20x faster than meshcat's pure-Python umsgpack, same bytes
-    import msgpack as _msgpack
-except ImportError:  # pragma: no cover - msgpack ships with most scientific stacks
-    _msgpack = None
 
-_HOST = "127.0.0.1"  # the only interface a crtraj server listens on
 _M_PER_MM = 1e-3
 _CAMERA_FOV_DEG = 75.0  # meshcat's default perspective camera
 _RAIL_OFFSET_MM = 15.0  # the base rail is drawn beside the backbone (+y), not through it
@@ -80,10 +72,6 @@ _ROOT = "/meshcat"  # meshcat's conventional root of user content; deleting it k
 # Rotation about x by +90 deg, (w, x, y, z): takes a three.js cylinder's y axis onto z.
 _Q_Y_TO_Z = np.array([math.cos(math.pi / 4), math.sin(math.pi / 4), 0.0, 0.0])
 _COLOR_RE = re.compile(r"^#[0-9a-fA-F]{6}$")
-# Largest run a view draws: each waypoint is an animation frame of the HTML
-# (a 60 s replan run has a few thousand), each tree edge a line segment.
-MAX_WAYPOINTS = 100_000
-MAX_EDGES = 1_000_000
 
 
 # ---------------------------------------------------------------------- options
@@ -162,137 +150,6 @@ def _color(text: str, name: str) -> int:
     if not isinstance(text, str) or not _COLOR_RE.match(text):
         raise InputError(f'{name}: expected a colour "#rrggbb", got {text!r}')
     return int(text[1:], 16)
-
-
-# ------------------------------------------------------------- result reading
-@dataclasses.dataclass(frozen=True)
-class _Run:
-    """The drawable content of a result file (mm, s), validated."""
-
-    kind: str
-    t: np.ndarray  # (N,) s, non-decreasing
-    x: np.ndarray  # (N, nx) configurations
-    tip: np.ndarray  # (N, 3) mm; NaN rows where the file gives none
-    centers: np.ndarray  # (N, m, 3) mm
-    radii: np.ndarray  # (N, m) mm
-    start: np.ndarray | None
-    goal: np.ndarray | None
-    reference: np.ndarray | None  # (M, 3) mm, the planned path a replan run tracked
-    edges: np.ndarray | None  # (E, 2, 3) mm
-
-
-def _field(d: Any, key: str, where: str) -> Any:
-    if not isinstance(d, Mapping):
-        raise InputError(f"{where or 'result'}: expected an object, got {type(d).__name__}")
-    if key not in d:
-        raise InputError(f"{where + '.' if where else ''}{key}: missing (required)")
-    return d[key]
-
-
-def _obstacles(obs: Any, where: str) -> tuple[np.ndarray, np.ndarray]:
-    """Centres (m, 3) and radii (m,) of one waypoint's obstacles (mm)."""
-    if not obs:
-        return np.zeros((0, 3)), np.zeros(0)
-    centers = _field(obs, "centers", where)
-    radii = _field(obs, "radii", where)
-    if isinstance(centers, list) and not centers:
-        c = np.zeros((0, 3))
-    else:
-        c = check_array(centers, f"{where}.centers", (None, 3), limit=MAX_LENGTH)
-    if c.shape[0] > MAX_OBSTACLES:
-        raise InputError(f"{where}.centers: at most {MAX_OBSTACLES} obstacles, got {c.shape[0]}")
-    r = check_array(radii, f"{where}.radii", (c.shape[0],), limit=MAX_LENGTH)
-    if np.any(r < 0):
-        raise InputError(f"{where}.radii: must be >= 0, got {r.min():g}")
-    return c, r
-
-
-def _parse_run(result: Any, nx: int) -> _Run:
-    """Validate a result dict (the common plan/replan format); errors name the field."""
-    if not isinstance(result, Mapping):
-        raise InputError(f"result: expected a JSON object, got {type(result).__name__}")
-    kind = result.get("kind", "plan")
-    if kind not in ("plan", "replan"):
-        raise InputError(f"kind: must be plan or replan, got {kind!r}")
-    wps = _field(result, "waypoints", "")
-    if not isinstance(wps, list) or not wps:
-        raise InputError("waypoints: expected a non-empty list of waypoints")
-    if len(wps) > MAX_WAYPOINTS:
-        raise InputError(f"waypoints: at most {MAX_WAYPOINTS} can be drawn, got {len(wps)}")
-    n = len(wps)
-    t = np.empty(n)
-    x = np.empty((n, nx))
-    tip = np.full((n, 3), np.nan)
-    centers: list[np.ndarray] = []
-    radii: list[np.ndarray] = []
-    for i, w in enumerate(wps):
-        where = f"waypoints[{i}]"
-        t[i] = check_float(_field(w, "t", where), f"{where}.t", limit=MAX_TIME)
-        if i and t[i] < t[i - 1]:
-            raise InputError(f"{where}.t: time goes backwards ({t[i]:g} s after {t[i - 1]:g} s)")
-        x[i] = check_array(_field(w, "x", where), f"{where}.x", (nx,), limit=MAX_LENGTH)
-        if w.get("tip") is not None:
-            tip[i] = check_array(w["tip"], f"{where}.tip", (3,), limit=MAX_LENGTH)
-        c, r = _obstacles(w.get("obstacles"), f"{where}.obstacles")
-        if centers and c.shape[0] != centers[0].shape[0]:
-            raise InputError(f"{where}.obstacles: {c.shape[0]} obstacles, but waypoints[0] has {centers[0].shape[0]}")
-        centers.append(c)
-        radii.append(r)
-    task = result.get("task") or {}
-    start = goal = None
-    if isinstance(task, Mapping):
-        if task.get("start") is not None:
-            start = check_array(task["start"], "task.start", (3,), limit=MAX_LENGTH)
-        if task.get("goal") is not None:
-            goal = check_array(task["goal"], "task.goal", (3,), limit=MAX_LENGTH)
-    reference = edges = None
-    ref = result.get("reference")
-    if ref:
-        reference = check_array(_field(ref, "tip", "reference"), "reference.tip", (None, 3), limit=MAX_LENGTH)
-        if reference.shape[0] > MAX_WAYPOINTS:
-            raise InputError(f"reference.tip: at most {MAX_WAYPOINTS} points can be drawn, got {reference.shape[0]}")
-    tree = result.get("tree")
-    if tree:
-        raw_edges = _field(tree, "edges", "tree")
-        if not isinstance(raw_edges, list):
-            raise InputError("tree.edges: expected a list of [[x, y, z], [x, y, z]] pairs (mm)")
-        if len(raw_edges) > MAX_EDGES:
-            raise InputError(f"tree.edges: at most {MAX_EDGES} can be drawn, got {len(raw_edges)}")
-        if len(raw_edges):
-            edges = check_array(raw_edges, "tree.edges", (None, 2, 3), limit=MAX_LENGTH)
-    return _Run(kind, t, x, tip, np.stack(centers), np.stack(radii), start, goal, reference, edges)
-
-
-def _workspace(scene: Any) -> tuple[np.ndarray, np.ndarray] | None:
-    """The scene's workspace box (lo, hi) in mm, when the result records one."""
-    ws = scene.get("workspace") if isinstance(scene, Mapping) else None
-    if not isinstance(ws, Mapping) or "lo" not in ws or "hi" not in ws:
-        return None
-    lo = check_array(ws["lo"], "scene.workspace.lo", (3,), limit=MAX_LENGTH)
-    hi = check_array(ws["hi"], "scene.workspace.hi", (3,), limit=MAX_LENGTH)
-    if np.any(lo >= hi):
-        raise InputError(f"scene.workspace: lo must be below hi, got lo={lo.tolist()} hi={hi.tolist()}")
-    return lo, hi
-
-
-def _check_robot(d: Any, model: Model) -> None:
-    """The result's robot must be the one drawn: same segment lengths, coupling and size."""
-    from crtraj.model.robot import Robot
-
-    robot = Robot.from_table(Table(d, "robot"))
-    mine = model.robot
-    same = (
-        robot.nx == mine.nx
-        and np.allclose([s.length for s in robot.segments], [s.length for s in mine.segments], rtol=1e-12)
-        and math.isclose(robot.coupling, mine.coupling, rel_tol=1e-12, abs_tol=1e-12)
-    )
-    if not same:
-        raise InputError(
-            f"robot: the result was made for robot '{robot.name}' "
-            f"({robot.n_segments} segments, lengths {[s.length for s in robot.segments]} mm, "
-            f"coupling {robot.coupling:g}), "
-            f"but this Visualizer draws '{mine.name}'; use Visualizer.for_result(result)"
-        )
 
 
 # ------------------------------------------------------------ pose geometry
@@ -395,64 +252,14 @@ def _scene_recorder() -> Any:
 
 def _ext(obj: Any) -> Any:
     if isinstance(obj, umsgpack.Ext):
-        return _msgpack.ExtType(obj.type, obj.data)
+        return msgpack.ExtType(obj.type, obj.data)
     raise TypeError(f"cannot pack {type(obj).__name__}")
 
 
 def _packb(data: Any) -> bytes:
-    """msgpack bytes of a lowered meshcat command (identical with either encoder)."""
-    if _msgpack is None:
-        return umsgpack.packb(data)
-    return _msgpack.packb(data, default=_ext, use_bin_type=True)
-
-
-def _read_log(fh: Any) -> str:
-    return os.pread(fh.fileno(), 1 << 20, 0).decode("utf-8", errors="replace")
-
-
-def _start_server(timeout: float) -> tuple[subprocess.Popen[bytes], Any, str, str]:
-    """Start meshcat's server (bound to 127.0.0.1) as a child; return (proc, log, zmq_url, web_url)."""
-    # The child's output goes to an append-only temp file: an unread pipe could fill and stall it.
-    log = tempfile.TemporaryFile(mode="a+b")  # noqa: SIM115 - lives as long as the server; closed by _stop_server
-    env = dict(os.environ)
-    pkg_parent = str(Path(__file__).resolve().parent.parent)
-    env["PYTHONPATH"] = pkg_parent + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
-    proc = subprocess.Popen(
-        [sys.executable, "-u", "-m", "crtraj.viz.view"],
-        stdin=subprocess.PIPE,  # closing it stops the server, also when this process dies
-        stdout=log,
-        stderr=subprocess.STDOUT,
-        env=env,
-        start_new_session=True,  # a Ctrl-C meant for a notebook cell does not kill the viewer
-    )
-    deadline = time.monotonic() + timeout
-    while True:
-        text = _read_log(log)
-        zmq_url = re.search(r"^zmq_url=(\S+)$", text, re.MULTILINE)
-        web_url = re.search(r"^web_url=(\S+)$", text, re.MULTILINE)
-        if zmq_url and web_url:
-            return proc, log, zmq_url.group(1), web_url.group(1)
-        if proc.poll() is not None or time.monotonic() > deadline:
-            _stop_server(proc, None, log)
-            last = text.strip().splitlines()[-1:] or ["no output"]
-            raise RuntimeError(f"meshcat server did not start (exit code {proc.returncode}): {last[0]}")
-        time.sleep(0.05)
-
-
-def _stop_server(proc: subprocess.Popen[bytes] | None, sock: Any, log: Any) -> None:
-    """Close the ZMQ socket and stop the server child (idempotent; used by weakref.finalize)."""
-    if sock is not None:
-        sock.close(linger=0)
-    if proc is not None and proc.poll() is None:
-        if proc.stdin is not None:
-            proc.stdin.close()
-        try:
-            proc.wait(timeout=5)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-    if log is not None:
-        log.close()
+    """msgpack bytes of a lowered meshcat command: the C msgpack packs a long animation ~20x faster than
+    meshcat's pure-Python umsgpack, with the same bytes."""
+    return msgpack.packb(data, default=_ext, use_bin_type=True)
 
 
 class _Window:
@@ -468,7 +275,7 @@ class _Window:
         self.zmq_url: str | None = None
         self.web_url: str | None = None
         if start_server:
-            self.server_proc, self._log, self.zmq_url, self.web_url = _start_server(timeout)
+            self.server_proc, self._log, self.zmq_url, self.web_url = meshcat_server.start_server(timeout)
             self._connect()
         elif zmq_url is not None:
             self.zmq_url = zmq_url
@@ -478,11 +285,9 @@ class _Window:
             # connects leaves the server's receive callback stuck until a reconnect.
             self._sock.close(linger=0)
             self._connect()
-        self._finalizer = weakref.finalize(self, _stop_server, self.server_proc, self._sock, self._log)
+        self._finalizer = weakref.finalize(self, meshcat_server.stop_server, self.server_proc, self._sock, self._log)
 
     def _connect(self) -> None:
-        import zmq
-
         sock = zmq.Context.instance().socket(zmq.REQ)
         sock.setsockopt(zmq.LINGER, 0)
         sock.setsockopt(zmq.RCVTIMEO, self._timeout_ms)
@@ -491,8 +296,6 @@ class _Window:
         self._sock = sock
 
     def _request(self, *frames: bytes) -> bytes:
-        import zmq
-
         try:
             self._sock.send_multipart(list(frames))
             return self._sock.recv()
@@ -558,7 +361,7 @@ class Visualizer:
         self._robot_drawn = False
         self._n_obstacles = -1
         self._framed = False
-        self._run: _Run | None = None
+        self._run: Result | None = None
         self.animation: Animation | None = None
         self._layout()
         self._stage()
@@ -580,13 +383,10 @@ class Visualizer:
 
         Offline by default: ``Visualizer.for_result(result).save_html(path)``.
         """
-        from crtraj.model.kinematics import Model
-        from crtraj.model.robot import Robot
-
-        robot = Robot.from_table(Table(_field(result, "robot", ""), "robot"))
-        vis = cls(Model(robot), server=server, options=options)
+        res = read_result(result)
+        vis = cls(Model(res.robot), server=server, options=options)
         try:
-            vis.show_result(result, play=play)
+            vis.show_result(res, play=play)
             if open:
                 vis.open()
         except BaseException:
@@ -847,15 +647,17 @@ class Visualizer:
         self._node("floor").set_object(mg.LineSegments(mg.PointsGeometry(pos), mg.LineBasicMaterial(color=0xB0B4BA)))
 
     # ------------------------------------------------------------------ runs
-    def show_result(self, result: Mapping[str, Any], *, animate: bool = True, play: bool | None = None) -> Visualizer:
-        """Draw a plan/replan result (the common result-file dict) and replay it as an animation.
+    def show_result(
+        self, result: Mapping[str, Any] | Result, *, animate: bool = True, play: bool | None = None
+    ) -> Visualizer:
+        """Draw a plan/replan result (`crtraj.io.results.read_result`: a document or a `Result`) and replay it.
 
         One key frame per waypoint at its time t (s); the robot, the obstacle
         centres and radii move with the slider. The static scene shows the
         first waypoint. play=None takes `options.play`.
         """
-        _check_robot(_field(result, "robot", ""), self.model)
-        run = _parse_run(result, self.robot.nx)
+        run = read_result(result)
+        run.check_robot(self.robot, "this Visualizer draws")
         missing = np.isnan(run.tip).any(axis=1)
         if missing.any():
             tip = run.tip.copy()
@@ -885,7 +687,7 @@ class Visualizer:
         if run.edges is not None and self.options.show_tree:
             self._tree(run.edges)
             content.append(run.edges.reshape(-1, 3))
-        box = _workspace(result.get("scene"))
+        box = run.workspace
         if box is not None:
             self._box("workspace", *box)
             content.append(np.array(box))
@@ -908,7 +710,7 @@ class Visualizer:
         self.display(self._run.x[k])
         self.set_obstacles(self._run.centers[k], self._run.radii[k])
 
-    def _animation(self, run: _Run, poses: _RobotPoses) -> Animation:
+    def _animation(self, run: Result, poses: _RobotPoses) -> Animation:
         """meshcat animation with one key per waypoint on every moving node."""
         times = (run.t - run.t[0]).tolist()
         anim = Animation()
@@ -982,31 +784,3 @@ def _translation(p_m: np.ndarray) -> np.ndarray:
     T = np.eye(4)
     T[:3, 3] = p_m
     return T
-
-
-# ----------------------------------------------------------- server process
-def _exit_when_parent_goes() -> None:
-    """EOF on stdin means the parent closed it or died: stop serving."""
-    sys.stdin.buffer.read()
-    os._exit(0)
-
-
-def _serve() -> None:
-    """Entry point of the server child: meshcat's bridge, every socket on 127.0.0.1."""
-
-    class _LoopbackBridge(ZMQWebSocketBridge):
-        def make_app(self) -> Any:
-            app = super().make_app()
-            # tornado's listen() binds every interface unless given an address
-            app.listen = functools.partial(app.listen, address=_HOST)
-            return app
-
-    bridge = _LoopbackBridge(host=_HOST)
-    print(f"zmq_url={bridge.zmq_url}")
-    print(f"web_url={bridge.web_url}")
-    threading.Thread(target=_exit_when_parent_goes, daemon=True).start()
-    bridge.run()
-
-
-if __name__ == "__main__":
-    _serve()

@@ -1,0 +1,141 @@
+"""Use case: stream a result to a device (`crtraj stream`): read it, admit it, send its set-points.
+
+Reading goes through `crtraj.io.results.read_result`, the refusals through
+`crtraj.hardware.admission.admit` (a failed, colliding, ``--no-safety`` or
+scene-less result, one for another robot, a slowed replay among moving
+obstacles), the sending through `crtraj.hardware.stream.Streamer`, which
+streams only admitted motions.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import dataclasses
+import os
+import time
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from crtraj.core.errors import InputError
+from crtraj.core.fileio import StagedFile, check_output_file
+from crtraj.hardware.actuators import Actuators
+from crtraj.hardware.admission import AdmittedMotion, admit
+from crtraj.hardware.setpoints import check_time_scale
+from crtraj.hardware.stream import Streamer, StreamOptions, StreamReport
+from crtraj.hardware.transport import Transport, parse_hostport
+from crtraj.io.problem import Problem, load_robot
+from crtraj.io.results import Result, read_result
+
+
+def admit_result(
+    result: Mapping[str, Any] | str | Path | Result,
+    robot_file: str | Path | None = None,
+    *,
+    time_scale: float = 1.0,
+) -> AdmittedMotion:
+    """Read a result and admit its motion for a device (one-line `InputError` / `AdmissionError` otherwise).
+
+    robot_file: the device's robot TOML whose ``[robot.actuators]`` are used
+    (default: the result's own robot, which must then have them).
+    time_scale: play the motion this many times slower.
+    """
+    device = None
+    if robot_file is not None:  # the flag's file first: a bad --robot is named before the result is read
+        device = load_robot(robot_file)
+        if device.actuators is None:
+            raise InputError(f"{robot_file}: robot.actuators: missing; add a [robot.actuators] table")
+    res = read_result(result)
+    device = res.robot if device is None else device
+    if device.actuators is None:
+        raise InputError(
+            "robot.actuators: the result's robot has no [robot.actuators]; pass --robot problems/robots/cdsr2.toml"
+        )
+    return admit(res.motion_record(), Actuators.from_robot(device), robot=device, time_scale=time_scale)
+
+
+def _refuse_overwriting_input(result: str, *outputs: tuple[str, Any]) -> None:
+    """An output path that is the input result (or an earlier output) would destroy it: refuse, one line."""
+    seen = {"RESULT": Path(result)}
+    for flag, out in outputs:
+        if out is None:
+            continue
+        for name, other in seen.items():
+            try:
+                same = os.path.samefile(out, other) if Path(out).exists() and other.exists() else False
+            except OSError:
+                same = False
+            if same or Path(out).resolve() == other.resolve():
+                raise InputError(f"{flag}: {out} is the same file as {name}; choose another file")
+        seen[flag] = Path(out)
+
+
+def _target(args: argparse.Namespace, frames: StagedFile | None) -> str:
+    """The transport URL of --udp, --serial or the staged --dry-run file."""
+    if args.udp is not None:
+        host, port = parse_hostport(args.udp, "--udp")
+        return f"udp://{host}:{port}"
+    if args.serial:
+        return f"serial://{args.serial}?baud={args.baud}"
+    return f"file://{frames.path.resolve()}"
+
+
+def _stream(args: argparse.Namespace, motion: AdmittedMotion, opts: StreamOptions, log: Path) -> StreamReport:
+    """Open the transport and stream; a dry run's frames replace FILE only when the stream completes."""
+    # the frames go to a temporary file that replaces FILE only when the stream completes:
+    # a refused or failed dry run leaves FILE as it was
+    frames = StagedFile(check_output_file(args.dry_run, "--dry-run")) if args.dry_run else None
+    with frames or contextlib.nullcontext():
+        transport = Transport.open(_target(args, frames), baud=args.baud)
+        if args.approach and not transport.has_telemetry:
+            transport.close()
+            raise InputError(
+                "--approach: this link reports no device position to approach from (a --dry-run has none); "
+                "use --udp or --serial"
+            )
+        to = f"file://{Path(args.dry_run).resolve()}" if frames is not None else transport.description
+        path = motion.path
+        n = round(path.duration * opts.rate) + 1
+        print(
+            f"streaming {args.result} ({len(path.t)} waypoints, {path.duration:.2f} s, ~{n} set-points at "
+            f"{opts.rate:g} Hz) to {to}",
+            flush=True,
+        )
+        rep = Streamer(transport, motion.actuators, opts, log).run_path(motion, approach=args.approach)
+        if frames is not None and rep.ok:
+            frames.commit()
+    return rep
+
+
+def _print_report(rep: StreamReport, dry_run: str | None) -> None:
+    dev = ", ".join(f"{k} {v}" for k, v in rep.device.items())
+    fe = "" if rep.final_error is None else f", final error {rep.final_error:.3g}"
+    print(f"{rep.status}: {rep.message}")
+    print(
+        f"  {rep.frames} frames ({rep.moves} move, {rep.holds} hold, {rep.estops} e-stop) in {rep.duration:.2f} s; "
+        f"telemetry {rep.telemetry} ({rep.telemetry_errors} bad){fe}"
+    )
+    if dev:
+        print(f"  device: {dev}")
+    if rep.late_ticks:
+        print(f"  {rep.late_ticks} ticks late (max {rep.max_lateness * 1000:.1f} ms)")
+    print(f"  log: {rep.log}")
+    if dry_run and rep.ok:
+        print(f"  frames: {dry_run} (COBS + 0x00 delimited, see docs/protocol.md)")
+    elif dry_run:
+        print(f"  frames: none written ({dry_run} left as it was: the stream did not complete)")
+
+
+def stream_command(args: argparse.Namespace) -> int:
+    """`crtraj stream RESULT ...` (arguments from `crtraj.cli`); returns the exit code."""
+    check_time_scale(args.time_scale)
+    motion = admit_result(args.result, args.robot, time_scale=args.time_scale)
+    opts = Problem.load(args.problem).options(StreamOptions, "stream") if args.problem else StreamOptions()
+    over = {k: v for k, v in (("rate", args.rate), ("watchdog", args.watchdog)) if v is not None}
+    opts = dataclasses.replace(opts, **over)
+    log = args.log or Path("out") / "stream" / f"{Path(args.result).stem}-{time.strftime('%Y%m%d-%H%M%S')}.jsonl"
+    _refuse_overwriting_input(args.result, ("--log", log), ("--dry-run", args.dry_run))
+    rep = _stream(args, motion, opts, Path(log))
+    _print_report(rep, args.dry_run)
+    return 0 if rep.ok else 1

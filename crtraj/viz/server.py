@@ -1,0 +1,110 @@
+"""The meshcat server process behind a live `crtraj.viz.view.Visualizer`, bound to 127.0.0.1 only.
+
+meshcat 0.3.2's own server listens on every interface; here its web and ZMQ
+sockets bind to the loopback interface. The server runs as a child process
+(``python -m crtraj.viz.server``) that exits when its parent closes its stdin
+or dies, so a crashed notebook never leaves a server behind.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+import re
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import warnings
+from pathlib import Path
+from typing import Any
+
+with warnings.catch_warnings():
+    # meshcat's server module installs a pyzmq < 17 event-loop shim and pyzmq warns about it
+    warnings.filterwarnings("ignore", category=DeprecationWarning, message=r"zmq\.eventloop\.ioloop")
+    from meshcat.servers.zmqserver import ZMQWebSocketBridge
+
+HOST = "127.0.0.1"  # the only interface a crtraj server listens on
+_POLL_S = 0.05  # how often the parent looks for the child's start-up lines
+
+
+def _read_log(fh: Any) -> str:
+    return os.pread(fh.fileno(), 1 << 20, 0).decode("utf-8", errors="replace")
+
+
+def start_server(timeout: float) -> tuple[subprocess.Popen[bytes], Any, str, str]:
+    """Start meshcat's server (bound to 127.0.0.1) as a child; return (proc, log, zmq_url, web_url).
+
+    timeout: s to wait for the server's start-up lines.
+    """
+    # The child's output goes to an append-only temp file: an unread pipe could fill and stall it.
+    log = tempfile.TemporaryFile(mode="a+b")  # noqa: SIM115 - lives as long as the server; closed by stop_server
+    env = dict(os.environ)
+    pkg_parent = str(Path(__file__).resolve().parent.parent.parent)
+    env["PYTHONPATH"] = pkg_parent + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    proc = subprocess.Popen(
+        [sys.executable, "-u", "-m", "crtraj.viz.server"],
+        stdin=subprocess.PIPE,  # closing it stops the server, also when this process dies
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        env=env,
+        start_new_session=True,  # a Ctrl-C meant for a notebook cell does not kill the viewer
+    )
+    deadline = time.monotonic() + timeout
+    while True:
+        text = _read_log(log)
+        zmq_url = re.search(r"^zmq_url=(\S+)$", text, re.MULTILINE)
+        web_url = re.search(r"^web_url=(\S+)$", text, re.MULTILINE)
+        if zmq_url and web_url:
+            return proc, log, zmq_url.group(1), web_url.group(1)
+        if proc.poll() is not None or time.monotonic() > deadline:
+            stop_server(proc, None, log)
+            last = text.strip().splitlines()[-1:] or ["no output"]
+            raise RuntimeError(f"meshcat server did not start (exit code {proc.returncode}): {last[0]}")
+        time.sleep(_POLL_S)
+
+
+def stop_server(proc: subprocess.Popen[bytes] | None, sock: Any, log: Any) -> None:
+    """Close the ZMQ socket and stop the server child (idempotent; used by weakref.finalize)."""
+    if sock is not None:
+        sock.close(linger=0)
+    if proc is not None and proc.poll() is None:
+        if proc.stdin is not None:
+            proc.stdin.close()
+        try:
+            proc.wait(timeout=5)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+    if log is not None:
+        log.close()
+
+
+def _exit_when_parent_goes() -> None:
+    """EOF on stdin means the parent closed it or died: stop serving."""
+    sys.stdin.buffer.read()
+    os._exit(0)
+
+
+class _LoopbackBridge(ZMQWebSocketBridge):
+    """meshcat's bridge with its web socket on 127.0.0.1 too."""
+
+    def make_app(self) -> Any:
+        app = super().make_app()
+        # tornado's listen() binds every interface unless given an address
+        app.listen = functools.partial(app.listen, address=HOST)
+        return app
+
+
+def serve() -> None:
+    """Entry point of the server child: meshcat's bridge, every socket on 127.0.0.1."""
+    bridge = _LoopbackBridge(host=HOST)
+    print(f"zmq_url={bridge.zmq_url}")
+    print(f"web_url={bridge.web_url}")
+    threading.Thread(target=_exit_when_parent_goes, daemon=True).start()
+    bridge.run()
+
+
+if __name__ == "__main__":
+    serve()
