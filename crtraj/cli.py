@@ -391,6 +391,12 @@ def _cmd_plan(args: argparse.Namespace) -> int:
             f"min clearance {r.min_clearance:.2f} mm (beyond D_sf {run.scene.safety_distance:g} mm), "
             f"goal error {r.goal_error:.3f} mm"
         )
+    if run.timing is not None and r.has_path:
+        tm = run.timing
+        print(
+            f"  executed {tm['executed_duration_s']:.2f} s ({tm.get('outcome', '')}); largest actuator velocity "
+            f"{tm['max_velocity_fraction']:.2f}, acceleration {tm['max_acceleration_fraction']:.2f} of the limits"
+        )
     steps = ", ".join(f"{k} {v * 1e3:.1f}" for k, v in r.timings.items() if k != "total")
     print(f"  time (ms): {steps}; setup {run.setup_time * 1e3:.0f} ms")
     if dest != out:
