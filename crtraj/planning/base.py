@@ -25,6 +25,7 @@ from crtraj.model.kinematics import Model
 from crtraj.planning.options import PlannerOptions
 from crtraj.planning.postprocess import empty_result
 from crtraj.planning.query import PlanQuery
+from crtraj.planning.rate_limits import RateLimits
 from crtraj.planning.result import PlanResult, PlanStatus
 from crtraj.planning.safe_ik import SafeIK, resolve_start
 from crtraj.planning.stop import StopCondition
@@ -99,18 +100,22 @@ class PlannerBase:
     """Shared construction and query prologue of crtraj's planners (subclasses set `name`).
 
     model: the robot's `Model`. scene: the default `crtraj.world.scene.Scene`
-    (a query may pass another). options: `PlannerOptions`.
+    (a query may pass another). options: `PlannerOptions`. rate_limits: the actuators' full
+    limits (`options.limit_fraction` of them is used): every motion is timed within their speed limits.
     """
 
     name: ClassVar[str] = ""
 
-    def __init__(self, model: Model, scene: Any, options: PlannerOptions) -> None:
+    def __init__(
+        self, model: Model, scene: Any, options: PlannerOptions, rate_limits: RateLimits | None = None
+    ) -> None:
         self.model = model
         self.robot = model.robot
         self.scene = scene
         self.options = options
         self._functions: dict[Any, Any] = {}  # CasADi functions shared by this planner's validators
-        self.validator = options.validator(model, scene, self._functions)
+        self.rate_limits = rate_limits
+        self.validator = options.validator(model, scene, self._functions, rate_limits)
         self.ik: SafeIK  # set by the subclass (its obstacle slots)
 
     def _prepare(self, validator: MotionValidator) -> None:
@@ -142,7 +147,7 @@ class PlannerBase:
             seed=seed,
         )
         same = scene is None or scene is self.scene
-        v = self.validator if same else o.validator(self.model, scene, self._functions)
+        v = self.validator if same else o.validator(self.model, scene, self._functions, self.rate_limits)
         self._prepare(v)
         start = QueryStart(query, v, None, "", goal_tolerance, seed, v.n_samples, counts=dict(counts or {}))
         t1 = time.perf_counter()

@@ -64,6 +64,7 @@ from crtraj.planning.base import PlannerBase, QueryStart
 from crtraj.planning.cspace_search import CSpaceSearch
 from crtraj.planning.options import PlannerOptions
 from crtraj.planning.postprocess import PathPostprocessor, tree_edges
+from crtraj.planning.rate_limits import RateLimits
 from crtraj.planning.result import PlanResult, PlanStatus
 from crtraj.planning.safe_ik import SafeIK, format_statuses
 from crtraj.planning.stop import StopCondition
@@ -75,7 +76,8 @@ class CSpacePlanner(PlannerBase):
 
     model: the robot's `Model`. scene: the default `crtraj.world.scene.Scene`
     (a query may pass another). options: `PlannerOptions`. max_obstacles:
-    obstacle slots of the IK NLP (default: the scene's count; grown on demand).
+    obstacle slots of the IK NLP (default: the scene's count; grown on demand). rate_limits:
+    the actuators' limits (`RateLimits`): edges are timed within their speed limits.
     """
 
     name = "cspace"
@@ -87,8 +89,9 @@ class CSpacePlanner(PlannerBase):
         options: PlannerOptions | None = None,
         *,
         max_obstacles: int | None = None,
+        rate_limits: RateLimits | None = None,
     ) -> None:
-        super().__init__(model, scene, PlannerOptions() if options is None else options)
+        super().__init__(model, scene, PlannerOptions() if options is None else options, rate_limits)
         m = scene.n_obstacles if max_obstacles is None else int(max_obstacles)
         self.ik = SafeIK(model, self.validator, max(m, scene.n_obstacles))
 

@@ -86,7 +86,7 @@ class CSpaceSearch:
         v = self.v
         G = len(self.goals)
         XA = np.repeat(self.x_start[None], G, axis=0)
-        dur = v.motion_bound(self.goals - XA) / v.max_speed
+        dur = v.duration(self.goals - XA)
         self.counts["edge_checks"] = G
         ok = np.flatnonzero(v.edges_valid(XA, self.goals, self.t0, self.t0 + dur))
         direct = None
@@ -130,7 +130,7 @@ class CSpaceSearch:
         )
         local = v.project_limits(v.config_from_metric(y))
         vias = np.concatenate([local, v.sample(rng, K - n_local)])
-        t_via = self.t0 + v.motion_bound(vias - self.x_start) / v.max_speed
+        t_via = self.t0 + v.duration(vias - self.x_start)
         ok1 = v.edges_valid(np.repeat(self.x_start[None], K, axis=0), vias, self.t0, t_via)
         self.counts["edge_checks"] = self.counts.get("edge_checks", 0) + K
         good = np.flatnonzero(ok1)
@@ -148,7 +148,7 @@ class CSpaceSearch:
         VA = vias[good]
         GB = self.goals[np.argmin(d, axis=1)]
         TA = t_via[good]
-        TB = TA + v.motion_bound(GB - VA) / v.max_speed
+        TB = TA + v.duration(GB - VA)
         ok2 = v.edges_valid(VA, GB, TA, TB)
         self.counts["edge_checks"] += len(VA)
         if not ok2.any():
@@ -156,7 +156,8 @@ class CSpaceSearch:
         # the shortest valid two-motion path
         total = (TB - self.t0)[ok2]
         k = np.flatnonzero(ok2)[int(np.argmin(total))]
-        tree.add(v.metric(GB[k]), GB[k], float(TB[k]), float(total.min()) * v.max_speed, int(k) + 1)
+        cost = float(v.motion_bound(VA[k] - self.x_start) + v.motion_bound(GB[k] - VA[k]))
+        tree.add(v.metric(GB[k]), GB[k], float(TB[k]), cost, int(k) + 1)
         return np.stack([self.x_start, VA[k], GB[k]])
 
     # ------------------------------------------------------------ tree growth
@@ -212,7 +213,7 @@ class CSpaceSearch:
         ts.add(v.metric(self.x_start), self.x_start, self.t0, 0.0, -1)
         for x in self.via_seeds:  # motions from the start already verified (at these times) by the via round
             b = float(v.motion_bound(x - self.x_start))
-            ts.add(v.metric(x), x, self.t0 + b / v.max_speed, b, 0)
+            ts.add(v.metric(x), x, self.t0 + float(v.duration(x - self.x_start)), b, 0)
         self.trees = [ts]
         goal_tree = self._new_tree()
         for g in self.goals:

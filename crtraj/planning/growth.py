@@ -55,7 +55,7 @@ class TreeGrowth:
         x_i = tree.x[i]
         t_i = float(tree.t[i])
         bound = float(v.motion_bound(x_target - x_i))
-        t_end = t_i + bound / v.max_speed if timed else 0.0
+        t_end = t_i + float(v.duration(x_target - x_i)) if timed else 0.0
         self._count(1)
         if full_only:
             f = 1.0 if v.edges_valid(x_i[None], x_target[None], t_i, t_end)[0] else 0.0
@@ -102,7 +102,7 @@ class TreeGrowth:
         v = self.v
         x_i, t_i = tree.x[i], float(tree.t[i])
         W = len(WAITS)
-        dur = float(v.motion_bound(x_goal - x_i)) / v.max_speed
+        dur = float(v.duration(x_goal - x_i))
         XA = np.concatenate([np.repeat(x_i[None], W, axis=0), np.repeat(x_i[None], W, axis=0)])
         XB = np.concatenate([np.repeat(x_i[None], W, axis=0), np.repeat(x_goal[None], W, axis=0)])
         TA = np.concatenate([np.full(W, t_i), t_i + WAITS])

@@ -17,19 +17,23 @@ from typing import Any
 import numpy as np
 
 from crtraj.core.errors import InputError
+from crtraj.planning.rate_limits import RateLimits
 
 
 class BodyMetric:
     """Body-motion bound, metric coordinates and full-speed timing of one robot.
 
-    robot: the `Robot`. max_speed: largest speed of any body point (mm/s).
+    robot: the `Robot`. max_speed: largest speed of any body point (mm/s). rate_limits: the
+    usable actuator limits (`RateLimits`); when given, no straight motion is timed faster than
+    its actuators' speed limits allow either.
     """
 
-    def __init__(self, robot: Any, max_speed: float) -> None:
+    def __init__(self, robot: Any, max_speed: float, rate_limits: RateLimits | None = None) -> None:
         if not (math.isfinite(max_speed) and max_speed > 0):
             raise InputError(f"max_speed: must be > 0 mm/s, got {max_speed}")
         self.robot = robot
         self.max_speed = float(max_speed)
+        self.rate_limits = rate_limits
         n = robot.n_segments
         lengths = np.array([s.length for s in robot.segments])
         self.weights = lengths / 2.0 + (np.cumsum(lengths[::-1])[::-1] - lengths)  # w_k (mm/rad)
@@ -55,9 +59,18 @@ class BodyMetric:
         blocks = np.linalg.norm(dy[..., : 2 * n].reshape(*dy.shape[:-1], n, 2), axis=-1)
         return blocks.sum(axis=-1) + np.abs(dy[..., -1])
 
+    def duration(self, dx: np.ndarray) -> np.ndarray:
+        """Shortest duration (s) of straight motions by dx (..., nx) at constant speed: the body-motion
+        bound over max_speed, and, with rate limits, max_i |J_i dx| / vmax_i."""
+        dx = np.asarray(dx, dtype=float)
+        t = self.motion_bound(dx) / self.max_speed
+        if self.rate_limits is not None:
+            t = np.maximum(t, np.max(np.abs(dx @ self.rate_limits.jacobian.T) / self.rate_limits.vmax, axis=-1))
+        return t
+
     def durations(self, X: np.ndarray) -> np.ndarray:
         """Duration (s) of each straight motion between consecutive rows of X (K, nx) -> (K-1,)."""
-        return self.motion_bound(np.diff(np.asarray(X, dtype=float), axis=0)) / self.max_speed
+        return self.duration(np.diff(np.asarray(X, dtype=float), axis=0))
 
     def times(self, X: np.ndarray, t0: float = 0.0) -> np.ndarray:
         """Waypoint times (s) of a path through X starting at t0."""

@@ -7,6 +7,7 @@ from typing import Any, ClassVar
 
 from crtraj.core.fields import MAX_LENGTH, MAX_TIME
 from crtraj.core.options import Options, option
+from crtraj.planning.rate_limits import RateLimits
 from crtraj.planning.stop import StopCondition
 from crtraj.planning.validity import MotionValidator
 
@@ -56,6 +57,8 @@ class PlannerOptions(Options):
     smooth: B-spline smoothing of the final path (verified; dropped if unsafe).
     corner: how far from each corner (mm of body motion) the spline starts cutting it.
     waypoint_step: largest body motion between returned waypoints (mm).
+    limit_fraction: fraction of each actuator speed and acceleration limit a plan may use (the
+    rest is kept in reserve); `crtraj plan` retimes its result within it.
     """
 
     SECTION: ClassVar[str] = "planner"
@@ -83,6 +86,7 @@ class PlannerOptions(Options):
     smooth: bool = option(True)
     corner: float = option(40.0, ge=1e-3, le=MAX_LENGTH)
     waypoint_step: float = option(20.0, ge=0.1, le=MAX_LENGTH)
+    limit_fraction: float = option(0.9, gt=0.0, le=1.0)
 
     @property
     def step(self) -> float:
@@ -95,8 +99,15 @@ class PlannerOptions(Options):
         """The stop condition these options describe."""
         return StopCondition(self.time_limit, self.max_iterations, self.first_solution)
 
-    def validator(self, model: Any, scene: Any, functions: dict[Any, Any] | None = None) -> MotionValidator:
-        """The `MotionValidator` these options describe for `scene` (functions: a shared CasADi cache)."""
+    def validator(
+        self,
+        model: Any,
+        scene: Any,
+        functions: dict[Any, Any] | None = None,
+        rate_limits: RateLimits | None = None,
+    ) -> MotionValidator:
+        """The `MotionValidator` these options describe for `scene` (functions: a shared CasADi cache;
+        rate_limits: the full actuator limits, of which `limit_fraction` is used to time motions)."""
         return MotionValidator(
             model,
             scene,
@@ -104,4 +115,5 @@ class PlannerOptions(Options):
             resolution=self.resolution,
             max_speed=self.max_speed,
             functions=functions,
+            rate_limits=None if rate_limits is None else rate_limits.scaled(self.limit_fraction),
         )

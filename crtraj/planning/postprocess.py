@@ -170,8 +170,8 @@ class PathPostprocessor:
                 u[:k] = T[np.sort(rng.choice(len(X), size=(k, 2)), axis=1)]
             P1, P2 = _at(X, T, u[:, 0]), _at(X, T, u[:, 1])
             saving = np.interp(u[:, 1], T, s) - np.interp(u[:, 0], T, s) - v.motion_bound(P2 - P1)
-            # the new motion must not be faster than max_speed (it never is, up to round-off)
-            good = (saving > 1e-6) & (v.motion_bound(P2 - P1) <= v.max_speed * (u[:, 1] - u[:, 0]) * (1.0 - 1e-9))
+            # the new motion must not be faster than max_speed and the actuators' speed limits allow
+            good = (saving > 1e-6) & (v.duration(P2 - P1) <= (u[:, 1] - u[:, 0]) * (1.0 - 1e-9))
             u, P1, P2, saving = u[good], P1[good], P2[good], saving[good]
             if not len(u):
                 continue

@@ -26,6 +26,7 @@ from crtraj.planning.base import Planner
 from crtraj.planning.cspace import CSpacePlanner
 from crtraj.planning.ompl import OMPLPlanner, import_ompl
 from crtraj.planning.options import PlannerOptions
+from crtraj.planning.rate_limits import RateLimits
 from crtraj.planning.rrt import RRT, RRTStar
 from crtraj.planning.steer import SteerOptions
 
@@ -53,10 +54,16 @@ class PlannerSpec:
 
 
 def _cspace(
-    model: Model, scene: Any, options: PlannerOptions, steer: SteerOptions | None, max_obstacles: int | None
+    model: Model,
+    scene: Any,
+    options: PlannerOptions,
+    steer: SteerOptions | None,
+    max_obstacles: int | None,
+    rate_limits: RateLimits | None = None,
 ) -> Planner:
     del steer  # the configuration-space planner has no steer step
-    return CSpacePlanner(model, scene, options.with_(algorithm="cspace"), max_obstacles=max_obstacles)
+    o = options.with_(algorithm="cspace")
+    return CSpacePlanner(model, scene, o, max_obstacles=max_obstacles, rate_limits=rate_limits)
 
 
 def _task_space(
@@ -66,7 +73,9 @@ def _task_space(
     options: PlannerOptions,
     steer: SteerOptions | None,
     max_obstacles: int | None,
+    rate_limits: RateLimits | None = None,
 ) -> Planner:
+    del rate_limits  # task-space edges keep full-speed timing; static results are retimed afterwards
     cls = RRTStar if algorithm == "rrtstar" else RRT
     return cls(model, scene, options.with_(algorithm=algorithm), steer, max_obstacles=max_obstacles)
 
@@ -78,8 +87,9 @@ def _ompl(
     options: PlannerOptions,
     steer: SteerOptions | None,
     max_obstacles: int | None,
+    rate_limits: RateLimits | None = None,
 ) -> Planner:
-    del steer, max_obstacles  # OMPL plans with the validator only; its IK grows its own slots
+    del steer, max_obstacles, rate_limits  # OMPL plans with the validator only; its IK grows its own slots
     return OMPLPlanner(model, scene, options, algorithm=algorithm)
 
 
@@ -125,11 +135,16 @@ class PlannerRegistry:
         steer_options: SteerOptions | None = None,
         *,
         max_obstacles: int | None = None,
+        rate_limits: RateLimits | None = None,
     ) -> Planner:
-        """Build the planner called `name` for `model` among `scene` (options: shared settings)."""
+        """Build the planner called `name` for `model` among `scene` (options: shared settings;
+        rate_limits: the actuators' limits, passed to the factory only when given (the c-space
+        planner times its edges within them))."""
         spec = self.spec(name)
         opts = PlannerOptions() if options is None else options
-        return spec.factory(model, scene, opts, steer_options, max_obstacles)
+        if rate_limits is None:
+            return spec.factory(model, scene, opts, steer_options, max_obstacles)
+        return spec.factory(model, scene, opts, steer_options, max_obstacles, rate_limits=rate_limits)  # type: ignore[call-arg]
 
 
 BUILTIN = PlannerRegistry(
@@ -158,7 +173,10 @@ def make_planner(
     steer_options: SteerOptions | None = None,
     *,
     max_obstacles: int | None = None,
+    rate_limits: RateLimits | None = None,
 ) -> Planner:
     """The planner `options.algorithm` names (``[planner] algorithm``), from `BUILTIN`."""
     o = PlannerOptions() if options is None else options
-    return BUILTIN.build(o.algorithm, model, scene, o, steer_options, max_obstacles=max_obstacles)
+    return BUILTIN.build(
+        o.algorithm, model, scene, o, steer_options, max_obstacles=max_obstacles, rate_limits=rate_limits
+    )

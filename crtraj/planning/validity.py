@@ -50,6 +50,7 @@ import numpy as np
 from crtraj.core.errors import InputError
 from crtraj.model.kinematics import Model
 from crtraj.planning.metric import BodyMetric
+from crtraj.planning.rate_limits import RateLimits
 from crtraj.planning.sampler import ConfigSampler
 from crtraj.planning.state_validity import StateValidityChecker
 
@@ -65,7 +66,8 @@ class MotionValidator:
     own times). time_resolution: moving obstacles only: an uncertified edge
     interval longer than this (s) is split in time before it is declared
     unsafe (waits and slow motions sweep obstacles over long windows).
-    functions: a CasADi function cache shared by a planner's validators.
+    functions: a CasADi function cache shared by a planner's validators. rate_limits: usable
+    actuator limits; with them every motion is timed within the actuators' speed limits too.
 
     Parts: `state` (`StateValidityChecker`), `space` (`BodyMetric`),
     `sampler` (`ConfigSampler`); the methods below that only forward to them
@@ -82,6 +84,7 @@ class MotionValidator:
         max_speed: float = 50.0,
         time_resolution: float = 0.25,
         functions: dict[Any, Any] | None = None,
+        rate_limits: RateLimits | None = None,
     ) -> None:
         if check_points < 2:
             raise InputError(f"check_points: must be >= 2, got {check_points}")
@@ -95,7 +98,7 @@ class MotionValidator:
         self.robot = model.robot
         self.scene = scene
         self.state = StateValidityChecker(model, scene, check_points, functions)
-        self.space = BodyMetric(self.robot, max_speed)
+        self.space = BodyMetric(self.robot, max_speed, rate_limits)
         self.sampler = ConfigSampler(self.robot)
         self.check_points = self.state.check_points
         self.resolution = float(resolution)
@@ -126,6 +129,10 @@ class MotionValidator:
     def motion_bound(self, dx: np.ndarray) -> np.ndarray:
         """Largest body-point motion (mm) for a change dx: `BodyMetric.motion_bound`."""
         return self.space.motion_bound(dx)
+
+    def duration(self, dx: np.ndarray) -> np.ndarray:
+        """Shortest constant-speed duration (s) of straight motions by dx: `BodyMetric.duration`."""
+        return self.space.duration(dx)
 
     def durations(self, X: np.ndarray) -> np.ndarray:
         """Full-speed duration (s) of each motion of a path: `BodyMetric.durations`."""
