@@ -12,6 +12,7 @@ import pytest
 from crtraj.app.plan import plan_problem
 from crtraj.control.horizon import ReplanOptions
 from crtraj.control.loop import ClosedLoop
+from crtraj.control.loop_options import LoopOptions
 from crtraj.core.errors import InputError
 from crtraj.core.fileio import atomic_write_json
 from crtraj.io.problem import Problem
@@ -31,8 +32,10 @@ def plan():
 def run(model):
     xs, xg = np.array([0.3, 0.0, 0.0, 0.0, 0.0]), np.array([-0.3, 0.2, -0.1, 0.1, -10.0])
     scene = Scene(obstacles=(Obstacle(center=(-3.5, 76.8, 394.4), radius=20.0, amplitude=4.0, omega=0.5),))
-    opts = ReplanOptions(horizon=6, points=12, solver="sqp", duration=1.0)
-    loop = ClosedLoop(model, scene, model.tip_position(xg), xs, options=opts, goal_config=xg)
+    opts = ReplanOptions(horizon=6, points=12, solver="sqp")
+    loop = ClosedLoop(
+        model, scene, model.tip_position(xg), xs, options=opts, loop_options=LoopOptions(duration=1.0), goal_config=xg
+    )
     return loop, loop.run()
 
 
@@ -66,7 +69,7 @@ def test_run_document_round_trips_through_a_file(model, run, tmp_path):
     res = read_result(path)
     assert (res.kind, res.schema) == ("replan", SCHEMA_VERSION)
     assert res.robot == model.robot and res.scene == loop.scene
-    assert (res.status, res.success, res.safety) == (r.outcome, r.success, True)
+    assert (res.status, res.success, res.safety) == (str(r.status), r.is_success(), True)
     assert (res.collisions, res.safety_violations) == (r.collisions, r.safety_violations)
     np.testing.assert_array_equal(res.t, r.t)
     np.testing.assert_array_equal(res.x, r.x)
