@@ -430,6 +430,7 @@ class TrackingController:
         v = v * rate_scale
         accel_scale = 1.0
         if rl is not None:
+            v = _braking(rl, v, ec, np.zeros(nx) if ff is None else ff, d.dt)
             v, accel_scale = self._accelerate(rl, v, previous_increment, d.dt)
         v, limit_scale = self._limit(xc, v)
         q = qc + self._J_q @ v
@@ -591,6 +592,25 @@ class TrackingController:
         err = np.linalg.norm(tips - tref, axis=1)
         t = dt * np.arange(N + 1)
         return TrackingRun(t, X, Q, Qc, np.array(ref), tips, tref, err, rl, lim, self.options)
+
+
+def _braking(rl: RateLimits, v: np.ndarray, remaining: np.ndarray, ff: np.ndarray, h: float) -> np.ndarray:
+    """v scaled (direction kept) so no actuator closes on its target faster than it can still stop there.
+
+    remaining: the set-point's configuration distance to its target; ff: the target's own motion over the
+    period (feed-forward). An actuator |r| from its target may close on it at most sqrt(2 amax |r|)
+    faster than the target moves (the braking curve); without this cap the LQR law, designed without
+    acceleration limits, overshoots against them and rings (integrator-like windup).
+    """
+    step = rl.jacobian @ v
+    r = rl.jacobian @ remaining
+    toward = step * r > 0.0
+    if not np.any(toward):
+        return v
+    a = rl.amax[toward]
+    cap = np.abs(rl.jacobian @ ff)[toward] + np.sqrt(2.0 * a * np.abs(r[toward])) * h + a * h * h
+    worst = float(np.max(np.abs(step[toward]) / cap))
+    return v / worst if worst > 1.0 else v
 
 
 def _vec(a: Any, n: int, name: str) -> np.ndarray:
