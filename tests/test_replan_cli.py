@@ -51,7 +51,9 @@ def test_paper_simulation_2_reaches_the_goal_without_collision(tmp_path, capsys)
 
 def test_paper_simulation_2_without_safety_collides(tmp_path, capsys):
     out = tmp_path / "nosafe"
-    assert main(["replan", str(PAPER), "--out", str(out), "--no-safety", "--no-html", "--quiet"]) == 0
+    assert main(["replan", str(PAPER), "--out", str(out), "--no-safety", "--no-html", "--quiet"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "replan failed: unsafe" in err[0] and "touching an obstacle" in err[0]
     res = json.loads((out / "run.json").read_text())
     s = res["summary"]
     assert not res["success"]

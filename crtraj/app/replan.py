@@ -40,6 +40,7 @@ from crtraj.io.results import read_result
 from crtraj.io.run_files import RUN_FILES
 from crtraj.model.kinematics import Model
 from crtraj.planning.options import PlannerOptions
+from crtraj.planning.rate_limits import RateLimits
 from crtraj.planning.registry import make_planner
 from crtraj.planning.result import PlanStatus
 from crtraj.planning.steer import SteerOptions
@@ -71,7 +72,8 @@ def loop_from_problem(
     lead: float = 0.0,
 ) -> ClosedLoop:
     """A `ClosedLoop` for a problem file: its robot, scene, task and ``[replan]``, ``[loop]``,
-    ``[tracking]``, ``[planner]``, ``[steer]`` sections. The start configuration is the task's
+    ``[tracking]``, ``[planner]``, ``[steer]`` sections, and the robot's actuator limits
+    (``[robot.actuators]``, when there is one). The start configuration is the task's
     ``start_config`` or the planner's safe IK for the start tip; references come from the planner
     ``[planner] algorithm`` names (`crtraj.planning.registry.make_planner`; default the
     configuration-space planner), each limited to ``loop.planner_time`` seconds.
@@ -131,7 +133,17 @@ def loop_from_problem(
         initial_reference=None if feed is not None else first,
         obstacles=source,
         extra_options=extra,
+        rate_limits=_rate_limits(problem.robot),
     )
+
+
+def _rate_limits(robot: Any) -> RateLimits | None:
+    """The robot's actuator speed and acceleration limits as limits on configuration motion (None
+    without a ``[robot.actuators]`` table): the loop keeps its NLP, set-points and reference within
+    ``replan.limit_fraction`` of them, so the run can be streamed as it is."""
+    if robot.actuators is None:
+        return None
+    return Actuators.from_robot(robot).rate_limits(robot)
 
 
 def _start_scene(source: FeedObstacles) -> Any:
@@ -247,7 +259,7 @@ class _Written:
     run: ReplanRun
     loop: ClosedLoop
     link: DeviceLink | None
-    ok: bool  # reached (safely, with the safety terms), and a live stream completed
+    ok: bool  # reached the goal without breaking D_sf (also without the safety terms), and a live stream completed
     dest: Path
     paths: dict[str, Any]
 
@@ -322,7 +334,7 @@ def _run_and_write(req: ReplanRequest, problem: Problem, seed: int, feed: Any, o
                 link.streamer.close()  # a no-op after a normal run: the run closed it
             if feed is not None:
                 feed.close()
-        ok = run.reached and (run.safety_violations == 0 or not loop.options.safety)
+        ok = run.is_success()  # reached the goal safely, --no-safety or not
         if link is not None:
             ok = ok and link.report.ok
         staged = write_run_files(run, loop, stage.path, problem=problem, seed=seed, html=req.html)
@@ -352,6 +364,7 @@ def _print_summary(req: ReplanRequest, done: _Written, out: Path, t0: float) -> 
     if dest != out:
         line += f"; failed run written to {dest} ({out} holds a successful run, kept: --overwrite-failed replaces it)"
     print(line)
+    print(f"  {run.limits_line()}")
     if link is not None:
         rep = link.report
         fe = "" if rep.final_error is None else f", final error {rep.final_error:.3g}"
@@ -376,7 +389,7 @@ def _exit_code(done: _Written, streamed: bool) -> int:
     if not done.ok:
         why = f"{run.status}: {run.message}"
         if run.reached and run.safety_violations:
-            why = f"unsafe: {run.safety_violations} steps closer than D_sf"
+            why = f"unsafe: {run.safety_violations} steps closer than D_sf, {run.collisions} touching an obstacle"
         elif link is not None and run.reached:
             why = f"live stream {link.report.status}: {link.report.message}"
         print(f"crtraj: replan failed: {why} (run in {dest})", file=sys.stderr)

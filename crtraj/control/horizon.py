@@ -11,6 +11,14 @@ N configurations x_1..x_N, one per step of length dt (s):
     subject to |p_j(x_k) - c_i,k| >= rho_i,k      every backbone point j, obstacle i, step k
                limits(x_k) within the robot's bounds, x_k in robot.config_box()
                |A_q (x_k - x_k-1)| <= v_max dt                          (per-actuator rate limits)
+               |J (x_k - x_k-1)| <= f vmax dt                            (actuator speed limits)
+               |J (x_k - 2 x_k-1 + x_k-2)| <= f amax dt^2                (actuator acceleration limits)
+
+The actuator limits (`crtraj.planning.rate_limits.RateLimits`, J = d actuator value / d x) are linear
+in x, so they cost one sparse row each; x_-1 (the configuration one step before the measured x_0) is a
+parameter, so the first step's acceleration is measured against the previous applied step's velocity
+and nothing is rebuilt per step. f is ``limit_fraction`` (a reserve for the tracking and the
+interpolation of the executed motion).
 
 S scales bending (rad) by the segment length so every term is in mm. Obstacle
 slot (c_i,k, rho_i,k) is one sphere that encloses everything obstacle i
@@ -50,6 +58,7 @@ import numpy as np
 from crtraj.core.errors import InputError
 from crtraj.core.fields import Table, check_float
 from crtraj.model.kinematics import Model
+from crtraj.planning.rate_limits import RateLimits
 from crtraj.world import margin, packing
 
 SOLVERS = ("ipopt", "sqp")
@@ -70,6 +79,15 @@ MOVED_TO_LOOP = (
     "settle_time",
 )
 
+# How much the streamer's interpolation may amplify the acceleration of a run's recorded samples.
+# `crtraj stream` sends a shape-preserving cubic (PCHIP) through the samples, every dt apart. PCHIP
+# puts a zero slope wherever the motion starts, stops or reverses, so the cubic next to such a sample
+# changes velocity from 0 to about the next step's mean velocity delta within one interval: peak
+# |p''| = (6 delta - 2 d1) / dt with the far slope d1 ~ delta, i.e. 4 delta / dt, where the sampled
+# (finite-difference) acceleration was only delta / dt. The closed loop keeps the samples' acceleration
+# within the limit divided by this gain, so the interpolated set-points keep the limit itself.
+INTERPOLATION_GAIN = 2.0
+
 # float options: default and bounds (shared by Python construction and TOML reading)
 _FLOATS: Mapping[str, tuple[float, dict[str, float]]] = MappingProxyType(
     {
@@ -84,6 +102,7 @@ _FLOATS: Mapping[str, tuple[float, dict[str, float]]] = MappingProxyType(
         "max_z_speed": (40.0, {"gt": 0.0}),
         "tol": (1e-6, {"gt": 0.0, "le": 1.0}),
         "max_solve_time": (0.5, {"gt": 0.0, "le": 3600.0}),
+        "limit_fraction": (0.9, {"gt": 0.0, "le": 1.0}),
     }
 )
 _INTS: Mapping[str, tuple[int, dict[str, int]]] = MappingProxyType(
@@ -109,7 +128,9 @@ class ReplanOptions:
     of the least-squares cost, or "exact"), max_iter, tol, max_solve_time
     (s, IPOPT's wall-time cap of one solve; sqpmethod is capped by
     max_iter), rescue (with solver "sqp": retry a failed solve once with
-    IPOPT, built alongside), safety (false drops the obstacle constraints).
+    IPOPT, built alongside), safety (false drops the obstacle constraints),
+    limit_fraction (share (0, 1] of each actuator's speed and acceleration limit the
+    NLP and the tracking may use, when the robot's actuator limits are given).
 
     The closed loop's options are the ``[loop]`` section
     (`crtraj.control.loop_options.LoopOptions`).
@@ -132,6 +153,7 @@ class ReplanOptions:
     max_iter: int = _INTS["max_iter"][0]
     tol: float = _FLOATS["tol"][0]
     max_solve_time: float = _FLOATS["max_solve_time"][0]
+    limit_fraction: float = _FLOATS["limit_fraction"][0]
     rescue: bool = True
     safety: bool = True
 
@@ -245,12 +267,20 @@ class Replanner:
     """The horizon NLP for one robot and at most `max_obstacles` obstacles, built once.
 
     model: the robot's `Model`. options: `ReplanOptions`. safety_distance:
-    D_sf (mm, the scene's). Use `obstacles_from_scene` / `obstacles_from_states`
-    to make the obstacle parameter, then `solve`.
+    D_sf (mm, the scene's). rate_limits: the actuators' speed and acceleration
+    limits (`RateLimits`, full limits: the NLP uses ``options.limit_fraction`` of
+    them); None leaves only the mm/s rate limits. Use `obstacles_from_scene` /
+    `obstacles_from_states` to make the obstacle parameter, then `solve`.
     """
 
     def __init__(
-        self, model: Model, options: ReplanOptions | None = None, *, max_obstacles: int, safety_distance: float
+        self,
+        model: Model,
+        options: ReplanOptions | None = None,
+        *,
+        max_obstacles: int,
+        safety_distance: float,
+        rate_limits: RateLimits | None = None,
     ) -> None:
         self.model = model
         self.robot = model.robot
@@ -268,6 +298,12 @@ class Replanner:
         self.step_limit = np.append(np.full(3 * r.n_segments, o.max_cable_speed), o.max_z_speed) * o.dt  # mm
         self._box = r.config_box()
         self._scale = np.append(np.repeat([s.length for s in r.segments], 2), 1.0)
+        self.rate_limits = None if rate_limits is None else rate_limits.scaled(o.limit_fraction)
+        if self.rate_limits is not None and self.rate_limits.jacobian.shape[1] != self.nx:
+            raise InputError(
+                f"rate_limits: written for {self.rate_limits.jacobian.shape[1]} configuration coordinates, "
+                f"robot {r.name!r} has {self.nx}"
+            )
         self._build()
         self._warm: dict[str, np.ndarray] | None = None
         self.solve_count = 0
@@ -300,12 +336,23 @@ class Replanner:
         g.append(ca.vec(ca.DM(self._A) @ dX))
         lbg.append(np.tile(-self.step_limit, N))
         ubg.append(np.tile(self.step_limit, N))
+        widths = [self.nq]
+        rl = self.rate_limits
+        if rl is not None:
+            # actuator speed and acceleration (k = 1 uses x_-1, the previous applied step): linear rows
+            Jr = ca.DM(rl.jacobian)
+            for expr, bound in ((dX, rl.vmax * o.dt), (ddX, rl.amax * o.dt**2)):
+                g.append(ca.vec(Jr @ expr))
+                lbg.append(np.tile(-bound, N))
+                ubg.append(np.tile(bound, N))
+                widths.append(len(bound))
         # actuation limits
         lim = model.limits.map(N)(X)
         lo, hi = model.limit_bounds()
         g.append(ca.vec(lim))
         lbg.append(np.tile(lo, N))
         ubg.append(np.tile(hi, N))
+        widths.append(len(lo))
         self._n_lin = int(sum(len(b) for b in lbg))
         if o.safety and M > 0:
             n = o.points
@@ -324,6 +371,9 @@ class Replanner:
             lbg.append(np.zeros(n * M * N))
             ubg.append(np.full(n * M * N, np.inf))
         self._n_dist = int(o.points * M * N) if (o.safety and M > 0) else 0
+        if self._n_dist:
+            widths.append(self._n_dist // N)
+        self._widths = tuple(widths)  # rows per step of each constraint block (all laid out step by step)
         gv = ca.vertcat(*g)
         self._lbg = np.concatenate(lbg)
         self._ubg = np.concatenate(ubg)
@@ -464,7 +514,8 @@ class Replanner:
         reference: (N, nx) reference configurations for steps 1..N.
         obstacles: (N, packing.WIDTH * max_obstacles) from `obstacles_from_scene` /
         `obstacles_from_states`. x_prev: configuration one step before x0
-        (smoothness; default x0). tip_reference: (N, 3) mm (default: tips of
+        (smoothness, and the history of the first step's actuator acceleration
+        limit; default x0, i.e. at rest). tip_reference: (N, 3) mm (default: tips of
         the reference). warm: start from the previous solution shifted by one
         step (when there is one).
         """
@@ -592,11 +643,10 @@ class Replanner:
             b = v.reshape(N, width)
             return np.concatenate([b[1:], b[-1:]]).ravel()
 
-        n_rate = self.nq * N
-        n_lim = (self._n_lin - n_rate) // N
-        parts = [shift(lam_g[:n_rate], self.nq), shift(lam_g[n_rate : self._n_lin], n_lim)]
-        if self._n_dist:
-            parts.append(shift(lam_g[self._n_lin :], self._n_dist // N))
+        parts, start = [], 0
+        for w in self._widths:
+            parts.append(shift(lam_g[start : start + w * N], w))
+            start += w * N
         return {"x": shift(xs, nx), "lam_x": shift(lam_x, nx), "lam_g": np.concatenate(parts)}
 
     def describe(self) -> dict[str, Any]:
@@ -607,6 +657,8 @@ class Replanner:
             "variables": self.nx * self.N,
             "parameters": self._np,
             "constraints": len(self._lbg),
+            "actuator_limits": None if self.rate_limits is None else list(self.rate_limits.names),
+            "limit_fraction": self.options.limit_fraction,
             "obstacle_constraints": self._n_dist,
             "max_obstacles": self.max_obstacles,
             "inflate_mm": self.inflate,

@@ -39,12 +39,13 @@ import enum
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 
-from crtraj.control.horizon import HorizonResult, HorizonStatus, Replanner, ReplanOptions
+from crtraj.control.executed import limit_fractions
+from crtraj.control.horizon import INTERPOLATION_GAIN, HorizonResult, HorizonStatus, Replanner, ReplanOptions
 from crtraj.control.loop_options import LoopOptions
 from crtraj.control.ports import Device, DeviceError, ObstacleSource
 from crtraj.control.reference import DirectReference, ReferencePlan, ReferenceSource, TimedReference
@@ -52,6 +53,7 @@ from crtraj.control.tracking import TrackingController, TrackingOptions
 from crtraj.core.errors import InputError
 from crtraj.core.fields import check_array
 from crtraj.model.kinematics import Model
+from crtraj.planning.rate_limits import RateLimits
 from crtraj.planning.validity import MotionValidator
 from crtraj.world.sources import SceneObstacles
 
@@ -161,6 +163,9 @@ class ReplanRun:
     live: bool = False
     device: dict[str, Any] = field(default_factory=dict)  # the device's `describe()` of a live-streamed run
     feed: dict[str, Any] = field(default_factory=dict)  # a live feed's counters and rejections (`_Log.feed_record`)
+    # largest actuator speed / acceleration of the recorded actuation as streamed, as fractions of the
+    # limits (`crtraj.control.executed.limit_fractions`); {} without actuator limits
+    limit_fractions: dict[str, float] = field(default_factory=dict)
 
     @property
     def steps(self) -> int:
@@ -218,6 +223,8 @@ class ReplanRun:
             "feed_rejected": int(self.feed.get("rejected", 0)),
             "feed_events": dict(self.feed.get("counts", {})),
             "late_steps": self.late_steps,
+            "max_velocity_fraction": self.limit_fractions.get("max_velocity_fraction"),
+            "max_acceleration_fraction": self.limit_fractions.get("max_acceleration_fraction"),
             "setup_s": self.setup_time,
             "wall_time_s": self.wall_time,
         }
@@ -232,6 +239,18 @@ class ReplanRun:
             f"iteration median {s['median_iteration_s'] * 1e3:.2f} ms / p90 {s['p90_iteration_s'] * 1e3:.2f} ms, "
             f"final tip error {s['final_tip_error_mm']:.3f} mm, {self.steps} steps, "
             f"{s['reference_plans']} reference plans"
+        )
+
+    def limits_line(self) -> str:
+        """One line: the executed duration and the largest actuator speed and acceleration as fractions of
+        their limits, as the run's actuation will be streamed."""
+        s = self.summary()
+        v, a = s["max_velocity_fraction"], s["max_acceleration_fraction"]
+        if v is None or a is None:
+            return f"executed {s['duration_s']:.2f} s (no actuator limits in the robot file)"
+        return (
+            f"executed {s['duration_s']:.2f} s, actuators at most {v:.2f} of their velocity limit and "
+            f"{a:.2f} of their acceleration limit (as streamed)"
         )
 
 
@@ -254,7 +273,10 @@ class ClosedLoop:
     each step, an `ObstacleSource`: default `SceneObstacles` (the scene's
     known time functions), or `crtraj.world.sources.FeedObstacles` (a live
     feed, extrapolated at constant velocity; the scene then only gives D_sf,
-    the workspace and the expected obstacles).
+    the workspace and the expected obstacles). rate_limits: the actuators' speed
+    and acceleration limits (`RateLimits`, built by the caller from the robot's
+    actuators): the NLP, the tracking set-points and the reference timing keep
+    within ``replan.limit_fraction`` of them; None: only the mm/s rate limits.
     """
 
     def __init__(
@@ -274,6 +296,7 @@ class ClosedLoop:
         initial_reference: ReferencePlan | None = None,
         extra_options: dict[str, Any] | None = None,
         obstacles: ObstacleSource | None = None,
+        rate_limits: RateLimits | None = None,
     ) -> None:
         t_setup = time.perf_counter()
         self.model = model
@@ -290,7 +313,14 @@ class ClosedLoop:
         self.goal_tolerance = float(goal_tolerance)
         tr = TrackingOptions() if tracking is None else tracking
         self.n_sub = _control_periods(o, tr)
-        self.tracker = TrackingController(model, tr)
+        # the full actuator limits (reports). The executed motion's samples keep the speeds and the
+        # accelerations over the interpolation gain (the set-points enforce that); the NLP plans within
+        # limit_fraction of them, which leaves the tracking room to catch up with its plan.
+        self.rate_limits = rate_limits
+        sampled = None if rate_limits is None else replace(rate_limits, amax=rate_limits.amax / INTERPOLATION_GAIN)
+        self.tracker = TrackingController(
+            model, tr, rate_limits=None if sampled is None else self._set_point_limits(sampled)
+        )
         self.servo = self.tracker.servo
         if reference is None:
             if goal_config is None:
@@ -304,7 +334,13 @@ class ClosedLoop:
         self.replanner = (
             replanner
             if replanner is not None
-            else Replanner(model, o, max_obstacles=scene.n_obstacles, safety_distance=scene.safety_distance)
+            else Replanner(
+                model,
+                o,
+                max_obstacles=scene.n_obstacles,
+                safety_distance=scene.safety_distance,
+                rate_limits=sampled,
+            )
         )
         if self.replanner.options.dt != o.dt or o.horizon != self.replanner.N:
             raise InputError("replanner: its dt and horizon must match the loop's options")
@@ -318,6 +354,17 @@ class ClosedLoop:
         self.setup_time = time.perf_counter() - t_setup
 
     # ------------------------------------------------------------ utilities
+    def _set_point_limits(self, limits: RateLimits) -> RateLimits:
+        """`limits` with each speed capped by the NLP's own per-actuator rate (max_cable_speed,
+        max_z_speed): the executed motion then never moves faster than the NLP's first step may, so its
+        velocity history never makes the next NLP infeasible. J's row i is scale_i times the cable
+        matrix row i (actuator value per mm of actuation)."""
+        A, _ = self.robot.cable_matrix()
+        o = self.options
+        rates = np.append(np.full(3 * self.robot.n_segments, o.max_cable_speed), o.max_z_speed)  # mm/s
+        scale = np.sum(limits.jacobian * A, axis=1) / np.sum(A * A, axis=1)
+        return replace(limits, vmax=np.minimum(limits.vmax, rates * np.abs(scale)))
+
     def _validator(self, scene: Any) -> MotionValidator:
         lo = self.loop_options
         return MotionValidator(
@@ -335,12 +382,19 @@ class ClosedLoop:
         lo = self.loop_options
         dq = np.abs(dX @ self._A.T)
         t_act = np.max(dq / (lo.reference_speed * self._rates), axis=1)
+        if self.rate_limits is not None:
+            f = self.options.limit_fraction * lo.reference_speed
+            t_act = np.maximum(t_act, self.rate_limits.velocity_fraction(dX) / f)
         t_body = self.validator.motion_bound(dX) / (lo.reference_speed * lo.max_body_speed)
         return np.maximum(t_act, t_body)
 
-    def _track(self, q: np.ndarray, qc: np.ndarray, x0: np.ndarray, x1: np.ndarray, t: float) -> Motion:
+    def _track(
+        self, q: np.ndarray, qc: np.ndarray, x0: np.ndarray, x1: np.ndarray, t: float, inc: np.ndarray
+    ) -> Motion:
         """Simulate the tracking controller toward the straight move x0 -> x1 over one step.
 
+        inc: the set-point's configuration change in the control period before t
+        (the history of the actuator acceleration limits).
         Returns (q at the end, set-point at the end, sample times (S,),
         actual configurations at the samples (S, nx), set-points per control
         period (n_sub, nq)). The first sample is the current state at t.
@@ -353,7 +407,8 @@ class ClosedLoop:
         cmds = np.empty((n, self.robot.nq))
         for j in range(n):
             xm = servo.config(q)
-            cmd = ctl.step(xm, qc, x0 + (j + 1) / n * (x1 - x0), h, x_reference_rate=rate)
+            cmd = ctl.step(xm, qc, x0 + (j + 1) / n * (x1 - x0), h, x_reference_rate=rate, previous_increment=inc)
+            inc = cmd.increment
             q_end = servo.advance(q, cmd.q, h)
             span = float(v.motion_bound(servo.config(q_end) - xm))
             ns = max(1, math.ceil(2.0 * span / resolution))
@@ -396,6 +451,17 @@ class ClosedLoop:
         """Sampled (not conservative) body clearance (mm, minus D_sf) along the motion, many points."""
         P = self.model.points(X, REPORT_POINTS)
         return float(np.min(self._scene_now.clearance_points(P, T, inflate=self.robot.body_radius)))
+
+    def _at_rest(self, st: _State) -> bool:
+        """The last step moved every actuator slowly enough to stop within its acceleration limit in one
+        step: the executed motion ends at rest, and the streamer's interpolation (zero slope at the last
+        sample, at most 6 |step| / dt^2 of acceleration over the last interval) keeps that limit."""
+        if self.rate_limits is None:
+            return True
+        dt = self.options.dt
+        f = self.options.limit_fraction
+        step = np.abs(self.rate_limits.jacobian @ (st.x - st.x_prev))
+        return bool(np.all(6.0 * step <= f * self.rate_limits.amax * dt * dt))
 
     def _reference_valid(self, ref: TimedReference, s_now: float, t: float) -> bool:
         """The next stretch of the reference is clear of the obstacles at the times it would be reached."""
@@ -515,7 +581,7 @@ class ClosedLoop:
                 msg = f"unsafe step at t={t:.2f} s: nothing verified safe, device e-stopped"
                 return self._finish(log, st, RunStatus.ESTOP, msg, t_wall, device)
             err = float(np.linalg.norm(self.model.tip_position(st.x) - self.goal))
-            if err > self.goal_tolerance:
+            if err > self.goal_tolerance or not self._at_rest(st):
                 settled_since = None
             else:
                 settled_since = st.t if settled_since is None else settled_since
@@ -550,6 +616,9 @@ class ClosedLoop:
         if device is not None:
             self._drive(device, status, t, st.q, cmds, why, bound)
         measured = self._measure(T, X)
+        # the set-point's last change (configuration): the next step's acceleration history
+        before = cmds[-2] if len(cmds) > 1 else st.qc
+        st.inc = self.servo.config(qc_new) - self.servo.config(before)
         st.x_prev, st.x, st.q, st.qc = st.x, self.servo.config(q_new), q_new, qc_new
         st.t = round((k + 1) * dt, 12)
         dist = measured + self.scene.safety_distance
@@ -656,7 +725,7 @@ class ClosedLoop:
         tried: list[tuple[float, StepStatus, np.ndarray, Motion]] = []
         chosen: tuple[StepStatus, np.ndarray, Motion, float] | None = None
         for status, x1 in cands:
-            sim = self._track(st.q, st.qc, st.x, x1, t)
+            sim = self._track(st.q, st.qc, st.x, x1, t, st.inc)
             if not self.options.safety:
                 chosen = (status, x1, sim, math.nan)
                 break
@@ -714,6 +783,7 @@ class ClosedLoop:
         t = np.array(log.t)
         X = np.array(log.x)
         planned = np.array(log.planned)
+        fractions = {} if self.rate_limits is None else limit_fractions(t, X, self.rate_limits)
         tips = model.tip_position(X)
         nq = self.robot.nq
         return ReplanRun(
@@ -756,6 +826,7 @@ class ClosedLoop:
             live=bool(self.obstacles.live),
             device={} if device is None else device.describe(),
             feed=log.feed_record(self.obstacles),
+            limit_fractions=fractions,
         )
 
 
@@ -788,6 +859,7 @@ class _State:
         self.t = 0.0
         self.q, self.qc, self.x = q, qc, x
         self.x_prev = x
+        self.inc = np.zeros_like(x)  # the set-point's configuration change in the last control period
         self.ref: TimedReference | None = None
         self.s_ref = 0.0  # progress along the reference (s of reference time)
         self.progress_s, self.progress_t = 0.0, 0.0  # last time the progress grew

@@ -41,6 +41,16 @@ direction) and kept inside the robot's actuation limits (cable strokes,
 theta_max, z stroke): a command never leaves the feasible set, and a set-point
 that is already outside is never moved further out.
 
+With the robot's actuator limits (`RateLimits`, J = d actuator value / d x) the
+set-point also keeps ``|J v| <= vmax h`` and ``|J (v - v_prev)| <= amax h^2`` per
+period h (v_prev: the previous period's increment): the increment is first scaled
+to the speed limits, then moved from v_prev toward that only as far as the
+acceleration limits allow (a convex combination of two speed-feasible increments
+is speed-feasible). The first-order servos average the set-point staircase with
+a positive kernel of unit mass, so the actual actuator motion sampled at any
+multiple of h has finite-difference speed and acceleration within the same limits.
+The actuation-limit shrink comes last and may brake harder (limits win).
+
 ``mode = "tip"`` adds the paper's eq. 13 and 17: the measured tip error is
 mapped to a configuration error with the damped least-squares pseudo-inverse
 of the task Jacobian ``J = d tip/dx`` (damping lambda), and the rest of the
@@ -67,6 +77,7 @@ from crtraj.core.fields import check_float
 from crtraj.core.options import Options, option
 from crtraj.model.kinematics import Model
 from crtraj.model.robot import Robot
+from crtraj.planning.rate_limits import RateLimits
 
 MODES = ("configuration", "tip")
 
@@ -165,7 +176,9 @@ class TrackingCommand:
     configuration. error: configuration error the law acted on (rad / mm).
     increment: set-point change in configuration (after limiting).
     rate_scale: factor (<= 1) the rate limits applied. limit_scale: extra factor
-    (<= 1) that kept the set-point inside the actuation limits.
+    (<= 1) that kept the set-point inside the actuation limits. accel_scale: share
+    (<= 1) of the change from the previous increment that the actuator
+    acceleration limits let through.
     """
 
     q: np.ndarray
@@ -174,6 +187,7 @@ class TrackingCommand:
     increment: np.ndarray
     rate_scale: float
     limit_scale: float
+    accel_scale: float = 1.0
 
     @property
     def rate_limited(self) -> bool:
@@ -273,8 +287,12 @@ class TrackingController:
         q_cmd = cmd.q                                   # send to the actuators
     """
 
-    def __init__(self, model: Model, options: TrackingOptions | None = None) -> None:
+    def __init__(
+        self, model: Model, options: TrackingOptions | None = None, *, rate_limits: RateLimits | None = None
+    ) -> None:
         self.model = model
+        # the actuators' speed and acceleration limits the set-points keep (the caller's share of them)
+        self.rate_limits = rate_limits
         self.robot = model.robot
         self.options = TrackingOptions() if options is None else options
         o, r = self.options, self.robot
@@ -295,6 +313,11 @@ class TrackingController:
         C = r.coupling_matrix()
         self._C = [np.hstack([C[2 * k : 2 * k + 2], np.zeros((2, 1))]) for k in range(n)]
         self._tmax2 = np.array([s.theta_max**2 for s in r.segments])
+        if rate_limits is not None and rate_limits.jacobian.shape[1] != self.nx:
+            raise InputError(
+                f"rate_limits: written for {rate_limits.jacobian.shape[1]} configuration coordinates, "
+                f"robot {r.name!r} has {self.nx}"
+            )
         self._designs: dict[float, TrackingDesign] = {}
         self.design()  # fail early on a bad design
         # tip mode: one CasADi call per period gives tip(x), J(x) and tip(x_ref)
@@ -362,6 +385,7 @@ class TrackingController:
         x_reference_rate: np.ndarray | None = None,
         tip_measured: np.ndarray | None = None,
         tip_reference: np.ndarray | None = None,
+        previous_increment: np.ndarray | None = None,
     ) -> TrackingCommand:
         """One control period: the next actuator set-point.
 
@@ -373,7 +397,8 @@ class TrackingController:
         lag, so a ramp is tracked without steady error (None: eq. 16).
         Tip mode only (an error in configuration mode): tip_measured (3, mm;
         default: model tip of x_measured), tip_reference (3, mm; default: model
-        tip of x_reference).
+        tip of x_reference). previous_increment: the set-point's configuration change
+        in the previous period (nx; default 0, at rest); used with `rate_limits` only.
         """
         d = self.design(dt)
         nx = self.nx
@@ -397,12 +422,35 @@ class TrackingController:
             v = v + ff
         dq = self._J_q @ v
         over = np.abs(dq) / (self._rates * d.dt)
+        rl = self.rate_limits
+        if rl is not None:
+            over = np.concatenate([over, np.abs(rl.jacobian @ v) / (rl.vmax * d.dt)])
         worst = float(np.max(over))
         rate_scale = 1.0 / worst if worst > 1.0 else 1.0
         v = v * rate_scale
+        accel_scale = 1.0
+        if rl is not None:
+            v = _braking(rl, v, ec, np.zeros(nx) if ff is None else ff, d.dt)
+            v, accel_scale = self._accelerate(rl, v, previous_increment, d.dt)
         v, limit_scale = self._limit(xc, v)
         q = qc + self._J_q @ v
-        return TrackingCommand(q, xc + v, e, v, rate_scale, limit_scale)
+        return TrackingCommand(q, xc + v, e, v, rate_scale, limit_scale, accel_scale)
+
+    def _accelerate(
+        self, rl: RateLimits, v: np.ndarray, v_prev: np.ndarray | None, h: float
+    ) -> tuple[np.ndarray, float]:
+        """Move from the previous increment toward v only as far as the acceleration limits allow.
+
+        Returns (increment, share of v - v_prev used). |J (v_out - v_prev)| <= amax h^2 per actuator.
+        """
+        vp = np.zeros(self.nx) if v_prev is None else _vec(v_prev, self.nx, "previous_increment")
+        change = np.abs(rl.jacobian @ (v - vp))
+        room = rl.amax * h * h
+        worst = float(np.max(change / room))
+        if worst <= 1.0:
+            return v, 1.0
+        s = 1.0 / worst
+        return vp + s * (v - vp), s
 
     def _tip_error_config(
         self, xm: np.ndarray, xr: np.ndarray, tip_measured: np.ndarray | None, tip_reference: np.ndarray | None
@@ -512,6 +560,7 @@ class TrackingController:
         X = np.empty((N + 1, self.nx))
         rl = np.zeros(N, dtype=bool)
         lim = np.zeros(N, dtype=bool)
+        inc = np.zeros(self.nx)
         Q[0] = q
         tip_mode = self.options.mode == "tip"
         rate = None
@@ -530,7 +579,9 @@ class TrackingController:
                 x_reference_rate=None if rate is None else rate[k],
                 tip_measured=tm,
                 tip_reference=tip_ref[k] if tip_mode else None,
+                previous_increment=inc,
             )
+            inc = cmd.increment
             qc = cmd.q
             Qc[k], rl[k], lim[k] = qc, cmd.rate_limited, cmd.limited
             q = servo.advance(q, qc, dt)
@@ -541,6 +592,25 @@ class TrackingController:
         err = np.linalg.norm(tips - tref, axis=1)
         t = dt * np.arange(N + 1)
         return TrackingRun(t, X, Q, Qc, np.array(ref), tips, tref, err, rl, lim, self.options)
+
+
+def _braking(rl: RateLimits, v: np.ndarray, remaining: np.ndarray, ff: np.ndarray, h: float) -> np.ndarray:
+    """v scaled (direction kept) so no actuator closes on its target faster than it can still stop there.
+
+    remaining: the set-point's configuration distance to its target; ff: the target's own motion over the
+    period (feed-forward). An actuator |r| from its target may close on it at most sqrt(2 amax |r|)
+    faster than the target moves (the braking curve); without this cap the LQR law, designed without
+    acceleration limits, overshoots against them and rings (integrator-like windup).
+    """
+    step = rl.jacobian @ v
+    r = rl.jacobian @ remaining
+    toward = step * r > 0.0
+    if not np.any(toward):
+        return v
+    a = rl.amax[toward]
+    cap = np.abs(rl.jacobian @ ff)[toward] + np.sqrt(2.0 * a * np.abs(r[toward])) * h + a * h * h
+    worst = float(np.max(np.abs(step[toward]) / cap))
+    return v / worst if worst > 1.0 else v
 
 
 def _vec(a: Any, n: int, name: str) -> np.ndarray:
