@@ -102,7 +102,7 @@ def test_stream_writes_the_verified_run_to_a_device(tmp_path, capsys):
     rc = main(["replan", str(PAPER), "--out", str(out2), "--no-html", "--quiet",
                "--stream", f"file://{tmp_path / 'f2.bin'}", "--time-scale", "5"])  # fmt: skip
     err = capsys.readouterr().err.strip().splitlines()
-    assert rc == 2 and len(err) == 1 and "--time-scale: 5 refused" in err[0]
+    assert rc == 1 and len(err) == 1 and "--time-scale: 5 refused" in err[0]
     assert not out2.exists() and not (tmp_path / "f2.bin").exists()
 
 
