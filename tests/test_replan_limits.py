@@ -17,6 +17,7 @@ from crtraj.control.tracking import TrackingController
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.setpoints import SetpointPath
 from crtraj.io.problem import Problem
+from crtraj.io.results import read_result
 from crtraj.world.scene import Scene
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -103,7 +104,8 @@ def _streamed(res: dict) -> tuple[np.ndarray, np.ndarray, Actuators]:
     """Velocity and acceleration fractions per streamed frame, with the streamer's own sampler and the limits
     gate's formula (finite differences at 100 Hz from rest)."""
     acts = Actuators.from_robot(Problem.load(PAPER).robot)
-    _, values = SetpointPath.from_result(res, acts).sample(100.0)
+    r = read_result(res)
+    _, values = SetpointPath.from_actuation(r.t, r.q, acts).sample(100.0)
     vel = np.diff(values, axis=0, prepend=values[:1]) / 0.01
     acc = np.diff(vel, axis=0, prepend=np.zeros((1, acts.n))) / 0.01
     return np.abs(vel) / acts.vmax, np.abs(acc) / acts.amax, acts

@@ -358,13 +358,15 @@ def _print_header(problem: Problem, seed: int, loop: ClosedLoop, *, live_obstacl
 
 
 def _print_summary(req: ReplanRequest, done: _Written, out: Path, t0: float) -> None:
-    """The summary line, the live stream's line, and (not quiet) step counts and file paths."""
+    """The summary line, the live stream's line, and (not quiet) the actuator limit fractions, step counts and
+    file paths."""
     run, link, dest = done.run, done.link, done.dest
     line = run.summary_line()
     if dest != out:
         line += f"; failed run written to {dest} ({out} holds a successful run, kept: --overwrite-failed replaces it)"
     print(line)
-    print(f"  {run.limits_line()}")
+    if not req.quiet:
+        print(f"  {run.limits_line()}")
     if link is not None:
         rep = link.report
         fe = "" if rep.final_error is None else f", final error {rep.final_error:.3g}"
