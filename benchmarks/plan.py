@@ -25,7 +25,8 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
-from crtraj.io.problem import Problem, read_toml
+from crtraj.core.fileio import read_toml
+from crtraj.io.problem import Problem
 from crtraj.model.kinematics import Model
 from crtraj.planning.options import PlannerOptions
 from crtraj.planning.registry import make_planner

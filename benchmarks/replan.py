@@ -26,7 +26,8 @@ import numpy as np
 
 from crtraj.app.replan import loop_from_problem
 from crtraj.control.horizon import ReplanOptions
-from crtraj.io.problem import Problem, read_toml
+from crtraj.core.fileio import read_toml
+from crtraj.io.problem import Problem
 
 ROOT = Path(__file__).resolve().parent.parent
 PAPER = read_toml(ROOT / "benchmarks" / "paper_results.toml")  # the paper's figures (a copy of its reference file)

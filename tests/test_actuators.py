@@ -13,8 +13,9 @@ import pytest
 
 from crtraj.core.errors import InputError
 from crtraj.core.fields import Table
+from crtraj.core.fileio import read_toml
 from crtraj.hardware.actuators import Actuators
-from crtraj.io.problem import Problem, load_robot, read_toml
+from crtraj.io.problem import Problem, load_robot
 from crtraj.model.robot import Robot
 
 ROOT = Path(__file__).resolve().parent.parent

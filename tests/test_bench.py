@@ -29,7 +29,8 @@ from crtraj.planning.result import PlanResult, PlanStatus
 from crtraj.planning.safe_ik import SafeIK
 from crtraj.planning.stop import StopCondition
 from crtraj.planning.validity import MotionValidator
-from crtraj.world.scene import Obstacle, Scene
+from crtraj.world.obstacle import Obstacle
+from crtraj.world.scene import Scene
 
 ROOT = Path(__file__).resolve().parent.parent
 

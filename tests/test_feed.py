@@ -269,7 +269,7 @@ def test_feed_options():
 def _problem_with_feed(feed: dict) -> dict:
     from pathlib import Path
 
-    from crtraj.io.problem import read_toml
+    from crtraj.core.fileio import read_toml
 
     root = Path(__file__).resolve().parent.parent / "problems"
     data = read_toml(root / "paper_dynamic.toml")

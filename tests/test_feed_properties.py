@@ -17,7 +17,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from crtraj.world.feed import FeedOptions, ObstacleFeed
-from crtraj.world.scene import Obstacle, Scene
+from crtraj.world.obstacle import Obstacle
+from crtraj.world.scene import Scene
 from crtraj.world.sources import FeedObstacles
 
 pytestmark = pytest.mark.timeout(300)

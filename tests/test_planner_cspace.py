@@ -18,7 +18,8 @@ from crtraj.planning.cspace import CSpacePlanner
 from crtraj.planning.options import PlannerOptions
 from crtraj.planning.result import PlanStatus
 from crtraj.planning.stop import StopCondition
-from crtraj.world.scene import Obstacle, Scene
+from crtraj.world.obstacle import Obstacle
+from crtraj.world.scene import Scene
 
 
 @pytest.fixture(scope="module")

@@ -17,7 +17,8 @@ import pytest
 
 from crtraj.io.problem import Problem, load_robot
 from crtraj.model.kinematics import Model
-from crtraj.world.scene import Obstacle, Scene
+from crtraj.world.obstacle import Obstacle
+from crtraj.world.scene import Scene
 
 ROOT = Path(__file__).resolve().parent.parent
 PAPER_STATIC = ROOT / "problems" / "paper_static.toml"

@@ -17,7 +17,8 @@ from crtraj.planning.safe_ik import SafeIK
 from crtraj.planning.stop import StopCondition
 from crtraj.planning.tree import SearchTree
 from crtraj.planning.validity import MotionValidator
-from crtraj.world.scene import Obstacle, Scene
+from crtraj.world.obstacle import Obstacle
+from crtraj.world.scene import Scene
 
 
 @pytest.fixture(scope="module")

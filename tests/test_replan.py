@@ -13,7 +13,8 @@ from crtraj.control.horizon import HorizonResult, HorizonStatus, Replanner, Repl
 from crtraj.core.errors import InputError
 from crtraj.core.fields import Table
 from crtraj.world import packing
-from crtraj.world.scene import Obstacle, Scene
+from crtraj.world.obstacle import Obstacle
+from crtraj.world.scene import Scene
 
 XS = np.array([0.3, 0.0, 0.0, 0.0, 0.0])
 XG = np.array([-0.6, 0.5, -0.3, 0.2, -40.0])

@@ -18,7 +18,8 @@ from crtraj.control.loop import ClosedLoop, RunStatus
 from crtraj.control.loop_options import LoopOptions
 from crtraj.io.results import run_document
 from crtraj.world.feed import ObstacleFeed
-from crtraj.world.scene import Obstacle, Scene
+from crtraj.world.obstacle import Obstacle
+from crtraj.world.scene import Scene
 from crtraj.world.sources import FeedObstacles
 
 XS = np.array([0.3, 0.0, 0.0, 0.0, 0.0])

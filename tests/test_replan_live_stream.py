@@ -20,7 +20,7 @@ from crtraj.hardware.protocol import HOLD, MOVE
 from crtraj.hardware.sim_device import SimDevice
 from crtraj.hardware.stream import Streamer, StreamOptions
 from crtraj.world.feed import ObstacleFeed
-from crtraj.world.scene import Obstacle
+from crtraj.world.obstacle import Obstacle
 
 ROOT = Path(__file__).resolve().parent.parent
 ROBOT = ROOT / "problems" / "robots" / "cdsr2.toml"

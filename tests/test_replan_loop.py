@@ -21,7 +21,8 @@ from crtraj.control.loop import ClosedLoop, RunStatus, StepStatus
 from crtraj.control.loop_options import LoopOptions
 from crtraj.control.ports import Device, DeviceError
 from crtraj.control.tracking import TrackingOptions
-from crtraj.world.scene import Obstacle, Scene
+from crtraj.world.obstacle import Obstacle
+from crtraj.world.scene import Scene
 
 XS = np.array([0.3, 0.0, 0.0, 0.0, 0.0])
 XG = np.array([-0.6, 0.5, -0.3, 0.2, -40.0])

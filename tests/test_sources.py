@@ -7,7 +7,8 @@ import numpy as np
 
 from crtraj.control.ports import ObstacleSource
 from crtraj.world.feed import FeedState
-from crtraj.world.scene import Obstacle, Scene
+from crtraj.world.obstacle import Obstacle
+from crtraj.world.scene import Scene
 from crtraj.world.sources import FeedObstacles, SceneObstacles
 
 

@@ -14,7 +14,8 @@ from crtraj.core.fields import Table
 from crtraj.io.problem import Problem
 from crtraj.model.kinematics import Model
 from crtraj.planning.steer import SteerOptions, SteerResult, SteerSolver, SteerStatus, config_scale, dls_step
-from crtraj.world.scene import Obstacle, Scene
+from crtraj.world.obstacle import Obstacle
+from crtraj.world.scene import Scene
 
 ROOT = Path(__file__).resolve().parent.parent
 DENSE = 200  # backbone points of the independent check

@@ -14,7 +14,8 @@ from crtraj.bench.records import LABELS, PLANNERS, BenchOptions, _fmt, _pct
 from crtraj.bench.runner import Table1Bench
 from crtraj.core.errors import InputError
 from crtraj.core.fields import Table
-from crtraj.io.problem import load_robot, read_toml
+from crtraj.core.fileio import read_toml
+from crtraj.io.problem import load_robot
 from crtraj.planning.options import PlannerOptions
 from crtraj.planning.registry import BUILTIN
 
