@@ -53,7 +53,7 @@ from crtraj.core.fields import Table, check_array, check_float
 from crtraj.core.fileio import atomic_write_text
 from crtraj.io.results import Result, read_result
 from crtraj.model.kinematics import Model
-from crtraj.viz.view import server as meshcat_server
+from crtraj.viz import server as meshcat_server
 
 with warnings.catch_warnings():
     # meshcat's server module installs a pyzmq < 17 event-loop shim and pyzmq warns about it
