@@ -21,10 +21,13 @@ from hypothesis import strategies as st
 
 from crtraj.app.approach import plan_approach
 from crtraj.cli import main
+from crtraj.control.ports import DeviceError
+from crtraj.control.tracking import ServoModel
 from crtraj.core.errors import AdmissionError
 from crtraj.core.fileio import to_jsonable
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.admission import MotionRecord, admit
+from crtraj.hardware.link import DeviceLink
 from crtraj.hardware.protocol import MOVE, Frame, read_stream_file
 from crtraj.hardware.setpoints import SetpointPath
 from crtraj.hardware.sim_device import DeviceCore
@@ -288,3 +291,31 @@ def test_a_slowed_replay_streams_when_it_stays_safe_and_is_refused_when_it_does_
     path = SetpointPath.from_actuation(1.0 * s, model.cables(X), acts).scaled(10.0)
     stamps, values = path.sample(100.0)
     assert dense_clearance(model, scene, stamps, configs_of(robot, acts, values)[0]) < 0.0
+
+
+# ------------------------------------------------------------ live: each step verified as sent
+def test_live_steps_are_verified_against_the_loops_scene_snapshot(robot, model, acts):
+    """DeviceLink checks each step's frames (the follower's output) against the scene the loop used: a step
+    into a sphere that the snapshot holds is not sent (DeviceError with the time, the link holds); the same
+    step against an empty snapshot is sent, and what leaves equals what was checked."""
+    clock = _VirtualClock()
+    link = CoreLink(DeviceCore(acts), clock)
+    s = Streamer(link, acts, StreamOptions(prebuffer=0.1), None, realtime=True, clock=clock, sleep=clock.sleep)
+    s.start(background=False)
+    tip = model.points(robot.straight(0.0), 11)[-1]
+    # 0.2 mm of clearance beyond D_sf above the tip: the step's first half millimetre up breaks it
+    above = tip + np.array([0.0, 0.0, 11.2])
+    snapshot = {"scene": Scene(obstacles=(Obstacle(center=tuple(above), radius=3.0),))}
+    verifier = FrameVerifier(robot, acts, Scene(), 0.01, model=model)
+    dl = DeviceLink(s, ServoModel(robot, 0.05, 0.1), 0.1, verifier=verifier, scene_now=lambda: snapshot["scene"])
+    dl.begin(0.0)
+    q0 = robot.cables(robot.straight(0.0))
+    cmds = np.repeat(robot.cables(robot.straight(8.0))[None], 5, axis=0)  # up 8 mm, into the sphere
+    queued = len(s._bt)
+    with pytest.raises(DeviceError, match=r"step at t=0\.00 s refused before sending: body closer than"):
+        dl.move(0.0, q0, cmds, 0.02)
+    assert len(s._bt) == queued and s.state == "held" and dl.refused_steps == 1
+    snapshot["scene"] = Scene()
+    dl.move(0.0, q0, cmds, 0.02)  # resumes from the hold; nothing in the way now
+    values = np.array(s._bv[-10:])
+    assert verifier.failure(np.array(s._bt[-10:]), values, start=acts.command(q0)) is None
