@@ -46,7 +46,7 @@ def main() -> None:
     X = x0 + (x1 - x0) * (0.5 - 0.5 * np.cos(np.pi * s))[:, None]
     # a synthetic motion among no obstacles, admitted as a successful plan of this robot would be
     record = MotionRecord("", "plan", "success", True, True, 0, 0, robot, Scene(), args.seconds * s, robot.cables(X))
-    motion = admit(record, acts)
+    motion = admit(record, acts, rate=args.rate)  # verified at the rate it is streamed at
     path = motion.path
 
     # per-tick CPU cost of the limits gate + frame encoding (no I/O)

@@ -240,8 +240,8 @@ def test_dry_run_file_is_replaced_only_by_a_complete_stream(tmp_path, capsys):
     # 50 mm of base travel in 10 ms breaks the stage's velocity limit: refused, the file untouched
     fast = _result(tmp_path, 0.01, 50.0)
     assert main(["stream", str(fast), "--dry-run", str(frames), *log]) == 1
-    out = capsys.readouterr().out
-    assert "refused" in out and "none written" in out
+    err = capsys.readouterr().err.strip().splitlines()  # refused by admission, as sent: one line
+    assert len(err) == 1 and "refused: z velocity" in err[0]
     assert frames.read_bytes() == b"previous frames"
     _no_temporaries(tmp_path)
     # a slow move completes: the file now holds exactly the decodable frames of that stream

@@ -97,13 +97,8 @@ def test_stream_writes_the_verified_run_to_a_device(tmp_path, capsys):
     assert "stream done" in text
     assert frames.stat().st_size > 1000
     assert (out / "stream.jsonl").stat().st_size > 0
-    # breathing spheres: the slowed replay was never checked, so it is refused before the run
-    out2 = tmp_path / "o2"
-    rc = main(["replan", str(PAPER), "--out", str(out2), "--no-html", "--quiet",
-               "--stream", f"file://{tmp_path / 'f2.bin'}", "--time-scale", "5"])  # fmt: skip
-    err = capsys.readouterr().err.strip().splitlines()
-    assert rc == 1 and len(err) == 1 and "--time-scale: 5 refused" in err[0]
-    assert not out2.exists() and not (tmp_path / "f2.bin").exists()
+    # (among moving obstacles a slowed replay is re-verified at its new times, as `crtraj stream` does:
+    # tests/test_verify.py streams one that stays safe and refuses one that does not)
 
 
 def test_live_feed_from_the_command_line(tmp_path, capsys, monkeypatch):

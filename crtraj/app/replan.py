@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from crtraj.app.approach import plan_approach
 from crtraj.app.run_output import write_run_files
 from crtraj.app.view import serve
 from crtraj.control.horizon import ReplanOptions
@@ -30,11 +31,12 @@ from crtraj.control.tracking import TrackingOptions
 from crtraj.core.errors import InputError
 from crtraj.core.fileio import StagedDir, check_output_dir, failed_sibling, is_successful_result
 from crtraj.hardware.actuators import Actuators
-from crtraj.hardware.admission import admit, check_replay_time_scale, check_stream_safety
+from crtraj.hardware.admission import admit, check_stream_safety
 from crtraj.hardware.link import DeviceLink
 from crtraj.hardware.setpoints import check_time_scale
 from crtraj.hardware.stream import Streamer, StreamError, StreamOptions
 from crtraj.hardware.transport import parse_hostport
+from crtraj.hardware.verify import FrameVerifier
 from crtraj.io.problem import Problem
 from crtraj.io.results import read_result
 from crtraj.io.run_files import RUN_FILES
@@ -276,8 +278,6 @@ def run_replan(req: ReplanRequest, *, view: Callable[[dict[str, Any]], None] | N
     out = req.out if req.out is not None else Path("out") / ("replan" if req.safety else "replan-no-safety")
     check_output_dir(out, "--out", RUN_FILES)  # before the (possibly long) run, not after it
     problem = Problem.load(req.problem)
-    if req.stream and not req.feed:  # refuse before the run, not after it
-        check_replay_time_scale(problem.options(Scene, "scene"), req.time_scale)
     seed = problem.seed if req.seed is None else req.seed
     t0 = time.perf_counter()
     feed = _open_feed(req.feed, req.feed_max_age, problem) if req.feed else None
@@ -427,7 +427,16 @@ def _open_live_stream(
     streamer = Streamer.open(_stream_target(address), acts, sopts, out / "stream.jsonl")
     try:
         streamer.start()
-        link = DeviceLink(streamer, loop.servo, loop.options.dt, lead=sopts.prebuffer)
+        # each step's frames are verified as sent against the scene snapshot the loop checked the step with
+        verifier = FrameVerifier(problem.robot, acts, loop.scene, sopts.dt, model=Model(problem.robot))
+        link = DeviceLink(
+            streamer,
+            loop.servo,
+            loop.options.dt,
+            lead=sopts.prebuffer,
+            verifier=verifier,
+            scene_now=lambda: loop.scene_now,
+        )
         here = streamer.position
         start = acts.command(loop.tracker.initial_command(loop.x_start))
         d = np.abs(here - start)
@@ -458,10 +467,15 @@ def _stream_run(req: ReplanRequest, problem: Problem, paths: dict[str, Any]) -> 
     log = Path(paths["json"]).parent / "stream.jsonl"
     # the run's motion is admitted like any result (the refusals live in the library, not in the CLI)
     motion = admit(
-        read_result(paths["result"]).motion_record(), actuators, robot=problem.robot, time_scale=req.time_scale
+        read_result(paths["result"]).motion_record(),
+        actuators,
+        robot=problem.robot,
+        time_scale=req.time_scale,
+        rate=opts.rate,
     )
     print(f"streaming the run ({motion.path.duration:.2f} s) to {target}", flush=True)
-    rep = Streamer.open(target, actuators, opts, log).run_path(motion, approach=req.approach)
+    streamer = Streamer.open(target, actuators, opts, log)
+    rep = streamer.run_path(motion, approach=req.approach, plan_approach=plan_approach)
     print(f"  stream {rep.status}: {rep.message}; {rep.frames} frames; log {rep.log}")
     return rep.ok
 

@@ -2,9 +2,12 @@
 
 Reading goes through `crtraj.io.results.read_result`, the refusals through
 `crtraj.hardware.admission.admit` (a failed, colliding, ``--no-safety`` or
-scene-less result, one for another robot, a slowed replay among moving
-obstacles), the sending through `crtraj.hardware.stream.Streamer`, which
-streams only admitted motions.
+scene-less result, one for another robot, set-points that fail the check as
+sent, `crtraj.hardware.verify`, e.g. a slowed replay that meets a moving
+obstacle), the sending through `crtraj.hardware.stream.Streamer`, which
+streams only admitted motions. ``--approach`` injects the planned approach
+(`crtraj.app.approach.plan_approach`) into the streamer. A refusal before
+anything is sent is one line on stderr and exit 1.
 """
 
 from __future__ import annotations
@@ -18,7 +21,8 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from crtraj.core.errors import InputError
+from crtraj.app.approach import plan_approach
+from crtraj.core.errors import AdmissionError, InputError
 from crtraj.core.fileio import StagedFile, check_output_file
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.admission import AdmittedMotion, admit
@@ -34,12 +38,14 @@ def admit_result(
     robot_file: str | Path | None = None,
     *,
     time_scale: float = 1.0,
+    rate: float = 100.0,
 ) -> AdmittedMotion:
     """Read a result and admit its motion for a device (one-line `InputError` / `AdmissionError` otherwise).
 
     robot_file: the device's robot TOML whose ``[robot.actuators]`` are used
     (default: the result's own robot, which must then have them).
-    time_scale: play the motion this many times slower.
+    time_scale: play the motion this many times slower. rate: the stream rate (Hz) its set-points are
+    verified at.
     """
     device = None
     if robot_file is not None:  # the flag's file first: a bad --robot is named before the result is read
@@ -52,7 +58,7 @@ def admit_result(
         raise InputError(
             "robot.actuators: the result's robot has no [robot.actuators]; pass --robot problems/robots/cdsr2.toml"
         )
-    return admit(res.motion_record(), Actuators.from_robot(device), robot=device, time_scale=time_scale)
+    return admit(res.motion_record(), Actuators.from_robot(device), robot=device, time_scale=time_scale, rate=rate)
 
 
 def _refuse_overwriting_input(result: str, *outputs: tuple[str, Any]) -> None:
@@ -102,7 +108,8 @@ def _stream(args: argparse.Namespace, motion: AdmittedMotion, opts: StreamOption
             f"{opts.rate:g} Hz) to {to}",
             flush=True,
         )
-        rep = Streamer(transport, motion.actuators, opts, log).run_path(motion, approach=args.approach)
+        streamer = Streamer(transport, motion.actuators, opts, log)
+        rep = streamer.run_path(motion, approach=args.approach, plan_approach=plan_approach)
         if frames is not None and rep.ok:
             frames.commit()
     return rep
@@ -130,12 +137,14 @@ def _print_report(rep: StreamReport, dry_run: str | None) -> None:
 def stream_command(args: argparse.Namespace) -> int:
     """`crtraj stream RESULT ...` (arguments from `crtraj.cli`); returns the exit code."""
     check_time_scale(args.time_scale)
-    motion = admit_result(args.result, args.robot, time_scale=args.time_scale)
     opts = Problem.load(args.problem).options(StreamOptions, "stream") if args.problem else StreamOptions()
     over = {k: v for k, v in (("rate", args.rate), ("watchdog", args.watchdog)) if v is not None}
     opts = dataclasses.replace(opts, **over)
+    motion = admit_result(args.result, args.robot, time_scale=args.time_scale, rate=opts.rate)
     log = args.log or Path("out") / "stream" / f"{Path(args.result).stem}-{time.strftime('%Y%m%d-%H%M%S')}.jsonl"
     _refuse_overwriting_input(args.result, ("--log", log), ("--dry-run", args.dry_run))
     rep = _stream(args, motion, opts, Path(log))
+    if rep.status == "refused" and rep.moves == 0:  # refused before anything was sent: one line, exit 1
+        raise AdmissionError(f"{args.result}: {rep.message}")
     _print_report(rep, args.dry_run)
     return 0 if rep.ok else 1

@@ -371,6 +371,12 @@ class ClosedLoop:
             self.model, scene, check_points=lo.check_points, resolution=lo.check_resolution, functions=self._fns
         )
 
+    @property
+    def scene_now(self) -> Any:
+        """The obstacles (a `crtraj.world.scene.Scene`, loop time) the current step was checked against: a
+        device that verifies what it sends checks against the same snapshot."""
+        return self._scene_now
+
     def _use(self, scene: Any) -> None:
         """Make `scene` the obstacles every check of this step uses."""
         if scene is not self._scene_now:

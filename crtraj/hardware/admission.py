@@ -14,12 +14,20 @@ Refused, before anything is sent:
 - a result with collision steps, or steps closer than the safety distance D_sf;
 - a result without its scene (nothing could be re-checked against it);
 - a result made for another robot than the device's (`crtraj.model.identity`);
-- a slowed replay (time scale != 1) among moving or breathing obstacles: the
-  slowed timing was never checked against them (re-verification is issue 13's
-  later work; until then it is refused).
+- a motion whose set-points, as they will be sent, fail `crtraj.hardware.verify`:
+  the frames sampled at the stream rate by the streamer's own sampling
+  (`SetpointPath.sample`), slowed by the time scale if any, are turned back
+  into configurations and checked against the scene at their times (dense
+  body check with D_sf, cable consistency, configuration and actuator
+  limits). A slowed replay among moving obstacles is checked the same way: it
+  is admitted when it stays safe at its new times.
 
-The live loop (``crtraj replan --feed --stream``) streams one verified step at
-a time through `Streamer.send_values`; `check_stream_safety` is its refusal.
+The `AdmittedMotion` carries the verified frames; `Streamer.run_path` sends
+exactly those (with a verified approach before them, if asked).
+
+The live loop (``crtraj replan --feed --stream``) streams one step at a time
+(`crtraj.hardware.link.DeviceLink`, each step's frames verified by the same
+`FrameVerifier` against the loop's scene snapshot); `check_stream_safety` is its refusal.
 """
 
 from __future__ import annotations
@@ -31,6 +39,7 @@ import numpy as np
 from crtraj.core.errors import AdmissionError, InputError
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.setpoints import SetpointPath, check_time_scale
+from crtraj.hardware.verify import FrameVerifier, VerifyOptions
 from crtraj.model.identity import robot_difference
 from crtraj.model.robot import Robot
 from crtraj.world.scene import Scene
@@ -70,7 +79,11 @@ class MotionRecord:
 class AdmittedMotion:
     """A motion `admit` let through: `path` (actuator set-points, already time-scaled) for `actuators`.
 
-    Only `admit` can construct it; `Streamer.run_path` streams nothing else.
+    stamps (M,) s and values (M, n): the frames `path` gives at `rate` Hz, as
+    verified (read-only); `Streamer.run_path` sends exactly these. scene: the
+    obstacles they were checked against; verifier: the `FrameVerifier` that
+    checked them (it checks an approach too). Only `admit` can construct it;
+    `Streamer.run_path` streams nothing else.
     """
 
     path: SetpointPath
@@ -78,6 +91,11 @@ class AdmittedMotion:
     actuators: Actuators
     source: str = ""
     time_scale: float = 1.0
+    rate: float = 100.0
+    stamps: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
+    values: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)), repr=False)
+    scene: Scene | None = field(default=None, repr=False)
+    verifier: FrameVerifier | None = field(default=None, repr=False, compare=False)
     _seal: object = field(default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -97,20 +115,6 @@ def same_actuators(a: Actuators, b: Actuators) -> bool:
         return False
     names = ("spool_radius", "sign", "zero_offset", "lower", "upper", "vmax", "amax", "rest")
     return all(getattr(a, k) is None or np.array_equal(getattr(a, k), getattr(b, k)) for k in names)
-
-
-def check_replay_time_scale(scene: Scene | None, time_scale: float) -> None:
-    """Refuse to slow down a motion among moving or breathing obstacles: its slowed timing was never checked.
-
-    time_scale: the replay's slow-down factor (1 = as planned).
-    """
-    if time_scale == 1.0 or scene is None:
-        return
-    if any(ob.amplitude != 0.0 or ob.to is not None for ob in scene.obstacles):
-        raise AdmissionError(
-            f"--time-scale: {time_scale:g} refused: the run's obstacles move or change size, and a slowed replay "
-            "was never checked against them (plan again with lower speed limits instead)"
-        )
 
 
 def check_stream_safety(safety: bool) -> None:
@@ -146,7 +150,13 @@ def _refusal(record: MotionRecord, device_robot: Robot) -> str | None:
 
 
 def admit(
-    record: MotionRecord, actuators: Actuators, *, robot: Robot | None = None, time_scale: float = 1.0
+    record: MotionRecord,
+    actuators: Actuators,
+    *,
+    robot: Robot | None = None,
+    time_scale: float = 1.0,
+    rate: float = 100.0,
+    verify: VerifyOptions | None = None,
 ) -> AdmittedMotion:
     """Admit a result's motion for a device, or refuse it with a one-line `AdmissionError`.
 
@@ -154,15 +164,16 @@ def admit(
     bound to the result's robot). robot: the device's robot definition
     (default: the result's own, when the actuators come from the result's
     robot file). time_scale: play the motion this many times slower
-    (0.001..1000). Raises `InputError` for unreadable data (no actuation, a bad
-    time scale), `AdmissionError` for a refusal.
+    (0.001..1000). rate: the stream rate (Hz) the frames are verified at (the
+    streamer's `StreamOptions.rate`). verify: how densely (`VerifyOptions`).
+    Raises `InputError` for unreadable data (no actuation, a bad time scale),
+    `AdmissionError` for a refusal.
     """
     check_time_scale(time_scale)
     where = f"{record.source}: " if record.source else ""
     why = _refusal(record, record.robot if robot is None else robot)
     if why is not None:
         raise AdmissionError(where + why)
-    check_replay_time_scale(record.scene, time_scale)
     if record.q is None:
         raise InputError(f"{where}waypoints[0].q: missing (the actuation, mm, that a device is sent)")
     bound = actuators.for_robot(record.robot)
@@ -171,4 +182,19 @@ def admit(
     path = SetpointPath.from_actuation(record.t, record.q, bound, where)
     if time_scale != 1.0:
         path = path.scaled(time_scale)
-    return AdmittedMotion(path, record.robot, bound, record.source, float(time_scale), _SEAL)
+    stamps, values = path.sample(rate)
+    scene = record.scene if record.scene is not None else Scene()  # (_refusal refused a scene-less result)
+    verifier = FrameVerifier(record.robot, bound, scene, 1.0 / rate, verify)
+    why = verifier.failure(stamps, values)
+    if why is not None:
+        slowed = f" slowed {time_scale:g} times" if time_scale != 1.0 else ""
+        hint = ""
+        if " velocity " in why or " acceleration " in why:
+            scale = verifier.slowest_scale(SetpointPath(np.asarray(record.t, dtype=float), path.values), rate)
+            hint = f"; the motion is too fast for the actuators: try --time-scale {scale:.2f}" if scale else ""
+        raise AdmissionError(f"{where}set-points{slowed} at {rate:g} Hz refused: {why}{hint}")
+    for a in (stamps, values):
+        a.setflags(write=False)
+    return AdmittedMotion(
+        path, record.robot, bound, record.source, float(time_scale), float(rate), stamps, values, scene, verifier, _SEAL
+    )

@@ -6,6 +6,7 @@ Units: actuation q in mm, actuator values in rad / mm, times in s.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -34,14 +35,35 @@ class DeviceLink:
     the telemetry itself, with the held position as the command in force.
     `hold` latches the stream's hold (HOLD frames at the last sent
     position); the next move resumes from there, at rest. `estop` is final.
+
+    Verified as sent: with a `verifier` (`crtraj.hardware.verify.FrameVerifier`)
+    and `scene_now` (the scene snapshot the loop checked the step against), each
+    step's frames, as they will leave (the follower's output), pass the same
+    check as a whole motion (dense body check with D_sf, cables, limits from
+    the last queued frame) before they are queued; a step that fails is not
+    sent: the link holds and the loop gets a `DeviceError` naming the time and
+    the reason (`refused_steps`, `refusal` record it).
     Units: actuation q in mm, actuator values in rad / mm, times in s.
     """
 
     # late-loop holds the link may resume from; any other hold (telemetry lost, device refusal) ends the run
     _RECOVERABLE = ("source stalled", "set-point refused")
 
-    def __init__(self, streamer: Any, servo: Any, dt: float, *, lead: float | None = None) -> None:
+    def __init__(
+        self,
+        streamer: Any,
+        servo: Any,
+        dt: float,
+        *,
+        lead: float | None = None,
+        verifier: Any = None,
+        scene_now: Callable[[], Any] | None = None,
+    ) -> None:
         self.streamer = streamer
+        self.verifier = verifier
+        self.scene_now = scene_now
+        self.refused_steps = 0
+        self.refusal = ""
         self.actuators = streamer.actuators
         self.servo = servo
         o = streamer.options
@@ -141,7 +163,15 @@ class DeviceLink:
         stamps = t + self.fdt * np.arange(1, n + 1)
         Q = self.verified(q0, commands, control_dt, self.fdt * np.arange(1, n + 1))
         target = self.actuators.command(Q)
+        before = (self._p, self._v, self._last_target)
         values = self._follow(target)
+        why = self._failure(stamps, values, before[0], before[1])
+        if why is not None:
+            self._p, self._v, self._last_target = before
+            self.refused_steps += 1
+            self.refusal = self.refusal or why
+            self.hold(f"step at t={t:.2f} s refused before sending: {why}")
+            raise DeviceError(f"step at t={t:.2f} s refused before sending: {why}")
         self.max_deviation = np.maximum(self.max_deviation, np.max(np.abs(values - target), axis=0))
         try:
             s.send_path(stamps, values)
@@ -150,6 +180,13 @@ class DeviceLink:
         self._moving = True
         self._remember(stamps, Q)
         self._clock_after_queue(t, stamps[-1])
+
+    def _failure(self, stamps: np.ndarray, values: np.ndarray, p0: Any, v0: np.ndarray) -> str | None:
+        """Why a step's frames may not leave (`FrameVerifier.failure` against the loop's scene), or None."""
+        if self.verifier is None:
+            return None
+        v = self.verifier if self.scene_now is None else self.verifier.with_scene(self.scene_now())
+        return v.failure(stamps, values, start=p0, start_velocity=v0)
 
     def verified(self, q0: np.ndarray, commands: np.ndarray, h: float, offsets: np.ndarray) -> np.ndarray:
         """Actuation (len(offsets), nq) of the servo model at `offsets` s into the step (0 < offset <= n h)."""
@@ -228,6 +265,7 @@ class DeviceLink:
         s = self.streamer
         if s.state in ("waiting", "streaming") and self._p is not None:
             goal = self.actuators.command(np.asarray(q_final, dtype=float))
+            p0, v0 = self._p, self._v
             tail = []
             for _ in range(int(timeout / self.fdt)):
                 tail.append(self._follow(goal[None])[0])
@@ -235,8 +273,17 @@ class DeviceLink:
                     tail.append(goal)  # the last micro-step, far inside every limit
                     break
             t = float(self._hist_t[-1]) if len(self._hist_t) else 0.0
+            stamps = t + self.fdt * np.arange(1, len(tail) + 1)
+            why = self._failure(stamps, np.array(tail), p0, v0) if tail else None
+            if why is not None:  # the way to rest is unsafe: stop where the device is
+                self.refused_steps += 1
+                self.refusal = self.refusal or why
+                self.hold(f"final approach to rest refused before sending: {why}")
+                tail = []
             try:
-                s.send_path(t + self.fdt * np.arange(1, len(tail) + 1), np.array(tail))
+                if not tail:
+                    raise StreamError("nothing to send")
+                s.send_path(stamps, np.array(tail))
                 s.finish()
                 s.wait(len(tail) * self.fdt + self.lead + s.options.settle_timeout + 2.0)
             except StreamError:
@@ -254,4 +301,6 @@ class DeviceLink:
             "restarts": self.restarts,
             "holds": self.holds,
             "measured_steps": self.measured_steps,
+            "refused_steps": self.refused_steps,
+            "refusal": self.refusal,
         }

@@ -30,18 +30,14 @@ MAX_TIME_SCALE = 1.0e3
 # memory of `sample` (stamps and values) before it allocates anything.
 MAX_SETPOINTS = 2_000_000
 
-# Quintic smoothstep s(u) = 10u^3 - 15u^4 + 6u^5: peak |s'| = 15/8, peak |s''| = 10/sqrt(3).
-_SMOOTH_V = 15.0 / 8.0
-_SMOOTH_A = 10.0 / math.sqrt(3.0)
+# Cubic smoothstep s(u) = 3u^2 - 2u^3 (two waypoints, zero end slopes): peak |s'| = 3/2, peak |s''| = 6.
+_STRAIGHT_V = 1.5
+_STRAIGHT_A = 6.0
 
 
 def check_time_scale(factor: Any, name: str = "--time-scale") -> float:
     """Validate a replay slow-down factor: a finite number in [MIN_TIME_SCALE, MAX_TIME_SCALE]."""
     return check_float(factor, name, ge=MIN_TIME_SCALE, le=MAX_TIME_SCALE)
-
-
-def _smoothstep(u: np.ndarray) -> np.ndarray:
-    return u**3 * (10.0 - 15.0 * u + 6.0 * u**2)
 
 
 @dataclass(frozen=True)
@@ -55,8 +51,7 @@ class SetpointPath:
     t: np.ndarray
     values: np.ndarray
     source: str = ""
-    approach_start: np.ndarray | None = None  # actuator values the approach move starts from
-    approach_time: float = 0.0  # s, duration of the approach move before t[0]
+    approach: SetpointPath | None = None  # the move to the first waypoint, ending at t[0]
 
     def __post_init__(self) -> None:
         t = np.asarray(self.t, dtype=float)
@@ -108,59 +103,86 @@ class SetpointPath:
     def scaled(self, factor: float) -> SetpointPath:
         """The same path `factor` times slower (factor > 1 slows down)."""
         check_time_scale(factor)
-        if self.approach_start is not None:
+        if self.approach is not None:
             raise InputError("time scale: apply it before adding the approach move")
         return SetpointPath(self.t[0] + (self.t - self.t[0]) * factor, self.values, self.source)
 
     def with_approach(self, start: np.ndarray, actuators: Actuators, margin: float = 1.25) -> SetpointPath:
-        """Prepend a rest-to-rest quintic move from `start` (actuator values) to the first waypoint.
+        """Prepend a rest-to-rest straight move from `start` (actuator values) to the first waypoint.
 
-        Its duration is the shortest for which every actuator keeps within
-        ``1/margin`` of its velocity and acceleration limits. The move is a
-        straight line in actuator space, which is a straight line in
-        configuration space too (the maps are affine): it is not collision
-        checked, so it is only used on request (``--approach``).
+        The move (a cubic with zero end slopes, as `sample` interpolates two
+        waypoints) lasts the shortest time for which every actuator keeps
+        within ``1/margin`` of its velocity and acceleration limits: peak
+        speed 1.5 d / T, peak acceleration 6 d / T^2 for a distance d. It is a
+        straight line in actuator and configuration space (the maps are
+        affine) and is not collision checked here: `crtraj.hardware.verify`
+        checks it, with everything else that is sent, before it leaves.
         """
         start = np.asarray(start, dtype=float)
         d = np.abs(self.values[0] - start)
         if not np.any(d > 0):
             return self
-        T = margin * float(max(np.max(_SMOOTH_V * d / actuators.vmax), np.max(np.sqrt(_SMOOTH_A * d / actuators.amax))))
-        return replace(self, approach_start=start, approach_time=T)
+        T = margin * float(
+            max(np.max(_STRAIGHT_V * d / actuators.vmax), np.max(np.sqrt(_STRAIGHT_A * d / actuators.amax)))
+        )
+        return self.with_approach_path(np.array([self.t[0] - T, self.t[0]]), np.stack([start, self.values[0]]))
+
+    def with_approach_path(self, t: Any, values: Any) -> SetpointPath:
+        """Prepend an approach: waypoint times t (s, strictly increasing, ending at this path's first time)
+        and actuator values (K, n) ending at this path's first values. It starts and ends at rest."""
+        if self.approach is not None:
+            raise InputError("approach: this path already has one")
+        ap = SetpointPath(np.asarray(t, dtype=float), np.asarray(values, dtype=float), self.source + "approach: ")
+        if ap.t[-1] != self.t[0] or not np.array_equal(ap.values[-1], self.values[0]):
+            raise InputError(f"{self.source}approach: must end at the path's first waypoint (t={self.t[0]:g} s)")
+        return replace(self, approach=ap)
 
     @property
     def start_time(self) -> float:
-        """Time of the first set-point (s): the first waypoint, earlier by the approach move if any."""
-        return float(self.t[0] - self.approach_time)
+        """Time of the first waypoint (s), of the approach's first when there is one."""
+        return float(self.t[0] if self.approach is None else self.approach.t[0])
+
+    def approach_frames(self, rate: float) -> int:
+        """How many set-points of `sample(rate)` belong to the approach (before the first waypoint)."""
+        if self.approach is None:
+            return 0
+        return math.ceil((float(self.t[0]) - self.start_time) * rate - 1e-9)
 
     # --------------------------------------------------------------- sampling
     def sample(self, rate: float) -> tuple[np.ndarray, np.ndarray]:
-        """Set-points every 1/rate s from `start_time` to the last waypoint (included).
+        """Set-points every 1/rate s from the approach (if any) through the last waypoint (included).
 
-        Returns (stamps (M,), values (M, n)); stamps are ``start_time + k / rate``
-        except the last, which is the final waypoint time.
+        Returns (stamps (M,), values (M, n)). The stamps are ``t[0] + k / rate``
+        for k from -`approach_frames` on (one grid anchored at the first
+        waypoint, so adding an approach never changes the motion's own
+        set-points), except the last, which is the final waypoint time. An
+        approach whose duration is not a whole number of periods starts by
+        holding its first values for the fraction of a period before it.
         """
         check_float(rate, "rate", gt=0.0)
         dt = 1.0 / rate
-        t0, t1 = self.start_time, float(self.t[-1])
-        n = (t1 - t0) * rate
+        t0, t1 = float(self.t[0]), float(self.t[-1])
+        n = (t1 - self.start_time) * rate
         if not n <= MAX_SETPOINTS:  # also catches inf and NaN, before anything is allocated
             raise InputError(
-                f"{self.source}waypoints: {t1 - t0:g} s at {rate:g} Hz is more than {MAX_SETPOINTS} set-points; "
-                "shorten the run, lower the rate or the time scale"
+                f"{self.source}waypoints: {t1 - self.start_time:g} s at {rate:g} Hz is more than {MAX_SETPOINTS} "
+                "set-points; shorten the run, lower the rate or the time scale"
             )
         m = math.ceil((t1 - t0) / dt - 1e-9)
-        stamps = t0 + dt * np.arange(m + 1)
+        na = self.approach_frames(rate)
+        stamps = t0 + dt * np.arange(-na, m + 1)
         stamps[-1] = t1
-        with np.errstate(over="ignore", divide="ignore", invalid="ignore"):  # subnormal steps: slope 0
-            slopes = PchipInterpolator(self.t, self.values, axis=0).derivative()(self.t)
-        slopes[0] = 0.0
-        slopes[-1] = 0.0
-        spline = CubicHermiteSpline(self.t, self.values, slopes, axis=0)
-        values = spline(np.maximum(stamps, self.t[0]))
-        if self.approach_start is not None:
-            early = stamps < self.t[0]
-            u = (stamps[early] - t0) / self.approach_time
-            a0 = self.approach_start
-            values[early] = a0 + _smoothstep(u)[:, None] * (self.values[0] - a0)
+        values = _spline(self.t, self.values)(np.maximum(stamps, t0))
+        if self.approach is not None:
+            ap = self.approach
+            values[:na] = _spline(ap.t, ap.values)(np.clip(stamps[:na], ap.t[0], ap.t[-1]))
         return stamps, values
+
+
+def _spline(t: np.ndarray, values: np.ndarray) -> CubicHermiteSpline:
+    """PCHIP slopes with zero slope at both ends: starts and ends at rest, never overshoots a waypoint."""
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):  # subnormal steps: slope 0
+        slopes = PchipInterpolator(t, values, axis=0).derivative()(t)
+    slopes[0] = 0.0
+    slopes[-1] = 0.0
+    return CubicHermiteSpline(t, values, slopes, axis=0)

@@ -71,6 +71,10 @@ from crtraj.hardware.protocol import (
 from crtraj.hardware.setpoints import SetpointPath
 from crtraj.hardware.transport import Transport, TransportError
 
+# (admitted motion, the device's actuator values) -> the motion's path with an approach ending at its first time;
+# raises AdmissionError when no safe approach exists. The app layer injects a planner (crtraj.app.approach).
+ApproachPlanner = Callable[[AdmittedMotion, np.ndarray], SetpointPath]
+
 # States. Terminal: done, estop, error, closed. Latched (hold frames until resume/close): held.
 IDLE, WAITING, STREAMING, SETTLING, HELD, DONE, ESTOPPED, ERROR, CLOSED = (
     "idle",
@@ -513,17 +517,31 @@ class Streamer:
                 self._event("transport-error", str(exc))
 
     # ------------------------------------------------------------ whole path
+    # Over 60 lines by its docstring and its refusals written out; the body is: check, connect, frames, send.
     def run_path(
-        self, motion: AdmittedMotion, *, approach: bool = False, initial: np.ndarray | None = None
+        self,
+        motion: AdmittedMotion,
+        *,
+        approach: bool = False,
+        initial: np.ndarray | None = None,
+        plan_approach: ApproachPlanner | None = None,
     ) -> StreamReport:
         """Stream a whole admitted motion in the calling thread and close; returns the report.
 
         motion: made by `crtraj.hardware.admission.admit` for this streamer's
-        actuators; anything else raises `AdmissionError` before anything is
-        sent. The sampled set-points are checked against every limit before the
-        first frame leaves (status ``refused`` with the reason otherwise).
-        approach: first move from the device's position to the path's start
-        (a straight line in actuator space, not collision checked).
+        actuators and rate; anything else raises `AdmissionError` before
+        anything is sent. Its verified frames are sent exactly; they must start
+        where the device is (status ``refused`` with the reason otherwise).
+        approach: first move from the device's position to the motion's start,
+        ending at the motion's first time: `plan_approach(motion, here)` gives
+        it (a `SetpointPath`, the motion's path with an approach; the app layer
+        injects a planner, `crtraj.app.approach`), by default the straight
+        move in actuator space (`SetpointPath.with_approach`). Either way the
+        approach's frames pass the motion's `FrameVerifier` (body, D_sf,
+        limits, against the motion's scene at their times) before the first
+        frame leaves; `plan_approach` raising `AdmissionError` (no safe
+        approach) or a failed check ends the run with status ``refused`` and
+        nothing sent.
         """
         if not isinstance(motion, AdmittedMotion):
             raise AdmissionError(
@@ -532,25 +550,34 @@ class Streamer:
             )
         if not motion.admitted_for(self.actuators):
             raise AdmissionError("run_path: the motion was admitted for other actuators than this streamer's")
-        path = motion.path
+        if motion.rate != self.options.rate:
+            raise AdmissionError(
+                f"run_path: the motion was verified at {motion.rate:g} Hz, this streamer sends at "
+                f"{self.options.rate:g} Hz; admit it with rate={self.options.rate:g}"
+            )
         if not self._realtime:
             vc = _VirtualClock()
             self._clock, self._sleep = vc, vc.sleep
         if initial is None and not self.transport.has_telemetry:
-            initial = path.sample(self.options.rate)[1][0] if not approach else None
-            if initial is None:
+            if approach:
                 raise StreamError("--approach needs a device with telemetry (its position is the approach start)")
+            initial = motion.values[0]
         try:
             self.start(initial, background=False)
         except StreamError as exc:
             return self.close(status=ERROR if self._state == ERROR else None, message=str(exc))
         here = self._gate.position
+        stamps, values = motion.stamps, motion.values
         if approach:
-            path = path.with_approach(here, self.actuators)
-        stamps, values = path.sample(self.options.rate)
+            try:
+                stamps, values = self._approach_frames(motion, here, plan_approach)
+            except AdmissionError as exc:
+                msg = f"refused before sending: {exc}"
+                self._event("refused", msg)
+                return self.close(status="refused", message=msg)
         v = self._gate.check_path(values, stamps, start=here)
         if v is not None:
-            msg = self._refusal_text(v, path, values, here)
+            msg = self._refusal_text(v, values, here)
             self._event("refused", msg)
             return self.close(status="refused", message=msg)
         self.send_path(stamps, values)
@@ -564,42 +591,41 @@ class Streamer:
             return self.close(status="interrupted", message="interrupted (Ctrl-C): hold commanded")
         return self.close()
 
-    def _refusal_text(self, v: Violation, path: SetpointPath, values: np.ndarray, here: np.ndarray) -> str:
+    def _approach_frames(
+        self, motion: AdmittedMotion, here: np.ndarray, plan_approach: ApproachPlanner | None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The approach's frames, verified, followed by the motion's verified frames (`AdmissionError` if unsafe)."""
+        if plan_approach is not None:
+            path = plan_approach(motion, here)
+        else:
+            path = motion.path.with_approach(here, self.actuators)
+        rate = self.options.rate
+        stamps, values = path.sample(rate)
+        na = path.approach_frames(rate)
+        # the motion's own frames are the verified ones, on the same grid: sampling with an approach must give
+        # them back bit for bit, or what is sent would not be what was verified
+        if len(stamps) - na != len(motion.stamps) or not (
+            np.array_equal(stamps[na:], motion.stamps) and np.array_equal(values[na:], motion.values)
+        ):
+            raise AdmissionError("approach: the approach changed the motion's verified set-points")
+        if motion.verifier is None:
+            raise AdmissionError("approach: the motion carries no verifier")
+        # the approach and its join into the motion: body and limits from the device's position at rest
+        why = motion.verifier.failure(stamps[: na + 1], values[: na + 1], start=here)
+        if why is not None:
+            raise AdmissionError(f"approach: {why}")
+        return np.concatenate([stamps[:na], motion.stamps]), np.concatenate([values[:na], motion.values])
+
+    def _refusal_text(self, v: Violation, values: np.ndarray, here: np.ndarray) -> str:
         msg = f"refused before sending: {v.message()}"
-        if v.quantity not in ("velocity", "acceleration"):
-            return msg
         d = np.abs(values[0] - here)
-        if np.any(d > self.actuators.amax * self._dt**2 * (1 + 1e-9)):
+        if v.quantity in ("velocity", "acceleration") and np.any(d > self.actuators.amax * self._dt**2 * (1 + 1e-9)):
             i = int(np.argmax(d / self.actuators.amax))
-            return msg + (
+            msg += (
                 f"; the path starts {d[i]:.4g} {self.actuators.units[i]} ({self.actuators.names[i]}) away from "
                 "the device's position: move there first (--approach)"
             )
-        scale = self._slowest_needed(path, here)
-        if scale is not None:
-            msg += f"; the path is too fast: try --time-scale {scale:.2f}"
         return msg
-
-    def _slowest_needed(self, path: SetpointPath, here: np.ndarray) -> float | None:
-        """The smallest time scale (in steps of 5 %) whose sampled set-points pass every limit."""
-        if path.approach_start is not None:
-            return None
-        _, values = path.sample(self.options.rate)
-        V = np.diff(values, axis=0) / self._dt
-        A = np.diff(V, axis=0) / self._dt
-        # continuous-time estimate as the first guess, then check the sampled path itself
-        guess = max(
-            1.0,
-            float(np.max(np.abs(V) / self.actuators.vmax, initial=0.0)),
-            math.sqrt(float(np.max(np.abs(A) / self.actuators.amax, initial=0.0))),
-        )
-        scale = math.ceil(guess * 20) / 20
-        for _ in range(60):
-            st, va = path.scaled(scale).sample(self.options.rate)
-            if self._gate.check_path(va, st, start=here) is None:
-                return scale
-            scale = math.ceil(scale * 1.05 * 20) / 20
-        return None
 
     # ----------------------------------------------------------------- loop
     def run(self) -> None:
@@ -743,8 +769,16 @@ class Streamer:
         if j >= len(self._bt):
             return self._bv[-1]
         t0, t1 = self._bt[j - 1], self._bt[j]
-        w = (tau - t0) / (t1 - t0)
-        out = self._bv[j - 1] if w <= 0 else (1 - w) * self._bv[j - 1] + w * self._bv[j]
+        # a stamp on the set-points' own grid (up to rounding: tau0 + k dt vs t0 + (k - n) dt) sends that
+        # set-point exactly, so what leaves is bit for bit what was verified
+        eps = 1e-9 * max(1.0, abs(tau))
+        if tau - t0 <= eps:
+            out = self._bv[j - 1]
+        elif t1 - tau <= eps:
+            out = self._bv[j]
+        else:
+            w = (tau - t0) / (t1 - t0)
+            out = (1 - w) * self._bv[j - 1] + w * self._bv[j]
         if j > 4096:  # drop consumed set-points of long live streams
             del self._bt[: j - 2]
             del self._bv[: j - 2]
