@@ -541,8 +541,8 @@ def test_cli_view_serves_until_ctrl_c(result, tmp_path):
         servers = _server_children(proc.pid)
         assert len(servers) == 1
         proc.send_signal(signal.SIGINT)
-        lines.wait_for("stopped", 30)
-        proc.wait(timeout=30)
+        lines.wait_for("stopped", 300)  # hang bounds only: a loaded machine may take long to shut down
+        proc.wait(timeout=300)
     finally:
         if proc.poll() is None:
             proc.kill()
