@@ -8,27 +8,47 @@ import math
 import typing
 from typing import ClassVar
 
+import casadi as ca
 import numpy as np
 import pytest
 
 import crtraj.bench.records
 import crtraj.bench.scenarios
+import crtraj.control.horizon
+import crtraj.control.loop_options
 import crtraj.control.tracking
+import crtraj.hardware.stream
 import crtraj.planning.options
 import crtraj.planning.steer
+import crtraj.viz.view
 import crtraj.world.feed
 from crtraj.bench.records import BenchOptions
 from crtraj.bench.scenarios import ScenarioOptions
+from crtraj.control.horizon import MOVED_TO_LOOP, ReplanOptions
+from crtraj.control.loop_options import LoopOptions
 from crtraj.control.tracking import TrackingOptions
 from crtraj.core.errors import InputError
 from crtraj.core.fields import Table
 from crtraj.core.options import Options, option
+from crtraj.hardware.stream import StreamOptions
 from crtraj.planning.options import PlannerOptions
 from crtraj.planning.steer import SteerOptions
+from crtraj.viz.view import ViewOptions
 from crtraj.world.feed import FeedOptions
 
-# every options section of the package (ReplanOptions, ViewOptions, StreamOptions join when converted)
-SECTION_CLASSES = (PlannerOptions, SteerOptions, TrackingOptions, BenchOptions, ScenarioOptions, FeedOptions)
+# every options section of the package
+SECTION_CLASSES = (
+    PlannerOptions,
+    SteerOptions,
+    TrackingOptions,
+    BenchOptions,
+    ScenarioOptions,
+    FeedOptions,
+    ReplanOptions,
+    LoopOptions,
+    StreamOptions,
+    ViewOptions,
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -108,6 +128,10 @@ def test_every_section_class_uses_the_one_style():
         crtraj.bench.records,
         crtraj.bench.scenarios,
         crtraj.world.feed,
+        crtraj.control.horizon,
+        crtraj.control.loop_options,
+        crtraj.hardware.stream,
+        crtraj.viz.view,
     ):
         assert not {"_FLOATS", "_INTS", "_BOOLS", "_STRS"} & set(vars(module)), module.__name__
     p = PlannerOptions.from_table(Table({"max_speed": 30, "range": 90.0}, "planner"))
@@ -137,6 +161,26 @@ _OLD_DEFAULTS = {
         start_window=1.0, goal_margin=5.0, max_attempts=200,
     ),
     FeedOptions: dict(max_speed=500.0, velocity_window=0.25, min_span=0.05, max_skew=0.5),
+    ReplanOptions: dict(
+        horizon=10, dt=0.1, points=16, margin=1.5, tip_weight=1.0, config_weight=0.01, velocity_weight=0.02,
+        smooth_weight=0.2, terminal_weight=10.0, max_cable_speed=8.0, max_z_speed=40.0, solver="ipopt",
+        qpsol="daqp", hessian="gauss-newton", max_iter=60, tol=1e-6, max_solve_time=0.5, limit_fraction=0.9,
+        rescue=True, safety=True,
+    ),
+    LoopOptions: dict(
+        duration=60.0, replan_period=0.0, planner_time=1.0, stall_time=3.0, reference_speed=0.7,
+        max_body_speed=50.0, check_resolution=1.0, check_points=21, settle_time=0.5,
+    ),
+    StreamOptions: dict(
+        rate=100.0, watchdog=0.1, connect_timeout=1.0, prebuffer=0.1, settle_tolerance=0.01, settle_timeout=2.0,
+        ack_timeout=0.25, following_tolerance=5.0, fsync=False,
+    ),
+    ViewOptions: dict(
+        backbone_radius=1.0, disc_spacing=20.0, disc_thickness=2.0, disc_radius=None,
+        segment_colors=("#1f77b4", "#2ca02c", "#9467bd", "#8c564b", "#17becf"), obstacle_color="#d62728",
+        obstacle_opacity=0.3, start_color="#ffb000", goal_color="#e000e0", path_color="#202020",
+        trail_color="#ff7f0e", tree_color="#8c8c8c", marker_radius=4.0, show_tree=True, play=True,
+    ),
 }  # fmt: skip
 
 # One object per class with every kind of field set away from its default.
@@ -152,6 +196,14 @@ _CHANGED = (
         seed=5, radius_mean=(20.0, 40.0), travel=(10.0, 20.0), tip_box_lo=(-100.0, -90.0, 100.0), max_attempts=50
     ),
     FeedOptions(max_speed=80.0, min_span=0.02, max_skew=2.0),
+    ReplanOptions(
+        horizon=6, dt=0.05, points=12, margin=0, solver="sqp", qpsol="qrqp", hessian="exact", max_iter=20,
+        limit_fraction=0.5, rescue=False, safety=False,
+    ),
+    LoopOptions(duration=2.5, replan_period=0.5, reference_speed=0.5, check_points=9, settle_time=0.0),
+    StreamOptions(rate=50, watchdog=0.5, prebuffer=0.0, following_tolerance=20.0, fsync=True),
+    ViewOptions(disc_radius=3.0, segment_colors=["#000000", "#ABCDEF"], obstacle_opacity=1, tree_color="#ffffff",
+                show_tree=False),
 )  # fmt: skip
 
 
@@ -229,6 +281,29 @@ _BAD = (
     (ScenarioOptions, {"tip_box_lo": [0.0, 0.0, 500.0]}, r"^scenarios\.tip_box_lo: must be below tip_box_hi"),
     (ScenarioOptions, {"tip_box_hi": [1e7, 1.0, 1.0]}, r"^scenarios\.tip_box_hi\[0\]: must be within \+-1e\+06"),
     (FeedOptions, {"max_speed": 1e6}, r"^feed\.max_speed: must be <= 100000, got 1e\+06$"),
+    (ReplanOptions, {"horizon": 0}, r"^replan\.horizon: must be >= 1, got 0$"),
+    (ReplanOptions, {"points": 201}, r"^replan\.points: must be <= 200, got 201$"),
+    (ReplanOptions, {"dt": 1e-4}, r"^replan\.dt: must be >= 0\.001, got 0\.0001$"),
+    (ReplanOptions, {"max_cable_speed": 0.0}, r"^replan\.max_cable_speed: must be > 0, got 0$"),
+    (ReplanOptions, {"limit_fraction": 1.5}, r"^replan\.limit_fraction: must be <= 1, got 1\.5$"),
+    (ReplanOptions, {"hessian": "bfgs"}, r"^replan\.hessian: must be one of gauss-newton, exact; got 'bfgs'$"),
+    (ReplanOptions, {"qpsol": "highs"}, r"^replan\.qpsol: must be one of daqp, qrqp, osqp, qpoases; got 'highs'$"),
+    (ReplanOptions, {"safety": 0}, r"^replan\.safety: expected true or false"),
+    (LoopOptions, {"duration": 0.0}, r"^loop\.duration: must be > 0, got 0$"),
+    (LoopOptions, {"reference_speed": 1.5}, r"^loop\.reference_speed: must be <= 1, got 1\.5$"),
+    (LoopOptions, {"check_points": 1}, r"^loop\.check_points: must be >= 2, got 1$"),
+    (LoopOptions, {"check_points": 1001}, r"^loop\.check_points: must be <= 1000, got 1001$"),
+    (LoopOptions, {"check_resolution": 0.001}, r"^loop\.check_resolution: must be >= 0\.01, got 0\.001$"),
+    (StreamOptions, {"rate": 2e4}, r"^stream\.rate: must be <= 10000, got 20000$"),
+    (StreamOptions, {"watchdog": 0.0}, r"^stream\.watchdog: must be > 0, got 0$"),
+    (StreamOptions, {"prebuffer": -0.1}, r"^stream\.prebuffer: must be >= 0, got -0\.1$"),
+    (StreamOptions, {"fsync": "no"}, r"^stream\.fsync: expected true or false"),
+    (ViewOptions, {"obstacle_opacity": 0.0}, r"^view\.obstacle_opacity: must be > 0, got 0$"),
+    (ViewOptions, {"disc_radius": -1.0}, r"^view\.disc_radius: must be > 0, got -1$"),
+    (ViewOptions, {"tree_color": "grey"}, r'^view\.tree_color: expected a colour "#rrggbb", got \'grey\'$'),
+    (ViewOptions, {"segment_colors": []}, r"^view\.segment_colors: give at least one colour$"),
+    (ViewOptions, {"segment_colors": ["#000000", "red"]}, r"^view\.segment_colors\[1\]: expected a colour"),
+    (ViewOptions, {"segment_colors": ["#000000"] * 101}, r"^view\.segment_colors: at most 100 colours, got 101$"),
     (FeedOptions, {"max_skew": 0.0}, r"^feed\.max_skew: must be > 0, got 0$"),
     (FeedOptions, {"min_span": 1.0}, r"^feed\.min_span: must not exceed feed\.velocity_window \(0\.25 s\), got 1$"),
 )  # fmt: skip
@@ -309,3 +384,40 @@ def test_python_values_are_stored_as_the_file_would_give_them():
     assert b.counts == (0, 2) and all(type(c) is int for c in b.counts) and b.planners == ("rrt",)
     t = TrackingOptions(dt=1)
     assert t.dt == 1.0 and isinstance(t.dt, float)
+
+
+def test_replan_keeps_its_moved_to_loop_error_and_qp_solver_check():
+    for key in MOVED_TO_LOOP:
+        with pytest.raises(InputError) as info:
+            ReplanOptions.from_table(Table({key: 2}, "replan"))
+        assert str(info.value) == f"replan.{key}: moved to the [loop] section; write it under [loop]"
+        value = 1 if key == "reference_speed" else 2
+        assert LoopOptions.from_table(Table({key: value}, "loop")).to_dict()[key] == value  # read under [loop]
+    # every QP solver this CasADi build lacks is refused for "sqp" (one line), from a file and from Python
+    for qp in ("daqp", "qrqp", "osqp", "qpoases"):
+        if ca.has_conic(qp):
+            assert ReplanOptions(solver="sqp", qpsol=qp).qpsol == qp
+        else:
+            msg = rf"^replan\.qpsol: QP solver '{qp}' is not available in this CasADi build$"
+            with pytest.raises(InputError, match=msg):
+                ReplanOptions(solver="sqp", qpsol=qp)
+            with pytest.raises(InputError, match=msg):
+                ReplanOptions.from_table(Table({"solver": "sqp", "qpsol": qp}, "replan"))
+            assert ReplanOptions(qpsol=qp).solver == "ipopt"  # ipopt never uses it
+
+
+def test_loop_steps_and_stream_period_survive_the_conversion():
+    assert LoopOptions(duration=2.5).steps(0.1) == 25 and LoopOptions(duration=1e4).steps(0.1) == 100_000
+    msg = r"^loop\.duration: 10000 s is 100011 steps of replan\.dt 0\.09999 s, more than 100000; shorten it"
+    with pytest.raises(InputError, match=msg):
+        LoopOptions(duration=1e4).steps(0.09999)
+    assert StreamOptions(rate=50).dt == pytest.approx(0.02)
+
+
+def test_view_segment_colours_must_be_a_list_of_strings_in_a_file():
+    with pytest.raises(InputError, match=r'^view\.segment_colors: expected a list of "#rrggbb" strings, got 3$'):
+        ViewOptions.from_table(Table({"segment_colors": 3}, "view"))
+    with pytest.raises(InputError, match=r'^view\.segment_colors: expected a list of "#rrggbb" strings'):
+        ViewOptions.from_table(Table({"segment_colors": ["#000000", 1]}, "view"))
+    with pytest.raises(InputError, match=r'^view\.segment_colors: expected a list of "#rrggbb" strings'):
+        ViewOptions(segment_colors="#000000")

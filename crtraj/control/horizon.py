@@ -47,16 +47,15 @@ from __future__ import annotations
 import enum
 import math
 import time
-from collections.abc import Mapping
-from dataclasses import dataclass, field, fields
-from types import MappingProxyType
-from typing import Any
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
 
 import casadi as ca
 import numpy as np
 
 from crtraj.core.errors import InputError
 from crtraj.core.fields import Table, check_float
+from crtraj.core.options import Options, option
 from crtraj.model.kinematics import Model
 from crtraj.planning.rate_limits import RateLimits
 from crtraj.world import margin, packing
@@ -88,34 +87,9 @@ MOVED_TO_LOOP = (
 # within the limit divided by this gain, so the interpolated set-points keep the limit itself.
 INTERPOLATION_GAIN = 2.0
 
-# float options: default and bounds (shared by Python construction and TOML reading)
-_FLOATS: Mapping[str, tuple[float, dict[str, float]]] = MappingProxyType(
-    {
-        "dt": (0.1, {"ge": 1e-3, "le": 10.0}),
-        "margin": (1.5, {"ge": 0.0}),
-        "tip_weight": (1.0, {"ge": 0.0}),
-        "config_weight": (0.01, {"ge": 0.0}),
-        "velocity_weight": (0.02, {"ge": 0.0}),
-        "smooth_weight": (0.2, {"ge": 0.0}),
-        "terminal_weight": (10.0, {"ge": 0.0}),
-        "max_cable_speed": (8.0, {"gt": 0.0}),
-        "max_z_speed": (40.0, {"gt": 0.0}),
-        "tol": (1e-6, {"gt": 0.0, "le": 1.0}),
-        "max_solve_time": (0.5, {"gt": 0.0, "le": 3600.0}),
-        "limit_fraction": (0.9, {"gt": 0.0, "le": 1.0}),
-    }
-)
-_INTS: Mapping[str, tuple[int, dict[str, int]]] = MappingProxyType(
-    {
-        "horizon": (10, {"ge": 1, "le": 200}),
-        "points": (16, {"ge": 2, "le": 200}),
-        "max_iter": (60, {"ge": 1, "le": 100_000}),
-    }
-)
-
 
 @dataclass(frozen=True)
-class ReplanOptions:
+class ReplanOptions(Options):
     """The ``[replan]`` problem section (units mm, rad, s).
 
     Horizon NLP: horizon N (steps), dt (s per step), points (backbone points
@@ -136,69 +110,42 @@ class ReplanOptions:
     (`crtraj.control.loop_options.LoopOptions`).
     """
 
-    horizon: int = _INTS["horizon"][0]
-    dt: float = _FLOATS["dt"][0]
-    points: int = _INTS["points"][0]
-    margin: float = _FLOATS["margin"][0]
-    tip_weight: float = _FLOATS["tip_weight"][0]
-    config_weight: float = _FLOATS["config_weight"][0]
-    velocity_weight: float = _FLOATS["velocity_weight"][0]
-    smooth_weight: float = _FLOATS["smooth_weight"][0]
-    terminal_weight: float = _FLOATS["terminal_weight"][0]
-    max_cable_speed: float = _FLOATS["max_cable_speed"][0]
-    max_z_speed: float = _FLOATS["max_z_speed"][0]
-    solver: str = "ipopt"
-    qpsol: str = "daqp"
-    hessian: str = "gauss-newton"
-    max_iter: int = _INTS["max_iter"][0]
-    tol: float = _FLOATS["tol"][0]
-    max_solve_time: float = _FLOATS["max_solve_time"][0]
-    limit_fraction: float = _FLOATS["limit_fraction"][0]
-    rescue: bool = True
-    safety: bool = True
+    SECTION: ClassVar[str] = "replan"
 
-    def __post_init__(self) -> None:
-        for name, (_, bounds) in _FLOATS.items():
-            check_float(getattr(self, name), f"replan.{name}", **bounds)
-        for name, (_, ib) in _INTS.items():
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)):
-                raise InputError(f"replan.{name}: expected an integer, got {v!r}")
-            if "ge" in ib and v < ib["ge"]:
-                raise InputError(f"replan.{name}: must be >= {ib['ge']}, got {v}")
-            if "le" in ib and v > ib["le"]:
-                raise InputError(f"replan.{name}: must be <= {ib['le']}, got {v}")
-        if self.solver not in SOLVERS:
-            raise InputError(f"replan.solver: must be one of {', '.join(SOLVERS)}; got {self.solver!r}")
-        if self.qpsol not in QP_SOLVERS:
-            raise InputError(f"replan.qpsol: must be one of {', '.join(QP_SOLVERS)}; got {self.qpsol!r}")
-        for name in ("safety", "rescue"):
-            if not isinstance(getattr(self, name), bool):
-                raise InputError(f"replan.{name}: expected true or false, got {getattr(self, name)!r}")
-        if self.hessian not in HESSIANS:
-            raise InputError(f"replan.hessian: must be one of {', '.join(HESSIANS)}; got {self.hessian!r}")
+    horizon: int = option(10, ge=1, le=200)
+    dt: float = option(0.1, ge=1e-3, le=10.0)
+    points: int = option(16, ge=2, le=200)
+    margin: float = option(1.5, ge=0.0)
+    tip_weight: float = option(1.0, ge=0.0)
+    config_weight: float = option(0.01, ge=0.0)
+    velocity_weight: float = option(0.02, ge=0.0)
+    smooth_weight: float = option(0.2, ge=0.0)
+    terminal_weight: float = option(10.0, ge=0.0)
+    max_cable_speed: float = option(8.0, gt=0.0)
+    max_z_speed: float = option(40.0, gt=0.0)
+    solver: str = option("ipopt", choices=SOLVERS)
+    qpsol: str = option("daqp", choices=QP_SOLVERS)
+    hessian: str = option("gauss-newton", choices=HESSIANS)
+    max_iter: int = option(60, ge=1, le=100_000)
+    tol: float = option(1e-6, gt=0.0, le=1.0)
+    max_solve_time: float = option(0.5, gt=0.0, le=3600.0)
+    limit_fraction: float = option(0.9, gt=0.0, le=1.0)
+    rescue: bool = option(True)
+    safety: bool = option(True)
+
+    def _check(self) -> None:
+        # a QP solver may be a plugin missing from this CasADi build: refuse it before building the NLP
         if self.solver == "sqp" and not ca.has_conic(self.qpsol):
             raise InputError(f"replan.qpsol: QP solver {self.qpsol!r} is not available in this CasADi build")
 
     @classmethod
-    def from_table(cls, t: Table) -> ReplanOptions:
-        """Read a ``[replan]`` table; unknown keys and bad values raise `InputError`."""
+    def _read_extra(cls, t: Table) -> dict[str, Any]:
+        # no read=False fields; an old file that still has a closed-loop key gets a pointer to [loop]
+        # (checked here, before Table.finish would call it an unknown key)
         for name in MOVED_TO_LOOP:
             if t.has(name):
                 raise InputError(f"replan.{name}: moved to the [loop] section; write it under [loop]")
-        kw: dict[str, Any] = {name: t.float(name, d, **b) for name, (d, b) in _FLOATS.items()}
-        kw.update({name: t.int(name, d, **b) for name, (d, b) in _INTS.items()})
-        kw["solver"] = t.str("solver", "ipopt", choices=SOLVERS)
-        kw["qpsol"] = t.str("qpsol", "daqp", choices=QP_SOLVERS)
-        kw["hessian"] = t.str("hessian", "gauss-newton", choices=HESSIANS)
-        kw["safety"] = t.bool("safety", True)
-        kw["rescue"] = t.bool("rescue", True)
-        t.finish()
-        return cls(**kw)
-
-    def to_dict(self) -> dict[str, Any]:
-        """Plain data in the TOML schema."""
-        return {f.name: getattr(self, f.name) for f in fields(self)}
+        return {}
 
 
 class HorizonStatus(str, enum.Enum):

@@ -7,41 +7,19 @@ Units: mm, s.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
-from dataclasses import dataclass, fields
-from types import MappingProxyType
-from typing import Any
-
-import numpy as np
+from dataclasses import dataclass
+from typing import ClassVar
 
 from crtraj.core.errors import InputError
-from crtraj.core.fields import MAX_LENGTH, MAX_TIME, Table, check_float
+from crtraj.core.fields import MAX_LENGTH, MAX_TIME
+from crtraj.core.options import Options, option
 
 # Most closed-loop steps of one run (duration / replan.dt): each is one NLP solve.
 MAX_STEPS = 100_000
 
-# float options: default and bounds (shared by Python construction and TOML reading)
-_FLOATS: Mapping[str, tuple[float, dict[str, float]]] = MappingProxyType(
-    {
-        "duration": (60.0, {"gt": 0.0, "le": MAX_TIME}),
-        "replan_period": (0.0, {"ge": 0.0, "le": MAX_TIME}),
-        "planner_time": (1.0, {"gt": 0.0, "le": 3600.0}),
-        "stall_time": (3.0, {"gt": 0.0, "le": MAX_TIME}),
-        "reference_speed": (0.7, {"gt": 0.0, "le": 1.0}),
-        "max_body_speed": (50.0, {"gt": 0.0}),
-        "check_resolution": (1.0, {"ge": 0.01, "le": MAX_LENGTH}),
-        "settle_time": (0.5, {"ge": 0.0, "le": MAX_TIME}),
-    }
-)
-_INTS: Mapping[str, tuple[int, dict[str, int]]] = MappingProxyType(
-    {
-        "check_points": (21, {"ge": 2, "le": 1000}),
-    }
-)
-
 
 @dataclass(frozen=True)
-class LoopOptions:
+class LoopOptions(Options):
     """The ``[loop]`` problem section (units mm, s).
 
     duration (s of simulated time at most), replan_period (s between
@@ -56,27 +34,17 @@ class LoopOptions:
     tip must stay within the goal tolerance before the run ends).
     """
 
-    duration: float = _FLOATS["duration"][0]
-    replan_period: float = _FLOATS["replan_period"][0]
-    planner_time: float = _FLOATS["planner_time"][0]
-    stall_time: float = _FLOATS["stall_time"][0]
-    reference_speed: float = _FLOATS["reference_speed"][0]
-    max_body_speed: float = _FLOATS["max_body_speed"][0]
-    check_resolution: float = _FLOATS["check_resolution"][0]
-    check_points: int = _INTS["check_points"][0]
-    settle_time: float = _FLOATS["settle_time"][0]
+    SECTION: ClassVar[str] = "loop"
 
-    def __post_init__(self) -> None:
-        for name, (_, bounds) in _FLOATS.items():
-            check_float(getattr(self, name), f"loop.{name}", **bounds)
-        for name, (_, ib) in _INTS.items():
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)):
-                raise InputError(f"loop.{name}: expected an integer, got {v!r}")
-            if "ge" in ib and v < ib["ge"]:
-                raise InputError(f"loop.{name}: must be >= {ib['ge']}, got {v}")
-            if "le" in ib and v > ib["le"]:
-                raise InputError(f"loop.{name}: must be <= {ib['le']}, got {v}")
+    duration: float = option(60.0, gt=0.0, le=MAX_TIME)
+    replan_period: float = option(0.0, ge=0.0, le=MAX_TIME)
+    planner_time: float = option(1.0, gt=0.0, le=3600.0)
+    stall_time: float = option(3.0, gt=0.0, le=MAX_TIME)
+    reference_speed: float = option(0.7, gt=0.0, le=1.0)
+    max_body_speed: float = option(50.0, gt=0.0)
+    check_resolution: float = option(1.0, ge=0.01, le=MAX_LENGTH)
+    check_points: int = option(21, ge=2, le=1000)
+    settle_time: float = option(0.5, ge=0.0, le=MAX_TIME)
 
     def steps(self, dt: float) -> int:
         """Control steps of a full run with steps of dt s (the replanner's); `InputError` above MAX_STEPS,
@@ -88,15 +56,3 @@ class LoopOptions:
                 "shorten it or raise dt"
             )
         return n
-
-    @classmethod
-    def from_table(cls, t: Table) -> LoopOptions:
-        """Read a ``[loop]`` table; unknown keys and bad values raise `InputError`."""
-        kw: dict[str, Any] = {name: t.float(name, d, **b) for name, (d, b) in _FLOATS.items()}
-        kw.update({name: t.int(name, d, **b) for name, (d, b) in _INTS.items()})
-        t.finish()
-        return cls(**kw)
-
-    def to_dict(self) -> dict[str, Any]:
-        """Plain data in the TOML schema."""
-        return {f.name: getattr(self, f.name) for f in fields(self)}

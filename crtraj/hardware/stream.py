@@ -44,14 +44,14 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
 from crtraj import __version__
 from crtraj.core.errors import AdmissionError, InputError
-from crtraj.core.fields import Table
 from crtraj.core.fileio import to_jsonable
+from crtraj.core.options import Options, option
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.admission import AdmittedMotion
 from crtraj.hardware.limits import LimitsGate, Violation
@@ -97,7 +97,7 @@ class StreamError(RuntimeError):
 
 
 @dataclass(frozen=True)
-class StreamOptions:
+class StreamOptions(Options):
     """The ``[stream]`` section. rate: set-points per second (Hz). watchdog: longest
     source underrun or telemetry silence before a latched hold (s).
     connect_timeout: wait for the device's first telemetry (s). prebuffer:
@@ -111,50 +111,22 @@ class StreamOptions:
     fsync: also fsync the run log after every line (survives power loss,
     slower)."""
 
-    rate: float = 100.0
-    watchdog: float = 0.1
-    connect_timeout: float = 1.0
-    prebuffer: float = 0.1
-    settle_tolerance: float = 0.01
-    settle_timeout: float = 2.0
-    ack_timeout: float = 0.25
-    following_tolerance: float = 5.0
-    fsync: bool = False
+    SECTION: ClassVar[str] = "stream"
 
-    def __post_init__(self) -> None:
-        names = ("rate", "watchdog", "connect_timeout", "settle_tolerance", "settle_timeout")
-        for name in (*names, "ack_timeout", "following_tolerance"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise InputError(f"stream.{name}: must be > 0, got {v!r}")
-        if not (math.isfinite(self.prebuffer) and self.prebuffer >= 0):
-            raise InputError(f"stream.prebuffer: must be >= 0, got {self.prebuffer!r}")
-        if self.rate > 10000:
-            raise InputError(f"stream.rate: must be <= 10000 Hz, got {self.rate:g}")
+    rate: float = option(100.0, gt=0.0, le=10000.0)
+    watchdog: float = option(0.1, gt=0.0)
+    connect_timeout: float = option(1.0, gt=0.0)
+    prebuffer: float = option(0.1, ge=0.0)
+    settle_tolerance: float = option(0.01, gt=0.0)
+    settle_timeout: float = option(2.0, gt=0.0)
+    ack_timeout: float = option(0.25, gt=0.0)
+    following_tolerance: float = option(5.0, gt=0.0)
+    fsync: bool = option(False)
 
     @property
     def dt(self) -> float:
+        """Period between set-points (s)."""
         return 1.0 / self.rate
-
-    @classmethod
-    def from_table(cls, t: Table) -> StreamOptions:
-        d = cls()
-        opts = cls(
-            rate=t.float("rate", d.rate, gt=0.0, le=10000.0),
-            watchdog=t.float("watchdog", d.watchdog, gt=0.0),
-            connect_timeout=t.float("connect_timeout", d.connect_timeout, gt=0.0),
-            prebuffer=t.float("prebuffer", d.prebuffer, ge=0.0),
-            settle_tolerance=t.float("settle_tolerance", d.settle_tolerance, gt=0.0),
-            settle_timeout=t.float("settle_timeout", d.settle_timeout, gt=0.0),
-            ack_timeout=t.float("ack_timeout", d.ack_timeout, gt=0.0),
-            following_tolerance=t.float("following_tolerance", d.following_tolerance, gt=0.0),
-            fsync=t.bool("fsync", d.fsync),
-        )
-        t.finish()
-        return opts
-
-    def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
 
 
 @dataclass(frozen=True)

@@ -41,7 +41,7 @@ import weakref
 import webbrowser
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import msgpack
 import numpy as np
@@ -49,8 +49,9 @@ import umsgpack
 import zmq
 
 from crtraj.core.errors import InputError
-from crtraj.core.fields import Table, check_array, check_float
+from crtraj.core.fields import Table, check_array
 from crtraj.core.fileio import atomic_write_text
+from crtraj.core.options import Options, option
 from crtraj.io.results import Result, read_result
 from crtraj.model.kinematics import Model
 from crtraj.viz import server as meshcat_server
@@ -72,11 +73,13 @@ _ROOT = "/meshcat"  # meshcat's conventional root of user content; deleting it k
 # Rotation about x by +90 deg, (w, x, y, z): takes a three.js cylinder's y axis onto z.
 _Q_Y_TO_Z = np.array([math.cos(math.pi / 4), math.sin(math.pi / 4), 0.0, 0.0])
 _COLOR_RE = re.compile(r"^#[0-9a-fA-F]{6}$")
+# Most colours in view.segment_colors (cycled over the segments; a robot has a few).
+MAX_SEGMENT_COLORS = 100
 
 
 # ---------------------------------------------------------------------- options
 @dataclasses.dataclass(frozen=True)
-class ViewOptions:
+class ViewOptions(Options):
     """How a scene is drawn; the problem file's ``[view]`` section.
 
     backbone_radius: drawn radius of the backbone (mm; the real NiTi wire is
@@ -88,61 +91,46 @@ class ViewOptions:
     show_tree: draw planner trees. play: start the animation when the page opens.
     """
 
-    backbone_radius: float = 1.0
-    disc_spacing: float = 20.0
-    disc_thickness: float = 2.0
-    disc_radius: float | None = None
-    segment_colors: tuple[str, ...] = ("#1f77b4", "#2ca02c", "#9467bd", "#8c564b", "#17becf")
-    obstacle_color: str = "#d62728"
-    obstacle_opacity: float = 0.3
-    start_color: str = "#ffb000"
-    goal_color: str = "#e000e0"
-    path_color: str = "#202020"
-    trail_color: str = "#ff7f0e"
-    tree_color: str = "#8c8c8c"
-    marker_radius: float = 4.0
-    show_tree: bool = True
-    play: bool = True
+    SECTION: ClassVar[str] = "view"
 
-    def __post_init__(self) -> None:
-        for name in ("backbone_radius", "disc_spacing", "disc_thickness", "marker_radius"):
-            check_float(getattr(self, name), f"view.{name}", gt=0.0)
-        if self.disc_radius is not None:
-            check_float(self.disc_radius, "view.disc_radius", gt=0.0)
-        check_float(self.obstacle_opacity, "view.obstacle_opacity", gt=0.0, le=1.0)
-        if not self.segment_colors:
+    backbone_radius: float = option(1.0, gt=0.0)
+    disc_spacing: float = option(20.0, gt=0.0)
+    disc_thickness: float = option(2.0, gt=0.0)
+    disc_radius: float | None = option(None, gt=0.0)
+    # a list in the file: read and checked by the hooks below (the base reads scalars only)
+    segment_colors: tuple[str, ...] = option(("#1f77b4", "#2ca02c", "#9467bd", "#8c564b", "#17becf"), read=False)
+    obstacle_color: str = option("#d62728")
+    obstacle_opacity: float = option(0.3, gt=0.0, le=1.0)
+    start_color: str = option("#ffb000")
+    goal_color: str = option("#e000e0")
+    path_color: str = option("#202020")
+    trail_color: str = option("#ff7f0e")
+    tree_color: str = option("#8c8c8c")
+    marker_radius: float = option(4.0, gt=0.0)
+    show_tree: bool = option(True)
+    play: bool = option(True)
+
+    def _check(self) -> None:
+        colors = self.segment_colors
+        if isinstance(colors, (str, bytes)) or not isinstance(colors, Sequence):
+            raise InputError(f'view.segment_colors: expected a list of "#rrggbb" strings, got {colors!r:.60}')
+        if not colors:
             raise InputError("view.segment_colors: give at least one colour")
-        for i, c in enumerate(self.segment_colors):
+        if len(colors) > MAX_SEGMENT_COLORS:
+            raise InputError(f"view.segment_colors: at most {MAX_SEGMENT_COLORS} colours, got {len(colors)}")
+        for i, c in enumerate(colors):
             _color(c, f"view.segment_colors[{i}]")
+        object.__setattr__(self, "segment_colors", tuple(colors))  # a list from Python is stored as the file's
         for name in ("obstacle_color", "start_color", "goal_color", "path_color", "trail_color", "tree_color"):
             _color(getattr(self, name), f"view.{name}")
 
     @classmethod
-    def from_table(cls, t: Table) -> ViewOptions:
-        """Read a ``[view]`` table; every key is optional."""
-        d = cls()
-        colors = t.raw("segment_colors", list(d.segment_colors))
+    def _read_extra(cls, t: Table) -> dict[str, Any]:
+        default = cls.__dataclass_fields__["segment_colors"].default
+        colors = t.raw("segment_colors", list(default))
         if not isinstance(colors, list) or not all(isinstance(c, str) for c in colors):
-            raise t.error("segment_colors", f'expected a list of "#rrggbb" strings, got {colors!r}')
-        opts = cls(
-            backbone_radius=t.float("backbone_radius", d.backbone_radius, gt=0.0),
-            disc_spacing=t.float("disc_spacing", d.disc_spacing, gt=0.0),
-            disc_thickness=t.float("disc_thickness", d.disc_thickness, gt=0.0),
-            disc_radius=t.float("disc_radius", None, gt=0.0),
-            segment_colors=tuple(colors),
-            obstacle_color=t.str("obstacle_color", d.obstacle_color),
-            obstacle_opacity=t.float("obstacle_opacity", d.obstacle_opacity, gt=0.0, le=1.0),
-            start_color=t.str("start_color", d.start_color),
-            goal_color=t.str("goal_color", d.goal_color),
-            path_color=t.str("path_color", d.path_color),
-            trail_color=t.str("trail_color", d.trail_color),
-            tree_color=t.str("tree_color", d.tree_color),
-            marker_radius=t.float("marker_radius", d.marker_radius, gt=0.0),
-            show_tree=t.bool("show_tree", d.show_tree),
-            play=t.bool("play", d.play),
-        )
-        t.finish()
-        return opts
+            raise t.error("segment_colors", f'expected a list of "#rrggbb" strings, got {colors!r:.60}')
+        return {"segment_colors": tuple(colors)}
 
 
 def _color(text: str, name: str) -> int:
