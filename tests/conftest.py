@@ -6,6 +6,7 @@ from __future__ import annotations
 import importlib
 import os
 import shutil
+import signal
 from pathlib import Path
 from types import ModuleType
 from typing import NoReturn
@@ -82,3 +83,13 @@ def assert_same_multiset(actual, expected, atol: float) -> None:
     worst = int(np.argmax(cost[rows, cols]))
     d = cost[rows[worst], cols[worst]]
     assert d <= atol, f"{a[rows[worst]]} has no partner within {atol} (nearest unused: {b[cols[worst]]}, |d| = {d:.3g})"
+
+
+def default_sigint() -> None:
+    """Popen preexec_fn for a child that a test stops with SIGINT (its Ctrl-C).
+
+    A shell that runs the suite in the background (CI runners, nohup, `cmd &`) starts every child with SIGINT
+    ignored, and Python keeps an inherited SIG_IGN, so the child would never see its Ctrl-C. With the default
+    disposition restored before exec, Python installs its KeyboardInterrupt handler as it does in a terminal.
+    """
+    signal.signal(signal.SIGINT, signal.SIG_DFL)

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import default_sigint
 from devlink import CoreLink
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -443,7 +444,7 @@ def test_cli_dry_run_writes_the_frames_and_the_log(result, tmp_path, capsys, act
 
 def test_cli_streams_to_sim_device_subprocess(result, tmp_path, capsys):
     cmd = [sys.executable, "-m", "crtraj.cli", "sim-device", "--udp", "127.0.0.1:0", "--duration", "600"]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True, cwd=ROOT)
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True, cwd=ROOT, preexec_fn=default_sigint)
     try:
         line = proc.stdout.readline()
         assert line.startswith("sim-device listening on udp://127.0.0.1:")

@@ -20,7 +20,7 @@ import matplotlib.image as mpimg
 import numpy as np
 import pytest
 import umsgpack
-from conftest import require_tool
+from conftest import default_sigint, require_tool
 from matplotlib.colors import rgb_to_hsv
 from scipy.optimize import least_squares
 
@@ -532,6 +532,7 @@ def test_cli_view_serves_until_ctrl_c(result, tmp_path):
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
+        preexec_fn=default_sigint,
     )
     try:
         lines = _Lines(proc.stdout)
