@@ -161,13 +161,13 @@ _ODD_KEYS = ["typo", "Name", "a b", "time_step_", "\u00e9t\u00e9", "x\ny", "k\x0
 
 
 def _deep(depth: int) -> str:
-    """A placeholder that `_expand` turns into `depth` nested arrays in the file's text (TOML and JSON
+    """A marker that `_expand` turns into `depth` nested arrays in the file's text (TOML and JSON
     agree on ``[[[1]]]``); the writers here would recurse as deep as the nesting."""
     return f"@@deep:{depth}@@"
 
 
 def _expand(text: str) -> str:
-    """Replace every quoted `_deep` placeholder by its nested arrays."""
+    """Replace every quoted `_deep` marker by its nested arrays."""
     while '"@@deep:' in text:
         i = text.index('"@@deep:')
         j = text.index('@@"', i + 8)

@@ -449,36 +449,34 @@ def check_depth(data: Any, name: str, max_depth: int = MAX_DEPTH) -> None:
         stack.extend((c, depth + 1) for c in children if isinstance(c, (dict, list)))
 
 
-def read_json(path: str | os.PathLike[str], max_bytes: int = MAX_JSON_BYTES) -> Any:
-    """Read a JSON file of at most `max_bytes` bytes; raise `InputError` with the path on failure."""
+def _parse(path: str | os.PathLike[str], max_bytes: int, kind: str, loads: Any) -> Any:
+    """Read a bounded `kind` file and parse it with `loads`; one-line `InputError` naming the file on failure.
+
+    The parser's own errors are caught only around the parse: RecursionError (deep nesting), MemoryError, and
+    ValueError (a syntax error, or an integer of more than 4300 digits).
+    """
     p = Path(path)
-    text = read_text(p, max_bytes=max_bytes, kind="JSON")
+    text = read_text(p, max_bytes=max_bytes, kind=kind)
     try:
-        data = json.loads(text)
+        data = loads(text)
     except RecursionError:
-        raise InputError(f"{p}: not valid JSON (nested deeper than {MAX_DEPTH} levels)") from None
+        raise InputError(f"{p}: not valid {kind} (nested deeper than {MAX_DEPTH} levels)") from None
     except MemoryError:
         raise InputError(f"{p}: too large to parse") from None
-    except ValueError as exc:  # JSONDecodeError, and integers of more than 4300 digits
-        raise InputError(f"{p}: not valid JSON ({_first_line(exc)})") from None
+    except ValueError as exc:
+        raise InputError(f"{p}: not valid {kind} ({_first_line(exc)})") from None
     check_depth(data, str(p))
     return data
+
+
+def read_json(path: str | os.PathLike[str], max_bytes: int = MAX_JSON_BYTES) -> Any:
+    """Read a JSON file of at most `max_bytes` bytes; raise `InputError` with the path on failure."""
+    return _parse(path, max_bytes, "JSON", json.loads)
 
 
 def read_toml(path: str | os.PathLike[str], max_bytes: int = MAX_TOML_BYTES) -> dict[str, Any]:
     """Parse a TOML file of at most `max_bytes` bytes; one-line `InputError` on any bad file."""
-    p = Path(path)
-    text = read_text(p, max_bytes=max_bytes, kind="TOML")
-    try:
-        data = tomllib.loads(text)
-    except RecursionError:
-        raise InputError(f"{p}: not valid TOML (nested deeper than {MAX_DEPTH} levels)") from None
-    except MemoryError:
-        raise InputError(f"{p}: too large to parse") from None
-    except ValueError as exc:  # TOMLDecodeError, and integers of more than 4300 digits
-        raise InputError(f"{p}: not valid TOML ({_first_line(exc)})") from None
-    check_depth(data, str(p))
-    return data
+    return _parse(path, max_bytes, "TOML", tomllib.loads)
 
 
 def _first_line(exc: BaseException, width: int = 200) -> str:

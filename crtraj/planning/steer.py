@@ -837,9 +837,9 @@ def _remove_stray_sources(private: Path) -> None:
     the directory). The names are random and reserved in this solver's private
     folder, so a working-directory file of the same name is this build's source.
     """
-    for placeholder in private.glob("jit_tmp*.c"):
+    for reserved in private.glob("jit_tmp*.c"):
         try:
-            (Path.cwd() / placeholder.name).unlink(missing_ok=True)
+            (Path.cwd() / reserved.name).unlink(missing_ok=True)
         except OSError:  # a read-only or vanished working directory: nothing was written there
             continue
 
