@@ -37,6 +37,7 @@ _USE_CASES = {
     "serve": "crtraj.app.view:serve",
     "stream": "crtraj.app.stream:stream_command",
     "sim-device": "crtraj.app.sim_device:sim_device_command",
+    "feed-replay": "crtraj.app.feed_replay:feed_replay_command",
     "plan": "crtraj.app.plan:plan_command",
     "replan": "crtraj.app.replan:replan_command",
     "bench": "crtraj.app.bench:run_table1",
@@ -143,6 +144,27 @@ def _add_sim_device(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of the fault generator")
     p.add_argument("--duration", type=float, default=None, help="stop after this many s (default: until Ctrl-C)")
     p.set_defaults(use_case="sim-device")
+
+
+# ---------------------------------------------------------------- feed-replay
+def _add_feed_replay(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "feed-replay",
+        help="send a problem's obstacle states over UDP, as a motion-capture bridge would",
+        description="Samples the problem's obstacles from their own time functions (timestamps are scene time "
+        "from the moment the replay starts) and sends them to a `crtraj replan --feed` listener on 127.0.0.1, "
+        "with measurement noise, latency, jitter and dropped messages. Runs for --duration or until Ctrl-C.",
+    )
+    p.add_argument("problem", help="problem TOML whose [scene] obstacles are replayed (their names are the ids)")
+    p.add_argument("--udp", metavar="127.0.0.1:PORT", required=True, help="the feed's address (crtraj replan --feed)")
+    p.add_argument("--rate", type=float, default=100.0, help="measurements per second and obstacle (100)")
+    p.add_argument("--noise", type=float, default=0.3, help="Gaussian noise per coordinate and radius, mm (0.3)")
+    p.add_argument("--latency", type=float, default=0.0, help="delay from measuring to sending, s (0)")
+    p.add_argument("--jitter", type=float, default=0.0, help="uniform extra delay per message, s (0)")
+    p.add_argument("--dropout", type=float, default=0.0, help="probability that a message is never sent (0)")
+    p.add_argument("--duration", type=float, default=120.0, help="s of scene time to replay (120)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the noise and dropout generator (0)")
+    p.set_defaults(use_case="feed-replay")
 
 
 # ----------------------------------------------------------------------- plan
@@ -287,6 +309,7 @@ _COMMANDS: tuple[Callable[[argparse._SubParsersAction], None], ...] = (
     _add_view,
     _add_stream,
     _add_sim_device,
+    _add_feed_replay,
     _add_plan,
     _add_replan,
     _add_bench,
