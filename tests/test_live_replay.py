@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import free_udp_port
 from feed_clock import VirtualClock
 
 from crtraj.app.replan import loop_from_problem
@@ -235,18 +236,12 @@ class _Recorder:
         self.thread.join(10.0)
 
 
-def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @pytest.mark.slow
 def test_feed_replay_and_live_replan_with_approach_reach_the_goal_on_the_device(tmp_path, capsys):
     problem = Problem.load(PAPER)
     robot, model = problem.robot, Model(problem.robot)
     acts = Actuators.from_robot(robot)
-    port = _free_port()
+    port = free_udp_port()
     out = tmp_path / "live"
     opts = ReplayOptions(noise=0.3, dropout=0.05, duration=600.0, seed=5)
     # the device rests in the straight pose, 52 mm of z away from the task's start: --approach
