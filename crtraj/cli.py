@@ -40,7 +40,7 @@ _USE_CASES = {
     "feed-replay": "crtraj.app.feed_replay:feed_replay_command",
     "plan": "crtraj.app.plan:plan_command",
     "replan": "crtraj.app.replan:replan_command",
-    "bench": "crtraj.app.bench:run_table1",
+    "bench": "crtraj.app.bench:bench_command",
 }
 
 
@@ -271,20 +271,32 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
         "validity checker and time budget; every success is re-verified densely. Writes DIR/table1.md "
         "(the paper's layout, with the paper's numbers), DIR/runs.csv (every run) and DIR/scenarios.json.",
     )
-    p.add_argument("table", choices=["table1"], help="which benchmark (table1: the paper's Table I)")
+    p.add_argument(
+        "table",
+        choices=["table1", "suite"],
+        help="which benchmark (table1: the paper's Table I; suite: the held-out dynamic suite, crtraj.bench.suite)",
+    )
     p.add_argument(
         "--workers", type=int, default=None, help="worker processes (default: CPU count; 0 = run in this process)"
     )
-    p.add_argument("--scenarios", type=int, default=100, help="scenarios per obstacle count (default 100)")
+    p.add_argument(
+        "--scenarios", type=int, default=None, help="scenarios per obstacle count (default 100); suite: in all (20)"
+    )
     p.add_argument("--counts", default="1,3,5,7", help="obstacle counts, comma-separated (default 1,3,5,7)")
     p.add_argument(
         "--planners",
         default=None,
         help="comma-separated subset of rrt,rrtstar,cspace,ompl-rrtstar,ompl-rrtconnect (default: all)",
     )
-    p.add_argument("--time-limit", type=float, default=5.0, help="wall-time budget per run, s (default 5)")
+    p.add_argument("--time-limit", type=float, default=None, help="wall-time budget per planner run, s (default 5)")
+    p.add_argument(
+        "--replan-duration",
+        type=float,
+        default=30.0,
+        help="suite: simulated time within which the closed-loop replanner must arrive, s (default 30)",
+    )
     p.add_argument("--seed", type=int, default=0, help="seed of the scenarios and runs (default 0)")
-    p.add_argument("--out", default="out/table1", help="output folder (default: out/table1)")
+    p.add_argument("--out", default=None, help="output folder (default: out/table1, or out/suite)")
     p.add_argument(
         "--dask",
         metavar="ADDRESS",
