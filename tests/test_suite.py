@@ -87,7 +87,7 @@ def test_families_have_their_defining_property(model, scenarios):
             assert np.linalg.norm(a + u * (b - a) - mid) < 1e-6  # the gap is on the straight line
         elif s.family == "closing":
 
-            def gap(t):
+            def gap(t, obs=obs):
                 (ca, ra), (cb, rb) = state(obs[0], t), state(obs[1], t)
                 return np.linalg.norm(ca - cb) - ra - rb
 
