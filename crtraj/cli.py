@@ -274,7 +274,8 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "table",
         choices=["table1", "suite"],
-        help="which benchmark (table1: the paper's Table I; suite: the held-out dynamic suite, crtraj.bench.suite)",
+        help="which benchmark (table1: the paper's Table I; suite: the held-out dynamic suite, crtraj.bench.suite, "
+        "run in this process: --counts, --workers, --dask, --planner-config and --verify-margin are table1's)",
     )
     p.add_argument(
         "--workers", type=int, default=None, help="worker processes (default: CPU count; 0 = run in this process)"

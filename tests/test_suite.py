@@ -145,6 +145,7 @@ def test_cli_suite_writes_scenes_table_and_runs(model, tmp_path, capsys):
         (["--scenarios", "0"], "suite.scenarios: must be >= 1, got 0"),
         (["--planners", "nope"], "planners: unknown planner 'nope'"),
         (["--replan-duration", "-1"], "suite.replan_duration: must be > 0"),
+        (["--workers", "2"], "--workers: table1 only"),
     ],
 )
 def test_bad_suite_flags_are_one_line_errors(tmp_path, capsys, flags, needle):

@@ -41,6 +41,9 @@ def _planners(text: str | None) -> tuple[str, ...]:
 
 def run_suite(args: Any) -> int:
     """`crtraj bench suite ...` (arguments from `crtraj.cli`); returns the exit code."""
+    for flag, value in (("--workers", args.workers), ("--dask", args.dask), ("--planner-config", args.planner_config)):
+        if value is not None:
+            raise InputError(f"{flag}: table1 only (the suite runs its scenarios one by one in this process)")
     options = SuiteOptions(
         scenarios=20 if args.scenarios is None else args.scenarios,
         seed=args.seed,
