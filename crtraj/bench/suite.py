@@ -46,7 +46,7 @@ import numpy as np
 
 from crtraj.bench.check import dense_check
 from crtraj.bench.records import LABELS, _fmt
-from crtraj.bench.runner import bench_stop, plan_scenario
+from crtraj.bench.runner import WARMUP_TIME, bench_stop, plan_scenario, warm_up
 from crtraj.bench.scenarios import MAX_INDEX, Scenario, ScenarioGenerator, ScenarioOptions
 from crtraj.control.horizon import ReplanOptions
 from crtraj.control.loop import ClosedLoop
@@ -375,10 +375,12 @@ class SuiteRunner:
         self._rate_limits = None if robot.actuators is None else Actuators.from_robot(robot).rate_limits(robot)
 
     def planner(self, name: str) -> Planner:
-        """The named planner, built once for up to `packing.slot_count(15)` obstacles (the largest family)."""
+        """The named planner, built once for up to `packing.slot_count(15)` obstacles (the largest family) and
+        warmed up before its first timed run."""
         p = self._planners.get(name)
         if p is None:
             p = BUILTIN.build(name, self.model, Scene(), self.planner_options, max_obstacles=packing.slot_count(15))
+            warm_up(p, self.model, bench_stop(BUILTIN.spec(name), self.planner_options, WARMUP_TIME))
             self._planners[name] = p
         return p
 
