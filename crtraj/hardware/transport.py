@@ -79,6 +79,8 @@ class Transport(abc.ABC):
             return _SerialTransport(dev, b)
         if parts.scheme == "file":
             return _FileTransport(parts.netloc + parts.path)
+        if parts.scheme == "dynamixel":  # needs the servo ids and tick scales: crtraj.hardware.dynamixel
+            raise InputError(f"{url}: a Dynamixel bus opens with Streamer.open(url, actuators) (it needs the ids)")
         raise InputError(f"stream target: unknown scheme in {url!r} (use udp://HOST:PORT, serial://DEV or file://PATH)")
 
 
