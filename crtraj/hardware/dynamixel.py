@@ -55,6 +55,7 @@ from crtraj.hardware.transport import Transport, TransportError
 
 DEFAULT_BAUD = 1_000_000
 SYSFS_USB_SERIAL = Path("/sys/bus/usb-serial/devices")
+CONNECT_ATTEMPTS = 3  # tries of each transaction while connecting
 # the rates tried, in this order, when no servo answers at the requested one
 _PROBE_BAUDS = (1_000_000, 57_600, 115_200, 2_000_000, 3_000_000, 4_000_000, 9_600)
 # what one sync read returns, through the indirect addresses: (address, size) in this order
@@ -202,12 +203,22 @@ class DynamixelTransport(Transport):
         self.velocities = np.zeros(len(bus.ids))  # last present velocities (rad/s, mm/s)
 
     # --------------------------------------------------------------- checks
+    def _ask(self, call: Callable[..., tuple[Any, ...]], *args: Any) -> tuple[Any, ...]:
+        """One connect-time transaction (an SDK call returning ``(..., result, error)``), tried up to
+        `CONNECT_ATTEMPTS` times: a reply lost to line noise (or a busy host) is not yet a missing servo."""
+        out = call(self._port, *args)
+        for _ in range(CONNECT_ATTEMPTS - 1):
+            if out[-2] == self._sdk.COMM_SUCCESS:
+                break
+            out = call(self._port, *args)
+        return out
+
     def _check_servos(self) -> None:
         """Every id answers with the robot file's model number and no hardware error."""
-        bus, ph, port = self.bus, self._ph, self._port
+        bus, ph = self.bus, self._ph
         models: dict[int, int] = {}
         for i in bus.ids:
-            model, result, _ = ph.ping(port, i)
+            model, result, _ = self._ask(ph.ping, i)
             if result == self._sdk.COMM_SUCCESS:
                 models[i] = model
         if not models:
@@ -226,7 +237,7 @@ class DynamixelTransport(Transport):
                     f"(robot.actuators model): another servo than the robot file describes"
                 )
         for i in bus.ids:
-            bits, result, _ = ph.read1ByteTxRx(port, i, X.HARDWARE_ERROR)
+            bits, result, _ = self._ask(ph.read1ByteTxRx, i, X.HARDWARE_ERROR)
             if result != self._sdk.COMM_SUCCESS:
                 raise TransportError(f"servo {bus.name_of(i)}: cannot read its hardware error status")
             if bits:
@@ -245,7 +256,7 @@ class DynamixelTransport(Transport):
             if b == self.baud:
                 continue
             self._port.setBaudRate(b)
-            _, result, _ = self._ph.ping(self._port, first)
+            _, result, _ = self._ask(self._ph.ping, first)
             if result == self._sdk.COMM_SUCCESS:
                 self._port.setBaudRate(self.baud)
                 return (
@@ -260,7 +271,7 @@ class DynamixelTransport(Transport):
 
     def _write1(self, dxl_id: int, addr: int, value: int, size: int, what: str) -> None:
         f = {1: self._ph.write1ByteTxRx, 4: self._ph.write4ByteTxRx}[size]
-        result, error = f(self._port, dxl_id, addr, value)
+        result, error = self._ask(f, dxl_id, addr, value)
         if result != self._sdk.COMM_SUCCESS or error & 0x7F:
             raise TransportError(
                 f"servo {self.bus.name_of(dxl_id)}: setting {what} failed "
@@ -283,10 +294,10 @@ class DynamixelTransport(Transport):
             self._write1(i, X.PROFILE_ACCELERATION, acc, 4, "profile acceleration")
             mirror = [a + j for a, n in _STATE for j in range(n)]
             data = [b for a in mirror for b in (a & 0xFF, a >> 8)]
-            result, error = self._ph.writeTxRx(self._port, i, X.INDIRECT_ADDRESS, len(data), data)
+            result, error = self._ask(self._ph.writeTxRx, i, X.INDIRECT_ADDRESS, len(data), data)
             if result != self._sdk.COMM_SUCCESS or error & 0x7F:
                 raise TransportError(f"servo {bus.name_of(i)}: setting its indirect addresses failed")
-            present, result, _ = self._ph.read4ByteTxRx(self._port, i, X.PRESENT_POSITION)
+            present, result, _ = self._ask(self._ph.read4ByteTxRx, i, X.PRESENT_POSITION)
             if result != self._sdk.COMM_SUCCESS:
                 raise TransportError(f"servo {bus.name_of(i)}: cannot read its present position")
             # the goal is where it is, so torque on does not move it
@@ -305,7 +316,7 @@ class DynamixelTransport(Transport):
             return
         t = time.perf_counter()
         if msg.kind == ESTOP:
-            self._torque_off()
+            self._torque_off(confirm=not self._estopped)  # the repeats of a latched e-stop: sync write only
             self._estopped = True
         elif not self._estopped:  # after an e-stop nothing moves the servos again
             ticks = self.bus.ticks(msg.values)
@@ -325,11 +336,21 @@ class DynamixelTransport(Transport):
         self._ack = msg.seq
         self._t_write = time.perf_counter() - t
 
-    def _torque_off(self) -> None:
+    def _torque_off(self, confirm: bool = True) -> list[int]:
+        """Torque off: one sync write to every servo at once, then (confirm) a write with a reply to each,
+        so it has surely happened when this returns; the ids that did not confirm it."""
         w = self._sdk.GroupSyncWrite(self._port, self._ph, X.TORQUE_ENABLE, 1)
         for i in self.bus.ids:
             w.addParam(i, [0])
         w.txPacket()
+        if not confirm:
+            return []
+        silent = []
+        for i in self.bus.ids:
+            result, _ = self._ph.write1ByteTxRx(self._port, i, X.TORQUE_ENABLE, 0)
+            if result != self._sdk.COMM_SUCCESS:
+                silent.append(i)
+        return silent
 
     def receive(self) -> list[bytes]:
         """One telemetry frame from a sync read of every servo (none before the session's PING, or on a miss)."""
@@ -401,7 +422,10 @@ class DynamixelTransport(Transport):
         if self._port is None:
             return
         try:
-            self._torque_off()
+            silent = self._torque_off()
+            if silent:
+                who = ", ".join(self.bus.name_of(i) for i in silent)
+                self._warn(f"warning: torque off not confirmed by servo {who}: check it before approaching the robot")
         finally:
             self._port.closePort()
             self._port = None

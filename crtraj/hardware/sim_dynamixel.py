@@ -98,7 +98,7 @@ class ServoChain:
         self._x = x0.copy()  # measured positions (ticks)
         self._v = np.zeros(n)  # measured velocities (ticks/s)
         self._profile = ServoProfile(np.full(n, _UNLIMITED), np.full(n, _UNLIMITED), x0)
-        self._t = 0.0
+        self._t: float | None = None  # device time reached; the first call's time is the start
         self.present = set(self.ids)
         self.silent = 0  # timeout fault: packets left to ignore
         self.corrupt = 0  # corrupted-reply fault: packets left whose replies get a wrong CRC
@@ -136,6 +136,9 @@ class ServoChain:
 
     def advance(self, now: float) -> None:
         """Integrate the servos to `now` (s) in steps of at most 1 ms; earlier times are ignored."""
+        if self._t is None:
+            self._t = now
+            self._profile.plan(self._x, np.zeros_like(self._x), self._x, now)
         while now > self._t + 1e-12:
             h = min(1e-3, now - self._t)
             self._t += h
