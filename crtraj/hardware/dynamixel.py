@@ -56,6 +56,7 @@ from crtraj.hardware.transport import Transport, TransportError
 DEFAULT_BAUD = 1_000_000
 SYSFS_USB_SERIAL = Path("/sys/bus/usb-serial/devices")
 CONNECT_ATTEMPTS = 3  # tries of each transaction while connecting
+READ_BLOCK = 0.002  # s a port read may wait for its bytes (far below the SDK's 34 ms reply timeout)
 # the rates tried, in this order, when no servo answers at the requested one
 _PROBE_BAUDS = (1_000_000, 57_600, 115_200, 2_000_000, 3_000_000, 4_000_000, 9_600)
 # what one sync read returns, through the indirect addresses: (address, size) in this order
@@ -168,7 +169,7 @@ class DynamixelTransport(Transport):
             )
         port = sdk.PortHandler(device)
         try:
-            opened = port.openPort() and port.setBaudRate(self.baud)
+            opened = port.openPort() and self._set_baud(port, self.baud)
         except Exception as exc:  # pyserial raises SerialException / OSError / ValueError
             why = f"{device}: cannot open ({exc}); on Linux, is your user in the dialout group?"
             raise TransportError(why) from None
@@ -201,6 +202,16 @@ class DynamixelTransport(Transport):
         self._t_write = 0.0
         self._t0 = time.monotonic()
         self.velocities = np.zeros(len(bus.ids))  # last present velocities (rad/s, mm/s)
+
+    @staticmethod
+    def _set_baud(port: Any, baud: int) -> bool:
+        """`PortHandler.setBaudRate`, then reads that block up to `READ_BLOCK` s for the bytes the SDK asks
+        for: the SDK polls the port in a loop, and with pyserial's default (timeout 0) that loop spins a core
+        while a reply is on the wire; blocking in select returns as soon as the bytes are there."""
+        ok = port.setBaudRate(baud)
+        if ok and port.ser is not None:
+            port.ser.timeout = READ_BLOCK
+        return ok
 
     # --------------------------------------------------------------- checks
     def _ask(self, call: Callable[..., tuple[Any, ...]], *args: Any) -> tuple[Any, ...]:
@@ -255,15 +266,15 @@ class DynamixelTransport(Transport):
         for b in _PROBE_BAUDS:
             if b == self.baud:
                 continue
-            self._port.setBaudRate(b)
+            self._set_baud(self._port, b)
             _, result, _ = self._ask(self._ph.ping, first)
             if result == self._sdk.COMM_SUCCESS:
-                self._port.setBaudRate(self.baud)
+                self._set_baud(self._port, self.baud)
                 return (
                     f"no servo answers on {self.device} at {self.baud} baud, but id {first} answers at {b} baud: "
                     f"pass --baud {b} (or set the servos' baud rate)"
                 )
-        self._port.setBaudRate(self.baud)
+        self._set_baud(self._port, self.baud)
         return (
             f"no servo answers on {self.device} (tried {self.baud} baud and the other common rates): check the "
             "servos' power supply and the data cable"

@@ -378,15 +378,13 @@ class SimDynamixel:
     def _send(self, request_size: int, replies: list[bytes], arrived: float) -> None:
         """Write the replies, after the wire time of the request and of each reply when modelled."""
         per_byte = 10.0 / self.chain.baud
-        t = max(arrived, self._bus_free) + request_size * per_byte
-        for r in replies:
-            t += len(r) * per_byte
-            if self.wire_time:
-                delay = t - time.perf_counter()
-                if delay > 0:
-                    time.sleep(delay)
-            try:
-                os.write(self._master, r)
-            except OSError:
-                return
+        t = max(arrived, self._bus_free) + (request_size + sum(len(r) for r in replies)) * per_byte
         self._bus_free = t
+        if not replies:
+            return
+        if self.wire_time:  # one sleep to the end of the last reply (the host waits for all of them anyway)
+            delay = t - time.perf_counter()
+            if delay > 0:
+                time.sleep(delay)
+        with contextlib.suppress(OSError):
+            os.write(self._master, b"".join(replies))
