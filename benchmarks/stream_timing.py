@@ -55,6 +55,12 @@ def _record(robot, seconds: float) -> MotionRecord:
     return MotionRecord("", "plan", "success", True, True, 0, 0, robot, Scene(), seconds * s, robot.cables(X))
 
 
+def _cpu_seconds(pid: int) -> float:
+    """User + system CPU seconds of process `pid` (Linux /proc)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 def dynamixel(args: argparse.Namespace, robot, acts: Actuators) -> None:
     """Achieved set-point rate, sync-read round trip and send jitter over the Dynamixel link, per rate."""
     from crtraj.hardware.dynamixel import open_dynamixel  # the optional extra: only for this mode
@@ -73,12 +79,15 @@ def dynamixel(args: argparse.Namespace, robot, acts: Actuators) -> None:
             f"{'rate':>6} {'achieved':>9} {'late':>6} {'read rtt median':>16} {'p90':>7} {'max':>7} "
             f"{'|interval-period| median':>25} {'p90':>7}"
         )
+        cost: list[tuple[float, float]] = []
         for rate in (float(r) for r in args.rates.split(",")):
             motion = admit(_record(robot, args.seconds), acts, rate=rate)
             with tempfile.TemporaryDirectory() as tmp:
                 log = Path(tmp) / "run.jsonl"
                 tr = open_dynamixel(f"dynamixel://{dev}", acts)
-                rep = Streamer(tr, acts, StreamOptions(rate=rate), log).run_path(motion)
+                cpu0, sim0 = time.process_time(), _cpu_seconds(sim.pid)
+                rep = Streamer(tr, acts, StreamOptions(rate=rate), log).run_path(motion, approach=True)
+                host_cpu, sim_cpu = time.process_time() - cpu0, _cpu_seconds(sim.pid) - sim0
                 tx = [json.loads(x) for x in log.read_text().splitlines()]
             walls = np.array([r["wall"] for r in tx if r["type"] == "tx" and r.get("kind") == "move"])
             if len(walls) < 2 or not tr.timings:
@@ -87,12 +96,23 @@ def dynamixel(args: argparse.Namespace, robot, acts: Actuators) -> None:
             achieved = (len(walls) - 1) / (walls[-1] - walls[0])
             reads = np.array([t[1] for t in tr.timings]) * 1e3
             jit = np.abs(np.diff(walls) - 1.0 / rate) * 1e3
+            ticks = rep.frames
+            host, dev_cpu = host_cpu / ticks * 1e3, sim_cpu / ticks * 1e3
             print(
                 f"{rate:6.0f} {achieved:8.1f}/s {rep.late_ticks:6d} {np.median(reads):13.2f} ms "
                 f"{np.percentile(reads, 90):7.2f} {reads.max():7.2f} {np.median(jit):22.3f} ms "
                 f"{np.percentile(jit, 90):7.3f}   ({rep.status}, {rep.moves} set-points, "
-                f"{tr.counts['timeouts']} timeouts)"
+                f"{tr.counts['timeouts']} timeouts; CPU per tick: host {host:.2f} ms, simulator {dev_cpu:.2f} ms)"
             )
+            cost.append((host, dev_cpu))
+        host, dev_cpu = np.median(np.array(cost), axis=0)
+        wire = 210 * 10 / 1e6 * 1e3
+        print(
+            f"per tick: {wire:.2f} ms on the wire (modelled) + {host:.2f} ms host CPU + {dev_cpu:.2f} ms simulator "
+            f"CPU (medians over the rates): an unloaded 2-core machine can sustain about "
+            f"{1e3 / (wire + host + dev_cpu):.0f} set-points/s; real servos reply in hardware, so about "
+            f"{1e3 / (wire + host):.0f}/s"
+        )
     finally:
         sim.terminate()
         sim.wait(10)

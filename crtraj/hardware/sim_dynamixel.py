@@ -139,11 +139,11 @@ class ServoChain:
         if self._t is None:
             self._t = now
             self._profile.plan(self._x, np.zeros_like(self._x), self._x, now)
+        on = np.array([t[X.TORQUE_ENABLE] == 1 for t in self._table])  # constant between packets
         while now > self._t + 1e-12:
             h = min(1e-3, now - self._t)
             self._t += h
             r, _ = self._profile.sample(self._t)
-            on = np.array([t[X.TORQUE_ENABLE] == 1 for t in self._table])
             x_new = r + (self._x - r) * (math.exp(-h / self.tau) if self.tau > 0 else 0.0)
             x_new = np.where(on, x_new, self._x)
             self._v = (x_new - self._x) / h
@@ -245,8 +245,9 @@ class ServoChain:
             t[X.INDIRECT_DATA + j] = t[src] if src < X.INDIRECT_ADDRESS else 0
         return bytes(t[addr : addr + length])
 
-    def _write(self, k: int, addr: int, data: bytes, now: float) -> int:
-        """Apply a write; the status error number (0: done)."""
+    def _write(self, k: int, addr: int, data: bytes, now: float, replan: bool = True) -> int:
+        """Apply a write; the status error number (0: done). replan: re-plan the motion now when the write
+        changes it (a sync write re-plans once, after its last servo)."""
         t = self._table[k]
         end = addr + len(data)
         if end > X.SIZE:
@@ -256,22 +257,26 @@ class ServoChain:
         locked = addr < _EEPROM_END or (addr < X.INDIRECT_DATA and end > X.INDIRECT_ADDRESS)
         if locked and t[X.TORQUE_ENABLE]:
             return dxl.ERR_ACCESS  # EEPROM and the indirect addresses are locked while the torque is on
-        trial = bytearray(t)
-        trial[addr:end] = data
-        goal = struct.unpack_from("<i", trial, X.GOAL_POSITION)[0]
-        lo, hi = (-X.EXTENDED_LIMIT, X.EXTENDED_LIMIT) if trial[X.OPERATING_MODE] == X.EXTENDED_POSITION else (0, 4095)
+        trial = bytearray(t[X.OPERATING_MODE : X.GOAL_POSITION + 4])  # the bytes the checks below read
+        base = X.OPERATING_MODE
+        lo_b, hi_b = max(addr, base), min(end, X.GOAL_POSITION + 4)
+        if lo_b < hi_b:
+            trial[lo_b - base : hi_b - base] = data[lo_b - addr : hi_b - addr]
+        goal = struct.unpack_from("<i", trial, X.GOAL_POSITION - base)[0]
+        extended = trial[0] == X.EXTENDED_POSITION
+        lo, hi = (-X.EXTENDED_LIMIT, X.EXTENDED_LIMIT) if extended else (0, 4095)
         if addr < X.GOAL_POSITION + 4 and end > X.GOAL_POSITION and not lo <= goal <= hi:
             return dxl.ERR_DATA_LIMIT
-        torque_on = addr <= X.TORQUE_ENABLE < end and trial[X.TORQUE_ENABLE] == 1
-        if torque_on and t[X.HARDWARE_ERROR]:
+        torque = trial[X.TORQUE_ENABLE - base]
+        if addr <= X.TORQUE_ENABLE < end and torque == 1 and t[X.HARDWARE_ERROR]:
             return dxl.ERR_RESULT_FAIL  # a servo in shutdown needs a reboot first
-        if addr <= X.TORQUE_ENABLE < end and trial[X.TORQUE_ENABLE] > 1:
+        if addr <= X.TORQUE_ENABLE < end and torque > 1:
             return dxl.ERR_DATA_LIMIT
         was_on = t[X.TORQUE_ENABLE]
         t[addr:end] = data
         if addr <= X.TORQUE_ENABLE < end and t[X.TORQUE_ENABLE] != was_on:
             self._torque(k, bool(t[X.TORQUE_ENABLE]), now)
-        elif end > X.PROFILE_ACCELERATION and addr < X.GOAL_POSITION + 4:
+        elif end > X.PROFILE_ACCELERATION and addr < X.GOAL_POSITION + 4 and replan:
             self._replan(now)
         return 0
 
@@ -297,7 +302,9 @@ class ServoChain:
         for j in range(0, len(body), block):
             dxl_id = body[j]
             if dxl_id in self.present:
-                self._write(self.ids.index(dxl_id), addr, body[j + 1 : j + block], now)
+                self._write(self.ids.index(dxl_id), addr, body[j + 1 : j + block], now, replan=False)
+        if addr < X.GOAL_POSITION + 4 and addr + length > X.PROFILE_ACCELERATION:
+            self._replan(now)
 
 
 class SimDynamixel:
