@@ -213,7 +213,7 @@ def test_a_short_motion_streams_and_ends_at_its_final_set_point(robot, acts):
         rep = st.run_path(motion)
         assert rep.status == "done" and rep.moves == len(motion.stamps)
         assert _settled(sim, acts, motion, clock)
-        assert sim.chain.counts["sync_writes"] >= rep.moves  # one bus transaction per set-point
+        assert sim.chain.counts["sync_writes"] == rep.frames + 1  # one per frame, one torque off at exit
         assert not any(sim.chain.torque(i) for i in acts.bus.ids)  # closed: torque off
     finally:
         sim.stop()
@@ -356,7 +356,10 @@ def test_paper_simulation_2_streams_to_the_servos_end_to_end(tmp_path, capsys):
         rep = st.run_path(motion)
         assert rep.status == "done", rep.message
         assert rep.moves == len(motion.stamps) and not any(e[1] == "refused" for e in rep.events)
-        assert rep.device["refused"] == 0 and rep.device["limited"] == 0
+        # one bus transaction per set-point (plus the HOLD frames while settling and the torque off at exit)
+        assert sim.chain.counts["sync_writes"] == rep.frames + 1
+        goals = [int.from_bytes(t[116:120], "little", signed=True) for t in sim.chain._table]
+        assert goals == acts.bus.ticks(motion.values[-1]).tolist()  # the final set-point, in ticks, as sent
         assert _settled(sim, acts, motion, clock)
     finally:
         sim.stop()
@@ -368,3 +371,8 @@ def test_paper_simulation_2_streams_to_the_servos_end_to_end(tmp_path, capsys):
     assert err == [
         f"crtraj: error: {port}: no such port (is the USB-serial adapter, e.g. a U2D2, plugged in? see ls /dev/ttyUSB*)"
     ]
+    # replan --stream dynamixel://: the same link after the run (here to a port that is not there)
+    args = ["replan", str(PROBLEMS / "paper_dynamic.toml"), "--out", str(tmp_path / "r2"), "--quiet", "--no-html"]
+    assert main([*args, "--stream", f"dynamixel://{port}?baud=1000000", "--time-scale", scale]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith(f"crtraj: error: {port}: no such port")

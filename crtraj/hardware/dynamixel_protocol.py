@@ -86,36 +86,34 @@ BAUD_CODES = {0: 9600, 1: 57600, 2: 115200, 3: 1_000_000, 4: 2_000_000, 5: 3_000
 MAX_PACKET = 2048
 
 
+def _crc_byte(i: int) -> int:
+    """CRC-16 (polynomial 0x8005, MSB first) of the byte `i` alone: one entry of the lookup table."""
+    crc = i << 8
+    for _ in range(8):
+        crc = ((crc << 1) ^ 0x8005) if crc & 0x8000 else (crc << 1)
+    return crc & 0xFFFF
+
+
+_CRC_TABLE = tuple(_crc_byte(i) for i in range(256))
+
+
 def crc16(data: bytes, crc: int = 0) -> int:
-    """CRC-16 of Protocol 2.0: polynomial 0x8005, initial 0, MSB first, no final XOR."""
+    """CRC-16 of Protocol 2.0: polynomial 0x8005, initial 0, MSB first, no final XOR (table driven)."""
+    table = _CRC_TABLE
     for b in data:
-        crc ^= b << 8
-        for _ in range(8):
-            crc = ((crc << 1) ^ 0x8005) if crc & 0x8000 else (crc << 1)
-            crc &= 0xFFFF
+        crc = ((crc << 8) & 0xFFFF) ^ table[(crc >> 8) ^ b]
     return crc
 
 
 def stuff(body: bytes) -> bytes:
-    """Insert 0xFD after every FF FF FD in `body` (instruction and params)."""
-    out = bytearray()
-    for b in body:
-        out.append(b)
-        if len(out) >= 3 and out[-3:] == b"\xff\xff\xfd":
-            out.append(0xFD)
-    return bytes(out)
+    """Insert 0xFD after every FF FF FD in `body` (instruction and params). The inserted FD cannot start
+    a new FF FF FD, so replacing every occurrence at once is the byte-by-byte rule."""
+    return bytes(body).replace(b"\xff\xff\xfd", b"\xff\xff\xfd\xfd")
 
 
 def unstuff(body: bytes) -> bytes:
     """Remove the 0xFD inserted after every FF FF FD (the inverse of `stuff`)."""
-    out = bytearray()
-    i = 0
-    while i < len(body):
-        out.append(body[i])
-        if len(out) >= 3 and out[-3:] == b"\xff\xff\xfd" and i + 1 < len(body) and body[i + 1] == 0xFD:
-            i += 1  # skip the stuffing byte
-        i += 1
-    return bytes(out)
+    return bytes(body).replace(b"\xff\xff\xfd\xfd", b"\xff\xff\xfd")
 
 
 def encode(dxl_id: int, instruction: int, params: bytes = b"") -> bytes:

@@ -141,6 +141,13 @@ class ServoChain:
             self._profile.plan(self._x, np.zeros_like(self._x), self._x, now)
         on = np.array([t[X.TORQUE_ENABLE] == 1 for t in self._table])  # constant between packets
         while now > self._t + 1e-12:
+            if self._t >= self._profile.end_time:  # the reference is at rest: one exact step to `now`
+                r = self._profile.target
+                decay = math.exp(-(now - self._t) / self.tau) if self.tau > 0 else 0.0
+                x_new = np.where(on, r + (self._x - r) * decay, self._x)
+                self._v = np.where(on, (r - x_new) / self.tau, 0.0) if self.tau > 0 else np.zeros_like(r)
+                self._x, self._t = x_new, now
+                return
             h = min(1e-3, now - self._t)
             self._t += h
             r, _ = self._profile.sample(self._t)
@@ -240,7 +247,8 @@ class ServoChain:
         struct.pack_into("<i", t, X.PRESENT_VELOCITY, int(np.clip(np.rint(rpm_units), -(2**31), 2**31 - 1)))
         goal = struct.unpack_from("<i", t, X.GOAL_POSITION)[0]
         t[X.MOVING] = 1 if abs(self._x[k] - goal) > 1 else 0
-        for j in range(X.INDIRECT_COUNT):  # indirect data mirrors the bytes its addresses name
+        first = max(0, addr - X.INDIRECT_DATA)
+        for j in range(first, min(X.INDIRECT_COUNT, addr + length - X.INDIRECT_DATA)):  # mirrors of the bytes named
             (src,) = struct.unpack_from("<H", t, X.INDIRECT_ADDRESS + 2 * j)
             t[X.INDIRECT_DATA + j] = t[src] if src < X.INDIRECT_ADDRESS else 0
         return bytes(t[addr : addr + length])
