@@ -34,6 +34,7 @@ a USB-serial latency timer above 1 ms is a warning: it caps the rate.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import sys
@@ -184,6 +185,8 @@ class DynamixelTransport(Transport):
             self._check_servos()
             self._setup(actuators)
         except BaseException:
+            with contextlib.suppress(Exception):  # a setup that failed half-way must not leave torque on
+                self._torque_off(confirm=False)
             self._port.closePort()
             self._port = None
             raise
