@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import re
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -105,6 +106,16 @@ def test_not_a_bus_rate_is_one_line(acts):
     with pytest.raises(InputError) as e:
         DynamixelTransport("/dev/null", 12345, acts)
     _one_line_error(e, "--baud: 12345 is not a Dynamixel bus rate")
+
+
+def test_a_robot_without_ids_or_with_ranges_beyond_the_servo_is_refused(robot, acts, tmp_path):
+    with pytest.raises(InputError) as e:
+        DynamixelTransport(str(tmp_path / "x"), 1_000_000, replace(acts, bus=None))
+    _one_line_error(e, "robot.actuators: no Dynamixel ids")
+    tiny_lead = replace(acts.bus, per_rev=(*acts.bus.per_rev[:-1], 0.001))  # 0.001 mm per revolution of z
+    with pytest.raises(InputError) as e:
+        DynamixelTransport(str(tmp_path / "x"), 1_000_000, replace(acts, bus=tiny_lead))
+    _one_line_error(e, "robot.actuators (z): position limits [-200, 100] mm", "beyond the extended position range")
 
 
 def test_wrong_baud_names_the_rate_the_servos_answer_at(acts):
