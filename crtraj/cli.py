@@ -173,7 +173,7 @@ def _add_sim_dynamixel(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--tau", type=float, default=0.03, help="servo time constant, s (default 0.03)")
     p.add_argument("--at", metavar="RESULT", help="start the servos at this result's first set-point")
     p.add_argument("--no-wire-time", action="store_true", help="answer at once (default: as slow as a real wire)")
-    p.add_argument("--missing", type=int, action="append", metavar="ID", help="fault: this id never answers (repeatable)")
+    p.add_argument("--missing", type=int, action="append", metavar="ID", help="fault: this id never answers")
     p.add_argument(
         "--hardware-error", action="append", metavar="ID:NAME", help="fault: set a hardware error bit, e.g. 3:overload"
     )
