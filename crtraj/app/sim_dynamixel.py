@@ -8,6 +8,7 @@ to ``crtraj stream RESULT --dynamixel PATH``.
 from __future__ import annotations
 
 import argparse
+from types import MappingProxyType
 
 from crtraj.core.errors import InputError
 from crtraj.hardware.actuators import Actuators
@@ -16,7 +17,8 @@ from crtraj.hardware.sim_dynamixel import ServoChain, SimDynamixel
 from crtraj.io.problem import load_robot
 from crtraj.io.results import read_result
 
-_BITS = {name.split()[-1]: bit for bit, name in HW_ERROR_NAMES}  # voltage, overheating, encoder, shock, overload
+# voltage, overheating, encoder, shock, overload
+_BITS = MappingProxyType({name.split()[-1]: bit for bit, name in HW_ERROR_NAMES})
 
 
 def _hardware_error(text: str, ids: tuple[int, ...]) -> tuple[int, int]:

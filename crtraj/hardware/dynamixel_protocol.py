@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import struct
 from dataclasses import dataclass
+from types import MappingProxyType
 
 HEADER = b"\xff\xff\xfd\x00"
 BROADCAST_ID = 0xFE
@@ -79,7 +80,7 @@ class X:
 
 
 # Dynamixel baud rate register (address 8) values.
-BAUD_CODES = {0: 9600, 1: 57600, 2: 115200, 3: 1_000_000, 4: 2_000_000, 5: 3_000_000, 6: 4_000_000}
+BAUD_CODES = MappingProxyType({0: 9600, 1: 57600, 2: 115200, 3: 1_000_000, 4: 2_000_000, 5: 3_000_000, 6: 4_000_000})
 
 # Largest packet the reader accepts (bytes, header to CRC): a sync write to every id of 4 bytes each is
 # 4 + 3 + 1 + 4 + 253 * 5 + 2 = 1279 bytes before stuffing.

@@ -42,6 +42,7 @@ import threading
 import time
 import tty
 from collections.abc import Callable, Sequence
+from types import MappingProxyType
 
 import numpy as np
 
@@ -54,7 +55,9 @@ TICKS_PER_REV = 4096  # X-series encoder
 _UNLIMITED = 1e12  # ticks/s or ticks/s^2 for a profile register of 0
 _READ_ONLY = (range(0, 7), range(70, 71), range(120, X.INDIRECT_ADDRESS), range(X.INDIRECT_DATA, X.SIZE))
 _EEPROM_END = 64
-_BAUD_TERMIOS = {b: getattr(termios, f"B{b}") for b in dxl.BAUD_CODES.values() if hasattr(termios, f"B{b}")}
+_BAUD_TERMIOS = MappingProxyType(
+    {b: getattr(termios, f"B{b}") for b in dxl.BAUD_CODES.values() if hasattr(termios, f"B{b}")}
+)
 
 
 class ServoChain:
