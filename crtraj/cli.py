@@ -177,6 +177,8 @@ def _add_sim_dynamixel(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--hardware-error", action="append", metavar="ID:NAME", help="fault: set a hardware error bit, e.g. 3:overload"
     )
+    p.add_argument("--silent-after", type=int, metavar="N", help="fault: answer nothing after N packets (timeouts)")
+    p.add_argument("--corrupt-after", type=int, metavar="N", help="fault: wrong CRC on every reply after N packets")
     p.add_argument("--duration", type=float, default=None, help="stop after this many s (default: until Ctrl-C)")
     p.set_defaults(use_case="sim-dynamixel")
 

@@ -339,10 +339,20 @@ def test_cli_sim_dynamixel_prints_its_path(capsys):
     assert out[-1].startswith("sim-dynamixel stopped: 0 packets")
 
 
-def test_cli_sim_dynamixel_bad_fault_is_one_line(capsys):
-    assert main(["sim-dynamixel", "--pty", "--hardware-error", "9:overload", "--duration", "0"]) == 2
+@pytest.mark.parametrize(
+    ("flags", "message"),
+    [
+        (["--hardware-error", "9:overload"], "--hardware-error: expected ID:NAME"),
+        (["--hardware-error", "3:tired"], "--hardware-error: expected ID:NAME"),
+        (["--missing", "42"], "--missing: 42 is not one of the robot's ids"),
+        (["--silent-after", "-1"], "--silent-after: must be in 0..1000000000 packets, got -1"),
+        (["--baud", "12345"], "--baud: a Dynamixel rate"),
+    ],
+)
+def test_cli_sim_dynamixel_bad_flag_is_one_line(capsys, flags, message):
+    assert main(["sim-dynamixel", "--pty", *flags, "--duration", "0"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "--hardware-error: expected ID:NAME" in err[0]
+    assert len(err) == 1 and message in err[0], err
 
 
 # ------------------------------------------------------------ end to end

@@ -271,3 +271,16 @@ def test_sim_survives_hostile_packets_with_valid_crcs():
     for i in (1, 2, 3):
         (s,) = _ask(chain, i, dxl.PING, now=10.0)
         assert s.id == i
+
+
+def test_sim_faults_from_a_packet_count_on():
+    chain = ServoChain([1], [1030])
+    chain.silent_after = 2
+    assert len(_ask(chain, 1, dxl.PING)) == 1 and len(_ask(chain, 1, dxl.PING)) == 1
+    assert _ask(chain, 1, dxl.PING) == [] and _ask(chain, 1, dxl.PING) == []  # a timeout from then on
+    chain = ServoChain([1], [1030])
+    chain.corrupt_after = 1
+    assert len(_ask(chain, 1, dxl.PING)) == 1
+    raw = chain.handle(dxl.PacketReader().feed(dxl.encode(1, dxl.PING))[0], 0.0)
+    reader = dxl.PacketReader()
+    assert len(raw) == 1 and reader.feed(raw[0]) == [] and reader.bad_crc == 1  # the reply's CRC is wrong

@@ -56,6 +56,10 @@ def sim_dynamixel_command(args: argparse.Namespace) -> int:
         chain.remove(m)
     for dxl_id, bits in faults:
         chain.set_hardware_error(dxl_id, bits)
+    for flag, value in (("--silent-after", args.silent_after), ("--corrupt-after", args.corrupt_after)):
+        if value is not None and not 0 <= value <= 10**9:
+            raise InputError(f"{flag}: must be in 0..1000000000 packets, got {value}")
+    chain.silent_after, chain.corrupt_after = args.silent_after, args.corrupt_after
     sim = SimDynamixel(chain, wire_time=not args.no_wire_time)
     wire = "wire time of a real bus modelled" if not args.no_wire_time else "no wire time"
     print(

@@ -105,6 +105,8 @@ class ServoChain:
         self.present = set(self.ids)
         self.silent = 0  # timeout fault: packets left to ignore
         self.corrupt = 0  # corrupted-reply fault: packets left whose replies get a wrong CRC
+        self.silent_after: int | None = None  # timeout fault from this packet count on (None: never)
+        self.corrupt_after: int | None = None  # corrupted-reply fault from this packet count on (None: never)
         self.counts = {"packets": 0, "replies": 0, "sync_writes": 0}
 
     # --------------------------------------------------------------- faults
@@ -187,11 +189,13 @@ class ServoChain:
         self.advance(now)
         self.counts["packets"] += 1
         replies = self._dispatch(packet, now)
-        if self.silent > 0:
-            self.silent -= 1
+        n = self.counts["packets"]
+        if self.silent > 0 or (self.silent_after is not None and n > self.silent_after):
+            self.silent = max(self.silent - 1, 0)
             return []
-        if self.corrupt > 0 and replies:
-            self.corrupt -= 1
+        late = self.corrupt_after is not None and n > self.corrupt_after
+        if (self.corrupt > 0 or late) and replies:
+            self.corrupt = max(self.corrupt - 1, 0)
             replies = [r[:-1] + bytes([r[-1] ^ 0xFF]) for r in replies]
         self.counts["replies"] += len(replies)
         return replies
