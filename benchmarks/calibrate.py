@@ -71,7 +71,8 @@ def main() -> None:
         tip_b, tip_a = res.before["heldout"]["tip"], res.after["heldout"]["tip"]
         print(
             f"hessian {hessian:12s}: fit {statistics.median(total):.2f} s ({min(total):.2f}..{max(total):.2f}), "
-            f"CPU {statistics.median(cpu):.2f} s, solve {statistics.median(solve):.2f} s ({min(solve):.2f}..{max(solve):.2f}), "
+            f"CPU {statistics.median(cpu):.2f} s, "
+            f"solve {statistics.median(solve):.2f} s ({min(solve):.2f}..{max(solve):.2f}), "
             f"{res.iterations} iterations, {res.status}; {int(res.free.sum())} parameters fitted, "
             f"{len(res.held)} held ({', '.join(h.name for h in res.held)})"
         )

@@ -116,7 +116,7 @@ def test_fit_recovers_every_identifiable_parameter(synthetic, setup):
 
 
 def test_heldout_tip_error_is_at_the_noise_level(synthetic, setup):
-    robot, act, hw, sites = setup
+    robot, _act, hw, sites = setup
     _, values, m, bad, clean, obs, res = synthetic
     cm = CalibrationModel(robot, hw, sites, res.layout)
     held = obs.heldout & ~bad[:, -1]  # the test's own outlier mask, independent of the fit's
@@ -232,7 +232,7 @@ def test_join_interpolates_the_log_at_marker_times():
 
 def test_record_then_calibrate_round_trip_into_planning(recorded, setup, tmp_path, capsys):
     robot, act, hw, sites = setup
-    d, truth, log, mk, t_cap, (t_log, v_log), _ = recorded
+    _d, truth, log, mk, t_cap, (t_log, v_log), _ = recorded
     data = tmp_path / "data.json"
     assert main(["record", "--log", str(log), "--markers", str(mk), "--time-offset", "100", "--out", str(data)]) == 0
     doc = json.loads(data.read_text())
@@ -291,8 +291,8 @@ def _one_error(capsys, argv) -> str:
 
 
 def test_bad_data_one_line_each(recorded, setup, tmp_path, capsys):
-    robot, act, hw, sites = setup
-    d, truth, log, mk, t_cap, _, m = recorded
+    _robot, _act, _hw, sites = setup
+    _d, _truth, log, mk, t_cap, _, m = recorded
     good = tmp_path / "good.json"
     assert main(["record", "--log", str(log), "--markers", str(mk), "--time-offset", "100", "--out", str(good)]) == 0
     doc = json.loads(good.read_text())
@@ -334,7 +334,7 @@ def test_toml_rewriter_changes_only_the_asked_values():
     assert t["a"]["x"] == 2.5 and t["a"]["b"] == [{"z": 2}, {"z": 4}] and t["a"]["w"] == 1.0 and t["c"]["d"] == [1, 2]
     assert t["a"]["y"] == "s # not a comment"
     # a table defined through a dotted key cannot be edited by appending a header: refused, not corrupted
-    with pytest.raises(InputError, match="not written|does not parse"):
+    with pytest.raises(InputError, match=r"not written|does not parse"):
         set_values("a.b = 1\n", {("a", "c"): 2.0})
 
 
@@ -353,12 +353,12 @@ def test_excitation_is_admitted_and_refused_when_it_would_hit_an_obstacle(setup)
     assert motion.values.shape[1] == act.n
     assert np.all(act.position_violation(motion.values) <= 0)
     ball = Obstacle(center=(0.0, 0.0, 250.0), radius=20.0)  # on the straight body it starts from
-    with pytest.raises(AdmissionError, match="refused|obstacle|D_sf"):
+    with pytest.raises(AdmissionError, match=r"refused|obstacle|D_sf"):
         excitation_motion(robot, act, Scene(obstacles=(ball,)), rate=50.0)
 
 
 def test_calibrate_use_case_holds_a_capture_frame_it_is_not_asked_to_fit(synthetic, setup):
-    robot, act, hw, sites = setup
+    robot, act, _hw, sites = setup
     truth, values, m, *_ = synthetic
     ds = Dataset(act.names, sites, np.arange(N, dtype=float), values, m)
     res = calibrate(ds, robot, ("lengths", "coupling", "zero_offsets"), CalibrateOptions(), capture=truth.capture)
