@@ -260,6 +260,18 @@ def _add_replan(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--view", action="store_true", help="afterwards, serve the 3-D replay on 127.0.0.1 until Ctrl-C")
     p.add_argument("--no-browser", action="store_true", help="with --view: only print the URL")
     p.add_argument("--quiet", action="store_true", help="print only the summary line")
+    p.add_argument(
+        "--true-robot",
+        metavar="FILE",
+        help="simulation: a robot file with the robot's real parameters (e.g. perturbed); a simulated motion-capture "
+        "tip marker films it and the run reports the measured tip error",
+    )
+    p.add_argument(
+        "--tip-feedback",
+        action="store_true",
+        help="use the motion-capture tip as the loop's measurement: it corrects the remaining model error "
+        "(needs --true-robot)",
+    )
     p.set_defaults(use_case="replan")
 
 

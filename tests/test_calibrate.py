@@ -18,13 +18,15 @@ import pytest
 
 from crtraj.app.calibrate import calibrate, toml_changes
 from crtraj.app.record import excitation_motion
+from crtraj.app.replan import loop_from_problem
 from crtraj.cli import main
 from crtraj.core.errors import AdmissionError, InputError
 from crtraj.core.tomledit import set_values
 from crtraj.hardware.actuators import Actuators
+from crtraj.hardware.mocap import SimulatedMocap
 from crtraj.io.calibration_data import Dataset, read_calibration
 from crtraj.io.mocap import LogSeries, MarkerFrames, join
-from crtraj.io.problem import load_robot
+from crtraj.io.problem import Problem, load_robot
 from crtraj.io.results import read_result
 from crtraj.model.calibration import (
     GROUPS,
@@ -32,6 +34,7 @@ from crtraj.model.calibration import (
     CalibrationModel,
     Hardware,
     Layout,
+    MarkerSite,
     Observations,
     fit,
     paper_markers,
@@ -41,6 +44,7 @@ from crtraj.model.calibration import (
     synthetic_truth,
     synthetic_values,
 )
+from crtraj.model.kinematics import Model
 from crtraj.world.obstacle import Obstacle
 from crtraj.world.scene import Scene
 
@@ -364,3 +368,52 @@ def test_calibrate_use_case_holds_a_capture_frame_it_is_not_asked_to_fit(synthet
     res = calibrate(ds, robot, ("lengths", "coupling", "zero_offsets"), CalibrateOptions(), capture=truth.capture)
     np.testing.assert_array_equal(res.capture(), truth.capture)
     assert res.success and abs(res.value("coupling") + 0.8) < 0.01
+
+
+def test_calibration_kinematics_agree_with_the_model_at_nominal_parameters(setup):
+    """The calibration's own forward kinematics (symbolic in the parameters) against `Model` (independent)."""
+    robot, act, hw, _ = setup
+    sites = (*paper_markers(2), MarkerSite("mid2", 1, 100.0))
+    layout = Layout.build(robot, act.zero_offset, np.zeros(6), CalibrateOptions())
+    cm = CalibrationModel(robot, hw, sites, layout)
+    values = synthetic_values(robot, hw, 20, seed=4)
+    x = robot.config(act.actuation(values))
+    model = Model(robot)
+    pts = model.points(x, 5)  # arc lengths 0, 100, 200, 300, 400 mm
+    P = cm.predict(layout.prior, values)
+    np.testing.assert_allclose(P[:, 0], pts[:, 0], atol=1e-9)
+    np.testing.assert_allclose(P[:, 1], pts[:, 2], atol=1e-9)
+    np.testing.assert_allclose(P[:, 2], pts[:, 4], atol=1e-9)
+    np.testing.assert_allclose(P[:, 3], pts[:, 3], atol=1e-9)
+    sensor = SimulatedMocap(robot, act, noise=0.0)
+    np.testing.assert_allclose(sensor.true_tip(robot.cables(x[3])), model.tip_position(x[3]), atol=1e-9)
+
+
+@pytest.mark.slow
+def test_tip_feedback_corrects_the_model_error_in_closed_loop(tmp_path):
+    """The true robot differs from the model (lengths +-2 %, coupling -0.95, zero offsets ~0.01 rad): the loop
+    brings the model's tip to the goal, which leaves the true tip off by the model error; with the motion
+    capture tip as its measurement it brings the measured tip there instead."""
+    text = ROBOT.read_text()
+    changes = {
+        ("robot", "segment", 0, "length"): 204.0,
+        ("robot", "segment", 1, "length"): 196.0,
+        ("robot", "coupling"): -0.95,
+        ("robot", "actuators", "servo", "s1c1", "zero_offset"): 0.01,
+        ("robot", "actuators", "servo", "s2c3", "zero_offset"): -0.01,
+    }
+    true_file = tmp_path / "true.toml"
+    true_file.write_text(set_values(text, changes))
+    problem = Problem.load(ROOT / "problems" / "paper_dynamic.toml")
+    act = Actuators.from_robot(problem.robot)
+    sensor = SimulatedMocap(load_robot(true_file), act, noise=0.1, seed=0)
+    loop = loop_from_problem(problem, tip_sensor=sensor, tip_feedback=True)
+    run = loop.run()
+    assert run.reached, run.message
+    true_final = sensor.true_tip(run.q[-1])
+    err_true = float(np.linalg.norm(true_final - run.goal))
+    err_model = float(run.goal_error[-1])  # where the model's tip is: the error a loop without feedback keeps
+    print(f"true tip error with feedback {err_true:.2f} mm; model error at the goal {err_model:.2f} mm")
+    assert err_true < 1.0
+    assert err_model > 5.0
+    assert run.measured_tip is not None and run.measured_tip.shape == (len(run.t), 3)
