@@ -368,7 +368,9 @@ def _add_calibrate(sub: argparse._SubParsersAction) -> None:
         "(held at their prior); writes the calibrated robot file (the original with only the fitted values "
         "changed, plus a [calibration] table), a JSON report and a residual plot.",
     )
-    p.add_argument("data", help="calibration dataset (JSON, from crtraj record)")
+    p.add_argument(
+        "data", nargs="?", help="calibration dataset (JSON, from crtraj record); or give --log and --markers"
+    )
     p.add_argument("--robot", default=str(DEFAULT_ROBOT), help="robot TOML file (default: problems/robots/cdsr2.toml)")
     p.add_argument("--out", required=True, help="calibrated robot TOML file to write")
     p.add_argument(
@@ -381,6 +383,15 @@ def _add_calibrate(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--plot", help="residual plot PNG (default: OUT with .residuals.png)")
     p.add_argument("--loss-scale", type=float, default=None, help="pseudo-Huber scale, mm (default 1)")
     p.add_argument("--holdout", type=float, default=None, help="held-out fraction of samples (default 0.2)")
+    p.add_argument("--log", help="instead of DATA: a stream log, joined with --markers as crtraj record does")
+    p.add_argument("--markers", help="with --log: the marker file (CSV or JSON lines, mm)")
+    p.add_argument(
+        "--marker", action="append", default=None, metavar="NAME=SEGMENT:ARC", help="with --log: as crtraj record"
+    )
+    p.add_argument("--time-offset", type=float, default=0.0, help="with --log: marker time minus log time, s")
+    p.add_argument(
+        "--values", choices=["measured", "commanded"], default="measured", help="with --log: as crtraj record"
+    )
     p.set_defaults(use_case="calibrate")
 
 

@@ -417,3 +417,19 @@ def test_tip_feedback_corrects_the_model_error_in_closed_loop(tmp_path):
     assert err_true < 1.0
     assert err_model > 5.0
     assert run.measured_tip is not None and run.measured_tip.shape == (len(run.t), 3)
+
+
+def test_one_command_from_a_log_and_a_marker_file(recorded, tmp_path, capsys):
+    _, _, log, mk, *_ = recorded
+    out = tmp_path / "cal.toml"
+    argv = ["calibrate", "--log", str(log), "--markers", str(mk), "--time-offset", "100", "--robot", str(ROBOT)]
+    assert main([*argv, "--out", str(out), "--fit", "lengths,coupling,zero_offsets,capture_frame"]) == 0
+    rec = read_calibration(out)
+    assert rec is not None and str(log) in rec.dataset and "coupling" in rec.fitted
+    assert abs(load_robot(out).coupling + 0.8) < 0.01
+    assert (tmp_path / "cal.report.json").exists()
+    capsys.readouterr()
+    assert "not both" in _one_error(capsys, [*argv, str(tmp_path / "data.json"), "--out", str(tmp_path / "x.toml")])
+    assert "arc 500 mm is beyond segment 1" in _one_error(
+        capsys, [*argv, "--marker", "base=1:0", "--marker", "far=1:500", "--out", str(tmp_path / "y.toml")]
+    )

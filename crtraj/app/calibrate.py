@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from crtraj.app.record import marker_sites, record_dataset
 from crtraj.core.errors import InputError
 from crtraj.core.fileio import atomic_write_json, atomic_write_text, check_output_file, read_text
 from crtraj.core.tomledit import set_values
@@ -186,8 +187,25 @@ def _same(a: str | Path, b: str | Path) -> bool:
         return False
 
 
+def _dataset(args: argparse.Namespace, robot: Robot, act: Actuators) -> tuple[Dataset, str]:
+    """(the dataset, how to name its source): DATA, or --log joined with --markers on the fly."""
+    if (args.data is None) == (args.log is None):
+        raise InputError("calibrate: give a dataset (DATA) or --log with --markers, not both")
+    if args.data is not None:
+        return read_dataset(args.data, act.names, robot.n_segments), str(args.data)
+    if args.markers is None:
+        raise InputError("--log: needs --markers (the motion-capture file to join it with)")
+    sites = marker_sites(args.marker, robot)
+    data, dropped = record_dataset(
+        args.log, args.markers, robot, sites, time_offset=args.time_offset, prefer=args.values
+    )
+    print(f"joined {args.log} with {args.markers}: {data.n} samples ({dropped} capture frames outside the log)")
+    return data, f"{args.log} + {args.markers} (time offset {args.time_offset:g} s)"
+
+
 def calibrate_command(args: argparse.Namespace) -> int:
-    """`crtraj calibrate DATA --robot FILE --out calibrated.toml [...]`; returns the exit code."""
+    """`crtraj calibrate DATA --robot FILE --out calibrated.toml [...]` (or --log LOG --markers FILE instead of
+    DATA: the join of `crtraj record` on the fly); returns the exit code."""
     groups = parse_groups(args.fit)
     out = check_output_file(args.out, "--out")
     if _same(out, args.robot) or Path(out).resolve() == Path(args.robot).resolve():
@@ -201,7 +219,7 @@ def calibrate_command(args: argparse.Namespace) -> int:
         raise InputError(f"{args.robot}: robot.actuators: missing; calibration needs the servo conversion")
     original = read_text(args.robot, max_bytes=4 * 1024 * 1024, kind="TOML")
     act = Actuators.from_robot(robot)
-    data = read_dataset(args.data, act.names, robot.n_segments)
+    data, source = _dataset(args, robot, act)
     opts = CalibrateOptions(
         **{k: v for k, v in (("loss_scale", args.loss_scale), ("holdout", args.holdout)) if v is not None}
     )
@@ -210,13 +228,13 @@ def calibrate_command(args: argparse.Namespace) -> int:
     res = calibrate(data, robot, groups, opts, capture=prior_capture)
     for line in report_lines(res):
         print(line)
-    atomic_write_json(report_path, report_dict(res, str(args.data), str(args.robot)))
+    atomic_write_json(report_path, report_dict(res, source, str(args.robot)))
     if not res.success:
         print(f"report: {report_path}")
         print(f"crtraj: calibrate failed: {res.status}; {args.out} not written", file=sys.stderr)
         return 1
     date = datetime.now(timezone.utc).isoformat(timespec="seconds")
-    atomic_write_text(out, calibrated_text(original, res, str(args.data), date))
+    atomic_write_text(out, calibrated_text(original, res, source, date))
     cm = CalibrationModel(robot, Hardware(act.spool_radius, act.sign), data.sites, res.layout)
     names = [s.name for s in data.sites]
     before = cm.residuals(res.prior, data.values, data.positions)

@@ -27,7 +27,7 @@ from crtraj.hardware.stream import StreamOptions
 from crtraj.io.calibration_data import Dataset, parse_marker_option
 from crtraj.io.mocap import join, read_markers, read_stream_log
 from crtraj.io.problem import Problem, load_robot
-from crtraj.model.calibration import MarkerSite, paper_markers
+from crtraj.model.calibration import MarkerSite, check_sites, paper_markers
 from crtraj.model.excitation import excitation_path
 from crtraj.model.robot import Robot
 from crtraj.world.scene import Scene
@@ -67,13 +67,15 @@ def excitation_motion(
     return admit(rec, actuators, robot=robot, rate=rate)
 
 
-def _sites(args: argparse.Namespace, robot: Robot) -> tuple[MarkerSite, ...]:
-    if not args.marker:
+def marker_sites(options: list[str] | None, robot: Robot) -> tuple[MarkerSite, ...]:
+    """The marker sites of ``--marker NAME=SEGMENT:ARC`` options (none: the paper's three markers)."""
+    if not options:
         return paper_markers(robot.n_segments)
-    sites = tuple(parse_marker_option(m, robot.n_segments) for m in args.marker)
+    sites = tuple(parse_marker_option(m, robot.n_segments) for m in options)
     names = [s.name for s in sites]
     if len(set(names)) != len(names):
         raise InputError(f"--marker: a marker is named twice ({', '.join(names)})")
+    check_sites(sites, robot)
     return sites
 
 
@@ -109,7 +111,7 @@ def record_command(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot)
     if robot.actuators is None:
         raise InputError(f"{args.robot}: robot.actuators: missing; a dataset records actuator values")
-    sites = _sites(args, robot)
+    sites = marker_sites(args.marker, robot)
     log = args.log
     if args.excite:
         if sum(x is not None for x in (args.udp, args.serial, args.dry_run)) != 1:

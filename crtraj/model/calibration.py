@@ -72,6 +72,18 @@ class MarkerSite:
         return {"segment": self.segment + 1, "arc": "tip" if self.arc is None else self.arc}
 
 
+def check_sites(sites: Sequence[MarkerSite], robot: Robot) -> None:
+    """Refuse a marker on a segment the robot lacks or beyond its segment's length (one line)."""
+    if not 1 <= len(sites) <= MAX_MARKERS:
+        raise InputError(f"markers: 1 to {MAX_MARKERS} markers, got {len(sites)}")
+    for s in sites:
+        if not 0 <= s.segment < robot.n_segments:
+            raise InputError(f"marker {s.name}: segment {s.segment + 1}, the robot has {robot.n_segments}")
+        L = robot.segments[s.segment].length
+        if s.arc is not None and not 0 <= s.arc <= L:
+            raise InputError(f"marker {s.name}: arc {s.arc:g} mm is beyond segment {s.segment + 1} ({L:g} mm long)")
+
+
 def paper_markers(n_segments: int) -> tuple[MarkerSite, ...]:
     """The paper's markers: the base, the tip of the proximal segment, the distal tip."""
     sites = [MarkerSite("base", 0, 0.0)]
@@ -569,6 +581,7 @@ def fit(
     for g in groups:
         if g not in GROUPS:
             raise InputError(f"--fit: unknown parameter group {g!r} (known: {', '.join(GROUPS)})")
+    check_sites(obs.sites, robot)
     fit_rows = ~obs.heldout
     layout0 = Layout.build(robot, zero_offsets, np.zeros(6), o)
     cm0 = CalibrationModel(robot, hw, obs.sites, layout0)
@@ -593,6 +606,9 @@ def fit(
     e0 = cm.residuals(prior, Vf, Pf)
     Jw0, _, _ = _weighted(cm.jacobians(prior, Vf, Pf), e0, o.loss_scale)
     free, held = identifiable(Jw0, layout, free, o.identifiability_tol)
+    if not free.any():
+        names = ", ".join(h.name for h in held)
+        raise InputError(f"--fit: this data determines none of the parameters asked for ({names})")
     theta, status, success, iters, t_solve = _solve(cm, layout, free, Vf, Pf, o)
     e = cm.residuals(theta, Vf, Pf)
     Jw, ew, _ = _weighted(cm.jacobians(theta, Vf, Pf), e, o.loss_scale)
