@@ -270,7 +270,14 @@ def _add_replan(sub: argparse._SubParsersAction) -> None:
         "--tip-feedback",
         action="store_true",
         help="use the motion-capture tip as the loop's measurement: it corrects the remaining model error "
-        "(needs --true-robot)",
+        "(needs --mocap-port or --true-robot)",
+    )
+    p.add_argument(
+        "--mocap-port",
+        type=int,
+        metavar="PORT",
+        help="live runs (--feed, --stream): the capture's tip marker as UDP JSON on 127.0.0.1:PORT "
+        '({"marker": "tip", "position": [x, y, z]} in mm, capture frame; the robot file\'s [calibration] maps it)',
     )
     p.set_defaults(use_case="replan")
 

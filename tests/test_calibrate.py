@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import json
 import math
+import socket
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -23,7 +25,7 @@ from crtraj.cli import main
 from crtraj.core.errors import AdmissionError, InputError
 from crtraj.core.tomledit import set_values
 from crtraj.hardware.actuators import Actuators
-from crtraj.hardware.mocap import SimulatedMocap
+from crtraj.hardware.mocap import MocapTip, SimulatedMocap
 from crtraj.io.calibration_data import Dataset, read_calibration
 from crtraj.io.mocap import LogSeries, MarkerFrames, join
 from crtraj.io.problem import Problem, load_robot
@@ -433,3 +435,46 @@ def test_one_command_from_a_log_and_a_marker_file(recorded, tmp_path, capsys):
     assert "arc 500 mm is beyond segment 1" in _one_error(
         capsys, [*argv, "--marker", "base=1:0", "--marker", "far=1:500", "--out", str(tmp_path / "y.toml")]
     )
+
+
+def test_live_mocap_tip_maps_through_the_capture_frame_and_drops_hostile_datagrams():
+    now = [100.0]
+    cap = np.array([0.1, -0.2, 0.3, 10.0, -20.0, 30.0])
+    R = rotation_matrix(cap[:3])
+    with MocapTip(cap, max_age=0.1, clock=lambda: now[0]) as sensor:
+        assert sensor.address[0] == "127.0.0.1"
+        bad = [
+            b"x" * 20000,  # oversized
+            b"\xff\xfe",  # not UTF-8
+            b"[[[[[[[[1]]]]]]]]",  # nested too deeply
+            b"{not json",
+            b'{"marker": "tip", "position": [1, 2]}',
+            b'{"marker": "tip", "position": [1, NaN, 2]}',
+            b'{"marker": "tip", "position": [1, true, 2]}',
+            b'{"marker": "tip", "x": 1e9, "y": 0, "z": 0}',
+        ]
+        for d in bad:
+            assert not sensor.ingest(d, now[0])
+        assert sensor.rejected == len(bad) and sensor.tip(0.0, np.zeros(7)) is None
+        assert not sensor.ingest(b'{"marker": "base", "position": [0, 0, 0]}', now[0])  # another marker
+        assert sensor.rejected == len(bad)
+        m = np.array([5.0, 6.0, 7.0])
+        msg = [{"marker": "base", "position": [0, 0, 0]}, {"marker": "tip", "x": 5.0, "y": 6.0, "z": 7.0}]
+        # over the socket, as a capture bridge sends it (bounded wait: a local datagram arrives at once)
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as tx:
+            tx.sendto(json.dumps(msg).encode(), sensor.address)
+            for _ in range(500):
+                got = sensor.tip(0.0, np.zeros(7))
+                if got is not None:
+                    break
+                time.sleep(0.01)
+        np.testing.assert_allclose(got, R @ m + cap[3:], atol=1e-12)
+        now[0] += 0.2  # older than max_age: stale
+        assert sensor.tip(0.0, np.zeros(7)) is None
+
+
+def test_replan_tip_options_refuse_in_one_line(capsys, tmp_path):
+    base = ["replan", str(ROOT / "problems" / "paper_dynamic.toml"), "--out", str(tmp_path / "r")]
+    assert "needs a tip measurement" in _one_error(capsys, [*base, "--tip-feedback"])
+    assert "a live run only" in _one_error(capsys, [*base, "--mocap-port", "0"])
+    assert "a simulation" in _one_error(capsys, [*base, "--true-robot", str(ROBOT), "--mocap-port", "0"])

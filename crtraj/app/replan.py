@@ -34,11 +34,12 @@ from crtraj.core.fileio import StagedDir, check_output_dir, failed_sibling, is_s
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.admission import admit, check_stream_safety
 from crtraj.hardware.link import DeviceLink
-from crtraj.hardware.mocap import SimulatedMocap
+from crtraj.hardware.mocap import MocapTip, SimulatedMocap
 from crtraj.hardware.setpoints import check_time_scale
 from crtraj.hardware.stream import Streamer, StreamError, StreamOptions
 from crtraj.hardware.transport import parse_hostport
 from crtraj.hardware.verify import FrameVerifier
+from crtraj.io.calibration_data import read_calibration
 from crtraj.io.problem import Problem, load_robot
 from crtraj.io.results import read_result
 from crtraj.io.run_files import RUN_FILES
@@ -252,7 +253,9 @@ class ReplanRequest:
     (streamed afterwards only). quiet: print only the summary line. true_robot: a robot file whose
     parameters differ from the problem's (a simulation: a motion-capture tip marker films this robot,
     `crtraj.hardware.mocap.SimulatedMocap`, and the run reports its measured tip error). tip_feedback: the
-    loop corrects its model's error with that measured tip.
+    loop corrects its model's error with that measured tip. mocap_port: listen on 127.0.0.1:PORT for the live
+    capture's tip marker (`crtraj.hardware.mocap.MocapTip`, through the robot file's calibrated capture frame;
+    live runs only: with feed and stream).
     """
 
     problem: Path
@@ -269,6 +272,7 @@ class ReplanRequest:
     quiet: bool = False
     true_robot: Path | None = None
     tip_feedback: bool = False
+    mocap_port: int | None = None
 
 
 @dataclass(frozen=True)
@@ -292,10 +296,12 @@ def run_replan(req: ReplanRequest, *, view: Callable[[dict[str, Any]], None] | N
         raise InputError(f"--seed: must be >= 0, got {req.seed}")
     if req.stream:
         check_stream_safety(req.safety)
-    if req.tip_feedback and req.true_robot is None:
-        raise InputError("--tip-feedback: needs --true-robot (only the simulated motion capture is implemented)")
-    if req.true_robot is not None and (req.stream or req.feed):
-        raise InputError("--true-robot: a simulation; it cannot be combined with --stream or --feed")
+    if req.tip_feedback and req.true_robot is None and req.mocap_port is None:
+        raise InputError("--tip-feedback: needs a tip measurement: --mocap-port (live) or --true-robot (simulated)")
+    if req.true_robot is not None and (req.stream or req.feed or req.mocap_port is not None):
+        raise InputError("--true-robot: a simulation; it cannot be combined with --stream, --feed or --mocap-port")
+    if req.mocap_port is not None and not (req.stream and req.feed):
+        raise InputError("--mocap-port: a live run only (with --feed and --stream): the capture films the real robot")
     out = req.out if req.out is not None else Path("out") / ("replan" if req.safety else "replan-no-safety")
     check_output_dir(out, "--out", RUN_FILES)  # before the (possibly long) run, not after it
     problem = Problem.load(req.problem)
@@ -317,8 +323,16 @@ def run_replan(req: ReplanRequest, *, view: Callable[[dict[str, Any]], None] | N
     return _exit_code(done, streamed)
 
 
-def _tip_sensor(req: ReplanRequest, problem: Problem) -> SimulatedMocap | None:
-    """The simulated motion capture of --true-robot, or None."""
+def _tip_sensor(req: ReplanRequest, problem: Problem) -> SimulatedMocap | MocapTip | None:
+    """The live capture's tip (--mocap-port), the simulated motion capture of --true-robot, or None."""
+    if req.mocap_port is not None:
+        ref = problem.raw.get("robot")
+        rec = read_calibration(problem.path.parent / ref) if isinstance(ref, str) and problem.path else None
+        if rec is None:
+            raise InputError(
+                "--mocap-port: the robot file has no [calibration] capture frame; run crtraj calibrate first"
+            )
+        return MocapTip(rec.capture, port=req.mocap_port)
     if req.true_robot is None:
         return None
     if problem.robot.actuators is None:
@@ -344,6 +358,7 @@ def _run_and_write(req: ReplanRequest, problem: Problem, seed: int, feed: Any, o
     is unsolvable (said on stdout and stderr, nothing written)."""
     live = feed is not None and bool(req.stream)
     link = None
+    sensor = _tip_sensor(req, problem)
     with contextlib.ExitStack() as stack:
         try:
             lead, sopts = _live_stream_options(problem) if live else (0.0, None)
@@ -363,7 +378,7 @@ def _run_and_write(req: ReplanRequest, problem: Problem, seed: int, feed: Any, o
                     feed=feed,
                     lead=lead,
                     start_config=x_dev,
-                    tip_sensor=_tip_sensor(req, problem),
+                    tip_sensor=stack.enter_context(contextlib.closing(sensor)) if sensor else None,
                     tip_feedback=req.tip_feedback,
                 )
             except UnsolvableTaskError as exc:
@@ -570,6 +585,7 @@ def replan_command(args: Any) -> int:
         quiet=args.quiet,
         true_robot=Path(args.true_robot) if getattr(args, "true_robot", None) else None,
         tip_feedback=bool(getattr(args, "tip_feedback", False)),
+        mocap_port=getattr(args, "mocap_port", None),
     )
     view = (lambda result: serve(result, "the run", not args.no_browser)) if args.view else None
     return run_replan(req, view=view)
