@@ -450,17 +450,6 @@ class CalibrationResult:
         """The capture frame (6,): rotation vector (rad) and translation (mm), capture -> robot."""
         return self.theta[-6:].copy()
 
-    def calibrated_robot(self, robot: Robot) -> Robot:
-        """`robot` with the fitted geometry (lengths, coupling, cable radius); actuators as they were."""
-        n = robot.n_segments
-        segs = tuple(replace(s, length=float(self.theta[k])) for k, s in enumerate(robot.segments))
-        return replace(robot, segments=segs, coupling=float(self.theta[n]), cable_radius=float(self.theta[n + 1]))
-
-    def zero_offsets(self) -> np.ndarray:
-        """(nq,) fitted zero offsets: servos (rad), then the z stage (mm)."""
-        n = self.layout.n_segments
-        return self.theta[n + 2 : n + 3 + 3 * n].copy()
-
 
 @dataclass(frozen=True)
 class Observations:
