@@ -27,7 +27,7 @@ from crtraj.core.tomledit import set_values
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.mocap import MocapTip, SimulatedMocap
 from crtraj.io.calibration_data import Dataset, read_calibration
-from crtraj.io.mocap import LogSeries, MarkerFrames, join
+from crtraj.io.mocap import LogSeries, MarkerFrames, join, read_markers, read_stream_log
 from crtraj.io.problem import Problem, load_robot
 from crtraj.io.results import read_result
 from crtraj.model.calibration import (
@@ -478,3 +478,27 @@ def test_replan_tip_options_refuse_in_one_line(capsys, tmp_path):
     assert "needs a tip measurement" in _one_error(capsys, [*base, "--tip-feedback"])
     assert "a live run only" in _one_error(capsys, [*base, "--mocap-port", "0"])
     assert "a simulation" in _one_error(capsys, [*base, "--true-robot", str(ROBOT), "--mocap-port", "0"])
+
+
+def test_marker_formats_agree_and_the_log_prefers_telemetry(tmp_path, setup):
+    _, act, _, sites = setup
+    rows = [(0.5, "base", (1.0, 2.0, 3.0)), (0.5, "tip", (4.0, 5.0, 6.0)), (0.6, "tip1", (7.0, 8.0, 9.0))]
+    csv_file = tmp_path / "m.csv"
+    csv_file.write_text("# exported\ntime,name,x,y,z\n" + "".join(f"{t},{n},{x},{y},{z}\n" for t, n, (x, y, z) in rows))
+    jl = tmp_path / "m.jsonl"
+    jl.write_text("".join(json.dumps({"t": t, "marker": n, "position": list(p)}) + "\n" for t, n, p in rows))
+    a, b = read_markers(csv_file, sites), read_markers(jl, sites)
+    np.testing.assert_array_equal(a.t, [0.5, 0.6])
+    np.testing.assert_array_equal(a.t, b.t)
+    np.testing.assert_array_equal(np.isnan(a.positions), np.isnan(b.positions))
+    np.testing.assert_array_equal(np.nan_to_num(a.positions), np.nan_to_num(b.positions))
+    assert np.isnan(a.positions[0, 1]).all() and a.positions[0, 2].tolist() == [4.0, 5.0, 6.0]
+    log = tmp_path / "log.jsonl"
+    lines = [{"type": "header", "names": list(act.names)}, {"type": "tx", "wall": 0.0, "kind": "ping", "seq": 0}]
+    for k in range(3):
+        lines.append({"type": "tx", "wall": 0.1 * k, "values": [1.0 * k] * act.n})
+        lines.append({"type": "rx", "wall": 0.1 * k + 0.01, "positions": [2.0 * k] * act.n})
+    log.write_text("".join(json.dumps(x) + "\n" for x in lines))
+    measured, commanded = read_stream_log(log), read_stream_log(log, "commanded")
+    assert measured.kind == "measured" and measured.values[:, 0].tolist() == [0.0, 2.0, 4.0]
+    assert commanded.kind == "commanded" and commanded.values[:, 0].tolist() == [0.0, 1.0, 2.0]
