@@ -167,6 +167,15 @@ def test_a_distal_segment_that_never_bends_leaves_the_coupling_undetermined(setu
     assert not res.free[res.layout.names.index("coupling")]
     assert res.success
     assert abs(res.value("segment[1].length") - truth.robot.segments[1].length) < 3 * res.std_error[1] + 1e-9
+    # commanded bending in one plane only (both segments along x, the base moving): nothing more is lost than
+    # the two common cable offsets and the stage offset, which no data determines
+    rng = np.random.default_rng(0)
+    x = np.zeros((200, robot.nx))
+    x[:, 0], x[:, 2], x[:, -1] = rng.uniform(-0.8, 0.8, 200), rng.uniform(-0.8, 0.8, 200), rng.uniform(-50, 50, 200)
+    planar = act.command(robot.cables(x))
+    m, _ = simulate_markers(truth.robot, hw, truth.zero_offsets, truth.capture, planar, sites, noise=NOISE, seed=1)
+    res = fit(robot, hw, act.zero_offset, Observations(planar, m, sites, split(200, 0.2, 0)), GROUPS)
+    assert {h.name for h in res.held} == {"s1c3.zero_offset", "s2c3.zero_offset", "z.zero_offset"}
 
 
 def test_jacobian_matches_finite_differences(setup):
@@ -502,3 +511,28 @@ def test_marker_formats_agree_and_the_log_prefers_telemetry(tmp_path, setup):
     measured, commanded = read_stream_log(log), read_stream_log(log, "commanded")
     assert measured.kind == "measured" and measured.values[:, 0].tolist() == [0.0, 2.0, 4.0]
     assert commanded.kind == "commanded" and commanded.values[:, 0].tolist() == [0.0, 1.0, 2.0]
+
+
+def test_record_excite_streams_the_admitted_excitation_and_logs_it(tmp_path, setup, capsys):
+    _, act, _, _ = setup
+    log, frames = tmp_path / "ex.jsonl", tmp_path / "frames.bin"
+    argv = ["record", "--excite", "--dry-run", str(frames), "--log", str(log), "--out", str(tmp_path / "d.json")]
+    assert main(argv) == 0
+    assert "join it with the capture" in capsys.readouterr().out
+    assert frames.stat().st_size > 0
+    series = read_stream_log(log)
+    assert series.kind == "commanded" and series.t[-1] > 30.0
+    assert np.all(act.position_violation(series.values) <= 1e-12)
+    rest = act.command(load_robot(ROBOT).cables(load_robot(ROBOT).straight()))
+    np.testing.assert_allclose(series.values[0], rest, atol=1e-9)  # starts and ends straight, at rest
+    np.testing.assert_allclose(series.values[-1], rest, atol=1e-9)
+    # the workspace: each segment bends over a third of its limit, in every direction, and the base sweeps
+    robot = load_robot(ROBOT)
+    ub = robot.bending(robot.config(act.actuation(series.values)))  # (T, 2, 2) effective bending vectors
+    theta = np.linalg.norm(ub, axis=-1)
+    assert np.all(theta.max(axis=0) > np.pi / 3)
+    for k in range(2):
+        big = theta[:, k] > 0.2
+        octant = np.floor((np.arctan2(ub[big, k, 1], ub[big, k, 0]) + np.pi) / (np.pi / 4)).astype(int) % 8
+        assert set(octant.tolist()) == set(range(8))
+    assert np.ptp(series.values[:, -1]) > 100.0
