@@ -472,8 +472,9 @@ def split(n: int, fraction: float, seed: int) -> np.ndarray:
 
 
 def initial_capture(cm: CalibrationModel, theta: np.ndarray, obs: Observations, rows: np.ndarray) -> np.ndarray:
-    """The capture frame (6,) that best aligns the markers with the model at theta; `InputError` when
-    their spread says the marker file is in another unit than mm."""
+    """The capture frame (6,) that best aligns the markers with the model at theta; `InputError` when the
+    plausibility check on lengths fails (the markers' spread about their centroid against the model's, which
+    the segment lengths set): the marker file is in another unit than mm."""
     P = cm.predict(theta, obs.values[rows])
     m = obs.positions[rows]
     ok = np.isfinite(m).all(axis=2)
@@ -481,8 +482,8 @@ def initial_capture(cm: CalibrationModel, theta: np.ndarray, obs: Observations, 
     lo, hi = PLAUSIBLE_SCALE
     if not lo <= ratio <= hi:
         raise InputError(
-            f"markers: their spread is {1 / ratio:.4g} times the robot's (expected about 1): "
-            "the marker file is not in mm (metres? convert it) or the markers sit elsewhere"
+            f"markers: their distances are {1 / ratio:.4g} times what the robot's segment lengths give (expected "
+            "about 1): the marker file is not in mm (metres? convert it) or the markers sit elsewhere"
         )
     return np.concatenate([rotation_vector(R), t])
 
