@@ -19,7 +19,7 @@ def test_every_documented_command_is_registered():
     sub = next(a for a in parser._actions if a.dest == "command")
     readme = (PROBLEMS.parent / "README.md").read_text()
     documented = set(re.findall(r"^\| `crtraj ([a-z0-9-]+)", readme, flags=re.M))
-    assert {"plan", "replan", "view", "stream", "sim-device", "feed-replay"} <= documented
+    assert {"plan", "replan", "view", "stream", "sim-device", "feed-replay", "record", "calibrate"} <= documented
     assert set(sub.choices) == documented
 
 

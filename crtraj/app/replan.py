@@ -34,11 +34,13 @@ from crtraj.core.fileio import StagedDir, check_output_dir, failed_sibling, is_s
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.admission import admit, check_stream_safety
 from crtraj.hardware.link import DeviceLink
+from crtraj.hardware.mocap import MocapTip, SimulatedMocap
 from crtraj.hardware.setpoints import check_time_scale
 from crtraj.hardware.stream import Streamer, StreamError, StreamOptions
 from crtraj.hardware.transport import parse_hostport
 from crtraj.hardware.verify import FrameVerifier
-from crtraj.io.problem import Problem
+from crtraj.io.calibration_data import read_calibration
+from crtraj.io.problem import Problem, load_robot
 from crtraj.io.results import read_result
 from crtraj.io.run_files import RUN_FILES
 from crtraj.model.kinematics import Model
@@ -74,6 +76,8 @@ def loop_from_problem(
     feed: Any = None,
     lead: float = 0.0,
     start_config: np.ndarray | None = None,
+    tip_sensor: Any = None,
+    tip_feedback: bool = False,
 ) -> ClosedLoop:
     """A `ClosedLoop` for a problem file: its robot, scene, task and ``[replan]``, ``[loop]``,
     ``[tracking]``, ``[planner]``, ``[steer]`` sections, and the robot's actuator limits
@@ -143,6 +147,8 @@ def loop_from_problem(
         obstacles=source,
         extra_options=extra,
         rate_limits=_rate_limits(problem.robot),
+        tip_sensor=tip_sensor,
+        tip_feedback=tip_feedback,
     )
 
 
@@ -244,7 +250,12 @@ class ReplanRequest:
     feed address (udp://127.0.0.1:PORT) to run live in real time; feed_max_age: s after which a feed
     state is stale. stream: a device address: live with a feed, else the verified run is streamed
     afterwards. approach: the device may start away from the task's start. time_scale: replay slow-down
-    (streamed afterwards only). quiet: print only the summary line.
+    (streamed afterwards only). quiet: print only the summary line. true_robot: a robot file whose
+    parameters differ from the problem's (a simulation: a motion-capture tip marker films this robot,
+    `crtraj.hardware.mocap.SimulatedMocap`, and the run reports its measured tip error). tip_feedback: the
+    loop corrects its model's error with that measured tip. mocap_port: listen on 127.0.0.1:PORT for the live
+    capture's tip marker (`crtraj.hardware.mocap.MocapTip`, through the robot file's calibrated capture frame;
+    live runs only: with feed and stream).
     """
 
     problem: Path
@@ -259,6 +270,9 @@ class ReplanRequest:
     approach: bool = False
     time_scale: float = 1.0
     quiet: bool = False
+    true_robot: Path | None = None
+    tip_feedback: bool = False
+    mocap_port: int | None = None
 
 
 @dataclass(frozen=True)
@@ -282,6 +296,12 @@ def run_replan(req: ReplanRequest, *, view: Callable[[dict[str, Any]], None] | N
         raise InputError(f"--seed: must be >= 0, got {req.seed}")
     if req.stream:
         check_stream_safety(req.safety)
+    if req.tip_feedback and req.true_robot is None and req.mocap_port is None:
+        raise InputError("--tip-feedback: needs a tip measurement: --mocap-port (live) or --true-robot (simulated)")
+    if req.true_robot is not None and (req.stream or req.feed or req.mocap_port is not None):
+        raise InputError("--true-robot: a simulation; it cannot be combined with --stream, --feed or --mocap-port")
+    if req.mocap_port is not None and not (req.stream and req.feed):
+        raise InputError("--mocap-port: a live run only (with --feed and --stream): the capture films the real robot")
     out = req.out if req.out is not None else Path("out") / ("replan" if req.safety else "replan-no-safety")
     check_output_dir(out, "--out", RUN_FILES)  # before the (possibly long) run, not after it
     problem = Problem.load(req.problem)
@@ -303,6 +323,25 @@ def run_replan(req: ReplanRequest, *, view: Callable[[dict[str, Any]], None] | N
     return _exit_code(done, streamed)
 
 
+def _tip_sensor(req: ReplanRequest, problem: Problem) -> SimulatedMocap | MocapTip | None:
+    """The live capture's tip (--mocap-port), the simulated motion capture of --true-robot, or None."""
+    if req.mocap_port is not None:
+        ref = problem.raw.get("robot")
+        rec = read_calibration(problem.path.parent / ref) if isinstance(ref, str) and problem.path else None
+        if rec is None:
+            raise InputError(
+                "--mocap-port: the robot file has no [calibration] capture frame; run crtraj calibrate first"
+            )
+        return MocapTip(rec.capture, port=req.mocap_port)
+    if req.true_robot is None:
+        return None
+    if problem.robot.actuators is None:
+        raise InputError(
+            "--true-robot: the problem's robot has no [robot.actuators] to turn its plan into servo values"
+        )
+    return SimulatedMocap(load_robot(req.true_robot), Actuators.from_robot(problem.robot), seed=problem.seed)
+
+
 def _open_feed(address: str, max_age: float, problem: Problem) -> ObstacleFeed:
     """Listen for the scene's obstacles on 127.0.0.1 (`ObstacleFeed`); the obstacle names are the ids."""
     host, port = parse_hostport(address.removeprefix("udp://"), "--feed")
@@ -319,6 +358,7 @@ def _run_and_write(req: ReplanRequest, problem: Problem, seed: int, feed: Any, o
     is unsolvable (said on stdout and stderr, nothing written)."""
     live = feed is not None and bool(req.stream)
     link = None
+    sensor = _tip_sensor(req, problem)
     with contextlib.ExitStack() as stack:
         try:
             lead, sopts = _live_stream_options(problem) if live else (0.0, None)
@@ -332,7 +372,14 @@ def _run_and_write(req: ReplanRequest, problem: Problem, seed: int, feed: Any, o
             x_dev = _device_config(problem, streamer) if streamer is not None and req.approach else None
             try:
                 loop = loop_from_problem(
-                    problem, safety=req.safety, seed=seed, feed=feed, lead=lead, start_config=x_dev
+                    problem,
+                    safety=req.safety,
+                    seed=seed,
+                    feed=feed,
+                    lead=lead,
+                    start_config=x_dev,
+                    tip_sensor=stack.enter_context(contextlib.closing(sensor)) if sensor else None,
+                    tip_feedback=req.tip_feedback,
                 )
             except UnsolvableTaskError as exc:
                 print(f"{exc.status}: {exc}; no run, nothing written to {out}")
@@ -381,6 +428,8 @@ def _print_summary(req: ReplanRequest, done: _Written, out: Path, t0: float) -> 
     print(line)
     if not req.quiet:
         print(f"  {run.limits_line()}")
+    if run.measured_tip is not None:
+        print(f"  {measured_tip_line(run, req.tip_feedback)}")
     if link is not None:
         rep = link.report
         fe = "" if rep.final_error is None else f", final error {rep.final_error:.3g}"
@@ -394,6 +443,17 @@ def _print_summary(req: ReplanRequest, done: _Written, out: Path, t0: float) -> 
         for key in ("json", "npz", "png", "html"):
             if key in done.paths:
                 print(f"  {key:4s} {done.paths[key]}")
+
+
+def measured_tip_line(run: ReplanRun, feedback: bool) -> str:
+    """The tip error as the motion capture measures it (the true robot's tip, not the model's)."""
+    err = np.linalg.norm(run.measured_tip - run.goal, axis=1)
+    final = float(np.nanmean(err[-10:]))  # the last ten readings: the capture noise averages out
+    how = "with" if feedback else "without"
+    return (
+        f"measured tip (simulated motion capture of --true-robot), {how} tip feedback: final error {final:.2f} mm "
+        f"to the goal (mean of the last 10 readings) (the model's own tip: {float(run.goal_error[-1]):.2f} mm)"
+    )
 
 
 def _exit_code(done: _Written, streamed: bool) -> int:
@@ -523,6 +583,9 @@ def replan_command(args: Any) -> int:
         approach=args.approach,
         time_scale=args.time_scale,
         quiet=args.quiet,
+        true_robot=Path(args.true_robot) if getattr(args, "true_robot", None) else None,
+        tip_feedback=bool(getattr(args, "tip_feedback", False)),
+        mocap_port=getattr(args, "mocap_port", None),
     )
     view = (lambda result: serve(result, "the run", not args.no_browser)) if args.view else None
     return run_replan(req, view=view)

@@ -47,7 +47,7 @@ import numpy as np
 from crtraj.control.executed import limit_fractions
 from crtraj.control.horizon import INTERPOLATION_GAIN, HorizonResult, HorizonStatus, Replanner, ReplanOptions
 from crtraj.control.loop_options import LoopOptions
-from crtraj.control.ports import Device, DeviceError, ObstacleSource
+from crtraj.control.ports import Device, DeviceError, ObstacleSource, TipSensor
 from crtraj.control.reference import DirectReference, ReferencePlan, ReferenceSource, TimedReference
 from crtraj.control.tracking import TrackingController, TrackingOptions
 from crtraj.core.errors import InputError
@@ -166,6 +166,8 @@ class ReplanRun:
     # largest actuator speed / acceleration of the recorded actuation as streamed, as fractions of the
     # limits (`crtraj.control.executed.limit_fractions`); {} without actuator limits
     limit_fractions: dict[str, float] = field(default_factory=dict)
+    # the tip sensor's measurement at every t[k] (K+1, 3) mm, NaN when not seen; None without a sensor
+    measured_tip: np.ndarray | None = None
 
     @property
     def steps(self) -> int:
@@ -297,6 +299,9 @@ class ClosedLoop:
         extra_options: dict[str, Any] | None = None,
         obstacles: ObstacleSource | None = None,
         rate_limits: RateLimits | None = None,
+        tip_sensor: TipSensor | None = None,
+        tip_feedback: bool = False,
+        tip_gain: float = 0.5,
     ) -> None:
         t_setup = time.perf_counter()
         self.model = model
@@ -351,6 +356,16 @@ class ClosedLoop:
         A, _ = self.robot.cable_matrix()
         self._A = A
         self._rates = np.append(np.full(3 * self.robot.n_segments, o.max_cable_speed), o.max_z_speed)
+        # the tip sensor is always read and recorded; with tip_feedback the loop also corrects its model's
+        # error: a low-pass estimate (gain tip_gain per step) of measured minus model tip shifts the goal
+        # the reference planner aims the model's tip at (output-disturbance correction)
+        if tip_feedback and (tip_sensor is None or not hasattr(self.reference_source, "retarget")):
+            raise InputError(
+                "tip_feedback: needs a tip sensor and a reference source that can retarget (the planner's)"
+            )
+        if not 0.0 < tip_gain <= 1.0:
+            raise InputError(f"tip_gain: must be in (0, 1], got {tip_gain}")
+        self.tip_sensor, self.tip_feedback, self.tip_gain = tip_sensor, bool(tip_feedback), float(tip_gain)
         self.setup_time = time.perf_counter() - t_setup
 
     # ------------------------------------------------------------ utilities
@@ -511,6 +526,8 @@ class ClosedLoop:
         q = self.tracker.initial_command(self.x_start) if device is None else device.start_actuation()
         st = _State(q=q, qc=q.copy(), x=self.servo.config(q))
         st.x_prev = st.x.copy()
+        st.target = self.goal.copy()
+        self._sense(st)
         self.replanner.reset()
         log = _Log()
         refused = self._start(log, st, live, clock, sleep)
@@ -581,12 +598,14 @@ class ClosedLoop:
                 st.q, st.qc, _ = device.measure(t, st.q, st.qc)
                 st.x = self.servo.config(st.q)
             status = self._step(k, st, log, device, t_iter)
+            self._sense(st)
             if progress is not None:
                 progress(k, st.t, str(status))
             if device is not None and status is StepStatus.UNSAFE:
                 msg = f"unsafe step at t={t:.2f} s: nothing verified safe, device e-stopped"
                 return self._finish(log, st, RunStatus.ESTOP, msg, t_wall, device)
-            err = float(np.linalg.norm(self.model.tip_position(st.x) - self.goal))
+            # with tip feedback the goal is where the corrected tip (model tip + estimated error) reaches it
+            err = float(np.linalg.norm(self.model.tip_position(st.x) - st.target))
             if err > self.goal_tolerance or not self._at_rest(st):
                 settled_since = None
             else:
@@ -675,11 +694,30 @@ class ClosedLoop:
             np.repeat(st.q[None], self.n_sub, axis=0),
         )
 
+    def _sense(self, st: _State) -> None:
+        """Read the tip sensor (if any) at st.t; with tip feedback, update the model-error estimate and
+        retarget the reference when the corrected goal moved by more than half the goal tolerance."""
+        if self.tip_sensor is None:
+            return
+        m = self.tip_sensor.tip(st.t, st.q)
+        st.measured.append(np.full(3, np.nan) if m is None else np.asarray(m, dtype=float))
+        if m is None or not self.tip_feedback:
+            return
+        bias = np.asarray(m, dtype=float) - self.model.tip_position(st.x)
+        st.tip_bias = st.tip_bias + self.tip_gain * (bias - st.tip_bias)
+        target = self.goal - st.tip_bias
+        if np.linalg.norm(target - st.target) > 0.5 * self.goal_tolerance:
+            st.target = target
+            self.reference_source.retarget(target)  # type: ignore[attr-defined]
+            st.retarget = True
+
     def _replan_reason(self, st: _State) -> str:
         """Why the reference path must be planned again now ('' when it need not)."""
         lo, t, ref = self.loop_options, st.t, st.ref
         if ref is None:
             return "no reference"
+        if st.retarget:
+            return "tip correction"
         if st.nlp_failed:
             return "NLP failed"
         if lo.replan_period > 0 and t - st.t_last_plan >= lo.replan_period - 1e-9:
@@ -704,6 +742,8 @@ class ClosedLoop:
         reused = k == 0 and self.initial_reference is not None
         plan = self.initial_reference if reused else self.reference_source(st.x, t, self._scene_now)
         replanned = plan.is_success()
+        if replanned and not reused:
+            st.retarget = False
         if replanned:
             st.ref = TimedReference(plan.configs, self._seconds_per, self.validator.metric)
             st.s_ref, st.progress_s, st.progress_t, st.t_last_plan = 0.0, 0.0, t, t
@@ -833,6 +873,7 @@ class ClosedLoop:
             device={} if device is None else device.describe(),
             feed=log.feed_record(self.obstacles),
             limit_fractions=fractions,
+            measured_tip=np.array(st.measured) if self.tip_sensor is not None else None,
         )
 
 
@@ -875,6 +916,10 @@ class _State:
         self.nlp_failed = False
         self.refs_used: list[tuple[int, np.ndarray]] = []
         self.tree_edges = np.zeros((0, 2, 3))
+        self.target = np.zeros(3)  # the tip goal the reference aims the model's tip at (mm)
+        self.tip_bias = np.zeros(3)  # estimated measured minus model tip (mm)
+        self.retarget = False  # the target moved: plan the reference again
+        self.measured: list[np.ndarray] = []  # the tip sensor's readings (mm)
 
     def locate(self, ahead: float) -> None:
         """Move the progress to the reference point nearest to the robot."""

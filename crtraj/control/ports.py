@@ -93,3 +93,18 @@ class Device(Protocol):
     def describe(self) -> dict[str, Any]:
         """What the device did, for the run record."""
         ...
+
+
+@runtime_checkable
+class TipSensor(Protocol):
+    """A direct measurement of the tip in the robot frame, e.g. a motion-capture marker mapped through the
+    calibrated capture frame (``[calibration]`` of a robot file written by ``crtraj calibrate``).
+
+    The loop compares it with its model's tip: the difference is model error the loop can correct
+    (`ClosedLoop` with ``tip_feedback``). Units: mm, s.
+    """
+
+    def tip(self, t: float, q: np.ndarray) -> np.ndarray | None:
+        """The measured tip (3,) mm at loop time t, or None when the marker is not seen. q: the actuation
+        (mm) the loop believes in force (a simulated sensor uses it; a real one ignores it)."""
+        ...

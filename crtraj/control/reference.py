@@ -85,6 +85,11 @@ class PlannerReference:
         self.scene = scene
         self.calls = 0
 
+    def retarget(self, goal: Any) -> None:
+        """Plan toward another tip goal (mm) from the next call on: the closed loop's tip feedback aims the
+        model's tip where the measured tip reaches the task's goal."""
+        self.goal = check_array(goal, "goal", (3,))
+
     def __call__(self, x: np.ndarray, t: float, scene: Any = None) -> ReferencePlan:
         t1 = time.perf_counter()
         res = self.planner.plan(

@@ -20,6 +20,7 @@ from crtraj.core.errors import InputError
 from crtraj.core.fields import MAX_LENGTH, MAX_SEED, Table, check_name
 from crtraj.core.fileio import read_toml
 from crtraj.hardware.actuators import Actuators
+from crtraj.io.calibration_data import CalibrationRecord
 from crtraj.model.robot import Robot
 
 SECTIONS = (
@@ -61,11 +62,13 @@ def load_robot(path: str | Path) -> Robot:
     data = read_toml(path)
     top = Table(data, "")
     for key in top.keys():
-        if key != "robot":
+        if key not in ("robot", "calibration"):
             raise InputError(f"{key}: unknown key in robot file {path} (expected a [robot] table)")
     if not top.has("robot"):
         raise InputError(f"robot: missing; {path} needs a [robot] table")
     robot = _checked(Robot.from_table(top.table("robot")))
+    if top.has("calibration"):  # written by crtraj calibrate; checked here, read by its users
+        CalibrationRecord.from_table(top.table("calibration"))
     top.finish()
     return robot
 
