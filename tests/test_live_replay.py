@@ -23,7 +23,6 @@ from conftest import free_udp_port
 from feed_clock import VirtualClock
 
 from crtraj.app.replan import loop_from_problem
-from crtraj.cli import main
 from crtraj.control.loop import RunStatus
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.protocol import MOVE
@@ -225,7 +224,7 @@ class _Recorder:
             st = self.dev.state()
             self.t.append(time.monotonic())
             self.p.append(np.asarray(st["positions"], dtype=float))
-            time.sleep(0.002)
+            time.sleep(0.005)
 
     def __enter__(self) -> _Recorder:
         self.thread.start()
@@ -237,7 +236,7 @@ class _Recorder:
 
 
 @pytest.mark.slow
-def test_feed_replay_and_live_replan_with_approach_reach_the_goal_on_the_device(tmp_path, capsys):
+def test_feed_replay_and_live_replan_with_approach_reach_the_goal_on_the_device(tmp_path):
     problem = Problem.load(PAPER)
     robot, model = problem.robot, Model(problem.robot)
     acts = Actuators.from_robot(robot)
@@ -246,15 +245,19 @@ def test_feed_replay_and_live_replan_with_approach_reach_the_goal_on_the_device(
     opts = ReplayOptions(noise=0.3, dropout=0.05, duration=600.0, seed=5)
     # the device rests in the straight pose, 52 mm of z away from the task's start: --approach
     with SimDevice(acts, 0) as dev, _ReplayThread(port, opts) as rep, _Recorder(dev) as rec:
-        # a generous --feed-max-age: a starved replay thread may hold the run, never change its outcome
-        rc = main(["replan", str(PAPER), "--out", str(out), "--no-html", "--feed", f"udp://127.0.0.1:{port}",
-                   "--feed-max-age", "1.0", "--stream", dev.url, "--approach"])  # fmt: skip
+        # the replanner in its own process, as a user runs it: the device, the replay and the recorder here
+        # never wait for its interpreter. A generous --feed-max-age: a starved replay thread may hold the run,
+        # never change its outcome.
+        proc = subprocess.run(
+            [sys.executable, "-m", "crtraj.cli", "replan", str(PAPER), "--out", str(out), "--no-html",
+             "--feed", f"udp://127.0.0.1:{port}", "--feed-max-age", "1.0", "--stream", dev.url, "--approach"],
+            capture_output=True, text=True, timeout=900,
+        )  # fmt: skip
         time.sleep(0.2)
         final = dev.state()
         applied = [a for a in dev.applied if a.kind == MOVE]
         origin = dev.clock_origin
-    text = capsys.readouterr().out
-    assert rc == 0, text
+    assert proc.returncode == 0, proc.stdout + proc.stderr
     res = json.loads((out / "run.json").read_text())
     assert res["status"] == "reached" and res["summary"]["collisions"] == 0
     np.testing.assert_allclose(res["waypoints"][0]["x"], np.zeros(robot.nx), atol=1e-6)  # started at the device
