@@ -12,10 +12,10 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 import pytest
+from conftest import require_tool
 
 from crtraj.core.build_cache import MANIFEST, BuildCache, BuildKey, default_root, find_compiler
 from crtraj.model.codegen import compiled_functions
-from tests.conftest import require_tool
 
 # A stand-in compiler for the cache's own logic: the cache only records its identity; the build steps
 # below write their "library" bytes themselves.

@@ -5,8 +5,8 @@ generated code depends on (the robot's canonical description, the options that s
 generator version). The cache adds the environment (CasADi version, Python, platform, the C compiler)
 and hashes it all into the entry's folder name::
 
-    <root>/<name>-<digest>/lib<name>.so   the library
-    <root>/<name>-<digest>/manifest.json  key, environment, SHA-256 and size of the library
+    <root>/<name>-<digest>/lib<name>-<sha>.so  the library (sha: start of its SHA-256)
+    <root>/<name>-<digest>/manifest.json       key, environment, SHA-256 and size of the library
 
 `BuildCache.library` returns the library of a key, building it when missing. A build happens in a
 temporary folder under the root, which is renamed into place only when complete, so a crash or a
@@ -197,9 +197,9 @@ class BuildCache:
         """The folder of `key`'s entry (it may not exist yet)."""
         return self.root / f"{key.name}-{self.digest(key)}"
 
-    def library_name(self, key: BuildKey) -> str:
-        """File name of `key`'s library inside its entry folder."""
-        return f"lib{key.name}{_LIB_SUFFIX}"
+    def library_name(self, key: BuildKey, sha256: str) -> str:
+        """File name of `key`'s library of content hash `sha256` inside its entry folder."""
+        return f"lib{key.name}-{sha256[:16]}{_LIB_SUFFIX}"
 
     # --------------------------------------------------------------- entries
     def _verify(self, entry: Path, key: BuildKey | None) -> Path | None:
@@ -254,7 +254,9 @@ class BuildCache:
             built = Path(build(tmp, self.compiler))
             if built.parent.resolve() != tmp.resolve() or not built.is_file():
                 raise RuntimeError(f"build of {key.name}: no library written into its folder (got {built})")
-            final = tmp / self.library_name(key)
+            # the file name carries its content hash: a process that loaded an entry's library keeps the
+            # mapping of that file, and dlopen of a rebuilt entry's (other) bytes must not find it by name
+            final = tmp / self.library_name(key, _sha256(built))
             if built != final:
                 built.replace(final)
             self._write_manifest(tmp, key, final)
@@ -270,7 +272,7 @@ class BuildCache:
         finally:
             if tmp.exists():
                 shutil.rmtree(tmp, ignore_errors=True)
-        return entry / self.library_name(key)
+        return entry / final.name
 
     def _write_manifest(self, folder: Path, key: BuildKey, lib: Path) -> None:
         manifest = {

@@ -17,15 +17,22 @@ import casadi as ca
 from crtraj.core.build_cache import BuildCache, BuildKey, compile_shared
 
 
-def codegen_builder(functions: Sequence[ca.Function], name: str) -> Callable[[Path, str], Path]:
-    """The build step of a cache entry: C of `functions` generated into the folder, compiled to lib<name>."""
+def codegen_builder(
+    make: Callable[[], Sequence[ca.Function]], name: str, extra_c: str = ""
+) -> Callable[[Path, str], Path]:
+    """The build step of a cache entry: C of the functions `make()` returns, followed by `extra_c` (a
+    hand-written driver calling them, say), generated into the folder and compiled to lib<name>.so.
+
+    `make` runs only when the step runs (a cache miss), so a hit never builds the CasADi graphs.
+    """
 
     def build(folder: Path, compiler: str) -> Path:
-        gen = ca.CodeGenerator(f"{name}.c", {"with_header": False, "casadi_real": "double"})
-        for f in functions:
+        gen = ca.CodeGenerator(f"{name}.c", {"with_header": False})
+        for f in make():
             gen.add(f)
-        gen.generate(str(folder) + "/")
-        return compile_shared(compiler, [folder / f"{name}.c"], folder / f"lib{name}.so")
+        src = folder / f"{name}.c"
+        src.write_text(gen.dump() + extra_c, encoding="utf-8")
+        return compile_shared(compiler, [src], folder / f"lib{name}.so")
 
     return build
 
@@ -45,12 +52,12 @@ def compiled_functions(
     cached start-up does not pay for the symbolic construction.
     """
 
-    def build(folder: Path, compiler: str) -> Path:
+    def checked() -> Sequence[ca.Function]:
         funcs = list(make())
         got = sorted(f.name() for f in funcs)
         if got != sorted(names):
             raise RuntimeError(f"build of {key.name}: made functions {got}, expected {sorted(names)}")
-        return codegen_builder(funcs, key.name)(folder, compiler)
+        return funcs
 
-    lib = cache.library(key, build)
+    lib = cache.library(key, codegen_builder(checked, key.name))
     return None if lib is None else load_functions(lib, names)

@@ -68,6 +68,7 @@ class MotionValidator:
     unsafe (waits and slow motions sweep obstacles over long windows).
     functions: a CasADi function cache shared by a planner's validators. rate_limits: usable
     actuator limits; with them every motion is timed within the actuators' speed limits too.
+    compiled: check with the compiled kernel when a C compiler is available (same results, faster).
 
     Parts: `state` (`StateValidityChecker`), `space` (`BodyMetric`),
     `sampler` (`ConfigSampler`); the methods below that only forward to them
@@ -85,6 +86,7 @@ class MotionValidator:
         time_resolution: float = 0.25,
         functions: dict[Any, Any] | None = None,
         rate_limits: RateLimits | None = None,
+        compiled: bool = True,
     ) -> None:
         if check_points < 2:
             raise InputError(f"check_points: must be >= 2, got {check_points}")
@@ -97,7 +99,7 @@ class MotionValidator:
         self.model = model
         self.robot = model.robot
         self.scene = scene
-        self.state = StateValidityChecker(model, scene, check_points, functions)
+        self.state = StateValidityChecker(model, scene, check_points, functions, compiled)
         self.space = BodyMetric(self.robot, max_speed, rate_limits)
         self.sampler = ConfigSampler(self.robot)
         self.check_points = self.state.check_points
