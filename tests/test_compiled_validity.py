@@ -11,6 +11,8 @@ import numpy as np
 import pytest
 from conftest import PROBLEMS, require_tool
 
+from crtraj.app import build as build_use_case
+from crtraj.cli import main
 from crtraj.core.build_cache import BuildCache
 from crtraj.io.problem import Problem, load_robot
 from crtraj.model.kinematics import Model
@@ -217,3 +219,25 @@ def test_without_a_compiler_the_interpreted_path_runs_and_says_so_once(tmp_path,
     ref = MotionValidator(model, scene, compiled=False).clearance(X)
     np.testing.assert_array_equal(v1.clearance(X), ref)
     assert len(out.getvalue().splitlines()) == 1 and list(tmp_path.iterdir()) == []
+
+
+def test_build_command_builds_lists_and_clears_and_commands_reuse_it(tmp_path, monkeypatch, capsys, model):
+    require_tool("cc", "gcc", hint="Debian: apt-get install gcc")
+    monkeypatch.setenv("CRTRAJ_CACHE_DIR", str(tmp_path))
+    monkeypatch.setattr(build_use_case, "default_check_points", lambda: [])  # only what the test asks for
+    assert main(["build", "--check-points", "5"]) == 0
+    assert "5 check points" in capsys.readouterr().out
+    (entry,) = BuildCache(tmp_path).entries()
+    assert entry.valid
+    # a command's validator (its own cache object, as in a new process) loads it and builds nothing
+    fns = {"build_cache": BuildCache()}
+    v = MotionValidator(model, Scene(), check_points=5, functions=fns)
+    assert v.state.kernel.library.parent == entry.path and fns["build_cache"].builds == 0
+    assert main(["build", "--list"]) == 0
+    listed = capsys.readouterr().out
+    assert "1 entries" in listed and entry.path.name in listed and " ok" in listed
+    assert main(["build", "--clear"]) == 0 and BuildCache(tmp_path).entries() == []
+    capsys.readouterr()
+    assert main(["build", "--check-points", "1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--check-points" in err[0]
