@@ -18,7 +18,9 @@ Sections (each prints the old and the new path side by side, measured in this on
    crtraj uses) and through ``casadi.external`` + ``map`` on CasADi's buffer API.
 
 Every plan time is the planner's own wall time for one query (`PlanResult.timings["total"]`), the
-planner built once and warmed up by one untimed query; every success of sections 1-2 is re-checked
+planner built once and warmed up by one untimed query, and beside it the process CPU time of the query
+(`time.process_time`: on a machine shared with other jobs it moves far less with their load than wall
+time does; the scaling section and its plot use it); every success of sections 1-2 is re-checked
 independently (200 backbone points, every 10 ms of the timed path, numpy distances to the spheres).
 The compiled kernels come from the build cache (built before timing starts).
 
@@ -88,15 +90,17 @@ def sim1_queries(planner, problem: Problem, model: Model, scene: Scene, seeds: r
     """Plan sim 1 for every seed (after one untimed warm-up): times, results, independent checks."""
     task = problem.task
     planner.plan(task.goal, start_tip=task.start, seed=10_000, stop=stop, goal_tolerance=task.goal_tolerance)
-    times, results, verified = [], [], 0
+    times, cpu, results, verified = [], [], [], 0
     for seed in seeds:
+        c0 = time.process_time()
         res = planner.plan(task.goal, start_tip=task.start, seed=seed, stop=stop, goal_tolerance=task.goal_tolerance)
+        cpu.append(time.process_time() - c0)
         times.append(res.timings["total"])
         results.append(res)
         if res.is_success():
             verified += dense_clearance(model, scene, res.t, res.configs) >= 0.0
     ok = sum(r.is_success() for r in results)
-    return {"times": times, "results": results, "success": ok, "verified": verified}
+    return {"times": times, "cpu": cpu, "results": results, "success": ok, "verified": verified}
 
 
 def section_sim1(problem: Problem, model: Model, scene: Scene, options: PlannerOptions, n: int) -> dict:
@@ -110,11 +114,15 @@ def section_sim1(problem: Problem, model: Model, scene: Scene, options: PlannerO
         np.array_equal(a.configs, b.configs) and np.array_equal(a.t, b.t)
         for a, b in zip(old["results"], new["results"], strict=True)
     )
-    print(f"{'path':<20s} {'success':>9s} {'median / p90':>22s}  verified")
+    print(f"{'path':<20s} {'success':>9s} {'wall median / p90':>22s} {'CPU median / p90':>22s}  verified")
     for label, r in rows.items():
-        print(f"{label:<20s} {r['success']:>4d}/{n:<4d} {summary(r['times']):>22s}  {r['verified']}/{r['success']}")
+        print(
+            f"{label:<20s} {r['success']:>4d}/{n:<4d} {summary(r['times']):>22s} {summary(r['cpu']):>22s}  "
+            f"{r['verified']}/{r['success']}"
+        )
     speed = statistics.median(old["times"]) / statistics.median(new["times"])
-    print(f"speed-up (median): {speed:.1f}x; identical plans for every seed: {same}")
+    speed_cpu = statistics.median(old["cpu"]) / statistics.median(new["cpu"])
+    print(f"speed-up (median): wall {speed:.1f}x, CPU {speed_cpu:.1f}x; identical plans for every seed: {same}")
     print("targets: new median <= 15 ms, p90 <= 30 ms")
     return rows
 
@@ -129,47 +137,56 @@ def section_ompl(problem: Problem, model: Model, scene: Scene, options: PlannerO
         print(f"skipped: {exc}")
         return
     task = problem.task
-    ours = statistics.median(new["times"][:n])
-    print(f"{'planner':<22s} {'success':>9s} {'median / p90':>22s}  crtraj cspace / it")
+    ours, ours_cpu = statistics.median(new["times"][:n]), statistics.median(new["cpu"][:n])
+    head = f"{'planner':<22s} {'success':>9s} {'wall median / p90':>22s} {'CPU median / p90':>22s}"
+    print(f"{head}  crtraj / it (wall, CPU)")
     o = options.with_(compiled=True, time_limit=10.0)
     for algo in ("RRTConnect", "RRTstar"):
         planner = OMPLPlanner(model, scene, o, algorithm=algo, simplify=False)
         stop = StopCondition(time_limit=10.0, first_solution=True)
         starts = [r.configs[0] for r in new["results"][:n]]
         planner.plan(task.goal, start_config=starts[0], seed=10_000, stop=stop, goal_tolerance=task.goal_tolerance)
-        times, ok = [], 0
+        times, cpu, ok = [], [], 0
         for seed, xs in enumerate(starts):
+            c0 = time.process_time()
             res = planner.plan(task.goal, start_config=xs, seed=seed, stop=stop, goal_tolerance=task.goal_tolerance)
+            cpu.append(time.process_time() - c0)
             times.append(res.timings["total"])
             ok += res.is_success() and dense_clearance(model, scene, res.t, res.configs) >= 0.0
-        ratio = ours / statistics.median(times)
-        print(f"OMPL {algo:<17s} {ok:>4d}/{n:<4d} {summary(times):>22s}  {ratio:.3f}")
+        r_wall, r_cpu = ours / statistics.median(times), ours_cpu / statistics.median(cpu)
+        print(f"OMPL {algo:<17s} {ok:>4d}/{n:<4d} {summary(times):>22s} {summary(cpu):>22s}  {r_wall:.3f}, {r_cpu:.3f}")
 
 
-def table1_times(model: Model, options: PlannerOptions, count: int, n: int, compiled: bool) -> tuple[list, int]:
-    """cspace plan times (s) and successes on the first n Table I scenes with `count` obstacles."""
+def table1_times(model: Model, options: PlannerOptions, count: int, n: int, compiled: bool) -> tuple[list, int, list]:
+    """cspace plan wall times (s), successes and CPU times (s) on the first n Table I scenes with `count` obstacles."""
     gen = ScenarioGenerator(model, ScenarioOptions(seed=0))
     scenes = [gen.generate(count, i) for i in range(n)]
     planner = make_planner(model, Scene(), options.with_(algorithm="cspace", compiled=compiled), max_obstacles=8)
     warm = ScenarioGenerator(model, ScenarioOptions(seed=99)).generate(count, 0)
     stop = StopCondition(time_limit=5.0, max_iterations=options.max_iterations, first_solution=True)
     planner.plan(warm.goal, start_config=warm.start, scene=warm.scene, stop=stop, seed=0)
-    times, ok = [], 0
+    times, cpu, ok = [], [], 0
     for i, sc in enumerate(scenes):
+        c0 = time.process_time()
         res = planner.plan(sc.goal, start_config=sc.start, scene=sc.scene, stop=stop, seed=i)
+        cpu.append(time.process_time() - c0)
         times.append(res.timings["total"])
         ok += res.is_success()
-    return times, ok
+    return times, ok, cpu
 
 
 def section_table1(model: Model, options: PlannerOptions, n: int) -> None:
     print(f"\n== 3. Table I scenes, 7 moving obstacles, cspace, {n} scenes ==")
-    meds = []
+    meds, cpus = [], []
+    print(f"{'path':<20s} {'success':>9s} {'wall median / p90':>22s} {'CPU median / p90':>22s}")
     for label, compiled in MODES:
-        times, ok = table1_times(model, options, 7, n, compiled)
+        times, ok, cpu = table1_times(model, options, 7, n, compiled)
         meds.append(statistics.median(times))
-        print(f"{label:<20s} {ok:>4d}/{n:<4d} {summary(times):>22s}")
-    print(f"speed-up (median): {meds[0] / meds[1]:.1f}x; target: new median <= 30 ms")
+        cpus.append(statistics.median(cpu))
+        print(f"{label:<20s} {ok:>4d}/{n:<4d} {summary(times):>22s} {summary(cpu):>22s}")
+    print(
+        f"speed-up (median): wall {meds[0] / meds[1]:.1f}x, CPU {cpus[0] / cpus[1]:.1f}x; target: new median <= 30 ms"
+    )
 
 
 def split_robot(robot: Robot, n_segments: int) -> Robot:
@@ -182,18 +199,18 @@ def split_robot(robot: Robot, n_segments: int) -> Robot:
 
 
 def section_scaling(model: Model, options: PlannerOptions, n: int, plot: str | None) -> None:
-    print(f"\n== 4. scaling: cspace median over {n} Table I scenes, old / new (ms) ==")
+    print(f"\n== 4. scaling: cspace CPU-time median over {n} Table I scenes, old / new (ms) ==")
     counts = (1, 3, 7, 15, 31)
     rows: dict[str, list[tuple[int, float, float]]] = {"obstacles": [], "segments": []}
     for m in counts:
-        old = statistics.median(table1_times(model, options, m, n, False)[0])
-        new = statistics.median(table1_times(model, options, m, n, True)[0])
+        old = statistics.median(table1_times(model, options, m, n, False)[2])
+        new = statistics.median(table1_times(model, options, m, n, True)[2])
         rows["obstacles"].append((m, old, new))
         print(f"{m:>3d} obstacles (2 segments):  {old * 1e3:8.1f} / {new * 1e3:7.1f}   {old / new:5.1f}x")
     for k in (2, 3, 4):
         mk = Model(split_robot(model.robot, k)) if k != 2 else model
-        old = statistics.median(table1_times(mk, options, 7, n, False)[0])
-        new = statistics.median(table1_times(mk, options, 7, n, True)[0])
+        old = statistics.median(table1_times(mk, options, 7, n, False)[2])
+        new = statistics.median(table1_times(mk, options, 7, n, True)[2])
         rows["segments"].append((k, old, new))
         print(f"{k:>3d} segments (7 obstacles):   {old * 1e3:8.1f} / {new * 1e3:7.1f}   {old / new:5.1f}x")
     if plot:
@@ -215,7 +232,7 @@ def write_plot(rows: dict, path: Path, n: int) -> None:
         ax.plot(x, [r[1] * 1e3 for r in rows[key]], "o-", label="interpreted (old)")
         ax.plot(x, [r[2] * 1e3 for r in rows[key]], "s-", label="compiled (new)")
         ax.set_xlabel(xlabel)
-        ax.set_ylabel("cspace plan time, median (ms)")
+        ax.set_ylabel("cspace plan CPU time, median (ms)")
         ax.set_yscale("log")
         ax.set_xticks(x)
         ax.grid(True, which="both", alpha=0.3)
