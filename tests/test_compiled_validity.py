@@ -87,6 +87,31 @@ def test_static_clearance_points_and_jacobians_agree(model, kernel_cache):
     np.testing.assert_allclose(comp.state.kernel.motion_bound(dX), interp.motion_bound(dX), rtol=1e-12, atol=TOL)
 
 
+def test_static_edge_check_in_c_is_the_numpy_loop(model, kernel_cache):
+    """The C refinement loop returns what the numpy loop returns with the same clearances, bit for bit."""
+    problem = Problem.load(PROBLEMS / "paper_static.toml")
+    scene = problem.options(Scene, "scene")
+    comp, interp = validators(model, scene, kernel_cache)
+    loop = MotionValidator(model, scene, functions={"build_cache": kernel_cache})
+    loop.static = False  # the numpy loop (its clearances still from the kernel, static slots)
+    rng = np.random.default_rng(5)
+    XA, XB = comp.sample(rng, 150), comp.sample(rng, 150)
+    XB[:20] = XA[:20] + rng.normal(scale=0.05, size=(20, model.nx))  # short motions too
+    XB[20] = XA[20]  # and no motion at all
+    for prefix in (True, False):
+        n0, n1 = comp.n_samples, loop.n_samples
+        fc, lc = comp.check_edges(XA, XB, prefix=prefix)
+        fl, ll = loop.check_edges(XA, XB, prefix=prefix)
+        np.testing.assert_array_equal(fc, fl)
+        np.testing.assert_array_equal(lc, ll)
+        assert comp.n_samples - n0 == loop.n_samples - n1 > 0
+        assert (fc < 1).any() and (fc == 1).any()  # both outcomes occur
+        # and the interpreted checks agree (their clearances differ from the kernel's by rounding only)
+        fi, li = interp.check_edges(XA, XB, prefix=prefix)
+        np.testing.assert_array_equal(fc, fi)
+        np.testing.assert_allclose(lc, li, rtol=0, atol=TOL)
+
+
 def moving_scene(n, rng):
     """n spheres near the robot with linear and breathing motions."""
     obs = []
@@ -107,21 +132,22 @@ def moving_scene(n, rng):
     return Scene(obstacles=tuple(obs), safety_distance=5.0)
 
 
-@pytest.mark.parametrize("n_obstacles", [1, 3, 7, 15])
-def test_moving_obstacles_over_windows_agree(model, kernel_cache, n_obstacles):
-    rng = np.random.default_rng(n_obstacles)
-    scene = moving_scene(n_obstacles, rng)
-    comp, interp = validators(model, scene, kernel_cache)
-    X = random_configs(comp, rng, 300)
-    lo = rng.uniform(0, 3, len(X))
-    hi = lo + rng.uniform(0, 0.5, len(X))
-    np.testing.assert_allclose(comp.clearance(X, lo, hi), interp.clearance(X, lo, hi), rtol=0, atol=TOL)
-    # edge checks and their certified fractions are the same too
-    XA, XB = X[:60], X[60:120]
-    fa, la = comp.check_edges(XA, XB, lo[:60], hi[:60])
-    fb, lb = interp.check_edges(XA, XB, lo[:60], hi[:60])
-    np.testing.assert_array_equal(fa, fb)
-    np.testing.assert_allclose(la, lb, rtol=0, atol=TOL)
+def test_moving_obstacles_over_windows_agree(model, kernel_cache):
+    # (not parametrized: the CI policy test names tests that need a compiler by function)
+    for n_obstacles in (1, 3, 7, 15):
+        rng = np.random.default_rng(n_obstacles)
+        scene = moving_scene(n_obstacles, rng)
+        comp, interp = validators(model, scene, kernel_cache)
+        X = random_configs(comp, rng, 300)
+        lo = rng.uniform(0, 3, len(X))
+        hi = lo + rng.uniform(0, 0.5, len(X))
+        np.testing.assert_allclose(comp.clearance(X, lo, hi), interp.clearance(X, lo, hi), rtol=0, atol=TOL)
+        # edge checks and their certified fractions are the same too
+        XA, XB = X[:60], X[60:120]
+        fa, la = comp.check_edges(XA, XB, lo[:60], hi[:60])
+        fb, lb = interp.check_edges(XA, XB, lo[:60], hi[:60])
+        np.testing.assert_array_equal(fa, fb)
+        np.testing.assert_allclose(la, lb, rtol=0, atol=TOL)
 
 
 def test_padding_slots_are_inert_and_one_library_serves_every_count(model, kernel_cache):
@@ -143,8 +169,13 @@ def test_padding_slots_are_inert_and_one_library_serves_every_count(model, kerne
         k.clearance(X, np.zeros(7))
 
 
-@pytest.mark.parametrize("problem_file", ["paper_static.toml", "paper_dynamic.toml"])
-def test_identical_plans_for_the_same_seed(model, kernel_cache, problem_file):
+def test_identical_plans_for_the_same_seed(model, kernel_cache):
+    for problem_file in ("paper_static.toml", "paper_dynamic.toml"):
+        identical_plans(model, kernel_cache, problem_file)
+
+
+def identical_plans(model, kernel_cache, problem_file):
+    """Plans of seeds 0 and 1 with the compiled and the interpreted checks: the same, bit for bit."""
     problem = Problem.load(PROBLEMS / problem_file)
     scene = problem.options(Scene, "scene")
     options = problem.options(PlannerOptions, "planner").with_(algorithm="cspace", time_limit=600.0)

@@ -12,7 +12,10 @@ rounding), and a small hand-written C driver loops over a whole batch in one cal
   are padding and skipped, so one library serves every obstacle count. stride 0: the same slots for
   every configuration (a static scene); 5 K: slots of their own per configuration (swept spheres);
 - ``crtraj_tip_jac(N, X, P, J)``: tip positions (N, 3) mm and tip Jacobians (N, 3, nx);
-- ``crtraj_motion_bound(N, dX, B)``: the body-motion bound B(dx) (mm, `crtraj.planning.metric`).
+- ``crtraj_motion_bound(N, dX, B)``: the body-motion bound B(dx) (mm, `crtraj.planning.metric`);
+- ``crtraj_check_edges(...)``: the adaptive certification of straight motions of
+  `crtraj.planning.validity.MotionValidator.check_edges` for a static scene, the whole refinement loop
+  in C with numpy's arithmetic, operation for operation (so it returns the same numbers).
 
 The library is built once per robot (its kinematic description), check-point count and generator
 version through `crtraj.core.build_cache.BuildCache` and called with ctypes on numpy buffers
@@ -37,7 +40,7 @@ from crtraj.planning.metric import metric_matrix
 from crtraj.world import packing
 
 # Version of the generated code and driver: raising it makes every cached kernel foreign (rebuilt).
-GENERATOR = 1
+GENERATOR = 2
 # Most check points a kernel is generated for: the generated FK grows with them (100 points: ~15 s of
 # gcc); denser checks (reports, tests) stay on the interpreted path.
 MAX_COMPILED_POINTS = 200
@@ -95,27 +98,110 @@ static double crtraj_chord(const double* P, const double* c) {
   return sqrt(best);
 }
 
+/* Clearance of one configuration x against K slots (padding skipped); P: room for its points. */
+static int crtraj_clear_one(crtraj_work* kb, const double* x, long long K, const double* s, double* P, double* out) {
+  long long j;
+  double best = INFINITY;
+  int rc;
+  kb->arg[0] = x; kb->res[0] = P;
+  rc = crtraj_bb(kb->arg, kb->res, kb->iw, kb->w, 0);
+  for (j = 0; j < K; ++j) {
+    const double* slot = s + 5 * j;
+    double dist;
+    if (slot[4] <= 0.0) continue;  /* padding */
+    dist = crtraj_chord(P, slot) - slot[3];
+    if (dist < best) best = dist;
+  }
+  *out = best;
+  return rc;
+}
+
 int crtraj_clearance(long long N, const double* X, long long K, const double* S, long long stride, double* d) {
-  crtraj_work kb; long long i, j; int rc = 0;
+  crtraj_work kb; long long i; int rc = 0;
   double P[3 * CRTRAJ_NP];
   if (crtraj_alloc(&kb, crtraj_bb_work)) { crtraj_free(&kb); return 1; }
-  for (i = 0; i < N && !rc; ++i) {
-    const double* s = S + i * stride;
-    double best = INFINITY;
-    kb.arg[0] = X + i * CRTRAJ_NX; kb.res[0] = P;
-    rc = crtraj_bb(kb.arg, kb.res, kb.iw, kb.w, 0);
-    for (j = 0; j < K; ++j) {
-      const double* slot = s + 5 * j;
-      double dist;
-      if (slot[4] <= 0.0) continue;  /* padding */
-      dist = crtraj_chord(P, slot) - slot[3];
-      if (dist < best) best = dist;
-    }
-    d[i] = best;
-  }
+  for (i = 0; i < N && !rc; ++i) rc = crtraj_clear_one(&kb, X + i * CRTRAJ_NX, K, S + i * stride, P, d + i);
   crtraj_free(&kb);
   return rc;
 }
+
+/* The adaptive edge check of MotionValidator.check_edges for a static scene, edge by edge and level by level
+   (breadth first, as the numpy loop refines), with the same arithmetic: each edge e starts from n0[e] intervals;
+   an interval [ta, tb] is certified when the clearance c at its middle (minus `inflate`) is >= h = 0.5 B (tb - ta),
+   unsafe when c < 0 or h <= finest, else halved (prefix: only while ta < fail; else only while nothing failed).
+   Out: fail[e] (certified fraction) and lower[e] (min c - h over certified intervals); *samples: clearances. */
+/* Grow the five interval buffers to hold at least `need` entries each (contents kept). */
+static int crtraj_grow(double** buf, long long* cap, long long need) {
+  int i;
+  if (need <= *cap) return 0;
+  *cap = 2 * need + 64;
+  for (i = 0; i < 5; ++i) {
+    double* p = (double*) realloc(buf[i], sizeof(double) * (size_t) *cap);
+    if (!p) return 1;
+    buf[i] = p;
+  }
+  return 0;
+}
+
+#define ta buf[0]
+#define tb buf[1]
+#define mid buf[2]
+#define ua buf[3]
+#define ub buf[4]
+int crtraj_check_edges(long long E, const double* XA, const double* dX, const double* bound, const long long* n0,
+                       long long K, const double* S, double inflate, double finest, int prefix,
+                       double* fail, double* lower, long long* samples) {
+  crtraj_work kb; long long e, i, n, cap = 0; int rc = 0;
+  double P[3 * CRTRAJ_NP], x[CRTRAJ_NX];
+  double* buf[5] = {NULL, NULL, NULL, NULL, NULL};  /* ta, tb, mid, ua, ub */
+  double* t;
+  *samples = 0;
+  if (crtraj_alloc(&kb, crtraj_bb_work)) { crtraj_free(&kb); return 1; }
+  for (e = 0; e < E && !rc; ++e) {
+    const double* xa = XA + e * CRTRAJ_NX;
+    const double* dx = dX + e * CRTRAJ_NX;
+    double f = 1.0, low = INFINITY;
+    n = n0[e];
+    if (crtraj_grow(buf, &cap, 2 * n)) { rc = 1; break; }
+    for (i = 0; i < n; ++i) { ta[i] = (double) i / (double) n; tb[i] = (double) (i + 1) / (double) n; }
+    while (n > 0 && !rc) {
+      long long m = 0;
+      if (crtraj_grow(buf, &cap, 2 * n)) { rc = 1; break; }  /* room for this level's children */
+      /* the whole level first: the split rule sees this level's failures, as the numpy loop does */
+      for (i = 0; i < n && !rc; ++i) {
+        double tm = 0.5 * (ta[i] + tb[i]);
+        double h = 0.5 * bound[e] * (tb[i] - ta[i]);
+        double c;
+        int j;
+        for (j = 0; j < CRTRAJ_NX; ++j) x[j] = xa[j] + tm * dx[j];
+        rc = crtraj_clear_one(&kb, x, K, S, P, &c);
+        c = c - inflate - 0.0;
+        ++*samples;
+        mid[i] = -1.0;
+        if (c >= h) { if (c - h < low) low = c - h; }
+        else if (c < 0.0 || h <= finest) { if (ta[i] < f) f = ta[i]; }
+        else mid[i] = tm;  /* neither certified nor unsafe: split */
+      }
+      for (i = 0; i < n; ++i) {
+        if (mid[i] < 0.0 || (prefix ? !(ta[i] < f) : !(f >= 1.0))) continue;
+        ua[m] = ta[i]; ub[m] = mid[i]; ++m;
+        ua[m] = mid[i]; ub[m] = tb[i]; ++m;
+      }
+      t = ta; ta = ua; ua = t;
+      t = tb; tb = ub; ub = t;
+      n = m;
+    }
+    fail[e] = f; lower[e] = low;
+  }
+  for (i = 0; i < 5; ++i) free(buf[i]);
+  crtraj_free(&kb);
+  return rc;
+}
+#undef ta
+#undef tb
+#undef mid
+#undef ua
+#undef ub
 
 int crtraj_tip_jac(long long N, const double* X, double* P, double* J) {
   crtraj_work k; long long i; int rc = 0;
@@ -193,7 +279,10 @@ class ValidityKernel:
         self._tip_jac.argtypes = [_N, _P, _P, _P]
         self._motion_bound = lib.crtraj_motion_bound
         self._motion_bound.argtypes = [_N, _P, _P]
-        for f in (self._points, self._clearance, self._tip_jac, self._motion_bound):
+        self._check_edges = lib.crtraj_check_edges
+        self._check_edges.argtypes = [_N, _P, _P, _P, _P, _N, _P, ctypes.c_double, ctypes.c_double, ctypes.c_int]
+        self._check_edges.argtypes += [_P, _P, _P]
+        for f in (self._points, self._clearance, self._tip_jac, self._motion_bound, self._check_edges):
             f.restype = ctypes.c_int
 
     @classmethod
@@ -249,6 +338,51 @@ class ValidityKernel:
         Jt = np.empty((len(X), self.nx, 3))  # CasADi's column-major 3 x nx is a C-ordered (nx, 3)
         self._check(self._tip_jac(len(X), X.ctypes.data, P.ctypes.data, Jt.ctypes.data), "tip Jacobian")
         return P, np.swapaxes(Jt, 1, 2)
+
+    def check_edges(
+        self,
+        XA: np.ndarray,
+        dX: np.ndarray,
+        bound: np.ndarray,
+        n0: np.ndarray,
+        slots: np.ndarray,
+        inflate: float,
+        finest: float,
+        prefix: bool,
+    ) -> tuple[np.ndarray, np.ndarray, int]:
+        """The static-scene adaptive edge check (`MotionValidator.check_edges`) in C.
+
+        XA, dX (E, nx): motion starts and changes; bound (E,) mm: their body-motion bounds; n0 (E,): first
+        intervals per motion; slots: the scene's packed obstacles; inflate (mm) subtracted from every
+        clearance; finest (mm): the smallest interval's h. Returns (fail (E,), lower (E,) mm, samples).
+        """
+        XA = self._configs(XA)
+        dX = self._configs(dX)
+        E = len(XA)
+        bound = np.ascontiguousarray(bound, dtype=float)
+        n0 = np.ascontiguousarray(n0, dtype=np.int64)
+        S = np.ascontiguousarray(slots, dtype=float)
+        if dX.shape != XA.shape or bound.shape != (E,) or n0.shape != (E,) or S.ndim != 1:
+            raise ValueError("check_edges: XA, dX (E, nx), bound, n0 (E,) and flat slots expected")
+        fail, lower = np.empty(E), np.empty(E)
+        samples = ctypes.c_longlong(0)
+        rc = self._check_edges(
+            E,
+            XA.ctypes.data,
+            dX.ctypes.data,
+            bound.ctypes.data,
+            n0.ctypes.data,
+            S.shape[0] // packing.WIDTH,
+            S.ctypes.data,
+            float(inflate),
+            float(finest),
+            int(bool(prefix)),
+            fail.ctypes.data,
+            lower.ctypes.data,
+            ctypes.addressof(samples),
+        )
+        self._check(rc, "edge check")
+        return fail, lower, int(samples.value)
 
     def motion_bound(self, dX: Any) -> np.ndarray:
         """Body-motion bound (N,) mm of configuration changes dX (N, nx)."""

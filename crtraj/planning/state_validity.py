@@ -72,7 +72,7 @@ class StateValidityChecker:
         if scene.n_obstacles:
             c, r = scene.states(0.0)
             self._static_c, self._static_r = c, r
-            self._static_slots = packing.pack(c, r, scene.n_obstacles)
+            self.static_slots = packing.pack(c, r, scene.n_obstacles)
 
     # -------------------------------------------------------------- kinematics
     def _mapped(self, kind: str, size: int) -> Any:
@@ -192,7 +192,7 @@ class StateValidityChecker:
         configuration, or each configuration's swept spheres over its window."""
         assert self.kernel is not None
         if self.static:
-            return self.kernel.clearance(X, self._static_slots)
+            return self.kernel.clearance(X, self.static_slots)
         N = X.shape[0]
         lo = np.broadcast_to(np.asarray(t_lo, dtype=float), (N,))
         hi = lo if t_hi is None else np.broadcast_to(np.asarray(t_hi, dtype=float), (N,))
