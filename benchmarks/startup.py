@@ -1,8 +1,9 @@
 """Start-up: wall time of a whole `crtraj plan problems/paper_static.toml` process, old against new.
 
 Each variant runs the command as a fresh process `--runs` times (hyperfine style: one untimed warm-up
-run, then median, min and max of the wall times) and reports how much of it was imports (``python -X
-importtime``: the cumulative time of ``crtraj.app.plan``) and how much the planner's own total:
+run, then median, min and max of the wall times, and the median CPU time of the process, user +
+system, which moves far less with other jobs' load) and reports how much of it was imports (``python -X
+importtime``: the cumulative time of ``crtraj.app.plan``) and the planner's own total:
 
 - new, cache warm: this checkout, compiled kernels already in the build cache (the usual case);
 - new, interpreted: this checkout with ``CRTRAJ_CC=none`` (no compiler: the interpreted path);
@@ -22,6 +23,7 @@ import datetime
 import json
 import os
 import platform
+import resource
 import statistics
 import subprocess
 import sys
@@ -33,15 +35,18 @@ ROOT = Path(__file__).resolve().parent.parent
 PROBLEM = ROOT / "problems" / "paper_static.toml"
 
 
-def run_once(src: Path, env: dict[str, str], out: Path) -> tuple[float, float]:
-    """One `crtraj plan` process: (wall s, planner total s)."""
+def run_once(src: Path, env: dict[str, str], out: Path) -> tuple[float, float, float]:
+    """One `crtraj plan` process: (wall s, CPU s of the process (user + system), planner total s)."""
     cmd = [sys.executable, "-m", "crtraj.cli", "plan", str(PROBLEM), "--out", str(out)]
+    r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     t = time.perf_counter()
     proc = subprocess.run(cmd, cwd=src, env={**env, "PYTHONPATH": str(src)}, capture_output=True, text=True)
     wall = time.perf_counter() - t
+    r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
     if proc.returncode != 0:
         raise RuntimeError(f"crtraj plan failed ({proc.returncode}): {proc.stderr.strip()[-300:]}")
-    return wall, float(json.loads(out.read_text())["timing"].get("total_s", float("nan")))
+    cpu = (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
+    return wall, cpu, float(json.loads(out.read_text())["timing"].get("total_s", float("nan")))
 
 
 def import_time(src: Path, env: dict[str, str]) -> float:
@@ -61,15 +66,17 @@ def variant(label: str, src: Path, env: dict[str, str], runs: int, warm: bool = 
         out = Path(tmp) / "plan.json"
         if warm:
             run_once(src, env, out)
-        walls, totals = [], []
+        walls, cpus, totals = [], [], []
         for _ in range(runs):
-            w, tot = run_once(src, env, out)
+            w, c, tot = run_once(src, env, out)
             walls.append(w)
+            cpus.append(c)
             totals.append(tot)
         imp = import_time(src, env)
     print(
         f"{label:<26s} {statistics.median(walls):7.2f} s  ({min(walls):5.2f}..{max(walls):5.2f})  "
-        f"imports {imp:5.2f} s  planner {statistics.median(totals) * 1e3:6.0f} ms   n={runs}"
+        f"CPU {statistics.median(cpus):5.2f} s  imports {imp:5.2f} s  planner {statistics.median(totals) * 1e3:6.0f} ms"
+        f"   n={runs}"
     )
 
 
