@@ -12,14 +12,16 @@ rounding), and a small hand-written C driver loops over a whole batch in one cal
   are padding and skipped, so one library serves every obstacle count. stride 0: the same slots for
   every configuration (a static scene); 5 K: slots of their own per configuration (swept spheres);
 - ``crtraj_tip_jac(N, X, P, J)``: tip positions (N, 3) mm and tip Jacobians (N, 3, nx);
-- ``crtraj_motion_bound(N, dX, B)``: the body-motion bound B(dx) (mm, `crtraj.planning.metric`);
+- ``crtraj_motion_bound(N, dX, B)``: the body-motion bound B(dx) (mm, `crtraj.planning.metric`; it agrees
+  with numpy's to 1e-12, but the planners keep numpy's, whose rounding times every motion, so that both
+  paths give identical plans);
 - ``crtraj_check_edges(...)``: the adaptive certification of straight motions of
   `crtraj.planning.validity.MotionValidator.check_edges` for a static scene, the whole refinement loop
   in C with numpy's arithmetic, operation for operation (so it returns the same numbers).
 
 The library is built once per robot (its kinematic description), check-point count and generator
 version through `crtraj.core.build_cache.BuildCache` and called with ctypes on numpy buffers
-(`benchmarks/plan.py --loaders` measures it against ``casadi.external``). Without a C compiler
+(`benchmarks/plan.py`, section 5, measures it against ``casadi.external``). Without a C compiler
 `ValidityKernel.load` returns None and the callers keep the interpreted path.
 """
 
