@@ -112,6 +112,23 @@ def test_static_edge_check_in_c_is_the_numpy_loop(model, kernel_cache):
         np.testing.assert_allclose(lc, li, rtol=0, atol=TOL)
 
 
+def test_nan_is_never_clear(model, kernel_cache):
+    """A configuration the kinematics cannot evaluate (NaN) has no clearance (NaN, never +inf) and no motion
+    through it is certified, in the C loop as in the numpy one."""
+    scene = Problem.load(PROBLEMS / "paper_static.toml").options(Scene, "scene")
+    comp, _ = validators(model, scene, kernel_cache)
+    X = comp.sample(np.random.default_rng(2), 4)
+    X[1, 0] = np.nan
+    c = comp.clearance(X)
+    assert np.isnan(c[1]) and np.isfinite(c[[0, 2, 3]]).all()
+    assert np.isnan(comp.state.kernel.clearance(X[1:2], comp.state.static_slots)[0])
+    # the C edge loop: a motion whose samples are NaN is not certified; neither is one given no interval
+    k, slots = comp.state.kernel, comp.state.static_slots
+    dX = np.full((2, model.nx), np.nan)
+    fail, lower, n = k.check_edges(X[[0, 2]], dX, np.array([30.0, 30.0]), np.array([1, 0]), slots, 0.0, 1.5, True)
+    assert fail[0] == 0.0 and fail[1] == 0.0 and n > 0 and lower[1] == -np.inf
+
+
 def moving_scene(n, rng):
     """n spheres near the robot with linear and breathing motions."""
     obs = []

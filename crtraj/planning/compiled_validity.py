@@ -42,7 +42,7 @@ from crtraj.planning.metric import metric_matrix
 from crtraj.world import packing
 
 # Version of the generated code and driver: raising it makes every cached kernel foreign (rebuilt).
-GENERATOR = 2
+GENERATOR = 3
 # Most check points a kernel is generated for: the generated FK grows with them (100 points: ~15 s of
 # gcc); denser checks (reports, tests) stay on the interpreted path.
 MAX_COMPILED_POINTS = 200
@@ -95,7 +95,8 @@ static double crtraj_chord(const double* P, const double* c) {
     double u = fmin(fmax((acx * abx + acy * aby + acz * abz) / den, 0.0), 1.0);
     double dx = acx - abx * u, dy = acy - aby * u, dz = acz - abz * u;
     double d2 = dx * dx + dy * dy + dz * dz;
-    if (d2 < best) best = d2;
+    if (d2 < best || d2 != d2) best = d2;  /* a NaN point makes the distance NaN: never "far away" */
+    if (best != best) break;
   }
   return sqrt(best);
 }
@@ -112,7 +113,8 @@ static int crtraj_clear_one(crtraj_work* kb, const double* x, long long K, const
     double dist;
     if (slot[4] <= 0.0) continue;  /* padding */
     dist = crtraj_chord(P, slot) - slot[3];
-    if (dist < best) best = dist;
+    if (dist < best || dist != dist) best = dist;  /* NaN propagates: unknown is not clear */
+    if (best != best) break;
   }
   *out = best;
   return rc;
@@ -164,6 +166,7 @@ int crtraj_check_edges(long long E, const double* XA, const double* dX, const do
     const double* dx = dX + e * CRTRAJ_NX;
     double f = 1.0, low = INFINITY;
     n = n0[e];
+    if (n < 1) { fail[e] = 0.0; lower[e] = -INFINITY; continue; }  /* no intervals: nothing certified */
     if (crtraj_grow(buf, &cap, 2 * n)) { rc = 1; break; }
     for (i = 0; i < n; ++i) { ta[i] = (double) i / (double) n; tb[i] = (double) (i + 1) / (double) n; }
     while (n > 0 && !rc) {

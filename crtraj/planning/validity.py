@@ -262,7 +262,7 @@ class MotionValidator:
         n0 = np.maximum(1, np.ceil(bound / self.coarse)).astype(int)
         finest = 0.5 * self.resolution * (1.0 + 1e-9)
         kernel = self.state.kernel
-        if kernel is not None and self.static and self.scene.n_obstacles and E:
+        if kernel is not None and self.static and self.scene.n_obstacles and E and np.isfinite(bound).all():
             # the same loop in C, with the same arithmetic (static scenes: no time windows to sweep)
             fail, lower, samples = kernel.check_edges(
                 XA, dX, bound, n0, self.state.static_slots, self.inflate, finest, prefix
