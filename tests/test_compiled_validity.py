@@ -289,3 +289,9 @@ def test_build_command_builds_lists_and_clears_and_commands_reuse_it(tmp_path, m
     assert main(["build", "--check-points", "1"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--check-points" in err[0]
+    # a cache folder that cannot be made (its parent is a file): one line, exit 2
+    (tmp_path / "afile").write_text("x")
+    monkeypatch.setenv("CRTRAJ_CACHE_DIR", str(tmp_path / "afile" / "cache"))
+    assert main(["build", "--check-points", "5"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "build cache" in err[0]

@@ -9,6 +9,7 @@ loop, device verification) and for every ``--check-points`` given.
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -73,7 +74,13 @@ def build_command(args: argparse.Namespace) -> int:
     if not cache.available():
         return 1
     model = Model(robot)
-    built = [b for make in ARTIFACTS for b in make(model, cache, points)]
+    try:
+        built = [b for make in ARTIFACTS for b in make(model, cache, points)]
+    except OSError as exc:
+        raise InputError(f"build cache {cache.root}: cannot write there ({exc.strerror or exc})") from None
+    except RuntimeError as exc:  # the C compiler failed: nothing was cached
+        print(f"crtraj: build failed: {exc}", file=sys.stderr)
+        return 1
     print(f"robot '{robot.name}': {len(built)} artifacts in {cache.root}")
     for b in built:
         print(f"  {b.what}: {b.library} ({b.seconds:.2f} s)")
