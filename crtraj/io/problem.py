@@ -37,6 +37,7 @@ SECTIONS = (
     "stream",
     "feed",
     "view",
+    "ros",
 )
 
 T = TypeVar("T")
