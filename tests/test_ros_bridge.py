@@ -40,12 +40,16 @@ HANG = 60.0  # s: a guard against hangs, never a timing window
 DOMAIN = 10 + os.getpid() % 90  # one ROS domain per test run
 
 
-def _problem(tmp_path: Path, extra: str = "") -> Path:
-    """paper_dynamic.toml with its robot path made absolute and a [ros] section on this run's domain."""
+def _problem(tmp_path: Path, duration: float = 60.0) -> Path:
+    """paper_dynamic.toml with its robot path made absolute, a [ros] section on this run's domain (hang
+    bounds only, and one more step of obstacle age than the robot's one-step latency needs) and a
+    [loop] duration of `duration` s."""
     text = PAPER.read_text().replace('robot = "robots/cdsr2.toml"', f'robot = "{ROOT / "problems/robots/cdsr2.toml"}"')
+    assert "duration = 60.0" in text
+    text = text.replace("duration = 60.0", f"duration = {duration}")
     text += f"\n[ros]\ndomain_id = {DOMAIN}\nmax_age = 0.35\njoint_state_timeout = {HANG}\nstart_timeout = {HANG}\n"
     p = tmp_path / "paper_dynamic_ros.toml"
-    p.write_text(text + extra)
+    p.write_text(text)
     return p
 
 
@@ -159,13 +163,13 @@ def spheres(frame: str, scene: Scene, t: float, **override):
 
 @pytest.fixture(scope="module")
 def paper():
-    """(problem, actuators, scene, model, the robot's start values) of the paper's simulation 2."""
+    """(problem, actuators, scene, model, the robot's start values, servo model) of the paper's simulation 2."""
     require_module("rclpy", "pip install -e '.[ros]'")
     problem = Problem.load(PAPER)
     loop = loop_from_problem(problem)
     acts = Actuators.from_robot(problem.robot)
     start = acts.command(loop.tracker.initial_command(loop.x_start))
-    return problem, acts, loop.scene, loop.model, start
+    return problem, acts, loop.scene, loop.model, start, loop.servo
 
 
 def _body_distance(model: Model, scene: Scene, acts: Actuators, T: np.ndarray, values: np.ndarray) -> np.ndarray:
@@ -191,7 +195,7 @@ def _executed(robot: RobotNode, start: np.ndarray) -> tuple[np.ndarray, np.ndarr
 
 @pytest.mark.slow
 def test_round_trip_reaches_the_goal_without_collision(tmp_path, paper):
-    problem, acts, scene, model, start = paper
+    problem, acts, scene, model, start, _ = paper
     path = _problem(tmp_path)
     ros = Problem.load(path).options(RosOptions, "ros")
     clock = VirtualClock()
@@ -214,8 +218,10 @@ def test_round_trip_reaches_the_goal_without_collision(tmp_path, paper):
     robot = robots[0]
     assert code == 0
     res = read_result(tmp_path / "run" / "run.json")
-    assert res.success and res.collisions == 0 and res.data["device"]["moves"] == len(
-        [r for r in robot.received if len(r[1]) == ros.points_per_step]
+    assert (
+        res.success
+        and res.collisions == 0
+        and res.data["stream"]["moves"] == len([r for r in robot.received if len(r[1]) == ros.points_per_step])
     )
     moves = [r for r in robot.received if len(r[1]) == ros.points_per_step]
     assert len(moves) > 50
@@ -235,3 +241,165 @@ def test_round_trip_reaches_the_goal_without_collision(tmp_path, paper):
     assert d.min() > scene.safety_distance - 1.0
     assert len(threading.enumerate()) >= 1
     assert not [t for t in threading.enumerate() if t.name == "crtraj-ros-spin"]
+
+
+def _children() -> list[int]:
+    """Pids of this process's child processes."""
+    out = []
+    for d in os.listdir("/proc"):
+        if d.isdigit():
+            try:
+                stat = Path(f"/proc/{d}/stat").read_text()
+            except OSError:
+                continue
+            if int(stat.rsplit(")", 1)[1].split()[1]) == os.getpid():
+                out.append(int(d))
+    return out
+
+
+def test_stale_markers_hold_the_robot(tmp_path, paper):
+    _, acts, scene, _, start, _ = paper
+    path = _problem(tmp_path, duration=2.0)
+    ros = Problem.load(path).options(RosOptions, "ros")
+    stop = 0.5  # the obstacles go silent here
+    clock = VirtualClock()
+    robots = []
+
+    def ready(node, feed):
+        robots.append(RobotNode(ros, acts.names, scene, start, stop_markers=stop))
+        robots[0].wait_matched()
+
+    try:
+        code = run_ros_bridge(
+            RosBridgeRequest(path, out=tmp_path / "run", html=False, quiet=True),
+            clock=clock,
+            sleep=clock.sleep,
+            ready=ready,
+        )
+    finally:
+        for r in robots:
+            r.close()
+    robot = robots[0]
+    assert code == 1  # the goal was not reached: the robot was held
+    res = read_result(tmp_path / "run" / "run.json")
+    status = [w.get("status") for w in res.data["waypoints"][1:]]
+    t = np.array([w["t"] for w in res.data["waypoints"][1:]]) - 0.1  # each step's start
+    stale = t >= stop + ros.max_age + 0.1 + 1e-9  # a state measured before `stop` is too old from here on
+    assert all(s == "stale" for s in np.array(status)[stale]) and stale.sum() >= 5
+    assert all(s != "stale" for s in np.array(status)[t < stop + ros.max_age - 0.1])
+    # held: after the feed went stale every trajectory is one point at rest at the last commanded position
+    last = start
+    for t0, offs, P, V in robot.received:
+        if t0 >= stop + ros.max_age + 0.1 + 1e-9:
+            assert len(offs) == 1 and np.all(V == 0.0) and np.array_equal(P[0], last)
+        last = P[-1]
+    assert res.data["stream"]["holds"] >= stale.sum()
+
+
+def test_unsafe_steps_are_refused_and_never_published(paper):
+    problem, acts, scene, model, start, servo = paper
+    ros = RosOptions(domain_id=DOMAIN, joint_state_timeout=HANG, start_timeout=HANG)
+    node = RosNode(ros, acts.names)
+    robot = RobotNode(ros, acts.names, scene, start)
+    try:
+        robot.wait_matched(obstacles=False)
+        tip = model.tip_position(model.robot.config(acts.actuation(start)))
+        on_tip = scene.with_obstacles([Obstacle(center=tuple(tip), radius=10.0, name="on_tip")])
+        free = scene.with_obstacles(())
+        clock = VirtualClock()
+
+        def device(sc):
+            ver = FrameVerifier(problem.robot, acts, sc, 0.1 / ros.points_per_step, model=model)
+            return RosDevice(node, acts, model, servo, 0.1, ver, lambda: sc, clock=clock, sleep=clock.sleep)
+
+        blocked, fast = device(on_tip), device(free)
+        q0 = blocked.start_actuation()
+        assert np.allclose(acts.command(q0), start)
+        fast.start_actuation()
+        still = np.repeat(q0[None], 5, axis=0)
+        with pytest.raises(DeviceError, match="body closer than the safety distance"):
+            blocked.move(0.0, q0, still, 0.02)
+        jump = q0.copy()
+        jump[0] += 5.0  # mm of cable in one step, within the position limits: beyond the servo's speed limit
+        if np.any(acts.position_violation(acts.command(jump)) > 0):
+            jump[0] -= 10.0
+        with pytest.raises(DeviceError, match=r"velocity|acceleration"):
+            fast.move(0.0, q0, np.repeat(jump[None], 5, axis=0), 0.02)
+        fast.hold("sentinel")  # published after the refusals on the same topic: arrives after anything they sent
+        assert robot.wait_received(3)
+        assert blocked.refused_steps == fast.refused_steps == 1 and node.published == 3
+        for _, offs, P, V in robot.received:  # the two refusals' holds and the sentinel, nothing else
+            assert len(offs) == 1 and np.array_equal(P[0], start) and np.all(V == 0.0)
+        assert len(robot.received) == 3
+    finally:
+        robot.close()
+        node.close()
+
+
+def test_hostile_messages_are_counted_and_ignored(paper):
+    from sensor_msgs.msg import JointState
+
+    _, acts, scene, _, start, _ = paper
+    ros = RosOptions(domain_id=DOMAIN)
+    clock = VirtualClock()
+    feed = ObstacleFeed(max_age=1.0, expected=("upper", "lower"), clock=clock)
+    node = RosNode(ros, acts.names, feed)
+    robot = RobotNode(ros, acts.names, scene, start)
+    try:
+        robot.wait_matched(obstacles=False)
+        assert node.wait_joint_state(0.0, HANG) is not None
+        names = list(acts.names)
+        bad_states = [
+            JointState(name=names, position=[math.nan] + [0.0] * (len(names) - 1)),  # invalid
+            JointState(name=[*names[:-1], "elbow"], position=[0.0] * len(names)),  # unknown_name
+            JointState(name=[f"j{i}" for i in range(300)], position=[0.0] * 300),  # oversize
+            JointState(name=names, position=[0.0]),  # invalid: lengths differ
+            JointState(name=names + names[:1], position=[0.0] * (len(names) + 1)),  # invalid: repeated
+        ]
+        for k, m in enumerate(bad_states):
+            m.header.stamp = _stamp(1.0 + k)
+            robot.js.publish(m)
+        good = acts.command(acts.actuation(start)) + 0.001
+        m = JointState(name=names[::-1], position=[float(v) for v in good[::-1]])  # any order of names
+        m.header.stamp = _stamp(10.0)
+        robot.js.publish(m)
+        assert node.wait_joint_state(10.0, HANG) is not None
+        values, stamp = node.joint_state()
+        assert stamp == 10.0 and np.allclose(values, good)
+        assert node.counts == {"invalid": 3, "unknown_name": 1, "oversize": 1}
+        # markers: too many, wrong frame, wrong type, NaN, an unknown obstacle; then the good ones
+        from visualization_msgs.msg import MarkerArray
+
+        many = MarkerArray(markers=spheres(ros.frame_id, scene, 0.0).markers * 150)
+        robot.mk.publish(many)  # oversize
+        robot.mk.publish(spheres("camera", scene, 0.1))  # 2 x frame
+        robot.mk.publish(spheres(ros.frame_id, scene, 0.2, type=1))  # 2 x type (CUBE)
+        bad = spheres(ros.frame_id, scene, 0.3)
+        bad.markers[0].pose.position.x = math.nan
+        bad.markers[1].ns = "intruder"
+        robot.mk.publish(bad)  # 1 x invalid, 1 x the feed's unknown_id
+        robot.mk.publish(spheres(ros.frame_id, scene, 0.4))
+        assert feed.wait_for(2, HANG)  # the two datagrams with valid spheres reached the feed
+        assert node.marker_arrays == 5
+        assert node.counts == {"invalid": 4, "unknown_name": 1, "oversize": 2, "frame": 2, "type": 2}
+        assert feed.counts == {"unknown_id": 1}
+        st = feed.latest(0.4)
+        c, r = scene.states(0.4)
+        assert not st.stale and np.allclose(st.centers, c[[1, 0]]) and np.allclose(st.radii, r[[1, 0]])
+        assert node.alive
+    finally:
+        robot.close()
+        node.close()
+        feed.close()
+
+
+def test_close_leaves_no_threads_or_processes(paper):
+    _, acts, *_ = paper
+    before = set(threading.enumerate())
+    node = RosNode(RosOptions(domain_id=DOMAIN), acts.names)
+    assert node.alive
+    node.close()
+    node.close()  # idempotent
+    assert not node.alive and not node._ctx.ok()
+    assert set(threading.enumerate()) <= before
+    assert _children() == []

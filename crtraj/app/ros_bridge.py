@@ -23,6 +23,7 @@ from typing import Any
 
 from crtraj.app.replan import UnsolvableTaskError, loop_from_problem
 from crtraj.app.run_output import write_run_files
+from crtraj.control.loop import RunStatus
 from crtraj.core.errors import InputError
 from crtraj.core.fileio import StagedDir, check_output_dir, failed_sibling, is_successful_result
 from crtraj.hardware.actuators import Actuators
@@ -51,18 +52,22 @@ class RosBridgeRequest:
     quiet: bool = False
 
 
-def _wait_fresh(feed: ObstacleFeed, timeout: float) -> None:
-    """Block until every expected obstacle has a fresh state (`InputError` naming the topic after
-    `timeout` wall-clock seconds)."""
-    end = time.monotonic() + timeout
+def _await_robot(node: RosNode, feed: ObstacleFeed, ros: RosOptions) -> None:
+    """Block until the robot's first joint state and a fresh state of every expected obstacle have
+    arrived; `InputError` naming the topic after ``ros.start_timeout`` wall-clock seconds."""
+    if node.wait_joint_state(-math.inf, ros.start_timeout) is None:
+        raise InputError(
+            f"ros.joint_state_topic: no sensor_msgs/JointState naming {', '.join(node.names)} on "
+            f"{ros.joint_state_topic} within {ros.start_timeout:g} s"
+        )
+    end = time.monotonic() + ros.start_timeout
     while feed.latest().stale and time.monotonic() < end:
         feed.wait_for(feed.datagrams + 1, min(0.1, max(end - time.monotonic(), 0.0)))
     st = feed.latest()
     if st.stale:
-        raise InputError(f"ros.obstacle_topic: no obstacle states within {timeout:g} s ({st.reason})")
+        raise InputError(f"ros.obstacle_topic: no obstacle states within {ros.start_timeout:g} s ({st.reason})")
 
 
-# Over 60 lines only by the run's wiring written out in order: feed, node, loop, device, files.
 def run_ros_bridge(
     req: RosBridgeRequest,
     *,
@@ -71,8 +76,9 @@ def run_ros_bridge(
     ready: Callable[[RosNode, ObstacleFeed], None] | None = None,
 ) -> int:
     """Run `req` as ``crtraj ros-bridge`` does; returns the exit code (0 the goal was reached safely,
-    1 not). clock, sleep: the bridge's time (s) and pacing (default: the ROS clock, i.e. the system
-    time, and `time.sleep`); a virtual clock makes the run independent of the machine's speed.
+    1 not, 130 Ctrl-C: the robot was held). clock, sleep: the bridge's time (s) and pacing (default:
+    the ROS clock, i.e. the system time, and `time.sleep`); a virtual clock makes the run independent
+    of the machine's speed.
     ready: called once the node and the feed are up (tests start the robot's side there)."""
     if req.seed is not None and req.seed < 0:
         raise InputError(f"--seed: must be >= 0, got {req.seed}")
@@ -97,12 +103,7 @@ def run_ros_bridge(
         )
         if ready is not None:
             ready(node, feed)
-        if node.wait_joint_state(-math.inf, ros.start_timeout) is None:
-            raise InputError(
-                f"ros.joint_state_topic: no sensor_msgs/JointState naming {', '.join(acts.names)} on "
-                f"{ros.joint_state_topic} within {ros.start_timeout:g} s"
-            )
-        _wait_fresh(feed, ros.start_timeout)
+        _await_robot(node, feed, ros)
         try:
             loop = loop_from_problem(problem, seed=seed, feed=feed, lead=0.0)
         except UnsolvableTaskError as exc:
@@ -121,6 +122,15 @@ def run_ros_bridge(
         if not ok and not req.overwrite_failed and is_successful_result(out):
             dest = failed_sibling(out)
         dest = stage.commit(dest)
+    _print_summary(run, device, staged, dest, req.quiet)
+    if run.status is RunStatus.INTERRUPTED:
+        return 130
+    return 0 if ok else 1
+
+
+def _print_summary(run: Any, device: RosDevice, staged: dict[str, Any], dest: Path, quiet: bool) -> None:
+    """The run's summary line, the bridge's counters, and (not quiet) the limit fractions and file paths;
+    one stderr line when the run failed."""
     print(run.summary_line())
     d = device.describe()
     r = d["ros"]
@@ -128,15 +138,14 @@ def run_ros_bridge(
         f"  ros: {d['moves']} steps published, {d['holds']} holds, {d['refused_steps']} refused before sending; "
         f"{r['joint_states']} joint states, {r['marker_arrays']} marker arrays, rejected {r['rejected'] or 'none'}"
     )
-    if not req.quiet:
+    if not quiet:
         print(f"  {run.limits_line()}")
         for key in ("json", "npz", "png", "html"):
             if key in staged:
                 print(f"  {key:4s} {dest / Path(staged[key]).name}")
-    if not ok:
+    if not (run.is_success() and not device.problem()):
         why = device.problem() or f"{run.status}: {run.message}"
         print(f"crtraj: ros-bridge failed: {why} (run in {dest})", file=sys.stderr)
-    return 0 if ok else 1
 
 
 def ros_bridge_command(args: Any) -> int:

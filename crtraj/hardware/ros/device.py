@@ -146,9 +146,7 @@ class RosDevice:
         X = self.model.robot.config(self.actuators.actuation(values))
         centers, radii = self.scene_now().states(t)
         P = self.model.points(X, VIEW_POINTS)
-        msg = scene_markers(
-            self.options.frame_id, self._origin + t, P, self.model.robot.body_radius, centers, radii
-        )
+        msg = scene_markers(self.options.frame_id, self._origin + t, P, self.model.robot.body_radius, centers, radii)
         self.node.publish_markers(msg)
 
     def pace(self, t: float) -> bool:

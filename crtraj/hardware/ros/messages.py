@@ -2,7 +2,7 @@
 
 Every incoming message is hostile: `joint_state_values` and `marker_obstacles` bound its sizes before
 touching its arrays, refuse NaN, infinities and absurd magnitudes, unknown or missing names, and raise
-`RejectedMessage` (kind, one-line reason), which the node counts and records instead of crashing.
+`RejectedError` (kind, one-line reason), which the node counts and records instead of crashing.
 The message classes (trajectory_msgs, visualization_msgs, geometry_msgs) are imported inside the
 builders because they are an optional extra. Units: ROS messages carry metres and seconds, crtraj mm.
 """
@@ -23,7 +23,7 @@ SPHERE, ADD = 2, 0  # visualization_msgs/Marker type and action codes
 LINE_STRIP, DELETEALL = 4, 3
 
 
-class RejectedMessage(Exception):
+class RejectedError(Exception):
     """An incoming message that was not used: kind (invalid, unknown_name, oversize, frame, type) and why."""
 
     def __init__(self, kind: str, message: str) -> None:
@@ -32,10 +32,10 @@ class RejectedMessage(Exception):
 
 
 def stamp_seconds(stamp: Any) -> float:
-    """builtin_interfaces/Time as s; `RejectedMessage` when out of range."""
+    """builtin_interfaces/Time as s; `RejectedError` when out of range."""
     s = float(stamp.sec) + 1e-9 * float(stamp.nanosec)
     if not (math.isfinite(s) and abs(s) <= MAX_STAMP):
-        raise RejectedMessage("invalid", f"header.stamp: {s!r} s out of range")
+        raise RejectedError("invalid", f"header.stamp: {s!r} s out of range")
     return s
 
 
@@ -46,27 +46,28 @@ def joint_state_values(msg: Any, names: tuple[str, ...]) -> tuple[np.ndarray, fl
     or huge position is refused."""
     n = len(msg.name)
     if n > MAX_JOINTS:
-        raise RejectedMessage("oversize", f"joint_state: {n} names (at most {MAX_JOINTS})")
+        raise RejectedError("oversize", f"joint_state: {n} names (at most {MAX_JOINTS})")
     if len(msg.position) != n:
-        raise RejectedMessage("invalid", f"joint_state: {n} names but {len(msg.position)} positions")
+        raise RejectedError("invalid", f"joint_state: {n} names but {len(msg.position)} positions")
     index: dict[str, int] = {}
     for i, name in enumerate(msg.name):
         if name in index:
-            raise RejectedMessage("invalid", f"joint_state.name: {str(name)[:40]!r} repeated")
+            raise RejectedError("invalid", f"joint_state.name: {str(name)[:40]!r} repeated")
         index[name] = i
     missing = [a for a in names if a not in index]
     if missing:
-        raise RejectedMessage("unknown_name", f"joint_state.name: no {', '.join(missing)} (expected {', '.join(names)})")
+        expected = ", ".join(names)
+        raise RejectedError("unknown_name", f"joint_state.name: no {', '.join(missing)} (expected {expected})")
     pos = np.asarray(msg.position, dtype=float)
     values = pos[[index[a] for a in names]]
     bad = np.flatnonzero(~(np.abs(values) <= MAX_VALUE))
     if bad.size:
         k = int(bad[0])
-        raise RejectedMessage("invalid", f"joint_state.position[{names[k]}]: {values[k]!r} not a finite value")
+        raise RejectedError("invalid", f"joint_state.position[{names[k]}]: {values[k]!r} not a finite value")
     return values, stamp_seconds(msg.header.stamp)
 
 
-def marker_obstacles(msg: Any, frame_id: str) -> tuple[list[dict[str, Any]], list[RejectedMessage]]:
+def marker_obstacles(msg: Any, frame_id: str) -> tuple[list[dict[str, Any]], list[RejectedError]]:
     """The obstacle messages (the UDP feed's schema: id, center mm, radius mm, timestamp s) of a
     visualization_msgs/MarkerArray, and the markers that were refused.
 
@@ -76,13 +77,13 @@ def marker_obstacles(msg: Any, frame_id: str) -> tuple[list[dict[str, Any]], lis
     an array longer than `MAX_MARKERS` is refused whole."""
     n = len(msg.markers)
     if n > MAX_MARKERS:
-        raise RejectedMessage("oversize", f"markers: {n} markers (at most {MAX_MARKERS})")
+        raise RejectedError("oversize", f"markers: {n} markers (at most {MAX_MARKERS})")
     out: list[dict[str, Any]] = []
-    refused: list[RejectedMessage] = []
+    refused: list[RejectedError] = []
     for k, m in enumerate(msg.markers):
         try:
             out.append(_sphere(m, k, frame_id))
-        except RejectedMessage as exc:
+        except RejectedError as exc:
             refused.append(exc)
     return out, refused
 
@@ -90,18 +91,18 @@ def marker_obstacles(msg: Any, frame_id: str) -> tuple[list[dict[str, Any]], lis
 def _sphere(m: Any, k: int, frame_id: str) -> dict[str, Any]:
     where = f"markers[{k}]"
     if m.action != ADD:
-        raise RejectedMessage("type", f"{where}.action: {m.action} is not ADD (0)")
+        raise RejectedError("type", f"{where}.action: {m.action} is not ADD (0)")
     if m.type != SPHERE:
-        raise RejectedMessage("type", f"{where}.type: {m.type} is not SPHERE (2)")
+        raise RejectedError("type", f"{where}.type: {m.type} is not SPHERE (2)")
     if m.header.frame_id != frame_id:
-        raise RejectedMessage("frame", f"{where}.header.frame_id: {m.header.frame_id[:40]!r}, expected {frame_id!r}")
+        raise RejectedError("frame", f"{where}.header.frame_id: {m.header.frame_id[:40]!r}, expected {frame_id!r}")
     if not 0 < len(m.ns) <= MAX_NAME:
-        raise RejectedMessage("invalid", f"{where}.ns: the obstacle's name, 1..{MAX_NAME} characters")
+        raise RejectedError("invalid", f"{where}.ns: the obstacle's name, 1..{MAX_NAME} characters")
     p = m.pose.position
     c = [1000.0 * float(p.x), 1000.0 * float(p.y), 1000.0 * float(p.z)]
     r = 500.0 * max(float(m.scale.x), float(m.scale.y), float(m.scale.z))
     if not all(abs(v) <= MAX_VALUE for v in (*c, r)) or not r >= 0.0:
-        raise RejectedMessage("invalid", f"{where}: position or scale not finite or out of range")
+        raise RejectedError("invalid", f"{where}: position or scale not finite or out of range")
     return {"id": m.ns, "center": c, "radius": r, "timestamp": stamp_seconds(m.header.stamp)}
 
 

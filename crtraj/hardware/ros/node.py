@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from crtraj.core.errors import InputError
-from crtraj.hardware.ros.messages import RejectedMessage, joint_state_values, marker_obstacles
+from crtraj.hardware.ros.messages import RejectedError, joint_state_values, marker_obstacles
 from crtraj.hardware.ros.options import RosOptions
 
 MAX_EVENTS = 1000  # rejected messages kept (the counts stay exact beyond it)
@@ -133,7 +133,7 @@ class RosNode:
     def _on_joint_state(self, msg: Any) -> None:
         try:
             values, stamp = joint_state_values(msg, self.names)
-        except RejectedMessage as exc:
+        except RejectedError as exc:
             self._reject(exc.kind, str(exc))
             return
         except Exception as exc:  # the node must outlive any message
@@ -151,7 +151,7 @@ class RosNode:
         self.marker_arrays += 1
         try:
             states, refused = marker_obstacles(msg, self.options.frame_id)
-        except RejectedMessage as exc:
+        except RejectedError as exc:
             self._reject(exc.kind, str(exc))
             return
         except Exception as exc:
@@ -207,4 +207,3 @@ class RosNode:
                 "events": list(self._events),
                 "options": self.options.to_dict(),
             }
-
