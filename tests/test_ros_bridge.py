@@ -24,6 +24,7 @@ from crtraj.control.horizon import ReplanOptions
 from crtraj.control.ports import DeviceError
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.ros.device import RosDevice
+from crtraj.hardware.ros.messages import si_scale
 from crtraj.hardware.ros.node import RosNode, ros_environment
 from crtraj.hardware.ros.options import RosOptions
 from crtraj.hardware.verify import FrameVerifier
@@ -56,7 +57,8 @@ def _problem(tmp_path: Path, duration: float = 60.0) -> Path:
 class RobotNode:
     """The robot side: executes each trajectory exactly and echoes its last point as a JointState stamped
     at that point's time; publishes the scene's true obstacles (stamped at each trajectory's start)
-    until `stop_markers` s. Records every trajectory received: (start s, offsets s, positions, velocities)."""
+    until `stop_markers` s. Records every trajectory received: (start s, offsets s, positions, velocities),
+    in ROS units (rad, m); `start` is in them too."""
 
     def __init__(self, ros: RosOptions, names, scene: Scene, start: np.ndarray, stop_markers: float = math.inf):
         rclpy = require_module("rclpy", "pip install -e '.[ros]'")
@@ -182,7 +184,8 @@ def _body_distance(model: Model, scene: Scene, acts: Actuators, T: np.ndarray, v
 
 
 def _executed(robot: RobotNode, start: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Every commanded point from `start`, 8 linear sub-samples between consecutive points: (times, values)."""
+    """Every commanded point from `start`, 8 linear sub-samples between consecutive points: (times, values),
+    in ROS units as received."""
     T = [robot.received[0][0]]
     V = [start]
     for start, offs, P, _ in robot.received:
@@ -202,7 +205,7 @@ def test_round_trip_reaches_the_goal_without_collision(tmp_path, paper):
     robots = []
 
     def ready(node, feed):
-        robots.append(RobotNode(ros, acts.names, scene, start))
+        robots.append(RobotNode(ros, acts.names, scene, start * si_scale(acts.units)))
         robots[0].wait_matched()
 
     try:
@@ -231,12 +234,12 @@ def test_round_trip_reaches_the_goal_without_collision(tmp_path, paper):
         assert np.allclose(offs, dt * np.arange(1, ros.points_per_step + 1) / ros.points_per_step)
         assert np.all(np.isfinite(V)) and P.shape == V.shape == (ros.points_per_step, acts.n)
     # the echoed motion reaches the goal ...
-    tip = model.tip_position(model.robot.config(acts.actuation(robot.position)))
+    tip = model.tip_position(model.robot.config(acts.actuation(robot.position / si_scale(acts.units))))
     goal = np.array([10.0, -120.0, 170.0])
     assert np.linalg.norm(tip - goal) <= 0.5 + 1e-6
     # ... and, densely checked against the true breathing spheres, never touches them
-    T, V = _executed(robot, start)
-    d = _body_distance(model, scene, acts, T, V)
+    T, V = _executed(robot, start * si_scale(acts.units))
+    d = _body_distance(model, scene, acts, T, V / si_scale(acts.units))
     assert np.all(d > 0.0), f"collision: min distance {d.min():.3f} mm at t={T[np.argmin(d)]:.2f} s"
     assert d.min() > scene.safety_distance - 1.0
     assert len(threading.enumerate()) >= 1
@@ -266,7 +269,7 @@ def test_stale_markers_hold_the_robot(tmp_path, paper):
     robots = []
 
     def ready(node, feed):
-        robots.append(RobotNode(ros, acts.names, scene, start, stop_markers=stop))
+        robots.append(RobotNode(ros, acts.names, scene, start * si_scale(acts.units), stop_markers=stop))
         robots[0].wait_matched()
 
     try:
@@ -288,10 +291,10 @@ def test_stale_markers_hold_the_robot(tmp_path, paper):
     assert all(s == "stale" for s in np.array(status)[stale]) and stale.sum() >= 5
     assert all(s != "stale" for s in np.array(status)[t < stop + ros.max_age - 0.1])
     # held: after the feed went stale every trajectory is one point at rest at the last commanded position
-    last = start
+    last = start * si_scale(acts.units)
     for t0, offs, P, V in robot.received:
         if t0 >= stop + ros.max_age + 0.1 + 1e-9:
-            assert len(offs) == 1 and np.all(V == 0.0) and np.array_equal(P[0], last)
+            assert len(offs) == 1 and np.all(V == 0.0) and np.allclose(P[0], last, rtol=1e-12, atol=0)
         last = P[-1]
     assert res.data["stream"]["holds"] >= stale.sum()
 
@@ -299,8 +302,8 @@ def test_stale_markers_hold_the_robot(tmp_path, paper):
 def test_unsafe_steps_are_refused_and_never_published(paper):
     problem, acts, scene, model, start, servo = paper
     ros = RosOptions(domain_id=DOMAIN, joint_state_timeout=HANG, start_timeout=HANG)
-    node = RosNode(ros, acts.names)
-    robot = RobotNode(ros, acts.names, scene, start)
+    node = RosNode(ros, acts)
+    robot = RobotNode(ros, acts.names, scene, start * si_scale(acts.units))
     try:
         robot.wait_matched(obstacles=False)
         tip = model.tip_position(model.robot.config(acts.actuation(start)))
@@ -313,6 +316,7 @@ def test_unsafe_steps_are_refused_and_never_published(paper):
             return RosDevice(node, acts, model, servo, 0.1, ver, lambda: sc, clock=clock, sleep=clock.sleep)
 
         blocked, fast = device(on_tip), device(free)
+        si = si_scale(acts.units)
         q0 = blocked.start_actuation()
         assert np.allclose(acts.command(q0), start)
         fast.start_actuation()
@@ -329,7 +333,7 @@ def test_unsafe_steps_are_refused_and_never_published(paper):
         assert robot.wait_received(3)
         assert blocked.refused_steps == fast.refused_steps == 1 and node.published == 3
         for _, offs, P, V in robot.received:  # the two refusals' holds and the sentinel, nothing else
-            assert len(offs) == 1 and np.array_equal(P[0], start) and np.all(V == 0.0)
+            assert len(offs) == 1 and np.allclose(P[0], start * si, rtol=1e-12, atol=0) and np.all(V == 0.0)
         assert len(robot.received) == 3
     finally:
         robot.close()
@@ -343,8 +347,8 @@ def test_hostile_messages_are_counted_and_ignored(paper):
     ros = RosOptions(domain_id=DOMAIN)
     clock = VirtualClock()
     feed = ObstacleFeed(max_age=1.0, expected=("upper", "lower"), clock=clock)
-    node = RosNode(ros, acts.names, feed)
-    robot = RobotNode(ros, acts.names, scene, start)
+    node = RosNode(ros, acts, feed)
+    robot = RobotNode(ros, acts.names, scene, start * si_scale(acts.units))
     try:
         robot.wait_matched(obstacles=False)
         assert node.wait_joint_state(0.0, HANG) is not None
@@ -360,7 +364,8 @@ def test_hostile_messages_are_counted_and_ignored(paper):
             m.header.stamp = _stamp(1.0 + k)
             robot.js.publish(m)
         good = acts.command(acts.actuation(start)) + 0.001
-        m = JointState(name=names[::-1], position=[float(v) for v in good[::-1]])  # any order of names
+        si = si_scale(acts.units)  # on the wire: rad and m
+        m = JointState(name=names[::-1], position=[float(v) for v in (good * si)[::-1]])  # any order of names
         m.header.stamp = _stamp(10.0)
         robot.js.publish(m)
         assert node.wait_joint_state(10.0, HANG) is not None
@@ -396,7 +401,7 @@ def test_hostile_messages_are_counted_and_ignored(paper):
 def test_close_leaves_no_threads_or_processes(paper):
     _, acts, *_ = paper
     before = set(threading.enumerate())
-    node = RosNode(RosOptions(domain_id=DOMAIN), acts.names)
+    node = RosNode(RosOptions(domain_id=DOMAIN), acts)
     assert node.alive
     node.close()
     node.close()  # idempotent

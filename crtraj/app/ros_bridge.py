@@ -94,7 +94,7 @@ def run_ros_bridge(
     feed = ObstacleFeed(ros.udp_feed_port, max_age=ros.max_age, expected=ids, clock=clock or time.monotonic)
     with contextlib.ExitStack() as stack:
         stack.callback(feed.close)
-        node = stack.enter_context(RosNode(ros, acts.names, feed))
+        node = stack.enter_context(RosNode(ros, acts, feed))
         print(
             f"ros-bridge: domain {ros.domain_id} ({ros.discovery} discovery); joint states on {ros.joint_state_topic}, "
             f"obstacles ({', '.join(ids)}) on {ros.obstacle_topic} and udp://127.0.0.1:{feed.address[1]}; "

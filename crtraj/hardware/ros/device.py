@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from crtraj.control.ports import DeviceError
-from crtraj.hardware.ros.messages import scene_markers, trajectory
+from crtraj.hardware.ros.messages import scene_markers
 
 # backbone points shown in RViz
 VIEW_POINTS = 41
@@ -135,7 +135,7 @@ class RosDevice:
             self.refusal = self.refusal or why
             self.hold(f"step at t={t:.2f} s refused before sending: {why}")
             raise DeviceError(f"ros: step refused before sending: {why}")
-        self.node.publish_trajectory(trajectory(self.actuators.names, self._origin + t, self.offsets, values, vel))
+        self.node.publish_trajectory(self._origin + t, self.offsets, values, vel)
         self._last, self._vel = values[-1], vel[-1]
         self._qc = np.asarray(commands[-1], dtype=float)
         self.moves += 1
@@ -164,9 +164,7 @@ class RosDevice:
             return
         now = self.clock()
         zero = np.zeros(self.actuators.n)
-        self.node.publish_trajectory(
-            trajectory(self.actuators.names, now, np.array([self.dt]), self._last[None], zero[None])
-        )
+        self.node.publish_trajectory(now, np.array([self.dt]), self._last[None], zero[None])
         self._vel = zero
         self._qc = self.actuators.actuation(self._last)
         self.holds += 1

@@ -31,6 +31,11 @@ class RejectedError(Exception):
         self.kind = kind
 
 
+def si_scale(units: tuple[str, ...]) -> np.ndarray:
+    """ROS value per crtraj value of each actuator: 1 for rad, 1e-3 for mm (ROS joints are in rad and m)."""
+    return np.array([1e-3 if u == "mm" else 1.0 for u in units])
+
+
 def stamp_seconds(stamp: Any) -> float:
     """builtin_interfaces/Time as s; `RejectedError` when out of range."""
     s = float(stamp.sec) + 1e-9 * float(stamp.nanosec)

@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from crtraj.core.errors import InputError
-from crtraj.hardware.ros.messages import RejectedError, joint_state_values, marker_obstacles
+from crtraj.hardware.ros.messages import RejectedError, joint_state_values, marker_obstacles, si_scale, trajectory
 from crtraj.hardware.ros.options import RosOptions
 
 MAX_EVENTS = 1000  # rejected messages kept (the counts stay exact beyond it)
@@ -41,13 +41,16 @@ def ros_environment(options: RosOptions) -> dict[str, str]:
 
 
 class RosNode:
-    """The bridge's node. names: the actuator names (joint names); feed: the `ObstacleFeed` that live
-    SPHERE markers go to (None: markers are not subscribed). Raises `InputError` (one line) when
+    """The bridge's node. actuators: the robot's `crtraj.hardware.actuators.Actuators` (their names are
+    the joint names); feed: the `ObstacleFeed` that live SPHERE markers go to (None: markers are not
+    subscribed). Joint values on the wire are in SI units as ROS expects (rad for the servos, m for
+    the base stage); this class converts to and from crtraj's (rad, mm). Raises `InputError` (one line) when
     rclpy or the message packages are missing or the context cannot start."""
 
-    def __init__(self, options: RosOptions, names: tuple[str, ...], feed: Any = None, name: str = "crtraj") -> None:
+    def __init__(self, options: RosOptions, actuators: Any, feed: Any = None, name: str = "crtraj") -> None:
         self.options = options
-        self.names = tuple(names)
+        self.names = tuple(actuators.names)
+        self.si = si_scale(actuators.units)
         self.feed = feed
         ros_environment(options)
         try:
@@ -70,8 +73,9 @@ class RosNode:
         self._state: tuple[np.ndarray, float] | None = None
         self._stop = threading.Event()
         self._ctx = rclpy.Context()
-        rclpy.init(context=self._ctx, domain_id=options.domain_id, signal_handler_options=SignalHandlerOptions.NO)
         try:
+            # Ctrl-C stays a KeyboardInterrupt of the main thread: the loop holds the robot on it
+            rclpy.init(context=self._ctx, domain_id=options.domain_id, signal_handler_options=SignalHandlerOptions.NO)
             self.node = rclpy.create_node(name, context=self._ctx)
             rel = ReliabilityPolicy.RELIABLE if options.reliability == "reliable" else ReliabilityPolicy.BEST_EFFORT
             qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=options.depth, reliability=rel)
@@ -133,6 +137,7 @@ class RosNode:
     def _on_joint_state(self, msg: Any) -> None:
         try:
             values, stamp = joint_state_values(msg, self.names)
+            values = values / self.si
         except RejectedError as exc:
             self._reject(exc.kind, str(exc))
             return
@@ -181,8 +186,10 @@ class RosNode:
             return st[0].copy(), st[1]
 
     # ------------------------------------------------------------- output
-    def publish_trajectory(self, msg: Any) -> None:
-        self._traj.publish(msg)
+    def publish_trajectory(self, stamp: float, offsets: np.ndarray, values: np.ndarray, velocities: np.ndarray) -> None:
+        """Publish a JointTrajectory starting at `stamp` (s): points at `offsets` (s after it) with actuator
+        values (N, n) rad / mm and velocities rad/s, mm/s (sent in SI units)."""
+        self._traj.publish(trajectory(self.names, stamp, offsets, values * self.si, velocities * self.si))
         self.published += 1
 
     def publish_markers(self, msg: Any) -> None:
