@@ -22,6 +22,8 @@ from crtraj.app.replan import loop_from_problem
 from crtraj.app.ros_bridge import RosBridgeRequest, run_ros_bridge
 from crtraj.control.horizon import ReplanOptions
 from crtraj.control.ports import DeviceError
+from crtraj.core.errors import InputError
+from crtraj.core.fields import Table
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.ros.device import RosDevice
 from crtraj.hardware.ros.messages import si_scale
@@ -408,3 +410,35 @@ def test_close_leaves_no_threads_or_processes(paper):
     assert not node.alive and not node._ctx.ok()
     assert set(threading.enumerate()) <= before
     assert _children() == []
+
+
+def test_ros_section_is_checked_in_one_line(tmp_path):
+    base = _problem(tmp_path).read_text()
+    assert Problem.load(_problem(tmp_path)).options(RosOptions, "ros").domain_id == DOMAIN
+    for bad, field in (
+        ('trajectory_topic = "/a b"', "ros.trajectory_topic"),
+        ("depth = 0", "ros.depth"),
+        ('discovery = "everywhere"', "ros.discovery"),
+        ("points_per_step = 101", "ros.points_per_step"),
+        ("colour = 1", "ros.colour"),
+    ):
+        p = tmp_path / "bad.toml"
+        p.write_text(base + bad + "\n")
+        with pytest.raises(InputError, match=field.replace(".", r"\.")) as exc:
+            Problem.load(p).options(RosOptions, "ros")
+        assert "\n" not in str(exc.value)
+    assert RosOptions().domain_id is None
+    assert RosOptions.from_table(Table(RosOptions().to_dict(), "ros")) == RosOptions()
+
+
+def test_no_robot_on_the_graph_is_one_line(tmp_path, capsys, paper):
+    from crtraj.cli import main
+
+    p = _problem(tmp_path)
+    p.write_text(p.read_text().replace(f"start_timeout = {HANG}", "start_timeout = 0.5"))
+    before = set(threading.enumerate())
+    assert main(["ros-bridge", str(p), "--out", str(tmp_path / "run"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "ros.joint_state_topic: no sensor_msgs/JointState" in err[0]
+    assert not (tmp_path / "run").exists()  # nothing written
+    assert set(threading.enumerate()) <= before  # the node and the feed were closed

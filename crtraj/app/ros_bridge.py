@@ -96,8 +96,9 @@ def run_ros_bridge(
         stack.callback(feed.close)
         node = stack.enter_context(RosNode(ros, acts, feed))
         print(
-            f"ros-bridge: domain {ros.domain_id} ({ros.discovery} discovery); joint states on {ros.joint_state_topic}, "
-            f"obstacles ({', '.join(ids)}) on {ros.obstacle_topic} and udp://127.0.0.1:{feed.address[1]}; "
+            f"ros-bridge: domain {node.domain_id} ({ros.discovery} discovery); joint states on "
+            f"{ros.joint_state_topic}, obstacles ({', '.join(ids)}) on {ros.obstacle_topic} and "
+            f"udp://127.0.0.1:{feed.address[1]}; "
             f"publishing {ros.trajectory_topic} and {ros.markers_topic}",
             flush=True,
         )

@@ -124,6 +124,11 @@ class RosNode:
         self.close()
 
     @property
+    def domain_id(self) -> int:
+        """The ROS domain the node joined (``ros.domain_id``, else ROS_DOMAIN_ID, else 0)."""
+        return int(self._ctx.get_domain_id())
+
+    @property
     def alive(self) -> bool:
         return self._thread.is_alive()
 

@@ -16,14 +16,15 @@ class RosOptions(Options):
     """The ``[ros]`` section (units s, Hz).
 
     trajectory_topic: where each verified step is published (trajectory_msgs/JointTrajectory,
-    actuator names as joint names, rad for servos and mm for the stage). joint_state_topic: the
-    robot's measured actuator positions (sensor_msgs/JointState, same names and units).
+    actuator names as joint names, rad for the servos and m for the base stage). joint_state_topic:
+    the robot's measured actuator positions (sensor_msgs/JointState, same names and units).
     obstacle_topic: live obstacles (visualization_msgs/MarkerArray; SPHERE markers, ``ns`` = the
     scene's obstacle name, position and scale in m). markers_topic: what the bridge shows in RViz
     (backbone and obstacles, MarkerArray, m). frame_id: the frame of every marker sent and
     accepted. reliability and depth: the QoS of every topic (history keep-last `depth`).
-    domain_id: the ROS domain; discovery: "localhost" keeps discovery on this machine (the
-    default, as every crtraj server binds 127.0.0.1), "subnet" lets other machines in.
+    domain_id: the ROS domain (default: the environment's ROS_DOMAIN_ID, else 0). discovery:
+    "localhost" keeps discovery on this machine (the default, as every crtraj server binds
+    127.0.0.1), "subnet" lets other machines in.
     points_per_step: trajectory points per replan step (each checked before it is sent).
     joint_state_timeout: s the bridge waits for a joint state at least as new as the step it
     measures before it gives up on the robot. start_timeout: s to wait for the first joint state
@@ -41,7 +42,7 @@ class RosOptions(Options):
     frame_id: str = option("world", max_len=200)
     reliability: str = option("reliable", choices=("reliable", "best_effort"))
     depth: int = option(10, ge=1, le=1000)
-    domain_id: int = option(0, ge=0, le=232)
+    domain_id: int | None = option(None, ge=0, le=232)
     discovery: str = option("localhost", choices=("localhost", "subnet"))
     points_per_step: int = option(5, ge=1, le=100)
     joint_state_timeout: float = option(1.0, gt=0.0, le=60.0)
