@@ -169,9 +169,10 @@ class RosNode:
             return
         for r in refused:
             self._reject(r.kind, str(r))
-        if states:
-            # the UDP feed's own gate checks them again and keeps the tracks (one code path)
-            self.feed.ingest(json.dumps(states, allow_nan=True).encode("utf-8"), self.feed.clock())
+        for state in states:
+            # one message per sphere (a whole array could exceed the feed's datagram limit): the UDP
+            # feed's own gate checks it again and keeps the tracks (one code path)
+            self.feed.ingest(json.dumps(state, allow_nan=True).encode("utf-8"), self.feed.clock())
 
     def joint_state(self) -> tuple[np.ndarray, float] | None:
         """(actuator values, stamp s) of the newest accepted joint state, or None."""
