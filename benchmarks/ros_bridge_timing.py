@@ -34,7 +34,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 from crtraj.app.replan import loop_from_problem
 from crtraj.app.ros_bridge import RosBridgeRequest, run_ros_bridge
 from crtraj.hardware.actuators import Actuators
-from crtraj.hardware.ros.messages import trajectory
+from crtraj.hardware.ros.messages import si_scale
 from crtraj.hardware.ros.node import RosNode, ros_environment
 from crtraj.hardware.ros.options import RosOptions
 from crtraj.io.problem import Problem
@@ -54,10 +54,10 @@ def _secs(stamp) -> float:
 
 
 class Robot:
-    """Plays each trajectory in real time (linear between its points) and publishes JointState at 100 Hz
-    and the scene's spheres at 50 Hz (scene time 0 until the first trajectory, then s since its start,
-    so the loop's t = 0 is the scene's); echo=True answers every
-    trajectory at once with a JointState instead (the round-trip test)."""
+    """Plays each trajectory in real time (linear between its points; values in ROS units, rad and m) and
+    publishes JointState at 100 Hz and the scene's spheres at 50 Hz (scene time 0 until the first
+    trajectory arrives, then s since); echo=True answers every trajectory at once with a JointState
+    instead (the round-trip test)."""
 
     def __init__(self, ros: RosOptions, names, start, scene=None, echo: bool = False) -> None:
         ros_environment(ros)
@@ -65,7 +65,7 @@ class Robot:
         self.position = np.asarray(start, dtype=float)
         self.plan: tuple[float, np.ndarray, np.ndarray, np.ndarray] | None = None
         self.late: list[float] = []  # s from each trajectory's start stamp to its arrival
-        self.t0: float | None = None  # the first trajectory's start stamp (the loop's t = 0)
+        self.t0: float | None = None  # when the first trajectory arrived
         self.lock = threading.Lock()
         self.ctx = rclpy.Context()
         rclpy.init(context=self.ctx, domain_id=ros.domain_id, signal_handler_options=SignalHandlerOptions.NO)
@@ -86,7 +86,7 @@ class Robot:
         now = time.time()
         start = _secs(msg.header.stamp)
         self.late.append(now - start)
-        self.t0 = start if self.t0 is None else self.t0
+        self.t0 = now if self.t0 is None else self.t0  # the spheres start breathing (continuously) from here
         if self.echo:
             self._publish(self.position, now)
             return
@@ -143,8 +143,8 @@ def _stats(name: str, a, unit: str = "ms", scale: float = 1e3) -> None:
 
 def round_trips(acts: Actuators, start: np.ndarray, n: int) -> None:
     ros = RosOptions(domain_id=DOMAIN)
-    node = RosNode(ros, acts.names)
-    robot = Robot(ros, acts.names, start, echo=True)
+    node = RosNode(ros, acts)
+    robot = Robot(ros, acts.names, start * si_scale(acts.units), echo=True)
     try:
         for _ in range(2000):
             if robot.js.get_subscription_count() and node.matched()[0]:
@@ -155,7 +155,7 @@ def round_trips(acts: Actuators, start: np.ndarray, n: int) -> None:
         rtt = []
         for k in range(n + 20):
             t = time.time()
-            node.publish_trajectory(trajectory(acts.names, t, offs, P, np.zeros_like(P)))
+            node.publish_trajectory(t, offs, P, np.zeros_like(P))
             if node.wait_joint_state(t, 5.0) is None:
                 raise RuntimeError(f"round trip {k}: no answer within 5 s")
             if k >= 20:  # warm-up
@@ -166,19 +166,19 @@ def round_trips(acts: Actuators, start: np.ndarray, n: int) -> None:
         node.close()
 
 
-def closed_loop(problem_path: Path, acts: Actuators, start: np.ndarray, scene) -> None:
+def closed_loop(problem_path: Path, acts: Actuators, start: np.ndarray, scene, lead: float) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         text = problem_path.read_text().replace(
             'robot = "robots/cdsr2.toml"', f'robot = "{ROOT / "problems/robots/cdsr2.toml"}"'
         )
         p = Path(tmp) / "paper_dynamic_ros.toml"
-        p.write_text(text + f"\n[ros]\ndomain_id = {DOMAIN}\n")
+        p.write_text(text + f"\n[ros]\ndomain_id = {DOMAIN}\nlead = {lead}\n")
         ros = Problem.load(p).options(RosOptions, "ros")
         robots = []
         t = time.perf_counter()
         code = run_ros_bridge(
             RosBridgeRequest(p, out=Path(tmp) / "run", html=False, quiet=True),
-            ready=lambda node, feed: robots.append(Robot(ros, acts.names, start, scene)),
+            ready=lambda node, feed: robots.append(Robot(ros, acts.names, start * si_scale(acts.units), scene)),
         )
         wall = time.perf_counter() - t
         for r in robots:
@@ -190,6 +190,10 @@ def closed_loop(problem_path: Path, acts: Actuators, start: np.ndarray, scene) -
             f"{s['collisions']}, min clearance {s['min_clearance_mm']} mm, late steps {s['late_steps']}, "
             f"wall {wall:.1f} s"
         )
+        print(
+            f"  device: {res.data['stream']['refused_steps']} refused ({res.data['stream']['refusal'][:200]}), "
+            f"{res.data['stream']['resyncs']} resyncs"
+        )
         _stats("step iteration (NLP, checks, publish)", [w["iteration_time"] for w in res.data["waypoints"][1:]])
         _stats("trajectory arrival after its step's start", robots[0].late)
 
@@ -197,6 +201,7 @@ def closed_loop(problem_path: Path, acts: Actuators, start: np.ndarray, scene) -
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--round-trips", type=int, default=500)
+    ap.add_argument("--lead", type=float, default=0.2, help="[ros] lead, s (default 0.2)")
     args = ap.parse_args()
     print(
         f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, {platform.node()}, {os.cpu_count()} cores, "
@@ -208,7 +213,7 @@ def main() -> None:
     acts = Actuators.from_robot(problem.robot)
     start = acts.command(loop.tracker.initial_command(loop.x_start))
     round_trips(acts, start, args.round_trips)
-    closed_loop(path, acts, start, loop.scene)
+    closed_loop(path, acts, start, loop.scene, args.lead)
 
 
 if __name__ == "__main__":

@@ -314,30 +314,40 @@ def test_unsafe_steps_are_refused_and_never_published(paper):
         free = scene.with_obstacles(())
         clock = VirtualClock()
 
-        def device(sc):
+        def device(sc, lead=0.0):
             ver = FrameVerifier(problem.robot, acts, sc, 0.1 / ros.points_per_step, model=model)
-            return RosDevice(node, acts, model, servo, 0.1, ver, lambda: sc, clock=clock, sleep=clock.sleep)
+            return RosDevice(node, acts, model, servo, 0.1, ver, lambda: sc, clock=clock, sleep=clock.sleep, lead=lead)
 
-        blocked, fast = device(on_tip), device(free)
+        blocked, fast, late, resync = device(on_tip), device(free), device(free, 0.1), device(free, 1.0)
         si = si_scale(acts.units)
         q0 = blocked.start_actuation()
         assert np.allclose(acts.command(q0), start)
-        fast.start_actuation()
+        for d in (fast, late, resync):
+            d.start_actuation()
         still = np.repeat(q0[None], 5, axis=0)
+        # 1. the body would come closer than D_sf to an obstacle
         with pytest.raises(DeviceError, match="body closer than the safety distance"):
             blocked.move(0.0, q0, still, 0.02)
+        # 2. too fast for the servos
         jump = q0.copy()
         jump[0] += 5.0  # mm of cable in one step, within the position limits: beyond the servo's speed limit
         if np.any(acts.position_violation(acts.command(jump)) > 0):
             jump[0] -= 10.0
         with pytest.raises(DeviceError, match=r"velocity|acceleration"):
             fast.move(0.0, q0, np.repeat(jump[None], 5, axis=0), 0.02)
-        fast.hold("sentinel")  # published after the refusals on the same topic: arrives after anything they sent
-        assert robot.wait_received(3)
-        assert blocked.refused_steps == fast.refused_steps == 1 and node.published == 3
-        for _, offs, P, V in robot.received:  # the two refusals' holds and the sentinel, nothing else
+        # 3. computed later after its start time than the obstacles were predicted ahead
+        clock.sleep(0.5)
+        with pytest.raises(DeviceError, match=r"computed 0\.500 s after its start time, more than ros\.lead"):
+            late.move(0.0, q0, still, 0.02)
+        # a step 0.05 s late with a lead of 1 s is sent, starting now (not in the past)
+        resync.move(0.45, q0, still, 0.02)
+        assert robot.wait_received(4)
+        assert blocked.refused_steps == fast.refused_steps == late.refused_steps == 1 and resync.resyncs == 1
+        assert node.published == 4
+        for _, offs, P, V in robot.received[:3]:  # the three refusals' holds, at rest where the robot is
             assert len(offs) == 1 and np.allclose(P[0], start * si, rtol=1e-12, atol=0) and np.all(V == 0.0)
-        assert len(robot.received) == 3
+        t0, offs, P, _ = robot.received[3]  # the last one published: nothing of the refused steps came before it
+        assert len(robot.received) == 4 and len(offs) == ros.points_per_step and t0 == pytest.approx(0.5, abs=1e-9)
     finally:
         robot.close()
         node.close()

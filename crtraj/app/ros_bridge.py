@@ -106,7 +106,7 @@ def run_ros_bridge(
             ready(node, feed)
         _await_robot(node, feed, ros)
         try:
-            loop = loop_from_problem(problem, seed=seed, feed=feed, lead=0.0)
+            loop = loop_from_problem(problem, seed=seed, feed=feed, lead=ros.lead)
         except UnsolvableTaskError as exc:
             print(f"{exc.status}: {exc}; no run, nothing written to {out}")
             print(f"crtraj: ros-bridge failed: {exc.status}: {exc}", file=sys.stderr)
@@ -114,7 +114,9 @@ def run_ros_bridge(
         dt = loop.options.dt
         verifier = FrameVerifier(problem.robot, acts, loop.scene, dt / ros.points_per_step, model=loop.model)
         kw: dict[str, Any] = {} if clock is None else {"clock": clock, "sleep": sleep or time.sleep}
-        device = RosDevice(node, acts, loop.model, loop.servo, dt, verifier, lambda: loop.scene_now, **kw)
+        device = RosDevice(
+            node, acts, loop.model, loop.servo, dt, verifier, lambda: loop.scene_now, lead=ros.lead, **kw
+        )
         stage = stack.enter_context(StagedDir(out, RUN_FILES))
         run = loop.run(device=device, clock=clock, sleep=sleep)
         ok = run.is_success() and not device.problem()

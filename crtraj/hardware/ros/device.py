@@ -33,7 +33,11 @@ class RosDevice:
     reason. A hold publishes one point at the last commanded position, at rest, one step ahead.
 
     Time: the bridge's `clock` (s; the ROS clock by default, a virtual one in tests) stamps what is
-    sent; loop time t is clock time origin + t. The measurement at loop time t is the first joint
+    sent; loop time t is clock time origin + t. A step computed after its start time starts when it
+    is sent (the origin moves to now: `resyncs`), and is refused when that is more than `lead` s
+    late: the live obstacles are predicted `lead` s ahead of each step's start (`FeedObstacles`'
+    lead), and their keep-out spheres only grow with time, so a step that runs up to `lead` s
+    earlier than it was checked for is covered by the check. The measurement at loop time t is the first joint
     state stamped at or after it (`RosNode.wait_joint_state`, waiting at most
     ``ros.joint_state_timeout`` s); none in time means the robot is lost and the run ends. `sleep`
     paces the loop (a virtual clock's sleep advances it).
@@ -51,6 +55,7 @@ class RosDevice:
         *,
         clock: Callable[[], float] = time.time,
         sleep: Callable[[float], None] = time.sleep,
+        lead: float = 0.0,
     ) -> None:
         self.node = node
         self.options = node.options
@@ -61,6 +66,7 @@ class RosDevice:
         self.verifier = verifier
         self.scene_now = scene_now
         self.clock, self.sleep = clock, sleep
+        self.lead = float(lead)
         self.n_points = self.options.points_per_step
         self.offsets = self.dt * np.arange(1, self.n_points + 1) / self.n_points
         self._origin = clock()
@@ -72,6 +78,7 @@ class RosDevice:
         self.moves = self.holds = self.refused_steps = self.measured_steps = 0
         self.refusal = ""
         self.late = 0
+        self.resyncs = 0  # steps sent after their start time: the clock mapping moved to now
 
     # --------------------------------------------------------------- state
     def start_actuation(self) -> np.ndarray:
@@ -125,21 +132,36 @@ class RosDevice:
         """Verify and publish the step starting at loop time t; `DeviceError` (why) when it was not sent."""
         if self.estopped or self._problem:
             raise DeviceError(self._problem or "e-stopped")
+        late = self.clock() - (self._origin + t)
+        if late > self.lead:
+            # the obstacles were predicted `lead` s ahead of the step's start: later than that, the check
+            # no longer covers when the step would run
+            why = f"computed {late:.3f} s after its start time, more than ros.lead = {self.lead:g} s"
+            self._refuse(t, why)
+        if late > 0.0:
+            # computed after its start time: it starts now (a controller drops a trajectory that ended in the
+            # past); the obstacle keep-outs only grow with time, so running up to `lead` s early is covered
+            self._origin += late
+            self.resyncs += 1
         values, vel = self.samples(q0, commands)
         here = self.actuators.command(np.asarray(q0, dtype=float))
         stamps = t + self.offsets
         v = self.verifier.with_scene(self.scene_now())
         why = v.failure(stamps, values, start=here, start_velocity=self._vel)
         if why is not None:
-            self.refused_steps += 1
-            self.refusal = self.refusal or why
-            self.hold(f"step at t={t:.2f} s refused before sending: {why}")
-            raise DeviceError(f"ros: step refused before sending: {why}")
+            self._refuse(t, why)
         self.node.publish_trajectory(self._origin + t, self.offsets, values, vel)
         self._last, self._vel = values[-1], vel[-1]
         self._qc = np.asarray(commands[-1], dtype=float)
         self.moves += 1
         self._show(t + self.dt, values[-1])
+
+    def _refuse(self, t: float, why: str) -> None:
+        """Count and record a refused step, hold, and raise the `DeviceError` the loop expects."""
+        self.refused_steps += 1
+        self.refusal = self.refusal or why
+        self.hold(f"step at t={t:.2f} s refused before sending: {why}")
+        raise DeviceError(f"ros: step refused before sending: {why}")
 
     def _show(self, t: float, values: np.ndarray) -> None:
         """Publish the body at actuator `values` and the obstacles at loop time t for RViz."""
@@ -187,6 +209,7 @@ class RosDevice:
             "refused_steps": self.refused_steps,
             "refusal": self.refusal,
             "late_steps": self.late,
+            "resyncs": self.resyncs,
             "problem": self._problem,
             "ros": self.node.describe(),
         }

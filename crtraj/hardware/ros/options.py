@@ -25,7 +25,9 @@ class RosOptions(Options):
     domain_id: the ROS domain (default: the environment's ROS_DOMAIN_ID, else 0). discovery:
     "localhost" keeps discovery on this machine (the default, as every crtraj server binds
     127.0.0.1), "subnet" lets other machines in.
-    points_per_step: trajectory points per replan step (each checked before it is sent).
+    points_per_step: trajectory points per replan step (each checked before it is sent). lead: s
+    the live obstacles are predicted ahead of each step's start, the longest a step may take to
+    compute and send (a later step is refused and the robot held).
     joint_state_timeout: s the bridge waits for a joint state at least as new as the step it
     measures before it gives up on the robot. start_timeout: s to wait for the first joint state
     and obstacles. max_age: s after which an obstacle's state is stale (the loop then holds).
@@ -45,6 +47,7 @@ class RosOptions(Options):
     domain_id: int | None = option(None, ge=0, le=232)
     discovery: str = option("localhost", choices=("localhost", "subnet"))
     points_per_step: int = option(5, ge=1, le=100)
+    lead: float = option(0.2, ge=0.0, le=10.0)
     joint_state_timeout: float = option(1.0, gt=0.0, le=60.0)
     start_timeout: float = option(10.0, gt=0.0, le=600.0)
     max_age: float = option(0.2, gt=0.0, le=60.0)
