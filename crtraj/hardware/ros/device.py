@@ -33,13 +33,14 @@ class RosDevice:
     reason. A hold publishes one point at the last commanded position, at rest, one step ahead.
 
     Time: the bridge's `clock` (s; the ROS clock by default, a virtual one in tests) stamps what is
-    sent; loop time t is clock time origin + t. A step computed after its start time starts when it
-    is sent (the origin moves to now: `resyncs`), and is refused when that is more than `lead` s
-    late: the live obstacles are predicted `lead` s ahead of each step's start (`FeedObstacles`'
-    lead), and their keep-out spheres only grow with time, so a step that runs up to `lead` s
-    earlier than it was checked for is covered by the check. The measurement at loop time t is the first joint
-    state stamped at or after it (`RosNode.wait_joint_state`, waiting at most
-    ``ros.joint_state_timeout`` s); none in time means the robot is lost and the run ends. `sleep`
+    sent; loop time t is clock time origin + t. A step whose start time has passed when it is
+    measured or sent starts then (the origin moves to now: `resyncs`); one whose computation took
+    more than `lead` s is refused: the live obstacles are predicted `lead` s ahead of each step's
+    start (`FeedObstacles`' lead) and their keep-out spheres only grow with time, so the check
+    covers a step that runs up to `lead` s after the snapshot it was checked against. The
+    measurement at loop time t is the first joint state stamped at or after it
+    (`RosNode.wait_joint_state`, waiting at most ``ros.joint_state_timeout`` s); none in time
+    means the robot is lost and the run ends. `sleep`
     paces the loop (a virtual clock's sleep advances it).
     """
 
@@ -101,6 +102,7 @@ class RosDevice:
 
     def measure(self, t: float, q: np.ndarray, qc: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
         """The first joint state stamped at or after loop time t (actuation, mm), the command in force."""
+        self._catch_up(t)  # a step that starts late is measured, computed and checked from now
         st = self.node.wait_joint_state(self._origin + t - 1e-6, self.options.joint_state_timeout)
         if st is None:
             self._problem = (
@@ -136,13 +138,11 @@ class RosDevice:
         if late > self.lead:
             # the obstacles were predicted `lead` s ahead of the step's start: later than that, the check
             # no longer covers when the step would run
-            why = f"computed {late:.3f} s after its start time, more than ros.lead = {self.lead:g} s"
-            self._refuse(t, why)
-        if late > 0.0:
-            # computed after its start time: it starts now (a controller drops a trajectory that ended in the
-            # past); the obstacle keep-outs only grow with time, so running up to `lead` s early is covered
-            self._origin += late
-            self.resyncs += 1
+            self._catch_up(t)
+            self._refuse(t, f"computed {late:.3f} s after its start time, more than ros.lead = {self.lead:g} s")
+        # computed after its start time: it starts now (a controller drops a trajectory that ended in the past);
+        # the obstacle keep-outs only grow with time, so running up to `lead` s later than checked is covered
+        self._catch_up(t)
         values, vel = self.samples(q0, commands)
         here = self.actuators.command(np.asarray(q0, dtype=float))
         stamps = t + self.offsets
@@ -155,6 +155,13 @@ class RosDevice:
         self._qc = np.asarray(commands[-1], dtype=float)
         self.moves += 1
         self._show(t + self.dt, values[-1])
+
+    def _catch_up(self, t: float) -> None:
+        """When loop time t is already past on the clock, make it now (the origin moves; `resyncs`)."""
+        late = self.clock() - (self._origin + t)
+        if late > 0.0:
+            self._origin += late
+            self.resyncs += 1
 
     def _refuse(self, t: float, why: str) -> None:
         """Count and record a refused step, hold, and raise the `DeviceError` the loop expects."""
