@@ -68,6 +68,16 @@ def _await_robot(node: RosNode, feed: ObstacleFeed, ros: RosOptions) -> None:
         raise InputError(f"ros.obstacle_topic: no obstacle states within {ros.start_timeout:g} s ({st.reason})")
 
 
+def _plan_first(loop: Any, node: RosNode, acts: Actuators) -> None:
+    """Plan the first reference path from where the robot is, among the obstacles as they are now, before
+    the loop's clock starts: in the first step the planner would take longer than ``ros.lead``. (Every
+    step still checks the reference against the obstacles of its time and replans when it is blocked.)"""
+    st = node.joint_state()
+    scene, _ = loop.obstacles.at(0.0)
+    if st is not None and scene is not None:
+        loop.initial_reference = loop.reference_source(loop.servo.config(acts.actuation(st[0])), 0.0, scene)
+
+
 def run_ros_bridge(
     req: RosBridgeRequest,
     *,
@@ -117,6 +127,7 @@ def run_ros_bridge(
         device = RosDevice(
             node, acts, loop.model, loop.servo, dt, verifier, lambda: loop.scene_now, lead=ros.lead, **kw
         )
+        _plan_first(loop, node, acts)
         stage = stack.enter_context(StagedDir(out, RUN_FILES))
         run = loop.run(device=device, clock=clock, sleep=sleep)
         ok = run.is_success() and not device.problem()
