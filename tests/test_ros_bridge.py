@@ -22,6 +22,7 @@ from crtraj.app.replan import loop_from_problem
 from crtraj.app.ros_bridge import RosBridgeRequest, run_ros_bridge
 from crtraj.control.horizon import ReplanOptions
 from crtraj.control.ports import DeviceError
+from crtraj.control.tracking import TrackingController, TrackingOptions
 from crtraj.core.errors import InputError
 from crtraj.core.fields import Table
 from crtraj.hardware.actuators import Actuators
@@ -404,6 +405,11 @@ def test_hostile_messages_are_counted_and_ignored(paper):
         st = feed.latest(0.4)
         c, r = scene.states(0.4)
         assert not st.stale and np.allclose(st.centers, c[[1, 0]]) and np.allclose(st.radii, r[[1, 0]])
+        # the UDP JSON feed goes into the same tracks
+        ObstacleFeed.send(feed.address, [{"id": "upper", "center": [1.0, 2.0, 3.0], "radius": 40.0, "timestamp": 0.5}])
+        assert feed.wait_for(4, HANG)
+        st = feed.latest(0.5)
+        assert np.allclose(st.centers[st.ids.index("upper")], [1.0, 2.0, 3.0]) and feed.accepted == 3
         assert node.alive
     finally:
         robot.close()
@@ -453,3 +459,31 @@ def test_no_robot_on_the_graph_is_one_line(tmp_path, capsys, paper):
     assert len(err) == 1 and "ros.joint_state_topic: no sensor_msgs/JointState" in err[0]
     assert not (tmp_path / "run").exists()  # nothing written
     assert set(threading.enumerate()) <= before  # the node and the feed were closed
+
+
+def test_trajectory_points_follow_the_servo_model_exactly():
+    """Positions and velocities sent for a step: the first-order servo's response, checked against a fine
+    numerical integration of dq/dt = (c - q) / tau (no ROS needed)."""
+    from types import SimpleNamespace
+
+    problem = Problem.load(PAPER)
+    acts = Actuators.from_robot(problem.robot)
+    servo = TrackingController(Model(problem.robot), TrackingOptions()).servo
+    dev = RosDevice(SimpleNamespace(options=RosOptions(points_per_step=7)), acts, None, servo, 0.1, None, None)
+    rng = np.random.default_rng(3)
+    q0 = acts.actuation(np.zeros(acts.n)) + rng.normal(0, 0.5, acts.n)
+    C = q0 + rng.normal(0, 1.0, (5, acts.n))  # one command per 0.02 s period
+    values, vel = dev.samples(q0, C)
+    # independent: explicit Euler with 20000 sub-steps per period
+    h, n = 0.02, 20000
+    q, Q = q0.copy(), [q0.copy()]
+    for c in C:
+        for _ in range(n):
+            q = q + (h / n) * (c - q) / servo.tau
+            Q.append(q.copy())
+    Q = np.array(Q)
+    for k, off in enumerate(dev.offsets):
+        i = round(float(off) / (h / n))
+        assert np.allclose(acts.actuation(values[k]), Q[i], atol=1e-3)
+        left = (Q[i] - Q[i - 1]) / (h / n)  # the velocity at the point, from the period that ends there
+        assert np.allclose(vel[k] / acts.scale, left, rtol=1e-3, atol=1e-3)
