@@ -85,6 +85,8 @@ class RobotNode:
         self.js = self.node.create_publisher(JointState, ros.joint_state_topic, qos)
         self.mk = self.node.create_publisher(MarkerArray, ros.obstacle_topic, qos)
         self.node.create_subscription(JointTrajectory, ros.trajectory_topic, self._on_trajectory, qos)
+        self.view: list = []  # the bridge's RViz markers
+        self.node.create_subscription(MarkerArray, ros.markers_topic, self._on_view, qos)
         self.executor = SingleThreadedExecutor(context=self.ctx)
         self.executor.add_node(self.node)
         self.thread = threading.Thread(target=self.executor.spin, daemon=True)
@@ -128,6 +130,23 @@ class RobotNode:
         with self.arrived:
             self.received.append((start, offs, P, V))
             self.arrived.notify_all()
+
+    def _on_view(self, msg) -> None:
+        with self.arrived:
+            self.view.append(msg)
+            self.arrived.notify_all()
+
+    def wait_view(self, stamp: float) -> bool:
+        """Block until an RViz MarkerArray stamped `stamp` (s) arrived (a hang bound only)."""
+
+        def seen() -> bool:
+            return any(
+                abs(m.markers[0].header.stamp.sec + 1e-9 * m.markers[0].header.stamp.nanosec - stamp) < 1e-6
+                for m in self.view
+            )
+
+        with self.arrived:
+            return self.arrived.wait_for(seen, HANG)
 
     def wait_received(self, n: int) -> bool:
         with self.arrived:
@@ -246,8 +265,22 @@ def test_round_trip_reaches_the_goal_without_collision(tmp_path, paper):
     assert np.all(d > 0.0), f"collision: min distance {d.min():.3f} mm at t={T[np.argmin(d)]:.2f} s"
     assert d.min() > scene.safety_distance - 1.0
     print(f"executed: {len(moves)} steps, min body-obstacle distance {d.min():.2f} mm over {len(T)} samples")
-    assert len(threading.enumerate()) >= 1
     assert not [t for t in threading.enumerate() if t.name == "crtraj-ros-spin"]
+    # RViz: the last step's body (a line strip as thick as the body, m) ends at the tip; one sphere per obstacle
+    t_end = moves[-1][0] + moves[-1][1][-1]
+    assert robot.wait_view(t_end)
+    view = next(
+        m
+        for m in robot.view
+        if abs(m.markers[0].header.stamp.sec + 1e-9 * m.markers[0].header.stamp.nanosec - t_end) < 1e-6
+    )
+    body = [m for m in view.markers if m.type == 4]
+    spheres_ = [m for m in view.markers if m.type == 2]
+    assert len(body) == 1 and len(spheres_) == len(scene.obstacles)
+    assert all(m.header.frame_id == ros.frame_id for m in view.markers)
+    end = body[0].points[-1]
+    assert np.allclose(1000.0 * np.array([end.x, end.y, end.z]), tip, atol=1e-6)
+    assert body[0].scale.x == pytest.approx(2e-3 * model.robot.body_radius)
 
 
 def _children() -> list[int]:
