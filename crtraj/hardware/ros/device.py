@@ -40,8 +40,9 @@ class RosDevice:
     covers a step that runs up to `lead` s after the snapshot it was checked against. The
     measurement at loop time t is the first joint state stamped at or after it
     (`RosNode.wait_joint_state`, waiting at most ``ros.joint_state_timeout`` s); none in time
-    means the robot is lost and the run ends. `sleep`
-    paces the loop (a virtual clock's sleep advances it).
+    means the robot is lost and the run ends. `sleep` paces the loop (a virtual clock's sleep
+    advances it). Lockstep: in real time the robot pauses for one computation between steps, while
+    the limits are checked for steps that join without a pause (see the README, "ROS 2").
     """
 
     def __init__(
