@@ -54,7 +54,8 @@ def _secs(stamp) -> float:
 
 
 class Robot:
-    """Plays each trajectory in real time (linear between its points; values in ROS units, rad and m) and
+    """Plays the trajectories in real time (each from its start stamp, linear between points; values in ROS
+    units, rad and m) and
     publishes JointState at 100 Hz and the scene's spheres at 50 Hz (scene time 0 until the first
     trajectory arrives, then s since); echo=True answers every trajectory at once with a JointState
     instead (the round-trip test)."""
@@ -63,7 +64,7 @@ class Robot:
         ros_environment(ros)
         self.ros, self.names, self.scene, self.echo = ros, list(names), scene, echo
         self.position = np.asarray(start, dtype=float)
-        self.plan: tuple[float, np.ndarray, np.ndarray, np.ndarray] | None = None
+        self.knots_t, self.knots_v = np.zeros(1), self.position[None].copy()  # the motion it executes (wall s)
         self.late: list[float] = []  # s from each trajectory's start stamp to its arrival
         self.t0: float | None = None  # when the first trajectory arrived
         self.lock = threading.Lock()
@@ -92,16 +93,14 @@ class Robot:
             return
         offs = np.array([_secs(p.time_from_start) for p in msg.points])
         P = np.array([list(p.positions) for p in msg.points])
-        with self.lock:
-            here = self._at(now)
-            self.plan = (start, np.concatenate([[0.0], offs]), np.vstack([here, P]), P[-1])
+        with self.lock:  # a controller follows the current trajectory until the new one's start, then it
+            at = self._at(start)
+            keep = self.knots_t < start
+            self.knots_t = np.concatenate([self.knots_t[keep], [start], start + offs])
+            self.knots_v = np.concatenate([self.knots_v[keep], at[None], P])
 
     def _at(self, now: float) -> np.ndarray:
-        if self.plan is None:
-            return self.position
-        start, offs, P, _ = self.plan
-        tau = now - start
-        return np.array([np.interp(tau, offs, P[:, i]) for i in range(P.shape[1])])
+        return np.array([np.interp(now, self.knots_t, self.knots_v[:, i]) for i in range(self.knots_v.shape[1])])
 
     def _publish(self, values, now: float) -> None:
         msg = JointState(name=self.names, position=[float(v) for v in values])
@@ -192,7 +191,7 @@ def closed_loop(problem_path: Path, acts: Actuators, start: np.ndarray, scene, l
         )
         print(
             f"  device: {res.data['stream']['refused_steps']} refused ({res.data['stream']['refusal'][:200]}), "
-            f"{res.data['stream']['resyncs']} resyncs"
+            f"{res.data['stream']['restarts']} restarts"
         )
         _stats("step iteration (NLP, checks, publish)", [w["iteration_time"] for w in res.data["waypoints"][1:]])
         _stats("trajectory arrival after its step's start", robots[0].late)

@@ -58,12 +58,15 @@ def _problem(tmp_path: Path, duration: float = 60.0) -> Path:
 
 
 class RobotNode:
-    """The robot side: executes each trajectory exactly and echoes its last point as a JointState stamped
-    at that point's time; publishes the scene's true obstacles (stamped at each trajectory's start)
-    until `stop_markers` s. Records every trajectory received: (start s, offsets s, positions, velocities),
-    in ROS units (rad, m); `start` is in them too."""
+    """The robot side, on the bridge's (virtual) clock: executes each trajectory exactly from its start stamp
+    (a new one replaces the rest of the current one from its start, linear between points, as a trajectory
+    controller does), and on each arrival publishes its joint state at that moment (in ROS units, rad and
+    m) and the scene's true obstacles then, until `stop_markers` s. Records every trajectory received:
+    (start s, offsets s, positions, velocities); `knots` (times, values) is the motion it executed."""
 
-    def __init__(self, ros: RosOptions, names, scene: Scene, start: np.ndarray, stop_markers: float = math.inf):
+    def __init__(
+        self, ros: RosOptions, names, scene: Scene, start: np.ndarray, clock=None, stop_markers: float = math.inf
+    ):
         rclpy = require_module("rclpy", "pip install -e '.[ros]'")
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.qos import QoSProfile
@@ -73,7 +76,8 @@ class RobotNode:
         from visualization_msgs.msg import MarkerArray
 
         self.ros, self.names, self.scene, self.stop_markers = ros, tuple(names), scene, stop_markers
-        self.position = np.asarray(start, dtype=float)
+        self.clock = clock if clock is not None else (lambda: 0.0)
+        self.knots_t, self.knots_v = [0.0], [np.asarray(start, dtype=float)]
         self.received: list[tuple[float, np.ndarray, np.ndarray, np.ndarray]] = []
         self.arrived = threading.Condition()
         self._last_marker = -math.inf
@@ -92,6 +96,15 @@ class RobotNode:
         self.thread = threading.Thread(target=self.executor.spin, daemon=True)
         self.thread.start()
 
+    def position_at(self, t) -> np.ndarray:
+        """The executed position(s) at time(s) t (s)."""
+        T, V = np.array(self.knots_t), np.array(self.knots_v)
+        return np.stack([np.interp(t, T, V[:, i]) for i in range(V.shape[1])], axis=-1)
+
+    @property
+    def position(self) -> np.ndarray:
+        return self.knots_v[-1]
+
     def wait_matched(self, obstacles: bool = True) -> None:
         """Block until the bridge subscribes (a hang bound only), then publish the state at time 0."""
         done = threading.Event()
@@ -108,7 +121,7 @@ class RobotNode:
     def publish_state(self, t: float) -> None:
         from sensor_msgs.msg import JointState
 
-        msg = JointState(name=list(self.names), position=[float(v) for v in self.position])
+        msg = JointState(name=list(self.names), position=[float(v) for v in self.position_at(t)])
         msg.header.stamp = _stamp(t)
         self.js.publish(msg)
 
@@ -124,12 +137,16 @@ class RobotNode:
         P = np.array([list(p.positions) for p in msg.points])
         V = np.array([list(p.velocities) for p in msg.points])
         assert list(msg.joint_names) == list(self.names)
-        self.publish_obstacles(start)
-        self.position = P[-1]
-        self.publish_state(start + offs[-1])
+        now = self.clock()
         with self.arrived:
+            at_start = self.position_at(start)
+            keep = [k for k, t in enumerate(self.knots_t) if t < start]
+            self.knots_t = [self.knots_t[k] for k in keep] + [start, *(start + offs)]
+            self.knots_v = [self.knots_v[k] for k in keep] + [at_start, *P]
             self.received.append((start, offs, P, V))
             self.arrived.notify_all()
+        self.publish_obstacles(now)
+        self.publish_state(now)
 
     def _on_view(self, msg) -> None:
         with self.arrived:
@@ -205,17 +222,20 @@ def _body_distance(model: Model, scene: Scene, acts: Actuators, T: np.ndarray, v
     return d.min(axis=(1, 2))
 
 
-def _executed(robot: RobotNode, start: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Every commanded point from `start`, 8 linear sub-samples between consecutive points: (times, values),
-    in ROS units as received."""
-    T = [robot.received[0][0]]
-    V = [start]
-    for start, offs, P, _ in robot.received:
-        for t1, p1 in zip(start + offs, P, strict=True):
-            s = np.linspace(0, 1, 9)[1:]
-            T.extend(T[-1] + s * (t1 - T[-1]))
-            V.extend(V[-1] + s[:, None] * (p1 - V[-1]))
-    return np.array(T), np.array(V)
+def _executed(robot: RobotNode) -> tuple[np.ndarray, np.ndarray]:
+    """The robot's executed motion, 8 linear sub-samples between its knots: (times, values) in ROS units."""
+    T = np.array(robot.knots_t)
+    s = np.linspace(0.0, 1.0, 9)[:-1]
+    dense = np.append((T[:-1, None] + s * np.diff(T)[:, None]).ravel(), T[-1])
+    return dense, robot.position_at(dense)
+
+
+def _in_step(robots, nodes, clock: VirtualClock, dt: float) -> None:
+    """The bridge's sleep on virtual time: the robot takes each trajectory before the clock moves on (a
+    robot as fast as real time), so every run is the same whatever the machine's load."""
+    if robots and nodes:
+        assert robots[0].wait_received(nodes[0].published)
+    clock.sleep(dt)
 
 
 @pytest.mark.slow
@@ -224,17 +244,18 @@ def test_round_trip_reaches_the_goal_without_collision(tmp_path, paper):
     path = _problem(tmp_path)
     ros = Problem.load(path).options(RosOptions, "ros")
     clock = VirtualClock()
-    robots = []
+    robots, nodes = [], []
 
     def ready(node, feed):
-        robots.append(RobotNode(ros, acts.names, scene, start * si_scale(acts.units)))
+        nodes.append(node)
+        robots.append(RobotNode(ros, acts.names, scene, start * si_scale(acts.units), clock))
         robots[0].wait_matched()
 
     try:
         code = run_ros_bridge(
             RosBridgeRequest(path, out=tmp_path / "run", html=False, quiet=True),
             clock=clock,
-            sleep=clock.sleep,
+            sleep=lambda dt: _in_step(robots, nodes, clock, dt),
             ready=ready,
         )
     finally:
@@ -260,7 +281,7 @@ def test_round_trip_reaches_the_goal_without_collision(tmp_path, paper):
     goal = np.array([10.0, -120.0, 170.0])
     assert np.linalg.norm(tip - goal) <= 0.5 + 1e-6
     # ... and, densely checked against the true breathing spheres, never touches them
-    T, V = _executed(robot, start * si_scale(acts.units))
+    T, V = _executed(robot)
     d = _body_distance(model, scene, acts, T, V / si_scale(acts.units))
     assert np.all(d > 0.0), f"collision: min distance {d.min():.3f} mm at t={T[np.argmin(d)]:.2f} s"
     assert d.min() > scene.safety_distance - 1.0
@@ -303,17 +324,18 @@ def test_stale_markers_hold_the_robot(tmp_path, paper):
     ros = Problem.load(path).options(RosOptions, "ros")
     stop = 0.5  # the obstacles go silent here
     clock = VirtualClock()
-    robots = []
+    robots, nodes = [], []
 
     def ready(node, feed):
-        robots.append(RobotNode(ros, acts.names, scene, start * si_scale(acts.units), stop_markers=stop))
+        nodes.append(node)
+        robots.append(RobotNode(ros, acts.names, scene, start * si_scale(acts.units), clock, stop_markers=stop))
         robots[0].wait_matched()
 
     try:
         code = run_ros_bridge(
             RosBridgeRequest(path, out=tmp_path / "run", html=False, quiet=True),
             clock=clock,
-            sleep=clock.sleep,
+            sleep=lambda dt: _in_step(robots, nodes, clock, dt),
             ready=ready,
         )
     finally:
@@ -327,12 +349,14 @@ def test_stale_markers_hold_the_robot(tmp_path, paper):
     stale = t >= stop + ros.max_age + 0.1 + 1e-9  # a state measured before `stop` is too old from here on
     assert all(s == "stale" for s in np.array(status)[stale]) and stale.sum() >= 5
     assert all(s != "stale" for s in np.array(status)[t < stop + ros.max_age - 0.1])
-    # held: after the feed went stale every trajectory is one point at rest at the last commanded position
-    last = start * si_scale(acts.units)
-    for t0, offs, P, V in robot.received:
-        if t0 >= stop + ros.max_age + 0.1 + 1e-9:
-            assert len(offs) == 1 and np.all(V == 0.0) and np.allclose(P[0], last, rtol=1e-12, atol=0)
-        last = P[-1]
+    # held: from the first stale step on, nothing but holds: one point at rest at the last point sent
+    first = float(t[np.argmax(stale)]) + ros.lead  # when that step would have started (it is sent lead s ahead)
+    k = max(i for i, r in enumerate(robot.received) if len(r[1]) > 1)  # the last move
+    moves, holds = robot.received[: k + 1], robot.received[k + 1 :]
+    assert all(t0 < first - 1e-9 for t0, *_ in moves)
+    last = moves[-1][2][-1]
+    assert len(holds) >= stale.sum()
+    assert all(np.all(V == 0.0) and np.allclose(P[0], last, rtol=1e-12, atol=0) for _, _, P, V in holds)
     assert res.data["stream"]["holds"] >= stale.sum()
 
 
@@ -352,11 +376,11 @@ def test_unsafe_steps_are_refused_and_never_published(paper):
             ver = FrameVerifier(problem.robot, acts, sc, 0.1 / ros.points_per_step, model=model)
             return RosDevice(node, acts, model, servo, 0.1, ver, lambda: sc, clock=clock, sleep=clock.sleep, lead=lead)
 
-        blocked, fast, late, resync = device(on_tip), device(free), device(free, 0.1), device(free, 1.0)
+        blocked, fast, late, ahead = device(on_tip), device(free), device(free, 0.1), device(free, 1.0)
         si = si_scale(acts.units)
         q0 = blocked.start_actuation()
         assert np.allclose(acts.command(q0), start)
-        for d in (fast, late, resync):
+        for d in (fast, late, ahead):
             d.start_actuation()
         still = np.repeat(q0[None], 5, axis=0)
         # 1. the body would come closer than D_sf to an obstacle
@@ -369,19 +393,20 @@ def test_unsafe_steps_are_refused_and_never_published(paper):
             jump[0] -= 10.0
         with pytest.raises(DeviceError, match=r"velocity|acceleration"):
             fast.move(0.0, q0, np.repeat(jump[None], 5, axis=0), 0.02)
-        # 3. computed later after its start time than the obstacles were predicted ahead
+        # 3. not ready before its start time
         clock.sleep(0.5)
-        with pytest.raises(DeviceError, match=r"computed 0\.500 s after its start time, more than ros\.lead"):
+        with pytest.raises(DeviceError, match=r"ready 0\.500 s after its start time"):
             late.move(0.0, q0, still, 0.02)
-        # a step 0.05 s late with a lead of 1 s is sent, starting now (not in the past)
-        resync.move(0.45, q0, still, 0.02)
+        # a step is sent `lead` s ahead of its start
+        ahead.begin(0.0)
+        ahead.move(0.0, q0, still, 0.02)
         assert robot.wait_received(4)
-        assert blocked.refused_steps == fast.refused_steps == late.refused_steps == 1 and resync.resyncs == 1
+        assert blocked.refused_steps == fast.refused_steps == late.refused_steps == 1 and ahead.refused_steps == 0
         assert node.published == 4
         for _, offs, P, V in robot.received[:3]:  # the three refusals' holds, at rest where the robot is
             assert len(offs) == 1 and np.allclose(P[0], start * si, rtol=1e-12, atol=0) and np.all(V == 0.0)
         t0, offs, P, _ = robot.received[3]  # the last one published: nothing of the refused steps came before it
-        assert len(robot.received) == 4 and len(offs) == ros.points_per_step and t0 == pytest.approx(0.5, abs=1e-9)
+        assert len(robot.received) == 4 and len(offs) == ros.points_per_step and t0 == pytest.approx(1.5, abs=1e-9)
     finally:
         robot.close()
         node.close()

@@ -32,17 +32,17 @@ class RosDevice:
     fails is not sent: the device holds and the loop gets a `DeviceError` naming the time and the
     reason. A hold publishes one point at the last commanded position, at rest, one step ahead.
 
-    Time: the bridge's `clock` (s; the ROS clock by default, a virtual one in tests) stamps what is
-    sent; loop time t is clock time origin + t. A step whose start time has passed when it is
-    measured or sent starts then (the origin moves to now: `resyncs`); one whose computation took
-    more than `lead` s is refused: the live obstacles are predicted `lead` s ahead of each step's
-    start (`FeedObstacles`' lead) and their keep-out spheres only grow with time, so the check
-    covers a step that runs up to `lead` s after the snapshot it was checked against. The
-    measurement at loop time t is the first joint state stamped at or after it
-    (`RosNode.wait_joint_state`, waiting at most ``ros.joint_state_timeout`` s); none in time
-    means the robot is lost and the run ends. `sleep` paces the loop (a virtual clock's sleep
-    advances it). Lockstep: in real time the robot pauses for one computation between steps, while
-    the limits are checked for steps that join without a pause (see the README, "ROS 2").
+    Time (pipelined, like `crtraj.hardware.link.DeviceLink`): the bridge's `clock` (s; the ROS clock
+    by default, a virtual one in tests) stamps what is sent; loop time t is clock time origin + t, and
+    step t is computed and sent `lead` s before it starts, so steps join without a pause (a controller
+    follows the current trajectory until the next one's start stamp). The live obstacles are
+    predicted `lead` s ahead accordingly (`FeedObstacles`' lead). The commanded motion is one
+    timeline: the points sent, then rest at the last one. The measurement at loop time t is its
+    position at t, corrected by the newest joint state's deviation from the timeline at its stamp,
+    decayed with the servo's lag; a joint state older than ``ros.joint_state_timeout`` s means the
+    robot is lost and the run ends. A step not ready before its start time is refused (the robot
+    holds); once at rest, a late loop moves the origin on (`restarts`). `sleep` paces the loop (a
+    virtual clock's sleep advances it).
     """
 
     def __init__(
@@ -72,6 +72,9 @@ class RosDevice:
         self.n_points = self.options.points_per_step
         self.offsets = self.dt * np.arange(1, self.n_points + 1) / self.n_points
         self._origin = clock()
+        self._hist_t = np.zeros(1)  # the commanded timeline: loop times (s) and actuator values, then rest
+        self._hist_v = np.zeros((1, actuators.n))
+        self._end = 0.0  # loop time the motion sent so far ends (s)
         self._last: np.ndarray | None = None  # last commanded actuator values and their velocity
         self._vel = np.zeros(actuators.n)
         self._qc: np.ndarray | None = None  # the command in force (actuation, mm)
@@ -80,7 +83,7 @@ class RosDevice:
         self.moves = self.holds = self.refused_steps = self.measured_steps = 0
         self.refusal = ""
         self.late = 0
-        self.resyncs = 0  # steps sent after their start time: the clock mapping moved to now
+        self.restarts = 0  # times a late loop at rest moved the origin on
 
     # --------------------------------------------------------------- state
     def start_actuation(self) -> np.ndarray:
@@ -92,28 +95,43 @@ class RosDevice:
                 f"ros: no joint state on {self.options.joint_state_topic} within {self.options.start_timeout:g} s"
             )
         self._last, self._vel = st[0], np.zeros(self.actuators.n)
+        self._hist_t, self._hist_v, self._end = np.zeros(1), st[0][None].copy(), 0.0
         return self.actuators.actuation(st[0])
 
     def begin(self, t_origin: float) -> None:
-        """Loop time 0 is now on the bridge's clock (`t_origin`, a perf_counter time, is not its clock)."""
-        self._origin = self.clock()
+        """Loop time 0 is `lead` s from now on the bridge's clock (`t_origin`, a perf_counter time, is not
+        its clock): the first step is sent now."""
+        self._origin = self.clock() + self.lead
 
     def problem(self) -> str:
         return self._problem
 
     def measure(self, t: float, q: np.ndarray, qc: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
-        """The first joint state stamped at or after loop time t (actuation, mm), the command in force."""
-        self._catch_up(t)  # a step that starts late is measured, computed and checked from now
-        st = self.node.wait_joint_state(self._origin + t - 1e-6, self.options.joint_state_timeout)
+        """The actuation (mm) at loop time t and the command in force: the commanded timeline at t,
+        corrected by the newest joint state's deviation from it at the state's stamp."""
+        newest = self.clock() - self.options.joint_state_timeout
+        st = self.node.joint_state()
+        if st is None or st[1] < newest:
+            st = self.node.wait_joint_state(newest, self.options.joint_state_timeout)
         if st is None:
             self._problem = (
-                f"ros: no joint state on {self.options.joint_state_topic} for t={t:.2f} s within "
+                f"ros: no joint state on {self.options.joint_state_topic} newer than "
                 f"{self.options.joint_state_timeout:g} s (robot lost)"
             )
             return q, qc, False
         self.measured_steps += 1
-        q_meas = self.actuators.actuation(st[0])
-        return q_meas, (q_meas if self._qc is None else self._qc), True
+        here = self.actuators.actuation(self._commanded(t))
+        dev = self.actuators.actuation(st[0]) - self.actuators.actuation(self._commanded(st[1] - self._origin))
+        q_now = here + self.servo.decay(max(t - (st[1] - self._origin), 0.0)) * dev
+        return q_now, (qc if self._joins(t) else q_now), True
+
+    def _commanded(self, tau: float) -> np.ndarray:
+        """The commanded actuator values at loop time tau (rest at the ends of the timeline)."""
+        return np.array([np.interp(tau, self._hist_t, self._hist_v[:, i]) for i in range(self.actuators.n)])
+
+    def _joins(self, t: float) -> bool:
+        """Step t continues the motion sent so far without a pause (else it starts from rest)."""
+        return abs(t - self._end) <= 1e-9 and bool(np.any(self._vel != 0.0))
 
     # -------------------------------------------------------------- motion
     def samples(self, q0: np.ndarray, commands: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -136,33 +154,24 @@ class RosDevice:
         if self.estopped or self._problem:
             raise DeviceError(self._problem or "e-stopped")
         late = self.clock() - (self._origin + t)
-        if late > self.lead:
-            # the obstacles were predicted `lead` s ahead of the step's start: later than that, the check
-            # no longer covers when the step would run
-            self._catch_up(t)
-            self._refuse(t, f"computed {late:.3f} s after its start time, more than ros.lead = {self.lead:g} s")
-        # computed after its start time: it starts now (a controller drops a trajectory that ended in the past);
-        # the obstacle keep-outs only grow with time, so running up to `lead` s later than checked is covered
-        self._catch_up(t)
+        if late > 0.0:
+            self._refuse(t, f"ready {late:.3f} s after its start time (it is due ros.lead = {self.lead:g} s before)")
         values, vel = self.samples(q0, commands)
-        here = self.actuators.command(np.asarray(q0, dtype=float))
+        # the robot is at the end of what was sent: moving on from it, or at rest there
+        v0 = self._vel if self._joins(t) else np.zeros(self.actuators.n)
         stamps = t + self.offsets
-        v = self.verifier.with_scene(self.scene_now())
-        why = v.failure(stamps, values, start=here, start_velocity=self._vel)
+        why = self.verifier.with_scene(self.scene_now()).failure(stamps, values, start=self._last, start_velocity=v0)
         if why is not None:
             self._refuse(t, why)
         self.node.publish_trajectory(self._origin + t, self.offsets, values, vel)
-        self._last, self._vel = values[-1], vel[-1]
+        keep = self._hist_t >= t - 2.0
+        keep[-1] = True  # the rest point the new step starts from
+        self._hist_t = np.concatenate([self._hist_t[keep], [t], stamps])
+        self._hist_v = np.concatenate([self._hist_v[keep], self._last[None], values])
+        self._last, self._vel, self._end = values[-1], vel[-1], t + self.dt
         self._qc = np.asarray(commands[-1], dtype=float)
         self.moves += 1
         self._show(t + self.dt, values[-1])
-
-    def _catch_up(self, t: float) -> None:
-        """When loop time t is already past on the clock, make it now (the origin moves; `resyncs`)."""
-        late = self.clock() - (self._origin + t)
-        if late > 0.0:
-            self._origin += late
-            self.resyncs += 1
 
     def _refuse(self, t: float, why: str) -> None:
         """Count and record a refused step, hold, and raise the `DeviceError` the loop expects."""
@@ -180,10 +189,15 @@ class RosDevice:
         self.node.publish_markers(msg)
 
     def pace(self, t: float) -> bool:
-        """Sleep until loop time t on the bridge's clock; True when more than one step late."""
-        lag = self.clock() - self._origin - t
+        """Sleep until step t is due to be sent, `lead` s before it starts; True when more than one step
+        late. A late loop with the robot at rest moves the origin on instead (step t then starts `lead` s
+        from now)."""
+        lag = self.clock() - (self._origin + t - self.lead)
         if lag < 0.0:
             self.sleep(-lag)
+        elif lag > 0.0 and t > self._end + 1e-9:
+            self._origin += lag
+            self.restarts += 1
         late = lag > self.dt
         self.late += late
         return late
@@ -192,9 +206,10 @@ class RosDevice:
         """Publish the last commanded position at rest, one step ahead (the robot stays there)."""
         if self._last is None:
             return
-        now = self.clock()
+        # after what was sent (it was checked and is under way): the robot stops at its last point
+        stamp = max(self.clock(), self._origin + self._end)
         zero = np.zeros(self.actuators.n)
-        self.node.publish_trajectory(now, np.array([self.dt]), self._last[None], zero[None])
+        self.node.publish_trajectory(stamp, np.array([self.dt]), self._last[None], zero[None])
         self._vel = zero
         self._qc = self.actuators.actuation(self._last)
         self.holds += 1
@@ -217,7 +232,7 @@ class RosDevice:
             "refused_steps": self.refused_steps,
             "refusal": self.refusal,
             "late_steps": self.late,
-            "resyncs": self.resyncs,
+            "restarts": self.restarts,
             "problem": self._problem,
             "ros": self.node.describe(),
         }
