@@ -27,10 +27,11 @@ class RosDevice:
     first-order servo), sampled at `points_per_step` points with its exact velocities. Before
     anything is published, those points pass `verifier` (a `crtraj.hardware.verify.FrameVerifier`
     at the points' spacing) against the scene snapshot the loop checked the step with
-    (`scene_now`): actuator position, velocity and acceleration limits from where the robot
-    is, cable consistency, configuration limits, and the continuous body with D_sf. A step that
-    fails is not sent: the device holds and the loop gets a `DeviceError` naming the time and the
-    reason. A hold publishes one point at the last commanded position, at rest, one step ahead.
+    (`scene_now`): actuator position, velocity and acceleration limits from the end of what was sent
+    (at its velocity, or at rest after a hold), cable consistency, configuration limits, and the
+    continuous body with D_sf. A step that fails is not sent: the device holds and the loop gets a
+    `DeviceError` naming the time and the reason. A hold publishes one point at rest at the last
+    point sent, starting when what is under way ends (it was checked; braking is always allowed).
 
     Time (pipelined, like `crtraj.hardware.link.DeviceLink`): the bridge's `clock` (s; the ROS clock
     by default, a virtual one in tests) stamps what is sent; loop time t is clock time origin + t, and

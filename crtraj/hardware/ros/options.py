@@ -26,8 +26,8 @@ class RosOptions(Options):
     "localhost" keeps discovery on this machine (the default, as every crtraj server binds
     127.0.0.1), "subnet" lets other machines in.
     points_per_step: trajectory points per replan step (each checked before it is sent). lead: s
-    the live obstacles are predicted ahead of each step's start, the longest a step may take to
-    compute and send (a later step is refused and the robot held).
+    each step is sent before it starts (the live obstacles are predicted that far ahead); a step not
+    ready by its start is refused and the robot held.
     joint_state_timeout: s the bridge waits for a joint state at least as new as the step it
     measures before it gives up on the robot. start_timeout: s to wait for the first joint state
     and obstacles. max_age: s after which an obstacle's state is stale (the loop then holds).
