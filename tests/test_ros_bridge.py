@@ -545,3 +545,63 @@ def test_trajectory_points_follow_the_servo_model_exactly():
         assert np.allclose(acts.actuation(values[k]), Q[i], atol=1e-3)
         left = (Q[i] - Q[i - 1]) / (h / n)  # the velocity at the point, from the period that ends there
         assert np.allclose(vel[k] / acts.scale, left, rtol=1e-3, atol=1e-3)
+
+
+class _FakeNode:
+    """A node without ROS: records what would be published and serves a chosen joint state."""
+
+    def __init__(self, options: RosOptions) -> None:
+        self.options, self.sent, self.state = options, [], None
+
+    def joint_state(self):
+        return self.state
+
+    def wait_joint_state(self, newer_than: float, timeout: float):
+        return self.state if self.state is not None and self.state[1] >= newer_than else None
+
+    def publish_trajectory(self, stamp, offsets, values, velocities) -> None:
+        self.sent.append((stamp, np.array(offsets), np.array(values)))
+
+    def publish_markers(self, msg) -> None:
+        pass
+
+
+def test_measurement_is_the_commanded_motion_corrected_by_the_joint_state():
+    """Sent lead s ahead, measured by prediction: the commanded position at t plus the joint state's deviation
+    from what was commanded at its stamp, decayed with the servo lag (closed form, no ROS needed)."""
+    problem = Problem.load(PAPER)
+    acts = Actuators.from_robot(problem.robot)
+    model = Model(problem.robot)
+    servo = TrackingController(model, TrackingOptions()).servo
+    scene = Scene.from_table(problem.section("scene")).with_obstacles(())
+    ros = RosOptions(points_per_step=5, joint_state_timeout=1.0)
+    node, clock = _FakeNode(ros), VirtualClock()
+    ver = FrameVerifier(problem.robot, acts, scene, 0.02, model=model)
+    dev = RosDevice(node, acts, model, servo, 0.1, ver, lambda: scene, clock=clock, sleep=clock.sleep, lead=0.2)
+    x0 = np.array([0.3, 0.0, 0.0, 0.0, 0.0])
+    q0 = problem.robot.cable_matrix()[1] + problem.robot.cable_matrix()[0] @ x0
+    node.state = (acts.command(q0), 0.0)
+    assert np.allclose(dev.start_actuation(), q0)
+    dev.begin(0.0)  # loop time 0 is clock time 0.2: the first step is sent now, 0.2 s ahead
+    C = np.repeat((q0 + 0.05)[None], 5, axis=0)
+    dev.move(0.0, q0, C, 0.02)
+    assert node.sent[-1][0] == pytest.approx(0.2) and dev.pace(0.1) is False and clock() == pytest.approx(0.1)
+    # the robot, measured at clock 0.25 (loop time 0.05), is 0.01 mm ahead on every actuator of what was sent
+    values = node.sent[-1][2]
+    knots_t, knots_v = [0.0, *(0.02 * np.arange(1, 6))], np.vstack([acts.command(q0), values])
+    ref = np.array([np.interp(0.05, knots_t, knots_v[:, i]) for i in range(acts.n)])  # sent, at loop time 0.05
+    off = np.full(acts.n, 0.01)
+    node.state = (acts.command(acts.actuation(ref) + off), 0.25)
+    q, qc, ok = dev.measure(0.1, q0, C[-1])
+    expect = acts.actuation(values[-1]) + np.exp(-(0.1 - 0.05) / servo.tau) * off
+    assert ok and np.allclose(q, expect, atol=1e-9) and np.array_equal(qc, C[-1])
+    # a step not ready before its start is refused, and the robot is told to stop after what is under way
+    clock.advance_to(0.31)
+    with pytest.raises(DeviceError, match=r"ready 0\.010 s after its start time"):
+        dev.move(0.1, q, C, 0.02)
+    stamp, offs, vals = node.sent[-1]
+    assert stamp == pytest.approx(0.31) and len(offs) == 1 and np.array_equal(vals[0], values[-1])
+    # no joint state newer than joint_state_timeout: the robot is lost
+    clock.advance_to(5.0)
+    dev.measure(0.2, q, qc)
+    assert "robot lost" in dev.problem()

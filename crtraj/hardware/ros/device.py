@@ -197,7 +197,10 @@ class RosDevice:
         if lag < 0.0:
             self.sleep(-lag)
         elif lag > 0.0 and t > self._end + 1e-9:
+            # at rest: move loop time on, keeping the commanded timeline where it was in clock time
             self._origin += lag
+            self._hist_t = self._hist_t - lag
+            self._end -= lag
             self.restarts += 1
         late = lag > self.dt
         self.late += late
