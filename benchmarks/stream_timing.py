@@ -1,13 +1,26 @@
-"""Streamer timing against the simulated device on 127.0.0.1: send-interval jitter, round trip, tick cost.
+"""Streamer timing against the simulated device on 127.0.0.1: send-interval jitter, round trip, tick cost;
+with --dynamixel, against simulated Dynamixel servos on a pseudo-terminal through the official SDK.
 
 Run: python benchmarks/stream_timing.py [--seconds 5] [--rate 100]
+     python benchmarks/stream_timing.py --dynamixel [--seconds 5] [--rates 100,200,300]
 Prints medians / p90 / max from one run. Timings depend on the machine's load.
+
+The Dynamixel figures: the 7 servos of problems/robots/cdsr2.toml at 1 Mbaud, `crtraj sim-dynamixel` in its own
+process (as real servos are their own hardware). A pty has no baud rate: the simulator delays every reply by the
+wire time of the request and the replies at 1 Mbaud (10 bits per byte, one transfer at a time), so the rate is
+the one a real bus allows (with the servos' return delay time set to 0, and a 1 ms USB latency timer). Per tick
+the streamer does one Group Sync Write (49 bytes) and one Group Sync Read of 9 bytes per servo (21 + 7 x 20
+bytes): 210 bytes, 2.1 ms of wire time, so at most ~470 set-points/s on the wire alone.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
+import re
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -20,6 +33,7 @@ from crtraj.hardware.limits import LimitsGate
 from crtraj.hardware.protocol import MOVE, Frame
 from crtraj.hardware.sim_device import SimDevice
 from crtraj.hardware.stream import Streamer, StreamOptions
+from crtraj.hardware.transport import TransportError
 from crtraj.io.problem import load_robot
 from crtraj.world.scene import Scene
 
@@ -34,18 +48,97 @@ def _stats(name: str, a: np.ndarray, unit: str = "ms", scale: float = 1e3) -> No
     )
 
 
+def _record(robot, seconds: float) -> MotionRecord:
+    """A synthetic motion among no obstacles, as a successful plan of this robot would be."""
+    x0, x1 = robot.straight(0.0), np.array([0.3, -0.2, 0.1, 0.4, -10.0])
+    s = np.linspace(0, 1, 21)
+    X = x0 + (x1 - x0) * (0.5 - 0.5 * np.cos(np.pi * s))[:, None]
+    return MotionRecord("", "plan", "success", True, True, 0, 0, robot, Scene(), seconds * s, robot.cables(X))
+
+
+def _cpu_seconds(pid: int) -> float:
+    """User + system CPU seconds of process `pid` (Linux /proc)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def dynamixel(args: argparse.Namespace, robot, acts: Actuators) -> None:
+    """Achieved set-point rate, sync-read round trip and send jitter over the Dynamixel link, per rate."""
+    from crtraj.hardware.dynamixel import open_dynamixel  # the optional extra: only for this mode
+
+    sim = subprocess.Popen(
+        [sys.executable, "-m", "crtraj.cli", "sim-dynamixel", "--pty", "--duration", "600"],
+        stdout=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )
+    try:
+        line = sim.stdout.readline()
+        dev = re.search(r"/dev/pts/\d+", line).group(0)
+        print(line.strip())
+        print(
+            f"{'rate':>6} {'achieved':>9} {'late':>6} {'read rtt median':>16} {'p90':>7} {'max':>7} "
+            f"{'|interval-period| median':>25} {'p90':>7}"
+        )
+        cost: list[tuple[float, float]] = []
+        for rate in (float(r) for r in args.rates.split(",")):
+            motion = admit(_record(robot, args.seconds), acts, rate=rate)
+            with tempfile.TemporaryDirectory() as tmp:
+                log = Path(tmp) / "run.jsonl"
+                try:
+                    tr = open_dynamixel(f"dynamixel://{dev}", acts)
+                except TransportError as exc:  # a loaded machine: the simulator missed its replies
+                    print(f"{rate:6.0f}   no connection: {exc}")
+                    continue
+                cpu0, sim0 = time.process_time(), _cpu_seconds(sim.pid)
+                rep = Streamer(tr, acts, StreamOptions(rate=rate), log).run_path(motion, approach=True)
+                host_cpu, sim_cpu = time.process_time() - cpu0, _cpu_seconds(sim.pid) - sim0
+                tx = [json.loads(x) for x in log.read_text().splitlines()]
+            walls = np.array([r["wall"] for r in tx if r["type"] == "tx" and r.get("kind") == "move"])
+            if len(walls) < 2 or not tr.timings:
+                print(f"{rate:6.0f}   no stream: {rep.status}: {rep.message}")
+                continue
+            achieved = (len(walls) - 1) / (walls[-1] - walls[0])
+            reads = np.array([t[1] for t in tr.timings]) * 1e3
+            jit = np.abs(np.diff(walls) - 1.0 / rate) * 1e3
+            ticks = rep.frames
+            host, dev_cpu = host_cpu / ticks * 1e3, sim_cpu / ticks * 1e3
+            print(
+                f"{rate:6.0f} {achieved:8.1f}/s {rep.late_ticks:6d} {np.median(reads):13.2f} ms "
+                f"{np.percentile(reads, 90):7.2f} {reads.max():7.2f} {np.median(jit):22.3f} ms "
+                f"{np.percentile(jit, 90):7.3f}   ({rep.status}, {rep.moves} set-points, "
+                f"{tr.counts['timeouts']} timeouts; CPU per tick: host {host:.2f} ms, simulator {dev_cpu:.2f} ms)"
+            )
+            cost.append((host, dev_cpu))
+        if not cost:
+            return
+        host, dev_cpu = np.median(np.array(cost), axis=0)
+        wire = 210 * 10 / 1e6 * 1e3
+        print(
+            f"per tick: {wire:.2f} ms on the wire (modelled) + {host:.2f} ms host CPU + {dev_cpu:.2f} ms simulator "
+            f"CPU (medians over the rates): an unloaded 2-core machine can sustain about "
+            f"{1e3 / (wire + host + dev_cpu):.0f} set-points/s; real servos reply in hardware, so about "
+            f"{1e3 / (wire + host):.0f}/s"
+        )
+    finally:
+        sim.terminate()
+        sim.wait(10)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--seconds", type=float, default=5.0)
     ap.add_argument("--rate", type=float, default=100.0)
+    ap.add_argument("--dynamixel", action="store_true", help="time the Dynamixel link instead (needs the extra)")
+    ap.add_argument("--rates", default="100,200,300", help="with --dynamixel: stream rates to try, Hz")
     args = ap.parse_args()
     robot = load_robot(ROOT / "problems" / "robots" / "cdsr2.toml")
     acts = Actuators.from_robot(robot)
-    x0, x1 = robot.straight(0.0), np.array([0.3, -0.2, 0.1, 0.4, -10.0])
-    s = np.linspace(0, 1, 21)
-    X = x0 + (x1 - x0) * (0.5 - 0.5 * np.cos(np.pi * s))[:, None]
-    # a synthetic motion among no obstacles, admitted as a successful plan of this robot would be
-    record = MotionRecord("", "plan", "success", True, True, 0, 0, robot, Scene(), args.seconds * s, robot.cables(X))
+    print(time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), f"load average {os.getloadavg()[0]:.1f}")
+    if args.dynamixel:
+        dynamixel(args, robot, acts)
+        return
+    record = _record(robot, args.seconds)
     motion = admit(record, acts, rate=args.rate)  # verified at the rate it is streamed at
     path = motion.path
 

@@ -37,9 +37,11 @@ _USE_CASES = {
     "serve": "crtraj.app.view:serve",
     "stream": "crtraj.app.stream:stream_command",
     "sim-device": "crtraj.app.sim_device:sim_device_command",
+    "feed-replay": "crtraj.app.feed_replay:feed_replay_command",
+    "sim-dynamixel": "crtraj.app.sim_dynamixel:sim_dynamixel_command",
     "plan": "crtraj.app.plan:plan_command",
     "replan": "crtraj.app.replan:replan_command",
-    "bench": "crtraj.app.bench:run_table1",
+    "bench": "crtraj.app.bench:bench_command",
     "ros-bridge": "crtraj.app.ros_bridge:ros_bridge_command",
 }
 
@@ -101,7 +103,15 @@ def _add_stream(sub: argparse._SubParsersAction) -> None:
     dest.add_argument("--udp", metavar="HOST:PORT", help="device address (e.g. 127.0.0.1:9870 for crtraj sim-device)")
     dest.add_argument("--serial", metavar="DEV", help="serial port (e.g. /dev/ttyUSB0), COBS-framed frames")
     dest.add_argument("--dry-run", metavar="FILE", help="write the frames to FILE instead of a device (no waiting)")
-    p.add_argument("--baud", type=int, default=115200, help="serial baud rate (default 115200)")
+    dest.add_argument(
+        "--dynamixel",
+        metavar="DEV",
+        help="Dynamixel servos (Protocol 2.0) on this port, e.g. /dev/ttyUSB0 (ids in [robot.actuators]; needs "
+        "pip install 'crtraj[dynamixel]')",
+    )
+    p.add_argument(
+        "--baud", type=int, default=None, help="baud rate (default 115200 with --serial, 1000000 with --dynamixel)"
+    )
     p.add_argument("--rate", type=float, default=None, help="set-points per second (default 100)")
     p.add_argument("--watchdog", type=float, default=None, help="hold after this long without telemetry, s (0.1)")
     p.add_argument("--robot", help="robot TOML whose [robot.actuators] to use (default: the result's robot)")
@@ -144,6 +154,56 @@ def _add_sim_device(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of the fault generator")
     p.add_argument("--duration", type=float, default=None, help="stop after this many s (default: until Ctrl-C)")
     p.set_defaults(use_case="sim-device")
+
+
+# ---------------------------------------------------------------- feed-replay
+def _add_feed_replay(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "feed-replay",
+        help="send a problem's obstacle states over UDP, as a motion-capture bridge would",
+        description="Samples the problem's obstacles from their own time functions (timestamps are scene time "
+        "from the moment the replay starts) and sends them to a `crtraj replan --feed` listener on 127.0.0.1, "
+        "with measurement noise, latency, jitter and dropped messages. Runs for --duration or until Ctrl-C.",
+    )
+    p.add_argument("problem", help="problem TOML whose [scene] obstacles are replayed (their names are the ids)")
+    p.add_argument("--udp", metavar="127.0.0.1:PORT", required=True, help="the feed's address (crtraj replan --feed)")
+    p.add_argument("--rate", type=float, default=100.0, help="measurements per second and obstacle (100)")
+    p.add_argument("--noise", type=float, default=0.3, help="Gaussian noise per coordinate and radius, mm (0.3)")
+    p.add_argument("--latency", type=float, default=0.0, help="delay from measuring to sending, s (0)")
+    p.add_argument("--jitter", type=float, default=0.0, help="uniform extra delay per message, s (0)")
+    p.add_argument("--dropout", type=float, default=0.0, help="probability that a message is never sent (0)")
+    p.add_argument("--duration", type=float, default=120.0, help="s of scene time to replay (120)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the noise and dropout generator (0)")
+    p.set_defaults(use_case="feed-replay")
+
+
+# -------------------------------------------------------------- sim-dynamixel
+def _add_sim_dynamixel(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "sim-dynamixel",
+        help="run simulated Dynamixel servos (Protocol 2.0) on a pseudo-terminal and print its path",
+        description="Servos for testing crtraj stream --dynamixel without hardware: answers PING, READ, WRITE, "
+        "SYNC READ, SYNC WRITE and REBOOT on the X-series control table, moves each servo within its profile "
+        "with a first-order lag, and injects faults on request. Runs until Ctrl-C or --duration.",
+    )
+    p.add_argument("--pty", action="store_true", required=True, help="serve on a new pseudo-terminal (prints it)")
+    p.add_argument(
+        "--robot",
+        default=str(DEFAULT_ROBOT),
+        help="robot TOML whose [robot.actuators] ids and models are the servos (default: problems/robots/cdsr2.toml)",
+    )
+    p.add_argument("--baud", type=int, default=1_000_000, help="the servos' baud rate (default 1000000)")
+    p.add_argument("--tau", type=float, default=0.03, help="servo time constant, s (default 0.03)")
+    p.add_argument("--at", metavar="RESULT", help="start the servos at this result's first set-point")
+    p.add_argument("--no-wire-time", action="store_true", help="answer at once (default: as slow as a real wire)")
+    p.add_argument("--missing", type=int, action="append", metavar="ID", help="fault: this id never answers")
+    p.add_argument(
+        "--hardware-error", action="append", metavar="ID:NAME", help="fault: set a hardware error bit, e.g. 3:overload"
+    )
+    p.add_argument("--silent-after", type=int, metavar="N", help="fault: answer nothing after N packets (timeouts)")
+    p.add_argument("--corrupt-after", type=int, metavar="N", help="fault: wrong CRC on every reply after N packets")
+    p.add_argument("--duration", type=float, default=None, help="stop after this many s (default: until Ctrl-C)")
+    p.set_defaults(use_case="sim-dynamixel")
 
 
 # ----------------------------------------------------------------------- plan
@@ -212,8 +272,10 @@ def _add_replan(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--stream",
         metavar="udp://HOST:PORT",
-        help="drive a device ([robot.actuators] in the robot file, [stream] section). Without --feed: after the "
-        "simulation, stream the verified run (as crtraj stream does). With --feed: live, while the loop runs - "
+        help="drive a device ([robot.actuators] in the robot file, [stream] section): udp://HOST:PORT, "
+        "serial://DEV?baud=N or dynamixel:///dev/ttyUSB0?baud=N (Dynamixel servos, ids in the robot file). "
+        "Without --feed: after the simulation, stream the verified run (as crtraj stream does). "
+        "With --feed: live, while the loop runs - "
         "the run starts where the device is, each step's verified motion is streamed as it is chosen (one "
         "[stream] prebuffer, at least one replan step, ahead of the device; the feed is predicted that far "
         "ahead), the device's telemetry is the measured configuration, a held step or a stale feed holds the "
@@ -275,20 +337,33 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
         "validity checker and time budget; every success is re-verified densely. Writes DIR/table1.md "
         "(the paper's layout, with the paper's numbers), DIR/runs.csv (every run) and DIR/scenarios.json.",
     )
-    p.add_argument("table", choices=["table1"], help="which benchmark (table1: the paper's Table I)")
+    p.add_argument(
+        "table",
+        choices=["table1", "suite"],
+        help="which benchmark (table1: the paper's Table I; suite: the held-out dynamic suite, crtraj.bench.suite, "
+        "run in this process: --counts, --workers, --dask, --planner-config and --verify-margin are table1's)",
+    )
     p.add_argument(
         "--workers", type=int, default=None, help="worker processes (default: CPU count; 0 = run in this process)"
     )
-    p.add_argument("--scenarios", type=int, default=100, help="scenarios per obstacle count (default 100)")
+    p.add_argument(
+        "--scenarios", type=int, default=None, help="scenarios per obstacle count (default 100); suite: in all (20)"
+    )
     p.add_argument("--counts", default="1,3,5,7", help="obstacle counts, comma-separated (default 1,3,5,7)")
     p.add_argument(
         "--planners",
         default=None,
         help="comma-separated subset of rrt,rrtstar,cspace,ompl-rrtstar,ompl-rrtconnect (default: all)",
     )
-    p.add_argument("--time-limit", type=float, default=5.0, help="wall-time budget per run, s (default 5)")
+    p.add_argument("--time-limit", type=float, default=None, help="wall-time budget per planner run, s (default 5)")
+    p.add_argument(
+        "--replan-duration",
+        type=float,
+        default=30.0,
+        help="suite: simulated time within which the closed-loop replanner must arrive, s (default 30)",
+    )
     p.add_argument("--seed", type=int, default=0, help="seed of the scenarios and runs (default 0)")
-    p.add_argument("--out", default="out/table1", help="output folder (default: out/table1)")
+    p.add_argument("--out", default=None, help="output folder (default: out/table1, or out/suite)")
     p.add_argument(
         "--dask",
         metavar="ADDRESS",
@@ -313,6 +388,8 @@ _COMMANDS: tuple[Callable[[argparse._SubParsersAction], None], ...] = (
     _add_view,
     _add_stream,
     _add_sim_device,
+    _add_feed_replay,
+    _add_sim_dynamixel,
     _add_plan,
     _add_replan,
     _add_ros_bridge,

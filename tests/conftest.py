@@ -7,6 +7,7 @@ import importlib
 import os
 import shutil
 import signal
+import socket
 from pathlib import Path
 from types import ModuleType
 from typing import NoReturn
@@ -93,3 +94,10 @@ def default_sigint() -> None:
     disposition restored before exec, Python installs its KeyboardInterrupt handler as it does in a terminal.
     """
     signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+def free_udp_port() -> int:
+    """A UDP port on 127.0.0.1 that nothing is bound to right now."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]

@@ -151,6 +151,9 @@ def test_robot_keeps_the_raw_table_read_only(robot):
         "position_limits",
         "velocity_limit",
         "acceleration_limit",
+        "ticks_per_rev",
+        "model",
+        "servo",
         "z",
     }
     with pytest.raises(TypeError):

@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import json
-import socket
 import threading
 import time
 from pathlib import Path
 
 import numpy as np
+from conftest import free_udp_port
 from feed_clock import VirtualClock
 
 from crtraj.app.replan import loop_from_problem
@@ -64,12 +64,6 @@ settle_timeout = 4.0
     p = tmp_path / "live.toml"
     p.write_text(text)
     return p
-
-
-def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 class _Sender:
@@ -131,7 +125,7 @@ def _assert_frames_within_limits(lines: list[dict], acts, dt: float) -> None:
 
 
 def test_live_stream_reaches_the_goal_and_the_device_ends_there(tmp_path, robot, model, capsys):
-    port = _free_port()
+    port = free_udp_port()
     acts = _actuators(robot)
     out = tmp_path / "o"
     with _device(robot, XS) as dev, _Sender(port):
@@ -233,7 +227,7 @@ def test_stale_feed_holds_the_device_with_hold_frames_only(tmp_path, robot, mode
 
 
 def test_device_away_from_the_start_is_refused_unless_approach(tmp_path, robot, model, capsys):
-    port = _free_port()
+    port = free_udp_port()
     problem = _problem(tmp_path, model, 0.6)
     acts = _actuators(robot)
     with SimDevice(acts, 0) as dev, _Sender(port):  # the device rests in the straight pose

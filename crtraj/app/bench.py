@@ -1,4 +1,5 @@
-"""Use case: the paper's Table I benchmark from the command line (`crtraj bench table1`)."""
+"""Use case: the benchmarks from the command line: the paper's Table I (`crtraj bench table1`, here) and the
+held-out dynamic suite (`crtraj bench suite`, `crtraj.app.suite`)."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from crtraj.app.suite import run_suite
 from crtraj.bench.records import LABELS, PLANNERS, BenchOptions, _fmt, _pct
 from crtraj.bench.runner import Table1Bench
 from crtraj.core.errors import InputError
@@ -63,9 +65,9 @@ def run_table1(args: Any) -> int:
     planners = _parse_list(args.planners, "--planners", str) if args.planners else PLANNERS
     options = BenchOptions(
         counts=_parse_list(args.counts, "--counts", int),
-        scenarios=args.scenarios,
+        scenarios=100 if args.scenarios is None else args.scenarios,
         planners=planners,
-        time_limit=args.time_limit,
+        time_limit=5.0 if args.time_limit is None else args.time_limit,
         seed=args.seed,
         verify_margin=args.verify_margin,
     )
@@ -80,7 +82,7 @@ def run_table1(args: Any) -> int:
     for name in planners:
         BUILTIN.check_available(name)  # fail now, in one line, not in every worker
     bench = Table1Bench(robot, options, planner_options=planner_options)
-    out = Path(args.out)
+    out = Path(args.out or "out/table1")
     total = len(options.counts) * options.scenarios * len(planners)
     executor, client, workers = _executor(args, bench, workers)
     where = f"Dask at {args.dask} ({workers} threads)" if args.dask else f"{workers or 'no'} worker processes"
@@ -109,3 +111,10 @@ def run_table1(args: Any) -> int:
         print(f"crtraj: {report.note}; the files hold the {len(report.records)} runs that finished", file=sys.stderr)
         return 130 if "Ctrl-C" in report.note else 1
     return 0
+
+
+def bench_command(args: Any) -> int:
+    """`crtraj bench TABLE ...`: dispatch on TABLE (table1 or suite); returns the exit code."""
+    if args.table == "suite":
+        return run_suite(args)
+    return run_table1(args)

@@ -29,6 +29,7 @@ from crtraj.control.loop_options import LoopOptions
 from crtraj.control.reference import PlannerReference, ReferencePlan
 from crtraj.control.tracking import TrackingOptions
 from crtraj.core.errors import InputError
+from crtraj.core.fields import check_array
 from crtraj.core.fileio import StagedDir, check_output_dir, failed_sibling, is_successful_result
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.admission import admit, check_stream_safety
@@ -72,6 +73,7 @@ def loop_from_problem(
     loop_options: LoopOptions | None = None,
     feed: Any = None,
     lead: float = 0.0,
+    start_config: np.ndarray | None = None,
 ) -> ClosedLoop:
     """A `ClosedLoop` for a problem file: its robot, scene, task and ``[replan]``, ``[loop]``,
     ``[tracking]``, ``[planner]``, ``[steer]`` sections, and the robot's actuator limits
@@ -86,6 +88,8 @@ def loop_from_problem(
     scene's obstacle names are the feed ids; the ``[feed]`` section, `crtraj.world.feed.FeedOptions`,
     configures it), and the run is paced in real time. lead: s the device
     executes each step after it is computed (`DeviceLink.lead`), so the feed is predicted that far ahead.
+    start_config: the configuration the run starts from instead of the task's start (a live device's
+    measured configuration with ``--approach``: the loop's own verified motion is the approach).
     """
     task = problem.require_task()
     seed = problem.seed if seed is None else int(seed)
@@ -111,7 +115,10 @@ def loop_from_problem(
         extra["feed"] = feed_options
         source = FeedObstacles(feed, scene, window=max(2.0 * opts.horizon * opts.dt, 2.0) + 2.0 * opts.dt, lead=lead)
         scene0 = _start_scene(source)
-    x0, first, res = _start_config(planner, task, scene0, seed, opts.safety)
+    if start_config is not None:
+        x0, first, res = check_array(start_config, "start_config", (problem.robot.nx,)), None, None
+    else:
+        x0, first, res = _start_config(planner, task, scene0, seed, opts.safety)
     moving = feed is not None or any(o.amplitude != 0.0 or o.to is not None for o in scene.obstacles)
     _check_goal(planner, task, x0, scene0, seed, res, among_obstacles=opts.safety and not moving)
     reference = PlannerReference(
@@ -315,17 +322,24 @@ def _run_and_write(req: ReplanRequest, problem: Problem, seed: int, feed: Any, o
     with contextlib.ExitStack() as stack:
         try:
             lead, sopts = _live_stream_options(problem) if live else (0.0, None)
+            # every file of the run, a live stream's log too, goes into a temporary sibling folder that
+            # replaces `out` as a whole at the end: a kill never leaves a mix of old and new files
+            stage = stack.enter_context(StagedDir(out, RUN_FILES))
+            streamer = _connect_live(req.stream or "", problem, sopts, stage.path) if live else None
+            if streamer is not None:
+                stack.callback(streamer.close)  # closed on any way out (a no-op once the run closed it)
+            # with --approach the live run starts where the device is: its own verified motion is the approach
+            x_dev = _device_config(problem, streamer) if streamer is not None and req.approach else None
             try:
-                loop = loop_from_problem(problem, safety=req.safety, seed=seed, feed=feed, lead=lead)
+                loop = loop_from_problem(
+                    problem, safety=req.safety, seed=seed, feed=feed, lead=lead, start_config=x_dev
+                )
             except UnsolvableTaskError as exc:
                 print(f"{exc.status}: {exc}; no run, nothing written to {out}")
                 print(f"crtraj: replan failed: {exc.status}: {exc}", file=sys.stderr)
                 return None
-            # every file of the run, a live stream's log too, goes into a temporary sibling folder that
-            # replaces `out` as a whole at the end: a kill never leaves a mix of old and new files
-            stage = stack.enter_context(StagedDir(out, RUN_FILES))
-            if live:
-                link = _open_live_stream(req.stream or "", req.approach, problem, loop, sopts, stage.path)
+            if streamer is not None:
+                link = _live_link(streamer, req.approach, problem, loop, sopts)
             if not req.quiet:
                 _print_header(problem, seed, loop, live_obstacles=feed is not None)
             run = loop.run(device=link)
@@ -418,15 +432,32 @@ def _actuators(problem: Problem) -> Actuators:
     return Actuators.from_robot(problem.robot)
 
 
-def _open_live_stream(
-    address: str, approach: bool, problem: Problem, loop: ClosedLoop, sopts: Any, out: Path
-) -> DeviceLink:
-    """Connect to the device for a live run (`DeviceLink`, its log in out/stream.jsonl); refuse a device
-    that is not at the task's start unless approach."""
-    acts = _actuators(problem)
-    streamer = Streamer.open(_stream_target(address), acts, sopts, out / "stream.jsonl")
+def _connect_live(address: str, problem: Problem, sopts: Any, out: Path) -> Streamer:
+    """Connect to the device for a live run and start its stream (its log in out/stream.jsonl)."""
+    streamer = Streamer.open(_stream_target(address), _actuators(problem), sopts, out / "stream.jsonl")
     try:
         streamer.start()
+    except StreamError as exc:
+        streamer.close()
+        raise InputError(f"--stream: {exc}") from None
+    except BaseException:
+        streamer.close()
+        raise
+    return streamer
+
+
+def _device_config(problem: Problem, streamer: Streamer) -> np.ndarray:
+    """The configuration (rad, mm) the device's actuators are at now (eq. 4 inverted)."""
+    q = streamer.actuators.actuation(streamer.position)
+    _, q0 = problem.robot.cable_matrix()
+    return (q - q0) @ problem.robot.cable_inverse().T
+
+
+def _live_link(streamer: Streamer, approach: bool, problem: Problem, loop: ClosedLoop, sopts: Any) -> DeviceLink:
+    """The loop's `DeviceLink` to a started device; refuse a device that is not at the task's start
+    unless approach (the run then starts where the device is)."""
+    acts = streamer.actuators
+    try:
         # each step's frames are verified as sent against the scene snapshot the loop checked the step with
         verifier = FrameVerifier(problem.robot, acts, loop.scene, sopts.dt, model=Model(problem.robot))
         link = DeviceLink(
@@ -449,9 +480,6 @@ def _open_live_stream(
                 f"{u} ({d[i]:.3g} {u} apart, more than stream.settle_tolerance {tol:g}); move the robot to the "
                 "start, or pass --approach to start the run from where the device is"
             )
-    except StreamError as exc:
-        streamer.close()
-        raise InputError(f"--stream: {exc}") from None
     except BaseException:
         streamer.close()
         raise

@@ -26,9 +26,10 @@ from crtraj.core.errors import AdmissionError, InputError
 from crtraj.core.fileio import StagedFile, check_output_file
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.admission import AdmittedMotion, admit
+from crtraj.hardware.dynamixel import DEFAULT_BAUD
 from crtraj.hardware.setpoints import check_time_scale
-from crtraj.hardware.stream import Streamer, StreamOptions, StreamReport
-from crtraj.hardware.transport import Transport, parse_hostport
+from crtraj.hardware.stream import Streamer, StreamOptions, StreamReport, open_link
+from crtraj.hardware.transport import parse_hostport
 from crtraj.io.problem import Problem, load_robot
 from crtraj.io.results import Result, read_result
 
@@ -78,12 +79,14 @@ def _refuse_overwriting_input(result: str, *outputs: tuple[str, Any]) -> None:
 
 
 def _target(args: argparse.Namespace, frames: StagedFile | None) -> str:
-    """The transport URL of --udp, --serial or the staged --dry-run file."""
+    """The transport URL of --udp, --serial, --dynamixel or the staged --dry-run file."""
     if args.udp is not None:
         host, port = parse_hostport(args.udp, "--udp")
         return f"udp://{host}:{port}"
     if args.serial:
-        return f"serial://{args.serial}?baud={args.baud}"
+        return f"serial://{args.serial}?baud={args.baud or 115200}"
+    if getattr(args, "dynamixel", None):
+        return f"dynamixel://{args.dynamixel}?baud={args.baud or DEFAULT_BAUD}"
     return f"file://{frames.path.resolve()}"
 
 
@@ -93,12 +96,12 @@ def _stream(args: argparse.Namespace, motion: AdmittedMotion, opts: StreamOption
     # a refused or failed dry run leaves FILE as it was
     frames = StagedFile(check_output_file(args.dry_run, "--dry-run")) if args.dry_run else None
     with frames or contextlib.nullcontext():
-        transport = Transport.open(_target(args, frames), baud=args.baud)
+        transport = open_link(_target(args, frames), motion.actuators)
         if args.approach and not transport.has_telemetry:
             transport.close()
             raise InputError(
                 "--approach: this link reports no device position to approach from (a --dry-run has none); "
-                "use --udp or --serial"
+                "use --udp, --serial or --dynamixel"
             )
         to = f"file://{Path(args.dry_run).resolve()}" if frames is not None else transport.description
         path = motion.path

@@ -77,7 +77,7 @@ from crtraj.world.scene import Scene
 
 # The untimed warm-up query of every worker's planners: its scenario seed and time limit (s).
 _WARMUP_SEED = 2**31 - 1
-_WARMUP_TIME = 2.0
+WARMUP_TIME = 2.0
 
 
 # ---------------------------------------------------------------- planners
@@ -89,6 +89,13 @@ def bench_stop(spec: PlannerSpec, options: PlannerOptions, time_limit: float) ->
     return StopCondition(
         time_limit=time_limit, max_iterations=options.max_iterations, first_solution=options.first_solution
     )
+
+
+def warm_up(planner: Planner, model: Model, stop: StopCondition) -> None:
+    """One untimed query that builds what a planner builds lazily (NLP solvers, CasADi maps), so that its
+    first timed run does not pay for it."""
+    warm = ScenarioGenerator(model, ScenarioOptions(seed=_WARMUP_SEED)).generate(1, 0)
+    plan_scenario(planner, stop, warm, seed=0, goal_tolerance=1.0)
 
 
 def plan_scenario(
@@ -135,10 +142,7 @@ class _WorkerContext:
         p = self._planners.get(name)
         if p is None:
             p = self.spec.registry.build(name, self.model, Scene(), self.options, max_obstacles=packing.SLOTS)
-            # One untimed query builds what planners build lazily (NLP solvers, CasADi maps),
-            # so the first timed run does not pay for it.
-            warm = ScenarioGenerator(self.model, ScenarioOptions(seed=_WARMUP_SEED)).generate(1, 0)
-            plan_scenario(p, self.stop(name, _WARMUP_TIME), warm, seed=0, goal_tolerance=1.0)
+            warm_up(p, self.model, self.stop(name, WARMUP_TIME))
             self._planners[name] = p
         return p
 

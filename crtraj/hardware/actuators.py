@@ -26,6 +26,7 @@ import numpy as np
 
 from crtraj.core.errors import InputError
 from crtraj.core.fields import MAX_LENGTH, Table, check_array
+from crtraj.hardware.servo_bus import ServoBus, read_bus_keys
 from crtraj.planning.rate_limits import RateLimits
 
 # Smallest spool radius (mm): below it one radian of servo is less than a micrometre of cable.
@@ -57,9 +58,10 @@ def _pick(t: Table, key: str, base: dict[str, Any], read: Any) -> Any:
     raise t.error(key, "missing (required; set it here or once for all servos in [robot.actuators])")
 
 
-def _read_actuator(t: Table, base: dict[str, Any], spool: bool) -> dict[str, Any]:
-    """Read one actuator's keys from `t`, falling back to `base` (the shared servo defaults)."""
-    d: dict[str, Any] = {}
+def _read_actuator(t: Table, base: dict[str, Any], spool: bool, bus_base: dict[str, Any]) -> dict[str, Any]:
+    """Read one actuator's keys from `t`, falling back to `base` (the shared servo defaults);
+    its Dynamixel bus keys (`crtraj.hardware.servo_bus`, defaults `bus_base`) go to ``d["bus"]``."""
+    d: dict[str, Any] = {"bus": read_bus_keys(t, bus_base, stage=not spool)}
     if spool:
         d["spool_radius"] = _pick(
             t, "spool_radius", base, lambda: t.float("spool_radius", ge=MIN_SPOOL, limit=MAX_LENGTH)
@@ -83,6 +85,7 @@ class Actuators:
     straight-pose cable lengths and z = 0; None until bound to a robot
     (`for_robot`), because the segment lengths live in the robot table.
     lower/upper: position limits; vmax, amax: speed and acceleration limits.
+    bus: the Dynamixel ids, models and tick scales (`ServoBus`), None without ids.
     """
 
     n_segments: int
@@ -94,6 +97,7 @@ class Actuators:
     vmax: np.ndarray
     amax: np.ndarray
     rest: np.ndarray | None = None
+    bus: ServoBus | None = None  # Dynamixel ids and tick scales, when the robot file gives them
 
     def __post_init__(self) -> None:
         for name in ("spool_radius", "sign", "zero_offset", "lower", "upper", "vmax", "amax"):
@@ -194,6 +198,9 @@ class Actuators:
         base["position_limits"] = _limits(t, "position_limits") if t.has("position_limits") else None
         for key in ("velocity_limit", "acceleration_limit"):
             base[key] = t.float(key, gt=0.0, limit=MAX_RATE) if t.has(key) else None
+        bus_base = {k: v for k, v in read_bus_keys(t, {}, stage=False).items() if k != "id"}
+        if t.has("id"):
+            raise t.error("id", "set per servo ([robot.actuators.servo.<name>] id = ...), not once for all")
         names = [f"s{k + 1}c{i + 1}" for k in range(n_segments) for i in range(3)]
         over = t.table("servo")
         for key in over.keys():
@@ -202,16 +209,19 @@ class Actuators:
         rows = []
         for name in names:
             st = over.table(name)
-            rows.append(_read_actuator(st, base, spool=True))
+            rows.append(_read_actuator(st, base, spool=True, bus_base=bus_base))
             st.finish()
         over.finish()
         if not t.has("z"):
             raise t.error("z", "missing: add [robot.actuators.z] (the base stage; position_limits = [0, 0] if fixed)")
         zt = t.table("z")
-        zrow = _read_actuator(zt, {}, spool=False)
+        zrow = _read_actuator(zt, {}, spool=False, bus_base=bus_base)
         zt.finish()
         t.finish()
         rows.append(zrow)
+        names_all = (*names, "z")
+        where = [f"{t.path}.servo.{n}" for n in names] + [f"{t.path}.z"]
+        bus = ServoBus.from_rows(names_all, [r["bus"] for r in rows], where)
         return cls(
             n_segments=n_segments,
             spool_radius=np.array([r["spool_radius"] for r in rows[:-1]]),
@@ -221,6 +231,7 @@ class Actuators:
             upper=np.array([r["position_limits"][1] for r in rows]),
             vmax=np.array([r["velocity_limit"] for r in rows]),
             amax=np.array([r["acceleration_limit"] for r in rows]),
+            bus=bus,
         )
 
     def to_dict(self) -> dict[str, Any]:
@@ -235,6 +246,8 @@ class Actuators:
             d["position_limits"] = [float(self.lower[i]), float(self.upper[i])]
             d["velocity_limit"] = float(self.vmax[i])
             d["acceleration_limit"] = float(self.amax[i])
+            if self.bus is not None:
+                d.update(self.bus.rows()[i])
             return d
 
         return {"servo": {name: row(i) for i, name in enumerate(self.names[:-1])}, "z": row(self.n - 1)}

@@ -465,6 +465,11 @@ class SimDevice:
         self._t0 = time.monotonic()
 
     @property
+    def clock_origin(self) -> float:
+        """`time.monotonic()` (s) at device time 0: device time t is monotonic time clock_origin + t."""
+        return self._t0
+
+    @property
     def applied(self) -> deque[Applied]:
         """Set-point frames applied (device time since start, s)."""
         return self.core.applied

@@ -54,6 +54,7 @@ from crtraj.core.fileio import to_jsonable
 from crtraj.core.options import Options, option
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.admission import AdmittedMotion
+from crtraj.hardware.dynamixel import open_dynamixel
 from crtraj.hardware.limits import LimitsGate, Violation
 from crtraj.hardware.protocol import (
     ESTOP,
@@ -90,6 +91,13 @@ IDLE, WAITING, STREAMING, SETTLING, HELD, DONE, ESTOPPED, ERROR, CLOSED = (
 _TERMINAL = (DONE, ESTOPPED, ERROR, CLOSED)
 _CHECKED = (WAITING, STREAMING, SETTLING)  # states in which the device must follow
 _MAX_UNACKED = 1 << 16
+
+
+def open_link(target: str, actuators: Actuators) -> Transport:
+    """The link to `target` (`Transport.open`); a ``dynamixel://`` bus needs the actuators (ids, tick scales)."""
+    if target.startswith("dynamixel://"):
+        return open_dynamixel(target, actuators)
+    return Transport.open(target)
 
 
 class StreamError(RuntimeError):
@@ -288,8 +296,9 @@ class Streamer:
         log: str | Path | None = None,
         **kw: Any,
     ) -> Streamer:
-        """Open ``udp://HOST:PORT``, ``serial://DEV?baud=N`` or ``file://PATH`` and wrap it."""
-        return cls(Transport.open(target), actuators, options, log, **kw)
+        """Open ``udp://HOST:PORT``, ``serial://DEV?baud=N``, ``file://PATH`` or ``dynamixel://DEV?baud=N``
+        (the servos of ``actuators.bus``, `crtraj.hardware.dynamixel`) and wrap it."""
+        return cls(open_link(target, actuators), actuators, options, log, **kw)
 
     def __enter__(self) -> Streamer:
         return self

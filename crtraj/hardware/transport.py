@@ -79,7 +79,12 @@ class Transport(abc.ABC):
             return _SerialTransport(dev, b)
         if parts.scheme == "file":
             return _FileTransport(parts.netloc + parts.path)
-        raise InputError(f"stream target: unknown scheme in {url!r} (use udp://HOST:PORT, serial://DEV or file://PATH)")
+        if parts.scheme == "dynamixel":  # needs the servo ids and tick scales: crtraj.hardware.dynamixel
+            raise InputError(f"{url}: a Dynamixel bus opens with Streamer.open(url, actuators) (it needs the ids)")
+        raise InputError(
+            f"stream target: unknown scheme in {url!r} (use udp://HOST:PORT, serial://DEV, dynamixel://DEV or "
+            "file://PATH)"
+        )
 
 
 class _UdpTransport(Transport):

@@ -1,0 +1,82 @@
+"""Use case: run simulated Dynamixel servos on a pseudo-terminal until Ctrl-C or --duration (`crtraj sim-dynamixel`).
+
+The servos are the robot file's bus (`[robot.actuators]` ids and model numbers); ``--at RESULT`` starts
+them at a result's first set-point, as if the robot had been moved there. Prints the device path to pass
+to ``crtraj stream RESULT --dynamixel PATH``.
+"""
+
+from __future__ import annotations
+
+import argparse
+from types import MappingProxyType
+
+from crtraj.core.errors import InputError
+from crtraj.hardware.actuators import Actuators
+from crtraj.hardware.dynamixel_protocol import HW_ERROR_NAMES
+from crtraj.hardware.sim_dynamixel import ServoChain, SimDynamixel
+from crtraj.io.problem import load_robot
+from crtraj.io.results import read_result
+
+# voltage, overheating, encoder, shock, overload
+_BITS = MappingProxyType({name.split()[-1]: bit for bit, name in HW_ERROR_NAMES})
+
+
+def _hardware_error(text: str, ids: tuple[int, ...]) -> tuple[int, int]:
+    """``ID:NAME`` (e.g. ``3:overload``) as (id, bits); one-line `InputError` otherwise."""
+    dxl_id, sep, name = text.partition(":")
+    if not sep or not dxl_id.isdigit() or int(dxl_id) not in ids or name not in _BITS:
+        raise InputError(
+            f"--hardware-error: expected ID:NAME with ID one of {', '.join(map(str, ids))} and NAME one of "
+            f"{', '.join(_BITS)}; got {text!r}"
+        )
+    return int(dxl_id), _BITS[name]
+
+
+def sim_dynamixel_command(args: argparse.Namespace) -> int:
+    """`crtraj sim-dynamixel --pty ...` (arguments from `crtraj.cli`); returns the exit code."""
+    robot = load_robot(args.robot)
+    if robot.actuators is None:
+        raise InputError(f"{args.robot}: robot.actuators: missing; add a [robot.actuators] table")
+    acts = Actuators.from_robot(robot)
+    if acts.bus is None:
+        raise InputError(f"{args.robot}: robot.actuators: no Dynamixel ids (add id, ticks_per_rev, model per servo)")
+    bus = acts.bus
+    initial = None
+    if args.at:
+        q = read_result(args.at).q
+        if q is None:
+            raise InputError(f"{args.at}: waypoints[0].q: missing (the actuation to start the servos at)")
+        initial = bus.ticks(acts.command(q[0]))
+    faults = [_hardware_error(h, bus.ids) for h in args.hardware_error or ()]
+    for m in args.missing or ():
+        if m not in bus.ids:
+            raise InputError(f"--missing: {m} is not one of the robot's ids ({', '.join(map(str, bus.ids))})")
+    chain = ServoChain(bus.ids, bus.models, initial=initial, tau=args.tau, baud=args.baud)
+    for m in args.missing or ():
+        chain.remove(m)
+    for dxl_id, bits in faults:
+        chain.set_hardware_error(dxl_id, bits)
+    for flag, value in (("--silent-after", args.silent_after), ("--corrupt-after", args.corrupt_after)):
+        if value is not None and not 0 <= value <= 10**9:
+            raise InputError(f"{flag}: must be in 0..1000000000 packets, got {value}")
+    chain.silent_after, chain.corrupt_after = args.silent_after, args.corrupt_after
+    sim = SimDynamixel(chain, wire_time=not args.no_wire_time)
+    wire = "wire time of a real bus modelled" if not args.no_wire_time else "no wire time"
+    print(
+        f"sim-dynamixel on {sim.path} ({len(bus.ids)} servos, ids {', '.join(map(str, bus.ids))}, "
+        f"{args.baud} baud, {wire})",
+        flush=True,
+    )
+    try:
+        sim.serve(args.duration)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        sim.stop()
+    c = chain.counts
+    print(
+        f"sim-dynamixel stopped: {c['packets']} packets, {c['replies']} replies, {c['sync_writes']} sync writes, "
+        f"{sim.bad_packets} bad",
+        flush=True,
+    )
+    return 0

@@ -1,0 +1,451 @@
+"""Dynamixel servos (Protocol 2.0, X-series) as a streamer link, on the official `dynamixel_sdk`.
+
+`DynamixelTransport` is a `Transport`: the `Streamer` stays the one place every
+command passes through (limits gate, admission's verified frames, watchdog,
+acknowledgement and following checks, e-stop), and this link only carries
+its frames to the bus. Per frame:
+
+- MOVE / HOLD: the values (rad, mm) become ticks (`crtraj.hardware.servo_bus`)
+  and go out as one Group Sync Write of the goal positions of every servo (one
+  bus transaction per set-point);
+- ESTOP: one Group Sync Write of torque enable = 0 (torque off; latched);
+- PING: opens the session (no bus traffic).
+
+Every `receive` is one Group Sync Read of hardware error status, present
+velocity and present position (one transaction: the three fields are mapped
+next to each other through the indirect addresses at connect), turned into a
+telemetry frame (positions back in rad / mm, the last written set-point
+acknowledged, e-stop status).
+A hardware error bit, or a servo that misses `max_misses` reads in a row, is
+a `TransportError` naming the servo: the streamer stops and reports it.
+`close` turns the torque off.
+
+Connecting checks, each failure one line: the port exists and opens, the
+servos answer at this baud rate (if none does, the other common rates are
+tried and the right one named), every id answers (a silent one is named),
+each model number is the robot file's, no hardware error bit is set, and the
+actuators' position limits fit the extended position range. Then it sets
+torque off, extended position control (operating mode 4: a spool turns more
+than one revolution), the profile velocity and acceleration from the
+actuator limits, the indirect addresses, the goal to the present position,
+and torque on. On Linux
+a USB-serial latency timer above 1 ms is a warning: it caps the rate.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import sys
+import time
+from collections import deque
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+from urllib.parse import parse_qs, urlsplit
+
+import numpy as np
+
+from crtraj.core.errors import InputError
+from crtraj.hardware.actuators import Actuators
+from crtraj.hardware.dynamixel_protocol import BAUD_CODES, X, hardware_error_text
+from crtraj.hardware.protocol import ESTOP, PING, STATUS_ESTOP, Frame, Telemetry, seq_next
+from crtraj.hardware.servo_bus import ServoBus
+from crtraj.hardware.transport import Transport, TransportError
+
+DEFAULT_BAUD = 1_000_000
+SYSFS_USB_SERIAL = Path("/sys/bus/usb-serial/devices")
+CONNECT_ATTEMPTS = 3  # tries of each transaction while connecting
+READ_BLOCK = 0.002  # s a port read may wait for its bytes (far below the SDK's 34 ms reply timeout)
+# the rates tried, in this order, when no servo answers at the requested one
+_PROBE_BAUDS = (1_000_000, 57_600, 115_200, 2_000_000, 3_000_000, 4_000_000, 9_600)
+# what one sync read returns, through the indirect addresses: (address, size) in this order
+_STATE = ((X.HARDWARE_ERROR, 1), (X.PRESENT_VELOCITY, 4), (X.PRESENT_POSITION, 4))
+_STATE_SIZE = sum(n for _, n in _STATE)
+_AT_ERROR, _AT_VELOCITY, _AT_POSITION = X.INDIRECT_DATA, X.INDIRECT_DATA + 1, X.INDIRECT_DATA + 5
+
+
+def _sdk() -> Any:
+    """The official SDK (the optional extra), or a one-line `InputError` saying how to install it."""
+    try:
+        import dynamixel_sdk
+    except ImportError:
+        raise InputError("--dynamixel: the Dynamixel SDK is not installed; pip install 'crtraj[dynamixel]'") from None
+    return dynamixel_sdk
+
+
+def latency_warning(device: str, sysfs: Path = SYSFS_USB_SERIAL) -> str | None:
+    """The warning for a USB-serial latency timer above 1 ms (Linux), else None."""
+    tty = os.path.basename(os.path.realpath(device))
+    path = sysfs / tty / "latency_timer"
+    try:
+        ms = int(path.read_text().strip())
+    except (OSError, ValueError):
+        return None  # not a USB-serial adapter (or not Linux): nothing to say
+    if ms <= 1:
+        return None
+    return (
+        f"warning: {device}: the USB-serial latency timer is {ms} ms, which caps the set-point rate (every bus "
+        f"read waits up to {ms} ms); lower it with: echo 1 | sudo tee {path}"
+    )
+
+
+def parse_url(url: str) -> tuple[str, int]:
+    """(device, baud) of ``dynamixel:///dev/ttyUSB0[?baud=N]``; one-line `InputError` otherwise."""
+    parts = urlsplit(url)
+    device = parts.netloc + parts.path
+    if parts.scheme != "dynamixel" or not device:
+        raise InputError(f"stream target: expected dynamixel:///dev/PORT[?baud=N], got {url!r}")
+    q = parse_qs(parts.query)
+    try:
+        baud = int(q["baud"][0]) if "baud" in q else DEFAULT_BAUD
+    except ValueError:
+        raise InputError(f"stream target: baud must be an integer, got {q['baud'][0]!r}") from None
+    return device, baud
+
+
+def check_baud(baud: int) -> int:
+    """`baud` when it is a Dynamixel bus rate; one-line `InputError` otherwise."""
+    if baud not in BAUD_CODES.values():
+        rates = ", ".join(str(b) for b in BAUD_CODES.values())
+        raise InputError(f"--baud: {baud} is not a Dynamixel bus rate ({rates})")
+    return baud
+
+
+def check_ranges(actuators: Actuators, bus: ServoBus) -> None:
+    """Every actuator's position limits must map into the extended position range (ticks)."""
+    for i, name in enumerate(actuators.names):
+        lim = np.abs(bus.ticks(np.array([actuators.lower, actuators.upper]))[:, i])
+        if lim.max() > X.EXTENDED_LIMIT:
+            u = actuators.units[i]
+            raise InputError(
+                f"robot.actuators ({name}): position limits [{actuators.lower[i]:g}, {actuators.upper[i]:g}] {u} "
+                f"are up to {lim.max()} ticks, beyond the extended position range +-{X.EXTENDED_LIMIT}"
+            )
+
+
+def _signed32(v: int) -> int:
+    return v - (1 << 32) if v >= 1 << 31 else v
+
+
+class DynamixelTransport(Transport):
+    """The servos of `actuators.bus` on `device` at `baud`, as a streamer link (see the module doc).
+
+    warn: where connection warnings go (default: stderr). sysfs: the USB-serial sysfs folder (tests
+    point it elsewhere). max_misses: failed reads in a row that end the stream.
+    """
+
+    # Over 60 lines: the connection checks, each with its own one-line message, in the order a lab meets them.
+    def __init__(  # long: connection checks in order
+        self,
+        device: str,
+        baud: int,
+        actuators: Actuators,
+        *,
+        warn: Callable[[str], None] | None = None,
+        sysfs: Path = SYSFS_USB_SERIAL,
+        max_misses: int = 5,
+    ) -> None:
+        sdk = _sdk()
+        if actuators.bus is None:
+            raise InputError(
+                "robot.actuators: no Dynamixel ids; add id, ticks_per_rev and model per servo (and lead for z), "
+                "see README 'Run it on a real robot'"
+            )
+        self.bus = bus = actuators.bus
+        check_ranges(actuators, bus)
+        self.baud = check_baud(int(baud))
+        self.device = device
+        self.description = f"dynamixel://{device}?baud={self.baud}"
+        self.warnings: list[str] = []
+        self._warn = warn if warn is not None else (lambda m: print(m, file=sys.stderr, flush=True))
+        self.max_misses = int(max_misses)
+        self._sdk = sdk
+        self._ph = sdk.PacketHandler(2.0)
+        self._port = None
+        if not os.path.exists(device):
+            raise TransportError(
+                f"{device}: no such port (is the USB-serial adapter, e.g. a U2D2, plugged in? see ls /dev/ttyUSB*)"
+            )
+        port = sdk.PortHandler(device)
+        try:
+            opened = port.openPort() and self._set_baud(port, self.baud)
+        except Exception as exc:  # pyserial raises SerialException / OSError / ValueError
+            why = f"{device}: cannot open ({exc}); on Linux, is your user in the dialout group?"
+            raise TransportError(why) from None
+        if not opened:
+            raise TransportError(f"{device}: cannot open at {self.baud} baud")
+        self._port = port
+        try:
+            w = latency_warning(device, sysfs)
+            if w is not None:
+                self.warnings.append(w)
+                self._warn(w)
+            self._check_servos()
+            self._setup(actuators)
+        except BaseException:
+            with contextlib.suppress(Exception):  # a setup that failed half-way must not leave torque on
+                self._torque_off(confirm=False)
+            self._port.closePort()
+            self._port = None
+            raise
+        self._write_goal = sdk.GroupSyncWrite(port, self._ph, X.GOAL_POSITION, 4)
+        self._read_state = sdk.GroupSyncRead(port, self._ph, X.INDIRECT_DATA, _STATE_SIZE)
+        for i in bus.ids:
+            self._write_goal.addParam(i, [0, 0, 0, 0])
+            self._read_state.addParam(i)
+        self._session: int | None = None
+        self._ack = 0
+        self._seq = 0
+        self._estopped = False
+        self._misses = 0
+        self.counts = {"timeouts": 0, "corrupt": 0, "writes": 0, "reads": 0}
+        self.timings: deque[tuple[float, float]] = deque(maxlen=100_000)  # (write s, read s) per tick
+        self._t_write = 0.0
+        self._t0 = time.monotonic()
+        self.velocities = np.zeros(len(bus.ids))  # last present velocities (rad/s, mm/s)
+
+    @staticmethod
+    def _set_baud(port: Any, baud: int) -> bool:
+        """`PortHandler.setBaudRate`, then reads that block up to `READ_BLOCK` s for the bytes the SDK asks
+        for: the SDK polls the port in a loop, and with pyserial's default (timeout 0) that loop spins a core
+        while a reply is on the wire; blocking in select returns as soon as the bytes are there."""
+        ok = port.setBaudRate(baud)
+        if ok and port.ser is not None:
+            port.ser.timeout = READ_BLOCK
+        return ok
+
+    # --------------------------------------------------------------- checks
+    def _ask(self, call: Callable[..., tuple[Any, ...]], *args: Any) -> tuple[Any, ...]:
+        """One connect-time transaction (an SDK call returning ``(..., result, error)``), tried up to
+        `CONNECT_ATTEMPTS` times: a reply lost to line noise (or a busy host) is not yet a missing servo."""
+        out = call(self._port, *args)
+        for _ in range(CONNECT_ATTEMPTS - 1):
+            if out[-2] == self._sdk.COMM_SUCCESS:
+                break
+            out = call(self._port, *args)
+        return out
+
+    def _check_servos(self) -> None:
+        """Every id answers with the robot file's model number and no hardware error."""
+        bus, ph = self.bus, self._ph
+        models: dict[int, int] = {}
+        for i in bus.ids:
+            model, result, _ = self._ask(ph.ping, i)
+            if result == self._sdk.COMM_SUCCESS:
+                models[i] = model
+        if not models:
+            raise TransportError(self._no_answer())
+        silent = [i for i in bus.ids if i not in models]
+        if silent:
+            answering = ", ".join(str(i) for i in models)
+            raise TransportError(
+                f"servo {bus.name_of(silent[0])} does not answer on {self.device} at {self.baud} baud (ids "
+                f"{answering} do): check its id, its power and the daisy chain up to it"
+            )
+        for k, i in enumerate(bus.ids):
+            if models[i] != bus.models[k]:
+                raise TransportError(
+                    f"servo {bus.name_of(i)} is model {models[i]}, the robot file says {bus.models[k]} "
+                    f"(robot.actuators model): another servo than the robot file describes"
+                )
+        for i in bus.ids:
+            bits, result, _ = self._ask(ph.read1ByteTxRx, i, X.HARDWARE_ERROR)
+            if result != self._sdk.COMM_SUCCESS:
+                raise TransportError(f"servo {bus.name_of(i)}: cannot read its hardware error status")
+            if bits:
+                raise TransportError(self._hardware_error_text(i, bits))
+
+    def _hardware_error_text(self, dxl_id: int, bits: int) -> str:
+        return (
+            f"servo {self.bus.name_of(dxl_id)}: hardware error: {hardware_error_text(bits)} (status 0x{bits:02x}); "
+            "its torque is off: remove the cause, then reboot or power-cycle it"
+        )
+
+    def _no_answer(self) -> str:
+        """Why no servo answered: another baud rate (tried and named), or no servo on the line at all."""
+        first = self.bus.ids[0]
+        for b in _PROBE_BAUDS:
+            if b == self.baud:
+                continue
+            self._set_baud(self._port, b)
+            _, result, _ = self._ask(self._ph.ping, first)
+            if result == self._sdk.COMM_SUCCESS:
+                self._set_baud(self._port, self.baud)
+                return (
+                    f"no servo answers on {self.device} at {self.baud} baud, but id {first} answers at {b} baud: "
+                    f"pass --baud {b} (or set the servos' baud rate)"
+                )
+        self._set_baud(self._port, self.baud)
+        return (
+            f"no servo answers on {self.device} (tried {self.baud} baud and the other common rates): check the "
+            "servos' power supply and the data cable"
+        )
+
+    def _write1(self, dxl_id: int, addr: int, value: int, size: int, what: str) -> None:
+        f = {1: self._ph.write1ByteTxRx, 4: self._ph.write4ByteTxRx}[size]
+        result, error = self._ask(f, dxl_id, addr, value)
+        if result != self._sdk.COMM_SUCCESS or error & 0x7F:
+            raise TransportError(
+                f"servo {self.bus.name_of(dxl_id)}: setting {what} failed "
+                f"({self._ph.getTxRxResult(result) if result else self._ph.getRxPacketError(error)})"
+            )
+
+    def _setup(self, actuators: Actuators) -> None:
+        """Torque off, extended position mode, profiles, goal = present, torque on."""
+        bus = self.bus
+        for i in bus.ids:
+            self._write1(i, X.TORQUE_ENABLE, 0, 1, "torque off")
+        for k, i in enumerate(bus.ids):
+            self._write1(i, X.OPERATING_MODE, X.EXTENDED_POSITION, 1, "extended position mode")
+            # profile limits at or just above the actuator limits: the set-points already obey them, the
+            # servo's own profile only smooths what the gate let through
+            rev = bus.per_rev[k]
+            vel = math.ceil(actuators.vmax[k] / rev * 60.0 / X.VELOCITY_UNIT)
+            acc = math.ceil(actuators.amax[k] / rev * 3600.0 / X.ACCELERATION_UNIT)
+            self._write1(i, X.PROFILE_VELOCITY, vel, 4, "profile velocity")
+            self._write1(i, X.PROFILE_ACCELERATION, acc, 4, "profile acceleration")
+            mirror = [a + j for a, n in _STATE for j in range(n)]
+            data = [b for a in mirror for b in (a & 0xFF, a >> 8)]
+            result, error = self._ask(self._ph.writeTxRx, i, X.INDIRECT_ADDRESS, len(data), data)
+            if result != self._sdk.COMM_SUCCESS or error & 0x7F:
+                raise TransportError(f"servo {bus.name_of(i)}: setting its indirect addresses failed")
+            present, result, _ = self._ask(self._ph.read4ByteTxRx, i, X.PRESENT_POSITION)
+            if result != self._sdk.COMM_SUCCESS:
+                raise TransportError(f"servo {bus.name_of(i)}: cannot read its present position")
+            # the goal is where it is, so torque on does not move it
+            self._write1(i, X.GOAL_POSITION, present & 0xFFFFFFFF, 4, "goal position")
+        for i in bus.ids:
+            self._write1(i, X.TORQUE_ENABLE, 1, 1, "torque on")
+
+    # -------------------------------------------------------------- frames
+    def send(self, frame: bytes) -> None:
+        """Carry one streamer frame (already through the limits gate) to the bus."""
+        if self._port is None:
+            raise TransportError(f"{self.description}: closed")
+        msg = Frame.decode(frame)
+        if msg.kind == PING:
+            self._session, self._ack = msg.session, msg.seq
+            return
+        t = time.perf_counter()
+        if msg.kind == ESTOP:
+            self._torque_off(confirm=not self._estopped)  # the repeats of a latched e-stop: sync write only
+            self._estopped = True
+        elif not self._estopped:  # after an e-stop nothing moves the servos again
+            ticks = self.bus.ticks(msg.values)
+            if np.any(np.abs(ticks) > X.EXTENDED_LIMIT):
+                k = int(np.argmax(np.abs(ticks)))
+                raise TransportError(
+                    f"servo {self.bus.name_of(self.bus.ids[k])}: goal {ticks[k]} ticks outside the extended "
+                    f"position range +-{X.EXTENDED_LIMIT}"
+                )
+            for i, v in zip(self.bus.ids, ticks, strict=True):
+                u = int(v) & 0xFFFFFFFF
+                self._write_goal.changeParam(i, [u & 0xFF, (u >> 8) & 0xFF, (u >> 16) & 0xFF, u >> 24])
+            result = self._write_goal.txPacket()
+            if result != self._sdk.COMM_SUCCESS:
+                raise TransportError(f"{self.description}: sync write failed ({self._ph.getTxRxResult(result)})")
+            self.counts["writes"] += 1
+        self._ack = msg.seq
+        self._t_write = time.perf_counter() - t
+
+    def _torque_off(self, confirm: bool = True) -> list[int]:
+        """Torque off: one sync write to every servo at once, then (confirm) a write with a reply to each,
+        so it has surely happened when this returns; the ids that did not confirm it."""
+        w = self._sdk.GroupSyncWrite(self._port, self._ph, X.TORQUE_ENABLE, 1)
+        for i in self.bus.ids:
+            w.addParam(i, [0])
+        w.txPacket()
+        if not confirm:
+            return []
+        silent = []
+        for i in self.bus.ids:
+            result, _ = self._ph.write1ByteTxRx(self._port, i, X.TORQUE_ENABLE, 0)
+            if result != self._sdk.COMM_SUCCESS:
+                silent.append(i)
+        return silent
+
+    def receive(self) -> list[bytes]:
+        """One telemetry frame from a sync read of every servo (none before the session's PING, or on a miss)."""
+        if self._session is None or self._port is None:
+            return []
+        t = time.perf_counter()
+        group = self._read_state
+        result = group.txRxPacket()
+        if result != self._sdk.COMM_SUCCESS:
+            self._miss(result)
+            return []
+        self._misses = 0
+        self.counts["reads"] += 1
+        self.timings.append((self._t_write, time.perf_counter() - t))
+        bus = self.bus
+        ticks, vel = [], []
+        for i in bus.ids:
+            bits = group.getData(i, _AT_ERROR, 1)
+            if bits:
+                raise TransportError(self._hardware_error_text(i, bits))
+            ticks.append(_signed32(group.getData(i, _AT_POSITION, 4)))
+            vel.append(_signed32(group.getData(i, _AT_VELOCITY, 4)))
+        # present velocity in 0.229 rev/min units -> revolutions per second -> rad/s or mm/s
+        self.velocities = np.asarray(vel) * X.VELOCITY_UNIT / 60.0 * np.asarray(bus.per_rev)
+        self._seq = seq_next(self._seq)
+        tel = Telemetry(
+            seq=self._seq,
+            stamp=time.monotonic() - self._t0,
+            ack=self._ack,
+            status=STATUS_ESTOP if self._estopped else 0,
+            positions=bus.values(ticks),
+            crc_errors=self.counts["corrupt"],
+            missed=self.counts["timeouts"],
+            session=self._session,
+        )
+        return [tel.encode()]
+
+    def _miss(self, result: int) -> None:
+        """Count a failed read; `max_misses` in a row end the stream, naming the first silent servo."""
+        self.counts["corrupt" if result == self._sdk.COMM_RX_CORRUPT else "timeouts"] += 1
+        self._misses += 1
+        group = self._read_state
+        self._drain()
+        if self._misses < self.max_misses:
+            return
+        # the SDK reads the replies in id order and stops at the first bad one: its entry is the short one
+        bad = next((i for i in self.bus.ids if len(group.data_dict.get(i, [])) != group.data_length), None)
+        who = f"servo {self.bus.name_of(bad)}" if bad is not None else self.description
+        what = "a corrupted reply" if result == self._sdk.COMM_RX_CORRUPT else "no answer"
+        raise TransportError(
+            f"{who}: {what} to {self._misses} sync reads in a row ({self._ph.getTxRxResult(result)}); "
+            "check its cable and power"
+        )
+
+    def _drain(self, quiet: float = 0.005, most: float = 0.1) -> None:
+        """After a failed read, let late replies arrive and drop them (until `quiet` s of silence, at
+        most `most` s), so the next read does not take a stale reply for its own."""
+        end = time.monotonic() + most
+        last = time.monotonic()
+        while time.monotonic() < end and time.monotonic() - last < quiet:
+            if self._port.getBytesAvailable():
+                self._port.clearPort()
+                last = time.monotonic()
+            time.sleep(0.0005)
+        self._port.clearPort()
+
+    def close(self) -> None:
+        """Torque off, then close the port (idempotent)."""
+        if self._port is None:
+            return
+        try:
+            silent = self._torque_off()
+            if silent:
+                who = ", ".join(self.bus.name_of(i) for i in silent)
+                self._warn(f"warning: torque off not confirmed by servo {who}: check it before approaching the robot")
+        finally:
+            self._port.closePort()
+            self._port = None
+
+
+def open_dynamixel(url: str, actuators: Actuators, **kw: Any) -> DynamixelTransport:
+    """`DynamixelTransport` of ``dynamixel:///dev/PORT[?baud=N]`` for `actuators` (bound to the robot)."""
+    device, baud = parse_url(url)
+    return DynamixelTransport(device, baud, actuators, **kw)

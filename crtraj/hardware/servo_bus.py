@@ -1,0 +1,121 @@
+"""Where each actuator sits on a Dynamixel bus, and its value in encoder ticks.
+
+Keys of ``[robot.actuators]`` (shared default, ``[robot.actuators.servo.<name>]``
+override, ``[robot.actuators.z]`` for the stage):
+
+- ``id``: the servo's bus id (0..252), per actuator, all different;
+- ``ticks_per_rev``: encoder ticks per output revolution (4096 for the X-series);
+- ``model``: the model number the servo must report (XM430-W350: 1020);
+- ``lead`` (z only): mm of stage travel per revolution of its servo.
+
+Either no actuator has an ``id`` (the robot has no Dynamixel bus) or every
+actuator has one. The actuator value (`crtraj.hardware.actuators`: rad for a
+cable servo, already through spool radius, zero offset and sign; mm for the
+stage) maps to ticks by one revolution = ``2 pi`` rad or ``lead`` mm::
+
+    ticks = round(value * ticks_per_rev / per_rev)
+    value = ticks * per_rev / ticks_per_rev
+
+so a round trip value -> ticks -> value is exact to half a tick
+(`resolution` / 2) and ticks -> value -> ticks is exact.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from crtraj.core.fields import MAX_LENGTH, Table
+
+MAX_TICKS_PER_REV = 1 << 20
+MAX_MODEL = 0xFFFF
+BUS_KEYS = ("id", "ticks_per_rev", "model")
+
+
+def read_bus_keys(t: Table, base: dict[str, Any], stage: bool) -> dict[str, Any]:
+    """The bus keys of one actuator table `t` (``lead`` too for the stage), falling back to `base`."""
+    d: dict[str, Any] = {"id": t.int("id", None, ge=0, le=252) if t.has("id") else None}
+    for key, hi in (("ticks_per_rev", MAX_TICKS_PER_REV), ("model", MAX_MODEL)):
+        d[key] = t.int(key, ge=1 if key == "ticks_per_rev" else 0, le=hi) if t.has(key) else base.get(key)
+    if stage:
+        d["lead"] = t.float("lead", gt=0.0, limit=MAX_LENGTH) if t.has("lead") else None
+    return d
+
+
+@dataclass(frozen=True)
+class ServoBus:
+    """Bus ids, model numbers and tick scales of the nq actuators (cable servos, then the stage).
+
+    per_rev: actuator units per output revolution (2 pi rad for servos, the lead in mm for the stage).
+    """
+
+    names: tuple[str, ...]
+    ids: tuple[int, ...]
+    models: tuple[int, ...]
+    ticks_per_rev: tuple[int, ...]
+    per_rev: tuple[float, ...]
+
+    @classmethod
+    def from_rows(cls, names: tuple[str, ...], rows: list[dict[str, Any]], where: list[str]) -> ServoBus | None:
+        """The bus of actuators `names` from their parsed `read_bus_keys` rows (None: no ids at all);
+        one-line `InputError` naming the field (`where[i]` is row i's table path) otherwise."""
+        if all(r["id"] is None for r in rows):
+            for r, w in zip(rows, where, strict=True):
+                if r.get("lead") is not None:
+                    raise Table({}, w).error("lead", "set without an id (the bus keys need an id per actuator)")
+            return None
+        seen: dict[int, str] = {}
+        per_rev: list[float] = []
+        for name, r, w in zip(names, rows, where, strict=True):
+            t = Table({}, w)
+            if r["id"] is None:
+                raise t.error("id", "missing: once one actuator has a Dynamixel id, every actuator needs one")
+            if r["id"] in seen:
+                raise t.error("id", f"{r['id']} is also the id of {seen[r['id']]}")
+            seen[r["id"]] = name
+            for key in ("ticks_per_rev", "model"):
+                if r[key] is None:
+                    raise t.error(key, "missing (required with an id; set it here or once in [robot.actuators])")
+            if "lead" in r:
+                if r["lead"] is None:
+                    raise t.error("lead", "missing: mm of stage travel per revolution of its servo (needed with an id)")
+                per_rev.append(float(r["lead"]))
+            else:
+                per_rev.append(2.0 * math.pi)
+        return cls(
+            names=tuple(names),
+            ids=tuple(int(r["id"]) for r in rows),
+            models=tuple(int(r["model"]) for r in rows),
+            ticks_per_rev=tuple(int(r["ticks_per_rev"]) for r in rows),
+            per_rev=tuple(per_rev),
+        )
+
+    @property
+    def resolution(self) -> np.ndarray:
+        """Actuator units (rad, mm) per tick."""
+        return np.asarray(self.per_rev) / np.asarray(self.ticks_per_rev, dtype=float)
+
+    def ticks(self, values: Any) -> np.ndarray:
+        """Ticks (int64, nearest) of actuator values (..., nq) in rad / mm."""
+        return np.rint(np.asarray(values, dtype=float) / self.resolution).astype(np.int64)
+
+    def values(self, ticks: Any) -> np.ndarray:
+        """Actuator values (rad, mm) of ticks (..., nq); the inverse of `ticks` up to half a tick."""
+        return np.asarray(ticks, dtype=np.int64) * self.resolution
+
+    def name_of(self, dxl_id: int) -> str:
+        """``id 3 (s1c3)``: a servo as the messages name it."""
+        return f"id {dxl_id} ({self.names[self.ids.index(dxl_id)]})" if dxl_id in self.ids else f"id {dxl_id}"
+
+    def rows(self) -> list[dict[str, Any]]:
+        """Each actuator's bus keys as written in ``[robot.actuators]``."""
+        out = []
+        for i in range(len(self.ids)):
+            d: dict[str, Any] = {"id": self.ids[i], "ticks_per_rev": self.ticks_per_rev[i], "model": self.models[i]}
+            if i == len(self.ids) - 1:
+                d["lead"] = self.per_rev[i]
+            out.append(d)
+        return out

@@ -1,0 +1,414 @@
+"""A chain of simulated Dynamixel X-series servos speaking Protocol 2.0 on a pseudo-terminal.
+
+Written from the public Protocol 2.0 description (`crtraj.hardware.dynamixel_protocol`),
+not from the SDK, so tests through the official SDK check it against an
+independent reading of the spec.
+
+`ServoChain` is the servos without a port: `handle` one instruction packet at
+a device time (s) and get the status packets back. It answers PING, READ,
+WRITE, SYNC READ, SYNC WRITE and REBOOT on the X-series control table
+(`X`: model number, operating mode, torque enable, hardware error status,
+profile acceleration and velocity, goal, present velocity and position,
+indirect addresses and data, ...),
+refuses writes to read-only bytes and to EEPROM while the torque is on
+(access error), goal positions outside the operating mode's range (data limit
+error) and reads past the table (data range error). Each servo with torque on
+follows its goal on the time-optimal profile within its profile velocity and
+acceleration (`ServoProfile`; 0 means unlimited), and its measured position
+follows that reference through a first-order lag ``tau``; with torque off it
+stays where it is. Injectable faults: `drop_replies` (a timeout: the next
+packets get no answer), `corrupt_replies` (a wrong CRC), `set_hardware_error`
+(an error bit: the servo drops its torque and flags the alert bit) and
+`remove` (a missing id).
+
+`SimDynamixel` puts a chain on a pseudo-terminal (`os.openpty`, raw mode) and
+serves it from a thread: the host opens `path` like a USB serial port. A pty
+has no baud rate, so the simulator reads the host's configured rate from the
+terminal settings and ignores a host at another rate (as a real bus would
+see garbage), and with ``wire_time`` delays every reply by the time its bytes
+and the request's take on a real wire (10 bits per byte at the bus rate,
+one transfer at a time), so measured rates are those of a real bus. The servos
+answer without a return delay (Return Delay Time 0, as set up for streaming;
+the factory default adds 500 us per reply).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import select
+import struct
+import termios
+import threading
+import time
+import tty
+from collections.abc import Callable, Sequence
+from types import MappingProxyType
+
+import numpy as np
+
+from crtraj.core.errors import InputError
+from crtraj.hardware import dynamixel_protocol as dxl
+from crtraj.hardware.dynamixel_protocol import X
+from crtraj.hardware.sim_device import ServoProfile
+
+TICKS_PER_REV = 4096  # X-series encoder
+_UNLIMITED = 1e12  # ticks/s or ticks/s^2 for a profile register of 0
+_READ_ONLY = (range(0, 7), range(70, 71), range(120, X.INDIRECT_ADDRESS), range(X.INDIRECT_DATA, X.SIZE))
+_EEPROM_END = 64
+_BAUD_TERMIOS = MappingProxyType(
+    {b: getattr(termios, f"B{b}") for b in dxl.BAUD_CODES.values() if hasattr(termios, f"B{b}")}
+)
+
+
+class ServoChain:
+    """Simulated X-series servos on one bus. ids, models: bus ids and model numbers. initial: start
+    positions (ticks). tau: motor time constant (s, >= 0). Times are the caller's device clock (s)."""
+
+    def __init__(
+        self,
+        ids: Sequence[int],
+        models: Sequence[int],
+        *,
+        initial: Sequence[int] | None = None,
+        tau: float = 0.03,
+        baud: int = 1_000_000,
+    ) -> None:
+        if len(ids) != len(models) or not ids or len(set(ids)) != len(ids):
+            raise InputError("sim-dynamixel: needs distinct ids, one model number each")
+        if not all(0 <= i <= dxl.MAX_ID for i in ids):
+            raise InputError(f"sim-dynamixel: ids must be in 0..{dxl.MAX_ID}")
+        if not (math.isfinite(tau) and tau >= 0):
+            raise InputError(f"--tau: must be >= 0, got {tau}")
+        codes = {v: k for k, v in dxl.BAUD_CODES.items()}
+        if baud not in codes:
+            raise InputError(f"--baud: a Dynamixel rate ({', '.join(map(str, dxl.BAUD_CODES.values()))}), got {baud}")
+        self.ids = tuple(int(i) for i in ids)
+        self.baud = int(baud)
+        self.tau = float(tau)
+        n = len(self.ids)
+        x0 = np.zeros(n) if initial is None else np.asarray(initial, dtype=float).reshape(-1)
+        if x0.shape != (n,) or not np.all(np.abs(x0) <= X.EXTENDED_LIMIT):
+            raise InputError(f"sim-dynamixel: initial positions must be {n} tick values within the extended range")
+        self._table = [bytearray(X.SIZE) for _ in range(n)]
+        for k, t in enumerate(self._table):
+            struct.pack_into("<H", t, X.MODEL_NUMBER, int(models[k]))
+            t[X.FIRMWARE], t[X.ID], t[X.BAUD_RATE] = 46, self.ids[k], codes[self.baud]
+            t[X.OPERATING_MODE], t[13] = 3, 2  # position control, protocol 2
+            t[68] = 2  # status return level: answer every instruction
+            struct.pack_into("<H", t, X.PRESENT_VOLTAGE, 120)
+            t[X.PRESENT_TEMPERATURE] = 35
+            struct.pack_into("<i", t, X.GOAL_POSITION, int(np.rint(x0[k])))
+        self._x = x0.copy()  # measured positions (ticks)
+        self._v = np.zeros(n)  # measured velocities (ticks/s)
+        self._profile = ServoProfile(np.full(n, _UNLIMITED), np.full(n, _UNLIMITED), x0)
+        self._t: float | None = None  # device time reached; the first call's time is the start
+        self.present = set(self.ids)
+        self.silent = 0  # timeout fault: packets left to ignore
+        self.corrupt = 0  # corrupted-reply fault: packets left whose replies get a wrong CRC
+        self.silent_after: int | None = None  # timeout fault from this packet count on (None: never)
+        self.corrupt_after: int | None = None  # corrupted-reply fault from this packet count on (None: never)
+        self.counts = {"packets": 0, "replies": 0, "sync_writes": 0}
+
+    # --------------------------------------------------------------- faults
+    def drop_replies(self, packets: int) -> None:
+        """Timeout fault: answer none of the next `packets` instruction packets (writes still apply)."""
+        self.silent = int(packets)
+
+    def corrupt_replies(self, packets: int) -> None:
+        """Corrupted-reply fault: the replies to the next `packets` packets carry a wrong CRC."""
+        self.corrupt = int(packets)
+
+    def remove(self, dxl_id: int) -> None:
+        """Missing-id fault: the servo no longer answers (unplugged)."""
+        self.present.discard(dxl_id)
+
+    def set_hardware_error(self, dxl_id: int, bits: int, now: float = 0.0) -> None:
+        """Error-bit fault: set hardware error status bits; the servo turns its torque off (shutdown)."""
+        k = self.ids.index(dxl_id)
+        self.advance(now)
+        self._table[k][X.HARDWARE_ERROR] = bits & 0xFF
+        if bits:
+            self._torque(k, False, now)
+
+    # -------------------------------------------------------------- physics
+    def positions(self, now: float) -> np.ndarray:
+        """Measured positions (ticks, float) at device time `now`."""
+        self.advance(now)
+        return self._x.copy()
+
+    def torque(self, dxl_id: int) -> bool:
+        return bool(self._table[self.ids.index(dxl_id)][X.TORQUE_ENABLE])
+
+    def advance(self, now: float) -> None:
+        """Integrate the servos to `now` (s) in steps of at most 1 ms; earlier times are ignored."""
+        if self._t is None:
+            self._t = now
+            self._profile.plan(self._x, np.zeros_like(self._x), self._x, now)
+        on = np.array([t[X.TORQUE_ENABLE] == 1 for t in self._table])  # constant between packets
+        while now > self._t + 1e-12:
+            if self._t >= self._profile.end_time:  # the reference is at rest: one exact step to `now`
+                r = self._profile.target
+                decay = math.exp(-(now - self._t) / self.tau) if self.tau > 0 else 0.0
+                x_new = np.where(on, r + (self._x - r) * decay, self._x)
+                self._v = np.where(on, (r - x_new) / self.tau, 0.0) if self.tau > 0 else np.zeros_like(r)
+                self._x, self._t = x_new, now
+                return
+            h = min(1e-3, now - self._t)
+            self._t += h
+            r, _ = self._profile.sample(self._t)
+            x_new = r + (self._x - r) * (math.exp(-h / self.tau) if self.tau > 0 else 0.0)
+            x_new = np.where(on, x_new, self._x)
+            self._v = (x_new - self._x) / h
+            self._x = x_new
+
+    def _replan(self, now: float) -> None:
+        """Re-plan every servo's reference from where it is toward its goal (or its position, torque off)."""
+        p, v = self._profile.sample(now)
+        goals, vmax, amax = [], [], []
+        for k, t in enumerate(self._table):
+            on = t[X.TORQUE_ENABLE] == 1
+            if not on:
+                p[k], v[k] = self._x[k], 0.0
+            goals.append(struct.unpack_from("<i", t, X.GOAL_POSITION)[0] if on else self._x[k])
+            pv, pa = struct.unpack_from("<II", t, X.PROFILE_ACCELERATION)[::-1]
+            vmax.append(pv * X.VELOCITY_UNIT / 60.0 * TICKS_PER_REV if pv else _UNLIMITED)
+            amax.append(pa * X.ACCELERATION_UNIT / 3600.0 * TICKS_PER_REV if pa else _UNLIMITED)
+        self._profile.vmax, self._profile.amax = np.array(vmax), np.array(amax)
+        self._profile.plan(p, v, np.array(goals, dtype=float), now)
+
+    def _torque(self, k: int, on: bool, now: float) -> None:
+        t = self._table[k]
+        t[X.TORQUE_ENABLE] = 1 if on else 0
+        if on:  # a servo whose torque comes on holds where it is
+            struct.pack_into("<i", t, X.GOAL_POSITION, int(np.rint(self._x[k])))
+        self._replan(now)
+
+    # ------------------------------------------------------------- protocol
+    def handle(self, packet: dxl.Packet, now: float) -> list[bytes]:
+        """The status packets that answer one instruction packet at device time `now` (s)."""
+        self.advance(now)
+        self.counts["packets"] += 1
+        replies = self._dispatch(packet, now)
+        n = self.counts["packets"]
+        if self.silent > 0 or (self.silent_after is not None and n > self.silent_after):
+            self.silent = max(self.silent - 1, 0)
+            return []
+        late = self.corrupt_after is not None and n > self.corrupt_after
+        if (self.corrupt > 0 or late) and replies:
+            self.corrupt = max(self.corrupt - 1, 0)
+            replies = [r[:-1] + bytes([r[-1] ^ 0xFF]) for r in replies]
+        self.counts["replies"] += len(replies)
+        return replies
+
+    def _dispatch(self, p: dxl.Packet, now: float) -> list[bytes]:
+        if p.instruction == dxl.SYNC_READ and p.id == dxl.BROADCAST_ID:
+            return self._sync_read(p.params)
+        if p.instruction == dxl.SYNC_WRITE and p.id == dxl.BROADCAST_ID:
+            self._sync_write(p.params, now)
+            return []
+        if p.instruction == dxl.PING and p.id == dxl.BROADCAST_ID:
+            return [self._status(k, 0, self._ping_params(k)) for k in self._answering(self.ids)]
+        if p.id not in self.present:
+            return []  # another id, or broadcast writes we do not model: no answer
+        k = self.ids.index(p.id)
+        if p.instruction == dxl.PING:
+            return [self._status(k, 0, self._ping_params(k))]
+        if p.instruction == dxl.READ:
+            if len(p.params) != 4:
+                return [self._status(k, dxl.ERR_DATA_LENGTH)]
+            addr, length = struct.unpack("<HH", p.params)
+            data = self._read(k, addr, length)
+            return [self._status(k, dxl.ERR_DATA_RANGE)] if data is None else [self._status(k, 0, data)]
+        if p.instruction == dxl.WRITE:
+            if len(p.params) < 3:
+                return [self._status(k, dxl.ERR_DATA_LENGTH)]
+            (addr,) = struct.unpack_from("<H", p.params)
+            return [self._status(k, self._write(k, addr, p.params[2:], now))]
+        if p.instruction == dxl.REBOOT:
+            reply = self._status(k, 0)
+            t = self._table[k]
+            t[X.HARDWARE_ERROR] = 0
+            self._torque(k, False, now)
+            t[64:120] = bytes(56)  # RAM back to its defaults (zero here), position kept
+            t[68] = 2
+            struct.pack_into("<i", t, X.GOAL_POSITION, int(np.rint(self._x[k])))
+            return [reply]
+        return [self._status(k, dxl.ERR_INSTRUCTION)]
+
+    def _answering(self, ids: Sequence[int]) -> list[int]:
+        return [self.ids.index(i) for i in ids if i in self.present]
+
+    def _ping_params(self, k: int) -> bytes:
+        return bytes(self._table[k][X.MODEL_NUMBER : X.MODEL_NUMBER + 2]) + bytes([self._table[k][X.FIRMWARE]])
+
+    def _status(self, k: int, error: int, params: bytes = b"") -> bytes:
+        alert = dxl.ERR_ALERT if self._table[k][X.HARDWARE_ERROR] else 0
+        return dxl.status(self.ids[k], alert | error, params)
+
+    def _read(self, k: int, addr: int, length: int) -> bytes | None:
+        if length < 1 or addr + length > X.SIZE:
+            return None
+        t = self._table[k]
+        struct.pack_into("<i", t, X.PRESENT_POSITION, int(np.rint(self._x[k])))
+        rpm_units = self._v[k] * 60.0 / TICKS_PER_REV / X.VELOCITY_UNIT
+        struct.pack_into("<i", t, X.PRESENT_VELOCITY, int(np.clip(np.rint(rpm_units), -(2**31), 2**31 - 1)))
+        goal = struct.unpack_from("<i", t, X.GOAL_POSITION)[0]
+        t[X.MOVING] = 1 if abs(self._x[k] - goal) > 1 else 0
+        first = max(0, addr - X.INDIRECT_DATA)
+        for j in range(first, min(X.INDIRECT_COUNT, addr + length - X.INDIRECT_DATA)):  # mirrors of the bytes named
+            (src,) = struct.unpack_from("<H", t, X.INDIRECT_ADDRESS + 2 * j)
+            t[X.INDIRECT_DATA + j] = t[src] if src < X.INDIRECT_ADDRESS else 0
+        return bytes(t[addr : addr + length])
+
+    def _write(self, k: int, addr: int, data: bytes, now: float, replan: bool = True) -> int:
+        """Apply a write; the status error number (0: done). replan: re-plan the motion now when the write
+        changes it (a sync write re-plans once, after its last servo)."""
+        t = self._table[k]
+        end = addr + len(data)
+        if end > X.SIZE:
+            return dxl.ERR_DATA_RANGE
+        if any(a in r for a in range(addr, end) for r in _READ_ONLY):
+            return dxl.ERR_ACCESS
+        locked = addr < _EEPROM_END or (addr < X.INDIRECT_DATA and end > X.INDIRECT_ADDRESS)
+        if locked and t[X.TORQUE_ENABLE]:
+            return dxl.ERR_ACCESS  # EEPROM and the indirect addresses are locked while the torque is on
+        trial = bytearray(t[X.OPERATING_MODE : X.GOAL_POSITION + 4])  # the bytes the checks below read
+        base = X.OPERATING_MODE
+        lo_b, hi_b = max(addr, base), min(end, X.GOAL_POSITION + 4)
+        if lo_b < hi_b:
+            trial[lo_b - base : hi_b - base] = data[lo_b - addr : hi_b - addr]
+        goal = struct.unpack_from("<i", trial, X.GOAL_POSITION - base)[0]
+        extended = trial[0] == X.EXTENDED_POSITION
+        lo, hi = (-X.EXTENDED_LIMIT, X.EXTENDED_LIMIT) if extended else (0, 4095)
+        if addr < X.GOAL_POSITION + 4 and end > X.GOAL_POSITION and not lo <= goal <= hi:
+            return dxl.ERR_DATA_LIMIT
+        torque = trial[X.TORQUE_ENABLE - base]
+        if addr <= X.TORQUE_ENABLE < end and torque == 1 and t[X.HARDWARE_ERROR]:
+            return dxl.ERR_RESULT_FAIL  # a servo in shutdown needs a reboot first
+        if addr <= X.TORQUE_ENABLE < end and torque > 1:
+            return dxl.ERR_DATA_LIMIT
+        was_on = t[X.TORQUE_ENABLE]
+        t[addr:end] = data
+        if addr <= X.TORQUE_ENABLE < end and t[X.TORQUE_ENABLE] != was_on:
+            self._torque(k, bool(t[X.TORQUE_ENABLE]), now)
+        elif end > X.PROFILE_ACCELERATION and addr < X.GOAL_POSITION + 4 and replan:
+            self._replan(now)
+        return 0
+
+    def _sync_read(self, params: bytes) -> list[bytes]:
+        if len(params) < 5:
+            return []
+        addr, length = struct.unpack_from("<HH", params)
+        out = []
+        for k in self._answering(list(params[4:])):
+            data = self._read(k, addr, length)
+            out.append(self._status(k, dxl.ERR_DATA_RANGE) if data is None else self._status(k, 0, data))
+        return out
+
+    def _sync_write(self, params: bytes, now: float) -> None:
+        if len(params) < 4:
+            return
+        addr, length = struct.unpack_from("<HH", params)
+        block = 1 + length
+        body = params[4:]
+        if length < 1 or len(body) % block:
+            return  # malformed: a real servo ignores it
+        self.counts["sync_writes"] += 1
+        for j in range(0, len(body), block):
+            dxl_id = body[j]
+            if dxl_id in self.present:
+                self._write(self.ids.index(dxl_id), addr, body[j + 1 : j + block], now, replan=False)
+        if addr < X.GOAL_POSITION + 4 and addr + length > X.PROFILE_ACCELERATION:
+            self._replan(now)
+
+
+class SimDynamixel:
+    """A `ServoChain` served on a pseudo-terminal from a thread; `path` is the device to open.
+
+    clock: the chain's device time (s; tests pass a virtual clock). wire_time:
+    delay replies by their bytes' time on a real wire at the chain's baud rate.
+    """
+
+    def __init__(
+        self, chain: ServoChain, *, clock: Callable[[], float] = time.monotonic, wire_time: bool = True
+    ) -> None:
+        self.chain = chain
+        self.clock = clock
+        self.wire_time = wire_time
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._reader = dxl.PacketReader()
+        self._bus_free = 0.0
+        self.wrong_baud = 0  # reads ignored because the host's rate was not the bus rate
+        self._master, self._slave = os.openpty()
+        tty.setraw(self._slave)
+        attrs = termios.tcgetattr(self._slave)
+        attrs[4] = attrs[5] = _BAUD_TERMIOS.get(chain.baud, attrs[4])
+        termios.tcsetattr(self._slave, termios.TCSANOW, attrs)
+        self.path = os.ttyname(self._slave)
+
+    @property
+    def bad_packets(self) -> int:
+        """Packets dropped for a bad CRC or length."""
+        return self._reader.bad_crc + self._reader.bad_length
+
+    def __enter__(self) -> SimDynamixel:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def start(self) -> SimDynamixel:
+        self._thread = threading.Thread(target=self.serve, name="crtraj-sim-dynamixel", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(2.0)
+        for fd in (self._master, self._slave):
+            with contextlib.suppress(OSError):
+                os.close(fd)
+        self._master = self._slave = -1
+
+    def locked(self) -> threading.Lock:
+        """Hold it to change the chain's faults while it serves."""
+        return self._lock
+
+    def serve(self, duration: float | None = None) -> None:
+        """Answer packets until `stop` (or for `duration` s of wall time)."""
+        end = None if duration is None else time.monotonic() + duration
+        while not self._stop.is_set() and (end is None or time.monotonic() < end):
+            try:
+                ready, _, _ = select.select([self._master], [], [], 0.05)
+                if not ready:
+                    continue
+                data = os.read(self._master, 4096)
+            except OSError:
+                return  # closed
+            arrived = time.perf_counter()
+            if termios.tcgetattr(self._master)[4] != _BAUD_TERMIOS.get(self.chain.baud):
+                self.wrong_baud += 1  # a host at another rate: a real bus sees noise, nobody answers
+                continue
+            for packet in self._reader.feed(data):
+                with self._lock:
+                    replies = self.chain.handle(packet, self.clock())
+                self._send(packet.size, replies, arrived)
+
+    def _send(self, request_size: int, replies: list[bytes], arrived: float) -> None:
+        """Write the replies, after the wire time of the request and of each reply when modelled."""
+        per_byte = 10.0 / self.chain.baud
+        t = max(arrived, self._bus_free) + (request_size + sum(len(r) for r in replies)) * per_byte
+        self._bus_free = t
+        if not replies:
+            return
+        if self.wire_time:  # one sleep to the end of the last reply (the host waits for all of them anyway)
+            delay = t - time.perf_counter()
+            if delay > 0:
+                time.sleep(delay)
+        with contextlib.suppress(OSError):
+            os.write(self._master, b"".join(replies))
