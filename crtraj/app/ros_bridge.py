@@ -116,7 +116,10 @@ def run_ros_bridge(
             ready(node, feed)
         _await_robot(node, feed, ros)
         try:
-            loop = loop_from_problem(problem, seed=seed, feed=feed, lead=ros.lead)
+            # the run starts where the robot is (its newest joint state), not at the task's start
+            here = node.joint_state()
+            x_robot = None if here is None else problem.robot.config(acts.actuation(here[0]))
+            loop = loop_from_problem(problem, seed=seed, feed=feed, lead=ros.lead, start_config=x_robot)
         except UnsolvableTaskError as exc:
             print(f"{exc.status}: {exc}; no run, nothing written to {out}")
             print(f"crtraj: ros-bridge failed: {exc.status}: {exc}", file=sys.stderr)
