@@ -45,6 +45,7 @@ _USE_CASES = {
     "record": "crtraj.app.record:record_command",
     "calibrate": "crtraj.app.calibrate:calibrate_command",
     "build": "crtraj.app.build:build_command",
+    "ros-bridge": "crtraj.app.ros_bridge:ros_bridge_command",
 }
 
 
@@ -348,6 +349,31 @@ def _add_replan(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(use_case="replan")
 
 
+# ----------------------------------------------------------------- ros-bridge
+def _add_ros_bridge(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "ros-bridge",
+        help="run the replanner on a robot in a ROS 2 graph (the [ros] extra)",
+        description="Join a ROS 2 graph ([ros] section: domain, topics, QoS, frame; localhost-only discovery by "
+        "default): read the robot's actuator positions (sensor_msgs/JointState) and the live obstacles (SPHERE "
+        "markers, visualization_msgs/MarkerArray, and the UDP JSON feed on 127.0.0.1), run the replanner in real "
+        "time, and publish each step's verified motion (trajectory_msgs/JointTrajectory) and the body and "
+        "obstacles for RViz. A stale obstacle feed holds the robot; a step that fails verification is not sent. "
+        "Writes the run as crtraj replan does.",
+    )
+    p.add_argument("problem", help="problem TOML with a [ros] section (e.g. problems/paper_dynamic.toml)")
+    p.add_argument("--out", help="output folder (default out/ros-bridge)")
+    p.add_argument("--seed", type=int, default=None, help="random seed of the planner (default: the problem's)")
+    p.add_argument("--no-html", action="store_true", help="do not write run.html")
+    p.add_argument(
+        "--overwrite-failed",
+        action="store_true",
+        help="let a failed run replace a successful one in --out (default: it is written beside it, as OUT.failed)",
+    )
+    p.add_argument("--quiet", action="store_true", help="print only the summary lines")
+    p.set_defaults(use_case="ros-bridge")
+
+
 # ---------------------------------------------------------------------- bench
 def _add_bench(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
@@ -491,6 +517,7 @@ _COMMANDS: tuple[Callable[[argparse._SubParsersAction], None], ...] = (
     _add_sim_dynamixel,
     _add_plan,
     _add_replan,
+    _add_ros_bridge,
     _add_bench,
     _add_record,
     _add_calibrate,

@@ -94,8 +94,8 @@ def test_no_test_skips_on_a_missing_tool_by_itself():
 
 
 def test_every_test_needing_a_tool_or_extra_fails_in_ci_without_it(tmp_path):
-    """Run every such test with CI=true, an empty PATH and ompl, dask, distributed and dynamixel_sdk unimportable:
-    each must be reported failed (or errored, for a fixture), none passed or skipped."""
+    """Run every such test with CI=true, an empty PATH and ompl, dask, distributed, dynamixel_sdk and rclpy
+    unimportable: each must be reported failed (or errored, for a fixture), none passed or skipped."""
     sites = _sites()
     # the known uses, so the source scan itself cannot silently find nothing
     assert {
@@ -105,10 +105,12 @@ def test_every_test_needing_a_tool_or_extra_fails_in_ci_without_it(tmp_path):
         "tests/test_bench.py::test_ompl_plans_in_space_time_and_passes_the_dense_check",
         "tests/test_bench.py::test_dask_local_cluster_runs_the_bench",
         "tests/test_dynamixel.py::test_crc_agrees_with_the_sdk_on_random_packets",
+        "tests/test_ros_bridge.py::test_round_trip_reaches_the_goal_without_collision",
     } <= set(sites), sites
     (tmp_path / "bin").mkdir()
     (tmp_path / "block_extras.py").write_text(
-        "import sys\n\nfor name in ('ompl', 'dask', 'distributed', 'dynamixel_sdk'):\n    sys.modules[name] = None\n"
+        "import sys\n\n"
+        "for name in ('ompl', 'dask', 'distributed', 'dynamixel_sdk', 'rclpy'):\n    sys.modules[name] = None\n"
     )
     env = {
         **os.environ,

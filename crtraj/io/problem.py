@@ -38,6 +38,7 @@ SECTIONS = (
     "stream",
     "feed",
     "view",
+    "ros",
 )
 
 T = TypeVar("T")

@@ -1,0 +1,62 @@
+"""The ``[ros]`` problem section: topics, QoS, frame and timing of the ROS 2 bridge (`crtraj ros-bridge`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar
+
+from crtraj.core.errors import InputError
+from crtraj.core.options import Options, option
+
+_TOPIC_CHARS = frozenset("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_/~{}")
+
+
+@dataclass(frozen=True)
+class RosOptions(Options):
+    """The ``[ros]`` section (units s, Hz).
+
+    trajectory_topic: where each verified step is published (trajectory_msgs/JointTrajectory,
+    actuator names as joint names, rad for the servos and m for the base stage). joint_state_topic:
+    the robot's measured actuator positions (sensor_msgs/JointState, same names and units).
+    obstacle_topic: live obstacles (visualization_msgs/MarkerArray; SPHERE markers, ``ns`` = the
+    scene's obstacle name, position and scale in m). markers_topic: what the bridge shows in RViz
+    (backbone and obstacles, MarkerArray, m). frame_id: the frame of every marker sent and
+    accepted. reliability and depth: the QoS of every topic (history keep-last `depth`).
+    domain_id: the ROS domain (default: the environment's ROS_DOMAIN_ID, else 0). discovery:
+    "localhost" keeps discovery on this machine (the default, as every crtraj server binds
+    127.0.0.1), "subnet" lets other machines in.
+    points_per_step: trajectory points per replan step (each checked before it is sent). lead: s
+    each step is sent before it starts (the live obstacles are predicted that far ahead); a step not
+    ready by its start is refused and the robot held.
+    joint_state_timeout: s the bridge waits for a joint state at least as new as the step it
+    measures before it gives up on the robot. start_timeout: s to wait for the first joint state
+    and obstacles. max_age: s after which an obstacle's state is stale (the loop then holds).
+    udp_feed_port: also listen for the UDP JSON obstacle feed on 127.0.0.1 at this port (0: a
+    free port the bridge prints).
+    """
+
+    SECTION: ClassVar[str] = "ros"
+
+    trajectory_topic: str = option("/crtraj/joint_trajectory", max_len=200)
+    joint_state_topic: str = option("/joint_states", max_len=200)
+    obstacle_topic: str = option("/crtraj/obstacles", max_len=200)
+    markers_topic: str = option("/crtraj/markers", max_len=200)
+    frame_id: str = option("world", max_len=200)
+    reliability: str = option("reliable", choices=("reliable", "best_effort"))
+    depth: int = option(10, ge=1, le=1000)
+    domain_id: int | None = option(None, ge=0, le=232)
+    discovery: str = option("localhost", choices=("localhost", "subnet"))
+    points_per_step: int = option(5, ge=1, le=100)
+    lead: float = option(0.2, ge=0.0, le=10.0)
+    joint_state_timeout: float = option(1.0, gt=0.0, le=60.0)
+    start_timeout: float = option(10.0, gt=0.0, le=600.0)
+    max_age: float = option(0.2, gt=0.0, le=60.0)
+    udp_feed_port: int = option(0, ge=0, le=65535)
+
+    def _check(self) -> None:
+        for key in ("trajectory_topic", "joint_state_topic", "obstacle_topic", "markers_topic"):
+            name = getattr(self, key)
+            if not name or not set(name) <= _TOPIC_CHARS or "//" in name or name.endswith("/"):
+                raise InputError(f"ros.{key}: not a ROS topic name (letters, digits, _ and /), got {name[:60]!r}")
+        if not self.frame_id or not self.frame_id.isprintable():
+            raise InputError(f"ros.frame_id: expected a non-empty printable frame name, got {self.frame_id[:60]!r}")
