@@ -361,11 +361,24 @@ def _curve_piece(P: np.ndarray, limits: RateLimits, metric: BodyMetric, period: 
     return None
 
 
-def _chord(P: np.ndarray, limits: RateLimits, metric: BodyMetric, period: float) -> np.ndarray:
-    return retime(P, limits, metric, period=period).sample()[1]
+def _piece_frames(P: np.ndarray, limits: RateLimits, metric: BodyMetric, period: float) -> np.ndarray | None:
+    """Frames of one piece between two stops: the chord law for one straight motion, else the curve."""
+    if len(P) == 2:
+        return retime(P, limits, metric, period=period).sample()[1]
+    return _curve_piece(P, limits, metric, period)
 
 
-# Over 60 lines only by its docstring and the split loop, which reads best in one place.
+def _failures(validator: MotionValidator, stamps: np.ndarray, Y: np.ndarray, check: np.ndarray) -> np.ndarray:
+    """Indices k of the frame-to-frame motions Y[k] -> Y[k+1] (those with `check` set) that fail the validator
+    at their times (body, D_sf) or leave the configuration limits."""
+    e = np.flatnonzero(check)
+    if not e.size:
+        return e
+    ok = validator.edges_valid(Y[e], Y[e + 1], stamps[e], stamps[e + 1])
+    ok &= validator.within_limits(Y[e]) & validator.within_limits(Y[e + 1])
+    return e[~ok]
+
+
 def retime_curve(
     X: np.ndarray,
     limits: RateLimits,
@@ -377,55 +390,44 @@ def retime_curve(
 ) -> CurveTiming | None:
     """The path X (K, nx) timed along the smoothed curve through its corners, stopping only where the
     curve fails its check (see the module docstring), or None when even the chords fail at their new
-    times (moving obstacles). limits: the usable actuator limits; metric: the body-speed limit;
-    validator: the planner's motion check, against the scene at the frames' times. Among static
-    obstacles the chords (the verified geometry) need no new check."""
+    times (moving obstacles) or the path has fewer than 3 corners (nothing to smooth). limits: the
+    usable actuator limits; metric: the body-speed limit; validator: the planner's motion check,
+    against the scene at the frames' times. Among static obstacles the chords (the verified geometry)
+    need no new check."""
     X = np.atleast_2d(np.asarray(X, dtype=float))
     P = X[keep_corners(X)]
     if len(P) < 3:
         return None
     stops = [0, len(P) - 1]
-    cache: dict[tuple[int, int], np.ndarray | None] = {}
-    for _ in range(len(P)):
+    laws: dict[tuple[int, int], np.ndarray | None] = {}
+    for _ in range(len(P)):  # every round adds a stop; all corners stopped at is the chord law
         pieces = list(itertools.pairwise(stops))
-        frames = []
         for a, b in pieces:
-            if (a, b) not in cache:
-                Q = P[a : b + 1]
-                cache[(a, b)] = (
-                    _chord(Q, limits, metric, period) if b - a == 1 else _curve_piece(Q, limits, metric, period)
-                )
-            frames.append(cache[(a, b)])
-        failed = [i for i, f in enumerate(frames) if f is None]
-        if not failed:
+            if (a, b) not in laws:
+                laws[(a, b)] = _piece_frames(P[a : b + 1], limits, metric, period)
+        # piece index -> the frame near which it failed (None: no law along the whole piece)
+        split: dict[int, np.ndarray | None] = {i: None for i, ab in enumerate(pieces) if laws[ab] is None}
+        if not split:
+            frames = [laws[ab] for ab in pieces]
             owner = np.concatenate([np.full(len(f) - (i > 0), i) for i, f in enumerate(frames)])
             Y = np.concatenate([f if i == 0 else f[1:] for i, f in enumerate(frames)])
             if len(Y) > MAX_SAMPLES:
                 raise InputError(f"retime: {len(Y) * period:g} s is more than {MAX_SAMPLES} set-points")
             stamps = t0 + period * np.arange(len(Y))
-            check = np.array([not validator.static or b - a > 1 for a, b in pieces])[owner[1:]]
-            ok = np.ones(len(Y) - 1, dtype=bool)
-            e = np.flatnonzero(check)
-            if e.size:
-                ok[e] = validator.edges_valid(Y[e], Y[e + 1], stamps[e], stamps[e + 1])
-                ok[e] &= validator.within_limits(Y[e + 1]) & validator.within_limits(Y[e])
-            if np.all(ok):
+            curved = np.array([b - a > 1 for a, b in pieces])
+            bad = _failures(validator, stamps, Y, (curved | (not validator.static))[owner[1:]])
+            if not bad.size:
                 return CurveTiming(stamps, Y, tuple(stops), len(P))
-            bad = np.flatnonzero(~ok)
-            failed = sorted({int(owner[k + 1]) for k in bad})
-            where = {int(owner[k + 1]): Y[k] for k in bad[::-1]}  # first failing frame of each piece
-        else:
-            where = {}
-        new = set()
-        for i in failed:
+            for k in bad[::-1]:  # the first failure of each piece
+                split[int(owner[k + 1])] = Y[k]
+        added = set()
+        for i, near in split.items():
             a, b = pieces[i]
             if b - a == 1:
                 return None  # a chord fails at its new times: the caller keeps a slower verified timing
             inner = np.arange(a + 1, b)
-            if i in where:  # stop at the corner nearest to the failure
-                k = inner[int(np.argmin(metric.motion_bound(P[inner] - where[i])))]
-            else:  # no law along the whole piece: halve it
-                k = inner[len(inner) // 2]
-            new.add(int(k))
-        stops = sorted(set(stops) | new)
+            # stop at the corner nearest to the failure; with no law at all, halve the piece
+            k = len(inner) // 2 if near is None else int(np.argmin(metric.motion_bound(P[inner] - near)))
+            added.add(int(inner[k]))
+        stops = sorted(set(stops) | added)
     return None
