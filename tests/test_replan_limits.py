@@ -177,3 +177,25 @@ def test_streamed_run_stays_on_the_executed_motion_and_keeps_the_samples_bounds(
     assert np.all(np.abs(acc) <= d2.max(axis=0) / h**2 * (1 + 1e-9) + 1e-9)
     # and those are the loop's own limits (full limits over the interpolation gain): the reserve is real
     assert np.all(d2.max(axis=0) / h**2 <= acts.amax / 2.0 * (1 + 1e-9))
+
+
+def test_run_document_executed_field_is_validated_and_optional(paper_run):
+    """`executed` is read with one-line errors naming the field; a run written before it existed streams its
+    waypoints as before."""
+    from crtraj.core.errors import InputError
+
+    res = paper_run[2]
+    rec = read_result(res).motion_record()
+    assert rec.period == res["executed"]["dt"] and len(rec.q) == len(res["executed"]["q"])
+    for key, value, match in (
+        ("dt", -0.02, r"^executed\.dt: "),
+        ("q", [[0.0] * 6], r"^executed\.q: expected shape"),
+        ("q", [], r"^executed\.q: expected a non-empty list"),
+        ("t0", None, r"^executed\.t0: "),
+    ):
+        bad = {**res, "executed": {**res["executed"], key: value}}
+        with pytest.raises(InputError, match=match):
+            read_result(bad)
+    old = {k: v for k, v in res.items() if k != "executed"}
+    rec_old = read_result(old).motion_record()
+    assert rec_old.period is None and len(rec_old.q) == len(res["waypoints"])

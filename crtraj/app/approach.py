@@ -141,7 +141,9 @@ def plan_approach(motion: AdmittedMotion, here: np.ndarray, options: ApproachOpt
     robot, acts, v = motion.robot, motion.actuators, motion.verifier
     x_from = robot.config(acts.actuation(np.asarray(here, dtype=float)))
     x_to = robot.config(acts.actuation(motion.path.values[0]))
-    path, why = _first_safe(motion, here, _candidate_paths(motion, np.stack([x_from, x_to]), None, o.slowdowns))
+    # among static obstacles a slower candidate has the same geometry: one timing is enough
+    slowdowns = o.slowdowns[:1] if v.validator.static else o.slowdowns
+    path, why = _first_safe(motion, here, _candidate_paths(motion, np.stack([x_from, x_to]), None, slowdowns))
     if path is not None:
         return path
     reasons = [f"straight move: {why}"]
@@ -170,7 +172,7 @@ def plan_approach(motion: AdmittedMotion, here: np.ndarray, options: ApproachOpt
             continue
         X = np.vstack([res.configs, x_to[None]])
         floor = np.concatenate([np.diff(res.t), [0.0]])  # never faster than the planner's body-speed limit
-        path, why = _first_safe(motion, here, _candidate_paths(motion, X, floor, o.slowdowns, t_end - T))
+        path, why = _first_safe(motion, here, _candidate_paths(motion, X, floor, slowdowns, t_end - T))
         if path is not None:
             return path
         reasons.append(f"planned move: {why}")
