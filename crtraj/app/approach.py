@@ -172,7 +172,8 @@ def plan_approach(motion: AdmittedMotion, here: np.ndarray, options: ApproachOpt
             continue
         X = np.vstack([res.configs, x_to[None]])
         floor = np.concatenate([np.diff(res.t), [0.0]])  # never faster than the planner's body-speed limit
-        path, why = _first_safe(motion, here, _candidate_paths(motion, X, floor, slowdowns, t_end - T))
+        start = None if v.validator.static else t_end - T  # among static obstacles no waiting at the start
+        path, why = _first_safe(motion, here, _candidate_paths(motion, X, floor, slowdowns, start))
         if path is not None:
             return path
         reasons.append(f"planned move: {why}")
