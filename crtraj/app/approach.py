@@ -172,8 +172,12 @@ def plan_approach(motion: AdmittedMotion, here: np.ndarray, options: ApproachOpt
             continue
         X = np.vstack([res.configs, x_to[None]])
         floor = np.concatenate([np.diff(res.t), [0.0]])  # never faster than the planner's body-speed limit
-        start = None if v.validator.static else t_end - T  # among static obstacles no waiting at the start
-        path, why = _first_safe(motion, here, _candidate_paths(motion, X, floor, slowdowns, start))
+        # first as late as the timing allows (ending at the motion's first time); among moving obstacles then
+        # also from the time it was planned at, waiting at the start (the planner verified those times)
+        paths = _candidate_paths(motion, X, floor, slowdowns)
+        if not v.validator.static:
+            paths += _candidate_paths(motion, X, floor, slowdowns, t_end - T)
+        path, why = _first_safe(motion, here, paths)
         if path is not None:
             return path
         reasons.append(f"planned move: {why}")
