@@ -162,6 +162,7 @@ class ReplanRun:
     setup_time: float
     wall_time: float
     nlp: dict[str, Any] = field(default_factory=dict)
+    executed: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)), repr=False)
     late_steps: int = 0
     live: bool = False
     device: dict[str, Any] = field(default_factory=dict)  # the device's `describe()` of a live-streamed run
@@ -169,7 +170,6 @@ class ReplanRun:
     # largest actuator speed / acceleration of the recorded actuation as streamed, as fractions of the
     # limits (`crtraj.control.executed.limit_fractions`); {} without actuator limits
     limit_fractions: dict[str, float] = field(default_factory=dict)
-    executed: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)), repr=False)
 
     @property
     def steps(self) -> int:
@@ -839,6 +839,7 @@ class ClosedLoop:
             dense_x=np.concatenate(log.dense_x),
             commands=np.concatenate(log.commands) if log.commands else np.zeros((0, nq)),
             control_dt=self.options.dt / self.n_sub,
+            executed=executed,
             reference_tips=tuple(st.refs_used),
             tree_edges=st.tree_edges,
             goal=self.goal,
@@ -853,7 +854,6 @@ class ClosedLoop:
             device={} if device is None else device.describe(),
             feed=log.feed_record(self.obstacles),
             limit_fractions=fractions,
-            executed=executed,
         )
 
 
