@@ -249,15 +249,32 @@ def test_curve_keeps_speed_through_the_corners_when_it_passes_its_check(robot):
         assert np.all(np.min(np.abs(curve.configs - x), axis=0) <= step + 1e-12)
 
 
-def test_curve_falls_back_to_the_chords_where_it_fails_its_check(robot):
+@pytest.mark.parametrize("static", [True, False])
+def test_curve_falls_back_to_the_chords_where_it_fails_its_check(robot, static):
     """A check that accepts only frames on the verified polyline: the curve stops at corner after corner
-    until every piece is one straight motion, i.e. the chord law, frame for frame."""
+    until every piece is one straight motion, i.e. the chord law, frame for frame (among moving obstacles
+    the chords are checked at their new times too, and pass here)."""
     X, lim = _zigzag()
     metric = BodyMetric(robot, 50.0)
     check = _PolylineOnly(X)
+    check.static = static
     curve = retime_curve(X, lim, metric, check, t0=0.5, period=1.0 / RATE)
     assert curve is not None and curve.stops == tuple(range(len(X)))
     stamps, Y = retime(X, lim, metric, t0=0.5, period=1.0 / RATE).sample()
     np.testing.assert_array_equal(curve.stamps, stamps)
     np.testing.assert_allclose(curve.configs, Y, rtol=0, atol=1e-9)
     assert 1 < check.calls <= len(X)
+
+
+def test_curve_gives_up_when_a_chord_fails_at_its_new_times(robot):
+    """Among moving obstacles a chord that fails at its new times cannot be split further: no curve timing
+    (the caller then tries the slower verified timings)."""
+    X, lim = _zigzag()
+
+    class _Nothing(_PolylineOnly):
+        static = False
+
+        def edges_valid(self, A, B, TA, TB):
+            return np.zeros(len(A), dtype=bool)
+
+    assert retime_curve(X, lim, BodyMetric(robot, 50.0), _Nothing(X), period=1.0 / RATE) is None
