@@ -43,7 +43,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-import toppra as ta
 from scipy.interpolate import CubicSpline
 
 from crtraj.core.errors import InputError
@@ -230,6 +229,8 @@ def retime(
 def toppra_durations(X: np.ndarray, limits: RateLimits, metric: BodyMetric, gridpoints: int = 50) -> np.ndarray:
     """The same rest-to-rest problem solved by toppra (the reference TOPP-RA library), per straight
     motion between the corners of X: durations (s). For comparison with `min_durations` (benchmarks)."""
+    import toppra as ta  # the reference library: needed only by this cross-check (benchmarks, tests)
+
     P = np.asarray(X, dtype=float)[keep_corners(X)]
     out = []
     for xa, xb in itertools.pairwise(P):
@@ -276,6 +277,8 @@ def _piece_law(P: np.ndarray, limits: RateLimits, metric: BodyMetric) -> tuple[C
     """(x(s), grid points, ds/dt at them) of the time-optimal rest-to-rest law along the natural cubic
     spline through P (K >= 3, nx), s the cumulative body-motion bound of the chords (mm); `InputError`
     when toppra finds none."""
+    import toppra as ta  # imported when a curve is timed (crtraj's other commands start without it)
+
     ss = np.concatenate([[0.0], np.cumsum(metric.motion_bound(np.diff(P, axis=0)))])
     spline = CubicSpline(ss, P, bc_type="natural")
     J = limits.jacobian
