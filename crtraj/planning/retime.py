@@ -41,9 +41,9 @@ from __future__ import annotations
 import itertools
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
-from scipy.interpolate import CubicSpline
 
 from crtraj.core.errors import InputError
 from crtraj.planning.metric import BodyMetric
@@ -273,18 +273,21 @@ class CurveTiming:
         return float(self.stamps[-1] - self.stamps[0])
 
 
-def _piece_law(P: np.ndarray, limits: RateLimits, metric: BodyMetric) -> tuple[CubicSpline, np.ndarray, np.ndarray]:
+def _piece_law(P: np.ndarray, limits: RateLimits, metric: BodyMetric) -> tuple[Any, np.ndarray, np.ndarray]:
     """(x(s), grid points, ds/dt at them) of the time-optimal rest-to-rest law along the natural cubic
     spline through P (K >= 3, nx), s the cumulative body-motion bound of the chords (mm); `InputError`
     when toppra finds none."""
     import toppra as ta  # imported when a curve is timed (crtraj's other commands start without it)
 
     ss = np.concatenate([[0.0], np.cumsum(metric.motion_bound(np.diff(P, axis=0)))])
-    spline = CubicSpline(ss, P, bc_type="natural")
+    spline = ta.SplineInterpolator(ss, P, bc_type="natural")  # x(s); spline(s, 1) is dx/ds
     J = limits.jacobian
     # toppra's path: the actuator values J x(s) (the same spline, mapped linearly) and s itself
     path = ta.SplineInterpolator(ss, np.hstack([P @ J.T, ss[:, None]]), bc_type="natural")
-    dspline = spline.derivative()
+
+    def dspline(s: Any) -> np.ndarray:
+        return spline(s, 1)
+
     big = 1e12  # no limit on s itself beyond the body speed, none on its acceleration
     n = int(min(MAX_GRID, GRID_PER_KNOT * (len(ss) - 1)))
     grid = np.unique(np.concatenate([ss, np.linspace(0.0, ss[-1], n + 1)]))
@@ -318,7 +321,7 @@ def _piece_law(P: np.ndarray, limits: RateLimits, metric: BodyMetric) -> tuple[C
     return spline, np.asarray(data.gridpoints, dtype=float), sd
 
 
-def _sample_law(spline: CubicSpline, gp: np.ndarray, sd: np.ndarray, period: float, slow: float) -> np.ndarray:
+def _sample_law(spline: Any, gp: np.ndarray, sd: np.ndarray, period: float, slow: float) -> np.ndarray:
     """Configurations every period along x(s) with ds/dt = sd at the grid points gp (constant ds2/dt2
     between them, as TOPP-RA assumes), slowed `slow` >= 1 times and stretched to whole periods."""
     ds = np.diff(gp)
