@@ -1,12 +1,15 @@
 """Retiming of sim-1 plans (problems/paper_static.toml) within the actuator limits (issue 13, item 1).
 
 For each seed: the c-space plan (edges timed within max_speed and the actuators' speed limits),
-then `crtraj.app.plan.retime_result` (closed-form rest-to-rest law along the verified polyline,
-sampled at the stream rate). Reported side by side: the planner's timing (old) and the retimed
-one (new): duration, and the largest actuator velocity and acceleration as fractions of the full
-limits, measured as the streamer samples the motion (100 Hz, finite differences from rest). The
-retiming time is the median wall time of `crtraj.planning.retime.retime` + sampling per path;
-beside it, toppra on the same rest-to-rest problems (one TOPP-RA run per straight motion).
+then `crtraj.app.plan.retime_result` (toppra along the smoothed curve through the corners, verified,
+stopping at corners only where the curve fails; `crtraj.planning.retime.retime_curve`). Reported
+side by side: the planner's timing (old; body: its largest body speed as streamed over max_speed),
+the rest-to-rest law along the chords (chords: stops at every corner, the previous retiming) and the
+retimed motion (new): duration, and the largest actuator velocity and acceleration as fractions of
+the full limits, measured as the streamer samples the motion (100 Hz, finite differences from
+rest). Times: the median wall time of the chord law (`retime` + sampling, closed form) per path, of
+the whole curve retiming (toppra, sampling, verification), and of toppra on the chord law's
+rest-to-rest problems (one TOPP-RA run per straight motion).
 
 Run: python benchmarks/retime.py [--seeds 10] [--repeat 20]
 """
@@ -25,6 +28,7 @@ import numpy as np
 
 from crtraj.app.plan import _fractions, retime_result
 from crtraj.hardware.actuators import Actuators
+from crtraj.hardware.setpoints import SetpointPath
 from crtraj.io.problem import Problem
 from crtraj.model.kinematics import Model
 from crtraj.planning.metric import BodyMetric
@@ -57,20 +61,26 @@ def main() -> None:
     print(f"# {platform.node()} {platform.machine()} {platform.processor() or ''} python {platform.python_version()}")
     print(f"# limit_fraction {options.limit_fraction}, max_speed {options.max_speed} mm/s, rate {RATE:g} Hz")
     print(
-        "seed  corners | old: dur_s  v_frac  a_frac | new: dur_s  v_frac  a_frac | retime_ms  toppra_ms  toppra/closed"
+        "seed  corners | old: dur_s  v_frac  a_frac  body | chords: dur_s | new: dur_s  v_frac  a_frac  stops "
+        "| chord_ms  curve_ms  toppra_ms  toppra/closed"
     )
-    times, tops, ratios = [], [], []
+    times, curve_times, tops, ratios, rows = [], [], [], [], []
     for seed in range(1, args.seeds + 1):
         r0 = planner.plan(task.goal, start_tip=task.start, seed=seed, goal_tolerance=task.goal_tolerance)
         if not r0.is_success():
             print(f"{seed:4d}  plan failed: {r0.status}")
             continue
         old = _fractions(r0, act, RATE)
+        _, sent = SetpointPath.from_actuation(r0.t, r0.cables, act).sample(RATE)
+        body = np.max(metric.motion_bound(np.diff(problem.robot.config(act.actuation(sent)), axis=0))) * RATE
+        t1 = time.perf_counter()
         r1, new = retime_result(r0, planner.validator, options, act, limits, RATE)
+        curve_times.append(time.perf_counter() - t1)
         runs = []
         for _ in range(args.repeat):
             t1 = time.perf_counter()
-            retime(r0.configs, usable, metric, t0=float(r0.t[0]), period=1.0 / RATE).sample()
+            chords = retime(r0.configs, usable, metric, t0=float(r0.t[0]), period=1.0 / RATE)
+            chords.sample()
             runs.append(time.perf_counter() - t1)
         t1 = time.perf_counter()
         td = toppra_durations(r0.configs, usable, metric)
@@ -81,16 +91,25 @@ def main() -> None:
         times.append(statistics.median(runs))
         tops.append(t_top)
         ratios.append(ratio)
+        stops = new["outcome"].split("(")[-1].split(" of")[0] if "curve" in new["outcome"] else "all"
+        rows.append((r0.duration, chords.duration, r1.duration))
         print(
             f"{seed:4d}  {len(P):7d} | {r0.duration:10.2f}  {old['max_velocity_fraction']:6.2f}  "
-            f"{old['max_acceleration_fraction']:6.2f} | {r1.duration:10.2f}  {new['max_velocity_fraction']:6.2f}  "
-            f"{new['max_acceleration_fraction']:6.2f} | {times[-1] * 1e3:9.2f}  {t_top * 1e3:9.1f}  {ratio:13.4f}"
+            f"{old['max_acceleration_fraction']:6.2f}  {body / options.max_speed:4.2f} | {chords.duration:13.2f} | "
+            f"{r1.duration:10.2f}  {new['max_velocity_fraction']:6.2f}  {new['max_acceleration_fraction']:6.2f}  "
+            f"{stops:>5s} | {times[-1] * 1e3:8.2f}  {curve_times[-1] * 1e3:8.1f}  {t_top * 1e3:9.1f}  {ratio:13.4f}"
         )
     if times:
+        old_d, chord_d, new_d = (np.array(c) for c in zip(*rows, strict=True))
         print(
-            f"median retime {statistics.median(times) * 1e3:.2f} ms per path (target <= 5 ms); "
-            f"toppra {statistics.median(tops) * 1e3:.1f} ms; toppra duration / closed form "
-            f"{min(ratios):.4f}..{max(ratios):.4f}"
+            f"median chord law {statistics.median(times) * 1e3:.2f} ms per path (target <= 5 ms); curve retiming "
+            f"{statistics.median(curve_times) * 1e3:.0f} ms; toppra per chord law {statistics.median(tops) * 1e3:.1f} "
+            f"ms; toppra duration / closed form {min(ratios):.4f}..{max(ratios):.4f}"
+        )
+        print(
+            f"duration new / old: median {np.median(new_d / old_d):.3f} ({np.min(new_d / old_d):.3f}.."
+            f"{np.max(new_d / old_d):.3f}); new / chords: median {np.median(new_d / chord_d):.3f} "
+            f"({np.min(new_d / chord_d):.3f}..{np.max(new_d / chord_d):.3f})"
         )
 
 

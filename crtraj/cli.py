@@ -150,8 +150,8 @@ def _add_stream(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--approach",
         action="store_true",
-        help="first move from the device's position to the trajectory start (straight line in actuator space, "
-        "not collision checked)",
+        help="first move from the device's position to the trajectory start (straight if that is safe, else "
+        "planned in the result's scene; verified like the rest, nothing is sent without a safe one)",
     )
     p.add_argument("--log", help="run record (JSON lines; default out/stream/<result>-<time>.jsonl)")
     p.set_defaults(use_case="stream")
@@ -313,7 +313,7 @@ def _add_replan(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--approach",
         action="store_true",
-        help="with --stream: first move from the device's position to the run's start (not collision checked); "
+        help="with --stream: first move from the device's position to the run's start (planned and verified); "
         "with --feed and --stream: start the live run from the device's position even when it is not the task's "
         "start (every move from there is verified; without it such a device is refused)",
     )

@@ -35,7 +35,7 @@ from crtraj.planning.options import PlannerOptions
 from crtraj.planning.rate_limits import RateLimits
 from crtraj.planning.registry import make_planner
 from crtraj.planning.result import PlanResult
-from crtraj.planning.retime import retime
+from crtraj.planning.retime import retime, retime_curve
 from crtraj.planning.steer import SteerOptions
 from crtraj.planning.validity import MotionValidator
 from crtraj.world.scene import Scene
@@ -123,15 +123,18 @@ def retime_result(
 ) -> tuple[PlanResult, dict[str, Any]]:
     """The result timed within `options.limit_fraction` of the actuator limits and max_speed.
 
-    The verified geometry (the result's waypoints joined by straight motions) is kept exactly;
-    its time-optimal law (`crtraj.planning.retime`) is sampled every 1/rate s (the stream rate)
-    into the new waypoints, so a streamer sampling at that rate sends exactly them. Static scene:
-    that law. Moving obstacles: the law is re-verified at its own times with the planner's
-    validator; if it fails, the law that never runs a straight motion faster than the planner's
-    verified timing is tried (verified too); if that fails as well, the planner's verified timing
-    is kept (and the fractions below show by how much it exceeds the limits). Returns the result
-    and a report: method, outcome, durations (s) and the largest velocity and acceleration as
-    fractions of the full limits, measured as the streamer samples the motion.
+    The motion is sampled every 1/rate s (the stream rate) into the new waypoints, so a streamer
+    sampling at that rate sends exactly them. First the time-optimal law along the smoothed curve
+    through the path's corners (`crtraj.planning.retime.retime_curve`): its frames are verified
+    with the planner's validator at their times, and it stops at a corner only where the curve
+    fails. Without a curve (a path of one or two straight motions, or chords that fail at their
+    new times among moving obstacles): the rest-to-rest law along the verified straight motions
+    (`retime`; among moving obstacles re-verified at its own times, then the law that never runs a
+    straight motion faster than the planner's verified timing); if that fails as well, the
+    planner's verified timing is kept (and the fractions below show by how much it exceeds the
+    limits). Returns the result and a report: method, outcome, durations (s) and the largest
+    velocity and acceleration as fractions of the full limits, measured as the streamer samples
+    the motion.
     """
     before = result.duration
     info: dict[str, Any] = {"method": "closed-form rest-to-rest per straight motion", "rate_hz": rate}
@@ -141,25 +144,30 @@ def retime_result(
     usable = limits.scaled(options.limit_fraction)
     metric = BodyMetric(validator.robot, options.max_speed)
     X, t0, period = result.configs, float(result.t[0]), 1.0 / rate
-    candidates = [("retimed", None)]
-    if not validator.static:
-        candidates.append(("retimed, no faster than verified", np.diff(result.t)))
+    model = validator.model
+
+    def timed(stamps: np.ndarray, Y: np.ndarray, clearance: float) -> PlanResult:
+        return replace(
+            result, t=stamps, configs=Y, tips=model.tip_position(Y), cables=model.cables(Y), min_clearance=clearance
+        )
+
     out, outcome = result, "kept the verified timing (the retimed motion failed its collision check)"
-    for name, floor in candidates:
-        stamps, Y = retime(X, usable, metric, t0=t0, period=period, at_least=floor).sample()
-        if validator.static or validator.path_valid(Y, stamps):
-            model = validator.model
-            clearance = result.min_clearance if validator.static else validator.path_clearance(Y, stamps)[0]
-            out = replace(
-                result,
-                t=stamps,
-                configs=Y,
-                tips=model.tip_position(Y),
-                cables=model.cables(Y),
-                min_clearance=clearance,
-            )
-            outcome = name
-            break
+    curve = retime_curve(X, usable, metric, validator, t0=t0, period=period)
+    if curve is not None:
+        # the frames passed their own check at their times; their clearance is measured the same way
+        out = timed(curve.stamps, curve.configs, validator.path_clearance(curve.configs, curve.stamps)[0])
+        outcome = f"retimed along the smoothed curve ({len(curve.stops) - 2} of {curve.corners - 2} corners stopped at)"
+        info.update(method="toppra along the natural cubic spline through the corners; stops where it fails")
+    else:
+        candidates = [("retimed", None)]
+        if not validator.static:
+            candidates.append(("retimed, no faster than verified", np.diff(result.t)))
+        for name, floor in candidates:
+            stamps, Y = retime(X, usable, metric, t0=t0, period=period, at_least=floor).sample()
+            if validator.static or validator.path_valid(Y, stamps):
+                clearance = result.min_clearance if validator.static else validator.path_clearance(Y, stamps)[0]
+                out, outcome = timed(stamps, Y, clearance), name
+                break
     info.update(outcome=outcome, verified_duration_s=before, vertices=len(X))
     return out, {**info, **_fractions(out, actuators, rate)}
 

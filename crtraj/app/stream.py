@@ -106,9 +106,9 @@ def _stream(args: argparse.Namespace, motion: AdmittedMotion, opts: StreamOption
         to = f"file://{Path(args.dry_run).resolve()}" if frames is not None else transport.description
         path = motion.path
         n = round(path.duration * opts.rate) + 1
+        what = f"{len(path.t)} waypoints" if path.slopes is None else f"B-spline of {len(path.t) - 2} executed samples"
         print(
-            f"streaming {args.result} ({len(path.t)} waypoints, {path.duration:.2f} s, ~{n} set-points at "
-            f"{opts.rate:g} Hz) to {to}",
+            f"streaming {args.result} ({what}, {path.duration:.2f} s, ~{n} set-points at {opts.rate:g} Hz) to {to}",
             flush=True,
         )
         streamer = Streamer(transport, motion.actuators, opts, log)

@@ -78,13 +78,13 @@ MOVED_TO_LOOP = (
     "settle_time",
 )
 
-# How much the streamer's interpolation may amplify the acceleration of a run's recorded samples.
-# `crtraj stream` sends a shape-preserving cubic (PCHIP) through the samples, every dt apart. PCHIP
-# puts a zero slope wherever the motion starts, stops or reverses, so the cubic next to such a sample
-# changes velocity from 0 to about the next step's mean velocity delta within one interval: peak
-# |p''| = (6 delta - 2 d1) / dt with the far slope d1 ~ delta, i.e. 4 delta / dt, where the sampled
-# (finite-difference) acceleration was only delta / dt. The closed loop keeps the samples' acceleration
-# within the limit divided by this gain, so the interpolated set-points keep the limit itself.
+# The closed loop keeps its samples' acceleration (NLP steps, tracking set-points, hence the servos'
+# motion at every control period) within the actuator limit divided by this gain. `crtraj stream` sends
+# a recorded run as the B-spline of its executed actuation (`crtraj.control.executed`), whose
+# acceleration never exceeds the samples' own, so a replayed run keeps half the limit (0.47 of it on
+# paper_dynamic). The gain dates from the PCHIP interpolation it replaced (which amplified up to ~4x at
+# reversals); it stays at 2 because lowering it changes every run's timing and the margins of the live
+# stream's follower (`crtraj.hardware.link`).
 INTERPOLATION_GAIN = 2.0
 
 

@@ -118,6 +118,9 @@ class ReplanRun:
     commands: (K n_sub, nq) actuator set-point of every tracking period of
     length control_dt (s), from t = 0: with the servo model and q[0] they
     reproduce the actual motion at any instant (for independent re-checks).
+    executed: (K n_sub + 1, nq) the actual actuation (mm) at the end of every
+    tracking period, from t = 0: what `crtraj stream` sends, as the clamped
+    cubic B-spline of `crtraj.control.executed`.
     reference_tips: tip polylines of every reference path used, with the
     step index each started at. feed: a live feed's counters, options and
     every rejected or clamped message (loop time t, receiver time, kind,
@@ -159,6 +162,7 @@ class ReplanRun:
     setup_time: float
     wall_time: float
     nlp: dict[str, Any] = field(default_factory=dict)
+    executed: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)), repr=False)
     late_steps: int = 0
     live: bool = False
     device: dict[str, Any] = field(default_factory=dict)  # the device's `describe()` of a live-streamed run
@@ -474,15 +478,15 @@ class ClosedLoop:
         return float(np.min(self._scene_now.clearance_points(P, T, inflate=self.robot.body_radius)))
 
     def _at_rest(self, st: _State) -> bool:
-        """The last step moved every actuator slowly enough to stop within its acceleration limit in one
-        step: the executed motion ends at rest, and the streamer's interpolation (zero slope at the last
-        sample, at most 6 |step| / dt^2 of acceleration over the last interval) keeps that limit."""
+        """The last control period moved every actuator slowly enough to stop within its acceleration limit
+        in one period: the streamed curve (`crtraj.control.executed`) ends at rest with an acceleration of
+        at most |last period's step| / h^2, which then keeps the limit."""
         if self.rate_limits is None:
             return True
-        dt = self.options.dt
+        h = self.options.dt / self.n_sub
         f = self.options.limit_fraction
-        step = np.abs(self.rate_limits.jacobian @ (st.x - st.x_prev))
-        return bool(np.all(6.0 * step <= f * self.rate_limits.amax * dt * dt))
+        step = np.abs(self.rate_limits.jacobian @ (st.x - self.servo.config(st.q_last)))
+        return bool(np.all(step <= f * self.rate_limits.amax * h * h))
 
     def _reference_valid(self, ref: TimedReference, s_now: float, t: float) -> bool:
         """The next stretch of the reference is clear of the obstacles at the times it would be reached."""
@@ -640,16 +644,29 @@ class ClosedLoop:
         q_new, qc_new, T, X, cmds = sim
         if device is not None:
             self._drive(device, status, t, st.q, cmds, why, bound)
+        periods = self._periods(st.q, cmds)
         measured = self._measure(T, X)
         # the set-point's last change (configuration): the next step's acceleration history
         before = cmds[-2] if len(cmds) > 1 else st.qc
         st.inc = self.servo.config(qc_new) - self.servo.config(before)
         st.x_prev, st.x, st.q, st.qc = st.x, self.servo.config(q_new), q_new, qc_new
+        st.q_last = periods[-2] if len(periods) > 1 else st.q
         st.t = round((k + 1) * dt, 12)
         dist = measured + self.scene.safety_distance
         log.record(st.t, st, measured, dist, bound, x1, cmds, T, X, self._scene_now)
+        log.executed.append(periods)
         log.step(status, res, plan_time, iter_time, replanned, reason)
         return status
+
+    def _periods(self, q: np.ndarray, cmds: np.ndarray) -> np.ndarray:
+        """Actual actuation (n_sub, nq) mm at the end of each control period of a step that starts at q
+        and holds each of `cmds` for one period (the servo model, as `_track` advances it)."""
+        h = self.options.dt / self.n_sub
+        out = np.empty((len(cmds), self.robot.nq))
+        for j, c in enumerate(cmds):
+            q = self.servo.advance(q, c, h)
+            out[j] = q
+        return out
 
     def _drive(
         self, device: Device, status: StepStatus, t: float, q0: np.ndarray, cmds: np.ndarray, why: str, bound: float
@@ -829,7 +846,10 @@ class ClosedLoop:
         t = np.array(log.t)
         X = np.array(log.x)
         planned = np.array(log.planned)
-        fractions = {} if self.rate_limits is None else limit_fractions(t, X, self.rate_limits)
+        executed = np.vstack([log.q[0][None], *log.executed])
+        h = self.options.dt / self.n_sub
+        xe = self.servo.config(executed)
+        fractions = {} if self.rate_limits is None else limit_fractions(float(t[0]), h, xe, self.rate_limits)
         tips = model.tip_position(X)
         nq = self.robot.nq
         return ReplanRun(
@@ -859,6 +879,7 @@ class ClosedLoop:
             dense_x=np.concatenate(log.dense_x),
             commands=np.concatenate(log.commands) if log.commands else np.zeros((0, nq)),
             control_dt=self.options.dt / self.n_sub,
+            executed=executed,
             reference_tips=tuple(st.refs_used),
             tree_edges=st.tree_edges,
             goal=self.goal,
@@ -906,6 +927,7 @@ class _State:
         self.t = 0.0
         self.q, self.qc, self.x = q, qc, x
         self.x_prev = x
+        self.q_last = q  # actual actuation one control period before now
         self.inc = np.zeros_like(x)  # the set-point's configuration change in the last control period
         self.ref: TimedReference | None = None
         self.s_ref = 0.0  # progress along the reference (s of reference time)
@@ -960,6 +982,7 @@ class _Log:
         self.dense_t: list[np.ndarray] = []
         self.dense_x: list[np.ndarray] = []
         self.commands: list[np.ndarray] = []
+        self.executed: list[np.ndarray] = []  # per step: actual actuation at the end of each control period
         self.centers: list[np.ndarray] = []
         self.radii: list[np.ndarray] = []
         self.late = 0  # real-time steps that finished more than one step late

@@ -59,7 +59,10 @@ class MotionRecord:
     safety_violations: steps closer than the scene's safety distance D_sf.
     robot: the robot the result was made for. scene: its scene, None when the
     result has none. t (N,) s and q (N, nq) mm: the waypoints' times and
-    actuation; q is None when the result records none.
+    actuation; q is None when the result records none. period: s between
+    samples when t, q are a run's executed actuation, one sample per control
+    period (streamed as its B-spline, `SetpointPath.from_executed`); None for
+    waypoints (streamed through them, `SetpointPath.from_actuation`).
     """
 
     source: str
@@ -73,6 +76,7 @@ class MotionRecord:
     scene: Scene | None
     t: np.ndarray
     q: np.ndarray | None
+    period: float | None = None
 
 
 @dataclass(frozen=True)
@@ -179,9 +183,11 @@ def admit(
     bound = actuators.for_robot(record.robot)
     if actuators.rest is not None and not same_actuators(bound, actuators):
         raise AdmissionError(f"{where}robot: the actuators are bound to another robot's cable lengths")
-    path = SetpointPath.from_actuation(record.t, record.q, bound, where)
-    if time_scale != 1.0:
-        path = path.scaled(time_scale)
+    if record.period is not None:
+        base = SetpointPath.from_executed(float(record.t[0]), record.period, record.q, bound, where)
+    else:
+        base = SetpointPath.from_actuation(record.t, record.q, bound, where)
+    path = base.scaled(time_scale) if time_scale != 1.0 else base
     stamps, values = path.sample(rate)
     scene = record.scene if record.scene is not None else Scene()  # (_refusal refused a scene-less result)
     verifier = FrameVerifier(record.robot, bound, scene, 1.0 / rate, verify)
@@ -190,7 +196,7 @@ def admit(
         slowed = f" slowed {time_scale:g} times" if time_scale != 1.0 else ""
         hint = ""
         if " velocity " in why or " acceleration " in why:
-            scale = verifier.slowest_scale(SetpointPath(np.asarray(record.t, dtype=float), path.values), rate)
+            scale = verifier.slowest_scale(base, rate)
             hint = f"; the motion is too fast for the actuators: try --time-scale {scale:.2f}" if scale else ""
         raise AdmissionError(f"{where}set-points{slowed} at {rate:g} Hz refused: {why}{hint}")
     for a in (stamps, values):

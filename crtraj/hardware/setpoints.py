@@ -1,12 +1,18 @@
 """Planned trajectories as actuator set-points sampled at the streaming rate.
 
-The waypoints' actuation q(t) of a result (read by `crtraj.io.results`, admitted by
-`crtraj.hardware.admission`) is converted to actuator values
-(`Actuators.command`) and interpolated with a shape-preserving cubic (PCHIP
-slopes, with zero slope at both ends so the motion starts and ends at rest).
-PCHIP never overshoots the waypoints, so interpolation invents no motion the
-plan did not contain, and its second derivative is bounded, so the sampled
-set-points have finite acceleration.
+A path is a piecewise cubic in time through its waypoints (actuator values, `Actuators.command` of the
+actuation q of a result read by `crtraj.io.results` and admitted by `crtraj.hardware.admission`):
+
+- a plan's waypoints (`from_actuation`): shape-preserving cubic (PCHIP slopes, with zero slope at both
+  ends so the motion starts and ends at rest). PCHIP never overshoots the waypoints, so interpolation
+  invents no motion the plan did not contain. A retimed plan's waypoints are already one per stream
+  period, so the streamer sends exactly them.
+- a replan run's executed actuation, one sample per control period (`from_executed`): the run's
+  clamped uniform cubic B-spline (`crtraj.control.executed.executed_curve`, given to the cubic as its
+  knot values and slopes). Its acceleration is at most the samples' second difference over the period
+  squared and its speed at most their first difference over the period, at every instant, so the
+  set-points keep the limits the loop kept, at any stream rate and any slow-down (PCHIP would amplify
+  the acceleration up to about 4 times where the motion starts, stops or reverses).
 """
 
 from __future__ import annotations
@@ -18,6 +24,7 @@ from typing import Any
 import numpy as np
 from scipy.interpolate import CubicHermiteSpline, PchipInterpolator
 
+from crtraj.control.executed import executed_curve
 from crtraj.core.errors import InputError
 from crtraj.core.fields import check_float
 from crtraj.hardware.actuators import Actuators
@@ -45,13 +52,16 @@ class SetpointPath:
     """Actuator values over time: waypoint times t (s, strictly increasing) and values (N, n).
 
     `sample(rate)` gives the set-points the streamer sends; `stamps` are
-    trajectory times (s), values in actuator units (rad, mm).
+    trajectory times (s), values in actuator units (rad, mm). slopes (N, n):
+    the cubic's derivative (units/s) at the waypoints; None: PCHIP slopes,
+    zero at both ends.
     """
 
     t: np.ndarray
     values: np.ndarray
     source: str = ""
     approach: SetpointPath | None = None  # the move to the first waypoint, ending at t[0]
+    slopes: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         t = np.asarray(self.t, dtype=float)
@@ -70,6 +80,11 @@ class SetpointPath:
             raise InputError(f"{self._where(k)}.t: time must increase strictly (got {t[k]:g} s after {t[k - 1]:g} s)")
         object.__setattr__(self, "t", t)
         object.__setattr__(self, "values", v)
+        if self.slopes is not None:
+            m = np.asarray(self.slopes, dtype=float)
+            if m.shape != v.shape or not np.all(np.isfinite(m)):
+                raise InputError(f"{self.source}waypoints: slopes must be finite, one per value, got {m.shape}")
+            object.__setattr__(self, "slopes", m)
 
     def _where(self, k: int) -> str:
         return f"{self.source}waypoints[{k}]" if self.source else f"waypoints[{k}]"
@@ -99,13 +114,24 @@ class SetpointPath:
             raise InputError(f"{source}waypoints[{k}].t: must be finite, got {t_arr[k]}")
         return cls(t_arr, actuators.command(q_arr), source)
 
+    @classmethod
+    def from_executed(cls, t0: float, period: float, q: Any, actuators: Actuators, source: str = "") -> SetpointPath:
+        """From a run's executed actuation q (M, nq) in mm, sampled every `period` s from t0 (s): its
+        clamped cubic B-spline (`crtraj.control.executed.executed_curve`), from t0 - period to the last
+        sample's time + period, at rest at both ends."""
+        check_float(period, f"{source}executed.dt", gt=0.0)
+        path = cls.from_actuation(t0 + period * np.arange(len(np.atleast_2d(q))), q, actuators, source)
+        t, values, slopes = executed_curve(float(path.t[0]), float(period), path.values)
+        return cls(t, values, source, slopes=slopes)
+
     # -------------------------------------------------------------- transforms
     def scaled(self, factor: float) -> SetpointPath:
         """The same path `factor` times slower (factor > 1 slows down)."""
         check_time_scale(factor)
         if self.approach is not None:
             raise InputError("time scale: apply it before adding the approach move")
-        return SetpointPath(self.t[0] + (self.t - self.t[0]) * factor, self.values, self.source)
+        slopes = None if self.slopes is None else self.slopes / factor
+        return SetpointPath(self.t[0] + (self.t - self.t[0]) * factor, self.values, self.source, slopes=slopes)
 
     def with_approach(self, start: np.ndarray, actuators: Actuators, margin: float = 1.25) -> SetpointPath:
         """Prepend a rest-to-rest straight move from `start` (actuator values) to the first waypoint.
@@ -172,15 +198,18 @@ class SetpointPath:
         na = self.approach_frames(rate)
         stamps = t0 + dt * np.arange(-na, m + 1)
         stamps[-1] = t1
-        values = _spline(self.t, self.values)(np.maximum(stamps, t0))
+        values = _spline(self.t, self.values, self.slopes)(np.maximum(stamps, t0))
         if self.approach is not None:
             ap = self.approach
             values[:na] = _spline(ap.t, ap.values)(np.clip(stamps[:na], ap.t[0], ap.t[-1]))
         return stamps, values
 
 
-def _spline(t: np.ndarray, values: np.ndarray) -> CubicHermiteSpline:
-    """PCHIP slopes with zero slope at both ends: starts and ends at rest, never overshoots a waypoint."""
+def _spline(t: np.ndarray, values: np.ndarray, slopes: np.ndarray | None = None) -> CubicHermiteSpline:
+    """The cubic through the waypoints with the given slopes; by default PCHIP slopes with zero slope at
+    both ends: starts and ends at rest, never overshoots a waypoint."""
+    if slopes is not None:
+        return CubicHermiteSpline(t, values, slopes, axis=0)
     with np.errstate(over="ignore", divide="ignore", invalid="ignore"):  # subnormal steps: slope 0
         slopes = PchipInterpolator(t, values, axis=0).derivative()(t)
     slopes[0] = 0.0

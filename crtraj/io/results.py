@@ -43,6 +43,8 @@ MAX_WAYPOINTS = 100_000
 MAX_EDGES = 1_000_000
 # backbone points recorded per waypoint of a run document
 RUN_BACKBONE_POINTS = 21
+# Most executed-actuation samples read (`executed.q`: one per control period; 5.5 h at 100 Hz).
+MAX_EXECUTED = 2_000_000
 
 
 # ------------------------------------------------------------------ writing
@@ -176,6 +178,9 @@ def run_document(run: ReplanRun, loop: ClosedLoop, problem: Any = None, seed: in
         "nlp": run.nlp,
         "waypoints": _run_waypoints(run, loop.model),
     }
+    if len(run.executed):
+        # what a device is sent (`crtraj.hardware.setpoints.SetpointPath.from_executed`)
+        doc["executed"] = {"t0": float(run.t[0]), "dt": run.control_dt, "q": run.executed}
     if run.feed:
         doc["feed"] = run.feed  # the live feed: counters, options, every rejected or clamped message
     if run.device:
@@ -203,8 +208,10 @@ class Result:
     when no waypoint records the actuation; centers (N, m, 3), radii (N, m):
     obstacle states per waypoint. start, goal: task tips or None. reference
     (M, 3): the planned path a run tracked, or None. edges (E, 2, 3): planner
-    tree, or None. workspace: (lo, hi) when the scene records one. source: the
-    file it came from ("" for in-memory data). data: the document itself.
+    tree, or None. workspace: (lo, hi) when the scene records one. executed:
+    a run's actual actuation (t0 s, period s, q (M, nq) mm), one sample per
+    control period, or None. source: the file it came from ("" for in-memory
+    data). data: the document itself.
     """
 
     kind: str
@@ -228,6 +235,7 @@ class Result:
     reference: np.ndarray | None
     edges: np.ndarray | None
     workspace: tuple[np.ndarray, np.ndarray] | None
+    executed: tuple[float, float, np.ndarray] | None = None
     source: str = ""
     data: Mapping[str, Any] = field(default_factory=dict, repr=False, compare=False)
 
@@ -247,7 +255,12 @@ class Result:
             )
 
     def motion_record(self) -> MotionRecord:
-        """What `crtraj.hardware.admission.admit` needs to admit or refuse this result."""
+        """What `crtraj.hardware.admission.admit` needs to admit or refuse this result: the waypoints'
+        actuation, or a run's executed actuation (one sample per control period) when it records one."""
+        t, q, period = self.t, self.q, None
+        if self.executed is not None:
+            t0, period, q = self.executed
+            t = t0 + period * np.arange(len(q))
         return MotionRecord(
             source=self.source,
             kind=self.kind,
@@ -258,8 +271,9 @@ class Result:
             safety_violations=self.safety_violations,
             robot=self.robot,
             scene=self.scene,
-            t=self.t,
-            q=self.q,
+            t=t,
+            q=q,
+            period=period,
         )
 
 
@@ -357,6 +371,21 @@ def _extras(doc: Mapping[str, Any]) -> dict[str, Any]:
     return out
 
 
+def _executed(doc: Mapping[str, Any], nq: int) -> tuple[float, float, np.ndarray] | None:
+    """A run's optional executed actuation: (t0 s, dt s, q (M, nq) mm), or None."""
+    ex = doc.get("executed")
+    if ex is None:
+        return None
+    t0 = check_float(_field(ex, "t0", "executed"), "executed.t0", limit=MAX_TIME)
+    dt = check_float(_field(ex, "dt", "executed"), "executed.dt", gt=0.0, le=10.0)
+    raw = _field(ex, "q", "executed")
+    if not isinstance(raw, list) or not raw:
+        raise InputError("executed.q: expected a non-empty list of actuation rows (mm)")
+    if len(raw) > MAX_EXECUTED:
+        raise InputError(f"executed.q: at most {MAX_EXECUTED} rows are read, got {len(raw)}")
+    return t0, dt, check_array(raw, "executed.q", (None, nq), limit=MAX_LENGTH)
+
+
 def _kind_and_schema(doc: Mapping[str, Any]) -> tuple[str, int]:
     schema = doc.get("schema", 1)  # documents written before the field existed are version 1
     if isinstance(schema, bool) or not isinstance(schema, int) or schema != SCHEMA_VERSION:
@@ -433,5 +462,6 @@ def _parse(doc: Any, source: str) -> Result:
     t, x, tip, q, centers, radii = _waypoints(_field(doc, "waypoints", ""), robot.nx, robot.nq)
     return Result(
         kind=kind, schema=schema, robot=robot, scene=scene, **_verdict(doc, kind), t=t, x=x, tip=tip, q=q,
-        centers=centers, radii=radii, **_extras(doc), workspace=workspace, source=source, data=doc,
+        centers=centers, radii=radii, **_extras(doc), workspace=workspace, executed=_executed(doc, robot.nq),
+        source=source, data=doc,
     )  # fmt: skip

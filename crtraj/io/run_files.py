@@ -25,7 +25,7 @@ RUN_FILES = frozenset({"run.json", "run.npz", "run.png", "run.html", "stream.jso
 _ARRAYS = (
     "t", "x", "q", "q_command", "tip", "backbone", "centers", "radii", "clearance", "distance",
     "clearance_bound", "planned", "tip_error", "goal_error", "nlp_time", "plan_time", "iter_time",
-    "iterations", "replanned", "dense_t", "dense_x", "commands", "control_dt", "tree_edges", "goal",
+    "iterations", "replanned", "dense_t", "dense_x", "commands", "control_dt", "executed", "tree_edges", "goal",
 )  # fmt: skip
 
 

@@ -59,6 +59,7 @@ from typing import Any
 
 import numpy as np
 
+from crtraj.core.fields import check_array
 from crtraj.model.kinematics import Model
 from crtraj.planning.base import PlannerBase, QueryStart
 from crtraj.planning.cspace_search import CSpaceSearch
@@ -108,6 +109,7 @@ class CSpacePlanner(PlannerBase):
         seed: int | None = None,
         scene: Any = None,
         goal_tolerance: float = 1.0,
+        goal_config: Any = None,
     ) -> PlanResult:
         """Plan from a start to a goal tip position (mm).
 
@@ -118,6 +120,9 @@ class CSpacePlanner(PlannerBase):
         condition (default: the options'). seed: seeds the random generator
         (the same seed gives the same plan). scene: plan among these
         obstacles instead of the planner's scene. goal_tolerance (mm).
+        goal_config: (nx,) reach this configuration (its tip must be the goal)
+        instead of any safe one with the tip on the goal (an approach to a
+        motion's start pose).
 
         Re-planning (a receding-horizon controller re-seeding its reference):
         ``plan(goal, start_config=x_now, t0=t_now, stop=StopCondition(time_limit=0.2),
@@ -145,7 +150,12 @@ class CSpacePlanner(PlannerBase):
         # ---- goal configurations
         t1 = time.perf_counter()
         statuses: dict[str, int] = {}
-        goals = self._goal_configs(q, q.x_start, statuses)
+        if goal_config is not None:
+            goals = check_array(goal_config, "goal_config", (self.robot.nx,))[None]
+            if q.validator.static:  # among moving obstacles the search checks it at the time it is reached
+                goals = goals[q.validator.state_valid(goals)]
+        else:
+            goals = self._goal_configs(q, q.x_start, statuses)
         q.timings["goal_ik"] = time.perf_counter() - t1
         if not len(goals):
             return self._fail(

@@ -21,7 +21,19 @@ that geometry, so:
 
 The actuator values of the law are C1 in time with |second derivative| <= amax, so their finite
 differences at any sampling period stay within the limits (a second difference is an average of
-the second derivative). Units: s; configurations as in `Robot` (rad, mm).
+the second derivative).
+
+Stopping at every corner is slow where the path is a finely sampled smooth curve (the c-space
+planner's smoothing). `retime_curve` therefore keeps speed through the corners when it can: the
+natural cubic spline through the corners (parameterised by the body-motion bound of the chords) is
+timed time-optimally by toppra (TOPP-RA; actuator speed and acceleration limits on ``J x(s)``, and
+the body-speed bound ``B(x'(s)) ds/dt <= max_speed``), sampled every stream period from rest to rest,
+slowed uniformly until the samples' finite differences keep every limit, and its frames, joined by
+straight motions as the streamer sends them, are verified with the planner's `MotionValidator` at
+their times (the curve is not the verified geometry, so it must pass its own dense check). Where a
+piece fails, the path stops at the corner nearest to the failure and the pieces on either side are
+timed again; a piece down to one straight motion is the verified chord with the law above. Units: s;
+configurations as in `Robot` (rad, mm).
 """
 
 from __future__ import annotations
@@ -29,12 +41,14 @@ from __future__ import annotations
 import itertools
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 from crtraj.core.errors import InputError
 from crtraj.planning.metric import BodyMetric
 from crtraj.planning.rate_limits import RateLimits
+from crtraj.planning.validity import MotionValidator
 
 # Largest distance (configuration units) of a merged inner waypoint from its straight motion.
 COLLINEAR = 1e-10
@@ -42,6 +56,11 @@ COLLINEAR = 1e-10
 STREAM_PERIOD = 0.01
 # Most set-points a retimed path may hold (as `crtraj.hardware.setpoints.MAX_SETPOINTS`).
 MAX_SAMPLES = 2_000_000
+# TOPP-RA grid points per spline interval of a curve piece, and at most per piece.
+GRID_PER_KNOT = 8
+MAX_GRID = 2000
+# Uniform slow-downs tried on a sampled curve piece before it is given up (each at least 1 % slower).
+MAX_SLOWDOWNS = 30
 
 
 @dataclass(frozen=True)
@@ -232,3 +251,189 @@ def toppra_durations(X: np.ndarray, limits: RateLimits, metric: BodyMetric, grid
             raise RuntimeError(f"toppra failed on a straight motion of length {ends[1, -1]:g} mm")
         out.append(float(traj.duration))
     return np.asarray(out)
+
+
+@dataclass(frozen=True)
+class CurveTiming:
+    """A path timed along the smoothed curve through its corners (`retime_curve`).
+
+    stamps (M,) s, every period from t0; configs (M, nx): the frames. stops: indices of the corners
+    (of `keep_corners`) where the motion comes to rest; corners: how many corners there are. A
+    motion with stops only at its two ends follows the curve throughout; stops at every corner is
+    the chord law of `retime`.
+    """
+
+    stamps: np.ndarray
+    configs: np.ndarray
+    stops: tuple[int, ...]
+    corners: int
+
+    @property
+    def duration(self) -> float:
+        return float(self.stamps[-1] - self.stamps[0])
+
+
+def _piece_law(P: np.ndarray, limits: RateLimits, metric: BodyMetric) -> tuple[Any, np.ndarray, np.ndarray]:
+    """(x(s), grid points, ds/dt at them) of the time-optimal rest-to-rest law along the natural cubic
+    spline through P (K >= 3, nx), s the cumulative body-motion bound of the chords (mm); `InputError`
+    when toppra finds none."""
+    import toppra as ta  # imported when a curve is timed (crtraj's other commands start without it)
+
+    ss = np.concatenate([[0.0], np.cumsum(metric.motion_bound(np.diff(P, axis=0)))])
+    spline = ta.SplineInterpolator(ss, P, bc_type="natural")  # x(s); spline(s, 1) is dx/ds
+    J = limits.jacobian
+    # toppra's path: the actuator values J x(s) (the same spline, mapped linearly) and s itself
+    path = ta.SplineInterpolator(ss, np.hstack([P @ J.T, ss[:, None]]), bc_type="natural")
+
+    def dspline(s: Any) -> np.ndarray:
+        return spline(s, 1)
+
+    big = 1e12  # no limit on s itself beyond the body speed, none on its acceleration
+    n = int(min(MAX_GRID, GRID_PER_KNOT * (len(ss) - 1)))
+    grid = np.unique(np.concatenate([ss, np.linspace(0.0, ss[-1], n + 1)]))
+    # TOPP-RA keeps the limits at its grid points only: each speed limit is taken over the path's
+    # largest rate within one grid spacing either side (from a 4 times finer sampling), so the
+    # speeds between grid points keep it too
+    step = float(np.max(np.diff(grid)))
+    fine = np.linspace(0.0, ss[-1], 4 * n + 1)
+    d_fine = dspline(fine)
+    q_fine, b_fine = np.abs(d_fine @ J.T), metric.motion_bound(d_fine)
+
+    def vlim(s: float) -> np.ndarray:
+        w = np.abs(fine - s) <= step
+        qmax, bmax = np.max(q_fine[w], axis=0), float(np.max(b_fine[w]))
+        q_here = np.abs(dspline(s) @ J.T)
+        scale = np.where(qmax > 0.0, q_here / np.where(qmax > 0.0, qmax, 1.0), 1.0)
+        v = np.append(limits.vmax * scale, metric.max_speed / max(bmax, 1e-12))
+        return np.stack([-v, v], axis=1)
+
+    alim = np.append(limits.amax, big)
+    cons = [
+        ta.constraint.JointVelocityConstraintVarying(vlim),
+        ta.constraint.JointAccelerationConstraint(np.stack([-alim, alim], axis=1)),
+    ]
+    algo = ta.algorithm.TOPPRA(cons, path, gridpoints=grid)
+    algo.compute_parameterization(0.0, 0.0)
+    data = algo.problem_data
+    sd = None if data.sd_vec is None else np.maximum(np.asarray(data.sd_vec, dtype=float), 0.0)
+    if data.return_code != ta.algorithm.ParameterizationReturnCode.Ok or sd is None or np.any(sd[1:-1] <= 0.0):
+        raise InputError(f"retime: toppra found no law along a curve piece ({data.return_code})")
+    return spline, np.asarray(data.gridpoints, dtype=float), sd
+
+
+def _sample_law(spline: Any, gp: np.ndarray, sd: np.ndarray, period: float, slow: float) -> np.ndarray:
+    """Configurations every period along x(s) with ds/dt = sd at the grid points gp (constant ds2/dt2
+    between them, as TOPP-RA assumes), slowed `slow` >= 1 times and stretched to whole periods."""
+    ds = np.diff(gp)
+    dt = 2.0 * ds / (sd[:-1] + sd[1:])
+    T = np.concatenate([[0.0], np.cumsum(dt)])
+    n = max(1, math.ceil(slow * T[-1] / period - 1e-9))
+    tau = np.arange(n + 1) * (T[-1] / n)  # the law's own time at each frame
+    i = np.clip(np.searchsorted(T, tau, side="right") - 1, 0, len(ds) - 1)
+    u = tau - T[i]
+    acc = (sd[i + 1] ** 2 - sd[i] ** 2) / (2.0 * ds[i])
+    s = np.clip(gp[i] + sd[i] * u + 0.5 * acc * u * u, gp[0], gp[-1])
+    s[-1] = gp[-1]
+    return spline(s)
+
+
+def _over_limits(Y: np.ndarray, limits: RateLimits, metric: BodyMetric, period: float) -> float:
+    """The largest of: actuator speed / vmax, sqrt(acceleration / amax) (finite differences from rest to
+    rest) and body speed / max_speed of frames Y every period: 1 or less keeps every limit."""
+    V = np.diff(Y @ limits.jacobian.T, axis=0) / period
+    Vz = np.vstack([np.zeros((1, V.shape[1])), V, np.zeros((1, V.shape[1]))])
+    A = np.diff(Vz, axis=0) / period
+    body = metric.motion_bound(np.diff(Y, axis=0)) / period / metric.max_speed
+    return float(
+        max(np.max(np.abs(V) / limits.vmax), np.sqrt(np.max(np.abs(A) / limits.amax)), np.max(body, initial=0.0))
+    )
+
+
+def _curve_piece(P: np.ndarray, limits: RateLimits, metric: BodyMetric, period: float) -> np.ndarray | None:
+    """Frames (n+1, nx) every period, rest to rest, along the curve through P (>= 3 corners) within
+    every limit, or None when toppra finds no law or the slow-downs run out."""
+    try:
+        spline, gp, sd = _piece_law(P, limits, metric)
+    except InputError:
+        return None
+    slow = 1.0
+    for _ in range(MAX_SLOWDOWNS):
+        Y = _sample_law(spline, gp, sd, period, slow)
+        Y[0], Y[-1] = P[0], P[-1]
+        over = _over_limits(Y, limits, metric, period)
+        if over <= 1.0:
+            return Y
+        slow *= max(1.01, over * 1.001)
+    return None
+
+
+def _piece_frames(P: np.ndarray, limits: RateLimits, metric: BodyMetric, period: float) -> np.ndarray | None:
+    """Frames of one piece between two stops: the chord law for one straight motion, else the curve."""
+    if len(P) == 2:
+        return retime(P, limits, metric, period=period).sample()[1]
+    return _curve_piece(P, limits, metric, period)
+
+
+def _failures(validator: MotionValidator, stamps: np.ndarray, Y: np.ndarray, check: np.ndarray) -> np.ndarray:
+    """Indices k of the frame-to-frame motions Y[k] -> Y[k+1] (those with `check` set) that fail the validator
+    at their times (body, D_sf) or leave the configuration limits."""
+    e = np.flatnonzero(check)
+    if not e.size:
+        return e
+    ok = validator.edges_valid(Y[e], Y[e + 1], stamps[e], stamps[e + 1])
+    ok &= validator.within_limits(Y[e]) & validator.within_limits(Y[e + 1])
+    return e[~ok]
+
+
+def retime_curve(
+    X: np.ndarray,
+    limits: RateLimits,
+    metric: BodyMetric,
+    validator: MotionValidator,
+    *,
+    t0: float = 0.0,
+    period: float = STREAM_PERIOD,
+) -> CurveTiming | None:
+    """The path X (K, nx) timed along the smoothed curve through its corners, stopping only where the
+    curve fails its check (see the module docstring), or None when even the chords fail at their new
+    times (moving obstacles) or the path has fewer than 3 corners (nothing to smooth). limits: the
+    usable actuator limits; metric: the body-speed limit; validator: the planner's motion check,
+    against the scene at the frames' times. Among static obstacles the chords (the verified geometry)
+    need no new check."""
+    X = np.atleast_2d(np.asarray(X, dtype=float))
+    P = X[keep_corners(X)]
+    if len(P) < 3:
+        return None
+    stops = [0, len(P) - 1]
+    laws: dict[tuple[int, int], np.ndarray | None] = {}
+    for _ in range(len(P)):  # every round adds a stop; all corners stopped at is the chord law
+        pieces = list(itertools.pairwise(stops))
+        for a, b in pieces:
+            if (a, b) not in laws:
+                laws[(a, b)] = _piece_frames(P[a : b + 1], limits, metric, period)
+        # piece index -> the frame near which it failed (None: no law along the whole piece)
+        split: dict[int, np.ndarray | None] = {i: None for i, ab in enumerate(pieces) if laws[ab] is None}
+        if not split:
+            frames = [laws[ab] for ab in pieces]
+            owner = np.concatenate([np.full(len(f) - (i > 0), i) for i, f in enumerate(frames)])
+            Y = np.concatenate([f if i == 0 else f[1:] for i, f in enumerate(frames)])
+            if len(Y) > MAX_SAMPLES:
+                raise InputError(f"retime: {len(Y) * period:g} s is more than {MAX_SAMPLES} set-points")
+            stamps = t0 + period * np.arange(len(Y))
+            curved = np.array([b - a > 1 for a, b in pieces])
+            bad = _failures(validator, stamps, Y, (curved | (not validator.static))[owner[1:]])
+            if not bad.size:
+                return CurveTiming(stamps, Y, tuple(stops), len(P))
+            for k in bad[::-1]:  # the first failure of each piece
+                split[int(owner[k + 1])] = Y[k]
+        added = set()
+        for i, near in split.items():
+            a, b = pieces[i]
+            if b - a == 1:
+                return None  # a chord fails at its new times: the caller keeps a slower verified timing
+            inner = np.arange(a + 1, b)
+            # stop at the corner nearest to the failure; with no law at all, halve the piece
+            k = len(inner) // 2 if near is None else int(np.argmin(metric.motion_bound(P[inner] - near)))
+            added.add(int(inner[k]))
+        stops = sorted(set(stops) | added)
+    return None
