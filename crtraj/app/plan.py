@@ -157,7 +157,7 @@ def retime_result(
         # the frames passed their own check at their times; their clearance is measured the same way
         out = timed(curve.stamps, curve.configs, validator.path_clearance(curve.configs, curve.stamps)[0])
         outcome = f"retimed along the smoothed curve ({len(curve.stops) - 2} of {curve.corners - 2} corners stopped at)"
-        info.update(method="toppra along the natural cubic spline through the corners; stops where it fails")
+        info.update(method="phase-plane law along the natural cubic spline through the corners; stops where it fails")
     else:
         candidates = [("retimed", None)]
         if not validator.static:

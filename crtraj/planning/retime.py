@@ -26,8 +26,10 @@ the second derivative).
 Stopping at every corner is slow where the path is a finely sampled smooth curve (the c-space
 planner's smoothing). `retime_curve` therefore keeps speed through the corners when it can: the
 natural cubic spline through the corners (parameterised by the body-motion bound of the chords) is
-timed time-optimally by toppra (TOPP-RA; actuator speed and acceleration limits on ``J x(s)``, and
-the body-speed bound ``B(x'(s)) ds/dt <= max_speed``), sampled every stream period from rest to rest,
+timed near time-optimally by a forward-backward pass in the phase plane (`_piece_law`: actuator speed
+and acceleration limits on ``J x(s)``, and the body-speed bound ``B(x'(s)) ds/dt <= max_speed``; toppra,
+the reference TOPP-RA library, gives the same law some 10 times slower, `method="toppra"`), sampled
+every stream period from rest to rest,
 slowed uniformly until the samples' finite differences keep every limit, and its frames, joined by
 straight motions as the streamer sends them, are verified with the planner's `MotionValidator` at
 their times (the curve is not the verified geometry, so it must pass its own dense check). Where a
@@ -44,6 +46,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from scipy.interpolate import CubicSpline
 
 from crtraj.core.errors import InputError
 from crtraj.planning.metric import BodyMetric
@@ -274,40 +277,116 @@ class CurveTiming:
 
 
 def _piece_law(P: np.ndarray, limits: RateLimits, metric: BodyMetric) -> tuple[Any, np.ndarray, np.ndarray]:
-    """(x(s), grid points, ds/dt at them) of the time-optimal rest-to-rest law along the natural cubic
+    """(x(s), grid points, ds/dt at them) of a near time-optimal rest-to-rest law along the natural cubic
     spline through P (K >= 3, nx), s the cumulative body-motion bound of the chords (mm); `InputError`
-    when toppra finds none."""
-    import toppra as ta  # imported when a curve is timed (crtraj's other commands start without it)
+    when there is none.
+
+    A forward-backward pass on x = (ds/dt)^2 over the grid (the phase-plane method, in closed form per
+    interval): with q = J x(s) the actuator values, q' and q'' their s-derivatives, an actuator's
+    acceleration is q' s'' + q'' x, so over an interval where x rises from x_k to x_{k+1} = x_k + 2 h s''
+    every |q' s'' + q'' x| <= amax holds when s'' <= (amax - |q''| x_{k+1}) / |q'| (the worst of both
+    ends of the interval). Solving for x_{k+1} gives ``x_{k+1} <= (x_k + 2 h A) / (1 + 2 h B)`` with
+    A = amax / |q'|, B = |q''| / |q'|; the backward pass is the same from the end at rest. Speed caps
+    (actuators, body, and amax / |q''| where q' vanishes) bound x at each grid point. Conservative
+    where q'' helps; the sampled frames are then checked against every limit (`_curve_piece`).
+    """
+    ss = np.concatenate([[0.0], np.cumsum(metric.motion_bound(np.diff(P, axis=0)))])
+    spline = CubicSpline(ss, P, bc_type="natural")  # x(s); spline(s, 1) is dx/ds
+    J = limits.jacobian
+    n = int(min(MAX_GRID, GRID_PER_KNOT * (len(ss) - 1)))
+    grid = np.unique(np.concatenate([ss, np.linspace(0.0, ss[-1], n + 1)]))
+    h = np.diff(grid)
+    # the speed caps hold between grid points too: each takes the path's largest rate within one grid
+    # spacing either side (from a 4 times finer sampling)
+    fine = np.linspace(0.0, ss[-1], 4 * n + 1)
+    d_fine = spline(fine, 1)
+    w = math.ceil(float(np.max(h)) / (fine[1] - fine[0])) + 1
+    q_win = _window_max(np.abs(d_fine @ J.T), w)
+    b_win = _window_max(metric.motion_bound(d_fine)[:, None], w)[:, 0]
+    at = np.clip(np.rint(grid / (fine[1] - fine[0])).astype(int), 0, len(fine) - 1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cap = np.min((limits.vmax / q_win[at]) ** 2, axis=1)
+        cap = np.minimum(cap, (metric.max_speed / b_win[at]) ** 2)
+        a = np.abs(spline(grid, 1) @ J.T)  # |q'| per grid point and actuator
+        b = np.abs(spline(grid, 2) @ J.T)  # |q''|
+        tiny = a <= 1e-12 * max(float(np.max(a)), 1e-300)
+        # where q' vanishes the acceleration is q'' x alone: a speed cap
+        cap = np.minimum(cap, np.min(np.where(tiny & (b > 0.0), limits.amax / b, np.inf), axis=1))
+        A = np.where(tiny, np.inf, limits.amax / a)
+        B = np.where(tiny, 0.0, b / a)
+    A = np.minimum(A[:-1], A[1:])  # per interval: the worse end
+    B = np.maximum(B[:-1], B[1:])
+    if not np.all(np.isfinite(cap[1:-1])) or np.any(cap[1:-1] <= 0.0):
+        raise InputError("retime: no speed is allowed somewhere along a curve piece")
+    x = _phase_pass(np.minimum(cap, 1e30), h, A, B)
+    sd = np.sqrt(x)
+    if np.any(sd[1:-1] <= 0.0):
+        raise InputError("retime: no law along a curve piece")
+    return spline, grid, sd
+
+
+def _window_max(Y: np.ndarray, w: int) -> np.ndarray:
+    """Each row's column-wise maximum over the rows within w of it (Y: (N, m))."""
+    out = Y.copy()
+    for k in range(1, w + 1):
+        out[k:] = np.maximum(out[k:], Y[:-k])
+        out[:-k] = np.maximum(out[:-k], Y[k:])
+    return out
+
+
+def _phase_pass(cap: np.ndarray, h: np.ndarray, A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """x = (ds/dt)^2 at the grid points: rest at both ends, x <= cap, and per interval k (length h_k)
+    x_{k+1} <= min_j (x_k + 2 h_k A_kj) / (1 + 2 h_k B_kj), and the same backward."""
+    h2 = 2.0 * h[:, None]
+    num, den = h2 * A, 1.0 + h2 * B  # x_next <= min((x + num) / den)
+    x = cap.astype(float).copy()
+    x[0] = x[-1] = 0.0
+    # plain floats and explicit loops: a numpy call (or a generator) per grid point would cost more than the rest
+    xs = x.tolist()
+    terms = [list(zip(nk, dk, strict=True)) for nk, dk in zip(num.tolist(), den.tolist(), strict=True)]
+    for k, pairs in enumerate(terms):  # forward: accelerate as hard as allowed
+        xk, best = xs[k], xs[k + 1]
+        for u, d in pairs:
+            r = (xk + u) / d
+            if r < best:
+                best = r
+        xs[k + 1] = best
+    for k in range(len(terms) - 1, -1, -1):  # backward: brake in time to every later cap
+        xk1, best = xs[k + 1], xs[k]
+        for u, d in terms[k]:
+            r = (xk1 + u) / d
+            if r < best:
+                best = r
+        xs[k] = best
+    return np.maximum(np.asarray(xs), 0.0)
+
+
+def _toppra_law(P: np.ndarray, limits: RateLimits, metric: BodyMetric) -> tuple[Any, np.ndarray, np.ndarray]:
+    """The same law computed by toppra (TOPP-RA, the reference library), for the benchmark's comparison:
+    (x(s), grid points, ds/dt at them); `InputError` when toppra finds none."""
+    import toppra as ta  # the reference library: needed only by this cross-check (benchmarks, tests)
 
     ss = np.concatenate([[0.0], np.cumsum(metric.motion_bound(np.diff(P, axis=0)))])
-    spline = ta.SplineInterpolator(ss, P, bc_type="natural")  # x(s); spline(s, 1) is dx/ds
+    spline = CubicSpline(ss, P, bc_type="natural")
     J = limits.jacobian
     # toppra's path: the actuator values J x(s) (the same spline, mapped linearly) and s itself
     path = ta.SplineInterpolator(ss, np.hstack([P @ J.T, ss[:, None]]), bc_type="natural")
-
-    def dspline(s: Any) -> np.ndarray:
-        return spline(s, 1)
-
-    big = 1e12  # no limit on s itself beyond the body speed, none on its acceleration
     n = int(min(MAX_GRID, GRID_PER_KNOT * (len(ss) - 1)))
     grid = np.unique(np.concatenate([ss, np.linspace(0.0, ss[-1], n + 1)]))
-    # TOPP-RA keeps the limits at its grid points only: each speed limit is taken over the path's
-    # largest rate within one grid spacing either side (from a 4 times finer sampling), so the
-    # speeds between grid points keep it too
     step = float(np.max(np.diff(grid)))
     fine = np.linspace(0.0, ss[-1], 4 * n + 1)
-    d_fine = dspline(fine)
+    d_fine = spline(fine, 1)
     q_fine, b_fine = np.abs(d_fine @ J.T), metric.motion_bound(d_fine)
 
     def vlim(s: float) -> np.ndarray:
         w = np.abs(fine - s) <= step
         qmax, bmax = np.max(q_fine[w], axis=0), float(np.max(b_fine[w]))
-        q_here = np.abs(dspline(s) @ J.T)
+        q_here = np.abs(spline(s, 1) @ J.T)
         scale = np.where(qmax > 0.0, q_here / np.where(qmax > 0.0, qmax, 1.0), 1.0)
         v = np.append(limits.vmax * scale, metric.max_speed / max(bmax, 1e-12))
         return np.stack([-v, v], axis=1)
 
-    alim = np.append(limits.amax, big)
+    alim = np.append(limits.amax, 1e12)  # no limit on the body's acceleration
     cons = [
         ta.constraint.JointVelocityConstraintVarying(vlim),
         ta.constraint.JointAccelerationConstraint(np.stack([-alim, alim], axis=1)),
@@ -349,11 +428,13 @@ def _over_limits(Y: np.ndarray, limits: RateLimits, metric: BodyMetric, period: 
     )
 
 
-def _curve_piece(P: np.ndarray, limits: RateLimits, metric: BodyMetric, period: float) -> np.ndarray | None:
+def _curve_piece(
+    P: np.ndarray, limits: RateLimits, metric: BodyMetric, period: float, law: Any = None
+) -> np.ndarray | None:
     """Frames (n+1, nx) every period, rest to rest, along the curve through P (>= 3 corners) within
-    every limit, or None when toppra finds no law or the slow-downs run out."""
+    every limit, or None when the law (`_piece_law`, or `_toppra_law`) finds none or the slow-downs run out."""
     try:
-        spline, gp, sd = _piece_law(P, limits, metric)
+        spline, gp, sd = (_piece_law if law is None else law)(P, limits, metric)
     except InputError:
         return None
     slow = 1.0
@@ -367,11 +448,13 @@ def _curve_piece(P: np.ndarray, limits: RateLimits, metric: BodyMetric, period: 
     return None
 
 
-def _piece_frames(P: np.ndarray, limits: RateLimits, metric: BodyMetric, period: float) -> np.ndarray | None:
+def _piece_frames(
+    P: np.ndarray, limits: RateLimits, metric: BodyMetric, period: float, law: Any = None
+) -> np.ndarray | None:
     """Frames of one piece between two stops: the chord law for one straight motion, else the curve."""
     if len(P) == 2:
         return retime(P, limits, metric, period=period).sample()[1]
-    return _curve_piece(P, limits, metric, period)
+    return _curve_piece(P, limits, metric, period, law)
 
 
 def _failures(validator: MotionValidator, stamps: np.ndarray, Y: np.ndarray, check: np.ndarray) -> np.ndarray:
@@ -393,13 +476,18 @@ def retime_curve(
     *,
     t0: float = 0.0,
     period: float = STREAM_PERIOD,
+    method: str = "phase",
 ) -> CurveTiming | None:
     """The path X (K, nx) timed along the smoothed curve through its corners, stopping only where the
     curve fails its check (see the module docstring), or None when even the chords fail at their new
     times (moving obstacles) or the path has fewer than 3 corners (nothing to smooth). limits: the
     usable actuator limits; metric: the body-speed limit; validator: the planner's motion check,
     against the scene at the frames' times. Among static obstacles the chords (the verified geometry)
-    need no new check."""
+    need no new check. method: "phase" (`_piece_law`, the closed-form phase-plane pass) or "toppra"
+    (the reference library, for comparison)."""
+    if method not in ("phase", "toppra"):
+        raise InputError(f"retime: method must be 'phase' or 'toppra', got {method!r}")
+    law = _piece_law if method == "phase" else _toppra_law
     X = np.atleast_2d(np.asarray(X, dtype=float))
     P = X[keep_corners(X)]
     if len(P) < 3:
@@ -410,7 +498,7 @@ def retime_curve(
         pieces = list(itertools.pairwise(stops))
         for a, b in pieces:
             if (a, b) not in laws:
-                laws[(a, b)] = _piece_frames(P[a : b + 1], limits, metric, period)
+                laws[(a, b)] = _piece_frames(P[a : b + 1], limits, metric, period, law)
         # piece index -> the frame near which it failed (None: no law along the whole piece)
         split: dict[int, np.ndarray | None] = {i: None for i, ab in enumerate(pieces) if laws[ab] is None}
         if not split:
