@@ -62,6 +62,7 @@ from crtraj.core.errors import InputError
 from crtraj.core.fields import MAX_LENGTH, Table
 from crtraj.core.options import Options, option
 from crtraj.model.robot import MAX_COLLISION_POINTS
+from crtraj.planning.compiled_nlp import CODEGEN_QP, CompiledFunction, compiled_library
 from crtraj.world import margin, packing
 from crtraj.world.scene import Scene
 
@@ -181,6 +182,14 @@ class SteerOptions(Options):
     `tol_du` is 1e-6 in SQP_DEFAULTS). qpsol: QP solver of the sqp path.
     jit: compile the NLP functions with gcc through CasADi's shell compiler
     (falls back to no jit, with `SteerSolver.jit_message` saying why).
+    compiled: with solver "sqp" and qpsol daqp or qrqp, generate C for the
+    whole step (DLS predictor, sqpmethod with its QP solver, the re-check's
+    tip, points and limits, the KKT residuals), compile it once (cached) and
+    call it through ctypes: one foreign call per steer. Its convergence is
+    judged from the KKT residuals it returns (sqpmethod's own test,
+    tol_pr/tol_du); the generated code reports no iteration count
+    (`SteerResult.iterations` is -1). Without a C compiler, or with another
+    qpsol, the interpreted solver runs (`SteerSolver.compiled_message` says so).
     warm_start: start from the previous successful solve's multipliers
     (default None = on for sqp, where it saved iterations, off for IPOPT,
     where warm_start_init_point cost more time than the iteration it
@@ -207,6 +216,7 @@ class SteerOptions(Options):
     tol: float = option(1e-6, gt=0.0)
     qpsol: str = option("daqp", choices=QP_SOLVERS)
     jit: bool = option(False)
+    compiled: bool = option(False)
     warm_start: bool | None = option(None)
     fallback: bool = option(True)
     predictor: bool = option(True)
@@ -408,6 +418,10 @@ class SteerSolver:
         self.scale = config_scale(self.robot)
         self.box = self.robot.config_box()
         self.jit_message = ""
+        self.compiled_message = ""
+        self._step: CompiledFunction | None = None
+        self._memo: tuple[Any, float, float | None, np.ndarray] | None = None  # last (scene, t, t_end, packed)
+        self._A, self._q0 = self.robot.cable_matrix()
         self._lam_g: np.ndarray | None = None
         self._lam_x: np.ndarray | None = None
         self._build()
@@ -495,12 +509,76 @@ class SteerSolver:
             sq.update({"print_iteration": False, "print_status": False})
             sq.update(dict(o.sqp))
             self._solver = self._nlpsol("sqpmethod", nlp, {**common, **sq}, "steer.sqp")
+            if o.compiled:
+                plain = {k: v for k, v in common.items() if k not in ("jit", "compiler", "jit_options")}
+                self._build_compiled(nlp, {**plain, **sq})
             if o.fallback:
                 # rare sqp failures (a QP solver's inexact multipliers stall the
                 # dual test) are re-solved by IPOPT, built without jit
                 plain = {k: v for k, v in common.items() if k not in ("jit", "compiler", "jit_options")}
                 self._fallback = self._nlpsol("ipopt", nlp, {**plain, "ipopt": ip}, "steer.ipopt")
                 self._probe()
+
+    def _build_compiled(self, nlp: dict[str, Any], sqp_opts: dict[str, Any]) -> None:
+        """The whole steer step as one generated C function (option `compiled`), loaded through ctypes.
+
+        Inputs: x_prev, target, packed obstacles, [D_sf, w_d, w_o], lbx, ubx (unscaled), lbg, x0 and
+        use_x0 (1: start from x0, 0: from the DLS predictor), lam_x0, lam_g0. Outputs: x (clipped to
+        the bounds), lam_x, lam_g, the primal and dual KKT residuals, tip, points and limits at x, and
+        points and limits at x_prev (the start check).
+        """
+        o = self.options
+        if o.qpsol not in CODEGEN_QP:
+            self.compiled_message = (
+                f"compiled: qpsol {o.qpsol!r} generates no C (use {' or '.join(CODEGEN_QP)}): interpreted solver"
+            )
+            return
+        nx, n_obs = self.nx, packing.WIDTH * self.max_obstacles
+        solver = ca.nlpsol("steer_nlp", "sqpmethod", nlp, sqp_opts)
+        y, p = nlp["x"], nlp["p"]
+        lam_gs = ca.SX.sym("lam_g", self._lbg.size)
+        lam_xs = ca.SX.sym("lam_x", nx)
+        grad = ca.gradient(nlp["f"], y) + ca.jacobian(nlp["g"], y).T @ lam_gs + lam_xs
+        kkt = ca.Function("steer_kkt", [y, p, lam_gs, lam_xs], [ca.norm_inf(grad)])
+        xs = ca.SX.sym("x", nx)
+        tgs = ca.SX.sym("target", 3)
+        los, his = ca.SX.sym("lo", nx), ca.SX.sym("hi", nx)
+        tip, J, _, _ = self._check(xs)
+        Js = J / ca.repmat(ca.DM(self.scale).T, 3, 1)
+        dy = Js.T @ ca.solve(Js @ Js.T + o.damping**2 * ca.SX.eye(3), o.dls_gain * (tgs - tip))
+        pred = ca.Function("steer_pred", [xs, tgs, los, his], [ca.fmin(ca.fmax(xs + dy / self.scale, los), his)])
+        S = ca.DM(self.scale)
+        xp, tg, ob = ca.MX.sym("x_prev", nx), ca.MX.sym("target", 3), ca.MX.sym("obstacles", n_obs)
+        w, lbx, ubx = ca.MX.sym("weights", 3), ca.MX.sym("lbx", nx), ca.MX.sym("ubx", nx)
+        lbg, x0, use_x0 = ca.MX.sym("lbg", self._lbg.size), ca.MX.sym("x0", nx), ca.MX.sym("use_x0")
+        lx0, lg0 = ca.MX.sym("lam_x0", nx), ca.MX.sym("lam_g0", self._lbg.size)
+        start = ca.if_else(use_x0, x0, pred(xp, tg, lbx, ubx) if o.predictor else xp)
+        start = ca.fmin(ca.fmax(start, lbx), ubx)
+        pv = ca.vertcat(xp, tg, ob, w)
+        sol = solver(x0=start * S, p=pv, lbx=lbx * S, ubx=ubx * S, lbg=lbg, ubg=self._ubg, lam_x0=lx0, lam_g0=lg0)
+        ys, g = sol["x"], sol["g"]
+        pr = ca.mmax(ca.vertcat(0, lbx * S - ys, ys - ubx * S, lbg - g, g - self._ubg))
+        du = kkt(ys, pv, sol["lam_g"], sol["lam_x"])
+        x = ca.fmin(ca.fmax(ys / S, lbx), ubx)
+        tip_x, _, P, glim = self._check(x)
+        _, _, P0, glim0 = self._check(xp)
+        name = f"steer_step_{self.robot.n_segments}s_{self.max_obstacles}o_{self.n_points}p"
+        step = ca.Function(
+            name,
+            [xp, tg, ob, w, lbx, ubx, lbg, x0, use_x0, lx0, lg0],
+            [x, sol["lam_x"], sol["lam_g"], pr, du, tip_x, P, glim, P0, glim0],
+        )
+        try:
+            lib, how = compiled_library(name, [step], o.qpsol)
+        except (RuntimeError, OSError) as exc:
+            self.compiled_message = f"compiled: build failed ({_last_line(str(exc))}): interpreted solver"
+            return
+        if lib is None:
+            self.compiled_message = f"compiled: {how}"
+            return
+        self._step = CompiledFunction(lib, name)
+        self._tol = (float(sqp_opts["tol_pr"]), float(sqp_opts["tol_du"]))
+        self.compiled_message = f"compiled: {how}"
 
     def _nlpsol(self, plugin: str, nlp: dict[str, Any], opts: dict[str, Any], field_name: str) -> ca.Function:
         try:
@@ -572,10 +650,14 @@ class SteerSolver:
         self, obstacles: Any, t: float, t_end: float | None, safety_distance: float | None
     ) -> tuple[np.ndarray, float, Scene | None]:
         if isinstance(obstacles, Scene):
-            if t_end is None:
+            memo = self._memo
+            if memo is not None and memo[0] is obstacles and memo[1] == t and memo[2] == t_end:
+                packed = memo[3]  # a Scene is frozen: the same scene at the same times packs the same
+            elif t_end is None:
                 packed = obstacles.pack(t, self.max_obstacles)
             else:
                 packed = obstacles.pack_over(t, t_end, self.max_obstacles)
+            self._memo = (obstacles, t, t_end, packed)
             dsf = obstacles.safety_distance if safety_distance is None else float(safety_distance)
             return packed, dsf, obstacles
         if obstacles is None:
@@ -654,6 +736,9 @@ class SteerSolver:
             raise InputError(f"t_end: must be finite and >= t = {t}, got {t_end}")
         packed, dsf, scene = self._packed(obstacles, float(t), t_end, safety_distance)
         guess = None if x0 is None else _vec(x0, "x0", self.nx)
+        if self._step is not None:
+            weights = (dsf, damping_weight, obstacle_weight)
+            return self._solve_compiled(xp, tg, packed, weights, guess, float(t), check_start, t_start)
         tip0, J0, pts0, g0 = self._evaluate(xp)
         if check_start:
             lo, hi = self.box
@@ -687,6 +772,74 @@ class SteerSolver:
                 used = "sqp>ipopt"
         return self._result(
             x, xp, tg, packed, dsf, scene, float(t), t_end, lbx, ubx, converged, status, iters, t_start, used, note
+        )
+
+    def _solve_compiled(
+        self,
+        xp: np.ndarray,
+        tg: np.ndarray,
+        packed: np.ndarray,
+        weights: tuple[float, float | None, float | None],
+        guess: np.ndarray | None,
+        t: float,
+        check_start: bool,
+        t_start: float,
+    ) -> SteerResult:
+        """`solve` through the compiled step (option `compiled`): one foreign call, then the same re-check
+        as the interpreted path, computed here from the returned points against the packed spheres."""
+        o = self.options
+        dsf, wd, wo = weights
+        w = (dsf, o.damping_weight if wd is None else wd, o.obstacle_weight if wo is None else wo)
+        lbx, ubx = self.step_bounds(xp)
+        lbg = self._lbg.copy()
+        act = packing.active_flags(packed)
+        lbg[lbg.size - self.n_col :] = np.where(np.repeat(act, self.n_points), 0.0, -np.inf)
+        warm = o.uses_warm_start and self._lam_g is not None
+        out = self._step(
+            xp,
+            tg,
+            packed,
+            w,
+            lbx,
+            ubx,
+            lbg,
+            xp if guess is None else guess,
+            (0.0 if guess is None else 1.0,),
+            self._lam_x if warm else None,
+            self._lam_g if warm else None,
+        )
+        x, lam_x, lam_g, pr, du, tip, P, glim, P0, glim0 = out
+        if check_start:
+            lo, hi = self.box
+            if not self._limits_ok(glim0, 1e-9) or np.any(xp < lo - 1e-9) or np.any(xp > hi + 1e-9):
+                raise InputError("x_prev: outside the robot's limits (theta, cable stroke or z range)")
+            c0 = self._clearance(P0.reshape(-1, 3), packed, dsf, None, t, None)
+            if c0 < -o.feasibility_tolerance:
+                raise InputError(
+                    f"x_prev: start configuration is in collision (clearance {c0:.3f} mm, "
+                    f"D_sf {dsf:g} mm, at t = {t:g} s)"
+                )
+        x = x.copy()
+        pr_inf, du_inf = float(pr[0]), float(du[0])
+        # sqpmethod's own convergence test, on the residuals of the point it returned
+        converged = bool(np.all(np.isfinite(x))) and pr_inf < self._tol[0] and du_inf < self._tol[1]
+        if converged:
+            self._lam_x, self._lam_g = lam_x.copy(), lam_g.copy()
+            status = "Solve_Succeeded"
+        else:
+            self.reset_warm_start()
+            status = f"Not_Converged (compiled sqpmethod: primal {pr_inf:.2g}, dual {du_inf:.2g})"
+        if not converged and self._fallback is not None:
+            p = self.parameters(xp, tg, packed, dsf, wd, wo)
+            start = np.clip(xp if guess is None else guess, lbx, ubx)
+            note = f"sqp: {status}; re-solved by IPOPT. "
+            x, converged, status, iters = self._solve_nlp(self._fallback, p, lbg, start, lbx, ubx, warm=False)
+            return self._result(
+                x, xp, tg, packed, dsf, None, t, None, lbx, ubx, converged, status, iters, t_start, "sqp>ipopt", note
+            )
+        evaluated = (tip.copy(), P.reshape(-1, 3).copy(), glim.copy())
+        return self._result(
+            x, xp, tg, packed, dsf, None, t, None, lbx, ubx, converged, status, -1, t_start, "sqp", "", evaluated
         )
 
     def _solve_nlp(
@@ -758,12 +911,17 @@ class SteerSolver:
         t_start: float,
         used: str,
         note: str,
+        evaluated: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
     ) -> SteerResult:
         o = self.options
         finite = bool(np.all(np.isfinite(x)))
         if not finite:
             x = xp.copy()
-        tip, _, pts, g = self._evaluate(x)
+            evaluated = None
+        if evaluated is None:
+            tip, _, pts, g = self._evaluate(x)
+        else:
+            tip, pts, g = evaluated
         err = float(np.linalg.norm(tip - tg))
         clear = self._clearance(pts, packed, dsf, scene, t, t_end)
         in_box = bool(np.all(x >= lbx) and np.all(x <= ubx))
@@ -788,7 +946,7 @@ class SteerSolver:
             message = f"target not reached: the closest safe configuration is {err:.3g} mm away (blocked by {why})"
         return SteerResult(
             x=x,
-            q=self.robot.cables(x),
+            q=self._A @ x + self._q0,
             tip=tip,
             reached=reached,
             converged=converged,

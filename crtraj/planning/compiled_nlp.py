@@ -1,0 +1,207 @@
+"""CasADi functions compiled to C once, cached, and called through ctypes on preallocated numpy buffers.
+
+`compiled_library(name, functions)` generates the C of `functions` (a whole ``sqpmethod`` solver with
+its QP solver included, when the QP solver is code-generatable: qrqp, or daqp linked statically from
+CasADi's own copy), compiles it once and returns the cached shared library (None without a C compiler,
+said once on stderr). The cache key is the SHA-256 of the generated source, the compiler flags and the
+CasADi version, so any change of robot, options or obstacle count gives a new entry and an unchanged
+one is reused.
+
+CasADi's generated C exposes, per function ``name``: ``name(arg, res, iw, w, mem)``, its work sizes
+(``name_work``), the sparsity of every input and output (``name_sparsity_in/out``) and a memory
+checkout. `CompiledFunction` reads those once, allocates every buffer once and then evaluates the
+function with one foreign call: no CasADi object, no DM conversion and no dictionary per call (a call
+through ``casadi.external`` costs tens of microseconds in conversions; this one a few).
+
+Inputs and outputs are the functions' nonzeros in CasADi's column-major order (dense vectors and
+matrices as CasADi stores them). The caller owns thread safety: one instance serves one thread.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+
+# QP solvers whose CasADi interface generates C (daqp: linked from CasADi's static library)
+CODEGEN_QP = ("daqp", "qrqp")
+# generated solver code is large (100k+ lines for the horizon); no -march=native: a cache may be shared
+_CFLAGS = ("-O2", "-fPIC", "-shared")
+_COMPILE_TIMEOUT = 900.0  # s; a hung compiler must not hang a command
+
+_INT = ctypes.c_longlong  # casadi_int (long long in CasADi's generated code)
+_DBL_P = ctypes.POINTER(ctypes.c_double)
+
+
+def _nnz(sp: ctypes._Pointer) -> tuple[int, int, int]:
+    """(rows, columns, nonzeros) of a sparsity pattern in CasADi's compact form."""
+    nrow, ncol = int(sp[0]), int(sp[1])
+    if int(sp[2]) == 1 and ncol >= 1 and _dense_flag(sp, ncol):
+        return nrow, ncol, nrow * ncol
+    return nrow, ncol, int(sp[2 + ncol])
+
+
+def _dense_flag(sp: ctypes._Pointer, ncol: int) -> bool:
+    # a general pattern's column index starts at 0; CasADi writes a dense one as (nrow, ncol, 1)
+    return int(sp[2]) == 1
+
+
+class CompiledFunction:
+    """The generated C function `name` in the shared library `library` (a path).
+
+    `n_in`, `n_out`; `shape_in[i]`/`shape_out[i]` (rows, columns) and `nnz_in`/`nnz_out`.
+    `__call__(*inputs)` copies each input (None: CasADi's default, zeros for most functions) into
+    its buffer, evaluates, and returns the output buffers (views reused by the next call: copy what
+    you keep). RuntimeError when the function reports an evaluation error (its return code).
+    """
+
+    def __init__(self, library: str | Path, name: str) -> None:
+        self.name = name
+        self._lib = ctypes.CDLL(str(library))
+        lib = self._lib
+        fn = getattr(lib, name)
+        fn.restype = ctypes.c_int
+        fn.argtypes = [
+            ctypes.POINTER(_DBL_P),
+            ctypes.POINTER(_DBL_P),
+            ctypes.POINTER(_INT),
+            _DBL_P,
+            ctypes.c_int,
+        ]
+        self._fn = fn
+        for suffix, res, args in (
+            ("_n_in", _INT, []),
+            ("_n_out", _INT, []),
+            ("_sparsity_in", ctypes.POINTER(_INT), [_INT]),
+            ("_sparsity_out", ctypes.POINTER(_INT), [_INT]),
+            ("_work", ctypes.c_int, [ctypes.POINTER(_INT)] * 4),
+            ("_checkout", ctypes.c_int, []),
+            ("_release", None, [ctypes.c_int]),
+            ("_incref", None, []),
+            ("_decref", None, []),
+        ):
+            f = getattr(lib, name + suffix)
+            f.restype = res
+            f.argtypes = args
+        self.n_in = int(getattr(lib, name + "_n_in")())
+        self.n_out = int(getattr(lib, name + "_n_out")())
+        shapes_in = [_nnz(getattr(lib, name + "_sparsity_in")(i)) for i in range(self.n_in)]
+        shapes_out = [_nnz(getattr(lib, name + "_sparsity_out")(i)) for i in range(self.n_out)]
+        self.shape_in = [(r, c) for r, c, _ in shapes_in]
+        self.shape_out = [(r, c) for r, c, _ in shapes_out]
+        self.nnz_in = [n for _, _, n in shapes_in]
+        self.nnz_out = [n for _, _, n in shapes_out]
+        sz = [_INT() for _ in range(4)]
+        if getattr(lib, name + "_work")(*[ctypes.byref(s) for s in sz]):
+            raise RuntimeError(f"{name}: the compiled library reports no work sizes")
+        sz_arg, sz_res, sz_iw, sz_w = (max(int(s.value), 1) for s in sz)
+        getattr(lib, name + "_incref")()
+        self._mem = int(getattr(lib, name + "_checkout")())
+        self._in = [np.zeros(n) for n in self.nnz_in]
+        self._out = [np.zeros(n) for n in self.nnz_out]
+        self._iw = np.zeros(sz_iw, dtype=np.int64)
+        self._w = np.zeros(sz_w)
+        self._arg = (_DBL_P * max(sz_arg, self.n_in))()
+        self._res = (_DBL_P * max(sz_res, self.n_out))()
+        self._in_ptr = [a.ctypes.data_as(_DBL_P) for a in self._in]
+        self._out_ptrs = [a.ctypes.data_as(_DBL_P) for a in self._out]
+        self._iw_ptr = self._iw.ctypes.data_as(ctypes.POINTER(_INT))
+        self._w_ptr = self._w.ctypes.data_as(_DBL_P)
+
+    def __call__(self, *inputs: np.ndarray | Sequence[float] | None) -> list[np.ndarray]:
+        if len(inputs) > self.n_in:
+            raise ValueError(f"{self.name}: {self.n_in} inputs, got {len(inputs)}")
+        arg = self._arg
+        for i in range(self.n_in):
+            v = inputs[i] if i < len(inputs) else None
+            if v is None:
+                arg[i] = None
+            else:
+                buf = self._in[i]
+                buf[:] = np.ravel(v, order="F") if np.ndim(v) > 1 else v
+                arg[i] = self._in_ptr[i]
+        res = self._res
+        for i, ptr in enumerate(self._out_ptrs):
+            res[i] = ptr  # generated code may use the pointer table as scratch: reset it every call
+        if self._fn(arg, res, self._iw_ptr, self._w_ptr, self._mem):
+            raise RuntimeError(f"{self.name}: evaluation failed in the compiled code")
+        return self._out
+
+    def __del__(self) -> None:
+        lib = getattr(self, "_lib", None)
+        if lib is not None and hasattr(self, "_mem"):
+            getattr(lib, self.name + "_release")(self._mem)
+            getattr(lib, self.name + "_decref")()
+
+
+def _casadi_dir() -> Path:
+    return Path(ca.__file__).resolve().parent
+
+
+def _qp_flags(qpsol: str) -> tuple[str, ...]:
+    """Extra compiler arguments for the QP solver's generated interface."""
+    if qpsol != "daqp":
+        return ()
+    root = _casadi_dir()
+    return (f"-I{root / 'include'}", f"-I{root / 'include' / 'daqp'}", str(root / "libdaqpstat.a"))
+
+
+def _cache_root() -> Path:
+    """Where compiled solvers live until the shared build cache takes them over."""
+    env = os.environ.get("CRTRAJ_CACHE_DIR")
+    return Path(env) if env else Path(tempfile.gettempdir()) / "crtraj-solver-cache"
+
+
+def find_compiler() -> str | None:
+    """The C compiler: ``$CRTRAJ_CC`` (``none`` disables compiling), else cc, gcc or clang on PATH."""
+    env = os.environ.get("CRTRAJ_CC")
+    if env is not None:
+        return None if env.strip().lower() in ("", "none", "0", "off") else shutil.which(env)
+    return shutil.which("cc") or shutil.which("gcc") or shutil.which("clang")
+
+
+def compiled_library(name: str, functions: Sequence[ca.Function], qpsol: str = "") -> tuple[Path | None, str]:
+    """(shared library of `functions`, one line saying what happened); (None, why) without a compiler.
+
+    The C is generated every time (fast: tenths of a second); it is compiled only when no library of
+    the same source is cached. A failing compile raises RuntimeError naming the compiler's last line.
+    """
+    compiler = find_compiler()
+    if compiler is None:
+        return None, "no C compiler found (cc, gcc, clang; or CRTRAJ_CC=none): using the interpreted solver"
+    with tempfile.TemporaryDirectory(prefix="crtraj-gen-") as tmp:
+        gen = ca.CodeGenerator(f"{name}.c", {"with_header": False})
+        for f in functions:
+            gen.add(f)
+        gen.generate(tmp + "/")
+        src = Path(tmp) / f"{name}.c"
+        flags = (*_CFLAGS, *_qp_flags(qpsol))
+        h = hashlib.sha256(src.read_bytes())
+        h.update(repr((flags, ca.__version__, sys.platform, os.path.realpath(compiler))).encode())
+        entry = _cache_root() / f"{name}-{h.hexdigest()[:24]}"
+        lib = entry / f"lib{name}.so"
+        if lib.is_file():
+            return lib, f"compiled C ({lib.parent.name}, cached)"
+        out = Path(tmp) / f"lib{name}.so"
+        cmd = [compiler, *_CFLAGS, "-o", str(out), str(src), *_qp_flags(qpsol), "-lm"]
+        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=_COMPILE_TIMEOUT, check=False)
+        if proc.returncode != 0:
+            last = (proc.stderr.strip().splitlines() or ["(no message)"])[-1]
+            raise RuntimeError(f"C compiler {compiler} failed ({proc.returncode}): {last}")
+        entry.parent.mkdir(parents=True, exist_ok=True)
+        stage = Path(tempfile.mkdtemp(prefix=".tmp-", dir=entry.parent))
+        shutil.move(str(out), stage / lib.name)
+        try:
+            os.rename(stage, entry)  # atomic: a reader sees a complete entry or none
+        except OSError:
+            shutil.rmtree(stage, ignore_errors=True)  # another process finished the same entry first
+        return lib, f"compiled C ({lib.parent.name}, built now)"
