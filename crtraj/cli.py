@@ -40,6 +40,7 @@ _USE_CASES = {
     "plan": "crtraj.app.plan:plan_command",
     "replan": "crtraj.app.replan:replan_command",
     "bench": "crtraj.app.bench:run_table1",
+    "build": "crtraj.app.build:build_command",
 }
 
 
@@ -67,6 +68,31 @@ def _add_export(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--no-compile", action="store_true", help="write C source only, do not compile")
     p.set_defaults(use_case="export")
+
+
+# ---------------------------------------------------------------------- build
+def _add_build(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "build",
+        help="build a robot's compiled collision-check kernels ahead of time (or list/clear the build cache)",
+        description="Generate and compile the C kernels every command would otherwise build on first use, into "
+        "the build cache ($CRTRAJ_CACHE_DIR, else the user cache directory). Kernels are keyed by the robot's "
+        "kinematics, the check points, CasADi, Python, the platform and the C compiler, and reused by every "
+        "command. Without a C compiler crtraj runs interpreted (exit 1 here).",
+    )
+    p.add_argument("--robot", default=str(DEFAULT_ROBOT), help="robot TOML file (default: problems/robots/cdsr2.toml)")
+    p.add_argument(
+        "--check-points",
+        type=int,
+        action="append",
+        metavar="N",
+        help="also build the kernel for N backbone check points, 2..200 (repeatable; crtraj's defaults are always "
+        "built)",
+    )
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--list", action="store_true", help="list the cache's entries (and whether each verifies)")
+    g.add_argument("--clear", action="store_true", help="remove every entry of the cache")
+    p.set_defaults(use_case="build")
 
 
 # ----------------------------------------------------------------------- view
@@ -290,6 +316,7 @@ _COMMANDS: tuple[Callable[[argparse._SubParsersAction], None], ...] = (
     _add_plan,
     _add_replan,
     _add_bench,
+    _add_build,
 )
 
 

@@ -26,6 +26,16 @@ PROBLEMS = ROOT / "problems"
 PLANNER_HANG_S = 600.0
 
 
+@pytest.fixture(autouse=True, scope="session")
+def private_build_cache(tmp_path_factory):
+    """Compiled kernels built by the tests (and their child processes) go to a cache folder of this session,
+    never to the user's cache directory; CRTRAJ_CACHE_DIR set by the caller is kept."""
+    with pytest.MonkeyPatch.context() as mp:
+        if not os.environ.get("CRTRAJ_CACHE_DIR"):
+            mp.setenv("CRTRAJ_CACHE_DIR", str(tmp_path_factory.mktemp("crtraj-cache")))
+        yield
+
+
 @pytest.fixture(scope="session")
 def robot():
     return load_robot(PROBLEMS / "robots" / "cdsr2.toml")

@@ -15,7 +15,7 @@ PROBLEMS = Path(__file__).resolve().parent.parent / "problems"
 def test_every_documented_command_is_registered():
     parser = build_parser()
     sub = next(a for a in parser._actions if a.dest == "command")
-    assert set(sub.choices) == {"export", "plan", "replan", "view", "stream", "sim-device", "bench"}
+    assert set(sub.choices) == {"export", "plan", "replan", "view", "stream", "sim-device", "bench", "build"}
 
 
 def test_plan_writes_result_and_standalone_view(tmp_path, capsys):

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import math
 import sys
 import time
@@ -22,6 +21,7 @@ from crtraj.core.fileio import (
     check_output_file,
     failed_sibling,
     is_successful_result,
+    json_document,
     to_jsonable,
 )
 from crtraj.hardware.actuators import Actuators
@@ -209,7 +209,7 @@ def _write_outputs(doc: dict[str, Any], success: bool, out: Path, args: argparse
         dest = failed_sibling(out)
     with contextlib.ExitStack() as stack:
         staged = [stack.enter_context(StagedFile(dest))]
-        staged[0].write((json.dumps(doc, indent=1, allow_nan=False) + "\n").encode("utf-8"))
+        staged[0].write(json_document(doc).encode("utf-8"))
         if args.html and success:
             staged.append(stack.enter_context(StagedFile(args.html)))
             staged[1].write(static_html(doc).encode("utf-8"))

@@ -69,15 +69,18 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 import casadi as ca
-import control
 import numpy as np
 
 from crtraj.core.errors import InputError
 from crtraj.core.fields import check_float
+from crtraj.core.lazy import lazy_module
 from crtraj.core.options import Options, option
 from crtraj.model.kinematics import Model
 from crtraj.model.robot import Robot
 from crtraj.planning.rate_limits import RateLimits
+
+# python-control (LQR design) is imported when a controller is first designed: `crtraj plan` never is
+control = lazy_module("control")
 
 MODES = ("configuration", "tip")
 

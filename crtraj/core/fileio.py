@@ -147,6 +147,8 @@ def to_jsonable(obj: Any) -> Any:
     Non-finite floats (NaN, +-inf) become null: JSON has no such numbers.
     """
     if isinstance(obj, np.ndarray):
+        if obj.dtype.kind in "biu" or (obj.dtype.kind == "f" and np.isfinite(obj).all()):
+            return obj.tolist()  # plain numbers already: no per-element pass (result arrays are large)
         return to_jsonable(obj.tolist())
     if isinstance(obj, (np.floating, np.integer, np.bool_)):
         return to_jsonable(obj.item())
@@ -163,9 +165,19 @@ def to_jsonable(obj: Any) -> Any:
     return obj
 
 
+def json_document(data: Any) -> str:
+    """Plain JSON data (`to_jsonable` output) as JSON text: a dict with one top-level key per line, each
+    value compact. Readable at the top, and written by the C encoder (``indent`` would select the
+    pure-Python one, which took seconds for a plan's thousands of waypoints)."""
+    if not isinstance(data, dict) or not data:
+        return json.dumps(data, allow_nan=False) + "\n"
+    lines = [f"{json.dumps(k)}: {json.dumps(v, allow_nan=False)}" for k, v in data.items()]
+    return "{\n" + ",\n".join(lines) + "\n}\n"
+
+
 def atomic_write_json(path: str | os.PathLike[str], obj: Any) -> Path:
-    """Write `obj` as indented JSON atomically."""
-    return atomic_write_text(path, json.dumps(to_jsonable(obj), indent=1, allow_nan=False) + "\n")
+    """Write `obj` as JSON (`json_document`) atomically."""
+    return atomic_write_text(path, json_document(to_jsonable(obj)))
 
 
 def _fsync_file(path: Path) -> None:

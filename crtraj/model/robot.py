@@ -14,6 +14,7 @@ so the maps are constant matrices, shared by the numpy and CasADi code.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -142,6 +143,12 @@ class Robot:
     # ------------------------------------------------------------- linear maps
     def cable_matrix(self) -> tuple[np.ndarray, np.ndarray]:
         """(A, q0) with ``q = q0 + A @ x`` (mm); paper eq. 4 in bending-vector form."""
+        A, q0 = self._cable_maps
+        return A.copy(), q0.copy()
+
+    @functools.cached_property
+    def _cable_maps(self) -> tuple[np.ndarray, np.ndarray]:
+        # computed once per robot: the planners' limit checks call for it thousands of times per query
         n, r = self.n_segments, self.cable_radius
         A = np.zeros((self.nq, self.nx))
         q0 = np.zeros(self.nq)
@@ -161,6 +168,10 @@ class Robot:
 
     def coupling_matrix(self) -> np.ndarray:
         """C (2n x 2n) with ``u_bar = C @ u``: u_bar_k = sum_{j>=k} c^(j-k) u_j."""
+        return self._coupling.copy()
+
+    @functools.cached_property
+    def _coupling(self) -> np.ndarray:
         n, c = self.n_segments, self.coupling
         C = np.zeros((2 * n, 2 * n))
         for k in range(n):

@@ -20,6 +20,21 @@ from crtraj.core.errors import InputError
 from crtraj.planning.rate_limits import RateLimits
 
 
+def body_weights(robot: Any) -> np.ndarray:
+    """w_k = L_k / 2 + sum_{j>k} L_j (mm/rad): how far a unit bend of segment k moves the body at most."""
+    lengths = np.array([s.length for s in robot.segments])
+    return lengths / 2.0 + (np.cumsum(lengths[::-1])[::-1] - lengths)
+
+
+def metric_matrix(robot: Any) -> np.ndarray:
+    """M of y = M x (blocks w_k u_bar_k, then z): the body-motion bound is the block-l1 norm of M dx."""
+    n = robot.n_segments
+    M = np.zeros((robot.nx, robot.nx))
+    M[: 2 * n, : 2 * n] = np.repeat(body_weights(robot), 2)[:, None] * robot.coupling_matrix()
+    M[-1, -1] = 1.0
+    return M
+
+
 class BodyMetric:
     """Body-motion bound, metric coordinates and full-speed timing of one robot.
 
@@ -34,15 +49,9 @@ class BodyMetric:
         self.robot = robot
         self.max_speed = float(max_speed)
         self.rate_limits = rate_limits
-        n = robot.n_segments
-        lengths = np.array([s.length for s in robot.segments])
-        self.weights = lengths / 2.0 + (np.cumsum(lengths[::-1])[::-1] - lengths)  # w_k (mm/rad)
-        # y = M x: blocks w_k u_bar_k, then z; body motion <= block-l1 norm of dy
-        M = np.zeros((robot.nx, robot.nx))
-        M[: 2 * n, : 2 * n] = np.repeat(self.weights, 2)[:, None] * robot.coupling_matrix()
-        M[-1, -1] = 1.0
-        self.metric_matrix = M
-        self.metric_inverse = np.linalg.inv(M)
+        self.weights = body_weights(robot)  # w_k (mm/rad)
+        self.metric_matrix = metric_matrix(robot)
+        self.metric_inverse = np.linalg.inv(self.metric_matrix)
 
     def metric(self, x: np.ndarray) -> np.ndarray:
         """y = M x (mm units): the space the planners measure distances in."""

@@ -334,7 +334,10 @@ class OMPLPlanner:
             return finish(PlanStatus.TIMEOUT, "no time left after the goal IK", goals=goals)
         ptc = ob.timedPlannerTerminationCondition(left)
         if stop.first_solution and self.algorithm == "RRTstar":
-            ptc = ob.plannerOrTerminationCondition(ptc, ob.exactSolnPlannerTerminationCondition(pdef))
+            # RRTstar adds its path to the problem only when solve() returns, so an exact-solution condition
+            # never fires while it runs; its best cost turns finite at its first solution
+            first = ob.PlannerTerminationCondition(lambda: math.isfinite(planner.bestCost().value()))
+            ptc = ob.plannerOrTerminationCondition(ptc, first)
         t1 = time.perf_counter()
         status = planner.solve(ptc)
         timings["search"] = time.perf_counter() - t1

@@ -59,6 +59,9 @@ class PlannerOptions(Options):
     waypoint_step: largest body motion between returned waypoints (mm).
     limit_fraction: fraction of each actuator speed and acceleration limit a plan may use (the
     rest is kept in reserve); `crtraj plan` retimes its result within it.
+    compiled: run the collision checks through the compiled kernel (C generated once per robot and
+    cached, `crtraj build`) when a C compiler is available; false: the interpreted CasADi path (same
+    results to rounding, several times slower).
     """
 
     SECTION: ClassVar[str] = "planner"
@@ -87,6 +90,7 @@ class PlannerOptions(Options):
     corner: float = option(40.0, ge=1e-3, le=MAX_LENGTH)
     waypoint_step: float = option(20.0, ge=0.1, le=MAX_LENGTH)
     limit_fraction: float = option(0.9, gt=0.0, le=1.0)
+    compiled: bool = option(True)
 
     @property
     def step(self) -> float:
@@ -116,4 +120,5 @@ class PlannerOptions(Options):
             max_speed=self.max_speed,
             functions=functions,
             rate_limits=None if rate_limits is None else rate_limits.scaled(self.limit_fraction),
+            compiled=self.compiled,
         )

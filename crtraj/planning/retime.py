@@ -31,7 +31,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-import toppra as ta
 
 from crtraj.core.errors import InputError
 from crtraj.planning.metric import BodyMetric
@@ -211,6 +210,8 @@ def retime(
 def toppra_durations(X: np.ndarray, limits: RateLimits, metric: BodyMetric, gridpoints: int = 50) -> np.ndarray:
     """The same rest-to-rest problem solved by toppra (the reference TOPP-RA library), per straight
     motion between the corners of X: durations (s). For comparison with `min_durations` (benchmarks)."""
+    import toppra as ta  # the reference library: needed only by this cross-check (benchmarks, tests)
+
     P = np.asarray(X, dtype=float)[keep_corners(X)]
     out = []
     for xa, xb in itertools.pairwise(P):

@@ -176,15 +176,9 @@ class SafeIK:
         """
         X = np.atleast_2d(np.asarray(seeds, dtype=float)).copy()
         S = X.shape[0]
-        f = self._tip_jac.get(S)
-        if f is None:
-            f = self._tip_jac_single.map(S, "serial")
-            self._tip_jac[S] = f
         err = np.full(S, np.inf)
         for _ in range(iterations + 1):
-            P, J = f(X.T)
-            P = np.asarray(P).T
-            J = np.asarray(J).reshape(3, S, self.robot.nx).transpose(1, 0, 2)
+            P, J = self._tip_jacobian(X)
             e = target - P
             err = np.linalg.norm(e, axis=1)
             if _ == iterations or np.all(err < self.tip_tolerance):
@@ -195,6 +189,20 @@ class SafeIK:
             dx = np.einsum("nij,ni->nj", JW, np.linalg.solve(A, e[..., None])[..., 0])
             X = self.validator.project_limits(X + dx)
         return X, err
+
+    def _tip_jacobian(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Tips (S, 3) mm and tip Jacobians (S, 3, nx) of configurations X (S, nx): the validator's compiled
+        kernel when it has one, else one mapped CasADi call."""
+        kernel = self.validator.state.kernel
+        if kernel is not None:
+            return kernel.tip_jacobian(X)
+        S = X.shape[0]
+        f = self._tip_jac.get(S)
+        if f is None:
+            f = self._tip_jac_single.map(S, "serial")
+            self._tip_jac[S] = f
+        P, J = f(X.T)
+        return np.asarray(P).T, np.asarray(J).reshape(3, S, self.robot.nx).transpose(1, 0, 2)
 
     # Long by design: the two IK stages share the seeds, the deadline and the running tally of safe solutions.
     def solve(

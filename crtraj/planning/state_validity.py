@@ -19,8 +19,9 @@ import numpy as np
 
 from crtraj.core.errors import InputError
 from crtraj.model.kinematics import Model
+from crtraj.planning.compiled_validity import shared_kernel
 from crtraj.planning.sampler import ConfigSampler
-from crtraj.world import margin
+from crtraj.world import margin, packing
 
 
 class StateValidityChecker:
@@ -29,11 +30,19 @@ class StateValidityChecker:
     model: the robot's `Model`. scene: a `crtraj.world.scene.Scene`.
     check_points: backbone points per configuration (>= 2). functions: a
     cache of CasADi functions by (kind, check points, obstacles, batch size),
-    shared by all validators of one planner so that scenes share them.
+    shared by all validators of one planner so that scenes share them (it also
+    holds the compiled kernel). compiled: evaluate with the compiled kernel
+    (`crtraj.planning.compiled_validity`) when a C compiler is available; the
+    interpreted CasADi path gives the same numbers (to rounding), slower.
     """
 
     def __init__(
-        self, model: Model, scene: Any, check_points: int = 15, functions: dict[Any, Any] | None = None
+        self,
+        model: Model,
+        scene: Any,
+        check_points: int = 15,
+        functions: dict[Any, Any] | None = None,
+        compiled: bool = True,
     ) -> None:
         if check_points < 2:
             raise InputError(f"check_points: must be >= 2, got {check_points}")
@@ -59,9 +68,11 @@ class StateValidityChecker:
         # how much the sphere swept over a window of dt seconds can exceed the sphere at any one of its
         # instants: capsule length plus radius growth, <= (speed + rate) dt (mm/s)
         self.enlargement_rate = float(np.max(speeds + rates)) if scene.n_obstacles else 0.0
+        self.kernel = shared_kernel(self._fns, model, self.check_points) if compiled else None
         if scene.n_obstacles:
             c, r = scene.states(0.0)
             self._static_c, self._static_r = c, r
+            self.static_slots = packing.pack(c, r, scene.n_obstacles)
 
     # -------------------------------------------------------------- kinematics
     def _mapped(self, kind: str, size: int) -> Any:
@@ -120,6 +131,8 @@ class StateValidityChecker:
     def points(self, X: np.ndarray) -> np.ndarray:
         """Check points (N, check_points, 3) of configurations X (N, nx), mm."""
         X = np.atleast_2d(np.asarray(X, dtype=float))
+        if self.kernel is not None:
+            return self.kernel.points(X)
         n = self.check_points
         out = np.empty((X.shape[0], n, 3))
         for start, take, size in self._batches(X.shape[0]):
@@ -147,6 +160,9 @@ class StateValidityChecker:
         if self.scene.n_obstacles == 0:
             return np.full(N, np.inf)
         M = self.scene.n_obstacles
+        if self.kernel is not None:
+            self.n_samples += N
+            return self._compiled_clearance(X, t_lo, t_hi) - self.inflate - margin
         if self.static:
             C = self._static_c.T  # (3, M): broadcast to every configuration
             R = self._static_r[None, :]
@@ -170,6 +186,19 @@ class StateValidityChecker:
                 Rb[:, : take * M] = R[:, start * M : (start + take) * M]
             out[start : start + take] = self._mapped("clearance", size)(block, Cb, Rb).full().ravel()[:take]
         return out - self.inflate - margin
+
+    def _compiled_clearance(self, X: np.ndarray, t_lo: Any, t_hi: Any) -> np.ndarray:
+        """Chord clearance (mm, before inflation) by the compiled kernel: static slots shared by every
+        configuration, or each configuration's swept spheres over its window."""
+        assert self.kernel is not None
+        if self.static:
+            return self.kernel.clearance(X, self.static_slots)
+        N = X.shape[0]
+        lo = np.broadcast_to(np.asarray(t_lo, dtype=float), (N,))
+        hi = lo if t_hi is None else np.broadcast_to(np.asarray(t_hi, dtype=float), (N,))
+        a, b, rmax = self.scene.swept(lo, hi)  # (N, M, 3), (N, M)
+        slots = packing.pack(0.5 * (a + b), rmax + 0.5 * np.linalg.norm(b - a, axis=-1), self.scene.n_obstacles)
+        return self.kernel.clearance(X, slots)
 
     def state_valid(self, X: np.ndarray, t: float | np.ndarray = 0.0) -> np.ndarray:
         """Within limits and clear at time t (bool (N,))."""

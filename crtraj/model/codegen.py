@@ -1,0 +1,63 @@
+"""CasADi functions compiled through the build cache: generate C, compile once, load the cached library.
+
+`codegen_builder(functions, name)` is the build step `crtraj.core.build_cache.BuildCache.library`
+runs on a miss: CasADi writes the functions' C into the temporary entry folder and the C compiler
+turns it into a shared library. `load_functions` returns them again as ``casadi.external`` Functions
+(same names, inputs and outputs as the originals), so callers evaluate the compiled code through the
+same CasADi interface. `compiled_functions` does both: cached, or built, or None without a compiler.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import casadi as ca
+
+from crtraj.core.build_cache import BuildCache, BuildKey, compile_shared
+
+
+def codegen_builder(
+    make: Callable[[], Sequence[ca.Function]], name: str, extra_c: str = ""
+) -> Callable[[Path, str], Path]:
+    """The build step of a cache entry: C of the functions `make()` returns, followed by `extra_c` (a
+    hand-written driver calling them, say), generated into the folder and compiled to lib<name>.so.
+
+    `make` runs only when the step runs (a cache miss), so a hit never builds the CasADi graphs.
+    """
+
+    def build(folder: Path, compiler: str) -> Path:
+        gen = ca.CodeGenerator(f"{name}.c", {"with_header": False})
+        for f in make():
+            gen.add(f)
+        src = folder / f"{name}.c"
+        src.write_text(gen.dump() + extra_c, encoding="utf-8")
+        return compile_shared(compiler, [src], folder / f"lib{name}.so")
+
+    return build
+
+
+def load_functions(library: Path, names: Sequence[str]) -> dict[str, ca.Function]:
+    """The functions `names` of a compiled library, as ``casadi.external`` Functions."""
+    return {n: ca.external(n, str(library)) for n in names}
+
+
+def compiled_functions(
+    cache: BuildCache, key: BuildKey, names: Sequence[str], make: Callable[[], Sequence[ca.Function]]
+) -> dict[str, ca.Function] | None:
+    """The functions `names` of `key`, loaded from the cache (built from `make()` on a miss); None without
+    a compiler.
+
+    `make` builds the CasADi graphs; it runs only when the library must be built, never on a hit, so a
+    cached start-up does not pay for the symbolic construction.
+    """
+
+    def checked() -> Sequence[ca.Function]:
+        funcs = list(make())
+        got = sorted(f.name() for f in funcs)
+        if got != sorted(names):
+            raise RuntimeError(f"build of {key.name}: made functions {got}, expected {sorted(names)}")
+        return funcs
+
+    lib = cache.library(key, codegen_builder(checked, key.name))
+    return None if lib is None else load_functions(lib, names)

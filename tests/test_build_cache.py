@@ -1,0 +1,176 @@
+"""The build cache: entries reused when the key is the same, rebuilt when it changes, corrupt or foreign
+entries detected and rebuilt (never loaded), atomic builds, the no-compiler path, list and clear."""
+
+from __future__ import annotations
+
+import io
+import json
+import shutil
+import sys
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+import pytest
+from conftest import require_tool
+
+from crtraj.core.build_cache import MANIFEST, BuildCache, BuildKey, default_root, find_compiler
+from crtraj.model.codegen import compiled_functions
+
+# A stand-in compiler for the cache's own logic: the cache only records its identity; the build steps
+# below write their "library" bytes themselves.
+FAKE_CC = sys.executable
+
+
+class Builder:
+    """A build step that writes known bytes as the library and counts its calls."""
+
+    def __init__(self, payload: bytes = b"\x7fELF fake library") -> None:
+        self.payload = payload
+        self.calls = 0
+
+    def __call__(self, folder: Path, compiler: str) -> Path:
+        self.calls += 1
+        assert compiler == FAKE_CC
+        assert not any(folder.iterdir()), "a build starts in an empty folder"
+        lib = folder / "libthing.so"
+        lib.write_bytes(self.payload)
+        return lib
+
+
+def robot_key(robot_file: Path) -> BuildKey:
+    """A key from a robot file's content, as the validity kernels key theirs."""
+    return BuildKey("thing", {"robot": robot_file.read_text(), "generator": 1})
+
+
+def test_reused_when_unchanged_and_rebuilt_when_the_robot_file_changes(tmp_path):
+    robot = tmp_path / "robot.toml"
+    robot.write_text('[robot]\nname = "a"\n')
+    b = Builder()
+    lib1 = BuildCache(tmp_path / "c", compiler=FAKE_CC).library(robot_key(robot), b)
+    assert lib1.read_bytes() == b.payload and b.calls == 1
+    # a new process (a new cache object) finds the same entry: no build
+    cache2 = BuildCache(tmp_path / "c", compiler=FAKE_CC)
+    assert cache2.library(robot_key(robot), b) == lib1 and b.calls == 1 and cache2.builds == 0
+    robot.write_text('[robot]\nname = "a"\ncable_radius = 2.0\n')
+    lib2 = cache2.library(robot_key(robot), b)
+    assert b.calls == 2 and lib2 != lib1 and lib1.exists()
+    assert {e.path for e in cache2.entries()} == {lib1.parent, lib2.parent}
+    assert all(e.valid for e in cache2.entries())
+
+
+def test_key_is_canonical_and_covers_environment(tmp_path):
+    c = BuildCache(tmp_path, compiler=FAKE_CC)
+    k1 = BuildKey("thing", {"a": np.array([1.0, 2.0]), "b": 3})
+    k2 = BuildKey("thing", {"b": 3, "a": [1.0, 2.0]})
+    assert c.digest(k1) == c.digest(k2)
+    assert c.digest(k1) != c.digest(BuildKey("thing", {"a": [1.0, 2.0], "b": 4}))
+    env = c.environment()
+    assert env["casadi"] == ca.__version__ and env["compiler"]["path"]
+    assert f"{sys.version_info[0]}.{sys.version_info[1]}" in env["python"]
+    # another compiler (its identity) is another environment, so another entry
+    other = BuildCache(tmp_path, compiler=__file__)  # any other file stands for another compiler
+    assert other.digest(k1) != c.digest(k1)
+    with pytest.raises(ValueError, match="build key name"):
+        BuildKey("../x")
+
+
+@pytest.mark.parametrize("damage", ["library_bytes", "library_missing", "manifest_garbage", "manifest_sha"])
+def test_corrupt_entry_is_detected_and_rebuilt(tmp_path, damage):
+    key = BuildKey("thing", {"v": 1})
+    b = Builder()
+    cache = BuildCache(tmp_path, compiler=FAKE_CC)
+    lib = cache.library(key, b)
+    if damage == "library_bytes":
+        lib.write_bytes(b"\x7fELF evil library")  # same length or not, the hash differs
+    elif damage == "library_missing":
+        lib.unlink()
+    elif damage == "manifest_garbage":
+        (lib.parent / MANIFEST).write_text("{not json")
+    else:
+        man = json.loads((lib.parent / MANIFEST).read_text())
+        man["sha256"] = "0" * 64
+        (lib.parent / MANIFEST).write_text(json.dumps(man))
+    assert cache.lookup(key) is None
+    assert [e.valid for e in cache.entries()] == [False]
+    again = cache.library(key, b)
+    assert b.calls == 2 and again == lib and again.read_bytes() == b.payload
+    assert cache.lookup(key) == lib
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")], "no temporary folders left"
+
+
+def test_foreign_entry_under_the_right_name_is_rebuilt(tmp_path):
+    """An intact entry of another key moved to this key's folder name is not loaded."""
+    cache = BuildCache(tmp_path, compiler=FAKE_CC)
+    mine, theirs = BuildKey("thing", {"v": 1}), BuildKey("thing", {"v": 2})
+    foreign = cache.library(theirs, Builder(b"\x7fELF theirs"))
+    target = cache.entry_dir(mine)
+    shutil.copytree(foreign.parent, target)
+    assert cache.lookup(mine) is None
+    b = Builder(b"\x7fELF mine")
+    assert cache.library(mine, b).read_bytes() == b"\x7fELF mine" and b.calls == 1
+    # an entry made in another environment (another CasADi, say) is foreign too
+    man = json.loads((target / MANIFEST).read_text())
+    man["env"]["casadi"] = "0.0.1"
+    (target / MANIFEST).write_text(json.dumps(man))
+    assert cache.lookup(mine) is None
+
+
+def test_failed_build_leaves_the_cache_as_it_was(tmp_path):
+    cache = BuildCache(tmp_path, compiler=FAKE_CC)
+
+    def broken(folder: Path, compiler: str) -> Path:
+        (folder / "half.c").write_text("int")
+        raise RuntimeError("C compiler failed")
+
+    with pytest.raises(RuntimeError, match="C compiler failed"):
+        cache.library(BuildKey("thing"), broken)
+    assert list(tmp_path.iterdir()) == []
+    with pytest.raises(RuntimeError, match="no library written"):
+        cache.library(BuildKey("thing"), lambda folder, cc: tmp_path / "elsewhere.so")
+    assert cache.entries() == []
+
+
+def test_without_a_compiler_nothing_is_built_and_it_says_so_once(tmp_path, monkeypatch):
+    out = io.StringIO()
+    cache = BuildCache(tmp_path, compiler=None, notice=out)
+    b = Builder()
+    assert cache.library(BuildKey("thing"), b) is None
+    assert cache.library(BuildKey("other"), b) is None
+    assert b.calls == 0
+    lines = out.getvalue().splitlines()
+    assert len(lines) == 1 and "no C compiler" in lines[0] and "interpreted" in lines[0]
+    monkeypatch.setenv("CRTRAJ_CC", "none")
+    assert find_compiler() is None
+    monkeypatch.setenv("CRTRAJ_CACHE_DIR", str(tmp_path / "here"))
+    assert default_root() == tmp_path / "here" and BuildCache().root == tmp_path / "here"
+
+
+def test_clear_removes_only_cache_folders(tmp_path):
+    cache = BuildCache(tmp_path, compiler=FAKE_CC)
+    cache.library(BuildKey("thing", {"v": 1}), Builder())
+    cache.library(BuildKey("thing", {"v": 2}), Builder())
+    (tmp_path / "notes.txt").write_text("mine")
+    (tmp_path / "project").mkdir()
+    (tmp_path / ".tmp-thing-dead").mkdir()  # left by a killed build
+    assert cache.clear() == 2
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt", "project"]
+
+
+def test_compiled_casadi_function_round_trip(tmp_path):
+    """Real codegen + compiler: the cached library evaluates like the CasADi graph, and a hit skips make()."""
+    cc = require_tool("cc", "gcc")
+    x = ca.SX.sym("x", 3)
+    calls = []
+
+    def make():
+        calls.append(1)
+        return [ca.Function("bc_norm", [x], [ca.sqrt(ca.sumsqr(x)) + ca.sin(x[0])])]
+
+    key = BuildKey("bc_test", {"v": 1})
+    f = compiled_functions(BuildCache(tmp_path, compiler=cc), key, ["bc_norm"], make)["bc_norm"]
+    g = compiled_functions(BuildCache(tmp_path, compiler=cc), key, ["bc_norm"], make)["bc_norm"]
+    v = np.array([0.3, -1.2, 2.5])
+    ref = np.linalg.norm(v) + np.sin(v[0])
+    assert calls == [1]
+    assert abs(float(f(v)) - ref) < 1e-12 and abs(float(g(v)) - ref) < 1e-12
