@@ -2,10 +2,9 @@
 
 `compiled_library(name, functions)` generates the C of `functions` (a whole ``sqpmethod`` solver with
 its QP solver included, when the QP solver is code-generatable: qrqp, or daqp linked statically from
-CasADi's own copy), compiles it once and returns the cached shared library (None without a C compiler,
-said once on stderr). The cache key is the SHA-256 of the generated source, the compiler flags and the
-CasADi version, so any change of robot, options or obstacle count gives a new entry and an unchanged
-one is reused.
+CasADi's own copy), compiles it once into the build cache (`crtraj.core.build_cache`, keyed by the
+SHA-256 of the generated source plus the cache's environment: CasADi, Python, platform, compiler) and
+returns the library (None without a C compiler, said once on stderr).
 
 CasADi's generated C exposes, per function ``name``: ``name(arg, res, iw, w, mem)``, its work sizes
 (``name_work``), the sparsity of every input and output (``name_sparsity_in/out``) and a memory
@@ -21,22 +20,16 @@ from __future__ import annotations
 
 import ctypes
 import hashlib
-import os
-import shutil
-import subprocess
-import sys
-import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
 import casadi as ca
 import numpy as np
 
+from crtraj.core.build_cache import BuildCache, BuildKey, compile_shared
+
 # QP solvers whose CasADi interface generates C (daqp: linked from CasADi's static library)
 CODEGEN_QP = ("daqp", "qrqp")
-# generated solver code is large (100k+ lines for the horizon); no -march=native: a cache may be shared
-_CFLAGS = ("-O2", "-fPIC", "-shared")
-_COMPILE_TIMEOUT = 900.0  # s; a hung compiler must not hang a command
 
 _INT = ctypes.c_longlong  # casadi_int (long long in CasADi's generated code)
 _DBL_P = ctypes.POINTER(ctypes.c_double)
@@ -147,61 +140,41 @@ def _casadi_dir() -> Path:
     return Path(ca.__file__).resolve().parent
 
 
-def _qp_flags(qpsol: str) -> tuple[str, ...]:
-    """Extra compiler arguments for the QP solver's generated interface."""
+def _qp_build(qpsol: str) -> tuple[tuple[str, ...], list[Path]]:
+    """(compiler flags, extra link inputs) for the QP solver's generated interface."""
     if qpsol != "daqp":
-        return ()
+        return (), []
     root = _casadi_dir()
-    return (f"-I{root / 'include'}", f"-I{root / 'include' / 'daqp'}", str(root / "libdaqpstat.a"))
+    return (f"-I{root / 'include'}", f"-I{root / 'include' / 'daqp'}"), [root / "libdaqpstat.a"]
 
 
-def _cache_root() -> Path:
-    """Where compiled solvers live until the shared build cache takes them over."""
-    env = os.environ.get("CRTRAJ_CACHE_DIR")
-    return Path(env) if env else Path(tempfile.gettempdir()) / "crtraj-solver-cache"
+def compiled_library(
+    name: str, functions: Sequence[ca.Function], qpsol: str = "", cache: BuildCache | None = None
+) -> tuple[Path | None, str]:
+    """(shared library of `functions` from the build cache, one line saying what happened); (None, why)
+    without a C compiler (the cache then says so once on stderr).
 
-
-def find_compiler() -> str | None:
-    """The C compiler: ``$CRTRAJ_CC`` (``none`` disables compiling), else cc, gcc or clang on PATH."""
-    env = os.environ.get("CRTRAJ_CC")
-    if env is not None:
-        return None if env.strip().lower() in ("", "none", "0", "off") else shutil.which(env)
-    return shutil.which("cc") or shutil.which("gcc") or shutil.which("clang")
-
-
-def compiled_library(name: str, functions: Sequence[ca.Function], qpsol: str = "") -> tuple[Path | None, str]:
-    """(shared library of `functions`, one line saying what happened); (None, why) without a compiler.
-
-    The C is generated every time (fast: tenths of a second); it is compiled only when no library of
-    the same source is cached. A failing compile raises RuntimeError naming the compiler's last line.
+    The C is generated every time (tenths of a second) and its SHA-256 is the cache key, so a change of
+    robot, options or obstacle count gives a new entry and an unchanged one is reused. A failing compile
+    raises RuntimeError naming the compiler's last line.
     """
-    compiler = find_compiler()
-    if compiler is None:
+    cache = BuildCache() if cache is None else cache
+    gen = ca.CodeGenerator(f"{name}.c", {"with_header": False})
+    for f in functions:
+        gen.add(f)
+    text = gen.dump()
+    key = BuildKey(name, {"c_sha256": hashlib.sha256(text.encode("utf-8")).hexdigest(), "qpsol": qpsol})
+    hit = cache.lookup(key)
+    if hit is not None:
+        return hit, f"compiled C ({hit.parent.name}, cached)"
+
+    def build(folder: Path, compiler: str) -> Path:
+        src = folder / f"{name}.c"
+        src.write_text(text, encoding="utf-8")
+        flags, libs = _qp_build(qpsol)
+        return compile_shared(compiler, [src, *libs], folder / f"lib{name}.so", flags)
+
+    lib = cache.library(key, build)
+    if lib is None:
         return None, "no C compiler found (cc, gcc, clang; or CRTRAJ_CC=none): using the interpreted solver"
-    with tempfile.TemporaryDirectory(prefix="crtraj-gen-") as tmp:
-        gen = ca.CodeGenerator(f"{name}.c", {"with_header": False})
-        for f in functions:
-            gen.add(f)
-        gen.generate(tmp + "/")
-        src = Path(tmp) / f"{name}.c"
-        flags = (*_CFLAGS, *_qp_flags(qpsol))
-        h = hashlib.sha256(src.read_bytes())
-        h.update(repr((flags, ca.__version__, sys.platform, os.path.realpath(compiler))).encode())
-        entry = _cache_root() / f"{name}-{h.hexdigest()[:24]}"
-        lib = entry / f"lib{name}.so"
-        if lib.is_file():
-            return lib, f"compiled C ({lib.parent.name}, cached)"
-        out = Path(tmp) / f"lib{name}.so"
-        cmd = [compiler, *_CFLAGS, "-o", str(out), str(src), *_qp_flags(qpsol), "-lm"]
-        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=_COMPILE_TIMEOUT, check=False)
-        if proc.returncode != 0:
-            last = (proc.stderr.strip().splitlines() or ["(no message)"])[-1]
-            raise RuntimeError(f"C compiler {compiler} failed ({proc.returncode}): {last}")
-        entry.parent.mkdir(parents=True, exist_ok=True)
-        stage = Path(tempfile.mkdtemp(prefix=".tmp-", dir=entry.parent))
-        shutil.move(str(out), stage / lib.name)
-        try:
-            os.rename(stage, entry)  # atomic: a reader sees a complete entry or none
-        except OSError:
-            shutil.rmtree(stage, ignore_errors=True)  # another process finished the same entry first
-        return lib, f"compiled C ({lib.parent.name}, built now)"
+    return lib, f"compiled C ({lib.parent.name}, built now)"
