@@ -32,7 +32,6 @@ from crtraj.core.build_cache import BuildCache, BuildKey, compile_shared
 CODEGEN_QP = ("daqp", "qrqp")
 
 _INT = ctypes.c_longlong  # casadi_int (long long in CasADi's generated code)
-_DBL_P = ctypes.POINTER(ctypes.c_double)
 
 
 def _nnz(sp: ctypes._Pointer) -> tuple[int, int, int]:
@@ -63,13 +62,8 @@ class CompiledFunction:
         lib = self._lib
         fn = getattr(lib, name)
         fn.restype = ctypes.c_int
-        fn.argtypes = [
-            ctypes.POINTER(_DBL_P),
-            ctypes.POINTER(_DBL_P),
-            ctypes.POINTER(_INT),
-            _DBL_P,
-            ctypes.c_int,
-        ]
+        fn.argtypes = [ctypes.POINTER(ctypes.c_void_p), ctypes.POINTER(ctypes.c_void_p), ctypes.c_void_p]
+        fn.argtypes += [ctypes.c_void_p, ctypes.c_int]
         self._fn = fn
         for suffix, res, args in (
             ("_n_in", _INT, []),
@@ -103,12 +97,13 @@ class CompiledFunction:
         self._out = [np.zeros(n) for n in self.nnz_out]
         self._iw = np.zeros(sz_iw, dtype=np.int64)
         self._w = np.zeros(sz_w)
-        self._arg = (_DBL_P * max(sz_arg, self.n_in))()
-        self._res = (_DBL_P * max(sz_res, self.n_out))()
-        self._in_ptr = [a.ctypes.data_as(_DBL_P) for a in self._in]
-        self._out_ptrs = [a.ctypes.data_as(_DBL_P) for a in self._out]
-        self._iw_ptr = self._iw.ctypes.data_as(ctypes.POINTER(_INT))
-        self._w_ptr = self._w.ctypes.data_as(_DBL_P)
+        # pointer tables as plain addresses: setting an entry from an int costs far less than a ctypes pointer
+        self._arg = (ctypes.c_void_p * max(sz_arg, self.n_in))()
+        self._res = (ctypes.c_void_p * max(sz_res, self.n_out))()
+        self._in_addr = [a.ctypes.data for a in self._in]
+        self._out_ptrs = [a.ctypes.data for a in self._out]
+        self._iw_ptr = self._iw.ctypes.data
+        self._w_ptr = self._w.ctypes.data
 
     def __call__(self, *inputs: np.ndarray | Sequence[float] | None) -> list[np.ndarray]:
         if len(inputs) > self.n_in:
@@ -117,17 +112,24 @@ class CompiledFunction:
         for i in range(self.n_in):
             v = inputs[i] if i < len(inputs) else None
             if v is None:
-                arg[i] = None
+                arg[i] = None  # CasADi's generated code reads a null input as zeros
+            elif type(v) is np.ndarray and v.dtype == np.float64 and v.ndim == 1 and v.size == self.nnz_in[i]:
+                arg[i] = v.ctypes.data if v.flags.c_contiguous else self._copy(i, v)
             else:
-                buf = self._in[i]
-                buf[:] = np.ravel(v, order="F") if np.ndim(v) > 1 else v
-                arg[i] = self._in_ptr[i]
+                arg[i] = self._copy(i, np.ravel(np.asarray(v, dtype=float), order="F"))
         res = self._res
         for i, ptr in enumerate(self._out_ptrs):
             res[i] = ptr  # generated code may use the pointer table as scratch: reset it every call
         if self._fn(arg, res, self._iw_ptr, self._w_ptr, self._mem):
             raise RuntimeError(f"{self.name}: evaluation failed in the compiled code")
         return self._out
+
+    def _copy(self, i: int, v: np.ndarray) -> int:
+        """Copy input i into its own buffer (shape checked); the buffer's address."""
+        if v.size != self.nnz_in[i]:
+            raise ValueError(f"{self.name}: input {i} needs {self.nnz_in[i]} numbers, got {v.size}")
+        self._in[i][:] = v
+        return self._in_addr[i]
 
     def __del__(self) -> None:
         lib = getattr(self, "_lib", None)

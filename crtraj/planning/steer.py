@@ -421,6 +421,7 @@ class SteerSolver:
         self.compiled_message = ""
         self._step: CompiledFunction | None = None
         self._memo: tuple[Any, float, float | None, np.ndarray] | None = None  # last (scene, t, t_end, packed)
+        self._lbg_memo: tuple[np.ndarray, np.ndarray] | None = None  # last (packed, lbg) of the compiled step
         self._A, self._q0 = self.robot.cable_matrix()
         self._lam_g: np.ndarray | None = None
         self._lam_x: np.ndarray | None = None
@@ -562,11 +563,16 @@ class SteerSolver:
         x = ca.fmin(ca.fmax(ys / S, lbx), ubx)
         tip_x, _, P, glim = self._check(x)
         _, _, P0, glim0 = self._check(xp)
+        lo_lim, hi_lim = ca.DM(self._lbg_lim), ca.DM(self._ubg_lim)
         name = f"steer_step_{self.robot.n_segments}s_{self.max_obstacles}o_{self.n_points}p"
         step = ca.Function(
             name,
             [xp, tg, ob, w, lbx, ubx, lbg, x0, use_x0, lx0, lg0],
-            [x, sol["lam_x"], sol["lam_g"], pr, du, tip_x, P, glim, P0, glim0],
+            [
+                *(x, sol["lam_x"], sol["lam_g"], pr, du, tip_x),
+                *(self._surface_distance(P, ob), ca.mmin(ca.vertcat(glim - lo_lim, hi_lim - glim))),
+                *(self._surface_distance(P0, ob), ca.mmin(ca.vertcat(glim0 - lo_lim, hi_lim - glim0))),
+            ],
         )
         try:
             lib, how = compiled_library(name, [step], o.qpsol)
@@ -579,6 +585,17 @@ class SteerSolver:
         self._step = CompiledFunction(lib, name)
         self._tol = (float(sqp_opts["tol_pr"]), float(sqp_opts["tol_du"]))
         self.compiled_message = f"compiled: {how}"
+
+    def _surface_distance(self, P: ca.MX, ob: ca.MX) -> ca.MX:
+        """Smallest distance (mm) of the points P (3, n) to an active sphere's surface of the packed `ob`
+        (+1e12 without one): the compiled step's re-check quantity, as `_clearance` computes it in numpy."""
+        d = [ca.MX(1e12)]
+        for i in range(self.max_obstacles):
+            c, r, act = packing.slot(ob, i)
+            diff = P - ca.repmat(c, 1, P.shape[1])
+            dist = ca.mmin(ca.sqrt(ca.sum1(diff * diff))) - r
+            d.append(ca.if_else(act > 0, dist, 1e12))
+        return ca.mmin(ca.vertcat(*d))
 
     def _nlpsol(self, plugin: str, nlp: dict[str, Any], opts: dict[str, Any], field_name: str) -> ca.Function:
         try:
@@ -791,9 +808,12 @@ class SteerSolver:
         dsf, wd, wo = weights
         w = (dsf, o.damping_weight if wd is None else wd, o.obstacle_weight if wo is None else wo)
         lbx, ubx = self.step_bounds(xp)
-        lbg = self._lbg.copy()
-        act = packing.active_flags(packed)
-        lbg[lbg.size - self.n_col :] = np.where(np.repeat(act, self.n_points), 0.0, -np.inf)
+        if self._lbg_memo is None or self._lbg_memo[0] is not packed:
+            lbg = self._lbg.copy()
+            act = packing.active_flags(packed)
+            lbg[lbg.size - self.n_col :] = np.where(np.repeat(act, self.n_points), 0.0, -np.inf)
+            self._lbg_memo = (packed, lbg)
+        lbg = self._lbg_memo[1]
         warm = o.uses_warm_start and self._lam_g is not None
         out = self._step(
             xp,
@@ -808,12 +828,13 @@ class SteerSolver:
             self._lam_x if warm else None,
             self._lam_g if warm else None,
         )
-        x, lam_x, lam_g, pr, du, tip, P, glim, P0, glim0 = out
+        x, lam_x, lam_g, pr, du, tip, d, slack, d0, slack0 = out
+        body = self.robot.body_radius
         if check_start:
             lo, hi = self.box
-            if not self._limits_ok(glim0, 1e-9) or np.any(xp < lo - 1e-9) or np.any(xp > hi + 1e-9):
+            if slack0[0] < -1e-9 or np.any(xp < lo - 1e-9) or np.any(xp > hi + 1e-9):
                 raise InputError("x_prev: outside the robot's limits (theta, cable stroke or z range)")
-            c0 = self._clearance(P0.reshape(-1, 3), packed, dsf, None, t, None)
+            c0 = margin.clearance(float(d0[0]), dsf, body) if d0[0] < 1e11 else math.inf
             if c0 < -o.feasibility_tolerance:
                 raise InputError(
                     f"x_prev: start configuration is in collision (clearance {c0:.3f} mm, "
@@ -837,9 +858,9 @@ class SteerSolver:
             return self._result(
                 x, xp, tg, packed, dsf, None, t, None, lbx, ubx, converged, status, iters, t_start, "sqp>ipopt", note
             )
-        evaluated = (tip.copy(), P.reshape(-1, 3).copy(), glim.copy())
+        checked = (tip.copy(), margin.clearance(float(d[0]), dsf, body) if d[0] < 1e11 else math.inf, slack[0] >= -1e-6)
         return self._result(
-            x, xp, tg, packed, dsf, None, t, None, lbx, ubx, converged, status, -1, t_start, "sqp", "", evaluated
+            x, xp, tg, packed, dsf, None, t, None, lbx, ubx, converged, status, -1, t_start, "sqp", "", checked
         )
 
     def _solve_nlp(
@@ -911,21 +932,23 @@ class SteerSolver:
         t_start: float,
         used: str,
         note: str,
-        evaluated: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+        checked: tuple[np.ndarray, float, bool] | None = None,
     ) -> SteerResult:
+        """The result of a solve. checked: (tip, clearance, within the limits) when the compiled step has
+        computed them at x (else they are evaluated here)."""
         o = self.options
         finite = bool(np.all(np.isfinite(x)))
         if not finite:
             x = xp.copy()
-            evaluated = None
-        if evaluated is None:
+            checked = None
+        if checked is None:
             tip, _, pts, g = self._evaluate(x)
+            clear = self._clearance(pts, packed, dsf, scene, t, t_end)
+            in_limits = self._limits_ok(g)
         else:
-            tip, pts, g = evaluated
+            tip, clear, in_limits = checked
         err = float(np.linalg.norm(tip - tg))
-        clear = self._clearance(pts, packed, dsf, scene, t, t_end)
         in_box = bool(np.all(x >= lbx) and np.all(x <= ubx))
-        in_limits = self._limits_ok(g)
         clear_ok = clear >= -o.feasibility_tolerance
         safe = finite and clear_ok and in_box and in_limits
         reached = finite and err <= o.tolerance
