@@ -79,7 +79,7 @@ def scene_for(model: Model, m: int, seed: int) -> Scene:
 
 
 def steer_ms(model: Model, scene: Scene, compiled: bool, n: int = 40) -> tuple[float, float]:
-    """(median ms, success share) of n steers in `scene`."""
+    """(median CPU ms, success share) of n steers in `scene` (CPU time: the machine is shared)."""
     X, T = make_problems(model, scene, n, seed=0)
     opts = SteerOptions(solver="sqp", qpsol="daqp", compiled=compiled)
     s = SteerSolver(model, scene.n_obstacles, opts)
@@ -88,25 +88,29 @@ def steer_ms(model: Model, scene: Scene, compiled: bool, n: int = 40) -> tuple[f
     s.reset_warm_start()
     times, ok = [], 0
     for k in range(n):
-        t0 = time.perf_counter()
+        t0 = time.process_time()
         r = s.solve(X[k], T[k], scene)
-        times.append(time.perf_counter() - t0)
+        times.append(time.process_time() - t0)
         ok += r.is_success()
     return float(np.median(times) * 1e3), ok / n
 
 
-def replan_ms(model: Model, scene: Scene) -> tuple[float, float, float]:
-    """(median iteration ms, median NLP ms, p99 iteration ms) of a 3 s closed-loop run."""
+def replan_ms(model: Model, scene: Scene) -> tuple[float, float, float, float]:
+    """(median iteration ms, median NLP ms, p99 iteration ms (wall), mean CPU ms per iteration) of a 3 s
+    closed-loop run."""
     xs, xg = configs(model)
     opts = ReplanOptions(solver="sqp", qpsol="daqp", points=16)
     loop = ClosedLoop(
         model, scene, model.tip_position(xg), xs, options=opts, loop_options=LoopOptions(duration=3.0), goal_config=xg
     )
+    c0 = time.process_time()
     run = loop.run()
+    cpu = (time.process_time() - c0) / max(1, run.steps)
     return (
         float(np.median(run.iter_time) * 1e3),
         float(np.median(run.nlp_time) * 1e3),
         float(np.percentile(run.iter_time, 99) * 1e3),
+        cpu * 1e3,
     )
 
 
@@ -158,17 +162,20 @@ def plot(rows: list[dict], out: Path, note: str) -> None:
         ),
     ):
         x = [r[key] for r in sel]
-        ax.plot(x, [r["steer"] for r in sel], "o-", label="steer, sqp + daqp (interpreted)")
+        ax.plot(x, [r["steer"] for r in sel], "o-", color="C0", label="steer, sqp + daqp interpreted (CPU median)")
         comp = [(xi, r["compiled"]) for xi, r in zip(x, sel, strict=True) if np.isfinite(r["compiled"])]
         if comp:
-            ax.plot(*zip(*comp, strict=True), "s-", label="steer, compiled C")
-        ax.plot(x, [r["iter"] for r in sel], "^-", label="replan iteration (median)")
-        ax.plot(x, [r["nlp"] for r in sel], "v--", label="horizon NLP (median)")
+            ax.plot(*zip(*comp, strict=True), "s-", color="C1", label="steer, compiled C (CPU median)")
+        ax.plot(x, [r["iter_cpu"] for r in sel], "^-", color="C2", label="replan iteration (CPU mean)")
         ax.set_xlabel(label)
+        ax.set_xticks(x)
+        ax.set_xticklabels([str(v) for v in x])
         ax.set_ylabel("ms")
         ax.set_yscale("log")
         if key == "obstacles":
             ax.set_xscale("log", base=2)
+            ax.set_xticks(x)
+            ax.set_xticklabels([str(v) for v in x])
         ax.grid(True, which="both", alpha=0.3)
     axes[0].legend(fontsize=8)
     fig.suptitle(f"solver cost scaling ({note})", fontsize=9)

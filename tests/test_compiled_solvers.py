@@ -41,8 +41,13 @@ def test_compiled_function_matches_casadi_on_a_closed_form():
         y, s = cf(xv, Av)
         np.testing.assert_allclose(y, Av @ xv, rtol=1e-13, atol=1e-13)
         assert s[0] == pytest.approx(float(xv @ xv), rel=1e-13)
-    # the second request is served from the cache
-    assert "cached" in compiled_library("cf_probe", [f])[1]
+    # the second request is served from the cache; two live instances of one library keep their own memory
+    lib2, how2 = compiled_library("cf_probe", [f])
+    assert lib2 == lib and "cached" in how2
+    other = CompiledFunction(lib2, "cf_probe")
+    xv = np.arange(3.0)
+    np.testing.assert_allclose(other(xv, np.ones((2, 3)))[0], [3.0, 3.0])
+    np.testing.assert_allclose(cf(xv, np.eye(3)[:2])[0], [0.0, 1.0])
 
 
 def _steer_problems(model, n, seed):

@@ -28,6 +28,8 @@ import numpy as np
 
 from crtraj.core.build_cache import BuildCache, BuildKey, compile_shared
 
+# Live `CompiledFunction`s of one function at a time (memory slots compiled into the library).
+MAX_INSTANCES = 64
 # QP solvers whose CasADi interface generates C (daqp: linked from CasADi's static library)
 CODEGEN_QP = ("daqp", "qrqp")
 
@@ -93,6 +95,10 @@ class CompiledFunction:
         sz_arg, sz_res, sz_iw, sz_w = (max(int(s.value), 1) for s in sz)
         getattr(lib, name + "_incref")()
         self._mem = int(getattr(lib, name + "_checkout")())
+        if self._mem < 0:
+            getattr(lib, name + "_decref")()
+            del self._mem
+            raise RuntimeError(f"{name}: more than {MAX_INSTANCES} live instances of the compiled function")
         self._in = [np.zeros(n) for n in self.nnz_in]
         self._out = [np.zeros(n) for n in self.nnz_out]
         self._iw = np.zeros(sz_iw, dtype=np.int64)
@@ -165,7 +171,11 @@ def compiled_library(
     for f in functions:
         gen.add(f)
     text = gen.dump()
-    key = BuildKey(name, {"c_sha256": hashlib.sha256(text.encode("utf-8")).hexdigest(), "qpsol": qpsol})
+    flags, libs = _qp_build(qpsol)
+    # room for many live instances of one library (each checks out its own memory slot; the default is 1)
+    flags = (f"-DCASADI_MAX_NUM_THREADS={MAX_INSTANCES}", *flags)
+    spec = {"c_sha256": hashlib.sha256(text.encode("utf-8")).hexdigest(), "flags": list(flags), "libs": qpsol}
+    key = BuildKey(name, spec)
     hit = cache.lookup(key)
     if hit is not None:
         return hit, f"compiled C ({hit.parent.name}, cached)"
@@ -173,7 +183,6 @@ def compiled_library(
     def build(folder: Path, compiler: str) -> Path:
         src = folder / f"{name}.c"
         src.write_text(text, encoding="utf-8")
-        flags, libs = _qp_build(qpsol)
         return compile_shared(compiler, [src, *libs], folder / f"lib{name}.so", flags)
 
     lib = cache.library(key, build)
