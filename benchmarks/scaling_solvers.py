@@ -124,19 +124,21 @@ def main() -> int:
     cases = [(2, m) for m in OBSTACLES] + [(n, SEG_OBSTACLES) for n in SEGMENTS if n != 2]
     rows = []
     print(
-        f"{'segments':>8} {'obstacles':>9} {'steer ms':>9} {'ok':>5} {'compiled ms':>11} {'iter ms':>8} "
-        f"{'iter p99':>8} {'NLP ms':>7}"
+        f"{'segments':>8} {'obstacles':>9} {'steer cpu ms':>12} {'ok':>5} {'compiled cpu ms':>15} {'iter ms':>8} "
+        f"{'iter p99':>8} {'NLP ms':>7} {'iter cpu ms':>11}"
     )
     for n, m in cases:
         model = Model(robot_with(base, n))
         scene = scene_for(model, m, seed=10 * n + m)
         st, ok = steer_ms(model, scene, compiled=False)
         cst = steer_ms(model, scene, compiled=True)[0] if m <= args.compiled else float("nan")
-        it, nlp, p99 = replan_ms(model, scene)
-        rows.append(
-            {"segments": n, "obstacles": m, "steer": st, "ok": ok, "compiled": cst, "iter": it, "p99": p99, "nlp": nlp}
+        it, nlp, p99, cpu = replan_ms(model, scene)
+        row = {"segments": n, "obstacles": m, "steer": st, "ok": ok, "compiled": cst}
+        rows.append(row | {"iter": it, "p99": p99, "nlp": nlp, "iter_cpu": cpu})
+        print(
+            f"{n:>8} {m:>9} {st:>12.3f} {ok:>5.2f} {cst:>15.3f} {it:>8.2f} {p99:>8.2f} {nlp:>7.2f} {cpu:>11.2f}",
+            flush=True,
         )
-        print(f"{n:>8} {m:>9} {st:>9.3f} {ok:>5.2f} {cst:>11.3f} {it:>8.2f} {p99:>8.2f} {nlp:>7.2f}", flush=True)
     stamp = f"{datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC"
     machine = f"{platform.machine()}, {os.cpu_count()} cores, load {load0:.1f} -> {os.getloadavg()[0]:.1f}"
     print(f"date {stamp}; machine {machine}")
