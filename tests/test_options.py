@@ -186,8 +186,8 @@ _OLD_DEFAULTS = {
 # One object per class with every kind of field set away from its default.
 _CHANGED = (
     SteerOptions(
-        solver="sqp", damping=0.5, margin=2, n_points=12, max_iter=50, qpsol="qrqp", jit=True, compiled=True, warm_start=False,
-        fallback=False, dls_iterations=7, ipopt=(("print_level", 5), ("mu_init", 0.1)),
+        solver="sqp", damping=0.5, margin=2, n_points=12, max_iter=50, qpsol="qrqp", jit=True, compiled=True,
+        warm_start=False, fallback=False, dls_iterations=7, ipopt=(("print_level", 5), ("mu_init", 0.1)),
         sqp=(("hessian_approximation", "limited-memory"),),
     ),
     TrackingOptions(dt=0.01, mode="tip", servo_tau=0.2, damping=0.0),

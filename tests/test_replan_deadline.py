@@ -84,10 +84,12 @@ def scene() -> Scene:
 def test_every_solve_late_holds_safely_and_counts_every_miss(model, scene):
     run = _run(model, scene, lambda k: 10 * DEADLINE, duration=2.0)
     assert run.deadline_misses == run.steps > 0
-    # no NLP move was ever applied: nothing but verified holds (no plan to fall back on)
-    assert set(run.step_status) == {str(StepStatus.HOLD)}
+    # no step applied its own NLP result: the first holds (no plan yet), later ones follow the previous
+    # step's late plan one step behind, or hold
+    assert run.step_status[0] == str(StepStatus.HOLD)
+    assert set(run.step_status) <= {str(StepStatus.HOLD), str(StepStatus.FALLBACK)}
     assert all("deadline missed" in s for s in run.solver_status)
-    np.testing.assert_allclose(run.x, np.broadcast_to(run.x[0], run.x.shape), atol=1e-9)
+    np.testing.assert_allclose(run.x[1], run.x[0], atol=1e-9)  # the first step held still
     d = _dense_distance(run, model, scene)
     assert d.min() >= scene.safety_distance - 1e-9
     s = run.summary()

@@ -619,7 +619,8 @@ class ClosedLoop:
         """Control step k from st.t: choose, verify, (send,) apply and record one move; its status.
         t_iter: `self.timer` when the step began (its iteration time is charged from then). An NLP
         result that arrives after ``replan.step_deadline`` is not used: the step falls back to the last
-        verified plan's next move, or a verified hold (`_choose`)."""
+        plan's next move (verified now), or a verified hold (`_choose`); the late plan, if feasible,
+        becomes the last plan for the next step."""
         t, dt, rp = st.t, self.options.dt, self.replanner
         scene_t, why = self.obstacles.at(t)
         log.feed_events(self.obstacles, t)
@@ -634,10 +635,14 @@ class ClosedLoop:
             self._use(scene_t)
             reason, plan_time, replanned, charged = self._update_reference(st, k)
             X_ref = st.horizon_reference(rp.N, dt)
-            res = self._solve(st.x, X_ref, rp.obstacles_from_scene(scene_t, t), st.x_prev)
-            res = self._judge_deadline(res, self.timer() - t_iter + charged, log)
+            late = self._solve(st.x, X_ref, rp.obstacles_from_scene(scene_t, t), st.x_prev)
+            res = self._judge_deadline(late, self.timer() - t_iter + charged, log)
             st.nlp_failed = not res.feasible and res.status is not HorizonStatus.SKIPPED
             status, x1, sim, bound = self._choose(st, res)
+            if res is not late and late.feasible:
+                # the late plan (for t + dt, t + 2 dt, ...) is the next step's fallback: a run of misses
+                # follows it one step behind (each move re-verified) instead of running out of plan
+                st.last_plan = late.configs
         iter_time = self.timer() - t_iter + charged
         q_new, qc_new, T, X, cmds = sim
         if device is not None:

@@ -525,8 +525,9 @@ class SteerSolver:
 
         Inputs: x_prev, target, packed obstacles, [D_sf, w_d, w_o], lbx, ubx (unscaled), lbg, x0 and
         use_x0 (1: start from x0, 0: from the DLS predictor), lam_x0, lam_g0. Outputs: x (clipped to
-        the bounds), lam_x, lam_g, the primal and dual KKT residuals, tip, points and limits at x, and
-        points and limits at x_prev (the start check).
+        the bounds), lam_x, lam_g, the primal and dual KKT residuals, the tip at x, and at x and at x_prev
+        (the start check) the smallest distance to an active sphere's surface (mm) and the smallest slack
+        of the robot's limits (and, at x_prev, of the configuration box).
         """
         o = self.options
         if o.qpsol not in CODEGEN_QP:
@@ -564,6 +565,7 @@ class SteerSolver:
         tip_x, _, P, glim = self._check(x)
         _, _, P0, glim0 = self._check(xp)
         lo_lim, hi_lim = ca.DM(self._lbg_lim), ca.DM(self._ubg_lim)
+        box_lo, box_hi = ca.DM(self.box[0]), ca.DM(self.box[1])
         name = f"steer_step_{self.robot.n_segments}s_{self.max_obstacles}o_{self.n_points}p"
         step = ca.Function(
             name,
@@ -571,7 +573,8 @@ class SteerSolver:
             [
                 *(x, sol["lam_x"], sol["lam_g"], pr, du, tip_x),
                 *(self._surface_distance(P, ob), ca.mmin(ca.vertcat(glim - lo_lim, hi_lim - glim))),
-                *(self._surface_distance(P0, ob), ca.mmin(ca.vertcat(glim0 - lo_lim, hi_lim - glim0))),
+                self._surface_distance(P0, ob),
+                ca.mmin(ca.vertcat(glim0 - lo_lim, hi_lim - glim0, xp - box_lo, box_hi - xp)),
             ],
         )
         try:
@@ -831,8 +834,7 @@ class SteerSolver:
         x, lam_x, lam_g, pr, du, tip, d, slack, d0, slack0 = out
         body = self.robot.body_radius
         if check_start:
-            lo, hi = self.box
-            if slack0[0] < -1e-9 or np.any(xp < lo - 1e-9) or np.any(xp > hi + 1e-9):
+            if slack0[0] < -1e-9:  # the limits and the configuration box at x_prev, in one number
                 raise InputError("x_prev: outside the robot's limits (theta, cable stroke or z range)")
             c0 = margin.clearance(float(d0[0]), dsf, body) if d0[0] < 1e11 else math.inf
             if c0 < -o.feasibility_tolerance:
@@ -947,7 +949,7 @@ class SteerSolver:
             in_limits = self._limits_ok(g)
         else:
             tip, clear, in_limits = checked
-        err = float(np.linalg.norm(tip - tg))
+        err = math.dist(tip, tg)
         in_box = bool(np.all(x >= lbx) and np.all(x <= ubx))
         clear_ok = clear >= -o.feasibility_tolerance
         safe = finite and clear_ok and in_box and in_limits
