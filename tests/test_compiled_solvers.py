@@ -64,7 +64,7 @@ def _steer_problems(model, n, seed):
 
 
 def test_compiled_steer_agrees_with_interpreted(model):
-    base = {"solver": "sqp", "qpsol": "qrqp", "n_points": 4, "fallback": False, "warm_start": False}
+    base = {"solver": "sqp", "qpsol": "qrqp", "n_points": 4, "fallback": True, "warm_start": False}
     fast = SteerSolver(model, 1, SteerOptions(**base, compiled=True))
     assert fast.compiled_message.startswith("compiled: compiled C"), fast.compiled_message
     ref = SteerSolver(model, 1, SteerOptions(**base))
@@ -78,6 +78,15 @@ def test_compiled_steer_agrees_with_interpreted(model):
         assert a.min_clearance == pytest.approx(b.min_clearance, abs=1e-6)
         assert a.iterations == -1  # the generated code reports no iteration count
     assert sum(r.is_success() for r in (fast.solve(x, t, SCENE) for x, t in probs)) >= 25
+    # a solve the compiled code does not converge is reported as failed, never passed off: with an
+    # unreachable tolerance the KKT test fails, IPOPT re-solves (as on the interpreted path) and says why
+    x, target = probs[0]
+    fast._tol = (0.0, 0.0)
+    r = fast.solve(x, target, SCENE)
+    assert r.solver == "sqp>ipopt" and "Not_Converged (compiled sqpmethod" in r.message, r.message
+    fast._fallback = None
+    r = fast.solve(x, target, SCENE)
+    assert not r.converged and r.status.value == "failed" and r.solver_status.startswith("Not_Converged")
     # a start in collision is refused by the compiled path as by the interpreted one
     inside = SCENE.obstacles[0].center
     bad = np.array([0.0, 0.0, 0.0, 0.0, 0.0])
