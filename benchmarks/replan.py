@@ -11,13 +11,20 @@ check (and replanning when needed), horizon NLP, tracking simulation and the
 dense verification of the move. Each configuration runs the closed loop for
 several planner seeds; the figures pool all iterations.
 
-Run: python benchmarks/replan.py [--seeds 3] [--solvers sqp,ipopt,sqp-qrqp]
+Variants: "sqp" (sqpmethod + daqp, interpreted), "sqp-qrqp", "ipopt", and
+"compiled" (the same sqpmethod + daqp generated as C, compiled once into the
+solver cache and called through ctypes; [replan] compiled = true). All
+variants run in one process, so their ratios are fair on a loaded machine.
+
+Run: python benchmarks/replan.py [--seeds 3] [--solvers compiled,sqp,ipopt,sqp-qrqp]
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import datetime
+import os
 import platform
 import time
 from pathlib import Path
@@ -36,6 +43,7 @@ VARIANTS = {
     "sqp": {"solver": "sqp", "qpsol": "daqp"},
     "sqp-qrqp": {"solver": "sqp", "qpsol": "qrqp"},
     "ipopt": {"solver": "ipopt"},
+    "compiled": {"solver": "sqp", "qpsol": "daqp", "compiled": True},
 }
 
 
@@ -62,6 +70,8 @@ def run_variant(problem: Problem, name: str, seeds: list[int], safety: bool = Tr
         "min_bound": min(r["min_clearance_bound_mm"] for r in rows),
         "it_med": float(np.median(it)),
         "it_p90": float(np.percentile(it, 90)),
+        "it_p99": float(np.percentile(it, 99)),
+        "nlp_p99": float(np.percentile(nl, 99)),
         "it_max": float(np.max(it)),
         "nlp_med": float(np.median(nl)),
         "nlp_p90": float(np.percentile(nl, 90)),
@@ -85,7 +95,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--problem", default=str(ROOT / "problems" / "paper_dynamic.toml"))
     ap.add_argument("--seeds", type=int, default=3, help="planner seeds per configuration (0..N-1)")
-    ap.add_argument("--solvers", default="sqp,ipopt", help=f"comma list of {', '.join(VARIANTS)}")
+    ap.add_argument("--solvers", default="compiled,sqp,ipopt", help=f"comma list of {', '.join(VARIANTS)}")
     args = ap.parse_args()
     problem = Problem.load(args.problem)
     seeds = list(range(args.seeds))
@@ -96,13 +106,14 @@ def main() -> None:
     paper = PAPER["dynamic"]
     print(
         f"crtraj replan benchmark: {problem.name}, seeds {seeds[0]}..{seeds[-1]}, {platform.processor() or 'cpu'}, "
-        f"{platform.python_version()}"
+        f"{os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f}, python {platform.python_version()}, "
+        f"{datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC"
     )
     o = problem.options(ReplanOptions, "replan")
     print(f"horizon {o.horizon} x {o.dt:g} s, {o.points} points/config; times per control iteration\n")
     head = (
-        f"{'variant':<10} {'reached':>8} {'coll.':>6} {'min clr':>8} {'it med':>8} {'it p90':>8} {'it max':>8} "
-        f"{'NLP med':>8} {'NLP p90':>8} {'tip err':>8} {'sim s':>6} {'plans':>6}"
+        f"{'variant':<10} {'reached':>8} {'coll.':>6} {'min clr':>8} {'it med':>8} {'it p99':>8} {'it max':>8} "
+        f"{'NLP med':>8} {'NLP p99':>8} {'tip err':>8} {'sim s':>6} {'plans':>6}"
     )
     print(head)
     print("-" * len(head))
@@ -113,8 +124,8 @@ def main() -> None:
         results.append(r)
         print(
             f"{n:<10} {r['reached']:>4}/{r['runs']:<3} {r['collisions']:>6} {r['min_clearance']:>7.2f}m "
-            f"{r['it_med'] * 1e3:>6.2f}ms {r['it_p90'] * 1e3:>6.2f}ms {r['it_max'] * 1e3:>6.0f}ms "
-            f"{r['nlp_med'] * 1e3:>6.2f}ms {r['nlp_p90'] * 1e3:>6.2f}ms {r['tip_err']:>7.3f}m {r['duration']:>6.1f} "
+            f"{r['it_med'] * 1e3:>6.2f}ms {r['it_p99'] * 1e3:>6.2f}ms {r['it_max'] * 1e3:>6.0f}ms "
+            f"{r['nlp_med'] * 1e3:>6.2f}ms {r['nlp_p99'] * 1e3:>6.2f}ms {r['tip_err']:>7.3f}m {r['duration']:>6.1f} "
             f"{r['plans']:>6}"
         )
     print(
@@ -125,6 +136,13 @@ def main() -> None:
         "\n(m = mm; 'min clr' = smallest body clearance minus D_sf over every verification sample, 41 backbone "
         "points; 'plans' = reference paths planned, summed over runs)"
     )
+    by = {r["variant"]: r for r in results}
+    if "compiled" in by and "sqp" in by:
+        c, i = by["compiled"], by["sqp"]
+        print(
+            f"\ncompiled vs interpreted sqp + daqp: NLP median x{i['nlp_med'] / c['nlp_med']:.2f}, "
+            f"iteration median x{i['it_med'] / c['it_med']:.2f}, iteration p99 x{i['it_p99'] / c['it_p99']:.2f}"
+        )
     ns = run_variant(problem, names[0], seeds[:1], safety=False)
     print(
         f"\nwithout collision-free terms ({names[0]}, seed 0): min clearance {ns['min_clearance']:.2f} mm, "

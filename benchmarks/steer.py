@@ -1,19 +1,29 @@
-"""Steer-step benchmark: 200 seeded problems in the paper's simulation-1 scene.
+"""Steer-step benchmark: 200 seeded problems in the paper's simulation-1 scene, old paths and compiled C side by side.
 
 Each problem is a planner-like steer: a random configuration of cdsr2 whose
 body keeps the safety distance, and a target 5-50 mm from its tip, inside
 the workspace and outside every obstacle's keep-out sphere. Every solver
 runs the same problems (after a short warm-up); per-steer wall times are
-printed as median and p90 next to the paper's 0.47 s per IK solve.
+printed as median and p90 next to the paper's 0.47 s per IK solve. Every result
+the solver calls safe is re-checked here independently: 200 backbone points
+against the scene's spheres ("dense unsafe": the body enters a sphere; "D_sf
+dips": closer than D_sf between the constrained points, allowed by design).
+
+The compiled rows ([steer] compiled = true) generate C for the whole step
+(predictor, sqpmethod with qrqp or daqp, re-check quantities), compile it once
+into the solver cache and call it through ctypes; their build time is the
+first build (a cached run loads in well under a second).
 
     /work/venv/bin/python benchmarks/steer.py                 # all solvers
     /work/venv/bin/python benchmarks/steer.py --no-jit        # skip the jit builds (~10-30 s each)
+    /work/venv/bin/python benchmarks/steer.py --only compiled # just the compiled rows
     /work/venv/bin/python benchmarks/steer.py --json out/bench_steer.json
 """
 
 from __future__ import annotations
 
 import argparse
+import datetime
 import os
 import platform
 import time
@@ -53,6 +63,21 @@ def make_problems(model: Model, scene: Scene, n: int, seed: int) -> tuple[np.nda
     return np.array(starts[:n]), np.array(targets[:n])
 
 
+def dense_check(model: Model, scene: Scene, results: list) -> tuple[int, int]:
+    """(unsafe, D_sf dips) among the results called safe, from 200 backbone points against the spheres at
+    t = 0, computed here independently of the solver's re-check. unsafe: the body (with its radius) enters
+    a sphere. D_sf dips: it keeps out of the sphere but comes closer than D_sf between the constrained
+    points (allowed by design: D_sf absorbs the chord and sagitta, see crtraj/planning/steer.py)."""
+    safe = [r for r in results if r.safe]
+    if not safe:
+        return 0, 0
+    P = model.points(np.array([r.x for r in safe]), 200)  # (n, 200, 3)
+    c, rad = scene.states(0.0)
+    d = np.linalg.norm(P[:, :, None, :] - np.asarray(c)[None, None], axis=-1) - np.asarray(rad)[None, None]
+    gap = d.min(axis=(1, 2)) - model.robot.body_radius
+    return int(np.sum(gap < -1e-6)), int(np.sum(gap < scene.safety_distance - 1e-6))
+
+
 def run(label: str, solver: SteerSolver, scene: Scene, X: np.ndarray, T: np.ndarray, build_s: float) -> dict:
     for k in range(min(5, len(X))):  # warm-up: first-call allocations
         solver.solve(X[k], T[k], scene)
@@ -79,6 +104,7 @@ def run(label: str, solver: SteerSolver, scene: Scene, X: np.ndarray, T: np.ndar
         "mean_iterations": float(np.mean([r.iterations for r in results])),
         "fallbacks": int(sum(r.solver == "sqp>ipopt" for r in results)),
     }
+    row["dense_unsafe"], row["dense_dsf_dips"] = dense_check(solver.model, scene, results)
     row["speedup_vs_paper"] = PAPER_IK_S * 1e3 / row["median_ms"]
     return row
 
@@ -89,6 +115,7 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=0, help="problem seed (default 0)")
     ap.add_argument("--no-jit", action="store_true", help="skip the jit-compiled fast path")
     ap.add_argument("--json", type=Path, default=None, help="also write the table as JSON")
+    ap.add_argument("--only", default="", help="run only the rows whose label contains this text")
     args = ap.parse_args()
 
     prob = Problem.load(ROOT / "problems" / "paper_static.toml")
@@ -109,6 +136,11 @@ def main() -> int:
             ("sqp + daqp + jit (max 8 obstacles)", 8, {"solver": "sqp", "jit": True}),
         ]
     configs.append(("dls (eq. 17, no hard constraints)", 2, {"solver": "dls"}))
+    configs += [
+        ("sqp + qrqp, compiled C", 2, {"solver": "sqp", "qpsol": "qrqp", "compiled": True}),
+        ("sqp + daqp, compiled C", 2, {"solver": "sqp", "compiled": True}),
+    ]
+    configs = [c for c in configs if args.only in c[0]]
 
     load0 = os.getloadavg()
     rows = []
@@ -120,12 +152,19 @@ def main() -> int:
         row = run(label, solver, scene, X, T, build_s)
         if solver.jit_message:
             row["jit"] = solver.jit_message
+        if solver.compiled_message:
+            row["compiled"] = solver.compiled_message
         rows.append(row)
         print(_fmt(row), flush=True)
     load1 = os.getloadavg()
 
     print()
+    base_row = next((r for r in rows if r["solver"] == "sqp + daqp + jit"), None)
+    for r in rows:
+        if base_row is not None and "compiled" in r["solver"]:
+            print(f"{r['solver']}: x{base_row['median_ms'] / r['median_ms']:.1f} faster than sqp + daqp + jit (median)")
     print(f"{args.problems} steer problems, sim-1 scene (2 spheres), seed {args.seed}")
+    print(f"date {datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC")
     print(f"paper: {PAPER_IK_S * 1e3:.0f} ms per IK solve; speed-up = paper / wall median")
     print(
         f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, load average "
@@ -159,7 +198,8 @@ def _fmt(row: dict) -> str:
         f"(cpu {row['cpu_median_ms']:6.3f} / {row['cpu_p90_ms']:6.3f})  "
         f"x{row['speedup_vs_paper']:4.0f} vs paper  success {100 * row['success']:5.1f}%  "
         f"reached {100 * row['reached']:5.1f}%  unsafe {row['unsafe']:2d}  it {row['mean_iterations']:4.1f}  "
-        f"fallbacks {row['fallbacks']}  build {row['build_s']:.1f} s"
+        f"fallbacks {row['fallbacks']}  dense unsafe {row['dense_unsafe']} (D_sf dips {row['dense_dsf_dips']})  "
+        f"build {row['build_s']:.1f} s"
     )
 
 

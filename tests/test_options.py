@@ -143,7 +143,7 @@ _OLD_DEFAULTS = {
     SteerOptions: dict(
         solver="ipopt", damping=0.3, obstacle_coefficient=20.0, damping_scale=0.02, obstacle_scale=0.02,
         max_step=100.0, tolerance=0.5, margin=0.0, n_points=None, max_iter=100, tol=1e-6, qpsol="daqp", jit=False,
-        warm_start=None, fallback=True, predictor=True, feasibility_tolerance=1e-5, dls_gain=1.0,
+        compiled=False, warm_start=None, fallback=True, predictor=True, feasibility_tolerance=1e-5, dls_gain=1.0,
         dls_iterations=200, ipopt=(), sqp=(),
     ),
     TrackingOptions: dict(
@@ -165,7 +165,7 @@ _OLD_DEFAULTS = {
         horizon=10, dt=0.1, points=16, margin=1.5, tip_weight=1.0, config_weight=0.01, velocity_weight=0.02,
         smooth_weight=0.2, terminal_weight=10.0, max_cable_speed=8.0, max_z_speed=40.0, solver="ipopt",
         qpsol="daqp", hessian="gauss-newton", max_iter=60, tol=1e-6, max_solve_time=0.5, limit_fraction=0.9,
-        rescue=True, safety=True,
+        rescue=True, safety=True, compiled=False, step_deadline=0.0,
     ),
     LoopOptions: dict(
         duration=60.0, replan_period=0.0, planner_time=1.0, stall_time=3.0, reference_speed=0.7,
@@ -186,8 +186,8 @@ _OLD_DEFAULTS = {
 # One object per class with every kind of field set away from its default.
 _CHANGED = (
     SteerOptions(
-        solver="sqp", damping=0.5, margin=2, n_points=12, max_iter=50, qpsol="qrqp", jit=True, warm_start=False,
-        fallback=False, dls_iterations=7, ipopt=(("print_level", 5), ("mu_init", 0.1)),
+        solver="sqp", damping=0.5, margin=2, n_points=12, max_iter=50, qpsol="qrqp", jit=True, compiled=True,
+        warm_start=False, fallback=False, dls_iterations=7, ipopt=(("print_level", 5), ("mu_init", 0.1)),
         sqp=(("hessian_approximation", "limited-memory"),),
     ),
     TrackingOptions(dt=0.01, mode="tip", servo_tau=0.2, damping=0.0),
@@ -198,7 +198,7 @@ _CHANGED = (
     FeedOptions(max_speed=80.0, min_span=0.02, max_skew=2.0),
     ReplanOptions(
         horizon=6, dt=0.05, points=12, margin=0, solver="sqp", qpsol="qrqp", hessian="exact", max_iter=20,
-        limit_fraction=0.5, rescue=False, safety=False,
+        limit_fraction=0.5, rescue=False, safety=False, compiled=True, step_deadline=0.05,
     ),
     LoopOptions(duration=2.5, replan_period=0.5, reference_speed=0.5, check_points=9, settle_time=0.0),
     StreamOptions(rate=50, watchdog=0.5, prebuffer=0.0, following_tolerance=20.0, fsync=True),

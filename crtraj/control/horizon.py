@@ -57,6 +57,7 @@ from crtraj.core.errors import InputError
 from crtraj.core.fields import Table, check_float
 from crtraj.core.options import Options, option
 from crtraj.model.kinematics import Model
+from crtraj.planning.compiled_nlp import CODEGEN_QP, CompiledFunction, compiled_library
 from crtraj.planning.rate_limits import RateLimits
 from crtraj.world import margin, packing
 
@@ -105,6 +106,15 @@ class ReplanOptions(Options):
     IPOPT, built alongside), safety (false drops the obstacle constraints),
     limit_fraction (share (0, 1] of each actuator's speed and acceleration limit the
     NLP and the tracking may use, when the robot's actuator limits are given).
+    compiled (with solver "sqp" and qpsol daqp or qrqp): generate C for the
+    whole sqpmethod solver, compile it once (cached) and call it through
+    ctypes; convergence is sqpmethod's own KKT test on the returned point
+    (the generated code reports no iteration count: -1). Without a C
+    compiler the interpreted solver runs (`Replanner.compiled_message`).
+    step_deadline (s, 0 = none): wall-time deadline of one replanning
+    iteration; a solve that finishes after it is not used (the loop falls
+    back to the last verified plan, shifted, or a verified hold) and is
+    counted as a deadline miss. max_iter is the fixed iteration cap.
 
     The closed loop's options are the ``[loop]`` section
     (`crtraj.control.loop_options.LoopOptions`).
@@ -132,6 +142,8 @@ class ReplanOptions(Options):
     limit_fraction: float = option(0.9, gt=0.0, le=1.0)
     rescue: bool = option(True)
     safety: bool = option(True)
+    compiled: bool = option(False)
+    step_deadline: float = option(0.0, ge=0.0, le=3600.0)
 
     def _check(self) -> None:
         # a QP solver may be a plugin missing from this CasADi build: refuse it before building the NLP
@@ -341,8 +353,37 @@ class Replanner:
             hess["ipopt"] = ca.Function("nlp_hess_l", [xv, p, lam_f, lam_g], [ca.triu(H)], {"cse": True})
             hess["sqp"] = ca.Function("nlp_hess_l", [xv, p, lam_f, lam_g], [H], {"cse": True})
         self.solver = self._solver(o.solver, nlp, hess.get(o.solver))
+        self.compiled_message = ""
+        self._compiled: tuple[CompiledFunction, CompiledFunction] | None = None
+        if o.compiled:
+            self._build_compiled(nlp)
         # the rescue: a failed sqpmethod solve is retried once with IPOPT (robust, slower)
         self.rescue = self._solver("ipopt", nlp, hess.get("ipopt")) if o.solver == "sqp" and o.rescue else None
+
+    def _build_compiled(self, nlp: dict[str, Any]) -> None:
+        """The sqpmethod solver and its KKT residual as generated C, loaded through ctypes (option `compiled`)."""
+        o = self.options
+        if o.solver != "sqp" or o.qpsol not in CODEGEN_QP:
+            self.compiled_message = (
+                f"compiled: needs solver 'sqp' with qpsol {' or '.join(CODEGEN_QP)} "
+                f"(got {o.solver}/{o.qpsol}): interpreted solver"
+            )
+            return
+        xv, p = nlp["x"], nlp["p"]
+        lam_g = ca.SX.sym("lam_g", nlp["g"].numel())
+        lam_x = ca.SX.sym("lam_x", xv.numel())
+        grad = ca.gradient(nlp["f"], xv) + ca.jacobian(nlp["g"], xv).T @ lam_g + lam_x
+        tag = f"{self.robot.n_segments}s_{self.max_obstacles}o_{self.N}n"
+        kkt = ca.Function(f"horizon_kkt_{tag}", [xv, p, lam_g, lam_x], [ca.norm_inf(grad)], {"cse": True})
+        solver = self.solver
+        try:
+            lib, how = compiled_library(f"horizon_{tag}", [solver, kkt], o.qpsol)
+        except (RuntimeError, OSError) as exc:
+            self.compiled_message = f"compiled: build failed ({str(exc).strip().splitlines()[-1]}): interpreted solver"
+            return
+        self.compiled_message = f"compiled: {how}"
+        if lib is not None:
+            self._compiled = (CompiledFunction(lib, solver.name()), CompiledFunction(lib, kkt.name()))
 
     def _solver(self, kind: str, nlp: dict[str, Any], hess: ca.Function | None) -> ca.Function:
         o = self.options
@@ -552,9 +593,12 @@ class Replanner:
         """One solver call and an independent look at what it returned."""
         N = self.N
         t_start = time.perf_counter()
-        sol = solver.call(args)
+        if solver is self.solver and self._compiled is not None:
+            sol, st = self._call_compiled(args)
+        else:
+            sol = solver.call(args)
+            st = solver.stats()
         wall = time.perf_counter() - t_start
-        st = solver.stats()
         xs = np.asarray(sol["x"]).ravel()
         gs = np.asarray(sol["g"]).ravel()
         finite = bool(np.all(np.isfinite(xs)) and np.all(np.isfinite(gs)))
@@ -582,6 +626,27 @@ class Replanner:
             "min_distance": float(np.min(gs[self._n_lin :])) if (self._n_dist and finite) else math.inf,
         }
 
+    def _call_compiled(self, args: dict[str, Any]) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        """One call of the compiled solver: its outputs and the stats sqpmethod would give (success by its
+        own test: primal violation < 1e-7 and dual residual < tol, recomputed at the returned point)."""
+        step, kkt = self._compiled  # type: ignore[misc]
+        names = ("x0", "p", "lbx", "ubx", "lbg", "ubg", "lam_x0", "lam_g0")
+        out = step(*[args.get(n) for n in names])
+        sol = dict(zip(("x", "f", "g", "lam_x", "lam_g", "lam_p"), (a.copy() for a in out), strict=True))
+        sol["f"] = float(sol["f"][0])
+        du = float(kkt(sol["x"], args["p"], sol["lam_g"], sol["lam_x"])[0][0])
+        xs, gs = sol["x"], sol["g"]
+        lo, hi = np.tile(self._box[0], self.N), np.tile(self._box[1], self.N)
+        pr = max(
+            float(np.max(self._lbg - gs, initial=0.0)),
+            float(np.max(gs - self._ubg, initial=0.0)),
+            float(np.max(lo - xs, initial=0.0)),
+            float(np.max(xs - hi, initial=0.0)),
+        )
+        ok = bool(np.isfinite(du) and np.isfinite(pr)) and pr < 1e-7 and du < self.options.tol
+        status = "Solve_Succeeded" if ok else f"Not_Converged (compiled sqpmethod: primal {pr:.2g}, dual {du:.2g})"
+        return sol, {"success": ok, "return_status": status, "iter_count": -1}
+
     def _shifted(self, xs: np.ndarray, lam_x: np.ndarray, lam_g: np.ndarray) -> dict[str, np.ndarray]:
         """Previous solution moved one step earlier, the last step repeated (the next solve's start)."""
         nx, N = self.nx, self.N
@@ -599,8 +664,11 @@ class Replanner:
     def describe(self) -> dict[str, Any]:
         """Sizes of the NLP (for result files and benchmarks)."""
         return {
-            "solver": self.options.solver if self.options.solver == "ipopt" else f"sqpmethod+{self.options.qpsol}",
+            "solver": (self.options.solver if self.options.solver == "ipopt" else f"sqpmethod+{self.options.qpsol}")
+            + (" (compiled C)" if self._compiled is not None else ""),
             "rescue": "ipopt" if self.rescue is not None else None,
+            "max_iter": self.options.max_iter,
+            "step_deadline_s": self.options.step_deadline,
             "variables": self.nx * self.N,
             "parameters": self._np,
             "constraints": len(self._lbg),

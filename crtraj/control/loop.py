@@ -164,6 +164,8 @@ class ReplanRun:
     nlp: dict[str, Any] = field(default_factory=dict)
     executed: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)), repr=False)
     late_steps: int = 0
+    # steps whose NLP result came after `replan.step_deadline` and was not used (0 without a deadline)
+    deadline_misses: int = 0
     live: bool = False
     device: dict[str, Any] = field(default_factory=dict)  # the device's `describe()` of a live-streamed run
     feed: dict[str, Any] = field(default_factory=dict)  # a live feed's counters and rejections (`_Log.feed_record`)
@@ -216,7 +218,10 @@ class ReplanRun:
             "min_clearance_bound_mm": float(np.min(self.clearance_bound[1:])) if some else math.nan,
             "median_iteration_s": float(np.median(it)) if some else math.nan,
             "p90_iteration_s": float(np.percentile(it, 90)) if some else math.nan,
+            "p99_iteration_s": float(np.percentile(it, 99)) if some else math.nan,
             "max_iteration_s": float(np.max(it)) if some else math.nan,
+            "step_deadline_s": self.nlp.get("step_deadline_s", 0.0),
+            "deadline_misses": self.deadline_misses,
             "median_nlp_s": float(np.median(self.nlp_time)) if some else math.nan,
             "p90_nlp_s": float(np.percentile(self.nlp_time, 90)) if some else math.nan,
             "median_nlp_iterations": float(np.median(self.iterations)) if some else math.nan,
@@ -242,7 +247,8 @@ class ReplanRun:
             f"{self.status}: reached goal {'yes' if self.reached else 'no'}, "
             f"collisions {s['collisions']} (D_sf breaches {s['safety_violations']}), "
             f"min clearance {s['min_clearance_mm']:.2f} mm, "
-            f"iteration median {s['median_iteration_s'] * 1e3:.2f} ms / p90 {s['p90_iteration_s'] * 1e3:.2f} ms, "
+            f"iteration median {s['median_iteration_s'] * 1e3:.2f} ms / p99 {s['p99_iteration_s'] * 1e3:.2f} ms / "
+            f"max {s['max_iteration_s'] * 1e3:.2f} ms, {_deadline_text(s)}, "
             f"final tip error {s['final_tip_error_mm']:.3f} mm, {self.steps} steps, "
             f"{s['reference_plans']} reference plans"
         )
@@ -258,6 +264,14 @@ class ReplanRun:
             f"executed {s['duration_s']:.2f} s, actuators at most {v:.2f} of their velocity limit and "
             f"{a:.2f} of their acceleration limit (as streamed)"
         )
+
+
+def _deadline_text(s: dict[str, Any]) -> str:
+    """'no step deadline' or 'N deadline misses (deadline D ms)' from a run summary."""
+    d = s["step_deadline_s"]
+    if not d:
+        return "no step deadline"
+    return f"{s['deadline_misses']} deadline misses (deadline {d * 1e3:g} ms)"
 
 
 class ClosedLoop:
@@ -283,6 +297,8 @@ class ClosedLoop:
     and acceleration limits (`RateLimits`, built by the caller from the robot's
     actuators): the NLP, the tracking set-points and the reference timing keep
     within ``replan.limit_fraction`` of them; None: only the mm/s rate limits.
+    timer: the clock (s) that times every iteration and judges it against
+    ``replan.step_deadline`` (default `time.perf_counter`; tests inject a virtual one).
     """
 
     def __init__(
@@ -306,8 +322,10 @@ class ClosedLoop:
         tip_sensor: TipSensor | None = None,
         tip_feedback: bool = False,
         tip_gain: float = 0.5,
+        timer: Callable[[], float] | None = None,
     ) -> None:
         t_setup = time.perf_counter()
+        self.timer = time.perf_counter if timer is None else timer
         self.model = model
         self.robot = model.robot
         self.scene = scene
@@ -594,7 +612,7 @@ class ClosedLoop:
         settled_since: float | None = None
         for k in range(lo.steps(self.options.dt)):
             t = st.t
-            t_iter = time.perf_counter()
+            t_iter = self.timer()
             if device is not None:
                 why_not = device.problem()
                 if why_not:
@@ -622,7 +640,10 @@ class ClosedLoop:
 
     def _step(self, k: int, st: _State, log: _Log, device: Device | None, t_iter: float) -> StepStatus:
         """Control step k from st.t: choose, verify, (send,) apply and record one move; its status.
-        t_iter: `time.perf_counter` when the step began (its iteration time is charged from then)."""
+        t_iter: `self.timer` when the step began (its iteration time is charged from then). An NLP
+        result that arrives after ``replan.step_deadline`` is not used: the step falls back to the last
+        plan's next move (verified now), or a verified hold (`_choose`); the late plan, if feasible,
+        becomes the last plan for the next step."""
         t, dt, rp = st.t, self.options.dt, self.replanner
         scene_t, why = self.obstacles.at(t)
         log.feed_events(self.obstacles, t)
@@ -637,10 +658,15 @@ class ClosedLoop:
             self._use(scene_t)
             reason, plan_time, replanned, charged = self._update_reference(st, k)
             X_ref = st.horizon_reference(rp.N, dt)
-            res = self._solve(st.x, X_ref, rp.obstacles_from_scene(scene_t, t), st.x_prev)
-            st.nlp_failed = not res.feasible
+            late = self._solve(st.x, X_ref, rp.obstacles_from_scene(scene_t, t), st.x_prev)
+            res = self._judge_deadline(late, self.timer() - t_iter + charged, log)
+            st.nlp_failed = not res.feasible and res.status is not HorizonStatus.SKIPPED
             status, x1, sim, bound = self._choose(st, res)
-        iter_time = time.perf_counter() - t_iter + charged
+            if res is not late and late.feasible:
+                # the late plan (for t + dt, t + 2 dt, ...) is the next step's fallback: a run of misses
+                # follows it one step behind (each move re-verified) instead of running out of plan
+                st.last_plan = late.configs
+        iter_time = self.timer() - t_iter + charged
         q_new, qc_new, T, X, cmds = sim
         if device is not None:
             self._drive(device, status, t, st.q, cmds, why, bound)
@@ -667,6 +693,15 @@ class ClosedLoop:
             q = self.servo.advance(q, c, h)
             out[j] = q
         return out
+    def _judge_deadline(self, res: HorizonResult, elapsed: float, log: _Log) -> HorizonResult:
+        """`res`, or, when it came after the step deadline (elapsed s since the step began), the record of
+        an unused solve: status SKIPPED and the solver's own status with the miss appended (never lost)."""
+        deadline = self.options.step_deadline
+        if not deadline or elapsed <= deadline:
+            return res
+        log.deadline_misses += 1
+        why = f"{res.solver_status}; deadline missed ({elapsed * 1e3:.2f} ms > {deadline * 1e3:g} ms): not used"
+        return replace(res, status=HorizonStatus.SKIPPED, solver_status=why)
 
     def _drive(
         self, device: Device, status: StepStatus, t: float, q0: np.ndarray, cmds: np.ndarray, why: str, bound: float
@@ -890,6 +925,7 @@ class ClosedLoop:
             wall_time=time.perf_counter() - t_wall,
             nlp=self.replanner.describe(),
             late_steps=log.late,
+            deadline_misses=log.deadline_misses,
             live=bool(self.obstacles.live),
             device={} if device is None else device.describe(),
             feed=log.feed_record(self.obstacles),
@@ -986,6 +1022,7 @@ class _Log:
         self.centers: list[np.ndarray] = []
         self.radii: list[np.ndarray] = []
         self.late = 0  # real-time steps that finished more than one step late
+        self.deadline_misses = 0  # NLP results that came after replan.step_deadline (not used)
         self.feed: list[dict[str, Any]] = []  # the live feed's rejected/clamped messages, with loop time
 
     def feed_events(self, source: ObstacleSource, t: float) -> None:

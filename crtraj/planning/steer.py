@@ -62,6 +62,7 @@ from crtraj.core.errors import InputError
 from crtraj.core.fields import MAX_LENGTH, Table
 from crtraj.core.options import Options, option
 from crtraj.model.robot import MAX_COLLISION_POINTS
+from crtraj.planning.compiled_nlp import CODEGEN_QP, CompiledFunction, compiled_library
 from crtraj.world import margin, packing
 from crtraj.world.scene import Scene
 
@@ -181,6 +182,14 @@ class SteerOptions(Options):
     `tol_du` is 1e-6 in SQP_DEFAULTS). qpsol: QP solver of the sqp path.
     jit: compile the NLP functions with gcc through CasADi's shell compiler
     (falls back to no jit, with `SteerSolver.jit_message` saying why).
+    compiled: with solver "sqp" and qpsol daqp or qrqp, generate C for the
+    whole step (DLS predictor, sqpmethod with its QP solver, the re-check's
+    tip, points and limits, the KKT residuals), compile it once (cached) and
+    call it through ctypes: one foreign call per steer. Its convergence is
+    judged from the KKT residuals it returns (sqpmethod's own test,
+    tol_pr/tol_du); the generated code reports no iteration count
+    (`SteerResult.iterations` is -1). Without a C compiler, or with another
+    qpsol, the interpreted solver runs (`SteerSolver.compiled_message` says so).
     warm_start: start from the previous successful solve's multipliers
     (default None = on for sqp, where it saved iterations, off for IPOPT,
     where warm_start_init_point cost more time than the iteration it
@@ -207,6 +216,7 @@ class SteerOptions(Options):
     tol: float = option(1e-6, gt=0.0)
     qpsol: str = option("daqp", choices=QP_SOLVERS)
     jit: bool = option(False)
+    compiled: bool = option(False)
     warm_start: bool | None = option(None)
     fallback: bool = option(True)
     predictor: bool = option(True)
@@ -408,6 +418,11 @@ class SteerSolver:
         self.scale = config_scale(self.robot)
         self.box = self.robot.config_box()
         self.jit_message = ""
+        self.compiled_message = ""
+        self._step: CompiledFunction | None = None
+        self._memo: tuple[Any, float, float | None, np.ndarray] | None = None  # last (scene, t, t_end, packed)
+        self._lbg_memo: tuple[np.ndarray, np.ndarray] | None = None  # last (packed, lbg) of the compiled step
+        self._A, self._q0 = self.robot.cable_matrix()
         self._lam_g: np.ndarray | None = None
         self._lam_x: np.ndarray | None = None
         self._build()
@@ -495,12 +510,95 @@ class SteerSolver:
             sq.update({"print_iteration": False, "print_status": False})
             sq.update(dict(o.sqp))
             self._solver = self._nlpsol("sqpmethod", nlp, {**common, **sq}, "steer.sqp")
+            if o.compiled:
+                plain = {k: v for k, v in common.items() if k not in ("jit", "compiler", "jit_options")}
+                self._build_compiled(nlp, {**plain, **sq})
             if o.fallback:
                 # rare sqp failures (a QP solver's inexact multipliers stall the
                 # dual test) are re-solved by IPOPT, built without jit
                 plain = {k: v for k, v in common.items() if k not in ("jit", "compiler", "jit_options")}
                 self._fallback = self._nlpsol("ipopt", nlp, {**plain, "ipopt": ip}, "steer.ipopt")
                 self._probe()
+
+    def _build_compiled(self, nlp: dict[str, Any], sqp_opts: dict[str, Any]) -> None:
+        """The whole steer step as one generated C function (option `compiled`), loaded through ctypes.
+
+        Inputs: x_prev, target, packed obstacles, [D_sf, w_d, w_o], lbx, ubx (unscaled), lbg, x0 and
+        use_x0 (1: start from x0, 0: from the DLS predictor), lam_x0, lam_g0. Outputs: x (clipped to
+        the bounds), lam_x, lam_g, the primal and dual KKT residuals, the tip at x, and at x and at x_prev
+        (the start check) the smallest distance to an active sphere's surface (mm) and the smallest slack
+        of the robot's limits (and, at x_prev, of the configuration box).
+        """
+        o = self.options
+        if o.qpsol not in CODEGEN_QP:
+            self.compiled_message = (
+                f"compiled: qpsol {o.qpsol!r} generates no C (use {' or '.join(CODEGEN_QP)}): interpreted solver"
+            )
+            return
+        nx, n_obs = self.nx, packing.WIDTH * self.max_obstacles
+        solver = ca.nlpsol("steer_nlp", "sqpmethod", nlp, sqp_opts)
+        y, p = nlp["x"], nlp["p"]
+        lam_gs = ca.SX.sym("lam_g", self._lbg.size)
+        lam_xs = ca.SX.sym("lam_x", nx)
+        grad = ca.gradient(nlp["f"], y) + ca.jacobian(nlp["g"], y).T @ lam_gs + lam_xs
+        kkt = ca.Function("steer_kkt", [y, p, lam_gs, lam_xs], [ca.norm_inf(grad)])
+        xs = ca.SX.sym("x", nx)
+        tgs = ca.SX.sym("target", 3)
+        los, his = ca.SX.sym("lo", nx), ca.SX.sym("hi", nx)
+        tip, J, _, _ = self._check(xs)
+        Js = J / ca.repmat(ca.DM(self.scale).T, 3, 1)
+        dy = Js.T @ ca.solve(Js @ Js.T + o.damping**2 * ca.SX.eye(3), o.dls_gain * (tgs - tip))
+        pred = ca.Function("steer_pred", [xs, tgs, los, his], [ca.fmin(ca.fmax(xs + dy / self.scale, los), his)])
+        S = ca.DM(self.scale)
+        xp, tg, ob = ca.MX.sym("x_prev", nx), ca.MX.sym("target", 3), ca.MX.sym("obstacles", n_obs)
+        w, lbx, ubx = ca.MX.sym("weights", 3), ca.MX.sym("lbx", nx), ca.MX.sym("ubx", nx)
+        lbg, x0, use_x0 = ca.MX.sym("lbg", self._lbg.size), ca.MX.sym("x0", nx), ca.MX.sym("use_x0")
+        lx0, lg0 = ca.MX.sym("lam_x0", nx), ca.MX.sym("lam_g0", self._lbg.size)
+        start = ca.if_else(use_x0, x0, pred(xp, tg, lbx, ubx) if o.predictor else xp)
+        start = ca.fmin(ca.fmax(start, lbx), ubx)
+        pv = ca.vertcat(xp, tg, ob, w)
+        sol = solver(x0=start * S, p=pv, lbx=lbx * S, ubx=ubx * S, lbg=lbg, ubg=self._ubg, lam_x0=lx0, lam_g0=lg0)
+        ys, g = sol["x"], sol["g"]
+        pr = ca.mmax(ca.vertcat(0, lbx * S - ys, ys - ubx * S, lbg - g, g - self._ubg))
+        du = kkt(ys, pv, sol["lam_g"], sol["lam_x"])
+        x = ca.fmin(ca.fmax(ys / S, lbx), ubx)
+        tip_x, _, P, glim = self._check(x)
+        _, _, P0, glim0 = self._check(xp)
+        lo_lim, hi_lim = ca.DM(self._lbg_lim), ca.DM(self._ubg_lim)
+        box_lo, box_hi = ca.DM(self.box[0]), ca.DM(self.box[1])
+        name = f"steer_step_{self.robot.n_segments}s_{self.max_obstacles}o_{self.n_points}p"
+        step = ca.Function(
+            name,
+            [xp, tg, ob, w, lbx, ubx, lbg, x0, use_x0, lx0, lg0],
+            [
+                *(x, sol["lam_x"], sol["lam_g"], pr, du, tip_x),
+                *(self._surface_distance(P, ob), ca.mmin(ca.vertcat(glim - lo_lim, hi_lim - glim))),
+                self._surface_distance(P0, ob),
+                ca.mmin(ca.vertcat(glim0 - lo_lim, hi_lim - glim0, xp - box_lo, box_hi - xp)),
+            ],
+        )
+        try:
+            lib, how = compiled_library(name, [step], o.qpsol)
+        except (RuntimeError, OSError) as exc:
+            self.compiled_message = f"compiled: build failed ({_last_line(str(exc))}): interpreted solver"
+            return
+        if lib is None:
+            self.compiled_message = f"compiled: {how}"
+            return
+        self._step = CompiledFunction(lib, name)
+        self._tol = (float(sqp_opts["tol_pr"]), float(sqp_opts["tol_du"]))
+        self.compiled_message = f"compiled: {how}"
+
+    def _surface_distance(self, P: ca.MX, ob: ca.MX) -> ca.MX:
+        """Smallest distance (mm) of the points P (3, n) to an active sphere's surface of the packed `ob`
+        (+1e12 without one): the compiled step's re-check quantity, as `_clearance` computes it in numpy."""
+        d = [ca.MX(1e12)]
+        for i in range(self.max_obstacles):
+            c, r, act = packing.slot(ob, i)
+            diff = P - ca.repmat(c, 1, P.shape[1])
+            dist = ca.mmin(ca.sqrt(ca.sum1(diff * diff))) - r
+            d.append(ca.if_else(act > 0, dist, 1e12))
+        return ca.mmin(ca.vertcat(*d))
 
     def _nlpsol(self, plugin: str, nlp: dict[str, Any], opts: dict[str, Any], field_name: str) -> ca.Function:
         try:
@@ -572,10 +670,14 @@ class SteerSolver:
         self, obstacles: Any, t: float, t_end: float | None, safety_distance: float | None
     ) -> tuple[np.ndarray, float, Scene | None]:
         if isinstance(obstacles, Scene):
-            if t_end is None:
+            memo = self._memo
+            if memo is not None and memo[0] is obstacles and memo[1] == t and memo[2] == t_end:
+                packed = memo[3]  # a Scene is frozen: the same scene at the same times packs the same
+            elif t_end is None:
                 packed = obstacles.pack(t, self.max_obstacles)
             else:
                 packed = obstacles.pack_over(t, t_end, self.max_obstacles)
+            self._memo = (obstacles, t, t_end, packed)
             dsf = obstacles.safety_distance if safety_distance is None else float(safety_distance)
             return packed, dsf, obstacles
         if obstacles is None:
@@ -654,6 +756,9 @@ class SteerSolver:
             raise InputError(f"t_end: must be finite and >= t = {t}, got {t_end}")
         packed, dsf, scene = self._packed(obstacles, float(t), t_end, safety_distance)
         guess = None if x0 is None else _vec(x0, "x0", self.nx)
+        if self._step is not None:
+            weights = (dsf, damping_weight, obstacle_weight)
+            return self._solve_compiled(xp, tg, packed, weights, guess, float(t), check_start, t_start)
         tip0, J0, pts0, g0 = self._evaluate(xp)
         if check_start:
             lo, hi = self.box
@@ -687,6 +792,77 @@ class SteerSolver:
                 used = "sqp>ipopt"
         return self._result(
             x, xp, tg, packed, dsf, scene, float(t), t_end, lbx, ubx, converged, status, iters, t_start, used, note
+        )
+
+    def _solve_compiled(
+        self,
+        xp: np.ndarray,
+        tg: np.ndarray,
+        packed: np.ndarray,
+        weights: tuple[float, float | None, float | None],
+        guess: np.ndarray | None,
+        t: float,
+        check_start: bool,
+        t_start: float,
+    ) -> SteerResult:
+        """`solve` through the compiled step (option `compiled`): one foreign call, then the same re-check
+        as the interpreted path, computed here from the returned points against the packed spheres."""
+        o = self.options
+        dsf, wd, wo = weights
+        w = (dsf, o.damping_weight if wd is None else wd, o.obstacle_weight if wo is None else wo)
+        lbx, ubx = self.step_bounds(xp)
+        if self._lbg_memo is None or self._lbg_memo[0] is not packed:
+            lbg = self._lbg.copy()
+            act = packing.active_flags(packed)
+            lbg[lbg.size - self.n_col :] = np.where(np.repeat(act, self.n_points), 0.0, -np.inf)
+            self._lbg_memo = (packed, lbg)
+        lbg = self._lbg_memo[1]
+        warm = o.uses_warm_start and self._lam_g is not None
+        out = self._step(
+            xp,
+            tg,
+            packed,
+            w,
+            lbx,
+            ubx,
+            lbg,
+            xp if guess is None else guess,
+            (0.0 if guess is None else 1.0,),
+            self._lam_x if warm else None,
+            self._lam_g if warm else None,
+        )
+        x, lam_x, lam_g, pr, du, tip, d, slack, d0, slack0 = out
+        body = self.robot.body_radius
+        if check_start:
+            if slack0[0] < -1e-9:  # the limits and the configuration box at x_prev, in one number
+                raise InputError("x_prev: outside the robot's limits (theta, cable stroke or z range)")
+            c0 = margin.clearance(float(d0[0]), dsf, body) if d0[0] < 1e11 else math.inf
+            if c0 < -o.feasibility_tolerance:
+                raise InputError(
+                    f"x_prev: start configuration is in collision (clearance {c0:.3f} mm, "
+                    f"D_sf {dsf:g} mm, at t = {t:g} s)"
+                )
+        x = x.copy()
+        pr_inf, du_inf = float(pr[0]), float(du[0])
+        # sqpmethod's own convergence test, on the residuals of the point it returned
+        converged = bool(np.all(np.isfinite(x))) and pr_inf < self._tol[0] and du_inf < self._tol[1]
+        if converged:
+            self._lam_x, self._lam_g = lam_x.copy(), lam_g.copy()
+            status = "Solve_Succeeded"
+        else:
+            self.reset_warm_start()
+            status = f"Not_Converged (compiled sqpmethod: primal {pr_inf:.2g}, dual {du_inf:.2g})"
+        if not converged and self._fallback is not None:
+            p = self.parameters(xp, tg, packed, dsf, wd, wo)
+            start = np.clip(xp if guess is None else guess, lbx, ubx)
+            note = f"sqp: {status}; re-solved by IPOPT. "
+            x, converged, status, iters = self._solve_nlp(self._fallback, p, lbg, start, lbx, ubx, warm=False)
+            return self._result(
+                x, xp, tg, packed, dsf, None, t, None, lbx, ubx, converged, status, iters, t_start, "sqp>ipopt", note
+            )
+        checked = (tip.copy(), margin.clearance(float(d[0]), dsf, body) if d[0] < 1e11 else math.inf, slack[0] >= -1e-6)
+        return self._result(
+            x, xp, tg, packed, dsf, None, t, None, lbx, ubx, converged, status, -1, t_start, "sqp", "", checked
         )
 
     def _solve_nlp(
@@ -758,16 +934,23 @@ class SteerSolver:
         t_start: float,
         used: str,
         note: str,
+        checked: tuple[np.ndarray, float, bool] | None = None,
     ) -> SteerResult:
+        """The result of a solve. checked: (tip, clearance, within the limits) when the compiled step has
+        computed them at x (else they are evaluated here)."""
         o = self.options
         finite = bool(np.all(np.isfinite(x)))
         if not finite:
             x = xp.copy()
-        tip, _, pts, g = self._evaluate(x)
-        err = float(np.linalg.norm(tip - tg))
-        clear = self._clearance(pts, packed, dsf, scene, t, t_end)
+            checked = None
+        if checked is None:
+            tip, _, pts, g = self._evaluate(x)
+            clear = self._clearance(pts, packed, dsf, scene, t, t_end)
+            in_limits = self._limits_ok(g)
+        else:
+            tip, clear, in_limits = checked
+        err = math.dist(tip, tg)
         in_box = bool(np.all(x >= lbx) and np.all(x <= ubx))
-        in_limits = self._limits_ok(g)
         clear_ok = clear >= -o.feasibility_tolerance
         safe = finite and clear_ok and in_box and in_limits
         reached = finite and err <= o.tolerance
@@ -788,7 +971,7 @@ class SteerSolver:
             message = f"target not reached: the closest safe configuration is {err:.3g} mm away (blocked by {why})"
         return SteerResult(
             x=x,
-            q=self.robot.cables(x),
+            q=self._A @ x + self._q0,
             tip=tip,
             reached=reached,
             converged=converged,

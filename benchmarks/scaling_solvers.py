@@ -1,0 +1,190 @@
+"""How the steer step and a replanning iteration grow with the obstacle count and the number of segments.
+
+Robots: cdsr2 (2 segments) and cdsr2 extended to 3 and 4 segments by repeating its second segment.
+Scenes: m spheres of radius 15 mm (m = 1, 3, 7, 15, 31 with 2 segments; 7 with 3 and 4 segments),
+seeded, placed around the robot clear of its start and goal bodies.
+
+- steer: 40 seeded steer problems per scene (benchmarks/steer.py's generator), median wall time of
+  `SteerSolver.solve` with sqpmethod + daqp interpreted, and with ``--compiled M``, the compiled C step
+  for every scene of at most M obstacles (each new size is one C build; minutes on a loaded machine).
+- replan: a 3 s closed-loop run (30 iterations) toward a goal configuration along the straight
+  reference; median time per iteration and median horizon-NLP time (sqpmethod + daqp interpreted).
+
+Writes docs/scaling_solvers.png (two panels: vs obstacles, vs segments) and prints the table with the
+date, machine and load. Run: python benchmarks/scaling_solvers.py [--compiled 7] [--out docs/scaling_solvers.png]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import datetime
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from crtraj.control.horizon import ReplanOptions
+from crtraj.control.loop import ClosedLoop
+from crtraj.control.loop_options import LoopOptions
+from crtraj.io.problem import Problem
+from crtraj.model.kinematics import Model
+from crtraj.planning.steer import SteerOptions, SteerSolver
+from crtraj.world.obstacle import Obstacle
+from crtraj.world.scene import Scene
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from steer import make_problems  # noqa: E402 - the steer benchmark's own problem generator
+
+OBSTACLES = (1, 3, 7, 15, 31)
+SEGMENTS = (2, 3, 4)
+SEG_OBSTACLES = 7
+
+
+def robot_with(base, n: int):
+    """cdsr2 with n segments: its second segment repeated."""
+    segs = tuple(base.segments) + (base.segments[-1],) * (n - len(base.segments))
+    return dataclasses.replace(base, segments=segs, name=f"{base.name}-{n}seg")
+
+
+def configs(model: Model) -> tuple[np.ndarray, np.ndarray]:
+    """A start and a goal configuration (the replan tests' pair, extended with zero bending)."""
+    n = model.robot.n_segments
+    xs = np.zeros(model.nx)
+    xg = np.zeros(model.nx)
+    xs[0] = 0.3
+    xg[: 2 * n] = np.resize([-0.6, 0.5, -0.3, 0.2], 2 * n) / max(1, n - 1)
+    xg[-1] = -40.0
+    return xs, xg
+
+
+def scene_for(model: Model, m: int, seed: int) -> Scene:
+    """m spheres of 15 mm around the robot, clear (by 25 mm) of its start and goal bodies."""
+    rng = np.random.default_rng(seed)
+    L = model.robot.total_length
+    xs, xg = configs(model)
+    body = model.points(np.stack([xs, xg]), 40).reshape(-1, 3)
+    obs: list[Obstacle] = []
+    while len(obs) < m:
+        c = rng.uniform([-0.6 * L, -0.6 * L, 0.1 * L], [0.6 * L, 0.6 * L, 1.1 * L])
+        if np.min(np.linalg.norm(body - c, axis=1)) > 15.0 + 25.0:
+            obs.append(Obstacle(center=tuple(c), radius=15.0, name=f"s{len(obs)}"))
+    lo = (-1.0 * L, -1.0 * L, -250.0)
+    hi = (1.0 * L, 1.0 * L, 1.3 * L)
+    return Scene(obstacles=tuple(obs), safety_distance=5.0, workspace_lo=lo, workspace_hi=hi)
+
+
+def steer_ms(model: Model, scene: Scene, compiled: bool, n: int = 40) -> tuple[float, float]:
+    """(median CPU ms, success share) of n steers in `scene` (CPU time: the machine is shared)."""
+    X, T = make_problems(model, scene, n, seed=0)
+    opts = SteerOptions(solver="sqp", qpsol="daqp", compiled=compiled)
+    s = SteerSolver(model, scene.n_obstacles, opts)
+    for k in range(3):
+        s.solve(X[k], T[k], scene)
+    s.reset_warm_start()
+    times, ok = [], 0
+    for k in range(n):
+        t0 = time.process_time()
+        r = s.solve(X[k], T[k], scene)
+        times.append(time.process_time() - t0)
+        ok += r.is_success()
+    return float(np.median(times) * 1e3), ok / n
+
+
+def replan_ms(model: Model, scene: Scene) -> tuple[float, float, float, float]:
+    """(median iteration ms, median NLP ms, p99 iteration ms (wall), mean CPU ms per iteration) of a 3 s
+    closed-loop run."""
+    xs, xg = configs(model)
+    opts = ReplanOptions(solver="sqp", qpsol="daqp", points=16)
+    loop = ClosedLoop(
+        model, scene, model.tip_position(xg), xs, options=opts, loop_options=LoopOptions(duration=3.0), goal_config=xg
+    )
+    c0 = time.process_time()
+    run = loop.run()
+    cpu = (time.process_time() - c0) / max(1, run.steps)
+    return (
+        float(np.median(run.iter_time) * 1e3),
+        float(np.median(run.nlp_time) * 1e3),
+        float(np.percentile(run.iter_time, 99) * 1e3),
+        cpu * 1e3,
+    )
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--compiled", type=int, default=0, help="also time the compiled steer up to this many obstacles")
+    ap.add_argument("--out", type=Path, default=ROOT / "docs" / "scaling_solvers.png")
+    args = ap.parse_args()
+    base = Problem.load(ROOT / "problems" / "paper_static.toml").robot
+    load0 = os.getloadavg()[0]
+    cases = [(2, m) for m in OBSTACLES] + [(n, SEG_OBSTACLES) for n in SEGMENTS if n != 2]
+    rows = []
+    print(
+        f"{'segments':>8} {'obstacles':>9} {'steer cpu ms':>12} {'ok':>5} {'compiled cpu ms':>15} {'iter ms':>8} "
+        f"{'iter p99':>8} {'NLP ms':>7} {'iter cpu ms':>11}"
+    )
+    for n, m in cases:
+        model = Model(robot_with(base, n))
+        scene = scene_for(model, m, seed=10 * n + m)
+        st, ok = steer_ms(model, scene, compiled=False)
+        cst = steer_ms(model, scene, compiled=True)[0] if m <= args.compiled else float("nan")
+        it, nlp, p99, cpu = replan_ms(model, scene)
+        row = {"segments": n, "obstacles": m, "steer": st, "ok": ok, "compiled": cst}
+        rows.append(row | {"iter": it, "p99": p99, "nlp": nlp, "iter_cpu": cpu})
+        print(
+            f"{n:>8} {m:>9} {st:>12.3f} {ok:>5.2f} {cst:>15.3f} {it:>8.2f} {p99:>8.2f} {nlp:>7.2f} {cpu:>11.2f}",
+            flush=True,
+        )
+    stamp = f"{datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC"
+    machine = f"{platform.machine()}, {os.cpu_count()} cores, load {load0:.1f} -> {os.getloadavg()[0]:.1f}"
+    print(f"date {stamp}; machine {machine}")
+    plot(rows, args.out, f"{stamp}, {machine}")
+    print(f"wrote {args.out}")
+    return 0
+
+
+def plot(rows: list[dict], out: Path, note: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    for ax, key, sel, label in (
+        (axes[0], "obstacles", [r for r in rows if r["segments"] == 2], "obstacles (2 segments)"),
+        (
+            axes[1],
+            "segments",
+            [r for r in rows if r["obstacles"] == SEG_OBSTACLES],
+            f"segments ({SEG_OBSTACLES} obstacles)",
+        ),
+    ):
+        x = [r[key] for r in sel]
+        ax.plot(x, [r["steer"] for r in sel], "o-", color="C0", label="steer, sqp + daqp interpreted (CPU median)")
+        comp = [(xi, r["compiled"]) for xi, r in zip(x, sel, strict=True) if np.isfinite(r["compiled"])]
+        if comp:
+            ax.plot(*zip(*comp, strict=True), "s-", color="C1", label="steer, compiled C (CPU median)")
+        ax.plot(x, [r["iter_cpu"] for r in sel], "^-", color="C2", label="replan iteration (CPU mean)")
+        ax.set_xlabel(label)
+        ax.set_xticks(x)
+        ax.set_xticklabels([str(v) for v in x])
+        ax.set_ylabel("ms")
+        ax.set_yscale("log")
+        if key == "obstacles":
+            ax.set_xscale("log", base=2)
+            ax.set_xticks(x)
+            ax.set_xticklabels([str(v) for v in x])
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0].legend(fontsize=8)
+    fig.suptitle(f"solver cost scaling ({note})", fontsize=9)
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=110)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
