@@ -693,6 +693,7 @@ class ClosedLoop:
             q = self.servo.advance(q, c, h)
             out[j] = q
         return out
+
     def _judge_deadline(self, res: HorizonResult, elapsed: float, log: _Log) -> HorizonResult:
         """`res`, or, when it came after the step deadline (elapsed s since the step began), the record of
         an unused solve: status SKIPPED and the solver's own status with the miss appended (never lost)."""
