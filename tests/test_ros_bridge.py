@@ -478,13 +478,14 @@ def test_hostile_messages_are_counted_and_ignored(paper):
 def test_close_leaves_no_threads_or_processes(paper):
     _, acts, *_ = paper
     before = set(threading.enumerate())
+    children = set(_children())  # earlier tests of the session may have their own children still exiting
     node = RosNode(RosOptions(domain_id=DOMAIN), acts)
     assert node.alive
     node.close()
     node.close()  # idempotent
     assert not node.alive and not node._ctx.ok()
     assert set(threading.enumerate()) <= before
-    assert _children() == []
+    assert set(_children()) <= children
 
 
 def test_ros_section_is_checked_in_one_line(tmp_path):
