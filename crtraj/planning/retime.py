@@ -127,11 +127,14 @@ def keep_corners(X: np.ndarray, tol: float = COLLINEAR) -> np.ndarray:
     """Indices of the waypoints that are corners (plus both ends): runs of collinear,
     forward-progressing straight motions are merged; zero-length motions are dropped."""
     X = np.asarray(X, dtype=float)
+    # a run from X[i] can only grow past X[i+1] when X[i+1] lies on the chord X[i] -> X[i+2]: that first
+    # test is made for all i at once, so the loop below calls `_on_chord` only where a merge may happen
+    first = _middles_on_chords(X, tol) if len(X) >= 3 else np.zeros(0, dtype=bool)
     keep = [0]
     i, K = 0, len(X)
     while i < K - 1:
         j = i + 1
-        while j + 1 < K and _on_chord(X[i], X[j + 1], X[i + 1 : j + 1], tol):
+        while j + 1 < K and first[i] and _on_chord(X[i], X[j + 1], X[i + 1 : j + 1], tol):
             j += 1
         if np.max(np.abs(X[j] - X[keep[-1]])) > 0.0:
             keep.append(j)
@@ -139,6 +142,17 @@ def keep_corners(X: np.ndarray, tol: float = COLLINEAR) -> np.ndarray:
     if keep[-1] != K - 1:
         keep[-1] = K - 1  # the end itself (equal to the last kept corner up to 0)
     return np.asarray(keep)
+
+
+def _middles_on_chords(X: np.ndarray, tol: float) -> np.ndarray:
+    """(K-2,) bool: X[i+1] on the chord X[i] -> X[i+2] as `_on_chord` decides it (vectorised)."""
+    a, m, b = X[:-2], X[1:-1], X[2:]
+    d = b - a
+    dd = np.einsum("ij,ij->i", d, d)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = np.einsum("ij,ij->i", m - a, d) / dd
+        dist = np.linalg.norm(a + u[:, None] * d - m, axis=1)
+    return (dd != 0.0) & (u >= 0.0) & (u <= 1.0) & (dist <= tol)
 
 
 def _on_chord(a: np.ndarray, b: np.ndarray, inner: np.ndarray, tol: float) -> bool:
