@@ -7,11 +7,15 @@ from typing import Any, ClassVar
 
 from crtraj.core.fields import MAX_LENGTH, MAX_TIME
 from crtraj.core.options import Options, option
+from crtraj.planning.paper_check import PaperValidator
 from crtraj.planning.rate_limits import RateLimits
 from crtraj.planning.stop import StopCondition
 from crtraj.planning.validity import MotionValidator
 
 ALGORITHMS = ("cspace", "rrt", "rrtstar")
+# "strict": the continuous body over continuous time (`MotionValidator`); "paper": the paper's
+# collision points at the ends of `check_step`-second steps only (`crtraj.planning.paper_check`).
+CHECKS = ("strict", "paper")
 
 # Bounds: the highs keep one planner call within memory and a bounded number of solver calls (each far above
 # what the paper's problems use); step sizes have a positive floor so that the number of collision checks and
@@ -59,6 +63,9 @@ class PlannerOptions(Options):
     waypoint_step: largest body motion between returned waypoints (mm).
     limit_fraction: fraction of each actuator speed and acceleration limit a plan may use (the
     rest is kept in reserve); `crtraj plan` retimes its result within it.
+    check: the motion check, "strict" (default) or "paper" (the paper's Table I check: the robot's
+    collision points at the ends of `check_step`-second steps only; meant for rrt and rrtstar, see
+    `crtraj.planning.paper_check`). check_step: the paper check's time step (s).
     """
 
     SECTION: ClassVar[str] = "planner"
@@ -87,6 +94,8 @@ class PlannerOptions(Options):
     corner: float = option(40.0, ge=1e-3, le=MAX_LENGTH)
     waypoint_step: float = option(20.0, ge=0.1, le=MAX_LENGTH)
     limit_fraction: float = option(0.9, gt=0.0, le=1.0)
+    check: str = option("strict", choices=CHECKS)
+    check_step: float = option(1.0, ge=1e-3, le=MAX_TIME)
 
     @property
     def step(self) -> float:
@@ -108,12 +117,13 @@ class PlannerOptions(Options):
     ) -> MotionValidator:
         """The `MotionValidator` these options describe for `scene` (functions: a shared CasADi cache;
         rate_limits: the full actuator limits, of which `limit_fraction` is used to time motions)."""
-        return MotionValidator(
-            model,
-            scene,
-            check_points=self.check_points,
-            resolution=self.resolution,
-            max_speed=self.max_speed,
-            functions=functions,
-            rate_limits=None if rate_limits is None else rate_limits.scaled(self.limit_fraction),
-        )
+        common: dict[str, Any] = {
+            "resolution": self.resolution,
+            "max_speed": self.max_speed,
+            "functions": functions,
+            "rate_limits": None if rate_limits is None else rate_limits.scaled(self.limit_fraction),
+        }
+        if self.check == "paper":
+            points = model.robot.collision_points
+            return PaperValidator(model, scene, step=self.check_step, check_points=points, **common)
+        return MotionValidator(model, scene, check_points=self.check_points, **common)

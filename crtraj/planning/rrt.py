@@ -76,10 +76,13 @@ class RRT(PlannerBase):
         super().__init__(model, scene, PlannerOptions(algorithm=self.name) if options is None else options)
         M = max(scene.n_obstacles if max_obstacles is None else int(max_obstacles), scene.n_obstacles)
         so = SteerOptions() if steer_options is None else steer_options
+        # The paper check (options.check == "paper") looks at the collision points only, so the steer
+        # keeps them clear with no continuous-body margin, as the paper's eq. 18 does.
+        self.paper = self.options.check == "paper"
         self.steer_options = replace(
             so,
             n_points=max(so.n_points or 0, self.validator.check_points),
-            margin=max(so.margin, self.steer_margin(scene)),
+            margin=so.margin if self.paper else max(so.margin, self.steer_margin(scene)),
         )
         self.steer = SteerSolver(model, M, self.steer_options)
         self.ik = SafeIK(model, self.validator, M)
@@ -193,7 +196,8 @@ class RRT(PlannerBase):
         target = tip_n + (P - tip_n) * min(1.0, step / d)
         x_n, t_n = tree.x[n], float(tree.t[n])
         counts["steer_calls"] += 1
-        t_end = None if v.static else t_n + window
+        # paper check: the obstacles as they are at the node's time (the start of its step)
+        t_end = None if v.static or self.paper else t_n + window
         res = self.steer.solve(x_n, target, v.scene, t=t_n, t_end=t_end, check_start=False)
         if not (res.converged and res.safe):
             counts["steer_failed"] += 1
