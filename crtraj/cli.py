@@ -249,7 +249,11 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
         "validity checker and time budget; every success is re-verified densely. Writes DIR/table1.md "
         "(the paper's layout, with the paper's numbers), DIR/runs.csv (every run) and DIR/scenarios.json.",
     )
-    p.add_argument("table", choices=["table1"], help="which benchmark (table1: the paper's Table I)")
+    p.add_argument(
+        "table",
+        choices=["table1", "modes"],
+        help="which benchmark (table1: the paper's Table I; modes: report finished runs in both checking modes)",
+    )
     p.add_argument(
         "--workers", type=int, default=None, help="worker processes (default: CPU count; 0 = run in this process)"
     )
@@ -274,10 +278,16 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--verify-margin",
         type=float,
-        default=0.0,
-        help="clearance (mm) the dense check demands from the sphere surfaces (default 0: no contact)",
+        default=None,
+        help="clearance (mm) the dense check demands from the sphere surfaces (default: the scene's D_sf)",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--scenes", choices=["default", "paper"], default="default", help="scene bounds (paper: mean speed U(0, 15))"
+    )
+    p.add_argument("--cpu-budget", action="store_true", help="time limit counts CPU time (rrt, rrtstar, cspace)")
+    p.add_argument("--runs", default=None, help="modes: runs.csv file(s) to report, comma-separated")
+    p.add_argument("--note", default=None, help="modes: a line added to the report's header (e.g. the load)")
     p.set_defaults(use_case="bench")
 
 
