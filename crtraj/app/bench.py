@@ -8,9 +8,12 @@ import os
 import platform
 import sys
 from collections.abc import Callable
+from dataclasses import replace
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from crtraj import __version__
 from crtraj.bench import modes
@@ -20,10 +23,12 @@ from crtraj.bench.paper_mode import CHECK_MODES, PAPER_ROWS, PAPER_SCENES, STRIC
 from crtraj.bench.records import LABELS, PLANNERS, BenchOptions, _fmt, _pct
 from crtraj.bench.runlog import read_runs
 from crtraj.bench.runner import Table1Bench
+from crtraj.bench.scenarios import ScenarioGenerator, ScenarioOptions
 from crtraj.core.errors import InputError
 from crtraj.core.fields import Table
 from crtraj.core.fileio import atomic_write_text, read_toml
 from crtraj.io.problem import load_robot
+from crtraj.model.kinematics import Model
 from crtraj.planning.options import PlannerOptions
 from crtraj.planning.registry import BUILTIN
 
@@ -141,7 +146,14 @@ def run_modes(args: Any) -> int:
     )
     out = Path(args.out)
     rows = {"paper": PAPER_ROWS, "strict": STRICT_ROWS}
-    files = [atomic_write_text(out / "table1-modes.md", modes.markdown(records, counts, header))]
+    # the scenarios' straight start-to-goal distances, regenerated from their seeds (for the detour column)
+    bounds = replace(PAPER_SCENES if args.scenes == "paper" else ScenarioOptions(), seed=args.seed)
+    gen = ScenarioGenerator(Model(load_robot(args.robot)), bounds)
+    straight = {}
+    for c, i in sorted({(r.n_obstacles, r.index) for r in records}):
+        sc = gen.generate(c, i)
+        straight[(c, i)] = float(np.linalg.norm(sc.goal - sc.start_tip))
+    files = [atomic_write_text(out / "table1-modes.md", modes.markdown(records, counts, header, straight))]
     files += write_figures(records, out, rows, counts)
     files += write_logs(records, out / "ompl", rows, counts, time_limit=args.time_limit, setup=header)
     print(f"wrote {len(files)} files in {out}: " + ", ".join(f.name for f in files))

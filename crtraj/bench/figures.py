@@ -36,6 +36,11 @@ def _png(fig: Any) -> bytes:
     return buf.getvalue()
 
 
+def _shift(k: int, n: int) -> float:
+    """Horizontal offset (obstacles) of series k of n, so that error bars at one count stay apart."""
+    return 0.5 * ((k + 0.5) / max(n, 1) - 0.5)
+
+
 def _rows(records: Sequence[RunRecord], rows: dict[str, Sequence[str]]) -> list[tuple[str, str]]:
     """(mode, planner) pairs that have records, in table order."""
     present = {r.planner for r in records}
@@ -46,13 +51,15 @@ def success_plot(records: Sequence[RunRecord], rows: dict[str, Sequence[str]], c
     """Success rate (95 % Wilson interval) against obstacle count, one line per (mode, planner)."""
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(7.5, 4.5))
-    for mode, p in _rows(records, rows):
+    series = _rows(records, rows)
+    for k, (mode, p) in enumerate(series):
+        xs = np.asarray(counts, dtype=float) + _shift(k, len(series))
         cells = [cell(records, p, c, mode) for c in counts]
         rate = np.array([x.rate for x in cells])
         ci = np.array([wilson(x.successes, x.runs) for x in cells])
         style = "-" if mode == "paper" else "--"
         ax.errorbar(
-            counts, 100 * rate, yerr=100 * np.abs(ci.T - rate), fmt=style + "o", capsize=3, label=f"{label(p)} [{mode}]"
+            xs, 100 * rate, yerr=100 * np.abs(ci.T - rate), fmt=style + "o", capsize=3, label=f"{label(p)} [{mode}]"
         )
         if p in PAPER_OF:
             ys = [100 * PAPER_TABLE1[PAPER_OF[p]]["success"][PAPER_COUNTS.index(c)] for c in counts]
@@ -94,12 +101,14 @@ def length_plot(records: Sequence[RunRecord], rows: dict[str, Sequence[str]], co
     """Mean tip path length of the successes (95 % interval) against obstacle count."""
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(7.5, 4.5))
-    for mode, p in _rows(records, rows):
+    series = _rows(records, rows)
+    for k, (mode, p) in enumerate(series):
+        xs = np.asarray(counts, dtype=float) + _shift(k, len(series))
         stats = np.array([mean_interval(cell(records, p, c, mode).lengths) for c in counts])
         m = stats[:, 0]
         err = np.abs(stats[:, 1:].T - m)
         ax.errorbar(
-            counts, m, yerr=err, fmt=("-" if mode == "paper" else "--") + "o", capsize=3, label=f"{label(p)} [{mode}]"
+            xs, m, yerr=err, fmt=("-" if mode == "paper" else "--") + "o", capsize=3, label=f"{label(p)} [{mode}]"
         )
         if p in PAPER_OF:
             ys = [PAPER_TABLE1[PAPER_OF[p]]["path_mm"][PAPER_COUNTS.index(c)] for c in counts]

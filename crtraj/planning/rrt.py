@@ -22,6 +22,12 @@ configurations it returns also pass the planner's continuous-body check
 (the paper constrains ten points; with ten points the body between them can
 dip a few mm toward a sphere).
 
+With ``PlannerOptions.check = "paper"`` the validator is the paper's own check
+(`crtraj.planning.paper_check.PaperValidator`: the robot's ten collision points at
+the ends of 1-s steps only), the steer keeps those points clear with no extra
+margin, and it sees the obstacles as they are at the node's time: Algorithm 1
+as the paper evaluates it, for the Table I comparison (`crtraj bench table1`).
+
 The returned path is the tree path, smoothed by the same verified B-spline
 as the configuration-space planner (the paper interpolates its path with a
 spline before execution); it is not shortcut, so RRT and RRT* keep their own
