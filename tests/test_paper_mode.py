@@ -181,3 +181,30 @@ def test_wilson_interval_closed_forms():
     assert hi == pytest.approx(1.0) and lo == pytest.approx(10 / (10 + z2))
     lo, hi = wilson(89, 100)
     assert lo < 0.89 < hi and hi - lo == pytest.approx(0.1226, abs=2e-3)
+
+
+def test_cli_modes_report_writes_tables_figures_and_logs(tmp_path, capsys):
+    from crtraj.bench.runlog import RunLog
+    from crtraj.cli import main
+
+    log = RunLog(tmp_path / "runs.csv")
+    for r in (
+        _rec("rrt-paper", True, False, 3.0),
+        _rec("rrt", True, True, 9.0),
+        RunRecord(
+            "rrt-paper", 3, 1, 0, "approximate", False, False, False, 10.0, math.nan, math.nan, 80.0, 5.0, 9, "w",
+            "", "", check_mode="paper",
+        ),
+    ):  # fmt: skip
+        log.append(r)
+    log.close()
+    out = tmp_path / "report"
+    assert main(["bench", "modes", "--runs", str(tmp_path / "runs.csv"), "--scenes", "paper", "--out", str(out)]) == 0
+    assert "wrote 6 files" in capsys.readouterr().out
+    md = (out / "table1-modes.md").read_text()
+    # rrt-paper at 3 obstacles: 1 of 2 runs passes the paper's check; the paper's 97 % is outside [9 %, 91 %]
+    assert "| RRT (Alg. 1), paper check | 3 | 2 | 50% (9%–91%) |" in md and "| OUT |" in md
+    assert "| RRT (Alg. 1), paper check | 3 | 1 | 1 (100%) | 0 | 1 |" in md  # rejected: within D_sf only
+    for png in ("success.png", "time_cdf.png", "length.png"):
+        assert (out / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert sorted(p.name for p in (out / "ompl").iterdir()) == ["table1-paper-3obs.log", "table1-strict-3obs.log"]
