@@ -230,7 +230,7 @@ def markdown(
                 f"| {label(p)} | {c} | {x.runs} | {_pct(x.rate)} ({_pct(lo)}–{_pct(hi)}) | "
                 f"{_pct(x.within5 / x.runs if x.runs else math.nan)} | {paper_succ} | {vs} | "
                 f"{_f(m, 0)} ({_f(llo, 0)}–{_f(lhi, 0)}) | {_f(_paper(p, 'path_mm', c))} | {vl} | "
-                f"{_f(_mean(tree), 0)} | {_f(detour(records, straight, p, c, 'paper'))} | "
+                f"{_f(_mean(tree), 0) if p in PAPER_OF else '—'} | {_f(detour(records, straight, p, c, 'paper'))} | "
                 f"{_f(_mean(x.cpu))} | {_f(_mean(x.wall))} | {_f(_paper(p, 'time_s', c))} |\n"
             )
 
@@ -249,8 +249,9 @@ def markdown(
         "with the disc radius, samples <= 0.01 s and <= 1 mm apart, obstacles at each sample's time) keeps more "
         "than D_sf from every sphere. Clearances over the claimed paths: *surface* = body surface to sphere "
         "surface, *D_sf* = the same minus D_sf (>= 0 is safe); smallest and median. OMPL RRTstar runs to its "
-        "budget: *first sol.* is its mean time to the first solution, *cost* its mean best cost (tip length, "
-        "mm) at the budget.\n\n"
+        "budget: *first sol.* is its mean time to the first solution (s, from the plan call, goal IK included), "
+        "*cost* its mean best cost at the budget (OMPL's path-length objective in its own state space: body-motion "
+        "mm and scaled time, not tip mm).\n\n"
     )
     w(
         "| Method | obs | n | success (95% CI) | length mm (95% CI) | median CPU s | median wall s "
