@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import concurrent.futures as cf
+import math
 import multiprocessing
 import os
 import platform
@@ -164,5 +165,5 @@ def _limits(records: list[Any]) -> dict[str, str]:
     """The longest wall time of each planner's runs (s), formatted (shows the budget a run was held to)."""
     out: dict[str, float] = {}
     for r in records:
-        out[r.planner] = max(out.get(r.planner, 0.0), r.time_s if r.time_s == r.time_s else 0.0)
+        out[r.planner] = max(out.get(r.planner, 0.0), r.time_s if math.isfinite(r.time_s) else 0.0)
     return {p: f"{t:.1f}" for p, t in out.items()}
