@@ -386,9 +386,10 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "table",
-        choices=["table1", "suite"],
+        choices=["table1", "suite", "modes"],
         help="which benchmark (table1: the paper's Table I; suite: the held-out dynamic suite, crtraj.bench.suite, "
-        "run in this process: --counts, --workers, --dask, --planner-config and --verify-margin are table1's)",
+        "run in this process: --counts, --workers, --dask, --planner-config and --verify-margin are table1's; "
+        "modes: report finished table1 runs in both checking modes)",
     )
     p.add_argument(
         "--workers", type=int, default=None, help="worker processes (default: CPU count; 0 = run in this process)"
@@ -422,10 +423,16 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--verify-margin",
         type=float,
-        default=0.0,
-        help="clearance (mm) the dense check demands from the sphere surfaces (default 0: no contact)",
+        default=None,
+        help="clearance (mm) the dense check demands from the sphere surfaces (default: the scene's D_sf)",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--scenes", choices=["default", "paper"], default="default", help="scene bounds (paper: mean speed U(0, 15))"
+    )
+    p.add_argument("--cpu-budget", action="store_true", help="time limit counts CPU time (rrt, rrtstar, cspace)")
+    p.add_argument("--runs", default=None, help="modes: runs.csv file(s) to report, comma-separated")
+    p.add_argument("--note", default=None, help="modes: a line added to the report's header (e.g. the load)")
     p.set_defaults(use_case="bench")
 
 

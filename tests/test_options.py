@@ -152,7 +152,9 @@ _OLD_DEFAULTS = {
     ),
     BenchOptions: dict(
         counts=(1, 3, 5, 7), scenarios=100, planners=crtraj.bench.records.BUILTIN.names, time_limit=5.0, seed=0,
-        goal_tolerance=1.0, verify_points=128, verify_dt=0.01, verify_step=1.0, verify_margin=0.0,
+        goal_tolerance=1.0, verify_points=128, verify_dt=0.01, verify_step=1.0,
+        verify_margin=None,  # issue 15: success means safe, so the dense check demands the scene's D_sf
+        cpu_budget=False,
     ),
     ScenarioOptions: dict(
         seed=0, radius_mean=(30.0, 50.0), radius_amplitude=(10.0, 20.0), omega=1.0, travel=(50.0, 100.0),

@@ -4,20 +4,34 @@ held-out dynamic suite (`crtraj bench suite`, `crtraj.app.suite`)."""
 from __future__ import annotations
 
 import concurrent.futures as cf
+import math
 import multiprocessing
 import os
+import platform
 import sys
 from collections.abc import Callable
+from dataclasses import replace
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
+from crtraj import __version__
 from crtraj.app.suite import run_suite
+from crtraj.bench import modes
+from crtraj.bench.figures import write_figures
+from crtraj.bench.ompl_log import write_logs
+from crtraj.bench.paper_mode import CHECK_MODES, PAPER_ROWS, PAPER_SCENES, STRICT_ROWS
 from crtraj.bench.records import LABELS, PLANNERS, BenchOptions, _fmt, _pct
+from crtraj.bench.runlog import read_runs
 from crtraj.bench.runner import Table1Bench
+from crtraj.bench.scenarios import ScenarioGenerator, ScenarioOptions
 from crtraj.core.errors import InputError
 from crtraj.core.fields import Table
-from crtraj.core.fileio import read_toml
+from crtraj.core.fileio import atomic_write_text, read_toml
 from crtraj.io.problem import load_robot
+from crtraj.model.kinematics import Model
 from crtraj.planning.options import PlannerOptions
 from crtraj.planning.registry import BUILTIN
 
@@ -59,6 +73,8 @@ def _executor(args: Any, bench: Table1Bench, workers: int) -> tuple[cf.Executor 
 
 def run_table1(args: Any) -> int:
     """`crtraj bench table1 ...` (arguments from `crtraj.cli`); returns the exit code."""
+    if args.table == "modes":
+        return run_modes(args)
     workers = os.cpu_count() or 1 if args.workers is None else args.workers
     if workers < 0:
         raise InputError(f"--workers: must be >= 0 (0 = run in this process), got {workers}")
@@ -70,6 +86,7 @@ def run_table1(args: Any) -> int:
         time_limit=5.0 if args.time_limit is None else args.time_limit,
         seed=args.seed,
         verify_margin=args.verify_margin,
+        cpu_budget=args.cpu_budget,
     )
     planner_options = PlannerOptions()
     if args.planner_config:
@@ -80,8 +97,10 @@ def run_table1(args: Any) -> int:
         planner_options = PlannerOptions.from_table(Table(data.get("planner", {}), "planner"))
     robot = load_robot(args.robot)
     for name in planners:
-        BUILTIN.check_available(name)  # fail now, in one line, not in every worker
-    bench = Table1Bench(robot, options, planner_options=planner_options)
+        if name not in CHECK_MODES:  # rrt-paper, rrtstar-paper: the bench's own entries
+            BUILTIN.check_available(name)  # fail now, in one line, not in every worker
+    scenes = PAPER_SCENES if args.scenes == "paper" else None
+    bench = Table1Bench(robot, options, planner_options=planner_options, scenario_options=scenes)
     out = Path(args.out or "out/table1")
     total = len(options.counts) * options.scenarios * len(planners)
     executor, client, workers = _executor(args, bench, workers)
@@ -118,3 +137,42 @@ def bench_command(args: Any) -> int:
     if args.table == "suite":
         return run_suite(args)
     return run_table1(args)
+
+
+def run_modes(args: Any) -> int:
+    """`crtraj bench modes --runs A.csv,B.csv --out DIR`: Table I in both checking modes from finished runs
+    (table1-modes.md, success.png, time_cdf.png, length.png and OMPL benchmark logs in DIR/ompl)."""
+    if not args.runs:
+        raise InputError("--runs: give the runs.csv file(s) of `crtraj bench table1` runs, comma-separated")
+    records = [r for path in _parse_list(args.runs, "--runs", str) for r in read_runs(path)]
+    if not records:
+        raise InputError(f"--runs: no runs in {args.runs}")
+    counts = tuple(sorted({r.n_obstacles for r in records}))
+    limits = ", ".join(f"{p}: {t}" for p, t in sorted(_limits(records).items()))
+    header = (
+        f"Rendered {datetime.now(timezone.utc).isoformat(timespec='seconds')} by crtraj {__version__} from "
+        f"{args.runs}; {len(records)} runs. Machine: {platform.node()} ({platform.machine()}, {os.cpu_count()} "
+        f"logical CPUs). Largest time per run (wall s) by planner: {limits}.\n\n{args.note or ''}"
+    )
+    out = Path(args.out or "docs/table1")
+    rows = {"paper": PAPER_ROWS, "strict": STRICT_ROWS}
+    # the scenarios' straight start-to-goal distances, regenerated from their seeds (for the detour column)
+    bounds = replace(PAPER_SCENES if args.scenes == "paper" else ScenarioOptions(), seed=args.seed)
+    gen = ScenarioGenerator(Model(load_robot(args.robot)), bounds)
+    straight = {}
+    for c, i in sorted({(r.n_obstacles, r.index) for r in records}):
+        sc = gen.generate(c, i)
+        straight[(c, i)] = float(np.linalg.norm(sc.goal - sc.start_tip))
+    files = [atomic_write_text(out / "table1-modes.md", modes.markdown(records, counts, header, straight))]
+    files += write_figures(records, out, rows, counts)
+    files += write_logs(records, out / "ompl", rows, counts, time_limit=args.time_limit, setup=header)
+    print(f"wrote {len(files)} files in {out}: " + ", ".join(f.name for f in files))
+    return 0
+
+
+def _limits(records: list[Any]) -> dict[str, str]:
+    """The longest wall time of each planner's runs (s), formatted (shows the budget a run was held to)."""
+    out: dict[str, float] = {}
+    for r in records:
+        out[r.planner] = max(out.get(r.planner, 0.0), r.time_s if math.isfinite(r.time_s) else 0.0)
+    return {p: f"{t:.1f}" for p, t in out.items()}

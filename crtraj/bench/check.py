@@ -186,3 +186,45 @@ def dense_check(
             len(times),
         )
     return DenseCheck(CheckStatus.VERIFIED, "", min_clr, t_worst, length, goal_error, len(times))
+
+
+@dataclass(frozen=True)
+class PaperCheck:
+    """Verdict of the paper's own check (sec. IV-B) on one returned path, for comparison with `DenseCheck`.
+
+    passed: the path reaches the goal and its collision points keep D_sf at every step end.
+    clearance: smallest point clearance beyond D_sf over the step ends (mm). times: step ends checked.
+    """
+
+    passed: bool
+    clearance: float
+    times: int
+
+
+def paper_check(
+    model: Model,
+    scene: Scene,
+    result: PlanResult,
+    goal: np.ndarray,
+    *,
+    goal_tolerance: float = 1.0,
+    step: float = 1.0,
+) -> PaperCheck:
+    """The paper's check: at t = 0, step, 2 step, ... up to the arrival, and at the arrival itself, the
+    robot's `collision_points` backbone points (discs of the body radius) keep D_sf from every sphere
+    as it is at that time (mm, s). Written apart from `crtraj.planning.paper_check` on purpose: the
+    configurations come from interpolating the waypoints here, the distances from `Scene.states`."""
+    T = np.asarray(result.t, dtype=float).reshape(-1)
+    X = np.asarray(result.configs, dtype=float)
+    if len(T) == 0 or X.ndim != 2 or X.shape[0] != len(T) or not np.all(np.isfinite(X)):
+        return PaperCheck(False, float("nan"), 0)
+    times = np.append(np.arange(0.0, T[-1], step), T[-1]) if T[-1] > 0 else T[-1:]
+    configs = np.stack([np.interp(times, T, X[:, j]) for j in range(X.shape[1])], axis=-1)
+    pts = model.points(configs, model.robot.collision_points)  # (S, n, 3)
+    clr = math.inf
+    if scene.n_obstacles:
+        centers, radii = scene.states(times)  # (S, M, 3), (S, M)
+        d = np.linalg.norm(pts[:, :, None, :] - centers[:, None, :, :], axis=-1)  # (S, n, M)
+        clr = float((d - radii[:, None, :]).min()) - model.robot.body_radius - scene.safety_distance
+    goal_error = float(np.linalg.norm(pts[-1, -1] - np.asarray(goal, dtype=float)))
+    return PaperCheck(clr >= 0.0 and goal_error <= goal_tolerance + 1e-9, clr, len(times))

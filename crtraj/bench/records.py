@@ -62,8 +62,11 @@ class BenchOptions(Options):
     backbone points of the dense check. verify_dt: largest time between dense
     samples (s). verify_step: largest backbone-point motion between dense
     samples (mm). verify_margin: clearance to the sphere surfaces the dense
-    check demands (mm; 0 = no contact; the planners themselves keep the
-    scene's safety distance).
+    check demands (mm; None, the default: the scene's safety distance D_sf, so
+    that success means safe; 0 = merely no contact). cpu_budget: time_limit
+    counts each run's CPU time rather than wall time (a shared machine's load
+    then does not shrink the budget; OMPL's planners time themselves on the
+    wall clock either way).
     """
 
     SECTION: ClassVar[str] = "bench"
@@ -79,7 +82,8 @@ class BenchOptions(Options):
     verify_points: int = option(128, ge=2, le=1000)
     verify_dt: float = option(0.01, gt=0.0, le=MAX_TIME)
     verify_step: float = option(1.0, gt=0.0, le=MAX_LENGTH)
-    verify_margin: float = option(0.0, ge=0.0, le=MAX_LENGTH)
+    verify_margin: float | None = option(None, ge=0.0, le=MAX_LENGTH)
+    cpu_budget: bool = option(False)
 
     def _check(self) -> None:
         counts = self.counts
@@ -119,6 +123,16 @@ class RunRecord:
 
     claimed: the planner reported an exact solution. verified: the dense
     check accepted the path. success: both. time_s: the planner's wall time.
+    min_clearance_mm: the dense check's body-surface to sphere-surface clearance;
+    dsf_clearance_mm: the same beyond the scene's D_sf (>= 0: safe).
+    paper_success, paper_clearance_mm: the paper's check (`crtraj.bench.check.paper_check`:
+    collision points at 1-s step ends) on the same path; check_mode: the planner's own
+    motion check ("strict" or "paper"). first_solution_s: time to the first solution
+    (OMPL planners; else the run's time when it succeeded). graph_states: nodes of
+    the planner's graph. best_cost: the planner's cost at the end of its budget;
+    cost_progress: "t:cost" pairs, ";"-separated, each time the best cost improved.
+    cpu_s: CPU time of the worker process during the plan call (s; below time_s when the
+    machine is loaded: the planners' budgets are wall time).
     """
 
     planner: str
@@ -138,6 +152,15 @@ class RunRecord:
     worker: str
     message: str
     check: str
+    check_mode: str = "strict"
+    dsf_clearance_mm: float = float("nan")
+    paper_success: bool = False
+    paper_clearance_mm: float = float("nan")
+    first_solution_s: float = float("nan")
+    graph_states: int = 0
+    best_cost: float = float("nan")
+    cost_progress: str = ""
+    cpu_s: float = float("nan")
 
     @classmethod
     def fields(cls) -> list[str]:

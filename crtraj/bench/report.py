@@ -2,12 +2,10 @@
 
 from __future__ import annotations
 
-import csv
 import io
-import math
 import os
 import platform
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -15,6 +13,7 @@ import numpy as np
 
 from crtraj import __version__
 from crtraj.bench.records import LABELS, PAPER_COUNTS, PAPER_TABLE1, BenchOptions, RunRecord, _fmt, _pct
+from crtraj.bench.runlog import csv_text
 from crtraj.bench.scenarios import Scenario, ScenarioOptions
 from crtraj.core.fileio import atomic_write_json, atomic_write_text
 from crtraj.planning.options import PlannerOptions
@@ -87,6 +86,7 @@ class BenchReport:
         planners = [p for p in o.planners]
         out = io.StringIO()
         w = out.write
+        margin = "D_sf" if o.verify_margin is None else f"{o.verify_margin:g} mm"
         w("# Table I — planners on the paper's random dynamic scenes\n\n")
         w(
             f"crtraj {__version__}, {self.created}, {platform.node()} ({platform.machine()}, "
@@ -97,7 +97,7 @@ class BenchReport:
             f"{o.scenarios} scenarios per obstacle count (seed {o.seed}), time limit {o.time_limit:g} s per run, "
             f"goal tolerance {o.goal_tolerance:g} mm. Every claimed success was re-checked densely "
             f"({o.verify_points} backbone points, <= {o.verify_dt:g} s and <= {o.verify_step:g} mm between "
-            f"samples, clearance > {o.verify_margin:g} mm); a success it rejects counts as a failure.\n\n"
+            f"samples, clearance > {margin}); a success it rejects counts as a failure.\n\n"
         )
         if self.interrupted:
             w(f"**Incomplete — {self.note}: the table covers only the {len(self.records)} runs that finished.**\n\n")
@@ -169,16 +169,7 @@ class BenchReport:
         return out.getvalue()
 
     def csv_text(self) -> str:
-        buf = io.StringIO()
-        wr = csv.DictWriter(buf, fieldnames=RunRecord.fields(), lineterminator="\n")
-        wr.writeheader()
-        for r in sorted(self.records, key=lambda r: (r.n_obstacles, r.index, r.planner)):
-            row = asdict(r)
-            for k, v in row.items():
-                if isinstance(v, float):
-                    row[k] = "" if not math.isfinite(v) else f"{v:.6g}"
-            wr.writerow(row)
-        return buf.getvalue()
+        return csv_text(self.records)
 
     def write(self, out_dir: str | os.PathLike[str]) -> list[Path]:
         """Write table1.md, runs.csv and scenarios.json into out_dir (atomically)."""

@@ -59,7 +59,8 @@ from typing import Any
 import numpy as np
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-from crtraj.bench.check import DenseCheck, dense_check
+from crtraj.bench.check import DenseCheck, PaperCheck, dense_check, paper_check
+from crtraj.bench.paper_mode import CHECK_MODES, PAPER_SPECS
 from crtraj.bench.records import LABELS, BenchOptions, RunRecord
 from crtraj.bench.report import BenchReport
 from crtraj.bench.scenarios import Scenario, ScenarioGenerator, ScenarioOptions
@@ -81,13 +82,17 @@ WARMUP_TIME = 2.0
 
 
 # ---------------------------------------------------------------- planners
-def bench_stop(spec: PlannerSpec, options: PlannerOptions, time_limit: float) -> StopCondition:
+def bench_stop(spec: PlannerSpec, options: PlannerOptions, time_limit: float, cpu: bool = False) -> StopCondition:
     """The stop condition of one run: the time budget, plus the options' iteration limit and
-    first-solution stop unless the planner runs on its budget alone (`PlannerSpec.budget_only`)."""
+    first-solution stop unless the planner runs on its budget alone (`PlannerSpec.budget_only`).
+    cpu: the budget counts CPU time (`StopCondition.cpu_time`; OMPL's planners time themselves)."""
     if spec.budget_only:
         return StopCondition(time_limit=time_limit)
     return StopCondition(
-        time_limit=time_limit, max_iterations=options.max_iterations, first_solution=options.first_solution
+        time_limit=time_limit,
+        max_iterations=options.max_iterations,
+        first_solution=options.first_solution,
+        cpu_time=cpu,
     )
 
 
@@ -133,9 +138,9 @@ class _WorkerContext:
         self.options = PlannerOptions.from_table(t)
         self._planners: dict[str, Planner] = {}
 
-    def stop(self, name: str, time_limit: float) -> StopCondition:
+    def stop(self, name: str, time_limit: float, cpu: bool = False) -> StopCondition:
         """The stop condition of one run of the named planner (`bench_stop`)."""
-        return bench_stop(self.spec.registry.spec(name), self.options, time_limit)
+        return bench_stop(self.spec.registry.spec(name), self.options, time_limit, cpu)
 
     def planner(self, name: str) -> Planner:
         """The named planner, built and warmed up on first use (never inside a timed run)."""
@@ -175,7 +180,9 @@ class _Task:
     seed: int
     time_limit: float
     goal_tolerance: float
-    verify: tuple[int, float, float, float]  # points, dt, step, margin
+    verify: tuple[int, float, float, float | None]  # points, dt, step, margin (None: the scene's D_sf)
+    check_mode: str = "strict"  # the planner's motion check (PlannerOptions.check)
+    cpu_budget: bool = False  # time_limit counts CPU time (BenchOptions.cpu_budget)
 
 
 def run_task(spec: WorkerSpec, task: _Task) -> RunRecord:
@@ -189,13 +196,14 @@ def run_task(spec: WorkerSpec, task: _Task) -> RunRecord:
         "index": scenario.index,
         "seed": task.seed,
         "worker": worker,
+        "check_mode": task.check_mode,
     }
     try:
         planner = ctx.planner(task.planner)
     except InputError as exc:
         return _error_record(base, f"planner unavailable: {exc}")
-    stop = ctx.stop(task.planner, task.time_limit)
-    t1 = time.perf_counter()
+    stop = ctx.stop(task.planner, task.time_limit, task.cpu_budget)
+    t1, c1 = time.perf_counter(), time.process_time()
     try:
         result = plan_scenario(planner, stop, scenario, seed=task.seed, goal_tolerance=task.goal_tolerance)
     except InputError as exc:  # a planner refusing its input is a failed run, not a crashed bench
@@ -203,6 +211,7 @@ def run_task(spec: WorkerSpec, task: _Task) -> RunRecord:
     except Exception as exc:  # a crash is recorded (status "error", with its text) and the sweep goes on
         return _error_record(base, f"planner raised {type(exc).__name__}: {exc}", time.perf_counter() - t1)
     elapsed = time.perf_counter() - t1
+    base["cpu_s"] = time.process_time() - c1  # CPU time this process got: on a loaded machine < elapsed
     return judge(ctx.model, scenario, result, elapsed, task, base)
 
 
@@ -228,11 +237,14 @@ def _error_record(base: dict[str, Any], message: str, elapsed: float = float("na
 def judge(
     model: Model, scenario: Scenario, result: PlanResult, elapsed: float, task: _Task, base: dict[str, Any]
 ) -> RunRecord:
-    """A `RunRecord` for one planner result: success only when claimed AND densely verified."""
+    """A `RunRecord` for one planner result: success only when claimed AND densely verified to keep
+    `verify_margin` (default: the scene's D_sf); the paper's check judges the same path too."""
     nan = float("nan")
     claimed = result.is_success()
     n_pts, dt, step, margin = task.verify
+    dsf = scenario.scene.safety_distance
     check: DenseCheck | None = None
+    paper: PaperCheck | None = None
     if claimed:
         check = dense_check(
             model,
@@ -244,9 +256,13 @@ def judge(
             n_points=n_pts,
             dt=dt,
             step=step,
-            margin=margin,
+            margin=dsf if margin is None else margin,
         )
+        paper = paper_check(model, scenario.scene, result, scenario.goal, goal_tolerance=task.goal_tolerance)
     verified = bool(check is not None and check.is_success())
+    progress = result.cost_progress
+    first = progress[0][0] if progress else (float(elapsed) if claimed else nan)
+    best = progress[-1][1] if progress else (float(result.cost) if claimed else nan)
     return RunRecord(
         **base,
         status=str(result.status),
@@ -254,14 +270,26 @@ def judge(
         verified=verified,
         success=claimed and verified,
         time_s=float(elapsed),
-        length_mm=check.length if verified and check else nan,
+        length_mm=check.length if check else nan,
         min_clearance_mm=check.min_clearance if check else nan,
         goal_error_mm=check.goal_error if check else float(result.goal_error),
         duration_s=float(result.duration) if result.has_path else nan,
         waypoints=len(result.t),
         message=str(result.message),
         check="ok" if verified else (check.reason if check else "not checked (no exact solution claimed)"),
+        dsf_clearance_mm=check.min_clearance - dsf if check else nan,
+        paper_success=bool(paper is not None and paper.passed),
+        paper_clearance_mm=paper.clearance if paper else nan,
+        first_solution_s=first,
+        graph_states=int(result.counts.get("graph_states", result.counts.get("nodes", 0))),
+        best_cost=best,
+        cost_progress=";".join(f"{t:.4g}:{c:.6g}" for t, c in progress),
     )
+
+
+def _key(task: _Task) -> tuple[str, int, int]:
+    """(planner, obstacle count, index) of a task."""
+    return (task.planner, int(task.scenario["n_obstacles"]), int(task.scenario["index"]))
 
 
 def _run_seed(seed: int, n_obstacles: int, index: int, planner_slot: int) -> int:
@@ -298,7 +326,7 @@ class Table1Bench:
         self.scenario_options = replace(so, seed=self.options.seed)
         self.planner_options = planner_options or PlannerOptions()
         registry = BUILTIN
-        for spec in extra_planners:
+        for spec in (*PAPER_SPECS, *extra_planners):
             registry = registry.with_planner(spec)
         for name in self.options.planners:
             registry.spec(name)  # unknown names fail here, before any work starts
@@ -308,6 +336,7 @@ class Table1Bench:
             registry=registry,
         )
         self._model: Model | None = None
+        self.check_modes = dict(CHECK_MODES)
 
     @property
     def model(self) -> Model:
@@ -333,11 +362,13 @@ class Table1Bench:
         o = self.options
         verify = (o.verify_points, o.verify_dt, o.verify_step, o.verify_margin)
         out = []
-        for sc in scenarios:
+        # index-major order: a run cut short holds the same scenarios for every count and planner
+        for sc in sorted(scenarios, key=lambda sc: (sc.index, sc.n_obstacles)):
             d = sc.to_dict()
             for k, p in enumerate(o.planners):
                 seed = _run_seed(o.seed, sc.n_obstacles, sc.index, k)
-                out.append(_Task(p, d, seed, o.time_limit, o.goal_tolerance, verify))
+                mode = self.check_modes.get(p, "strict")
+                out.append(_Task(p, d, seed, o.time_limit, o.goal_tolerance, verify, mode, o.cpu_budget))
         return out
 
     def run(
@@ -347,18 +378,20 @@ class Table1Bench:
         workers: int = 1,
         progress: bool = True,
         on_record: Callable[[RunRecord], None] | None = None,
+        done: frozenset[tuple[str, int, int]] = frozenset(),
     ) -> BenchReport:
         """Run every planner on every scenario; returns the report (not yet written).
 
         executor: any `concurrent.futures.Executor` (process pool, Dask
         ``client.get_executor()``, ...); None runs everything here, one by
         one. workers: only for the report's header. progress: draw a rich
-        progress bar. On Ctrl-C the pending runs are cancelled and the report
-        holds the finished ones (``interrupted=True``).
+        progress bar. done: (planner, obstacle count, index) of the runs to
+        skip (a resumed run). On Ctrl-C the pending runs are cancelled and the
+        report holds the finished ones (``interrupted=True``).
         """
         t_start = time.perf_counter()
         scenarios = self.scenarios()
-        tasks = self.tasks(scenarios)
+        tasks = [t for t in self.tasks(scenarios) if _key(t) not in done]
         records: list[RunRecord] = []
         interrupted, note = False, ""
         bar = _Progress(self.options, len(tasks)) if progress else None

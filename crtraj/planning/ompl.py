@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -212,6 +213,8 @@ class OMPLPlanner:
         v = self.options.validator(self.model, sc)
         timings: dict[str, float] = {}
         counts: dict[str, int] = {"validity_checks": 0, "motion_checks": 0, "goal_samples": 0}
+        # every improved solution: (s since the planner call began, its cost); see PlanResult.cost_progress
+        progress: list[tuple[float, float]] = []
 
         def finish(
             status: PlanStatus,
@@ -221,7 +224,8 @@ class OMPLPlanner:
             goals: np.ndarray | None = None,
         ) -> PlanResult:
             timings["total"] = time.perf_counter() - clock.t_start
-            return self._result(status, message, seed, v, goal, X, T, goals, timings, counts)
+            result = self._result(status, message, seed, v, goal, X, T, goals, timings, counts)
+            return replace(result, cost_progress=tuple(progress))
 
         # ---- start
         viol = float(self.robot.limit_violation(xs)[0])
@@ -339,8 +343,22 @@ class OMPLPlanner:
             first = ob.PlannerTerminationCondition(lambda: math.isfinite(planner.bestCost().value()))
             ptc = ob.plannerOrTerminationCondition(ptc, first)
         t1 = time.perf_counter()
+        # Time to first solution and the best-cost progress (OMPL's benchmark format): the planner asks its
+        # termination condition once per iteration, so a condition that never fires can watch the best cost
+        # (the wheel's bindings cannot pass a Python intermediate-solution callback).
+        if self.algorithm == "RRTstar":
+            ptc = ob.plannerOrTerminationCondition(
+                ptc, ob.PlannerTerminationCondition(lambda: self._watch(planner, clock.t_start, progress))
+            )
         status = planner.solve(ptc)
         timings["search"] = time.perf_counter() - t1
+        if not progress and pdef.hasExactSolution():  # found at the solve's end (RRTConnect stops there)
+            progress.append((time.perf_counter() - clock.t_start, float(pdef.getSolutionPath().length())))
+        if progress:
+            timings["first_solution"] = progress[0][0]
+        data = ob.PlannerData(si)
+        planner.getPlannerData(data)
+        counts["graph_states"] = int(data.numVertices())
         exact = status.getStatus() == ob.PlannerStatus.EXACT_SOLUTION and pdef.hasExactSolution()
         if not pdef.hasSolution():
             return finish(PlanStatus.TIMEOUT, f"OMPL {self.algorithm}: {status.asString()}", goals=goals)
@@ -356,6 +374,14 @@ class OMPLPlanner:
         X[0] = xs  # the metric round trip moves the start by round-off only
         msg = f"OMPL {self.algorithm}: {status.asString()}; {len(X)} waypoints"
         return finish(PlanStatus.EXACT if exact else PlanStatus.APPROXIMATE, msg, X, T, goals)
+
+    @staticmethod
+    def _watch(planner: Any, t_start: float, progress: list[tuple[float, float]]) -> bool:
+        """Record (s since t_start, best cost) when RRTstar's best cost improves; never stops the search."""
+        cost = float(planner.bestCost().value())
+        if math.isfinite(cost) and (not progress or cost < progress[-1][1]):
+            progress.append((time.perf_counter() - t_start, cost))
+        return False
 
     def _result(
         self,

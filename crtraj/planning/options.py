@@ -7,11 +7,15 @@ from typing import Any, ClassVar
 
 from crtraj.core.fields import MAX_LENGTH, MAX_TIME
 from crtraj.core.options import Options, option
+from crtraj.planning.paper_check import PaperValidator
 from crtraj.planning.rate_limits import RateLimits
 from crtraj.planning.stop import StopCondition
 from crtraj.planning.validity import MotionValidator
 
 ALGORITHMS = ("cspace", "rrt", "rrtstar")
+# "strict": the continuous body over continuous time (`MotionValidator`); "paper": the paper's
+# collision points at the ends of `check_step`-second steps only (`crtraj.planning.paper_check`).
+CHECKS = ("strict", "paper")
 
 # Bounds: the highs keep one planner call within memory and a bounded number of solver calls (each far above
 # what the paper's problems use); step sizes have a positive floor so that the number of collision checks and
@@ -62,6 +66,9 @@ class PlannerOptions(Options):
     compiled: run the collision checks through the compiled kernel (C generated once per robot and
     cached, `crtraj build`) when a C compiler is available; false: the interpreted CasADi path (same
     results to rounding, several times slower).
+    check: the motion check, "strict" (default) or "paper" (the paper's Table I check: the robot's
+    collision points at the ends of `check_step`-second steps only; meant for rrt and rrtstar, see
+    `crtraj.planning.paper_check`). check_step: the paper check's time step (s).
     """
 
     SECTION: ClassVar[str] = "planner"
@@ -91,6 +98,8 @@ class PlannerOptions(Options):
     waypoint_step: float = option(20.0, ge=0.1, le=MAX_LENGTH)
     limit_fraction: float = option(0.9, gt=0.0, le=1.0)
     compiled: bool = option(True)
+    check: str = option("strict", choices=CHECKS)
+    check_step: float = option(1.0, ge=1e-3, le=MAX_TIME)
 
     @property
     def step(self) -> float:
@@ -112,13 +121,13 @@ class PlannerOptions(Options):
     ) -> MotionValidator:
         """The `MotionValidator` these options describe for `scene` (functions: a shared CasADi cache;
         rate_limits: the full actuator limits, of which `limit_fraction` is used to time motions)."""
-        return MotionValidator(
-            model,
-            scene,
-            check_points=self.check_points,
-            resolution=self.resolution,
-            max_speed=self.max_speed,
-            functions=functions,
-            rate_limits=None if rate_limits is None else rate_limits.scaled(self.limit_fraction),
-            compiled=self.compiled,
-        )
+        common: dict[str, Any] = {
+            "resolution": self.resolution,
+            "max_speed": self.max_speed,
+            "functions": functions,
+            "rate_limits": None if rate_limits is None else rate_limits.scaled(self.limit_fraction),
+        }
+        if self.check == "paper":
+            points = model.robot.collision_points
+            return PaperValidator(model, scene, step=self.check_step, check_points=points, **common)
+        return MotionValidator(model, scene, check_points=self.check_points, compiled=self.compiled, **common)

@@ -40,7 +40,8 @@ class PlanResult:
     min_clearance: smallest body clearance minus the safety distance along
     the returned motion (mm, checked densely; >= 0 means safe). tree_edges:
     (E, 2, 3) tip positions of the search tree's edges, for drawing.
-    timings (s) and counts describe the run.
+    timings (s) and counts describe the run. cost_progress: the best cost each time a planner
+    found a better solution, as (s since the plan call began, cost) pairs (OMPL planners; empty otherwise).
     """
 
     status: PlanStatus
@@ -62,6 +63,7 @@ class PlanResult:
     tree_edges: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 3)))
     timings: dict[str, float] = field(default_factory=dict)
     counts: dict[str, int] = field(default_factory=dict)
+    cost_progress: tuple[tuple[float, float], ...] = ()
 
     def is_success(self) -> bool:
         """True only for an exact solution (a verified path that reaches the goal)."""

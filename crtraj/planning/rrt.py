@@ -22,6 +22,12 @@ configurations it returns also pass the planner's continuous-body check
 (the paper constrains ten points; with ten points the body between them can
 dip a few mm toward a sphere).
 
+With ``PlannerOptions.check = "paper"`` the validator is the paper's own check
+(`crtraj.planning.paper_check.PaperValidator`: the robot's ten collision points at
+the ends of 1-s steps only), the steer keeps those points clear with no extra
+margin, and it sees the obstacles as they are at the node's time: Algorithm 1
+as the paper evaluates it, for the Table I comparison (`crtraj bench table1`).
+
 The returned path is the tree path, smoothed by the same verified B-spline
 as the configuration-space planner (the paper interpolates its path with a
 spline before execution); it is not shortcut, so RRT and RRT* keep their own
@@ -76,10 +82,13 @@ class RRT(PlannerBase):
         super().__init__(model, scene, PlannerOptions(algorithm=self.name) if options is None else options)
         M = max(scene.n_obstacles if max_obstacles is None else int(max_obstacles), scene.n_obstacles)
         so = SteerOptions() if steer_options is None else steer_options
+        # The paper check (options.check == "paper") looks at the collision points only, so the steer
+        # keeps them clear with no continuous-body margin, as the paper's eq. 18 does.
+        self.paper = self.options.check == "paper"
         self.steer_options = replace(
             so,
             n_points=max(so.n_points or 0, self.validator.check_points),
-            margin=max(so.margin, self.steer_margin(scene)),
+            margin=so.margin if self.paper else max(so.margin, self.steer_margin(scene)),
         )
         self.steer = SteerSolver(model, M, self.steer_options)
         self.ik = SafeIK(model, self.validator, M)
@@ -193,7 +202,8 @@ class RRT(PlannerBase):
         target = tip_n + (P - tip_n) * min(1.0, step / d)
         x_n, t_n = tree.x[n], float(tree.t[n])
         counts["steer_calls"] += 1
-        t_end = None if v.static else t_n + window
+        # paper check: the obstacles as they are at the node's time (the start of its step)
+        t_end = None if v.static or self.paper else t_n + window
         res = self.steer.solve(x_n, target, v.scene, t=t_n, t_end=t_end, check_start=False)
         if not (res.converged and res.safe):
             counts["steer_failed"] += 1

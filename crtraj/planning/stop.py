@@ -23,11 +23,15 @@ from crtraj.core.errors import InputError
 class StopCondition:
     """Stop a planner after `time_limit` seconds of wall time, after
     `max_iterations` iterations, or as soon as a first exact solution exists
-    (`first_solution`). Any limit left None is not checked."""
+    (`first_solution`). Any limit left None is not checked. cpu_time: the
+    time limit counts this process's CPU time instead (a benchmark on a shared
+    machine: the budget then does not shrink with the load); planners that
+    hand a wall-clock deadline to a library (OMPL, IK stages) still use wall time there."""
 
     time_limit: float | None = None
     max_iterations: int | None = None
     first_solution: bool = False
+    cpu_time: bool = False
 
     def __post_init__(self) -> None:
         if self.time_limit is not None and not (math.isfinite(self.time_limit) and self.time_limit > 0):
@@ -51,6 +55,7 @@ class StopCondition:
             time_limit=tighter(self.time_limit, other.time_limit),
             max_iterations=tighter(self.max_iterations, other.max_iterations),  # type: ignore[arg-type]
             first_solution=self.first_solution or other.first_solution,
+            cpu_time=self.cpu_time or other.cpu_time,
         )
 
     @property
@@ -72,6 +77,7 @@ class StopCondition:
             "time_limit": self.time_limit,
             "max_iterations": self.max_iterations,
             "first_solution": self.first_solution,
+            "cpu_time": self.cpu_time,
         }
 
 
@@ -81,12 +87,15 @@ class StopClock:
     def __init__(self, cond: StopCondition, t_start: float) -> None:
         self.cond = cond
         self.t_start = t_start
+        # the budget's clock: CPU time of this process when cond.cpu_time, else the wall clock
+        self._clock = time.process_time if cond.cpu_time else time.perf_counter
+        self._budget_start = self._clock() if cond.cpu_time else t_start
         self.iterations = 0
         self.reason = ""
 
     def elapsed(self) -> float:
-        """Wall time since `start` (s)."""
-        return time.perf_counter() - self.t_start
+        """Time since `start` (s) on the budget's clock (wall time, or CPU time with cond.cpu_time)."""
+        return self._clock() - self._budget_start
 
     def tick(self) -> None:
         """Count one planner iteration."""
