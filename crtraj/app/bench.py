@@ -165,7 +165,14 @@ def run_modes(args: Any) -> int:
         straight[(c, i)] = float(np.linalg.norm(sc.goal - sc.start_tip))
     files = [atomic_write_text(out / "table1-modes.md", modes.markdown(records, counts, header, straight))]
     files += write_figures(records, out, rows, counts)
-    files += write_logs(records, out / "ompl", rows, counts, time_limit=args.time_limit, setup=header)
+    files += write_logs(
+        records,
+        out / "ompl",
+        rows,
+        counts,
+        time_limit=5.0 if args.time_limit is None else args.time_limit,
+        setup=header,
+    )
     print(f"wrote {len(files)} files in {out}: " + ", ".join(f.name for f in files))
     return 0
 
