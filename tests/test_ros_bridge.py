@@ -238,17 +238,15 @@ def _in_step(robots, nodes, clock: VirtualClock, dt: float) -> None:
     clock.sleep(dt)
 
 
-@pytest.mark.slow
-def test_round_trip_reaches_the_goal_without_collision(tmp_path, paper):
-    problem, acts, scene, model, start, _ = paper
-    path = _problem(tmp_path)
-    ros = Problem.load(path).options(RosOptions, "ros")
+def _bridge_with_robot(path, ros, acts, scene, start, tmp_path, **robot_options):
+    """`run_ros_bridge` on a virtual clock against a `RobotNode` started once the bridge's node is up:
+    (exit code, the robot node)."""
     clock = VirtualClock()
     robots, nodes = [], []
 
     def ready(node, feed):
         nodes.append(node)
-        robots.append(RobotNode(ros, acts.names, scene, start * si_scale(acts.units), clock))
+        robots.append(RobotNode(ros, acts.names, scene, start * si_scale(acts.units), clock, **robot_options))
         robots[0].wait_matched()
 
     try:
@@ -261,7 +259,15 @@ def test_round_trip_reaches_the_goal_without_collision(tmp_path, paper):
     finally:
         for r in robots:
             r.close()
-    robot = robots[0]
+    return code, robots[0]
+
+
+@pytest.mark.slow
+def test_round_trip_reaches_the_goal_without_collision(tmp_path, paper):
+    problem, acts, scene, model, start, _ = paper
+    path = _problem(tmp_path)
+    ros = Problem.load(path).options(RosOptions, "ros")
+    code, robot = _bridge_with_robot(path, ros, acts, scene, start, tmp_path)
     assert code == 0
     res = read_result(tmp_path / "run" / "run.json")
     assert (
@@ -323,25 +329,7 @@ def test_stale_markers_hold_the_robot(tmp_path, paper):
     path = _problem(tmp_path, duration=2.0)
     ros = Problem.load(path).options(RosOptions, "ros")
     stop = 0.5  # the obstacles go silent here
-    clock = VirtualClock()
-    robots, nodes = [], []
-
-    def ready(node, feed):
-        nodes.append(node)
-        robots.append(RobotNode(ros, acts.names, scene, start * si_scale(acts.units), clock, stop_markers=stop))
-        robots[0].wait_matched()
-
-    try:
-        code = run_ros_bridge(
-            RosBridgeRequest(path, out=tmp_path / "run", html=False, quiet=True),
-            clock=clock,
-            sleep=lambda dt: _in_step(robots, nodes, clock, dt),
-            ready=ready,
-        )
-    finally:
-        for r in robots:
-            r.close()
-    robot = robots[0]
+    code, robot = _bridge_with_robot(path, ros, acts, scene, start, tmp_path, stop_markers=stop)
     assert code == 1  # the goal was not reached: the robot was held
     res = read_result(tmp_path / "run" / "run.json")
     status = [w.get("status") for w in res.data["waypoints"][1:]]

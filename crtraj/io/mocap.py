@@ -23,7 +23,7 @@ import csv
 import io
 import json
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -84,17 +84,24 @@ def _rows_csv(text: str, path: Path) -> list[tuple[int, Any, Any, Any]]:
     return rows
 
 
-def _rows_jsonl(text: str, path: Path) -> list[tuple[int, Any, Any, Any]]:
-    rows = []
+def _json_objects(text: str, path: Path, hint: str, expected: str) -> Iterator[tuple[int, dict[str, Any]]]:
+    """(line number, object) of each non-empty line of a JSON-lines file; `InputError` naming the line
+    when one is not JSON (hint: what the file should be) or not an object (expected: which)."""
     for ln, line in enumerate(text.splitlines(), start=1):
         if not line.strip():
             continue
         try:
             d = json.loads(line)
         except (ValueError, RecursionError):
-            raise InputError(f"{path} line {ln}: not valid JSON") from None
+            raise InputError(f"{path} line {ln}: not valid JSON{hint}") from None
         if not isinstance(d, dict):
-            raise InputError(f"{path} line {ln}: expected an object {{t, marker, x, y, z}}")
+            raise InputError(f"{path} line {ln}: expected {expected}")
+        yield ln, d
+
+
+def _rows_jsonl(text: str, path: Path) -> list[tuple[int, Any, Any, Any]]:
+    rows = []
+    for ln, d in _json_objects(text, path, "", "an object {t, marker, x, y, z}"):
         t = d.get("t", d.get("timestamp", d.get("time")))
         name = d.get("marker", d.get("name"))
         xyz = d.get("position", (d.get("x"), d.get("y"), d.get("z")))
@@ -152,15 +159,7 @@ def read_stream_log(path: str | Path, prefer: str = "measured") -> LogSeries:
     names: tuple[str, ...] | None = None
     rx: list[tuple[float, list[float]]] = []
     tx: list[tuple[float, list[float]]] = []
-    for ln, line in enumerate(text.splitlines(), start=1):
-        if not line.strip():
-            continue
-        try:
-            d = json.loads(line)
-        except (ValueError, RecursionError):
-            raise InputError(f"{p} line {ln}: not valid JSON (is it a crtraj stream log?)") from None
-        if not isinstance(d, dict):
-            raise InputError(f"{p} line {ln}: expected a JSON object")
+    for ln, d in _json_objects(text, p, " (is it a crtraj stream log?)", "a JSON object"):
         kind = d.get("type")
         if kind == "header":
             nm = d.get("names")
