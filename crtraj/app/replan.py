@@ -508,9 +508,7 @@ def _connect_live(address: str, problem: Problem, sopts: Any, out: Path) -> Stre
 
 def _device_config(problem: Problem, streamer: Streamer) -> np.ndarray:
     """The configuration (rad, mm) the device's actuators are at now (eq. 4 inverted)."""
-    q = streamer.actuators.actuation(streamer.position)
-    _, q0 = problem.robot.cable_matrix()
-    return (q - q0) @ problem.robot.cable_inverse().T
+    return problem.robot.config(streamer.actuators.actuation(streamer.position))
 
 
 def _live_link(streamer: Streamer, approach: bool, problem: Problem, loop: ClosedLoop, sopts: Any) -> DeviceLink:

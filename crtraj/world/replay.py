@@ -88,14 +88,17 @@ class FeedReplay:
         """The true obstacle states at scene time t (s): centres (m, 3) mm, radii (m,) mm."""
         return self.scene.states(float(t))
 
-    def message(self, oid: str, t: float) -> dict[str, Any]:
-        """The feed message for obstacle `oid` measured at scene time t, with the replay's noise."""
-        j = self.ids.index(oid)
-        c, r = self.truth(t)
+    def messages(self, oids: list[str], t: float) -> list[dict[str, Any]]:
+        """The feed messages for obstacles `oids` measured at scene time t, each with the replay's noise."""
+        c, r = self.truth(t)  # one evaluation of the scene for every obstacle measured at t
         s = self.options.noise
-        noise = self._rng.normal(0.0, s, 4) if s > 0.0 else np.zeros(4)
-        center = [float(v) for v in c[j] + noise[:3]]
-        return {"id": oid, "center": center, "radius": max(float(r[j] + noise[3]), 0.0), "timestamp": float(t)}
+        out = []
+        for oid in oids:
+            j = self.ids.index(oid)
+            noise = self._rng.normal(0.0, s, 4) if s > 0.0 else np.zeros(4)
+            center = [float(v) for v in c[j] + noise[:3]]
+            out.append({"id": oid, "center": center, "radius": max(float(r[j] + noise[3]), 0.0), "timestamp": float(t)})
+        return out
 
     def _measure_until(self, now: float) -> None:
         """Schedule every measurement instant up to `now` (s): each obstacle's message is dropped or
@@ -122,9 +125,10 @@ class FeedReplay:
         out: list[bytes] = []
         while self._pending and self._pending[0][0] <= now + 1e-12:
             due, _, ts, oid = heapq.heappop(self._pending)
-            batch = [self.message(oid, ts)]
+            oids = [oid]
             while self._pending and self._pending[0][0] == due and self._pending[0][2] == ts:
-                batch.append(self.message(heapq.heappop(self._pending)[3], ts))
+                oids.append(heapq.heappop(self._pending)[3])
+            batch = self.messages(oids, ts)
             self._sent += len(batch)
             self._datagrams += 1
             out.append(json.dumps(batch if len(batch) > 1 else batch[0]).encode())
