@@ -30,11 +30,14 @@ def test_lazy_module_runs_on_first_attribute(tmp_path, monkeypatch):
 
 
 def test_the_plan_command_does_not_import_what_it_never_uses():
-    """python-control (with SciPy's signal and stats, and matplotlib's pyplot) and toppra load only when used."""
+    """python-control (with SciPy's signal and stats, and matplotlib's pyplot), toppra, SciPy's interpolate
+    and spatial packages (our own splines replace the first; the KD-tree loads with a large tree) and the
+    3-D view's meshcat load only when used."""
     code = (
         "import sys, crtraj.app.plan\n"
         # (`control` itself is in sys.modules as the lazy stand-in; its submodules load with it)
-        "heavy = ('control.statesp', 'toppra', 'matplotlib.pyplot', 'scipy.signal')\n"
+        "heavy = ('control.statesp', 'toppra', 'matplotlib.pyplot', 'scipy.signal', 'scipy.interpolate',\n"
+        "         'scipy.spatial.transform', 'scipy.special', 'meshcat', 'zmq')\n"
         "print(sorted(m for m in heavy if m in sys.modules))"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout

@@ -13,7 +13,6 @@ from typing import Any
 
 import numpy as np
 
-from crtraj.app.view import serve, static_html
 from crtraj.core.errors import InputError
 from crtraj.core.fileio import (
     StagedFile,
@@ -24,6 +23,7 @@ from crtraj.core.fileio import (
     json_document,
     to_jsonable,
 )
+from crtraj.core.lazy import lazy_module
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.setpoints import SetpointPath
 from crtraj.hardware.stream import StreamOptions
@@ -39,6 +39,9 @@ from crtraj.planning.retime import retime, retime_curve
 from crtraj.planning.steer import SteerOptions
 from crtraj.planning.validity import MotionValidator
 from crtraj.world.scene import Scene
+
+# the 3-D view (meshcat, zmq: about 0.2 s to import) loads only for --html or --view
+view = lazy_module("crtraj.app.view")
 
 
 @dataclass(frozen=True)
@@ -220,7 +223,7 @@ def _write_outputs(doc: dict[str, Any], success: bool, out: Path, args: argparse
         staged[0].write(json_document(doc).encode("utf-8"))
         if args.html and success:
             staged.append(stack.enter_context(StagedFile(args.html)))
-            staged[1].write(static_html(doc).encode("utf-8"))
+            staged[1].write(view.static_html(doc).encode("utf-8"))
         for f in staged:  # both complete before either replaces anything
             f.commit()
     return dest
@@ -256,7 +259,7 @@ def plan_command(args: argparse.Namespace) -> int:
     if args.html:
         print(f"  wrote {args.html}" if r.is_success() else f"  no HTML written: the plan failed ({r.status})")
     if r.is_success() and args.view:
-        serve(doc, str(out), not args.no_browser)
+        view.serve(doc, str(out), not args.no_browser)
     elif args.view:
         print(f"  not viewed: the plan failed ({r.status})")
     if not r.is_success():

@@ -22,7 +22,6 @@ import numpy as np
 
 from crtraj.app.approach import plan_approach
 from crtraj.app.run_output import write_run_files
-from crtraj.app.view import serve
 from crtraj.control.horizon import ReplanOptions
 from crtraj.control.loop import ClosedLoop, ReplanRun, RunStatus
 from crtraj.control.loop_options import LoopOptions
@@ -31,6 +30,7 @@ from crtraj.control.tracking import TrackingOptions
 from crtraj.core.errors import InputError
 from crtraj.core.fields import check_array
 from crtraj.core.fileio import StagedDir, check_output_dir, failed_sibling, is_successful_result
+from crtraj.core.lazy import lazy_module
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.admission import admit, check_stream_safety
 from crtraj.hardware.link import DeviceLink
@@ -53,6 +53,9 @@ from crtraj.planning.stop import StopCondition
 from crtraj.world.feed import FeedOptions, ObstacleFeed
 from crtraj.world.scene import Scene
 from crtraj.world.sources import FeedObstacles
+
+# the 3-D view (meshcat, zmq: about 0.2 s to import) loads only for --view
+view_module = lazy_module("crtraj.app.view")
 
 
 class UnsolvableTaskError(Exception):
@@ -585,5 +588,5 @@ def replan_command(args: Any) -> int:
         tip_feedback=bool(getattr(args, "tip_feedback", False)),
         mocap_port=getattr(args, "mocap_port", None),
     )
-    view = (lambda result: serve(result, "the run", not args.no_browser)) if args.view else None
+    view = (lambda result: view_module.serve(result, "the run", not args.no_browser)) if args.view else None
     return run_replan(req, view=view)

@@ -27,8 +27,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.interpolate import CubicHermiteSpline
 
+from crtraj.core.splines import HermiteCubic
 from crtraj.planning.rate_limits import RateLimits
 
 # The streamer's default rate (Hz, `crtraj.hardware.stream.StreamOptions.rate`).
@@ -56,7 +56,7 @@ def streamed_values(
     m = math.ceil((t[-1] - t[0]) * rate - 1e-9)
     stamps = t[0] + np.arange(m + 1) / rate
     stamps[-1] = t[-1]
-    return stamps, CubicHermiteSpline(t, values, slopes, axis=0)(stamps)
+    return stamps, HermiteCubic(t, values, slopes)(stamps)
 
 
 def limit_fractions(

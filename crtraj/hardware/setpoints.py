@@ -22,11 +22,11 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
-from scipy.interpolate import CubicHermiteSpline, PchipInterpolator
 
 from crtraj.control.executed import executed_curve
 from crtraj.core.errors import InputError
 from crtraj.core.fields import check_float
+from crtraj.core.splines import HermiteCubic, pchip_slopes
 from crtraj.hardware.actuators import Actuators
 
 # `--time-scale` range: at most 1000 times slower (or faster); beyond that a
@@ -205,13 +205,13 @@ class SetpointPath:
         return stamps, values
 
 
-def _spline(t: np.ndarray, values: np.ndarray, slopes: np.ndarray | None = None) -> CubicHermiteSpline:
+def _spline(t: np.ndarray, values: np.ndarray, slopes: np.ndarray | None = None) -> HermiteCubic:
     """The cubic through the waypoints with the given slopes; by default PCHIP slopes with zero slope at
     both ends: starts and ends at rest, never overshoots a waypoint."""
     if slopes is not None:
-        return CubicHermiteSpline(t, values, slopes, axis=0)
+        return HermiteCubic(t, values, slopes)
     with np.errstate(over="ignore", divide="ignore", invalid="ignore"):  # subnormal steps: slope 0
-        slopes = PchipInterpolator(t, values, axis=0).derivative()(t)
+        slopes = pchip_slopes(t, values)
     slopes[0] = 0.0
     slopes[-1] = 0.0
-    return CubicHermiteSpline(t, values, slopes, axis=0)
+    return HermiteCubic(t, values, slopes)

@@ -9,7 +9,12 @@ vectorised scan of the small buffer. No per-point Python loops.
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
+
+from crtraj.core.lazy import lazy_module
+
+# SciPy's spatial package costs about 0.5 s to import; a tree needs it only once it holds more than
+# `min_buffer` points, which a short c-space query never reaches.
+spatial = lazy_module("scipy.spatial")
 
 
 class NearestNeighbors:
@@ -22,7 +27,7 @@ class NearestNeighbors:
         self.dim = int(dim)
         self._data = np.empty((max(16, capacity), self.dim))
         self._n = 0
-        self._tree: cKDTree | None = None
+        self._tree: spatial.cKDTree | None = None
         self._n_tree = 0  # points [0, _n_tree) are in the KD-tree
         self._min_buffer = int(min_buffer)
 
@@ -43,7 +48,7 @@ class NearestNeighbors:
         self._data[self._n] = p
         self._n += 1
         if self._n - self._n_tree > max(self._min_buffer, self._n_tree // 2):
-            self._tree = cKDTree(self._data[: self._n].copy())
+            self._tree = spatial.cKDTree(self._data[: self._n].copy())
             self._n_tree = self._n
         return self._n - 1
 

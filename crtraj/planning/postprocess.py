@@ -34,8 +34,8 @@ import time
 from typing import Any
 
 import numpy as np
-from scipy.interpolate import BSpline
 
+from crtraj.core.splines import BSplineCurve
 from crtraj.planning.options import PlannerOptions
 from crtraj.planning.result import PlanResult, PlanStatus
 from crtraj.planning.validity import MotionValidator
@@ -232,7 +232,7 @@ class PathPostprocessor:
         P = np.concatenate([XT[:1], legs.reshape(-1, XT.shape[1])])
         k, n = 3, len(P)
         knots = np.concatenate([np.zeros(k), np.linspace(0.0, 1.0, n - k + 1), np.ones(k)])
-        spl = BSpline(knots, P, k)
+        spl = BSplineCurve(knots, P, k)
         uu = np.linspace(0.0, 1.0, 40 * n)
         F = spl(uu)
         dF = np.diff(F, axis=0)
@@ -267,7 +267,7 @@ class PathPostprocessor:
         P = np.concatenate([X[:1], legs.reshape(-1, X.shape[1])])
         k, n = 3, len(P)
         knots = np.concatenate([np.zeros(k), np.linspace(0.0, 1.0, n - k + 1), np.ones(k)])
-        spl = BSpline(knots, P, k)
+        spl = BSplineCurve(knots, P, k)
         uu = np.linspace(0.0, 1.0, 40 * n)
         F = spl(uu)
         s = np.concatenate([[0.0], np.cumsum(v.motion_bound(np.diff(F, axis=0)))])

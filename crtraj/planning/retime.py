@@ -46,9 +46,9 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy.interpolate import CubicSpline
 
 from crtraj.core.errors import InputError
+from crtraj.core.splines import natural_cubic
 from crtraj.planning.metric import BodyMetric
 from crtraj.planning.rate_limits import RateLimits
 from crtraj.planning.validity import MotionValidator
@@ -305,7 +305,7 @@ def _piece_law(P: np.ndarray, limits: RateLimits, metric: BodyMetric) -> tuple[A
     where q'' helps; the sampled frames are then checked against every limit (`_curve_piece`).
     """
     ss = np.concatenate([[0.0], np.cumsum(metric.motion_bound(np.diff(P, axis=0)))])
-    spline = CubicSpline(ss, P, bc_type="natural")  # x(s); spline(s, 1) is dx/ds
+    spline = natural_cubic(ss, P)  # x(s); spline(s, 1) is dx/ds
     J = limits.jacobian
     n = int(min(MAX_GRID, GRID_PER_KNOT * (len(ss) - 1)))
     grid = np.unique(np.concatenate([ss, np.linspace(0.0, ss[-1], n + 1)]))
@@ -381,7 +381,7 @@ def _toppra_law(P: np.ndarray, limits: RateLimits, metric: BodyMetric) -> tuple[
     import toppra as ta  # the reference library: needed only by this cross-check (benchmarks, tests)
 
     ss = np.concatenate([[0.0], np.cumsum(metric.motion_bound(np.diff(P, axis=0)))])
-    spline = CubicSpline(ss, P, bc_type="natural")
+    spline = natural_cubic(ss, P)
     J = limits.jacobian
     # toppra's path: the actuator values J x(s) (the same spline, mapped linearly) and s itself
     path = ta.SplineInterpolator(ss, np.hstack([P @ J.T, ss[:, None]]), bc_type="natural")
