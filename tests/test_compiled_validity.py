@@ -14,6 +14,7 @@ from conftest import PROBLEMS, require_tool
 from crtraj.app import build as build_use_case
 from crtraj.cli import main
 from crtraj.core.build_cache import BuildCache
+from crtraj.core.errors import InputError
 from crtraj.io.problem import Problem, load_robot
 from crtraj.model.kinematics import Model
 from crtraj.planning.compiled_validity import ValidityKernel, kernel_key
@@ -93,7 +94,7 @@ def test_static_edge_check_in_c_is_the_numpy_loop(model, kernel_cache):
     scene = problem.options(Scene, "scene")
     comp, interp = validators(model, scene, kernel_cache)
     loop = MotionValidator(model, scene, functions={"build_cache": kernel_cache})
-    loop.static = False  # the numpy loop (its clearances still from the kernel, static slots)
+    loop.compiled_loop = False  # the numpy loop (its clearances still from the kernel, static slots)
     rng = np.random.default_rng(5)
     XA, XB = comp.sample(rng, 150), comp.sample(rng, 150)
     XB[:20] = XA[:20] + rng.normal(scale=0.05, size=(20, model.nx))  # short motions too
@@ -165,6 +166,35 @@ def test_moving_obstacles_over_windows_agree(model, kernel_cache):
         fb, lb = interp.check_edges(XA, XB, lo[:60], hi[:60])
         np.testing.assert_array_equal(fa, fb)
         np.testing.assert_allclose(la, lb, rtol=0, atol=TOL)
+
+
+def test_moving_edge_check_in_c_is_the_numpy_loop(model, kernel_cache):
+    """Among moving, breathing obstacles the C refinement loop (swept spheres per time window computed in C)
+    returns what the numpy loop returns with the kernel's clearances, bit for bit, in both modes."""
+    for n_obstacles in (1, 4, 9):
+        rng = np.random.default_rng(40 + n_obstacles)
+        scene = replace(moving_scene(n_obstacles, rng), time_origin=0.7)
+        comp = MotionValidator(model, scene, functions={"build_cache": kernel_cache})
+        loop = MotionValidator(model, scene, functions={"build_cache": kernel_cache})
+        loop.compiled_loop = False
+        assert comp.state.kernel is not None and not comp.static
+        XA, XB = comp.sample(rng, 120), comp.sample(rng, 120)
+        XB[:15] = XA[:15] + rng.normal(scale=0.05, size=(15, model.nx))  # short motions
+        XB[15:25] = XA[15:25]  # waits: certified piece by piece in time
+        TA = rng.uniform(0.0, 3.0, len(XA))
+        TB = TA + rng.uniform(0.0, 4.0, len(XA))
+        TB[30:35] = TA[30:35]  # no time passes
+        for prefix in (True, False):
+            n0, n1 = comp.n_samples, loop.n_samples
+            fc, lc = comp.check_edges(XA, XB, TA, TB, prefix=prefix)
+            fl, ll = loop.check_edges(XA, XB, TA, TB, prefix=prefix)
+            np.testing.assert_array_equal(fc, fl)
+            np.testing.assert_array_equal(lc, ll)
+            assert comp.n_samples - n0 == loop.n_samples - n1 > 0
+        assert (fc < 1).any() and (fc == 1).any()  # both outcomes occur
+    # a non-finite time is refused by the numpy path's check, with the field named
+    with pytest.raises(InputError, match="t0"), np.errstate(invalid="ignore"):
+        comp.check_edges(XA[:2], XB[:2], np.array([0.0, np.inf]), np.array([1.0, 2.0]))
 
 
 def test_padding_slots_are_inert_and_one_library_serves_every_count(model, kernel_cache):

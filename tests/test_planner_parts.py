@@ -61,9 +61,10 @@ def test_stop_clock_reasons():
 
 
 # ------------------------------------------------------------- nearest neighbours
-def test_nearest_neighbors_match_brute_force():
+@pytest.mark.parametrize("tree_min", [32, 1024])  # KD-tree plus buffer, and the scan alone
+def test_nearest_neighbors_match_brute_force(tree_min):
     rng = np.random.default_rng(3)
-    nn = NearestNeighbors(5, capacity=16, min_buffer=8)
+    nn = NearestNeighbors(5, capacity=16, min_buffer=8, tree_min=tree_min)
     pts = rng.normal(size=(700, 5)) * 100
     for i, p in enumerate(pts):
         assert nn.add(p) == i
@@ -75,6 +76,7 @@ def test_nearest_neighbors_match_brute_force():
             assert d[j] == pytest.approx(d.min())
             np.testing.assert_array_equal(nn.within(q, 80.0), np.flatnonzero(d <= 80.0))
     np.testing.assert_array_equal(nn.points, pts)
+    assert (nn._tree is not None) == (tree_min < len(pts))
     with pytest.raises(IndexError):
         NearestNeighbors(2).nearest(np.zeros(2))
 

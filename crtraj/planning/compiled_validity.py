@@ -42,7 +42,7 @@ from crtraj.planning.metric import metric_matrix
 from crtraj.world import packing
 
 # Version of the generated code and driver: raising it makes every cached kernel foreign (rebuilt).
-GENERATOR = 3
+GENERATOR = 4
 # Most check points a kernel is generated for: the generated FK grows with them (100 points: ~15 s of
 # gcc); denser checks (reports, tests) stay on the interpreted path.
 MAX_COMPILED_POINTS = 200
@@ -202,6 +202,110 @@ int crtraj_check_edges(long long E, const double* XA, const double* dX, const do
   crtraj_free(&kb);
   return rc;
 }
+
+/* numpy's sin_range (crtraj.world.obstacle), operation for operation: exact (min, max) of sin over [a, b]. */
+static void crtraj_sin_range(double a, double b, double* lo, double* hi) {
+  const double pi = 3.141592653589793, two_pi = 2.0 * 3.141592653589793, half_pi = 3.141592653589793 / 2;
+  double lo_t = a < b ? a : b, hi_t = a < b ? b : a;
+  double sa = sin(lo_t), sb = sin(hi_t);
+  double crest = half_pi + two_pi * ceil((lo_t - half_pi) / two_pi);
+  double trough = -pi / 2 + two_pi * ceil((lo_t + half_pi) / two_pi);
+  *lo = sa < sb ? sa : sb;
+  *hi = sa < sb ? sb : sa;
+  if (crest <= hi_t) *hi = 1.0;
+  if (trough <= hi_t) *lo = -1.0;
+}
+
+static double crtraj_clip01(double x) { return fmin(fmax(x, 0.0), 1.0); }
+
+/* Scene.swept_spheres for the window [lo, hi] (s, before the scene's time origin is added) as packed slots:
+   one row of obstacle table T (M x 12: c0 3, d 3, duration, profile code, A, B, w, phase) per obstacle. */
+static void crtraj_swept(long long M, const double* T, double origin, double lo, double hi, double* S) {
+  const double pi = 3.141592653589793;
+  long long j;
+  int k;
+  double tt0 = lo + origin, tt1 = hi + origin;
+  double pa = tt0 < tt1 ? tt0 : tt1, pb = tt0 < tt1 ? tt1 : tt0;
+  for (j = 0; j < M; ++j) {
+    const double* o = T + 12 * j;
+    double dur = o[6], code = o[7], A = o[8], B = o[9], w = o[10], ph = o[11];
+    double slo, shi, clo, chi, rlo, rhi, smin, smax, a[3], b[3], d[3];
+    crtraj_sin_range(0.5 * pi * pa / dur, 0.5 * pi * pb / dur, &slo, &shi);
+    crtraj_sin_range(pi * pa / dur + pi / 2, pi * pb / dur + pi / 2, &clo, &chi);
+    if (code == 0.0) { smin = crtraj_clip01(pa / dur); smax = crtraj_clip01(pb / dur); }
+    else if (code == 1.0) { smin = slo; smax = shi; }
+    else { smin = 0.5 * (1.0 - chi); smax = 0.5 * (1.0 - clo); }
+    crtraj_sin_range(w * tt0 + ph, w * tt1 + ph, &rlo, &rhi);
+    for (k = 0; k < 3; ++k) {
+      a[k] = o[k] + smin * o[3 + k];
+      b[k] = o[k] + smax * o[3 + k];
+      d[k] = b[k] - a[k];
+      S[5 * j + k] = 0.5 * (a[k] + b[k]);
+    }
+    S[5 * j + 3] = (A + (B * rlo < B * rhi ? B * rhi : B * rlo)) + 0.5 * sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
+    S[5 * j + 4] = 1.0;
+  }
+}
+
+/* The adaptive edge check of MotionValidator.check_edges among moving, breathing obstacles, with numpy's
+   arithmetic: as crtraj_check_edges, but every interval [ta, tb] of edge e is checked against the spheres
+   containing each obstacle over its time window [TA + ta dT, TA + tb dT] (crtraj_swept), an uncertified
+   interval is unsafe when c + enl dt < 0 (hopeless: colliding at every instant of the window) or when
+   (c < 0 or h <= finest) and its window dt = dT (tb - ta) is at most tres; else it is halved. */
+int crtraj_check_edges_moving(long long E, const double* XA, const double* dX, const double* bound,
+                              const long long* n0, const double* TA, const double* dT, long long M,
+                              const double* T, double origin, double inflate, double finest, double enl,
+                              double tres, int prefix, double* fail, double* lower, long long* samples) {
+  crtraj_work kb; long long e, i, n, cap = 0; int rc = 0;
+  double P[3 * CRTRAJ_NP], x[CRTRAJ_NX];
+  double* buf[5] = {NULL, NULL, NULL, NULL, NULL};  /* ta, tb, mid, ua, ub */
+  double* S = (double*) malloc(sizeof(double) * (size_t) (5 * M + 1));
+  double* t;
+  *samples = 0;
+  if (!S || crtraj_alloc(&kb, crtraj_bb_work)) { free(S); crtraj_free(&kb); return 1; }
+  for (e = 0; e < E && !rc; ++e) {
+    const double* xa = XA + e * CRTRAJ_NX;
+    const double* dx = dX + e * CRTRAJ_NX;
+    double f = 1.0, low = INFINITY;
+    n = n0[e];
+    if (n < 1) { fail[e] = 0.0; lower[e] = -INFINITY; continue; }
+    if (crtraj_grow(buf, &cap, 2 * n)) { rc = 1; break; }
+    for (i = 0; i < n; ++i) { ta[i] = (double) i / (double) n; tb[i] = (double) (i + 1) / (double) n; }
+    while (n > 0 && !rc) {
+      long long m = 0;
+      if (crtraj_grow(buf, &cap, 2 * n)) { rc = 1; break; }
+      for (i = 0; i < n && !rc; ++i) {
+        double tm = 0.5 * (ta[i] + tb[i]);
+        double h = 0.5 * bound[e] * (tb[i] - ta[i]);
+        double dt = dT[e] * (tb[i] - ta[i]);
+        double c;
+        int j;
+        for (j = 0; j < CRTRAJ_NX; ++j) x[j] = xa[j] + tm * dx[j];
+        crtraj_swept(M, T, origin, TA[e] + ta[i] * dT[e], TA[e] + tb[i] * dT[e], S);
+        rc = crtraj_clear_one(&kb, x, M, S, P, &c);
+        c = c - inflate - 0.0;
+        ++*samples;
+        mid[i] = -1.0;
+        if (c >= h) { if (c - h < low) low = c - h; }
+        else if (c + enl * dt < 0.0 || ((c < 0.0 || h <= finest) && dt <= tres)) { if (ta[i] < f) f = ta[i]; }
+        else mid[i] = tm;
+      }
+      for (i = 0; i < n; ++i) {
+        if (mid[i] < 0.0 || (prefix ? !(ta[i] < f) : !(f >= 1.0))) continue;
+        ua[m] = ta[i]; ub[m] = mid[i]; ++m;
+        ua[m] = mid[i]; ub[m] = tb[i]; ++m;
+      }
+      t = ta; ta = ua; ua = t;
+      t = tb; tb = ub; ub = t;
+      n = m;
+    }
+    fail[e] = f; lower[e] = low;
+  }
+  for (i = 0; i < 5; ++i) free(buf[i]);
+  free(S);
+  crtraj_free(&kb);
+  return rc;
+}
 #undef ta
 #undef tb
 #undef mid
@@ -287,7 +391,17 @@ class ValidityKernel:
         self._check_edges = lib.crtraj_check_edges
         self._check_edges.argtypes = [_N, _P, _P, _P, _P, _N, _P, ctypes.c_double, ctypes.c_double, ctypes.c_int]
         self._check_edges.argtypes += [_P, _P, _P]
-        for f in (self._points, self._clearance, self._tip_jac, self._motion_bound, self._check_edges):
+        self._check_moving = lib.crtraj_check_edges_moving
+        self._check_moving.argtypes = [_N, _P, _P, _P, _P, _P, _P, _N, _P] + [ctypes.c_double] * 5
+        self._check_moving.argtypes += [ctypes.c_int, _P, _P, _P]
+        for f in (
+            self._points,
+            self._clearance,
+            self._tip_jac,
+            self._motion_bound,
+            self._check_edges,
+            self._check_moving,
+        ):
             f.restype = ctypes.c_int
 
     @classmethod
@@ -381,6 +495,64 @@ class ValidityKernel:
             S.ctypes.data,
             float(inflate),
             float(finest),
+            int(bool(prefix)),
+            fail.ctypes.data,
+            lower.ctypes.data,
+            ctypes.addressof(samples),
+        )
+        self._check(rc, "edge check")
+        return fail, lower, int(samples.value)
+
+    def check_edges_moving(
+        self,
+        XA: np.ndarray,
+        dX: np.ndarray,
+        bound: np.ndarray,
+        n0: np.ndarray,
+        TA: np.ndarray,
+        dT: np.ndarray,
+        table: np.ndarray,
+        origin: float,
+        inflate: float,
+        finest: float,
+        enlargement: float,
+        time_resolution: float,
+        prefix: bool,
+    ) -> tuple[np.ndarray, np.ndarray, int]:
+        """The adaptive edge check among moving obstacles (`MotionValidator.check_edges`) in C.
+
+        As `check_edges`, and: TA, dT (E,) s: each motion's start time and duration (relative to the
+        scene's time origin `origin` s); table (M, 12): `Scene.motion_table`; enlargement (mm/s): how fast
+        a window's swept sphere can outgrow any one instant's; time_resolution (s): the longest window an
+        uncertified interval may be declared unsafe at without being split.
+        """
+        XA = self._configs(XA)
+        dX = self._configs(dX)
+        E = len(XA)
+        bound = np.ascontiguousarray(bound, dtype=float)
+        n0 = np.ascontiguousarray(n0, dtype=np.int64)
+        TA = np.ascontiguousarray(np.broadcast_to(TA, (E,)), dtype=float)
+        dT = np.ascontiguousarray(np.broadcast_to(dT, (E,)), dtype=float)
+        T = np.ascontiguousarray(table, dtype=float)
+        if dX.shape != XA.shape or bound.shape != (E,) or n0.shape != (E,) or T.ndim != 2 or T.shape[1] != 12:
+            raise ValueError("check_edges_moving: XA, dX (E, nx), bound, n0, TA, dT (E,) and a (M, 12) table expected")
+        fail, lower = np.empty(E), np.empty(E)
+        samples = ctypes.c_longlong(0)
+        rc = self._check_moving(
+            E,
+            XA.ctypes.data,
+            dX.ctypes.data,
+            bound.ctypes.data,
+            n0.ctypes.data,
+            TA.ctypes.data,
+            dT.ctypes.data,
+            len(T),
+            T.ctypes.data,
+            float(origin),
+            float(inflate),
+            float(finest),
+            float(enlargement),
+            float(time_resolution),
             int(bool(prefix)),
             fail.ctypes.data,
             lower.ctypes.data,

@@ -1,6 +1,8 @@
 """Incremental nearest-neighbour index for growing search trees.
 
-scipy's KD-tree is static, so points go to a KD-tree that is rebuilt when the
+Up to `tree_min` points a query is one vectorised scan of all of them (a few
+microseconds for a thousand points, and no KD-tree to build). Beyond, scipy's
+KD-tree, which is static, holds the older points and is rebuilt when the
 recent-points buffer grows as large as a fixed fraction of the tree (amortised
 O(log n) per insert), while queries combine a KD-tree query with one
 vectorised scan of the small buffer. No per-point Python loops.
@@ -12,8 +14,8 @@ import numpy as np
 
 from crtraj.core.lazy import lazy_module
 
-# SciPy's spatial package costs about 0.5 s to import; a tree needs it only once it holds more than
-# `min_buffer` points, which a short c-space query never reaches.
+# SciPy's spatial package costs about 0.5 s to import; an index needs it only once it holds `tree_min`
+# points, which a c-space query rarely reaches.
 spatial = lazy_module("scipy.spatial")
 
 
@@ -23,13 +25,14 @@ class NearestNeighbors:
     Indices are insertion order, starting at 0.
     """
 
-    def __init__(self, dim: int, capacity: int = 1024, min_buffer: int = 64) -> None:
+    def __init__(self, dim: int, capacity: int = 1024, min_buffer: int = 64, tree_min: int = 1024) -> None:
         self.dim = int(dim)
         self._data = np.empty((max(16, capacity), self.dim))
         self._n = 0
         self._tree: spatial.cKDTree | None = None
         self._n_tree = 0  # points [0, _n_tree) are in the KD-tree
         self._min_buffer = int(min_buffer)
+        self._tree_min = int(tree_min)
 
     def __len__(self) -> int:
         return self._n
@@ -47,7 +50,7 @@ class NearestNeighbors:
             self._data = grown
         self._data[self._n] = p
         self._n += 1
-        if self._n - self._n_tree > max(self._min_buffer, self._n_tree // 2):
+        if self._n >= self._tree_min and self._n - self._n_tree > max(self._min_buffer, self._n_tree // 2):
             self._tree = spatial.cKDTree(self._data[: self._n].copy())
             self._n_tree = self._n
         return self._n - 1

@@ -169,9 +169,9 @@ class StateValidityChecker:
         else:
             lo = np.broadcast_to(np.asarray(t_lo, dtype=float), (N,))
             hi = lo if t_hi is None else np.broadcast_to(np.asarray(t_hi, dtype=float), (N,))
-            a, b, rmax = self.scene.swept(lo, hi)  # (N, M, 3), (N, M)
-            C = (0.5 * (a + b)).transpose(2, 0, 1).reshape(3, N * M)  # M columns per configuration
-            R = (rmax + 0.5 * np.linalg.norm(b - a, axis=-1)).reshape(1, N * M)
+            centers, radii = self.scene.swept_spheres(lo, hi)  # (N, M, 3), (N, M)
+            C = centers.transpose(2, 0, 1).reshape(3, N * M)  # M columns per configuration
+            R = radii.reshape(1, N * M)
         out = np.empty(N)
         self.n_samples += N
         for start, take, size in self._batches(N):
@@ -196,8 +196,8 @@ class StateValidityChecker:
         N = X.shape[0]
         lo = np.broadcast_to(np.asarray(t_lo, dtype=float), (N,))
         hi = lo if t_hi is None else np.broadcast_to(np.asarray(t_hi, dtype=float), (N,))
-        a, b, rmax = self.scene.swept(lo, hi)  # (N, M, 3), (N, M)
-        slots = packing.pack(0.5 * (a + b), rmax + 0.5 * np.linalg.norm(b - a, axis=-1), self.scene.n_obstacles)
+        centers, radii = self.scene.swept_spheres(lo, hi)  # (N, M, 3), (N, M)
+        slots = packing.pack(centers, radii, self.scene.n_obstacles)
         return self.kernel.clearance(X, slots)
 
     def state_valid(self, X: np.ndarray, t: float | np.ndarray = 0.0) -> np.ndarray:

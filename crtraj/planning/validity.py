@@ -111,6 +111,9 @@ class MotionValidator:
         self.sagitta = self.state.sagitta
         self.inflate = self.state.inflate
         self.static = self.state.static
+        # with a compiled kernel, run the edge refinement loop in C (False: the numpy loop, calling the kernel
+        # for clearances only; the same numbers, kept for cross-checks)
+        self.compiled_loop = True
         # adaptive edge checks start from intervals of this much body motion (mm)
         self.coarse = 16.0 * self.resolution
 
@@ -261,22 +264,31 @@ class MotionValidator:
         bound = self.motion_bound(dX)
         n0 = np.maximum(1, np.ceil(bound / self.coarse)).astype(int)
         finest = 0.5 * self.resolution * (1.0 + 1e-9)
+        # static scenes: every window is irrelevant, so no split in time
+        tres = np.inf if self.static else self.time_resolution * (1.0 + 1e-9)
         kernel = self.state.kernel
-        if kernel is not None and self.static and self.scene.n_obstacles and E and np.isfinite(bound).all():
-            # the same loop in C, with the same arithmetic (static scenes: no time windows to sweep)
-            fail, lower, samples = kernel.check_edges(
-                XA, dX, bound, n0, self.state.static_slots, self.inflate, finest, prefix
-            )
-            self.state.n_samples += samples
-            return fail, lower
+        if kernel is not None and self.compiled_loop and self.scene.n_obstacles and E and np.isfinite(bound).all():
+            # the same loop in C, with the same arithmetic, operation for operation
+            if self.static:
+                fail, lower, samples = kernel.check_edges(
+                    XA, dX, bound, n0, self.state.static_slots, self.inflate, finest, prefix
+                )
+                self.state.n_samples += samples
+                return fail, lower
+            if np.isfinite(TA).all() and np.isfinite(dT).all():  # else the loop below says which time is bad
+                scene = self.scene
+                fail, lower, samples = kernel.check_edges_moving(
+                    XA, dX, bound, n0, TA, dT, scene.motion_table(), scene.time_origin, self.inflate, finest,
+                    self.state.enlargement_rate, tres, prefix,
+                )  # fmt: skip
+                self.state.n_samples += samples
+                return fail, lower
         fail = np.ones(E)
         lower = np.full(E, np.inf)
         e = np.repeat(np.arange(E), n0)
         k = np.arange(n0.sum()) - np.repeat(np.concatenate([[0], np.cumsum(n0)[:-1]]), n0)
         ta = k / n0[e]
         tb = (k + 1) / n0[e]
-        # static scenes: every window is irrelevant, so no split in time
-        tres = np.inf if self.static else self.time_resolution * (1.0 + 1e-9)
         while len(e):
             tm = 0.5 * (ta + tb)
             h = 0.5 * bound[e] * (tb - ta)

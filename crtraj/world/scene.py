@@ -175,6 +175,26 @@ class Scene:
         _, rmax = self.radius_range(t0, t1)
         return a["c0"] + smin[..., None] * a["d"], a["c0"] + smax[..., None] * a["d"], rmax
 
+    def swept_spheres(self, t0: Any, t1: Any) -> tuple[np.ndarray, np.ndarray]:
+        """Spheres that contain each obstacle over the whole of [t0, t1]: centres S + (M, 3) mm at the
+        middle of the `swept` capsule's segment, radii S + (M,) mm its largest radius plus half the
+        segment's length. The length is summed x, y, z in that order, an order the compiled edge
+        check (`crtraj.planning.compiled_validity`) repeats, so both give the same numbers bit for bit.
+        """
+        a, b, rmax = self.swept(t0, t1)
+        d = b - a
+        length = np.sqrt(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1] + d[..., 2] * d[..., 2])
+        return 0.5 * (a + b), rmax + 0.5 * length
+
+    def motion_table(self) -> np.ndarray:
+        """Every obstacle's motion and breathing as rows of numbers (M, 12), for compiled code:
+        start centre (3) mm, displacement (3) mm, duration s, profile code (0 linear, 1 sin, 2 cos),
+        mean radius A mm, amplitude B mm, angular rate w rad/s, phase rad (`Obstacle`'s fields)."""
+        a = self._arr
+        cols = (a["c0"], a["d"], a["dur"][:, None], a["code"][:, None].astype(float))
+        cols += tuple(a[k][:, None] for k in ("A", "B", "w", "p"))
+        return np.ascontiguousarray(np.concatenate(cols, axis=1))
+
     # -------------------------------------------------------------- clearance
     def _points(self, points: Any) -> np.ndarray:
         p = np.asarray(points, dtype=float)
