@@ -17,7 +17,11 @@ rounding), and a small hand-written C driver loops over a whole batch in one cal
   paths give identical plans);
 - ``crtraj_check_edges(...)``: the adaptive certification of straight motions of
   `crtraj.planning.validity.MotionValidator.check_edges` for a static scene, the whole refinement loop
-  in C with numpy's arithmetic, operation for operation (so it returns the same numbers).
+  in C with numpy's arithmetic, operation for operation (so it returns the same numbers);
+- ``crtraj_check_edges_moving(...)``: the same among moving, breathing obstacles: every interval is
+  checked against the spheres that contain each obstacle over its time window (`Scene.swept_spheres`,
+  computed in C from `Scene.motion_table` with numpy's arithmetic: libm's sin, the same operation order,
+  no contraction into fused multiply-adds), so it too returns the numpy loop's numbers bit for bit.
 
 The library is built once per robot (its kinematic description), check-point count and generator
 version through `crtraj.core.build_cache.BuildCache` and called with ctypes on numpy buffers
