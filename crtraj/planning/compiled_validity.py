@@ -46,7 +46,7 @@ from crtraj.planning.metric import metric_matrix
 from crtraj.world import packing
 
 # Version of the generated code and driver: raising it makes every cached kernel foreign (rebuilt).
-GENERATOR = 4
+GENERATOR = 5
 # Most check points a kernel is generated for: the generated FK grows with them (100 points: ~15 s of
 # gcc); denser checks (reports, tests) stay on the interpreted path.
 MAX_COMPILED_POINTS = 200
@@ -133,11 +133,6 @@ int crtraj_clearance(long long N, const double* X, long long K, const double* S,
   return rc;
 }
 
-/* The adaptive edge check of MotionValidator.check_edges for a static scene, edge by edge and level by level
-   (breadth first, as the numpy loop refines), with the same arithmetic: each edge e starts from n0[e] intervals;
-   an interval [ta, tb] is certified when the clearance c at its middle (minus `inflate`) is >= h = 0.5 B (tb - ta),
-   unsafe when c < 0 or h <= finest, else halved (prefix: only while ta < fail; else only while nothing failed).
-   Out: fail[e] (certified fraction) and lower[e] (min c - h over certified intervals); *samples: clearances. */
 /* Grow the five interval buffers to hold at least `need` entries each (contents kept). */
 static int crtraj_grow(double** buf, long long* cap, long long need) {
   int i;
@@ -149,62 +144,6 @@ static int crtraj_grow(double** buf, long long* cap, long long need) {
     buf[i] = p;
   }
   return 0;
-}
-
-#define ta buf[0]
-#define tb buf[1]
-#define mid buf[2]
-#define ua buf[3]
-#define ub buf[4]
-int crtraj_check_edges(long long E, const double* XA, const double* dX, const double* bound, const long long* n0,
-                       long long K, const double* S, double inflate, double finest, int prefix,
-                       double* fail, double* lower, long long* samples) {
-  crtraj_work kb; long long e, i, n, cap = 0; int rc = 0;
-  double P[3 * CRTRAJ_NP], x[CRTRAJ_NX];
-  double* buf[5] = {NULL, NULL, NULL, NULL, NULL};  /* ta, tb, mid, ua, ub */
-  double* t;
-  *samples = 0;
-  if (crtraj_alloc(&kb, crtraj_bb_work)) { crtraj_free(&kb); return 1; }
-  for (e = 0; e < E && !rc; ++e) {
-    const double* xa = XA + e * CRTRAJ_NX;
-    const double* dx = dX + e * CRTRAJ_NX;
-    double f = 1.0, low = INFINITY;
-    n = n0[e];
-    if (n < 1) { fail[e] = 0.0; lower[e] = -INFINITY; continue; }  /* no intervals: nothing certified */
-    if (crtraj_grow(buf, &cap, 2 * n)) { rc = 1; break; }
-    for (i = 0; i < n; ++i) { ta[i] = (double) i / (double) n; tb[i] = (double) (i + 1) / (double) n; }
-    while (n > 0 && !rc) {
-      long long m = 0;
-      if (crtraj_grow(buf, &cap, 2 * n)) { rc = 1; break; }  /* room for this level's children */
-      /* the whole level first: the split rule sees this level's failures, as the numpy loop does */
-      for (i = 0; i < n && !rc; ++i) {
-        double tm = 0.5 * (ta[i] + tb[i]);
-        double h = 0.5 * bound[e] * (tb[i] - ta[i]);
-        double c;
-        int j;
-        for (j = 0; j < CRTRAJ_NX; ++j) x[j] = xa[j] + tm * dx[j];
-        rc = crtraj_clear_one(&kb, x, K, S, P, &c);
-        c = c - inflate - 0.0;
-        ++*samples;
-        mid[i] = -1.0;
-        if (c >= h) { if (c - h < low) low = c - h; }
-        else if (c < 0.0 || h <= finest) { if (ta[i] < f) f = ta[i]; }
-        else mid[i] = tm;  /* neither certified nor unsafe: split */
-      }
-      for (i = 0; i < n; ++i) {
-        if (mid[i] < 0.0 || (prefix ? !(ta[i] < f) : !(f >= 1.0))) continue;
-        ua[m] = ta[i]; ub[m] = mid[i]; ++m;
-        ua[m] = mid[i]; ub[m] = tb[i]; ++m;
-      }
-      t = ta; ta = ua; ua = t;
-      t = tb; tb = ub; ub = t;
-      n = m;
-    }
-    fail[e] = f; lower[e] = low;
-  }
-  for (i = 0; i < 5; ++i) free(buf[i]);
-  crtraj_free(&kb);
-  return rc;
 }
 
 /* numpy's sin_range (crtraj.world.obstacle), operation for operation: exact (min, max) of sin over [a, b]. */
@@ -251,48 +190,58 @@ static void crtraj_swept(long long M, const double* T, double origin, double lo,
   }
 }
 
-/* The adaptive edge check of MotionValidator.check_edges among moving, breathing obstacles, with numpy's
-   arithmetic: as crtraj_check_edges, but every interval [ta, tb] of edge e is checked against the spheres
-   containing each obstacle over its time window [TA + ta dT, TA + tb dT] (crtraj_swept), an uncertified
-   interval is unsafe when c + enl dt < 0 (hopeless: colliding at every instant of the window) or when
-   (c < 0 or h <= finest) and its window dt = dT (tb - ta) is at most tres; else it is halved. */
-int crtraj_check_edges_moving(long long E, const double* XA, const double* dX, const double* bound,
-                              const long long* n0, const double* TA, const double* dT, long long M,
-                              const double* T, double origin, double inflate, double finest, double enl,
-                              double tres, int prefix, double* fail, double* lower, long long* samples) {
+/* The adaptive edge check of MotionValidator.check_edges, edge by edge and level by level (breadth first, as
+   the numpy loop refines), with the same arithmetic. Each edge e starts from n0[e] intervals; an interval
+   [ta, tb] gets the clearance c (minus `inflate`) of its middle configuration over its time window
+   [TA + ta dT, TA + tb dT]: against the K slots S (a static scene: T NULL, TA and dT unused) or against the
+   spheres containing each of the K obstacles of table T over the window (crtraj_swept). It is certified when
+   c >= h = 0.5 B (tb - ta); unsafe when c + enl dt < 0 (colliding at every instant of the window,
+   dt = dT (tb - ta)) or when c < 0 or h <= finest, with dt <= tres; else halved (prefix: only while ta < fail;
+   else only while nothing failed). A static scene has enl = 0 and tres = inf: unsafe when c < 0 or h <= finest.
+   Out: fail[e] (certified fraction) and lower[e] (min c - h over certified intervals); *samples: clearances. */
+#define ta buf[0]
+#define tb buf[1]
+#define mid buf[2]
+#define ua buf[3]
+#define ub buf[4]
+static int crtraj_refine(long long E, const double* XA, const double* dX, const double* bound, const long long* n0,
+                         const double* TA, const double* dT, long long K, const double* S, const double* T,
+                         double origin, double inflate, double finest, double enl, double tres, int prefix,
+                         double* fail, double* lower, long long* samples) {
   crtraj_work kb; long long e, i, n, cap = 0; int rc = 0;
   double P[3 * CRTRAJ_NP], x[CRTRAJ_NX];
   double* buf[5] = {NULL, NULL, NULL, NULL, NULL};  /* ta, tb, mid, ua, ub */
-  double* S = (double*) malloc(sizeof(double) * (size_t) (5 * M + 1));
+  double* swept = T ? (double*) malloc(sizeof(double) * (size_t) (5 * K + 1)) : NULL;
   double* t;
   *samples = 0;
-  if (!S || crtraj_alloc(&kb, crtraj_bb_work)) { free(S); crtraj_free(&kb); return 1; }
+  if ((T && !swept) || crtraj_alloc(&kb, crtraj_bb_work)) { free(swept); crtraj_free(&kb); return 1; }
   for (e = 0; e < E && !rc; ++e) {
     const double* xa = XA + e * CRTRAJ_NX;
     const double* dx = dX + e * CRTRAJ_NX;
-    double f = 1.0, low = INFINITY;
+    double f = 1.0, low = INFINITY, t0 = T ? TA[e] : 0.0, span = T ? dT[e] : 0.0;
     n = n0[e];
-    if (n < 1) { fail[e] = 0.0; lower[e] = -INFINITY; continue; }
+    if (n < 1) { fail[e] = 0.0; lower[e] = -INFINITY; continue; }  /* no intervals: nothing certified */
     if (crtraj_grow(buf, &cap, 2 * n)) { rc = 1; break; }
     for (i = 0; i < n; ++i) { ta[i] = (double) i / (double) n; tb[i] = (double) (i + 1) / (double) n; }
     while (n > 0 && !rc) {
       long long m = 0;
-      if (crtraj_grow(buf, &cap, 2 * n)) { rc = 1; break; }
+      if (crtraj_grow(buf, &cap, 2 * n)) { rc = 1; break; }  /* room for this level's children */
+      /* the whole level first: the split rule sees this level's failures, as the numpy loop does */
       for (i = 0; i < n && !rc; ++i) {
         double tm = 0.5 * (ta[i] + tb[i]);
         double h = 0.5 * bound[e] * (tb[i] - ta[i]);
-        double dt = dT[e] * (tb[i] - ta[i]);
+        double dt = span * (tb[i] - ta[i]);
         double c;
         int j;
         for (j = 0; j < CRTRAJ_NX; ++j) x[j] = xa[j] + tm * dx[j];
-        crtraj_swept(M, T, origin, TA[e] + ta[i] * dT[e], TA[e] + tb[i] * dT[e], S);
-        rc = crtraj_clear_one(&kb, x, M, S, P, &c);
+        if (T) crtraj_swept(K, T, origin, t0 + ta[i] * span, t0 + tb[i] * span, swept);
+        rc = crtraj_clear_one(&kb, x, K, T ? swept : S, P, &c);
         c = c - inflate - 0.0;
         ++*samples;
         mid[i] = -1.0;
         if (c >= h) { if (c - h < low) low = c - h; }
         else if (c + enl * dt < 0.0 || ((c < 0.0 || h <= finest) && dt <= tres)) { if (ta[i] < f) f = ta[i]; }
-        else mid[i] = tm;
+        else mid[i] = tm;  /* neither certified nor unsafe: split */
       }
       for (i = 0; i < n; ++i) {
         if (mid[i] < 0.0 || (prefix ? !(ta[i] < f) : !(f >= 1.0))) continue;
@@ -306,7 +255,7 @@ int crtraj_check_edges_moving(long long E, const double* XA, const double* dX, c
     fail[e] = f; lower[e] = low;
   }
   for (i = 0; i < 5; ++i) free(buf[i]);
-  free(S);
+  free(swept);
   crtraj_free(&kb);
   return rc;
 }
@@ -315,6 +264,23 @@ int crtraj_check_edges_moving(long long E, const double* XA, const double* dX, c
 #undef mid
 #undef ua
 #undef ub
+
+/* A static scene: every interval against the same K slots S. */
+int crtraj_check_edges(long long E, const double* XA, const double* dX, const double* bound, const long long* n0,
+                       long long K, const double* S, double inflate, double finest, int prefix,
+                       double* fail, double* lower, long long* samples) {
+  return crtraj_refine(E, XA, dX, bound, n0, NULL, NULL, K, S, NULL, 0.0, inflate, finest, 0.0, INFINITY, prefix,
+                       fail, lower, samples);
+}
+
+/* Moving, breathing obstacles (table T, M rows): every interval against the spheres of its time window. */
+int crtraj_check_edges_moving(long long E, const double* XA, const double* dX, const double* bound,
+                              const long long* n0, const double* TA, const double* dT, long long M,
+                              const double* T, double origin, double inflate, double finest, double enl,
+                              double tres, int prefix, double* fail, double* lower, long long* samples) {
+  return crtraj_refine(E, XA, dX, bound, n0, TA, dT, M, NULL, T, origin, inflate, finest, enl, tres, prefix,
+                       fail, lower, samples);
+}
 
 int crtraj_tip_jac(long long N, const double* X, double* P, double* J) {
   crtraj_work k; long long i; int rc = 0;
