@@ -445,33 +445,12 @@ class ValidityKernel:
         intervals per motion; slots: the scene's packed obstacles; inflate (mm) subtracted from every
         clearance; finest (mm): the smallest interval's h. Returns (fail (E,), lower (E,) mm, samples).
         """
-        XA = self._configs(XA)
-        dX = self._configs(dX)
-        E = len(XA)
-        bound = np.ascontiguousarray(bound, dtype=float)
-        n0 = np.ascontiguousarray(n0, dtype=np.int64)
         S = np.ascontiguousarray(slots, dtype=float)
-        if dX.shape != XA.shape or bound.shape != (E,) or n0.shape != (E,) or S.ndim != 1:
-            raise ValueError("check_edges: XA, dX (E, nx), bound, n0 (E,) and flat slots expected")
-        fail, lower = np.empty(E), np.empty(E)
-        samples = ctypes.c_longlong(0)
-        rc = self._check_edges(
-            E,
-            XA.ctypes.data,
-            dX.ctypes.data,
-            bound.ctypes.data,
-            n0.ctypes.data,
-            S.shape[0] // packing.WIDTH,
-            S.ctypes.data,
-            float(inflate),
-            float(finest),
-            int(bool(prefix)),
-            fail.ctypes.data,
-            lower.ctypes.data,
-            ctypes.addressof(samples),
-        )
-        self._check(rc, "edge check")
-        return fail, lower, int(samples.value)
+        if S.ndim != 1:
+            raise ValueError(f"check_edges: flat slots (K*{packing.WIDTH},) expected, got {S.shape}")
+        K = S.shape[0] // packing.WIDTH
+        flags = (float(inflate), float(finest), int(bool(prefix)))
+        return self._run_edges(self._check_edges, XA, dX, bound, n0, (K, S.ctypes.data, *flags))
 
     def check_edges_moving(
         self,
@@ -496,38 +475,31 @@ class ValidityKernel:
         a window's swept sphere can outgrow any one instant's; time_resolution (s): the longest window an
         uncertified interval may be declared unsafe at without being split.
         """
+        E = len(XA)
+        TA = np.ascontiguousarray(np.broadcast_to(TA, (E,)), dtype=float)
+        dT = np.ascontiguousarray(np.broadcast_to(dT, (E,)), dtype=float)
+        T = np.ascontiguousarray(table, dtype=float)
+        if T.ndim != 2 or T.shape[1] != 12:
+            raise ValueError(f"check_edges_moving: an obstacle table (M, 12) expected, got {T.shape}")
+        scalars = (float(origin), float(inflate), float(finest), float(enlargement), float(time_resolution))
+        middle = (TA.ctypes.data, dT.ctypes.data, len(T), T.ctypes.data, *scalars, int(bool(prefix)))
+        return self._run_edges(self._check_moving, XA, dX, bound, n0, middle)
+
+    def _run_edges(
+        self, fn: Any, XA: Any, dX: Any, bound: Any, n0: Any, middle: tuple[Any, ...]
+    ) -> tuple[np.ndarray, np.ndarray, int]:
+        """Call a C edge check: (E, XA, dX, bound, n0, *middle, fail, lower, &samples), inputs checked."""
         XA = self._configs(XA)
         dX = self._configs(dX)
         E = len(XA)
         bound = np.ascontiguousarray(bound, dtype=float)
         n0 = np.ascontiguousarray(n0, dtype=np.int64)
-        TA = np.ascontiguousarray(np.broadcast_to(TA, (E,)), dtype=float)
-        dT = np.ascontiguousarray(np.broadcast_to(dT, (E,)), dtype=float)
-        T = np.ascontiguousarray(table, dtype=float)
-        if dX.shape != XA.shape or bound.shape != (E,) or n0.shape != (E,) or T.ndim != 2 or T.shape[1] != 12:
-            raise ValueError("check_edges_moving: XA, dX (E, nx), bound, n0, TA, dT (E,) and a (M, 12) table expected")
+        if dX.shape != XA.shape or bound.shape != (E,) or n0.shape != (E,):
+            raise ValueError("check_edges: XA, dX (E, nx), bound and n0 (E,) expected")
         fail, lower = np.empty(E), np.empty(E)
         samples = ctypes.c_longlong(0)
-        rc = self._check_moving(
-            E,
-            XA.ctypes.data,
-            dX.ctypes.data,
-            bound.ctypes.data,
-            n0.ctypes.data,
-            TA.ctypes.data,
-            dT.ctypes.data,
-            len(T),
-            T.ctypes.data,
-            float(origin),
-            float(inflate),
-            float(finest),
-            float(enlargement),
-            float(time_resolution),
-            int(bool(prefix)),
-            fail.ctypes.data,
-            lower.ctypes.data,
-            ctypes.addressof(samples),
-        )
+        head = (E, XA.ctypes.data, dX.ctypes.data, bound.ctypes.data, n0.ctypes.data)
+        rc = fn(*head, *middle, fail.ctypes.data, lower.ctypes.data, ctypes.addressof(samples))
         self._check(rc, "edge check")
         return fail, lower, int(samples.value)
 
