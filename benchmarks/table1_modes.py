@@ -9,7 +9,13 @@ appended to OUT/runs.csv the moment it finishes, and a rerun skips the rows
 already there, so an interrupted run loses nothing and can be continued.
 Afterwards `crtraj bench modes OUT` writes the tables, plots and OMPL logs.
 
+`--min-tip-distance MM` draws start and goal tips at least that far apart (default 150 mm, the generator's)
+and `--tip-box x0,y0,z0,x1,y1,z1` (mm) bounds where they are drawn: the check of the path-length
+explanation (our queries are shorter than the paper's), e.g. `--min-tip-distance 280 --tip-box
+-150,-150,100,150,150,500` gives queries as long as simulation 1's (317 mm).
+
 Run: python benchmarks/table1_modes.py [--scenarios 100] [--workers 2] [--out out/table1-modes]
+     [--min-tip-distance 150]
 """
 
 from __future__ import annotations
@@ -20,6 +26,7 @@ import multiprocessing
 import os
 import platform
 import time
+from dataclasses import replace
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -43,6 +50,9 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default="out/table1-modes")
     ap.add_argument("--wall-budget", action="store_true", help="time limit on wall time (default: CPU time)")
+    ap.add_argument("--min-tip-distance", type=float, default=PAPER_SCENES.min_tip_distance, help="mm")
+    box = ",".join(f"{v:g}" for v in (*PAPER_SCENES.tip_box_lo, *PAPER_SCENES.tip_box_hi))
+    ap.add_argument("--tip-box", default=box, help="x0,y0,z0,x1,y1,z1 (mm): where start and goal tips are drawn")
     args = ap.parse_args()
 
     planners = tuple(p.strip() for p in args.planners.split(",") if p.strip())
@@ -56,7 +66,11 @@ def main() -> None:
         seed=args.seed,
         cpu_budget=not args.wall_budget,
     )
-    bench = Table1Bench(robot, opts, scenario_options=PAPER_SCENES)
+    lo_hi = tuple(float(v) for v in args.tip_box.split(","))
+    if len(lo_hi) != 6:
+        ap.error(f"--tip-box: expected 6 numbers x0,y0,z0,x1,y1,z1 (mm), got {args.tip_box!r}")
+    scenes = replace(PAPER_SCENES, min_tip_distance=args.min_tip_distance, tip_box_lo=lo_hi[:3], tip_box_hi=lo_hi[3:])
+    bench = Table1Bench(robot, opts, scenario_options=scenes)
     out = Path(args.out)
     log_path = out / "runs.csv"
     done = (
@@ -76,7 +90,8 @@ def main() -> None:
     print(
         f"{started} machine: {platform.node()} {platform.machine()}, {os.cpu_count()} logical CPUs, load average "
         f"{os.getloadavg()[0]:.1f} at start; {args.workers} workers; time limit {args.time_limit:g} s of {clock} time; "
-        f"{args.scenarios} scenarios x counts {list(counts)} x {len(planners)} planners; {len(done)} rows already done",
+        f"{args.scenarios} scenarios x counts {list(counts)} x {len(planners)} planners; start and goal tips >= "
+        f"{args.min_tip_distance:g} mm apart in the box {args.tip_box} mm; {len(done)} rows already done",
         flush=True,
     )
     t0 = time.perf_counter()
