@@ -30,6 +30,8 @@ from dataclasses import replace
 from datetime import datetime, timezone
 from pathlib import Path
 
+import numpy as np
+
 from crtraj.bench.paper_mode import PAPER_SCENES
 from crtraj.bench.records import BenchOptions
 from crtraj.bench.runlog import RunLog, read_runs
@@ -100,12 +102,37 @@ def main() -> None:
     finally:
         executor.shutdown(wait=False, cancel_futures=True)
         log.close()
-    report.write(out / "single")
+    if report.records:  # a rerun that finds every row done keeps the last leg's report
+        report.write(out / "single")
     print(
         f"{datetime.now(timezone.utc).isoformat(timespec='seconds')} wall time {time.perf_counter() - t0:.0f} s; "
         f"load average {os.getloadavg()[0]:.1f} at the end; {len(report.records)} new rows in {log_path}",
         flush=True,
     )
+    length_summary(bench, read_runs(log_path))
+
+
+def length_summary(bench: Table1Bench, rows: list) -> None:
+    """Per planner and obstacle count, over the paper check's successes in `rows` (runs of `bench`): mean tip
+    path length, mean straight start-to-goal tip distance of those scenarios (from the bench's own scene bounds),
+    and the mean detour (length / straight distance). A rerun of the same command prints it again."""
+    model = bench.model
+    straight = {
+        (sc.n_obstacles, sc.index): float(np.linalg.norm(model.tip_position(sc.start) - sc.goal))
+        for sc in bench.scenarios()
+    }
+    print("planner          obs   n  length mm  straight mm  detour   (paper-check successes)")
+    for planner in bench.options.planners:
+        for count in bench.options.counts:
+            ok = [r for r in rows if r.planner == planner and r.n_obstacles == count and r.paper_success]
+            if not ok:
+                continue
+            length = np.array([r.length_mm for r in ok])
+            dist = np.array([straight[(count, r.index)] for r in ok])
+            print(
+                f"{planner:<16s} {count:>3d} {len(ok):>3d} {length.mean():>10.0f} {dist.mean():>12.0f} "
+                f"{np.mean(length / dist):>7.2f}"
+            )
 
 
 if __name__ == "__main__":
