@@ -15,8 +15,8 @@ Target (issue 14): new, cache warm <= 0.8 s on a 2-core machine (old: 1.8 s).
 
 Bytecode: the processes run as in a user's shell, where Python writes its bytecode cache (``__pycache__``)
 at the first import and reuses it: PYTHONDONTWRITEBYTECODE is removed from their environment (a build VM
-may set it; then every run compiles crtraj's ~200 modules from source, about 0.2 s). ``--no-bytecode``
-keeps it set, to show that case too. Every variant has one untimed warm-up run, which writes the cache.
+may set it; with an editable install and no cache ever written, every start then compiles crtraj's modules
+from source, about 0.2 s more). Every variant has one untimed warm-up run, which writes the cache.
 
 Run: python benchmarks/startup.py [--runs 10] [--baseline DIR]
 """
@@ -89,7 +89,6 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--runs", type=int, default=10)
     ap.add_argument("--baseline", default=None, help="a checkout of the old code to time beside this one")
-    ap.add_argument("--no-bytecode", action="store_true", help="run with PYTHONDONTWRITEBYTECODE=1")
     args = ap.parse_args()
     print(
         f"{datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC; machine: {platform.node()} "
@@ -97,9 +96,7 @@ def main() -> None:
         f"{platform.python_version()}; command: crtraj plan problems/paper_static.toml --out X"
     )
     env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
-    if args.no_bytecode:
-        env["PYTHONDONTWRITEBYTECODE"] = "1"
-    print(f"bytecode cache: {'off (PYTHONDONTWRITEBYTECODE=1)' if args.no_bytecode else 'on (Python default)'}")
+    print("bytecode cache: on (Python's default; PYTHONDONTWRITEBYTECODE removed)")
     print(f"{'variant':<26s} {'median wall':>9s}  {'(min..max)':>12s}")
     with tempfile.TemporaryDirectory() as cache:
         env["CRTRAJ_CACHE_DIR"] = cache
