@@ -18,6 +18,7 @@ from scipy.optimize import linear_sum_assignment
 
 from crtraj.io.problem import load_robot
 from crtraj.model.kinematics import Model
+from crtraj.planning.result import PlanResult, PlanStatus
 
 ROOT = Path(__file__).resolve().parent.parent
 PROBLEMS = ROOT / "problems"
@@ -111,3 +112,19 @@ def free_udp_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+def plan_result(model: Model, t, X, status: PlanStatus = PlanStatus.EXACT) -> PlanResult:
+    """A `PlanResult` of the timed configurations X (N, nx) at t (N,) s, tips and cables from `model`: a
+    path to hand to the checks without running a planner."""
+    X = np.asarray(X, dtype=float)
+    return PlanResult(
+        status=status,
+        message="test",
+        planner="test",
+        seed=0,
+        t=np.asarray(t, dtype=float),
+        configs=X,
+        tips=model.tip_position(X),
+        cables=model.cables(X),
+    )

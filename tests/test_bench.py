@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import require_module
+from conftest import plan_result, require_module
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -25,7 +25,6 @@ from crtraj.core.errors import InputError
 from crtraj.planning.ompl import OMPLPlanner, import_ompl
 from crtraj.planning.options import PlannerOptions
 from crtraj.planning.registry import PlannerSpec
-from crtraj.planning.result import PlanResult, PlanStatus
 from crtraj.planning.safe_ik import SafeIK
 from crtraj.planning.stop import StopCondition
 from crtraj.planning.validity import MotionValidator
@@ -36,20 +35,6 @@ ROOT = Path(__file__).resolve().parent.parent
 
 
 # ----------------------------------------------------------------- helpers
-def _result(model, t, X, status=PlanStatus.EXACT) -> PlanResult:
-    X = np.asarray(X, dtype=float)
-    return PlanResult(
-        status=status,
-        message="test",
-        planner="test",
-        seed=0,
-        t=np.asarray(t, dtype=float),
-        configs=X,
-        tips=model.tip_position(X),
-        cables=model.cables(X),
-    )
-
-
 def _centre_track(ob: Obstacle, n: int = 4001) -> tuple[np.ndarray, np.ndarray]:
     """Times over one full period of the motion (grid through every extreme) and centres there."""
     period = 2.0 * ob.duration if ob.profile == "cos" else 4.0 * ob.duration
@@ -176,7 +161,7 @@ def test_dense_check_clearance_and_length_match_closed_forms(model):
     scene = Scene(obstacles=(ob,))
     x0 = model.robot.straight(-100.0)
     x1 = model.robot.straight(0.0)
-    res = _result(model, [0.0, 4.0], [x0, x1])
+    res = plan_result(model, [0.0, 4.0], [x0, x1])
     chk = dense_check(model, scene, res, x0, model.tip_position(x1), n_points=129)
     assert chk.is_success(), chk.reason
     assert chk.min_clearance == pytest.approx(50.0 - 20.0 - model.robot.body_radius, abs=1e-9)
@@ -195,14 +180,14 @@ def test_dense_check_catches_a_collision_between_waypoints(model):
             Obstacle(center=(0.0, 0.0, 300.0), radius=20.0, to=(300.0, 0.0, 300.0), duration=10.0, profile="cos"),
         )
     )
-    res = _result(model, [0.0, 1.0], [xa, xb])
+    res = plan_result(model, [0.0, 1.0], [xa, xb])
     chk = dense_check(model, scene, res, xa, model.tip_position(xb))
     assert not chk.is_success() and "collides" in chk.reason
     # the moving sphere sits on the axis at z = 300 at t = 0 and leaves it: a slow motion is clear,
     # yet with a fast one the robot reaches z = 300 while the sphere is still there
-    slow = _result(model, [0.0, 1.0, 11.0], [xa, xa, xb])
+    slow = plan_result(model, [0.0, 1.0, 11.0], [xa, xa, xb])
     assert dense_check(model, moving, slow, xa, model.tip_position(xb)).is_success()
-    fast = _result(model, [0.0, 1.0], [xa, xb])
+    fast = plan_result(model, [0.0, 1.0], [xa, xb])
     chk = dense_check(model, moving, fast, xa, model.tip_position(xb))
     assert not chk.is_success() and "collides" in chk.reason and chk.t_worst <= 1.0
 
@@ -226,13 +211,13 @@ def test_dense_check_rejects_malformed_paths(model):
     xa = model.robot.straight(-100.0)
     xb = model.robot.straight(0.0)
     goal = model.tip_position(xb)
-    assert "start configuration" in dense_check(model, scene, _result(model, [0, 1], [xb, xb]), xa, goal).reason
-    assert "decrease" in dense_check(model, scene, _result(model, [1, 0], [xa, xb]), xa, goal).reason
-    assert "from the goal" in dense_check(model, scene, _result(model, [0, 1], [xa, xa]), xa, goal).reason
+    assert "start configuration" in dense_check(model, scene, plan_result(model, [0, 1], [xb, xb]), xa, goal).reason
+    assert "decrease" in dense_check(model, scene, plan_result(model, [1, 0], [xa, xb]), xa, goal).reason
+    assert "from the goal" in dense_check(model, scene, plan_result(model, [0, 1], [xa, xa]), xa, goal).reason
     bent = xb.copy()
     bent[0] = 4.0  # theta far above pi: out of limits
-    assert "limits" in dense_check(model, scene, _result(model, [0, 1], [xa, bent]), xa, goal).reason
-    assert dense_check(model, scene, _result(model, [0, 1], [xa, xb]), xa, goal).is_success()
+    assert "limits" in dense_check(model, scene, plan_result(model, [0, 1], [xa, bent]), xa, goal).reason
+    assert dense_check(model, scene, plan_result(model, [0, 1], [xa, xb]), xa, goal).is_success()
 
 
 # ------------------------------------------------------------ fake planners
@@ -255,7 +240,7 @@ class StraightToGoal:
     def plan(self, goal, *, start_config=None, start_tip=None, t0=0.0, stop=None, seed=None, scene=None, **kw):
         x0 = np.asarray(start_config, dtype=float)
         d = np.linalg.norm(goal - self.model.tip_position(x0))
-        return _result(self.model, [t0, t0 + d / 20.0], [x0, self.goal_config(goal, x0, seed)])
+        return plan_result(self.model, [t0, t0 + d / 20.0], [x0, self.goal_config(goal, x0, seed)])
 
 
 class Collider(StraightToGoal):
@@ -273,7 +258,7 @@ class Collider(StraightToGoal):
         x_bad = X[int(np.argmin(depth))]
         assert depth.min() < -5.0
         x0 = np.asarray(start_config, dtype=float)
-        return _result(self.model, [0.0, 1.0, 2.0], [x0, x_bad, self.goal_config(goal, x0, seed)])
+        return plan_result(self.model, [0.0, 1.0, 2.0], [x0, x_bad, self.goal_config(goal, x0, seed)])
 
 
 def _straight(model, scene, options, steer_options, max_obstacles):

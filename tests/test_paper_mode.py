@@ -11,6 +11,7 @@ import math
 
 import numpy as np
 import pytest
+from conftest import plan_result
 
 from crtraj.bench.check import dense_check, paper_check
 from crtraj.bench.modes import rejections, wilson
@@ -19,24 +20,9 @@ from crtraj.bench.runner import _Task, judge
 from crtraj.bench.scenarios import Scenario
 from crtraj.planning.options import PlannerOptions
 from crtraj.planning.paper_check import PaperValidator, step_end_fractions
-from crtraj.planning.result import PlanResult, PlanStatus
 from crtraj.planning.validity import MotionValidator
 from crtraj.world.obstacle import Obstacle
 from crtraj.world.scene import Scene
-
-
-def _result(model, t, X) -> PlanResult:
-    X = np.asarray(X, dtype=float)
-    return PlanResult(
-        status=PlanStatus.EXACT,
-        message="test",
-        planner="test",
-        seed=0,
-        t=np.asarray(t, dtype=float),
-        configs=X,
-        tips=model.tip_position(X),
-        cables=model.cables(X),
-    )
 
 
 def _point_clearance(model, scene, x, t) -> float:
@@ -97,8 +83,8 @@ def test_a_collision_between_step_ends_passes_the_paper_check_only(model, sweep)
 def test_bench_paper_check_against_the_dense_check(model, sweep):
     xa, xb, scene = sweep
     goal = model.tip_position(xb)
-    between = _result(model, [0.0, 0.2, 0.8, 1.0], [xa, xa, xb, xb])
-    on_step = _result(model, [0.0, 0.5, 1.5, 2.0], [xa, xa, xb, xb])
+    between = plan_result(model, [0.0, 0.2, 0.8, 1.0], [xa, xa, xb, xb])
+    on_step = plan_result(model, [0.0, 0.5, 1.5, 2.0], [xa, xa, xb, xb])
     pc = paper_check(model, scene, between, goal)
     assert pc.passed and pc.times == 2  # t = 0 and the arrival t = 1
     assert pc.clearance == pytest.approx(min(_point_clearance(model, scene, x, t) for x, t in ((xa, 0), (xb, 1))))
@@ -135,7 +121,7 @@ def test_success_means_the_body_keeps_dsf(model):
     centre = (20.0 + body + 2.0, 0.0, float(pts[64, 2]))
     scene = Scene(obstacles=(Obstacle(center=centre, radius=20.0),), safety_distance=5.0)
     sc = _scenario(model, scene, x)
-    res = _result(model, [0.0, 1.0], [x, x])
+    res = plan_result(model, [0.0, 1.0], [x, x])
     base = {"planner": "p", "n_obstacles": 1, "index": 0, "seed": 0, "worker": "w"}
     strict = judge(model, sc, res, 0.1, _Task("p", {}, 0, 1.0, 1.0, (128, 0.01, 1.0, None)), base)
     assert strict.claimed and not strict.success
