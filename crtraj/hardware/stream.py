@@ -702,7 +702,7 @@ class Streamer:
         else:
             if self._underrun_since is None:
                 self._underrun_since = now
-                self._event("underrun", f"no set-point for t={tau:g} s yet: holding")
+                self._event("underrun", f"no set-point for t={tau:g} s yet: holding", now)
             if now - self._underrun_since > self.options.watchdog:
                 self._latch(
                     f"source stalled: no set-point for t={tau:g} s within {self.options.watchdog * 1000:.0f} ms",
@@ -815,7 +815,7 @@ class Streamer:
         self._reason = reason
         self._latched_at = now
         self._status_override = None if status == "held" else status
-        self._event(status, reason)
+        self._event(status, reason, now)
 
     # ------------------------------------------------------------- telemetry
     def _poll_telemetry(self, now: float) -> None:
@@ -930,8 +930,10 @@ class Streamer:
             )
 
     # ---------------------------------------------------------------- close
-    def _event(self, name: str, message: str) -> None:
-        wall = self._clock() - self._t_start
+    def _event(self, name: str, message: str, now: float | None = None) -> None:
+        # `now`: the clock reading the decision behind the event used, so that the logged times are the ones the
+        # rules compared (a fresh reading here would come microseconds later, and differ between two events)
+        wall = (self._clock() if now is None else now) - self._t_start
         if len(self._events) < 1000:
             self._events.append((wall, name, message))
         self._log.write({"type": "event", "wall": wall, "event": name, "message": message})
