@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import concurrent.futures as cf
+import math
 import multiprocessing
 import os
 import platform
@@ -68,8 +69,11 @@ def main() -> None:
         seed=args.seed,
         cpu_budget=not args.wall_budget,
     )
-    lo_hi = tuple(float(v) for v in args.tip_box.split(","))
-    if len(lo_hi) != 6:
+    try:
+        lo_hi = tuple(float(v) for v in args.tip_box.split(","))
+    except ValueError:
+        lo_hi = ()
+    if len(lo_hi) != 6 or not all(math.isfinite(v) for v in lo_hi):
         ap.error(f"--tip-box: expected 6 numbers x0,y0,z0,x1,y1,z1 (mm), got {args.tip_box!r}")
     scenes = replace(PAPER_SCENES, min_tip_distance=args.min_tip_distance, tip_box_lo=lo_hi[:3], tip_box_hi=lo_hi[3:])
     bench = Table1Bench(robot, opts, scenario_options=scenes)

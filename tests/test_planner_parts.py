@@ -219,6 +219,51 @@ def test_safe_ik_nlp_stage_alone(sim1, validator):
         assert validator.clearance(x[None])[0] >= 0.0
 
 
+def test_safe_ik_push_out_finds_the_start_the_projection_misses(sim1, validator):
+    """Sim 1's start tip sits between the spheres: from these 64 seeds no projection clears them. The push-out
+    stage (no NLP allowed) finds safe configurations, each checked here by independent FK and a dense check."""
+    problem, model, scene = sim1
+    start = problem.task.start
+    seeds = validator.sample(np.random.default_rng(5), 64)
+    kw = {"want": 1, "max_nlp": 0}
+    plain = SafeIK(model, validator, 2, push_rounds=0).solve(start, scene.pack(0.0, 2), seeds, **kw)
+    assert len(plain.safe) == 0 and plain.statuses == {"projection": 0}
+    ik = SafeIK(model, validator, 2)
+    batch = ik.solve(start, scene.pack(0.0, 2), seeds, **kw)
+    assert batch.statuses["push-out"] >= 1 and len(batch.safe) >= 1
+    pushed = [s for s in batch.solutions if s.solver_status == "push-out"]
+    assert len(pushed) == batch.statuses["push-out"]
+    for s in pushed:
+        assert np.linalg.norm(model.tip_position(s.x) - start) <= 1e-3
+        assert validator.within_limits(s.x[None])[0]
+        assert s.clearance >= ik.margin - 0.25  # the NLP's required margin on top of the validator's
+        clear, _, _ = dense_path_check(model, scene, np.array([0.0]), s.x[None])
+        assert clear >= 0.0
+    # the same query without the push-out stage needs the NLP: more IPOPT solves, never fewer safe results
+    with_nlp = SafeIK(model, validator, 2, push_rounds=0).solve(start, scene.pack(0.0, 2), seeds, want=1, max_nlp=8)
+    assert any(k not in ("projection", "push-out") for k in with_nlp.statuses)
+
+
+def test_push_out_steps_keep_the_tip_and_raise_the_clearance(sim1, validator):
+    """One push-out round from on-target configurations too close to a sphere: the tip stays on the target
+    (independent FK) and the clearance grows for every configuration that stays on it."""
+    problem, model, _ = sim1
+    goal = problem.task.goal
+    ik = SafeIK(model, validator, 2)
+    X, err = ik.project(goal, validator.sample(np.random.default_rng(3), 64), 30)
+    c = validator.clearance(X)
+    near = (err <= 1e-3) & (c < 0.0) & (c > -30.0)
+    assert near.sum() >= 2
+    X1, c1 = ik.push_out(
+        goal, X[near], c[near], required=1.5, rounds=1, validator=validator, t_check=(0.0, 0.0), tol=1e-3, enough=99
+    )
+    on = np.isfinite(c1)
+    assert on.any()
+    np.testing.assert_allclose(model.tip_position(X1[on]), np.tile(goal, (on.sum(), 1)), atol=1e-3)
+    np.testing.assert_allclose(c1[on], validator.clearance(X1[on]), atol=1e-8)
+    assert np.all(c1[on] > c[near][on])
+
+
 def test_safe_ik_unreachable_target(sim1, validator):
     _, model, scene = sim1
     ik = SafeIK(model, validator, 2)

@@ -426,7 +426,9 @@ class ValidityKernel:
         P = np.empty((len(X), 3))
         Jt = np.empty((len(X), self.nx, 3))  # CasADi's column-major 3 x nx is a C-ordered (nx, 3)
         self._check(self._tip_jac(len(X), X.ctypes.data, P.ctypes.data, Jt.ctypes.data), "tip Jacobian")
-        return P, np.swapaxes(Jt, 1, 2)
+        # contiguous (N, 3, nx), as the interpreted path returns it: numpy's batched products round
+        # differently on strided views, and both paths must give the same plans bit for bit
+        return P, np.ascontiguousarray(np.swapaxes(Jt, 1, 2))
 
     def check_edges(
         self,

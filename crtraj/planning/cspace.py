@@ -94,7 +94,7 @@ class CSpacePlanner(PlannerBase):
     ) -> None:
         super().__init__(model, scene, PlannerOptions() if options is None else options, rate_limits)
         m = scene.n_obstacles if max_obstacles is None else int(max_obstacles)
-        self.ik = SafeIK(model, self.validator, max(m, scene.n_obstacles))
+        self.ik = SafeIK(model, self.validator, max(m, scene.n_obstacles), push_rounds=self.options.ik_push_rounds)
 
     # ------------------------------------------------------------------ query
     # Over 60 lines only by its docstring (the re-planning recipe); the body is the five stages in order.
@@ -180,7 +180,7 @@ class CSpacePlanner(PlannerBase):
 
     def _prepare(self, v: MotionValidator) -> None:
         if v.scene.n_obstacles > self.ik.max_obstacles:
-            self.ik = SafeIK(self.model, self.validator, v.scene.n_obstacles)
+            self.ik = SafeIK(self.model, self.validator, v.scene.n_obstacles, push_rounds=self.options.ik_push_rounds)
 
     # ---------------------------------------------------------------- goal IK
     def _goal_configs(self, q: QueryStart, x_start: np.ndarray, statuses: dict[str, int]) -> np.ndarray:
@@ -215,7 +215,7 @@ class CSpacePlanner(PlannerBase):
                     seeds[:half],
                     t_check=(t0, t_end),
                     tip_tolerance=tip_tol,
-                    **{**kw, "max_nlp": 0, "always": ()},
+                    **{**kw, "max_nlp": 0, "always": (), "push_rounds": 0},
                 ),
                 ik.solve(
                     goal,

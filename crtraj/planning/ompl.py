@@ -129,7 +129,7 @@ class OMPLPlanner:
         slots = packing.slot_count(n_obstacles)
         ik = self._iks.get(slots)
         if ik is None:
-            ik = SafeIK(self.model, v, slots)
+            ik = SafeIK(self.model, v, slots, push_rounds=self.options.ik_push_rounds)
             self._iks[slots] = ik
         return ik
 

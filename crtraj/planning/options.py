@@ -48,6 +48,9 @@ class PlannerOptions(Options):
     ik_iterations: damped-Newton iterations of the batch projection before
     the safety-constrained IPOPT NLP takes over. ik_nlp_solves: at most
     this many NLP solves per IK query (the slow, rarely needed stage).
+    ik_push_rounds: rounds of the IK's push-out stage between the two
+    (on-target projections that come too close to an obstacle move along the
+    tip constraint's null space until they clear it; 0 skips the stage).
     goal_window: dynamic scenes only: half of the IK starts keep clear of
     everything the obstacles sweep over [t0, t0 + goal_window] (s), by
     projection only (no NLP: often infeasible); the other half, with the NLP
@@ -88,6 +91,7 @@ class PlannerOptions(Options):
     goal_configs: int = option(4, ge=1, le=1000)
     ik_iterations: int = option(15, ge=0, le=10_000)
     ik_nlp_solves: int = option(8, ge=0, le=1000)
+    ik_push_rounds: int = option(12, ge=0, le=1000)
     goal_window: float = option(4.0, ge=0.0, le=MAX_TIME)
     via_points: int = option(32, ge=0, le=10_000)
     via_spread: float = option(100.0, gt=0.0, le=MAX_LENGTH)

@@ -9,7 +9,14 @@ whole body keeps the safety distance from every obstacle, in two stages:
    the bending discs and z stroke. Projections that the validator finds
    safe are kept directly. This is where most goal configurations come from,
    in a few milliseconds.
-2. The safety-constrained NLP, solved with IPOPT from the remaining
+2. Push-out: projections on the target that come too close to an obstacle
+   move, all at once, along the tip constraint's null space up the gradient
+   of their body clearance (finite differences of the batched clearance;
+   each step asks for the missing clearance plus `PUSH_EXTRA` mm by the
+   linear model, at most `PUSH_STEP` mm of body motion), then back onto the
+   target by a few Newton steps. Most goal and start configurations the
+   projection misses come from here, in 2-5 ms instead of IPOPT's 5-30 ms.
+3. The safety-constrained NLP, solved with IPOPT from the remaining
    projections while fewer than the wanted number of safe configurations
    exist:
 
@@ -43,6 +50,11 @@ from crtraj.model.kinematics import Model
 from crtraj.planning.sampler import LIMIT_TOL
 from crtraj.planning.validity import MotionValidator
 from crtraj.world import packing
+
+PUSH_EXTRA = 2.0  # mm of clearance a push-out step asks for beyond the required one (overshoot, so few steps)
+PUSH_STEP = 40.0  # mm: largest body motion of one push-out step (the linear model's trust region)
+PUSH_FD = 1e-3  # mm of body motion per finite-difference step of the clearance gradient
+PUSH_NEWTON = 4  # Newton steps back onto the target after each push-out step
 
 
 @dataclass(frozen=True)
@@ -86,6 +98,7 @@ class SafeIK:
     the scene's safety distance and the final verification. max_obstacles: obstacle slots in the NLP
     (a scene may use fewer). margin: extra clearance (mm) the NLP keeps on top
     of the validator's, so solutions survive the validator's edge margins.
+    push_rounds: rounds of the push-out stage (`push_out`; 0 skips it).
     """
 
     def __init__(
@@ -97,6 +110,7 @@ class SafeIK:
         margin: float | None = None,
         tip_tolerance: float = 1e-3,
         max_iter: int = 60,
+        push_rounds: int = 12,
     ) -> None:
         self.model = model
         self.validator = validator
@@ -105,6 +119,7 @@ class SafeIK:
         self.margin = validator.resolution / 2.0 + 0.25 if margin is None else float(margin)
         self.tip_tolerance = float(tip_tolerance)
         self.max_iter = int(max_iter)
+        self.push_rounds = int(push_rounds)
         self._solver: ca.Function | None = None
         self._lbg = self._ubg = np.zeros(0)
         self._box = self.robot.config_box()
@@ -114,6 +129,8 @@ class SafeIK:
         self._tip_jac: dict[int, ca.Function] = {}
         Mx = validator.metric_matrix
         self._W_inv = np.linalg.inv(Mx.T @ Mx)
+        # finite-difference step per coordinate: PUSH_FD mm of body motion
+        self._fd = PUSH_FD / np.linalg.norm(Mx, axis=0)
         self._damping = 1e-3
         self._step = 150.0  # mm of tip error removed per Newton step at most
 
@@ -190,6 +207,69 @@ class SafeIK:
             X = self.validator.project_limits(X + dx)
         return X, err
 
+    def push_out(
+        self,
+        target: np.ndarray,
+        X: np.ndarray,
+        clear: np.ndarray,
+        *,
+        required: float,
+        rounds: int,
+        validator: MotionValidator,
+        t_check: tuple[float, float],
+        tol: float,
+        enough: int,
+        must: int = 0,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Move on-target configurations X (S, nx) with clearance `clear` (S,) mm below `required` until
+        they clear it, keeping the tip on `target` (mm).
+
+        Each round, every configuration still short steps along the null space
+        of its tip Jacobian (metric M, the smallest body motion for a given
+        clearance gain) up the forward-difference gradient of the validator's
+        clearance over `t_check`, asking the linear model for the missing
+        clearance plus PUSH_EXTRA mm (at most PUSH_STEP mm of body motion),
+        back into the limits and onto the target (PUSH_NEWTON Newton steps).
+        A configuration that loses the target (tip error > tol mm) drops out
+        with clearance -inf. Stops after `rounds` rounds, when none is short,
+        or once `enough` of them clear `required` and none of the first `must`
+        is still short. Returns (X, clearances), both new arrays.
+        """
+        # Clearances enter the arithmetic only rounded to 1e-9 mm: the compiled and the interpreted
+        # clearance differ by ~1e-14 mm, and rounding keeps their plans identical bit for bit.
+        X, clear = X.copy(), np.round(clear.astype(float), 9)
+        nx = X.shape[1]
+        steps = np.diag(self._fd)
+        short = np.flatnonzero(clear < required)
+        for _ in range(rounds):
+            if not len(short) or (np.count_nonzero(clear >= required) >= enough and short[0] >= must):
+                break
+            Xa, ca_ = X[short], clear[short]
+            probe = (Xa[:, None, :] + steps[None]).reshape(-1, nx)
+            cp = np.round(validator.clearance(probe, t_check[0], t_check[1]), 9).reshape(len(short), nx)
+            grad = (cp - ca_[:, None]) / self._fd
+            # ascent direction in the null space of the tip Jacobian, metric W = M^T M:
+            # d = W^-1 g - W^-1 J^T (J W^-1 J^T)^-1 J W^-1 g
+            _, J = self._tip_jacobian(Xa)
+            JW = J @ self._W_inv
+            A = JW @ np.transpose(J, (0, 2, 1)) + self._damping * np.eye(3)
+            Wg = grad @ self._W_inv
+            lam = np.linalg.solve(A, np.einsum("nij,nj->ni", J, Wg)[..., None])[..., 0]
+            d = Wg - np.einsum("nij,ni->nj", JW, lam)
+            gain = np.einsum("ni,ni->n", grad, d)  # predicted clearance gain (mm) per unit step
+            move = validator.motion_bound(d)
+            alpha = np.minimum(
+                (required + PUSH_EXTRA - ca_) / np.maximum(gain, 1e-12), PUSH_STEP / np.maximum(move, 1e-12)
+            )
+            Xn, err = self.project(target, validator.project_limits(Xa + alpha[:, None] * d), PUSH_NEWTON)
+            on = err <= tol
+            cn = np.full(len(short), -np.inf)
+            if on.any():
+                cn[on] = np.round(validator.clearance(Xn[on], t_check[0], t_check[1]), 9)
+            X[short], clear[short] = Xn, cn
+            short = short[on & (cn < required)]
+        return X, clear
+
     def _tip_jacobian(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Tips (S, 3) mm and tip Jacobians (S, 3, nx) of configurations X (S, nx): the validator's compiled
         kernel when it has one, else one mapped CasADi call."""
@@ -202,7 +282,9 @@ class SafeIK:
             f = self._tip_jac_single.map(S, "serial")
             self._tip_jac[S] = f
         P, J = f(X.T)
-        return np.asarray(P).T, np.asarray(J).reshape(3, S, self.robot.nx).transpose(1, 0, 2)
+        # contiguous like the kernel's arrays: numpy's batched products round differently on strided views
+        J = np.ascontiguousarray(np.asarray(J).reshape(3, S, self.robot.nx).transpose(1, 0, 2))
+        return np.ascontiguousarray(np.asarray(P).T), J
 
     # Long by design: the two IK stages share the seeds, the deadline and the running tally of safe solutions.
     def solve(
@@ -220,14 +302,17 @@ class SafeIK:
         tip_tolerance: float | None = None,
         max_nlp: int | None = None,
         always: tuple[int, ...] = (),
+        push_rounds: int | None = None,
     ) -> IKBatch:
         """Safe configurations with the tip on `target` (mm), from seed configurations (S, nx).
 
         Stage 1 projects every seed onto the tip constraint at once
         (`project`) and keeps the projections that the validator finds safe
         with the NLP's margin. Stage 2, while fewer than `want` distinct safe
-        configurations exist, solves the safety-constrained NLP with IPOPT from
-        the remaining projections (most promising first: highest clearance,
+        configurations exist (or an `always` seed is not safe), pushes the
+        on-target projections out of the obstacles (`push_out`). Stage 3, while
+        still fewer exist, solves the safety-constrained NLP with IPOPT from
+        the remaining configurations (most promising first: highest clearance,
         then smallest tip error). scene_pack: `Scene.pack` / `Scene.pack_over`
         output for the NLP's obstacles; t_check: the time window (s) the
         validator re-verifies every solution over. dedup: solutions closer
@@ -237,9 +322,10 @@ class SafeIK:
         it must share the robot, check points and resolution). tip_tolerance:
         largest accepted tip error (mm; default the one given at construction).
         max_nlp: at most this many NLP solves (default: one per remaining seed).
-        always: seed indices whose projection, if not safe, gets an NLP solve
-        first, even when enough configurations exist (e.g. the start
+        always: seed indices whose projection, if not safe, is pushed out
+        and then gets an NLP solve first, even when enough configurations exist (e.g. the start
         configuration as a seed: the safe goal configuration nearest to it).
+        push_rounds: rounds of the push-out stage (default the one given at construction; 0 skips it).
         """
         t_start = time.perf_counter()
         v = self.validator if validator is None else validator
@@ -280,12 +366,41 @@ class SafeIK:
                     keep(X[i])
             if len(kept) >= want or done_it >= newton_iterations:
                 break
-        converged = err <= tol
         statuses: dict[str, int] = {"projection": int(good.sum())}
+        forced = [i for i in always if 0 <= i < S and not good[i]]
+        rounds = self.push_rounds if push_rounds is None else int(push_rounds)
+        if rounds > 0 and (len(kept) < want or forced):
+            # push out the on-target projections that came too close, most promising first (forced ones first)
+            cand = np.flatnonzero(checked & ~good & (err <= tol))
+            cand = cand[np.argsort(-clear[cand], kind="stable")]
+            others = [i for i in cand if i not in forced] if len(kept) < want else []
+            cand = np.concatenate([[i for i in forced if i in cand], others])
+            cand = cand.astype(int)
+            if len(cand):
+                X[cand], clear[cand] = self.push_out(
+                    target,
+                    X[cand],
+                    clear[cand],
+                    required=required,
+                    rounds=rounds,
+                    validator=v,
+                    t_check=t_check,
+                    tol=tol,
+                    enough=max(want - len(kept), 0),
+                    must=sum(1 for i in forced if i in cand),
+                )
+                err[cand] = np.linalg.norm(self.model.tip_position(X[cand]) - target, axis=1)
+                ok = (clear[cand] >= required) & (err[cand] <= tol) & v.within_limits(X[cand])
+                good[cand] = ok
+                for i in cand[ok]:
+                    sols.append(IKSolution(X[i], "push-out", True, float(err[i]), float(clear[i]), True, 0.0))
+                    keep(X[i])
+                statuses["push-out"] = int(ok.sum())
+        converged = err <= tol
         # most promising first: converged (by clearance), then by tip error
         rest = np.flatnonzero(~good)
         order = rest[np.lexsort((err[rest], -np.where(converged[rest], clear[rest], -np.inf)))]
-        forced = [i for i in always if 0 <= i < S and not good[i]]
+        forced = [i for i in forced if not good[i]]
         order = np.concatenate([forced, [i for i in order if i not in forced]]).astype(int)
         inflate = v.inflate + self.margin
         if max_nlp is not None:
