@@ -255,13 +255,27 @@ def test_push_out_steps_keep_the_tip_and_raise_the_clearance(sim1, validator):
     near = (err <= 1e-3) & (c < 0.0) & (c > -30.0)
     assert near.sum() >= 2
     X1, c1 = ik.push_out(
-        goal, X[near], c[near], required=1.5, rounds=1, validator=validator, t_check=(0.0, 0.0), tol=1e-3, enough=99
+        goal, X[near], required=1.5, rounds=1, validator=validator, t_check=(0.0, 0.0), tol=1e-3, enough=99
     )
     on = np.isfinite(c1)
     assert on.any()
     np.testing.assert_allclose(model.tip_position(X1[on]), np.tile(goal, (on.sum(), 1)), atol=1e-3)
     np.testing.assert_allclose(c1[on], validator.clearance(X1[on]), atol=1e-8)
     assert np.all(c1[on] > c[near][on])
+    # a deadline already passed: no round runs, nothing moves
+    X0, c0 = ik.push_out(
+        goal,
+        X[near],
+        required=1.5,
+        rounds=5,
+        validator=validator,
+        t_check=(0.0, 0.0),
+        tol=1e-3,
+        enough=99,
+        deadline=0.0,
+    )
+    np.testing.assert_array_equal(X0, X[near])
+    np.testing.assert_allclose(c0, c[near], atol=1e-8)
 
 
 def test_safe_ik_unreachable_target(sim1, validator):

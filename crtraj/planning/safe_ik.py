@@ -211,7 +211,6 @@ class SafeIK:
         self,
         target: np.ndarray,
         X: np.ndarray,
-        clear: np.ndarray,
         *,
         required: float,
         rounds: int,
@@ -220,8 +219,9 @@ class SafeIK:
         tol: float,
         enough: int,
         must: int = 0,
+        deadline: float | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Move on-target configurations X (S, nx) with clearance `clear` (S,) mm below `required` until
+        """Move on-target configurations X (S, nx) whose clearance (validator, mm) is below `required` until
         they clear it, keeping the tip on `target` (mm).
 
         Each round, every configuration still short steps along the null space
@@ -233,16 +233,20 @@ class SafeIK:
         A configuration that loses the target (tip error > tol mm) drops out
         with clearance -inf. Stops after `rounds` rounds, when none is short,
         or once `enough` of them clear `required` and none of the first `must`
-        is still short. Returns (X, clearances), both new arrays.
+        is still short, or once `time.perf_counter()` passes `deadline`.
+        Returns (X, clearances), both new arrays.
         """
         # Clearances enter the arithmetic only rounded to 1e-9 mm: the compiled and the interpreted
         # clearance differ by ~1e-14 mm, and rounding keeps their plans identical bit for bit.
-        X, clear = X.copy(), np.round(clear.astype(float), 9)
+        X = np.array(X, dtype=float)
+        clear = np.round(validator.clearance(X, t_check[0], t_check[1]), 9)  # the finite differences' base
         nx = X.shape[1]
         steps = np.diag(self._fd)
         short = np.flatnonzero(clear < required)
         for _ in range(rounds):
             if not len(short) or (np.count_nonzero(clear >= required) >= enough and short[0] >= must):
+                break
+            if deadline is not None and time.perf_counter() > deadline:
                 break
             Xa, ca_ = X[short], clear[short]
             probe = (Xa[:, None, :] + steps[None]).reshape(-1, nx)
@@ -380,7 +384,6 @@ class SafeIK:
                 X[cand], clear[cand] = self.push_out(
                     target,
                     X[cand],
-                    clear[cand],
                     required=required,
                     rounds=rounds,
                     validator=v,
@@ -388,6 +391,7 @@ class SafeIK:
                     tol=tol,
                     enough=max(want - len(kept), 0),
                     must=sum(1 for i in forced if i in cand),
+                    deadline=deadline,
                 )
                 err[cand] = np.linalg.norm(self.model.tip_position(X[cand]) - target, axis=1)
                 ok = (clear[cand] >= required) & (err[cand] <= tol) & v.within_limits(X[cand])
