@@ -455,7 +455,7 @@ class Replanner:
         lo, hi = self.step_windows(float(t0))
         if scene.n_obstacles == 0:
             return self._inflated(np.zeros((self.N, 0, 3)), np.zeros((self.N, 0)))
-        centers, radii = scene.enclosing_spheres(lo, hi)  # (N, M, 3), (N, M)
+        centers, radii = scene.swept_spheres(lo, hi)  # (N, M, 3), (N, M)
         return self._inflated(centers, radii)
 
     def obstacles_from_states(

@@ -1,7 +1,7 @@
 """Safety-constrained inverse kinematics from many seeded starts.
 
 Finds configurations x whose tip is exactly on a target point and whose
-whole body keeps the safety distance from every obstacle, in two stages:
+whole body keeps the safety distance from every obstacle, in three stages:
 
 1. Batch projection: every seed configuration takes damped-Newton steps onto
    tip(x) = target at once (one CasADi call per step for all seeds), each
@@ -201,11 +201,15 @@ class SafeIK:
             if _ == iterations or np.all(err < self.tip_tolerance):
                 break
             e *= np.minimum(1.0, self._step / np.maximum(err, 1e-300))[:, None]
-            JW = J @ self._W_inv
-            A = JW @ np.transpose(J, (0, 2, 1)) + self._damping * np.eye(3)
-            dx = np.einsum("nij,ni->nj", JW, np.linalg.solve(A, e[..., None])[..., 0])
-            X = self.validator.project_limits(X + dx)
+            X = self.validator.project_limits(X + self._tip_move(J, e))
         return X, err
+
+    def _tip_move(self, J: np.ndarray, r: np.ndarray) -> np.ndarray:
+        """The smallest body motions dx (S, nx) (metric W = M^T M, damped) with J dx = r: tip Jacobians J
+        (S, 3, nx), tip changes r (S, 3) mm. dx = W^-1 J^T (J W^-1 J^T + damping I)^-1 r."""
+        JW = J @ self._W_inv
+        A = JW @ np.transpose(J, (0, 2, 1)) + self._damping * np.eye(3)
+        return np.einsum("nij,ni->nj", JW, np.linalg.solve(A, r[..., None])[..., 0])
 
     def push_out(
         self,
@@ -252,14 +256,11 @@ class SafeIK:
             probe = (Xa[:, None, :] + steps[None]).reshape(-1, nx)
             cp = np.round(validator.clearance(probe, t_check[0], t_check[1]), 9).reshape(len(short), nx)
             grad = (cp - ca_[:, None]) / self._fd
-            # ascent direction in the null space of the tip Jacobian, metric W = M^T M:
-            # d = W^-1 g - W^-1 J^T (J W^-1 J^T)^-1 J W^-1 g
+            # ascent direction in the null space of the tip Jacobian, metric W = M^T M: the steepest
+            # ascent W^-1 g minus the smallest motion that undoes its tip change
             _, J = self._tip_jacobian(Xa)
-            JW = J @ self._W_inv
-            A = JW @ np.transpose(J, (0, 2, 1)) + self._damping * np.eye(3)
             Wg = grad @ self._W_inv
-            lam = np.linalg.solve(A, np.einsum("nij,nj->ni", J, Wg)[..., None])[..., 0]
-            d = Wg - np.einsum("nij,ni->nj", JW, lam)
+            d = Wg - self._tip_move(J, np.einsum("nij,nj->ni", J, Wg))
             gain = np.einsum("ni,ni->n", grad, d)  # predicted clearance gain (mm) per unit step
             move = validator.motion_bound(d)
             alpha = np.minimum(
@@ -290,7 +291,7 @@ class SafeIK:
         J = np.ascontiguousarray(np.asarray(J).reshape(3, S, self.robot.nx).transpose(1, 0, 2))
         return np.ascontiguousarray(np.asarray(P).T), J
 
-    # Long by design: the two IK stages share the seeds, the deadline and the running tally of safe solutions.
+    # Long by design: the three IK stages share the seeds, the deadline and the running tally of safe solutions.
     def solve(
         self,
         target: np.ndarray,
@@ -374,12 +375,15 @@ class SafeIK:
         forced = [i for i in always if 0 <= i < S and not good[i]]
         rounds = self.push_rounds if push_rounds is None else int(push_rounds)
         if rounds > 0 and (len(kept) < want or forced):
-            # push out the on-target projections that came too close, most promising first (forced ones first)
-            cand = np.flatnonzero(checked & ~good & (err <= tol))
-            cand = cand[np.argsort(-clear[cand], kind="stable")]
-            others = [i for i in cand if i not in forced] if len(kept) < want else []
-            cand = np.concatenate([[i for i in forced if i in cand], others])
-            cand = cand.astype(int)
+            # push out the on-target projections that came too close: the forced ones first, then (while
+            # configurations are missing) the others, most promising (highest clearance) first
+            near = checked & ~good & (err <= tol)
+            is_forced = np.zeros(S, dtype=bool)
+            is_forced[forced] = True
+            others = np.flatnonzero(near & ~is_forced) if len(kept) < want else np.zeros(0, dtype=int)
+            others = others[np.argsort(-clear[others], kind="stable")]
+            front = [i for i in forced if near[i]]
+            cand = np.concatenate([front, others]).astype(int)
             if len(cand):
                 X[cand], clear[cand] = self.push_out(
                     target,
@@ -390,7 +394,7 @@ class SafeIK:
                     t_check=t_check,
                     tol=tol,
                     enough=max(want - len(kept), 0),
-                    must=sum(1 for i in forced if i in cand),
+                    must=len(front),
                     deadline=deadline,
                 )
                 err[cand] = np.linalg.norm(self.model.tip_position(X[cand]) - target, axis=1)

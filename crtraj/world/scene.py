@@ -80,6 +80,10 @@ class Scene:
             "w": np.array([o.omega for o in obs], dtype=float),
             "p": np.array([o.phase for o in obs], dtype=float),
         }
+        # the same fields as rows of numbers (M, 12) for compiled code (`motion_table`): built once, not per call
+        cols = (arr["c0"], arr["d"], arr["dur"][:, None], arr["code"][:, None].astype(float))
+        cols += tuple(arr[k][:, None] for k in ("A", "B", "w", "p"))
+        arr["table"] = np.ascontiguousarray(np.concatenate(cols, axis=1))
         for v in arr.values():
             v.setflags(write=False)
         object.__setattr__(self, "_arr", arr)
@@ -189,11 +193,8 @@ class Scene:
     def motion_table(self) -> np.ndarray:
         """Every obstacle's motion and breathing as rows of numbers (M, 12), for compiled code:
         start centre (3) mm, displacement (3) mm, duration s, profile code (0 linear, 1 sin, 2 cos),
-        mean radius A mm, amplitude B mm, angular rate w rad/s, phase rad (`Obstacle`'s fields)."""
-        a = self._arr
-        cols = (a["c0"], a["d"], a["dur"][:, None], a["code"][:, None].astype(float))
-        cols += tuple(a[k][:, None] for k in ("A", "B", "w", "p"))
-        return np.ascontiguousarray(np.concatenate(cols, axis=1))
+        mean radius A mm, amplitude B mm, angular rate w rad/s, phase rad (`Obstacle`'s fields). Read-only."""
+        return self._arr["table"]
 
     # -------------------------------------------------------------- clearance
     def _points(self, points: Any) -> np.ndarray:
@@ -294,17 +295,8 @@ class Scene:
         Centre: middle of the swept segment; radius: exact max radius plus half
         the segment length. Conservative (encloses the capsule of `swept`).
         """
-        centers, radii = self.enclosing_spheres(float(t0), float(t1))
+        centers, radii = self.swept_spheres(float(t0), float(t1))
         return packing.pack(centers, radii, max_obstacles)
-
-    def enclosing_spheres(self, t0: Any, t1: Any) -> tuple[np.ndarray, np.ndarray]:
-        """One sphere per obstacle enclosing all of it over [t0, t1]: (centres S + (M, 3), radii S + (M,)) mm.
-
-        Centre: middle of the swept segment (`swept`); radius: the exact max
-        radius over the interval plus half the segment length.
-        """
-        a, b, rmax = self.swept(t0, t1)
-        return 0.5 * (a + b), rmax + 0.5 * np.linalg.norm(b - a, axis=-1)
 
     # ---------------------------------------------------------------- helpers
     def with_time_shift(self, dt: float) -> Scene:
