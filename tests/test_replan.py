@@ -9,7 +9,15 @@ import numpy as np
 import pytest
 from conftest import PLANNER_HANG_S
 
-from crtraj.control.horizon import HorizonResult, HorizonStatus, Replanner, ReplanOptions, horizon_status
+from crtraj.control.horizon import (
+    HorizonResult,
+    HorizonStatus,
+    Replanner,
+    ReplanOptions,
+    horizon_status,
+    implied_rows,
+    merge_parallel_rows,
+)
 from crtraj.core.errors import InputError
 from crtraj.core.fields import Table
 from crtraj.world import packing
@@ -240,3 +248,87 @@ def test_horizon_status_is_one_word_for_the_solve():
     assert horizon_status(True, np.full((3, 5), np.nan), 0.0) is HorizonStatus.FAILED
     res = HorizonResult(ok, ok[:, :3], HorizonStatus.FEASIBLE, "Maximum_Iterations_Exceeded", 60, 0.1, 1.0, 2.0, 0.0)
     assert res.feasible and not res.is_success()
+
+
+class _WrongFirstGuess(Replanner):
+    """The screened NLP's first selection is the points FARTHEST from each obstacle (a wrong guess of the
+    active points); later selections are the real ones."""
+
+    guesses = 0
+
+    def _closest(self, xs, obstacles):
+        self.guesses += 1
+        if self.guesses > 1:
+            return super()._closest(xs, obstacles)
+        d = self._distances(np.asarray(xs, dtype=float), obstacles)
+        return np.sort(np.argsort(-d, axis=-1, kind="stable")[..., : self._K], axis=-1)
+
+
+@pytest.mark.parametrize("t0, frac", [(3.0, 0.25), (2.0, 0.4), (4.0, 0.1)])
+def test_the_screened_qp_reaches_the_full_nlp_optimum(model, scene, t0, frac):
+    """Keeping only the closest points per obstacle and step in the QP gives the optimum of the NLP with
+    every point (same cost, same configurations), and every point keeps its distance."""
+    opts = ReplanOptions(horizon=8, points=14, solver="sqp", rescue=False)
+    full = Replanner(model, replace(opts, closest_points=0), max_obstacles=2, safety_distance=5.0)
+    x0 = XS + frac * (XG - XS)
+    Xr = _straight_reference(x0, XG, full.N, 0.12)
+    O = full.obstacles_from_scene(scene, t0)
+    ref = full.solve(x0, Xr, O)
+    assert ref.is_success() and ref.min_distance < 1e-3, ref.solver_status  # an obstacle row is active
+    for k in (1, 3):
+        rp = Replanner(model, replace(opts, closest_points=k), max_obstacles=2, safety_distance=5.0)
+        assert rp.describe()["qp_obstacle_rows"] == k * 2 * rp.N < rp.describe()["obstacle_constraints"]
+        res = rp.solve(x0, Xr, O)
+        assert res.is_success(), res.solver_status
+        assert abs(res.cost - ref.cost) <= 1e-6 * ref.cost
+        assert np.max(np.abs(res.configs - ref.configs)) <= 1e-4
+        # every point of every step, the NLP's own rows recomputed independently
+        P = model.points(res.configs, 14)  # (N, 14, 3)
+        c, rho, _ = packing.unpack(O)
+        dist = np.linalg.norm(P[:, None] - c[:, :, None], axis=-1) - rho[:, :, None]
+        assert np.min(dist) >= -1e-6 and abs(res.min_distance - np.min(dist)) <= 1e-9
+
+
+def test_a_wrong_guess_of_the_active_points_is_solved_again(model, scene):
+    """When the QP's points leave out one that then enters its sphere, the solve is redone with the points
+    closest at that solution; the result is the full NLP's optimum and keeps every point clear."""
+    opts = ReplanOptions(horizon=8, points=14, solver="sqp", rescue=False, closest_points=2)
+    x0 = XS + 0.25 * (XG - XS)
+    full = Replanner(model, replace(opts, closest_points=0), max_obstacles=2, safety_distance=5.0)
+    Xr = _straight_reference(x0, XG, full.N, 0.12)
+    O = full.obstacles_from_scene(scene, 3.0)
+    ref = full.solve(x0, Xr, O)
+    rp = _WrongFirstGuess(model, opts, max_obstacles=2, safety_distance=5.0)
+    res = rp.solve(x0, Xr, O)
+    assert res.extra["screen_solves"] >= 2 and rp.guesses >= 2
+    assert res.is_success(), res.solver_status
+    assert abs(res.cost - ref.cost) <= 1e-6 * ref.cost
+    P = model.points(res.configs, 200)
+    d = np.linalg.norm(P - np.array(BALL.center), axis=-1).min(axis=1)
+    for k in range(rp.N):
+        tt = np.linspace(3.0 + k * rp.options.dt, 3.0 + (k + 2) * rp.options.dt, 41)
+        assert d[k] >= _radius(BALL, tt).max() + 5.0 + model.robot.body_radius - 1e-6
+
+
+def test_a_screened_solve_that_never_clears_is_not_ok(model, scene):
+    """Only one solve allowed and a wrong first guess: the omitted point stays inside, and the result says
+    so (failed, the depth in the status), never solved."""
+    opts = ReplanOptions(horizon=8, points=14, solver="sqp", rescue=False, closest_points=2)
+    rp = _WrongFirstGuess(model, opts, max_obstacles=2, safety_distance=5.0)
+    x0 = XS + 0.25 * (XG - XS)
+    Xr = _straight_reference(x0, XG, rp.N, 0.12)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr("crtraj.control.horizon.SCREEN_SOLVES", 1)
+        res = rp.solve(x0, Xr, rp.obstacles_from_scene(scene, 3.0), warm=False)
+    assert res.status is HorizonStatus.FAILED and not res.feasible
+    assert "omitted point stays" in res.solver_status and res.min_distance < -1e-6
+
+
+def test_parallel_rate_rows_merge_to_the_tighter_bound():
+    # rows 2 and 4 are multiples of row 1: |2 v0| <= 4 is |v0| <= 2, |-3 v0| <= 9 is |v0| <= 3
+    R, b = merge_parallel_rows(np.array([[1.0, 0.0], [2.0, 0.0], [0.0, 1.0], [-3.0, 0.0]]), np.array([5, 4, 1, 9.0]))
+    assert np.array_equal(R, [[1.0, 0.0], [0.0, 1.0]]) and np.array_equal(b, [2.0, 1.0])
+    # |3 (d_k - d_k-1)| <= 12 follows from |d| <= 2 at both steps (3 * 2 * 2 = 12); 11.9 does not
+    speed, vb = np.array([[1.0, 0.0]]), np.array([2.0])
+    acc = np.array([[3.0, 0.0], [0.0, 1.0], [-3.0, 0.0]])
+    assert implied_rows(speed, vb, acc, np.array([12.0, 1.0, 11.9])).tolist() == [True, False, False]

@@ -36,6 +36,17 @@ arc stays within the sagitta of its chord. `margin` (mm) absorbs the servo
 lag of the real robot. With ``safety = false`` the obstacle constraints are
 left out (the paper's simulation 2, Fig. 4(b)).
 
+Each QP keeps only the `closest_points` (K) backbone points per obstacle and step that are nearest to
+it at the point the solve starts from (the shifted previous solution): K one-hot columns of a
+parameter pick them, so the NLP is still built once, and the QP has K M N obstacle rows instead of
+n M N (the QP solver's work grows with its rows). Every point of every step is checked at the
+solution; if an omitted one is inside its sphere, the solve is repeated from there with the points
+nearest there (`SCREEN_SOLVES`). A solution whose omitted rows all hold is a KKT point of the full
+NLP as well (zero multipliers on those rows), so a SOLVED status means the same with or without
+screening. The rescue (IPOPT) solves the full NLP. The speed rows of the actuator limits that are
+parallel to the rate rows are merged into them, and the acceleration rows that the speed rows imply
+(from step 2 on) are left out (`merge_parallel_rows`, `implied_rows`).
+
 Obstacles, current state and reference are parameters of one `casadi.nlpsol`
 built at construction (the "compile once, call repeatedly" pattern of
 rockit's repeated_solve example); each solve is warm-started from the
@@ -88,13 +99,19 @@ MOVED_TO_LOOP = (
 # stream's follower (`crtraj.hardware.link`).
 INTERPOLATION_GAIN = 2.0
 
+# With `closest_points`, at most this many solves of the QP's NLP per call of the solver: a solution that
+# leaves an omitted point inside its sphere is solved again with the closest points there.
+SCREEN_SOLVES = 3
+
 
 @dataclass(frozen=True)
 class ReplanOptions(Options):
     """The ``[replan]`` problem section (units mm, rad, s).
 
     Horizon NLP: horizon N (steps), dt (s per step), points (backbone points
-    constrained per configuration), margin (mm of clearance kept on top of
+    constrained per configuration), closest_points (0 = all: how many of
+    those points per obstacle and step the QP keeps, see `Replanner`),
+    margin (mm of clearance kept on top of
     D_sf + body radius + sampling bounds, for servo lag), weights
     (tip_weight, config_weight, velocity_weight, smooth_weight,
     terminal_weight; see the module docstring), max_cable_speed and
@@ -125,6 +142,7 @@ class ReplanOptions(Options):
     horizon: int = option(10, ge=1, le=200)
     dt: float = option(0.1, ge=1e-3, le=10.0)
     points: int = option(16, ge=2, le=200)
+    closest_points: int = option(3, ge=0, le=200)
     margin: float = option(1.5, ge=0.0)
     tip_weight: float = option(1.0, ge=0.0)
     config_weight: float = option(0.01, ge=0.0)
@@ -137,7 +155,7 @@ class ReplanOptions(Options):
     qpsol: str = option("daqp", choices=QP_SOLVERS)
     hessian: str = option("gauss-newton", choices=HESSIANS)
     max_iter: int = option(60, ge=1, le=100_000)
-    tol: float = option(1e-6, gt=0.0, le=1.0)
+    tol: float = option(1e-4, gt=0.0, le=1.0)
     max_solve_time: float = option(0.5, gt=0.0, le=3600.0)
     limit_fraction: float = option(0.9, gt=0.0, le=1.0)
     rescue: bool = option(True)
@@ -222,6 +240,44 @@ def sagitta(robot: Any, spacing: float) -> float:
     return float((1.0 - math.cos(half)) / kappa)
 
 
+def _multiple(row: np.ndarray, base: np.ndarray) -> float:
+    """s with row = s base (to 1e-12 relative), else 0."""
+    s = float(row @ base) / float(base @ base) if base.any() else 0.0
+    return s if s != 0.0 and np.max(np.abs(row - s * base)) <= 1e-12 * np.max(np.abs(row)) else 0.0
+
+
+def merge_parallel_rows(rows: np.ndarray, bound: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Constraints |rows @ v| <= bound (rows (m, n), bound (m,)) without repeats.
+
+    A row that is a nonzero multiple s of an earlier kept row states the same constraint as
+    |earlier @ v| <= bound_i / |s|: it is dropped and the earlier row keeps the tighter bound.
+    Returns (rows (k, n), bounds (k,)) in first-seen order.
+    """
+    R = np.asarray(rows, dtype=float)
+    b = np.array(bound, dtype=float).reshape(len(R))
+    keep: list[int] = []
+    for i, r in enumerate(R):
+        for j in keep:
+            s = _multiple(r, R[j])
+            if s:
+                b[j] = min(b[j], b[i] / abs(s))
+                break
+        else:
+            keep.append(i)
+    return R[keep].copy(), b[keep]
+
+
+def implied_rows(speed: np.ndarray, speed_bound: np.ndarray, acc: np.ndarray, acc_bound: np.ndarray) -> np.ndarray:
+    """Which acceleration rows (|acc @ (dx_k - dx_k-1)| <= acc_bound) the speed rows (|speed @ dx| <=
+    speed_bound, at both steps) imply: a multiple s of a speed row with |s| 2 speed_bound <= acc_bound.
+    Boolean (len(acc),)."""
+    out = np.zeros(len(acc), dtype=bool)
+    for i, r in enumerate(acc):
+        scales = [abs(_multiple(r, base)) for base in speed]
+        out[i] = any(s > 0.0 and s * 2.0 * b <= acc_bound[i] for s, b in zip(scales, speed_bound, strict=True))
+    return out
+
+
 class Replanner:
     """The horizon NLP for one robot and at most `max_obstacles` obstacles, built once.
 
@@ -256,6 +312,7 @@ class Replanner:
         self._A = A
         self.step_limit = np.append(np.full(3 * r.n_segments, o.max_cable_speed), o.max_z_speed) * o.dt  # mm
         self._box = r.config_box()
+        self._box_lo, self._box_hi = np.tile(self._box[0], self.N), np.tile(self._box[1], self.N)
         self._scale = np.append(np.repeat([s.length for s in r.segments], 2), 1.0)
         self.rate_limits = None if rate_limits is None else rate_limits.scaled(o.limit_fraction)
         if self.rate_limits is not None and self.rate_limits.jacobian.shape[1] != self.nx:
@@ -263,6 +320,9 @@ class Replanner:
                 f"rate_limits: written for {self.rate_limits.jacobian.shape[1]} configuration coordinates, "
                 f"robot {r.name!r} has {self.nx}"
             )
+        # points per obstacle and step in the QP (0: all of them)
+        screens = o.safety and self.max_obstacles > 0 and 0 < o.closest_points < o.points
+        self._K = o.closest_points if screens else 0
         self._build()
         self._warm: dict[str, np.ndarray] | None = None
         self.solve_count = 0
@@ -291,74 +351,122 @@ class Replanner:
         r_vec = ca.vertcat(*res)
         f = ca.sumsqr(r_vec)
         g, lbg, ubg = [], [], []
-        # rate limits on every actuator (linear in x)
-        g.append(ca.vec(ca.DM(self._A) @ dX))
-        lbg.append(np.tile(-self.step_limit, N))
-        ubg.append(np.tile(self.step_limit, N))
-        widths = [self.nq]
+        # per-step limits on each actuator's change (linear in x): the mm/s rate limits and, with actuator
+        # limits, their speed limits, one row per direction (`merge_parallel_rows`: a speed row parallel to
+        # a rate row would be the same constraint twice, and every QP row costs the QP solver time)
         rl = self.rate_limits
+        speed_rows = [self._A] if rl is None else [self._A, rl.jacobian]
+        speed_bounds = [self.step_limit] if rl is None else [self.step_limit, rl.vmax * o.dt]
+        Rv, bv = merge_parallel_rows(np.vstack(speed_rows), np.concatenate(speed_bounds))
+        blocks = [(Rv, bv, dX)]
         if rl is not None:
-            # actuator speed and acceleration (k = 1 uses x_-1, the previous applied step): linear rows
-            Jr = ca.DM(rl.jacobian)
-            for expr, bound in ((dX, rl.vmax * o.dt), (ddX, rl.amax * o.dt**2)):
-                g.append(ca.vec(Jr @ expr))
-                lbg.append(np.tile(-bound, N))
-                ubg.append(np.tile(bound, N))
-                widths.append(len(bound))
+            # actuator acceleration (k = 1 uses x_-1, the previous applied step). From step 2 on, a row
+            # parallel to a speed row whose two steps cannot differ by more than the acceleration bound
+            # (|s| 2 b_speed <= b_acc) is implied by the speed rows of steps k and k-1, and left out; step 1's
+            # is kept, since the measured step before it is not bounded by this NLP.
+            Ra, ba = merge_parallel_rows(rl.jacobian, rl.amax * o.dt**2)
+            implied = implied_rows(Rv, bv, Ra, ba)
+            blocks.append((Ra[~implied], ba[~implied], ddX))
+            if implied.any():
+                blocks.append((Ra[implied], ba[implied], ddX[:, :1]))
+        widths = []
+        for R, bound, expr in blocks:
+            if not len(bound):
+                continue
+            steps = expr.size2()
+            g.append(ca.vec(ca.DM(R) @ expr))
+            lbg.append(np.tile(-bound, steps))
+            ubg.append(np.tile(bound, steps))
+            widths.append((len(bound), steps))
         # actuation limits
         lim = model.limits.map(N)(X)
         lo, hi = model.limit_bounds()
         g.append(ca.vec(lim))
         lbg.append(np.tile(lo, N))
         ubg.append(np.tile(hi, N))
-        widths.append(len(lo))
+        widths.append((len(lo), N))
         self._n_lin = int(sum(len(b) for b in lbg))
+        p = ca.vertcat(x0, xm1, ca.vec(Xr), ca.vec(Pr), ca.vec(O))
+        self._np = int(p.numel())
+        self._n_obstacle_p = int(O.numel())  # the obstacle slots are the parameter vector's last entries
+        xv = ca.vec(X)
+        n, K = o.points, self._K
+        self._all_distance: ca.Function | None = None
+        # what the compiled KKT check returns besides the residual: every obstacle row and the tips
+        self._checked: tuple[ca.SX, ca.SX] = (ca.SX(0, 1), ca.vec(tips))
+        # the full NLP (every point of every step against every obstacle) and the QP's NLP, which keeps
+        # only the K closest points per obstacle and step (`closest_points`; the same NLP when K = 0)
+        g_full, g_red, p_red = list(g), list(g), p
+        lb_full, lb_red = list(lbg), list(lbg)
         if o.safety and M > 0:
-            n = o.points
             x = ca.SX.sym("x", nx)
             ob = ca.SX.sym("ob", packing.WIDTH * M)
+            sel = ca.SX.sym("sel", n, max(K, 1) * M)
             pts = model.backbone_function(n)(x)  # 3 x n
-            d = []
+            d, ds = [], []
             for i in range(M):
                 # the slot's radius is the inflated rho (`_inflated`); padding has rho = 0 at 1e6 mm
                 c, rho, _ = packing.slot(ob, i)
                 diff = pts - ca.repmat(c, 1, n)
                 d.append(ca.sqrt(ca.sum1(diff * diff) + 1e-9).T - rho)
+                if K:
+                    # slot (i, j) is one backbone point, chosen by a one-hot column of `sel`
+                    P = pts @ sel[:, i * K : (i + 1) * K]
+                    diff = P - ca.repmat(c, 1, K)
+                    ds.append(ca.sqrt(ca.sum1(diff * diff) + 1e-9).T - rho)
             dist = ca.Function("horizon_distance", [x, ob], [ca.vertcat(*d)], {"cse": True})
             D = dist.map(N)(X, O)  # (n M) x N
-            g.append(ca.vec(D))
-            lbg.append(np.zeros(n * M * N))
-            ubg.append(np.full(n * M * N, np.inf))
-        self._n_dist = int(o.points * M * N) if (o.safety and M > 0) else 0
+            g_full.append(ca.vec(D))
+            self._checked = (ca.vec(D), ca.vec(tips))
+            lb_full.append(np.zeros(n * M * N))
+            tag = f"{self.robot.n_segments}s_{M}o_{N}n"
+            self._all_distance = ca.Function(f"horizon_all_distance_{tag}", [xv, ca.vec(O)], [D], {"cse": True})
+            if K:
+                slots = ca.Function("horizon_slot_distance", [x, ob, ca.vec(sel)], [ca.vertcat(*ds)], {"cse": True})
+                Sel = ca.SX.sym("selection", n * K * M, N)
+                g_red.append(ca.vec(slots.map(N)(X, O, Sel)))
+                lb_red.append(np.zeros(K * M * N))
+                p_red = ca.vertcat(p, ca.vec(Sel))
+            else:
+                g_red, lb_red = g_full, lb_full
+        self._n_dist = int(n * M * N) if (o.safety and M > 0) else 0
         if self._n_dist:
-            widths.append(self._n_dist // N)
-        self._widths = tuple(widths)  # rows per step of each constraint block (all laid out step by step)
-        gv = ca.vertcat(*g)
-        self._lbg = np.concatenate(lbg)
-        self._ubg = np.concatenate(ubg)
-        p = ca.vertcat(x0, xm1, ca.vec(Xr), ca.vec(Pr), ca.vec(O))
-        self._np = int(p.numel())
-        xv = ca.vec(X)
-        nlp = {"x": xv, "p": p, "f": f, "g": gv}
-        hess: dict[str, ca.Function] = {}
-        if o.hessian == "gauss-newton":
-            # Gauss-Newton Hessian of the least-squares cost: positive semidefinite, so every
-            # QP of the SQP path is convex (daqp and qrqp need that), and much cheaper to
-            # evaluate than the exact Hessian of hundreds of distance constraints.
-            lam_f = ca.SX.sym("lam_f")
-            lam_g = ca.SX.sym("lam_g", gv.numel())
-            Jr = ca.jacobian(r_vec, xv)
-            H = 2 * lam_f * (Jr.T @ Jr) + 1e-9 * ca.SX.eye(xv.numel())
-            # ipopt wants the upper triangle, sqpmethod the full symmetric matrix
-            hess["ipopt"] = ca.Function("nlp_hess_l", [xv, p, lam_f, lam_g], [ca.triu(H)], {"cse": True})
-            hess["sqp"] = ca.Function("nlp_hess_l", [xv, p, lam_f, lam_g], [H], {"cse": True})
-        self.solver = self._solver(o.solver, nlp, hess.get(o.solver))
+            widths.append(((K or n) * M, N))
+        # (rows per step, steps) of each constraint block of the QP's NLP, laid out step by step
+        self._widths = tuple(widths)
+        self._lbg_full = np.concatenate(lb_full)
+        self._ubg_full = np.concatenate([*ubg, np.full(len(self._lbg_full) - self._n_lin, np.inf)])
+        self._lbg = np.concatenate(lb_red)
+        self._ubg = np.concatenate([*ubg, np.full(len(self._lbg) - self._n_lin, np.inf)])
+        nlp_full = {"x": xv, "p": p, "f": f, "g": ca.vertcat(*g_full)}
+        nlp = {"x": xv, "p": p_red, "f": f, "g": ca.vertcat(*g_red)}
+        self.solver = self._solver(o.solver, nlp, self._gauss_newton(r_vec, xv, p_red, len(self._lbg), o.solver))
         self.compiled_message = ""
         self._compiled: tuple[CompiledFunction, CompiledFunction] | None = None
+        self._compiled_distance: CompiledFunction | None = None
         if o.compiled:
             self._build_compiled(nlp)
-        # the rescue: a failed sqpmethod solve is retried once with IPOPT (robust, slower)
-        self.rescue = self._solver("ipopt", nlp, hess.get("ipopt")) if o.solver == "sqp" and o.rescue else None
+        # the rescue: a failed sqpmethod solve is retried once with IPOPT (robust, slower) on the full NLP
+        self.rescue = (
+            self._solver("ipopt", nlp_full, self._gauss_newton(r_vec, xv, p, len(self._lbg_full), "ipopt"))
+            if o.solver == "sqp" and o.rescue
+            else None
+        )
+
+    def _gauss_newton(self, r_vec: ca.SX, xv: ca.SX, p: ca.SX, ng: int, kind: str) -> ca.Function | None:
+        """The Gauss-Newton Hessian of the least-squares cost for solver `kind` of an NLP with parameters
+        p and ng constraints (None: the exact Hessian)."""
+        if self.options.hessian != "gauss-newton":
+            return None
+        # positive semidefinite, so every QP of the SQP path is convex (daqp and qrqp need that), and much
+        # cheaper to evaluate than the exact Hessian of hundreds of distance constraints
+        lam_f = ca.SX.sym("lam_f")
+        lam_g = ca.SX.sym("lam_g", ng)
+        Jr = ca.jacobian(r_vec, xv)
+        H = 2 * lam_f * (Jr.T @ Jr) + 1e-9 * ca.SX.eye(xv.numel())
+        # ipopt wants the upper triangle, sqpmethod the full symmetric matrix
+        out = ca.triu(H) if kind == "ipopt" else H
+        return ca.Function("nlp_hess_l", [xv, p, lam_f, lam_g], [out], {"cse": True})
 
     def _build_compiled(self, nlp: dict[str, Any]) -> None:
         """The sqpmethod solver and its KKT residual as generated C, loaded through ctypes (option `compiled`)."""
@@ -374,20 +482,32 @@ class Replanner:
         lam_x = ca.SX.sym("lam_x", xv.numel())
         grad = ca.gradient(nlp["f"], xv) + ca.jacobian(nlp["g"], xv).T @ lam_g + lam_x
         tag = f"{self.robot.n_segments}s_{self.max_obstacles}o_{self.N}n"
-        kkt = ca.Function(f"horizon_kkt_{tag}", [xv, p, lam_g, lam_x], [ca.norm_inf(grad)], {"cse": True})
+        # one call after the solve: the dual residual, every obstacle row of the full NLP and the tips
+        outs = [ca.norm_inf(grad), *self._checked]
+        kkt = ca.Function(f"horizon_kkt_{tag}", [xv, p, lam_g, lam_x], outs, {"cse": True})
         solver = self.solver
+        extra = [] if self._all_distance is None else [self._all_distance]
         try:
-            lib, how = compiled_library(f"horizon_{tag}", [solver, kkt], o.qpsol)
+            lib, how = compiled_library(f"horizon_{tag}", [solver, kkt, *extra], o.qpsol)
         except (RuntimeError, OSError) as exc:
             self.compiled_message = f"compiled: build failed ({str(exc).strip().splitlines()[-1]}): interpreted solver"
             return
         self.compiled_message = f"compiled: {how}"
         if lib is not None:
             self._compiled = (CompiledFunction(lib, solver.name()), CompiledFunction(lib, kkt.name()))
+            if extra:
+                self._compiled_distance = CompiledFunction(lib, extra[0].name())
 
     def _solver(self, kind: str, nlp: dict[str, Any], hess: ca.Function | None) -> ca.Function:
         o = self.options
-        common: dict[str, Any] = {"print_time": False, "error_on_fail": False, "record_time": True}
+        # calc_lam_p off: the parametric sensitivities are never used, and computing them is a full
+        # gradient over every parameter after each solve
+        common: dict[str, Any] = {
+            "print_time": False,
+            "error_on_fail": False,
+            "record_time": True,
+            "calc_lam_p": False,
+        }
         if hess is not None:
             common["hess_lag"] = hess
         if kind == "ipopt":
@@ -510,47 +630,40 @@ class Replanner:
         N, nx = self.N, self.nx
         x0 = np.asarray(x0, dtype=float).reshape(nx)
         p = self._parameters(x0, reference, obstacles, x_prev, tip_reference)
-        args: dict[str, Any] = {
-            "p": p,
-            "lbx": np.tile(self._box[0], N),
-            "ubx": np.tile(self._box[1], N),
-            "lbg": self._lbg,
-            "ubg": self._ubg,
-        }
+        lbx, ubx = self._box_lo, self._box_hi
+        args: dict[str, Any] = {"p": p, "lbx": lbx, "ubx": ubx, "lbg": self._lbg, "ubg": self._ubg}
         cold = np.tile(np.clip(x0, self._box[0], self._box[1]), N)  # hold still: rate- and limit-feasible
         used_warm = warm and self._warm is not None and self._warm_fits(x0)
-        if used_warm:
-            w = self._warm
-            args.update(x0=w["x"], lam_x0=w["lam_x"], lam_g0=w["lam_g"])
+        w = self._warm if used_warm else None
+        if w is not None:
+            args["x0"] = w["x"]
+            if w["lam_g"] is not None:
+                args.update(lam_x0=w["lam_x"], lam_g0=w["lam_g"])
         else:
             args["x0"] = cold
-        r = self._call(self.solver, args)
+        r = self._call_screened(args, None if w is None else w["sel"])
         tried = [r]
         if used_warm and not r["ok"]:
             # a stale warm start can lead a solver astray: one cold retry before declaring failure
             args = {k: v for k, v in args.items() if k not in ("lam_x0", "lam_g0")}
             args["x0"] = cold
-            r = self._call(self.solver, args)
+            r = self._call_screened(args, None)
             tried.append(r)
         rescued = False
         if not r["ok"] and self.rescue is not None:
             rescued = True
-            args = {k: v for k, v in args.items() if k not in ("lam_x0", "lam_g0")}
-            args["x0"] = cold
+            # IPOPT solves the full NLP: every point of every step against every obstacle
+            args = {"p": p, "lbx": lbx, "ubx": ubx, "lbg": self._lbg_full, "ubg": self._ubg_full, "x0": cold}
             r = self._call(self.rescue, args)
             r["status"] = f"{tried[-1]['status']}; rescue ipopt: {r['status']}"
             tried.append(r)
         r["wall"] = sum(x["wall"] for x in tried)
         self.solve_count += 1
-        self._warm = (
-            self._shifted(r["x"], np.asarray(r["sol"]["lam_x"]).ravel(), np.asarray(r["sol"]["lam_g"]).ravel())
-            if r["ok"]
-            else None
-        )
+        self._warm = self._shifted(r, reduced=not rescued) if r["ok"] else None
         configs = r["x"].reshape(N, nx)
         return HorizonResult(
             configs=configs,
-            tips=self.model.tip_position(configs) if r["finite"] else np.full((N, 3), np.nan),
+            tips=self._tips(r, configs),
             status=horizon_status(r["ok"], configs, r["violation"]),
             solver_status=r["status"],
             iterations=r["iterations"],
@@ -559,7 +672,7 @@ class Replanner:
             min_distance=r["min_distance"],
             violation=r["violation"],
             warm=used_warm,
-            extra={"attempts": len(tried), "rescue": rescued},
+            extra={"attempts": len(tried), "rescue": rescued, "screen_solves": sum(x["solves"] for x in tried)},
         )
 
     def _parameters(
@@ -577,10 +690,13 @@ class Replanner:
                 f"or obstacles_from_states, got {Ob.shape}"
             )
         Ob = Ob.reshape(N, packing.WIDTH * self.max_obstacles)
-        for name, arr in (("x0", x0), ("reference", Xr), ("x_prev", xm1), ("tip_reference", Pr), ("obstacles", Ob)):
-            if not np.all(np.isfinite(arr)):
-                raise InputError(f"{name}: contains NaN or infinity")
-        return np.concatenate([x0, xm1, Xr.ravel(), Pr.ravel(), Ob.ravel()])
+        p = np.concatenate([x0, xm1, Xr.ravel(), Pr.ravel(), Ob.ravel()])
+        if not np.isfinite(p).all():
+            # one check of the whole vector; the slow search for the culprit only when there is one
+            for name, arr in (("x0", x0), ("reference", Xr), ("x_prev", xm1), ("tip_reference", Pr), ("obstacles", Ob)):
+                if not np.isfinite(arr).all():
+                    raise InputError(f"{name}: contains NaN or infinity")
+        return p
 
     def _warm_fits(self, x0: np.ndarray) -> bool:
         """The shifted previous solution starts within reach of x0 (else it belongs to another situation)."""
@@ -591,7 +707,6 @@ class Replanner:
 
     def _call(self, solver: ca.Function, args: dict[str, Any]) -> dict[str, Any]:
         """One solver call and an independent look at what it returned."""
-        N = self.N
         t_start = time.perf_counter()
         if solver is self.solver and self._compiled is not None:
             sol, st = self._call_compiled(args)
@@ -601,18 +716,8 @@ class Replanner:
         wall = time.perf_counter() - t_start
         xs = np.asarray(sol["x"]).ravel()
         gs = np.asarray(sol["g"]).ravel()
-        finite = bool(np.all(np.isfinite(xs)) and np.all(np.isfinite(gs)))
-        if finite:
-            lo, hi = np.tile(self._box[0], N), np.tile(self._box[1], N)
-            viol = max(
-                float(np.max(self._lbg - gs, initial=0.0)),
-                float(np.max(gs - self._ubg, initial=0.0)),
-                float(np.max(lo - xs)),
-                float(np.max(xs - hi)),
-                0.0,
-            )
-        else:
-            viol = math.inf
+        finite = bool(np.isfinite(xs).all() and np.isfinite(gs).all())
+        viol = self._violation(xs, gs, args["lbg"], args["ubg"]) if finite else math.inf
         return {
             "sol": sol,
             "x": xs,
@@ -623,7 +728,9 @@ class Replanner:
             "ok": bool(st.get("success", False)) and finite and viol <= 1e-6,
             "iterations": int(st.get("iter_count", -1)),
             "cost": float(sol["f"]) if finite else math.inf,
+            # the smallest obstacle row (of the full NLP; `_call_screened` checks every point after a QP NLP)
             "min_distance": float(np.min(gs[self._n_lin :])) if (self._n_dist and finite) else math.inf,
+            "solves": 1,
         }
 
     def _call_compiled(self, args: dict[str, Any]) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
@@ -634,32 +741,124 @@ class Replanner:
         out = step(*[args.get(n) for n in names])
         sol = dict(zip(("x", "f", "g", "lam_x", "lam_g", "lam_p"), (a.copy() for a in out), strict=True))
         sol["f"] = float(sol["f"][0])
-        du = float(kkt(sol["x"], args["p"], sol["lam_g"], sol["lam_x"])[0][0])
-        xs, gs = sol["x"], sol["g"]
-        lo, hi = np.tile(self._box[0], self.N), np.tile(self._box[1], self.N)
-        pr = max(
-            float(np.max(self._lbg - gs, initial=0.0)),
-            float(np.max(gs - self._ubg, initial=0.0)),
-            float(np.max(lo - xs, initial=0.0)),
-            float(np.max(xs - hi, initial=0.0)),
-        )
+        du_, distances, tips = kkt(sol["x"], args["p"], sol["lam_g"], sol["lam_x"])
+        du = float(du_[0])
+        sol["distances"], sol["tips"] = distances.copy(), tips.copy()
+        pr = self._violation(sol["x"], sol["g"], args["lbg"], args["ubg"])
         ok = bool(np.isfinite(du) and np.isfinite(pr)) and pr < 1e-7 and du < self.options.tol
         status = "Solve_Succeeded" if ok else f"Not_Converged (compiled sqpmethod: primal {pr:.2g}, dual {du:.2g})"
         return sol, {"success": ok, "return_status": status, "iter_count": -1}
 
-    def _shifted(self, xs: np.ndarray, lam_x: np.ndarray, lam_g: np.ndarray) -> dict[str, np.ndarray]:
-        """Previous solution moved one step earlier, the last step repeated (the next solve's start)."""
+    def _violation(self, xs: np.ndarray, gs: np.ndarray, lbg: np.ndarray, ubg: np.ndarray) -> float:
+        """Largest violation of the box and of the rows lbg <= g <= ubg (mixed units; 0 when all hold)."""
+        return max(
+            float(np.max(lbg - gs, initial=0.0)),
+            float(np.max(gs - ubg, initial=0.0)),
+            float(np.max(self._box_lo - xs, initial=0.0)),
+            float(np.max(xs - self._box_hi, initial=0.0)),
+        )
+
+    def _call_screened(self, args: dict[str, Any], warm_selection: np.ndarray | None) -> dict[str, Any]:
+        """One solve of the QP's NLP (`_call`); with `closest_points`, the K closest backbone points per
+        obstacle and step at the start point are its obstacle rows, and every point is checked at the
+        solution. A solution that leaves an omitted point inside its sphere is solved again, from there, with
+        the closest points there (at most `SCREEN_SOLVES` solves); if one still does, the result is not ok.
+        A solution whose omitted points all hold is a KKT point of the full NLP too (their multipliers are
+        zero), so "ok" means what it means without screening. warm_selection: the selection (N, M, K) the
+        warm start's multipliers belong to (None: none)."""
+        if not self._K:
+            return self._call(self.solver, args)
+        t_start = time.perf_counter()
+        args = dict(args)
+        p, O = args["p"], args["p"][self._np - self._n_obstacle_p :]
+        sel = self._closest(args["x0"], O)
+        if "lam_g0" in args and warm_selection is not None:
+            args["lam_g0"] = self._keep_multipliers(args["lam_g0"], warm_selection, sel)
+        solves = 0
+        while True:
+            args["p"] = np.concatenate([p, self._one_hot(sel)])
+            r = self._call(self.solver, args)
+            solves += 1
+            if not r["finite"]:
+                break
+            D = r["sol"]["distances"] if "distances" in r["sol"] else self._distances(r["x"], O)
+            dmin = float(np.min(D))
+            r["min_distance"] = dmin
+            r["violation"] = max(r["violation"], -dmin)
+            r["ok"] = r["ok"] and r["violation"] <= 1e-6
+            if dmin >= -1e-6 or solves >= SCREEN_SOLVES:
+                if dmin < -1e-6:
+                    r["status"] += f"; an omitted point stays {-dmin:.3g} mm inside its sphere"
+                break
+            # an omitted point entered its sphere: again, with the closest points of this solution
+            new = self._closest(r["x"], O)
+            lam_g = self._keep_multipliers(np.asarray(r["sol"]["lam_g"]).ravel(), sel, new)
+            args.update(x0=r["x"], lam_x0=np.asarray(r["sol"]["lam_x"]).ravel(), lam_g0=lam_g)
+            sel = new
+        r["selection"], r["solves"] = sel, solves
+        r["wall"] = time.perf_counter() - t_start
+        return r
+
+    def _tips(self, r: dict[str, Any], configs: np.ndarray) -> np.ndarray:
+        """Tip positions (N, 3) mm of a solve's configurations (NaN when they are not finite)."""
+        if not r["finite"]:
+            return np.full((self.N, 3), np.nan)
+        if "tips" in r["sol"]:
+            return r["sol"]["tips"].reshape(self.N, 3)  # computed by the compiled KKT check
+        return self.model.tip_position(configs)
+
+    def _distances(self, xs: np.ndarray, obstacles: np.ndarray) -> np.ndarray:
+        """Obstacle rows of the full NLP (N, M, points), mm: distance of each backbone point of each step
+        from the obstacle slot's centre minus its inflated radius, at configurations xs (N nx,)."""
+        if self._compiled_distance is not None:
+            d = self._compiled_distance(xs, obstacles)[0]
+        else:
+            d = np.asarray(self._all_distance(xs, obstacles)).ravel(order="F")  # type: ignore[misc]
+        return d.reshape(self.N, self.max_obstacles, self.options.points)
+
+    def _closest(self, xs: np.ndarray, obstacles: np.ndarray) -> np.ndarray:
+        """Indices (N, M, K) of the K backbone points closest to each obstacle slot at each step, ascending
+        (so the same set gives the same slots, and the warm start's multipliers stay with their points)."""
+        d = self._distances(np.asarray(xs, dtype=float), obstacles)
+        return np.sort(np.argsort(d, axis=-1, kind="stable")[..., : self._K], axis=-1)
+
+    def _one_hot(self, selection: np.ndarray) -> np.ndarray:
+        """The selection parameter of the QP's NLP: one one-hot column over the points per slot."""
+        out = np.zeros((*selection.shape, self.options.points))
+        np.put_along_axis(out, selection[..., None], 1.0, axis=-1)
+        return out.ravel()
+
+    def _keep_multipliers(self, lam_g: np.ndarray, old: np.ndarray, new: np.ndarray) -> np.ndarray:
+        """lam_g with the multipliers of the obstacle slots whose point changed set to zero."""
+        lam = np.array(lam_g, dtype=float)
+        lam[self._n_lin :].reshape(old.shape)[old != new] = 0.0
+        return lam
+
+    def _shifted(self, r: dict[str, Any], reduced: bool) -> dict[str, Any]:
+        """Previous solution moved one step earlier, the last step repeated (the next solve's start).
+        Multipliers only from a solve of the QP's NLP (`reduced`; a rescue solved the full NLP, whose rows
+        are others when `closest_points` screens)."""
         nx, N = self.nx, self.N
 
-        def shift(v: np.ndarray, width: int) -> np.ndarray:
-            b = v.reshape(N, width)
+        def shift(v: np.ndarray, width: int, steps: int = N) -> np.ndarray:
+            b = v.reshape(steps, width)
+            if steps == 1:
+                return np.zeros_like(v)  # a block of step 1 only: step 2 had no such rows
             return np.concatenate([b[1:], b[-1:]]).ravel()
 
-        parts, start = [], 0
-        for w in self._widths:
-            parts.append(shift(lam_g[start : start + w * N], w))
-            start += w * N
-        return {"x": shift(xs, nx), "lam_x": shift(lam_x, nx), "lam_g": np.concatenate(parts)}
+        out: dict[str, Any] = {"x": shift(r["x"], nx), "lam_x": None, "lam_g": None, "sel": None}
+        if reduced or not self._K:
+            lam_g = np.asarray(r["sol"]["lam_g"]).ravel()
+            parts, start = [], 0
+            for w, steps in self._widths:
+                parts.append(shift(lam_g[start : start + w * steps], w, steps))
+                start += w * steps
+            out["lam_x"] = shift(np.asarray(r["sol"]["lam_x"]).ravel(), nx)
+            out["lam_g"] = np.concatenate(parts)
+        if "selection" in r:
+            sel = r["selection"]
+            out["sel"] = np.concatenate([sel[1:], sel[-1:]])
+        return out
 
     def describe(self) -> dict[str, Any]:
         """Sizes of the NLP (for result files and benchmarks)."""
@@ -675,6 +874,7 @@ class Replanner:
             "actuator_limits": None if self.rate_limits is None else list(self.rate_limits.names),
             "limit_fraction": self.options.limit_fraction,
             "obstacle_constraints": self._n_dist,
+            "qp_obstacle_rows": (self._K or self.options.points) * self.max_obstacles * self.N if self._n_dist else 0,
             "max_obstacles": self.max_obstacles,
             "inflate_mm": self.inflate,
             "point_spacing_mm": self.spacing,

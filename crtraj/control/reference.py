@@ -119,16 +119,24 @@ class TimedReference:
         self.end = float(self.s[-1])
         self.Y = metric(X)  # body-motion units (mm) for projections
         self._metric = metric
+        # per segment, computed once (the loop asks every step): its time span, configuration change,
+        # metric change and the projection's denominator
+        self._ds = self.s[1:] - self.s[:-1]
+        self._dX = X[1:] - X[:-1]
+        dY = self.Y[1:] - self.Y[:-1]
+        self._dY = dY
+        self._den = np.maximum((dY * dY).sum(axis=1), 1e-300)
 
     def at(self, s: np.ndarray) -> np.ndarray:
         """Configurations at path times s (s), clamped to the path."""
         s = np.clip(np.asarray(s, dtype=float), 0.0, self.end)
         if self.end == 0.0:
             return np.broadcast_to(self.X[-1], (*s.shape, self.X.shape[1])).copy()
-        i = np.clip(np.searchsorted(self.s, s, side="right") - 1, 0, len(self.X) - 2)
-        seg = self.s[i + 1] - self.s[i]
+        # s >= 0 = self.s[0] here, so the segment index is >= 0 already; only its top needs a cap
+        i = np.minimum(np.searchsorted(self.s, s, side="right") - 1, len(self.X) - 2)
+        seg = self._ds[i]
         u = np.divide(s - self.s[i], seg, out=np.zeros_like(s), where=seg > 0)
-        return self.X[i] + u[..., None] * (self.X[i + 1] - self.X[i])
+        return self.X[i] + u[..., None] * self._dX[i]
 
     def locate(self, x: np.ndarray, s_hint: float, back: float, ahead: float) -> float:
         """Path time of the point nearest to x (body-motion metric) within [s_hint - back, s_hint + ahead]."""
@@ -139,11 +147,11 @@ class TimedReference:
         segs = np.flatnonzero((self.s[1:] >= lo) & (self.s[:-1] <= hi))
         if not len(segs):
             segs = np.arange(len(self.X) - 1)
-        A, B = self.Y[segs], self.Y[segs + 1]
-        AB = B - A
-        den = np.maximum(np.sum(AB * AB, axis=1), 1e-300)
-        u = np.clip(np.sum((y - A) * AB, axis=1) / den, 0.0, 1.0)
-        d = np.linalg.norm(A + u[:, None] * AB - y, axis=1)
-        j = int(np.argmin(d))
+        A, AB = self.Y[segs], self._dY[segs]
+        u = np.clip(((y - A) * AB).sum(axis=1) / self._den[segs], 0.0, 1.0)
+        w = A + u[:, None] * AB - y
+        # the distance as np.linalg.norm computes it (ties in argmin stay the same)
+        d = np.sqrt((w * w).sum(axis=1))
+        j = int(d.argmin())
         i = segs[j]
-        return float(np.clip(self.s[i] + u[j] * (self.s[i + 1] - self.s[i]), lo, hi))
+        return float(np.clip(self.s[i] + u[j] * self._ds[i], lo, hi))

@@ -201,6 +201,24 @@ class TrackingCommand:
         return self.limit_scale < 1.0
 
 
+@dataclass(frozen=True)
+class _Period:
+    """What `TrackingController.step` needs per control period h (s), computed once with the design.
+
+    Kx, Kc: the gain's blocks on (x_ref - x) and (x_ref - x_cmd) (views of design.K); lead: design.lead;
+    rate_room: largest actuator change per period (mm); vmax_room, amax_room: the rate limits' largest
+    change and change of change per period (empty without rate limits).
+    """
+
+    design: TrackingDesign
+    Kx: np.ndarray
+    Kc: np.ndarray
+    lead: np.ndarray
+    rate_room: np.ndarray
+    vmax_room: np.ndarray
+    amax_room: np.ndarray
+
+
 class ServoModel:
     """Actuator simulation: a first-order lag per actuator, discretised exactly.
 
@@ -216,6 +234,8 @@ class ServoModel:
         self.tau = np.append(np.full(3 * robot.n_segments, float(tau_cable)), float(tau_z))
         _, self._q0 = robot.cable_matrix()
         self._Binv = robot.cable_inverse()
+        # decay per period dt (s): a control loop advances by the same few periods over and over
+        self._decays: dict[float, np.ndarray] = {}
 
     def decay(self, dt: float) -> np.ndarray:
         """exp(-dt/tau) per actuator: the share of the old position left after dt (s)."""
@@ -223,7 +243,13 @@ class ServoModel:
 
     def advance(self, q: np.ndarray, q_command: np.ndarray, dt: float) -> np.ndarray:
         """Actuator positions (mm) after holding `q_command` for dt (s)."""
-        d = self.decay(dt)
+        d = self._decays.get(dt)
+        if d is None:
+            if len(self._decays) >= _MAX_DESIGNS:
+                self._decays.clear()
+            d = self.decay(dt)
+            d.setflags(write=False)
+            self._decays[dt] = d
         return q_command + d * (np.asarray(q, dtype=float) - q_command)
 
     def trajectory(self, q: np.ndarray, q_command: np.ndarray, times: np.ndarray) -> np.ndarray:
@@ -321,7 +347,10 @@ class TrackingController:
                 f"rate_limits: written for {rate_limits.jacobian.shape[1]} configuration coordinates, "
                 f"robot {r.name!r} has {self.nx}"
             )
+        self._tip_mode = self.options.mode == "tip"
+        self._z_range = r.z_range
         self._designs: dict[float, TrackingDesign] = {}
+        self._periods: dict[float, _Period] = {}  # per design: the constants `step` uses
         self.design()  # fail early on a bad design
         # tip mode: one CasADi call per period gives tip(x), J(x) and tip(x_ref)
         a, b = ca.SX.sym("x", self.nx), ca.SX.sym("x_ref", self.nx)
@@ -335,9 +364,26 @@ class TrackingController:
         if d is None:
             if len(self._designs) >= _MAX_DESIGNS:
                 self._designs.clear()
+                self._periods.clear()
             d = self._design(dt)
             self._designs[dt] = d
+            self._periods[dt] = self._period_constants(d)
         return d
+
+    def _period_constants(self, d: TrackingDesign) -> _Period:
+        nx, rl, h = self.nx, self.rate_limits, d.dt
+        vmax_room = np.zeros(0) if rl is None else rl.vmax * h
+        amax_room = np.zeros(0) if rl is None else rl.amax * h * h
+        return _Period(d, d.K[:, :nx], d.K[:, nx:], d.lead, self._rates * h, vmax_room, amax_room)
+
+    def _period(self, dt: float | None) -> _Period:
+        """The per-period constants for dt (s; default options.dt). A float already designed for passed
+        `design`'s check then, so the control loop skips it."""
+        key = self.options.dt if dt is None else dt
+        p = self._periods.get(key) if type(key) is float else None
+        if p is None:
+            p = self._periods[self.design(dt).dt]
+        return p
 
     def _design(self, dt: float) -> TrackingDesign:
         o, nx = self.options, self.nx
@@ -403,13 +449,14 @@ class TrackingController:
         tip of x_reference). previous_increment: the set-point's configuration change
         in the previous period (nx; default 0, at rest); used with `rate_limits` only.
         """
-        d = self.design(dt)
+        p = self._period(dt)
+        d = p.design
         nx = self.nx
         xm = _vec(x_measured, nx, "x_measured")
         qc = _vec(q_command, self.nq, "q_command")
         xr = _vec(x_reference, nx, "x_reference")
         xc = (qc - self._q0) @ self._Binv.T
-        tip_mode = self.options.mode == "tip"
+        tip_mode = self._tip_mode
         if not tip_mode and (tip_measured is not None or tip_reference is not None):
             raise InputError("tip_measured/tip_reference: only used with tracking.mode = 'tip'")
         e = self._tip_error_config(xm, xr, tip_measured, tip_reference) if tip_mode else xr - xm
@@ -419,37 +466,37 @@ class TrackingController:
         if x_reference_rate is not None:
             ff = _vec(x_reference_rate, nx, "x_reference_rate") * d.dt
             # on a ramp the servos lag their set-point by phi/(1-phi) periods' motion: lead by that
-            ec = ec + d.lead * ff
-        v = d.K[:, :nx] @ e + d.K[:, nx:] @ ec
+            ec = ec + p.lead * ff
+        v = p.Kx @ e + p.Kc @ ec
         if ff is not None:
             v = v + ff
         dq = self._J_q @ v
-        over = np.abs(dq) / (self._rates * d.dt)
+        over = np.abs(dq) / p.rate_room
         rl = self.rate_limits
         if rl is not None:
-            over = np.concatenate([over, np.abs(rl.jacobian @ v) / (rl.vmax * d.dt)])
-        worst = float(np.max(over))
+            over = np.concatenate([over, np.abs(rl.jacobian @ v) / p.vmax_room])
+        worst = float(over.max())
         rate_scale = 1.0 / worst if worst > 1.0 else 1.0
         v = v * rate_scale
         accel_scale = 1.0
         if rl is not None:
-            v = _braking(rl, v, ec, np.zeros(nx) if ff is None else ff, d.dt)
-            v, accel_scale = self._accelerate(rl, v, previous_increment, d.dt)
+            v = _braking(rl, v, ec, np.zeros(nx) if ff is None else ff, d.dt, p.amax_room)
+            v, accel_scale = self._accelerate(rl, v, previous_increment, p.amax_room)
         v, limit_scale = self._limit(xc, v)
         q = qc + self._J_q @ v
         return TrackingCommand(q, xc + v, e, v, rate_scale, limit_scale, accel_scale)
 
     def _accelerate(
-        self, rl: RateLimits, v: np.ndarray, v_prev: np.ndarray | None, h: float
+        self, rl: RateLimits, v: np.ndarray, v_prev: np.ndarray | None, room: np.ndarray
     ) -> tuple[np.ndarray, float]:
         """Move from the previous increment toward v only as far as the acceleration limits allow.
 
-        Returns (increment, share of v - v_prev used). |J (v_out - v_prev)| <= amax h^2 per actuator.
+        room: amax h^2 per actuator (period h, s). Returns (increment, share of v - v_prev used).
+        |J (v_out - v_prev)| <= amax h^2 per actuator.
         """
         vp = np.zeros(self.nx) if v_prev is None else _vec(v_prev, self.nx, "previous_increment")
         change = np.abs(rl.jacobian @ (v - vp))
-        room = rl.amax * h * h
-        worst = float(np.max(change / room))
+        worst = float((change / room).max())
         if worst <= 1.0:
             return v, 1.0
         s = 1.0 / worst
@@ -477,8 +524,10 @@ class TrackingController:
         a line search along v is exact.
         """
         v = v.copy()
-        lo, hi = self.robot.z_range
-        z0, z1 = xc[-1], xc[-1] + v[-1]
+        lo, hi = self._z_range
+        # Python floats: the same IEEE arithmetic as numpy scalars, without their overhead
+        z0 = float(xc[-1])
+        z1 = z0 + float(v[-1])
         z_new = min(max(z1, min(lo, z0)), max(hi, z0))
         scale_z = 1.0
         if z_new != z1:
@@ -490,10 +539,11 @@ class TrackingController:
         g0 = self._G @ xc - self._h
         gv = self._G @ vb
         grow = gv > 0.0
-        if np.any(grow):
+        if np.count_nonzero(grow):  # the fastest "any" on a handful of flags
             # rows already violated (g0 > 0) may not grow at all
-            room = np.where(g0[grow] <= 0.0, -g0[grow], 0.0)
-            alpha = min(alpha, float(np.min(room / gv[grow])))
+            g0g = g0[grow]
+            room = np.where(g0g <= 0.0, -g0g, 0.0)
+            alpha = min(alpha, float((room / gv[grow]).min()))
         for Ck, t2 in zip(self._C, self._tmax2, strict=True):
             a_ = Ck @ vb
             b_ = Ck @ xc
@@ -597,22 +647,25 @@ class TrackingController:
         return TrackingRun(t, X, Q, Qc, np.array(ref), tips, tref, err, rl, lim, self.options)
 
 
-def _braking(rl: RateLimits, v: np.ndarray, remaining: np.ndarray, ff: np.ndarray, h: float) -> np.ndarray:
+def _braking(
+    rl: RateLimits, v: np.ndarray, remaining: np.ndarray, ff: np.ndarray, h: float, room: np.ndarray
+) -> np.ndarray:
     """v scaled (direction kept) so no actuator closes on its target faster than it can still stop there.
 
     remaining: the set-point's configuration distance to its target; ff: the target's own motion over the
-    period (feed-forward). An actuator |r| from its target may close on it at most sqrt(2 amax |r|)
-    faster than the target moves (the braking curve); without this cap the LQR law, designed without
-    acceleration limits, overshoots against them and rings (integrator-like windup).
+    period (feed-forward); room: amax h^2 per actuator (period h, s). An actuator |r| from its target may
+    close on it at most sqrt(2 amax |r|) faster than the target moves (the braking curve); without this
+    cap the LQR law, designed without acceleration limits, overshoots against them and rings
+    (integrator-like windup).
     """
     step = rl.jacobian @ v
     r = rl.jacobian @ remaining
     toward = step * r > 0.0
-    if not np.any(toward):
+    if not np.count_nonzero(toward):  # the fastest "any" on a handful of flags
         return v
-    a = rl.amax[toward]
-    cap = np.abs(rl.jacobian @ ff)[toward] + np.sqrt(2.0 * a * np.abs(r[toward])) * h + a * h * h
-    worst = float(np.max(np.abs(step[toward]) / cap))
+    # every actuator's ratio elementwise, then one selection (the same numbers as selecting first)
+    cap = np.abs(rl.jacobian @ ff) + np.sqrt(2.0 * rl.amax * np.abs(r)) * h + room
+    worst = float((np.abs(step) / cap)[toward].max())
     return v / worst if worst > 1.0 else v
 
 
@@ -621,6 +674,6 @@ def _vec(a: Any, n: int, name: str) -> np.ndarray:
     v = np.asarray(a, dtype=float)
     if v.shape != (n,):
         raise InputError(f"{name}: expected {n} numbers, got shape {v.shape}")
-    if not np.all(np.isfinite(v)):
+    if np.count_nonzero(np.isfinite(v)) != n:  # "all finite", at a fraction of `.all()`'s overhead
         raise InputError(f"{name}: contains NaN or infinity")
     return v

@@ -52,6 +52,7 @@ class BodyMetric:
         self.weights = body_weights(robot)  # w_k (mm/rad)
         self.metric_matrix = metric_matrix(robot)
         self.metric_inverse = np.linalg.inv(self.metric_matrix)
+        self._bend = 2 * robot.n_segments  # bending coordinates of y: (u_bar_k x, u_bar_k y) per segment
 
     def metric(self, x: np.ndarray) -> np.ndarray:
         """y = M x (mm units): the space the planners measure distances in."""
@@ -64,8 +65,11 @@ class BodyMetric:
     def motion_bound(self, dx: np.ndarray) -> np.ndarray:
         """Upper bound (mm) on how far any body point moves for a change dx (..., nx)."""
         dy = np.asarray(dx, dtype=float) @ self.metric_matrix.T
-        n = self.robot.n_segments
-        blocks = np.linalg.norm(dy[..., : 2 * n].reshape(*dy.shape[:-1], n, 2), axis=-1)
+        m = self._bend
+        # each block's Euclidean length as np.linalg.norm computes it (sqrt of the summed squares), for a
+        # fraction of its cost on the control loop's single changes
+        yx, yy = dy[..., 0:m:2], dy[..., 1:m:2]
+        blocks = np.sqrt(yx * yx + yy * yy)
         return blocks.sum(axis=-1) + np.abs(dy[..., -1])
 
     def duration(self, dx: np.ndarray) -> np.ndarray:

@@ -51,6 +51,11 @@ class Scene:
     workspace_hi: tuple[float, float, float] = DEFAULT_WORKSPACE[1]
     time_origin: float = 0.0
     _arr: dict[str, np.ndarray] = field(init=False, repr=False, compare=False)
+    # the one motion profile code every obstacle has, -1 when mixed or none (`_progress_of` skips the others)
+    _profile: int = field(init=False, repr=False, compare=False)
+    # every centre fixed (linear profile, zero displacement, no -0.0 coordinate): c0 + s d is c0 bit for bit
+    # (s is finite, d is +0.0), so the centre formulas need no progress at all
+    _static: bool = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "obstacles", tuple(self.obstacles))
@@ -84,9 +89,16 @@ class Scene:
         cols = (arr["c0"], arr["d"], arr["dur"][:, None], arr["code"][:, None].astype(float))
         cols += tuple(arr[k][:, None] for k in ("A", "B", "w", "p"))
         arr["table"] = np.ascontiguousarray(np.concatenate(cols, axis=1))
+        # the swept sphere's centre of a fixed obstacle, in `swept_spheres`' own arithmetic
+        arr["mid0"] = 0.5 * (arr["c0"] + arr["c0"])
         for v in arr.values():
             v.setflags(write=False)
         object.__setattr__(self, "_arr", arr)
+        codes = set(arr["code"].tolist())
+        object.__setattr__(self, "_profile", codes.pop() if len(codes) == 1 else -1)
+        c0, d = arr["c0"], arr["d"]
+        fixed = not (d != 0.0).any() and not ((c0 == 0.0) & np.signbit(c0)).any()
+        object.__setattr__(self, "_static", fixed and self._profile == 0)
 
     # ------------------------------------------------------------- properties
     @property
@@ -120,6 +132,14 @@ class Scene:
         """Motion progress s (S+(M,)) at absolute times tt (S+(1,))."""
         a = self._arr
         dur = a["dur"]
+        kind = self._profile
+        # one profile for all: only its formula (the selection below would copy exactly these values)
+        if kind == 0:
+            return np.clip(tt / dur, 0.0, 1.0)
+        if kind == 1:
+            return np.sin(0.5 * np.pi * tt / dur)
+        if kind == 2:
+            return 0.5 * (1.0 - np.cos(np.pi * tt / dur))
         lin = np.clip(tt / dur, 0.0, 1.0)
         sin_p = np.sin(0.5 * np.pi * tt / dur)
         cos_p = 0.5 * (1.0 - np.cos(np.pi * tt / dur))
@@ -127,9 +147,17 @@ class Scene:
 
     def _abs_time(self, t: Any, name: str = "t") -> np.ndarray:
         tt = np.asarray(t, dtype=float)
-        if not np.all(np.isfinite(tt)):
+        if np.count_nonzero(np.isfinite(tt)) != tt.size:  # "all finite", at a fraction of `.all()`'s overhead
             raise InputError(f"{name}: contains NaN or infinity")
         return tt + self.time_origin
+
+    def _abs_times(self, t0: Any, t1: Any) -> tuple[np.ndarray, np.ndarray]:
+        """Absolute interval ends (S+(1,)) of [t0, t1] (s), each checked once."""
+        return self._abs_time(t0, "t0")[..., None], self._abs_time(t1, "t1")[..., None]
+
+    def _fixed_centers(self, key: str, shape: tuple[int, ...]) -> np.ndarray:
+        """A fresh (shape + (3,)) array of a static scene's centres `key` ("c0" or "mid0")."""
+        return np.broadcast_to(self._arr[key], (*shape, 3)).copy()
 
     def states(self, t: Any) -> tuple[np.ndarray, np.ndarray]:
         """Obstacle centres and radii (mm) at time(s) t (s).
@@ -138,27 +166,43 @@ class Scene:
         """
         tt = self._abs_time(t)[..., None]
         a = self._arr
+        radii = a["A"] + a["B"] * np.sin(a["w"] * tt + a["p"])
+        if self._static:
+            return self._fixed_centers("c0", radii.shape), radii
         s = self._progress(tt)
         centers = a["c0"] + s[..., None] * a["d"]
-        radii = a["A"] + a["B"] * np.sin(a["w"] * tt + a["p"])
         return centers, radii
 
     def radius_range(self, t0: Any, t1: Any) -> tuple[np.ndarray, np.ndarray]:
         """Exact (min, max) radius of each obstacle over [t0, t1] (mm): shapes S + (M,)."""
+        return self._radius_range(*self._abs_times(t0, t1))
+
+    def _radius_range(self, tt0: np.ndarray, tt1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """`radius_range` at checked absolute times."""
         a = self._arr
-        tt0 = self._abs_time(t0, "t0")[..., None]
-        tt1 = self._abs_time(t1, "t1")[..., None]
         lo, hi = sin_range(a["w"] * tt0 + a["p"], a["w"] * tt1 + a["p"])
         B = a["B"]
-        return a["A"] + np.minimum(B * lo, B * hi), a["A"] + np.maximum(B * lo, B * hi)
+        Blo, Bhi = B * lo, B * hi
+        return a["A"] + np.minimum(Blo, Bhi), a["A"] + np.maximum(Blo, Bhi)
 
     def progress_range(self, t0: Any, t1: Any) -> tuple[np.ndarray, np.ndarray]:
         """Exact (min, max) of the motion progress s over [t0, t1]: shapes S + (M,)."""
+        return self._progress_range(*self._abs_times(t0, t1))
+
+    def _progress_range(self, tt0: np.ndarray, tt1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """`progress_range` at checked absolute times."""
         a = self._arr
-        tt0 = self._abs_time(t0, "t0")[..., None]
-        tt1 = self._abs_time(t1, "t1")[..., None]
         ta, tb = np.minimum(tt0, tt1), np.maximum(tt0, tt1)
         dur = a["dur"]
+        kind = self._profile
+        # one profile for all: only its formula (the selection below would copy exactly these values)
+        if kind == 0:
+            return np.clip(ta / dur, 0.0, 1.0), np.clip(tb / dur, 0.0, 1.0)
+        if kind == 1:
+            return sin_range(0.5 * np.pi * ta / dur, 0.5 * np.pi * tb / dur)
+        if kind == 2:
+            clo, chi = sin_range(np.pi * ta / dur + np.pi / 2, np.pi * tb / dur + np.pi / 2)
+            return 0.5 * (1.0 - chi), 0.5 * (1.0 - clo)
         lin0, lin1 = np.clip(ta / dur, 0.0, 1.0), np.clip(tb / dur, 0.0, 1.0)  # monotone
         slo, shi = sin_range(0.5 * np.pi * ta / dur, 0.5 * np.pi * tb / dur)
         # (1 - cos th)/2 = (1 - sin(th + pi/2))/2
@@ -174,9 +218,12 @@ class Scene:
         Returns (a, b, r): segment ends a, b (S + (M, 3), mm) the centre moves
         along, and the largest radius r (S + (M,), mm) over the interval.
         """
-        smin, smax = self.progress_range(t0, t1)
+        tt0, tt1 = self._abs_times(t0, t1)
+        _, rmax = self._radius_range(tt0, tt1)
+        if self._static:
+            return self._fixed_centers("c0", rmax.shape), self._fixed_centers("c0", rmax.shape), rmax
+        smin, smax = self._progress_range(tt0, tt1)
         a = self._arr
-        _, rmax = self.radius_range(t0, t1)
         return a["c0"] + smin[..., None] * a["d"], a["c0"] + smax[..., None] * a["d"], rmax
 
     def swept_spheres(self, t0: Any, t1: Any) -> tuple[np.ndarray, np.ndarray]:
@@ -185,6 +232,10 @@ class Scene:
         segment's length. The length is summed x, y, z in that order, an order the compiled edge
         check (`crtraj.planning.compiled_validity`) repeats, so both give the same numbers bit for bit.
         """
+        if self._static:
+            # a = b = c0 in `swept`: the length below is +0.0 and the centre 0.5 (c0 + c0)
+            _, rmax = self._radius_range(*self._abs_times(t0, t1))
+            return self._fixed_centers("mid0", rmax.shape), rmax + 0.0
         a, b, rmax = self.swept(t0, t1)
         d = b - a
         length = np.sqrt(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1] + d[..., 2] * d[..., 2])
