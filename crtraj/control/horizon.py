@@ -480,7 +480,8 @@ class Replanner:
         xv, p = nlp["x"], nlp["p"]
         lam_g = ca.SX.sym("lam_g", nlp["g"].numel())
         lam_x = ca.SX.sym("lam_x", xv.numel())
-        grad = ca.gradient(nlp["f"], xv) + ca.jacobian(nlp["g"], xv).T @ lam_g + lam_x
+        # the Lagrangian's gradient by one reverse sweep (never the whole constraint Jacobian)
+        grad = ca.gradient(nlp["f"] + ca.dot(lam_g, nlp["g"]), xv) + lam_x
         tag = f"{self.robot.n_segments}s_{self.max_obstacles}o_{self.N}n"
         # one call after the solve: the dual residual, every obstacle row of the full NLP and the tips
         outs = [ca.norm_inf(grad), *self._checked]
@@ -717,7 +718,12 @@ class Replanner:
         xs = np.asarray(sol["x"]).ravel()
         gs = np.asarray(sol["g"]).ravel()
         finite = bool(np.isfinite(xs).all() and np.isfinite(gs).all())
-        viol = self._violation(xs, gs, args["lbg"], args["ubg"]) if finite else math.inf
+        if not finite:
+            viol = math.inf
+        elif "violation" in st:
+            viol = st["violation"]  # the compiled call's own check, of the same point and rows
+        else:
+            viol = self._violation(xs, gs, args["lbg"], args["ubg"])
         return {
             "sol": sol,
             "x": xs,
@@ -747,7 +753,7 @@ class Replanner:
         pr = self._violation(sol["x"], sol["g"], args["lbg"], args["ubg"])
         ok = bool(np.isfinite(du) and np.isfinite(pr)) and pr < 1e-7 and du < self.options.tol
         status = "Solve_Succeeded" if ok else f"Not_Converged (compiled sqpmethod: primal {pr:.2g}, dual {du:.2g})"
-        return sol, {"success": ok, "return_status": status, "iter_count": -1}
+        return sol, {"success": ok, "return_status": status, "iter_count": -1, "violation": pr}
 
     def _violation(self, xs: np.ndarray, gs: np.ndarray, lbg: np.ndarray, ubg: np.ndarray) -> float:
         """Largest violation of the box and of the rows lbg <= g <= ubg (mixed units; 0 when all hold)."""

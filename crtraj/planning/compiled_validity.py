@@ -32,6 +32,7 @@ version through `crtraj.core.build_cache.BuildCache` and called with ctypes on n
 from __future__ import annotations
 
 import ctypes
+import hashlib
 import sys
 from pathlib import Path
 from typing import Any
@@ -46,7 +47,7 @@ from crtraj.planning.metric import metric_matrix
 from crtraj.world import packing
 
 # Version of the generated code and driver: raising it makes every cached kernel foreign (rebuilt).
-GENERATOR = 5
+GENERATOR = 6
 # Most check points a kernel is generated for: the generated FK grows with them (100 points: ~15 s of
 # gcc); denser checks (reports, tests) stay on the interpreted path.
 MAX_COMPILED_POINTS = 200
@@ -190,6 +191,25 @@ static void crtraj_swept(long long M, const double* T, double origin, double lo,
   }
 }
 
+/* Clearance of each configuration X[i] over its own time window [lo[i], hi[i]] (s, before the scene's time
+   origin is added): against the spheres containing each of the M obstacles of table T over that window
+   (crtraj_swept, as Scene.swept_spheres), so no window's spheres are computed outside. */
+int crtraj_clearance_windows(long long N, const double* X, long long M, const double* T, double origin,
+                             const double* lo, const double* hi, double* d) {
+  crtraj_work kb; long long i; int rc = 0;
+  double P[3 * CRTRAJ_NP];
+  double* S = (double*) malloc(sizeof(double) * 5 * (size_t) (M > 0 ? M : 1));
+  if (!S) return 1;
+  if (crtraj_alloc(&kb, crtraj_bb_work)) { crtraj_free(&kb); free(S); return 1; }
+  for (i = 0; i < N && !rc; ++i) {
+    crtraj_swept(M, T, origin, lo[i], hi[i], S);
+    rc = crtraj_clear_one(&kb, X + i * CRTRAJ_NX, M, S, P, d + i);
+  }
+  crtraj_free(&kb);
+  free(S);
+  return rc;
+}
+
 /* The adaptive edge check of MotionValidator.check_edges, edge by edge and level by level (breadth first, as
    the numpy loop refines), with the same arithmetic. Each edge e starts from n0[e] intervals; an interval
    [ta, tb] gets the clearance c (minus `inflate`) of its middle configuration over its time window
@@ -315,9 +335,12 @@ def motion_bound_expr(dx: Any, M: np.ndarray, n_segments: int) -> Any:
 
 def kernel_key(model: Model, check_points: int) -> BuildKey:
     """The cache key of a kernel: the robot's kinematic description (its robot-file table without the
-    description and the actuators, which the code does not depend on), the check points, the generator."""
+    description and the actuators, which the code does not depend on), the check points, the generator
+    and the driver's SHA-256."""
     robot = {k: v for k, v in model.robot.to_dict().items() if k not in ("description", "actuators")}
-    spec = {"robot": robot, "check_points": int(check_points), "generator": GENERATOR}
+    # the driver's text is part of the key too: a changed driver can never load a stale library
+    driver = hashlib.sha256(_DRIVER.encode("utf-8")).hexdigest()
+    spec = {"robot": robot, "check_points": int(check_points), "generator": GENERATOR, "driver": driver}
     return BuildKey("crtraj_validity", spec)
 
 
@@ -354,6 +377,8 @@ class ValidityKernel:
         self._points.argtypes = [_N, _P, _P]
         self._clearance = lib.crtraj_clearance
         self._clearance.argtypes = [_N, _P, _N, _P, _N, _P]
+        self._clearance_windows = lib.crtraj_clearance_windows
+        self._clearance_windows.argtypes = [_N, _P, _N, _P, ctypes.c_double, _P, _P, _P]
         self._tip_jac = lib.crtraj_tip_jac
         self._tip_jac.argtypes = [_N, _P, _P, _P]
         self._motion_bound = lib.crtraj_motion_bound
@@ -367,6 +392,7 @@ class ValidityKernel:
         for f in (
             self._points,
             self._clearance,
+            self._clearance_windows,
             self._tip_jac,
             self._motion_bound,
             self._check_edges,
@@ -418,6 +444,23 @@ class ValidityKernel:
         out = np.empty(len(X))
         stride = packing.WIDTH * K if per else 0
         self._check(self._clearance(len(X), X.ctypes.data, K, S.ctypes.data, stride, out.ctypes.data), "clearance")
+        return out
+
+    def clearance_windows(self, X: Any, table: Any, origin: float, lo: Any, hi: Any) -> np.ndarray:
+        """Min over obstacles and chords of distance minus radius (mm) per configuration (N,), each against
+        the spheres that contain the obstacles of `table` (`Scene.motion_table`, (M, 12)) over its own window
+        [lo[i], hi[i]] (s, relative to the scene's time origin `origin` s): `clearance` with the slots of
+        `Scene.swept_spheres`, computed in C. No obstacle: +inf."""
+        X = self._configs(X)
+        N = len(X)
+        T = np.ascontiguousarray(table, dtype=float)
+        if T.ndim != 2 or T.shape[1] != 12:
+            raise ValueError(f"clearance_windows: an obstacle table (M, 12) expected, got {T.shape}")
+        lo = np.ascontiguousarray(np.broadcast_to(lo, (N,)), dtype=float)
+        hi = np.ascontiguousarray(np.broadcast_to(hi, (N,)), dtype=float)
+        out = np.empty(N)
+        args = (N, X.ctypes.data, len(T), T.ctypes.data, float(origin), lo.ctypes.data, hi.ctypes.data)
+        self._check(self._clearance_windows(*args, out.ctypes.data), "clearance")
         return out
 
     def tip_jacobian(self, X: Any) -> tuple[np.ndarray, np.ndarray]:

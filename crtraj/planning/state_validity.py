@@ -196,9 +196,11 @@ class StateValidityChecker:
         N = X.shape[0]
         lo = np.broadcast_to(np.asarray(t_lo, dtype=float), (N,))
         hi = lo if t_hi is None else np.broadcast_to(np.asarray(t_hi, dtype=float), (N,))
-        centers, radii = self.scene.swept_spheres(lo, hi)  # (N, M, 3), (N, M)
-        slots = packing.pack(centers, radii, self.scene.n_obstacles)
-        return self.kernel.clearance(X, slots)
+        for name, t in (("t0", lo), ("t1", hi)):
+            if not np.isfinite(t).all():
+                raise InputError(f"{name}: contains NaN or infinity")  # as `Scene.swept_spheres` says it
+        # each window's swept spheres in C (`Scene.swept_spheres`, operation for operation)
+        return self.kernel.clearance_windows(X, self.scene.motion_table(), self.scene.time_origin, lo, hi)
 
     def state_valid(self, X: np.ndarray, t: float | np.ndarray = 0.0) -> np.ndarray:
         """Within limits and clear at time t (bool (N,))."""
