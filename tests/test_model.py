@@ -9,9 +9,11 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 import pytest
+from conftest import PROBLEMS
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from crtraj.io.problem import load_robot
 from crtraj.model.kinematics import Model
 from crtraj.model.robot import Robot, Segment
 
@@ -353,3 +355,29 @@ def test_model_and_world_import_nothing_above_them_and_nothing_inside_functions(
                 parts = name.split(".")
                 if parts[0] == "crtraj" and len(parts) > 1:
                     assert parts[1] in allowed, f"{path.name}:{node.lineno}: {package} imports {name} (a higher layer)"
+
+
+@pytest.mark.parametrize("name", ["cdsr1", "cdsr2", "cdsr3", "cdsr4"])
+def test_segment_points_pick_every_backbone_point(name):
+    """The point at a symbolic fraction of each segment (what the replanner's QP selects points by) is,
+    at each backbone point's (segment, fraction), that backbone point; a straight robot's is a closed form."""
+    m = Model(load_robot(PROBLEMS / "robots" / f"{name}.toml"))
+    seg_fn = m.segment_point_function()
+    rng = np.random.default_rng(3)
+    for n in (2, 7, 16):
+        seg, frac = m.arc_segments(m.arc_positions(n))
+        assert seg[0] == 0 and frac[0] == 0.0 and seg[-1] == m.robot.n_segments - 1 and frac[-1] == 1.0
+        for _ in range(5):
+            x = np.append(rng.uniform(-0.8, 0.8, m.nx - 1), rng.uniform(-50.0, 50.0))
+            P = m.points(x, n)
+            cols = [np.asarray(seg_fn(x, f)).reshape(3, -1, order="F")[:, k] for k, f in zip(seg, frac, strict=True)]
+            Q = np.array(cols)
+            np.testing.assert_allclose(Q, P, rtol=0, atol=1e-9)
+    # straight (no bending): fraction f of segment k is z + (start_k + f L_k) up the axis
+    z = 12.5
+    x = np.append(np.zeros(m.nx - 1), z)
+    starts = np.cumsum([0.0] + [s.length for s in m.robot.segments])
+    for f in (0.0, 0.3, 1.0):
+        Q = np.asarray(seg_fn(x, f)).reshape(3, -1, order="F")
+        want = [[0.0, 0.0, z + starts[k] + f * s.length] for k, s in enumerate(m.robot.segments)]
+        np.testing.assert_allclose(Q.T, want, atol=1e-12)

@@ -37,8 +37,9 @@ lag of the real robot. With ``safety = false`` the obstacle constraints are
 left out (the paper's simulation 2, Fig. 4(b)).
 
 Each QP keeps only the `closest_points` (K) backbone points per obstacle and step that are nearest to
-it at the point the solve starts from (the shifted previous solution): K one-hot columns of a
-parameter pick them, so the NLP is still built once, and the QP has K M N obstacle rows instead of
+it at the point the solve starts from (the shifted previous solution): parameters pick them (per
+slot, the point's segment, one-hot, and the fraction of that segment's arc, so the NLP computes one
+point per segment and slot), the NLP is still built once, and the QP has K M N obstacle rows instead of
 n M N (the QP solver's work grows with its rows). Every point of every step is checked at the
 solution; if an omitted one is inside its sphere, the solve is repeated from there with the points
 nearest there (`SCREEN_SOLVES`). A solution whose omitted rows all hold is a KKT point of the full
@@ -323,6 +324,8 @@ class Replanner:
         # points per obstacle and step in the QP (0: all of them)
         screens = o.safety and self.max_obstacles > 0 and 0 < o.closest_points < o.points
         self._K = o.closest_points if screens else 0
+        # segment and arc fraction of each of the NLP's backbone points (the QP's slots select by them)
+        self._point_segment, self._point_fraction = model.arc_segments(model.arc_positions(o.points))
         self._build()
         self._warm: dict[str, np.ndarray] | None = None
         self.solve_count = 0
@@ -401,8 +404,11 @@ class Replanner:
         if o.safety and M > 0:
             x = ca.SX.sym("x", nx)
             ob = ca.SX.sym("ob", packing.WIDTH * M)
-            sel = ca.SX.sym("sel", n, max(K, 1) * M)
+            S_ = self.robot.n_segments
+            # per slot: one-hot weights over the segments, then the fraction of that segment's arc
+            sel = ca.SX.sym("sel", S_ + 1, max(K, 1) * M)
             pts = model.backbone_function(n)(x)  # 3 x n
+            seg_points = model.segment_point_function()
             d, ds = [], []
             for i in range(M):
                 # the slot's radius is the inflated rho (`_inflated`); padding has rho = 0 at 1e6 mm
@@ -410,9 +416,10 @@ class Replanner:
                 diff = pts - ca.repmat(c, 1, n)
                 d.append(ca.sqrt(ca.sum1(diff * diff) + 1e-9).T - rho)
                 if K:
-                    # slot (i, j) is one backbone point, chosen by a one-hot column of `sel`
-                    P = pts @ sel[:, i * K : (i + 1) * K]
-                    diff = P - ca.repmat(c, 1, K)
+                    # slot (i, j) is one backbone point, chosen by parameters: its segment (one-hot) and
+                    # the fraction of that segment's arc (one point per segment is computed, not all n)
+                    cols = [seg_points(x, sel[S_, i * K + j]) @ sel[:S_, i * K + j] for j in range(K)]
+                    diff = ca.horzcat(*cols) - ca.repmat(c, 1, K)
                     ds.append(ca.sqrt(ca.sum1(diff * diff) + 1e-9).T - rho)
             dist = ca.Function("horizon_distance", [x, ob], [ca.vertcat(*d)], {"cse": True})
             D = dist.map(N)(X, O)  # (n M) x N
@@ -423,7 +430,7 @@ class Replanner:
             self._all_distance = ca.Function(f"horizon_all_distance_{tag}", [xv, ca.vec(O)], [D], {"cse": True})
             if K:
                 slots = ca.Function("horizon_slot_distance", [x, ob, ca.vec(sel)], [ca.vertcat(*ds)], {"cse": True})
-                Sel = ca.SX.sym("selection", n * K * M, N)
+                Sel = ca.SX.sym("selection", (S_ + 1) * K * M, N)
                 g_red.append(ca.vec(slots.map(N)(X, O, Sel)))
                 lb_red.append(np.zeros(K * M * N))
                 p_red = ca.vertcat(p, ca.vec(Sel))
@@ -782,7 +789,7 @@ class Replanner:
             args["lam_g0"] = self._keep_multipliers(args["lam_g0"], warm_selection, sel)
         solves = 0
         while True:
-            args["p"] = np.concatenate([p, self._one_hot(sel)])
+            args["p"] = np.concatenate([p, self._selection(sel)])
             r = self._call(self.solver, args)
             solves += 1
             if not r["finite"]:
@@ -828,10 +835,13 @@ class Replanner:
         d = self._distances(np.asarray(xs, dtype=float), obstacles)
         return np.sort(np.argsort(d, axis=-1, kind="stable")[..., : self._K], axis=-1)
 
-    def _one_hot(self, selection: np.ndarray) -> np.ndarray:
-        """The selection parameter of the QP's NLP: one one-hot column over the points per slot."""
-        out = np.zeros((*selection.shape, self.options.points))
-        np.put_along_axis(out, selection[..., None], 1.0, axis=-1)
+    def _selection(self, selection: np.ndarray) -> np.ndarray:
+        """The selection parameter of the QP's NLP: per slot, a one-hot column over the segments and the
+        fraction of that segment's arc where the selected backbone point lies."""
+        seg, frac = self._point_segment[selection], self._point_fraction[selection]
+        out = np.zeros((*selection.shape, self.robot.n_segments + 1))
+        np.put_along_axis(out, seg[..., None], 1.0, axis=-1)
+        out[..., -1] = frac
         return out.ravel()
 
     def _keep_multipliers(self, lam_g: np.ndarray, old: np.ndarray, new: np.ndarray) -> np.ndarray:

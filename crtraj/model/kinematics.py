@@ -55,8 +55,9 @@ def _skew(w: list[ca.SX]) -> ca.SX:
     )
 
 
-def _arc(ub: ca.SX, length: float, frac: float) -> tuple[ca.SX, ca.SX]:
-    """Position and rotation at fraction `frac` of a segment with bending ub (local frame)."""
+def _arc(ub: ca.SX, length: float, frac: float | ca.SX) -> tuple[ca.SX, ca.SX]:
+    """Position and rotation at fraction `frac` (a number, or symbolic) of a segment with bending ub (local
+    frame)."""
     v = frac * ub
     f1, f2 = _f1_f2(ca.sumsqr(v))
     p = frac * length * ca.vertcat(f1 * v[0], f1 * v[1], f2)
@@ -118,25 +119,52 @@ class Model:
             R = R @ Rk
         return ca.vertcat(ca.horzcat(R, o), ca.DM([[0, 0, 0, 1]]))
 
-    def _points_expr(self, arcs: np.ndarray) -> ca.SX:
-        """Backbone points (3 x len(arcs)) at arc lengths `arcs` (mm from the base)."""
+    def arc_segments(self, arcs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(segment index (P,), fraction of that segment's arc (P,) in [0, 1]) of arc lengths `arcs`
+        (P,) mm from the base: a segment holds the arc lengths in (start, end], the first also 0."""
         segs = self.robot.segments
         starts = np.cumsum([0.0] + [s.length for s in segs])
+        seg = np.zeros(len(arcs), dtype=int)
+        frac = np.zeros(len(arcs))
+        for i, s in enumerate(arcs):
+            for k, sg in enumerate(segs):
+                if (starts[k] < s <= starts[k + 1]) or (k == 0 and s <= 0.0):
+                    seg[i], frac[i] = k, min(max((s - starts[k]) / sg.length, 0.0), 1.0)
+                    break
+        return seg, frac
+
+    def _points_expr(self, arcs: np.ndarray) -> ca.SX:
+        """Backbone points (3 x len(arcs)) at arc lengths `arcs` (mm from the base)."""
+        seg_of, frac_of = self.arc_segments(arcs)
         R = ca.SX.eye(3)
         o = ca.vertcat(0, 0, self._x[-1])
         cols: list[ca.SX] = []
-        for k, seg in enumerate(segs):
+        for k, seg in enumerate(self.robot.segments):
             ubk = self._ub[2 * k : 2 * k + 2]
-            for s in arcs:
-                in_seg = (starts[k] < s <= starts[k + 1]) or (k == 0 and s <= 0.0)
-                if in_seg:
-                    frac = min(max((s - starts[k]) / seg.length, 0.0), 1.0)
-                    p, _ = _arc(ubk, seg.length, frac)
-                    cols.append(o + R @ p)
+            for frac in frac_of[seg_of == k]:
+                p, _ = _arc(ubk, seg.length, float(frac))
+                cols.append(o + R @ p)
             p, Rk = _arc(ubk, seg.length, 1.0)
             o = o + R @ p
             R = R @ Rk
         return ca.horzcat(*cols)
+
+    def segment_point_function(self) -> ca.Function:
+        """CasADi function (x, f) -> points (3 x n_segments): the backbone point at fraction f (0..1,
+        symbolic) of each segment's arc. One column picked by weights is any backbone point, at the
+        cost of one point per segment (a solver that chooses its points by parameters)."""
+        f = ca.SX.sym("f")
+        R = ca.SX.eye(3)
+        o = ca.vertcat(0, 0, self._x[-1])
+        cols: list[ca.SX] = []
+        for k, seg in enumerate(self.robot.segments):
+            ubk = self._ub[2 * k : 2 * k + 2]
+            p, _ = _arc(ubk, seg.length, f)
+            cols.append(o + R @ p)
+            p, Rk = _arc(ubk, seg.length, 1.0)
+            o = o + R @ p
+            R = R @ Rk
+        return ca.Function("segment_points", [self._x, f], [ca.horzcat(*cols)], {"cse": True})
 
     def arc_positions(self, n: int) -> np.ndarray:
         """Arc lengths (mm) of n points spread evenly from base to tip."""
