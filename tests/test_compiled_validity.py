@@ -160,6 +160,12 @@ def test_moving_obstacles_over_windows_agree(model, kernel_cache):
         lo = rng.uniform(0, 3, len(X))
         hi = lo + rng.uniform(0, 0.5, len(X))
         np.testing.assert_allclose(comp.clearance(X, lo, hi), interp.clearance(X, lo, hi), rtol=0, atol=TOL)
+        # the windows' swept spheres computed in C are Scene.swept_spheres bit for bit (a time origin too)
+        k = comp.state.kernel
+        for sc in (scene, replace(scene, time_origin=0.7)):
+            slots = packing.pack(*sc.swept_spheres(lo, hi), sc.n_obstacles)
+            got = k.clearance_windows(X, sc.motion_table(), sc.time_origin, lo, hi)
+            np.testing.assert_array_equal(got, k.clearance(X, slots))
         # edge checks and their certified fractions are the same too
         XA, XB = X[:60], X[60:120]
         fa, la = comp.check_edges(XA, XB, lo[:60], hi[:60])
