@@ -279,6 +279,22 @@ def implied_rows(speed: np.ndarray, speed_bound: np.ndarray, acc: np.ndarray, ac
     return out
 
 
+def shift_index(blocks: tuple[tuple[int, int], ...]) -> np.ndarray:
+    """Indices that move a vector of step-by-step blocks ((rows per step, steps) each) one step earlier, the
+    last step repeated: ``np.append(v, 0.0)[index]``. A block of one step (rows of step 1 only) takes the
+    zero appended past the end (step 2 had no such rows)."""
+    total = sum(w * steps for w, steps in blocks)
+    idx, start = [], 0
+    for w, steps in blocks:
+        if steps == 1:
+            idx.append(np.full(w, total))
+        else:
+            k = np.minimum(np.arange(steps) + 1, steps - 1)
+            idx.append((start + k[:, None] * w + np.arange(w)).ravel())
+        start += w * steps
+    return np.concatenate(idx).astype(np.intp)
+
+
 class Replanner:
     """The horizon NLP for one robot and at most `max_obstacles` obstacles, built once.
 
@@ -324,8 +340,10 @@ class Replanner:
         # points per obstacle and step in the QP (0: all of them)
         screens = o.safety and self.max_obstacles > 0 and 0 < o.closest_points < o.points
         self._K = o.closest_points if screens else 0
-        # segment and arc fraction of each of the NLP's backbone points (the QP's slots select by them)
-        self._point_segment, self._point_fraction = model.arc_segments(model.arc_positions(o.points))
+        # per backbone point of the NLP, its slot parameters: one-hot over the segments, then the fraction
+        # of that segment's arc (the QP's slots select their points by them)
+        seg, frac = model.arc_segments(model.arc_positions(o.points))
+        self._slot_table = np.column_stack([np.eye(r.n_segments)[seg], frac])
         self._build()
         self._warm: dict[str, np.ndarray] | None = None
         self.solve_count = 0
@@ -441,6 +459,7 @@ class Replanner:
             widths.append(((K or n) * M, N))
         # (rows per step, steps) of each constraint block of the QP's NLP, laid out step by step
         self._widths = tuple(widths)
+        self._shift_x, self._shift_g = shift_index(((nx, N),)), shift_index(self._widths)
         self._lbg_full = np.concatenate(lb_full)
         self._ubg_full = np.concatenate([*ubg, np.full(len(self._lbg_full) - self._n_lin, np.inf)])
         self._lbg = np.concatenate(lb_red)
@@ -649,7 +668,7 @@ class Replanner:
                 args.update(lam_x0=w["lam_x"], lam_g0=w["lam_g"])
         else:
             args["x0"] = cold
-        r = self._call_screened(args, None if w is None else w["sel"])
+        r = self._call_screened(args, w)
         tried = [r]
         if used_warm and not r["ok"]:
             # a stale warm start can lead a solver astray: one cold retry before declaring failure
@@ -771,22 +790,24 @@ class Replanner:
             float(np.max(xs - self._box_hi, initial=0.0)),
         )
 
-    def _call_screened(self, args: dict[str, Any], warm_selection: np.ndarray | None) -> dict[str, Any]:
+    def _call_screened(self, args: dict[str, Any], warm: dict[str, Any] | None) -> dict[str, Any]:
         """One solve of the QP's NLP (`_call`); with `closest_points`, the K closest backbone points per
         obstacle and step at the start point are its obstacle rows, and every point is checked at the
         solution. A solution that leaves an omitted point inside its sphere is solved again, from there, with
         the closest points there (at most `SCREEN_SOLVES` solves); if one still does, the result is not ok.
         A solution whose omitted points all hold is a KKT point of the full NLP too (their multipliers are
-        zero), so "ok" means what it means without screening. warm_selection: the selection (N, M, K) the
-        warm start's multipliers belong to (None: none)."""
+        zero), so "ok" means what it means without screening. warm: the shifted previous solve (`_shifted`)
+        the start point is, or None: its selection (that its multipliers belong to) and its obstacle rows
+        shifted (the same windows one step later: the first selection needs no evaluation of its own)."""
         if not self._K:
             return self._call(self.solver, args)
         t_start = time.perf_counter()
         args = dict(args)
         p, O = args["p"], args["p"][self._np - self._n_obstacle_p :]
-        sel = self._closest(args["x0"], O)
-        if "lam_g0" in args and warm_selection is not None:
-            args["lam_g0"] = self._keep_multipliers(args["lam_g0"], warm_selection, sel)
+        known = warm is not None and warm["dist"] is not None
+        sel = self._nearest(warm["dist"]) if known else self._closest(args["x0"], O)  # type: ignore[index]
+        if "lam_g0" in args and warm is not None and warm["sel"] is not None:
+            args["lam_g0"] = self._keep_multipliers(args["lam_g0"], warm["sel"], sel)
         solves = 0
         while True:
             args["p"] = np.concatenate([p, self._selection(sel)])
@@ -795,6 +816,7 @@ class Replanner:
             if not r["finite"]:
                 break
             D = r["sol"]["distances"] if "distances" in r["sol"] else self._distances(r["x"], O)
+            r["distances"] = D.reshape(self.N, self.max_obstacles, self.options.points)
             dmin = float(np.min(D))
             r["min_distance"] = dmin
             r["violation"] = max(r["violation"], -dmin)
@@ -832,17 +854,16 @@ class Replanner:
     def _closest(self, xs: np.ndarray, obstacles: np.ndarray) -> np.ndarray:
         """Indices (N, M, K) of the K backbone points closest to each obstacle slot at each step, ascending
         (so the same set gives the same slots, and the warm start's multipliers stay with their points)."""
-        d = self._distances(np.asarray(xs, dtype=float), obstacles)
+        return self._nearest(self._distances(np.asarray(xs, dtype=float), obstacles))
+
+    def _nearest(self, d: np.ndarray) -> np.ndarray:
+        """`_closest` from the obstacle rows d (N, M, points)."""
         return np.sort(np.argsort(d, axis=-1, kind="stable")[..., : self._K], axis=-1)
 
     def _selection(self, selection: np.ndarray) -> np.ndarray:
         """The selection parameter of the QP's NLP: per slot, a one-hot column over the segments and the
         fraction of that segment's arc where the selected backbone point lies."""
-        seg, frac = self._point_segment[selection], self._point_fraction[selection]
-        out = np.zeros((*selection.shape, self.robot.n_segments + 1))
-        np.put_along_axis(out, seg[..., None], 1.0, axis=-1)
-        out[..., -1] = frac
-        return out.ravel()
+        return self._slot_table[selection].ravel()
 
     def _keep_multipliers(self, lam_g: np.ndarray, old: np.ndarray, new: np.ndarray) -> np.ndarray:
         """lam_g with the multipliers of the obstacle slots whose point changed set to zero."""
@@ -851,29 +872,19 @@ class Replanner:
         return lam
 
     def _shifted(self, r: dict[str, Any], reduced: bool) -> dict[str, Any]:
-        """Previous solution moved one step earlier, the last step repeated (the next solve's start).
-        Multipliers only from a solve of the QP's NLP (`reduced`; a rescue solved the full NLP, whose rows
-        are others when `closest_points` screens)."""
-        nx, N = self.nx, self.N
+        """Previous solution moved one step earlier, the last step repeated (the next solve's start), with
+        its selection and obstacle rows (`_call_screened`). Multipliers only from a solve of the QP's NLP
+        (`reduced`; a rescue solved the full NLP, whose rows are others when `closest_points` screens)."""
 
-        def shift(v: np.ndarray, width: int, steps: int = N) -> np.ndarray:
-            b = v.reshape(steps, width)
-            if steps == 1:
-                return np.zeros_like(v)  # a block of step 1 only: step 2 had no such rows
-            return np.concatenate([b[1:], b[-1:]]).ravel()
+        def steps(a: np.ndarray) -> np.ndarray:
+            return np.concatenate([a[1:], a[-1:]])
 
-        out: dict[str, Any] = {"x": shift(r["x"], nx), "lam_x": None, "lam_g": None, "sel": None}
+        out: dict[str, Any] = {"x": np.append(r["x"], 0.0)[self._shift_x], "lam_x": None, "lam_g": None}
         if reduced or not self._K:
-            lam_g = np.asarray(r["sol"]["lam_g"]).ravel()
-            parts, start = [], 0
-            for w, steps in self._widths:
-                parts.append(shift(lam_g[start : start + w * steps], w, steps))
-                start += w * steps
-            out["lam_x"] = shift(np.asarray(r["sol"]["lam_x"]).ravel(), nx)
-            out["lam_g"] = np.concatenate(parts)
-        if "selection" in r:
-            sel = r["selection"]
-            out["sel"] = np.concatenate([sel[1:], sel[-1:]])
+            out["lam_x"] = np.append(np.asarray(r["sol"]["lam_x"]).ravel(), 0.0)[self._shift_x]
+            out["lam_g"] = np.append(np.asarray(r["sol"]["lam_g"]).ravel(), 0.0)[self._shift_g]
+        out["sel"] = steps(r["selection"]) if "selection" in r else None
+        out["dist"] = steps(r["distances"]) if "distances" in r else None
         return out
 
     def describe(self) -> dict[str, Any]:

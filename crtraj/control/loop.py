@@ -37,6 +37,7 @@ from __future__ import annotations
 import contextlib
 import enum
 import math
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
@@ -44,12 +45,14 @@ from typing import Any
 
 import numpy as np
 
+from crtraj.control.compiled_tracking import CompiledTracking
 from crtraj.control.executed import limit_fractions
 from crtraj.control.horizon import INTERPOLATION_GAIN, HorizonResult, HorizonStatus, Replanner, ReplanOptions
 from crtraj.control.loop_options import LoopOptions
 from crtraj.control.ports import Device, DeviceError, ObstacleSource, TipSensor
 from crtraj.control.reference import DirectReference, ReferencePlan, ReferenceSource, TimedReference
 from crtraj.control.tracking import TrackingController, TrackingOptions
+from crtraj.core.build_cache import BuildCache
 from crtraj.core.errors import InputError
 from crtraj.core.fields import check_array
 from crtraj.model.kinematics import Model
@@ -374,6 +377,8 @@ class ClosedLoop:
         self.obstacles: ObstacleSource = SceneObstacles(scene) if obstacles is None else obstacles
         self._fns: dict[Any, Any] = {}  # CasADi functions shared by every step's validator
         self.validator = self._validator(scene)
+        # with compiled checks (a C compiler), each step's tracking simulation runs in C as well
+        self._tracking = self._compiled_tracking() if self.validator.state.kernel is not None else None
         self._scene_now = scene
         A, _ = self.robot.cable_matrix()
         self._A = A
@@ -401,6 +406,17 @@ class ClosedLoop:
         rates = np.append(np.full(3 * self.robot.n_segments, o.max_cable_speed), o.max_z_speed)  # mm/s
         scale = np.sum(limits.jacobian * A, axis=1) / np.sum(A * A, axis=1)
         return replace(limits, vmax=np.minimum(limits.vmax, rates * np.abs(scale)))
+
+    def _compiled_tracking(self) -> CompiledTracking | None:
+        """The C tracking simulation (`crtraj.control.compiled_tracking`) from the validity kernel's build cache;
+        None in tip mode, without a C compiler, or when it fails to build (said in one stderr line)."""
+        cache = self._fns.setdefault("build_cache", BuildCache())
+        h = self.options.dt / self.n_sub
+        try:
+            return CompiledTracking.load(self.tracker, h, self.validator.space.metric_matrix, cache)
+        except (RuntimeError, OSError) as exc:
+            print(f"crtraj: compiled tracking unavailable ({exc}): simulating in numpy", file=sys.stderr)
+            return None
 
     def _validator(self, scene: Any) -> MotionValidator:
         lo = self.loop_options
@@ -444,6 +460,10 @@ class ClosedLoop:
         """
         n, ctl, servo, v = self.n_sub, self.tracker, self.servo, self.validator
         dt, resolution = self.options.dt, self.loop_options.check_resolution
+        if self._tracking is not None:
+            done = self._tracking.step(q, qc, x0, x1, t, inc, n, dt, resolution)
+            if done is not None:
+                return done
         h = dt / n
         rate = (x1 - x0) / dt
         ts, xs = [np.array([t])], [servo.config(q)[None]]

@@ -419,6 +419,34 @@ class TrackingController:
         """Eigenvalues of the discrete closed-loop error dynamics A - B K."""
         return np.linalg.eigvals(self.design(dt).closed_loop)
 
+    def step_constants(self, dt: float) -> dict[str, np.ndarray]:
+        """The numbers `step` (configuration mode) and the servo model use for period dt (s), for a compiled
+        copy of them (`crtraj.control.compiled_tracking`): q0 (nq) mm, Binv (nx, nq), J_q (nq, nx), Kx, Kc
+        (nx, nx), lead (nx), rate_room (nq) mm, decay (nq), tau (nq) s, the rate limits' jacobian (m, nx),
+        vmax_room (m), amax_room (m), amax (m) (m = 0 without), G (ng, nx) and h (ng) of the linear limits,
+        C (segments, 2, nx) and tmax2 (segments,) of the bending limits, z_range (2,) mm."""
+        p, rl = self._period(dt), self.rate_limits
+        return {
+            "q0": self._q0,
+            "Binv": self._Binv,
+            "J_q": self._J_q,
+            "Kx": p.Kx,
+            "Kc": p.Kc,
+            "lead": p.lead,
+            "rate_room": p.rate_room,
+            "decay": self.servo.decay(p.design.dt),
+            "tau": self.servo.tau,
+            "jacobian": np.zeros((0, self.nx)) if rl is None else rl.jacobian,
+            "vmax_room": p.vmax_room,
+            "amax_room": p.amax_room,
+            "amax": np.zeros(0) if rl is None else rl.amax,
+            "G": self._G,
+            "h": self._h,
+            "C": np.array(self._C, dtype=float),
+            "tmax2": self._tmax2,
+            "z_range": np.array(self._z_range, dtype=float),
+        }
+
     # --------------------------------------------------------------- control
     def initial_command(self, x: np.ndarray) -> np.ndarray:
         """The set-point (nq, mm) of servos settled at configuration x."""
