@@ -15,7 +15,6 @@ from __future__ import annotations
 import ctypes
 import hashlib
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -299,8 +298,3 @@ class CompiledTracking:
             if rc != 2:
                 raise RuntimeError(f"compiled tracking step failed (code {rc})")
         return None
-
-    @staticmethod
-    def describe() -> dict[str, Any]:
-        """What runs (for result files)."""
-        return {"tracking_simulation": "compiled C"}
