@@ -16,9 +16,12 @@ import numpy as np
 import pytest
 from scipy.optimize import linear_sum_assignment
 
+from crtraj.control.loop import ClosedLoop
 from crtraj.io.problem import load_robot
 from crtraj.model.kinematics import Model
 from crtraj.planning.result import PlanResult, PlanStatus
+from crtraj.world.obstacle import Obstacle
+from crtraj.world.scene import Scene
 
 ROOT = Path(__file__).resolve().parent.parent
 PROBLEMS = ROOT / "problems"
@@ -128,3 +131,25 @@ def plan_result(model: Model, t, X, status: PlanStatus = PlanStatus.EXACT) -> Pl
         tips=model.tip_position(X),
         cables=model.cables(X),
     )
+
+
+# The closed-loop tests' small problem: from XS toward XG's tip, past a breathing ball (mm, rad).
+XS = np.array([0.3, 0.0, 0.0, 0.0, 0.0])
+XG = np.array([-0.6, 0.5, -0.3, 0.2, -40.0])
+BALL = Obstacle(center=(-3.5, 76.8, 394.4), radius=30.0, amplitude=8.0, omega=0.5, phase=-0.43, name="ball")
+
+
+class VirtualClock:
+    """A clock (s) that only moves when told to."""
+
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def straight_loop(model: Model, scene: Scene, **kw) -> ClosedLoop:
+    """The closed loop from XS toward XG's tip among `scene` (goal configuration XG unless kw gives a
+    reference); kw: `ClosedLoop`'s keyword options."""
+    return ClosedLoop(model, scene, model.tip_position(XG), XS, **{"goal_config": XG, **kw})

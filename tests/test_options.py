@@ -166,7 +166,7 @@ _OLD_DEFAULTS = {
     ReplanOptions: dict(
         horizon=10, dt=0.1, points=16, margin=1.5, tip_weight=1.0, config_weight=0.01, velocity_weight=0.02,
         smooth_weight=0.2, terminal_weight=10.0, max_cable_speed=8.0, max_z_speed=40.0, solver="ipopt",
-        qpsol="daqp", hessian="gauss-newton", max_iter=60, max_solve_time=0.5, limit_fraction=0.9,
+        qpsol="daqp", hessian="gauss-newton", max_iter=60, max_calls=1, max_solve_time=0.5, limit_fraction=0.9,
         rescue=True, safety=True, compiled=False, step_deadline=0.0,
         # issue 14: the QP keeps the 3 closest points per obstacle and step, and stops at a dual residual of
         # 1e-4 (mm^2 per unit of x) instead of 1e-6, both for the replan iteration's time
@@ -174,7 +174,7 @@ _OLD_DEFAULTS = {
     ),
     LoopOptions: dict(
         duration=60.0, replan_period=0.0, planner_time=1.0, stall_time=3.0, reference_speed=0.7,
-        max_body_speed=50.0, check_resolution=1.0, check_points=21, settle_time=0.5,
+        max_body_speed=50.0, check_resolution=1.0, check_points=21, settle_time=0.5, reference_delay=0.0,
     ),
     StreamOptions: dict(
         rate=100.0, watchdog=0.1, connect_timeout=1.0, prebuffer=0.1, settle_tolerance=0.01, settle_timeout=2.0,
@@ -205,7 +205,9 @@ _CHANGED = (
         horizon=6, dt=0.05, points=12, margin=0, solver="sqp", qpsol="qrqp", hessian="exact", max_iter=20,
         limit_fraction=0.5, rescue=False, safety=False, compiled=True, step_deadline=0.05,
     ),
-    LoopOptions(duration=2.5, replan_period=0.5, reference_speed=0.5, check_points=9, settle_time=0.0),
+    LoopOptions(
+        duration=2.5, replan_period=0.5, reference_speed=0.5, check_points=9, settle_time=0.0, reference_delay=0.3
+    ),
     StreamOptions(rate=50, watchdog=0.5, prebuffer=0.0, following_tolerance=20.0, fsync=True),
     ViewOptions(disc_radius=3.0, segment_colors=["#000000", "#ABCDEF"], obstacle_opacity=1, tree_color="#ffffff",
                 show_tree=False),
@@ -299,6 +301,8 @@ _BAD = (
     (LoopOptions, {"check_points": 1}, r"^loop\.check_points: must be >= 2, got 1$"),
     (LoopOptions, {"check_points": 1001}, r"^loop\.check_points: must be <= 1000, got 1001$"),
     (LoopOptions, {"check_resolution": 0.001}, r"^loop\.check_resolution: must be >= 0\.01, got 0\.001$"),
+    (LoopOptions, {"reference_delay": -0.1}, r"^loop\.reference_delay: must be >= 0, got -0\.1$"),
+    (LoopOptions, {"reference_delay": 61.0}, r"^loop\.reference_delay: must be <= 60, got 61$"),
     (StreamOptions, {"rate": 2e4}, r"^stream\.rate: must be <= 10000, got 20000$"),
     (StreamOptions, {"watchdog": 0.0}, r"^stream\.watchdog: must be > 0, got 0$"),
     (StreamOptions, {"prebuffer": -0.1}, r"^stream\.prebuffer: must be >= 0, got -0\.1$"),

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from crtraj.cli import main
+from crtraj.core.tomledit import set_values
 from crtraj.io.problem import Problem
 from crtraj.world.scene import Scene
 
@@ -74,12 +75,14 @@ def test_bad_problem_is_one_line_error(tmp_path, capsys):
 
 def _short_problem(tmp_path: Path, duration: float) -> Path:
     """Simulation 2, `duration` s long, starting 10 mm further from the upper sphere (a live start must
-    allow for the sphere growing while the first reference is planned)."""
+    allow for the sphere growing while the first reference is planned), without the 4 ms step deadline: the
+    feed's threads share this process, and what the test checks must not depend on how fast it runs."""
     text = PAPER.read_text().replace(
         'robot = "robots/cdsr2.toml"', f'robot = "{PAPER.parent / "robots" / "cdsr2.toml"}"'
     )
     text = text.replace("duration = 60.0", f"duration = {duration}")
     text = text.replace("start = [-50.0, 100.0, 390.0]", "start = [-50.0, 110.0, 400.0]")
+    text = set_values(text, {("replan", "step_deadline"): 0.0})
     p = tmp_path / "short.toml"
     p.write_text(text)
     return p
@@ -171,7 +174,8 @@ def test_live_feed_from_the_command_line(tmp_path, capsys, monkeypatch):
     assert res["summary"]["live_obstacles"] is True
     assert res["status"] == "timeout"
     assert res["summary"]["safety_violations"] == 0
-    assert res["summary"]["status_counts"].get("move", 0) > 5
+    counts = res["summary"]["status_counts"]
+    assert counts.get("move", 0) + counts.get("suboptimal", 0) > 5  # it moved (suboptimal: at the iteration cap)
     assert res["feed"]["rejected"] == 0 and res["feed"]["accepted"] > 10 and res["options"]["feed"]["max_speed"] > 0
     # the recorded obstacle states are what was sent (radii within the scene's breathing ranges)
     radii = np.array([w["obstacles"]["radii"] for w in res["waypoints"]])

@@ -11,27 +11,14 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import BALL, XG, XS, VirtualClock
 
 from crtraj.control.horizon import Replanner, ReplanOptions
 from crtraj.control.loop import ClosedLoop, StepStatus
 from crtraj.control.loop_options import LoopOptions
-from crtraj.world.obstacle import Obstacle
 from crtraj.world.scene import Scene
 
-XS = np.array([0.3, 0.0, 0.0, 0.0, 0.0])
-XG = np.array([-0.6, 0.5, -0.3, 0.2, -40.0])
-BALL = Obstacle(center=(-3.5, 76.8, 394.4), radius=30.0, amplitude=8.0, omega=0.5, phase=-0.43, name="ball")
 DEADLINE = 0.004  # s
-
-
-class VirtualClock:
-    """A clock (s) that only moves when told to."""
-
-    def __init__(self) -> None:
-        self.now = 0.0
-
-    def __call__(self) -> float:
-        return self.now
 
 
 class SlowReplanner(Replanner):

@@ -132,7 +132,12 @@ class ReplanOptions(Options):
     step_deadline (s, 0 = none): wall-time deadline of one replanning
     iteration; a solve that finishes after it is not used (the loop falls
     back to the last verified plan, shifted, or a verified hold) and is
-    counted as a deadline miss. max_iter is the fixed iteration cap.
+    counted as a deadline miss. max_iter is the fixed iteration cap of one
+    solver call; max_calls (sqpmethod): calls per solve, each next one going on
+    from an iterate the cap stopped outside a constraint (with step_deadline,
+    only while time is left); an iterate it stopped inside every constraint is
+    a usable plan (status FEASIBLE), applied as a suboptimal move once
+    verified. The IPOPT rescue may take max_iter x max_calls iterations.
 
     The closed loop's options are the ``[loop]`` section
     (`crtraj.control.loop_options.LoopOptions`).
@@ -156,6 +161,7 @@ class ReplanOptions(Options):
     qpsol: str = option("daqp", choices=QP_SOLVERS)
     hessian: str = option("gauss-newton", choices=HESSIANS)
     max_iter: int = option(60, ge=1, le=100_000)
+    max_calls: int = option(1, ge=1, le=1000)
     tol: float = option(1e-4, gt=0.0, le=1.0)
     max_solve_time: float = option(0.5, gt=0.0, le=3600.0)
     limit_fraction: float = option(0.9, gt=0.0, le=1.0)
@@ -225,6 +231,11 @@ class HorizonResult:
         """The returned configurations satisfy every constraint (within 1e-6), converged or not: a move
         the loop may use (SOLVED or FEASIBLE)."""
         return self.status in (HorizonStatus.SOLVED, HorizonStatus.FEASIBLE)
+
+
+def _in_time(tried: list[dict[str, Any]], time_left: float | None) -> bool:
+    """The solver calls so far (their "wall", s) leave time before the deadline (always, without one)."""
+    return time_left is None or sum(x["wall"] for x in tried) < time_left
 
 
 def horizon_status(converged: bool, configs: np.ndarray, violation: float) -> HorizonStatus:
@@ -542,7 +553,7 @@ class Replanner:
                 **common,
                 "ipopt.print_level": 0,
                 "ipopt.sb": "yes",
-                "ipopt.max_iter": o.max_iter,
+                "ipopt.max_iter": o.max_iter * o.max_calls,
                 "ipopt.tol": o.tol,
                 "ipopt.constr_viol_tol": 1e-7,
                 "ipopt.acceptable_tol": 1e-4,
@@ -643,6 +654,7 @@ class Replanner:
         x_prev: np.ndarray | None = None,
         tip_reference: np.ndarray | None = None,
         warm: bool = True,
+        time_left: float | None = None,
     ) -> HorizonResult:
         """Plan x_1..x_N from the current configuration x0 (nx).
 
@@ -652,7 +664,11 @@ class Replanner:
         (smoothness, and the history of the first step's actuator acceleration
         limit; default x0, i.e. at rest). tip_reference: (N, 3) mm (default: tips of
         the reference). warm: start from the previous solution shifted by one
-        step (when there is one).
+        step (when there is one). time_left: s left of the step's deadline when the
+        solve began (None: no deadline): a failed try is followed by the cold retry
+        only while time is left, and never by the rescue (an IPOPT solve takes tens
+        of ms): a result after the deadline is not used. A try stopped by the
+        iteration cap at a feasible iterate still warm-starts the next solve.
         """
         N, nx = self.N, self.nx
         x0 = np.asarray(x0, dtype=float).reshape(nx)
@@ -668,16 +684,16 @@ class Replanner:
                 args.update(lam_x0=w["lam_x"], lam_g0=w["lam_g"])
         else:
             args["x0"] = cold
-        r = self._call_screened(args, w)
-        tried = [r]
-        if used_warm and not r["ok"]:
-            # a stale warm start can lead a solver astray: one cold retry before declaring failure
+        tried: list[dict[str, Any]] = []
+        r = self._attempt(args, w, tried, time_left)
+        if used_warm and not r["ok"] and self._infeasible(r) and _in_time(tried, time_left):
+            # a stale warm start can lead a solver astray: one cold retry before declaring failure (an iterate
+            # the iteration cap stopped inside the constraints is a usable, if suboptimal, plan)
             args = {k: v for k, v in args.items() if k not in ("lam_x0", "lam_g0")}
             args["x0"] = cold
-            r = self._call_screened(args, None)
-            tried.append(r)
+            r = self._attempt(args, None, tried, time_left)
         rescued = False
-        if not r["ok"] and self.rescue is not None:
+        if not r["ok"] and self.rescue is not None and time_left is None:
             rescued = True
             # IPOPT solves the full NLP: every point of every step against every obstacle
             args = {"p": p, "lbx": lbx, "ubx": ubx, "lbg": self._lbg_full, "ubg": self._ubg_full, "x0": cold}
@@ -686,12 +702,14 @@ class Replanner:
             tried.append(r)
         r["wall"] = sum(x["wall"] for x in tried)
         self.solve_count += 1
-        self._warm = self._shifted(r, reduced=not rescued) if r["ok"] else None
         configs = r["x"].reshape(N, nx)
+        status = horizon_status(r["ok"], configs, r["violation"])
+        # a feasible iterate (converged, or stopped by the iteration cap) is the next solve's warm start
+        self._warm = self._shifted(r, reduced=not rescued) if status is not HorizonStatus.FAILED else None
         return HorizonResult(
             configs=configs,
             tips=self._tips(r, configs),
-            status=horizon_status(r["ok"], configs, r["violation"]),
+            status=status,
             solver_status=r["status"],
             iterations=r["iterations"],
             wall_time=r["wall"],
@@ -871,6 +889,30 @@ class Replanner:
         lam[self._n_lin :].reshape(old.shape)[old != new] = 0.0
         return lam
 
+    def _attempt(
+        self, args: dict[str, Any], start: dict[str, Any] | None, tried: list[dict[str, Any]], time_left: float | None
+    ) -> dict[str, Any]:
+        """A solve from args' start point (appended to `tried`): calls of max_iter iterations each, the next going
+        on from an iterate that breaks a constraint (with its multipliers and rows) while calls and time are left."""
+        r = self._call_screened(args, start)
+        tried.append(r)
+        for _ in range(self.options.max_calls - 1):
+            if r["ok"] or not r["finite"] or not self._infeasible(r) or not _in_time(tried, time_left):
+                break
+            sol = r["sol"]
+            lam = {"lam_x0": np.asarray(sol["lam_x"]).ravel(), "lam_g0": np.asarray(sol["lam_g"]).ravel()}
+            r = self._call_screened({**args, "x0": r["x"], **lam}, self._here(r))
+            tried.append(r)
+        return r
+
+    def _infeasible(self, r: dict[str, Any]) -> bool:
+        """A solver call's iterate breaks a constraint (or is not finite): not a usable plan."""
+        return horizon_status(False, r["x"].reshape(self.N, self.nx), r["violation"]) is HorizonStatus.FAILED
+
+    def _here(self, r: dict[str, Any]) -> dict[str, Any]:
+        """A solve's own iterate as the start of the next call (`_call_screened`'s warm argument, not shifted)."""
+        return {"dist": r.get("distances"), "sel": r.get("selection")}
+
     def _shifted(self, r: dict[str, Any], reduced: bool) -> dict[str, Any]:
         """Previous solution moved one step earlier, the last step repeated (the next solve's start), with
         its selection and obstacle rows (`_call_screened`). Multipliers only from a solve of the QP's NLP
@@ -894,6 +936,7 @@ class Replanner:
             + (" (compiled C)" if self._compiled is not None else ""),
             "rescue": "ipopt" if self.rescue is not None else None,
             "max_iter": self.options.max_iter,
+            "max_calls": self.options.max_calls,
             "step_deadline_s": self.options.step_deadline,
             "variables": self.nx * self.N,
             "parameters": self._np,

@@ -51,6 +51,7 @@ from crtraj.control.horizon import INTERPOLATION_GAIN, HorizonResult, HorizonSta
 from crtraj.control.loop_options import LoopOptions
 from crtraj.control.ports import Device, DeviceError, ObstacleSource, TipSensor
 from crtraj.control.reference import DirectReference, ReferencePlan, ReferenceSource, TimedReference
+from crtraj.control.reference_worker import PendingPlan, ReferenceWorker
 from crtraj.control.tracking import TrackingController, TrackingOptions
 from crtraj.core.build_cache import BuildCache
 from crtraj.core.errors import InputError
@@ -177,6 +178,10 @@ class ReplanRun:
     limit_fractions: dict[str, float] = field(default_factory=dict)
     # the tip sensor's measurement at every t[k] (K+1, 3) mm, NaN when not seen; None without a sensor
     measured_tip: np.ndarray | None = None
+    # references planned beside the loop (`ReferenceWorker`): handover steps, plans taken over, the
+    # simulation's waits for due paths (s, outside every iteration time) and why the worker stopped, if
+    # it did; {} when every reference was planned inside its control step
+    reference_worker: dict[str, Any] = field(default_factory=dict)
 
     @property
     def steps(self) -> int:
@@ -232,6 +237,8 @@ class ReplanRun:
             "max_tracking_error_mm": float(np.max(self.tip_error)),
             "reference_plans": int(np.sum(self.replanned)),
             "planner_time_s": float(np.sum(self.plan_time)),
+            "reference_planning": "worker" if self.reference_worker else "inline",
+            "reference_wait_s": float(self.reference_worker.get("wait_s", 0.0)),
             "status_counts": counts,
             "live_obstacles": self.live,
             "feed_rejected": int(self.feed.get("rejected", 0)),
@@ -253,7 +260,7 @@ class ReplanRun:
             f"iteration median {s['median_iteration_s'] * 1e3:.2f} ms / p99 {s['p99_iteration_s'] * 1e3:.2f} ms / "
             f"max {s['max_iteration_s'] * 1e3:.2f} ms, {_deadline_text(s)}, "
             f"final tip error {s['final_tip_error_mm']:.3f} mm, {self.steps} steps, "
-            f"{s['reference_plans']} reference plans"
+            f"{s['reference_plans']} reference plans" + (" (planned beside the loop)" if self.reference_worker else "")
         )
 
     def limits_line(self) -> str:
@@ -575,6 +582,11 @@ class ClosedLoop:
         refused = self._start(log, st, live, clock, sleep)
         if refused is not None:
             return self._finish(log, st, *refused, t_wall, device)
+        self._initial_reference(st)
+        # a simulated run waits for a due reference (real time would have given the worker those seconds);
+        # a real-time run takes it at the first step it has arrived by
+        st.worker, st.wait_reference = self._reference_worker(), not realtime
+        self._warm_up(st)
         t_clock = clock()
         if device is not None:
             device.begin(time.perf_counter())
@@ -586,6 +598,51 @@ class ClosedLoop:
             device.hold("interrupted (Ctrl-C)")
             msg = "interrupted (Ctrl-C): device held"
             return self._finish(log, st, RunStatus.INTERRUPTED, msg, t_wall, device)
+        finally:
+            if st.worker is not None:
+                st.worker.close()
+
+    def _initial_reference(self, st: _State) -> None:
+        """Follow the reference planned before the loop (if any) from the start: step 0 records it (and,
+        planning inline, is charged its planner time), but does not spend its own time taking it over."""
+        plan = self.initial_reference
+        if plan is None:
+            return
+        reason = self._replan_reason(st)
+        st.t_last_attempt = st.t
+        st.first_plan = (f"{reason}: {plan.status}", plan.wall_time, self._adopt(st, 0, plan, None))
+
+    def _warm_up(self, st: _State) -> None:
+        """Run a step's computations once, untimed, before the first step, and keep nothing of it. Their
+        first calls allocate buffers, fill caches and (after the worker's fork) copy the pages they write:
+        milliseconds that would otherwise land in step 0. The solve is the base `Replanner.solve` (an
+        injected replanner's own bookkeeping never sees it), and its warm start is forgotten."""
+        rp, dt = self.replanner, self.options.dt
+        res = Replanner.solve(
+            rp,
+            st.x,
+            st.horizon_reference(rp.N, dt),
+            rp.obstacles_from_scene(self._scene_now, st.t),
+            x_prev=st.x_prev,
+        )
+        rp.reset()
+        sim = self._track(st.q, st.qc, st.x, res.configs[0] if res.feasible else st.x, st.t, st.inc)
+        if self.options.safety:
+            self._verify(sim[2], sim[3], (st.t + dt, st.t + 2 * dt))
+            if st.ref is not None:
+                self._reference_valid(st.ref, st.s_ref, st.t)
+
+    def _reference_worker(self) -> ReferenceWorker | None:
+        """The started reference worker with ``loop.reference_delay > 0``; None to plan inside the steps
+        (no delay, or a platform without fork: said in one stderr line)."""
+        if not self.loop_options.handover_steps(self.options.dt):
+            return None
+        if not ReferenceWorker.can_fork():
+            print("crtraj: this platform cannot fork: reference paths are planned inside the steps", file=sys.stderr)
+            return None
+        worker = ReferenceWorker(self.reference_source, self.robot.nx)
+        worker.start()
+        return worker
 
     def _start(
         self,
@@ -678,15 +735,20 @@ class ClosedLoop:
             self._use(scene_t)
             reason, plan_time, replanned, charged = self._update_reference(st, k)
             X_ref = st.horizon_reference(rp.N, dt)
-            late = self._solve(st.x, X_ref, rp.obstacles_from_scene(scene_t, t), st.x_prev)
-            res = self._judge_deadline(late, self.timer() - t_iter + charged, log)
+            obstacles = rp.obstacles_from_scene(scene_t, t)
+            left = self.options.step_deadline - (self.timer() - t_iter) if self.options.step_deadline else None
+            late = self._solve(st.x, X_ref, obstacles, st.x_prev, left)
+            res = self._judge_deadline(late, self.timer() - t_iter + charged - st.t_waited, log)
             st.nlp_failed = not res.feasible and res.status is not HorizonStatus.SKIPPED
-            status, x1, sim, bound = self._choose(st, res)
+            # a late but feasible solve still warm-starts the next one: resetting it would make the next
+            # solve cold, hence slower, hence late again (a run of misses feeding itself)
+            status, x1, sim, bound = self._choose(st, res, keep_warm=res is not late and late.feasible)
             if res is not late and late.feasible:
                 # the late plan (for t + dt, t + 2 dt, ...) is the next step's fallback: a run of misses
                 # follows it one step behind (each move re-verified) instead of running out of plan
                 st.last_plan = late.configs
-        iter_time = self.timer() - t_iter + charged
+        iter_time = self.timer() - t_iter + charged - st.t_waited
+        st.t_waited = 0.0
         q_new, qc_new, T, X, cmds = sim
         if device is not None:
             self._drive(device, status, t, st.q, cmds, why, bound)
@@ -782,14 +844,14 @@ class ClosedLoop:
         if np.linalg.norm(target - st.target) > 0.5 * self.goal_tolerance:
             st.target = target
             self.reference_source.retarget(target)  # type: ignore[attr-defined]
-            st.retarget = True
+            st.goal_version += 1
 
     def _replan_reason(self, st: _State) -> str:
         """Why the reference path must be planned again now ('' when it need not)."""
         lo, t, ref = self.loop_options, st.t, st.ref
         if ref is None:
             return "no reference"
-        if st.retarget:
+        if st.ref_goal_version != st.goal_version:
             return "tip correction"
         if st.nlp_failed:
             return "NLP failed"
@@ -802,34 +864,77 @@ class ClosedLoop:
         return ""
 
     def _update_reference(self, st: _State, k: int) -> tuple[str, float, bool, float]:
-        """Replan the reference path when needed; returns (reason, planner time s, replanned, time to charge s)."""
-        dt, t = self.options.dt, st.t
-        ahead = dt * self.replanner.N
-        reason = self._replan_reason(st)
-        # after a failed attempt wait a little before asking the planner again
-        if not reason or (reason != "periodic" and t - st.t_last_attempt < max(1.0, dt) - 1e-9):
-            if st.ref is not None:
-                st.locate(ahead)
-            return "", 0.0, False, 0.0
-        st.t_last_attempt = t
-        reused = k == 0 and self.initial_reference is not None
-        plan = self.initial_reference if reused else self.reference_source(st.x, t, self._scene_now)
-        replanned = plan.is_success()
-        if replanned and not reused:
-            st.retarget = False
-        if replanned:
-            st.ref = TimedReference(plan.configs, self._seconds_per, self.validator.metric)
-            st.s_ref, st.progress_s, st.progress_t, st.t_last_plan = 0.0, 0.0, t, t
-            st.refs_used.append((k, self.model.tip_position(st.ref.X)))
-            if len(plan.tree_edges):
-                st.tree_edges = plan.tree_edges
-        if st.ref is not None:
-            st.locate(ahead)
-        # a reference planned before the loop started is charged to this iteration
-        return f"{reason}: {plan.status}", plan.wall_time, replanned, plan.wall_time if reused else 0.0
+        """Replan the reference path when needed; returns (reason, planner time s, replanned, time to charge s).
 
-    def _choose(self, st: _State, res: HorizonResult) -> tuple[StepStatus, np.ndarray, Motion, float]:
+        Inline (no worker) the plan is made now and its time is part of the step; with a worker the step
+        first takes over a due path, then sends a new request, and the plan's time is the worker's."""
+        said, plan_time, replanned = self._take_reference(st, k)
+        charged = 0.0
+        if k == 0 and st.first_plan is not None:
+            # the reference planned before the loop: inline, charged to this iteration; with a worker no
+            # reference is planned inside a step, and that one was part of the setup
+            said, plan_time, replanned = st.first_plan
+            charged = plan_time if st.worker is None else 0.0
+        reason = self._replan_reason(st)
+        w = st.worker
+        # after a failed attempt wait a little before asking the planner again; one request at a time
+        t = st.t
+        wait = reason != "periodic" and t - st.t_last_attempt < max(1.0, self.options.dt) - 1e-9
+        if reason and not wait and (w is None or w.pending is None):
+            st.t_last_attempt = t
+            if w is not None:
+                due = k + self.loop_options.handover_steps(self.options.dt)
+                w.submit(st.x, t, self._scene_now, PendingPlan(k, due, reason, st.goal_version))
+                said = "; ".join(filter(None, (said, f"{reason}: asked")))
+            else:
+                plan = self.reference_source(st.x, t, self._scene_now)
+                replanned = self._adopt(st, k, plan, st.goal_version)
+                said, plan_time = f"{reason}: {plan.status}", plan.wall_time
+        st.locate(self.options.dt * self.replanner.N)
+        return said, plan_time, replanned, charged
+
+    def _take_reference(self, st: _State, k: int) -> tuple[str, float, bool]:
+        """Take over the worker's path when it is due: (reason text, planner time s, adopted); a worker that
+        failed is closed (said once on stderr) and the loop plans inside its steps from then on."""
+        w = st.worker
+        if w is None or w.pending is None or k < w.pending.due:
+            return "", 0.0, False
+        asked = w.pending
+        waited = w.wait_time
+        plan = w.take(st.wait_reference, self.timer)
+        # a simulated run's wait for a due path is not part of the step: in real time the worker would have
+        # had the delay's seconds (the run records the waits as the worker's wait_s)
+        st.t_waited += w.wait_time - waited
+        if plan is None:
+            return "", 0.0, False
+        ok = self._adopt(st, k, plan, asked.goal_version)
+        if not w.alive:
+            print(f"crtraj: {w.failure}: reference paths are planned inside the steps now", file=sys.stderr)
+            st.worker_record = w.record()
+            w.close()
+            st.worker = None
+        return f"{asked.reason}: {plan.status}", plan.wall_time, ok
+
+    def _adopt(self, st: _State, k: int, plan: ReferencePlan, goal_version: int | None) -> bool:
+        """Follow `plan` from step k on when it reached the goal; whether it did. goal_version: the tip
+        goal's version the plan aims at (None: planned before the loop, for the task's goal)."""
+        if not plan.is_success():
+            return False
+        t = st.t
+        st.ref = TimedReference(plan.configs, self._seconds_per, self.validator.metric)
+        st.s_ref, st.progress_s, st.progress_t, st.t_last_plan = 0.0, 0.0, t, t
+        st.refs_used.append((k, self.model.tip_position(st.ref.X)))
+        if len(plan.tree_edges):
+            st.tree_edges = plan.tree_edges
+        if goal_version is not None:
+            st.ref_goal_version = goal_version
+        return True
+
+    def _choose(
+        self, st: _State, res: HorizonResult, keep_warm: bool = False
+    ) -> tuple[StepStatus, np.ndarray, Motion, float]:
         """The move to apply: the NLP's, else the previous solution's next one, else holding still.
+        keep_warm: the replanner's warm start stays even when the NLP's move is not applied.
 
         Returns (status, planned configuration for the step's end, simulated
         motion (q end, set-point end, sample times, sample configurations,
@@ -855,7 +960,7 @@ class ClosedLoop:
                 break
         if chosen is None:
             chosen = self._least_unsafe(st, tried)
-        self._keep_plan(st, chosen[0], res)
+        self._keep_plan(st, chosen[0], res, keep_warm)
         return chosen
 
     def _least_unsafe(
@@ -871,20 +976,25 @@ class ClosedLoop:
             return (StepStatus.HOLD if bound_h >= 0.0 else StepStatus.UNSAFE, st.x.copy(), hold, bound_h)
         return (StepStatus.UNSAFE, best[2], best[3], best[0])
 
-    def _keep_plan(self, st: _State, status: StepStatus, res: HorizonResult) -> None:
-        """Keep what remains of the applied NLP solution (the next step's fallback)."""
+    def _keep_plan(self, st: _State, status: StepStatus, res: HorizonResult, keep_warm: bool = False) -> None:
+        """Keep what remains of the applied NLP solution (the next step's fallback); forget the replanner's
+        warm start when the NLP's move was not applied, unless `keep_warm` (the replanner still checks that
+        it starts within reach of the next configuration)."""
         if status in (StepStatus.MOVE, StepStatus.SUBOPTIMAL):
             st.last_plan = res.configs
         elif status is StepStatus.FALLBACK and st.last_plan is not None:
             st.last_plan = st.last_plan[1:]
         else:
             st.last_plan = None
-        if status is not StepStatus.MOVE and status is not StepStatus.SUBOPTIMAL:
+        if status is not StepStatus.MOVE and status is not StepStatus.SUBOPTIMAL and not keep_warm:
             # the warm start no longer matches where the robot is going
             self.replanner.reset()
 
-    def _solve(self, x: np.ndarray, X_ref: np.ndarray, obstacles: np.ndarray, x_prev: np.ndarray) -> HorizonResult:
-        return self.replanner.solve(x, X_ref, obstacles, x_prev=x_prev)
+    def _solve(
+        self, x: np.ndarray, X_ref: np.ndarray, obstacles: np.ndarray, x_prev: np.ndarray, time_left: float | None
+    ) -> HorizonResult:
+        """The horizon NLP from x; time_left: s left of the step deadline (None: no deadline)."""
+        return self.replanner.solve(x, X_ref, obstacles, x_prev=x_prev, time_left=time_left)
 
     def _finish(
         self,
@@ -952,7 +1062,13 @@ class ClosedLoop:
             feed=log.feed_record(self.obstacles),
             limit_fractions=fractions,
             measured_tip=np.array(st.measured) if self.tip_sensor is not None else None,
+            reference_worker=self._worker_record(st),
         )
+
+    def _worker_record(self, st: _State) -> dict[str, Any]:
+        """The run's `ReplanRun.reference_worker` record ({} when references were planned inline)."""
+        rec = st.worker.record() if st.worker is not None else st.worker_record
+        return {"handover_steps": self.loop_options.handover_steps(self.options.dt), **rec} if rec else {}
 
 
 def _control_periods(o: ReplanOptions, tr: TrackingOptions) -> int:
@@ -997,7 +1113,15 @@ class _State:
         self.tree_edges = np.zeros((0, 2, 3))
         self.target = np.zeros(3)  # the tip goal the reference aims the model's tip at (mm)
         self.tip_bias = np.zeros(3)  # estimated measured minus model tip (mm)
-        self.retarget = False  # the target moved: plan the reference again
+        # the tip goal's version (one more at each retarget) and the version the reference aims at: when
+        # they differ the target moved, and the reference is planned again
+        self.goal_version, self.ref_goal_version = 0, 0
+        self.worker: ReferenceWorker | None = None  # plans references beside the loop (`_reference_worker`)
+        self.wait_reference = True  # at a due step, wait for the worker's path (simulated runs)
+        self.worker_record: dict[str, Any] = {}  # a worker's record once it has been closed after failing
+        self.t_waited = 0.0  # s this step waited for a due reference path (simulated runs; not charged)
+        # step 0's record of the reference planned before the loop: (reason, planner time s, followed)
+        self.first_plan: tuple[str, float, bool] | None = None
         self.measured: list[np.ndarray] = []  # the tip sensor's readings (mm)
 
     def locate(self, ahead: float) -> None:

@@ -31,7 +31,13 @@ class LoopOptions(Options):
     measured by `crtraj.planning.validity.MotionValidator.motion_bound`),
     check_resolution (mm of body motion between verification samples),
     check_points (backbone points of the verification), settle_time (s the
-    tip must stay within the goal tolerance before the run ends).
+    tip must stay within the goal tolerance before the run ends),
+    reference_delay (s from asking the reference planner for a path to using
+    it; 0 = plan inside the control step, which waits for the planner and is
+    charged its time; > 0 = plan in a worker process beside the loop
+    (`crtraj.control.reference_worker`), the path taken over at the first
+    step at least this long after the request, while the steps in between
+    go on with the reference they have).
     """
 
     SECTION: ClassVar[str] = "loop"
@@ -45,6 +51,14 @@ class LoopOptions(Options):
     check_resolution: float = option(1.0, ge=0.01, le=MAX_LENGTH)
     check_points: int = option(21, ge=2, le=1000)
     settle_time: float = option(0.5, ge=0.0, le=MAX_TIME)
+    reference_delay: float = option(0.0, ge=0.0, le=60.0)
+
+    def handover_steps(self, dt: float) -> int:
+        """Steps of dt s from a reference request to the step that takes its path over (>= 1), or 0 when
+        references are planned inside the control step (reference_delay = 0)."""
+        if self.reference_delay == 0.0:
+            return 0
+        return max(1, math.ceil(self.reference_delay / dt - 1e-9))
 
     def steps(self, dt: float) -> int:
         """Control steps of a full run with steps of dt s (the replanner's); `InputError` above MAX_STEPS,

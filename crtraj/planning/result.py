@@ -23,6 +23,7 @@ class PlanStatus(str, enum.Enum):
     TIMEOUT = "timeout"  # the stop condition fired before any path was found
     INVALID_START = "invalid_start"  # start out of reach, out of limits or in collision
     INVALID_GOAL = "invalid_goal"  # no safe configuration puts the tip on the goal
+    ERROR = "error"  # the planner could not run (its worker process stopped, or it raised)
 
     def __str__(self) -> str:
         return self.value
