@@ -14,9 +14,11 @@ status and message, its wall time and the tree edges for drawing. Units: mm, rad
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import multiprocessing
+import os
 import signal
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
@@ -194,10 +196,23 @@ def _array(data: bytes, rows: Any, cols: int) -> np.ndarray:
     return a
 
 
+def _yield_to_the_loop() -> None:
+    """Run this process only when a CPU would otherwise idle (Linux SCHED_IDLE; elsewhere the lowest nice
+    level): a request wakes the worker, and a woken worker on the loop's CPU would otherwise preempt the
+    control step for milliseconds. The loop never starves it: the loop waits (simulated) or sleeps between
+    steps (real time), and the worker runs then."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))  # type: ignore[attr-defined]
+    except (AttributeError, OSError):
+        with contextlib.suppress(OSError):
+            os.nice(19)
+
+
 def _serve(source: ReferenceSource, conn: Connection, nx: int) -> None:
     """The worker's loop: read a request, plan, reply; end when the parent closes the pipe."""
     # Ctrl-C is the parent's to handle: the worker ends when the parent closes the pipe
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _yield_to_the_loop()
     scene: Scene | None = None
     while True:
         try:
