@@ -158,6 +158,19 @@ def test_close_ends_a_worker_that_is_still_planning(worker):
     assert multiprocessing.active_children() == [] and w.pending is None
 
 
+def test_a_worker_that_never_replies_is_reported_not_waited_for_forever(worker):
+    class Stuck(EchoSource):
+        def __call__(self, x, t, scene):
+            multiprocessing.Event().wait(3600.0)
+
+    w = worker(Stuck())
+    w.reply_timeout = 0.2  # the hang bound (the planner itself never replies here)
+    w.submit(XS, 1.0, Scene(obstacles=(BALL,)), PendingPlan(0, 1, "test"))
+    plan = w.take(True, lambda: 0.0)
+    assert plan is not None and plan.status is PlanStatus.ERROR and "no reply in 0.2 s" in plan.message
+    assert not w.alive
+
+
 @pytest.mark.parametrize(("delay", "dt", "steps"), [(0.0, 0.1, 0), (0.3, 0.1, 3), (0.25, 0.1, 3), (0.05, 0.1, 1)])
 def test_handover_steps(delay, dt, steps):
     assert LoopOptions(reference_delay=delay).handover_steps(dt) == steps

@@ -640,7 +640,8 @@ class ClosedLoop:
         if not ReferenceWorker.can_fork():
             print("crtraj: this platform cannot fork: reference paths are planned inside the steps", file=sys.stderr)
             return None
-        worker = ReferenceWorker(self.reference_source, self.robot.nx)
+        # the planner stops itself after planner_time; a worker silent for a minute longer is hung
+        worker = ReferenceWorker(self.reference_source, self.robot.nx, self.loop_options.planner_time + 60.0)
         worker.start()
         return worker
 

@@ -53,13 +53,15 @@ class ReferenceWorker:
 
     source: the loop's `ReferenceSource` (the child uses its forked copy; a source with a ``goal``
     attribute and a ``retarget`` method is retargeted to the parent's goal before every plan).
-    Start it with `start` (None when this platform cannot fork: plan inline), then `submit`, `ready`,
-    `take` and, at the end, `close`.
+    Start it with `start` (where `can_fork()`), then `submit`, `ready`, `take` and, at the end, `close`.
+    reply_timeout: s `take` waits for a reply at most (a hang bound: the planner's own time limit ends a plan
+    long before); a worker that does not reply by then is reported as failed and terminated.
     """
 
-    def __init__(self, source: ReferenceSource, nx: int) -> None:
+    def __init__(self, source: ReferenceSource, nx: int, reply_timeout: float = 600.0) -> None:
         self.source = source
         self.nx = int(nx)
+        self.reply_timeout = float(reply_timeout)
         self.pending: PendingPlan | None = None
         self.plans = 0
         self.wait_time = 0.0  # s the loop spent waiting for due paths (simulated runs only)
@@ -167,6 +169,10 @@ class ReferenceWorker:
             return _failed(self.failure)
         try:
             assert self._conn is not None
+            if not self._conn.poll(self.reply_timeout):
+                self._fail(f"reference worker: no reply in {self.reply_timeout:g} s")
+                self._proc.terminate()
+                return _failed(self.failure)
             head = json.loads(self._conn.recv_bytes(MAX_REPLY_BYTES).decode("utf-8"))
             configs = _array(self._conn.recv_bytes(MAX_REPLY_BYTES), head["configs"], self.nx)
             edges = _array(self._conn.recv_bytes(MAX_REPLY_BYTES), head["edges"], 6).reshape(-1, 2, 3)
