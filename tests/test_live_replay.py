@@ -26,6 +26,7 @@ from feed_clock import VirtualClock
 from crtraj.app.replan import loop_from_problem
 from crtraj.control.horizon import ReplanOptions
 from crtraj.control.loop import RunStatus
+from crtraj.control.loop_options import LoopOptions
 from crtraj.core.tomledit import set_values
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.protocol import MOVE
@@ -172,9 +173,11 @@ def test_live_replan_on_the_replayed_feed_reaches_the_goal_clear_of_the_true_sph
 
         clock.every(0.01, bridge)
         clock.sleep(0.0)  # the first states arrive before the loop is built (building takes no virtual time)
-        # no wall-clock step deadline: this test runs on virtual time
+        # on virtual time: no wall-clock step deadline, and reference paths planned inside the steps (a worker
+        # plans in wall time, which this loop's virtual steps would outrun)
         opts = replace(problem.options(ReplanOptions, "replan"), step_deadline=0.0)
-        loop = loop_from_problem(problem, feed=feed, options=opts)
+        lopts = replace(problem.options(LoopOptions, "loop"), reference_delay=0.0)
+        loop = loop_from_problem(problem, feed=feed, options=opts, loop_options=lopts)
         offset = clock() - t_replay  # scene time at loop time 0
         run = loop.run(clock=clock, sleep=clock.sleep)
     assert run.live and run.status is RunStatus.REACHED, run.message

@@ -668,7 +668,8 @@ class Replanner:
         solve began (None: no deadline): a failed try is followed by the cold retry
         only while time is left, and never by the rescue (an IPOPT solve takes tens
         of ms): a result after the deadline is not used. A try stopped by the
-        iteration cap at a feasible iterate still warm-starts the next solve.
+        iteration cap at a feasible iterate is not rescued (it is a usable plan)
+        and warm-starts the next solve.
         """
         N, nx = self.N, self.nx
         x0 = np.asarray(x0, dtype=float).reshape(nx)
@@ -693,7 +694,8 @@ class Replanner:
             args["x0"] = cold
             r = self._attempt(args, None, tried, time_left)
         rescued = False
-        if not r["ok"] and self.rescue is not None and time_left is None:
+        # the rescue is for a failed solve: an iterate the cap stopped inside every constraint is a usable plan
+        if not r["ok"] and self.rescue is not None and time_left is None and self._infeasible(r):
             rescued = True
             # IPOPT solves the full NLP: every point of every step against every obstacle
             args = {"p": p, "lbx": lbx, "ubx": ubx, "lbg": self._lbg_full, "ubg": self._ubg_full, "x0": cold}
