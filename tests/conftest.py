@@ -16,7 +16,9 @@ import numpy as np
 import pytest
 from scipy.optimize import linear_sum_assignment
 
+from crtraj.control.horizon import Replanner
 from crtraj.control.loop import ClosedLoop
+from crtraj.core.tomledit import set_values
 from crtraj.io.problem import load_robot
 from crtraj.model.kinematics import Model
 from crtraj.planning.result import PlanResult, PlanStatus
@@ -29,6 +31,19 @@ PROBLEMS = ROOT / "problems"
 # limits (PlannerOptions.max_iterations, ReplanOptions.max_iter) and the seed decide the outcome, so it is
 # the same on a slow machine.
 PLANNER_HANG_S = 600.0
+PAPER = PROBLEMS / "paper_dynamic.toml"
+
+
+def paper_copy(folder: Path, name: str = "paper_dynamic.toml", values: dict | None = None) -> Path:
+    """problems/paper_dynamic.toml written to folder/name, comments kept, with its robot path made absolute,
+    without its 4 ms step deadline, and with `values` ({(table, key): value}, `set_values`) set. Without the
+    deadline, which steps fall back depends on nothing but the problem: what a test of anything else checks
+    must not depend on how fast the machine is at the time (live, late NLP results would be dropped)."""
+    robot = str(PAPER.parent / "robots" / "cdsr2.toml")
+    text = set_values(PAPER.read_text(), {("robot",): robot, ("replan", "step_deadline"): 0.0, **(values or {})})
+    p = Path(folder) / name
+    p.write_text(text)
+    return p
 
 
 @pytest.fixture(autouse=True, scope="session")
@@ -147,6 +162,22 @@ class VirtualClock:
 
     def __call__(self) -> float:
         return self.now
+
+
+class SlowReplanner(Replanner):
+    """A replanner whose k-th solve takes cost(k) s on the virtual clock; keeps every result (`results`)."""
+
+    def __init__(self, *args, clock: VirtualClock, cost, **kw) -> None:
+        super().__init__(*args, **kw)
+        self.clock, self.cost, self.k = clock, cost, 0
+        self.results: list = []
+
+    def solve(self, *args, **kw):
+        res = super().solve(*args, **kw)
+        self.clock.now += self.cost(self.k)
+        self.k += 1
+        self.results.append(res)
+        return res
 
 
 def straight_loop(model: Model, scene: Scene, **kw) -> ClosedLoop:

@@ -90,3 +90,45 @@ def test_a_refused_move_is_a_device_error_and_nothing_is_remembered(robot):
         link.move(0.0, q0, cmds, 0.02)
     assert isinstance(info.value.__cause__, StreamError)  # wrapped, not swallowed
     assert len(link._hist_t) == history and not link._moving  # a move not sent is not taken as sent
+
+
+class _RecordingStreamer(_FakeStreamer):
+    """A started stream that takes every set-point and records it."""
+
+    state = "streaming"
+    reason = ""
+
+    def __init__(self, actuators, position) -> None:
+        super().__init__(actuators, position)
+        self.frames: list[np.ndarray] = []
+
+    def send_values(self, t, values) -> None:
+        pass
+
+    def send_path(self, stamps, values) -> None:
+        self.frames.extend(np.asarray(values, dtype=float))
+
+
+def test_the_limit_figures_of_a_live_run_are_those_of_the_frames_sent(robot):
+    acts = Actuators.from_robot(robot)
+    q0 = robot.cables(XS)
+    fake = _RecordingStreamer(acts, acts.command(q0))
+    link = DeviceLink(fake, ServoModel(robot, 0.05, 0.1), 0.1)
+    link.begin(0.0)
+    assert all(np.isnan(v) for v in link.limit_fractions().values())  # nothing sent yet
+    # steps whose commands jump (the follower limits them) and then stop: 3 s of set-points
+    q = q0.copy()
+    for k in range(30):
+        target = q0 + (0.6 if k < 15 else 0.0) * np.append(np.full(6, 1.0), 8.0) * (k % 4 == 0)
+        link.move(0.1 * k, q, np.repeat(target[None], 5, axis=0), 0.02)
+        q = target
+    # independently: finite differences at the stream rate of every frame, from rest at the start
+    P = np.vstack([acts.command(q0)[None], np.array(fake.frames)])
+    V = np.diff(P, axis=0) / 0.01
+    A = np.diff(np.vstack([np.zeros(acts.n), V]), axis=0) / 0.01
+    got = link.limit_fractions()
+    assert got["max_velocity_fraction"] == pytest.approx(np.max(np.abs(V) / acts.vmax), rel=1e-12)
+    assert got["max_acceleration_fraction"] == pytest.approx(np.max(np.abs(A) / acts.amax), rel=1e-12)
+    # the follower's 98 % of the limits, and reached: the jumps asked for far more
+    assert 0.9 < got["max_acceleration_fraction"] <= 0.98 * (1 + 1e-9)
+    assert link.describe()["max_acceleration_fraction"] == got["max_acceleration_fraction"]

@@ -20,14 +20,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import free_udp_port
+from conftest import PAPER, free_udp_port, paper_copy
 from feed_clock import VirtualClock
 
 from crtraj.app.replan import loop_from_problem
 from crtraj.control.horizon import ReplanOptions
 from crtraj.control.loop import RunStatus
 from crtraj.control.loop_options import LoopOptions
-from crtraj.core.tomledit import set_values
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.protocol import MOVE
 from crtraj.hardware.sim_device import SimDevice
@@ -38,7 +37,6 @@ from crtraj.world.replay import FeedReplay, ReplayOptions
 from crtraj.world.scene import Scene
 
 ROOT = Path(__file__).resolve().parent.parent
-PAPER = ROOT / "problems" / "paper_dynamic.toml"
 # paper_dynamic's spheres in closed form: centre (mm), radius A + B sin(w t + p) (mm)
 CENTERS = np.array([[0.0, 90.0, 330.0], [-10.0, -70.0, 250.0]])
 A, B = np.array([60.0, 45.0]), np.array([10.0, 15.0])
@@ -247,15 +245,6 @@ class _Recorder:
         self.thread.join(10.0)
 
 
-def _no_deadline(folder: Path) -> Path:
-    """paper_dynamic.toml in `folder` without its 4 ms step deadline (robot path made absolute): live, on a
-    loaded machine, late NLP results would be dropped, and what this test checks must not depend on that."""
-    text = PAPER.read_text().replace('robot = "robots/cdsr2.toml"', f'robot = "{PAPER.parent / "robots/cdsr2.toml"}"')
-    p = folder / "paper_dynamic.toml"
-    p.write_text(set_values(text, {("replan", "step_deadline"): 0.0}))
-    return p
-
-
 @pytest.mark.slow
 def test_feed_replay_and_live_replan_with_approach_reach_the_goal_on_the_device(tmp_path):
     problem = Problem.load(PAPER)
@@ -270,7 +259,7 @@ def test_feed_replay_and_live_replan_with_approach_reach_the_goal_on_the_device(
         # never wait for its interpreter. A generous --feed-max-age: a starved replay thread may hold the run,
         # never change its outcome.
         proc = subprocess.run(
-            [sys.executable, "-m", "crtraj.cli", "replan", str(_no_deadline(tmp_path)), "--out", str(out), "--no-html",
+            [sys.executable, "-m", "crtraj.cli", "replan", str(paper_copy(tmp_path)), "--out", str(out), "--no-html",
              "--feed", f"udp://127.0.0.1:{port}", "--feed-max-age", "1.0", "--stream", dev.url, "--approach"],
             capture_output=True, text=True, timeout=900,
         )  # fmt: skip
@@ -283,6 +272,11 @@ def test_feed_replay_and_live_replan_with_approach_reach_the_goal_on_the_device(
     assert res["status"] == "reached" and res["summary"]["collisions"] == 0
     np.testing.assert_allclose(res["waypoints"][0]["x"], np.zeros(robot.nx), atol=1e-6)  # started at the device
     assert res["stream"]["stream"]["status"] == "done" and res["stream"]["refused_steps"] == 0
+    # the limit figures are those of the frames queued for the device (the link's follower keeps 98 %)
+    s = res["summary"]
+    assert 0.0 < s["max_velocity_fraction"] <= 0.98 * (1 + 1e-9) and 0.0 < s["max_acceleration_fraction"] <= 0.98 * (
+        1 + 1e-9
+    )
     # the device ends at the run's final set-point, with the tip on the goal
     q_end = np.array(res["waypoints"][-1]["q"])
     np.testing.assert_allclose(final["positions"], acts.command(q_end), atol=0.01)

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import XG, XS, VirtualClock, straight_loop
+from conftest import XG, XS, SlowReplanner, VirtualClock, straight_loop
 
 from crtraj.control.horizon import HorizonStatus, Replanner, ReplanOptions
 from crtraj.control.loop_options import LoopOptions
@@ -118,27 +118,35 @@ def test_without_a_deadline_a_failed_solve_is_still_rescued(model):
     assert "Injected_Stop; rescue ipopt:" in res.solver_status
 
 
+def test_without_a_deadline_a_feasible_capped_iterate_goes_on_to_convergence(model):
+    scene, ref = _problem(model)
+    O = _replanner(model).obstacles_from_scene(scene, 0.0)
+    full = _replanner(model).solve(X0, ref, O)
+    # one iteration per call: the first call stops inside the constraints (the test above) ...
+    rp = _replanner(model, max_iter=1, max_calls=80, rescue=False)
+    rp.solver = limp = _Limping(rp.solver)
+    limp.starts.append(None)  # `_Limping` leaves every call after its first alone
+    res = rp.solve(X0, ref, O)
+    # ... and without a deadline the calls go on to the uncapped solution
+    assert res.is_success() and res.solver_status == "Solve_Succeeded"
+    assert res.extra["attempts"] == len(limp.returned) > 2  # calls of one solve (no cold retry, no rescue)
+    np.testing.assert_allclose(res.configs, full.configs, atol=1e-5)
+    # under a deadline, with time left, the first feasible iterate is the plan: one call
+    rp = _replanner(model, max_iter=1, max_calls=80, rescue=False)
+    rp.solver = limp = _Limping(rp.solver)
+    limp.starts.append(None)
+    res = rp.solve(X0, ref, O, time_left=10.0)
+    assert res.status is HorizonStatus.FEASIBLE and len(limp.returned) == 1
+
+
 # ------------------------------------------------------------------------------------ in the closed loop
-class _EveryThirdLate(Replanner):
-    """Every third solve takes 10 ms of the virtual clock (a 4 ms deadline misses it); records each solve."""
-
-    def __init__(self, *args, clock, **kw) -> None:
-        super().__init__(*args, **kw)
-        self.clock, self.results = clock, []
-
-    def solve(self, *args, **kw):
-        res = super().solve(*args, **kw)
-        if len(self.results) % 3 == 2:
-            self.clock.now += 0.010
-        self.results.append(res)
-        return res
-
-
 def test_a_late_feasible_solve_still_warm_starts_the_next_one(model):
     clock = VirtualClock()
     scene = Scene(obstacles=(Obstacle(center=(-3.5, 76.8, 394.4), radius=30.0, name="ball"),), safety_distance=5.0)
     opts = ReplanOptions(horizon=6, points=12, solver="sqp", step_deadline=0.004)
-    rp = _EveryThirdLate(model, opts, max_obstacles=1, safety_distance=5.0, clock=clock)
+    # every third solve takes 10 ms of the virtual clock: the 4 ms deadline misses it
+    cost = lambda k: 0.010 if k % 3 == 2 else 0.0  # noqa: E731
+    rp = SlowReplanner(model, opts, max_obstacles=1, safety_distance=5.0, clock=clock, cost=cost)
     lopts = LoopOptions(duration=2.0)
     run = straight_loop(model, scene, options=opts, loop_options=lopts, replanner=rp, timer=clock).run()
     late = [k for k, s in enumerate(run.solver_status) if "deadline missed" in s]

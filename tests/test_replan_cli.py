@@ -6,14 +6,13 @@ import json
 from pathlib import Path
 
 import numpy as np
+from conftest import PAPER, paper_copy
 
 from crtraj.cli import main
-from crtraj.core.tomledit import set_values
 from crtraj.io.problem import Problem
 from crtraj.world.scene import Scene
 
 ROOT = Path(__file__).resolve().parent.parent
-PAPER = ROOT / "problems" / "paper_dynamic.toml"
 
 
 def _clearance_from_waypoints(res: dict) -> np.ndarray:
@@ -77,15 +76,8 @@ def _short_problem(tmp_path: Path, duration: float) -> Path:
     """Simulation 2, `duration` s long, starting 10 mm further from the upper sphere (a live start must
     allow for the sphere growing while the first reference is planned), without the 4 ms step deadline: the
     feed's threads share this process, and what the test checks must not depend on how fast it runs."""
-    text = PAPER.read_text().replace(
-        'robot = "robots/cdsr2.toml"', f'robot = "{PAPER.parent / "robots" / "cdsr2.toml"}"'
-    )
-    text = text.replace("duration = 60.0", f"duration = {duration}")
-    text = text.replace("start = [-50.0, 100.0, 390.0]", "start = [-50.0, 110.0, 400.0]")
-    text = set_values(text, {("replan", "step_deadline"): 0.0})
-    p = tmp_path / "short.toml"
-    p.write_text(text)
-    return p
+    values = {("loop", "duration"): duration, ("task", "start"): [-50.0, 110.0, 400.0]}
+    return paper_copy(tmp_path, "short.toml", values)
 
 
 def test_stream_writes_the_verified_run_to_a_device(tmp_path, capsys):

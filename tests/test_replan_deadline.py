@@ -11,28 +11,14 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import BALL, XG, XS, VirtualClock
+from conftest import BALL, XG, XS, SlowReplanner, VirtualClock
 
-from crtraj.control.horizon import Replanner, ReplanOptions
+from crtraj.control.horizon import ReplanOptions
 from crtraj.control.loop import ClosedLoop, StepStatus
 from crtraj.control.loop_options import LoopOptions
 from crtraj.world.scene import Scene
 
 DEADLINE = 0.004  # s
-
-
-class SlowReplanner(Replanner):
-    """A replanner whose k-th solve takes cost(k) seconds on the virtual clock."""
-
-    def __init__(self, *args, clock: VirtualClock, cost, **kw) -> None:
-        super().__init__(*args, **kw)
-        self.clock, self.cost, self.k = clock, cost, 0
-
-    def solve(self, *args, **kw):
-        res = super().solve(*args, **kw)
-        self.clock.now += self.cost(self.k)
-        self.k += 1
-        return res
 
 
 def _run(model, scene, cost, duration=6.0):

@@ -10,11 +10,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import PAPER, paper_copy
 
 from crtraj.cli import main
 from crtraj.control.horizon import Replanner, ReplanOptions
 from crtraj.control.tracking import TrackingController
-from crtraj.core.tomledit import set_values
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.admission import admit
 from crtraj.io.problem import Problem
@@ -22,7 +22,6 @@ from crtraj.io.results import read_result
 from crtraj.world.scene import Scene
 
 ROOT = Path(__file__).resolve().parent.parent
-PAPER = ROOT / "problems" / "paper_dynamic.toml"
 
 
 @pytest.fixture(scope="module")
@@ -97,9 +96,7 @@ def paper_run(tmp_path_factory):
     """Simulation 2 as shipped but without its 4 ms step deadline: with it, which steps fall back depends on how
     fast this machine is at the time, and the limits below are properties of one reproducible run."""
     folder = tmp_path_factory.mktemp("limits")
-    text = PAPER.read_text().replace('robot = "robots/cdsr2.toml"', f'robot = "{PAPER.parent / "robots/cdsr2.toml"}"')
-    problem = folder / "paper_dynamic.toml"
-    problem.write_text(set_values(text, {("replan", "step_deadline"): 0.0}))
+    problem = paper_copy(folder)
     out = folder / "replan"
     buf = io.StringIO()
     with contextlib.redirect_stdout(buf):

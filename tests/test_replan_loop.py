@@ -355,6 +355,9 @@ class _RefusingDevice:
     def finish(self, q_final):
         self.finished = np.array(q_final)
 
+    def limit_fractions(self) -> dict:
+        return {"max_velocity_fraction": math.nan, "max_acceleration_fraction": math.nan}  # nothing was sent
+
     def describe(self) -> dict:
         return {"refused": self.refused}
 
@@ -369,6 +372,10 @@ def test_loop_catches_only_device_errors_from_a_device(model, ball_scene):
     assert run.status is RunStatus.TIMEOUT and run.steps == 10
     sent = [s for s in run.step_status if s in ("move", "suboptimal", "fallback")]
     assert dev.refused == len(sent) > 0 and run.device == {"refused": len(sent)}
+    # the limit figures of a live run are the device's (here: nothing sent), not the loop model's samples
+    s = run.summary()
+    assert s["max_velocity_fraction"] is None and s["max_acceleration_fraction"] is None
+    assert "no motion was sent to the device" in run.limits_line()
     np.testing.assert_array_equal(dev.finished, run.q[-1])  # finished at the final actuation
     # anything else from a device is not the loop's to swallow
     with pytest.raises(ZeroDivisionError):

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import require_module
+from conftest import PAPER, paper_copy, require_module
 from feed_clock import VirtualClock
 
 from crtraj.app.replan import loop_from_problem
@@ -25,7 +25,6 @@ from crtraj.control.ports import DeviceError
 from crtraj.control.tracking import TrackingController, TrackingOptions
 from crtraj.core.errors import InputError
 from crtraj.core.fields import Table
-from crtraj.core.tomledit import set_values
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.ros.device import RosDevice
 from crtraj.hardware.ros.messages import si_scale
@@ -40,24 +39,17 @@ from crtraj.world.obstacle import Obstacle
 from crtraj.world.scene import Scene
 
 ROOT = Path(__file__).resolve().parent.parent
-PAPER = ROOT / "problems" / "paper_dynamic.toml"
 HANG = 60.0  # s: a guard against hangs, never a timing window
 DOMAIN = 10 + os.getpid() % 90  # one ROS domain per test run
 
 
 def _problem(tmp_path: Path, duration: float = 60.0) -> Path:
-    """paper_dynamic.toml with its robot path made absolute, a [ros] section on this run's domain (hang
-    bounds only, and one more step of obstacle age than the robot's one-step latency needs), a [loop]
-    duration of `duration` s and no step deadline: a live run on a loaded machine would otherwise drop late
-    NLP results, and what these tests check must not depend on the machine's speed."""
-    text = PAPER.read_text().replace('robot = "robots/cdsr2.toml"', f'robot = "{ROOT / "problems/robots/cdsr2.toml"}"')
-    assert "duration = 60.0" in text
-    text = text.replace("duration = 60.0", f"duration = {duration}")
-    text = set_values(text, {("replan", "step_deadline"): 0.0})
-    text += f"\n[ros]\ndomain_id = {DOMAIN}\nmax_age = 0.35\njoint_state_timeout = {HANG}\nstart_timeout = {HANG}\n"
-    p = tmp_path / "paper_dynamic_ros.toml"
-    p.write_text(text)
-    return p
+    """paper_dynamic.toml without its step deadline (`paper_copy`), a [ros] section on this run's domain (hang
+    bounds only, and one more step of obstacle age than the robot's one-step latency needs) and a [loop]
+    duration of `duration` s."""
+    ros = {"domain_id": DOMAIN, "max_age": 0.35, "joint_state_timeout": HANG, "start_timeout": HANG}
+    values = {("loop", "duration"): duration, **{("ros", k): v for k, v in ros.items()}}
+    return paper_copy(tmp_path, "paper_dynamic_ros.toml", values)
 
 
 class RobotNode:
@@ -280,6 +272,9 @@ def test_round_trip_reaches_the_goal_without_collision(tmp_path, paper):
     )
     moves = [r for r in robot.received if len(r[1]) == ros.points_per_step]
     assert len(moves) > 50
+    # the run's limit figures are those of the points published (each passed the verifier's limits)
+    s = res.data["summary"]
+    assert 0.0 < s["max_velocity_fraction"] <= 1.0 + 1e-9 and 0.0 < s["max_acceleration_fraction"] <= 1.0 + 1e-9
     # the trajectories carry the verified timing: points every dt / points_per_step, velocities of the servo model
     dt = problem.options(ReplanOptions, "replan").dt
     for _, offs, P, V in moves:

@@ -134,10 +134,11 @@ class ReplanOptions(Options):
     back to the last verified plan, shifted, or a verified hold) and is
     counted as a deadline miss. max_iter is the fixed iteration cap of one
     solver call; max_calls (sqpmethod): calls per solve, each next one going on
-    from an iterate the cap stopped outside a constraint (with step_deadline,
-    only while time is left); an iterate it stopped inside every constraint is
-    a usable plan (status FEASIBLE), applied as a suboptimal move once
-    verified. The IPOPT rescue may take max_iter x max_calls iterations.
+    from the iterate the cap stopped. Without step_deadline, calls go on to
+    convergence. With it, only while time is left and only from an iterate
+    outside a constraint: one the cap stopped inside every constraint is a
+    usable plan (status FEASIBLE), applied as a suboptimal move once verified.
+    The IPOPT rescue may take max_iter x max_calls iterations.
 
     The closed loop's options are the ``[loop]`` section
     (`crtraj.control.loop_options.LoopOptions`).
@@ -668,8 +669,9 @@ class Replanner:
         solve began (None: no deadline): a failed try is followed by the cold retry
         only while time is left, and never by the rescue (an IPOPT solve takes tens
         of ms): a result after the deadline is not used. A try stopped by the
-        iteration cap at a feasible iterate is not rescued (it is a usable plan)
-        and warm-starts the next solve.
+        iteration cap goes on from its iterate (`_attempt`); one that stops at a
+        feasible iterate is not rescued (it is a usable plan) and warm-starts the
+        next solve.
         """
         N, nx = self.N, self.nx
         x0 = np.asarray(x0, dtype=float).reshape(nx)
@@ -895,11 +897,16 @@ class Replanner:
         self, args: dict[str, Any], start: dict[str, Any] | None, tried: list[dict[str, Any]], time_left: float | None
     ) -> dict[str, Any]:
         """A solve from args' start point (appended to `tried`): calls of max_iter iterations each, the next going
-        on from an iterate that breaks a constraint (with its multipliers and rows) while calls and time are left."""
+        on from the last one's iterate (with its multipliers and rows) while calls are left and it has not
+        converged. Under a deadline (time_left not None) only while time is left and only from an iterate that
+        breaks a constraint: one inside every constraint is the plan (the deadline's time is the step's); without
+        one, to convergence, so that the cap changes how the work is split, not what a solve returns."""
         r = self._call_screened(args, start)
         tried.append(r)
         for _ in range(self.options.max_calls - 1):
-            if r["ok"] or not r["finite"] or not self._infeasible(r) or not _in_time(tried, time_left):
+            if r["ok"] or not r["finite"] or not _in_time(tried, time_left):
+                break
+            if time_left is not None and not self._infeasible(r):
                 break
             sol = r["sol"]
             lam = {"lam_x0": np.asarray(sol["lam_x"]).ravel(), "lam_g0": np.asarray(sol["lam_g"]).ravel()}

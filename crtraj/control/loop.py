@@ -173,8 +173,9 @@ class ReplanRun:
     live: bool = False
     device: dict[str, Any] = field(default_factory=dict)  # the device's `describe()` of a live-streamed run
     feed: dict[str, Any] = field(default_factory=dict)  # a live feed's counters and rejections (`_Log.feed_record`)
-    # largest actuator speed / acceleration of the recorded actuation as streamed, as fractions of the
-    # limits (`crtraj.control.executed.limit_fractions`); {} without actuator limits
+    # largest actuator speed / acceleration as fractions of the limits: of the recorded actuation as
+    # streamed (`crtraj.control.executed.limit_fractions`), or, live, of what the device was sent
+    # (`Device.limit_fractions`); {} without actuator limits
     limit_fractions: dict[str, float] = field(default_factory=dict)
     # the tip sensor's measurement at every t[k] (K+1, 3) mm, NaN when not seen; None without a sensor
     measured_tip: np.ndarray | None = None
@@ -244,8 +245,8 @@ class ReplanRun:
             "feed_rejected": int(self.feed.get("rejected", 0)),
             "feed_events": dict(self.feed.get("counts", {})),
             "late_steps": self.late_steps,
-            "max_velocity_fraction": self.limit_fractions.get("max_velocity_fraction"),
-            "max_acceleration_fraction": self.limit_fractions.get("max_acceleration_fraction"),
+            "max_velocity_fraction": _finite_or_none(self.limit_fractions.get("max_velocity_fraction")),
+            "max_acceleration_fraction": _finite_or_none(self.limit_fractions.get("max_acceleration_fraction")),
             "setup_s": self.setup_time,
             "wall_time_s": self.wall_time,
         }
@@ -268,12 +269,19 @@ class ReplanRun:
         their limits, as the run's actuation will be streamed."""
         s = self.summary()
         v, a = s["max_velocity_fraction"], s["max_acceleration_fraction"]
+        if self.device and (v is None or a is None):
+            return f"executed {s['duration_s']:.2f} s (no motion was sent to the device)"
         if v is None or a is None:
             return f"executed {s['duration_s']:.2f} s (no actuator limits in the robot file)"
         return (
             f"executed {s['duration_s']:.2f} s, actuators at most {v:.2f} of their velocity limit and "
-            f"{a:.2f} of their acceleration limit (as streamed)"
+            f"{a:.2f} of their acceleration limit " + ("(as sent to the device)" if self.device else "(as streamed)")
         )
+
+
+def _finite_or_none(v: float | None) -> float | None:
+    """v, or None when it is missing or not finite (a figure nothing was measured for)."""
+    return None if v is None or not math.isfinite(v) else float(v)
 
 
 def _deadline_text(s: dict[str, Any]) -> str:
@@ -1016,7 +1024,14 @@ class ClosedLoop:
         executed = np.vstack([log.q[0][None], *log.executed])
         h = self.options.dt / self.n_sub
         xe = self.servo.config(executed)
-        fractions = {} if self.rate_limits is None else limit_fractions(float(t[0]), h, xe, self.rate_limits)
+        if device is not None:
+            # live: what the device was sent (the loop's executed samples restart from each step's
+            # measured state, so their second differences are not a motion anything received)
+            fractions = device.limit_fractions()
+        elif self.rate_limits is not None:
+            fractions = limit_fractions(float(t[0]), h, xe, self.rate_limits)
+        else:
+            fractions = {}
         tips = model.tip_position(X)
         nq = self.robot.nq
         return ReplanRun(

@@ -90,6 +90,11 @@ class Device(Protocol):
         """Bring the device to rest at q_final (mm) and close it; returns the device's report."""
         ...
 
+    def limit_fractions(self) -> dict[str, float]:
+        """Largest actuator speed and acceleration of what was sent to the device, as fractions of the
+        limits ({"max_velocity_fraction", "max_acceleration_fraction"}; NaN when nothing was sent)."""
+        ...
+
     def describe(self) -> dict[str, Any]:
         """What the device did, for the run record."""
         ...

@@ -11,6 +11,7 @@ refused and the caller reports the `Violation`.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -128,10 +129,7 @@ class LimitsGate:
         v = self._positions(P, stamps)
         if v is not None:
             return v
-        p0 = P[0] if start is None else np.asarray(start, dtype=float)
-        v0 = np.zeros(P.shape[1]) if start_velocity is None else np.asarray(start_velocity, dtype=float)
-        V = np.diff(np.vstack([p0[None, :], P]), axis=0) / self.dt
-        A = np.diff(np.vstack([v0[None, :], V]), axis=0) / self.dt
+        V, A = self.rates(P, start, start_velocity)
         bad_v = np.abs(V) > self._vmax
         bad_a = np.abs(A) > self._amax
         first_v = _first(bad_v)
@@ -151,6 +149,18 @@ class LimitsGate:
             "acceleration", names[i], float(A[k, i]), f"{self.actuators.amax[i]:g} {u}", u, k, float(stamps[k])
         )
 
+    def rates(
+        self, values: np.ndarray, start: np.ndarray | None = None, start_velocity: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(velocities, accelerations) (N, n) per s and per s^2 of MOVE frames `values` (N, n) sent every
+        dt after `start` moving at `start_velocity` (default: the first frame, at rest): the finite
+        differences `check_path` compares with the limits."""
+        P = np.asarray(values, dtype=float)
+        p0 = P[0] if start is None else np.asarray(start, dtype=float)
+        v0 = np.zeros(P.shape[1]) if start_velocity is None else np.asarray(start_velocity, dtype=float)
+        V = np.diff(np.vstack([p0[None, :], P]), axis=0) / self.dt
+        return V, np.diff(np.vstack([v0[None, :], V]), axis=0) / self.dt
+
     def _positions(self, P: np.ndarray, stamps: np.ndarray) -> Violation | None:
         names, units = self.actuators.names, self.actuators.units
         nonfinite = _first(~np.isfinite(P))
@@ -163,6 +173,32 @@ class LimitsGate:
         k, i = bad
         lim = f"[{self.actuators.lower[i]:g}, {self.actuators.upper[i]:g}] {units[i]}"
         return Violation("position", names[i], float(P[k, i]), lim, units[i], k, float(stamps[k]))
+
+
+class LimitPeaks:
+    """The largest actuator speed and acceleration a device was sent, as fractions of the limits.
+
+    `add` takes each batch of MOVE frames as it leaves, with the state before it, and keeps the running
+    maxima of |v| / vmax and |a| / amax by the limits gate's finite differences (every dt s): the figure a
+    live run reports is what the device received, not a reconstruction from the loop's model.
+    """
+
+    def __init__(self, actuators: Actuators, dt: float) -> None:
+        self._gate = LimitsGate(actuators, dt)
+        self._amax, self._vmax = actuators.amax, actuators.vmax
+        self.velocity = math.nan  # NaN until a frame is sent
+        self.acceleration = math.nan
+
+    def add(self, values: np.ndarray, start: np.ndarray | None, start_velocity: np.ndarray | None) -> None:
+        """Count frames `values` (N, n) sent after `start` at `start_velocity` (None: from rest at the first)."""
+        V, A = self._gate.rates(values, start, start_velocity)
+        v, a = float(np.max(np.abs(V) / self._vmax)), float(np.max(np.abs(A) / self._amax))
+        self.velocity = v if math.isnan(self.velocity) else max(self.velocity, v)
+        self.acceleration = a if math.isnan(self.acceleration) else max(self.acceleration, a)
+
+    def as_dict(self) -> dict[str, float]:
+        """{"max_velocity_fraction", "max_acceleration_fraction"} (NaN before any frame)."""
+        return {"max_velocity_fraction": self.velocity, "max_acceleration_fraction": self.acceleration}
 
 
 def _first(mask: np.ndarray) -> tuple[int, int] | None:

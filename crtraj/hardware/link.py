@@ -13,6 +13,7 @@ import numpy as np
 
 from crtraj.control.ports import DeviceError
 from crtraj.core.errors import InputError
+from crtraj.hardware.limits import LimitPeaks
 from crtraj.hardware.stream import StreamError
 
 
@@ -89,6 +90,7 @@ class DeviceLink:
         self._last_target: np.ndarray | None = None
         self.measured_steps = 0
         self.max_deviation = np.zeros(self.actuators.n)  # largest |set-point - verified motion| (rad, mm)
+        self.peaks = LimitPeaks(self.actuators, self.fdt)  # of the frames queued for the device
         self.restarts = 0
         self.holds = 0
         self.report: Any = None
@@ -177,6 +179,7 @@ class DeviceLink:
             s.send_path(stamps, values)
         except StreamError as exc:  # held or stopped meanwhile; `problem` says whether that is final
             raise DeviceError(str(exc)) from exc
+        self.peaks.add(values, before[0], before[1])
         self._moving = True
         self._remember(stamps, Q)
         self._clock_after_queue(t, stamps[-1])
@@ -284,6 +287,7 @@ class DeviceLink:
                 if not tail:
                     raise StreamError("nothing to send")
                 s.send_path(stamps, np.array(tail))
+                self.peaks.add(np.array(tail), p0, v0)
                 s.finish()
                 s.wait(len(tail) * self.fdt + self.lead + s.options.settle_timeout + 2.0)
             except StreamError:
@@ -291,11 +295,17 @@ class DeviceLink:
         self.report = s.close()
         return self.report
 
+    def limit_fractions(self) -> dict[str, float]:
+        """Largest actuator speed and acceleration of the frames queued for the device, as fractions of
+        the limits (the limits gate's finite differences at the stream rate; NaN before any frame)."""
+        return self.peaks.as_dict()
+
     def describe(self) -> dict[str, Any]:
         """What the link did, for the run record: the stream report and the follower's deviation."""
         rep = self.report.to_dict() if self.report is not None else {}
         return {
             "stream": rep,
+            **self.limit_fractions(),
             "lead_s": self.lead,
             "max_setpoint_deviation": dict(zip(self.actuators.names, self.max_deviation.tolist(), strict=True)),
             "restarts": self.restarts,

@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from crtraj.control.ports import DeviceError
+from crtraj.hardware.limits import LimitPeaks
 from crtraj.hardware.ros.messages import scene_markers
 
 # backbone points shown in RViz
@@ -85,6 +86,7 @@ class RosDevice:
         self.refusal = ""
         self.late = 0
         self.restarts = 0  # times a late loop at rest moved the origin on
+        self.peaks = LimitPeaks(actuators, self.dt / self.n_points)  # of the points published
 
     # --------------------------------------------------------------- state
     def start_actuation(self) -> np.ndarray:
@@ -165,6 +167,7 @@ class RosDevice:
         if why is not None:
             self._refuse(t, why)
         self.node.publish_trajectory(self._origin + t, self.offsets, values, vel)
+        self.peaks.add(values, self._last, v0)
         keep = self._hist_t >= t - 2.0
         keep[-1] = True  # the rest point the new step starts from
         self._hist_t = np.concatenate([self._hist_t[keep], [t], stamps])
@@ -228,8 +231,14 @@ class RosDevice:
         """The robot stays at the last commanded position (the loop ends at rest); the report."""
         return self.describe()
 
+    def limit_fractions(self) -> dict[str, float]:
+        """Largest actuator speed and acceleration of the points published, as fractions of the limits
+        (finite differences at the points' spacing, as the verifier checks them; NaN before any)."""
+        return self.peaks.as_dict()
+
     def describe(self) -> dict[str, Any]:
         return {
+            **self.limit_fractions(),
             "moves": self.moves,
             "holds": self.holds,
             "measured_steps": self.measured_steps,
