@@ -761,6 +761,8 @@ class ClosedLoop:
         q_new, qc_new, T, X, cmds = sim
         if device is not None:
             self._drive(device, status, t, st.q, cmds, why, bound)
+        if scene_t is not None:
+            reason = "; ".join(filter(None, (reason, self._ask_reference(st, k))))
         periods = self._periods(st.q, cmds)
         measured = self._measure(T, X)
         # the set-point's last change (configuration): the next step's acceleration history
@@ -876,7 +878,8 @@ class ClosedLoop:
         """Replan the reference path when needed; returns (reason, planner time s, replanned, time to charge s).
 
         Inline (no worker) the plan is made now and its time is part of the step; with a worker the step
-        first takes over a due path, then sends a new request, and the plan's time is the worker's."""
+        takes over a due path here and asks for a new one after its move (`_ask_reference`), and the plan's
+        time is the worker's."""
         said, plan_time, replanned = self._take_reference(st, k)
         charged = 0.0
         if k == 0 and st.first_plan is not None:
@@ -884,23 +887,35 @@ class ClosedLoop:
             # reference is planned inside a step, and that one was part of the setup
             said, plan_time, replanned = st.first_plan
             charged = plan_time if st.worker is None else 0.0
-        reason = self._replan_reason(st)
-        w = st.worker
-        # after a failed attempt wait a little before asking the planner again; one request at a time
-        t = st.t
-        wait = reason != "periodic" and t - st.t_last_attempt < max(1.0, self.options.dt) - 1e-9
-        if reason and not wait and (w is None or w.pending is None):
-            st.t_last_attempt = t
-            if w is not None:
-                due = k + self.loop_options.handover_steps(self.options.dt)
-                w.submit(st.x, t, self._scene_now, PendingPlan(k, due, reason, st.goal_version))
-                said = "; ".join(filter(None, (said, f"{reason}: asked")))
-            else:
-                plan = self.reference_source(st.x, t, self._scene_now)
+        if st.worker is None:
+            reason = self._replan_reason(st)
+            if reason and not self._waiting(st, reason):
+                st.t_last_attempt = st.t
+                plan = self.reference_source(st.x, st.t, self._scene_now)
                 replanned = self._adopt(st, k, plan, st.goal_version)
                 said, plan_time = f"{reason}: {plan.status}", plan.wall_time
         st.locate(self.options.dt * self.replanner.N)
         return said, plan_time, replanned, charged
+
+    def _waiting(self, st: _State, reason: str) -> bool:
+        """After a failed attempt, wait a little (1 s, or a step) before asking the planner again."""
+        return reason != "periodic" and st.t - st.t_last_attempt < max(1.0, self.options.dt) - 1e-9
+
+    def _ask_reference(self, st: _State, k: int) -> str:
+        """With a worker, after step k's move was chosen (and sent): ask for a new reference path when one is
+        needed, from the step's start (st.x at st.t), to be taken over `handover_steps` later; what was asked
+        ('' nothing). Neither the check (the reference's clearance ahead, about 0.1 ms) nor the request is in
+        the step's latency: the move does not depend on them, and the path arrives steps later anyway."""
+        w = st.worker
+        if w is None or w.pending is not None:
+            return ""  # one request at a time
+        reason = self._replan_reason(st)
+        if not reason or self._waiting(st, reason):
+            return ""
+        st.t_last_attempt = st.t
+        due = k + self.loop_options.handover_steps(self.options.dt)
+        w.submit(st.x, st.t, self._scene_now, PendingPlan(k, due, reason, st.goal_version))
+        return f"{reason}: asked"
 
     def _take_reference(self, st: _State, k: int) -> tuple[str, float, bool]:
         """Take over the worker's path when it is due: (reason text, planner time s, adopted); a worker that

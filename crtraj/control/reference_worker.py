@@ -2,8 +2,9 @@
 
 A reference plan (the configuration-space planner, tens of milliseconds) is far longer than a control
 step's budget (a few milliseconds), so with ``[loop] reference_delay > 0`` the closed loop hands each
-request to this worker and keeps stepping on the reference it has; the finished path is taken over at
-the first step at least ``reference_delay`` seconds after the request.
+request to this worker (after the step's move is chosen: whether a new path is needed is decided
+there too) and keeps stepping on the reference it has; the finished path is taken over at the first
+step at least ``reference_delay`` seconds after the request.
 
 The worker is a forked copy of the loop's process, so it holds the same planner, robot model and compiled
 kernels without rebuilding them. Requests and replies cross a pipe as JSON headers and raw float64 arrays
