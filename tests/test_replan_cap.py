@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from conftest import XG, XS, SlowReplanner, VirtualClock, straight_loop
 
-from crtraj.control.horizon import HorizonStatus, Replanner, ReplanOptions
+from crtraj.control.horizon import DIVERGED, HorizonStatus, Replanner, ReplanOptions
 from crtraj.control.loop_options import LoopOptions
 from crtraj.world.obstacle import Obstacle
 from crtraj.world.scene import Scene
@@ -67,16 +67,17 @@ class _Limping:
     """The real sqpmethod, except that its first call stops where it started (holding still, inside the sphere:
     outside the constraints); records the start point and the returned iterate of every call."""
 
-    def __init__(self, solver) -> None:
+    def __init__(self, solver, drop: float = 100.0) -> None:
         self.solver, self.starts, self.returned, self._stats = solver, [], [], {}
+        self.drop = drop
 
     def call(self, args):
         self.starts.append(np.asarray(args["x0"], dtype=float).ravel().copy())
         sol = self.solver.call(args)
         self._stats = dict(self.solver.stats())
         if len(self.starts) == 1:
-            # x back at the start, and constraint values that say so (every row 100 below its value there)
-            sol = dict(sol, x=self.starts[0].copy(), g=np.asarray(sol["g"]).ravel() - 100.0)
+            # x back at the start, and constraint values that say so (every row `drop` below its value there)
+            sol = dict(sol, x=self.starts[0].copy(), g=np.asarray(sol["g"]).ravel() - self.drop)
             self._stats.update(success=False, return_status="Injected_Stop")
         self.returned.append(np.asarray(sol["x"], dtype=float).ravel().copy())
         return sol
@@ -96,6 +97,21 @@ def test_an_infeasible_capped_iterate_goes_on_from_there_while_calls_are_left(mo
     np.testing.assert_array_equal(limp.starts[1], limp.returned[0])  # from the stopped iterate, not from scratch
     assert res.is_success() and res.solver_status == "Solve_Succeeded"
     np.testing.assert_allclose(res.configs, full.configs, atol=1e-5)
+
+
+def test_a_diverged_iterate_is_not_gone_on_from(model):
+    scene, ref = _problem(model)
+    rp = _replanner(model, max_calls=5, rescue=True, closest_points=0)
+    rp.solver = limp = _Limping(rp.solver, drop=10.0 * DIVERGED)
+    res = rp.solve(X0, ref, rp.obstacles_from_scene(scene, 0.0))
+    # no second call from an iterate 10 m outside its constraints: the IPOPT rescue (no deadline) solves it
+    assert len(limp.starts) == 1 and res.solver_status.startswith("Injected_Stop; rescue ipopt:")
+    assert res.is_success() and _inside(model, scene, res.configs) < 0.05
+    # one just inside the bound is gone on from
+    rp = _replanner(model, max_calls=5, rescue=True, closest_points=0)
+    rp.solver = limp = _Limping(rp.solver, drop=0.5 * DIVERGED)
+    res = rp.solve(X0, ref, rp.obstacles_from_scene(scene, 0.0))
+    assert len(limp.starts) == 2 and res.solver_status == "Solve_Succeeded"
 
 
 @pytest.mark.parametrize("max_calls", [1, 5])

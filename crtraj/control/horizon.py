@@ -103,6 +103,9 @@ INTERPOLATION_GAIN = 2.0
 # With `closest_points`, at most this many solves of the QP's NLP per call of the solver: a solution that
 # leaves an omitted point inside its sphere is solved again with the closest points there.
 SCREEN_SOLVES = 3
+# An iterate further than this outside a constraint (mm, mm per step, rad: 1000 of any of the NLP's units) has
+# diverged: going on from it (`max_calls`) only spends the step (seen live under load: 20 calls up to 1e16).
+DIVERGED = 1e3
 
 
 @dataclass(frozen=True)
@@ -898,13 +901,14 @@ class Replanner:
     ) -> dict[str, Any]:
         """A solve from args' start point (appended to `tried`): calls of max_iter iterations each, the next going
         on from the last one's iterate (with its multipliers and rows) while calls are left and it has not
-        converged. Under a deadline (time_left not None) only while time is left and only from an iterate that
-        breaks a constraint: one inside every constraint is the plan (the deadline's time is the step's); without
-        one, to convergence, so that the cap changes how the work is split, not what a solve returns."""
+        converged and has not diverged (`DIVERGED`). Under a deadline (time_left not None) only while time is left
+        and only from an iterate that breaks a constraint: one inside every constraint is the plan (the deadline's
+        time is the step's); without one, to convergence, so that the cap changes how the work is split, not what
+        a solve returns."""
         r = self._call_screened(args, start)
         tried.append(r)
         for _ in range(self.options.max_calls - 1):
-            if r["ok"] or not r["finite"] or not _in_time(tried, time_left):
+            if r["ok"] or not r["finite"] or r["violation"] > DIVERGED or not _in_time(tried, time_left):
                 break
             if time_left is not None and not self._infeasible(r):
                 break
