@@ -8,10 +8,14 @@ seeded, placed around the robot clear of its start and goal bodies.
   `SteerSolver.solve` with sqpmethod + daqp interpreted, and with ``--compiled M``, the compiled C step
   for every scene of at most M obstacles (each new size is one C build; minutes on a loaded machine).
 - replan: a 3 s closed-loop run (30 iterations) toward a goal configuration along the straight
-  reference; median time per iteration and median horizon-NLP time (sqpmethod + daqp interpreted).
+  reference; median time per iteration and median horizon-NLP time (sqpmethod + daqp interpreted), and
+  with ``--compiled-replan M`` the compiled horizon NLP as problems/paper_dynamic.toml runs it (iteration
+  cap 3 per call, up to 20 calls; no deadline, so every solve converges) for every scene of at most M
+  obstacles (each new size is one C build of the horizon NLP, about a minute).
 
 Writes docs/scaling_solvers.png (two panels: vs obstacles, vs segments) and prints the table with the
-date, machine and load. Run: python benchmarks/scaling_solvers.py [--compiled 7] [--out docs/scaling_solvers.png]
+date, machine and load. Run: python benchmarks/scaling_solvers.py [--compiled 7] [--compiled-replan 31]
+[--out docs/scaling_solvers.png]
 """
 
 from __future__ import annotations
@@ -95,11 +99,12 @@ def steer_ms(model: Model, scene: Scene, compiled: bool, n: int = 40) -> tuple[f
     return float(np.median(times) * 1e3), ok / n
 
 
-def replan_ms(model: Model, scene: Scene) -> tuple[float, float, float, float]:
+def replan_ms(model: Model, scene: Scene, compiled: bool = False) -> tuple[float, float, float, float]:
     """(median iteration ms, median NLP ms, p99 iteration ms (wall), mean CPU ms per iteration) of a 3 s
-    closed-loop run."""
+    closed-loop run; compiled: the horizon NLP in C with the shipped problem's iteration cap."""
     xs, xg = configs(model)
-    opts = ReplanOptions(solver="sqp", qpsol="daqp", points=16)
+    cap = {"compiled": True, "max_iter": 3, "max_calls": 20} if compiled else {}
+    opts = ReplanOptions(solver="sqp", qpsol="daqp", points=16, **cap)
     loop = ClosedLoop(
         model, scene, model.tip_position(xg), xs, options=opts, loop_options=LoopOptions(duration=3.0), goal_config=xg
     )
@@ -117,6 +122,9 @@ def replan_ms(model: Model, scene: Scene) -> tuple[float, float, float, float]:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--compiled", type=int, default=0, help="also time the compiled steer up to this many obstacles")
+    ap.add_argument(
+        "--compiled-replan", type=int, default=0, help="also time the compiled replanning up to this many obstacles"
+    )
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "scaling_solvers.png")
     args = ap.parse_args()
     base = Problem.load(ROOT / "problems" / "paper_static.toml").robot
@@ -125,7 +133,7 @@ def main() -> int:
     rows = []
     print(
         f"{'segments':>8} {'obstacles':>9} {'steer cpu ms':>12} {'ok':>5} {'compiled cpu ms':>15} {'iter ms':>8} "
-        f"{'iter p99':>8} {'NLP ms':>7} {'iter cpu ms':>11}"
+        f"{'iter p99':>8} {'NLP ms':>7} {'iter cpu ms':>11} {'compiled iter cpu ms':>20} {'compiled NLP ms':>15}"
     )
     for n, m in cases:
         model = Model(robot_with(base, n))
@@ -133,10 +141,14 @@ def main() -> int:
         st, ok = steer_ms(model, scene, compiled=False)
         cst = steer_ms(model, scene, compiled=True)[0] if m <= args.compiled else float("nan")
         it, nlp, p99, cpu = replan_ms(model, scene)
+        _, cnlp, _, ccpu = (
+            replan_ms(model, scene, compiled=True) if m <= args.compiled_replan else (0, *[float("nan")] * 3)
+        )
         row = {"segments": n, "obstacles": m, "steer": st, "ok": ok, "compiled": cst}
-        rows.append(row | {"iter": it, "p99": p99, "nlp": nlp, "iter_cpu": cpu})
+        rows.append(row | {"iter": it, "p99": p99, "nlp": nlp, "iter_cpu": cpu, "compiled_iter_cpu": ccpu})
         print(
-            f"{n:>8} {m:>9} {st:>12.3f} {ok:>5.2f} {cst:>15.3f} {it:>8.2f} {p99:>8.2f} {nlp:>7.2f} {cpu:>11.2f}",
+            f"{n:>8} {m:>9} {st:>12.3f} {ok:>5.2f} {cst:>15.3f} {it:>8.2f} {p99:>8.2f} {nlp:>7.2f} {cpu:>11.2f} "
+            f"{ccpu:>20.2f} {cnlp:>15.2f}",
             flush=True,
         )
     stamp = f"{datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC"
@@ -168,7 +180,12 @@ def plot(rows: list[dict], out: Path, note: str) -> None:
         comp = [(xi, r["compiled"]) for xi, r in zip(x, sel, strict=True) if np.isfinite(r["compiled"])]
         if comp:
             ax.plot(*zip(*comp, strict=True), "s-", color="C1", label="steer, compiled C (CPU median)")
-        ax.plot(x, [r["iter_cpu"] for r in sel], "^-", color="C2", label="replan iteration (CPU mean)")
+        ax.plot(x, [r["iter_cpu"] for r in sel], "^-", color="C2", label="replan iteration, interpreted (CPU mean)")
+        comp = [
+            (xi, r["compiled_iter_cpu"]) for xi, r in zip(x, sel, strict=True) if np.isfinite(r["compiled_iter_cpu"])
+        ]
+        if comp:
+            ax.plot(*zip(*comp, strict=True), "v-", color="C3", label="replan iteration, compiled C (CPU mean)")
         ax.set_xlabel(label)
         ax.set_xticks(x)
         ax.set_xticklabels([str(v) for v in x])
