@@ -262,3 +262,29 @@ def test_a_reference_planned_before_the_loop_is_charged_only_when_planning_inlin
     # inline, the loop's first iteration carries the plan it starts with; with a worker that was setup
     assert run.iter_time[0] == (0.07 if delay == 0.0 else 0.0)
     np.testing.assert_array_equal(run.iter_time[1:], 0.0)
+
+
+@pytest.mark.parametrize("delay", [0.0, 0.2])
+def test_with_a_worker_the_check_for_a_new_reference_is_in_no_step(model, delay):
+    clock = VirtualClock()
+    scene = Scene(obstacles=(BALL,), safety_distance=5.0)
+    loop = straight_loop(
+        model, scene, options=ReplanOptions(horizon=6, points=12, solver="sqp"),
+        loop_options=LoopOptions(duration=0.5, reference_delay=delay), reference=ChargedSource(clock, 0.0),
+        timer=clock,
+    )  # fmt: skip
+    reason = loop._replan_reason
+    checks = []
+
+    def costly_reason(st):
+        # the check (the reference's clearance ahead) takes 1 ms of the virtual clock
+        clock.now += 0.001
+        checks.append(st.t)
+        return reason(st)
+
+    loop._replan_reason = costly_reason
+    run = loop.run()
+    assert len(checks) >= run.steps - 1  # the check ran at (nearly) every step either way
+    # inline, the plan (hence the check) belongs to the step; with a worker it comes after the move is sent
+    expected = 0.001 if delay == 0.0 else 0.0
+    np.testing.assert_allclose(run.iter_time, expected, atol=1e-12)
