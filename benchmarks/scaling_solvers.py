@@ -141,9 +141,9 @@ def main() -> int:
         st, ok = steer_ms(model, scene, compiled=False)
         cst = steer_ms(model, scene, compiled=True)[0] if m <= args.compiled else float("nan")
         it, nlp, p99, cpu = replan_ms(model, scene)
-        _, cnlp, _, ccpu = (
-            replan_ms(model, scene, compiled=True) if m <= args.compiled_replan else (0, *[float("nan")] * 3)
-        )
+        cnlp = ccpu = float("nan")  # not timed: printed as nan, not plotted
+        if m <= args.compiled_replan:
+            _, cnlp, _, ccpu = replan_ms(model, scene, compiled=True)
         row = {"segments": n, "obstacles": m, "steer": st, "ok": ok, "compiled": cst}
         rows.append(row | {"iter": it, "p99": p99, "nlp": nlp, "iter_cpu": cpu, "compiled_iter_cpu": ccpu})
         print(
