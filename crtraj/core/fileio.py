@@ -374,6 +374,38 @@ def check_output_dir(path: str | os.PathLike[str], what: str, replaceable: froze
     return p
 
 
+def _same_file(a: Path, b: Path) -> bool:
+    """True when a and b name one file: the same inode when both exist, else the same resolved path."""
+    try:
+        if a.exists() and b.exists():
+            return os.path.samefile(a, b)
+        return a.resolve() == b.resolve()
+    except (OSError, RuntimeError, ValueError):
+        return False
+
+
+def check_outputs_not_inputs(
+    outputs: dict[str, str | os.PathLike[str] | None], inputs: dict[str, str | os.PathLike[str] | None]
+) -> None:
+    """The one rule for every command: an output may never be one of the command's inputs, nor another output.
+
+    outputs, inputs: {flag or field name (e.g. ``--out``, ``--log``): path or None (not given)}. A folder output
+    also may not contain an input (it is replaced as a whole). Raises `InputError` with one line naming both flags.
+    """
+    outs = [(k, Path(v)) for k, v in outputs.items() if v is not None]
+    ins = [(k, Path(v)) for k, v in inputs.items() if v is not None]
+    for i, (name, out) in enumerate(outs):
+        for other, src in ins + outs[:i]:
+            if _same_file(out, src):
+                raise InputError(f"{name}: {out} is also {other}; give an output that is not one of the inputs")
+            if out.is_dir() and other in inputs:
+                try:
+                    src.resolve().relative_to(out.resolve())
+                except ValueError:
+                    continue
+                raise InputError(f"{name}: {out} holds {other} ({src}); it would be replaced, give another folder")
+
+
 def failed_sibling(path: str | os.PathLike[str]) -> Path:
     """Where a failed result goes when `path` holds a successful one: ``p.json`` -> ``p.failed.json``,
     ``out/replan`` -> ``out/replan.failed``."""
