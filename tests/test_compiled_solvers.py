@@ -14,6 +14,8 @@ from conftest import require_tool
 from crtraj.control.horizon import Replanner, ReplanOptions
 from crtraj.planning.compiled_nlp import CompiledFunction, compiled_library
 from crtraj.planning.steer import SteerOptions, SteerSolver
+from crtraj.planning.steer_backends import RescuedBackend
+from crtraj.planning.steer_compiled import CompiledBackend
 from crtraj.world.obstacle import Obstacle
 from crtraj.world.scene import Scene
 
@@ -81,11 +83,13 @@ def test_compiled_steer_agrees_with_interpreted(model):
     # a solve the compiled code does not converge is reported as failed, never passed off: with an
     # unreachable tolerance the KKT test fails, IPOPT re-solves (as on the interpreted path) and says why
     x, target = probs[0]
-    fast._tol = (0.0, 0.0)
-    r = fast.solve(x, target, SCENE)
+    rescued = fast.backend
+    assert isinstance(rescued, RescuedBackend) and isinstance(rescued.primary, CompiledBackend)
+    strict = rescued.primary.with_tolerance(0.0, 0.0)
+    opts = SteerOptions(**base, compiled=True)
+    r = SteerSolver(model, 1, opts, backend=RescuedBackend(strict, rescued.rescue)).solve(x, target, SCENE)
     assert r.solver == "sqp>ipopt" and "Not_Converged (compiled sqpmethod" in r.message, r.message
-    fast._fallback = None
-    r = fast.solve(x, target, SCENE)
+    r = SteerSolver(model, 1, opts, backend=strict).solve(x, target, SCENE)
     assert not r.converged and r.status.value == "failed" and r.solver_status.startswith("Not_Converged")
     # a start in collision is refused by the compiled path as by the interpreted one
     inside = SCENE.obstacles[0].center

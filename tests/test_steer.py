@@ -422,7 +422,8 @@ def test_jit_compiles_privately_and_matches_plain(model, sqp, tmp_path, monkeypa
     jit = SteerSolver(model, 4, SteerOptions(solver="sqp", jit=True))
     assert jit.jit_message == "jit: compiled with gcc -O2"
     # really compiled: gcc's shared objects sit in the solver's private folder ...
-    private = Path(jit._jit_dir.name)
+    private = jit.jit_directory
+    assert private is not None
     assert sorted(p.suffix for p in private.iterdir()).count(".so") >= 1
     assert private.parent != tmp_path
     # ... and nothing was left in the working directory
@@ -439,7 +440,7 @@ def test_jit_compiles_privately_and_matches_plain(model, sqp, tmp_path, monkeypa
 
 
 def test_jit_without_a_compiler_runs_plain(model, monkeypatch):
-    import crtraj.planning.steer as steer_mod
+    import crtraj.planning.steer_backends as steer_mod
 
     monkeypatch.setattr(steer_mod.shutil, "which", lambda name: None)
     solver = SteerSolver(model, 1, SteerOptions(solver="sqp", jit=True))

@@ -13,16 +13,8 @@ from pathlib import Path
 from typing import Any
 
 from crtraj import __version__
-from crtraj.bench.suite import (
-    METHODS,
-    SuiteGenerator,
-    SuiteOptions,
-    SuiteRecord,
-    SuiteRunner,
-    header,
-    markdown,
-    results_document,
-)
+from crtraj.bench.suite import METHODS, SuiteGenerator, SuiteOptions, SuiteRecord, SuiteRunner
+from crtraj.bench.suite_report import header, markdown, results_document
 from crtraj.core.errors import InputError
 from crtraj.core.fileio import atomic_write_json, atomic_write_text
 from crtraj.io.problem import load_robot

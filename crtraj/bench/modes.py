@@ -15,7 +15,6 @@ gives no spread, so its mean is compared with our interval.
 
 from __future__ import annotations
 
-import io
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -178,7 +177,6 @@ def detour(
     return float(np.mean(ratios)) if ratios else float("nan")
 
 
-# Long by design: the report reads top to bottom, one table after another.
 def markdown(
     records: Sequence[RunRecord],
     counts: Sequence[int],
@@ -191,16 +189,26 @@ def markdown(
     detour column (the paper does not publish its start and goal draws; this says how long our queries are).
     """
     straight = straight or {}
-    out = io.StringIO()
-    w = out.write
-    w("# Table I in the paper's terms (paper check) and in crtraj's (strict dense check)\n\n")
-    w(header.rstrip() + "\n\n")
     present = {r.planner for r in records}
     paper_rows = [p for p in PAPER_ROWS if p in present]
     strict_rows = [p for p in STRICT_ROWS if p in present]
+    return (
+        "# Table I in the paper's terms (paper check) and in crtraj's (strict dense check)\n\n"
+        + header.rstrip()
+        + "\n\n"
+        + _paper_table(records, counts, straight, paper_rows)
+        + _straight_distances(counts, straight)
+        + _strict_table(records, counts, strict_rows)
+        + _rejection_table(records, counts, paper_rows)
+    )
 
-    w("## Paper mode: success by the paper's check, against the paper's figures\n\n")
-    w(
+
+def _paper_table(
+    records: Sequence[RunRecord], counts: Sequence[int], straight: Mapping[tuple[int, int], float], rows: list[str]
+) -> str:
+    """The paper mode's section: success by the paper's check, beside the paper's figures."""
+    out = [
+        "## Paper mode: success by the paper's check, against the paper's figures\n\n",
         "Success: the path reaches the goal and the robot's 10 collision points keep D_sf at every 1-s step end "
         '(`crtraj.bench.check.paper_check`). RRT and RRT* plan with that check too (`check = "paper"`); '
         "C-space and OMPL plan with the strict check (their paper-mode figures are the same runs judged by the "
@@ -209,85 +217,102 @@ def markdown(
         "*in* when the paper's mean lies in our interval. *Tree*: the planner's own "
         "cost, the tip length of the tree path before smoothing (RRT, RRT*). Detour: mean of path length / straight "
         "start-to-goal tip distance. "
-        'Time: mean over all runs (the paper\'s "average running time"), CPU and wall.\n\n'
-    )
-    w(
+        'Time: mean over all runs (the paper\'s "average running time"), CPU and wall.\n\n',
         "| Method | obs | n | success (95% CI) | ≤ 5 s CPU | paper (paper CI) | succ. | length mm (95% CI) | paper mm "
-        "| length | tree mm | detour | CPU s | wall s | paper s |\n"
-    )
-    w("|---|---:|---:|---|---:|---|:-:|---|---:|:-:|---:|---:|---:|---:|---:|\n")
-    for p in paper_rows:
-        for c in counts:
-            x = cell(records, p, c, "paper")
-            lo, hi = wilson(x.successes, x.runs)
-            ps = _paper(p, "success", c)
-            plo, phi = wilson(round(ps * PAPER_N), PAPER_N) if math.isfinite(ps) else (math.nan, math.nan)
-            m, llo, lhi = mean_interval(x.lengths)
-            vs, vl = comparison(x)
-            tree = [r.best_cost for r in records if r.planner == p and r.n_obstacles == c and r.paper_success]
-            paper_succ = f"{_pct(ps)} ({_pct(plo)}–{_pct(phi)})" if math.isfinite(ps) else "—"
-            w(
-                f"| {label(p)} | {c} | {x.runs} | {_pct(x.rate)} ({_pct(lo)}–{_pct(hi)}) | "
-                f"{_pct(x.within5 / x.runs if x.runs else math.nan)} | {paper_succ} | {vs} | "
-                f"{_f(m, 0)} ({_f(llo, 0)}–{_f(lhi, 0)}) | {_f(_paper(p, 'path_mm', c))} | {vl} | "
-                f"{_f(_mean(tree), 0) if p in PAPER_OF else '—'} | {_f(detour(records, straight, p, c, 'paper'))} | "
-                f"{_f(_mean(x.cpu))} | {_f(_mean(x.wall))} | {_f(_paper(p, 'time_s', c))} |\n"
-            )
+        "| length | tree mm | detour | CPU s | wall s | paper s |\n",
+        "|---|---:|---:|---|---:|---|:-:|---|---:|:-:|---:|---:|---:|---:|---:|\n",
+    ]
+    out += [_paper_row(records, straight, p, c) for p in rows for c in counts]
+    return "".join(out)
 
-    if straight:
-        dist = {c: [d for (k, _), d in straight.items() if k == c] for c in counts}
-        w(
-            "\nStraight start-to-goal tip distance of the scenarios run, mean (min–max) mm: "
-            + "; ".join(
-                f"{c} obs {_f(float(np.mean(v)), 0)} ({_f(min(v), 0)}–{_f(max(v), 0)})" for c, v in dist.items() if v
-            )
-            + ".\n"
+
+def _paper_row(records: Sequence[RunRecord], straight: Mapping[tuple[int, int], float], p: str, c: int) -> str:
+    """One planner's row of the paper-mode table at c obstacles."""
+    x = cell(records, p, c, "paper")
+    lo, hi = wilson(x.successes, x.runs)
+    ps = _paper(p, "success", c)
+    plo, phi = wilson(round(ps * PAPER_N), PAPER_N) if math.isfinite(ps) else (math.nan, math.nan)
+    m, llo, lhi = mean_interval(x.lengths)
+    vs, vl = comparison(x)
+    tree = [r.best_cost for r in records if r.planner == p and r.n_obstacles == c and r.paper_success]
+    paper_succ = f"{_pct(ps)} ({_pct(plo)}–{_pct(phi)})" if math.isfinite(ps) else "—"
+    return (
+        f"| {label(p)} | {c} | {x.runs} | {_pct(x.rate)} ({_pct(lo)}–{_pct(hi)}) | "
+        f"{_pct(x.within5 / x.runs if x.runs else math.nan)} | {paper_succ} | {vs} | "
+        f"{_f(m, 0)} ({_f(llo, 0)}–{_f(lhi, 0)}) | {_f(_paper(p, 'path_mm', c))} | {vl} | "
+        f"{_f(_mean(tree), 0) if p in PAPER_OF else '—'} | {_f(detour(records, straight, p, c, 'paper'))} | "
+        f"{_f(_mean(x.cpu))} | {_f(_mean(x.wall))} | {_f(_paper(p, 'time_s', c))} |\n"
+    )
+
+
+def _straight_distances(counts: Sequence[int], straight: Mapping[tuple[int, int], float]) -> str:
+    """The line on the scenarios' straight start-to-goal distances ("" without them)."""
+    if not straight:
+        return ""
+    dist = {c: [d for (k, _), d in straight.items() if k == c] for c in counts}
+    return (
+        "\nStraight start-to-goal tip distance of the scenarios run, mean (min–max) mm: "
+        + "; ".join(
+            f"{c} obs {_f(float(np.mean(v)), 0)} ({_f(min(v), 0)}–{_f(max(v), 0)})" for c, v in dist.items() if v
         )
-    w("\n## Strict mode: success means the continuous body keeps D_sf\n\n")
-    w(
+        + ".\n"
+    )
+
+
+def _strict_table(records: Sequence[RunRecord], counts: Sequence[int], rows: list[str]) -> str:
+    """The strict mode's section: success means the continuous body keeps D_sf."""
+    out = [
+        "\n## Strict mode: success means the continuous body keeps D_sf\n\n",
         "Success: the planner claims an exact solution and the dense check (128 backbone points as a polyline "
         "with the disc radius, samples <= 0.01 s and <= 1 mm apart, obstacles at each sample's time) keeps more "
         "than D_sf from every sphere. Clearances over the claimed paths: *surface* = body surface to sphere "
         "surface, *D_sf* = the same minus D_sf (>= 0 is safe); smallest and median. OMPL RRTstar runs to its "
         "budget: *first sol.* is its mean time to the first solution (s, from the plan call, goal IK included), "
         "*cost* its mean best cost at the budget (OMPL's path-length objective in its own state space: body-motion "
-        "mm and scaled time, not tip mm).\n\n"
-    )
-    w(
+        "mm and scaled time, not tip mm).\n\n",
         "| Method | obs | n | success (95% CI) | length mm (95% CI) | median CPU s | median wall s "
-        "| surface clr min / median | D_sf clr min / median | first sol. s | cost at budget |\n"
-    )
-    w("|---|---:|---:|---|---|---:|---:|---|---|---:|---:|\n")
-    for p in strict_rows:
-        for c in counts:
-            x = cell(records, p, c, "strict")
-            lo, hi = wilson(x.successes, x.runs)
-            m, llo, lhi = mean_interval(x.lengths)
-            claimed = [r for r in records if r.planner == p and r.n_obstacles == c and r.claimed]
-            surf = [r.min_clearance_mm for r in claimed]
-            dsf = [r.dsf_clearance_mm for r in claimed]
-            first = [r.first_solution_s for r in claimed]
-            cost = [r.best_cost for r in claimed]
-            omplstar = p == "ompl-rrtstar"
-            w(
-                f"| {label(p)} | {c} | {x.runs} | {_pct(x.rate)} ({_pct(lo)}–{_pct(hi)}) | "
-                f"{_f(m, 0)} ({_f(llo, 0)}–{_f(lhi, 0)}) | {_f(_median(x.cpu), 3)} | {_f(_median(x.wall), 3)} | "
-                f"{_f(min(surf, default=math.nan))} / {_f(_median(surf))} | "
-                f"{_f(min(dsf, default=math.nan))} / {_f(_median(dsf))} | "
-                f"{_f(_mean(first), 3) if omplstar else '—'} | {_f(_mean(cost), 0) if omplstar else '—'} |\n"
-            )
+        "| surface clr min / median | D_sf clr min / median | first sol. s | cost at budget |\n",
+        "|---|---:|---:|---|---|---:|---:|---|---|---:|---:|\n",
+    ]
+    out += [_strict_row(records, p, c) for p in rows for c in counts]
+    return "".join(out)
 
-    w("\n## The cost of the paper's shortcut: paper-check successes the strict check rejects\n\n")
-    w(
+
+def _strict_row(records: Sequence[RunRecord], p: str, c: int) -> str:
+    """One planner's row of the strict-mode table at c obstacles."""
+    x = cell(records, p, c, "strict")
+    lo, hi = wilson(x.successes, x.runs)
+    m, llo, lhi = mean_interval(x.lengths)
+    claimed = [r for r in records if r.planner == p and r.n_obstacles == c and r.claimed]
+    surf = [r.min_clearance_mm for r in claimed]
+    dsf = [r.dsf_clearance_mm for r in claimed]
+    first = [r.first_solution_s for r in claimed]
+    cost = [r.best_cost for r in claimed]
+    omplstar = p == "ompl-rrtstar"
+    return (
+        f"| {label(p)} | {c} | {x.runs} | {_pct(x.rate)} ({_pct(lo)}–{_pct(hi)}) | "
+        f"{_f(m, 0)} ({_f(llo, 0)}–{_f(lhi, 0)}) | {_f(_median(x.cpu), 3)} | {_f(_median(x.wall), 3)} | "
+        f"{_f(min(surf, default=math.nan))} / {_f(_median(surf))} | "
+        f"{_f(min(dsf, default=math.nan))} / {_f(_median(dsf))} | "
+        f"{_f(_mean(first), 3) if omplstar else '—'} | {_f(_mean(cost), 0) if omplstar else '—'} |\n"
+    )
+
+
+def _rejection_table(records: Sequence[RunRecord], counts: Sequence[int], rows: list[str]) -> str:
+    """Paper-check successes the strict check rejects, and why."""
+    out = [
+        "\n## The cost of the paper's shortcut: paper-check successes the strict check rejects\n\n",
         "Per planner and obstacle count: runs the paper's check accepts, how many of those the strict dense "
         "check rejects, and why (the body touches a sphere between step ends or between the points; or it stays "
-        "clear but comes within D_sf).\n\n"
-    )
-    w("| Method | obs | paper-check successes | rejected by strict | collisions | within D_sf only |\n")
-    w("|---|---:|---:|---:|---:|---:|\n")
-    for p in paper_rows:
+        "clear but comes within D_sf).\n\n",
+        "| Method | obs | paper-check successes | rejected by strict | collisions | within D_sf only |\n",
+        "|---|---:|---:|---:|---:|---:|\n",
+    ]
+    for p in rows:
         for c in counts:
             j = rejections(records, p, c)
             share = f" ({_pct(j.rejected / j.paper_successes)})" if j.paper_successes else ""
-            w(f"| {label(p)} | {c} | {j.paper_successes} | {j.rejected}{share} | {j.collisions} | {j.within_dsf} |\n")
-    return out.getvalue()
+            out.append(
+                f"| {label(p)} | {c} | {j.paper_successes} | {j.rejected}{share} | {j.collisions} | {j.within_dsf} |\n"
+            )
+    return "".join(out)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import io
 import os
 import platform
 from dataclasses import dataclass, field
@@ -79,94 +78,116 @@ class BenchReport:
         return len(both), float(np.mean([la[i] / lb[i] for i in both]))
 
     # --------------------------------------------------------------- files
-    # Long by design: it writes the report top to bottom, one table after another, as it reads.
     def markdown(self) -> str:
+        """table1.md: the run's setup, then the paper's layout (time / success, path length), the time spread
+        and the default planner's paired length ratios."""
+        paper_cols = {c: PAPER_COUNTS.index(c) for c in self.options.counts if c in PAPER_COUNTS}
+        return (
+            self._intro()
+            + self._time_success_table(paper_cols)
+            + self._length_table(paper_cols)
+            + self._spread_table()
+            + self._paired_table()
+            + "\nTimes were measured with the workers sharing the machine; the paper's figures come from an "
+            "Intel i7-12700H laptop.\n"
+        )
+
+    def _intro(self) -> str:
+        """Title, machine, run settings and the dense check's terms."""
         o = self.options
-        counts = o.counts
-        planners = [p for p in o.planners]
-        out = io.StringIO()
-        w = out.write
         margin = "D_sf" if o.verify_margin is None else f"{o.verify_margin:g} mm"
-        w("# Table I — planners on the paper's random dynamic scenes\n\n")
-        w(
+        text = (
+            "# Table I — planners on the paper's random dynamic scenes\n\n"
             f"crtraj {__version__}, {self.created}, {platform.node()} ({platform.machine()}, "
             f"{os.cpu_count()} logical CPUs, {platform.python_implementation()} {platform.python_version()}); "
             f"{self.executor} with {self.workers} worker(s); whole run {self.wall_time:.0f} s.\n\n"
-        )
-        w(
             f"{o.scenarios} scenarios per obstacle count (seed {o.seed}), time limit {o.time_limit:g} s per run, "
             f"goal tolerance {o.goal_tolerance:g} mm. Every claimed success was re-checked densely "
             f"({o.verify_points} backbone points, <= {o.verify_dt:g} s and <= {o.verify_step:g} mm between "
             f"samples, clearance > {margin}); a success it rejects counts as a failure.\n\n"
         )
         if self.interrupted:
-            w(f"**Incomplete — {self.note}: the table covers only the {len(self.records)} runs that finished.**\n\n")
-        paper_cols = {c: PAPER_COUNTS.index(c) for c in counts if c in PAPER_COUNTS}
+            text += (
+                f"**Incomplete — {self.note}: the table covers only the {len(self.records)} runs that finished.**\n\n"
+            )
+        return text
 
-        def paper(planner: str, key: str, c: int) -> float:
-            if planner not in PAPER_TABLE1 or c not in paper_cols:
-                return float("nan")
-            return PAPER_TABLE1[planner][key][paper_cols[c]]
-
-        # --- the paper's layout: time (s) / success per count
-        w("## Time (s) / success\n\n")
-        w('Mean wall time per run over all runs (the paper\'s "average running time"), and the success rate.\n\n')
-        w("| Method | " + " | ".join(f"{c} obs: time (s) | {c} obs: succ" for c in counts) + " |\n")
-        w("|---|" + "---:|---:|" * len(counts) + "\n")
-        for p in planners:
+    def _time_success_table(self, paper_cols: dict[int, int]) -> str:
+        """The paper's layout: mean time (s) and success rate per obstacle count, the paper's row above ours."""
+        counts = self.options.counts
+        out = [
+            "## Time (s) / success\n\n",
+            'Mean wall time per run over all runs (the paper\'s "average running time"), and the success rate.\n\n',
+            "| Method | " + " | ".join(f"{c} obs: time (s) | {c} obs: succ" for c in counts) + " |\n",
+            "|---|" + "---:|---:|" * len(counts) + "\n",
+        ]
+        for p in self.options.planners:
             if p in PAPER_TABLE1 and paper_cols:
-                cells = [f"{_fmt(paper(p, 'time_s', c))} | {_pct(paper(p, 'success', c))}" for c in counts]
-                w(f"| {LABELS.get(p, p)} — paper | " + " | ".join(cells) + " |\n")
+                cells = [
+                    f"{_fmt(_paper(paper_cols, p, 'time_s', c))} | {_pct(_paper(paper_cols, p, 'success', c))}"
+                    for c in counts
+                ]
+                out.append(f"| {LABELS.get(p, p)} — paper | " + " | ".join(cells) + " |\n")
             cells = []
             for c in counts:
                 s = self.stats(p, c)
                 cells.append(f"{_fmt(s['time_mean'], 3)} | {_pct(s['success'])}")
-            w(f"| {LABELS.get(p, p)} — crtraj | " + " | ".join(cells) + " |\n")
-        # --- average path length
-        w("\n## Average path length (mm) of successful runs\n\n")
-        w("| Method | " + " | ".join(f"{c} obs" for c in counts) + " |\n")
-        w("|---|" + "---:|" * len(counts) + "\n")
-        for p in planners:
+            out.append(f"| {LABELS.get(p, p)} — crtraj | " + " | ".join(cells) + " |\n")
+        return "".join(out)
+
+    def _length_table(self, paper_cols: dict[int, int]) -> str:
+        """Mean path length (mm) of the successful runs, the paper's row above ours."""
+        counts = self.options.counts
+        out = [
+            "\n## Average path length (mm) of successful runs\n\n",
+            "| Method | " + " | ".join(f"{c} obs" for c in counts) + " |\n",
+            "|---|" + "---:|" * len(counts) + "\n",
+        ]
+        for p in self.options.planners:
             if p in PAPER_TABLE1 and paper_cols:
-                w(
-                    f"| {LABELS.get(p, p)} — paper | "
-                    + " | ".join(_fmt(paper(p, "path_mm", c)) for c in counts)
-                    + " |\n"
-                )
-            w(
-                f"| {LABELS.get(p, p)} — crtraj | "
-                + " | ".join(_fmt(self.stats(p, c)["length_mean"]) for c in counts)
-                + " |\n"
-            )
-        # --- spread
-        w("\n## Time spread (s): median / p90, and claimed successes the dense check rejected\n\n")
-        w("| Method | " + " | ".join(f"{c} obs" for c in counts) + " |\n")
-        w("|---|" + "---:|" * len(counts) + "\n")
-        for p in planners:
+                figures = " | ".join(_fmt(_paper(paper_cols, p, "path_mm", c)) for c in counts)
+                out.append(f"| {LABELS.get(p, p)} — paper | " + figures + " |\n")
+            lengths = " | ".join(_fmt(self.stats(p, c)["length_mean"]) for c in counts)
+            out.append(f"| {LABELS.get(p, p)} — crtraj | " + lengths + " |\n")
+        return "".join(out)
+
+    def _spread_table(self) -> str:
+        """Median / p90 time (s) and the claimed successes the dense check rejected."""
+        counts = self.options.counts
+        out = [
+            "\n## Time spread (s): median / p90, and claimed successes the dense check rejected\n\n",
+            "| Method | " + " | ".join(f"{c} obs" for c in counts) + " |\n",
+            "|---|" + "---:|" * len(counts) + "\n",
+        ]
+        for p in self.options.planners:
             cells = []
             for c in counts:
                 s = self.stats(p, c)
                 cells.append(f"{_fmt(s['time_median'], 3)} / {_fmt(s['time_p90'], 3)} ({s['rejected']} rej.)")
-            w(f"| {LABELS.get(p, p)} | " + " | ".join(cells) + " |\n")
-        # --- paired length ratios against OMPL RRTstar
+            out.append(f"| {LABELS.get(p, p)} | " + " | ".join(cells) + " |\n")
+        return "".join(out)
+
+    def _paired_table(self) -> str:
+        """Path length of C-space relative to each other planner on the scenarios both solved ("" without
+        C-space or another planner)."""
+        counts, planners = self.options.counts, list(self.options.planners)
         others = [p for p in planners if p != "cspace"]
-        if "cspace" in planners and others:
-            w("\n## Path length of the default planner relative to each other planner (scenarios both solved)\n\n")
-            w("Mean over the scenarios both solved of length(C-space) / length(other); below 1: C-space is shorter.\n")
-            w("\n")
-            w("| Other planner | " + " | ".join(f"{c} obs" for c in counts) + " |\n")
-            w("|---|" + "---:|" * len(counts) + "\n")
-            for p in others:
-                cells = []
-                for c in counts:
-                    n, ratio = self.paired_lengths("cspace", p, c)
-                    cells.append(f"{_fmt(ratio, 3)} (n={n})")
-                w(f"| {LABELS.get(p, p)} | " + " | ".join(cells) + " |\n")
-        w(
-            "\nTimes were measured with the workers sharing the machine; the paper's figures come from an "
-            "Intel i7-12700H laptop.\n"
-        )
-        return out.getvalue()
+        if "cspace" not in planners or not others:
+            return ""
+        out = [
+            "\n## Path length of the default planner relative to each other planner (scenarios both solved)\n\n",
+            "Mean over the scenarios both solved of length(C-space) / length(other); below 1: C-space is shorter.\n",
+            "\n",
+            "| Other planner | " + " | ".join(f"{c} obs" for c in counts) + " |\n",
+            "|---|" + "---:|" * len(counts) + "\n",
+        ]
+        for p in others:
+            cells = []
+            for c in counts:
+                n, ratio = self.paired_lengths("cspace", p, c)
+                cells.append(f"{_fmt(ratio, 3)} (n={n})")
+            out.append(f"| {LABELS.get(p, p)} | " + " | ".join(cells) + " |\n")
+        return "".join(out)
 
     def csv_text(self) -> str:
         return csv_text(self.records)
@@ -190,3 +211,10 @@ class BenchReport:
             ),
         ]
         return files
+
+
+def _paper(paper_cols: dict[int, int], planner: str, key: str, count: int) -> float:
+    """The paper's Table I figure `key` of `planner` at `count` obstacles (nan when it has none)."""
+    if planner not in PAPER_TABLE1 or count not in paper_cols:
+        return float("nan")
+    return PAPER_TABLE1[planner][key][paper_cols[count]]

@@ -11,7 +11,6 @@ its final name.
 
 from __future__ import annotations
 
-import json
 import platform
 import shutil
 import subprocess
@@ -70,11 +69,6 @@ def describe(f: ca.Function) -> dict[str, Any]:
         "inputs": io(f.name_in(), f.sparsity_in),
         "outputs": io(f.name_out(), f.sparsity_out),
     }
-
-
-def manifest_text(model: Model) -> str:
-    """Short JSON description of the functions."""
-    return json.dumps([describe(f) for f in model.functions(1)], indent=1)
 
 
 def _compile(out: Path, cname: str, c_path: Path) -> tuple[Path | None, str]:

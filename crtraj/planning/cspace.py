@@ -36,7 +36,7 @@ planner solves that part first and directly:
    verified in one vectorised call, keeping the one that saves most (with
    moving obstacles a shortcut keeps the times of its ends, so only the new
    motion is checked).
-5. Smoothing: a clamped cubic B-spline (scipy) whose control polygon is the
+5. Smoothing: a clamped cubic B-spline (`crtraj.core.splines`, numpy) whose control polygon is the
    shortcut path with extra control points `corner` mm either side of each
    corner, so only the corners are rounded. Its samples are convex
    combinations of configurations within limits, so they are within

@@ -7,7 +7,7 @@ to a `PathPostprocessor`, which
   verified in one vectorised call, keeping the one that saves most body
   motion (in a scene with moving obstacles the rest of the path is reached
   earlier, so it is re-verified at its new times);
-- smooths it: a clamped cubic B-spline (scipy) whose control polygon is the
+- smooths it: a clamped cubic B-spline (`crtraj.core.splines`, numpy) whose control polygon is the
   path with extra control points `corner` mm of body motion either side of
   each corner, so straight runs stay straight and only corners are rounded.
   Spline points are convex combinations of configurations within limits,

@@ -123,10 +123,6 @@ class Scene:
             np.array([o.radius_rate_max for o in self.obstacles], dtype=float),
         )
 
-    def max_radii(self) -> np.ndarray:
-        """Largest radius of each obstacle over all time (mm), (M,)."""
-        return np.array([o.max_radius for o in self.obstacles], dtype=float)
-
     # ------------------------------------------------------------------ state
     def _progress(self, tt: np.ndarray) -> np.ndarray:
         """Motion progress s (S+(M,)) at absolute times tt (S+(1,))."""
