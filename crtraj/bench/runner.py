@@ -454,8 +454,8 @@ class Table1Bench:
 
 def make_progress(options: BenchOptions, total: int, stream: TextIO | None = None) -> _Progress | _PlainProgress:
     """The progress display of a bench run of `total` runs: a rich bar when rich is installed (the
-    [bench] extra), else plain lines on `stream` (default stderr)."""
-    if Progress is None:
+    [bench] extra) and no `stream` is given, else plain lines on `stream` (default stderr)."""
+    if Progress is None or stream is not None:
         return _PlainProgress(options, total, sys.stderr if stream is None else stream)
     return _Progress(options, total)
 
