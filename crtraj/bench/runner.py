@@ -50,14 +50,26 @@ import functools
 import json
 import os
 import platform
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import Any, TextIO
 
 import numpy as np
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+try:  # rich comes with the [bench] extra; without it the progress is plain lines (`_PlainProgress`)
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+except ImportError:  # pragma: no cover - exercised by tests that hide rich
+    Progress = None
 
 from crtraj.bench.check import DenseCheck, PaperCheck, dense_check, paper_check
 from crtraj.bench.paper_mode import CHECK_MODES, PAPER_SPECS
@@ -394,7 +406,7 @@ class Table1Bench:
         tasks = [t for t in self.tasks(scenarios) if _key(t) not in done]
         records: list[RunRecord] = []
         interrupted, note = False, ""
-        bar = _Progress(self.options, len(tasks)) if progress else None
+        bar = make_progress(self.options, len(tasks)) if progress else None
         try:
             if bar:
                 bar.start()
@@ -440,6 +452,58 @@ class Table1Bench:
                 fut.cancel()
 
 
+def make_progress(options: BenchOptions, total: int, stream: TextIO | None = None) -> _Progress | _PlainProgress:
+    """The progress display of a bench run of `total` runs: a rich bar when rich is installed (the
+    [bench] extra) and no `stream` is given, else plain lines on `stream` (default stderr)."""
+    if Progress is None or stream is not None:
+        return _PlainProgress(options, total, sys.stderr if stream is None else stream)
+    return _Progress(options, total)
+
+
+class _Counts:
+    """Finished, successful and rejected runs per planner; the text shown beside each planner."""
+
+    def __init__(self, planners: Sequence[str]) -> None:
+        self.ok = dict.fromkeys(planners, 0)
+        self.done = dict.fromkeys(planners, 0)
+        self.rejected = dict.fromkeys(planners, 0)
+
+    def add(self, r: RunRecord) -> str:
+        """Count run `r`; returns its planner's info text."""
+        p = r.planner
+        self.done[p] += 1
+        self.ok[p] += int(r.is_success())
+        self.rejected[p] += int(r.claimed and not r.verified)
+        info = f"success {self.ok[p]}/{self.done[p]}"
+        if self.rejected[p]:
+            info += f", {self.rejected[p]} rejected"
+        return info
+
+
+class _PlainProgress:
+    """Progress without rich: one line per planner each time another tenth of its runs has finished."""
+
+    def __init__(self, options: BenchOptions, total: int, stream: TextIO) -> None:
+        self.per = max(1, total // len(options.planners))
+        self.counts = _Counts(options.planners)
+        self.stream = stream
+
+    def start(self) -> None:
+        """Nothing to draw before the first run finishes."""
+
+    def stop(self) -> None:
+        self.stream.flush()
+
+    def advance(self, r: RunRecord) -> None:
+        info = self.counts.add(r)
+        n = self.counts.done[r.planner]
+        step = max(1, self.per // 10)  # about ten lines per planner, whatever the run count
+        if n % step == 0 or n == self.per:
+            label = LABELS.get(r.planner, r.planner)
+            self.stream.write(f"bench: {label} {n}/{self.per}, {info}\n")
+            self.stream.flush()
+
+
 class _Progress:
     """A rich progress bar: one line per planner with its running success count."""
 
@@ -454,9 +518,7 @@ class _Progress:
         )
         per = total // len(options.planners)
         self.tasks = {p: self.progress.add_task(LABELS.get(p, p), total=per, info="") for p in options.planners}
-        self.ok = dict.fromkeys(options.planners, 0)
-        self.done = dict.fromkeys(options.planners, 0)
-        self.rejected = dict.fromkeys(options.planners, 0)
+        self.counts = _Counts(options.planners)
 
     def start(self) -> None:
         self.progress.start()
@@ -465,11 +527,5 @@ class _Progress:
         self.progress.stop()
 
     def advance(self, r: RunRecord) -> None:
-        p = r.planner
-        self.done[p] += 1
-        self.ok[p] += int(r.is_success())
-        self.rejected[p] += int(r.claimed and not r.verified)
-        info = f"success {self.ok[p]}/{self.done[p]}"
-        if self.rejected[p]:
-            info += f", {self.rejected[p]} rejected"
-        self.progress.update(self.tasks[p], advance=1, info=info)
+        info = self.counts.add(r)
+        self.progress.update(self.tasks[r.planner], advance=1, info=info)
