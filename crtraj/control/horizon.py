@@ -226,6 +226,7 @@ class Replanner:
             shape = (self.N, self.max_obstacles, o.points)
             self._rows = ObstacleRows(nlp.all_distance, None if parts is None else parts.distance, shape)
         self._screen = PointScreen(self._K, self._slot_table, nlp.n_lin)
+        self.compiled = parts is not None  # the generated C runs (else the interpreted solver)
         self.backend = self._backend(nlp, parts, solver_wrapper)
         self.rescue: InterpretedBackend | None = None
         if o.solver == "sqp" and o.rescue:
@@ -470,10 +471,9 @@ class Replanner:
     def describe(self) -> dict[str, Any]:
         """Sizes of the NLP (for result files and benchmarks)."""
         o, nlp = self.options, self._nlp
-        compiled = isinstance(getattr(self.backend, "inner", self.backend), CompiledBackend)
         return {
             "solver": (o.solver if o.solver == "ipopt" else f"sqpmethod+{o.qpsol}")
-            + (" (compiled C)" if compiled else ""),
+            + (" (compiled C)" if self.compiled else ""),
             "rescue": "ipopt" if self.rescue is not None else None,
             "max_iter": o.max_iter,
             "max_calls": o.max_calls,
