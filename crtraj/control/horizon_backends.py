@@ -19,6 +19,7 @@ import casadi as ca
 import numpy as np
 
 from crtraj.control.horizon_build import CompiledParts
+from crtraj.planning.compiled_nlp import CompiledFunction
 
 # With `closest_points`, at most this many solves of the QP's NLP per query of `ScreenedBackend`: a solution that
 # leaves an omitted point inside its sphere is solved again with the closest points there.
@@ -183,8 +184,11 @@ class CompiledBackend:
 class ObstacleRows:
     """Every obstacle row of the full NLP at given configurations (by the compiled function when there is one)."""
 
-    def __init__(self, all_distance: ca.Function, compiled: Any, shape: tuple[int, int, int]) -> None:
-        """shape: (N, M, points) of the rows."""
+    def __init__(
+        self, all_distance: ca.Function, compiled: CompiledFunction | None, shape: tuple[int, int, int]
+    ) -> None:
+        """all_distance: (X, O) -> the rows as a CasADi function; compiled: the same as generated C (or None);
+        shape: (N, M, points) of the rows."""
         self.all_distance = all_distance
         self.compiled = compiled
         self.shape = shape
@@ -238,7 +242,7 @@ class ScreenedBackend:
 
     def __init__(
         self,
-        inner: Any,
+        inner: InterpretedBackend | CompiledBackend,
         screen: PointScreen,
         rows: ObstacleRows,
         closest: Callable[[np.ndarray, np.ndarray], np.ndarray],
