@@ -225,10 +225,13 @@ class _BrokenSolver:
 @pytest.mark.parametrize("rescue", [True, False])
 def test_a_failed_fast_solve_is_rescued_by_ipopt_or_reported(model, scene, rescue):
     rp = Replanner(
-        model, ReplanOptions(horizon=6, points=12, solver="sqp", rescue=rescue), max_obstacles=1, safety_distance=5.0
+        model,
+        ReplanOptions(horizon=6, points=12, solver="sqp", rescue=rescue),
+        max_obstacles=1,
+        safety_distance=5.0,
+        solver_wrapper=lambda solver: _BrokenSolver(solver.nnz_in("x0"), solver.nnz_out("g")),
     )
     assert (rp.rescue is not None) == rescue
-    rp.solver = _BrokenSolver(rp.N * rp.nx, len(rp._lbg))
     x0 = XS + 0.25 * (XG - XS)
     res = rp.solve(x0, _straight_reference(x0, XG, rp.N, 0.12), rp.obstacles_from_scene(scene, 3.0))
     assert res.solver_status.startswith("Injected_Breakdown")
@@ -256,12 +259,12 @@ class _WrongFirstGuess(Replanner):
 
     guesses = 0
 
-    def _closest(self, xs, obstacles):
+    def nearest_points(self, xs, obstacles):
         self.guesses += 1
         if self.guesses > 1:
-            return super()._closest(xs, obstacles)
-        d = self._distances(np.asarray(xs, dtype=float), obstacles)
-        return np.sort(np.argsort(-d, axis=-1, kind="stable")[..., : self._K], axis=-1)
+            return super().nearest_points(xs, obstacles)
+        d = self.distances(xs, obstacles)
+        return np.sort(np.argsort(-d, axis=-1, kind="stable")[..., : self.options.closest_points], axis=-1)
 
 
 @pytest.mark.parametrize("t0, frac", [(3.0, 0.25), (2.0, 0.4), (4.0, 0.1)])
@@ -318,14 +321,14 @@ def test_a_screened_solve_that_never_clears_is_not_ok(model, scene):
     x0 = XS + 0.25 * (XG - XS)
     Xr = _straight_reference(x0, XG, rp.N, 0.12)
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr("crtraj.control.horizon.SCREEN_SOLVES", 1)
+        mp.setattr("crtraj.control.horizon_backends.SCREEN_SOLVES", 1)
         res = rp.solve(x0, Xr, rp.obstacles_from_scene(scene, 3.0), warm=False)
     assert res.status is HorizonStatus.FAILED and not res.feasible
     assert "omitted point stays" in res.solver_status and res.min_distance < -1e-6
     # such a solve counts as failed: with the rescue on, IPOPT solves the full NLP instead
     rp = _WrongFirstGuess(model, replace(opts, rescue=True), max_obstacles=2, safety_distance=5.0)
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr("crtraj.control.horizon.SCREEN_SOLVES", 1)
+        mp.setattr("crtraj.control.horizon_backends.SCREEN_SOLVES", 1)
         res = rp.solve(x0, Xr, rp.obstacles_from_scene(scene, 3.0), warm=False)
     assert res.extra["rescue"] and res.is_success(), res.solver_status
     assert "omitted point stays" in res.solver_status and res.min_distance >= -1e-6

@@ -35,6 +35,18 @@ def _replanner(model, **kw) -> Replanner:
     return Replanner(model, opts, max_obstacles=1, safety_distance=5.0)
 
 
+def _limping(model, drop: float = 100.0, **kw) -> tuple[Replanner, _Limping]:
+    """`_replanner` whose NLP solver is wrapped in `_Limping` (through the replanner's solver_wrapper)."""
+    made: list[_Limping] = []
+
+    def wrap(solver):
+        made.append(_Limping(solver, drop=drop))
+        return made[0]
+
+    opts = ReplanOptions(horizon=6, points=12, solver="sqp", **kw)
+    return Replanner(model, opts, max_obstacles=1, safety_distance=5.0, solver_wrapper=wrap), made[0]
+
+
 def _inside(model, scene: Scene, X: np.ndarray) -> float:
     """Largest depth (mm) of the body, 100 points per configuration, inside the ball's inflated sphere."""
     o = scene.obstacles[0]
@@ -90,8 +102,7 @@ def test_an_infeasible_capped_iterate_goes_on_from_there_while_calls_are_left(mo
     scene, ref = _problem(model)
     full = _replanner(model).solve(X0, ref, _replanner(model).obstacles_from_scene(scene, 0.0))
     # every point in the QP (closest_points = 0): each solver call is one call of `_Limping`
-    rp = _replanner(model, max_calls=3, rescue=False, closest_points=0)
-    rp.solver = limp = _Limping(rp.solver)
+    rp, limp = _limping(model, max_calls=3, rescue=False, closest_points=0)
     res = rp.solve(X0, ref, rp.obstacles_from_scene(scene, 0.0))
     assert len(limp.starts) == 2  # the stopped call, then one more that converged
     np.testing.assert_array_equal(limp.starts[1], limp.returned[0])  # from the stopped iterate, not from scratch
@@ -101,15 +112,13 @@ def test_an_infeasible_capped_iterate_goes_on_from_there_while_calls_are_left(mo
 
 def test_a_diverged_iterate_is_not_gone_on_from(model):
     scene, ref = _problem(model)
-    rp = _replanner(model, max_calls=5, rescue=True, closest_points=0)
-    rp.solver = limp = _Limping(rp.solver, drop=10.0 * DIVERGED)
+    rp, limp = _limping(model, max_calls=5, rescue=True, closest_points=0, drop=10.0 * DIVERGED)
     res = rp.solve(X0, ref, rp.obstacles_from_scene(scene, 0.0))
     # no second call from an iterate 10 m outside its constraints: the IPOPT rescue (no deadline) solves it
     assert len(limp.starts) == 1 and res.solver_status.startswith("Injected_Stop; rescue ipopt:")
     assert res.is_success() and _inside(model, scene, res.configs) < 0.05
     # one just inside the bound is gone on from
-    rp = _replanner(model, max_calls=5, rescue=True, closest_points=0)
-    rp.solver = limp = _Limping(rp.solver, drop=0.5 * DIVERGED)
+    rp, limp = _limping(model, max_calls=5, rescue=True, closest_points=0, drop=0.5 * DIVERGED)
     res = rp.solve(X0, ref, rp.obstacles_from_scene(scene, 0.0))
     assert len(limp.starts) == 2 and res.solver_status == "Solve_Succeeded"
 
@@ -117,8 +126,7 @@ def test_a_diverged_iterate_is_not_gone_on_from(model):
 @pytest.mark.parametrize("max_calls", [1, 5])
 def test_with_no_time_left_nothing_more_is_started(model, max_calls):
     scene, ref = _problem(model)
-    rp = _replanner(model, max_calls=max_calls, rescue=True, closest_points=0)
-    rp.solver = limp = _Limping(rp.solver)
+    rp, limp = _limping(model, max_calls=max_calls, rescue=True, closest_points=0)
     res = rp.solve(X0, ref, rp.obstacles_from_scene(scene, 0.0), time_left=0.0)
     # one call: no second call, no cold retry, no IPOPT rescue; the failure is reported as such
     assert len(limp.starts) == 1 and res.status is HorizonStatus.FAILED
@@ -127,8 +135,7 @@ def test_with_no_time_left_nothing_more_is_started(model, max_calls):
 
 def test_without_a_deadline_a_failed_solve_is_still_rescued(model):
     scene, ref = _problem(model)
-    rp = _replanner(model, max_iter=3, max_calls=1, rescue=True, closest_points=0)
-    rp.solver = _Limping(rp.solver)
+    rp, _ = _limping(model, max_iter=3, max_calls=1, rescue=True, closest_points=0)
     res = rp.solve(X0, ref, rp.obstacles_from_scene(scene, 0.0))
     # the rescue's IPOPT gets max_iter x max_calls iterations (3 here) and says what it did
     assert "Injected_Stop; rescue ipopt:" in res.solver_status
@@ -139,8 +146,7 @@ def test_without_a_deadline_a_feasible_capped_iterate_goes_on_to_convergence(mod
     O = _replanner(model).obstacles_from_scene(scene, 0.0)
     full = _replanner(model).solve(X0, ref, O)
     # one iteration per call: the first call stops inside the constraints (the test above) ...
-    rp = _replanner(model, max_iter=1, max_calls=80, rescue=False)
-    rp.solver = limp = _Limping(rp.solver)
+    rp, limp = _limping(model, max_iter=1, max_calls=80, rescue=False)
     limp.starts.append(None)  # `_Limping` leaves every call after its first alone
     res = rp.solve(X0, ref, O)
     # ... and without a deadline the calls go on to the uncapped solution
@@ -148,8 +154,7 @@ def test_without_a_deadline_a_feasible_capped_iterate_goes_on_to_convergence(mod
     assert res.extra["attempts"] == len(limp.returned) > 2  # calls of one solve (no cold retry, no rescue)
     np.testing.assert_allclose(res.configs, full.configs, atol=1e-5)
     # under a deadline, with time left, the first feasible iterate is the plan: one call
-    rp = _replanner(model, max_iter=1, max_calls=80, rescue=False)
-    rp.solver = limp = _Limping(rp.solver)
+    rp, limp = _limping(model, max_iter=1, max_calls=80, rescue=False)
     limp.starts.append(None)
     res = rp.solve(X0, ref, O, time_left=10.0)
     assert res.status is HorizonStatus.FEASIBLE and len(limp.returned) == 1

@@ -64,111 +64,32 @@ set-point (``q_command``) and passes it back each period.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import Any
 
 import casadi as ca
 import numpy as np
 
+from crtraj.control.tracking_design import TrackingDesign, control, lqr_design
+from crtraj.control.tracking_limits import ActuationLimits, accelerate, braking
+from crtraj.control.tracking_options import MODES, TrackingOptions
+from crtraj.control.tracking_servo import MAX_PERIODS, ServoModel
 from crtraj.core.errors import InputError
 from crtraj.core.fields import check_float
-from crtraj.core.lazy import lazy_module
-from crtraj.core.options import Options, option
 from crtraj.model.kinematics import Model
-from crtraj.model.robot import Robot
 from crtraj.planning.rate_limits import RateLimits
 
-# python-control (LQR design) is imported when a controller is first designed: `crtraj plan` never is
-control = lazy_module("control")
-
-MODES = ("configuration", "tip")
-
-# Designs kept per control period (a caller that varies dt should not grow memory).
-_MAX_DESIGNS = 8
-
-
-@dataclass(frozen=True)
-class TrackingOptions(Options):
-    """The ``[tracking]`` problem section.
-
-    dt: control period the gain is designed for (s). mode: "configuration"
-    (track x_ref) or "tip" (also correct the measured tip error, eq. 17).
-    servo_tau / servo_tau_z: first-order lag of the cable servos / base stage (s).
-    max_cable_rate / max_z_rate: actuator rate limits (mm/s).
-    bending_error_scale (rad) / z_error_scale (mm): Bryson scales of Q.
-    effort_weight: multiplies R (larger = gentler). damping: DLS lambda of the
-    tip mode (mm/rad, paper: 0.3).
-    """
-
-    SECTION: ClassVar[str] = "tracking"
-
-    dt: float = option(0.02, gt=0.0, le=1.0)
-    mode: str = option("configuration", choices=MODES)
-    servo_tau: float = option(0.05, gt=0.0, le=10.0)
-    servo_tau_z: float = option(0.1, gt=0.0, le=10.0)
-    max_cable_rate: float = option(10.0, gt=0.0)
-    max_z_rate: float = option(50.0, gt=0.0)
-    bending_error_scale: float = option(0.01, gt=0.0)
-    z_error_scale: float = option(0.5, gt=0.0)
-    effort_weight: float = option(1.0, gt=0.0)
-    damping: float = option(0.3, ge=0.0)
-
-
-@dataclass(frozen=True)
-class TrackingDesign:
-    """The LQR design for one control period dt (s).
-
-    State e = (x_ref - x, x_ref - x_cmd_prev) (2 nx), input v = set-point
-    increment (nx), ``e[k+1] = A e[k] - B v[k]``, ``v = K e``. phi: servo decay
-    per period per configuration coordinate (exp(-dt/tau)). S: Riccati solution.
-    """
-
-    dt: float
-    phi: np.ndarray
-    A: np.ndarray
-    B: np.ndarray
-    Q: np.ndarray
-    R: np.ndarray
-    K: np.ndarray
-    S: np.ndarray
-    eigenvalues: np.ndarray
-
-    @property
-    def lead(self) -> np.ndarray:
-        """phi / (1 - phi) per coordinate: periods a servo lags its set-point on a ramp."""
-        return self.phi / (1.0 - self.phi)
-
-    @property
-    def closed_loop(self) -> np.ndarray:
-        """A - B K, the error dynamics without saturation."""
-        return self.A - self.B @ self.K
-
-    def steps_to(self, error0: np.ndarray, tol: float) -> int:
-        """Periods after which |e| <= tol for good, from e0 (unsaturated, constant reference).
-
-        Uses |(A-BK)^k| <= cond(V) rho^k for A-BK = V D V^-1; if A-BK is not
-        diagonalisable, the first k with |(A-BK)^j| |e0| <= tol for the next 2 nx
-        periods too (then a numerical count, not a proof).
-        """
-        n0 = float(np.linalg.norm(error0))
-        if n0 <= tol:
-            return 0
-        Acl = self.closed_loop
-        lam, V = np.linalg.eig(Acl)
-        rho = float(np.max(np.abs(lam)))
-        kappa = float(np.linalg.cond(V))
-        if rho > 0.0 and math.isfinite(kappa) and kappa < 1e12:
-            return max(0, math.ceil(math.log(tol / (kappa * n0)) / math.log(rho)))
-        P = np.eye(len(Acl))
-        norms = []
-        for _ in range(100_000):
-            norms.append(np.linalg.norm(P, 2) * n0)
-            P = Acl @ P
-            m = 2 * self.K.shape[0]
-            if len(norms) > m and max(norms[-m - 1 :]) <= tol:
-                return len(norms) - m - 1
-        raise InputError(f"tracking: error does not reach {tol:g} within 100000 periods")
+# the names this module has always offered (`control`: the lazily imported python-control, used by the design)
+__all__ = [
+    "MODES",
+    "ServoModel",
+    "TrackingCommand",
+    "TrackingController",
+    "TrackingDesign",
+    "TrackingOptions",
+    "TrackingRun",
+    "control",
+]
 
 
 @dataclass(frozen=True)
@@ -217,49 +138,6 @@ class _Period:
     rate_room: np.ndarray
     vmax_room: np.ndarray
     amax_room: np.ndarray
-
-
-class ServoModel:
-    """Actuator simulation: a first-order lag per actuator, discretised exactly.
-
-    ``tau dq/dt = q_cmd - q`` with the command held over each period, so
-    ``q(t) = q_cmd + (q0 - q_cmd) exp(-t/tau)``. q is the actuators' actual
-    position (nq, mm); ``config(q)`` gives the robot's actual configuration.
-    """
-
-    def __init__(self, robot: Robot, tau_cable: float, tau_z: float) -> None:
-        check_float(tau_cable, "tau_cable", gt=0.0)
-        check_float(tau_z, "tau_z", gt=0.0)
-        self.robot = robot
-        self.tau = np.append(np.full(3 * robot.n_segments, float(tau_cable)), float(tau_z))
-        _, self._q0 = robot.cable_matrix()
-        self._Binv = robot.cable_inverse()
-        # decay per period dt (s): a control loop advances by the same few periods over and over
-        self._decays: dict[float, np.ndarray] = {}
-
-    def decay(self, dt: float) -> np.ndarray:
-        """exp(-dt/tau) per actuator: the share of the old position left after dt (s)."""
-        return np.exp(-dt / self.tau)
-
-    def advance(self, q: np.ndarray, q_command: np.ndarray, dt: float) -> np.ndarray:
-        """Actuator positions (mm) after holding `q_command` for dt (s)."""
-        d = self._decays.get(dt)
-        if d is None:
-            if len(self._decays) >= _MAX_DESIGNS:
-                self._decays.clear()
-            d = self.decay(dt)
-            d.setflags(write=False)
-            self._decays[dt] = d
-        return q_command + d * (np.asarray(q, dtype=float) - q_command)
-
-    def trajectory(self, q: np.ndarray, q_command: np.ndarray, times: np.ndarray) -> np.ndarray:
-        """Actuator positions (len(times), nq) at times (s) within one held command (dense checks)."""
-        t = np.asarray(times, dtype=float).reshape(-1, 1)
-        return q_command + np.exp(-t / self.tau) * (np.asarray(q, dtype=float) - q_command)
-
-    def config(self, q: np.ndarray) -> np.ndarray:
-        """Configuration(s) x from actuator positions q (mm)."""
-        return (np.asarray(q, dtype=float) - self._q0) @ self._Binv.T
 
 
 @dataclass(frozen=True)
@@ -335,20 +213,13 @@ class TrackingController:
         self._tau_x = np.append(np.full(2 * n, o.servo_tau), o.servo_tau_z)
         self._rates = np.append(np.full(3 * n, o.max_cable_rate), o.max_z_rate)  # mm/s per actuator
         # Actuation limits on a set-point x: linear |A_cab x| <= stroke, z box, |C_k u| <= theta_max.
-        A_cab = self._J_q[: 3 * n]
-        strokes = np.repeat([r.cable_stroke(k) for k in range(n)], 3)
-        self._G = np.vstack([A_cab, -A_cab])
-        self._h = np.concatenate([strokes, strokes])
-        C = r.coupling_matrix()
-        self._C = [np.hstack([C[2 * k : 2 * k + 2], np.zeros((2, 1))]) for k in range(n)]
-        self._tmax2 = np.array([s.theta_max**2 for s in r.segments])
+        self.limits = ActuationLimits(r, self._J_q)
         if rate_limits is not None and rate_limits.jacobian.shape[1] != self.nx:
             raise InputError(
                 f"rate_limits: written for {rate_limits.jacobian.shape[1]} configuration coordinates, "
                 f"robot {r.name!r} has {self.nx}"
             )
         self._tip_mode = self.options.mode == "tip"
-        self._z_range = r.z_range
         self._designs: dict[float, TrackingDesign] = {}
         self._periods: dict[float, _Period] = {}  # per design: the constants `step` uses
         self.design()  # fail early on a bad design
@@ -362,10 +233,10 @@ class TrackingController:
         dt = self.options.dt if dt is None else check_float(dt, "dt", gt=0.0)
         d = self._designs.get(dt)
         if d is None:
-            if len(self._designs) >= _MAX_DESIGNS:
+            if len(self._designs) >= MAX_PERIODS:
                 self._designs.clear()
                 self._periods.clear()
-            d = self._design(dt)
+            d = lqr_design(self.options, self.robot, self._tau_x, dt)
             self._designs[dt] = d
             self._periods[dt] = self._period_constants(d)
         return d
@@ -384,25 +255,6 @@ class TrackingController:
         if p is None:
             p = self._periods[self.design(dt).dt]
         return p
-
-    def _design(self, dt: float) -> TrackingDesign:
-        o, nx = self.options, self.nx
-        M = np.diag(1.0 / self._tau_x)
-        servo = control.c2d(control.ss(-M, M, np.eye(nx), np.zeros((nx, nx))), dt, method="zoh")
-        Phi, Gam = np.asarray(servo.A), np.asarray(servo.B)
-        A = np.block([[Phi, Gam], [np.zeros((nx, nx)), np.eye(nx)]])
-        B = np.vstack([Gam, np.eye(nx)])
-        n = self.robot.n_segments
-        err_scale = np.append(np.full(2 * n, o.bending_error_scale), o.z_error_scale)
-        step_scale = np.append(np.full(2 * n, o.max_cable_rate * dt / self.robot.cable_radius), o.max_z_rate * dt)
-        Q = np.diag(np.concatenate([1.0 / err_scale**2, np.zeros(nx)]))
-        R = o.effort_weight * np.diag(1.0 / step_scale**2)
-        sys_d = control.ss(A, B, np.eye(2 * nx), np.zeros((2 * nx, nx)), dt)
-        K, S, E = control.dlqr(sys_d, Q, R)
-        K, S, E = np.asarray(K), np.asarray(S), np.asarray(E)
-        if not np.all(np.abs(E) < 1.0):
-            raise InputError(f"tracking: LQR design for dt={dt:g} s is not stable (|eig| max {np.max(np.abs(E)):.6g})")
-        return TrackingDesign(dt, np.diag(Phi).copy(), A, B, Q, R, K, S, E)
 
     @property
     def gain(self) -> np.ndarray:
@@ -440,11 +292,11 @@ class TrackingController:
             "vmax_room": p.vmax_room,
             "amax_room": p.amax_room,
             "amax": np.zeros(0) if rl is None else rl.amax,
-            "G": self._G,
-            "h": self._h,
-            "C": np.array(self._C, dtype=float),
-            "tmax2": self._tmax2,
-            "z_range": np.array(self._z_range, dtype=float),
+            "G": self.limits.G,
+            "h": self.limits.h,
+            "C": np.array(self.limits.C, dtype=float),
+            "tmax2": self.limits.tmax2,
+            "z_range": np.array(self.limits.z_range, dtype=float),
         }
 
     # --------------------------------------------------------------- control
@@ -498,6 +350,19 @@ class TrackingController:
         v = p.Kx @ e + p.Kc @ ec
         if ff is not None:
             v = v + ff
+        v, rate_scale, accel_scale = self._rate_limited(p, v, ec, ff, previous_increment)
+        v, limit_scale = self.limits.shrink(xc, v)
+        q = qc + self._J_q @ v
+        return TrackingCommand(q, xc + v, e, v, rate_scale, limit_scale, accel_scale)
+
+    def _rate_limited(
+        self, p: _Period, v: np.ndarray, ec: np.ndarray, ff: np.ndarray | None, v_prev: np.ndarray | None
+    ) -> tuple[np.ndarray, float, float]:
+        """The increment v (nx) scaled to the rate limits (direction kept) and, with the actuators' limits, to
+        their speed, braking distance and acceleration (`braking`, `accelerate`): (v, rate_scale, accel_scale).
+        ec: the set-point's error; ff: the reference's motion this period (None: none); v_prev: the previous
+        increment (None: 0)."""
+        nx = self.nx
         dq = self._J_q @ v
         over = np.abs(dq) / p.rate_room
         rl = self.rate_limits
@@ -508,27 +373,10 @@ class TrackingController:
         v = v * rate_scale
         accel_scale = 1.0
         if rl is not None:
-            v = _braking(rl, v, ec, np.zeros(nx) if ff is None else ff, d.dt, p.amax_room)
-            v, accel_scale = self._accelerate(rl, v, previous_increment, p.amax_room)
-        v, limit_scale = self._limit(xc, v)
-        q = qc + self._J_q @ v
-        return TrackingCommand(q, xc + v, e, v, rate_scale, limit_scale, accel_scale)
-
-    def _accelerate(
-        self, rl: RateLimits, v: np.ndarray, v_prev: np.ndarray | None, room: np.ndarray
-    ) -> tuple[np.ndarray, float]:
-        """Move from the previous increment toward v only as far as the acceleration limits allow.
-
-        room: amax h^2 per actuator (period h, s). Returns (increment, share of v - v_prev used).
-        |J (v_out - v_prev)| <= amax h^2 per actuator.
-        """
-        vp = np.zeros(self.nx) if v_prev is None else _vec(v_prev, self.nx, "previous_increment")
-        change = np.abs(rl.jacobian @ (v - vp))
-        worst = float((change / room).max())
-        if worst <= 1.0:
-            return v, 1.0
-        s = 1.0 / worst
-        return vp + s * (v - vp), s
+            v = braking(rl, v, ec, np.zeros(nx) if ff is None else ff, p.design.dt, p.amax_room)
+            vp = np.zeros(nx) if v_prev is None else _vec(v_prev, nx, "previous_increment")
+            v, accel_scale = accelerate(rl, v, vp, p.amax_room)
+        return v, rate_scale, accel_scale
 
     def _tip_error_config(
         self, xm: np.ndarray, xr: np.ndarray, tip_measured: np.ndarray | None, tip_reference: np.ndarray | None
@@ -543,51 +391,6 @@ class TrackingController:
         # e = J+ e_p + (I - J+ J) delta with J+ = J^T (J J^T + lam^2 I)^-1
         w = np.linalg.solve(J @ J.T + lam2 * np.eye(3), (pr - pm) - J @ delta)
         return delta + J.T @ w
-
-    def _limit(self, xc: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, float]:
-        """Shrink the increment so the set-point stays within (or gets no further outside) the limits.
-
-        z is clipped on its own (independent stage); the bending part is scaled
-        by one factor so its direction is kept. The feasible set is convex, so
-        a line search along v is exact.
-        """
-        v = v.copy()
-        lo, hi = self._z_range
-        # Python floats: the same IEEE arithmetic as numpy scalars, without their overhead
-        z0 = float(xc[-1])
-        z1 = z0 + float(v[-1])
-        z_new = min(max(z1, min(lo, z0)), max(hi, z0))
-        scale_z = 1.0
-        if z_new != z1:
-            scale_z = (z_new - z0) / v[-1] if v[-1] != 0.0 else 1.0
-            v[-1] = z_new - z0
-        vb = v.copy()
-        vb[-1] = 0.0
-        alpha = 1.0
-        g0 = self._G @ xc - self._h
-        gv = self._G @ vb
-        grow = gv > 0.0
-        if np.count_nonzero(grow):  # the fastest "any" on a handful of flags
-            # rows already violated (g0 > 0) may not grow at all
-            g0g = g0[grow]
-            room = np.where(g0g <= 0.0, -g0g, 0.0)
-            alpha = min(alpha, float((room / gv[grow]).min()))
-        for Ck, t2 in zip(self._C, self._tmax2, strict=True):
-            a_ = Ck @ vb
-            b_ = Ck @ xc
-            a = float(a_ @ a_)
-            if a == 0.0:
-                continue
-            b = float(a_ @ b_)
-            c = float(b_ @ b_) - t2
-            # inside: up to the root of |C_k (x + alpha v)|^2 = theta_max^2;
-            # outside: only moves that do not increase |C_k u| (a alpha^2 + 2 b alpha <= 0)
-            reach = (-b + math.sqrt(b * b - a * c)) / a if c <= 0.0 else max(0.0, -2.0 * b / a)
-            alpha = min(alpha, reach)
-        alpha = max(alpha, 0.0)
-        if alpha < 1.0:
-            v[:-1] *= alpha
-        return v, min(alpha, scale_z)
 
     # ----------------------------------------------------------- reporting
     def tip_error(
@@ -620,15 +423,7 @@ class TrackingController:
         model error). feedforward: pass the reference's finite-difference rate.
         """
         dt = self.options.dt
-        ref = np.asarray(reference, dtype=float)
-        if ref.ndim == 2 and steps is not None and steps != len(ref):
-            raise InputError(f"steps: {steps} does not match the {len(ref)} reference configurations")
-        if ref.ndim == 1:
-            if steps is None or steps < 1:
-                raise InputError("steps: must be >= 1 when reference is a single configuration")
-            ref = np.broadcast_to(_vec(ref, self.nx, "reference"), (steps, self.nx))
-        elif ref.ndim != 2 or ref.shape[1] != self.nx or len(ref) < 1 or not np.all(np.isfinite(ref)):
-            raise InputError(f"reference: expected finite shape (N, {self.nx}), got {ref.shape}")
+        ref = self._reference(reference, steps)
         servo = self.servo if servo is None else servo
         plant = self.model if plant is None else plant
         N = len(ref)
@@ -644,10 +439,7 @@ class TrackingController:
         inc = np.zeros(self.nx)
         Q[0] = q
         tip_mode = self.options.mode == "tip"
-        rate = None
-        if feedforward:
-            rate = np.zeros_like(ref)
-            rate[:-1] = np.diff(ref, axis=0) / dt
+        rate = _finite_difference_rate(ref, dt) if feedforward else None
         for k in range(N):
             x = servo.config(q)
             X[k] = x
@@ -668,33 +460,40 @@ class TrackingController:
             q = servo.advance(q, qc, dt)
             Q[k + 1] = q
         X[N] = servo.config(q)
+        return self._run(plant, ref, tip_ref, X, (Q, Qc, rl, lim))
+
+    def _run(
+        self, plant: Model, ref: np.ndarray, tip_ref: np.ndarray, X: np.ndarray, record: tuple[np.ndarray, ...]
+    ) -> TrackingRun:
+        """The `TrackingRun` of a simulation: actual configurations X (N+1, nx) of `plant`, the reference (N, nx)
+        and its tips (N, 3) mm, and (q, q_command, rate_limited, limited) as recorded."""
+        Q, Qc, rl, lim = record
+        dt, N = self.options.dt, len(ref)
         tips = plant.tip_position(X)
         tref = np.vstack([tip_ref, tip_ref[-1:]])
         err = np.linalg.norm(tips - tref, axis=1)
         t = dt * np.arange(N + 1)
         return TrackingRun(t, X, Q, Qc, np.array(ref), tips, tref, err, rl, lim, self.options)
 
+    def _reference(self, reference: np.ndarray, steps: int | None) -> np.ndarray:
+        """`simulate`'s reference as (N, nx): (N, nx) as given, or (nx,) held for `steps` periods."""
+        ref = np.asarray(reference, dtype=float)
+        if ref.ndim == 2 and steps is not None and steps != len(ref):
+            raise InputError(f"steps: {steps} does not match the {len(ref)} reference configurations")
+        if ref.ndim == 1:
+            if steps is None or steps < 1:
+                raise InputError("steps: must be >= 1 when reference is a single configuration")
+            ref = np.broadcast_to(_vec(ref, self.nx, "reference"), (steps, self.nx))
+        elif ref.ndim != 2 or ref.shape[1] != self.nx or len(ref) < 1 or not np.all(np.isfinite(ref)):
+            raise InputError(f"reference: expected finite shape (N, {self.nx}), got {ref.shape}")
+        return ref
 
-def _braking(
-    rl: RateLimits, v: np.ndarray, remaining: np.ndarray, ff: np.ndarray, h: float, room: np.ndarray
-) -> np.ndarray:
-    """v scaled (direction kept) so no actuator closes on its target faster than it can still stop there.
 
-    remaining: the set-point's configuration distance to its target; ff: the target's own motion over the
-    period (feed-forward); room: amax h^2 per actuator (period h, s). An actuator |r| from its target may
-    close on it at most sqrt(2 amax |r|) faster than the target moves (the braking curve); without this
-    cap the LQR law, designed without acceleration limits, overshoots against them and rings
-    (integrator-like windup).
-    """
-    step = rl.jacobian @ v
-    r = rl.jacobian @ remaining
-    toward = step * r > 0.0
-    if not np.count_nonzero(toward):  # the fastest "any" on a handful of flags
-        return v
-    # every actuator's ratio elementwise, then one selection (the same numbers as selecting first)
-    cap = np.abs(rl.jacobian @ ff) + np.sqrt(2.0 * rl.amax * np.abs(r)) * h + room
-    worst = float((np.abs(step) / cap)[toward].max())
-    return v / worst if worst > 1.0 else v
+def _finite_difference_rate(ref: np.ndarray, dt: float) -> np.ndarray:
+    """The reference's rate (N, nx) per s by forward differences over period dt (s), 0 in the last period."""
+    rate = np.zeros_like(ref)
+    rate[:-1] = np.diff(ref, axis=0) / dt
+    return rate
 
 
 def _vec(a: Any, n: int, name: str) -> np.ndarray:
