@@ -5,17 +5,18 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import casadi as ca
 import numpy as np
 
 from crtraj.core.errors import InputError
 from crtraj.model.calibration.frames import align, rotation_vector
-from crtraj.model.calibration.identify import _weighted, identifiable, scaled_singular_values
+from crtraj.model.calibration.identify import _weighted, at_fit, identifiable, scaled_singular_values
 from crtraj.model.calibration.layout import CalibrateOptions, Hardware, Layout
 from crtraj.model.calibration.model import CalibrationModel
 from crtraj.model.calibration.sites import GROUPS, MIN_SAMPLES, PLAUSIBLE_SCALE, check_sites
-from crtraj.model.calibration.stats import CalibrationResult, MarkerStats, Observations, marker_stats
+from crtraj.model.calibration.stats import CalibrationResult, Held, MarkerStats, Observations, marker_stats
 from crtraj.model.robot import Robot
 
 
@@ -44,7 +45,32 @@ def _stats(
     return {"fit": marker_stats(e[~obs.heldout], names), "heldout": marker_stats(e[obs.heldout], names)}, e
 
 
-# long: one pipeline (initial frame, identifiability, NLP, covariance, statistics), each step a few lines
+def _check_request(robot: Robot, obs: Observations, groups: Sequence[str], layout: Layout) -> np.ndarray:
+    """(n,) the parameters asked for; `InputError` for an unknown group, a bad site or too few samples."""
+    for g in groups:
+        if g not in GROUPS:
+            raise InputError(f"--fit: unknown parameter group {g!r} (known: {', '.join(GROUPS)})")
+    check_sites(obs.sites, robot)
+    seen = np.isfinite(obs.positions).all(axis=2)
+    n_fit = int(np.sum(seen[~obs.heldout].any(axis=1)))
+    free = np.zeros(layout.n, dtype=bool)
+    for g in groups:
+        free[layout.index(g)] = True
+    need = max(MIN_SAMPLES, int(free.sum()))
+    if n_fit < need:
+        raise InputError(f"samples: {n_fit} usable fit samples, need at least {need} (record more motion)")
+    return free
+
+
+def _at_bound(layout: Layout, theta: np.ndarray, free: np.ndarray) -> tuple[str, ...]:
+    span = layout.upper - layout.lower
+    return tuple(
+        layout.names[i]
+        for i in np.flatnonzero(free)
+        if min(theta[i] - layout.lower[i], layout.upper[i] - theta[i]) < 1e-6 * span[i]
+    )
+
+
 def fit(
     robot: Robot,
     hw: Hardware,
@@ -54,79 +80,92 @@ def fit(
     options: CalibrateOptions | None = None,
     capture: np.ndarray | None = None,
 ) -> CalibrationResult:
-    """Fit the parameter groups `groups` to the observations; see the module docstring.
+    """Fit the parameter groups `groups` to the observations; see the package docstring.
 
     zero_offsets: (nq,) the actuators' current zero offsets (prior). capture: (6,) prior capture frame
     (rotation vector rad, translation mm, capture -> robot); None: the best rigid alignment of the
     markers with the prior model (required when the capture frame is not fitted and unknown).
     """
     o = options or CalibrateOptions()
-    for g in groups:
-        if g not in GROUPS:
-            raise InputError(f"--fit: unknown parameter group {g!r} (known: {', '.join(GROUPS)})")
-    check_sites(obs.sites, robot)
     fit_rows = ~obs.heldout
     layout0 = Layout.build(robot, zero_offsets, np.zeros(6), o)
-    cm0 = CalibrationModel(robot, hw, obs.sites, layout0)
-    seen = np.isfinite(obs.positions).all(axis=2)
-    n_fit = int(np.sum(seen[fit_rows].any(axis=1)))
-    free = np.zeros(layout0.n, dtype=bool)
-    for g in groups:
-        free[layout0.index(g)] = True
-    need = max(MIN_SAMPLES, int(free.sum()))
-    if n_fit < need:
-        raise InputError(f"samples: {n_fit} usable fit samples, need at least {need} (record more motion)")
+    requested = _check_request(robot, obs, groups, layout0)
+    cm = CalibrationModel(robot, hw, obs.sites, layout0)  # its functions take theta: only the prior changes
     if capture is None:
-        capture = initial_capture(cm0, layout0.prior, obs, np.flatnonzero(fit_rows))
+        capture = initial_capture(cm, layout0.prior, obs, np.flatnonzero(fit_rows))
     layout = Layout.build(robot, zero_offsets, np.asarray(capture, dtype=float), o)
-    cm = cm0  # its functions take theta as an argument: only the prior changed
     prior = layout.prior
-    before, _ = _stats(cm, prior, obs)
     if "capture_frame" not in groups:
         initial_capture(cm, prior, obs, np.flatnonzero(fit_rows))  # the unit check still applies
     # identifiability at the prior (the Jacobian depends on the motion, not on the noise)
     Vf, Pf = obs.values[fit_rows], obs.positions[fit_rows]
     e0 = cm.residuals(prior, Vf, Pf)
     Jw0, _, _ = _weighted(cm.jacobians(prior, Vf, Pf), e0, o.loss_scale)
-    free, held = identifiable(Jw0, layout, free, o.identifiability_tol)
+    free, held = identifiable(Jw0, layout, requested, o.identifiability_tol)
     if not free.any():
         names = ", ".join(h.name for h in held)
         raise InputError(f"--fit: this data determines none of the parameters asked for ({names})")
     theta, status, success, iters, t_solve = _solve(cm, layout, free, Vf, Pf, o)
+    return _analyse(cm, obs, _Solved(layout, free, held, theta, status, success, iters, t_solve), Jw0, requested, o)
+
+
+@dataclass(frozen=True)
+class _Solved:
+    """What the solve returns to the analysis: the layout, the fitted mask, the parameters held at the
+    prior, the solution and IPOPT's verdict (status, success, iterations, solve time s)."""
+
+    layout: Layout
+    free: np.ndarray
+    held: tuple[Held, ...]
+    theta: np.ndarray
+    status: str
+    success: bool
+    iterations: int
+    solve_time: float
+
+
+def _analyse(
+    cm: CalibrationModel, obs: Observations, s: _Solved, Jw0: np.ndarray, requested: np.ndarray, o: CalibrateOptions
+) -> CalibrationResult:
+    """Identifiability at the fit, the covariance (standard errors; withheld for the parameters confounded
+    at the fit) and the residual statistics."""
+    layout, free, theta = s.layout, s.free, s.theta
+    fit_rows = ~obs.heldout
+    Vf, Pf = obs.values[fit_rows], obs.positions[fit_rows]
     e = cm.residuals(theta, Vf, Pf)
     Jw, ew, _ = _weighted(cm.jacobians(theta, Vf, Pf), e, o.loss_scale)
+    ident = at_fit(Jw0, Jw, layout, requested, s.held, o.identifiability_tol)
+    kept = ident.kept_fit  # a parameter held at the prior but kept at the fit inflates its partners' errors
     Jf = Jw[:, free]
     dof = max(Jw.shape[0] - int(free.sum()), 1)
     sigma2 = float(ew @ ew) / dof
     se = np.full(layout.n, math.nan)
-    cov = sigma2 * np.linalg.pinv(Jf.T @ Jf)
-    se[free] = np.sqrt(np.maximum(np.diag(cov), 0.0))
-    sv = scaled_singular_values(Jf)
+    Jk = Jw[:, kept]
+    cov = sigma2 * np.linalg.pinv(Jk.T @ Jk)
+    se[kept] = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    se[~free] = math.nan
+    for name in ident.withheld:
+        se[layout.names.index(name)] = math.nan
     after, e_all = _stats(cm, theta, obs)
-    span = layout.upper - layout.lower
-    at_bound = tuple(
-        layout.names[i]
-        for i in np.flatnonzero(free)
-        if min(theta[i] - layout.lower[i], layout.upper[i] - theta[i]) < 1e-6 * span[i]
-    )
     return CalibrationResult(
         layout=layout,
         theta=theta,
-        prior=prior,
+        prior=layout.prior,
         free=free,
         std_error=se,
-        singular_values=sv,
-        held=held,
-        before=before,
+        singular_values=scaled_singular_values(Jf),
+        held=s.held,
+        before=_stats(cm, layout.prior, obs)[0],
         after=after,
-        success=success,
-        status=status,
-        iterations=iters,
-        solve_time=t_solve,
+        success=s.success,
+        status=s.status,
+        iterations=s.iterations,
+        solve_time=s.solve_time,
         sigma=math.sqrt(sigma2),
         residuals=e_all,
         heldout_mask=obs.heldout.copy(),
-        at_bound=at_bound,
+        at_bound=_at_bound(layout, theta, free),
+        identifiability=ident,
     )
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -64,3 +65,68 @@ def _weighted(J: np.ndarray, e: np.ndarray, delta: float) -> tuple[np.ndarray, n
     Jw = (J * sw[..., None])[ok].reshape(-1, J.shape[-1])
     ew = (np.nan_to_num(e) * sw)[ok].reshape(-1)
     return Jw, ew, w[ok]
+
+
+@dataclass(frozen=True)
+class Identifiability:
+    """What the data determines, judged at the prior and again at the fitted parameters.
+
+    held_prior: the parameters asked for that were held at their prior (judged at the prior). held_fit: the
+    same test at the fitted parameters. A Jacobian column can be zero at the prior only (a segment commanded
+    straight makes the coupling look inert while, at the truth, its zero offsets bend it), so a parameter is
+    confounded at the fit when `held_fit` holds it and `held_prior` did not, or named it as having no effect.
+    kept_fit: (n,) the parameters the fit's covariance is taken over. withheld: fitted parameters whose
+    standard error is withheld (confounded at the fit). sv_prior, sv_fit: singular values (descending) of
+    the column-scaled weighted Jacobian of the parameters asked for, at the prior and at the fit.
+    """
+
+    held_prior: tuple[Held, ...]
+    held_fit: tuple[Held, ...]
+    kept_fit: np.ndarray
+    withheld: tuple[str, ...]
+    sv_prior: np.ndarray
+    sv_fit: np.ndarray
+
+    def confounded_at_fit(self) -> tuple[Held, ...]:
+        """The parameters confounded at the fit that the prior did not show as confounded."""
+        before = {h.name: h for h in self.held_prior}
+        return tuple(
+            h
+            for h in self.held_fit
+            if h.name not in before or (h.confounded_with and not before[h.name].confounded_with)
+        )
+
+    def effect_at_fit(self, name: str) -> tuple[str, ...]:
+        """For a parameter without effect at the prior: what it is confounded with at the fit (() if nothing)."""
+        out: list[str] = []
+        for h in self.confounded_at_fit():
+            if h.name == name:
+                out += h.confounded_with
+            elif name in h.confounded_with:
+                out += [h.name, *(c for c in h.confounded_with if c != name)]
+        return tuple(dict.fromkeys(out))
+
+
+def at_fit(
+    Jw_prior: np.ndarray,
+    Jw_fit: np.ndarray,
+    layout: Layout,
+    requested: np.ndarray,
+    held_prior: tuple[Held, ...],
+    tol: float,
+) -> Identifiability:
+    """Identifiability at the fit (see `Identifiability`): Jw_prior, Jw_fit are the weighted Jacobians
+    (rows x n) at the prior and at the fitted parameters; requested: (n,) the parameters asked for."""
+    kept, held_fit = identifiable(Jw_fit, layout, requested, tol)
+    ident = Identifiability(held_prior, held_fit, kept, (), np.zeros(0), np.zeros(0))
+    withheld: list[str] = []
+    for h in ident.confounded_at_fit():
+        withheld += [h.name, *h.confounded_with]
+    return Identifiability(
+        held_prior,
+        held_fit,
+        kept,
+        tuple(dict.fromkeys(withheld)),
+        scaled_singular_values(Jw_prior[:, requested]),
+        scaled_singular_values(Jw_fit[:, requested]),
+    )

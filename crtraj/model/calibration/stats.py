@@ -5,11 +5,15 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from crtraj.model.calibration.layout import Layout
 from crtraj.model.calibration.sites import MarkerSite
+
+if TYPE_CHECKING:
+    from crtraj.model.calibration.identify import Identifiability
 
 
 @dataclass(frozen=True)
@@ -78,7 +82,8 @@ class CalibrationResult:
     were asked for but cannot be determined. before/after: per-marker residual statistics, split into
     'fit' and 'heldout'. before is the uncalibrated model (prior parameters with the best rigid capture
     frame). success, status, iterations, solve_time: IPOPT's verdict, its status text, iterations and
-    time (s). residuals: after-fit residuals (N, M, 3); heldout_mask: (N,) True for held-out samples."""
+    time (s). residuals: after-fit residuals (N, M, 3); heldout_mask: (N,) True for held-out samples.
+    identifiability: the analysis at the prior and at the fit (`crtraj.model.calibration.identify`)."""
 
     layout: Layout
     theta: np.ndarray
@@ -97,6 +102,7 @@ class CalibrationResult:
     residuals: np.ndarray = field(repr=False)
     heldout_mask: np.ndarray = field(repr=False)
     at_bound: tuple[str, ...] = ()
+    identifiability: Identifiability | None = field(default=None, repr=False)
 
     def value(self, name: str) -> float:
         return float(self.theta[self.layout.names.index(name)])

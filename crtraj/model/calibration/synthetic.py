@@ -100,3 +100,30 @@ def synthetic_truth(robot: Robot, zero_offsets: np.ndarray, seed: int = 0) -> Sy
     shift = rng.normal(size=3)
     cap = np.concatenate([math.radians(10) * axis / np.linalg.norm(axis), 50.0 * shift / np.linalg.norm(shift)])
     return SyntheticTruth(true_robot, zo, cap)
+
+
+def synthetic_motion(robot: Robot, hw: Hardware, t: np.ndarray, seed: int) -> np.ndarray:
+    """Actuator values (len(t), nq) of a smooth motion at times t (s): each bending vector component and the
+    base a sum of three sinusoids (0.03 to 0.2 Hz, random phases), within 60 % of each segment's theta_max
+    and the middle of the stroke. A record of it is a time series, as `crtraj record` writes one."""
+    rng = np.random.default_rng(seed)
+    ns = robot.n_segments
+    x = np.zeros((t.size, robot.nx))
+
+    def wave() -> np.ndarray:
+        f = rng.uniform(0.03, 0.2, 3)
+        ph = rng.uniform(0, 2 * math.pi, 3)
+        return np.sum(np.sin(2 * math.pi * f[:, None] * t[None, :] + ph[:, None]), axis=0) / 3
+
+    for k, seg in enumerate(robot.segments):
+        amp = 0.6 * seg.theta_max / max(1.0, 1.0 + abs(robot.coupling) * (ns - 1 - k)) / math.sqrt(2)
+        x[:, 2 * k] = amp * wave()
+        x[:, 2 * k + 1] = amp * wave()
+    lo, hi = robot.z_range
+    x[:, -1] = (lo + hi) / 2 + (hi - lo) / 4 * wave()
+    A, _ = robot.cable_matrix()
+    dq = x @ A.T
+    values = np.empty_like(dq)
+    values[:, :-1] = hw.sign[:-1] * dq[:, :-1] / hw.spool_radius
+    values[:, -1] = hw.sign[-1] * dq[:, -1]
+    return values
