@@ -192,3 +192,14 @@ def judge(g: GateInput, o: GateOptions, cause: str = "") -> GateVerdict:
     checks.append(GateCheck("solver", conv, f"IPOPT {res.status} after {res.iterations} iterations"))
     verdict = GateVerdict(tuple(checks), float(noise), source, rms, rms_in, out_all, frac, off, cause)
     return verdict
+
+
+def usual_cause(check: str) -> str:
+    """The usual cause of a failed check other than the residual and time checks (one phrase)."""
+    return {
+        "outliers": "markers misidentified or swapped in part of the capture, or occlusion glitches; clean the "
+        "marker file",
+        "bounds": "the data disagree with the robot file beyond the prior range (units, an actuator's sign, the "
+        "marker sites); declare it with --allow-at-bound NAME if the range is meant",
+        "solver": "the solver stopped before converging; record more varied motion or start from a closer robot file",
+    }.get(check, "")
