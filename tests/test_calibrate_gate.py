@@ -143,6 +143,10 @@ def test_correct_data_passes_with_honest_figures(files, tmp_path, capsys):
     assert report["success"] and report["gate"]["passed"]
     assert report["gate"]["heldout_rms_inliers_mm"] == pytest.approx(rec.heldout_rms_inliers_mm)
     assert abs(report["gate"]["time_offset_s"]) < 0.1
+    held = report["residuals_after"]["heldout"].values()
+    assert rec.heldout_outliers == sum(v["outliers"] for v in held)  # the held-out samples' count, not all
+    n = sum(v["count"] for v in held)
+    assert rec.heldout_rms_mm == pytest.approx(math.sqrt(sum(v["rms_mm"] ** 2 * v["count"] for v in held) / n))
 
 
 def test_a_failed_fit_replaces_no_good_file(files, setup, tmp_path, capsys):

@@ -53,7 +53,7 @@ def calibrated_text(original: str, res: CalibrationResult, verdict: GateVerdict,
         "held": [h.name for h in res.held],
         "capture_rotation": [float(x) for x in cap[:3]],
         "capture_translation": [float(x) for x in cap[3:]],
-        "heldout_outliers": int(verdict.outliers),
+        "heldout_outliers": int(verdict.heldout_outliers),
     }
     for key, v in (
         ("heldout_rms_mm", verdict.heldout_rms),

@@ -60,14 +60,16 @@ class GateCheck:
 class GateVerdict:
     """The gate's verdict: the checks, the noise the residuals were judged against (mm per axis, and where
     it came from), the held-out RMS with and without outliers (mm), the outlier count and fraction, the
-    detected time offset (None: not measurable) and the likely cause of a failure ("" when it passed)."""
+    detected time offset (None: not measurable) and the likely cause of a failure ("" when it passed).
+    heldout_*: of the held-out samples (of the fit samples when none is held out); outlier_fraction: of every
+    marker observation."""
 
     checks: tuple[GateCheck, ...]
     noise: float
     noise_source: str
     heldout_rms: float
     heldout_rms_inliers: float
-    outliers: int
+    heldout_outliers: int
     outlier_fraction: float
     time_offset: TimeOffset | None
     cause: str = ""
@@ -96,7 +98,7 @@ class GateVerdict:
             "noise_source": self.noise_source,
             "heldout_rms_mm": self.heldout_rms,
             "heldout_rms_inliers_mm": self.heldout_rms_inliers,
-            "outliers": self.outliers,
+            "heldout_outliers": self.heldout_outliers,
             "outlier_fraction": self.outlier_fraction,
             "time_offset_s": None if off is None else off.lag,
             "cause": self.cause,
@@ -153,12 +155,11 @@ class GateInput:
     noise_estimate: float | None
 
 
-# long: five checks in the documented order, each a few lines; splitting them scatters the verdict
 def judge(g: GateInput, o: GateOptions, cause: str = "") -> GateVerdict:
     """The gate's verdict on a fit (see the module docstring). cause: the likely cause to name on failure."""
     res = g.result
     part = "heldout" if any(s.count for s in res.after["heldout"].values()) else "fit"
-    rms, rms_in, _, _ = _overall(res.after[part])
+    rms, rms_in, out_part, _ = _overall(res.after[part])
     _, _, out_all, n_all = _overall({f"{p}{k}": s for p in ("fit", "heldout") for k, s in res.after[p].items()})
     frac = out_all / n_all if n_all else 0.0
     noise, source = (o.noise, "--noise") if o.noise is not None else (g.noise_estimate, "data")
@@ -190,7 +191,7 @@ def judge(g: GateInput, o: GateOptions, cause: str = "") -> GateVerdict:
     acceptable = res.status == "Solved_To_Acceptable_Level" and all(c.ok for c in checks)
     conv = res.status == "Solve_Succeeded" or acceptable
     checks.append(GateCheck("solver", conv, f"IPOPT {res.status} after {res.iterations} iterations"))
-    verdict = GateVerdict(tuple(checks), float(noise), source, rms, rms_in, out_all, frac, off, cause)
+    verdict = GateVerdict(tuple(checks), float(noise), source, rms, rms_in, out_part, frac, off, cause)
     return verdict
 
 
