@@ -91,13 +91,13 @@ def gate(dataset: Dataset, robot: Robot, res: CalibrationResult, options: GateOp
     """The sanity gate on a fit of `dataset` (`crtraj.model.calibration.gate`), with the likely cause of a
     failure: a time offset, swapped marker names or a reversed actuator when one explains the residuals."""
     o = options or GateOptions()
-    off = detect_time_offset(dataset.t, dataset.values, dataset.positions)
+    cm = _model(robot, dataset, res)
+    off = detect_time_offset(cm, res.prior, dataset.t, dataset.values, dataset.positions)
     verdict = judge(GateInput(res, dataset.t, off, estimate_noise(dataset.t, res.residuals)), o)
     failed = verdict.failed()
     if failed is None:
         return verdict
     if failed.name in ("time_offset", "residual"):
-        cm = _model(robot, dataset, res)
         cause = likely_cause(cm, res.prior, dataset.values, dataset.positions, off, o.time_tolerance)
     else:
         cause = usual_cause(failed.name)

@@ -119,8 +119,10 @@ def record_dataset(
         raise InputError(f"{where}: actuators {list(series.names)} are not robot {robot.name!r}'s {list(act.names)}")
     frames = read_markers(markers, sites)
     t, values, positions, dropped = join(series, frames, time_offset)
-    _check_units(robot, act, sites, values, positions)
-    _check_timing(t, values, positions, time_offset)
+    layout = Layout.build(robot, act.zero_offset, np.zeros(6), CalibrateOptions())
+    cm = CalibrationModel(robot, Hardware(act.spool_radius, act.sign), sites, layout)
+    _check_units(cm, values, positions)
+    _check_timing(cm, t, values, positions, time_offset)
     source = {
         "log": display_path(log),
         "markers": display_path(markers),
@@ -131,21 +133,19 @@ def record_dataset(
     return Dataset(act.names, sites, t, values, positions, source), dropped
 
 
-def _check_units(
-    robot: Robot, act: Actuators, sites: tuple[MarkerSite, ...], values: np.ndarray, positions: np.ndarray
-) -> None:
+def _check_units(cm: CalibrationModel, values: np.ndarray, positions: np.ndarray) -> None:
     """The unit check `crtraj calibrate` applies: the markers' spread against the nominal model's (mm)."""
-    layout = Layout.build(robot, act.zero_offset, np.zeros(6), CalibrateOptions())
-    cm = CalibrationModel(robot, Hardware(act.spool_radius, act.sign), sites, layout)
     rows = np.flatnonzero(np.isfinite(positions).all(axis=2).any(axis=1))
     if rows.size:
-        obs = Observations(values, positions, sites, np.zeros(values.shape[0], dtype=bool))
-        initial_capture(cm, layout.prior, obs, rows)
+        obs = Observations(values, positions, cm.sites, np.zeros(values.shape[0], dtype=bool))
+        initial_capture(cm, cm.layout.prior, obs, rows)
 
 
-def _check_timing(t: np.ndarray, values: np.ndarray, positions: np.ndarray, time_offset: float) -> None:
+def _check_timing(
+    cm: CalibrationModel, t: np.ndarray, values: np.ndarray, positions: np.ndarray, time_offset: float
+) -> None:
     """Refuse a gross lag between the marker and the actuator motion (one line naming --time-offset)."""
-    off = detect_time_offset(t, values, positions)
+    off = detect_time_offset(cm, cm.layout.prior, t, values, positions)
     if off is None:
         logger.info("time alignment: not measurable (too few or unevenly spaced samples)")
         return
