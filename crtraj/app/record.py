@@ -147,13 +147,13 @@ def _check_timing(
     """Refuse a gross lag between the marker and the actuator motion (one line naming --time-offset)."""
     off = detect_time_offset(cm, cm.layout.prior, t, values, positions)
     if off is None:
-        logger.info("time alignment: not measurable (too few or unevenly spaced samples)")
+        logger.info("time alignment: not measurable (too few or unevenly spaced samples, or no common motion)")
         return
     logger.info("time alignment: the markers move %+.3f s after the actuator values", off.lag)
     if off.is_gross(TIME_TOLERANCE):
         raise InputError(
-            f"--time-offset: the markers move {off.lag:+.3g} s after the actuator values (cross-correlation of "
-            f"their speeds); the time offset is likely {time_offset + off.lag:.6g} s, not {time_offset:g} s"
+            f"--time-offset: the markers move {off.lag:+.3g} s after the actuator values (their motion against "
+            f"the model's); the time offset is likely {time_offset + off.lag:.6g} s, not {time_offset:g} s"
         )
 
 
