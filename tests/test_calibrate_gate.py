@@ -38,7 +38,7 @@ from crtraj.model.calibration import (
     synthetic_values,
 )
 from crtraj.model.calibration.gate import estimate_noise
-from crtraj.model.calibration.identify import _weighted
+from crtraj.model.calibration.identify import weighted_jacobian
 from crtraj.model.calibration.synthetic import synthetic_motion
 from crtraj.model.calibration.timing import detect_time_offset
 
@@ -149,6 +149,18 @@ def test_correct_data_passes_with_honest_figures(files, tmp_path, capsys):
     assert rec.heldout_outliers == sum(v["outliers"] for v in held)  # the held-out samples' count, not all
     n = sum(v["count"] for v in held)
     assert rec.heldout_rms_mm == pytest.approx(math.sqrt(sum(v["rms_mm"] ** 2 * v["count"] for v in held) / n))
+
+
+def test_a_stated_noise_below_the_residuals_fails_and_a_bad_one_is_refused(files, tmp_path, capsys):
+    """--noise replaces the estimate: 0.05 mm per axis is ten times below the data's, so the residual check
+    fails and names it; a non-finite or negative --noise is refused in one line."""
+    d, _log, _mk, data, _ = files
+    cal = ["calibrate", str(data), "--robot", str(ROBOT), "--out", str(tmp_path / "c.toml")]
+    line = _refused(capsys, [*cal, "--noise", "0.05"], d, (1,))
+    assert "residual check failed" in line and "from --noise" in line and "give --noise MM" in line
+    for bad in ("nan", "-1", "1e400"):
+        assert "--noise" in _refused(capsys, [*cal, "--noise", bad], d, (2,))
+    assert "--allow-at-bound" in _refused(capsys, [*cal, "--allow-at-bound", "elbow"], d, (2,))
 
 
 def test_a_failed_fit_replaces_no_good_file(files, setup, tmp_path, capsys):
@@ -299,7 +311,7 @@ def test_a_straight_segment_reports_the_parameters_confounded_at_the_fit(setup):
     cm = CalibrationModel(robot, hw, sites, res.layout)
     fr = ~obs.heldout
     e = cm.residuals(res.theta, values[fr], m[fr])
-    J, _, _ = _weighted(cm.jacobians(res.theta, values[fr], m[fr]), e, 1.0)
+    J, _, _ = weighted_jacobian(cm.jacobians(res.theta, values[fr], m[fr]), e, 1.0)
     c = J[:, names.index("coupling")]
     A = J[:, [names.index(p) for p in sorted(partners)]]
     rest = c - A @ np.linalg.lstsq(A, c, rcond=None)[0]

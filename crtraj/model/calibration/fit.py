@@ -12,7 +12,7 @@ import numpy as np
 
 from crtraj.core.errors import InputError
 from crtraj.model.calibration.frames import align, rotation_vector
-from crtraj.model.calibration.identify import _weighted, at_fit, identifiable, scaled_singular_values
+from crtraj.model.calibration.identify import at_fit, identifiable, scaled_singular_values, weighted_jacobian
 from crtraj.model.calibration.layout import CalibrateOptions, Hardware, Layout
 from crtraj.model.calibration.model import CalibrationModel
 from crtraj.model.calibration.sites import GROUPS, MIN_SAMPLES, PLAUSIBLE_SCALE, check_sites
@@ -100,7 +100,7 @@ def fit(
     # identifiability at the prior (the Jacobian depends on the motion, not on the noise)
     Vf, Pf = obs.values[fit_rows], obs.positions[fit_rows]
     e0 = cm.residuals(prior, Vf, Pf)
-    Jw0, _, _ = _weighted(cm.jacobians(prior, Vf, Pf), e0, o.loss_scale)
+    Jw0, _, _ = weighted_jacobian(cm.jacobians(prior, Vf, Pf), e0, o.loss_scale)
     free, held = identifiable(Jw0, layout, requested, o.identifiability_tol)
     if not free.any():
         names = ", ".join(h.name for h in held)
@@ -133,7 +133,7 @@ def _analyse(
     fit_rows = ~obs.heldout
     Vf, Pf = obs.values[fit_rows], obs.positions[fit_rows]
     e = cm.residuals(theta, Vf, Pf)
-    Jw, ew, _ = _weighted(cm.jacobians(theta, Vf, Pf), e, o.loss_scale)
+    Jw, ew, _ = weighted_jacobian(cm.jacobians(theta, Vf, Pf), e, o.loss_scale)
     ident = at_fit(Jw0, Jw, layout, requested, s.held, o.identifiability_tol)
     kept = ident.kept_fit  # a parameter held at the prior but kept at the fit inflates its partners' errors
     Jf = Jw[:, free]

@@ -56,8 +56,12 @@ def scaled_singular_values(Jf: np.ndarray) -> np.ndarray:
     return np.sqrt(np.maximum(ev, 0.0))[::-1]
 
 
-def _weighted(J: np.ndarray, e: np.ndarray, delta: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(weighted Jacobian rows x n, weighted residual rows, per-observation weights) of observed markers."""
+def weighted_jacobian(J: np.ndarray, e: np.ndarray, delta: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(weighted Jacobian rows x n, weighted residual rows, per-observation weights) of the observed markers.
+
+    J: (N, M, 3, n) residual Jacobians; e: (N, M, 3) residuals (mm, NaN: not seen); delta: the pseudo-Huber
+    scale (mm). Rows are scaled by the square root of the robust weight 1 / sqrt(1 + |e|^2 / delta^2).
+    """
     ok = np.isfinite(e).all(axis=2)
     s = np.sum(np.nan_to_num(e) ** 2, axis=2)
     w = np.where(ok, 1.0 / np.sqrt(1.0 + s / delta**2), 0.0)
