@@ -13,11 +13,13 @@ import json
 import math
 import re
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from crtraj.app.calibrate import calibrate, gate
 from crtraj.app.calibration_report import report_lines
 from crtraj.cli import main
 from crtraj.hardware.actuators import Actuators
@@ -37,7 +39,7 @@ from crtraj.model.calibration import (
     synthetic_truth,
     synthetic_values,
 )
-from crtraj.model.calibration.gate import estimate_noise
+from crtraj.model.calibration.gate import GateOptions, estimate_noise
 from crtraj.model.calibration.identify import weighted_jacobian
 from crtraj.model.calibration.synthetic import synthetic_motion
 from crtraj.model.calibration.timing import detect_time_offset
@@ -163,6 +165,29 @@ def test_a_stated_noise_below_the_residuals_fails_and_a_bad_one_is_refused(files
     assert "--allow-at-bound" in _refused(capsys, [*cal, "--allow-at-bound", "elbow"], d, (2,))
 
 
+def test_gate_checks_outliers_bounds_and_convergence(files, setup, tmp_path):
+    """Each check on its own: too many outliers; a parameter at its bound (passes when declared); IPOPT's
+    "acceptable level" counts only while the residuals qualify, any other stop fails."""
+    robot, act, hw, sites, _ = setup
+    t_cap = files[4]
+    values = synthetic_motion(robot, hw, t_cap, seed=1)
+    data = Dataset(act.names, sites, t_cap, values, _markers(setup, values, outliers=0.25))
+    res = calibrate(data, robot, GROUPS)
+    verdict = gate(data, robot, res)
+    assert verdict.failed().name == "outliers" and "misidentified" in verdict.cause
+    assert verdict.outlier_fraction > 0.2
+    good = Dataset(act.names, sites, t_cap, values, _markers(setup, values))
+    res = calibrate(good, robot, GROUPS)
+    assert gate(good, robot, res).ok
+    pinned = replace(res, at_bound=("coupling",))
+    assert gate(good, robot, pinned).failed().name == "bounds"
+    assert gate(good, robot, pinned, GateOptions(allow_at_bound=("coupling",))).ok
+    assert gate(good, robot, replace(res, status="Solved_To_Acceptable_Level")).ok
+    assert gate(good, robot, replace(res, status="Maximum_Iterations_Exceeded")).failed().name == "solver"
+    strict = gate(good, robot, replace(res, status="Solved_To_Acceptable_Level"), GateOptions(noise=0.05))
+    assert not next(c for c in strict.checks if c.name == "solver").ok  # not acceptable: residuals above noise
+
+
 def test_a_failed_fit_replaces_no_good_file(files, setup, tmp_path, capsys):
     """A 7 s time offset: the gate fails on the time check, names the offset, keeps the report as
     *.failed.json and leaves the earlier calibrated file, report and plot byte-identical."""
@@ -264,6 +289,15 @@ def test_hostile_numbers_and_csv_give_one_line(files, tmp_path, capsys):
     jl = tmp_path / "huge.jsonl"
     jl.write_text('{"t": 1, "marker": "tip", "x": ' + "9" * 400 + ', "y": 0, "z": 0}\n')
     assert "an integer of 400 digits" in _refused(capsys, [*rec, "--markers", str(jl)], d, (2,))
+    log_lines = log.read_text().splitlines()
+    for value, msg in (("1e300", "must be within"), ("9" * 400, "400 digits")):
+        bad_log = tmp_path / "bad_log.jsonl"
+        row = json.loads(log_lines[5])
+        text = json.dumps(row).replace(json.dumps(row["values"][2]), value, 1)
+        bad_log.write_text("\n".join([*log_lines[:5], text, *log_lines[6:]]) + "\n")
+        argv = ["record", "--log", str(bad_log), "--markers", str(mk), "--time-offset", str(CLOCK)]
+        line = _refused(capsys, [*argv, "--out", str(tmp_path / "x.json")], d, (2,))
+        assert "line 6: values[" in line and msg in line, line
     doc = json.loads(data.read_text())
     cal = ["calibrate", "--robot", str(ROBOT), "--out", str(tmp_path / "c.toml")]
     for field, value, msg in (("values", 1e300, "must be within"), ("values", 10**400, "digits"), ("t", 10**400, "")):
