@@ -12,7 +12,9 @@
      "values": [[...], ...],                            actuator values per sample (rad; the stage in mm)
      "positions": {"base": [[x, y, z] or null, ...]}}   capture-frame positions (mm); null: not seen
 
-Every number must be finite (a NaN is refused, naming its place; a marker that was not seen is null).
+Every number must be finite and within its physical range (`crtraj.io.calibration_numbers`: times within
+1e10 s, actuator values within 1e5, positions within 1 km; a NaN, 1e300 or a 400-digit integer is refused,
+naming its place; a marker that was not seen is null).
 """
 
 from __future__ import annotations

@@ -23,6 +23,15 @@ them by this data and is held at its prior. Two such directions always exist: a 
 segment's three cables does not change its bending (the pseudo-inverse of eq. 2-3 removes it), and the
 stage's zero offset moves every marker like the capture frame's translation along the robot's z axis.
 
+Identifiability is judged again at the fitted parameters (`identify.at_fit`): a Jacobian column can be zero
+at the prior only (a segment commanded straight makes the coupling look inert, while at the truth its zero
+offsets bend it and the coupling is confounded with the proximal zero offsets). Parameters confounded at the
+fit are named with their partners and their standard errors withheld; the singular values of the scaled
+Jacobian are reported at both points.
+
+Every fit then passes a sanity gate (`gate`: time offset from `timing`, held-out residual against the noise,
+outliers, bounds, convergence), and a failed one is given its likely cause (`diagnose`).
+
 Standard errors come from the Gauss-Newton covariance at the solution, ``s^2 (J_w^T J_w)^-1`` with the
 robust weights w_j = 1 / sqrt(1 + |e_j|^2 / delta^2) and ``s^2 = sum w_j |e_j|^2 / (m - p)``.
 
