@@ -11,7 +11,9 @@ capture system's frame). Two formats:
 Rows with the same timestamp form one capture frame; a marker twice at one timestamp is refused, naming both
 lines. Every number goes through the bounded reader (`crtraj.io.calibration_numbers`: coordinates within
 1 km, times within 1e10 s, actuator values within 1e5; NaN, infinity and huge integers refused by name) and
-a CSV field is at most `MAX_FIELD` characters (a stray quote that runs on is refused by row). The stream log is the JSON-lines record of
+a CSV field is at most `MAX_FIELD` characters (a stray quote that runs on is refused by row).
+
+The stream log is the JSON-lines record of
 `crtraj.hardware.stream.Streamer` (``crtraj stream --log``, ``crtraj replan --stream``): its ``rx``
 lines carry the device's measured actuator values, its ``tx`` lines the values sent, both with ``wall``
 (s since the stream started). `join` puts the marker times on the log's clock (log time = marker time -
