@@ -93,7 +93,7 @@ def gate(dataset: Dataset, robot: Robot, res: CalibrationResult, options: GateOp
     o = options or GateOptions()
     cm = _model(robot, dataset, res)
     off = detect_time_offset(cm, res.prior, dataset.t, dataset.values, dataset.positions)
-    verdict = judge(GateInput(res, dataset.t, off, estimate_noise(dataset.t, res.residuals)), o)
+    verdict = judge(GateInput(res, off, estimate_noise(dataset.t, res.residuals)), o)
     failed = verdict.failed()
     if failed is None:
         return verdict

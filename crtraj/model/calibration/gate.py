@@ -138,19 +138,12 @@ def _overall(stats: dict[str, MarkerStats]) -> tuple[float, float, int, int]:
     return rms, rms_in, out, n
 
 
-def overall_stats(stats: dict[str, MarkerStats]) -> tuple[float, float, int]:
-    """(RMS, RMS without outliers, outlier count) over every marker (mm)."""
-    rms, rms_in, out, _ = _overall(stats)
-    return rms, rms_in, out
-
-
 @dataclass(frozen=True)
 class GateInput:
-    """What the gate judges: the fit, the sample times (N,) s, the detected time offset and the noise
-    estimated from the data (mm per axis; None: not measurable)."""
+    """What the gate judges: the fit, the detected time offset and the noise estimated from the data (mm per
+    axis; None: not measurable)."""
 
     result: CalibrationResult
-    t: np.ndarray
     time_offset: TimeOffset | None
     noise_estimate: float | None
 
