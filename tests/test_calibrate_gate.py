@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from crtraj.app.calibrate import calibrate, gate
-from crtraj.app.calibration_report import report_lines
+from crtraj.app.calibration_report import calibrated_text, report_lines
 from crtraj.cli import main
 from crtraj.hardware.actuators import Actuators
 from crtraj.io.calibration_data import Dataset, read_calibration
@@ -143,6 +143,7 @@ def test_correct_data_passes_with_honest_figures(files, tmp_path, capsys):
     assert rec.noise_mm == pytest.approx(NOISE, rel=0.15)  # the estimate from the data against the true noise
     assert rec.heldout_rms_inliers_mm <= 1.5 * math.sqrt(3) * NOISE
     assert rec.heldout_outliers > 0 and rec.heldout_rms_mm > rec.heldout_rms_inliers_mm  # 1 % outliers
+    assert rec.confounded == ()  # nothing confounded at the fit beyond what the prior showed
     report = json.loads((tmp_path / "cal.report.json").read_text())
     assert report["success"] and report["gate"]["passed"]
     assert report["gate"]["heldout_rms_inliers_mm"] == pytest.approx(rec.heldout_rms_inliers_mm)
@@ -342,6 +343,9 @@ def test_a_straight_segment_reports_the_parameters_confounded_at_the_fit(setup):
         assert math.isnan(res.std_error[names.index(p)])  # withheld, not a confident figure
     text = "\n".join(report_lines(res))
     assert "coupling is not identifiable" in text and "no effect at the prior values, but at the fit" in text
+    data = Dataset(act.names, sites, np.arange(150.0), values, m)
+    toml = calibrated_text(ROBOT.read_text(), res, gate(data, robot, res), "straight.json", "today")
+    assert partners <= set(tomllib.loads(toml)["calibration"]["confounded"])  # the calibrated file says so too
     cm = CalibrationModel(robot, hw, sites, res.layout)
     fr = ~obs.heldout
     e = cm.residuals(res.theta, values[fr], m[fr])

@@ -165,7 +165,8 @@ def read_dataset(path: str | Path, actuator_names: tuple[str, ...], n_segments: 
 @dataclass(frozen=True)
 class CalibrationRecord:
     """The ``[calibration]`` table `crtraj calibrate` adds to a robot file: the dataset and date it was
-    fitted from and when, the parameters fitted and held, the capture frame (rotation vector, rad, and
+    fitted from and when, the parameters fitted and held, those confounded at the fit (their values depend on
+    the held ones' priors; no standard error), the capture frame (rotation vector, rad, and
     translation, mm: capture -> robot, p_robot = R p_capture + t), the held-out residual RMS with and without
     the outliers (mm) and their count, and the marker noise per axis (mm) the fit was judged against."""
 
@@ -175,6 +176,7 @@ class CalibrationRecord:
     held: tuple[str, ...] = ()
     capture_rotation: tuple[float, float, float] = (0.0, 0.0, 0.0)
     capture_translation: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    confounded: tuple[str, ...] = ()
     heldout_rms_mm: float | None = None
     heldout_rms_inliers_mm: float | None = None
     heldout_outliers: int | None = None
@@ -198,6 +200,7 @@ class CalibrationRecord:
             date=t.str("date", "", max_len=100),
             fitted=names("fitted"),
             held=names("held"),
+            confounded=names("confounded"),
             capture_rotation=t.vec("capture_rotation", 3, (0.0, 0.0, 0.0), limit=4 * math.pi),  # type: ignore[arg-type]
             capture_translation=t.vec("capture_translation", 3, (0.0, 0.0, 0.0), limit=MAX_LENGTH),  # type: ignore[arg-type]
             heldout_rms_mm=t.float("heldout_rms_mm", None, ge=0.0, limit=MAX_LENGTH),
