@@ -108,19 +108,20 @@ def files(setup, tmp_path_factory):
     return d, log, mk, data, t_cap
 
 
-def _snapshot(d: Path) -> dict[Path, bytes]:
-    return {p: p.read_bytes() for p in d.rglob("*") if p.is_file()}
+def _snapshot(*dirs: Path) -> dict[Path, bytes]:
+    return {p: p.read_bytes() for d in dirs for p in d.rglob("*") if p.is_file()}
 
 
-def _refused(capsys, argv, d: Path, codes=(1, 2)) -> str:
-    """Run argv; it must exit with one of `codes`, one stderr line and no traceback, and change no file in d."""
-    before = _snapshot(d)
+def _refused(capsys, argv, *dirs: Path, codes=(1, 2)) -> str:
+    """Run argv; it must exit with one of `codes`, one stderr line and no traceback, and change no file in
+    dirs (nor the robot file)."""
+    before = _snapshot(*dirs)
     robot_before = ROBOT.read_bytes()
     code = main(argv)
     err = capsys.readouterr().err.strip().splitlines()
     assert code in codes and len(err) == 1, (code, err)
     assert "Traceback" not in err[0]
-    after = _snapshot(d)
+    after = _snapshot(*dirs)
     for p, b in before.items():
         assert after.get(p) == b, f"{p} changed"
     assert ROBOT.read_bytes() == robot_before
@@ -159,11 +160,11 @@ def test_a_stated_noise_below_the_residuals_fails_and_a_bad_one_is_refused(files
     fails and names it; a non-finite or negative --noise is refused in one line."""
     d, _log, _mk, data, _ = files
     cal = ["calibrate", str(data), "--robot", str(ROBOT), "--out", str(tmp_path / "c.toml")]
-    line = _refused(capsys, [*cal, "--noise", "0.05"], d, (1,))
+    line = _refused(capsys, [*cal, "--noise", "0.05"], d, tmp_path, codes=(1,))
     assert "residual check failed" in line and "from --noise" in line and "give --noise MM" in line
     for bad in ("nan", "-1", "1e400"):
-        assert "--noise" in _refused(capsys, [*cal, "--noise", bad], d, (2,))
-    assert "--allow-at-bound" in _refused(capsys, [*cal, "--allow-at-bound", "elbow"], d, (2,))
+        assert "--noise" in _refused(capsys, [*cal, "--noise", bad], d, tmp_path, codes=(2,))
+    assert "--allow-at-bound" in _refused(capsys, [*cal, "--allow-at-bound", "elbow"], d, tmp_path, codes=(2,))
 
 
 def test_gate_checks_outliers_bounds_and_convergence(files, setup, tmp_path):
@@ -200,7 +201,9 @@ def test_a_failed_fit_replaces_no_good_file(files, setup, tmp_path, capsys):
     values = synthetic_motion(robot, hw, t_cap, seed=1)
     shifted = _markers(setup, synthetic_motion(robot, hw, t_cap + 7.0, seed=1))  # the markers 7 s early
     bad = _dataset_file(setup, tmp_path / "offset.json", t_cap, values, shifted)
-    line = _refused(capsys, ["calibrate", str(bad), "--robot", str(ROBOT), "--out", str(out)], tmp_path, (1,))
+    line = _refused(
+        capsys, ["calibrate", str(bad), "--robot", str(ROBOT), "--out", str(out)], files[0], tmp_path, codes=(1,)
+    )
     assert "time_offset check failed" in line and "time offset" in line.split("likely cause")[1]
     assert re.search(r"markers move -(6\.9|7|7\.1) s after the actuators", line)
     failed = json.loads((tmp_path / "cal.report.failed.json").read_text())
@@ -211,7 +214,7 @@ def test_a_failed_fit_replaces_no_good_file(files, setup, tmp_path, capsys):
 def test_record_refuses_a_gross_time_offset_and_names_the_likely_one(files, tmp_path, capsys):
     d, log, mk, _data, _ = files
     argv = ["record", "--log", str(log), "--markers", str(mk), "--time-offset", str(CLOCK + 7), "--out"]
-    line = _refused(capsys, [*argv, str(tmp_path / "x.json")], d, (2,))
+    line = _refused(capsys, [*argv, str(tmp_path / "x.json")], d, tmp_path, codes=(2,))
     assert line.startswith("crtraj: error: --time-offset:") and "likely 100 s" in line
     assert not (tmp_path / "x.json").exists()
 
@@ -224,7 +227,7 @@ def test_swapped_marker_names_fail_the_gate_named(files, setup, tmp_path, capsys
     names[1], names[2] = names[2], names[1]  # the capture labels tip1 and tip the other way round
     mk = _write_csv(tmp_path / "swapped.csv", t_cap + CLOCK, m, names)
     argv = ["calibrate", "--log", str(log), "--markers", str(mk), "--time-offset", str(CLOCK), "--robot", str(ROBOT)]
-    line = _refused(capsys, [*argv, "--out", str(tmp_path / "c.toml")], tmp_path, (1,))
+    line = _refused(capsys, [*argv, "--out", str(tmp_path / "c.toml")], files[0], tmp_path, codes=(1,))
     assert "residual check failed" in line and "marker names: tip1 and tip look swapped" in line
     assert not (tmp_path / "c.toml").exists()
 
@@ -237,7 +240,9 @@ def test_a_reversed_servo_fails_the_gate_named(files, setup, tmp_path, capsys):
     sign[4] = -sign[4]  # s2c2 turns the other way than the robot file says
     m = _markers(setup, values, hw=Hardware(hw.spool_radius, sign))
     bad = _dataset_file(setup, tmp_path / "flip.json", t_cap, values, m)
-    line = _refused(capsys, ["calibrate", str(bad), "--robot", str(ROBOT), "--out", str(tmp_path / "c.toml")], tmp_path)
+    line = _refused(
+        capsys, ["calibrate", str(bad), "--robot", str(ROBOT), "--out", str(tmp_path / "c.toml")], files[0], tmp_path
+    )
     assert "check failed" in line and "sign: actuator s2c2 looks reversed" in line
 
 
@@ -248,23 +253,26 @@ def test_markers_in_metres_are_refused_by_record_and_calibrate(files, setup, tmp
     m = _markers(setup, values)
     mk = _write_csv(tmp_path / "metres.csv", t_cap + CLOCK, m, [s.name for s in sites], scale=1e-3)
     rec = ["record", "--log", str(log), "--markers", str(mk), "--time-offset", str(CLOCK), "--out"]
-    assert "not in mm" in _refused(capsys, [*rec, str(tmp_path / "x.json")], tmp_path, (2,))
+    assert "not in mm" in _refused(capsys, [*rec, str(tmp_path / "x.json")], files[0], tmp_path, codes=(2,))
     bad = _dataset_file(setup, tmp_path / "metres.json", t_cap, values, m * 1e-3)
     cal = ["calibrate", str(bad), "--robot", str(ROBOT), "--out", str(tmp_path / "c.toml")]
-    assert "not in mm" in _refused(capsys, cal, tmp_path, (2,))
+    assert "not in mm" in _refused(capsys, cal, files[0], tmp_path, codes=(2,))
 
 
 def test_an_output_that_is_an_input_is_refused_before_any_work(files, tmp_path, capsys):
+    """Every pre-existing file (the dataset, the log, the robot copy) stays byte-identical."""
     d, log, mk, data, _ = files
     robot = tmp_path / "robot.toml"
     robot.write_bytes(ROBOT.read_bytes())
     base = ["calibrate", str(data), "--robot", str(robot), "--out", str(tmp_path / "c.toml")]
     for flag, target in (("--report", robot), ("--plot", data), ("--report", data)):
-        line = _refused(capsys, [*base, flag, str(target)], d, (2,))
+        line = _refused(capsys, [*base, flag, str(target)], d, tmp_path, codes=(2,))
         assert flag in line and "is also" in line
-    assert "--out" in _refused(capsys, ["calibrate", str(data), "--robot", str(robot), "--out", str(robot)], d, (2,))
+    assert "--out" in _refused(
+        capsys, ["calibrate", str(data), "--robot", str(robot), "--out", str(robot)], d, tmp_path, codes=(2,)
+    )
     rec = ["record", "--log", str(log), "--markers", str(mk), "--time-offset", str(CLOCK), "--out", str(log)]
-    assert "--out" in _refused(capsys, rec, d, (2,))
+    assert "--out" in _refused(capsys, rec, d, tmp_path, codes=(2,))
 
 
 def test_hostile_numbers_and_csv_give_one_line(files, tmp_path, capsys):
@@ -286,10 +294,10 @@ def test_hostile_numbers_and_csv_give_one_line(files, tmp_path, capsys):
     for name, body in cases.items():
         f = tmp_path / name
         f.write_text("\n".join(body) + "\n")
-        assert expect[name] in _refused(capsys, [*rec, "--markers", str(f)], d, (2,)), name
+        assert expect[name] in _refused(capsys, [*rec, "--markers", str(f)], d, tmp_path, codes=(2,)), name
     jl = tmp_path / "huge.jsonl"
     jl.write_text('{"t": 1, "marker": "tip", "x": ' + "9" * 400 + ', "y": 0, "z": 0}\n')
-    assert "an integer of 400 digits" in _refused(capsys, [*rec, "--markers", str(jl)], d, (2,))
+    assert "an integer of 400 digits" in _refused(capsys, [*rec, "--markers", str(jl)], d, tmp_path, codes=(2,))
     log_lines = log.read_text().splitlines()
     for value, msg in (("1e300", "must be within"), ("9" * 400, "400 digits")):
         bad_log = tmp_path / "bad_log.jsonl"
@@ -297,7 +305,7 @@ def test_hostile_numbers_and_csv_give_one_line(files, tmp_path, capsys):
         text = json.dumps(row).replace(json.dumps(row["values"][2]), value, 1)
         bad_log.write_text("\n".join([*log_lines[:5], text, *log_lines[6:]]) + "\n")
         argv = ["record", "--log", str(bad_log), "--markers", str(mk), "--time-offset", str(CLOCK)]
-        line = _refused(capsys, [*argv, "--out", str(tmp_path / "x.json")], d, (2,))
+        line = _refused(capsys, [*argv, "--out", str(tmp_path / "x.json")], d, tmp_path, codes=(2,))
         assert "line 6: values[" in line and msg in line, line
     doc = json.loads(data.read_text())
     cal = ["calibrate", "--robot", str(ROBOT), "--out", str(tmp_path / "c.toml")]
@@ -306,7 +314,7 @@ def test_hostile_numbers_and_csv_give_one_line(files, tmp_path, capsys):
         bad[field][3] = [value] * len(bad[field][3]) if field == "values" else value
         f = tmp_path / "bad.json"
         f.write_text(json.dumps(bad))
-        line = _refused(capsys, [*cal, str(f)], tmp_path, (2,))
+        line = _refused(capsys, [*cal, str(f)], files[0], tmp_path, codes=(2,))
         assert f"{field}[3]" in line and msg in line, line
 
 
