@@ -6,7 +6,8 @@ rad, capture frame rotated 10 degrees and shifted 50 mm), 2,000 random samples w
 (`synthetic_values`), base + proximal tip + distal tip markers with 0.3 mm noise per axis and 2 % outliers of
 ~20 mm; 20 % held out. "fit" is the whole `crtraj.model.calibration.fit` call (initial capture frame,
 identifiability, NLP build and solve, covariance, statistics; wall and CPU time of this process: on a loaded
-machine the CPU time is the steadier figure); "solve" is the NLP build and IPOPT solve (wall).
+machine the CPU time is the steadier figure); "solve" is the NLP build and IPOPT solve (wall); "gate" is the
+sanity gate on the last fit (time offset, noise estimate, checks; `crtraj.app.calibrate.gate`), wall time.
 Run: python benchmarks/calibrate.py [--n 2000] [--repeat 5]
 """
 
@@ -22,7 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
+from crtraj.app.calibrate import gate
 from crtraj.hardware.actuators import Actuators
+from crtraj.io.calibration_data import Dataset
 from crtraj.io.problem import load_robot
 from crtraj.model.calibration import (
     GROUPS,
@@ -80,6 +83,12 @@ def main() -> None:
             f"  held-out tip residual: uncalibrated RMS {tip_b.rms:.2f} mm -> calibrated RMS {tip_a.rms:.2f} mm "
             f"(p95 {tip_a.p95:.2f} mm; without the {tip_a.outliers} outliers {tip_a.rms_inliers:.3f} mm; "
             f"noise {0.3 * np.sqrt(3):.3f} mm)"
+        )
+        t0 = time.perf_counter()
+        verdict = gate(Dataset(act.names, sites, np.arange(args.n, dtype=float), values, m), robot, res)
+        print(
+            f"  gate: {time.perf_counter() - t0:.2f} s, {'passed' if verdict.ok else 'FAILED: ' + verdict.line()}; "
+            f"noise estimated {verdict.noise:.3f} mm per axis (true 0.3)"
         )
     print(f"load average after: {os.getloadavg()}")
 

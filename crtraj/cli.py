@@ -502,6 +502,21 @@ def _add_calibrate(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--plot", help="residual plot PNG (default: OUT with .residuals.png)")
     p.add_argument("--loss-scale", type=float, default=None, help="pseudo-Huber scale, mm (default 1)")
     p.add_argument("--holdout", type=float, default=None, help="held-out fraction of samples (default 0.2)")
+    p.add_argument(
+        "--noise",
+        type=float,
+        default=None,
+        metavar="MM",
+        help="marker noise per axis, mm, that the held-out residual is judged against (default: estimated from "
+        "the data)",
+    )
+    p.add_argument(
+        "--allow-at-bound",
+        action="append",
+        default=None,
+        metavar="NAME",
+        help="a parameter that may end at its bound without failing the fit (repeatable)",
+    )
     p.add_argument("--log", help="instead of DATA: a stream log, joined with --markers as crtraj record does")
     p.add_argument("--markers", help="with --log: the marker file (CSV or JSON lines, mm)")
     p.add_argument(

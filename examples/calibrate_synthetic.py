@@ -5,8 +5,11 @@
 2. a synthetic motion-capture system films a "true" robot perturbed from cdsr2 (lengths +-5 %, coupling
    -0.8 instead of -1, zero offsets +-0.05 rad, capture frame rotated 10 degrees and shifted 50 mm; 0.3 mm
    marker noise, 2 % outliers) at 30 Hz on its own clock (1000 s ahead of the log's);
-3. `crtraj record --log --markers`: the dataset (actuator values interpolated at the capture times);
-4. `crtraj calibrate`: the calibrated robot file, report and residual plot;
+3. `crtraj record --log --markers`: the dataset (actuator values interpolated at the capture times); with a
+   clock offset 7 s off it refuses, naming the likely offset (the markers' motion lags the actuators');
+4. `crtraj calibrate`: the calibrated robot file, report and residual plot, written only when the fit passes
+   its sanity gate (held-out residual within 2 x the noise estimated from the data, few outliers, no
+   parameter at its bound, converged);
 5. `crtraj plan` with the nominal and with the calibrated robot file; the true robot runs each plan's
    set-points and its tip is compared with the planned tip.
 
@@ -65,9 +68,10 @@ with (OUT / "markers.csv").open("w", newline="") as fh:
         for j, s in enumerate(sites):
             w.writerow([f"{t + CLOCK:.6f}", s.name, *(f"{v:.4f}" for v in m[i, j])])
 
-# 3. the dataset
-assert main(["record", "--log", str(OUT / "excite.jsonl"), "--markers", str(OUT / "markers.csv"),
-             "--time-offset", str(CLOCK), "--out", str(OUT / "data.json")]) == 0  # fmt: skip
+# 3. the dataset; a wrong clock offset is refused (exit 2, one line naming the likely offset)
+record = ["record", "--log", str(OUT / "excite.jsonl"), "--markers", str(OUT / "markers.csv"), "--time-offset"]
+assert main([*record, str(CLOCK + 7), "--out", str(OUT / "wrong.json")]) == 2
+assert main([*record, str(CLOCK), "--out", str(OUT / "data.json")]) == 0
 
 # 4. calibrate every parameter group
 assert main(["calibrate", str(OUT / "data.json"), "--robot", str(ROBOT), "--out", str(OUT / "calibrated.toml")]) == 0

@@ -336,7 +336,13 @@ def test_bad_data_one_line_each(recorded, setup, tmp_path, capsys):
 
     metres = _markers_csv(tmp_path / "m.csv", t_cap + 100.0, m, sites, scale=1e-3)
     data_m = tmp_path / "metres.json"
-    assert main([*rec[:-2], "--markers", str(metres), "--out", str(data_m)]) == 0
+    assert "not in mm" in _one_error(capsys, [*rec[:-2], "--markers", str(metres), "--out", str(data_m)])
+    assert not data_m.exists()  # record checks the units as calibrate does
+    bad = json.loads(good.read_text())
+    bad["positions"] = {
+        k: [None if p is None else [x * 1e-3 for x in p] for p in v] for k, v in doc["positions"].items()
+    }
+    data_m.write_text(json.dumps(bad))
     assert "not in mm" in _one_error(capsys, [*cal, str(data_m)])
     assert not (tmp_path / "c.toml").exists()  # nothing written on any of them
 

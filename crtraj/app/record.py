@@ -13,6 +13,7 @@ with its log; with --markers the log is then joined as above.
 from __future__ import annotations
 
 import argparse
+import logging
 import time
 from pathlib import Path
 
@@ -20,20 +21,37 @@ import numpy as np
 
 from crtraj.app.stream import _print_report, _stream
 from crtraj.core.errors import InputError
-from crtraj.core.fileio import check_output_file
+from crtraj.core.fields import check_float
+from crtraj.core.fileio import check_output_file, check_outputs_not_inputs
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.admission import AdmittedMotion, MotionRecord, admit
 from crtraj.hardware.stream import StreamOptions
 from crtraj.io.calibration_data import Dataset, parse_marker_option
+from crtraj.io.calibration_numbers import TIME_LIMIT, display_path
 from crtraj.io.mocap import join, read_markers, read_stream_log
 from crtraj.io.problem import Problem, load_robot
-from crtraj.model.calibration import MarkerSite, check_sites, paper_markers
+from crtraj.model.calibration import (
+    CalibrateOptions,
+    CalibrationModel,
+    Hardware,
+    Layout,
+    MarkerSite,
+    Observations,
+    check_sites,
+    initial_capture,
+    paper_markers,
+)
+from crtraj.model.calibration.timing import detect_time_offset
 from crtraj.model.excitation import excitation_path
 from crtraj.model.robot import Robot
 from crtraj.world.scene import Scene
 
 # Share of each actuator's speed and acceleration limit the excitation may use.
 LIMIT_SHARE = 0.5
+# Largest lag (s) between the marker and the actuator motion a dataset may have.
+TIME_TOLERANCE = 0.25
+
+logger = logging.getLogger(__name__)
 
 
 def excitation_motion(
@@ -88,16 +106,26 @@ def record_dataset(
     time_offset: float = 0.0,
     prefer: str = "measured",
 ) -> tuple[Dataset, int]:
-    """(the dataset of `log` joined with `markers`, capture frames dropped)."""
+    """(the dataset of `log` joined with `markers`, capture frames dropped).
+
+    `InputError` when the markers are not in mm (their spread against the robot's) or when their motion
+    lags the actuators' grossly (`crtraj.model.calibration.timing`: a wrong --time-offset).
+    """
+    time_offset = check_float(time_offset, "--time-offset", limit=TIME_LIMIT)
     act = Actuators.from_robot(robot)
     series = read_stream_log(log, prefer)
     if series.names != act.names:
-        raise InputError(f"{log}: actuators {list(series.names)} are not robot {robot.name!r}'s {list(act.names)}")
+        where = display_path(log)
+        raise InputError(f"{where}: actuators {list(series.names)} are not robot {robot.name!r}'s {list(act.names)}")
     frames = read_markers(markers, sites)
     t, values, positions, dropped = join(series, frames, time_offset)
+    layout = Layout.build(robot, act.zero_offset, np.zeros(6), CalibrateOptions())
+    cm = CalibrationModel(robot, Hardware(act.spool_radius, act.sign), sites, layout)
+    _check_units(cm, values, positions)
+    _check_timing(cm, t, values, positions, time_offset)
     source = {
-        "log": str(log),
-        "markers": str(markers),
+        "log": display_path(log),
+        "markers": display_path(markers),
         "time_offset": time_offset,
         "values": series.kind,
         "robot": robot.name,
@@ -105,9 +133,36 @@ def record_dataset(
     return Dataset(act.names, sites, t, values, positions, source), dropped
 
 
+def _check_units(cm: CalibrationModel, values: np.ndarray, positions: np.ndarray) -> None:
+    """The unit check `crtraj calibrate` applies: the markers' spread against the nominal model's (mm)."""
+    rows = np.flatnonzero(np.isfinite(positions).all(axis=2).any(axis=1))
+    if rows.size:
+        obs = Observations(values, positions, cm.sites, np.zeros(values.shape[0], dtype=bool))
+        initial_capture(cm, cm.layout.prior, obs, rows)
+
+
+def _check_timing(
+    cm: CalibrationModel, t: np.ndarray, values: np.ndarray, positions: np.ndarray, time_offset: float
+) -> None:
+    """Refuse a gross lag between the marker and the actuator motion (one line naming --time-offset)."""
+    off = detect_time_offset(cm, cm.layout.prior, t, values, positions)
+    if off is None:
+        logger.info("time alignment: not measurable (too few or unevenly spaced samples, or no common motion)")
+        return
+    logger.info("time alignment: the markers move %+.3f s after the actuator values", off.lag)
+    if off.is_gross(TIME_TOLERANCE):
+        raise InputError(
+            f"--time-offset: the markers move {off.lag:+.3g} s after the actuator values (their motion against "
+            f"the model's); the time offset is likely {time_offset + off.lag:.6g} s, not {time_offset:g} s"
+        )
+
+
 def record_command(args: argparse.Namespace) -> int:
     """`crtraj record ...` (arguments from `crtraj.cli`); returns the exit code."""
     out = check_output_file(args.out, "--out")
+    written = {"--out": args.out, "--dry-run": args.dry_run, "--log": args.log if args.excite else None}
+    read = {"--robot": args.robot, "--markers": args.markers, "--problem": args.problem}
+    check_outputs_not_inputs(written, {**read, "--log": None if args.excite else args.log})
     robot = load_robot(args.robot)
     if robot.actuators is None:
         raise InputError(f"{args.robot}: robot.actuators: missing; a dataset records actuator values")
@@ -129,8 +184,10 @@ def record_command(args: argparse.Namespace) -> int:
         if not rep.ok:
             return 1
         if args.markers is None:
+            shown, out_shown = display_path(log), display_path(out)
             print(
-                f"excitation streamed; join it with the capture: crtraj record --log {log} --markers FILE --out {out}"
+                f"excitation streamed; join it with the capture: crtraj record --log {shown} --markers FILE "
+                f"--out {out_shown}"
             )
             return 0
     elif args.log is None or args.markers is None:
@@ -140,7 +197,8 @@ def record_command(args: argparse.Namespace) -> int:
     seen = np.isfinite(data.positions).all(axis=2).sum(axis=0)
     counts = ", ".join(f"{s.name} {int(c)}" for s, c in zip(sites, seen, strict=True))
     print(
-        f"dataset: {out}: {data.n} samples ({data.source['values']} actuator values; markers seen: {counts}); "
+        f"dataset: {display_path(out)}: {data.n} samples ({data.source['values']} actuator values; "
+        f"markers seen: {counts}); "
         f"{dropped} capture frames outside the log dropped"
     )
     return 0

@@ -12,7 +12,9 @@
      "values": [[...], ...],                            actuator values per sample (rad; the stage in mm)
      "positions": {"base": [[x, y, z] or null, ...]}}   capture-frame positions (mm); null: not seen
 
-Every number must be finite (a NaN is refused, naming its place; a marker that was not seen is null).
+Every number must be finite and within its physical range (`crtraj.io.calibration_numbers`: times within
+1e10 s, actuator values within 1e5, positions within 1 km; a NaN, 1e300 or a 400-digit integer is refused,
+naming its place; a marker that was not seen is null).
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ from crtraj import __version__
 from crtraj.core.errors import InputError
 from crtraj.core.fields import MAX_LENGTH, Table
 from crtraj.core.fileio import atomic_write_json, read_json, read_toml
+from crtraj.io.calibration_numbers import POSITION_LIMIT, TIME_LIMIT, VALUE_LIMIT, display_path, number_array
 from crtraj.model.calibration import MAX_MARKERS, MAX_SAMPLES, MIN_SAMPLES, MarkerSite
 
 KIND = "calibration-dataset"
@@ -104,24 +107,6 @@ def parse_marker_option(text: str, n_segments: int) -> MarkerSite:
     return parse_site(name.strip(), {"segment": seg_i, "arc": arc_v}, n_segments, f"--marker {name.strip()}")
 
 
-def _finite(a: np.ndarray, name: str) -> None:
-    bad = np.argwhere(~np.isfinite(a))
-    if bad.size:
-        at = "".join(f"[{i}]" for i in bad[0])
-        raise InputError(f"{name}{at}: must be finite, got {a[tuple(bad[0])]}")
-
-
-def _numbers(v: Any, name: str, shape: tuple[int, ...]) -> np.ndarray:
-    try:
-        a = np.asarray(v, dtype=float)
-    except (TypeError, ValueError):
-        raise InputError(f"{name}: expected numbers of shape {shape}") from None
-    if a.shape != shape:
-        raise InputError(f"{name}: expected shape {list(shape)}, got {list(a.shape)}")
-    _finite(a, name)
-    return a
-
-
 def dataset_from_dict(doc: Any, actuator_names: tuple[str, ...], n_segments: int, where: str = "") -> Dataset:
     """Validate a dataset document against the robot (its actuator names and segments)."""
     p = f"{where}: " if where else ""
@@ -148,8 +133,8 @@ def dataset_from_dict(doc: Any, actuator_names: tuple[str, ...], n_segments: int
         raise InputError(f"{p}t: at most {MAX_SAMPLES} samples, got {n}")
     if n < MIN_SAMPLES:
         raise InputError(f"{p}t: {n} samples, need at least {MIN_SAMPLES} (record more motion)")
-    t = _numbers(t_raw, f"{p}t", (n,))
-    values = _numbers(doc.get("values"), f"{p}values", (n, len(actuator_names)))
+    t = number_array(t_raw, f"{p}t", (n,), TIME_LIMIT)
+    values = number_array(doc.get("values"), f"{p}values", (n, len(actuator_names)), VALUE_LIMIT)
     pos_doc = doc.get("positions")
     if not isinstance(pos_doc, dict):
         raise InputError(f"{p}positions: expected a table marker -> list of [x, y, z] or null")
@@ -164,7 +149,7 @@ def dataset_from_dict(doc: Any, actuator_names: tuple[str, ...], n_segments: int
             raise InputError(f"{p}positions.{s.name}: expected {n} entries ([x, y, z] mm or null)")
         for i, row in enumerate(col):
             if row is not None:
-                positions[i, j] = _numbers(row, f"{p}positions.{s.name}[{i}]", (3,))
+                positions[i, j] = number_array(row, f"{p}positions.{s.name}[{i}]", (3,), POSITION_LIMIT)
     if not np.isfinite(positions).all(axis=2).any():
         raise InputError(f"{p}positions: no marker was seen in any sample")
     src = doc.get("source", {})
@@ -173,14 +158,17 @@ def dataset_from_dict(doc: Any, actuator_names: tuple[str, ...], n_segments: int
 
 def read_dataset(path: str | Path, actuator_names: tuple[str, ...], n_segments: int) -> Dataset:
     """Read and validate a dataset file (one-line `InputError` naming the file and field)."""
-    return dataset_from_dict(read_json(path, max_bytes=MAX_DATASET_BYTES), actuator_names, n_segments, str(path))
+    doc = read_json(path, max_bytes=MAX_DATASET_BYTES)
+    return dataset_from_dict(doc, actuator_names, n_segments, display_path(path))
 
 
 @dataclass(frozen=True)
 class CalibrationRecord:
     """The ``[calibration]`` table `crtraj calibrate` adds to a robot file: the dataset and date it was
-    fitted from and when, the parameters fitted and held, the capture frame (rotation vector, rad, and
-    translation, mm: capture -> robot, p_robot = R p_capture + t) and the held-out RMS residual (mm)."""
+    fitted from and when, the parameters fitted and held, those confounded at the fit (their values depend on
+    the held ones' priors; no standard error), the capture frame (rotation vector, rad, and
+    translation, mm: capture -> robot, p_robot = R p_capture + t), the held-out residual RMS with and without
+    the outliers (mm) and their count, and the marker noise per axis (mm) the fit was judged against."""
 
     dataset: str = ""
     date: str = ""
@@ -188,7 +176,11 @@ class CalibrationRecord:
     held: tuple[str, ...] = ()
     capture_rotation: tuple[float, float, float] = (0.0, 0.0, 0.0)
     capture_translation: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    confounded: tuple[str, ...] = ()
     heldout_rms_mm: float | None = None
+    heldout_rms_inliers_mm: float | None = None
+    heldout_outliers: int | None = None
+    noise_mm: float | None = None
 
     @property
     def capture(self) -> np.ndarray:
@@ -208,9 +200,13 @@ class CalibrationRecord:
             date=t.str("date", "", max_len=100),
             fitted=names("fitted"),
             held=names("held"),
+            confounded=names("confounded"),
             capture_rotation=t.vec("capture_rotation", 3, (0.0, 0.0, 0.0), limit=4 * math.pi),  # type: ignore[arg-type]
             capture_translation=t.vec("capture_translation", 3, (0.0, 0.0, 0.0), limit=MAX_LENGTH),  # type: ignore[arg-type]
             heldout_rms_mm=t.float("heldout_rms_mm", None, ge=0.0, limit=MAX_LENGTH),
+            heldout_rms_inliers_mm=t.float("heldout_rms_inliers_mm", None, ge=0.0, limit=MAX_LENGTH),
+            heldout_outliers=t.int("heldout_outliers", None, ge=0, le=MAX_SAMPLES * MAX_MARKERS),
+            noise_mm=t.float("noise_mm", None, ge=0.0, limit=MAX_LENGTH),
         )
         t.finish()
         return rec

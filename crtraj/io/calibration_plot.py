@@ -26,8 +26,15 @@ def residual_plot(
     heldout: np.ndarray,
     names: Sequence[str],
 ) -> Path:
-    """Write the PNG. positions (N, M, 3) robot-frame marker positions (mm); before/after (N, M, 3)
-    residuals (mm, NaN: not seen); heldout (N,) mask; names: the M markers."""
+    """Write the PNG of `residual_plot_png` atomically to `path`."""
+    return atomic_write_bytes(path, residual_plot_png(positions, before, after, heldout, names))
+
+
+def residual_plot_png(
+    positions: np.ndarray, before: np.ndarray, after: np.ndarray, heldout: np.ndarray, names: Sequence[str]
+) -> bytes:
+    """The PNG. positions (N, M, 3) robot-frame marker positions (mm); before/after (N, M, 3) residuals
+    (mm, NaN: not seen); heldout (N,) mask; names: the M markers."""
     fig = Figure(figsize=(12, 4), dpi=100)
     axes = fig.subplots(1, 3, sharey=True)
     nb = np.linalg.norm(before, axis=2)
@@ -57,4 +64,4 @@ def residual_plot(
     fig.tight_layout()
     buf = io.BytesIO()
     fig.savefig(buf, format="png")
-    return atomic_write_bytes(path, buf.getvalue())
+    return buf.getvalue()

@@ -8,7 +8,12 @@ capture system's frame). Two formats:
 - JSON lines, one object per row: ``{"t": 1.25, "marker": "tip", "x": .., "y": .., "z": ..}`` (or
   ``"position": [x, y, z]``).
 
-Rows with the same timestamp form one capture frame. The stream log is the JSON-lines record of
+Rows with the same timestamp form one capture frame; a marker twice at one timestamp is refused, naming both
+lines. Every number goes through the bounded reader (`crtraj.io.calibration_numbers`: coordinates within
+1 km, times within 1e10 s, actuator values within 1e5; NaN, infinity and huge integers refused by name) and
+a CSV field is at most `MAX_FIELD` characters (a stray quote that runs on is refused by row).
+
+The stream log is the JSON-lines record of
 `crtraj.hardware.stream.Streamer` (``crtraj stream --log``, ``crtraj replan --stream``): its ``rx``
 lines carry the device's measured actuator values, its ``tx`` lines the values sent, both with ``wall``
 (s since the stream started). `join` puts the marker times on the log's clock (log time = marker time -
@@ -22,8 +27,8 @@ from __future__ import annotations
 import csv
 import io
 import json
-import math
 from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -32,10 +37,13 @@ import numpy as np
 
 from crtraj.core.errors import InputError
 from crtraj.core.fileio import read_text
+from crtraj.io.calibration_numbers import POSITION_LIMIT, TIME_LIMIT, VALUE_LIMIT, display_path, number, text_number
 from crtraj.model.calibration import MAX_SAMPLES, MarkerSite
 
 MAX_FILE_BYTES = 512 * 1024 * 1024
 MAX_ROWS = 4_000_000
+# Longest CSV field (characters): a number or a marker name is far shorter; a stray quote runs on.
+MAX_FIELD = 4096
 # Largest gap (s) between two log samples a capture frame may fall in: beyond it the device's position
 # between them is unknown (telemetry lost), and the frame is dropped.
 MAX_GAP = 0.25
@@ -49,23 +57,31 @@ class MarkerFrames:
     positions: np.ndarray
 
 
-def _float(v: Any, where: str) -> float:
+def _value(v: Any, where: str, limit: float) -> float:
+    """A number of a marker file or log: text (CSV) or JSON, through the bounded reader."""
+    return text_number(v, where, limit) if isinstance(v, str) else number(v, where, limit)
+
+
+@contextmanager
+def _field_limit(n: int) -> Iterator[None]:
+    """csv's field size limit set to n characters for one read (it is process-wide: restored after)."""
+    old = csv.field_size_limit(n)
     try:
-        x = float(v)
-    except (TypeError, ValueError):
-        raise InputError(f"{where}: expected a number, got {str(v)[:40]!r}") from None
-    if not math.isfinite(x):
-        raise InputError(f"{where}: must be finite, got {v!r}")
-    return x
+        yield
+    finally:
+        csv.field_size_limit(old)
 
 
-def _rows_csv(text: str, path: Path) -> list[tuple[int, Any, Any, Any]]:
+def _rows_csv(text: str, path: str) -> list[tuple[int, Any, Any, Any]]:
     lines = [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
     reader = csv.reader(io.StringIO("\n".join(lines)))
     try:
-        header = [h.strip().lower() for h in next(reader)]
+        with _field_limit(MAX_FIELD):
+            header = [h.strip().lower() for h in next(reader)]
     except StopIteration:
         raise InputError(f"{path}: empty marker file") from None
+    except csv.Error:
+        raise InputError(f"{path} row 1: the header is not CSV with fields of at most {MAX_FIELD} characters") from None
 
     def col(*names: str) -> int:
         for n in names:
@@ -75,16 +91,24 @@ def _rows_csv(text: str, path: Path) -> list[tuple[int, Any, Any, Any]]:
 
     it, im, ix, iy, iz = col("timestamp", "t", "time"), col("marker", "name"), col("x"), col("y"), col("z")
     rows = []
-    for ln, r in enumerate(reader, start=2):
-        if len(r) != len(header):
-            raise InputError(f"{path} row {ln}: {len(r)} columns, the header has {len(header)}")
-        rows.append((ln, r[it], r[im].strip(), (r[ix], r[iy], r[iz])))
-        if len(rows) > MAX_ROWS:
-            raise InputError(f"{path}: more than {MAX_ROWS} rows")
+    with _field_limit(MAX_FIELD):
+        try:
+            for r in reader:
+                ln = reader.line_num
+                if len(r) != len(header):
+                    raise InputError(f"{path} row {ln}: {len(r)} columns, the header has {len(header)}")
+                rows.append((ln, r[it], r[im].strip(), (r[ix], r[iy], r[iz])))
+                if len(rows) > MAX_ROWS:
+                    raise InputError(f"{path}: more than {MAX_ROWS} rows")
+        except csv.Error as exc:
+            raise InputError(
+                f"{path} row {reader.line_num}: {str(exc)[:80]} (a field is at most {MAX_FIELD} characters; "
+                "a stray quote?)"
+            ) from None
     return rows
 
 
-def _json_objects(text: str, path: Path, hint: str, expected: str) -> Iterator[tuple[int, dict[str, Any]]]:
+def _json_objects(text: str, path: str, hint: str, expected: str) -> Iterator[tuple[int, dict[str, Any]]]:
     """(line number, object) of each non-empty line of a JSON-lines file; `InputError` naming the line
     when one is not JSON (hint: what the file should be) or not an object (expected: which)."""
     for ln, line in enumerate(text.splitlines(), start=1):
@@ -99,7 +123,7 @@ def _json_objects(text: str, path: Path, hint: str, expected: str) -> Iterator[t
         yield ln, d
 
 
-def _rows_jsonl(text: str, path: Path) -> list[tuple[int, Any, Any, Any]]:
+def _rows_jsonl(text: str, path: str) -> list[tuple[int, Any, Any, Any]]:
     rows = []
     for ln, d in _json_objects(text, path, "", "an object {t, marker, x, y, z}"):
         t = d.get("t", d.get("timestamp", d.get("time")))
@@ -117,23 +141,29 @@ def read_markers(path: str | Path, sites: Sequence[MarkerSite]) -> MarkerFrames:
     """Read a marker file (CSV or JSON lines, by content) into capture frames of the given sites."""
     p = Path(path)
     text = read_text(p, max_bytes=MAX_FILE_BYTES, kind="marker (CSV or JSON lines)")
-    rows = _rows_jsonl(text, p) if text.lstrip().startswith("{") else _rows_csv(text, p)
+    shown = display_path(p)
+    rows = _rows_jsonl(text, shown) if text.lstrip().startswith("{") else _rows_csv(text, shown)
     if not rows:
-        raise InputError(f"{p}: no marker rows")
+        raise InputError(f"{shown}: no marker rows")
     index = {s.name: j for j, s in enumerate(sites)}
     frames: dict[float, np.ndarray] = {}
+    first: dict[tuple[float, str], int] = {}
     for ln, t_raw, name, xyz in rows:
-        where = f"{p} line {ln}"
+        where = f"{shown} line {ln}"
         if not isinstance(name, str) or name not in index:
             raise InputError(
-                f"{where}: marker {name!r} unknown (configured: {', '.join(index)}; add --marker NAME=SEGMENT:ARC)"
+                f"{where}: marker {str(name)[:40]!r} unknown (configured: {', '.join(index)}; "
+                "add --marker NAME=SEGMENT:ARC)"
             )
-        t = _float(t_raw, f"{where}: timestamp")
-        pos = [_float(v, f"{where}: {ax}") for v, ax in zip(xyz, "xyz", strict=True)]
+        t = _value(t_raw, f"{where}: timestamp", TIME_LIMIT)
+        pos = [_value(v, f"{where}: {ax}", POSITION_LIMIT) for v, ax in zip(xyz, "xyz", strict=True)]
+        if (t, name) in first:
+            raise InputError(f"{where}: marker {name!r} again at timestamp {t:g} s (first at line {first[t, name]})")
+        first[t, name] = ln
         f = frames.get(t)
         if f is None:
             if len(frames) >= MAX_SAMPLES:
-                raise InputError(f"{p}: more than {MAX_SAMPLES} capture frames")
+                raise InputError(f"{shown}: more than {MAX_SAMPLES} capture frames")
             f = frames[t] = np.full((len(sites), 3), np.nan)
         f[index[name]] = pos
     times = np.array(sorted(frames))
@@ -154,8 +184,8 @@ class LogSeries:
 def read_stream_log(path: str | Path, prefer: str = "measured") -> LogSeries:
     """The actuator values of a stream log: its telemetry (``rx`` positions) when it has any and
     prefer is "measured", else the set-points sent (``tx`` values)."""
-    p = Path(path)
-    text = read_text(p, max_bytes=MAX_FILE_BYTES, kind="stream log (JSON lines)")
+    text = read_text(path, max_bytes=MAX_FILE_BYTES, kind="stream log (JSON lines)")
+    p = display_path(path)
     names: tuple[str, ...] | None = None
     rx: list[tuple[float, list[float]]] = []
     tx: list[tuple[float, list[float]]] = []
@@ -170,11 +200,11 @@ def read_stream_log(path: str | Path, prefer: str = "measured") -> LogSeries:
             key = "positions" if kind == "rx" else "values"
             if key not in d:  # a PING carries no values
                 continue
-            wall = _float(d.get("wall"), f"{p} line {ln}: wall")
+            wall = number(d.get("wall"), f"{p} line {ln}: wall", TIME_LIMIT)
             vals = d[key]
             if not isinstance(vals, list) or names is None or len(vals) != len(names):
                 raise InputError(f"{p} line {ln}: {key}: expected {len(names or ())} actuator values")
-            row = [_float(v, f"{p} line {ln}: {key}") for v in vals]
+            row = [number(v, f"{p} line {ln}: {key}[{i}]", VALUE_LIMIT) for i, v in enumerate(vals)]
             (rx if kind == "rx" else tx).append((wall, row))
         if len(rx) + len(tx) > MAX_ROWS:
             raise InputError(f"{p}: more than {MAX_ROWS} frames")
