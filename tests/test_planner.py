@@ -15,6 +15,7 @@ from crtraj.core.errors import InputError
 from crtraj.io.problem import Problem
 from crtraj.model.robot import Robot
 from crtraj.planning.base import Planner
+from crtraj.planning.context import PlanningContext
 from crtraj.planning.cspace import CSpacePlanner
 from crtraj.planning.options import PlannerOptions
 from crtraj.planning.registry import BUILTIN, make_planner
@@ -39,13 +40,15 @@ def steer_options(sim1):
 @pytest.fixture(scope="module")
 def rrt(sim1, steer_options):
     _, model, scene = sim1
-    return RRT(model, scene, PlannerOptions(algorithm="rrt", time_limit=PLANNER_HANG_S), steer_options)
+    return RRT(PlanningContext(model, scene, PlannerOptions(algorithm="rrt", time_limit=PLANNER_HANG_S)), steer_options)
 
 
 @pytest.fixture(scope="module")
 def rrtstar(sim1, steer_options):
     _, model, scene = sim1
-    return RRTStar(model, scene, PlannerOptions(algorithm="rrtstar", time_limit=PLANNER_HANG_S), steer_options)
+    return RRTStar(
+        PlanningContext(model, scene, PlannerOptions(algorithm="rrtstar", time_limit=PLANNER_HANG_S)), steer_options
+    )
 
 
 def test_rrt_plan_is_valid(sim1, rrt):
@@ -112,7 +115,7 @@ def test_make_planner_builds_the_named_algorithm(sim1, steer_options, rrt):
     problem, model, scene = sim1
     task = problem.task
     by_name = make_planner(model, scene)
-    by_hand = CSpacePlanner(model, scene, PlannerOptions())
+    by_hand = CSpacePlanner(PlanningContext(model, scene, PlannerOptions()))
     a = by_name.plan(task.goal, start_tip=task.start, seed=7, goal_tolerance=task.goal_tolerance)
     b = by_hand.plan(task.goal, start_tip=task.start, seed=7, goal_tolerance=task.goal_tolerance)
     assert a.is_success() and a.planner == "cspace"

@@ -60,12 +60,10 @@ from typing import Any
 import numpy as np
 
 from crtraj.core.fields import check_array
-from crtraj.model.kinematics import Model
 from crtraj.planning.base import PlannerBase, QueryStart
+from crtraj.planning.context import PlanningContext
 from crtraj.planning.cspace_search import CSpaceSearch
-from crtraj.planning.options import PlannerOptions
 from crtraj.planning.postprocess import PathPostprocessor, tree_edges
-from crtraj.planning.rate_limits import RateLimits
 from crtraj.planning.result import PlanResult, PlanStatus
 from crtraj.planning.safe_ik import SafeIK, format_statuses
 from crtraj.planning.stop import StopCondition
@@ -75,26 +73,18 @@ from crtraj.planning.validity import MotionValidator
 class CSpacePlanner(PlannerBase):
     """Configuration-space planner for one robot; reuse it for many queries.
 
-    model: the robot's `Model`. scene: the default `crtraj.world.scene.Scene`
-    (a query may pass another). options: `PlannerOptions`. max_obstacles:
-    obstacle slots of the IK NLP (default: the scene's count; grown on demand). rate_limits:
-    the actuators' limits (`RateLimits`): edges are timed within their speed limits.
+    context: the `PlanningContext` (model, default scene, options; with rate limits every edge is
+    timed within their speed limits). max_obstacles: obstacle slots of the IK NLP (default: the
+    scene's count; grown on demand).
     """
 
     name = "cspace"
 
-    def __init__(
-        self,
-        model: Model,
-        scene: Any,
-        options: PlannerOptions | None = None,
-        *,
-        max_obstacles: int | None = None,
-        rate_limits: RateLimits | None = None,
-    ) -> None:
-        super().__init__(model, scene, PlannerOptions() if options is None else options, rate_limits)
+    def __init__(self, context: PlanningContext, *, max_obstacles: int | None = None) -> None:
+        super().__init__(context)
+        scene = context.scene
         m = scene.n_obstacles if max_obstacles is None else int(max_obstacles)
-        self.ik = SafeIK(model, self.validator, max(m, scene.n_obstacles), push_rounds=self.options.ik_push_rounds)
+        self.ik = SafeIK(self.model, self.validator, max(m, scene.n_obstacles), push_rounds=self.options.ik_push_rounds)
 
     # ------------------------------------------------------------------ query
     # Over 60 lines only by its docstring (the re-planning recipe); the body is the five stages in order.

@@ -3,14 +3,11 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import ClassVar
 
 from crtraj.core.fields import MAX_LENGTH, MAX_TIME
 from crtraj.core.options import Options, option
-from crtraj.planning.paper_check import PaperValidator
-from crtraj.planning.rate_limits import RateLimits
 from crtraj.planning.stop import StopCondition
-from crtraj.planning.validity import MotionValidator
 
 ALGORITHMS = ("cspace", "rrt", "rrtstar")
 # "strict": the continuous body over continuous time (`MotionValidator`); "paper": the paper's
@@ -115,23 +112,3 @@ class PlannerOptions(Options):
     def stop(self) -> StopCondition:
         """The stop condition these options describe."""
         return StopCondition(self.time_limit, self.max_iterations, self.first_solution)
-
-    def validator(
-        self,
-        model: Any,
-        scene: Any,
-        functions: dict[Any, Any] | None = None,
-        rate_limits: RateLimits | None = None,
-    ) -> MotionValidator:
-        """The `MotionValidator` these options describe for `scene` (functions: a shared CasADi cache;
-        rate_limits: the full actuator limits, of which `limit_fraction` is used to time motions)."""
-        common: dict[str, Any] = {
-            "resolution": self.resolution,
-            "max_speed": self.max_speed,
-            "functions": functions,
-            "rate_limits": None if rate_limits is None else rate_limits.scaled(self.limit_fraction),
-        }
-        if self.check == "paper":
-            points = model.robot.collision_points
-            return PaperValidator(model, scene, step=self.check_step, check_points=points, **common)
-        return MotionValidator(model, scene, check_points=self.check_points, compiled=self.compiled, **common)

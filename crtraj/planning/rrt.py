@@ -43,9 +43,8 @@ from typing import Any
 
 import numpy as np
 
-from crtraj.model.kinematics import Model
 from crtraj.planning.base import PlannerBase, QueryStart
-from crtraj.planning.options import PlannerOptions
+from crtraj.planning.context import PlanningContext
 from crtraj.planning.postprocess import PathPostprocessor, tree_edges
 from crtraj.planning.result import PlanResult, PlanStatus
 from crtraj.planning.safe_ik import SafeIK
@@ -59,8 +58,9 @@ from crtraj.world import margin
 class RRT(PlannerBase):
     """Task-space RRT with a safety-constrained steer (paper Algorithm 1, no rewiring).
 
-    model: the robot's `Model`. scene: the default `crtraj.world.scene.Scene`.
-    options: `PlannerOptions` (range = tip step in mm). steer_options:
+    context: the `PlanningContext` (model, default scene, options; range = tip step in mm; its
+    rate limits, if any, also time the edges: the registry builds task-space planners without
+    them, see `crtraj.planning.registry`). steer_options:
     `SteerOptions` of the ``[steer]`` section; the planner raises its
     `n_points` to the check points and its `margin` to what the planner's
     continuous-body check needs (module docstring). max_obstacles: obstacle
@@ -72,14 +72,13 @@ class RRT(PlannerBase):
 
     def __init__(
         self,
-        model: Model,
-        scene: Any,
-        options: PlannerOptions | None = None,
+        context: PlanningContext,
         steer_options: SteerOptions | None = None,
         *,
         max_obstacles: int | None = None,
     ) -> None:
-        super().__init__(model, scene, PlannerOptions(algorithm=self.name) if options is None else options)
+        super().__init__(context)
+        model, scene = context.model, context.scene
         M = max(scene.n_obstacles if max_obstacles is None else int(max_obstacles), scene.n_obstacles)
         so = SteerOptions() if steer_options is None else steer_options
         # The paper check (options.check == "paper") looks at the collision points only, so the steer

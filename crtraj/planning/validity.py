@@ -49,6 +49,7 @@ import numpy as np
 
 from crtraj.core.errors import InputError
 from crtraj.model.kinematics import Model
+from crtraj.planning.kernels import Kernels
 from crtraj.planning.metric import BodyMetric
 from crtraj.planning.rate_limits import RateLimits
 from crtraj.planning.sampler import ConfigSampler
@@ -66,7 +67,7 @@ class MotionValidator:
     own times). time_resolution: moving obstacles only: an uncertified edge
     interval longer than this (s) is split in time before it is declared
     unsafe (waits and slow motions sweep obstacles over long windows).
-    functions: a CasADi function cache shared by a planner's validators. rate_limits: usable
+    kernels: the compiled kernels and CasADi functions shared by a planner's validators (`Kernels`). rate_limits: usable
     actuator limits; with them every motion is timed within the actuators' speed limits too.
     compiled: check with the compiled kernel when a C compiler is available (same results, faster).
 
@@ -84,7 +85,7 @@ class MotionValidator:
         resolution: float = 3.0,
         max_speed: float = 50.0,
         time_resolution: float = 0.25,
-        functions: dict[Any, Any] | None = None,
+        kernels: Kernels | None = None,
         rate_limits: RateLimits | None = None,
         compiled: bool = True,
     ) -> None:
@@ -99,7 +100,7 @@ class MotionValidator:
         self.model = model
         self.robot = model.robot
         self.scene = scene
-        self.state = StateValidityChecker(model, scene, check_points, functions, compiled)
+        self.state = StateValidityChecker(model, scene, check_points, kernels, compiled)
         self.space = BodyMetric(self.robot, max_speed, rate_limits)
         self.sampler = ConfigSampler(self.robot)
         self.check_points = self.state.check_points
