@@ -49,6 +49,7 @@ from crtraj.io.problem import Problem
 from crtraj.model.kinematics import Model
 from crtraj.model.robot import Robot, Segment
 from crtraj.planning.compiled_validity import ValidityKernel, kernel_functions
+from crtraj.planning.context import PlanningContext
 from crtraj.planning.options import PlannerOptions
 from crtraj.planning.registry import make_planner
 from crtraj.planning.steer import SteerOptions
@@ -142,7 +143,7 @@ def section_ompl(problem: Problem, model: Model, scene: Scene, options: PlannerO
     print(f"{head}  crtraj / it (wall, CPU)")
     o = options.with_(compiled=True, time_limit=10.0)
     for algo in ("RRTConnect", "RRTstar"):
-        planner = OMPLPlanner(model, scene, o, algorithm=algo, simplify=False)
+        planner = OMPLPlanner(PlanningContext(model, scene, o), algorithm=algo, simplify=False)
         stop = StopCondition(time_limit=10.0, first_solution=True)
         starts = [r.configs[0] for r in new["results"][:n]]
         planner.plan(task.goal, start_config=starts[0], seed=10_000, stop=stop, goal_tolerance=task.goal_tolerance)

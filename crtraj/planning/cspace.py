@@ -87,7 +87,6 @@ class CSpacePlanner(PlannerBase):
         self.ik = SafeIK(self.model, self.validator, max(m, scene.n_obstacles), push_rounds=self.options.ik_push_rounds)
 
     # ------------------------------------------------------------------ query
-    # Over 60 lines only by its docstring (the re-planning recipe); the body is the five stages in order.
     def plan(
         self,
         goal: Any,
@@ -136,17 +135,8 @@ class CSpacePlanner(PlannerBase):
         run = _Query(q, np.zeros((0, self.robot.nx)), [])
         if q.x_start is None:
             return self._fail(run, PlanStatus.INVALID_START, q.why)
-
-        # ---- goal configurations
-        t1 = time.perf_counter()
         statuses: dict[str, int] = {}
-        if goal_config is not None:
-            goals = check_array(goal_config, "goal_config", (self.robot.nx,))[None]
-            if q.validator.static:  # among moving obstacles the search checks it at the time it is reached
-                goals = goals[q.validator.state_valid(goals)]
-        else:
-            goals = self._goal_configs(q, q.x_start, statuses)
-        q.timings["goal_ik"] = time.perf_counter() - t1
+        goals = self._goals(q, q.x_start, goal_config, statuses)
         if not len(goals):
             return self._fail(
                 run,
@@ -155,8 +145,23 @@ class CSpacePlanner(PlannerBase):
                 f"({q.counts.get('ik_solves_goal', 0)} IK solves: {format_statuses(statuses)})",
             )
         run.goals = goals
+        return self._search(run)
 
-        # ---- search
+    def _goals(self, q: QueryStart, xs: np.ndarray, goal_config: Any, statuses: dict[str, int]) -> np.ndarray:
+        """The goal configurations: `goal_config` when given (checked), else safe IK solutions (timed)."""
+        t1 = time.perf_counter()
+        if goal_config is not None:
+            goals = check_array(goal_config, "goal_config", (self.robot.nx,))[None]
+            if q.validator.static:  # among moving obstacles the search checks it at the time it is reached
+                goals = goals[q.validator.state_valid(goals)]
+        else:
+            goals = self._goal_configs(q, xs, statuses)
+        q.timings["goal_ik"] = time.perf_counter() - t1
+        return goals
+
+    def _search(self, run: _Query) -> PlanResult:
+        """Grow the trees to the goal configurations, then shortcut and smooth the path found."""
+        q, goals = run.q, run.goals
         t1 = time.perf_counter()
         query = q.query
         search = CSpaceSearch(q.validator, self.options, q.x_start, goals, query.t0, query.clock, query.rng, q.counts)

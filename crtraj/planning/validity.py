@@ -43,6 +43,7 @@ straight motion between two configurations within limits stays within limits.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -54,6 +55,26 @@ from crtraj.planning.metric import BodyMetric
 from crtraj.planning.rate_limits import RateLimits
 from crtraj.planning.sampler import ConfigSampler
 from crtraj.planning.state_validity import StateValidityChecker
+
+
+@dataclass(frozen=True)
+class _EdgeBatch:
+    """Straight motions XA -> XA + step (E, nx) over [TA, TA + span] (s) to check: their body-motion bounds
+    (mm), first interval counts, the finest interval (mm) and time window (s), and the prefix mode."""
+
+    XA: np.ndarray
+    step: np.ndarray
+    bound: np.ndarray
+    n0: np.ndarray
+    TA: np.ndarray
+    span: np.ndarray
+    finest: float
+    tres: float
+    prefix: bool
+
+    def parts(self) -> tuple[Any, ...]:
+        """The fields in order (unpacked by the two edge-check loops)."""
+        return (self.XA, self.step, self.bound, self.n0, self.TA, self.span, self.finest, self.tres, self.prefix)
 
 
 class MotionValidator:
@@ -223,7 +244,6 @@ class MotionValidator:
         np.minimum.at(per_edge, e, c)
         return per_edge, c, e
 
-    # Over 60 lines by its docstring (the certification argument); the loop is one vectorised refinement.
     def check_edges(
         self,
         XA: np.ndarray,
@@ -267,23 +287,40 @@ class MotionValidator:
         finest = 0.5 * self.resolution * (1.0 + 1e-9)
         # static scenes: every window is irrelevant, so no split in time
         tres = np.inf if self.static else self.time_resolution * (1.0 + 1e-9)
+        batch = _EdgeBatch(XA, dX, bound, n0, TA, dT, finest, tres, prefix)
         kernel = self.state.kernel
         if kernel is not None and self.compiled_loop and self.scene.n_obstacles and E and np.isfinite(bound).all():
             # the same loop in C, with the same arithmetic, operation for operation
-            if self.static:
-                fail, lower, samples = kernel.check_edges(
-                    XA, dX, bound, n0, self.state.static_slots, self.inflate, finest, prefix
-                )
-                self.state.n_samples += samples
-                return fail, lower
-            if np.isfinite(TA).all() and np.isfinite(dT).all():  # else the loop below says which time is bad
-                scene = self.scene
-                fail, lower, samples = kernel.check_edges_moving(
-                    XA, dX, bound, n0, TA, dT, scene.motion_table(), scene.time_origin, self.inflate, finest,
-                    self.state.enlargement_rate, tres, prefix,
-                )  # fmt: skip
-                self.state.n_samples += samples
-                return fail, lower
+            out = self._check_edges_compiled(batch)
+            if out is not None:
+                return out
+        return self._refine_edges(batch)
+
+    def _check_edges_compiled(self, b: _EdgeBatch) -> tuple[np.ndarray, np.ndarray] | None:
+        """`check_edges` in the compiled kernel; None when a time is not finite (the numpy loop says which)."""
+        XA, dX, bound, n0, TA, dT, finest, tres, prefix = b.parts()
+        kernel = self.state.kernel
+        assert kernel is not None
+        if self.static:
+            fail, lower, samples = kernel.check_edges(
+                XA, dX, bound, n0, self.state.static_slots, self.inflate, finest, prefix
+            )
+            self.state.n_samples += samples
+            return fail, lower
+        if not (np.isfinite(TA).all() and np.isfinite(dT).all()):
+            return None
+        scene = self.scene
+        fail, lower, samples = kernel.check_edges_moving(
+            XA, dX, bound, n0, TA, dT, scene.motion_table(), scene.time_origin, self.inflate, finest,
+            self.state.enlargement_rate, tres, prefix,
+        )  # fmt: skip
+        self.state.n_samples += samples
+        return fail, lower
+
+    def _refine_edges(self, b: _EdgeBatch) -> tuple[np.ndarray, np.ndarray]:
+        """`check_edges`' refinement loop in numpy (every motion's intervals halved together)."""
+        XA, dX, bound, n0, TA, dT, finest, tres, prefix = b.parts()
+        E = XA.shape[0]
         fail = np.ones(E)
         lower = np.full(E, np.inf)
         e = np.repeat(np.arange(E), n0)
