@@ -239,7 +239,7 @@ def identical_plans(model, kernel_cache, problem_file):
     for compiled in (True, False):
         # the compiled planner's kernels come from the test's cache (a context built with injected kernels)
         kernels = Kernels(kernel_cache) if compiled else None
-        context = PlanningContext(model, scene, options.with_(compiled=compiled), kernels=kernels)
+        context = PlanningContext(model, scene, options.with_(check={"compiled": compiled}), kernels=kernels)
         planner = BUILTIN.create("cspace", context)
         assert (planner.validator.state.kernel is not None) == compiled
         res = [

@@ -19,7 +19,7 @@ from crtraj.bench.records import RunRecord
 from crtraj.bench.runner import _Task, judge
 from crtraj.bench.scenarios import Scenario
 from crtraj.planning.context import PlanningContext
-from crtraj.planning.options import PlannerOptions
+from crtraj.planning.options import CheckOptions, PlannerOptions
 from crtraj.planning.paper_check import PaperValidator, step_end_fractions
 from crtraj.planning.validity import MotionValidator
 from crtraj.world.obstacle import Obstacle
@@ -100,10 +100,10 @@ def test_paper_option_builds_the_paper_validator_and_relaxes_the_rrt_steer(model
     from crtraj.planning.rrt import RRT
 
     scene = Scene(obstacles=(Obstacle(center=(80.0, 0.0, 300.0), radius=30.0),))
-    v = PlanningContext(model, scene, PlannerOptions(check="paper", check_step=0.5)).validator
+    v = PlanningContext(model, scene, PlannerOptions(check=CheckOptions(mode="paper", step=0.5))).validator
     assert isinstance(v, PaperValidator) and v.step == 0.5 and v.check_points == model.robot.collision_points
     assert type(PlanningContext(model, scene, PlannerOptions()).validator) is MotionValidator
-    paper = RRT(PlanningContext(model, scene, PlannerOptions(check="paper")))
+    paper = RRT(PlanningContext(model, scene, PlannerOptions(check=CheckOptions(mode="paper"))))
     strict = RRT(PlanningContext(model, scene, PlannerOptions()))
     assert paper.steer_options.margin == 0.0 < strict.steer_options.margin
     assert paper.steer_options.n_points == model.robot.collision_points

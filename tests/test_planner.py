@@ -17,7 +17,7 @@ from crtraj.model.robot import Robot
 from crtraj.planning.base import Planner
 from crtraj.planning.context import PlanningContext
 from crtraj.planning.cspace import CSpacePlanner
-from crtraj.planning.options import PlannerOptions
+from crtraj.planning.options import CheckOptions, PlannerOptions, RRTOptions
 from crtraj.planning.registry import BUILTIN, make_planner
 from crtraj.planning.result import PlanStatus
 from crtraj.planning.rrt import RRT, RRTStar
@@ -216,7 +216,7 @@ def test_plan_problem_overrides(sim1):
     run = plan_problem(problem, algorithm="rrtstar", seed=4, time_limit=30.0, model=model)
     assert run.options.algorithm == "rrtstar" and run.options.time_limit == 30.0
     assert run.result.seed == 4 and run.result.planner == "rrtstar"
-    assert run.steer_options is not None and run.document()["options"]["steer"]["n_points"] == run.options.check_points
+    assert run.steer_options is not None and run.document()["options"]["steer"]["n_points"] == run.options.check.points
     # the file's [planner] section as written, the rest at its defaults
     read = Problem.load(PAPER_STATIC).options(PlannerOptions, "planner")
     assert read == PlannerOptions(
@@ -224,12 +224,11 @@ def test_plan_problem_overrides(sim1):
         time_limit=5.0,
         max_iterations=20000,
         max_speed=50.0,
-        resolution=3.0,
-        check_points=15,
         goal_bias=0.1,
-        rewire_radius=80.0,
         smooth=True,
         waypoint_step=20.0,
+        check=CheckOptions(resolution=3.0, points=15),
+        rrt=RRTOptions(rewire_radius=80.0),
     )
     # the override reached the planner: a task-space tree (tip-space edges rooted at the start tip)
     assert run.result.counts["steer_calls"] >= 1 and run.result.tree_edges.shape[1:] == (2, 3)

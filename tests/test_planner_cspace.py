@@ -16,7 +16,7 @@ from test_planner_helpers import (
 from crtraj.core.errors import InputError
 from crtraj.planning.context import PlanningContext
 from crtraj.planning.cspace import CSpacePlanner
-from crtraj.planning.options import PlannerOptions
+from crtraj.planning.options import CSpaceOptions, PlannerOptions
 from crtraj.planning.result import PlanStatus
 from crtraj.planning.stop import StopCondition
 from crtraj.world.obstacle import Obstacle
@@ -134,7 +134,9 @@ def test_tree_search_without_the_via_round(sim1, dynamic):
                 Obstacle(lower.center, lower.radius, amplitude=5.0, omega=0.5, to=(20.0, -70.0, 250.0), duration=6.0),
             )
         )
-    planner = CSpacePlanner(PlanningContext(model, scene, PlannerOptions(via_points=0, time_limit=PLANNER_HANG_S)))
+    planner = CSpacePlanner(
+        PlanningContext(model, scene, PlannerOptions(time_limit=PLANNER_HANG_S, cspace=CSpaceOptions(via_points=0)))
+    )
     assert planner.validator.static is not dynamic
     for seed in (0, 1):
         res = planner.plan(task.goal, start_tip=task.start, seed=seed, goal_tolerance=task.goal_tolerance)
@@ -147,7 +149,7 @@ def test_no_solution_within_budget_is_reported(sim1):
     problem, model, scene = sim1
     task = problem.task
     # no via round, one tree iteration: not enough for simulation 1 (the direct motion collides)
-    planner = CSpacePlanner(PlanningContext(model, scene, PlannerOptions(via_points=0)))
+    planner = CSpacePlanner(PlanningContext(model, scene, PlannerOptions(cspace=CSpaceOptions(via_points=0))))
     res = planner.plan(task.goal, start_tip=task.start, seed=0, stop=StopCondition(max_iterations=1))
     assert res.status is PlanStatus.TIMEOUT and not res.is_success() and not res.has_path
     assert "iteration limit (1)" in res.message and len(res.t) == 0
@@ -248,7 +250,9 @@ def test_forward_tree_waits_and_keeps_its_times(sim1):
         )
     )
     planner = CSpacePlanner(
-        PlanningContext(model, scene, PlannerOptions(via_points=0, wait_bias=1.0, time_limit=PLANNER_HANG_S))
+        PlanningContext(
+            model, scene, PlannerOptions(time_limit=PLANNER_HANG_S, cspace=CSpaceOptions(via_points=0, wait_bias=1.0))
+        )
     )
     res = planner.plan(task.goal, start_tip=task.start, seed=0, goal_tolerance=task.goal_tolerance)
     assert_valid_plan(res, model, scene, task.goal, task.goal_tolerance)

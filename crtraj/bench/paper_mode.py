@@ -1,7 +1,7 @@
 """The paper's Table I in its own terms: RRT and RRT* planning with the paper's check, on the paper's scenes.
 
 Planners ``rrt-paper`` and ``rrtstar-paper`` are the registry's ``rrt`` and
-``rrtstar`` built with ``PlannerOptions.check = "paper"``
+``rrtstar`` built with ``[planner.check] mode = "paper"``
 (`crtraj.planning.paper_check`: the robot's ten collision points at the ends
 of 1-s time steps only), not a fork of the planner. Every run of every
 planner is judged twice (`crtraj.bench.runner.judge`): by the paper's check
@@ -37,7 +37,7 @@ PAPER_SCENES = ScenarioOptions(mean_speed=(_MIN_SPEED, 15.0))
 
 def _paper(name: str, context: PlanningContext, steer: SteerOptions | None, max_obstacles: int | None) -> Planner:
     # task-space edges keep full-speed timing (as the registry's rrt and rrtstar)
-    paper = context.with_options(context.options.with_(check="paper"))
+    paper = context.with_options(context.options.with_(check={"mode": "paper"}))
     return BUILTIN.create(name, paper, steer, max_obstacles=max_obstacles)
 
 

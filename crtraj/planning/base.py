@@ -155,11 +155,11 @@ class PlannerBase:
             start_tip=start_tip,
             t0=query.t0,
             rng=query.rng,
-            seeds=o.ik_seeds,
-            iterations=o.ik_iterations,
+            seeds=o.ik.seeds,
+            iterations=o.ik.iterations,
             deadline=query.deadline,
             tip_tolerance=min(1e-3, goal_tolerance),
-            max_nlp=o.ik_nlp_solves,
+            max_nlp=o.ik.nlp_solves,
         )
         start.timings["start_ik"] = time.perf_counter() - t1
         start.counts["ik_solves_start"] = n_ik

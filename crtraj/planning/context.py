@@ -76,19 +76,19 @@ class PlanningContext:
         return self.rate_limits.scaled(self.options.limit_fraction)
 
     def motion_validity(self, scene: Any) -> MotionValidator:
-        """The motion validator the options describe for `scene` (the options' ``check``: "strict", the
+        """The motion validator the options describe for `scene` (``[planner.check] mode``: "strict", the
         continuous body over continuous time, or "paper"), sharing this context's kernels."""
-        o = self.options
+        o, check = self.options, self.options.check
         common: dict[str, Any] = {
-            "resolution": o.resolution,
+            "resolution": check.resolution,
             "max_speed": o.max_speed,
             "kernels": self.kernels,
             "rate_limits": self.usable_limits,
         }
-        if o.check == "paper":
+        if check.mode == "paper":
             points = self.model.robot.collision_points
-            return PaperValidator(self.model, scene, step=o.check_step, check_points=points, **common)
-        return MotionValidator(self.model, scene, check_points=o.check_points, compiled=o.compiled, **common)
+            return PaperValidator(self.model, scene, step=check.step, check_points=points, **common)
+        return MotionValidator(self.model, scene, check_points=check.points, compiled=check.compiled, **common)
 
     def validity_for(self, scene: Any) -> MotionValidator:
         """The default scene's validator when `scene` is None or the default scene, else a new one."""

@@ -84,7 +84,7 @@ class CSpacePlanner(PlannerBase):
         super().__init__(context)
         scene = context.scene
         m = scene.n_obstacles if max_obstacles is None else int(max_obstacles)
-        self.ik = SafeIK(self.model, self.validator, max(m, scene.n_obstacles), push_rounds=self.options.ik_push_rounds)
+        self.ik = SafeIK(self.model, self.validator, max(m, scene.n_obstacles), push_rounds=self.options.ik.push_rounds)
 
     # ------------------------------------------------------------------ query
     def plan(
@@ -175,33 +175,33 @@ class CSpacePlanner(PlannerBase):
 
     def _prepare(self, v: MotionValidator) -> None:
         if v.scene.n_obstacles > self.ik.max_obstacles:
-            self.ik = SafeIK(self.model, self.validator, v.scene.n_obstacles, push_rounds=self.options.ik_push_rounds)
+            self.ik = SafeIK(self.model, self.validator, v.scene.n_obstacles, push_rounds=self.options.ik.push_rounds)
 
     # ---------------------------------------------------------------- goal IK
     def _goal_configs(self, q: QueryStart, x_start: np.ndarray, statuses: dict[str, int]) -> np.ndarray:
         """Distinct safe configurations (G, nx) with the tip on the goal; IK statuses are added to `statuses`."""
         o, v, ik = self.options, q.validator, self.ik
         sc, goal, t0, rng = v.scene, q.query.goal, q.query.t0, q.query.rng
-        n = o.ik_seeds
+        n = o.ik.seeds
         # the start itself is the first seed: its projection is a goal configuration close to the start
         seeds = np.concatenate([x_start[None], v.sample(rng, n - 1)]) if n > 1 else x_start[None]
         tip_tol = min(1e-3, q.goal_tolerance)
         kw = {
-            "want": o.goal_configs,
-            "newton_iterations": o.ik_iterations,
+            "want": o.ik.goal_configs,
+            "newton_iterations": o.ik.iterations,
             "deadline": q.query.deadline,
             "validator": v,
-            "max_nlp": o.ik_nlp_solves,
+            "max_nlp": o.ik.nlp_solves,
             # the safe goal configuration nearest the start: short paths, above all when re-planning
             "always": (0,),
         }
-        if v.static or o.goal_window == 0:
+        if v.static or o.ik.goal_window == 0:
             parts = [ik.solve(goal, sc.pack(t0, ik.max_obstacles), seeds, tip_tolerance=tip_tol, **kw)]
         else:
             # half the starts keep clear of everything the obstacles sweep over the goal window, by
             # projection only: that NLP is often infeasible (the spheres sweep over the goal region)
             # and its failures would cost far more than the rest of the query
-            t_end = t0 + o.goal_window
+            t_end = t0 + o.ik.goal_window
             half = (len(seeds) + 1) // 2
             parts = [
                 ik.solve(

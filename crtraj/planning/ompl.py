@@ -212,7 +212,7 @@ class OMPLPlanner(PlannerBase):
         slots = packing.slot_count(n_obstacles)
         ik = self._iks.get(slots)
         if ik is None:
-            ik = SafeIK(self.model, v, slots, push_rounds=self.options.ik_push_rounds)
+            ik = SafeIK(self.model, v, slots, push_rounds=self.options.ik.push_rounds)
             self._iks[slots] = ik
         return ik
 
@@ -224,19 +224,19 @@ class OMPLPlanner(PlannerBase):
         o, v, query = self.options, q.validator, q.query
         sc, t0, goal = v.scene, query.t0, query.goal
         ik = self._ik(sc.n_obstacles, v)
-        n = o.ik_seeds
+        n = o.ik.seeds
         seeds = np.concatenate([xs[None], v.sample(query.rng, n - 1)]) if n > 1 else xs[None]
         kw: dict[str, Any] = {
-            "want": o.goal_configs,
-            "newton_iterations": o.ik_iterations,
+            "want": o.ik.goal_configs,
+            "newton_iterations": o.ik.iterations,
             "deadline": query.deadline,
             "validator": v,
             "tip_tolerance": min(1e-3, q.goal_tolerance),
         }
-        if v.static or o.goal_window == 0:
+        if v.static or o.ik.goal_window == 0:
             parts = [ik.solve(goal, sc.pack(t0, ik.max_obstacles), seeds, t_check=(t0, t0), **kw)]
         else:
-            t_end = t0 + o.goal_window
+            t_end = t0 + o.ik.goal_window
             half = (len(seeds) + 1) // 2
             parts = [
                 ik.solve(goal, sc.pack_over(t0, t_end, ik.max_obstacles), seeds[:half], t_check=(t0, t_end), **kw),

@@ -22,7 +22,7 @@ configurations it returns also pass the planner's continuous-body check
 (the paper constrains ten points; with ten points the body between them can
 dip a few mm toward a sphere).
 
-With ``PlannerOptions.check = "paper"`` the validator is the paper's own check
+With ``[planner.check] mode = "paper"`` the validator is the paper's own check
 (`crtraj.planning.paper_check.PaperValidator`: the robot's ten collision points at
 the ends of 1-s steps only), the steer keeps those points clear with no extra
 margin, and it sees the obstacles as they are at the node's time: Algorithm 1
@@ -81,16 +81,16 @@ class RRT(PlannerBase):
         model, scene = context.model, context.scene
         M = max(scene.n_obstacles if max_obstacles is None else int(max_obstacles), scene.n_obstacles)
         so = SteerOptions() if steer_options is None else steer_options
-        # The paper check (options.check == "paper") looks at the collision points only, so the steer
+        # The paper check (options.check.mode == "paper") looks at the collision points only, so the steer
         # keeps them clear with no continuous-body margin, as the paper's eq. 18 does.
-        self.paper = self.options.check == "paper"
+        self.paper = self.options.check.mode == "paper"
         self.steer_options = replace(
             so,
             n_points=max(so.n_points or 0, self.validator.check_points),
             margin=so.margin if self.paper else max(so.margin, self.steer_margin(scene)),
         )
         self.steer = SteerSolver(model, M, self.steer_options)
-        self.ik = SafeIK(model, self.validator, M, push_rounds=self.options.ik_push_rounds)
+        self.ik = SafeIK(model, self.validator, M, push_rounds=self.options.ik.push_rounds)
 
     def steer_margin(self, scene: Any) -> float:
         """Extra keep-out (mm) for the steer's points so its configurations pass the validator.
@@ -146,7 +146,7 @@ class RRT(PlannerBase):
         sc = v.scene
         if sc.n_obstacles > self.steer.max_obstacles:  # grow the NLPs' obstacle slots (built once more)
             self.steer = SteerSolver(self.model, sc.n_obstacles, self.steer_options)
-            self.ik = SafeIK(self.model, self.validator, sc.n_obstacles, push_rounds=self.options.ik_push_rounds)
+            self.ik = SafeIK(self.model, self.validator, sc.n_obstacles, push_rounds=self.options.ik.push_rounds)
         self.steer.reset_warm_start()  # the same seed must give the same plan
 
     def _fail(self, q: QueryStart, status: PlanStatus, msg: str, trees: list[SearchTree] | None = None) -> PlanResult:
@@ -288,7 +288,7 @@ class RRT(PlannerBase):
         self, tree: SearchTree, v: MotionValidator, tip: np.ndarray, x: np.ndarray, parent: int, cost: float
     ) -> tuple[int, float]:
         """The cheapest verified parent within rewire_radius (the nearest node is already verified)."""
-        near = tree.within(tip, self.options.rewire_radius)
+        near = tree.within(tip, self.options.rrt.rewire_radius)
         near = near[near != parent]
         if not len(near):
             return parent, cost
@@ -310,7 +310,7 @@ class RRT(PlannerBase):
     def _rewire(self, tree: SearchTree, v: MotionValidator, i_new: int) -> int:
         """Reparent neighbours through the new node when that shortens their tip path; returns how many."""
         tip, x = tree.keys[i_new], tree.x[i_new]
-        near = tree.within(tip, self.options.rewire_radius)
+        near = tree.within(tip, self.options.rrt.rewire_radius)
         near = near[(near != i_new) & (near != tree.parent[i_new])]
         if not len(near):
             return 0
