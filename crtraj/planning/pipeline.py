@@ -101,7 +101,7 @@ def plan_executable(
     return ExecutablePlan(result, timing, used_steer, setup)
 
 
-def retime_result(  # long: the docstring and the three outcomes read best in one place
+def retime_result(
     result: PlanResult,
     validator: MotionValidator,
     context: PlanningContext,
