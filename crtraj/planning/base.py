@@ -7,7 +7,8 @@ answers the same call::
          seed=None, scene=None, goal_tolerance=1.0) -> PlanResult
 
 (goal tip and tolerance in mm, t0 in s; `PlanResult.is_success()` tells an
-exact solution). `PlannerBase` holds what crtraj's own planners do before
+exact solution). Every planner is built from a `PlanningContext`
+(`crtraj.planning.context`). `PlannerBase` holds what they all do before
 they search: check the query (`PlanQuery.begin`), pick the validator of the
 query's scene, grow the NLPs' obstacle slots, and resolve the start
 configuration (given, or safe IK for a start tip), timed.
@@ -144,7 +145,7 @@ class PlannerBase:
             stop=stop,
             seed=seed,
         )
-        v = self.validator if scene is None or scene is self.scene else self.context.motion_validity(scene)
+        v = self.context.validity_for(scene)
         self._prepare(v)
         start = QueryStart(query, v, None, "", goal_tolerance, seed, v.n_samples, counts=dict(counts or {}))
         t1 = time.perf_counter()

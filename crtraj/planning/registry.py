@@ -172,7 +172,8 @@ def make_planner(
     max_obstacles: int | None = None,
     rate_limits: RateLimits | None = None,
 ) -> Planner:
-    """The planner `options.algorithm` names (``[planner] algorithm``), from `BUILTIN`."""
+    """The planner `options.algorithm` names (``[planner] algorithm``), from `BUILTIN` (a `PlanningContext`
+    of `model` among `scene` with these options and rate limits; `BUILTIN.create` takes a context)."""
     o = PlannerOptions() if options is None else options
     return BUILTIN.build(
         o.algorithm, model, scene, o, steer_options, max_obstacles=max_obstacles, rate_limits=rate_limits
