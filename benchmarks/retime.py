@@ -34,7 +34,7 @@ from crtraj.model.kinematics import Model
 from crtraj.planning.context import PlanningContext
 from crtraj.planning.metric import BodyMetric
 from crtraj.planning.options import PlannerOptions
-from crtraj.planning.pipeline import _fractions, retime_result
+from crtraj.planning.pipeline import executed_fractions, retime_result
 from crtraj.planning.registry import BUILTIN
 from crtraj.planning.retime import (
     keep_corners,
@@ -80,7 +80,7 @@ def main() -> None:
         if not r0.is_success():
             print(f"{seed:4d}  plan failed: {r0.status}")
             continue
-        old = _fractions(r0, act.limits, context, RATE)
+        old = executed_fractions(r0, act.limits, context, RATE)
         _, sent = SetpointPath.from_actuation(r0.t, r0.cables, act).sample(RATE)
         body = np.max(metric.motion_bound(np.diff(problem.robot.config(act.actuation(sent)), axis=0))) * RATE
         r1, new = retime_result(r0, planner.validator, context, act.limits, RATE)

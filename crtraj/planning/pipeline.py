@@ -128,7 +128,7 @@ def retime_result(
     info: dict[str, Any] = {"method": "closed-form rest-to-rest per straight motion", "rate_hz": rate}
     info["limit_fraction"] = options.limit_fraction
     if not result.has_path or len(result.t) < 2:
-        return result, {**info, "outcome": "no motion", **_fractions(result, actuators, context, rate)}
+        return result, {**info, "outcome": "no motion", **executed_fractions(result, actuators, context, rate)}
     usable = limits.scaled(options.limit_fraction)
     metric = BodyMetric(validator.robot, options.max_speed)
     X, t0, period = result.configs, float(result.t[0]), 1.0 / rate
@@ -157,7 +157,7 @@ def retime_result(
                 out, outcome = timed(stamps, Y, clearance), name
                 break
     info.update(outcome=outcome, verified_duration_s=before, vertices=len(X))
-    return out, {**info, **_fractions(out, actuators, context, rate)}
+    return out, {**info, **executed_fractions(out, actuators, context, rate)}
 
 
 def _setpoints(t: np.ndarray, values: np.ndarray, rate: float) -> np.ndarray:
@@ -176,7 +176,9 @@ def _setpoints(t: np.ndarray, values: np.ndarray, rate: float) -> np.ndarray:
     return HermiteCubic(t, values, slopes)(np.maximum(stamps, t0))
 
 
-def _fractions(result: PlanResult, actuators: ActuatorLimits, context: PlanningContext, rate: float) -> dict[str, Any]:
+def executed_fractions(
+    result: PlanResult, actuators: ActuatorLimits, context: PlanningContext, rate: float
+) -> dict[str, Any]:
     """Executed duration (s) and the largest |velocity| and |acceleration| over all actuators as
     fractions of their full limits, from the set-points the streamer samples (finite differences
     at 1/rate s from rest, as `crtraj.hardware.limits.LimitsGate` checks them)."""
