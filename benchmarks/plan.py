@@ -3,7 +3,7 @@
 Sections (each prints the old and the new path side by side, measured in this one run):
 
 1. Simulation 1 (problems/paper_static.toml): the default planner (cspace) with the interpreted CasADi
-   validity checks (``[planner] compiled = false``, the old path) and with the compiled kernel
+   validity checks (``[planner.check] compiled = false``, the old path) and with the compiled kernel
    (`crtraj.planning.compiled_validity`, the new path): success, median, p90 over the seeds, and
    whether both paths gave identical plans. Targets (issue 14): median <= 15 ms, p90 <= 30 ms.
    Beside it, optionally, the paper's task-space RRT* (`--rrtstar-seeds`).
@@ -49,6 +49,7 @@ from crtraj.io.problem import Problem
 from crtraj.model.kinematics import Model
 from crtraj.model.robot import Robot, Segment
 from crtraj.planning.compiled_validity import ValidityKernel, kernel_functions
+from crtraj.planning.context import PlanningContext
 from crtraj.planning.options import PlannerOptions
 from crtraj.planning.registry import make_planner
 from crtraj.planning.steer import SteerOptions
@@ -107,7 +108,7 @@ def section_sim1(problem: Problem, model: Model, scene: Scene, options: PlannerO
     print("\n== 1. simulation 1 (paper_static), cspace: old vs new validity ==")
     rows = {}
     for label, compiled in MODES:
-        planner = make_planner(model, scene, options.with_(algorithm="cspace", compiled=compiled))
+        planner = make_planner(model, scene, options.with_(algorithm="cspace", check={"compiled": compiled}))
         rows[label] = sim1_queries(planner, problem, model, scene, range(n), options.stop())
     old, new = rows[MODES[0][0]], rows[MODES[1][0]]
     same = all(
@@ -140,9 +141,9 @@ def section_ompl(problem: Problem, model: Model, scene: Scene, options: PlannerO
     ours, ours_cpu = statistics.median(new["times"][:n]), statistics.median(new["cpu"][:n])
     head = f"{'planner':<22s} {'success':>9s} {'wall median / p90':>22s} {'CPU median / p90':>22s}"
     print(f"{head}  crtraj / it (wall, CPU)")
-    o = options.with_(compiled=True, time_limit=10.0)
+    o = options.with_(check={"compiled": True}, time_limit=10.0)
     for algo in ("RRTConnect", "RRTstar"):
-        planner = OMPLPlanner(model, scene, o, algorithm=algo, simplify=False)
+        planner = OMPLPlanner(PlanningContext(model, scene, o), algorithm=algo, simplify=False)
         stop = StopCondition(time_limit=10.0, first_solution=True)
         starts = [r.configs[0] for r in new["results"][:n]]
         planner.plan(task.goal, start_config=starts[0], seed=10_000, stop=stop, goal_tolerance=task.goal_tolerance)
@@ -161,7 +162,8 @@ def table1_times(model: Model, options: PlannerOptions, count: int, n: int, comp
     """cspace plan wall times (s), successes and CPU times (s) on the first n Table I scenes with `count` obstacles."""
     gen = ScenarioGenerator(model, ScenarioOptions(seed=0))
     scenes = [gen.generate(count, i) for i in range(n)]
-    planner = make_planner(model, Scene(), options.with_(algorithm="cspace", compiled=compiled), max_obstacles=8)
+    o = options.with_(algorithm="cspace", check={"compiled": compiled})
+    planner = make_planner(model, Scene(), o, max_obstacles=8)
     warm = ScenarioGenerator(model, ScenarioOptions(seed=99)).generate(count, 0)
     stop = StopCondition(time_limit=5.0, max_iterations=options.max_iterations, first_solution=True)
     planner.plan(warm.goal, start_config=warm.start, scene=warm.scene, stop=stop, seed=0)
@@ -301,7 +303,7 @@ def main() -> None:
     )
     cache = BuildCache()
     t1 = time.perf_counter()
-    for n in sorted({options.check_points, PlannerOptions().check_points}):
+    for n in sorted({options.check.points, PlannerOptions().check.points}):
         ValidityKernel.load(model, n, cache)
     print(f"build cache {cache.root}: kernels ready in {time.perf_counter() - t1:.2f} s ({cache.builds} built)")
     print(f"problem: {problem.name} (start {problem.task.start.tolist()} -> goal {problem.task.goal.tolist()} mm)")
@@ -323,7 +325,7 @@ def main() -> None:
         section_table1(model, options, args.table1)
     if args.scaling > 0:
         section_scaling(model, options, args.scaling, args.plot)
-    section_loaders(model, options.check_points)
+    section_loaders(model, options.check.points)
     print(
         f"\nload average at the end: {os.getloadavg()[0]:.1f} (a shared machine: the old/new ratios of one run "
         "carry the argument, absolute times move with the load)"

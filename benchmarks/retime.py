@@ -1,8 +1,8 @@
 """Retiming of sim-1 plans (problems/paper_static.toml) within the actuator limits (issue 13, item 1).
 
 For each seed: the c-space plan (edges timed within max_speed and the actuators' speed limits),
-then `crtraj.app.plan.retime_result` (the phase-plane law along the smoothed curve through the corners, verified,
-stopping at corners only where the curve fails; `crtraj.planning.retime.retime_curve`). Reported
+then `crtraj.planning.pipeline.retime_result` (the phase-plane law along the smoothed curve through the
+corners, verified, stopping at corners only where the curve fails; `crtraj.planning.retime.retime_curve`). Reported
 side by side: the planner's timing (old; body: its largest body speed as streamed over max_speed),
 the rest-to-rest law along the chords (chords: stops at every corner, the previous retiming) and the
 retimed motion (new): duration, and the largest actuator velocity and acceleration as fractions of
@@ -27,14 +27,15 @@ from pathlib import Path
 
 import numpy as np
 
-from crtraj.app.plan import _fractions, retime_result
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.setpoints import SetpointPath
 from crtraj.io.problem import Problem
 from crtraj.model.kinematics import Model
+from crtraj.planning.context import PlanningContext
 from crtraj.planning.metric import BodyMetric
 from crtraj.planning.options import PlannerOptions
-from crtraj.planning.registry import make_planner
+from crtraj.planning.pipeline import executed_fractions, retime_result
+from crtraj.planning.registry import BUILTIN
 from crtraj.planning.retime import (
     keep_corners,
     min_durations,
@@ -61,7 +62,8 @@ def main() -> None:
     limits = act.rate_limits(problem.robot)
     scene = problem.options(Scene, "scene")
     options = problem.options(PlannerOptions, "planner")
-    planner = make_planner(model, scene, options, rate_limits=limits)
+    context = PlanningContext.build(model, scene, options)
+    planner = BUILTIN.create(options.algorithm, context)
     usable = limits.scaled(options.limit_fraction)
     metric = BodyMetric(problem.robot, options.max_speed)
     task = problem.require_task()
@@ -78,10 +80,10 @@ def main() -> None:
         if not r0.is_success():
             print(f"{seed:4d}  plan failed: {r0.status}")
             continue
-        old = _fractions(r0, act, RATE)
+        old = executed_fractions(r0, act.limits, context, RATE)
         _, sent = SetpointPath.from_actuation(r0.t, r0.cables, act).sample(RATE)
         body = np.max(metric.motion_bound(np.diff(problem.robot.config(act.actuation(sent)), axis=0))) * RATE
-        r1, new = retime_result(r0, planner.validator, options, act, limits, RATE)
+        r1, new = retime_result(r0, planner.validator, context, act.limits, RATE)
         # the curve retiming itself, by the phase-plane pass (crtraj's) and by toppra (the reference)
         per = {}
         for method in ("phase", "toppra"):

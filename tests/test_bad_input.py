@@ -150,9 +150,9 @@ def test_obstacle_centre_1e308_with_html_is_refused_before_planning(tmp_path, ca
 @pytest.mark.parametrize(
     ("old", "new", "needle"),
     [
-        ("check_points = 15", "check_points = 100000000", "planner.check_points: must be <= 1000, got 100000000"),
+        ("points = 15", "points = 100000000", "planner.check.points: must be <= 1000, got 100000000"),
         ("max_iterations = 20000", "max_iterations = 99999999999", "planner.max_iterations: must be <= 10000000"),
-        ("resolution = 3.0", "resolution = 1e-300", "planner.resolution: must be >= 0.1"),
+        ("resolution = 3.0", "resolution = 1e-300", "planner.check.resolution: must be >= 0.1"),
         ("waypoint_step = 20.0", "waypoint_step = 5e-324", "planner.waypoint_step: must be >= 0.1"),
         ("time_limit = 5.0", "time_limit = 1e300", "planner.time_limit: must be"),
         ("goal = [10.0, -120.0, 170.0]", "goal = [10.0, -120.0, 1e300]", "task.goal[2]: must be within +-1e+06"),

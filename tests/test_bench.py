@@ -22,6 +22,7 @@ from crtraj.bench.runner import Table1Bench, bench_stop
 from crtraj.bench.scenarios import Scenario, ScenarioGenerator, ScenarioOptions
 from crtraj.cli import main
 from crtraj.core.errors import InputError
+from crtraj.planning.context import PlanningContext
 from crtraj.planning.ompl import OMPLPlanner, import_ompl
 from crtraj.planning.options import PlannerOptions
 from crtraj.planning.registry import PlannerSpec
@@ -261,12 +262,12 @@ class Collider(StraightToGoal):
         return plan_result(self.model, [0.0, 1.0, 2.0], [x0, x_bad, self.goal_config(goal, x0, seed)])
 
 
-def _straight(model, scene, options, steer_options, max_obstacles):
-    return StraightToGoal(model)
+def _straight(context, steer_options, max_obstacles):
+    return StraightToGoal(context.model)
 
 
-def _collider(model, scene, options, steer_options, max_obstacles):
-    return Collider(model)
+def _collider(context, steer_options, max_obstacles):
+    return Collider(context.model)
 
 
 FAKES = (PlannerSpec("straight", _straight), PlannerSpec("collider", _collider))
@@ -382,7 +383,7 @@ def test_ompl_missing_gives_an_install_hint(monkeypatch):
 def test_ompl_plans_in_space_time_and_passes_the_dense_check(model, generator):
     require_module("ompl", hint="pip install -e '.[bench]'")
     sc = generator.generate(1, 1)
-    planner = OMPLPlanner(model, algorithm="RRTConnect")
+    planner = OMPLPlanner(PlanningContext(model), algorithm="RRTConnect")
     # a generous budget: RRTConnect stops at its first solution, the limit only bounds a failure
     res = planner.plan(sc.goal, start_config=sc.start, scene=sc.scene, stop=StopCondition(time_limit=30.0), seed=3)
     assert res.is_success(), res.message  # one sphere beside the way: solvable
@@ -393,8 +394,13 @@ def test_ompl_plans_in_space_time_and_passes_the_dense_check(model, generator):
     assert res.goal_error <= 1.0
     with pytest.raises(InputError, match="time_limit"):
         planner.plan(sc.goal, start_config=sc.start, scene=sc.scene, stop=StopCondition(max_iterations=10))
-    with pytest.raises(InputError, match="start_config"):
-        planner.plan(sc.goal, start_tip=sc.start_tip, scene=sc.scene, stop=StopCondition(time_limit=1.0))
+    # a start tip is resolved by safe IK, as crtraj's planners resolve it (the `Planner` protocol)
+    by_tip = planner.plan(sc.goal, start_tip=sc.start_tip, scene=sc.scene, stop=StopCondition(time_limit=30.0), seed=3)
+    assert by_tip.is_success(), by_tip.message
+    np.testing.assert_allclose(model.tip_position(by_tip.configs[0]), sc.start_tip, atol=1e-3)
+    assert dense_check(model, sc.scene, by_tip, by_tip.configs[0], sc.goal).is_success()
+    with pytest.raises(InputError, match="start"):
+        planner.plan(sc.goal, scene=sc.scene, stop=StopCondition(time_limit=1.0))
 
 
 def test_bench_calls_every_builtin_planner_through_the_registry(robot):

@@ -18,8 +18,10 @@ from crtraj.core.errors import InputError
 from crtraj.io.problem import Problem, load_robot
 from crtraj.model.kinematics import Model
 from crtraj.planning.compiled_validity import ValidityKernel, kernel_key
+from crtraj.planning.context import PlanningContext
+from crtraj.planning.kernels import Kernels
 from crtraj.planning.options import PlannerOptions
-from crtraj.planning.registry import make_planner
+from crtraj.planning.registry import BUILTIN
 from crtraj.planning.validity import MotionValidator
 from crtraj.world import packing
 from crtraj.world.obstacle import Obstacle
@@ -36,7 +38,7 @@ def kernel_cache(tmp_path_factory):
 
 def validators(model, scene, cache, **kw):
     """(compiled, interpreted) validators of one scene; the compiled one with its own cache folder."""
-    comp = MotionValidator(model, scene, functions={"build_cache": cache}, **kw)
+    comp = MotionValidator(model, scene, kernels=Kernels(cache), **kw)
     assert comp.state.kernel is not None
     return comp, MotionValidator(model, scene, compiled=False, **kw)
 
@@ -93,7 +95,7 @@ def test_static_edge_check_in_c_is_the_numpy_loop(model, kernel_cache):
     problem = Problem.load(PROBLEMS / "paper_static.toml")
     scene = problem.options(Scene, "scene")
     comp, interp = validators(model, scene, kernel_cache)
-    loop = MotionValidator(model, scene, functions={"build_cache": kernel_cache})
+    loop = MotionValidator(model, scene, kernels=Kernels(kernel_cache))
     loop.compiled_loop = False  # the numpy loop (its clearances still from the kernel, static slots)
     rng = np.random.default_rng(5)
     XA, XB = comp.sample(rng, 150), comp.sample(rng, 150)
@@ -180,8 +182,8 @@ def test_moving_edge_check_in_c_is_the_numpy_loop(model, kernel_cache):
     for n_obstacles in (1, 4, 9):
         rng = np.random.default_rng(40 + n_obstacles)
         scene = replace(moving_scene(n_obstacles, rng), time_origin=0.7)
-        comp = MotionValidator(model, scene, functions={"build_cache": kernel_cache})
-        loop = MotionValidator(model, scene, functions={"build_cache": kernel_cache})
+        comp = MotionValidator(model, scene, kernels=Kernels(kernel_cache))
+        loop = MotionValidator(model, scene, kernels=Kernels(kernel_cache))
         loop.compiled_loop = False
         assert comp.state.kernel is not None and not comp.static
         XA, XB = comp.sample(rng, 120), comp.sample(rng, 120)
@@ -235,10 +237,10 @@ def identical_plans(model, kernel_cache, problem_file):
     task = problem.task
     plans = []
     for compiled in (True, False):
-        planner = make_planner(model, scene, options.with_(compiled=compiled))
-        if compiled:
-            planner._functions["build_cache"] = kernel_cache
-            planner.validator = options.with_(compiled=True).validator(model, scene, planner._functions)
+        # the compiled planner's kernels come from the test's cache (a context built with injected kernels)
+        kernels = Kernels(kernel_cache) if compiled else None
+        context = PlanningContext(model, scene, options.with_(check={"compiled": compiled}), kernels=kernels)
+        planner = BUILTIN.create("cspace", context)
         assert (planner.validator.state.kernel is not None) == compiled
         res = [
             planner.plan(task.goal, start_tip=task.start, seed=s, goal_tolerance=task.goal_tolerance) for s in (0, 1)
@@ -295,9 +297,9 @@ def test_without_a_compiler_the_interpreted_path_runs_and_says_so_once(tmp_path,
     problem = Problem.load(PROBLEMS / "paper_static.toml")
     scene = problem.options(Scene, "scene")
     out = io.StringIO()
-    fns = {"build_cache": BuildCache(tmp_path, compiler=None, notice=out)}
-    v1 = MotionValidator(model, scene, functions=fns)
-    v2 = MotionValidator(model, replace(scene, safety_distance=6.0), functions=fns, check_points=9)
+    kernels = Kernels(BuildCache(tmp_path, compiler=None, notice=out))
+    v1 = MotionValidator(model, scene, kernels=kernels)
+    v2 = MotionValidator(model, replace(scene, safety_distance=6.0), kernels=kernels, check_points=9)
     assert v1.state.kernel is None and v2.state.kernel is None
     X = v1.sample(np.random.default_rng(1), 20)
     ref = MotionValidator(model, scene, compiled=False).clearance(X)
@@ -314,9 +316,9 @@ def test_build_command_builds_lists_and_clears_and_commands_reuse_it(tmp_path, m
     (entry,) = BuildCache(tmp_path).entries()
     assert entry.valid
     # a command's validator (its own cache object, as in a new process) loads it and builds nothing
-    fns = {"build_cache": BuildCache()}
-    v = MotionValidator(model, Scene(), check_points=5, functions=fns)
-    assert v.state.kernel.library.parent == entry.path and fns["build_cache"].builds == 0
+    kernels = Kernels(BuildCache())
+    v = MotionValidator(model, Scene(), check_points=5, kernels=kernels)
+    assert v.state.kernel.library.parent == entry.path and kernels.build_cache.builds == 0
     assert main(["build", "--list"]) == 0
     listed = capsys.readouterr().out
     assert "1 entries" in listed and entry.path.name in listed and " ok" in listed

@@ -286,7 +286,7 @@ def _plan_reads(data: dict) -> tuple[list[tuple], list[tuple], list[tuple]]:
     leaves = [p for p in leaves if p != ("description",)]
     tables = [p for p in _tables(data) if not p or (p[0] in sections and p[:2] != ("robot", "actuators"))]
     tiny = [("robot", "cable_radius"), ("robot", "segment", 0, "length"), ("robot", "segment", 1, "length")]
-    tiny += [("planner", "resolution"), ("planner", "waypoint_step")]
+    tiny += [("planner", "check", "resolution"), ("planner", "waypoint_step")]
     return leaves, tables, tiny
 
 

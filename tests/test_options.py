@@ -31,7 +31,7 @@ from crtraj.core.errors import InputError
 from crtraj.core.fields import Table
 from crtraj.core.options import Options, option
 from crtraj.hardware.stream import StreamOptions
-from crtraj.planning.options import PlannerOptions
+from crtraj.planning.options import CheckOptions, CSpaceOptions, IKOptions, PlannerOptions, RRTOptions
 from crtraj.planning.steer import SteerOptions
 from crtraj.viz.view import ViewOptions
 from crtraj.world.feed import FeedOptions
@@ -39,6 +39,10 @@ from crtraj.world.feed import FeedOptions
 # every options section of the package
 SECTION_CLASSES = (
     PlannerOptions,
+    IKOptions,
+    CheckOptions,
+    CSpaceOptions,
+    RRTOptions,
     SteerOptions,
     TrackingOptions,
     BenchOptions,
@@ -134,8 +138,9 @@ def test_every_section_class_uses_the_one_style():
         crtraj.viz.view,
     ):
         assert not {"_FLOATS", "_INTS", "_BOOLS", "_STRS"} & set(vars(module)), module.__name__
-    p = PlannerOptions.from_table(Table({"max_speed": 30, "range": 90.0}, "planner"))
-    assert p.max_speed == 30.0 and p.range == 90.0 and PlannerOptions.from_table(Table(p.to_dict(), "planner")) == p
+    p = PlannerOptions.from_table(Table({"max_speed": 30, "cspace": {"range": 90.0}}, "planner"))
+    assert p.max_speed == 30.0 and p.cspace.range == 90.0
+    assert PlannerOptions.from_table(Table(p.to_dict(), "planner")) == p
 
 
 # The defaults as the classes had them before the conversion (written out here, not read from the classes).

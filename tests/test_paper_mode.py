@@ -18,7 +18,8 @@ from crtraj.bench.modes import rejections, wilson
 from crtraj.bench.records import RunRecord
 from crtraj.bench.runner import _Task, judge
 from crtraj.bench.scenarios import Scenario
-from crtraj.planning.options import PlannerOptions
+from crtraj.planning.context import PlanningContext
+from crtraj.planning.options import CheckOptions, PlannerOptions
 from crtraj.planning.paper_check import PaperValidator, step_end_fractions
 from crtraj.planning.validity import MotionValidator
 from crtraj.world.obstacle import Obstacle
@@ -99,10 +100,11 @@ def test_paper_option_builds_the_paper_validator_and_relaxes_the_rrt_steer(model
     from crtraj.planning.rrt import RRT
 
     scene = Scene(obstacles=(Obstacle(center=(80.0, 0.0, 300.0), radius=30.0),))
-    v = PlannerOptions(check="paper", check_step=0.5).validator(model, scene)
+    v = PlanningContext(model, scene, PlannerOptions(check=CheckOptions(mode="paper", step=0.5))).validator
     assert isinstance(v, PaperValidator) and v.step == 0.5 and v.check_points == model.robot.collision_points
-    assert type(PlannerOptions().validator(model, scene)) is MotionValidator
-    paper, strict = RRT(model, scene, PlannerOptions(check="paper")), RRT(model, scene, PlannerOptions())
+    assert type(PlanningContext(model, scene, PlannerOptions()).validator) is MotionValidator
+    paper = RRT(PlanningContext(model, scene, PlannerOptions(check=CheckOptions(mode="paper"))))
+    strict = RRT(PlanningContext(model, scene, PlannerOptions()))
     assert paper.steer_options.margin == 0.0 < strict.steer_options.margin
     assert paper.steer_options.n_points == model.robot.collision_points
 

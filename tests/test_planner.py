@@ -15,8 +15,9 @@ from crtraj.core.errors import InputError
 from crtraj.io.problem import Problem
 from crtraj.model.robot import Robot
 from crtraj.planning.base import Planner
+from crtraj.planning.context import PlanningContext
 from crtraj.planning.cspace import CSpacePlanner
-from crtraj.planning.options import PlannerOptions
+from crtraj.planning.options import CheckOptions, PlannerOptions, RRTOptions
 from crtraj.planning.registry import BUILTIN, make_planner
 from crtraj.planning.result import PlanStatus
 from crtraj.planning.rrt import RRT, RRTStar
@@ -39,13 +40,15 @@ def steer_options(sim1):
 @pytest.fixture(scope="module")
 def rrt(sim1, steer_options):
     _, model, scene = sim1
-    return RRT(model, scene, PlannerOptions(algorithm="rrt", time_limit=PLANNER_HANG_S), steer_options)
+    return RRT(PlanningContext(model, scene, PlannerOptions(algorithm="rrt", time_limit=PLANNER_HANG_S)), steer_options)
 
 
 @pytest.fixture(scope="module")
 def rrtstar(sim1, steer_options):
     _, model, scene = sim1
-    return RRTStar(model, scene, PlannerOptions(algorithm="rrtstar", time_limit=PLANNER_HANG_S), steer_options)
+    return RRTStar(
+        PlanningContext(model, scene, PlannerOptions(algorithm="rrtstar", time_limit=PLANNER_HANG_S)), steer_options
+    )
 
 
 def test_rrt_plan_is_valid(sim1, rrt):
@@ -112,7 +115,7 @@ def test_make_planner_builds_the_named_algorithm(sim1, steer_options, rrt):
     problem, model, scene = sim1
     task = problem.task
     by_name = make_planner(model, scene)
-    by_hand = CSpacePlanner(model, scene, PlannerOptions())
+    by_hand = CSpacePlanner(PlanningContext(model, scene, PlannerOptions()))
     a = by_name.plan(task.goal, start_tip=task.start, seed=7, goal_tolerance=task.goal_tolerance)
     b = by_hand.plan(task.goal, start_tip=task.start, seed=7, goal_tolerance=task.goal_tolerance)
     assert a.is_success() and a.planner == "cspace"
@@ -213,7 +216,7 @@ def test_plan_problem_overrides(sim1):
     run = plan_problem(problem, algorithm="rrtstar", seed=4, time_limit=30.0, model=model)
     assert run.options.algorithm == "rrtstar" and run.options.time_limit == 30.0
     assert run.result.seed == 4 and run.result.planner == "rrtstar"
-    assert run.steer_options is not None and run.document()["options"]["steer"]["n_points"] == run.options.check_points
+    assert run.steer_options is not None and run.document()["options"]["steer"]["n_points"] == run.options.check.points
     # the file's [planner] section as written, the rest at its defaults
     read = Problem.load(PAPER_STATIC).options(PlannerOptions, "planner")
     assert read == PlannerOptions(
@@ -221,12 +224,11 @@ def test_plan_problem_overrides(sim1):
         time_limit=5.0,
         max_iterations=20000,
         max_speed=50.0,
-        resolution=3.0,
-        check_points=15,
         goal_bias=0.1,
-        rewire_radius=80.0,
         smooth=True,
         waypoint_step=20.0,
+        check=CheckOptions(resolution=3.0, points=15),
+        rrt=RRTOptions(rewire_radius=80.0),
     )
     # the override reached the planner: a task-space tree (tip-space edges rooted at the start tip)
     assert run.result.counts["steer_calls"] >= 1 and run.result.tree_edges.shape[1:] == (2, 3)

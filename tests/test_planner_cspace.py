@@ -14,8 +14,9 @@ from test_planner_helpers import (
 )
 
 from crtraj.core.errors import InputError
+from crtraj.planning.context import PlanningContext
 from crtraj.planning.cspace import CSpacePlanner
-from crtraj.planning.options import PlannerOptions
+from crtraj.planning.options import CSpaceOptions, PlannerOptions
 from crtraj.planning.result import PlanStatus
 from crtraj.planning.stop import StopCondition
 from crtraj.world.obstacle import Obstacle
@@ -30,7 +31,7 @@ def sim1():
 @pytest.fixture(scope="module")
 def planner(sim1):
     _, model, scene = sim1
-    return CSpacePlanner(model, scene, PlannerOptions(time_limit=PLANNER_HANG_S))
+    return CSpacePlanner(PlanningContext(model, scene, PlannerOptions(time_limit=PLANNER_HANG_S)))
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
@@ -133,7 +134,9 @@ def test_tree_search_without_the_via_round(sim1, dynamic):
                 Obstacle(lower.center, lower.radius, amplitude=5.0, omega=0.5, to=(20.0, -70.0, 250.0), duration=6.0),
             )
         )
-    planner = CSpacePlanner(model, scene, PlannerOptions(via_points=0, time_limit=PLANNER_HANG_S))
+    planner = CSpacePlanner(
+        PlanningContext(model, scene, PlannerOptions(time_limit=PLANNER_HANG_S, cspace=CSpaceOptions(via_points=0)))
+    )
     assert planner.validator.static is not dynamic
     for seed in (0, 1):
         res = planner.plan(task.goal, start_tip=task.start, seed=seed, goal_tolerance=task.goal_tolerance)
@@ -146,7 +149,7 @@ def test_no_solution_within_budget_is_reported(sim1):
     problem, model, scene = sim1
     task = problem.task
     # no via round, one tree iteration: not enough for simulation 1 (the direct motion collides)
-    planner = CSpacePlanner(model, scene, PlannerOptions(via_points=0))
+    planner = CSpacePlanner(PlanningContext(model, scene, PlannerOptions(cspace=CSpaceOptions(via_points=0))))
     res = planner.plan(task.goal, start_tip=task.start, seed=0, stop=StopCondition(max_iterations=1))
     assert res.status is PlanStatus.TIMEOUT and not res.is_success() and not res.has_path
     assert "iteration limit (1)" in res.message and len(res.t) == 0
@@ -170,7 +173,7 @@ def test_moving_obstacles_are_avoided_in_time(sim1):
             Obstacle((0.0, 90.0, 330.0), 40.0, amplitude=15.0, omega=1.0),
         )
     )
-    planner = CSpacePlanner(model, scene, PlannerOptions(time_limit=PLANNER_HANG_S))
+    planner = CSpacePlanner(PlanningContext(model, scene, PlannerOptions(time_limit=PLANNER_HANG_S)))
     assert not planner.validator.static
     for seed in (0, 1):
         res = planner.plan([60.0, -100.0, 250.0], start_config=model.robot.straight(-200.0), t0=1.0, seed=seed)
@@ -203,7 +206,7 @@ def _random_static_scene(model, rng):
 def test_statistical_success_on_random_static_scenes(sim1):
     _, model, _ = sim1
     rng = np.random.default_rng(2024)
-    planner = CSpacePlanner(model, Scene(), PlannerOptions(time_limit=PLANNER_HANG_S), max_obstacles=4)
+    planner = CSpacePlanner(PlanningContext(model, Scene(), PlannerOptions(time_limit=PLANNER_HANG_S)), max_obstacles=4)
     ok = 0
     for k in range(20):
         scene, start, goal = _random_static_scene(model, rng)
@@ -223,7 +226,7 @@ def test_statistical_success_on_paper_table1_scenes(sim1):
 
     _, model, _ = sim1
     gen = ScenarioGenerator(model, ScenarioOptions(seed=0))
-    planner = CSpacePlanner(model, Scene(), PlannerOptions(time_limit=PLANNER_HANG_S), max_obstacles=8)
+    planner = CSpacePlanner(PlanningContext(model, Scene(), PlannerOptions(time_limit=PLANNER_HANG_S)), max_obstacles=8)
     ok = 0
     for i in range(20):
         sc = gen.generate(3, i)
@@ -246,7 +249,11 @@ def test_forward_tree_waits_and_keeps_its_times(sim1):
             Obstacle(lower.center, lower.radius, amplitude=5.0, omega=0.5, to=(20.0, -70.0, 250.0), duration=6.0),
         )
     )
-    planner = CSpacePlanner(model, scene, PlannerOptions(via_points=0, wait_bias=1.0, time_limit=PLANNER_HANG_S))
+    planner = CSpacePlanner(
+        PlanningContext(
+            model, scene, PlannerOptions(time_limit=PLANNER_HANG_S, cspace=CSpaceOptions(via_points=0, wait_bias=1.0))
+        )
+    )
     res = planner.plan(task.goal, start_tip=task.start, seed=0, goal_tolerance=task.goal_tolerance)
     assert_valid_plan(res, model, scene, task.goal, task.goal_tolerance)
     # the raw tree path waits somewhere: a repeated configuration at a later time

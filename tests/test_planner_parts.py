@@ -11,7 +11,7 @@ from test_planner_helpers import body_motion_bound, dense_path_check, full_speed
 from crtraj.core.errors import InputError
 from crtraj.core.fields import Table
 from crtraj.planning.nn import NearestNeighbors
-from crtraj.planning.options import PlannerOptions
+from crtraj.planning.options import CheckOptions, CSpaceOptions, IKOptions, PlannerOptions
 from crtraj.planning.postprocess import PathPostprocessor, dedup, dedup_timed
 from crtraj.planning.safe_ik import SafeIK
 from crtraj.planning.stop import StopCondition
@@ -362,8 +362,11 @@ def test_dedup_removes_repeats_only():
 
 # ------------------------------------------------------------------------- options
 def test_planner_options_from_table_and_errors():
-    o = PlannerOptions.from_table(Table({"algorithm": "rrtstar", "time_limit": 2.5, "range": 30.0}, "planner"))
-    assert o.algorithm == "rrtstar" and o.time_limit == 2.5 and o.step == 30.0
+    table = {"algorithm": "rrtstar", "time_limit": 2.5, "rrt": {"range": 30.0}, "cspace": {"range": 90.0}}
+    o = PlannerOptions.from_table(Table(table, "planner"))
+    assert (
+        o.algorithm == "rrtstar" and o.time_limit == 2.5 and o.step == 30.0 and o.with_(algorithm="cspace").step == 90.0
+    )
     assert PlannerOptions().step == 150.0 and PlannerOptions(algorithm="rrt").step == 40.0
     assert o.stop() == StopCondition(2.5, o.max_iterations, o.first_solution)
     with pytest.raises(InputError, match=r"planner\.algorithm"):
@@ -372,9 +375,8 @@ def test_planner_options_from_table_and_errors():
         PlannerOptions.from_table(Table({"tim_limit": 1.0}, "planner"))
     with pytest.raises(InputError, match=r"planner\.goal_bias"):
         PlannerOptions(goal_bias=1.5)
-    assert PlannerOptions.from_table(Table(PlannerOptions(range=12.0).to_dict(), "planner")) == PlannerOptions(
-        range=12.0
-    )
+    changed = PlannerOptions(cspace=CSpaceOptions(range=12.0), ik=IKOptions(seeds=3), check=CheckOptions(mode="paper"))
+    assert PlannerOptions.from_table(Table(changed.to_dict(), "planner")) == changed
 
 
 # ------------------------------------------------------------ waits and timed paths

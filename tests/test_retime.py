@@ -9,15 +9,16 @@ from conftest import PROBLEMS
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from crtraj.app.plan import retime_result
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.setpoints import SetpointPath
 from crtraj.io.problem import Problem
 from crtraj.model.kinematics import Model
+from crtraj.planning.context import PlanningContext
 from crtraj.planning.metric import BodyMetric
 from crtraj.planning.options import PlannerOptions
+from crtraj.planning.pipeline import retime_result
 from crtraj.planning.rate_limits import RateLimits
-from crtraj.planning.registry import make_planner
+from crtraj.planning.registry import BUILTIN
 from crtraj.planning.retime import retime, retime_curve
 from crtraj.world.scene import Scene
 
@@ -104,8 +105,8 @@ def sim1():
     limits = act.rate_limits(problem.robot)
     scene = problem.options(Scene, "scene")
     options = problem.options(PlannerOptions, "planner")
-    planner = make_planner(model, scene, options, rate_limits=limits)
-    return problem, model, act, limits, options, planner
+    context = PlanningContext.build(model, scene, options)
+    return problem, model, act, limits, context, BUILTIN.create(options.algorithm, context)
 
 
 def _body_fraction(X: np.ndarray, metric: BodyMetric, dt: float) -> float:
@@ -135,12 +136,13 @@ def test_sim1_retimed_within_limits_and_no_slower_than_the_planner_timing(sim1, 
     timing whenever that timing, as streamed, keeps the same limits. (The planner's timing streams through
     PCHIP from rest at full body speed, so it reaches 4/3 of max_speed on its first and last motion; it is
     also compared after the uniform slow-down that brings it within the limits, and against the chord law.)"""
-    problem, model, act, limits, options, planner = sim1
+    problem, model, act, limits, context, planner = sim1
+    options = context.options
     task = problem.require_task()
     scene = problem.options(Scene, "scene")
     r0 = planner.plan(task.goal, start_tip=task.start, seed=seed, goal_tolerance=task.goal_tolerance)
     assert r0.is_success()
-    r1, info = retime_result(r0, planner.validator, options, act, limits, RATE)
+    r1, info = retime_result(r0, planner.validator, context, act.limits, RATE)
     assert info["outcome"].startswith("retimed")
     f, dt = options.limit_fraction, 1.0 / RATE
     metric = BodyMetric(problem.robot, options.max_speed)
@@ -176,14 +178,15 @@ def test_dynamic_retiming_is_clear_at_its_own_times_or_keeps_the_verified_timing
     limits = act.rate_limits(problem.robot)
     scene = problem.options(Scene, "scene")
     options = problem.options(PlannerOptions, "planner")
-    planner = make_planner(model, scene, options, rate_limits=limits)
+    context = PlanningContext.build(model, scene, options)
+    planner = BUILTIN.create(options.algorithm, context)
     task = problem.require_task()
     r0 = planner.plan(task.goal, start_tip=task.start, seed=problem.seed, goal_tolerance=task.goal_tolerance)
     assert r0.has_path
     # the timed search times every motion within the actuators' speed limits
     usable = limits.scaled(options.limit_fraction)
     assert np.max(usable.velocity_fraction(np.diff(r0.configs, axis=0) / np.diff(r0.t)[:, None])) <= 1 + 1e-6
-    r1, info = retime_result(r0, planner.validator, options, act, limits, RATE)
+    r1, info = retime_result(r0, planner.validator, context, act.limits, RATE)
     if info["outcome"].startswith("kept"):
         assert np.array_equal(r1.t, r0.t) and np.array_equal(r1.configs, r0.configs)
         return

@@ -35,7 +35,7 @@ class Built:
 
 def default_check_points() -> list[int]:
     """The check-point counts of crtraj's defaults: planner, closed-loop verification, device verification."""
-    return sorted({PlannerOptions().check_points, LoopOptions().check_points, VerifyOptions().check_points})
+    return sorted({PlannerOptions().check.points, LoopOptions().check_points, VerifyOptions().check_points})
 
 
 def build_validity(model: Model, cache: BuildCache, check_points: list[int]) -> list[Built]:

@@ -7,11 +7,9 @@ import contextlib
 import math
 import sys
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
-
-import numpy as np
 
 from crtraj.core.errors import InputError
 from crtraj.core.fileio import (
@@ -24,20 +22,15 @@ from crtraj.core.fileio import (
     to_jsonable,
 )
 from crtraj.core.lazy import lazy_module
-from crtraj.hardware.actuators import Actuators
-from crtraj.hardware.setpoints import SetpointPath
 from crtraj.hardware.stream import StreamOptions
 from crtraj.io.problem import Problem
 from crtraj.io.results import plan_document
 from crtraj.model.kinematics import Model
-from crtraj.planning.metric import BodyMetric
+from crtraj.planning.context import PlanningContext
 from crtraj.planning.options import PlannerOptions
-from crtraj.planning.rate_limits import RateLimits
-from crtraj.planning.registry import make_planner
+from crtraj.planning.pipeline import plan_executable
 from crtraj.planning.result import PlanResult
-from crtraj.planning.retime import retime, retime_curve
 from crtraj.planning.steer import SteerOptions
-from crtraj.planning.validity import MotionValidator
 from crtraj.world.scene import Scene
 
 # the 3-D view (meshcat, zmq: about 0.2 s to import) loads only for --html or --view
@@ -81,7 +74,8 @@ def plan_problem(
     time_limit: float | None = None,
     model: Model | None = None,
 ) -> ProblemPlan:
-    """Plan a problem file's task with its ``[scene]``, ``[planner]`` and ``[steer]`` sections.
+    """Plan a problem file's task with its ``[scene]``, ``[planner]``, ``[steer]`` and ``[stream]`` sections
+    (`crtraj.planning.pipeline.plan_executable`).
 
     algorithm, seed, time_limit (s) override the file. The start is
     ``task.start_config`` when given, else a safe IK solution for ``task.start``.
@@ -98,97 +92,23 @@ def plan_problem(
     if changes:
         options = options.with_(**changes)
     steer_options = problem.options(SteerOptions, "steer")
+    rate = problem.options(StreamOptions, "stream").rate
     model = Model(problem.robot) if model is None else model
-    actuators = Actuators.from_robot(problem.robot) if problem.robot.actuators is not None else None
-    limits = None if actuators is None else actuators.rate_limits(problem.robot)
-    planner = make_planner(model, scene, options, steer_options, rate_limits=limits)
+    context = PlanningContext.build(model, scene, options)
     setup = time.perf_counter() - t1
     seed = problem.seed if seed is None else int(seed)
     start = {"start_config": task.start_config} if task.start_config is not None else {"start_tip": task.start}
-    result = planner.plan(task.goal, seed=seed, goal_tolerance=task.goal_tolerance, **start)
-    used_steer = getattr(planner, "steer_options", None)
-    timing = None
-    if actuators is not None and limits is not None:
-        validator = getattr(planner, "validator", None) or options.validator(model, scene)
-        rate = problem.options(StreamOptions, "stream").rate
-        result, timing = retime_result(result, validator, options, actuators, limits, rate)
-    return ProblemPlan(problem, model, scene, options, used_steer, result, setup, timing)
-
-
-# Over 60 lines only by its docstring and the three outcomes, which read best in one place.
-def retime_result(
-    result: PlanResult,
-    validator: MotionValidator,
-    options: PlannerOptions,
-    actuators: Actuators,
-    limits: RateLimits,
-    rate: float,
-) -> tuple[PlanResult, dict[str, Any]]:
-    """The result timed within `options.limit_fraction` of the actuator limits and max_speed.
-
-    The motion is sampled every 1/rate s (the stream rate) into the new waypoints, so a streamer
-    sampling at that rate sends exactly them. First the time-optimal law along the smoothed curve
-    through the path's corners (`crtraj.planning.retime.retime_curve`): its frames are verified
-    with the planner's validator at their times, and it stops at a corner only where the curve
-    fails. Without a curve (a path of one or two straight motions, or chords that fail at their
-    new times among moving obstacles): the rest-to-rest law along the verified straight motions
-    (`retime`; among moving obstacles re-verified at its own times, then the law that never runs a
-    straight motion faster than the planner's verified timing); if that fails as well, the
-    planner's verified timing is kept (and the fractions below show by how much it exceeds the
-    limits). Returns the result and a report: method, outcome, durations (s) and the largest
-    velocity and acceleration as fractions of the full limits, measured as the streamer samples
-    the motion.
-    """
-    before = result.duration
-    info: dict[str, Any] = {"method": "closed-form rest-to-rest per straight motion", "rate_hz": rate}
-    info["limit_fraction"] = options.limit_fraction
-    if not result.has_path or len(result.t) < 2:
-        return result, {**info, "outcome": "no motion", **_fractions(result, actuators, rate)}
-    usable = limits.scaled(options.limit_fraction)
-    metric = BodyMetric(validator.robot, options.max_speed)
-    X, t0, period = result.configs, float(result.t[0]), 1.0 / rate
-    model = validator.model
-
-    def timed(stamps: np.ndarray, Y: np.ndarray, clearance: float) -> PlanResult:
-        return replace(
-            result, t=stamps, configs=Y, tips=model.tip_position(Y), cables=model.cables(Y), min_clearance=clearance
-        )
-
-    out, outcome = result, "kept the verified timing (the retimed motion failed its collision check)"
-    curve = retime_curve(X, usable, metric, validator, t0=t0, period=period)
-    if curve is not None:
-        # the frames passed their own check at their times; their clearance is measured the same way
-        out = timed(curve.stamps, curve.configs, validator.path_clearance(curve.configs, curve.stamps)[0])
-        outcome = f"retimed along the smoothed curve ({len(curve.stops) - 2} of {curve.corners - 2} corners stopped at)"
-        info.update(method="phase-plane law along the natural cubic spline through the corners; stops where it fails")
-    else:
-        candidates = [("retimed", None)]
-        if not validator.static:
-            candidates.append(("retimed, no faster than verified", np.diff(result.t)))
-        for name, floor in candidates:
-            stamps, Y = retime(X, usable, metric, t0=t0, period=period, at_least=floor).sample()
-            if validator.static or validator.path_valid(Y, stamps):
-                clearance = result.min_clearance if validator.static else validator.path_clearance(Y, stamps)[0]
-                out, outcome = timed(stamps, Y, clearance), name
-                break
-    info.update(outcome=outcome, verified_duration_s=before, vertices=len(X))
-    return out, {**info, **_fractions(out, actuators, rate)}
-
-
-def _fractions(result: PlanResult, actuators: Actuators, rate: float) -> dict[str, Any]:
-    """Executed duration (s) and the largest |velocity| and |acceleration| over all actuators as
-    fractions of their full limits, from the set-points the streamer samples (finite differences
-    at 1/rate s from rest, as `crtraj.hardware.limits.LimitsGate` checks them)."""
-    if len(result.t) < 2:
-        return {"executed_duration_s": result.duration, "max_velocity_fraction": 0.0, "max_acceleration_fraction": 0.0}
-    _, values = SetpointPath.from_actuation(result.t, result.cables, actuators).sample(rate)
-    V = np.diff(values, axis=0) * rate
-    A = np.diff(np.vstack([np.zeros((1, V.shape[1])), V]), axis=0) * rate
-    return {
-        "executed_duration_s": result.duration,
-        "max_velocity_fraction": float(np.max(np.abs(V) / actuators.vmax)),
-        "max_acceleration_fraction": float(np.max(np.abs(A) / actuators.amax)),
-    }
+    run = plan_executable(
+        context,
+        task.goal,
+        seed=seed,
+        goal_tolerance=task.goal_tolerance,
+        steer_options=steer_options,
+        rate=rate,
+        **start,
+    )
+    result = run.result
+    return ProblemPlan(problem, model, scene, options, run.steer_options, result, setup + run.setup_time, run.timing)
 
 
 def _executed(timing: dict[str, Any] | None) -> dict[str, Any]:

@@ -1,7 +1,7 @@
 """The paper's Table I in its own terms: RRT and RRT* planning with the paper's check, on the paper's scenes.
 
 Planners ``rrt-paper`` and ``rrtstar-paper`` are the registry's ``rrt`` and
-``rrtstar`` built with ``PlannerOptions.check = "paper"``
+``rrtstar`` built with ``[planner.check] mode = "paper"``
 (`crtraj.planning.paper_check`: the robot's ten collision points at the ends
 of 1-s time steps only), not a fork of the planner. Every run of every
 planner is judged twice (`crtraj.bench.runner.judge`): by the paper's check
@@ -21,13 +21,10 @@ like with like.
 from __future__ import annotations
 
 from functools import partial
-from typing import Any
 
 from crtraj.bench.scenarios import ScenarioOptions
-from crtraj.model.kinematics import Model
 from crtraj.planning.base import Planner
-from crtraj.planning.options import PlannerOptions
-from crtraj.planning.rate_limits import RateLimits
+from crtraj.planning.context import PlanningContext
 from crtraj.planning.registry import BUILTIN, PlannerSpec
 from crtraj.planning.steer import SteerOptions
 
@@ -38,17 +35,10 @@ _MIN_SPEED = 0.01
 PAPER_SCENES = ScenarioOptions(mean_speed=(_MIN_SPEED, 15.0))
 
 
-def _paper(
-    name: str,
-    model: Model,
-    scene: Any,
-    options: PlannerOptions,
-    steer: SteerOptions | None,
-    max_obstacles: int | None,
-    rate_limits: RateLimits | None = None,
-) -> Planner:
-    del rate_limits  # task-space edges keep full-speed timing (as the registry's rrt and rrtstar)
-    return BUILTIN.build(name, model, scene, options.with_(check="paper"), steer, max_obstacles=max_obstacles)
+def _paper(name: str, context: PlanningContext, steer: SteerOptions | None, max_obstacles: int | None) -> Planner:
+    # task-space edges keep full-speed timing (as the registry's rrt and rrtstar)
+    paper = context.with_options(context.options.with_(check={"mode": "paper"}))
+    return BUILTIN.create(name, paper, steer, max_obstacles=max_obstacles)
 
 
 PAPER_SPECS = (

@@ -193,7 +193,7 @@ class _Task:
     time_limit: float
     goal_tolerance: float
     verify: tuple[int, float, float, float | None]  # points, dt, step, margin (None: the scene's D_sf)
-    check_mode: str = "strict"  # the planner's motion check (PlannerOptions.check)
+    check_mode: str = "strict"  # the planner's motion check (``[planner.check] mode``)
     cpu_budget: bool = False  # time_limit counts CPU time (BenchOptions.cpu_budget)
 
 

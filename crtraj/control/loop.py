@@ -53,10 +53,10 @@ from crtraj.control.ports import Device, DeviceError, ObstacleSource, TipSensor
 from crtraj.control.reference import DirectReference, ReferencePlan, ReferenceSource, TimedReference
 from crtraj.control.reference_worker import PendingPlan, ReferenceWorker
 from crtraj.control.tracking import TrackingController, TrackingOptions
-from crtraj.core.build_cache import BuildCache
 from crtraj.core.errors import InputError
 from crtraj.core.fields import check_array
 from crtraj.model.kinematics import Model
+from crtraj.planning.kernels import Kernels
 from crtraj.planning.rate_limits import RateLimits
 from crtraj.planning.validity import MotionValidator
 from crtraj.world.sources import SceneObstacles
@@ -390,7 +390,7 @@ class ClosedLoop:
         if self.replanner.options.dt != o.dt or o.horizon != self.replanner.N:
             raise InputError("replanner: its dt and horizon must match the loop's options")
         self.obstacles: ObstacleSource = SceneObstacles(scene) if obstacles is None else obstacles
-        self._fns: dict[Any, Any] = {}  # CasADi functions shared by every step's validator
+        self._kernels = Kernels()  # compiled kernels and CasADi functions shared by every step's validator
         self.validator = self._validator(scene)
         # with compiled checks (a C compiler), each step's tracking simulation runs in C as well
         self._tracking = self._compiled_tracking() if self.validator.state.kernel is not None else None
@@ -425,7 +425,7 @@ class ClosedLoop:
     def _compiled_tracking(self) -> CompiledTracking | None:
         """The C tracking simulation (`crtraj.control.compiled_tracking`) from the validity kernel's build cache;
         None in tip mode, without a C compiler, or when it fails to build (said in one stderr line)."""
-        cache = self._fns.setdefault("build_cache", BuildCache())
+        cache = self._kernels.build_cache
         h = self.options.dt / self.n_sub
         try:
             return CompiledTracking.load(self.tracker, h, self.validator.space.metric_matrix, cache)
@@ -436,7 +436,7 @@ class ClosedLoop:
     def _validator(self, scene: Any) -> MotionValidator:
         lo = self.loop_options
         return MotionValidator(
-            self.model, scene, check_points=lo.check_points, resolution=lo.check_resolution, functions=self._fns
+            self.model, scene, check_points=lo.check_points, resolution=lo.check_resolution, kernels=self._kernels
         )
 
     @property

@@ -1,19 +1,9 @@
-"""Actuators of a cable-driven robot: cable lengths <-> servo angles, the z stage, and their limits.
+"""Actuators of a cable-driven robot: cable lengths <-> servo angles, the z stage, and the servo bus.
 
-Each cable is wound on the spool of one servo. With spool radius ``r_s`` (mm),
-zero offset ``a0`` (rad, the servo angle at which the cable has its
-straight-pose length ``L_k``) and winding sign ``s`` (+1 when a positive angle
-pays cable out):
-
-    angle = a0 + s (q - L_k) / r_s        (rad)
-    q     = L_k + s r_s (angle - a0)      (mm)
-
-The base translation is a linear stage commanded in mm:
-``value = z0 + s z``. Limits are in the actuator's own units: rad, rad/s,
-rad/s^2 for servos; mm, mm/s, mm/s^2 for the stage.
-
-Actuator names: ``s<k>c<i>`` for cable i of segment k (both 1-based), then
-``z``. The TOML schema is the ``[robot.actuators]`` table of
+The robot description owns the actuators' scale and limits (`crtraj.model.actuator_limits`, where
+the conversion is written out: ``angle = a0 + s (q - L_k) / r_s`` rad for a servo, ``z0 + s z`` mm
+for the stage); this module adds the Dynamixel bus (ids, models, tick scales) and the mapping that
+the streamer and the devices use. The TOML schema is the ``[robot.actuators]`` table of
 problems/robots/cdsr2.toml.
 """
 
@@ -25,55 +15,23 @@ from typing import Any
 import numpy as np
 
 from crtraj.core.errors import InputError
-from crtraj.core.fields import MAX_LENGTH, Table, check_array
+from crtraj.core.fields import Table, check_array
 from crtraj.hardware.servo_bus import ServoBus, read_bus_keys
-from crtraj.planning.rate_limits import RateLimits
-
-# Smallest spool radius (mm): below it one radian of servo is less than a micrometre of cable.
-MIN_SPOOL = 1e-3
-# Largest speed or acceleration limit (rad/s, mm/s, rad/s^2, mm/s^2).
-MAX_RATE = 1e6
+from crtraj.model.actuator_limits import ActuatorLimits, read_actuator_table
+from crtraj.model.rate_limits import RateLimits
 
 
-def _sign(t: Table, key: str, default: Any) -> float:
-    v = t.raw(key, default)
-    if v not in (1, -1) or isinstance(v, bool):
-        raise t.error(key, f"must be 1 or -1, got {v!r}")
-    return float(v)
+class _BusKeys:
+    """The bus keys of ``[robot.actuators]`` (`crtraj.hardware.servo_bus`), read beside the limits."""
 
+    def shared(self, t: Table) -> dict[str, Any]:
+        base = {k: v for k, v in read_bus_keys(t, {}, stage=False).items() if k != "id"}
+        if t.has("id"):
+            raise t.error("id", "set per servo ([robot.actuators.servo.<name>] id = ...), not once for all")
+        return base
 
-def _limits(t: Table, key: str) -> tuple[float, float]:
-    lo, hi = t.vec(key, 2, limit=MAX_LENGTH)
-    if lo > hi:
-        raise t.error(key, f"must be [low, high] with low <= high, got [{lo:g}, {hi:g}]")
-    return lo, hi
-
-
-def _pick(t: Table, key: str, base: dict[str, Any], read: Any) -> Any:
-    """`key` from `t` when present, else the shared default, else a missing-key error."""
-    if t.has(key):
-        return read()
-    if base.get(key) is not None:
-        return base[key]
-    raise t.error(key, "missing (required; set it here or once for all servos in [robot.actuators])")
-
-
-def _read_actuator(t: Table, base: dict[str, Any], spool: bool, bus_base: dict[str, Any]) -> dict[str, Any]:
-    """Read one actuator's keys from `t`, falling back to `base` (the shared servo defaults);
-    its Dynamixel bus keys (`crtraj.hardware.servo_bus`, defaults `bus_base`) go to ``d["bus"]``."""
-    d: dict[str, Any] = {"bus": read_bus_keys(t, bus_base, stage=not spool)}
-    if spool:
-        d["spool_radius"] = _pick(
-            t, "spool_radius", base, lambda: t.float("spool_radius", ge=MIN_SPOOL, limit=MAX_LENGTH)
-        )
-    d["zero_offset"] = t.float("zero_offset", base.get("zero_offset", 0.0), limit=MAX_LENGTH)
-    d["sign"] = _sign(t, "sign", base.get("sign", 1))
-    d["position_limits"] = _pick(t, "position_limits", base, lambda: _limits(t, "position_limits"))
-    d["velocity_limit"] = _pick(t, "velocity_limit", base, lambda: t.float("velocity_limit", gt=0.0, limit=MAX_RATE))
-    d["acceleration_limit"] = _pick(
-        t, "acceleration_limit", base, lambda: t.float("acceleration_limit", gt=0.0, limit=MAX_RATE)
-    )
-    return d
+    def row(self, t: Table, shared: dict[str, Any], stage: bool) -> dict[str, Any]:
+        return read_bus_keys(t, shared, stage=stage)
 
 
 @dataclass(frozen=True)
@@ -161,13 +119,16 @@ class Actuators:
         q = self._rest() + (a2 - self.zero_offset) / self.scale
         return q[0] if a.ndim == 1 else q
 
-    def rate_limits(self, robot: Any) -> RateLimits:
-        """The speed and acceleration limits as linear limits on configuration motion of `robot`.
+    @property
+    def limits(self) -> ActuatorLimits:
+        """The scale and limits of these actuators, as the robot description holds them."""
+        arrays = (self.spool_radius, self.sign, self.zero_offset, self.lower, self.upper, self.vmax, self.amax)
+        return ActuatorLimits(self.n_segments, *arrays)
 
-        value = offset + scale (q - rest), q = q0 + A x: d value / d x = diag(scale) A.
-        """
-        A, _ = robot.cable_matrix()
-        return RateLimits(self.scale[:, None] * np.asarray(A, dtype=float), self.vmax, self.amax, self.names)
+    def rate_limits(self, robot: Any) -> RateLimits:
+        """The speed and acceleration limits as linear limits on configuration motion of `robot`
+        (`crtraj.model.actuator_limits.ActuatorLimits.rate_limits`)."""
+        return self.limits.rate_limits(robot)
 
     def position_violation(self, values: np.ndarray) -> np.ndarray:
         """How far each value is outside its position limits (<= 0 inside), same shape as values."""
@@ -187,50 +148,20 @@ class Actuators:
 
     @classmethod
     def from_table(cls, t: Table, n_segments: int) -> Actuators:
-        """Read ``[robot.actuators]``: shared servo keys, ``[servo.<name>]`` overrides and ``[z]``."""
-        if n_segments < 1:
-            raise t.error("", "needs at least one segment")
-        base: dict[str, Any] = {}
-        if t.has("spool_radius"):
-            base["spool_radius"] = t.float("spool_radius", ge=MIN_SPOOL, limit=MAX_LENGTH)
-        base["zero_offset"] = t.float("zero_offset", 0.0, limit=MAX_LENGTH)
-        base["sign"] = _sign(t, "sign", 1)
-        base["position_limits"] = _limits(t, "position_limits") if t.has("position_limits") else None
-        for key in ("velocity_limit", "acceleration_limit"):
-            base[key] = t.float(key, gt=0.0, limit=MAX_RATE) if t.has(key) else None
-        bus_base = {k: v for k, v in read_bus_keys(t, {}, stage=False).items() if k != "id"}
-        if t.has("id"):
-            raise t.error("id", "set per servo ([robot.actuators.servo.<name>] id = ...), not once for all")
-        names = [f"s{k + 1}c{i + 1}" for k in range(n_segments) for i in range(3)]
-        over = t.table("servo")
-        for key in over.keys():
-            if key not in names:
-                raise over.error(key, f"unknown actuator (known: {', '.join(names)})")
-        rows = []
-        for name in names:
-            st = over.table(name)
-            rows.append(_read_actuator(st, base, spool=True, bus_base=bus_base))
-            st.finish()
-        over.finish()
-        if not t.has("z"):
-            raise t.error("z", "missing: add [robot.actuators.z] (the base stage; position_limits = [0, 0] if fixed)")
-        zt = t.table("z")
-        zrow = _read_actuator(zt, {}, spool=False, bus_base=bus_base)
-        zt.finish()
-        t.finish()
-        rows.append(zrow)
-        names_all = (*names, "z")
-        where = [f"{t.path}.servo.{n}" for n in names] + [f"{t.path}.z"]
-        bus = ServoBus.from_rows(names_all, [r["bus"] for r in rows], where)
+        """Read ``[robot.actuators]``: the limits (`crtraj.model.actuator_limits.read_actuator_table`)
+        and the bus keys of every actuator; an unknown key is a one-line `InputError`."""
+        limits, rows, where = read_actuator_table(t, n_segments, _BusKeys())
+        names = limits.names
+        bus = ServoBus.from_rows(names, rows, where)
         return cls(
             n_segments=n_segments,
-            spool_radius=np.array([r["spool_radius"] for r in rows[:-1]]),
-            sign=np.array([r["sign"] for r in rows]),
-            zero_offset=np.array([r["zero_offset"] for r in rows]),
-            lower=np.array([r["position_limits"][0] for r in rows]),
-            upper=np.array([r["position_limits"][1] for r in rows]),
-            vmax=np.array([r["velocity_limit"] for r in rows]),
-            amax=np.array([r["acceleration_limit"] for r in rows]),
+            spool_radius=limits.spool_radius,
+            sign=limits.sign,
+            zero_offset=limits.zero_offset,
+            lower=limits.lower,
+            upper=limits.upper,
+            vmax=limits.vmax,
+            amax=limits.amax,
             bus=bus,
         )
 

@@ -49,6 +49,7 @@ from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.limits import LimitsGate
 from crtraj.model.kinematics import Model
 from crtraj.model.robot import Robot
+from crtraj.planning.kernels import Kernels
 from crtraj.planning.validity import MotionValidator
 
 # Slack of the configuration-limit comparison (rad or mm): the round trip x -> q -> values -> q -> x.
@@ -84,7 +85,7 @@ class FrameVerifier:
     robot: the robot the frames drive; actuators: its actuators (bound to it);
     scene: the obstacles, in the frames' clock; dt: the stream period (s).
     model: a `Model` of `robot` to reuse (building one compiles CasADi
-    functions); functions: a CasADi function cache to share between verifiers.
+    functions); kernels: the compiled kernels and CasADi functions to share between verifiers.
     """
 
     def __init__(
@@ -96,7 +97,7 @@ class FrameVerifier:
         options: VerifyOptions | None = None,
         *,
         model: Model | None = None,
-        functions: dict[Any, Any] | None = None,
+        kernels: Kernels | None = None,
     ) -> None:
         self.robot = robot
         self.actuators = actuators
@@ -104,10 +105,10 @@ class FrameVerifier:
         self.dt = float(dt)
         self.options = VerifyOptions() if options is None else options
         self.model = Model(robot) if model is None else model
-        self._functions: dict[Any, Any] = {} if functions is None else functions
+        self._kernels = Kernels() if kernels is None else kernels
         o = self.options
         self.validator = MotionValidator(
-            self.model, scene, check_points=o.check_points, resolution=o.resolution, functions=self._functions
+            self.model, scene, check_points=o.check_points, resolution=o.resolution, kernels=self._kernels
         )
         self.gate = LimitsGate(actuators, self.dt)
         self._A, self._q0 = robot.cable_matrix()
@@ -115,7 +116,7 @@ class FrameVerifier:
     def with_scene(self, scene: Any) -> FrameVerifier:
         """The same checks against another scene (a live snapshot), sharing the model and functions."""
         return FrameVerifier(
-            self.robot, self.actuators, scene, self.dt, self.options, model=self.model, functions=self._functions
+            self.robot, self.actuators, scene, self.dt, self.options, model=self.model, kernels=self._kernels
         )
 
     @property

@@ -25,6 +25,8 @@ import numpy as np
 
 from crtraj.core.errors import InputError
 from crtraj.core.fields import MAX_LENGTH, Table, check_name
+from crtraj.model.actuator_limits import ActuatorLimits
+from crtraj.model.rate_limits import RateLimits
 
 CABLE_SPACING = 2.0 * math.pi / 3.0  # rad, paper's xi: three cables 120 degrees apart
 # Size bounds, checked before any model is built: every solver's size grows
@@ -64,8 +66,9 @@ class Robot:
     the robot's discs (mm), added to the backbone for collision checks.
     collision_points: backbone points the solvers keep clear (paper: 10).
     actuators: the raw ``[robot.actuators]`` table (an immutable mapping) or
-    None. The model never reads it; `crtraj.hardware.actuators.Actuators.from_robot`
-    parses it, and `crtraj.io.problem` validates it when a robot file is loaded.
+    None. `actuator_limits` reads its scale and limits (`crtraj.model.actuator_limits`);
+    `crtraj.hardware.actuators.Actuators.from_robot` adds the bus keys, and `crtraj.io.problem`
+    validates the whole table when a robot file is loaded.
     """
 
     name: str
@@ -108,6 +111,15 @@ class Robot:
             if not isinstance(self.actuators, Mapping):
                 raise InputError(f"robot.actuators: expected a table, got {type(self.actuators).__name__}")
             object.__setattr__(self, "actuators", _frozen(self.actuators))
+
+    def actuator_limits(self) -> ActuatorLimits | None:
+        """The actuators' scale and speed/acceleration/position limits, or None without ``[robot.actuators]``."""
+        return None if self.actuators is None else ActuatorLimits.from_robot(self)
+
+    def rate_limits(self) -> RateLimits | None:
+        """The actuators' full speed and acceleration limits on configuration motion (None: no actuators)."""
+        limits = self.actuator_limits()
+        return None if limits is None else limits.rate_limits(self)
 
     # ------------------------------------------------------------------ sizes
     @property
@@ -254,7 +266,7 @@ class Robot:
         z = t.vec("z_range", 2, (0.0, 0.0), limit=MAX_LENGTH)
         if z[0] > z[1]:
             raise t.error("z_range", f"must be [low, high] with low <= high, got {list(z)}")
-        # kept raw: the hardware layer owns the actuator schema (Actuators.from_robot)
+        # kept raw: read by `actuator_limits` (limits) and the hardware layer (bus keys)
         actuators = t.raw("actuators", None)
         robot = cls(
             name=check_name(t.str("name"), t.path + ".name" if t.path else "name"),

@@ -7,7 +7,8 @@ answers the same call::
          seed=None, scene=None, goal_tolerance=1.0) -> PlanResult
 
 (goal tip and tolerance in mm, t0 in s; `PlanResult.is_success()` tells an
-exact solution). `PlannerBase` holds what crtraj's own planners do before
+exact solution). Every planner is built from a `PlanningContext`
+(`crtraj.planning.context`). `PlannerBase` holds what they all do before
 they search: check the query (`PlanQuery.begin`), pick the validator of the
 query's scene, grow the NLPs' obstacle slots, and resolve the start
 configuration (given, or safe IK for a start tip), timed.
@@ -17,11 +18,12 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
 from crtraj.model.kinematics import Model
+from crtraj.planning.context import PlanningContext
 from crtraj.planning.options import PlannerOptions
 from crtraj.planning.postprocess import empty_result
 from crtraj.planning.query import PlanQuery
@@ -99,23 +101,20 @@ class QueryStart:
 class PlannerBase:
     """Shared construction and query prologue of crtraj's planners (subclasses set `name`).
 
-    model: the robot's `Model`. scene: the default `crtraj.world.scene.Scene`
-    (a query may pass another). options: `PlannerOptions`. rate_limits: the actuators' full
-    limits (`options.limit_fraction` of them is used): every motion is timed within their speed limits.
+    context: the `PlanningContext` (model, default scene, options, validity, rate limits and
+    kernels); with rate limits every motion is timed within `options.limit_fraction` of them.
     """
 
-    name: ClassVar[str] = ""
+    name: str = ""  # a class attribute of each planner (OMPL's: per instance, by algorithm)
 
-    def __init__(
-        self, model: Model, scene: Any, options: PlannerOptions, rate_limits: RateLimits | None = None
-    ) -> None:
-        self.model = model
-        self.robot = model.robot
-        self.scene = scene
-        self.options = options
-        self._functions: dict[Any, Any] = {}  # CasADi functions shared by this planner's validators
-        self.rate_limits = rate_limits
-        self.validator = options.validator(model, scene, self._functions, rate_limits)
+    def __init__(self, context: PlanningContext) -> None:
+        self.context = context
+        self.model: Model = context.model
+        self.robot = context.model.robot
+        self.scene = context.scene
+        self.options: PlannerOptions = context.options
+        self.rate_limits: RateLimits | None = context.rate_limits
+        self.validator: MotionValidator = context.validator
         self.ik: SafeIK  # set by the subclass (its obstacle slots)
 
     def _prepare(self, validator: MotionValidator) -> None:
@@ -146,8 +145,7 @@ class PlannerBase:
             stop=stop,
             seed=seed,
         )
-        same = scene is None or scene is self.scene
-        v = self.validator if same else o.validator(self.model, scene, self._functions, self.rate_limits)
+        v = self.context.validity_for(scene)
         self._prepare(v)
         start = QueryStart(query, v, None, "", goal_tolerance, seed, v.n_samples, counts=dict(counts or {}))
         t1 = time.perf_counter()
@@ -158,11 +156,11 @@ class PlannerBase:
             start_tip=start_tip,
             t0=query.t0,
             rng=query.rng,
-            seeds=o.ik_seeds,
-            iterations=o.ik_iterations,
+            seeds=o.ik.seeds,
+            iterations=o.ik.iterations,
             deadline=query.deadline,
             tip_tolerance=min(1e-3, goal_tolerance),
-            max_nlp=o.ik_nlp_solves,
+            max_nlp=o.ik.nlp_solves,
         )
         start.timings["start_ik"] = time.perf_counter() - t1
         start.counts["ik_solves_start"] = n_ik

@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import ctypes
 import hashlib
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -554,23 +553,3 @@ class ValidityKernel:
         out = np.empty(len(dX))
         self._check(self._motion_bound(len(dX), dX.ctypes.data, out.ctypes.data), "motion bound")
         return out
-
-
-def shared_kernel(functions: dict[Any, Any], model: Model, check_points: int) -> ValidityKernel | None:
-    """The kernel for `model` at `check_points`, kept in a planner's shared function cache `functions`.
-
-    Loaded (or built) once per cache dict; the dict also holds the one `BuildCache` of its planner, so the
-    no-compiler notice is printed once. A failed build is reported in one stderr line and the interpreted
-    path is used (the result is the same, only slower); so is a count above `MAX_COMPILED_POINTS`.
-    """
-    key = ("validity_kernel", int(check_points))
-    if check_points > MAX_COMPILED_POINTS:
-        return None
-    if key not in functions:
-        cache = functions.setdefault("build_cache", BuildCache())
-        try:
-            functions[key] = ValidityKernel.load(model, check_points, cache)
-        except (RuntimeError, OSError) as exc:
-            print(f"crtraj: compiled validity unavailable ({exc}): using the interpreted path", file=sys.stderr)
-            functions[key] = None
-    return functions[key]

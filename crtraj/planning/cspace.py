@@ -60,12 +60,10 @@ from typing import Any
 import numpy as np
 
 from crtraj.core.fields import check_array
-from crtraj.model.kinematics import Model
 from crtraj.planning.base import PlannerBase, QueryStart
+from crtraj.planning.context import PlanningContext
 from crtraj.planning.cspace_search import CSpaceSearch
-from crtraj.planning.options import PlannerOptions
 from crtraj.planning.postprocess import PathPostprocessor, tree_edges
-from crtraj.planning.rate_limits import RateLimits
 from crtraj.planning.result import PlanResult, PlanStatus
 from crtraj.planning.safe_ik import SafeIK, format_statuses
 from crtraj.planning.stop import StopCondition
@@ -75,29 +73,20 @@ from crtraj.planning.validity import MotionValidator
 class CSpacePlanner(PlannerBase):
     """Configuration-space planner for one robot; reuse it for many queries.
 
-    model: the robot's `Model`. scene: the default `crtraj.world.scene.Scene`
-    (a query may pass another). options: `PlannerOptions`. max_obstacles:
-    obstacle slots of the IK NLP (default: the scene's count; grown on demand). rate_limits:
-    the actuators' limits (`RateLimits`): edges are timed within their speed limits.
+    context: the `PlanningContext` (model, default scene, options; with rate limits every edge is
+    timed within their speed limits). max_obstacles: obstacle slots of the IK NLP (default: the
+    scene's count; grown on demand).
     """
 
     name = "cspace"
 
-    def __init__(
-        self,
-        model: Model,
-        scene: Any,
-        options: PlannerOptions | None = None,
-        *,
-        max_obstacles: int | None = None,
-        rate_limits: RateLimits | None = None,
-    ) -> None:
-        super().__init__(model, scene, PlannerOptions() if options is None else options, rate_limits)
+    def __init__(self, context: PlanningContext, *, max_obstacles: int | None = None) -> None:
+        super().__init__(context)
+        scene = context.scene
         m = scene.n_obstacles if max_obstacles is None else int(max_obstacles)
-        self.ik = SafeIK(model, self.validator, max(m, scene.n_obstacles), push_rounds=self.options.ik_push_rounds)
+        self.ik = SafeIK(self.model, self.validator, max(m, scene.n_obstacles), push_rounds=self.options.ik.push_rounds)
 
     # ------------------------------------------------------------------ query
-    # Over 60 lines only by its docstring (the re-planning recipe); the body is the five stages in order.
     def plan(
         self,
         goal: Any,
@@ -146,17 +135,8 @@ class CSpacePlanner(PlannerBase):
         run = _Query(q, np.zeros((0, self.robot.nx)), [])
         if q.x_start is None:
             return self._fail(run, PlanStatus.INVALID_START, q.why)
-
-        # ---- goal configurations
-        t1 = time.perf_counter()
         statuses: dict[str, int] = {}
-        if goal_config is not None:
-            goals = check_array(goal_config, "goal_config", (self.robot.nx,))[None]
-            if q.validator.static:  # among moving obstacles the search checks it at the time it is reached
-                goals = goals[q.validator.state_valid(goals)]
-        else:
-            goals = self._goal_configs(q, q.x_start, statuses)
-        q.timings["goal_ik"] = time.perf_counter() - t1
+        goals = self._goals(q, q.x_start, goal_config, statuses)
         if not len(goals):
             return self._fail(
                 run,
@@ -165,8 +145,23 @@ class CSpacePlanner(PlannerBase):
                 f"({q.counts.get('ik_solves_goal', 0)} IK solves: {format_statuses(statuses)})",
             )
         run.goals = goals
+        return self._search(run)
 
-        # ---- search
+    def _goals(self, q: QueryStart, xs: np.ndarray, goal_config: Any, statuses: dict[str, int]) -> np.ndarray:
+        """The goal configurations: `goal_config` when given (checked), else safe IK solutions (timed)."""
+        t1 = time.perf_counter()
+        if goal_config is not None:
+            goals = check_array(goal_config, "goal_config", (self.robot.nx,))[None]
+            if q.validator.static:  # among moving obstacles the search checks it at the time it is reached
+                goals = goals[q.validator.state_valid(goals)]
+        else:
+            goals = self._goal_configs(q, xs, statuses)
+        q.timings["goal_ik"] = time.perf_counter() - t1
+        return goals
+
+    def _search(self, run: _Query) -> PlanResult:
+        """Grow the trees to the goal configurations, then shortcut and smooth the path found."""
+        q, goals = run.q, run.goals
         t1 = time.perf_counter()
         query = q.query
         search = CSpaceSearch(q.validator, self.options, q.x_start, goals, query.t0, query.clock, query.rng, q.counts)
@@ -180,33 +175,33 @@ class CSpacePlanner(PlannerBase):
 
     def _prepare(self, v: MotionValidator) -> None:
         if v.scene.n_obstacles > self.ik.max_obstacles:
-            self.ik = SafeIK(self.model, self.validator, v.scene.n_obstacles, push_rounds=self.options.ik_push_rounds)
+            self.ik = SafeIK(self.model, self.validator, v.scene.n_obstacles, push_rounds=self.options.ik.push_rounds)
 
     # ---------------------------------------------------------------- goal IK
     def _goal_configs(self, q: QueryStart, x_start: np.ndarray, statuses: dict[str, int]) -> np.ndarray:
         """Distinct safe configurations (G, nx) with the tip on the goal; IK statuses are added to `statuses`."""
         o, v, ik = self.options, q.validator, self.ik
         sc, goal, t0, rng = v.scene, q.query.goal, q.query.t0, q.query.rng
-        n = o.ik_seeds
+        n = o.ik.seeds
         # the start itself is the first seed: its projection is a goal configuration close to the start
         seeds = np.concatenate([x_start[None], v.sample(rng, n - 1)]) if n > 1 else x_start[None]
         tip_tol = min(1e-3, q.goal_tolerance)
         kw = {
-            "want": o.goal_configs,
-            "newton_iterations": o.ik_iterations,
+            "want": o.ik.goal_configs,
+            "newton_iterations": o.ik.iterations,
             "deadline": q.query.deadline,
             "validator": v,
-            "max_nlp": o.ik_nlp_solves,
+            "max_nlp": o.ik.nlp_solves,
             # the safe goal configuration nearest the start: short paths, above all when re-planning
             "always": (0,),
         }
-        if v.static or o.goal_window == 0:
+        if v.static or o.ik.goal_window == 0:
             parts = [ik.solve(goal, sc.pack(t0, ik.max_obstacles), seeds, tip_tolerance=tip_tol, **kw)]
         else:
             # half the starts keep clear of everything the obstacles sweep over the goal window, by
             # projection only: that NLP is often infeasible (the spheres sweep over the goal region)
             # and its failures would cost far more than the rest of the query
-            t_end = t0 + o.goal_window
+            t_end = t0 + o.ik.goal_window
             half = (len(seeds) + 1) // 2
             parts = [
                 ik.solve(

@@ -115,7 +115,7 @@ class CSpaceSearch:
         """
         v, o = self.v, self.o
         self.clock.tick()
-        K = o.via_points
+        K = o.cspace.via_points
         if K == 0:
             return None
         # half uniform over the whole space, half around the straight motions to the goal configurations
@@ -126,7 +126,7 @@ class CSpaceSearch:
         g[: n_local // 2] = self.goals[int(np.argmin(v.motion_bound(self.goals - self.x_start)))]
         lam = rng.uniform(0.2, 0.8, size=(n_local, 1))
         y = v.metric(self.x_start + lam * (g - self.x_start)) + rng.normal(
-            scale=o.via_spread, size=(n_local, len(g[0]))
+            scale=o.cspace.via_spread, size=(n_local, len(g[0]))
         )
         local = v.project_limits(v.config_from_metric(y))
         vias = np.concatenate([local, v.sample(rng, K - n_local)])
@@ -229,7 +229,7 @@ class CSpaceSearch:
             clock.tick()
             goal_sample = rng.random() < o.goal_bias
             y_rand = y_goals[rng.integers(len(y_goals))] if goal_sample else self._sample()
-            waits = rng.random() < o.wait_bias
+            waits = rng.random() < o.cspace.wait_bias
             if len(fails) < len(ts):
                 fails = np.concatenate([fails, np.zeros(len(ts) - len(fails), dtype=int)])
             i, d = self._pick_node(ts, y_rand, fails)
@@ -249,7 +249,7 @@ class CSpaceSearch:
             g, _ = goal_tree.nearest(ts.keys[i_new])
             x_goal = self.goals[g]
             j, met = self.grow.advance(ts, i_new, x_goal, timed=True)
-            if not met and rng.random() < o.wait_bias:
+            if not met and rng.random() < o.cspace.wait_bias:
                 j = self.grow.wait_connect(ts, i_new, x_goal)
                 met = j >= 0
             if met:

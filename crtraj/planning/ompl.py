@@ -45,21 +45,19 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import replace
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 
 from crtraj.core.errors import InputError
-from crtraj.core.fields import check_array
-from crtraj.model.kinematics import Model
-from crtraj.planning.options import PlannerOptions
+from crtraj.planning.base import PlannerBase, QueryStart
+from crtraj.planning.context import PlanningContext
 from crtraj.planning.result import PlanResult, PlanStatus
 from crtraj.planning.safe_ik import SafeIK
 from crtraj.planning.stop import StopCondition
 from crtraj.planning.validity import MotionValidator
 from crtraj.world import packing
-from crtraj.world.scene import Scene
 
 ALGORITHMS = ("RRTstar", "RRTConnect", "RRT")
 
@@ -77,24 +75,111 @@ def import_ompl() -> tuple[Any, Any, Any]:
     return ob, og, ou
 
 
-class OMPLPlanner:
+@dataclass
+class _SpaceTime:
+    """One query's (y, tau) space (module docstring): its validator, start time t0 (s), tau per
+    second (mm/s), the goal tip (mm) and its safe configurations, and the run's counts."""
+
+    v: MotionValidator
+    t0: float
+    tscale: float
+    goal: np.ndarray
+    goals: np.ndarray
+    counts: dict[str, int]
+    rng: np.random.Generator
+    progress: list[tuple[float, float]] = field(default_factory=list)
+
+    @property
+    def nx(self) -> int:
+        return int(self.v.robot.nx)
+
+    def unpack(self, s: Any) -> tuple[np.ndarray, float]:
+        """(configuration, time in s) of an OMPL state."""
+        nx = self.nx
+        y = np.array([s[i] for i in range(nx)])
+        return self.v.config_from_metric(y), self.t0 + s[nx] / self.tscale
+
+    def bounds(self, ob: Any, horizon: float) -> Any:
+        """The state space: bending discs and z stroke in y, the horizon (s) in tau."""
+        robot, v, nx = self.v.robot, self.v, self.nx
+        space = ob.RealVectorStateSpace(nx + 1)
+        bounds = ob.RealVectorBounds(nx + 1)
+        tmax = np.array([s.theta_max for s in robot.segments])
+        for k in range(robot.n_segments):
+            r = float(v.weights[k] * tmax[k])
+            for j in (2 * k, 2 * k + 1):
+                bounds.setLow(j, -r)
+                bounds.setHigh(j, r)
+        bounds.setLow(nx - 1, float(robot.z_range[0]))
+        bounds.setHigh(nx - 1, float(max(robot.z_range[1], robot.z_range[0] + 1e-9)))
+        bounds.setLow(nx, 0.0)
+        bounds.setHigh(nx, self.tscale * horizon)
+        space.setBounds(bounds)
+        return space
+
+
+def _callbacks(ob: Any, st: _SpaceTime, xs: np.ndarray, model: Any, horizon: float) -> tuple[type, type, type]:
+    """OMPL's state validity, motion validity and goal region classes for the query `st` (they are
+    OMPL subclasses, so they close over the query instead of holding it)."""
+    v, counts, nx, goal, rng = st.v, st.counts, st.nx, st.goal, st.rng
+    speed = v.max_speed
+
+    class Validity(ob.StateValidityChecker):
+        def isValid(self, s: Any) -> bool:  # noqa: N802 (OMPL's name)
+            counts["validity_checks"] += 1
+            x, t = st.unpack(s)
+            return bool(v.state_valid(x[None], t)[0])
+
+    class Motion(ob.MotionValidator):
+        def checkMotion(self, s1: Any, s2: Any) -> bool:  # noqa: N802 (OMPL's name)
+            counts["motion_checks"] += 1
+            x1, t1_ = st.unpack(s1)
+            x2, t2_ = st.unpack(s2)
+            if (t2_ - t1_) * speed < float(v.motion_bound(x2 - x1)) - 1e-9:
+                return False  # backwards in time, or faster than the body speed limit
+            if not bool(v.within_limits(x2[None])[0]):
+                return False
+            per_edge, _, _ = v.edge_clearance(x1[None], x2[None], t1_, t2_)
+            return bool(per_edge[0] >= 0.0)
+
+    y_goals = v.metric(st.goals)
+    tau_min = v.motion_bound(st.goals - xs[None]) * (st.tscale / speed)  # earliest arrival at each goal
+    tau_max = st.tscale * horizon
+
+    class Goal(ob.GoalSampleableRegion):
+        def distanceGoal(self, s: Any) -> float:  # noqa: N802 (OMPL's name)
+            x, _ = st.unpack(s)
+            return float(np.linalg.norm(model.tip_position(x) - goal))
+
+        def sampleGoal(self, s: Any) -> None:  # noqa: N802 (OMPL's name)
+            counts["goal_samples"] += 1
+            k = int(rng.integers(len(y_goals)))
+            lo = min(float(tau_min[k]), tau_max)
+            tau = float(rng.uniform(lo, tau_max))
+            for i in range(nx):
+                s[i] = float(y_goals[k, i])
+            s[nx] = tau
+
+        def maxSampleCount(self) -> int:  # noqa: N802 (OMPL's name)
+            return 1_000_000
+
+    return Validity, Motion, Goal
+
+
+class OMPLPlanner(PlannerBase):
     """One OMPL planner for one robot; reuse it for many queries (like `crtraj.planning.cspace.CSpacePlanner`).
 
-    model: the robot's `Model`. scene: the default `Scene` (a query may pass
-    another). options: `PlannerOptions` shared with crtraj's planners (max
-    speed, collision resolution, check points, IK seeds, goal window,
-    goal_bias). algorithm: "RRTstar", "RRTConnect" or "RRT". horizon: latest
-    arrival time considered, after t0 (s). time_weight: w in tau = w *
-    max_speed * t (module docstring). range: OMPL's extension range (mm in
-    (y, tau); None keeps OMPL's default, 20 % of the space's extent).
-    simplify: run OMPL's PathSimplifier on the solution with the time left.
+    context: the `PlanningContext` (model, default scene, options shared with crtraj's planners:
+    max speed, collision resolution, check points, IK seeds, goal window, goal_bias).
+    algorithm: "RRTstar", "RRTConnect" or "RRT". horizon: latest arrival time considered, after
+    t0 (s). time_weight: w in tau = w * max_speed * t (module docstring). range: OMPL's extension
+    range (mm in (y, tau); None keeps OMPL's default, 20 % of the space's extent). simplify: run
+    OMPL's PathSimplifier on the solution with the time left.
     """
 
     def __init__(
         self,
-        model: Model,
-        scene: Scene | None = None,
-        options: PlannerOptions | None = None,
+        context: PlanningContext,
         *,
         algorithm: str = "RRTstar",
         horizon: float = 60.0,
@@ -112,65 +197,55 @@ class OMPLPlanner:
             raise InputError(f"range: must be a finite number > 0 (mm), got {range!r}")
         self.ob, self.og, self.ou = import_ompl()
         self.ou.setLogLevel(self.ou.LOG_NONE)  # OMPL's console chatter would interleave with progress bars
-        self.model = model
-        self.robot = model.robot
-        self.scene = scene if scene is not None else Scene()
-        self.options = options if options is not None else PlannerOptions()
+        super().__init__(context)
         self.algorithm = algorithm
-        self.name = f"ompl-{algorithm.lower()}"
+        self.name = f"ompl-{algorithm.lower()}"  # per instance: one class, three algorithms
         self.horizon = float(horizon)
         self.time_weight = float(time_weight)
         self.range = range
         self.simplify = bool(simplify)
         self._iks: dict[int, SafeIK] = {}
+        self.ik = self._ik(self.scene.n_obstacles, self.validator)
 
     # ---------------------------------------------------------------- helpers
     def _ik(self, n_obstacles: int, v: MotionValidator) -> SafeIK:
         slots = packing.slot_count(n_obstacles)
         ik = self._iks.get(slots)
         if ik is None:
-            ik = SafeIK(self.model, v, slots, push_rounds=self.options.ik_push_rounds)
+            ik = SafeIK(self.model, v, slots, push_rounds=self.options.ik.push_rounds)
             self._iks[slots] = ik
         return ik
 
-    def _goal_configs(
-        self,
-        v: MotionValidator,
-        goal: np.ndarray,
-        xs: np.ndarray,
-        t0: float,
-        rng: np.random.Generator,
-        deadline: float,
-        goal_tolerance: float,
-        counts: dict[str, int],
-    ) -> np.ndarray:
+    def _prepare(self, validator: MotionValidator) -> None:
+        self.ik = self._ik(validator.scene.n_obstacles, validator)
+
+    def _goal_configs(self, q: QueryStart, xs: np.ndarray) -> np.ndarray:
         """Safe configurations with the tip on the goal, found as the c-space planner finds them."""
-        o, sc = self.options, v.scene
+        o, v, query = self.options, q.validator, q.query
+        sc, t0, goal = v.scene, query.t0, query.goal
         ik = self._ik(sc.n_obstacles, v)
-        n = o.ik_seeds
-        seeds = np.concatenate([xs[None], v.sample(rng, n - 1)]) if n > 1 else xs[None]
+        n = o.ik.seeds
+        seeds = np.concatenate([xs[None], v.sample(query.rng, n - 1)]) if n > 1 else xs[None]
         kw: dict[str, Any] = {
-            "want": o.goal_configs,
-            "newton_iterations": o.ik_iterations,
-            "deadline": deadline,
+            "want": o.ik.goal_configs,
+            "newton_iterations": o.ik.iterations,
+            "deadline": query.deadline,
             "validator": v,
-            "tip_tolerance": min(1e-3, goal_tolerance),
+            "tip_tolerance": min(1e-3, q.goal_tolerance),
         }
-        if v.static or o.goal_window == 0:
+        if v.static or o.ik.goal_window == 0:
             parts = [ik.solve(goal, sc.pack(t0, ik.max_obstacles), seeds, t_check=(t0, t0), **kw)]
         else:
-            t_end = t0 + o.goal_window
+            t_end = t0 + o.ik.goal_window
             half = (len(seeds) + 1) // 2
             parts = [
                 ik.solve(goal, sc.pack_over(t0, t_end, ik.max_obstacles), seeds[:half], t_check=(t0, t_end), **kw),
                 ik.solve(goal, sc.pack(t0, ik.max_obstacles), seeds[half:], t_check=(t0, t0), **kw),
             ]
-        counts["ik_solves_goal"] = sum(len(b.solutions) for b in parts)
+        q.counts["ik_solves_goal"] = sum(len(b.solutions) for b in parts)
         return np.concatenate([b.safe for b in parts])
 
     # ------------------------------------------------------------------ query
-    # Long by design: OMPL's Python callbacks (validity, motion, goal) are classes that close over this
-    # query's validator, clock and generator; split apart they would need a per-query object holding them all.
     def plan(
         self,
         goal: Any,
@@ -180,13 +255,11 @@ class OMPLPlanner:
         t0: float = 0.0,
         stop: StopCondition | None = None,
         seed: int | None = None,
-        scene: Scene | None = None,
+        scene: Any = None,
         goal_tolerance: float = 1.0,
     ) -> PlanResult:
-        """Plan from a start configuration (nx,) to a goal tip (3,) mm, starting at time t0 (s).
-
-        The `crtraj.planning.base.Planner` call; a start tip is not supported
-        (OMPL plans from a configuration: give start_config).
+        """Plan from a start configuration (nx,) or a start tip (3,) mm (safe IK, as the c-space planner
+        resolves it) to a goal tip (3,) mm, starting at time t0 (s): the `crtraj.planning.base.Planner` call.
 
         stop: must limit time (OMPL planners stop on wall time; an iteration
         limit is not available through OMPL's Python API); first_solution
@@ -194,126 +267,47 @@ class OMPLPlanner:
         OMPL's random generator. Bad input raises `InputError`; an unsafe
         start or an unreachable goal is a result status.
         """
-        ob, og, ou = self.ob, self.og, self.ou
-        o = self.options
-        if start_tip is not None or start_config is None:
-            raise InputError("start_config: OMPL planners start from a configuration (start_tip is not supported)")
-        goal = check_array(goal, "goal", (3,))
-        xs = check_array(start_config, "start_config", (self.robot.nx,))
-        t0 = float(check_array(t0, "t0", ()))
-        if not (math.isfinite(goal_tolerance) and goal_tolerance > 0):
-            raise InputError(f"goal_tolerance: must be > 0 mm, got {goal_tolerance}")
-        stop = StopCondition(time_limit=o.time_limit) if stop is None else stop
+        stop = StopCondition(time_limit=self.options.time_limit) if stop is None else stop
         if stop.time_limit is None:
             raise InputError("stop.time_limit: OMPL planners need a time limit (s)")
-        clock = stop.start()
-        deadline = clock.t_start + stop.time_limit
-        rng = np.random.default_rng(seed)
-        sc = self.scene if scene is None else scene
-        v = self.options.validator(self.model, sc)
-        timings: dict[str, float] = {}
-        counts: dict[str, int] = {"validity_checks": 0, "motion_checks": 0, "goal_samples": 0}
-        # every improved solution: (s since the planner call began, its cost); see PlanResult.cost_progress
-        progress: list[tuple[float, float]] = []
-
-        def finish(
-            status: PlanStatus,
-            message: str,
-            X: np.ndarray | None = None,
-            T: np.ndarray | None = None,
-            goals: np.ndarray | None = None,
-        ) -> PlanResult:
-            timings["total"] = time.perf_counter() - clock.t_start
-            result = self._result(status, message, seed, v, goal, X, T, goals, timings, counts)
-            return replace(result, cost_progress=tuple(progress))
-
-        # ---- start
-        viol = float(self.robot.limit_violation(xs)[0])
-        if viol > 1e-7:
-            return finish(PlanStatus.INVALID_START, f"start configuration violates the robot limits by {viol:.3g}")
-        c0 = float(v.clearance(xs[None], t0)[0])
-        if c0 < 0:
-            return finish(PlanStatus.INVALID_START, f"start configuration is in collision: clearance {c0:.2f} mm")
-
-        # ---- goal configurations
+        counts = {"validity_checks": 0, "motion_checks": 0, "goal_samples": 0}
+        q = self._begin(
+            goal,
+            start_config=start_config,
+            start_tip=start_tip,
+            t0=t0,
+            stop=stop,
+            seed=seed,
+            scene=scene,
+            goal_tolerance=goal_tolerance,
+            counts=counts,
+        )
+        if q.x_start is None:
+            return self._finish(q, None, PlanStatus.INVALID_START, q.why)
         t1 = time.perf_counter()
-        goals = self._goal_configs(v, goal, xs, t0, rng, deadline, goal_tolerance, counts)
-        timings["goal_ik"] = time.perf_counter() - t1
+        goals = self._goal_configs(q, q.x_start)
+        q.timings["goal_ik"] = time.perf_counter() - t1
         if not len(goals):
-            return finish(PlanStatus.INVALID_GOAL, f"no safe configuration puts the tip on the goal {goal.tolist()} mm")
+            msg = f"no safe configuration puts the tip on the goal {q.query.goal.tolist()} mm"
+            return self._finish(q, None, PlanStatus.INVALID_GOAL, msg)
+        tscale = self.time_weight * q.validator.max_speed  # mm of tau per second
+        st = _SpaceTime(q.validator, q.query.t0, tscale, q.query.goal, goals, q.counts, q.query.rng)
+        return self._search(q, st, q.x_start)
 
-        # ---- the OMPL problem in (y, tau)
-        speed = v.max_speed
-        tscale = self.time_weight * speed  # mm of tau per second
-        nx = self.robot.nx
-        n = self.robot.n_segments
-        space = ob.RealVectorStateSpace(nx + 1)
-        bounds = ob.RealVectorBounds(nx + 1)
-        tmax = np.array([s.theta_max for s in self.robot.segments])
-        for k in range(n):
-            r = float(v.weights[k] * tmax[k])
-            for j in (2 * k, 2 * k + 1):
-                bounds.setLow(j, -r)
-                bounds.setHigh(j, r)
-        bounds.setLow(nx - 1, float(self.robot.z_range[0]))
-        bounds.setHigh(nx - 1, float(max(self.robot.z_range[1], self.robot.z_range[0] + 1e-9)))
-        bounds.setLow(nx, 0.0)
-        bounds.setHigh(nx, tscale * self.horizon)
-        space.setBounds(bounds)
+    def _problem(self, st: _SpaceTime, xs: np.ndarray, goal_tolerance: float) -> tuple[Any, Any, Any, Any]:
+        """(space information, problem definition, goal region, planner) of one query."""
+        ob, og = self.ob, self.og
+        space = st.bounds(ob, self.horizon)
         si = ob.SpaceInformation(space)
-
-        def unpack(s: Any) -> tuple[np.ndarray, float]:
-            y = np.array([s[i] for i in range(nx)])
-            return v.config_from_metric(y), t0 + s[nx] / tscale
-
-        class Validity(ob.StateValidityChecker):
-            def isValid(self, s: Any) -> bool:  # noqa: N802 (OMPL's name)
-                counts["validity_checks"] += 1
-                x, t = unpack(s)
-                return bool(v.state_valid(x[None], t)[0])
-
-        class Motion(ob.MotionValidator):
-            def checkMotion(self, s1: Any, s2: Any) -> bool:  # noqa: N802 (OMPL's name)
-                counts["motion_checks"] += 1
-                x1, t1_ = unpack(s1)
-                x2, t2_ = unpack(s2)
-                if (t2_ - t1_) * speed < float(v.motion_bound(x2 - x1)) - 1e-9:
-                    return False  # backwards in time, or faster than the body speed limit
-                if not bool(v.within_limits(x2[None])[0]):
-                    return False
-                per_edge, _, _ = v.edge_clearance(x1[None], x2[None], t1_, t2_)
-                return bool(per_edge[0] >= 0.0)
-
-        y_goals = v.metric(goals)
-        tau_min = v.motion_bound(goals - xs[None]) * (tscale / speed)  # earliest arrival at each goal
-        tau_max = tscale * self.horizon
-        model = self.model
-
-        class Goal(ob.GoalSampleableRegion):
-            def distanceGoal(self, s: Any) -> float:  # noqa: N802 (OMPL's name)
-                x, _ = unpack(s)
-                return float(np.linalg.norm(model.tip_position(x) - goal))
-
-            def sampleGoal(self, s: Any) -> None:  # noqa: N802 (OMPL's name)
-                counts["goal_samples"] += 1
-                k = int(rng.integers(len(y_goals)))
-                lo = min(float(tau_min[k]), tau_max)
-                tau = float(rng.uniform(lo, tau_max))
-                for i in range(nx):
-                    s[i] = float(y_goals[k, i])
-                s[nx] = tau
-
-            def maxSampleCount(self) -> int:  # noqa: N802 (OMPL's name)
-                return 1_000_000
-
+        Validity, Motion, Goal = _callbacks(ob, st, xs, self.model, self.horizon)
         si.setStateValidityChecker(Validity(si))
         si.setMotionValidator(Motion(si))
         si.setup()
         pdef = ob.ProblemDefinition(si)
         start = space.allocState()
-        for i, val in enumerate(v.metric(xs)):
+        for i, val in enumerate(st.v.metric(xs)):
             start[i] = float(val)
-        start[nx] = 0.0
+        start[st.nx] = 0.0
         pdef.addStartState(start)
         goal_region = Goal(si)
         goal_region.setThreshold(float(goal_tolerance))
@@ -324,56 +318,84 @@ class OMPLPlanner:
         if self.range is not None:
             planner.setRange(float(self.range))
         if self.algorithm in ("RRTstar", "RRT"):
-            planner.setGoalBias(float(o.goal_bias))
+            planner.setGoalBias(float(self.options.goal_bias))
         if self.algorithm == "RRTstar":
             planner.setDelayCC(True)
         planner.setProblemDefinition(pdef)
         planner.setup()
-        if seed is not None:
-            ou.RNG.setSeed(int(seed) % 2_147_483_646 + 1)  # OMPL seeds must be positive 32-bit
+        return si, pdef, goal_region, planner
 
-        # ---- solve
-        left = deadline - time.perf_counter()
-        if left <= 0:
-            return finish(PlanStatus.TIMEOUT, "no time left after the goal IK", goals=goals)
+    def _termination(self, planner: Any, q: QueryStart, left: float, progress: list[tuple[float, float]]) -> Any:
+        """OMPL's termination condition: the time left, RRTstar's first solution when the stop asks for
+        it, and a watcher of RRTstar's best cost that never fires."""
+        ob = self.ob
         ptc = ob.timedPlannerTerminationCondition(left)
-        if stop.first_solution and self.algorithm == "RRTstar":
+        if q.query.stop.first_solution and self.algorithm == "RRTstar":
             # RRTstar adds its path to the problem only when solve() returns, so an exact-solution condition
             # never fires while it runs; its best cost turns finite at its first solution
             first = ob.PlannerTerminationCondition(lambda: math.isfinite(planner.bestCost().value()))
             ptc = ob.plannerOrTerminationCondition(ptc, first)
-        t1 = time.perf_counter()
         # Time to first solution and the best-cost progress (OMPL's benchmark format): the planner asks its
         # termination condition once per iteration, so a condition that never fires can watch the best cost
         # (the wheel's bindings cannot pass a Python intermediate-solution callback).
         if self.algorithm == "RRTstar":
-            ptc = ob.plannerOrTerminationCondition(
-                ptc, ob.PlannerTerminationCondition(lambda: self._watch(planner, clock.t_start, progress))
-            )
+            t_start = q.query.clock.t_start
+            watch = ob.PlannerTerminationCondition(lambda: self._watch(planner, t_start, progress))
+            ptc = ob.plannerOrTerminationCondition(ptc, watch)
+        return ptc
+
+    def _search(self, q: QueryStart, st: _SpaceTime, xs: np.ndarray) -> PlanResult:
+        """Set up OMPL's problem in (y, tau), solve it within the deadline and read its path back."""
+        ob = self.ob
+        si, pdef, goal_region, planner = self._problem(st, xs, q.goal_tolerance)
+        if q.seed is not None:
+            self.ou.RNG.setSeed(int(q.seed) % 2_147_483_646 + 1)  # OMPL seeds must be positive 32-bit
+        left = q.query.deadline - time.perf_counter()
+        if left <= 0:
+            return self._finish(q, st, PlanStatus.TIMEOUT, "no time left after the goal IK")
+        ptc = self._termination(planner, q, left, st.progress)
+        t1 = time.perf_counter()
         status = planner.solve(ptc)
-        timings["search"] = time.perf_counter() - t1
-        if not progress and pdef.hasExactSolution():  # found at the solve's end (RRTConnect stops there)
-            progress.append((time.perf_counter() - clock.t_start, float(pdef.getSolutionPath().length())))
-        if progress:
-            timings["first_solution"] = progress[0][0]
+        q.timings["search"] = time.perf_counter() - t1
+        t_start = q.query.clock.t_start
+        if not st.progress and pdef.hasExactSolution():  # found at the solve's end (RRTConnect stops there)
+            st.progress.append((time.perf_counter() - t_start, float(pdef.getSolutionPath().length())))
+        if st.progress:
+            q.timings["first_solution"] = st.progress[0][0]
         data = ob.PlannerData(si)
         planner.getPlannerData(data)
-        counts["graph_states"] = int(data.numVertices())
+        q.counts["graph_states"] = int(data.numVertices())
         exact = status.getStatus() == ob.PlannerStatus.EXACT_SOLUTION and pdef.hasExactSolution()
         if not pdef.hasSolution():
-            return finish(PlanStatus.TIMEOUT, f"OMPL {self.algorithm}: {status.asString()}", goals=goals)
+            return self._finish(q, st, PlanStatus.TIMEOUT, f"OMPL {self.algorithm}: {status.asString()}")
         path = pdef.getSolutionPath()
-        left = deadline - time.perf_counter()
+        left = q.query.deadline - time.perf_counter()
         if exact and self.simplify and left > 0:
             t1 = time.perf_counter()
-            og.PathSimplifier(si, goal_region).simplify(path, left)
-            timings["simplify"] = time.perf_counter() - t1
+            self.og.PathSimplifier(si, goal_region).simplify(path, left)
+            q.timings["simplify"] = time.perf_counter() - t1
+        nx = st.nx
         S = np.array([[path.getState(i)[j] for j in range(nx + 1)] for i in range(path.getStateCount())])
-        X = v.config_from_metric(S[:, :nx])
-        T = t0 + S[:, nx] / tscale
+        X = st.v.config_from_metric(S[:, :nx])
+        T = st.t0 + S[:, nx] / st.tscale
         X[0] = xs  # the metric round trip moves the start by round-off only
         msg = f"OMPL {self.algorithm}: {status.asString()}; {len(X)} waypoints"
-        return finish(PlanStatus.EXACT if exact else PlanStatus.APPROXIMATE, msg, X, T, goals)
+        return self._finish(q, st, PlanStatus.EXACT if exact else PlanStatus.APPROXIMATE, msg, X, T)
+
+    def _finish(
+        self,
+        q: QueryStart,
+        st: _SpaceTime | None,
+        status: PlanStatus,
+        message: str,
+        X: np.ndarray | None = None,
+        T: np.ndarray | None = None,
+    ) -> PlanResult:
+        """The query's result, with its timings, counts and best-cost progress."""
+        q.timings["total"] = time.perf_counter() - q.query.clock.t_start
+        goals = None if st is None else st.goals
+        result = self._result(status, message, q, goals, X, T)
+        return replace(result, cost_progress=tuple(() if st is None else st.progress))
 
     @staticmethod
     def _watch(planner: Any, t_start: float, progress: list[tuple[float, float]]) -> bool:
@@ -387,15 +409,13 @@ class OMPLPlanner:
         self,
         status: PlanStatus,
         message: str,
-        seed: int | None,
-        v: MotionValidator,
-        goal: np.ndarray,
+        q: QueryStart,
+        goals: np.ndarray | None,
         X: np.ndarray | None,
         T: np.ndarray | None,
-        goals: np.ndarray | None,
-        timings: dict[str, float],
-        counts: dict[str, int],
     ) -> PlanResult:
+        """The result of a finished query: the timed path with its length, cost and clearance."""
+        seed, v, goal, timings, counts = q.seed, q.validator, q.query.goal, q.timings, q.counts
         nx, nq = self.robot.nx, self.robot.nq
         if X is None or T is None:
             return PlanResult(

@@ -1,20 +1,28 @@
-"""Options of every planner, read from a problem file's ``[planner]`` section."""
+"""Options of the planners, read from a problem file's ``[planner]`` section and its sub-tables.
+
+``[planner]`` holds what every planner shares (the algorithm, the stop condition, motion timing and
+path post-processing); ``[planner.ik]`` the safe IK of the start and goal (`IKOptions`),
+``[planner.check]`` the state and motion validity (`CheckOptions`), and each planner its own table:
+``[planner.cspace]`` (`CSpaceOptions`) and ``[planner.rrt]`` (`RRTOptions`, rrt and rrtstar).
+A file that still has one of the old flat keys gets a one-line error saying where it moved
+(``planner.ik_seeds: moved to [planner.ik] seeds``).
+"""
 
 from __future__ import annotations
 
+import dataclasses
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
-from crtraj.core.fields import MAX_LENGTH, MAX_TIME
+from crtraj.core.errors import InputError
+from crtraj.core.fields import MAX_LENGTH, MAX_TIME, Table
 from crtraj.core.options import Options, option
-from crtraj.planning.paper_check import PaperValidator
-from crtraj.planning.rate_limits import RateLimits
 from crtraj.planning.stop import StopCondition
-from crtraj.planning.validity import MotionValidator
 
 ALGORITHMS = ("cspace", "rrt", "rrtstar")
 # "strict": the continuous body over continuous time (`MotionValidator`); "paper": the paper's
-# collision points at the ends of `check_step`-second steps only (`crtraj.planning.paper_check`).
+# collision points at the ends of `step`-second steps only (`crtraj.planning.paper_check`).
 CHECKS = ("strict", "paper")
 
 # Bounds: the highs keep one planner call within memory and a bounded number of solver calls (each far above
@@ -23,8 +31,117 @@ CHECKS = ("strict", "paper")
 
 
 @dataclass(frozen=True)
+class IKOptions(Options):
+    """Safe IK of a query's start tip and goal (``[planner.ik]``; units mm, s).
+
+    seeds: random starts of the goal/start IK. goal_configs: stop the IK once this many distinct safe
+    goal configurations exist. iterations: damped-Newton iterations of the batch projection before
+    the safety-constrained IPOPT NLP takes over. nlp_solves: at most this many NLP solves per IK
+    query (the slow, rarely needed stage). push_rounds: rounds of the IK's push-out stage between
+    the two (on-target projections that come too close to an obstacle move along the tip
+    constraint's null space until they clear it; 0 skips the stage). goal_window: dynamic scenes
+    only: half of the IK starts keep clear of everything the obstacles sweep over
+    [t0, t0 + goal_window] (s), by projection only (no NLP: often infeasible); the other half, with
+    the NLP stage, keep clear at t0.
+    """
+
+    SECTION: ClassVar[str] = "planner.ik"
+
+    seeds: int = option(64, ge=1, le=10_000)
+    goal_configs: int = option(4, ge=1, le=1000)
+    iterations: int = option(15, ge=0, le=10_000)
+    nlp_solves: int = option(8, ge=0, le=1000)
+    push_rounds: int = option(12, ge=0, le=1000)
+    goal_window: float = option(4.0, ge=0.0, le=MAX_TIME)
+
+
+@dataclass(frozen=True)
+class CheckOptions(Options):
+    """State and motion validity (``[planner.check]``; units mm, s).
+
+    mode: "strict" (default: the continuous body over continuous time) or "paper" (the paper's
+    Table I check: the robot's collision points at the ends of `step`-second steps only; meant for
+    rrt and rrtstar, see `crtraj.planning.paper_check`). step: the paper check's time step (s).
+    resolution: largest body motion between collision-checked samples (mm). points: backbone
+    points per collision check (>= 2). compiled: run the collision checks through the compiled
+    kernel (C generated once per robot and cached, `crtraj build`) when a C compiler is available;
+    false: the interpreted CasADi path (same results to rounding, several times slower).
+    """
+
+    SECTION: ClassVar[str] = "planner.check"
+
+    mode: str = option("strict", choices=CHECKS)
+    step: float = option(1.0, ge=1e-3, le=MAX_TIME)
+    resolution: float = option(3.0, ge=0.1, le=MAX_LENGTH)
+    points: int = option(15, ge=2, le=1000)
+    compiled: bool = option(True)
+
+
+@dataclass(frozen=True)
+class CSpaceOptions(Options):
+    """The configuration-space planner's own settings (``[planner.cspace]``; units mm, s).
+
+    range: longest extension per iteration (mm of body motion). wait_bias: among moving obstacles
+    only: probability that a tree extension first waits at its node (a random 0-2 s), and that a
+    failed connection to the goal set is retried after waits of 0.25-4 s. via_points: random
+    intermediate configurations tried at once as start -> via -> goal before the trees grow (0:
+    skip); half of them uniform, half scattered by `via_spread` (mm of body motion, normal per
+    metric axis) around the straight motions to the goal configurations.
+    """
+
+    SECTION: ClassVar[str] = "planner.cspace"
+
+    range: float = option(150.0, ge=1e-3, le=MAX_LENGTH)
+    wait_bias: float = option(0.3, ge=0.0, le=1.0)
+    via_points: int = option(32, ge=0, le=10_000)
+    via_spread: float = option(100.0, gt=0.0, le=MAX_LENGTH)
+
+
+@dataclass(frozen=True)
+class RRTOptions(Options):
+    """The task-space RRT and RRT*'s own settings (``[planner.rrt]``; units mm).
+
+    range: longest tip travel per iteration (mm). rewire_radius: RRT* neighbour radius around a
+    new tip (mm; rrtstar only).
+    """
+
+    SECTION: ClassVar[str] = "planner.rrt"
+
+    range: float = option(40.0, ge=1e-3, le=MAX_LENGTH)
+    rewire_radius: float = option(80.0, gt=0.0, le=MAX_LENGTH)
+
+
+# The sub-tables' defaults (one immutable object each), the sub-tables by field name, and where each old
+# flat key of [planner] went.
+DEFAULT_IK, DEFAULT_CHECK, DEFAULT_CSPACE, DEFAULT_RRT = IKOptions(), CheckOptions(), CSpaceOptions(), RRTOptions()
+_SUBTABLES: Mapping[str, type[Options]] = {
+    "ik": IKOptions,
+    "check": CheckOptions,
+    "cspace": CSpaceOptions,
+    "rrt": RRTOptions,
+}
+MOVED: Mapping[str, tuple[str, str]] = {
+    "ik_seeds": ("ik", "seeds"),
+    "goal_configs": ("ik", "goal_configs"),
+    "ik_iterations": ("ik", "iterations"),
+    "ik_nlp_solves": ("ik", "nlp_solves"),
+    "ik_push_rounds": ("ik", "push_rounds"),
+    "goal_window": ("ik", "goal_window"),
+    "resolution": ("check", "resolution"),
+    "check_points": ("check", "points"),
+    "compiled": ("check", "compiled"),
+    "check": ("check", "mode"),
+    "check_step": ("check", "step"),
+    "wait_bias": ("cspace", "wait_bias"),
+    "via_points": ("cspace", "via_points"),
+    "via_spread": ("cspace", "via_spread"),
+    "rewire_radius": ("rrt", "rewire_radius"),
+}
+
+
+@dataclass(frozen=True)
 class PlannerOptions(Options):
-    """Planner settings (units mm, s). Defaults suit the paper's two-segment robot.
+    """Planner settings shared by every planner, and the sub-tables (units mm, s).
 
     algorithm: "cspace" (safe goal IK + RRT-Connect in configuration space,
     the default), "rrt" or "rrtstar" (the paper's Algorithm 1 over tip
@@ -33,45 +150,17 @@ class PlannerOptions(Options):
     (`crtraj.planning.stop.StopCondition`); with first_solution false, rrt and
     rrtstar keep growing (rrtstar: improving) the tree until time or
     iterations run out; cspace returns its first path (then shortcuts it).
-    goal_bias: probability of sampling the goal. wait_bias: cspace among
-    moving obstacles only: probability that a tree extension first waits at
-    its node (a random 0-2 s), and that a failed connection to the goal set
-    is retried after waits of 0.25-4 s. range: longest extension
-    per iteration (mm; body motion for cspace, tip travel for rrt/rrtstar;
-    None: 150 for cspace, 40 for rrt/rrtstar). rewire_radius: RRT* neighbour
-    radius around a new tip (mm).
+    goal_bias: probability of sampling the goal.
     max_speed: largest speed of any body point (mm/s); times every motion.
-    resolution: largest body motion between collision-checked samples (mm).
-    check_points: backbone points per collision check (>= 2).
-    ik_seeds: random starts of the goal/start IK. goal_configs: stop the IK
-    once this many distinct safe goal configurations exist.
-    ik_iterations: damped-Newton iterations of the batch projection before
-    the safety-constrained IPOPT NLP takes over. ik_nlp_solves: at most
-    this many NLP solves per IK query (the slow, rarely needed stage).
-    ik_push_rounds: rounds of the IK's push-out stage between the two
-    (on-target projections that come too close to an obstacle move along the
-    tip constraint's null space until they clear it; 0 skips the stage).
-    goal_window: dynamic scenes only: half of the IK starts keep clear of
-    everything the obstacles sweep over [t0, t0 + goal_window] (s), by
-    projection only (no NLP: often infeasible); the other half, with the NLP
-    stage, keep clear at t0.
-    via_points: cspace only: random intermediate configurations tried at
-    once as start -> via -> goal before the trees grow (0: skip); half of
-    them uniform, half scattered by `via_spread` (mm of body motion, normal
-    per metric axis) around the straight motions to the goal configurations.
+    limit_fraction: fraction of each actuator speed and acceleration limit a plan may use (the
+    rest is kept in reserve); `crtraj.planning.pipeline.plan_executable` retimes within it.
     shortcut_rounds: rounds of batched shortcut attempts (each checks
     `shortcut_batch` candidate shortcuts at once).
     smooth: B-spline smoothing of the final path (verified; dropped if unsafe).
     corner: how far from each corner (mm of body motion) the spline starts cutting it.
     waypoint_step: largest body motion between returned waypoints (mm).
-    limit_fraction: fraction of each actuator speed and acceleration limit a plan may use (the
-    rest is kept in reserve); `crtraj plan` retimes its result within it.
-    compiled: run the collision checks through the compiled kernel (C generated once per robot and
-    cached, `crtraj build`) when a C compiler is available; false: the interpreted CasADi path (same
-    results to rounding, several times slower).
-    check: the motion check, "strict" (default) or "paper" (the paper's Table I check: the robot's
-    collision points at the ends of `check_step`-second steps only; meant for rrt and rrtstar, see
-    `crtraj.planning.paper_check`). check_step: the paper check's time step (s).
+    ik, check, cspace, rrt: the sub-tables ``[planner.ik]`` (`IKOptions`), ``[planner.check]``
+    (`CheckOptions`), ``[planner.cspace]`` (`CSpaceOptions`) and ``[planner.rrt]`` (`RRTOptions`).
     """
 
     SECTION: ClassVar[str] = "planner"
@@ -81,57 +170,59 @@ class PlannerOptions(Options):
     max_iterations: int = option(20000, ge=1, le=10_000_000)
     first_solution: bool = option(True)
     goal_bias: float = option(0.1, ge=0.0, le=1.0)
-    wait_bias: float = option(0.3, ge=0.0, le=1.0)
-    range: float | None = option(None, ge=1e-3, le=MAX_LENGTH)
-    rewire_radius: float = option(80.0, gt=0.0, le=MAX_LENGTH)
     max_speed: float = option(50.0, ge=1e-3, le=MAX_LENGTH)
-    resolution: float = option(3.0, ge=0.1, le=MAX_LENGTH)
-    check_points: int = option(15, ge=2, le=1000)
-    ik_seeds: int = option(64, ge=1, le=10_000)
-    goal_configs: int = option(4, ge=1, le=1000)
-    ik_iterations: int = option(15, ge=0, le=10_000)
-    ik_nlp_solves: int = option(8, ge=0, le=1000)
-    ik_push_rounds: int = option(12, ge=0, le=1000)
-    goal_window: float = option(4.0, ge=0.0, le=MAX_TIME)
-    via_points: int = option(32, ge=0, le=10_000)
-    via_spread: float = option(100.0, gt=0.0, le=MAX_LENGTH)
+    limit_fraction: float = option(0.9, gt=0.0, le=1.0)
     shortcut_rounds: int = option(4, ge=0, le=1000)
     shortcut_batch: int = option(16, ge=1, le=10_000)
     smooth: bool = option(True)
     corner: float = option(40.0, ge=1e-3, le=MAX_LENGTH)
     waypoint_step: float = option(20.0, ge=0.1, le=MAX_LENGTH)
-    limit_fraction: float = option(0.9, gt=0.0, le=1.0)
-    compiled: bool = option(True)
-    check: str = option("strict", choices=CHECKS)
-    check_step: float = option(1.0, ge=1e-3, le=MAX_TIME)
+    # the sub-tables' defaults are frozen, shared objects (RUF009 guards against mutable ones)
+    ik: IKOptions = option(DEFAULT_IK, read=False)  # noqa: RUF009
+    check: CheckOptions = option(DEFAULT_CHECK, read=False)  # noqa: RUF009
+    cspace: CSpaceOptions = option(DEFAULT_CSPACE, read=False)  # noqa: RUF009
+    rrt: RRTOptions = option(DEFAULT_RRT, read=False)  # noqa: RUF009
+
+    def _check(self) -> None:
+        for name, cls in _SUBTABLES.items():
+            if not isinstance(getattr(self, name), cls):
+                raise InputError(f"planner.{name}: expected {cls.__name__}, got {type(getattr(self, name)).__name__}")
+
+    @classmethod
+    def _read_extra(cls, t: Table) -> dict[str, Any]:
+        # an old flat key gets a pointer to its new place (checked here, before Table.finish would call it
+        # unknown); ``check`` was a string and is now the sub-table
+        for old, (table, key) in MOVED.items():
+            if t.has(old) and not (old == "check" and isinstance(t.raw(old), Mapping)):
+                raise InputError(f"planner.{old}: moved to [planner.{table}] {key}")
+        if t.has("range"):
+            raise InputError("planner.range: moved to [planner.cspace] range and [planner.rrt] range")
+        return {name: sub.from_table(t.table(name)) for name, sub in _SUBTABLES.items()}
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain data in the TOML schema, the sub-tables as nested tables."""
+        out = super().to_dict()
+        for name in _SUBTABLES:
+            out[name] = getattr(self, name).to_dict()
+        return out
+
+    def with_(self, **changes: Any) -> PlannerOptions:
+        """A copy with some fields changed (checked like any other); a sub-table may be given as a
+        mapping of its changed keys (``with_(check={"mode": "paper"})``)."""
+        for name, cls in _SUBTABLES.items():
+            value = changes.get(name)
+            if isinstance(value, Mapping):
+                unknown = sorted(set(value) - {f.name for f in dataclasses.fields(cls)})
+                if unknown:
+                    raise InputError(f"{cls.SECTION}.{unknown[0]}: unknown option")
+                changes[name] = dataclasses.replace(getattr(self, name), **value)
+        return super().with_(**changes)
 
     @property
     def step(self) -> float:
-        """The extension range in effect (mm)."""
-        if self.range is not None:
-            return self.range
-        return 150.0 if self.algorithm == "cspace" else 40.0
+        """The extension range of the chosen algorithm (mm; body motion for cspace, tip travel for rrt)."""
+        return self.cspace.range if self.algorithm == "cspace" else self.rrt.range
 
     def stop(self) -> StopCondition:
         """The stop condition these options describe."""
         return StopCondition(self.time_limit, self.max_iterations, self.first_solution)
-
-    def validator(
-        self,
-        model: Any,
-        scene: Any,
-        functions: dict[Any, Any] | None = None,
-        rate_limits: RateLimits | None = None,
-    ) -> MotionValidator:
-        """The `MotionValidator` these options describe for `scene` (functions: a shared CasADi cache;
-        rate_limits: the full actuator limits, of which `limit_fraction` is used to time motions)."""
-        common: dict[str, Any] = {
-            "resolution": self.resolution,
-            "max_speed": self.max_speed,
-            "functions": functions,
-            "rate_limits": None if rate_limits is None else rate_limits.scaled(self.limit_fraction),
-        }
-        if self.check == "paper":
-            points = model.robot.collision_points
-            return PaperValidator(model, scene, step=self.check_step, check_points=points, **common)
-        return MotionValidator(model, scene, check_points=self.check_points, compiled=self.compiled, **common)

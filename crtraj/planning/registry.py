@@ -1,11 +1,13 @@
 """Planners by name: one factory per name, so callers (the CLI, the loop, the bench) never branch on types.
 
-    planner = BUILTIN.build("cspace", model, scene, options)
+    context = PlanningContext.build(model, scene, options)
+    planner = BUILTIN.create("cspace", context)
     result = planner.plan(goal, start_config=x0, stop=StopCondition(time_limit=1.0))
 
 Names: ``cspace``, ``rrt``, ``rrtstar`` (crtraj's planners; also the values
 of ``[planner] algorithm``) and ``ompl-rrtstar``, ``ompl-rrtconnect`` (OMPL
-in the same configuration space). OMPL is an optional extra: its module is
+in the same configuration space). Every factory builds its planner from a
+`PlanningContext`. OMPL is an optional extra: its module is
 importable without it and imports ``ompl`` only when such a planner is built
 (`crtraj.planning.ompl.import_ompl`), so the OMPL entries cost nothing until
 used. A `PlannerRegistry` is immutable; `with_planner` returns an extended
@@ -23,6 +25,7 @@ from typing import Any
 from crtraj.core.errors import InputError
 from crtraj.model.kinematics import Model
 from crtraj.planning.base import Planner
+from crtraj.planning.context import PlanningContext
 from crtraj.planning.cspace import CSpacePlanner
 from crtraj.planning.ompl import OMPLPlanner, import_ompl
 from crtraj.planning.options import PlannerOptions
@@ -30,8 +33,8 @@ from crtraj.planning.rate_limits import RateLimits
 from crtraj.planning.rrt import RRT, RRTStar
 from crtraj.planning.steer import SteerOptions
 
-# (model, scene, options, steer_options, max_obstacles) -> Planner
-PlannerFactory = Callable[[Model, Any, PlannerOptions, "SteerOptions | None", "int | None"], Planner]
+# (context, steer_options, max_obstacles) -> Planner
+PlannerFactory = Callable[[PlanningContext, "SteerOptions | None", "int | None"], Planner]
 
 
 @dataclass(frozen=True)
@@ -53,44 +56,30 @@ class PlannerSpec:
     description: str = ""
 
 
-def _cspace(
-    model: Model,
-    scene: Any,
-    options: PlannerOptions,
-    steer: SteerOptions | None,
-    max_obstacles: int | None,
-    rate_limits: RateLimits | None = None,
-) -> Planner:
+def _for_algorithm(context: PlanningContext, algorithm: str) -> PlanningContext:
+    """`context` with ``options.algorithm`` set to `algorithm` (the same context when it already is)."""
+    if context.options.algorithm == algorithm:
+        return context
+    return context.with_options(context.options.with_(algorithm=algorithm))
+
+
+def _cspace(context: PlanningContext, steer: SteerOptions | None, max_obstacles: int | None) -> Planner:
     del steer  # the configuration-space planner has no steer step
-    o = options.with_(algorithm="cspace")
-    return CSpacePlanner(model, scene, o, max_obstacles=max_obstacles, rate_limits=rate_limits)
+    return CSpacePlanner(_for_algorithm(context, "cspace"), max_obstacles=max_obstacles)
 
 
 def _task_space(
-    algorithm: str,
-    model: Model,
-    scene: Any,
-    options: PlannerOptions,
-    steer: SteerOptions | None,
-    max_obstacles: int | None,
-    rate_limits: RateLimits | None = None,
+    algorithm: str, context: PlanningContext, steer: SteerOptions | None, max_obstacles: int | None
 ) -> Planner:
-    del rate_limits  # task-space edges keep full-speed timing; static results are retimed afterwards
+    # task-space edges keep full-speed timing; a static result is retimed afterwards (`plan_executable`)
+    ctx = _for_algorithm(context, algorithm).without_rate_limits()
     cls = RRTStar if algorithm == "rrtstar" else RRT
-    return cls(model, scene, options.with_(algorithm=algorithm), steer, max_obstacles=max_obstacles)
+    return cls(ctx, steer, max_obstacles=max_obstacles)
 
 
-def _ompl(
-    algorithm: str,
-    model: Model,
-    scene: Any,
-    options: PlannerOptions,
-    steer: SteerOptions | None,
-    max_obstacles: int | None,
-    rate_limits: RateLimits | None = None,
-) -> Planner:
-    del steer, max_obstacles, rate_limits  # OMPL plans with the validator only; its IK grows its own slots
-    return OMPLPlanner(model, scene, options, algorithm=algorithm)
+def _ompl(algorithm: str, context: PlanningContext, steer: SteerOptions | None, max_obstacles: int | None) -> Planner:
+    del steer, max_obstacles  # OMPL plans with the validator only; its IK grows its own slots
+    return OMPLPlanner(context.without_rate_limits(), algorithm=algorithm)
 
 
 @dataclass(frozen=True)
@@ -126,6 +115,18 @@ class PlannerRegistry:
         if spec.optional == "ompl":
             import_ompl()
 
+    def create(
+        self,
+        name: str,
+        context: PlanningContext,
+        steer_options: SteerOptions | None = None,
+        *,
+        max_obstacles: int | None = None,
+    ) -> Planner:
+        """Build the planner called `name` from `context` (steer_options: the task-space planners'
+        ``[steer]`` settings; max_obstacles: obstacle slots of its NLPs, default the scene's count)."""
+        return self.spec(name).factory(context, steer_options, max_obstacles)
+
     def build(
         self,
         name: str,
@@ -137,14 +138,10 @@ class PlannerRegistry:
         max_obstacles: int | None = None,
         rate_limits: RateLimits | None = None,
     ) -> Planner:
-        """Build the planner called `name` for `model` among `scene` (options: shared settings;
-        rate_limits: the actuators' limits, passed to the factory only when given (the c-space
-        planner times its edges within them))."""
-        spec = self.spec(name)
-        opts = PlannerOptions() if options is None else options
-        if rate_limits is None:
-            return spec.factory(model, scene, opts, steer_options, max_obstacles)
-        return spec.factory(model, scene, opts, steer_options, max_obstacles, rate_limits=rate_limits)  # type: ignore[call-arg]
+        """`create` with a context of `model` among `scene` (options: shared settings; rate_limits: the
+        actuators' limits, within which the c-space planner times its edges; None: max_speed only)."""
+        context = PlanningContext(model, scene, options, rate_limits)
+        return self.create(name, context, steer_options, max_obstacles=max_obstacles)
 
 
 BUILTIN = PlannerRegistry(
@@ -175,7 +172,8 @@ def make_planner(
     max_obstacles: int | None = None,
     rate_limits: RateLimits | None = None,
 ) -> Planner:
-    """The planner `options.algorithm` names (``[planner] algorithm``), from `BUILTIN`."""
+    """The planner `options.algorithm` names (``[planner] algorithm``), from `BUILTIN` (a `PlanningContext`
+    of `model` among `scene` with these options and rate limits; `BUILTIN.create` takes a context)."""
     o = PlannerOptions() if options is None else options
     return BUILTIN.build(
         o.algorithm, model, scene, o, steer_options, max_obstacles=max_obstacles, rate_limits=rate_limits

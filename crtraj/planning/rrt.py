@@ -22,7 +22,7 @@ configurations it returns also pass the planner's continuous-body check
 (the paper constrains ten points; with ten points the body between them can
 dip a few mm toward a sphere).
 
-With ``PlannerOptions.check = "paper"`` the validator is the paper's own check
+With ``[planner.check] mode = "paper"`` the validator is the paper's own check
 (`crtraj.planning.paper_check.PaperValidator`: the robot's ten collision points at
 the ends of 1-s steps only), the steer keeps those points clear with no extra
 margin, and it sees the obstacles as they are at the node's time: Algorithm 1
@@ -43,9 +43,8 @@ from typing import Any
 
 import numpy as np
 
-from crtraj.model.kinematics import Model
 from crtraj.planning.base import PlannerBase, QueryStart
-from crtraj.planning.options import PlannerOptions
+from crtraj.planning.context import PlanningContext
 from crtraj.planning.postprocess import PathPostprocessor, tree_edges
 from crtraj.planning.result import PlanResult, PlanStatus
 from crtraj.planning.safe_ik import SafeIK
@@ -59,8 +58,9 @@ from crtraj.world import margin
 class RRT(PlannerBase):
     """Task-space RRT with a safety-constrained steer (paper Algorithm 1, no rewiring).
 
-    model: the robot's `Model`. scene: the default `crtraj.world.scene.Scene`.
-    options: `PlannerOptions` (range = tip step in mm). steer_options:
+    context: the `PlanningContext` (model, default scene, options; range = tip step in mm; its
+    rate limits, if any, also time the edges: the registry builds task-space planners without
+    them, see `crtraj.planning.registry`). steer_options:
     `SteerOptions` of the ``[steer]`` section; the planner raises its
     `n_points` to the check points and its `margin` to what the planner's
     continuous-body check needs (module docstring). max_obstacles: obstacle
@@ -72,26 +72,25 @@ class RRT(PlannerBase):
 
     def __init__(
         self,
-        model: Model,
-        scene: Any,
-        options: PlannerOptions | None = None,
+        context: PlanningContext,
         steer_options: SteerOptions | None = None,
         *,
         max_obstacles: int | None = None,
     ) -> None:
-        super().__init__(model, scene, PlannerOptions(algorithm=self.name) if options is None else options)
+        super().__init__(context)
+        model, scene = context.model, context.scene
         M = max(scene.n_obstacles if max_obstacles is None else int(max_obstacles), scene.n_obstacles)
         so = SteerOptions() if steer_options is None else steer_options
-        # The paper check (options.check == "paper") looks at the collision points only, so the steer
+        # The paper check (options.check.mode == "paper") looks at the collision points only, so the steer
         # keeps them clear with no continuous-body margin, as the paper's eq. 18 does.
-        self.paper = self.options.check == "paper"
+        self.paper = self.options.check.mode == "paper"
         self.steer_options = replace(
             so,
             n_points=max(so.n_points or 0, self.validator.check_points),
             margin=so.margin if self.paper else max(so.margin, self.steer_margin(scene)),
         )
         self.steer = SteerSolver(model, M, self.steer_options)
-        self.ik = SafeIK(model, self.validator, M, push_rounds=self.options.ik_push_rounds)
+        self.ik = SafeIK(model, self.validator, M, push_rounds=self.options.ik.push_rounds)
 
     def steer_margin(self, scene: Any) -> float:
         """Extra keep-out (mm) for the steer's points so its configurations pass the validator.
@@ -147,7 +146,7 @@ class RRT(PlannerBase):
         sc = v.scene
         if sc.n_obstacles > self.steer.max_obstacles:  # grow the NLPs' obstacle slots (built once more)
             self.steer = SteerSolver(self.model, sc.n_obstacles, self.steer_options)
-            self.ik = SafeIK(self.model, self.validator, sc.n_obstacles, push_rounds=self.options.ik_push_rounds)
+            self.ik = SafeIK(self.model, self.validator, sc.n_obstacles, push_rounds=self.options.ik.push_rounds)
         self.steer.reset_warm_start()  # the same seed must give the same plan
 
     def _fail(self, q: QueryStart, status: PlanStatus, msg: str, trees: list[SearchTree] | None = None) -> PlanResult:
@@ -289,7 +288,7 @@ class RRT(PlannerBase):
         self, tree: SearchTree, v: MotionValidator, tip: np.ndarray, x: np.ndarray, parent: int, cost: float
     ) -> tuple[int, float]:
         """The cheapest verified parent within rewire_radius (the nearest node is already verified)."""
-        near = tree.within(tip, self.options.rewire_radius)
+        near = tree.within(tip, self.options.rrt.rewire_radius)
         near = near[near != parent]
         if not len(near):
             return parent, cost
@@ -311,7 +310,7 @@ class RRT(PlannerBase):
     def _rewire(self, tree: SearchTree, v: MotionValidator, i_new: int) -> int:
         """Reparent neighbours through the new node when that shortens their tip path; returns how many."""
         tip, x = tree.keys[i_new], tree.x[i_new]
-        near = tree.within(tip, self.options.rewire_radius)
+        near = tree.within(tip, self.options.rrt.rewire_radius)
         near = near[(near != i_new) & (near != tree.parent[i_new])]
         if not len(near):
             return 0

@@ -244,29 +244,13 @@ class SafeIK:
         # clearance differ by ~1e-14 mm, and rounding keeps their plans identical bit for bit.
         X = np.array(X, dtype=float)
         clear = np.round(validator.clearance(X, t_check[0], t_check[1]), 9)  # the finite differences' base
-        nx = X.shape[1]
-        steps = np.diag(self._fd)
         short = np.flatnonzero(clear < required)
         for _ in range(rounds):
             if not len(short) or (np.count_nonzero(clear >= required) >= enough and short[0] >= must):
                 break
             if deadline is not None and time.perf_counter() > deadline:
                 break
-            Xa, ca_ = X[short], clear[short]
-            probe = (Xa[:, None, :] + steps[None]).reshape(-1, nx)
-            cp = np.round(validator.clearance(probe, t_check[0], t_check[1]), 9).reshape(len(short), nx)
-            grad = (cp - ca_[:, None]) / self._fd
-            # ascent direction in the null space of the tip Jacobian, metric W = M^T M: the steepest
-            # ascent W^-1 g minus the smallest motion that undoes its tip change
-            _, J = self._tip_jacobian(Xa)
-            Wg = grad @ self._W_inv
-            d = Wg - self._tip_move(J, np.einsum("nij,nj->ni", J, Wg))
-            gain = np.einsum("ni,ni->n", grad, d)  # predicted clearance gain (mm) per unit step
-            move = validator.motion_bound(d)
-            alpha = np.minimum(
-                (required + PUSH_EXTRA - ca_) / np.maximum(gain, 1e-12), PUSH_STEP / np.maximum(move, 1e-12)
-            )
-            Xn, err = self.project(target, validator.project_limits(Xa + alpha[:, None] * d), PUSH_NEWTON)
+            Xn, err = self._push_step(target, X[short], clear[short], required, validator, t_check)
             on = err <= tol
             cn = np.full(len(short), -np.inf)
             if on.any():
@@ -274,6 +258,32 @@ class SafeIK:
             X[short], clear[short] = Xn, cn
             short = short[on & (cn < required)]
         return X, clear
+
+    def _push_step(
+        self,
+        target: np.ndarray,
+        Xa: np.ndarray,
+        ca_: np.ndarray,
+        required: float,
+        validator: MotionValidator,
+        t_check: tuple[float, float],
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """One push-out step of configurations Xa (K, nx) with clearances ca_ (K,) mm (`push_out`):
+        (the new configurations, their tip errors (mm))."""
+        nx = Xa.shape[1]
+        steps = np.diag(self._fd)
+        probe = (Xa[:, None, :] + steps[None]).reshape(-1, nx)
+        cp = np.round(validator.clearance(probe, t_check[0], t_check[1]), 9).reshape(len(Xa), nx)
+        grad = (cp - ca_[:, None]) / self._fd
+        # ascent direction in the null space of the tip Jacobian, metric W = M^T M: the steepest
+        # ascent W^-1 g minus the smallest motion that undoes its tip change
+        _, J = self._tip_jacobian(Xa)
+        Wg = grad @ self._W_inv
+        d = Wg - self._tip_move(J, np.einsum("nij,nj->ni", J, Wg))
+        gain = np.einsum("ni,ni->n", grad, d)  # predicted clearance gain (mm) per unit step
+        move = validator.motion_bound(d)
+        alpha = np.minimum((required + PUSH_EXTRA - ca_) / np.maximum(gain, 1e-12), PUSH_STEP / np.maximum(move, 1e-12))
+        return self.project(target, validator.project_limits(Xa + alpha[:, None] * d), PUSH_NEWTON)
 
     def _tip_jacobian(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Tips (S, 3) mm and tip Jacobians (S, 3, nx) of configurations X (S, nx): the validator's compiled
@@ -291,7 +301,6 @@ class SafeIK:
         J = np.ascontiguousarray(np.asarray(J).reshape(3, S, self.robot.nx).transpose(1, 0, 2))
         return np.ascontiguousarray(np.asarray(P).T), J
 
-    # Long by design: the three IK stages share the seeds, the deadline and the running tally of safe solutions.
     def solve(
         self,
         target: np.ndarray,
@@ -335,110 +344,151 @@ class SafeIK:
         t_start = time.perf_counter()
         v = self.validator if validator is None else validator
         tol = self.tip_tolerance if tip_tolerance is None else float(tip_tolerance)
-        target = np.asarray(target, dtype=float)
         seeds = np.atleast_2d(np.asarray(seeds, dtype=float))
         want = len(seeds) if want is None else int(want)
-        required = self.margin - 0.25  # the NLP keeps `margin`; allow for its tolerance
-        sols: list[IKSolution] = []
-        kept: list[np.ndarray] = []
+        # the NLP keeps `margin`; allow for its tolerance
+        run = _IKRun(np.asarray(target, dtype=float), seeds, v, t_check, tol, self.margin - 0.25, want, dedup)
+        self._project_stage(run, newton_iterations)
+        run.statuses["projection"] = int(run.good.sum())
+        forced = [i for i in always if 0 <= i < len(seeds) and not run.good[i]]
+        rounds = self.push_rounds if push_rounds is None else int(push_rounds)
+        if rounds > 0 and (len(run.kept) < want or forced):
+            self._push_stage(run, forced, rounds, deadline)
+        self._nlp_stage(run, [i for i in forced if not run.good[i]], scene_pack, max_nlp, deadline)
+        safe = np.array(run.kept) if run.kept else np.zeros((0, self.robot.nx))
+        return IKBatch(tuple(run.sols), safe, time.perf_counter() - t_start, run.statuses)
 
-        def keep(x: np.ndarray) -> None:
-            if kept and np.min(v.motion_bound(np.array(kept) - x)) < dedup:
-                return
-            kept.append(x)
-
-        # project in blocks of Newton steps and stop as soon as enough safe configurations exist
-        S = len(seeds)
-        X = seeds.copy()
-        err = np.full(S, np.inf)
-        clear = np.full(S, -np.inf)
-        checked = np.zeros(S, dtype=bool)
-        good = np.zeros(S, dtype=bool)
-        done_it = 0
+    def _project_stage(self, run: _IKRun, newton_iterations: int) -> None:
+        """Stage 1: project in blocks of Newton steps, stopping as soon as enough safe configurations exist."""
+        v, t_check, done_it = run.v, run.t_check, 0
         while True:
             block = min(6 if done_it == 0 else 3, newton_iterations - done_it)
-            X, err = self.project(target, X, block)
+            run.X, run.err = self.project(run.target, run.X, block)
             done_it += block
-            new = ~checked & (err <= tol)
+            new = ~run.checked & (run.err <= run.tol)
             if new.any():
                 idx = np.flatnonzero(new)
-                clear[idx] = v.clearance(X[idx], t_check[0], t_check[1])
-                ok = v.within_limits(X[idx]) & (clear[idx] >= required)
-                good[idx] = ok
-                checked[idx] = True
+                run.clear[idx] = v.clearance(run.X[idx], t_check[0], t_check[1])
+                ok = v.within_limits(run.X[idx]) & (run.clear[idx] >= run.required)
+                run.good[idx] = ok
+                run.checked[idx] = True
                 for i in idx[ok]:
-                    sols.append(IKSolution(X[i], "projection", True, float(err[i]), float(clear[i]), True, 0.0))
-                    keep(X[i])
-            if len(kept) >= want or done_it >= newton_iterations:
+                    run.add(IKSolution(run.X[i], "projection", True, float(run.err[i]), float(run.clear[i]), True, 0.0))
+            if len(run.kept) >= run.want or done_it >= newton_iterations:
                 break
-        statuses: dict[str, int] = {"projection": int(good.sum())}
-        forced = [i for i in always if 0 <= i < S and not good[i]]
-        rounds = self.push_rounds if push_rounds is None else int(push_rounds)
-        if rounds > 0 and (len(kept) < want or forced):
-            # push out the on-target projections that came too close: the forced ones first, then (while
-            # configurations are missing) the others, most promising (highest clearance) first
-            near = checked & ~good & (err <= tol)
-            is_forced = np.zeros(S, dtype=bool)
-            is_forced[forced] = True
-            others = np.flatnonzero(near & ~is_forced) if len(kept) < want else np.zeros(0, dtype=int)
-            others = others[np.argsort(-clear[others], kind="stable")]
-            front = [i for i in forced if near[i]]
-            cand = np.concatenate([front, others]).astype(int)
-            if len(cand):
-                X[cand], clear[cand] = self.push_out(
-                    target,
-                    X[cand],
-                    required=required,
-                    rounds=rounds,
-                    validator=v,
-                    t_check=t_check,
-                    tol=tol,
-                    enough=max(want - len(kept), 0),
-                    must=len(front),
-                    deadline=deadline,
-                )
-                err[cand] = np.linalg.norm(self.model.tip_position(X[cand]) - target, axis=1)
-                ok = (clear[cand] >= required) & (err[cand] <= tol) & v.within_limits(X[cand])
-                good[cand] = ok
-                for i in cand[ok]:
-                    sols.append(IKSolution(X[i], "push-out", True, float(err[i]), float(clear[i]), True, 0.0))
-                    keep(X[i])
-                statuses["push-out"] = int(ok.sum())
-        converged = err <= tol
-        # most promising first: converged (by clearance), then by tip error
-        rest = np.flatnonzero(~good)
+
+    def _push_stage(self, run: _IKRun, forced: list[int], rounds: int, deadline: float | None) -> None:
+        """Stage 2: push out the on-target projections that came too close: the forced ones first, then
+        (while configurations are missing) the others, most promising (highest clearance) first."""
+        X, clear, err, good = run.X, run.clear, run.err, run.good
+        near = run.checked & ~good & (err <= run.tol)
+        is_forced = np.zeros(len(X), dtype=bool)
+        is_forced[forced] = True
+        others = np.flatnonzero(near & ~is_forced) if len(run.kept) < run.want else np.zeros(0, dtype=int)
+        others = others[np.argsort(-clear[others], kind="stable")]
+        front = [i for i in forced if near[i]]
+        cand = np.concatenate([front, others]).astype(int)
+        if not len(cand):
+            return
+        X[cand], clear[cand] = self.push_out(
+            run.target,
+            X[cand],
+            required=run.required,
+            rounds=rounds,
+            validator=run.v,
+            t_check=run.t_check,
+            tol=run.tol,
+            enough=max(run.want - len(run.kept), 0),
+            must=len(front),
+            deadline=deadline,
+        )
+        err[cand] = np.linalg.norm(self.model.tip_position(X[cand]) - run.target, axis=1)
+        ok = (clear[cand] >= run.required) & (err[cand] <= run.tol) & run.v.within_limits(X[cand])
+        good[cand] = ok
+        for i in cand[ok]:
+            run.add(IKSolution(X[i], "push-out", True, float(err[i]), float(clear[i]), True, 0.0))
+        run.statuses["push-out"] = int(ok.sum())
+
+    def _nlp_stage(
+        self, run: _IKRun, forced: list[int], scene_pack: np.ndarray, max_nlp: int | None, deadline: float | None
+    ) -> None:
+        """Stage 3: the safety-constrained NLP from the remaining configurations, the forced ones first,
+        then the converged ones by clearance, then by tip error; until enough exist or time runs out."""
+        X, clear, err = run.X, run.clear, run.err
+        converged = err <= run.tol
+        rest = np.flatnonzero(~run.good)
         order = rest[np.lexsort((err[rest], -np.where(converged[rest], clear[rest], -np.inf)))]
-        forced = [i for i in forced if not good[i]]
         order = np.concatenate([forced, [i for i in order if i not in forced]]).astype(int)
-        inflate = v.inflate + self.margin
+        inflate = run.v.inflate + self.margin
         if max_nlp is not None:
             order = order[: max(0, int(max_nlp))]
         for i in order:
-            if i not in forced and len(kept) >= want:
+            if i not in forced and len(run.kept) >= run.want:
                 break
             if deadline is not None and time.perf_counter() > deadline:
                 break
-            t1 = time.perf_counter()
             # start from the projection, stay close to the seed itself
-            x0 = X[i]
-            p = np.concatenate([target, scene_pack, seeds[i], [inflate]])
-            r = self.solver(x0=x0, p=p, lbx=self._box[0], ubx=self._box[1], lbg=self._lbg, ubg=self._ubg)
-            st = self.solver.stats()
-            # IPOPT meets the limits to its tolerance (~1e-8); put the result exactly inside
-            xs = self.validator.project_limits(np.asarray(r["x"], dtype=float).reshape(1, -1))[0]
-            status = str(st.get("return_status", "unknown"))
-            statuses[status] = statuses.get(status, 0) + 1
-            ok = bool(st.get("success", False)) and bool(np.all(np.isfinite(xs)))
-            tip_err = float(np.linalg.norm(self.model.tip_position(xs) - target)) if ok else np.inf
-            ok = ok and tip_err <= tol
-            ins = bool(v.within_limits(xs[None])[0]) if ok else False
-            c = float(v.clearance(xs[None], t_check[0], t_check[1])[0]) if ok else -np.inf
-            sol = IKSolution(xs, status, ok, tip_err, c, ins, time.perf_counter() - t1)
-            sols.append(sol)
-            if sol.safe and c >= required:
-                keep(xs)
-        safe = np.array(kept) if kept else np.zeros((0, self.robot.nx))
-        return IKBatch(tuple(sols), safe, time.perf_counter() - t_start, statuses)
+            p = np.concatenate([run.target, scene_pack, run.seeds[i], [inflate]])
+            sol = self._nlp_solve(run, X[i], p)
+            run.sols.append(sol)
+            if sol.safe and sol.clearance >= run.required:
+                run.keep(sol.x)
+
+    def _nlp_solve(self, run: _IKRun, x0: np.ndarray, p: np.ndarray) -> IKSolution:
+        """One NLP solve from x0 with parameters p, checked (tip error, limits, clearance over t_check)."""
+        v, t_check = run.v, run.t_check
+        t1 = time.perf_counter()
+        r = self.solver(x0=x0, p=p, lbx=self._box[0], ubx=self._box[1], lbg=self._lbg, ubg=self._ubg)
+        st = self.solver.stats()
+        # IPOPT meets the limits to its tolerance (~1e-8); put the result exactly inside
+        xs = self.validator.project_limits(np.asarray(r["x"], dtype=float).reshape(1, -1))[0]
+        status = str(st.get("return_status", "unknown"))
+        run.statuses[status] = run.statuses.get(status, 0) + 1
+        ok = bool(st.get("success", False)) and bool(np.all(np.isfinite(xs)))
+        tip_err = float(np.linalg.norm(self.model.tip_position(xs) - run.target)) if ok else np.inf
+        ok = ok and tip_err <= run.tol
+        ins = bool(v.within_limits(xs[None])[0]) if ok else False
+        c = float(v.clearance(xs[None], t_check[0], t_check[1])[0]) if ok else -np.inf
+        return IKSolution(xs, status, ok, tip_err, c, ins, time.perf_counter() - t1)
+
+
+class _IKRun:
+    """The running state of one `SafeIK.solve` call: the seeds, their projections X (S, nx), tip
+    errors (mm) and clearances (mm), which were checked and found safe, every solution tried, and the
+    distinct safe configurations kept (closer than `dedup` mm of body motion to a kept one: dropped)."""
+
+    def __init__(
+        self,
+        target: np.ndarray,
+        seeds: np.ndarray,
+        v: MotionValidator,
+        t_check: tuple[float, float],
+        tol: float,
+        required: float,
+        want: int,
+        dedup: float,
+    ) -> None:
+        S = len(seeds)
+        self.target, self.seeds, self.v, self.t_check = target, seeds, v, t_check
+        self.tol, self.required, self.want, self.dedup = tol, required, want, dedup
+        self.X = seeds.copy()
+        self.err = np.full(S, np.inf)
+        self.clear = np.full(S, -np.inf)
+        self.checked = np.zeros(S, dtype=bool)
+        self.good = np.zeros(S, dtype=bool)
+        self.sols: list[IKSolution] = []
+        self.kept: list[np.ndarray] = []
+        self.statuses: dict[str, int] = {}
+
+    def keep(self, x: np.ndarray) -> None:
+        if self.kept and np.min(self.v.motion_bound(np.array(self.kept) - x)) < self.dedup:
+            return
+        self.kept.append(x)
+
+    def add(self, sol: IKSolution) -> None:
+        """A safe solution of stage 1 or 2: recorded and kept."""
+        self.sols.append(sol)
+        self.keep(sol.x)
 
 
 def format_statuses(statuses: dict[str, int]) -> str:

@@ -19,7 +19,7 @@ import numpy as np
 
 from crtraj.core.errors import InputError
 from crtraj.model.kinematics import Model
-from crtraj.planning.compiled_validity import shared_kernel
+from crtraj.planning.kernels import Kernels
 from crtraj.planning.sampler import ConfigSampler
 from crtraj.world import margin, packing
 
@@ -28,10 +28,10 @@ class StateValidityChecker:
     """Clearance and validity of configurations among a scene's obstacles.
 
     model: the robot's `Model`. scene: a `crtraj.world.scene.Scene`.
-    check_points: backbone points per configuration (>= 2). functions: a
-    cache of CasADi functions by (kind, check points, obstacles, batch size),
-    shared by all validators of one planner so that scenes share them (it also
-    holds the compiled kernel). compiled: evaluate with the compiled kernel
+    check_points: backbone points per configuration (>= 2). kernels: the
+    compiled kernels and CasADi functions (`crtraj.planning.kernels.Kernels`),
+    shared by all validators of one planner so that scenes share them (None: this
+    checker's own). compiled: evaluate with the compiled kernel
     (`crtraj.planning.compiled_validity`) when a C compiler is available; the
     interpreted CasADi path gives the same numbers (to rounding), slower.
     """
@@ -41,7 +41,7 @@ class StateValidityChecker:
         model: Model,
         scene: Any,
         check_points: int = 15,
-        functions: dict[Any, Any] | None = None,
+        kernels: Kernels | None = None,
         compiled: bool = True,
     ) -> None:
         if check_points < 2:
@@ -62,13 +62,13 @@ class StateValidityChecker:
         self.sagitta = float(sag)
         self.inflate = float(margin.inflation(scene.safety_distance, robot.body_radius, self.sagitta))
         self.n_samples = 0  # configurations checked so far (a statistic)
-        self._fns: dict[Any, Any] = {} if functions is None else functions
+        self.kernels = Kernels() if kernels is None else kernels
         speeds, rates = scene.speed_bounds()
         self.static = bool(np.all(speeds == 0.0) and np.all(rates == 0.0))
         # how much the sphere swept over a window of dt seconds can exceed the sphere at any one of its
         # instants: capsule length plus radius growth, <= (speed + rate) dt (mm/s)
         self.enlargement_rate = float(np.max(speeds + rates)) if scene.n_obstacles else 0.0
-        self.kernel = shared_kernel(self._fns, model, self.check_points) if compiled else None
+        self.kernel = self.kernels.validity_kernel(model, self.check_points) if compiled else None
         if scene.n_obstacles:
             c, r = scene.states(0.0)
             self._static_c, self._static_r = c, r
@@ -78,16 +78,15 @@ class StateValidityChecker:
     def _mapped(self, kind: str, size: int) -> Any:
         """The per-configuration function `kind` mapped over `size` configurations (built once)."""
         n, M = self.check_points, self.scene.n_obstacles
-        key = (kind, n, M if kind == "clearance" else 0, size)
-        f = self._fns.get(key)
-        if f is None:
-            base = self._fns.get((kind, n, key[2], 1))
-            if base is None:
-                base = self._clearance_function(n, M) if kind == "clearance" else self.model.backbone_function(n)
-                self._fns[(kind, n, key[2], 1)] = base
-            f = base.map(size, "serial")
-            self._fns[key] = f
-        return f
+        m = M if kind == "clearance" else 0
+
+        def single() -> Any:
+            return self._clearance_function(n, M) if kind == "clearance" else self.model.backbone_function(n)
+
+        def mapped() -> Any:
+            return self.kernels.function((kind, n, m, 1), single).map(size, "serial")
+
+        return self.kernels.function((kind, n, m, size), mapped)
 
     def _clearance_function(self, n: int, M: int) -> Any:
         """CasADi x (nx), C (3 x M), R (1 x M) -> min over chords and obstacles of dist - R (mm).

@@ -43,16 +43,38 @@ straight motion between two configurations within limits stays within limits.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from crtraj.core.errors import InputError
 from crtraj.model.kinematics import Model
+from crtraj.planning.kernels import Kernels
 from crtraj.planning.metric import BodyMetric
 from crtraj.planning.rate_limits import RateLimits
 from crtraj.planning.sampler import ConfigSampler
 from crtraj.planning.state_validity import StateValidityChecker
+
+
+@dataclass(frozen=True)
+class _EdgeBatch:
+    """Straight motions XA -> XA + step (E, nx) over [TA, TA + span] (s) to check: their body-motion bounds
+    (mm), first interval counts, the finest interval (mm) and time window (s), and the prefix mode."""
+
+    XA: np.ndarray
+    step: np.ndarray
+    bound: np.ndarray
+    n0: np.ndarray
+    TA: np.ndarray
+    span: np.ndarray
+    finest: float
+    tres: float
+    prefix: bool
+
+    def parts(self) -> tuple[Any, ...]:
+        """The fields in order (unpacked by the two edge-check loops)."""
+        return (self.XA, self.step, self.bound, self.n0, self.TA, self.span, self.finest, self.tres, self.prefix)
 
 
 class MotionValidator:
@@ -66,7 +88,7 @@ class MotionValidator:
     own times). time_resolution: moving obstacles only: an uncertified edge
     interval longer than this (s) is split in time before it is declared
     unsafe (waits and slow motions sweep obstacles over long windows).
-    functions: a CasADi function cache shared by a planner's validators. rate_limits: usable
+    kernels: the compiled kernels and CasADi functions shared by a planner's validators (`Kernels`). rate_limits: usable
     actuator limits; with them every motion is timed within the actuators' speed limits too.
     compiled: check with the compiled kernel when a C compiler is available (same results, faster).
 
@@ -84,7 +106,7 @@ class MotionValidator:
         resolution: float = 3.0,
         max_speed: float = 50.0,
         time_resolution: float = 0.25,
-        functions: dict[Any, Any] | None = None,
+        kernels: Kernels | None = None,
         rate_limits: RateLimits | None = None,
         compiled: bool = True,
     ) -> None:
@@ -99,7 +121,7 @@ class MotionValidator:
         self.model = model
         self.robot = model.robot
         self.scene = scene
-        self.state = StateValidityChecker(model, scene, check_points, functions, compiled)
+        self.state = StateValidityChecker(model, scene, check_points, kernels, compiled)
         self.space = BodyMetric(self.robot, max_speed, rate_limits)
         self.sampler = ConfigSampler(self.robot)
         self.check_points = self.state.check_points
@@ -222,7 +244,6 @@ class MotionValidator:
         np.minimum.at(per_edge, e, c)
         return per_edge, c, e
 
-    # Over 60 lines by its docstring (the certification argument); the loop is one vectorised refinement.
     def check_edges(
         self,
         XA: np.ndarray,
@@ -266,23 +287,40 @@ class MotionValidator:
         finest = 0.5 * self.resolution * (1.0 + 1e-9)
         # static scenes: every window is irrelevant, so no split in time
         tres = np.inf if self.static else self.time_resolution * (1.0 + 1e-9)
+        batch = _EdgeBatch(XA, dX, bound, n0, TA, dT, finest, tres, prefix)
         kernel = self.state.kernel
         if kernel is not None and self.compiled_loop and self.scene.n_obstacles and E and np.isfinite(bound).all():
             # the same loop in C, with the same arithmetic, operation for operation
-            if self.static:
-                fail, lower, samples = kernel.check_edges(
-                    XA, dX, bound, n0, self.state.static_slots, self.inflate, finest, prefix
-                )
-                self.state.n_samples += samples
-                return fail, lower
-            if np.isfinite(TA).all() and np.isfinite(dT).all():  # else the loop below says which time is bad
-                scene = self.scene
-                fail, lower, samples = kernel.check_edges_moving(
-                    XA, dX, bound, n0, TA, dT, scene.motion_table(), scene.time_origin, self.inflate, finest,
-                    self.state.enlargement_rate, tres, prefix,
-                )  # fmt: skip
-                self.state.n_samples += samples
-                return fail, lower
+            out = self._check_edges_compiled(batch)
+            if out is not None:
+                return out
+        return self._refine_edges(batch)
+
+    def _check_edges_compiled(self, b: _EdgeBatch) -> tuple[np.ndarray, np.ndarray] | None:
+        """`check_edges` in the compiled kernel; None when a time is not finite (the numpy loop says which)."""
+        XA, dX, bound, n0, TA, dT, finest, tres, prefix = b.parts()
+        kernel = self.state.kernel
+        assert kernel is not None
+        if self.static:
+            fail, lower, samples = kernel.check_edges(
+                XA, dX, bound, n0, self.state.static_slots, self.inflate, finest, prefix
+            )
+            self.state.n_samples += samples
+            return fail, lower
+        if not (np.isfinite(TA).all() and np.isfinite(dT).all()):
+            return None
+        scene = self.scene
+        fail, lower, samples = kernel.check_edges_moving(
+            XA, dX, bound, n0, TA, dT, scene.motion_table(), scene.time_origin, self.inflate, finest,
+            self.state.enlargement_rate, tres, prefix,
+        )  # fmt: skip
+        self.state.n_samples += samples
+        return fail, lower
+
+    def _refine_edges(self, b: _EdgeBatch) -> tuple[np.ndarray, np.ndarray]:
+        """`check_edges`' refinement loop in numpy (every motion's intervals halved together)."""
+        XA, dX, bound, n0, TA, dT, finest, tres, prefix = b.parts()
+        E = XA.shape[0]
         fail = np.ones(E)
         lower = np.full(E, np.inf)
         e = np.repeat(np.arange(E), n0)
