@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import logging
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -290,6 +291,34 @@ def _add_replan(sub: argparse._SubParsersAction) -> None:
         action="store_true",
         help="let a failed run replace a successful one in --out (default: it is written beside it, as OUT.failed)",
     )
+    _add_replan_live(p)
+    p.add_argument("--view", action="store_true", help="afterwards, serve the 3-D replay on 127.0.0.1 until Ctrl-C")
+    p.add_argument("--no-browser", action="store_true", help="with --view: only print the URL")
+    p.add_argument("--quiet", action="store_true", help="print only the summary line")
+    p.add_argument(
+        "--true-robot",
+        metavar="FILE",
+        help="simulation: a robot file with the robot's real parameters (e.g. perturbed); a simulated motion-capture "
+        "tip marker films it and the run reports the measured tip error",
+    )
+    p.add_argument(
+        "--tip-feedback",
+        action="store_true",
+        help="use the motion-capture tip as the loop's measurement: it corrects the remaining model error "
+        "(needs --mocap-port or --true-robot)",
+    )
+    p.add_argument(
+        "--mocap-port",
+        type=int,
+        metavar="PORT",
+        help="live runs (--feed, --stream): the capture's tip marker as UDP JSON on 127.0.0.1:PORT "
+        '({"marker": "tip", "position": [x, y, z]} in mm, capture frame; the robot file\'s [calibration] maps it)',
+    )
+    p.set_defaults(use_case="replan")
+
+
+def _add_replan_live(p: argparse.ArgumentParser) -> None:
+    """The options of `crtraj replan` that connect it to the world: a live feed, a device, the approach."""
     p.add_argument(
         "--feed",
         metavar="udp://127.0.0.1:PORT",
@@ -324,29 +353,6 @@ def _add_replan(sub: argparse._SubParsersAction) -> None:
         help="with --stream, without --feed: play the run this many times slower, 0.001..1000 (the device's "
         "acceleration limits may need it)",
     )
-    p.add_argument("--view", action="store_true", help="afterwards, serve the 3-D replay on 127.0.0.1 until Ctrl-C")
-    p.add_argument("--no-browser", action="store_true", help="with --view: only print the URL")
-    p.add_argument("--quiet", action="store_true", help="print only the summary line")
-    p.add_argument(
-        "--true-robot",
-        metavar="FILE",
-        help="simulation: a robot file with the robot's real parameters (e.g. perturbed); a simulated motion-capture "
-        "tip marker films it and the run reports the measured tip error",
-    )
-    p.add_argument(
-        "--tip-feedback",
-        action="store_true",
-        help="use the motion-capture tip as the loop's measurement: it corrects the remaining model error "
-        "(needs --mocap-port or --true-robot)",
-    )
-    p.add_argument(
-        "--mocap-port",
-        type=int,
-        metavar="PORT",
-        help="live runs (--feed, --stream): the capture's tip marker as UDP JSON on 127.0.0.1:PORT "
-        '({"marker": "tip", "position": [x, y, z]} in mm, capture frame; the robot file\'s [calibration] maps it)',
-    )
-    p.set_defaults(use_case="replan")
 
 
 # ----------------------------------------------------------------- ros-bridge
@@ -541,15 +547,73 @@ class _Parser(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The ``crtraj`` parser: global flags (``--version``, ``-v``, ``-q``) and one subparser per command."""
     parser = _Parser(
         prog="crtraj",
         description="Safety-constrained motion planning for cable-driven continuum robots.",
     )
     parser.add_argument("--version", action="version", version=f"crtraj {__version__}")
+    talk = parser.add_mutually_exclusive_group()
+    talk.add_argument(
+        "-v", "--verbose", action="count", default=0, help="more diagnostics on stderr (-v: info, -vv: debug)"
+    )
+    talk.add_argument("-q", dest="quiet_log", action="store_true", help="only errors on stderr (no warnings)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for add in _COMMANDS:
         add(sub)
+    for action in _string_actions(parser):
+        action.type = _non_empty
     return parser
+
+
+# String options where an empty value is meaningful (a blank note line); every other string option names a
+# path, URL, device, address or list, where "" would silently mean "not given".
+_EMPTY_ALLOWED = frozenset({"note"})
+
+
+def _string_actions(parser: argparse.ArgumentParser) -> list[argparse.Action]:
+    """Every option and positional of every command that takes a plain string (no type of its own)."""
+    out = []
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for p in dict.fromkeys(action.choices.values()):
+                out += _string_actions(p)
+        elif action.type is None and action.nargs != 0 and action.dest not in _EMPTY_ALLOWED:
+            out.append(action)
+    return out
+
+
+def _non_empty(value: str) -> str:
+    """argparse type of every path, URL and device flag: an empty string is an error, not "unset"."""
+    if not value:
+        raise argparse.ArgumentTypeError("must not be empty")
+    return value
+
+
+class _StderrHandler(logging.Handler):
+    """Writes records to the current ``sys.stderr`` (looked up per record, so a redirected or captured
+    stderr gets them)."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            sys.stderr.write(self.format(record) + "\n")
+            sys.stderr.flush()
+        except Exception:  # logging must never end the command
+            self.handleError(record)
+
+
+def configure_logging(verbose: int = 0, quiet: bool = False) -> logging.Logger:
+    """Set up the ``crtraj`` logger for the command line: level WARNING (-v INFO, -vv DEBUG, -q ERROR),
+    one ``crtraj: message`` line per record on stderr. Repeated calls replace the level, not the handler."""
+    log = logging.getLogger("crtraj")
+    level = logging.ERROR if quiet else {0: logging.WARNING, 1: logging.INFO}.get(verbose, logging.DEBUG)
+    log.setLevel(level)
+    if not any(isinstance(h, _StderrHandler) for h in log.handlers):
+        handler = _StderrHandler()
+        handler.setFormatter(logging.Formatter("crtraj: %(message)s"))
+        log.addHandler(handler)
+    log.propagate = False
+    return log
 
 
 def _one_line(exc: BaseException, width: int = 1000) -> str:
@@ -562,6 +626,7 @@ def _one_line(exc: BaseException, width: int = 1000) -> str:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    configure_logging(args.verbose, args.quiet_log)
     if getattr(args, "use_case", None) is None and getattr(args, "func", None) is None:
         parser.print_help()
         return 2
