@@ -22,7 +22,6 @@ from __future__ import annotations
 import csv
 import io
 import json
-import math
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from crtraj.core.errors import InputError
+from crtraj.core.fields import MAX_STAMP, read_number
 from crtraj.core.fileio import read_text
 from crtraj.model.calibration import MAX_SAMPLES, MarkerSite
 
@@ -50,13 +50,8 @@ class MarkerFrames:
 
 
 def _float(v: Any, where: str) -> float:
-    try:
-        x = float(v)
-    except (TypeError, ValueError):
-        raise InputError(f"{where}: expected a number, got {str(v)[:40]!r}") from None
-    if not math.isfinite(x):
-        raise InputError(f"{where}: must be finite, got {v!r}")
-    return x
+    # the one bounded number reader: huge integers, 1e300, NaN, inf and non-ASCII digits are refused
+    return read_number(v, where, limit=MAX_STAMP)
 
 
 def _rows_csv(text: str, path: Path) -> list[tuple[int, Any, Any, Any]]:
