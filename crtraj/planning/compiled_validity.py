@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import ctypes
 import hashlib
-import sys
+import logging
 from pathlib import Path
 from typing import Any
 
@@ -45,6 +45,8 @@ from crtraj.model.codegen import codegen_builder
 from crtraj.model.kinematics import Model
 from crtraj.planning.metric import metric_matrix
 from crtraj.world import packing
+
+log = logging.getLogger(__name__)
 
 # Version of the generated code and driver: raising it makes every cached kernel foreign (rebuilt).
 GENERATOR = 6
@@ -406,8 +408,7 @@ class ValidityKernel:
         key = kernel_key(model, check_points)
         defines = f"\n#define CRTRAJ_NX {model.robot.nx}\n#define CRTRAJ_NP {int(check_points)}\n"
         build = codegen_builder(lambda: kernel_functions(model, check_points), key.name, defines + _DRIVER)
-        lib = cache.library(key, build)
-        return None if lib is None else cls(lib, model.robot.nx, check_points)
+        return cache.load(key, build, lambda lib: cls(lib, model.robot.nx, check_points))
 
     def _configs(self, X: Any) -> np.ndarray:
         X = np.ascontiguousarray(X, dtype=float)
@@ -560,7 +561,7 @@ def shared_kernel(functions: dict[Any, Any], model: Model, check_points: int) ->
     """The kernel for `model` at `check_points`, kept in a planner's shared function cache `functions`.
 
     Loaded (or built) once per cache dict; the dict also holds the one `BuildCache` of its planner, so the
-    no-compiler notice is printed once. A failed build is reported in one stderr line and the interpreted
+    no-compiler notice is given once. A failed build is reported in one warning line and the interpreted
     path is used (the result is the same, only slower); so is a count above `MAX_COMPILED_POINTS`.
     """
     key = ("validity_kernel", int(check_points))
@@ -571,6 +572,6 @@ def shared_kernel(functions: dict[Any, Any], model: Model, check_points: int) ->
         try:
             functions[key] = ValidityKernel.load(model, check_points, cache)
         except (RuntimeError, OSError) as exc:
-            print(f"crtraj: compiled validity unavailable ({exc}): using the interpreted path", file=sys.stderr)
+            log.warning("compiled validity unavailable (%s): using the interpreted path", exc)
             functions[key] = None
     return functions[key]
