@@ -561,8 +561,11 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for add in _COMMANDS:
         add(sub)
-    for action in _string_actions(parser):
-        action.type = _non_empty
+    for action in _all_actions(parser):
+        if action.type is None and action.nargs != 0 and action.dest not in _EMPTY_ALLOWED:
+            action.type = _non_empty
+        elif action.type in (int, float):
+            action.type = _ascii_number(action.type)
     return parser
 
 
@@ -571,16 +574,29 @@ def build_parser() -> argparse.ArgumentParser:
 _EMPTY_ALLOWED = frozenset({"note"})
 
 
-def _string_actions(parser: argparse.ArgumentParser) -> list[argparse.Action]:
-    """Every option and positional of every command that takes a plain string (no type of its own)."""
+def _all_actions(parser: argparse.ArgumentParser) -> list[argparse.Action]:
+    """Every option and positional of every command."""
     out = []
     for action in parser._actions:
         if isinstance(action, argparse._SubParsersAction):
             for p in dict.fromkeys(action.choices.values()):
-                out += _string_actions(p)
-        elif action.type is None and action.nargs != 0 and action.dest not in _EMPTY_ALLOWED:
+                out += _all_actions(p)
+        else:
             out.append(action)
     return out
+
+
+def _ascii_number(kind: type) -> Callable[[str], Any]:
+    """argparse type `kind` (int or float) that takes ASCII text only: ``int("١٢")`` is 12 and
+    ``float("²")`` fails only by luck, so other scripts' digits are refused like any other non-number."""
+
+    def convert(text: str) -> Any:
+        if not text.isascii() or "_" in text:
+            raise ValueError(text)
+        return kind(text)
+
+    convert.__name__ = kind.__name__  # argparse names it in its message: "invalid int value: ..."
+    return convert
 
 
 def _non_empty(value: str) -> str:
