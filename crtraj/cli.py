@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import logging
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -25,6 +24,8 @@ from typing import Any, NoReturn
 
 from crtraj import __version__
 from crtraj.core.errors import AdmissionError, InputError
+from crtraj.core.flags import strict_flag_types
+from crtraj.core.logs import configure_logging
 from crtraj.hardware.transport import TransportError
 
 DEFAULT_ROBOT = Path(__file__).resolve().parent.parent / "problems" / "robots" / "cdsr2.toml"
@@ -554,82 +555,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"crtraj {__version__}")
     talk = parser.add_mutually_exclusive_group()
-    talk.add_argument(
-        "-v", "--verbose", action="count", default=0, help="more diagnostics on stderr (-v: info, -vv: debug)"
-    )
+    talk.add_argument("-v", "--verbose", action="count", default=0, help="more on stderr (-v: info, -vv: debug)")
     talk.add_argument("-q", dest="quiet_log", action="store_true", help="only errors on stderr (no warnings)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for add in _COMMANDS:
         add(sub)
-    for action in _all_actions(parser):
-        if action.type is None and action.nargs != 0 and action.dest not in _EMPTY_ALLOWED:
-            action.type = _non_empty
-        elif action.type in (int, float):
-            action.type = _ascii_number(action.type)
+    strict_flag_types(parser, empty_allowed=frozenset({"note"}))  # a blank --note line is meaningful
     return parser
-
-
-# String options where an empty value is meaningful (a blank note line); every other string option names a
-# path, URL, device, address or list, where "" would silently mean "not given".
-_EMPTY_ALLOWED = frozenset({"note"})
-
-
-def _all_actions(parser: argparse.ArgumentParser) -> list[argparse.Action]:
-    """Every option and positional of every command."""
-    out = []
-    for action in parser._actions:
-        if isinstance(action, argparse._SubParsersAction):
-            for p in dict.fromkeys(action.choices.values()):
-                out += _all_actions(p)
-        else:
-            out.append(action)
-    return out
-
-
-def _ascii_number(kind: type) -> Callable[[str], Any]:
-    """argparse type `kind` (int or float) that takes ASCII text only: ``int("١٢")`` is 12 and
-    ``float("²")`` fails only by luck, so other scripts' digits are refused like any other non-number."""
-
-    def convert(text: str) -> Any:
-        if not text.isascii() or "_" in text:
-            raise ValueError(text)
-        return kind(text)
-
-    convert.__name__ = kind.__name__  # argparse names it in its message: "invalid int value: ..."
-    return convert
-
-
-def _non_empty(value: str) -> str:
-    """argparse type of every path, URL and device flag: an empty string is an error, not "unset"."""
-    if not value:
-        raise argparse.ArgumentTypeError("must not be empty")
-    return value
-
-
-class _StderrHandler(logging.Handler):
-    """Writes records to the current ``sys.stderr`` (looked up per record, so a redirected or captured
-    stderr gets them)."""
-
-    def emit(self, record: logging.LogRecord) -> None:
-        try:
-            sys.stderr.write(self.format(record) + "\n")
-            sys.stderr.flush()
-        except Exception:  # logging must never end the command
-            self.handleError(record)
-
-
-def configure_logging(verbose: int = 0, quiet: bool = False) -> logging.Logger:
-    """Set up the ``crtraj`` logger for the command line: level WARNING (-v INFO, -vv DEBUG, -q ERROR),
-    one ``crtraj: message`` line per record on stderr. Repeated calls replace the level, not the handler."""
-    log = logging.getLogger("crtraj")
-    level = logging.ERROR if quiet else {0: logging.WARNING, 1: logging.INFO}.get(verbose, logging.DEBUG)
-    log.setLevel(level)
-    if not any(isinstance(h, _StderrHandler) for h in log.handlers):
-        handler = _StderrHandler()
-        handler.setFormatter(logging.Formatter("crtraj: %(message)s"))
-        log.addHandler(handler)
-    log.propagate = False
-    return log
 
 
 def _one_line(exc: BaseException, width: int = 1000) -> str:

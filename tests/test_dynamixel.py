@@ -344,6 +344,8 @@ def test_cli_sim_dynamixel_prints_its_path(capsys):
     [
         (["--hardware-error", "9:overload"], "--hardware-error: expected ID:NAME"),
         (["--hardware-error", "3:tired"], "--hardware-error: expected ID:NAME"),
+        (["--hardware-error", "\u00b3:overload"], "--hardware-error: expected ID:NAME"),  # isdigit, not int
+        (["--hardware-error", "\u0663:overload"], "--hardware-error: expected ID:NAME"),  # int() takes it
         (["--missing", "42"], "--missing: 42 is not one of the robot's ids"),
         (["--silent-after", "-1"], "--silent-after: must be in 0..1000000000 packets, got -1"),
         (["--baud", "12345"], "--baud: a Dynamixel rate"),
