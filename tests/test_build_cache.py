@@ -192,12 +192,17 @@ def test_clear_keeps_a_users_folder_that_holds_a_manifest(tmp_path):
     forged.mkdir()
     (forged / MANIFEST).write_text("{}")
     (forged / MARKER).write_text('{"crtraj_folder": "build-cache-entry", "version": 99}')
+    os.mkfifo(tmp_path / "fifo-dir")  # not a folder: not listed, not touched
+    (tmp_path / "odd").mkdir()
+    os.mkfifo(tmp_path / "odd" / MANIFEST)  # unreadable and unmarked: listed as both, kept
     states = {e.path.name: e.state for e in cache.entries()}
+    assert states["odd"] == "unreadable manifest: not a regular file, expected a JSON file; not crtraj's (no marker; left alone)"
     assert states[user.name].startswith("not crtraj's") and states[forged.name].startswith("not crtraj's")
     assert states[lib.parent.name] == "ok"
     assert cache.clear() == 1
     assert not lib.parent.exists()
     assert (user / "a.jpg").read_bytes() == b"\xff\xd8 not ours" and (forged / MARKER).exists()
+    assert (tmp_path / "odd" / MANIFEST).exists() and (tmp_path / "fifo-dir").exists()
 
 
 def test_a_file_where_an_entry_belongs_is_moved_aside_and_rebuilt(tmp_path):

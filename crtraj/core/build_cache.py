@@ -363,9 +363,10 @@ class BuildCache:
                 continue
             name, _, digest = d.name.rpartition("-")
             lib = self._verify(d, None)
-            state = "ok" if lib is not None else _manifest_problem(d / MANIFEST) or "corrupt"
+            problem = None if lib is not None else _manifest_problem(d / MANIFEST)
+            state = "ok" if lib is not None else problem or "corrupt"
             if not marked:
-                state = "not crtraj's (no marker; left alone)"
+                state = "; ".join(x for x in (problem, "not crtraj's (no marker; left alone)") if x)
             out.append(CacheEntry(d, name, digest, lib.stat().st_size if lib else 0, lib is not None, state))
         return out
 
