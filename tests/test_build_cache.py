@@ -196,7 +196,8 @@ def test_clear_keeps_a_users_folder_that_holds_a_manifest(tmp_path):
     (tmp_path / "odd").mkdir()
     os.mkfifo(tmp_path / "odd" / MANIFEST)  # unreadable and unmarked: listed as both, kept
     states = {e.path.name: e.state for e in cache.entries()}
-    assert states["odd"] == "unreadable manifest: not a regular file, expected a JSON file; not crtraj's (no marker; left alone)"
+    assert states["odd"].startswith("unreadable manifest: not a regular file")
+    assert states["odd"].endswith("; not crtraj's (no marker; left alone)")
     assert states[user.name].startswith("not crtraj's") and states[forged.name].startswith("not crtraj's")
     assert states[lib.parent.name] == "ok"
     assert cache.clear() == 1
