@@ -98,7 +98,7 @@ def _add_build(sub: argparse._SubParsersAction) -> None:
     )
     g = p.add_mutually_exclusive_group()
     g.add_argument("--list", action="store_true", help="list the cache's entries (and whether each verifies)")
-    g.add_argument("--clear", action="store_true", help="remove every entry of the cache")
+    g.add_argument("--clear", action="store_true", help="remove every entry crtraj made (nothing else is touched)")
     p.set_defaults(use_case="build")
 
 
