@@ -15,6 +15,7 @@ from crtraj.core.errors import InputError
 from crtraj.core.fields import MAX_STAMP, read_int, read_number
 from crtraj.core.fileio import MARKER, is_marked
 from crtraj.core.logs import configure_logging
+from crtraj.hardware.dynamixel import parse_url
 from crtraj.hardware.ros.node import domain_id
 from crtraj.hardware.ros.options import RosOptions
 
@@ -238,3 +239,11 @@ def test_the_no_compiler_notice_goes_through_the_logger(tmp_path, capsys, monkey
     assert rc == 1 and err.startswith("crtraj: no C compiler found") and err.count("\n") == 1, err
     rc, err = _exit_and_err(["-q", "build", "--robot", str(ROBOT)], capsys)
     assert rc == 1 and err == "", err
+
+
+@pytest.mark.parametrize("baud", ["\u0661\u0660\u0660\u0660\u0660\u0660\u0660", "1_000_000", "9" * 400, "-1"])
+def test_dynamixel_url_baud_is_ascii_digits(baud):
+    """The baud of ``dynamixel:///dev/X?baud=N`` is read like any other integer: ASCII digits, bounded."""
+    assert parse_url("dynamixel:///dev/ttyUSB0?baud=57600") == ("/dev/ttyUSB0", 57600)
+    with pytest.raises(InputError, match=r"^stream target: baud must be an integer"):
+        parse_url(f"dynamixel:///dev/ttyUSB0?baud={baud}")

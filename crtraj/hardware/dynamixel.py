@@ -104,11 +104,10 @@ def parse_url(url: str) -> tuple[str, int]:
     if parts.scheme != "dynamixel" or not device:
         raise InputError(f"stream target: expected dynamixel:///dev/PORT[?baud=N], got {url!r}")
     q = parse_qs(parts.query)
-    try:
-        baud = int(q["baud"][0]) if "baud" in q else DEFAULT_BAUD
-    except ValueError:
-        raise InputError(f"stream target: baud must be an integer, got {q['baud'][0]!r}") from None
-    return device, baud
+    text = q["baud"][0] if "baud" in q else str(DEFAULT_BAUD)
+    if not (text.isascii() and text.isdecimal() and len(text) <= 10):  # int() takes other scripts' digits
+        raise InputError(f"stream target: baud must be an integer, got {text[:40]!r}")
+    return device, int(text)
 
 
 def check_baud(baud: int) -> int:
