@@ -24,6 +24,8 @@ from typing import Any, NoReturn
 
 from crtraj import __version__
 from crtraj.core.errors import AdmissionError, InputError
+from crtraj.core.flags import strict_flag_types
+from crtraj.core.logs import configure_logging
 from crtraj.hardware.transport import TransportError
 
 DEFAULT_ROBOT = Path(__file__).resolve().parent.parent / "problems" / "robots" / "cdsr2.toml"
@@ -96,7 +98,7 @@ def _add_build(sub: argparse._SubParsersAction) -> None:
     )
     g = p.add_mutually_exclusive_group()
     g.add_argument("--list", action="store_true", help="list the cache's entries (and whether each verifies)")
-    g.add_argument("--clear", action="store_true", help="remove every entry of the cache")
+    g.add_argument("--clear", action="store_true", help="remove every entry crtraj made (nothing else is touched)")
     p.set_defaults(use_case="build")
 
 
@@ -290,6 +292,34 @@ def _add_replan(sub: argparse._SubParsersAction) -> None:
         action="store_true",
         help="let a failed run replace a successful one in --out (default: it is written beside it, as OUT.failed)",
     )
+    _add_replan_live(p)
+    p.add_argument("--view", action="store_true", help="afterwards, serve the 3-D replay on 127.0.0.1 until Ctrl-C")
+    p.add_argument("--no-browser", action="store_true", help="with --view: only print the URL")
+    p.add_argument("--quiet", action="store_true", help="print only the summary line")
+    p.add_argument(
+        "--true-robot",
+        metavar="FILE",
+        help="simulation: a robot file with the robot's real parameters (e.g. perturbed); a simulated motion-capture "
+        "tip marker films it and the run reports the measured tip error",
+    )
+    p.add_argument(
+        "--tip-feedback",
+        action="store_true",
+        help="use the motion-capture tip as the loop's measurement: it corrects the remaining model error "
+        "(needs --mocap-port or --true-robot)",
+    )
+    p.add_argument(
+        "--mocap-port",
+        type=int,
+        metavar="PORT",
+        help="live runs (--feed, --stream): the capture's tip marker as UDP JSON on 127.0.0.1:PORT "
+        '({"marker": "tip", "position": [x, y, z]} in mm, capture frame; the robot file\'s [calibration] maps it)',
+    )
+    p.set_defaults(use_case="replan")
+
+
+def _add_replan_live(p: argparse.ArgumentParser) -> None:
+    """The options of `crtraj replan` that connect it to the world: a live feed, a device, the approach."""
     p.add_argument(
         "--feed",
         metavar="udp://127.0.0.1:PORT",
@@ -324,29 +354,6 @@ def _add_replan(sub: argparse._SubParsersAction) -> None:
         help="with --stream, without --feed: play the run this many times slower, 0.001..1000 (the device's "
         "acceleration limits may need it)",
     )
-    p.add_argument("--view", action="store_true", help="afterwards, serve the 3-D replay on 127.0.0.1 until Ctrl-C")
-    p.add_argument("--no-browser", action="store_true", help="with --view: only print the URL")
-    p.add_argument("--quiet", action="store_true", help="print only the summary line")
-    p.add_argument(
-        "--true-robot",
-        metavar="FILE",
-        help="simulation: a robot file with the robot's real parameters (e.g. perturbed); a simulated motion-capture "
-        "tip marker films it and the run reports the measured tip error",
-    )
-    p.add_argument(
-        "--tip-feedback",
-        action="store_true",
-        help="use the motion-capture tip as the loop's measurement: it corrects the remaining model error "
-        "(needs --mocap-port or --true-robot)",
-    )
-    p.add_argument(
-        "--mocap-port",
-        type=int,
-        metavar="PORT",
-        help="live runs (--feed, --stream): the capture's tip marker as UDP JSON on 127.0.0.1:PORT "
-        '({"marker": "tip", "position": [x, y, z]} in mm, capture frame; the robot file\'s [calibration] maps it)',
-    )
-    p.set_defaults(use_case="replan")
 
 
 # ----------------------------------------------------------------- ros-bridge
@@ -556,14 +563,19 @@ class _Parser(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The ``crtraj`` parser: global flags (``--version``, ``-v``, ``-q``) and one subparser per command."""
     parser = _Parser(
         prog="crtraj",
         description="Safety-constrained motion planning for cable-driven continuum robots.",
     )
     parser.add_argument("--version", action="version", version=f"crtraj {__version__}")
+    talk = parser.add_mutually_exclusive_group()
+    talk.add_argument("-v", "--verbose", action="count", default=0, help="more on stderr (-v: info, -vv: debug)")
+    talk.add_argument("-q", dest="quiet_log", action="store_true", help="only errors on stderr (no warnings)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for add in _COMMANDS:
         add(sub)
+    strict_flag_types(parser, empty_allowed=frozenset({"note"}))  # a blank --note line is meaningful
     return parser
 
 
@@ -577,6 +589,7 @@ def _one_line(exc: BaseException, width: int = 1000) -> str:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    configure_logging(args.verbose, args.quiet_log)
     if getattr(args, "use_case", None) is None and getattr(args, "func", None) is None:
         parser.print_help()
         return 2

@@ -4,7 +4,6 @@ checked before any work, with nothing already written touched."""
 from __future__ import annotations
 
 import json
-import math
 import os
 import subprocess
 import sys
@@ -326,7 +325,9 @@ def test_numbers_are_magnitude_bounded_and_strings_are_not_numbers():
 def test_odd_keys_and_values_stay_on_one_line(tmp_path, capsys):
     p = _problem(tmp_path, STATIC.replace("[task]", '[task]\n"a\\nb\\u0001" = "x\\ny"'))
     err = _one_line(capsys, ["plan", str(p)], "task.'a\\nb\\x01': unknown key")
-    assert math.isfinite(len(err))
+    # the key's newline and control character are shown escaped, never written raw to the terminal
+    body = err[: -len("\n")]
+    assert body.isprintable() and "\x01" not in err and "\r" not in err, repr(err)
 
 
 # ----------------------------------------------------- end to end (subprocess)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import io
 import json
+import os
 import shutil
 import sys
 from pathlib import Path
@@ -15,6 +16,7 @@ import pytest
 from conftest import require_tool
 
 from crtraj.core.build_cache import MANIFEST, BuildCache, BuildKey, default_root, find_compiler
+from crtraj.core.fileio import MARKER
 from crtraj.model.codegen import compiled_functions
 
 # A stand-in compiler for the cache's own logic: the cache only records its identity; the build steps
@@ -32,7 +34,7 @@ class Builder:
     def __call__(self, folder: Path, compiler: str) -> Path:
         self.calls += 1
         assert compiler == FAKE_CC
-        assert not any(folder.iterdir()), "a build starts in an empty folder"
+        assert [p.name for p in folder.iterdir()] == [MARKER], "a build starts in a folder holding only the marker"
         lib = folder / "libthing.so"
         lib.write_bytes(self.payload)
         return lib
@@ -92,7 +94,9 @@ def test_corrupt_entry_is_detected_and_rebuilt(tmp_path, damage):
         man["sha256"] = "0" * 64
         (lib.parent / MANIFEST).write_text(json.dumps(man))
     assert cache.lookup(key) is None
-    assert [e.valid for e in cache.entries()] == [False]
+    assert [(e.valid, e.state.split(":")[0]) for e in cache.entries()] == [
+        (False, "unreadable manifest" if damage == "manifest_garbage" else "corrupt")
+    ]
     again = cache.library(key, b)
     assert b.calls == 2 and again == lib and again.read_bytes() == b.payload
     assert cache.lookup(key) == lib
@@ -174,3 +178,79 @@ def test_compiled_casadi_function_round_trip(tmp_path):
     ref = np.linalg.norm(v) + np.sin(v[0])
     assert calls == [1]
     assert abs(float(f(v)) - ref) < 1e-12 and abs(float(g(v)) - ref) < 1e-12
+
+
+def test_clear_keeps_a_users_folder_that_holds_a_manifest(tmp_path):
+    """--clear deletes only folders carrying crtraj's marker: a user's folder with a manifest.json stays."""
+    cache = BuildCache(tmp_path, compiler=FAKE_CC)
+    lib = cache.library(BuildKey("thing", {"v": 1}), Builder())
+    user = tmp_path / "photos-2024"
+    user.mkdir()
+    (user / MANIFEST).write_text('{"format": 2, "mine": true}')
+    (user / "a.jpg").write_bytes(b"\xff\xd8 not ours")
+    forged = tmp_path / "thing-0123"  # a marker of another kind or version is not crtraj's entry marker
+    forged.mkdir()
+    (forged / MANIFEST).write_text("{}")
+    (forged / MARKER).write_text('{"crtraj_folder": "build-cache-entry", "version": 99}')
+    os.mkfifo(tmp_path / "fifo-dir")  # not a folder: not listed, not touched
+    (tmp_path / "odd").mkdir()
+    os.mkfifo(tmp_path / "odd" / MANIFEST)  # unreadable and unmarked: listed as both, kept
+    states = {e.path.name: e.state for e in cache.entries()}
+    assert states["odd"].startswith("unreadable manifest: not a regular file")
+    assert states["odd"].endswith("; not crtraj's (no marker; left alone)")
+    assert states[user.name].startswith("not crtraj's") and states[forged.name].startswith("not crtraj's")
+    assert states[lib.parent.name] == "ok"
+    assert cache.clear() == 1
+    assert not lib.parent.exists()
+    assert (user / "a.jpg").read_bytes() == b"\xff\xd8 not ours" and (forged / MARKER).exists()
+    assert (tmp_path / "odd" / MANIFEST).exists() and (tmp_path / "fifo-dir").exists()
+
+
+def test_a_file_where_an_entry_belongs_is_moved_aside_and_rebuilt(tmp_path):
+    """A regular file (or a user's folder) under an entry's name is kept, renamed aside; the entry is built."""
+    cache = BuildCache(tmp_path, compiler=FAKE_CC)
+    key = BuildKey("thing", {"v": 1})
+    cache.entry_dir(key).write_bytes(b"user data")
+    lib = cache.library(key, Builder())
+    assert lib.read_bytes() == Builder().payload and cache.lookup(key) == lib
+    aside = [p for p in tmp_path.iterdir() if p.name.startswith(".aside-")]
+    assert len(aside) == 1 and aside[0].read_bytes() == b"user data"
+
+
+def test_an_entry_that_does_not_load_is_rebuilt_once_then_reported(tmp_path):
+    """A library whose hash matches its manifest but fails to load is rebuilt once; twice is an error."""
+    cache = BuildCache(tmp_path, compiler=FAKE_CC)
+    key = BuildKey("thing", {"v": 1})
+    b = Builder()
+    first = cache.library(key, b)
+    loads = []
+
+    def loader(lib: Path) -> bytes:
+        loads.append(lib)
+        if len(loads) == 1:
+            raise OSError(f"{lib}: invalid ELF header")
+        return lib.read_bytes()
+
+    assert cache.load(key, b, loader) == b.payload
+    assert b.calls == 2 and len(loads) == 2 and cache.lookup(key) is not None
+
+    def never(lib: Path) -> None:
+        raise OSError("invalid ELF header")
+
+    with pytest.raises(RuntimeError, match=r"rebuilt library does not load \(invalid ELF header\)"):
+        cache.load(key, b, never)
+    assert b.calls == 3 and first.parent.name == cache.entry_dir(key).name
+
+
+def test_list_shows_unreadable_manifests(tmp_path):
+    """An entry whose manifest is a FIFO or not JSON is listed as unreadable, not skipped (and never hangs)."""
+    cache = BuildCache(tmp_path, compiler=FAKE_CC)
+    lib1 = cache.library(BuildKey("thing", {"v": 1}), Builder())
+    lib2 = cache.library(BuildKey("thing", {"v": 2}), Builder())
+    (lib1.parent / MANIFEST).unlink()
+    os.mkfifo(lib1.parent / MANIFEST)
+    (lib2.parent / MANIFEST).write_text("{not json")
+    states = sorted(e.state for e in cache.entries())
+    assert len(states) == 2 and all(s.startswith("unreadable manifest: ") for s in states)
+    assert any("regular file" in s for s in states), states
+    assert cache.clear() == 2 and cache.entries() == []

@@ -354,9 +354,8 @@ def test_toml_rewriter_changes_only_the_asked_values():
     t = tomllib.loads(out)
     assert t["a"]["x"] == 2.5 and t["a"]["b"] == [{"z": 2}, {"z": 4}] and t["a"]["w"] == 1.0 and t["c"]["d"] == [1, 2]
     assert t["a"]["y"] == "s # not a comment"
-    # a table defined through a dotted key cannot be edited by appending a header: refused, not corrupted
-    with pytest.raises(InputError, match=r"not written|does not parse"):
-        set_values("a.b = 1\n", {("a", "c"): 2.0})
+    # a table defined through a dotted key gets the new key as a dotted key (tomlkit), not a second header
+    assert tomllib.loads(set_values("a.b = 1\n", {("a", "c"): 2.0})) == {"a": {"b": 1, "c": 2.0}}
 
 
 def test_toml_changes_exclude_held_and_unfitted_parameters(synthetic):

@@ -344,6 +344,8 @@ def test_cli_sim_dynamixel_prints_its_path(capsys):
     [
         (["--hardware-error", "9:overload"], "--hardware-error: expected ID:NAME"),
         (["--hardware-error", "3:tired"], "--hardware-error: expected ID:NAME"),
+        (["--hardware-error", "\u00b3:overload"], "--hardware-error: expected ID:NAME"),  # isdigit, not int
+        (["--hardware-error", "\u0663:overload"], "--hardware-error: expected ID:NAME"),  # int() takes it
         (["--missing", "42"], "--missing: 42 is not one of the robot's ids"),
         (["--silent-after", "-1"], "--silent-after: must be in 0..1000000000 packets, got -1"),
         (["--baud", "12345"], "--baud: a Dynamixel rate"),
@@ -413,3 +415,35 @@ def test_crc_agrees_with_the_sdk_on_random_packets():
     for n in (1, 8, 50, 300):
         data = rng.integers(0, 256, size=n).tolist()
         assert dxl_crc16(bytes(data)) == ph.updateCRC(0, data, n)
+
+
+@pytest.mark.parametrize("fault", ["reboot", "torque-off"])
+def test_a_servo_rebooted_mid_stream_holds_at_once_naming_it(robot, acts, fault):
+    """A servo that restarts (torque off, RAM reset) mid-stream is seen on the very next sync read: the link
+    holds (no goal is written after it) and the report names the servo, long before the final settle check."""
+    motion = _motion(robot, acts)
+    clock = Clock()
+    sim = _sim(acts, clock, start=motion.values[0])
+    chain = sim.chain
+    seen: dict[str, int] = {}
+
+    def at_half():
+        with sim.locked():
+            if fault == "reboot":
+                chain.reboot(3, clock.now)
+            else:  # another program switched its torque off
+                chain.torque_off(3, clock.now)
+            seen["writes"] = chain.counts["sync_writes"]
+
+    clock.events.append((0.5, at_half))
+    try:
+        st, _ = _stream(sim, acts, motion, clock)
+        rep = st.run_path(motion)
+        assert rep.status == "error" and "transport error" in rep.message
+        assert "servo id 3 (s1c3): torque off mid-stream" in rep.message, rep.message
+        # held at once: at most the goal already on its way when the reboot happened, then only the torque off
+        assert rep.moves <= round(0.5 * motion.rate) + 2 < len(motion.stamps)
+        # after it: the goal already on its way at most, then the torque off at exit
+        assert chain.counts["sync_writes"] <= seen["writes"] + 2
+    finally:
+        sim.stop()

@@ -263,7 +263,7 @@ def test_dry_run_onto_the_input_is_refused(tmp_path, capsys):
     for target in (res, link, tmp_path / "." / res.name):
         assert main(["stream", str(res), "--dry-run", str(target)]) == 2
         _, err = _one_err_line(capsys)
-        assert err.startswith("crtraj: error: --dry-run: ") and "same file" in err
+        assert err.startswith("crtraj: error: --dry-run: ") and "is also RESULT" in err
     assert main(["stream", str(res), "--dry-run", str(tmp_path / "f.bin"), "--log", str(res)]) == 2
     _, err = _one_err_line(capsys)
     assert err.startswith("crtraj: error: --log: ")

@@ -4,11 +4,11 @@ held-out dynamic suite (`crtraj bench suite`, `crtraj.app.suite`)."""
 from __future__ import annotations
 
 import concurrent.futures as cf
+import logging
 import math
 import multiprocessing
 import os
 import platform
-import sys
 from collections.abc import Callable
 from dataclasses import replace
 from datetime import datetime, timezone
@@ -28,12 +28,28 @@ from crtraj.bench.runlog import read_runs
 from crtraj.bench.runner import Table1Bench
 from crtraj.bench.scenarios import ScenarioGenerator, ScenarioOptions
 from crtraj.core.errors import InputError
-from crtraj.core.fields import Table
-from crtraj.core.fileio import atomic_write_text, read_toml
+from crtraj.core.fields import Table, read_int
+from crtraj.core.fileio import atomic_write_text, check_outputs_not_inputs, read_toml
 from crtraj.io.problem import load_robot
 from crtraj.model.kinematics import Model
 from crtraj.planning.options import PlannerOptions
 from crtraj.planning.registry import BUILTIN
+
+log = logging.getLogger(__name__)
+
+# What table1 writes into --out (`crtraj.bench.report.Table1Report.write`) and modes (`run_modes`).
+TABLE1_FILES = ("table1.md", "runs.csv", "scenarios.json")
+MODES_FILES = ("table1-modes.md", "success.png", "time_cdf.png", "length.png")
+
+
+def _int(text: str, name: str) -> int:
+    """One integer of a comma-separated flag (ASCII digits only: int() also takes other scripts' digits)."""
+    return read_int(text, name, ge=0, le=10**6)
+
+
+def _check_outputs(out: Path, names: tuple[str, ...], inputs: dict[str, Any]) -> None:
+    """No file the command writes into `out` may be one of its inputs (one line naming both flags)."""
+    check_outputs_not_inputs({f"--out ({n})": out / n for n in names}, inputs)
 
 
 def _parse_list(text: str, name: str, conv: Callable[[str], Any]) -> tuple[Any, ...]:
@@ -80,7 +96,7 @@ def run_table1(args: Any) -> int:
         raise InputError(f"--workers: must be >= 0 (0 = run in this process), got {workers}")
     planners = _parse_list(args.planners, "--planners", str) if args.planners else PLANNERS
     options = BenchOptions(
-        counts=_parse_list(args.counts, "--counts", int),
+        counts=_parse_list(args.counts, "--counts", lambda c: _int(c, "--counts")),
         scenarios=100 if args.scenarios is None else args.scenarios,
         planners=planners,
         time_limit=5.0 if args.time_limit is None else args.time_limit,
@@ -88,6 +104,8 @@ def run_table1(args: Any) -> int:
         verify_margin=args.verify_margin,
         cpu_budget=args.cpu_budget,
     )
+    out = Path(args.out or "out/table1")
+    _check_outputs(out, TABLE1_FILES, {"--robot": args.robot, "--planner-config": args.planner_config})
     planner_options = PlannerOptions()
     if args.planner_config:
         data = read_toml(args.planner_config)
@@ -101,7 +119,6 @@ def run_table1(args: Any) -> int:
             BUILTIN.check_available(name)  # fail now, in one line, not in every worker
     scenes = PAPER_SCENES if args.scenes == "paper" else None
     bench = Table1Bench(robot, options, planner_options=planner_options, scenario_options=scenes)
-    out = Path(args.out or "out/table1")
     total = len(options.counts) * options.scenarios * len(planners)
     executor, client, workers = _executor(args, bench, workers)
     where = f"Dask at {args.dask} ({workers} threads)" if args.dask else f"{workers or 'no'} worker processes"
@@ -127,7 +144,7 @@ def run_table1(args: Any) -> int:
         print(f"  {LABELS.get(p, p):<18} " + "; ".join(cells))
     print(f"wrote {', '.join(str(f) for f in files)} ({report.wall_time:.0f} s)")
     if report.interrupted:
-        print(f"crtraj: {report.note}; the files hold the {len(report.records)} runs that finished", file=sys.stderr)
+        log.warning("%s; the files hold the %d runs that finished", report.note, len(report.records))
         return 130 if "Ctrl-C" in report.note else 1
     return 0
 
@@ -144,7 +161,10 @@ def run_modes(args: Any) -> int:
     (table1-modes.md, success.png, time_cdf.png, length.png and OMPL benchmark logs in DIR/ompl)."""
     if not args.runs:
         raise InputError("--runs: give the runs.csv file(s) of `crtraj bench table1` runs, comma-separated")
-    records = [r for path in _parse_list(args.runs, "--runs", str) for r in read_runs(path)]
+    runs = _parse_list(args.runs, "--runs", str)
+    out = Path(args.out or "docs/table1")
+    _check_outputs(out, MODES_FILES, {"--robot": args.robot, **{f"--runs ({r})": r for r in runs}})
+    records = [r for path in runs for r in read_runs(path)]
     if not records:
         raise InputError(f"--runs: no runs in {args.runs}")
     counts = tuple(sorted({r.n_obstacles for r in records}))
@@ -154,7 +174,6 @@ def run_modes(args: Any) -> int:
         f"{args.runs}; {len(records)} runs. Machine: {platform.node()} ({platform.machine()}, {os.cpu_count()} "
         f"logical CPUs). Largest time per run (wall s) by planner: {limits}.\n\n{args.note or ''}"
     )
-    out = Path(args.out or "docs/table1")
     rows = {"paper": PAPER_ROWS, "strict": STRICT_ROWS}
     # the scenarios' straight start-to-goal distances, regenerated from their seeds (for the detour column)
     bounds = replace(PAPER_SCENES if args.scenes == "paper" else ScenarioOptions(), seed=args.seed)

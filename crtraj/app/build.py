@@ -15,7 +15,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from crtraj.control.loop_options import LoopOptions
-from crtraj.core.build_cache import BuildCache
+from crtraj.core.build_cache import BuildCache, CacheEntry
 from crtraj.core.errors import InputError
 from crtraj.hardware.verify import VerifyOptions
 from crtraj.io.problem import load_robot
@@ -53,6 +53,17 @@ def build_validity(model: Model, cache: BuildCache, check_points: list[int]) -> 
 ARTIFACTS: tuple[Callable[[Model, BuildCache, list[int]], list[Built]], ...] = (build_validity,)
 
 
+def _state_text(e: CacheEntry) -> str:
+    """How `crtraj build --list` shows an entry's state."""
+    if e.valid:
+        return "ok"
+    if e.state == "corrupt":
+        return "CORRUPT (rebuilt on next use)"
+    if e.state.startswith("unreadable "):
+        return "UNREADABLE " + e.state.removeprefix("unreadable ")
+    return e.state
+
+
 def build_command(args: argparse.Namespace) -> int:
     """`crtraj build ...` (arguments from `crtraj.cli`); returns the exit code."""
     cache = BuildCache()
@@ -64,7 +75,7 @@ def build_command(args: argparse.Namespace) -> int:
         entries = cache.entries()
         print(f"build cache {cache.root}: {len(entries)} entries")
         for e in entries:
-            print(f"  {e.path.name}  {e.size / 1024:.0f} kB  {'ok' if e.valid else 'CORRUPT (rebuilt on next use)'}")
+            print(f"  {e.path.name}  {e.size / 1024:.0f} kB  {_state_text(e)}")
         return 0
     points = sorted(set(default_check_points() + list(args.check_points or [])))
     bad = [n for n in points if not 2 <= n <= MAX_COMPILED_POINTS]

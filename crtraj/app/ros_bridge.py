@@ -25,7 +25,13 @@ from crtraj.app.replan import UnsolvableTaskError, loop_from_problem
 from crtraj.app.run_output import write_run_files
 from crtraj.control.loop import RunStatus
 from crtraj.core.errors import InputError
-from crtraj.core.fileio import StagedDir, check_output_dir, failed_sibling, is_successful_result
+from crtraj.core.fileio import (
+    StagedDir,
+    check_output_dir,
+    check_outputs_not_inputs,
+    failed_sibling,
+    is_successful_result,
+)
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.ros.device import RosDevice
 from crtraj.hardware.ros.node import RosNode
@@ -78,6 +84,14 @@ def _plan_first(loop: Any, node: RosNode, acts: Actuators) -> None:
         loop.initial_reference = loop.reference_source(loop.servo.config(acts.actuation(st[0])), 0.0, scene)
 
 
+@dataclass(frozen=True)
+class _Pacing:
+    """The bridge's time (s) and pacing; None: the ROS clock (the system time) and `time.sleep`."""
+
+    clock: Callable[[], float] | None = None
+    sleep: Callable[[float], None] | None = None
+
+
 def run_ros_bridge(
     req: RosBridgeRequest,
     *,
@@ -93,9 +107,9 @@ def run_ros_bridge(
     if req.seed is not None and req.seed < 0:
         raise InputError(f"--seed: must be >= 0, got {req.seed}")
     out = req.out if req.out is not None else Path("out") / "ros-bridge"
+    check_outputs_not_inputs({"--out": out}, {"PROBLEM": req.problem})
     check_output_dir(out, "--out", RUN_FILES)
     problem = Problem.load(req.problem)
-    seed = problem.seed if req.seed is None else req.seed
     ros = problem.options(RosOptions, "ros")
     if problem.robot.actuators is None:
         raise InputError("robot.actuators: ros-bridge needs a [robot.actuators] table in the robot file")
@@ -115,30 +129,36 @@ def run_ros_bridge(
         if ready is not None:
             ready(node, feed)
         _await_robot(node, feed, ros)
-        try:
-            # the run starts where the robot is (its newest joint state), not at the task's start
-            here = node.joint_state()
-            x_robot = None if here is None else problem.robot.config(acts.actuation(here[0]))
-            loop = loop_from_problem(problem, seed=seed, feed=feed, lead=ros.lead, start_config=x_robot)
-        except UnsolvableTaskError as exc:
-            print(f"{exc.status}: {exc}; no run, nothing written to {out}")
-            print(f"crtraj: ros-bridge failed: {exc.status}: {exc}", file=sys.stderr)
-            return 1
-        dt = loop.options.dt
-        verifier = FrameVerifier(problem.robot, acts, loop.scene, dt / ros.points_per_step, model=loop.model)
-        kw: dict[str, Any] = {} if clock is None else {"clock": clock, "sleep": sleep or time.sleep}
-        device = RosDevice(
-            node, acts, loop.model, loop.servo, dt, verifier, lambda: loop.scene_now, lead=ros.lead, **kw
-        )
-        _plan_first(loop, node, acts)
-        stage = stack.enter_context(StagedDir(out, RUN_FILES))
-        run = loop.run(device=device, clock=clock, sleep=sleep)
-        ok = run.is_success() and not device.problem()
-        staged = write_run_files(run, loop, stage.path, problem=problem, seed=seed, html=req.html)
-        dest = out
-        if not ok and not req.overwrite_failed and is_successful_result(out):
-            dest = failed_sibling(out)
-        dest = stage.commit(dest)
+        return _run(req, problem, out, (stack, node, feed, acts, ros), _Pacing(clock, sleep))
+
+
+def _run(req: RosBridgeRequest, problem: Problem, out: Path, parts: tuple[Any, ...], pacing: _Pacing) -> int:
+    """The loop against the live robot, from where it is now; its files staged and renamed into `out`
+    (or OUT.failed); the exit code. parts: the bridge's (exit stack, node, feed, actuators, [ros] options)."""
+    stack, node, feed, acts, ros = parts
+    seed = problem.seed if req.seed is None else req.seed
+    try:
+        # the run starts where the robot is (its newest joint state), not at the task's start
+        here = node.joint_state()
+        x_robot = None if here is None else problem.robot.config(acts.actuation(here[0]))
+        loop = loop_from_problem(problem, seed=seed, feed=feed, lead=ros.lead, start_config=x_robot)
+    except UnsolvableTaskError as exc:
+        print(f"{exc.status}: {exc}; no run, nothing written to {out}")
+        print(f"crtraj: ros-bridge failed: {exc.status}: {exc}", file=sys.stderr)
+        return 1
+    dt = loop.options.dt
+    verifier = FrameVerifier(problem.robot, acts, loop.scene, dt / ros.points_per_step, model=loop.model)
+    kw: dict[str, Any] = {} if pacing.clock is None else {"clock": pacing.clock, "sleep": pacing.sleep or time.sleep}
+    device = RosDevice(node, acts, loop.model, loop.servo, dt, verifier, lambda: loop.scene_now, lead=ros.lead, **kw)
+    _plan_first(loop, node, acts)
+    stage = stack.enter_context(StagedDir(out, RUN_FILES))
+    run = loop.run(device=device, clock=pacing.clock, sleep=pacing.sleep)
+    ok = run.is_success() and not device.problem()
+    staged = write_run_files(run, loop, stage.path, problem=problem, seed=seed, html=req.html)
+    dest = out
+    if not ok and not req.overwrite_failed and is_successful_result(out):
+        dest = failed_sibling(out)
+    dest = stage.commit(dest)
     _print_summary(run, device, staged, dest, req.quiet)
     if run.status is RunStatus.INTERRUPTED:
         return 130

@@ -24,7 +24,8 @@ _BITS = MappingProxyType({name.split()[-1]: bit for bit, name in HW_ERROR_NAMES}
 def _hardware_error(text: str, ids: tuple[int, ...]) -> tuple[int, int]:
     """``ID:NAME`` (e.g. ``3:overload``) as (id, bits); one-line `InputError` otherwise."""
     dxl_id, sep, name = text.partition(":")
-    if not sep or not dxl_id.isdigit() or int(dxl_id) not in ids or name not in _BITS:
+    # isascii + isdecimal: str.isdigit is true for superscripts, which int() refuses
+    if not sep or not (dxl_id.isascii() and dxl_id.isdecimal()) or int(dxl_id) not in ids or name not in _BITS:
         raise InputError(
             f"--hardware-error: expected ID:NAME with ID one of {', '.join(map(str, ids))} and NAME one of "
             f"{', '.join(_BITS)}; got {text!r}"

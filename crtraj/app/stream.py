@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
-import os
 import time
 from collections.abc import Mapping
 from pathlib import Path
@@ -23,7 +22,7 @@ from typing import Any
 
 from crtraj.app.approach import plan_approach
 from crtraj.core.errors import AdmissionError, InputError
-from crtraj.core.fileio import StagedFile, check_output_file
+from crtraj.core.fileio import StagedFile, check_output_file, check_outputs_not_inputs
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.admission import AdmittedMotion, admit
 from crtraj.hardware.dynamixel import DEFAULT_BAUD
@@ -62,39 +61,33 @@ def admit_result(
     return admit(res.motion_record(), Actuators.from_robot(device), robot=device, time_scale=time_scale, rate=rate)
 
 
-def _refuse_overwriting_input(result: str, *outputs: tuple[str, Any]) -> None:
-    """An output path that is the input result (or an earlier output) would destroy it: refuse, one line."""
-    seen = {"RESULT": Path(result)}
-    for flag, out in outputs:
-        if out is None:
-            continue
-        for name, other in seen.items():
-            try:
-                same = os.path.samefile(out, other) if Path(out).exists() and other.exists() else False
-            except OSError:
-                same = False
-            if same or Path(out).resolve() == other.resolve():
-                raise InputError(f"{flag}: {out} is the same file as {name}; choose another file")
-        seen[flag] = Path(out)
-
-
 def _target(args: argparse.Namespace, frames: StagedFile | None) -> str:
     """The transport URL of --udp, --serial, --dynamixel or the staged --dry-run file."""
     if args.udp is not None:
         host, port = parse_hostport(args.udp, "--udp")
         return f"udp://{host}:{port}"
-    if args.serial:
-        return f"serial://{args.serial}?baud={args.baud or 115200}"
-    if getattr(args, "dynamixel", None):
-        return f"dynamixel://{args.dynamixel}?baud={args.baud or DEFAULT_BAUD}"
+    if args.serial is not None:
+        return f"serial://{_given(args.serial, '--serial')}?baud={args.baud or 115200}"
+    if getattr(args, "dynamixel", None) is not None:
+        return f"dynamixel://{_given(args.dynamixel, '--dynamixel')}?baud={args.baud or DEFAULT_BAUD}"
+    if frames is None:
+        raise InputError("stream: give one of --udp, --serial, --dry-run or --dynamixel")
     return f"file://{frames.path.resolve()}"
+
+
+def _given(value: str, flag: str) -> str:
+    """`value` of `flag`; an empty one is an error (it would otherwise read as "no device")."""
+    if not value:
+        raise InputError(f"{flag}: must not be empty")
+    return value
 
 
 def _stream(args: argparse.Namespace, motion: AdmittedMotion, opts: StreamOptions, log: Path) -> StreamReport:
     """Open the transport and stream; a dry run's frames replace FILE only when the stream completes."""
     # the frames go to a temporary file that replaces FILE only when the stream completes:
     # a refused or failed dry run leaves FILE as it was
-    frames = StagedFile(check_output_file(args.dry_run, "--dry-run")) if args.dry_run else None
+    dry_run = None if args.dry_run is None else _given(args.dry_run, "--dry-run")
+    frames = StagedFile(check_output_file(dry_run, "--dry-run")) if dry_run is not None else None
     with frames or contextlib.nullcontext():
         transport = open_link(_target(args, frames), motion.actuators)
         if args.approach and not transport.has_telemetry:
@@ -143,9 +136,15 @@ def stream_command(args: argparse.Namespace) -> int:
     opts = Problem.load(args.problem).options(StreamOptions, "stream") if args.problem else StreamOptions()
     over = {k: v for k, v in (("rate", args.rate), ("watchdog", args.watchdog)) if v is not None}
     opts = dataclasses.replace(opts, **over)
-    motion = admit_result(args.result, args.robot, time_scale=args.time_scale, rate=opts.rate)
     log = args.log or Path("out") / "stream" / f"{Path(args.result).stem}-{time.strftime('%Y%m%d-%H%M%S')}.jsonl"
-    _refuse_overwriting_input(args.result, ("--log", log), ("--dry-run", args.dry_run))
+    # outputs are checked before the result is admitted (the long part): a log or frames file that is one
+    # of the inputs would destroy it
+    check_outputs_not_inputs(
+        {"--log": log, "--dry-run": args.dry_run},
+        {"RESULT": args.result, "--robot": args.robot, "--problem": args.problem},
+    )
+    check_output_file(log, "--log")
+    motion = admit_result(args.result, args.robot, time_scale=args.time_scale, rate=opts.rate)
     rep = _stream(args, motion, opts, Path(log))
     if rep.status == "refused" and rep.moves == 0:  # refused before anything was sent: one line, exit 1
         raise AdmissionError(f"{args.result}: {rep.message}")

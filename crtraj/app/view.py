@@ -7,6 +7,7 @@ import time
 from collections.abc import Mapping
 from typing import Any
 
+from crtraj.core.fileio import check_output_file, check_outputs_not_inputs
 from crtraj.io.results import Result, read_result
 from crtraj.viz.view import Visualizer
 
@@ -41,9 +42,12 @@ def serve(result: Mapping[str, Any] | Result, label: str, open_browser: bool, pl
 
 def view_command(args: argparse.Namespace) -> int:
     """`crtraj view RESULT [--html FILE]` (arguments from `crtraj.cli`); returns the exit code."""
+    if args.html is not None:  # before the result is read: an --html that is the result would destroy it
+        check_outputs_not_inputs({"--html": args.html}, {"RESULT": args.result})
+        check_output_file(args.html, "--html")
     result = read_result(args.result)
     play = False if args.no_play else None
-    if args.html:
+    if args.html is not None:
         vis = Visualizer.for_result(result, play=play)
         try:
             path = vis.save_html(args.html)

@@ -12,12 +12,18 @@ and hashes it all into the entry's folder name::
 temporary folder under the root, which is renamed into place only when complete, so a crash or a
 concurrent build never leaves a half-written entry under its final name. Before an entry is used its
 manifest must name the same key and environment and its library must have the recorded SHA-256; a
-corrupt or foreign entry is moved aside and rebuilt, never loaded.
+corrupt or foreign entry is rebuilt, never loaded. `BuildCache.load` also rebuilds, once, an entry
+whose library verifies but does not load.
+
+The cache deletes only folders that carry crtraj's marker (`crtraj.core.fileio.mark_folder`: entries,
+and its own ``.tmp-``/``.trash-`` folders), so a ``$CRTRAJ_CACHE_DIR`` pointed at a folder of the user's
+never loses a file: whatever else sits where an entry belongs (a file, a folder of the user's) is
+renamed aside (``.aside-<name>-<random>``, kept) and the entry rebuilt.
 
 Location: ``$CRTRAJ_CACHE_DIR`` when set, else the user cache directory (``platformdirs``, e.g.
 ``~/.cache/crtraj`` on Linux). Compiler: ``$CRTRAJ_CC`` when set (``none`` disables compilation),
 else the first of cc, gcc, clang on PATH. Without a compiler `library` returns None and the caller
-stays on its interpreted path; the cache says so once, in one line on stderr.
+stays on its interpreted path; the cache says so once (a warning of the ``crtraj`` logger).
 """
 
 from __future__ import annotations
@@ -25,6 +31,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
+import logging
 import os
 import platform
 import shutil
@@ -41,11 +48,16 @@ import platformdirs
 
 from crtraj import __version__
 from crtraj.core.errors import InputError
-from crtraj.core.fileio import atomic_write_json, read_json, to_jsonable
+from crtraj.core.fileio import atomic_write_json, is_marked, mark_folder, read_json, remove_marked, to_jsonable
 
-# Layout version of an entry (manifest fields, file names): a change makes every old entry foreign.
-FORMAT = 1
+log = logging.getLogger(__name__)
+
+# Layout version of an entry (manifest fields, file names, marker): a change makes every old entry foreign.
+FORMAT = 2
 MANIFEST = "manifest.json"
+# The kinds of crtraj's marker (`mark_folder`) on a finished entry and on the cache's temporary folders.
+ENTRY_KIND = "build-cache-entry"
+TEMP_KIND = "build-cache-temp"
 # A manifest is a few kB; anything larger is not one of ours.
 _MAX_MANIFEST_BYTES = 1024 * 1024
 # Hex digits of the key digest in an entry's folder name (96 bits: collisions are not a concern, and a
@@ -84,13 +96,16 @@ class BuildKey:
 
 @dataclass(frozen=True)
 class CacheEntry:
-    """One entry of the cache: its folder, name, key digest, library size (bytes) and whether it verifies."""
+    """One entry of the cache: its folder, name, key digest, library size (bytes), whether it verifies, and
+    its state in words: ``ok``, ``corrupt`` (rebuilt on next use), ``unreadable manifest: ...`` or
+    ``not crtraj's`` (no marker: `BuildCache.clear` leaves it alone)."""
 
     path: Path
     name: str
     digest: str
     size: int
     valid: bool
+    state: str = "ok"
 
 
 def _canonical_json(obj: Any) -> str:
@@ -139,8 +154,8 @@ class BuildCache:
     """Compiled libraries by key, in one cache folder (see the module docstring).
 
     root: the cache folder (default `default_root`). compiler: path of the C compiler; the default
-    (``...``) looks it up with `find_compiler`; None builds nothing. notice: where the one-line
-    no-compiler notice goes (default stderr), once per instance.
+    (``...``) looks it up with `find_compiler`; None builds nothing. notice: a text stream for the one-line
+    no-compiler notice (default: a warning of the ``crtraj`` logger), once per instance.
     """
 
     def __init__(self, root: str | os.PathLike[str] | None = None, *, compiler: Any = ..., notice: Any = None) -> None:
@@ -182,11 +197,12 @@ class BuildCache:
             return True
         if not self._noticed:
             self._noticed = True
-            print(
-                "crtraj: no C compiler found (cc, gcc or clang; or CRTRAJ_CC=none): using the interpreted "
-                "CasADi path (correct, slower)",
-                file=self._notice or sys.stderr,
-            )
+            msg = "no C compiler found (cc, gcc or clang; or CRTRAJ_CC=none): using the interpreted CasADi path"
+            msg += " (correct, slower)"
+            if self._notice is not None:
+                print(f"crtraj: {msg}", file=self._notice)
+            else:
+                log.warning(msg)
         return False
 
     def digest(self, key: BuildKey) -> str:
@@ -231,26 +247,27 @@ class BuildCache:
     def lookup(self, key: BuildKey) -> Path | None:
         """The verified library of `key` if it is in the cache, else None (nothing is built or removed)."""
         entry = self.entry_dir(key)
-        return self._verify(entry, key) if entry.is_dir() else None
+        return self._verify(entry, key) if entry.is_dir() and not entry.is_symlink() else None
 
     def library(self, key: BuildKey, build: Callable[[Path, str], Path]) -> Path | None:
         """The library of `key`: from the cache when it verifies, else built now; None without a compiler.
 
-        build(folder, compiler) writes the library into the empty temporary `folder` (generate C there,
-        then `compile_shared`) and returns its path. A corrupt or foreign entry is moved aside and rebuilt.
-        A failing build raises (RuntimeError from `compile_shared`) and leaves the cache as it was.
+        build(folder, compiler) writes the library into the temporary `folder` (holding only crtraj's
+        marker; generate C there, then `compile_shared`) and returns its path. A corrupt entry is removed,
+        anything else under the entry's name moved aside, and the entry rebuilt. A failing build raises
+        (RuntimeError from `compile_shared`) and leaves the cache as it was.
         """
         entry = self.entry_dir(key)
-        if entry.is_dir():
-            lib = self._verify(entry, key)
-            if lib is not None:
-                return lib
-            self._discard(entry)
+        lib = self.lookup(key)
+        if lib is not None:
+            return lib
         if not self.available():
             return None
         assert self.compiler is not None
         self.root.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".tmp-{key.name}-", dir=self.root))
+        if os.path.lexists(entry):
+            self._clear_way(entry)
+        tmp = self._temp_dir(f".tmp-{key.name}-")
         try:
             built = Path(build(tmp, self.compiler))
             if built.parent.resolve() != tmp.resolve() or not built.is_file():
@@ -261,12 +278,13 @@ class BuildCache:
             if built != final:
                 built.replace(final)
             self._write_manifest(tmp, key, final)
+            mark_folder(tmp, ENTRY_KIND)
             self.builds += 1
             try:
                 os.rename(tmp, entry)
             except OSError:
                 # another process finished the same entry first: use theirs if it verifies
-                lib = self._verify(entry, key)
+                lib = self.lookup(key)
                 if lib is None:
                     raise
                 return lib
@@ -274,6 +292,24 @@ class BuildCache:
             if tmp.exists():
                 shutil.rmtree(tmp, ignore_errors=True)
         return entry / final.name
+
+    def load(self, key: BuildKey, build: Callable[[Path, str], Path], loader: Callable[[Path], Any]) -> Any:
+        """``loader(library)`` of `key`'s library (see `library`); None without a compiler. A library that
+        verifies but does not load (OSError or a missing symbol from ``loader``) is rebuilt once; when the
+        rebuilt one fails too, RuntimeError names the entry."""
+        lib = self.library(key, build)
+        if lib is None:
+            return None
+        try:
+            return loader(lib)
+        except (OSError, AttributeError) as exc:
+            log.warning("build cache entry %s does not load (%s); rebuilding it", lib.parent.name, exc)
+            self._discard(lib.parent)
+        lib = self.library(key, build)
+        try:
+            return loader(lib)
+        except (OSError, AttributeError) as exc:
+            raise RuntimeError(f"build cache entry {lib.parent}: the rebuilt library does not load ({exc})") from None
 
     def _write_manifest(self, folder: Path, key: BuildKey, lib: Path) -> None:
         manifest = {
@@ -287,38 +323,80 @@ class BuildCache:
         }
         atomic_write_json(folder / MANIFEST, manifest)
 
+    def _temp_dir(self, prefix: str) -> Path:
+        """A new folder under the root that carries the cache's temporary marker (so `clear` may remove it)."""
+        tmp = Path(tempfile.mkdtemp(prefix=prefix, dir=self.root))
+        mark_folder(tmp, TEMP_KIND)
+        return tmp
+
+    def _clear_way(self, entry: Path) -> None:
+        """Make room for `key`'s entry: a corrupt or foreign entry of crtraj's is removed; anything else
+        there (a file, a link, a folder of the user's) is renamed aside, never deleted."""
+        if is_marked(entry, ENTRY_KIND):
+            self._discard(entry)
+            return
+        aside = self.root / f".aside-{entry.name}-{os.urandom(4).hex()}"
+        with contextlib.suppress(FileNotFoundError):  # someone else moved it already
+            os.rename(entry, aside)
+            log.warning("build cache: %s is not a cache entry; moved it to %s and rebuilt the entry", entry, aside)
+
     def _discard(self, entry: Path) -> None:
-        """Move a bad entry aside (one rename, so no reader sees it half-removed), then remove it."""
-        aside = Path(tempfile.mkdtemp(prefix=".trash-", dir=self.root))
-        with contextlib.suppress(OSError):  # someone else moved or replaced it already
-            os.rename(entry, aside / entry.name)
-        shutil.rmtree(aside, ignore_errors=True)
+        """Remove an entry of crtraj's (it carries the marker): moved aside in one rename, so no reader sees
+        it half removed, then deleted. Anything without the marker is left alone."""
+        trash = self._temp_dir(".trash-")
+        try:
+            remove_marked(entry, ENTRY_KIND, trash)
+        finally:
+            shutil.rmtree(trash, ignore_errors=True)
 
     def entries(self) -> list[CacheEntry]:
-        """Every entry folder of the cache (only folders with a manifest), each verified against its manifest."""
+        """Every entry of the cache (the folders with a manifest or crtraj's entry marker), each verified and
+        described (`CacheEntry.state`); an unreadable manifest (a FIFO, bad JSON) is listed as such."""
         if not self.root.is_dir():
             return []
         out = []
         for d in sorted(self.root.iterdir()):
-            if d.name.startswith(".") or not d.is_dir() or not (d / MANIFEST).is_file():
+            if d.name.startswith(".") or d.is_symlink() or not d.is_dir():
+                continue
+            marked = is_marked(d, ENTRY_KIND)
+            if not marked and not os.path.lexists(d / MANIFEST):
                 continue
             name, _, digest = d.name.rpartition("-")
             lib = self._verify(d, None)
-            out.append(CacheEntry(d, name, digest, lib.stat().st_size if lib else 0, lib is not None))
+            problem = None if lib is not None else _manifest_problem(d / MANIFEST)
+            state = "ok" if lib is not None else problem or "corrupt"
+            if not marked:
+                state = "; ".join(x for x in (problem, "not crtraj's (no marker; left alone)") if x)
+            out.append(CacheEntry(d, name, digest, lib.stat().st_size if lib else 0, lib is not None, state))
         return out
 
     def clear(self) -> int:
         """Remove every entry and leftover temporary folder of this cache; the number of entries removed.
 
-        Only folders the cache made are touched (entries with a manifest, ``.tmp-``/``.trash-`` folders),
-        so pointing CRTRAJ_CACHE_DIR at a folder with other files never deletes them.
+        Only folders carrying crtraj's marker are removed (and empty ``.tmp-``/``.trash-`` folders a killed
+        build left), so pointing CRTRAJ_CACHE_DIR at a folder with other files never deletes them.
         """
         n = 0
         for e in self.entries():
-            self._discard(e.path)
-            n += 1
+            if is_marked(e.path, ENTRY_KIND):
+                self._discard(e.path)
+                n += 1
         if self.root.is_dir():
             for d in self.root.iterdir():
-                if d.is_dir() and d.name.startswith((".tmp-", ".trash-")):
-                    shutil.rmtree(d, ignore_errors=True)
+                if d.name.startswith((".tmp-", ".trash-")) and not d.is_symlink() and d.is_dir():
+                    if is_marked(d, TEMP_KIND):
+                        shutil.rmtree(d, ignore_errors=True)
+                    else:
+                        with contextlib.suppress(OSError):  # only when empty
+                            os.rmdir(d)
         return n
+
+
+def _manifest_problem(manifest: Path) -> str | None:
+    """Why an entry's manifest cannot be read (one short phrase), or None when it reads as JSON."""
+    try:
+        read_json(manifest, _MAX_MANIFEST_BYTES)
+    except (InputError, OSError) as exc:
+        text = str(exc.strerror if isinstance(exc, OSError) and exc.strerror else exc)
+        return "unreadable manifest: " + text.replace(str(manifest), "").strip(" :")[:120]
+    return None

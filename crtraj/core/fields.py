@@ -30,6 +30,8 @@ MAX_MAGNITUDE = 1.0e9
 MAX_LENGTH = 1.0e6
 # Largest time or duration (s): about 11.6 days.
 MAX_TIME = 1.0e6
+# Largest timestamp read from a log or capture file (s): wall-clock times since the epoch fit.
+MAX_STAMP = 1.0e11
 # Seeds are 32-bit unsigned integers.
 MAX_SEED = 2**32 - 1
 
@@ -188,6 +190,41 @@ def check_float(
     if le is not None and not f <= le:
         raise InputError(f"{name}: must be <= {le:g}, got {f:g}")
     return f
+
+
+def read_number(v: Any, name: str, *, limit: float = MAX_MAGNITUDE) -> float:
+    """The one reader of a number from JSON, JSON lines or CSV: a JSON number, or a CSV cell's text.
+
+    Integers of any size, values beyond ``+-limit`` (1e300), NaN, infinity, booleans and text that is not
+    an ASCII decimal number (``float`` also takes other scripts' digits, ``"1_0"`` and ``" nan "``) are
+    refused with one `InputError` line naming `name`.
+    """
+    if isinstance(v, str):
+        text = v.strip()
+        if not text or not text.isascii() or "_" in text or len(text) > 100:
+            raise InputError(f"{name}: expected a number, got {_short(v)}")
+        try:
+            v = float(text)
+        except ValueError:
+            raise InputError(f"{name}: expected a number, got {_short(v)}") from None
+    return check_float(v, name, limit=limit)
+
+
+def read_int(v: Any, name: str, *, ge: int = 0, le: int) -> int:
+    """An integer from JSON, CSV or a flag's text, ``ge <= v <= le``: ASCII decimal digits only (``int``
+    takes other scripts' digits and ``_``, and ``str.isdigit`` is true for superscripts that ``int``
+    refuses); one `InputError` line naming `name` otherwise."""
+    if isinstance(v, str):
+        text = v.strip()
+        body = text[1:] if text[:1] in "+-" else text
+        if not (body.isascii() and body.isdecimal()) or len(body) > 30:
+            raise InputError(f"{name}: expected an integer, got {_short(v)}")
+        v = int(text)
+    if isinstance(v, bool) or not isinstance(v, int):
+        raise InputError(f"{name}: expected an integer, got {_short(v)}")
+    if not ge <= v <= le:
+        raise InputError(f"{name}: must be in {ge}..{le}, got {_short(v)}")
+    return v
 
 
 def check_vec(v: Any, name: str, n: int | None = None, *, limit: float = MAX_MAGNITUDE) -> tuple[float, ...]:

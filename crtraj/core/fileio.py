@@ -266,18 +266,23 @@ class StagedDir:
     the old folder is renamed aside, the new one in, and `recover_dir` undoes
     an interruption between the two), then removes the old folder. `replaceable`:
     the only file names an existing target may hold (a folder with anything
-    else in it is never replaced: it is not a crtraj output). Leaving the
-    ``with`` block without a commit removes the staged folder.
+    else in it is never replaced: it is not a crtraj output). marker: the kind
+    of crtraj folder this is (`mark_folder`); the staged folder carries the
+    marker and an existing target that carries it is replaced whatever it holds.
+    Leaving the ``with`` block without a commit removes the staged folder.
     """
 
-    def __init__(self, target: str | os.PathLike[str], replaceable: frozenset[str]) -> None:
+    def __init__(self, target: str | os.PathLike[str], replaceable: frozenset[str], marker: str | None = None) -> None:
         t = Path(target)
         self.target = t.resolve() if t.is_symlink() else t
         self.replaceable = replaceable
+        self.marker = marker
         self.target.parent.mkdir(parents=True, exist_ok=True)
         recover_dir(self.target)
         self.path = Path(tempfile.mkdtemp(prefix=f".{self.target.name}.", suffix=".tmp", dir=self.target.parent))
         _usual_mode(self.path, directory=True)
+        if marker is not None:
+            mark_folder(self.path, marker)
         self.committed = False
 
     def commit(self, target: str | os.PathLike[str] | None = None) -> Path:
@@ -293,7 +298,7 @@ class StagedDir:
         checkpoint("dir-staged")
         recover_dir(dest)
         if dest.exists():
-            check_output_dir(dest, str(dest), self.replaceable)
+            check_output_dir(dest, str(dest), self.replaceable, self.marker)
             if _exchange(self.path, dest):
                 old = self.path  # now holds the previous folder
                 _fsync_dir(dest.parent)
@@ -321,6 +326,47 @@ class StagedDir:
 
     def __exit__(self, *exc: object) -> None:
         self.discard()
+
+
+# ------------------------------------------------------- crtraj's own folders
+# A folder crtraj may delete or replace carries this file, written by crtraj: {"crtraj_folder": kind,
+# "version": MARKER_VERSION}. Anything else (a user's folder that happens to hold a manifest.json) is kept.
+MARKER = ".crtraj-folder.json"
+MARKER_VERSION = 1
+_MAX_MARKER_BYTES = 4096
+
+
+def mark_folder(folder: str | os.PathLike[str], kind: str) -> Path:
+    """Write crtraj's marker into `folder`: crtraj made it, as a `kind` (e.g. ``build-cache-entry``)."""
+    return atomic_write_json(Path(folder) / MARKER, {"crtraj_folder": kind, "version": MARKER_VERSION})
+
+
+def is_marked(folder: str | os.PathLike[str], kind: str) -> bool:
+    """True when `folder` is a folder (not a link to one) whose marker crtraj wrote for `kind`, with this
+    marker version; a missing, unreadable, foreign or other-version marker is False."""
+    p = Path(folder)
+    try:
+        if p.is_symlink() or not p.is_dir():
+            return False
+        doc = read_json(p / MARKER, _MAX_MARKER_BYTES)
+    except (InputError, OSError):
+        return False
+    return isinstance(doc, dict) and doc.get("crtraj_folder") == kind and doc.get("version") == MARKER_VERSION
+
+
+def remove_marked(folder: str | os.PathLike[str], kind: str, trash: str | os.PathLike[str]) -> bool:
+    """Delete `folder` only when it carries crtraj's marker of `kind`: renamed into the folder `trash`
+    first (one step, so no reader sees it half removed), then removed; whether it was deleted."""
+    p = Path(folder)
+    if not is_marked(p, kind):
+        return False
+    aside = Path(trash) / p.name
+    try:
+        os.rename(p, aside)
+    except OSError:  # someone else moved or replaced it already
+        return False
+    shutil.rmtree(aside, ignore_errors=True)
+    return True
 
 
 # ------------------------------------------------------- output path checks
@@ -353,14 +399,17 @@ def check_output_file(path: str | os.PathLike[str], what: str) -> Path:
     return p
 
 
-def check_output_dir(path: str | os.PathLike[str], what: str, replaceable: frozenset[str]) -> Path:
+def check_output_dir(
+    path: str | os.PathLike[str], what: str, replaceable: frozenset[str], marker: str | None = None
+) -> Path:
     """Refuse, before any work, an output folder that cannot be written or that holds files other
-    than `replaceable` (it would be replaced as a whole); one line naming `what`."""
+    than `replaceable` and carries no crtraj `marker` of that kind (it would be replaced as a whole);
+    one line naming `what`."""
     p = Path(path)
     try:
         if p.exists() and not p.is_dir():
             raise InputError(f"{what}: {p} exists and is not a folder")
-        if p.is_dir():
+        if p.is_dir() and not (marker is not None and is_marked(p, marker)):
             foreign = sorted(n for n in os.listdir(p) if n not in replaceable)
             if foreign:
                 shown = ", ".join(foreign[:3]) + (", ..." if len(foreign) > 3 else "")

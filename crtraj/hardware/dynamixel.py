@@ -11,13 +11,16 @@ its frames to the bus. Per frame:
 - ESTOP: one Group Sync Write of torque enable = 0 (torque off; latched);
 - PING: opens the session (no bus traffic).
 
-Every `receive` is one Group Sync Read of hardware error status, present
-velocity and present position (one transaction: the three fields are mapped
-next to each other through the indirect addresses at connect), turned into a
-telemetry frame (positions back in rad / mm, the last written set-point
-acknowledged, e-stop status).
-A hardware error bit, or a servo that misses `max_misses` reads in a row, is
-a `TransportError` naming the servo: the streamer stops and reports it.
+Every `receive` is one Group Sync Read of torque enable, hardware error
+status, present velocity and present position (one transaction: the four
+fields are mapped next to each other through the indirect addresses at
+connect), turned into a telemetry frame (positions back in rad / mm, the last
+written set-point acknowledged, e-stop status).
+A hardware error bit, a servo whose torque went off without an e-stop (it
+rebooted, e.g. after a brown-out: its indirect addresses are then reset too,
+so the torque byte reads 0 either way), or a servo that misses `max_misses`
+reads in a row, is a `TransportError` naming the servo: the link holds at
+once (no goal is written after it) and the streamer stops and reports it.
 `close` turns the torque off.
 
 Connecting checks, each failure one line: the port exists and opens, the
@@ -35,9 +38,9 @@ a USB-serial latency timer above 1 ms is a warning: it caps the rate.
 from __future__ import annotations
 
 import contextlib
+import logging
 import math
 import os
-import sys
 import time
 from collections import deque
 from collections.abc import Callable
@@ -54,6 +57,8 @@ from crtraj.hardware.protocol import ESTOP, PING, STATUS_ESTOP, Frame, Telemetry
 from crtraj.hardware.servo_bus import ServoBus
 from crtraj.hardware.transport import Transport, TransportError
 
+log = logging.getLogger(__name__)
+
 DEFAULT_BAUD = 1_000_000
 SYSFS_USB_SERIAL = Path("/sys/bus/usb-serial/devices")
 CONNECT_ATTEMPTS = 3  # tries of each transaction while connecting
@@ -61,9 +66,10 @@ READ_BLOCK = 0.002  # s a port read may wait for its bytes (far below the SDK's 
 # the rates tried, in this order, when no servo answers at the requested one
 _PROBE_BAUDS = (1_000_000, 57_600, 115_200, 2_000_000, 3_000_000, 4_000_000, 9_600)
 # what one sync read returns, through the indirect addresses: (address, size) in this order
-_STATE = ((X.HARDWARE_ERROR, 1), (X.PRESENT_VELOCITY, 4), (X.PRESENT_POSITION, 4))
+_STATE = ((X.TORQUE_ENABLE, 1), (X.HARDWARE_ERROR, 1), (X.PRESENT_VELOCITY, 4), (X.PRESENT_POSITION, 4))
 _STATE_SIZE = sum(n for _, n in _STATE)
-_AT_ERROR, _AT_VELOCITY, _AT_POSITION = X.INDIRECT_DATA, X.INDIRECT_DATA + 1, X.INDIRECT_DATA + 5
+_AT_TORQUE, _AT_ERROR = X.INDIRECT_DATA, X.INDIRECT_DATA + 1
+_AT_VELOCITY, _AT_POSITION = X.INDIRECT_DATA + 2, X.INDIRECT_DATA + 6
 
 
 def _sdk() -> Any:
@@ -98,11 +104,10 @@ def parse_url(url: str) -> tuple[str, int]:
     if parts.scheme != "dynamixel" or not device:
         raise InputError(f"stream target: expected dynamixel:///dev/PORT[?baud=N], got {url!r}")
     q = parse_qs(parts.query)
-    try:
-        baud = int(q["baud"][0]) if "baud" in q else DEFAULT_BAUD
-    except ValueError:
-        raise InputError(f"stream target: baud must be an integer, got {q['baud'][0]!r}") from None
-    return device, baud
+    text = q["baud"][0] if "baud" in q else str(DEFAULT_BAUD)
+    if not (text.isascii() and text.isdecimal() and len(text) <= 10):  # int() takes other scripts' digits
+        raise InputError(f"stream target: baud must be an integer, got {text[:40]!r}")
+    return device, int(text)
 
 
 def check_baud(baud: int) -> int:
@@ -132,8 +137,8 @@ def _signed32(v: int) -> int:
 class DynamixelTransport(Transport):
     """The servos of `actuators.bus` on `device` at `baud`, as a streamer link (see the module doc).
 
-    warn: where connection warnings go (default: stderr). sysfs: the USB-serial sysfs folder (tests
-    point it elsewhere). max_misses: failed reads in a row that end the stream.
+    warn: where connection warnings go (default: a warning of the ``crtraj`` logger). sysfs: the USB-serial
+    sysfs folder (tests point it elsewhere). max_misses: failed reads in a row that end the stream.
     """
 
     # Over 60 lines: the connection checks, each with its own one-line message, in the order a lab meets them.
@@ -159,7 +164,7 @@ class DynamixelTransport(Transport):
         self.device = device
         self.description = f"dynamixel://{device}?baud={self.baud}"
         self.warnings: list[str] = []
-        self._warn = warn if warn is not None else (lambda m: print(m, file=sys.stderr, flush=True))
+        self._warn = warn if warn is not None else log.warning
         self.max_misses = int(max_misses)
         self._sdk = sdk
         self._ph = sdk.PacketHandler(2.0)
@@ -199,6 +204,7 @@ class DynamixelTransport(Transport):
         self._ack = 0
         self._seq = 0
         self._estopped = False
+        self._held: str | None = None  # why the link holds (a servo failed mid-stream), or None
         self._misses = 0
         self.counts = {"timeouts": 0, "corrupt": 0, "writes": 0, "reads": 0}
         self.timings: deque[tuple[float, float]] = deque(maxlen=100_000)  # (write s, read s) per tick
@@ -332,6 +338,8 @@ class DynamixelTransport(Transport):
         if msg.kind == ESTOP:
             self._torque_off(confirm=not self._estopped)  # the repeats of a latched e-stop: sync write only
             self._estopped = True
+        elif self._held is not None:  # a servo failed mid-stream: nothing moves the servos again
+            raise TransportError(self._held)
         elif not self._estopped:  # after an e-stop nothing moves the servos again
             ticks = self.bus.ticks(msg.values)
             if np.any(np.abs(ticks) > X.EXTENDED_LIMIT):
@@ -382,9 +390,7 @@ class DynamixelTransport(Transport):
         bus = self.bus
         ticks, vel = [], []
         for i in bus.ids:
-            bits = group.getData(i, _AT_ERROR, 1)
-            if bits:
-                raise TransportError(self._hardware_error_text(i, bits))
+            self._check_state(i)
             ticks.append(_signed32(group.getData(i, _AT_POSITION, 4)))
             vel.append(_signed32(group.getData(i, _AT_VELOCITY, 4)))
         # present velocity in 0.229 rev/min units -> revolutions per second -> rad/s or mm/s
@@ -401,6 +407,22 @@ class DynamixelTransport(Transport):
             session=self._session,
         )
         return [tel.encode()]
+
+    def _check_state(self, dxl_id: int) -> None:
+        """Hold at once when servo `dxl_id`'s last sync read shows a hardware error or its torque off
+        without an e-stop (a reboot): no goal is written after it; `TransportError` naming the servo."""
+        bits = self._read_state.getData(dxl_id, _AT_ERROR, 1)
+        why = None
+        if bits:
+            why = self._hardware_error_text(dxl_id, bits)
+        elif not self._estopped and self._read_state.getData(dxl_id, _AT_TORQUE, 1) != 1:
+            why = (
+                f"servo {self.bus.name_of(dxl_id)}: torque off mid-stream (it rebooted or lost power); holding: "
+                "check its power supply, then stream again"
+            )
+        if why is not None:
+            self._held = why
+            raise TransportError(why)
 
     def _miss(self, result: int) -> None:
         """Count a failed read; `max_misses` in a row end the stream, naming the first silent servo."""

@@ -132,6 +132,27 @@ class ServoChain:
         if bits:
             self._torque(k, False, now)
 
+    def torque_off(self, dxl_id: int, now: float = 0.0) -> None:
+        """Torque-off fault: another program (or a person at a servo tool) switches the servo's torque off."""
+        self.advance(now)
+        self._torque(self.ids.index(dxl_id), False, now)
+
+    def reboot(self, dxl_id: int, now: float = 0.0) -> None:
+        """Reboot fault (a brown-out, or a REBOOT from another program): the servo restarts with its
+        torque off, its RAM (indirect addresses included) at the defaults and its position kept."""
+        self.advance(now)
+        self._reboot(self.ids.index(dxl_id), now)
+
+    def _reboot(self, k: int, now: float) -> None:
+        t = self._table[k]
+        t[X.HARDWARE_ERROR] = 0
+        self._torque(k, False, now)
+        t[64:120] = bytes(56)  # RAM back to its defaults (zero here), position kept
+        t[68] = 2
+        for j in range(X.INDIRECT_COUNT):  # each indirect address names its own data byte again
+            struct.pack_into("<H", t, X.INDIRECT_ADDRESS + 2 * j, X.INDIRECT_DATA + j)
+        struct.pack_into("<i", t, X.GOAL_POSITION, int(np.rint(self._x[k])))
+
     # -------------------------------------------------------------- physics
     def positions(self, now: float) -> np.ndarray:
         """Measured positions (ticks, float) at device time `now`."""
@@ -228,12 +249,7 @@ class ServoChain:
             return [self._status(k, self._write(k, addr, p.params[2:], now))]
         if p.instruction == dxl.REBOOT:
             reply = self._status(k, 0)
-            t = self._table[k]
-            t[X.HARDWARE_ERROR] = 0
-            self._torque(k, False, now)
-            t[64:120] = bytes(56)  # RAM back to its defaults (zero here), position kept
-            t[68] = 2
-            struct.pack_into("<i", t, X.GOAL_POSITION, int(np.rint(self._x[k])))
+            self._reboot(k, now)
             return [reply]
         return [self._status(k, dxl.ERR_INSTRUCTION)]
 

@@ -29,10 +29,9 @@ def parse_hostport(text: str, what: str) -> tuple[str, int]:
     host, sep, port = text.rpartition(":")
     if not sep or not host:
         raise InputError(f"{what}: expected HOST:PORT, got {text!r}")
-    try:
-        p = int(port)
-    except ValueError:
-        raise InputError(f"{what}: port must be an integer, got {port!r}") from None
+    if not (port.isascii() and port.isdecimal()):  # int() also takes other scripts' digits and "_"
+        raise InputError(f"{what}: port must be an integer, got {port!r}")
+    p = int(port)
     if not 0 <= p <= 65535:
         raise InputError(f"{what}: port must be in 0..65535, got {p}")
     return host, p

@@ -405,8 +405,7 @@ class ValidityKernel:
         key = kernel_key(model, check_points)
         defines = f"\n#define CRTRAJ_NX {model.robot.nx}\n#define CRTRAJ_NP {int(check_points)}\n"
         build = codegen_builder(lambda: kernel_functions(model, check_points), key.name, defines + _DRIVER)
-        lib = cache.library(key, build)
-        return None if lib is None else cls(lib, model.robot.nx, check_points)
+        return cache.load(key, build, lambda lib: cls(lib, model.robot.nx, check_points))
 
     def _configs(self, X: Any) -> np.ndarray:
         X = np.ascontiguousarray(X, dtype=float)

@@ -40,6 +40,25 @@ def ros_environment(options: RosOptions) -> dict[str, str]:
     return changed
 
 
+# The highest ROS domain id (as ``[ros] domain_id`` is bounded): Fast DDS derives UDP ports from it and
+# ends the process, in C, on one beyond its port range.
+MAX_DOMAIN_ID = 232
+
+
+def domain_id(options: RosOptions, environ: Any = None) -> int | None:
+    """The domain the node joins: ``ros.domain_id``, else ``$ROS_DOMAIN_ID`` checked to be an integer in
+    0..`MAX_DOMAIN_ID` (one-line `InputError` naming it otherwise), else None (rclpy's default, 0)."""
+    if options.domain_id is not None:
+        return options.domain_id
+    raw = (os.environ if environ is None else environ).get("ROS_DOMAIN_ID", "").strip()
+    if not raw:
+        return None
+    # isascii + isdecimal: int() takes other scripts' digits, which ROS's own reader does not
+    if not (raw.isascii() and raw.isdecimal() and len(raw) <= 3 and int(raw) <= MAX_DOMAIN_ID):
+        raise InputError(f"ROS_DOMAIN_ID: must be an integer in 0..{MAX_DOMAIN_ID}, got {raw[:20]!r}")
+    return int(raw)
+
+
 class RosNode:
     """The bridge's node. actuators: the robot's `crtraj.hardware.actuators.Actuators` (their names are
     the joint names); feed: the `ObstacleFeed` that live SPHERE markers go to (None: markers are not
@@ -53,6 +72,7 @@ class RosNode:
         self.si = si_scale(actuators.units)
         self.feed = feed
         ros_environment(options)
+        domain = domain_id(options)
         try:
             import rclpy
             from rclpy.executors import SingleThreadedExecutor
@@ -75,7 +95,7 @@ class RosNode:
         self._ctx = rclpy.Context()
         try:
             # Ctrl-C stays a KeyboardInterrupt of the main thread: the loop holds the robot on it
-            rclpy.init(context=self._ctx, domain_id=options.domain_id, signal_handler_options=SignalHandlerOptions.NO)
+            rclpy.init(context=self._ctx, domain_id=domain, signal_handler_options=SignalHandlerOptions.NO)
             self.node = rclpy.create_node(name, context=self._ctx)
             rel = ReliabilityPolicy.RELIABLE if options.reliability == "reliable" else ReliabilityPolicy.BEST_EFFORT
             qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=options.depth, reliability=rel)
