@@ -212,13 +212,19 @@ def _section_markdown(cls: type) -> list[str]:
     doc = " ".join((cls.__doc__ or "").split())
     lines = [f"## `[{cls.SECTION}]`", "", f"Read by `{cls.__module__}.{cls.__qualname__}`.", ""]
     lines += ["| key | type | default | bounds | unit |", "| --- | --- | --- | --- | --- |"]
+    subtables = []
     for f in dataclasses.fields(cls):
         spec = f.metadata.get(spec_key)
         if spec is None:
             continue
+        if isinstance(getattr(f.default, "SECTION", None), str):
+            subtables.append(f"[`[{f.default.SECTION}]`](#{f.default.SECTION.replace('.', '')})")
+            continue  # a sub-table: its keys have their own table below
         default = "" if f.default is None else _code(_toml(f.default, hints[f.name]))
         row = [_code(f.name), _type_name(hints[f.name]), default, _bounds(spec), _unit(doc, f.name)]
         lines.append("| " + " | ".join(row) + " |")
+    if subtables:
+        lines += ["", "Sub-tables: " + ", ".join(subtables) + "."]
     if cls.__doc__:
         lines += ["", '??? note "What the keys mean (the class docstring)"', ""]
         lines += ["    " + ln if ln.strip() else "" for ln in inspect.cleandoc(cls.__doc__).splitlines()]
