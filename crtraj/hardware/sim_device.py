@@ -16,6 +16,7 @@ silent and deaf for a time window).
 from __future__ import annotations
 
 import heapq
+import logging
 import math
 import select
 import socket
@@ -33,6 +34,8 @@ from crtraj.hardware.sim_device_core import Applied, DeviceCore, LimitViolation
 from crtraj.hardware.sim_servo import ServoProfile
 
 __all__ = ["Applied", "DeviceCore", "Faults", "LimitViolation", "ServoProfile", "SimDevice"]
+
+logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -255,6 +258,7 @@ class SimDevice:
                     self._peer = addr
             except Exception:  # last resort: no datagram may stop the device (fuzz tests assert it never fires)
                 self._counts["internal_errors"] += 1
+                logger.debug("simulated device: datagram from %s raised", addr, exc_info=True)
 
     def _send_telemetry(self, now: float) -> None:
         with self._lock:

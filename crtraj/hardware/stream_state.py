@@ -7,6 +7,8 @@ s since the stream started, name, message) in the report and in the run log.
 
 from __future__ import annotations
 
+import logging
+
 from crtraj.core.clock import Clock
 from crtraj.hardware.stream_log import RunLog
 
@@ -25,6 +27,8 @@ TERMINAL = (DONE, ESTOPPED, ERROR, CLOSED)
 CHECKED = (WAITING, STREAMING, SETTLING)  # states in which the device must follow
 LIVE = (WAITING, STREAMING, SETTLING, HELD)  # states in which frames go out and telemetry matters
 _MAX_EVENTS = 1000  # events kept for the report (the run log keeps them all)
+
+logger = logging.getLogger(__name__)
 
 
 class StreamError(RuntimeError):
@@ -56,6 +60,7 @@ class StreamStateMachine:
         # `now`: the clock reading the decision behind the event used, so that the logged times are the ones the
         # rules compared (a fresh reading here would come microseconds later, and differ between two events)
         wall = self.wall(now)
+        logger.debug("stream event at %.4f s: %s %s", wall, name, message)
         if len(self.events) < _MAX_EVENTS:
             self.events.append((wall, name, message))
         self._log.write({"type": "event", "wall": wall, "event": name, "message": message})
