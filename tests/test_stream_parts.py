@@ -5,6 +5,8 @@ Each part is driven directly (no transport, no thread) and checked against value
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import pytest
 
@@ -16,6 +18,7 @@ from crtraj.hardware.setpoint_buffer import SetpointBuffer
 from crtraj.hardware.stream import StreamOptions
 from crtraj.hardware.stream_log import RunLog
 from crtraj.hardware.stream_monitor import StreamMonitor
+from crtraj.hardware.stream_pacing import RatePacer
 from crtraj.hardware.stream_state import StreamError, StreamStateMachine
 
 DT = 0.01
@@ -162,6 +165,56 @@ def test_machine_closes_running_states_and_keeps_outcomes():
     assert m2.final_status(None) == "not-settled"
     m2.close()
     assert m2.state == "error"
+
+
+def test_loop_ends_at_once_on_outcomes_and_after_one_watchdog_when_latched():
+    """Done ends the loop at once; an e-stop after its frames repeated one watchdog; a hold only when asked."""
+    m = _machine()
+    m.begin("")
+    assert not m.loop_ends(5.0, 0.1, stop_when_latched=True)
+    m.latch("hold requested", 1.0)
+    assert not m.loop_ends(1.05, 0.1, stop_when_latched=True)
+    assert m.loop_ends(1.1, 0.1, stop_when_latched=True) and not m.loop_ends(9.0, 0.1, stop_when_latched=False)
+    e = _machine()
+    e.begin("")
+    e.estop("e-stop requested", 2.0)
+    assert not e.loop_ends(2.09, 0.1, stop_when_latched=False) and e.loop_ends(2.1, 0.1, stop_when_latched=False)
+    d = _machine()
+    d.begin("")
+    d.done(None)
+    assert d.loop_ends(0.0, 0.1, stop_when_latched=False)
+
+
+# ------------------------------------------------------------------- pacing
+def test_pacer_steps_once_per_period_and_counts_late_starts():
+    """On a virtual clock the steps start every period; after a step that took 2.5 periods the next one starts
+    late (counted) and the one after at once, to catch up with the period grid."""
+    clock, starts = VirtualClock(), []
+
+    def step(now: float) -> bool:
+        starts.append(now)
+        if len(starts) == 3:
+            clock.advance(2.5 * DT)  # this step's work took 25 ms
+        return len(starts) < 6
+
+    pacer = RatePacer(DT)
+    pacer.run(clock, step, threading.Event())
+    assert starts == pytest.approx([0.0, 0.01, 0.02, 0.045, 0.045, 0.05])
+    assert pacer.late_ticks == 1 and pacer.max_lateness == pytest.approx(0.015)
+
+
+def test_pacer_resynchronises_after_a_long_stall_instead_of_bursting():
+    """More than five periods behind, the next steps keep the period from now rather than catching up."""
+    clock, starts = VirtualClock(), []
+
+    def step(now: float) -> bool:
+        starts.append(now)
+        if len(starts) == 2:
+            clock.advance(1.0)
+        return len(starts) < 4
+
+    RatePacer(DT).run(clock, step, threading.Event())
+    assert starts == pytest.approx([0.0, 0.01, 1.01, 1.02])
 
 
 # ------------------------------------------------------------------ monitor

@@ -36,16 +36,13 @@ import math
 import secrets
 import threading
 from dataclasses import asdict, dataclass, field
-from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any
 
 import numpy as np
 
-from crtraj import __version__
 from crtraj.core.clock import Clock, VirtualClock, WallClock
 from crtraj.core.errors import AdmissionError, InputError
-from crtraj.core.options import Options, option
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.admission import AdmittedMotion
 from crtraj.hardware.dynamixel import open_dynamixel
@@ -53,8 +50,10 @@ from crtraj.hardware.limits import LimitsGate
 from crtraj.hardware.protocol import ESTOP, HOLD, MOVE, SEQ_MOD, Telemetry
 from crtraj.hardware.setpoint_buffer import SetpointBuffer
 from crtraj.hardware.stream_cycle import StreamCycle
-from crtraj.hardware.stream_log import RunLog
+from crtraj.hardware.stream_log import RunLog, header_record
 from crtraj.hardware.stream_monitor import StreamMonitor
+from crtraj.hardware.stream_options import StreamOptions
+from crtraj.hardware.stream_pacing import RatePacer
 from crtraj.hardware.stream_path import ApproachPlanner, approach_frames, check_admitted, refusal_text
 from crtraj.hardware.stream_sender import FrameSender, StreamParts
 from crtraj.hardware.stream_state import (
@@ -86,39 +85,6 @@ def open_link(target: str, actuators: Actuators) -> Transport:
     if target.startswith("dynamixel://"):
         return open_dynamixel(target, actuators)
     return Transport.open(target)
-
-
-@dataclass(frozen=True)
-class StreamOptions(Options):
-    """The ``[stream]`` section. rate: set-points per second (Hz). watchdog: longest
-    source underrun or telemetry silence before a latched hold (s).
-    connect_timeout: wait for the device's first telemetry (s). prebuffer:
-    buffered set-point span (s) before a live source starts moving.
-    settle_tolerance: largest |measured - final| per actuator that counts as
-    arrived (rad or mm); settle_timeout: how long to wait for it (s).
-    ack_timeout: longest time a set-point may stay unacknowledged while
-    telemetry arrives (s). following_tolerance: largest |measured -
-    acknowledged set-point| per actuator while moving (rad or mm; the
-    simulated device at its limits lags up to ~3.1 mm behind a z ramp: v^2 / (2 a) + tau v + one period).
-    fsync: also fsync the run log after every line (survives power loss,
-    slower)."""
-
-    SECTION: ClassVar[str] = "stream"
-
-    rate: float = option(100.0, gt=0.0, le=10000.0)
-    watchdog: float = option(0.1, gt=0.0)
-    connect_timeout: float = option(1.0, gt=0.0)
-    prebuffer: float = option(0.1, ge=0.0)
-    settle_tolerance: float = option(0.01, gt=0.0)
-    settle_timeout: float = option(2.0, gt=0.0)
-    ack_timeout: float = option(0.25, gt=0.0)
-    following_tolerance: float = option(5.0, gt=0.0)
-    fsync: bool = option(False)
-
-    @property
-    def dt(self) -> float:
-        """Period between set-points (s)."""
-        return 1.0 / self.rate
 
 
 @dataclass(frozen=True)
@@ -201,8 +167,7 @@ class Streamer:
         self._lock = threading.RLock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self._late = 0  # ticks started more than one period late
-        self._max_late = 0.0  # s
+        self._pacer = RatePacer(self._dt)
         self._report: StreamReport | None = None
 
     # ---------------------------------------------------------- construction
@@ -266,19 +231,7 @@ class Streamer:
         if self.state != IDLE:
             raise StreamError(f"start: streamer is already {self.state}")
         self._machine.t_start = self._clock.now()
-        self._log.write(
-            {
-                "type": "header",
-                "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-                "crtraj_version": __version__,
-                "transport": self.transport.description,
-                "session": self.session,
-                "options": self.options.to_dict(),
-                "actuators": self.actuators.to_dict(),
-                "names": list(self.actuators.names),
-                "units": list(self.actuators.units),
-            }
-        )
+        self._log.write(header_record(self.transport.description, self.session, self.options, self.actuators))
         if self.transport.has_telemetry:
             initial = self._handshake().positions
         elif initial is None:
@@ -462,31 +415,13 @@ class Streamer:
         self._run_loop(stop_when_latched=True)
 
     def _run_loop(self, stop_when_latched: bool = False) -> None:
-        dt = self._dt
-        nxt = self._clock.now()
-        while not self._stop.is_set():
-            now = self._clock.now()
-            late = now - nxt
-            if late > dt:
-                self._late += 1
-            self._max_late = max(self._max_late, late)
-            with self._lock:
-                self._cycle.tick(now)
-                state, latched_at = self.state, self._machine.latched_at
-            # hold / e-stop frames repeat for one watchdog period so a lossy link delivers them
-            repeated = latched_at is not None and now - latched_at >= self.options.watchdog
-            if state == ESTOPPED and repeated:
-                return
-            if state in TERMINAL and state != ESTOPPED:
-                return
-            if stop_when_latched and state == HELD and repeated:
-                return
-            nxt += dt
-            delay = nxt - self._clock.now()
-            if delay > 0:
-                self._clock.sleep(delay)
-            elif -delay > 5 * dt:
-                nxt = self._clock.now()  # far behind (machine stalled): resynchronise rather than burst
+        self._pacer.run(self._clock, lambda now: self._step(now, stop_when_latched), self._stop)
+
+    def _step(self, now: float, stop_when_latched: bool) -> bool:
+        """One period of the loop; False when the loop ends."""
+        with self._lock:
+            self._cycle.tick(now)
+            return not self._machine.loop_ends(now, self.options.watchdog, stop_when_latched)
 
     # ---------------------------------------------------------------- close
     def wait(self, timeout: float | None = None) -> bool:
@@ -538,8 +473,8 @@ class Streamer:
             device={} if tel is None else tel.counters(),
             final_error=err,
             duration=self._clock.now() - self._machine.t_start if started else 0.0,
-            late_ticks=self._late,
-            max_lateness=max(self._max_late, 0.0),
+            late_ticks=self._pacer.late_ticks,
+            max_lateness=max(self._pacer.max_lateness, 0.0),
             log=None if self._log.path is None else str(self._log.path),
             events=tuple(self._machine.events),
         )

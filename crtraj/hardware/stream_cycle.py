@@ -8,12 +8,11 @@ repeats hold frames; an e-stop repeats e-stop frames. Times in s on the stream's
 
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
 
 from crtraj.hardware.limits import LimitsGate
 from crtraj.hardware.protocol import ESTOP, HOLD, MOVE, STATUS_ESTOP, Telemetry
+from crtraj.hardware.stream_options import StreamOptions
 from crtraj.hardware.stream_sender import FrameSender, StreamParts
 from crtraj.hardware.stream_state import (
     CHECKED,
@@ -40,7 +39,7 @@ class StreamCycle:
     """
 
     def __init__(
-        self, options: Any, transport: Transport, gate: LimitsGate, parts: StreamParts, sender: FrameSender
+        self, options: StreamOptions, transport: Transport, gate: LimitsGate, parts: StreamParts, sender: FrameSender
     ) -> None:
         self._options = options
         self._transport = transport

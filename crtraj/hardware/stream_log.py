@@ -8,11 +8,15 @@ from __future__ import annotations
 
 import json
 import os
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
+from crtraj import __version__
 from crtraj.core.errors import InputError
 from crtraj.core.fileio import to_jsonable
+from crtraj.hardware.actuators import Actuators
+from crtraj.hardware.stream_options import StreamOptions
 from crtraj.hardware.transport import TransportError
 
 
@@ -47,3 +51,19 @@ class RunLog:
         if self._fh is not None:
             self._fh.close()
             self._fh = None
+
+
+def header_record(transport: str, session: int, options: StreamOptions, actuators: Actuators) -> dict[str, Any]:
+    """The run log's first line: when, which crtraj, the link (`transport`: its description), the session
+    number, the `StreamOptions` and the `Actuators` (their names and units)."""
+    return {
+        "type": "header",
+        "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "crtraj_version": __version__,
+        "transport": transport,
+        "session": session,
+        "options": options.to_dict(),
+        "actuators": actuators.to_dict(),
+        "names": list(actuators.names),
+        "units": list(actuators.units),
+    }

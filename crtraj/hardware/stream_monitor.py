@@ -10,13 +10,13 @@ s (the stream's clock), values in actuator units (rad for servos, mm for the z s
 from __future__ import annotations
 
 from collections import deque
-from typing import Any
 
 import numpy as np
 
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.protocol import Frame, FrameError, Telemetry, seq_after
 from crtraj.hardware.stream_log import RunLog
+from crtraj.hardware.stream_options import StreamOptions
 
 _MAX_UNACKED = 1 << 16  # unacknowledged set-points remembered (a dead link while held keeps the newest only)
 
@@ -29,7 +29,7 @@ class StreamMonitor:
     number (nothing after it is acknowledged yet).
     """
 
-    def __init__(self, session: int, actuators: Actuators, options: Any, log: RunLog, first_seq: int) -> None:
+    def __init__(self, session: int, actuators: Actuators, options: StreamOptions, log: RunLog, first_seq: int) -> None:
         self._session = session
         self._actuators = actuators
         self._options = options

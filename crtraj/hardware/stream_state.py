@@ -127,6 +127,17 @@ class StreamStateMachine:
             self.state = CLOSED
 
     # ------------------------------------------------------------- queries
+    def loop_ends(self, now: float, watchdog: float, stop_when_latched: bool) -> bool:
+        """The fixed-rate loop ends at clock time `now` (s): a stop or error at once, an e-stop (and, with
+        `stop_when_latched`, a latched hold) once its frames repeated for one `watchdog` period (s)."""
+        # hold / e-stop frames repeat for one watchdog period so a lossy link delivers them
+        repeated = self.latched_at is not None and now - self.latched_at >= watchdog
+        if self.state == ESTOPPED:
+            return repeated
+        if self.state in TERMINAL:
+            return True
+        return stop_when_latched and self.state == HELD and repeated
+
     def check_accepting(self, finished: bool) -> None:
         """`StreamError` unless a source may queue set-points now (`finished`: the source said it was done)."""
         if self.state == IDLE:
