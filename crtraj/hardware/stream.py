@@ -27,6 +27,11 @@ Every run is recorded as JSON lines (header, each frame sent, each telemetry
 frame received, events, final report), flushed line by line so a crash loses
 at most the line being written. Times in s, values in actuator units (rad
 for servos, mm for the z stage).
+
+`Streamer` is a facade over its parts: the queued set-points and their interpolation (`setpoint_buffer`), the
+device's telemetry, acknowledgements and watchdog timers (`stream_monitor`), the states and their events
+(`stream_state`), the one way frames leave (`stream_sender`), one period's work (`stream_cycle`), the fixed-rate
+loop (`stream_pacing`) and the run log (`stream_log`). All of them read one injected `crtraj.core.clock.Clock`.
 """
 
 from __future__ import annotations
@@ -102,7 +107,7 @@ class StreamReport:
     telemetry_errors: int
     device: dict[str, int] = field(default_factory=dict)
     final_error: float | None = None  # max |measured - last commanded| at the end (rad or mm)
-    duration: float = 0.0  # s, wall time
+    duration: float = 0.0  # s, on the stream's clock (wall time unless a virtual clock was injected)
     late_ticks: int = 0  # ticks started more than one period late
     max_lateness: float = 0.0  # s
     log: str | None = None
