@@ -10,8 +10,8 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+from crtraj.core.clock import VirtualClock
 from crtraj.hardware.sim_device import DeviceCore
-from crtraj.hardware.stream import _VirtualClock
 from crtraj.hardware.transport import Transport
 
 
@@ -21,12 +21,12 @@ class CoreLink(Transport):
     has_telemetry = True
     description = "core-link"
 
-    def __init__(self, core: DeviceCore, clock: _VirtualClock, telemetry_dt: float = 0.01) -> None:
+    def __init__(self, core: DeviceCore, clock: VirtualClock, telemetry_dt: float = 0.01) -> None:
         self.core = core
         self.clock = clock
-        clock.now = max(clock.now, core.time)  # one device, one monotonic clock across runs
+        clock.advance(max(core.time - clock.now(), 0.0))  # one device, one monotonic clock across runs
         self.telemetry_dt = telemetry_dt
-        self._next_tel = clock()
+        self._next_tel = clock.now()
         self.sent: list[bytes] = []
         self.extra_rx: list[bytes] = []  # datagrams delivered to the streamer before the next telemetry
         self.intercept: Callable[[bytes], bytes | None] | None = None
@@ -36,14 +36,14 @@ class CoreLink(Transport):
         self.sent.append(frame)
         data = frame if self.intercept is None else self.intercept(frame)
         if data is not None and not self.silent:
-            self.core.handle(data, self.clock())
+            self.core.handle(data, self.clock.now())
 
     def inject(self, data: bytes) -> bool:
         """A datagram from someone else, handled by the device now."""
-        return self.core.handle(data, self.clock())
+        return self.core.handle(data, self.clock.now())
 
     def receive(self) -> list[bytes]:
-        now = self.clock()
+        now = self.clock.now()
         out, self.extra_rx = self.extra_rx, []
         if now >= self._next_tel:
             self._next_tel = max(self._next_tel + self.telemetry_dt, now)

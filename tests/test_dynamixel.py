@@ -15,6 +15,7 @@ from conftest import PROBLEMS, paper_copy, require_module
 
 from crtraj.app.stream import admit_result
 from crtraj.cli import main
+from crtraj.core.clock import VirtualClock
 from crtraj.core.errors import AdmissionError, InputError
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.admission import MotionRecord, admit
@@ -27,19 +28,20 @@ from crtraj.hardware.transport import TransportError
 from crtraj.world.scene import Scene
 
 
-class Clock:
-    """Virtual time shared by the streamer and the simulated servos; `at` runs a callback once at a time."""
+class Clock(VirtualClock):
+    """Virtual time shared by the streamer and the simulated servos (which call it); `events` run a callback
+    once at a time."""
 
     def __init__(self) -> None:
-        self.now = 0.0
+        super().__init__()
         self.events: list[tuple[float, object]] = []
 
     def __call__(self) -> float:
-        return self.now
+        return self.now()
 
     def sleep(self, s: float) -> None:
-        self.now += max(s, 0.0)
-        for ev in [e for e in self.events if e[0] <= self.now]:
+        super().sleep(s)
+        for ev in [e for e in self.events if e[0] <= self.now()]:
             self.events.remove(ev)
             ev[1]()
 
@@ -81,14 +83,14 @@ def _stream(sim, acts, motion, clock, misses: int = 50, **opts):
     telemetry watchdog (virtual time: 10 ms per missed tick) waits 10 s."""
     tr = open_dynamixel(f"dynamixel://{sim.path}", acts, warn=lambda m: None, max_misses=misses)
     opts.setdefault("watchdog", 10.0)
-    st = Streamer(tr, acts, StreamOptions(rate=motion.rate, **opts), None, clock=clock, sleep=clock.sleep)
+    st = Streamer(tr, acts, StreamOptions(rate=motion.rate, **opts), None, clock=clock)
     return st, tr
 
 
 def _settled(sim, acts, motion, clock) -> bool:
     """The servos' present positions (whole ticks, as they report them) are within the settle tolerance
     (rad, mm) of the final set-point: where the streamer's settle check saw them, the torque then off."""
-    present = acts.bus.values(np.rint(sim.chain.positions(clock.now)))
+    present = acts.bus.values(np.rint(sim.chain.positions(clock.now())))
     return bool(np.max(np.abs(present - motion.values[-1])) <= StreamOptions().settle_tolerance * (1 + 1e-9))
 
 
@@ -247,14 +249,14 @@ def test_torque_off_on_estop(robot, acts):
             seen["torque_before"] = [sim.chain.torque(i) for i in acts.bus.ids]
             st.estop("test e-stop")
             seen["torque_after"] = [sim.chain.torque(i) for i in acts.bus.ids]
-            seen["positions"] = sim.chain.positions(clock.now).copy()
+            seen["positions"] = sim.chain.positions(clock.now()).copy()
 
         clock.events.append((0.3, stop))
         rep = st.run_path(motion)
         assert rep.status == "estop" and rep.estops >= 1
         assert all(seen["torque_before"]) and not any(seen["torque_after"])
         # with the torque off the servos stay where they were: nothing moved after the e-stop
-        assert np.array_equal(sim.chain.positions(clock.now), seen["positions"])
+        assert np.array_equal(sim.chain.positions(clock.now()), seen["positions"])
     finally:
         sim.stop()
 
@@ -274,7 +276,7 @@ def test_faults_while_streaming_stop_and_name_the_servo(robot, acts, fault, stat
     sim = _sim(acts, clock, start=motion.values[0])
     chain = sim.chain
     inject = {
-        "error-bit": lambda: chain.set_hardware_error(4, HW_OVERLOAD, clock.now),
+        "error-bit": lambda: chain.set_hardware_error(4, HW_OVERLOAD, clock.now()),
         "missing": lambda: chain.remove(2),
         "timeout": lambda: chain.drop_replies(10_000),
         "corrupt": lambda: chain.corrupt_replies(10_000),
@@ -321,7 +323,7 @@ def test_a_motion_that_does_not_start_at_the_servos_is_refused_before_sending(ro
         rep = st.run_path(motion)
         assert rep.status == "refused" and rep.moves == 0 and "--approach" in rep.message
         assert sim.chain.counts["sync_writes"] == 1  # only the torque off at exit: no goal reached the servos
-        assert np.array_equal(sim.chain.positions(clock.now + 1.0), before)
+        assert np.array_equal(sim.chain.positions(clock.now() + 1.0), before)
     finally:
         sim.stop()
 

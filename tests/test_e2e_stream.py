@@ -26,10 +26,11 @@ from devlink import CoreLink
 from crtraj.app.approach import plan_approach
 from crtraj.app.stream import admit_result
 from crtraj.cli import main
+from crtraj.core.clock import VirtualClock
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.protocol import ESTOP, MOVE, Frame
 from crtraj.hardware.sim_device import DeviceCore
-from crtraj.hardware.stream import Streamer, StreamOptions, StreamReport, _VirtualClock
+from crtraj.hardware.stream import Streamer, StreamOptions, StreamReport
 from crtraj.io.results import read_result
 
 pytestmark = pytest.mark.timeout(600)
@@ -49,11 +50,11 @@ def _stream_fresh(result: Path) -> tuple[StreamReport, DeviceCore, list[Frame], 
     started device on a virtual clock: (report, device, frames sent, the result's final actuator values)."""
     opts = StreamOptions()
     motion = admit_result(result, rate=opts.rate)  # refuses (raises) a failed, unsafe or too fast result
-    clock = _VirtualClock()
+    clock = VirtualClock()
     core = DeviceCore(motion.actuators)  # a fresh device: every actuator at its zero offset
     assert np.max(np.abs(core.state()["positions"] - motion.values[0])) > opts.settle_tolerance  # an approach is due
     link = CoreLink(core, clock)
-    rep = Streamer(link, motion.actuators, opts, realtime=True, clock=clock, sleep=clock.sleep).run_path(
+    rep = Streamer(link, motion.actuators, opts, realtime=True, clock=clock).run_path(
         motion, approach=True, plan_approach=plan_approach
     )
     res = read_result(result)

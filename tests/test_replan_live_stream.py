@@ -198,7 +198,7 @@ def test_stale_feed_holds_the_device_with_hold_frames_only(tmp_path, robot, mode
         run = loop.run(device=link, progress=bridge)
         time.sleep(0.2)  # let the last telemetry arrive (the device holds still: nothing depends on it)
         final = dev.state()
-        t_dev0 = dev._t0  # the device's clock origin (monotonic)
+        t_dev0 = dev.clock_origin  # the device's clock origin (monotonic)
     assert stopped, statuses  # the device applied moves while the feed was live: streamed during the run
     assert run.status is RunStatus.TIMEOUT and not run.reached  # the feed went silent before the goal: reported
     st = list(run.step_status)

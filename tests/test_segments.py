@@ -21,12 +21,13 @@ from devlink import CoreLink
 
 from crtraj.app.approach import plan_approach
 from crtraj.cli import main
+from crtraj.core.clock import VirtualClock
 from crtraj.core.fileio import read_toml
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.admission import admit
 from crtraj.hardware.protocol import MOVE, Frame
 from crtraj.hardware.sim_device import DeviceCore
-from crtraj.hardware.stream import Streamer, StreamOptions, _VirtualClock
+from crtraj.hardware.stream import Streamer, StreamOptions
 from crtraj.io.problem import load_robot
 from crtraj.io.results import read_result
 from crtraj.model.kinematics import Model
@@ -247,10 +248,10 @@ def test_plan_streams_to_the_sim_device_with_a_planned_approach(n, plans):
     robot = load_robot(PROBLEMS / "robots" / f"cdsr{n}.toml")
     acts = Actuators.from_robot(robot)
     motion = admit(read_result(plans(n)).motion_record(), acts)
-    clock = _VirtualClock()
+    clock = VirtualClock()
     core = DeviceCore(acts)
     link = CoreLink(core, clock)
-    streamer = Streamer(link, acts, StreamOptions(), None, realtime=True, clock=clock, sleep=clock.sleep)
+    streamer = Streamer(link, acts, StreamOptions(), None, realtime=True, clock=clock)
     rep = streamer.run_path(motion, approach=True, plan_approach=plan_approach)
     assert rep.ok, rep.message
     moves = np.array([f.values for f in map(Frame.decode, link.sent) if f.kind == MOVE])

@@ -21,6 +21,7 @@ from hypothesis import strategies as st
 from test_device import hostile_datagrams
 
 from crtraj.cli import main
+from crtraj.core.clock import VirtualClock
 from crtraj.core.errors import AdmissionError, InputError
 from crtraj.core.fields import Table
 from crtraj.core.fileio import atomic_write_json, to_jsonable
@@ -28,7 +29,7 @@ from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.admission import MotionRecord, admit
 from crtraj.hardware.protocol import ESTOP, HOLD, MOVE, PING, Frame, Telemetry, read_stream_file
 from crtraj.hardware.sim_device import DeviceCore, Faults, SimDevice
-from crtraj.hardware.stream import Streamer, StreamError, StreamOptions, _VirtualClock
+from crtraj.hardware.stream import Streamer, StreamError, StreamOptions
 from crtraj.hardware.transport import Transport
 from crtraj.io.results import read_result
 from crtraj.world.scene import Scene
@@ -322,8 +323,8 @@ def test_no_frame_ever_leaves_outside_its_limits(robot, acts, steps, gaps, scale
     stamps = np.cumsum(gaps[: len(steps)])
     dt = 0.01
     # live source: no preflight, the runtime gate alone
-    cap, clock = _Capture(), _VirtualClock()
-    s = Streamer(cap, acts, StreamOptions(), None, clock=clock, sleep=clock.sleep)
+    cap, clock = _Capture(), VirtualClock()
+    s = Streamer(cap, acts, StreamOptions(), None, clock=clock)
     s.start(start_v, background=False)
     s.send_path(stamps, vals)
     s.finish()
@@ -498,10 +499,10 @@ def test_cli_streams_to_sim_device_subprocess(result, tmp_path, capsys):
 # ------------------------------------------- acknowledgements, following error, sessions (virtual clock)
 def core_run(acts, path, *, core=None, opts=None, log=None, intercept=None, approach=False, **kw):
     """Stream `path` to an in-process DeviceCore on the streamer's own virtual clock."""
-    clock = _VirtualClock()
+    clock = VirtualClock()
     link = CoreLink(core or DeviceCore(acts), clock)
     link.intercept = intercept
-    s = Streamer(link, acts, opts or StreamOptions(), log, realtime=True, clock=clock, sleep=clock.sleep, **kw)
+    s = Streamer(link, acts, opts or StreamOptions(), log, realtime=True, clock=clock, **kw)
     return s, link, s.run_path(path, approach=approach)
 
 
@@ -531,11 +532,11 @@ def test_forged_max_sequence_frame_does_not_lock_out_the_run(acts, result, tmp_p
                 link.inject(Frame(MOVE, 0xFFFFFFFF, 9.0, acts.upper, forged_session).encode())
         return frame
 
-    clock = _VirtualClock()
+    clock = VirtualClock()
     link = CoreLink(DeviceCore(acts), clock)
     holder["link"] = link
     link.intercept = forge
-    rep = Streamer(link, acts, StreamOptions(), tmp_path / "r.jsonl", realtime=True, clock=clock, sleep=clock.sleep)
+    rep = Streamer(link, acts, StreamOptions(), tmp_path / "r.jsonl", realtime=True, clock=clock)
     rep = rep.run_path(path)
     assert rep.ok, rep.message
     assert rep.device["stale"] == 1 and rep.device["foreign"] == 2
@@ -615,9 +616,9 @@ def test_hostile_telemetry_never_crashes_or_stops_the_streamer(acts, result, dat
     path = admitted(result, acts)
     junk = data.draw(st.lists(hostile_datagrams(acts), min_size=1, max_size=8))
     foreign = Telemetry(10**6, 0.0, 3, 0, acts.upper, session=1).encode()
-    clock = _VirtualClock()
+    clock = VirtualClock()
     link = CoreLink(DeviceCore(acts), clock)
-    s = Streamer(link, acts, StreamOptions(), None, realtime=True, clock=clock, sleep=clock.sleep, session=2)
+    s = Streamer(link, acts, StreamOptions(), None, realtime=True, clock=clock, session=2)
     real_receive = link.receive
     calls = {"n": 0}
 

@@ -23,6 +23,7 @@ from crtraj.app.approach import plan_approach
 from crtraj.cli import main
 from crtraj.control.ports import DeviceError
 from crtraj.control.tracking import ServoModel
+from crtraj.core.clock import VirtualClock
 from crtraj.core.errors import AdmissionError
 from crtraj.core.fileio import to_jsonable
 from crtraj.hardware.actuators import Actuators
@@ -31,7 +32,7 @@ from crtraj.hardware.link import DeviceLink
 from crtraj.hardware.protocol import MOVE, Frame, read_stream_file
 from crtraj.hardware.setpoints import SetpointPath
 from crtraj.hardware.sim_device import DeviceCore
-from crtraj.hardware.stream import Streamer, StreamOptions, _VirtualClock
+from crtraj.hardware.stream import Streamer, StreamOptions
 from crtraj.hardware.verify import FrameVerifier
 from crtraj.io.results import read_result
 from crtraj.world.obstacle import Obstacle
@@ -207,10 +208,10 @@ def test_a_no_safety_replan_result_is_refused_from_the_streamer_and_the_cli(robo
     X = np.stack([robot.straight(0.0), 0.2 * XB])
     res = _result(robot, model, Scene(), [0.0, 3.0], X)
     res.update(kind="replan", summary={"collisions": 0, "safety_violations": 0, "safety": False})
-    clock = _VirtualClock()
+    clock = VirtualClock()
     link = CoreLink(DeviceCore(acts), clock)
     with pytest.raises(AdmissionError, match="--no-safety"):
-        Streamer(link, acts, clock=clock, sleep=clock.sleep).run_path(admit(read_result(res).motion_record(), acts))
+        Streamer(link, acts, clock=clock).run_path(admit(read_result(res).motion_record(), acts))
     assert link.sent == []
     rc, err = _stream_cli(tmp_path, res, capsys)
     assert rc == 1 and len(err) == 1 and "--no-safety" in err[0] and not (tmp_path / "f.bin").exists()
@@ -218,9 +219,9 @@ def test_a_no_safety_replan_result_is_refused_from_the_streamer_and_the_cli(robo
 
 # ------------------------------------------------------------- (c) planned approach
 def _core_stream(acts, motion, **kw):
-    clock = _VirtualClock()
+    clock = VirtualClock()
     link = CoreLink(DeviceCore(acts), clock)  # the device starts straight at z = 0
-    s = Streamer(link, acts, StreamOptions(), None, realtime=True, clock=clock, sleep=clock.sleep)
+    s = Streamer(link, acts, StreamOptions(), None, realtime=True, clock=clock)
     rep = s.run_path(motion, approach=True, **kw)
     moves = [f for f in map(Frame.decode, link.sent) if f.kind == MOVE]
     return rep, moves, link
@@ -248,7 +249,7 @@ def test_an_approach_through_an_obstacle_is_planned_around_it(robot, model, acts
     Xs, misfit = configs_of(robot, acts, np.vstack([start, values]))
     assert np.max(misfit) <= 0.05
     assert dense_clearance(model, scene, np.append(stamps[0] - 0.01, stamps), Xs) >= 0.0
-    np.testing.assert_allclose(link.core.telemetry(link.clock()).positions, values[-1], atol=0.02)
+    np.testing.assert_allclose(link.core.telemetry(link.clock.now()).positions, values[-1], atol=0.02)
 
 
 def test_an_approach_that_cannot_be_made_safe_is_refused_and_nothing_is_sent(robot, model, acts, tmp_path, capsys):
@@ -298,9 +299,9 @@ def test_live_steps_are_verified_against_the_loops_scene_snapshot(robot, model, 
     """DeviceLink checks each step's frames (the follower's output) against the scene the loop used: a step
     into a sphere that the snapshot holds is not sent (DeviceError with the time, the link holds); the same
     step against an empty snapshot is sent, and what leaves equals what was checked."""
-    clock = _VirtualClock()
+    clock = VirtualClock()
     link = CoreLink(DeviceCore(acts), clock)
-    s = Streamer(link, acts, StreamOptions(prebuffer=0.1), None, realtime=True, clock=clock, sleep=clock.sleep)
+    s = Streamer(link, acts, StreamOptions(prebuffer=0.1), None, realtime=True, clock=clock)
     s.start(background=False)
     tip = model.points(robot.straight(0.0), 11)[-1]
     # 0.2 mm of clearance beyond D_sf above the tip: the step's first half millimetre up breaks it
@@ -311,11 +312,11 @@ def test_live_steps_are_verified_against_the_loops_scene_snapshot(robot, model, 
     dl.begin(0.0)
     q0 = robot.cables(robot.straight(0.0))
     cmds = np.repeat(robot.cables(robot.straight(8.0))[None], 5, axis=0)  # up 8 mm, into the sphere
-    queued = len(s._bt)
+    queued = len(s.buffer)
     with pytest.raises(DeviceError, match=r"step at t=0\.00 s refused before sending: body closer than"):
         dl.move(0.0, q0, cmds, 0.02)
-    assert len(s._bt) == queued and s.state == "held" and dl.refused_steps == 1
+    assert len(s.buffer) == queued and s.state == "held" and dl.refused_steps == 1
     snapshot["scene"] = Scene()
     dl.move(0.0, q0, cmds, 0.02)  # resumes from the hold; nothing in the way now
-    values = np.array(s._bv[-10:])
-    assert verifier.failure(np.array(s._bt[-10:]), values, start=acts.command(q0)) is None
+    values = np.array(s.buffer.values[-10:])
+    assert verifier.failure(np.array(s.buffer.stamps[-10:]), values, start=acts.command(q0)) is None

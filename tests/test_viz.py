@@ -28,7 +28,8 @@ from crtraj.cli import main
 from crtraj.core.errors import InputError
 from crtraj.core.fields import Table
 from crtraj.core.fileio import atomic_write_json, to_jsonable
-from crtraj.viz.view import ViewOptions, Visualizer, _cylinder_quat
+from crtraj.viz.geometry import cylinder_quat
+from crtraj.viz.view import ViewOptions, Visualizer
 
 # paper simulation 1 / 2: start, goal and the two spheres (mm)
 START = np.array([-50.0, 100.0, 390.0])
@@ -153,7 +154,7 @@ def test_cylinder_quaternion_turns_y_axis_onto_direction():
     v = rng.normal(size=(200, 3))
     v /= np.linalg.norm(v, axis=1, keepdims=True)
     v = np.vstack([v, [[0, 0, 1.0], [0, 0, -1.0], [0, -1.0, 0], [1.0, 0, 0]]])  # incl. the singular -z
-    q = _cylinder_quat(v)  # w, x, y, z
+    q = cylinder_quat(v)  # w, x, y, z
     np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=1e-12)
     np.testing.assert_allclose(_rotate(q[:, [1, 2, 3, 0]], np.array([0.0, 1.0, 0.0])), v, atol=1e-12)
 
@@ -332,12 +333,12 @@ def test_static_html_is_standalone_and_replays_the_scene(shown, tmp_path):
 
 def test_fast_packer_gives_meshcats_exact_bytes(shown):
     """crtraj packs commands with the C msgpack when present; meshcat's umsgpack must agree byte for byte."""
-    from crtraj.viz.view import _packb
+    from crtraj.viz.export import packb
 
     cmds = shown.scene_commands()
     assert {c["type"] for c in cmds} >= {"set_object", "set_transform", "set_property", "set_animation"}
     for c in cmds:
-        assert _packb(c) == umsgpack.packb(c)
+        assert packb(c) == umsgpack.packb(c)
 
 
 @pytest.mark.parametrize(

@@ -90,6 +90,10 @@ def _exit_when_parent_goes() -> None:
 class _LoopbackBridge(ZMQWebSocketBridge):
     """meshcat's bridge with its web socket on 127.0.0.1 too."""
 
+    # meshcat 0.3.x has no option for the web socket's bind address: its `host` binds the ZMQ socket and names the
+    # page's address, but the tornado app its `make_app` builds is listened on without one. Overriding `make_app`
+    # (a method of the bridge's class, called once from its constructor) is the narrowest hook; pyproject pins
+    # meshcat to >=0.3.2,<0.4, the versions with that constructor.
     def make_app(self) -> Any:
         app = super().make_app()
         # tornado's listen() binds every interface unless given an address
@@ -100,6 +104,7 @@ class _LoopbackBridge(ZMQWebSocketBridge):
 def serve() -> None:
     """Entry point of the server child: meshcat's bridge, every socket on 127.0.0.1."""
     bridge = _LoopbackBridge(host=HOST)
+    # the start-up lines on stdout are the child's answer to `start_server`, which parses them (not diagnostics)
     print(f"zmq_url={bridge.zmq_url}")
     print(f"web_url={bridge.web_url}")
     threading.Thread(target=_exit_when_parent_goes, daemon=True).start()

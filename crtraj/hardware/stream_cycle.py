@@ -1,0 +1,166 @@
+"""One period of a stream: read the device's telemetry, run the watchdogs, move the state machine, send one frame.
+
+The decisions per state: waiting holds until enough is buffered; streaming sends the buffer's next set-point (or
+holds through an underrun until the watchdog latches ``stalled``); settling holds at the final set-point until the
+device acknowledges it and arrives within ``settle_tolerance`` (``not-settled`` after ``settle_timeout``); held
+repeats hold frames; an e-stop repeats e-stop frames. Times in s on the stream's clock.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from crtraj.hardware.limits import LimitsGate
+from crtraj.hardware.protocol import ESTOP, HOLD, MOVE, STATUS_ESTOP, Telemetry
+from crtraj.hardware.stream_options import StreamOptions
+from crtraj.hardware.stream_sender import FrameSender, StreamParts
+from crtraj.hardware.stream_state import (
+    CHECKED,
+    CLOSED,
+    DONE,
+    ERROR,
+    ESTOPPED,
+    HELD,
+    IDLE,
+    LIVE,
+    SETTLING,
+    STREAMING,
+    WAITING,
+)
+from crtraj.hardware.transport import Transport, TransportError
+
+
+class StreamCycle:
+    """The per-period work of one stream.
+
+    options: the `StreamOptions`; transport: the link (its telemetry is read here); gate: the limits gate
+    (`position` is the last commanded values); parts: the stream's state machine, buffer, monitor and log;
+    sender: where frames leave.
+    """
+
+    def __init__(
+        self, options: StreamOptions, transport: Transport, gate: LimitsGate, parts: StreamParts, sender: FrameSender
+    ) -> None:
+        self._options = options
+        self._transport = transport
+        self._gate = gate
+        self._machine, self._buffer, self._monitor = parts.machine, parts.buffer, parts.monitor
+        self._sender = sender
+        self.final_error: float | None = None  # max |measured - final| on arrival (rad or mm)
+
+    def tick(self, now: float) -> None:
+        """One period at clock time `now` (s). Caller holds the stream's lock."""
+        state = self._machine
+        if state.state in (DONE, ERROR, CLOSED, IDLE):
+            return
+        try:
+            self.poll_telemetry(now)
+            if state.state == ESTOPPED:
+                self._sender.hold(ESTOP)
+                return
+            if state.state not in (HELD, DONE) and self._transport.has_telemetry:
+                silent = self._monitor.silence(now)
+                if silent > self._options.watchdog:
+                    state.latch(f"telemetry lost: nothing valid for {silent * 1000:.0f} ms", now, "telemetry-lost")
+            if state.state == HELD:
+                self._sender.hold(HOLD)
+            elif state.state == WAITING:
+                self._tick_waiting(now)
+            elif state.state == STREAMING:
+                self._tick_streaming(now)
+            elif state.state == SETTLING:
+                self._tick_settling(now)
+        except TransportError as exc:
+            state.fail(f"transport error: {exc}", "transport-error", str(exc))
+
+    def _tick_waiting(self, now: float) -> None:
+        if not self._buffer.ready(self._options.prebuffer):
+            self._sender.hold(HOLD)
+            return
+        origin = self._buffer.begin()
+        self._monitor.source_ok()
+        self._machine.stream(origin)
+        self._tick_streaming(now)
+
+    def _tick_streaming(self, now: float) -> None:
+        due = self._buffer.due()
+        if due.kind == "settle":
+            self._machine.settle(due.stamp)
+            self._monitor.start_settling(now)
+            self._tick_settling(now)
+            return
+        if due.kind == "underrun":
+            first, waited = self._monitor.underrun(now)
+            if first:
+                self._machine.event("underrun", f"no set-point for t={due.stamp:g} s yet: holding", now)
+            if waited > self._options.watchdog:
+                self._machine.latch(
+                    f"source stalled: no set-point for t={due.stamp:g} s within {self._options.watchdog * 1000:.0f} ms",
+                    now,
+                    "stalled",
+                )
+            self._sender.hold(HOLD)
+            return
+        self._monitor.source_ok()
+        if self._sender.emit(MOVE, due.values, due.stamp):
+            self._buffer.advance(due)
+
+    def _tick_settling(self, now: float) -> None:
+        self._sender.hold(HOLD)
+        if not self._transport.has_telemetry:
+            self._arrived(None)
+            return
+        err = self._monitor.arrival_error(self._sender.last_move_seq, self._gate.position)
+        if err is not None and err <= self._options.settle_tolerance:
+            self._arrived(err)
+            return
+        if self._monitor.settle_overdue(now):
+            tel = self._monitor.last
+            err = None if tel is None else float(np.max(np.abs(tel.positions - self._gate.position)))
+            reason = (
+                f"device did not reach the final set-point within {self._options.settle_timeout:g} s "
+                f"(error {err if err is None else f'{err:.4g}'})"
+            )
+            self._machine.fail(reason, "not-settled", reason, status="not-settled")
+
+    def _arrived(self, err: float | None) -> None:
+        self.final_error = err
+        self._machine.done(err)
+
+    # ------------------------------------------------------------- telemetry
+    def poll_telemetry(self, now: float) -> None:
+        """Read every datagram the device sent since the last poll, at clock time `now` (s), and act on it."""
+        if not self._transport.has_telemetry:
+            return
+        newest: Telemetry | None = None
+        for data in self._transport.receive():
+            tel = self._monitor.accept(data, now, now - self._machine.t_start)
+            if tel is not None:
+                self._on_telemetry(tel, now)
+                newest = tel
+        # after the whole batch: telemetry that queued up while this thread was starved must not
+        # make frames it sent just before the stall look unacknowledged
+        if newest is not None and self._machine.state in CHECKED:
+            why = self._monitor.ack_stall(newest, now)
+            if why is not None:
+                self._machine.latch(why, now, "ack-stalled")
+
+    def _on_telemetry(self, tel: Telemetry, now: float) -> None:
+        """Act on one valid telemetry frame: the device's e-stop, refusals, limited steps, following error."""
+        machine = self._machine
+        if machine.state in LIVE:
+            if tel.status & STATUS_ESTOP:
+                machine.estop("device reports an e-stop", now)
+            elif self._monitor.device_refused(tel):
+                machine.latch(
+                    "device refused a set-point (its limits are stricter than the robot file's)", now, "refused"
+                )
+        limited = self._monitor.device_limited(tel)
+        if limited:
+            # the device's servo limited a step (it still follows, slower): the following-error
+            # check decides whether that matters
+            machine.event("device-limited", f"device flagged {limited} set-point(s)")
+        if machine.state in CHECKED:
+            why = self._monitor.following_error(tel)
+            if why is not None:
+                machine.latch(why, machine.clock.now(), "following-error")

@@ -1,0 +1,91 @@
+"""The view's link to a live meshcat server: meshcat's ViewerWindow interface over ZMQ, plus the in-process copy.
+
+`MeshcatWindow` is what `meshcat.Visualizer(window=...)` talks to (meshcat's public hook for a custom window):
+every command goes to the in-process `SceneRecorder` (so the standalone page works offline) and, when connected,
+to a meshcat server, either one this window starts (`crtraj.viz.server`, bound to 127.0.0.1, stopped with the
+window) or a running one at a ZMQ address. Every reply is awaited at most `timeout` s.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import weakref
+import webbrowser
+from typing import Any
+
+import zmq
+
+from crtraj.viz import server as meshcat_server
+from crtraj.viz.export import SceneRecorder, packb
+
+
+class MeshcatWindow:
+    """meshcat's ViewerWindow interface: every command goes to the in-process scene recorder and, when
+    connected, to a meshcat server.
+
+    zmq_url: a running server's ZMQ address (None: none); start_server: start one as a child process;
+    timeout: s for the server's start-up and for every reply.
+    """
+
+    def __init__(self, zmq_url: str | None, start_server: bool, timeout: float) -> None:
+        self.recorder = SceneRecorder()
+        self._timeout_ms = int(timeout * 1000)
+        self.server_proc: subprocess.Popen[bytes] | None = None
+        self._log = None
+        self._sock = None
+        self.zmq_url: str | None = None
+        self.web_url: str | None = None
+        if start_server:
+            self.server_proc, self._log, self.zmq_url, self.web_url = meshcat_server.start_server(timeout)
+            self._connect()
+        elif zmq_url is not None:
+            self.zmq_url = zmq_url
+            self._connect()
+            self.web_url = self._request(b"url").decode("utf-8")
+            # meshcat's client does the same: a url request before any browser
+            # connects leaves the server's receive callback stuck until a reconnect.
+            self._sock.close(linger=0)
+            self._connect()
+        self._finalizer = weakref.finalize(self, meshcat_server.stop_server, self.server_proc, self._sock, self._log)
+
+    def _connect(self) -> None:
+        sock = zmq.Context.instance().socket(zmq.REQ)
+        sock.setsockopt(zmq.LINGER, 0)
+        sock.setsockopt(zmq.RCVTIMEO, self._timeout_ms)
+        sock.setsockopt(zmq.SNDTIMEO, self._timeout_ms)
+        sock.connect(self.zmq_url)
+        self._sock = sock
+
+    def _request(self, *frames: bytes) -> bytes:
+        try:
+            self._sock.send_multipart(list(frames))
+            return self._sock.recv()
+        except zmq.Again:
+            self._sock.close(linger=0)
+            self._sock = None
+            raise RuntimeError(
+                f"meshcat server at {self.zmq_url} did not answer within {self._timeout_ms / 1000:g} s"
+            ) from None
+
+    def send(self, command: Any) -> None:
+        """Record a meshcat command and send it to the server, if any."""
+        data = command.lower()
+        packed = packb(data)
+        self.recorder.apply(data["type"], data["path"], packed)
+        if self._sock is not None:
+            self._request(data["type"].encode("utf-8"), data["path"].encode("utf-8"), packed)
+
+    def get_scene(self) -> str:
+        """The standalone page of everything recorded (meshcat's name for it)."""
+        return self.recorder.static_html()
+
+    def open(self) -> MeshcatWindow:
+        """Open the live page in the default browser (no-op without a server)."""
+        if self.web_url:
+            webbrowser.open(self.web_url, new=2)
+        return self
+
+    def close(self) -> None:
+        """Close the link and stop the server this window started (idempotent)."""
+        self._finalizer()
+        self._sock = None
