@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from crtraj.app.plan import plan_problem
+from crtraj.app.run_output import run_context
 from crtraj.control.horizon import ReplanOptions
 from crtraj.control.loop import ClosedLoop
 from crtraj.control.loop_options import LoopOptions
@@ -33,7 +34,7 @@ def run(model):
     xs, xg = np.array([0.3, 0.0, 0.0, 0.0, 0.0]), np.array([-0.3, 0.2, -0.1, 0.1, -10.0])
     scene = Scene(obstacles=(Obstacle(center=(-3.5, 76.8, 394.4), radius=20.0, amplitude=4.0, omega=0.5),))
     opts = ReplanOptions(horizon=6, points=12, solver="sqp")
-    loop = ClosedLoop(
+    loop = ClosedLoop.build(
         model, scene, model.tip_position(xg), xs, options=opts, loop_options=LoopOptions(duration=1.0), goal_config=xg
     )
     return loop, loop.run()
@@ -64,7 +65,7 @@ def test_plan_document_round_trips_through_a_file(plan, tmp_path):
 
 def test_run_document_round_trips_through_a_file(model, run, tmp_path):
     loop, r = run
-    doc = run_document(r, loop, seed=4)
+    doc = run_document(r, run_context(loop), seed=4)
     path = atomic_write_json(tmp_path / "run.json", doc)
     res = read_result(path)
     assert (res.kind, res.schema) == ("replan", SCHEMA_VERSION)
@@ -81,7 +82,7 @@ def test_run_document_round_trips_through_a_file(model, run, tmp_path):
 
 def test_plan_and_run_documents_share_one_header(plan, run):
     loop, r = run
-    plan_doc, run_doc = plan.document(), run_document(r, loop)
+    plan_doc, run_doc = plan.document(), run_document(r, run_context(loop))
     keys = ("kind", "schema", "crtraj_version", "casadi_version", "numpy_version", "created", "problem", "robot")
     keys += ("scene", "task", "options")
     assert list(plan_doc)[: len(keys)] == list(keys) and list(run_doc)[: len(keys)] == list(keys)
