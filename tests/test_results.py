@@ -18,6 +18,7 @@ from crtraj.core.errors import InputError
 from crtraj.core.fileio import atomic_write_json
 from crtraj.io.problem import Problem
 from crtraj.io.results import SCHEMA_VERSION, read_result, run_document
+from crtraj.io.run_files import read_npz, save_npz
 from crtraj.world.obstacle import Obstacle
 from crtraj.world.scene import Scene
 
@@ -142,3 +143,32 @@ def test_a_plan_below_the_safety_distance_counts_as_a_violation(plan):
     doc = json.loads(json.dumps(plan.document()))
     doc["summary"]["min_clearance_mm"] = -0.5
     assert read_result(doc).safety_violations == 1
+
+
+def test_run_npz_round_trips_every_array_of_the_run(run, tmp_path):
+    """save_npz writes, and read_npz reads back, the run's own arrays under the schema's keys."""
+    _, r = run
+    arrays = read_npz(save_npz(r, tmp_path / "run.npz"))
+    np.testing.assert_array_equal(arrays["t"], r.t)
+    np.testing.assert_array_equal(arrays["dense_x"], r.dense_x)
+    np.testing.assert_array_equal(arrays["iter_time"], r.iter_time)
+    np.testing.assert_array_equal(arrays["executed"], r.executed)
+    assert tuple(arrays["status"]) == r.step_status and tuple(arrays["reason"]) == r.reason
+    for i, (k, tips) in enumerate(r.reference_tips):
+        assert int(arrays[f"reference_{i}_step"]) == k
+        np.testing.assert_array_equal(arrays[f"reference_{i}_tip"], tips)
+
+
+def test_run_npz_missing_or_inconsistent_array_is_one_line_naming_the_key(run, tmp_path):
+    """A run.npz without an array, or with per-step arrays of the wrong length, is refused naming the key."""
+    _, r = run
+    with np.load(save_npz(r, tmp_path / "run.npz"), allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    short = {**arrays, "nlp_time": arrays["nlp_time"][:-1]}
+    np.savez(tmp_path / "short.npz", **short)
+    with pytest.raises(InputError, match=r"short\.npz: nlp_time: \d+ steps, but t has \d+ times$"):
+        read_npz(tmp_path / "short.npz")
+    del arrays["clearance"]
+    np.savez(tmp_path / "gone.npz", **arrays)
+    with pytest.raises(InputError, match=r"gone\.npz: clearance: missing \(required\)$"):
+        read_npz(tmp_path / "gone.npz")

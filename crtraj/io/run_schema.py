@@ -310,6 +310,7 @@ PLAN_BODY = (
     Field("tree", "mm", "object", "`edges` (E, 2, 3): the planner tree as pairs of tip points"),
     Field("raw_path", "", "object", "`t` (s), `x`, `tip` (mm) of the path before smoothing"),
     Field("goal_configs", CONFIG, "(G, nx)", "goal configurations the planner found"),
+    Field("retime", "", "object", "how `crtraj plan` timed the path for the actuators (`crtraj.app.plan`)"),
 )
 
 RUN_BODY = (
