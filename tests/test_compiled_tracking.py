@@ -70,7 +70,7 @@ def test_c_tracking_step_is_the_numpy_step(loop_and_c):
 
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(loop.tracker, "step", spy)
-        mp.setattr(loop, "_tracking", None)  # `_track` simulates in numpy
+        mp.setattr(loop.parts.motion, "compiled", None)  # `track` simulates in numpy
         for q, qc, x0, x1, t, inc in _cases(loop, rng):
             want = loop.parts.motion.track(q, qc, x0, x1, t, inc)
             got = c.step(q, qc, x0, x1, t, inc, loop.n_sub, loop.options.dt, loop.loop_options.check_resolution)
