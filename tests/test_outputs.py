@@ -162,7 +162,7 @@ def test_bad_out_is_one_line_before_any_work(tmp_path, capsys, monkeypatch, comm
         raise AssertionError("the run started before --out was checked")
 
     monkeypatch.setattr("crtraj.app.plan.plan_problem", never)
-    monkeypatch.setattr("crtraj.app.replan.loop_from_problem", never)
+    monkeypatch.setattr(ClosedLoop, "from_problem", never)
     afile = tmp_path / "afile"
     afile.write_text("keep me")
     foreign = tmp_path / "mine"
