@@ -295,16 +295,9 @@ class ClosedLoop:
         late = p.policy.solve(robot.x, X_ref, obstacles, robot.x_prev, left)
         res = p.policy.judge_deadline(late, self.clock.now() - t_iter + refs[3] - p.references.waited)
         if res is not late:
-            p.recorder.deadline_misses += 1
-        p.references.nlp_failed = not res.feasible and res.status is not HorizonStatus.SKIPPED
-        # a late but feasible solve still warm-starts the next one: resetting it would make the next
-        # solve cold, hence slower, hence late again (a run of misses feeding itself)
-        choice = p.policy.choose(robot.now(), res, keep_warm=res is not late and late.feasible)
-        if res is not late and late.feasible:
-            # the late plan (for t + dt, t + 2 dt, ...) is the next step's fallback: a run of misses
-            # follows it one step behind (each move re-verified) instead of running out of plan
-            p.policy.last_plan = late.configs
-        return choice, res, refs
+            p.recorder.count_deadline_miss()
+        p.references.note_nlp(failed=not res.feasible and res.status is not HorizonStatus.SKIPPED)
+        return p.policy.choose_after(robot.now(), late, res), res, refs
 
     def _step(self, k: int, robot: _Robot, device: Device | None, t_iter: float) -> StepStatus:
         """Control step k from robot.t: choose, verify, (send,) apply and record one move; its status.

@@ -69,6 +69,10 @@ class RunRecorder:
         self.deadline_misses = 0  # NLP results that came after replan.step_deadline (not used)
         self.feed: list[dict[str, Any]] = []  # the live feed's rejected/clamped messages, with loop time
 
+    def count_deadline_miss(self) -> None:
+        """One more NLP result came after ``replan.step_deadline`` and was not used."""
+        self.deadline_misses += 1
+
     def feed_events(self, source: ObstacleSource, t: float) -> None:
         """Record the source's new events (a live feed's rejected or clamped messages) at loop time t (s)."""
         self.feed.extend({"t": float(t), **e.to_dict()} for e in source.new_events())

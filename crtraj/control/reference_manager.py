@@ -136,6 +136,10 @@ class ReferenceManager:
             return np.broadcast_to(x, (N, len(x))).copy()
         return self.ref.at(self.s_ref + dt * np.arange(1, N + 1))
 
+    def note_nlp(self, failed: bool) -> None:
+        """Whether this step's NLP failed (then the reference is planned again)."""
+        self.nlp_failed = failed
+
     def retarget(self, target: np.ndarray) -> None:
         """Aim the planner at a corrected tip goal (mm): the reference is planned again."""
         self.source.retarget(target)  # type: ignore[attr-defined]

@@ -100,6 +100,18 @@ class StepPolicy:
         self._keep_plan(chosen.status, res, keep_warm)
         return chosen
 
+    def choose_after(self, now: RobotNow, late: HorizonResult, res: HorizonResult) -> Choice:
+        """`choose` with the NLP's result as judged (`res`) and as it came (`late`): a late but feasible
+        solve still warm-starts the next one (resetting it would make the next solve cold, hence slower,
+        hence late again: a run of misses feeding itself), and its plan (for t + dt, t + 2 dt, ...) is the
+        next step's fallback, so a run of misses follows it one step behind (each move re-verified)
+        instead of running out of plan."""
+        missed = res is not late and late.feasible
+        choice = self.choose(now, res, keep_warm=missed)
+        if missed:
+            self.last_plan = late.configs
+        return choice
+
     def _least_unsafe(self, now: RobotNow, tried: list[Choice]) -> Choice:
         """No candidate move verified: hold (command every actuator to its measured position, so the
         first-order servos stay put) when that is safe or no worse than the best move tried, else that move."""
