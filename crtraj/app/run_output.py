@@ -34,10 +34,11 @@ def write_run_files(
     time (`write_run` stages them and swaps the folder in whole). Returns the paths (keys json, npz, png,
     html) and, under "result", the result document as plain JSON data."""
     out = Path(folder)
-    result = run_document(run, run_context(loop), problem, seed)
+    context = run_context(loop)
+    result = run_document(run, context, problem, seed)
     paths: dict[str, Any] = {"json": atomic_write_json(out / "run.json", result)}
     paths["npz"] = save_npz(run, out / "run.npz")
-    paths["png"] = plot_run(run, loop, out / "run.png")
+    paths["png"] = plot_run(run, context, out / "run.png")
     if html:
         vis = Visualizer.for_result(result, play=True)
         try:
