@@ -189,5 +189,5 @@ class SlowReplanner(Replanner):
 
 def straight_loop(model: Model, scene: Scene, **kw) -> ClosedLoop:
     """The closed loop from XS toward XG's tip among `scene` (goal configuration XG unless kw gives a
-    reference); kw: `ClosedLoop`'s keyword options."""
+    reference); kw: `ClosedLoop.build`'s keyword options (the fields of `LoopSpec`)."""
     return ClosedLoop.build(model, scene, model.tip_position(XG), XS, **{"goal_config": XG, **kw})

@@ -61,6 +61,7 @@ class Pacer:
         """Loop time 0 is now (after the setup and warm-up); a device starts its own clock."""
         self.t0 = self.clock.now()
         if self.device is not None:
+            # a device paces on its own clock: `Device.begin` takes the wall time (perf_counter) of loop time 0
             self.device.begin(time.perf_counter())
 
     def pace(self, t: float) -> None:
