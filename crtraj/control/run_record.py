@@ -103,7 +103,8 @@ class StepRecord:
 
 @dataclass(frozen=True)
 class ReplanRun:
-    """A closed-loop run. Arrays have one row per recorded time t[k] (k = 0..K).
+    """A closed-loop run. Arrays have one row per recorded time t[k] (k = 0..K), built once from the
+    run's `StateRecord`s and (per step, K rows) `StepRecord`s under the same names.
 
     status: how the run ended (`RunStatus`); `is_success()`: reached the goal
     and no step broke D_sf (`reached` alone ignores the safety distance).
