@@ -44,8 +44,8 @@ from pathlib import Path
 
 import numpy as np
 
-from crtraj.app.replan import loop_from_problem
 from crtraj.control.horizon import ReplanOptions
+from crtraj.control.loop import ClosedLoop
 from crtraj.control.loop_options import LoopOptions
 from crtraj.core.fileio import read_toml
 from crtraj.io.problem import Problem
@@ -83,7 +83,7 @@ def run_variant(problem: Problem, name: str, seeds: list[int], safety: bool = Tr
     lopts = dataclasses.replace(problem.options(LoopOptions, "loop"), **LOOP_VARIANTS.get(name, {}))
     its, nlp, rows, quiet = [], [], [], []
     for seed in seeds:
-        loop = loop_from_problem(problem, seed=seed, options=opts, loop_options=lopts)
+        loop = ClosedLoop.from_problem(problem, seed=seed, options=opts, loop_options=lopts)
         run = loop.run()
         s = run.summary()
         its.append(run.iter_time)

@@ -31,8 +31,8 @@ from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory
 from visualization_msgs.msg import Marker, MarkerArray
 
-from crtraj.app.replan import loop_from_problem
 from crtraj.app.ros_bridge import RosBridgeRequest, run_ros_bridge
+from crtraj.control.loop import ClosedLoop
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.ros.messages import si_scale
 from crtraj.hardware.ros.node import RosNode, ros_environment
@@ -208,7 +208,7 @@ def main() -> None:
     )
     path = ROOT / "problems" / "paper_dynamic.toml"
     problem = Problem.load(path)
-    loop = loop_from_problem(problem)
+    loop = ClosedLoop.from_problem(problem)
     acts = Actuators.from_robot(problem.robot)
     start = acts.command(loop.tracker.initial_command(loop.x_start))
     round_trips(acts, start, args.round_trips)

@@ -105,7 +105,7 @@ def replan_ms(model: Model, scene: Scene, compiled: bool = False) -> tuple[float
     xs, xg = configs(model)
     cap = {"compiled": True, "max_iter": 3, "max_calls": 20} if compiled else {}
     opts = ReplanOptions(solver="sqp", qpsol="daqp", points=16, **cap)
-    loop = ClosedLoop(
+    loop = ClosedLoop.build(
         model, scene, model.tip_position(xg), xs, options=opts, loop_options=LoopOptions(duration=3.0), goal_config=xg
     )
     c0 = time.process_time()

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from crtraj.app.replan import loop_from_problem
+from crtraj.control.loop import ClosedLoop
 from crtraj.io.problem import Problem
 from crtraj.model.kinematics import Model
 from crtraj.planning.options import PlannerOptions
@@ -68,7 +68,7 @@ def replan_times(path: Path, seeds: list[int]) -> dict:
     problem = Problem.load(path)
     its, nlp, ok, arrive = [], [], 0, []
     for seed in seeds:
-        run = loop_from_problem(problem, seed=seed).run()
+        run = ClosedLoop.from_problem(problem, seed=seed).run()
         its.append(run.iter_time)
         nlp.append(run.nlp_time)
         ok += int(run.is_success())

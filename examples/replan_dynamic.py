@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from crtraj.app.replan import loop_from_problem
 from crtraj.app.run_output import write_run
+from crtraj.control.loop import ClosedLoop
 from crtraj.io.problem import Problem
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -20,7 +20,7 @@ out = Path(sys.argv[1]) if len(sys.argv) > 1 else Path("out") / "replan-example"
 
 # 1. The whole closed loop: planner reference, horizon NLP, tracking controller, verified moves.
 problem = Problem.load(ROOT / "problems" / "paper_dynamic.toml")
-loop = loop_from_problem(problem)  # safety=False would switch the collision-free terms off
+loop = ClosedLoop.from_problem(problem)  # safety=False would switch the collision-free terms off
 run = loop.run()
 print(run.summary_line())
 paths = write_run(run, loop, out, problem=problem, html=False)  # html=True also writes run.html (3-D replay)

@@ -18,6 +18,7 @@ from scipy.optimize import linear_sum_assignment
 
 from crtraj.control.horizon import Replanner
 from crtraj.control.loop import ClosedLoop
+from crtraj.core.clock import VirtualClock
 from crtraj.core.tomledit import set_values
 from crtraj.io.problem import load_robot
 from crtraj.model.kinematics import Model
@@ -154,33 +155,39 @@ XG = np.array([-0.6, 0.5, -0.3, 0.2, -40.0])
 BALL = Obstacle(center=(-3.5, 76.8, 394.4), radius=30.0, amplitude=8.0, omega=0.5, phase=-0.43, name="ball")
 
 
-class VirtualClock:
-    """A clock (s) that only moves when told to."""
+class LoopClock:
+    """A `crtraj.core.clock.Clock` on a live-feed test's `feed_clock.VirtualClock` (whose time is an
+    attribute, and whose sleep runs the callbacks it passes): the loop paces and times on the feed's clock."""
 
-    def __init__(self) -> None:
-        self.now = 0.0
+    def __init__(self, clock) -> None:
+        self.clock = clock
 
-    def __call__(self) -> float:
-        return self.now
+    def now(self) -> float:
+        return self.clock.now
+
+    def sleep(self, seconds: float) -> None:
+        self.clock.sleep(seconds)
 
 
 class SlowReplanner(Replanner):
-    """A replanner whose k-th solve takes cost(k) s on the virtual clock; keeps every result (`results`)."""
+    """A replanner whose k-th step's solve takes cost(k) s on the virtual clock; keeps every step's result
+    (`results`). The loop's first solve is its untimed warm-up before step 0: neither charged nor kept."""
 
     def __init__(self, *args, clock: VirtualClock, cost, **kw) -> None:
         super().__init__(*args, **kw)
-        self.clock, self.cost, self.k = clock, cost, 0
+        self.clock, self.cost, self.k = clock, cost, -1
         self.results: list = []
 
     def solve(self, *args, **kw):
         res = super().solve(*args, **kw)
-        self.clock.now += self.cost(self.k)
+        if self.k >= 0:
+            self.clock.advance(self.cost(self.k))
+            self.results.append(res)
         self.k += 1
-        self.results.append(res)
         return res
 
 
 def straight_loop(model: Model, scene: Scene, **kw) -> ClosedLoop:
     """The closed loop from XS toward XG's tip among `scene` (goal configuration XG unless kw gives a
-    reference); kw: `ClosedLoop`'s keyword options."""
-    return ClosedLoop(model, scene, model.tip_position(XG), XS, **{"goal_config": XG, **kw})
+    reference); kw: `ClosedLoop.build`'s keyword options (the fields of `LoopSpec`)."""
+    return ClosedLoop.build(model, scene, model.tip_position(XG), XS, **{"goal_config": XG, **kw})

@@ -20,8 +20,8 @@ import pytest
 
 from crtraj.app.calibrate import calibrate, toml_changes
 from crtraj.app.record import excitation_motion
-from crtraj.app.replan import loop_from_problem
 from crtraj.cli import main
+from crtraj.control.loop import ClosedLoop
 from crtraj.core.errors import AdmissionError, InputError
 from crtraj.core.tomledit import set_values
 from crtraj.hardware.actuators import Actuators
@@ -423,7 +423,7 @@ def test_tip_feedback_corrects_the_model_error_in_closed_loop(tmp_path):
     problem = Problem.load(ROOT / "problems" / "paper_dynamic.toml")
     act = Actuators.from_robot(problem.robot)
     sensor = SimulatedMocap(load_robot(true_file), act, noise=0.1, seed=0)
-    loop = loop_from_problem(problem, tip_sensor=sensor, tip_feedback=True)
+    loop = ClosedLoop.from_problem(problem, tip_sensor=sensor, tip_feedback=True)
     run = loop.run()
     assert run.reached, run.message
     true_final = sensor.true_tip(run.q[-1])

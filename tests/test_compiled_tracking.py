@@ -1,5 +1,5 @@
 """The C tracking simulation of one control step (crtraj.control.compiled_tracking) against the numpy one
-(ClosedLoop._track with TrackingController.step and ServoModel), limits binding and not."""
+(`crtraj.control.step_motion.StepMotion.track` with TrackingController.step and ServoModel), limits binding and not."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from conftest import PROBLEMS, require_tool
 
-from crtraj.app.replan import loop_from_problem
 from crtraj.control.compiled_tracking import CompiledTracking
+from crtraj.control.loop import ClosedLoop
 from crtraj.core.build_cache import BuildCache
 from crtraj.io.problem import Problem
 
@@ -19,10 +19,10 @@ TOL = 1e-9
 def loop_and_c(tmp_path_factory):
     require_tool("cc", "gcc", hint="Debian: apt-get install gcc")
     problem = Problem.load(PROBLEMS / "paper_dynamic.toml")
-    loop = loop_from_problem(problem, seed=0)
+    loop = ClosedLoop.from_problem(problem, seed=0)
     h = loop.options.dt / loop.n_sub
     cache = BuildCache(tmp_path_factory.mktemp("tracking"))
-    c = CompiledTracking.load(loop.tracker, h, loop.validator.space.metric_matrix, cache)
+    c = CompiledTracking.load(loop.tracker, h, loop.parts.checks.validator.space.metric_matrix, cache)
     assert c is not None
     return loop, c
 
@@ -70,9 +70,9 @@ def test_c_tracking_step_is_the_numpy_step(loop_and_c):
 
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(loop.tracker, "step", spy)
-        mp.setattr(loop, "_tracking", None)  # `_track` simulates in numpy
+        mp.setattr(loop.parts.motion, "compiled", None)  # `track` simulates in numpy
         for q, qc, x0, x1, t, inc in _cases(loop, rng):
-            want = loop._track(q, qc, x0, x1, t, inc)
+            want = loop.parts.motion.track(q, qc, x0, x1, t, inc)
             got = c.step(q, qc, x0, x1, t, inc, loop.n_sub, loop.options.dt, loop.loop_options.check_resolution)
             assert got is not None
             assert len(got[2]) == len(want[2])  # the same samples per period
@@ -86,7 +86,7 @@ def test_closed_loop_uses_it_and_stays_safe(loop_and_c):
     """The loop built on a machine with a C compiler simulates its steps in C; the run reaches the goal with
     every dense sample clear, and its motion matches the numpy simulation of the same commands."""
     loop, _ = loop_and_c
-    assert loop._tracking is not None
+    assert loop.parts.motion.compiled is not None
     run = loop.run()
     s = run.summary()
     assert s["reached_goal"] and s["collisions"] == 0 and s["min_clearance_mm"] > 0.0

@@ -20,12 +20,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import PAPER, free_udp_port, paper_copy
+from conftest import PAPER, LoopClock, free_udp_port, paper_copy
 from feed_clock import VirtualClock
 
-from crtraj.app.replan import loop_from_problem
 from crtraj.control.horizon import ReplanOptions
-from crtraj.control.loop import RunStatus
+from crtraj.control.loop import ClosedLoop, RunStatus
 from crtraj.control.loop_options import LoopOptions
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.protocol import MOVE
@@ -175,9 +174,9 @@ def test_live_replan_on_the_replayed_feed_reaches_the_goal_clear_of_the_true_sph
         # plans in wall time, which this loop's virtual steps would outrun)
         opts = replace(problem.options(ReplanOptions, "replan"), step_deadline=0.0)
         lopts = replace(problem.options(LoopOptions, "loop"), reference_delay=0.0)
-        loop = loop_from_problem(problem, feed=feed, options=opts, loop_options=lopts)
+        loop = ClosedLoop.from_problem(problem, feed=feed, options=opts, loop_options=lopts, clock=LoopClock(clock))
         offset = clock() - t_replay  # scene time at loop time 0
-        run = loop.run(clock=clock, sleep=clock.sleep)
+        run = loop.run()
     assert run.live and run.status is RunStatus.REACHED, run.message
     assert run.summary()["collisions"] == 0
     model = Model(problem.robot)

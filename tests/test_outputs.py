@@ -13,7 +13,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from crtraj.app.replan import loop_from_problem
 from crtraj.app.run_output import write_run
 from crtraj.cli import main
 from crtraj.control.loop import ClosedLoop
@@ -163,7 +162,7 @@ def test_bad_out_is_one_line_before_any_work(tmp_path, capsys, monkeypatch, comm
         raise AssertionError("the run started before --out was checked")
 
     monkeypatch.setattr("crtraj.app.plan.plan_problem", never)
-    monkeypatch.setattr("crtraj.app.replan.loop_from_problem", never)
+    monkeypatch.setattr(ClosedLoop, "from_problem", never)
     afile = tmp_path / "afile"
     afile.write_text("keep me")
     foreign = tmp_path / "mine"
@@ -320,7 +319,7 @@ def test_write_run_replaces_the_folder_as_a_whole(tmp_path, good_run):
     (out / "stream.jsonl").write_text("{}\n")  # a file the next run does not write
     problem = Problem.load(_variant(tmp_path, STATIC, "short", **{"[planner]": "[loop]\nduration = 0.3\n\n[planner]"}))
 
-    loop = loop_from_problem(problem)
+    loop = ClosedLoop.from_problem(problem)
     run = loop.run()
     paths = write_run(run, loop, out, problem=problem, html=False)
     assert sorted(p.name for p in out.iterdir()) == ["run.json", "run.npz", "run.png"]  # no old file left

@@ -185,7 +185,7 @@ class ChargedSource:
         self.clock, self.cost = clock, cost
 
     def __call__(self, x, t, scene) -> ReferencePlan:
-        self.clock.now += self.cost
+        self.clock.advance(self.cost)
         return ReferencePlan(np.stack([x, XG]), PlanStatus.EXACT, "straight", self.cost)
 
 
@@ -199,7 +199,7 @@ def _run(model, delay: float, period: float = 1.0):
         options=opts,
         loop_options=LoopOptions(duration=3.0, reference_delay=delay, replan_period=period),
         reference=ChargedSource(clock, 0.05),
-        timer=clock,
+        clock=clock,
     )
     return loop.run(), scene
 
@@ -255,7 +255,7 @@ def test_a_reference_planned_before_the_loop_is_charged_only_when_planning_inlin
     run = straight_loop(
         model, scene, options=ReplanOptions(horizon=6, points=12, solver="sqp"),
         loop_options=LoopOptions(duration=0.5, reference_delay=delay), reference=ChargedSource(clock, 0.05),
-        initial_reference=first, timer=clock,
+        initial_reference=first, clock=clock,
     ).run()  # fmt: skip
     assert run.reason[0] == "no reference: exact" and run.replanned[0] and run.plan_time[0] == 0.07
     assert [k for k, _ in run.reference_tips] == [0]
@@ -265,24 +265,24 @@ def test_a_reference_planned_before_the_loop_is_charged_only_when_planning_inlin
 
 
 @pytest.mark.parametrize("delay", [0.0, 0.2])
-def test_with_a_worker_the_check_for_a_new_reference_is_in_no_step(model, delay):
+def test_with_a_worker_the_check_for_a_new_reference_is_in_no_step(model, delay, monkeypatch):
     clock = VirtualClock()
     scene = Scene(obstacles=(BALL,), safety_distance=5.0)
     loop = straight_loop(
         model, scene, options=ReplanOptions(horizon=6, points=12, solver="sqp"),
         loop_options=LoopOptions(duration=0.5, reference_delay=delay), reference=ChargedSource(clock, 0.0),
-        timer=clock,
+        clock=clock,
     )  # fmt: skip
-    reason = loop._replan_reason
+    reason = loop.references.replan_reason
     checks = []
 
-    def costly_reason(st):
+    def costly_reason(t):
         # the check (the reference's clearance ahead) takes 1 ms of the virtual clock
-        clock.now += 0.001
-        checks.append(st.t)
-        return reason(st)
+        clock.advance(0.001)
+        checks.append(t)
+        return reason(t)
 
-    loop._replan_reason = costly_reason
+    monkeypatch.setattr(loop.references, "replan_reason", costly_reason)
     run = loop.run()
     assert len(checks) >= run.steps - 1  # the check ran at (nearly) every step either way
     # inline, the plan (hence the check) belongs to the step; with a worker it comes after the move is sent

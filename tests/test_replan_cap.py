@@ -169,7 +169,7 @@ def test_a_late_feasible_solve_still_warm_starts_the_next_one(model):
     cost = lambda k: 0.010 if k % 3 == 2 else 0.0  # noqa: E731
     rp = SlowReplanner(model, opts, max_obstacles=1, safety_distance=5.0, clock=clock, cost=cost)
     lopts = LoopOptions(duration=2.0)
-    run = straight_loop(model, scene, options=opts, loop_options=lopts, replanner=rp, timer=clock).run()
+    run = straight_loop(model, scene, options=opts, loop_options=lopts, replanner=rp, clock=clock).run()
     late = [k for k, s in enumerate(run.solver_status) if "deadline missed" in s]
     assert late and len(late) == run.deadline_misses
     assert all(rp.results[k].feasible for k in late)

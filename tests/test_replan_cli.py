@@ -105,7 +105,7 @@ def test_live_feed_from_the_command_line(tmp_path, capsys, monkeypatch):
     import time
 
     import crtraj.app.replan
-    from crtraj.control.loop import ClosedLoop
+    from crtraj.control.pacer import Pacer
     from crtraj.world.feed import ObstacleFeed
 
     scene = Scene.from_table(Problem.load(PAPER).section("scene"))
@@ -123,14 +123,14 @@ def test_live_feed_from_the_command_line(tmp_path, capsys, monkeypatch):
             feeds.append(self)
             assert self.wait_for(1, timeout=60.0), "the bridge never reached the feed"
 
-    steps = ClosedLoop._steps
+    begin = Pacer.begin
 
-    def steps_after_start_check(self, *args, **kwargs):
+    def begin_after_start_check(self) -> None:
         started.set()  # the start configuration has been checked against the t = 0 state
-        return steps(self, *args, **kwargs)
+        begin(self)
 
     monkeypatch.setattr(crtraj.app.replan, "ObstacleFeed", FirstStateFeed)  # the feed `crtraj replan` opens
-    monkeypatch.setattr(ClosedLoop, "_steps", steps_after_start_check)
+    monkeypatch.setattr(Pacer, "begin", begin_after_start_check)  # loop time 0: after the start check
 
     def send() -> None:
         t0 = time.monotonic()

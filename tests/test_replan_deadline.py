@@ -25,7 +25,7 @@ def _run(model, scene, cost, duration=6.0):
     clock = VirtualClock()
     opts = ReplanOptions(horizon=6, points=12, solver="sqp", step_deadline=DEADLINE)
     rp = SlowReplanner(model, opts, max_obstacles=1, safety_distance=scene.safety_distance, clock=clock, cost=cost)
-    loop = ClosedLoop(
+    loop = ClosedLoop.build(
         model,
         scene,
         model.tip_position(XG),
@@ -34,7 +34,7 @@ def _run(model, scene, cost, duration=6.0):
         loop_options=LoopOptions(duration=duration),
         goal_config=XG,
         replanner=rp,
-        timer=clock,
+        clock=clock,
     )
     return loop.run()
 
@@ -94,7 +94,7 @@ def test_no_deadline_means_no_misses(model, scene):
     clock = VirtualClock()
     opts = ReplanOptions(horizon=6, points=12, solver="sqp")
     rp = SlowReplanner(model, opts, max_obstacles=1, safety_distance=5.0, clock=clock, cost=lambda k: 1.0)
-    run = ClosedLoop(
+    run = ClosedLoop.build(
         model,
         scene,
         model.tip_position(XG),
@@ -103,7 +103,7 @@ def test_no_deadline_means_no_misses(model, scene):
         loop_options=LoopOptions(duration=1.0),
         goal_config=XG,
         replanner=rp,
-        timer=clock,
+        clock=clock,
     ).run()
     assert run.deadline_misses == 0 and "no step deadline" in run.summary_line()
     assert not any("deadline missed" in s for s in run.solver_status)

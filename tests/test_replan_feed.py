@@ -11,8 +11,10 @@ from __future__ import annotations
 import json
 
 import numpy as np
+from conftest import LoopClock
 from feed_clock import VirtualClock
 
+from crtraj.app.run_output import run_context
 from crtraj.control.horizon import ReplanOptions
 from crtraj.control.loop import ClosedLoop, RunStatus
 from crtraj.control.loop_options import LoopOptions
@@ -65,7 +67,7 @@ def test_live_feed_run_moves_safely_and_holds_when_the_feed_goes_stale(model):
         clock.every(0.01, bridge)
         clock.sleep(0.0)  # the first state arrives before the loop is built; building takes no virtual time
         source = FeedObstacles(feed, scene, window=1.5)
-        loop = ClosedLoop(
+        loop = ClosedLoop.build(
             model,
             scene,
             model.tip_position(XG),
@@ -74,9 +76,10 @@ def test_live_feed_run_moves_safely_and_holds_when_the_feed_goes_stale(model):
             loop_options=lopts,
             goal_config=XG,
             obstacles=source,
+            clock=LoopClock(clock),
         )
         t_start = clock()
-        run = loop.run(clock=clock, sleep=clock.sleep)
+        run = loop.run()
         took = clock() - t_start
     assert run.live
     # paced in real time on the shared clock: every step waited for its time (2.5 s of loop time)
@@ -108,7 +111,7 @@ def test_live_feed_run_moves_safely_and_holds_when_the_feed_goes_stale(model):
     assert set(kinds) == {"oversize", "timestamp", "unknown_id"}
     assert "'intruder'" in kinds["unknown_id"]["message"] and "60000 bytes" in kinds["oversize"]["message"]
     assert all(0.2 <= e["t"] <= 0.4 for e in feed_rec["events"])  # sent at 0.3 s, logged at the next step
-    res = run_document(run, loop)
+    res = run_document(run, run_context(loop))
     assert res["feed"]["counts"] == feed_rec["counts"] and res["summary"]["feed_events"] == feed_rec["counts"]
 
 
@@ -119,7 +122,7 @@ def test_live_run_without_any_state_ends_with_no_obstacles_on_virtual_time(model
     clock = VirtualClock(0.0)
     with ObstacleFeed(0, max_age=0.1, expected=["ball"], clock=clock) as feed:
         source = FeedObstacles(feed, scene, window=1.5)
-        loop = ClosedLoop(
+        loop = ClosedLoop.build(
             model,
             scene,
             model.tip_position(XG),
@@ -128,10 +131,11 @@ def test_live_run_without_any_state_ends_with_no_obstacles_on_virtual_time(model
             loop_options=lopts,
             goal_config=XG,
             obstacles=source,
+            clock=LoopClock(clock),
         )
         ObstacleFeed.send(feed.address, [{"id": "intruder", "center": [0, 0, 0], "radius": 1.0, "timestamp": 0.0}])
         assert feed.wait_for(1)
-        run = loop.run(clock=clock, sleep=clock.sleep)
+        run = loop.run()
     # waited 2 s of the injected clock for a first state, then said why
     assert run.status is RunStatus.NO_OBSTACLES and clock() >= 2.0
     assert "no obstacle state received yet" in run.message

@@ -132,7 +132,7 @@ def test_paper_run_reaches_the_goal_safely_and_reports_its_limit_fractions(paper
     )
     C = np.array([o.center for o in scene.obstacles])
     d = np.linalg.norm(P[:, :, None, :] - C[None, None], axis=-1).min(axis=1) - R - model.robot.body_radius
-    # at least one sample per 20 ms control period of every 0.1 s step (`ClosedLoop._track`: more where the body
+    # at least one sample per 20 ms control period of every 0.1 s step (`StepMotion.track`: more where the body
     # moves further than half the check resolution in a period)
     assert len(T) >= 5 * (len(res["waypoints"]) - 1) and d.min() > 0.0
     fv, fa, _ = _streamed(res)

@@ -11,9 +11,8 @@ import numpy as np
 from conftest import free_udp_port
 from feed_clock import VirtualClock
 
-from crtraj.app.replan import loop_from_problem
 from crtraj.cli import main
-from crtraj.control.loop import RunStatus
+from crtraj.control.loop import ClosedLoop, RunStatus
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.link import DeviceLink
 from crtraj.hardware.protocol import HOLD, MOVE
@@ -178,7 +177,7 @@ def test_stale_feed_holds_the_device_with_hold_frames_only(tmp_path, robot, mode
 
         send(0.0)
         sopts = problem.options(StreamOptions, "stream")
-        loop = loop_from_problem(problem, feed=feed, lead=sopts.prebuffer)
+        loop = ClosedLoop.from_problem(problem, feed=feed, lead=sopts.prebuffer)
         streamer = Streamer.open(dev.url, acts, sopts, tmp_path / "stream.jsonl")
         streamer.start()
         link = DeviceLink(streamer, loop.servo, loop.options.dt, lead=sopts.prebuffer)
@@ -261,7 +260,7 @@ def test_ctrl_c_holds_the_device_and_ends_the_run(tmp_path, robot, model):
 
         send(0.0, 1)
         opts = StreamOptions(watchdog=0.5, prebuffer=0.2, connect_timeout=2.0)
-        loop = loop_from_problem(problem, feed=feed, lead=0.2)
+        loop = ClosedLoop.from_problem(problem, feed=feed, lead=0.2)
         streamer = Streamer.open(dev.url, acts, opts, tmp_path / "s.jsonl")
         streamer.start()
         link = DeviceLink(streamer, loop.servo, loop.options.dt)

@@ -83,7 +83,7 @@ def _loop(model, scene, goal_config=XG, **kw) -> ClosedLoop:
     """A loop with FAST horizon options; keyword options go to `LoopOptions` or `ReplanOptions` by name."""
     loop_keys = {f: v for f, v in kw.items() if f in LoopOptions.__dataclass_fields__}
     opts = ReplanOptions(**{**FAST, **{f: v for f, v in kw.items() if f not in loop_keys}})
-    return ClosedLoop(
+    return ClosedLoop.build(
         model,
         scene,
         model.tip_position(goal_config),
@@ -172,12 +172,13 @@ def test_blocked_goal_makes_the_robot_wait_then_finish(model):
 
 
 class _FailingReplanner(Replanner):
-    """A Replanner whose solves number `fail` (0-based) return a failure, as a crashed solver would."""
+    """A Replanner whose solves of steps `fail` (0-based) return a failure, as a crashed solver would. The
+    loop's first solve is its untimed warm-up before step 0 (counted as -1)."""
 
     def __init__(self, *args, fail: range, **kw) -> None:
         super().__init__(*args, **kw)
         self.fail = fail
-        self.calls = 0
+        self.calls = -1
 
     def solve(self, x0, reference, obstacles, **kw) -> HorizonResult:
         i = self.calls
@@ -195,7 +196,7 @@ def test_nlp_failure_falls_back_then_holds_safely_and_reports_it(model, ball_sce
     opts = ReplanOptions(**FAST)
     fail = range(15, 40)
     rp = _FailingReplanner(model, opts, max_obstacles=1, safety_distance=5.0, fail=fail)
-    loop = ClosedLoop(
+    loop = ClosedLoop.build(
         model,
         ball_scene,
         model.tip_position(XG),
@@ -229,7 +230,7 @@ def test_unavoidable_obstacle_is_reported_not_hidden(model):
     # a sphere 30 mm beside the straight body grows from 10 to 150 mm in 1.6 s: nothing can move away that fast
     grow = Obstacle(center=(30.0, 0.0, 150.0), radius=80.0, amplitude=70.0, omega=2.0, phase=-math.pi / 2)
     scene = Scene(obstacles=(grow,), safety_distance=5.0)
-    loop = ClosedLoop(
+    loop = ClosedLoop.build(
         model,
         scene,
         model.tip_position(XG),
@@ -246,7 +247,9 @@ def test_unavoidable_obstacle_is_reported_not_hidden(model):
 
 def test_start_in_collision_is_refused_without_moving(model):
     scene = Scene(obstacles=(Obstacle(center=(0.0, 0.0, 200.0), radius=30.0),), safety_distance=5.0)
-    loop = ClosedLoop(model, scene, model.tip_position(XG), np.zeros(5), options=ReplanOptions(**FAST), goal_config=XG)
+    loop = ClosedLoop.build(
+        model, scene, model.tip_position(XG), np.zeros(5), options=ReplanOptions(**FAST), goal_config=XG
+    )
     run = loop.run()
     assert run.status is RunStatus.INVALID_START and not run.is_success()
     assert run.steps == 0 and not run.reached

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from crtraj.app.plan import plan_problem
+from crtraj.app.run_output import run_context
 from crtraj.control.horizon import ReplanOptions
 from crtraj.control.loop import ClosedLoop
 from crtraj.control.loop_options import LoopOptions
@@ -17,6 +18,7 @@ from crtraj.core.errors import InputError
 from crtraj.core.fileio import atomic_write_json
 from crtraj.io.problem import Problem
 from crtraj.io.results import SCHEMA_VERSION, read_result, run_document
+from crtraj.io.run_files import read_npz, save_npz
 from crtraj.world.obstacle import Obstacle
 from crtraj.world.scene import Scene
 
@@ -33,7 +35,7 @@ def run(model):
     xs, xg = np.array([0.3, 0.0, 0.0, 0.0, 0.0]), np.array([-0.3, 0.2, -0.1, 0.1, -10.0])
     scene = Scene(obstacles=(Obstacle(center=(-3.5, 76.8, 394.4), radius=20.0, amplitude=4.0, omega=0.5),))
     opts = ReplanOptions(horizon=6, points=12, solver="sqp")
-    loop = ClosedLoop(
+    loop = ClosedLoop.build(
         model, scene, model.tip_position(xg), xs, options=opts, loop_options=LoopOptions(duration=1.0), goal_config=xg
     )
     return loop, loop.run()
@@ -64,7 +66,7 @@ def test_plan_document_round_trips_through_a_file(plan, tmp_path):
 
 def test_run_document_round_trips_through_a_file(model, run, tmp_path):
     loop, r = run
-    doc = run_document(r, loop, seed=4)
+    doc = run_document(r, run_context(loop), seed=4)
     path = atomic_write_json(tmp_path / "run.json", doc)
     res = read_result(path)
     assert (res.kind, res.schema) == ("replan", SCHEMA_VERSION)
@@ -81,7 +83,7 @@ def test_run_document_round_trips_through_a_file(model, run, tmp_path):
 
 def test_plan_and_run_documents_share_one_header(plan, run):
     loop, r = run
-    plan_doc, run_doc = plan.document(), run_document(r, loop)
+    plan_doc, run_doc = plan.document(), run_document(r, run_context(loop))
     keys = ("kind", "schema", "crtraj_version", "casadi_version", "numpy_version", "created", "problem", "robot")
     keys += ("scene", "task", "options")
     assert list(plan_doc)[: len(keys)] == list(keys) and list(run_doc)[: len(keys)] == list(keys)
@@ -141,3 +143,32 @@ def test_a_plan_below_the_safety_distance_counts_as_a_violation(plan):
     doc = json.loads(json.dumps(plan.document()))
     doc["summary"]["min_clearance_mm"] = -0.5
     assert read_result(doc).safety_violations == 1
+
+
+def test_run_npz_round_trips_every_array_of_the_run(run, tmp_path):
+    """save_npz writes, and read_npz reads back, the run's own arrays under the schema's keys."""
+    _, r = run
+    arrays = read_npz(save_npz(r, tmp_path / "run.npz"))
+    np.testing.assert_array_equal(arrays["t"], r.t)
+    np.testing.assert_array_equal(arrays["dense_x"], r.dense_x)
+    np.testing.assert_array_equal(arrays["iter_time"], r.iter_time)
+    np.testing.assert_array_equal(arrays["executed"], r.executed)
+    assert tuple(arrays["status"]) == r.step_status and tuple(arrays["reason"]) == r.reason
+    for i, (k, tips) in enumerate(r.reference_tips):
+        assert int(arrays[f"reference_{i}_step"]) == k
+        np.testing.assert_array_equal(arrays[f"reference_{i}_tip"], tips)
+
+
+def test_run_npz_missing_or_inconsistent_array_is_one_line_naming_the_key(run, tmp_path):
+    """A run.npz without an array, or with per-step arrays of the wrong length, is refused naming the key."""
+    _, r = run
+    with np.load(save_npz(r, tmp_path / "run.npz"), allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    short = {**arrays, "nlp_time": arrays["nlp_time"][:-1]}
+    np.savez(tmp_path / "short.npz", **short)
+    with pytest.raises(InputError, match=r"short\.npz: nlp_time: \d+ steps, but t has \d+ times$"):
+        read_npz(tmp_path / "short.npz")
+    del arrays["clearance"]
+    np.savez(tmp_path / "gone.npz", **arrays)
+    with pytest.raises(InputError, match=r"gone\.npz: clearance: missing \(required\)$"):
+        read_npz(tmp_path / "gone.npz")

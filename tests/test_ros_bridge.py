@@ -18,9 +18,9 @@ import pytest
 from conftest import PAPER, paper_copy, require_module
 from feed_clock import VirtualClock
 
-from crtraj.app.replan import loop_from_problem
 from crtraj.app.ros_bridge import RosBridgeRequest, run_ros_bridge
 from crtraj.control.horizon import ReplanOptions
+from crtraj.control.loop import ClosedLoop
 from crtraj.control.ports import DeviceError
 from crtraj.control.tracking import TrackingController, TrackingOptions
 from crtraj.core.errors import InputError
@@ -202,7 +202,7 @@ def paper():
     """(problem, actuators, scene, model, the robot's start values, servo model) of the paper's simulation 2."""
     require_module("rclpy", "pip install -e '.[ros]'")
     problem = Problem.load(PAPER)
-    loop = loop_from_problem(problem)
+    loop = ClosedLoop.from_problem(problem)
     acts = Actuators.from_robot(problem.robot)
     start = acts.command(loop.tracker.initial_command(loop.x_start))
     return problem, acts, loop.scene, loop.model, start, loop.servo

@@ -1,7 +1,7 @@
 """Use case: run a problem's closed loop and write the run (`crtraj replan`).
 
-`loop_from_problem` wires a `crtraj.control.loop.ClosedLoop` from a problem file (robot, scene, task
-and the ``[replan]``, ``[loop]``, ``[tracking]``, ``[planner]``, ``[steer]``, ``[feed]`` sections).
+The loop comes from `crtraj.control.loop.ClosedLoop.from_problem` (robot, scene, task and the
+``[replan]``, ``[loop]``, ``[tracking]``, ``[planner]``, ``[steer]``, ``[feed]`` sections).
 `run_replan` is the whole command: admission checks, an optional live obstacle feed and live device,
 the run, its files (staged, so a failed run never replaces a successful one), the summary, and an
 optional stream of the verified run afterwards. Units: mm, rad, s.
@@ -14,7 +14,7 @@ import dataclasses
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -24,11 +24,8 @@ from crtraj.app.approach import plan_approach
 from crtraj.app.run_output import write_run_files
 from crtraj.control.horizon import ReplanOptions
 from crtraj.control.loop import ClosedLoop, ReplanRun, RunStatus
-from crtraj.control.loop_options import LoopOptions
-from crtraj.control.reference import PlannerReference, ReferencePlan
-from crtraj.control.tracking import TrackingOptions
+from crtraj.control.problem_loop import UnsolvableTaskError
 from crtraj.core.errors import InputError
-from crtraj.core.fields import check_array
 from crtraj.core.fileio import StagedDir, check_output_dir, failed_sibling, is_successful_result
 from crtraj.core.lazy import lazy_module
 from crtraj.hardware.actuators import Actuators
@@ -44,202 +41,11 @@ from crtraj.io.problem import Problem, load_robot
 from crtraj.io.results import read_result
 from crtraj.io.run_files import RUN_FILES
 from crtraj.model.kinematics import Model
-from crtraj.planning.options import PlannerOptions
-from crtraj.planning.rate_limits import RateLimits
-from crtraj.planning.registry import make_planner
-from crtraj.planning.result import PlanStatus
-from crtraj.planning.steer import SteerOptions
-from crtraj.planning.stop import StopCondition
-from crtraj.world.feed import FeedOptions, ObstacleFeed
+from crtraj.world.feed import ObstacleFeed
 from crtraj.world.scene import Scene
-from crtraj.world.sources import FeedObstacles
 
 # the 3-D view (meshcat, zmq: about 0.2 s to import) loads only for --view
 view_module = lazy_module("crtraj.app.view")
-
-
-class UnsolvableTaskError(Exception):
-    """A well-formed task the loop cannot start: `status` is `PlanStatus.INVALID_START` (no safe start
-    configuration) or `PlanStatus.INVALID_GOAL` (no configuration can ever put the tip on the goal safely).
-    Not an input error: the command exits 1 with the status, as `crtraj plan` does."""
-
-    def __init__(self, status: PlanStatus, message: str) -> None:
-        super().__init__(message)
-        self.status = status
-
-
-# ------------------------------------------------------------------ wiring
-def loop_from_problem(
-    problem: Any,
-    *,
-    safety: bool | None = None,
-    seed: int | None = None,
-    options: ReplanOptions | None = None,
-    loop_options: LoopOptions | None = None,
-    feed: Any = None,
-    lead: float = 0.0,
-    start_config: np.ndarray | None = None,
-    tip_sensor: Any = None,
-    tip_feedback: bool = False,
-) -> ClosedLoop:
-    """A `ClosedLoop` for a problem file: its robot, scene, task and ``[replan]``, ``[loop]``,
-    ``[tracking]``, ``[planner]``, ``[steer]`` sections, and the robot's actuator limits
-    (``[robot.actuators]``, when there is one). The start configuration is the task's
-    ``start_config`` or the planner's safe IK for the start tip; references come from the planner
-    ``[planner] algorithm`` names (`crtraj.planning.registry.make_planner`; default the
-    configuration-space planner), each limited to ``loop.planner_time`` seconds.
-
-    safety=False drops the collision-free terms (NLP constraints, verification, and obstacles in
-    the reference planner), as in the paper's Fig. 4(b). seed overrides the problem's seed.
-    feed: a `crtraj.world.feed.ObstacleFeed`: obstacle states come from it, live (`FeedObstacles`; the
-    scene's obstacle names are the feed ids; the ``[feed]`` section, `crtraj.world.feed.FeedOptions`,
-    configures it), and the run is paced in real time. lead: s the device
-    executes each step after it is computed (`DeviceLink.lead`), so the feed is predicted that far ahead.
-    start_config: the configuration the run starts from instead of the task's start (a live device's
-    measured configuration with ``--approach``: the loop's own verified motion is the approach).
-    """
-    task = problem.require_task()
-    seed = problem.seed if seed is None else int(seed)
-    if seed < 0:
-        raise InputError(f"--seed: must be >= 0, got {seed}")
-    opts = problem.options(ReplanOptions, "replan") if options is None else options
-    if safety is not None:
-        opts = replace(opts, safety=bool(safety))
-    lopts = problem.options(LoopOptions, "loop") if loop_options is None else loop_options
-    lopts.steps(opts.dt)  # refuse a huge run before any planning
-    tracking = problem.options(TrackingOptions, "tracking")
-    popts = problem.options(PlannerOptions, "planner")
-    sopts = problem.options(SteerOptions, "steer")
-    scene = Scene.from_table(problem.section("scene"))
-    feed_options = problem.options(FeedOptions, "feed")  # checked even without a feed
-    model = Model(problem.robot)
-    planner = make_planner(model, scene, popts, sopts)
-    source: FeedObstacles | None = None
-    scene0 = scene
-    extra: dict[str, Any] = {"planner": popts, "steer": sopts}
-    if feed is not None:
-        feed.configure(feed_options)  # the problem's velocity bound and timestamp window
-        extra["feed"] = feed_options
-        source = FeedObstacles(feed, scene, window=max(2.0 * opts.horizon * opts.dt, 2.0) + 2.0 * opts.dt, lead=lead)
-        scene0 = _start_scene(source)
-    if start_config is not None:
-        x0, first, res = check_array(start_config, "start_config", (problem.robot.nx,)), None, None
-    else:
-        x0, first, res = _start_config(planner, task, scene0, seed, opts.safety)
-    moving = feed is not None or any(o.amplitude != 0.0 or o.to is not None for o in scene.obstacles)
-    _check_goal(planner, task, x0, scene0, seed, res, among_obstacles=opts.safety and not moving)
-    reference = PlannerReference(
-        planner,
-        task.goal,
-        goal_tolerance=task.goal_tolerance,
-        stop=popts.stop() | StopCondition(time_limit=lopts.planner_time),
-        seed=seed,
-        scene=None if opts.safety else scene.with_obstacles(()),
-    )
-    return ClosedLoop(
-        model,
-        scene,
-        task.goal,
-        x0,
-        options=opts,
-        loop_options=lopts,
-        tracking=tracking,
-        reference=reference,
-        goal_tolerance=task.goal_tolerance,
-        initial_reference=None if feed is not None else first,
-        obstacles=source,
-        extra_options=extra,
-        rate_limits=_rate_limits(problem.robot),
-        tip_sensor=tip_sensor,
-        tip_feedback=tip_feedback,
-    )
-
-
-def _rate_limits(robot: Any) -> RateLimits | None:
-    """The robot's actuator speed and acceleration limits as limits on configuration motion (None
-    without a ``[robot.actuators]`` table): the loop keeps its NLP, set-points and reference within
-    ``replan.limit_fraction`` of them, so the run can be streamed as it is."""
-    if robot.actuators is None:
-        return None
-    return Actuators.from_robot(robot).rate_limits(robot)
-
-
-def _start_scene(source: FeedObstacles) -> Any:
-    """The obstacles to find a start configuration among, from a live feed's first snapshot: everything
-    the obstacles may cover over the next half second (the run starts a moment after the snapshot)."""
-    t_end = time.perf_counter() + 2.0
-    snap, why = source.at(0.0)
-    while snap is None and time.perf_counter() < t_end:
-        time.sleep(0.01)
-        snap, why = source.at(0.0)
-    if snap is None:
-        raise InputError(f"--feed: {why}")
-    a, b, rmax = snap.swept(0.0, 0.5)
-    return snap.with_obstacles(
-        replace(
-            o,
-            center=tuple(0.5 * (a[i] + b[i])),
-            radius=float(rmax[i] + 0.5 * np.linalg.norm(b[i] - a[i])),
-            amplitude=0.0,
-            omega=0.0,
-            phase=0.0,
-            to=None,
-        )
-        for i, o in enumerate(snap.obstacles)
-    )
-
-
-def _start_config(
-    planner: Any, task: Any, scene0: Any, seed: int, safety: bool
-) -> tuple[np.ndarray, ReferencePlan | None, Any]:
-    """(start configuration, a first reference plan from it or None, the planner's result or None).
-
-    The task's start_config, else the planner's safe IK for the start tip among `scene0`; its plan to
-    the goal is reused as the first reference when it succeeded (with the safety terms only)."""
-    if task.start_config is not None:
-        return np.asarray(task.start_config, dtype=float), None, None
-    tol = task.goal_tolerance
-    res = planner.plan(task.goal, start_tip=task.start, t0=0.0, seed=seed, goal_tolerance=tol, scene=scene0)
-    if res.status is PlanStatus.INVALID_START:
-        raise UnsolvableTaskError(PlanStatus.INVALID_START, f"task.start: {res.message}")
-    if not res.has_path:
-        only = planner.plan(task.start, start_tip=task.start, t0=0.0, seed=seed, goal_tolerance=1.0, scene=scene0)
-        if not only.has_path:
-            raise UnsolvableTaskError(PlanStatus.INVALID_START, f"task.start: {only.message}")
-        return only.configs[0], None, res
-    first = None
-    if res.is_success() and safety:
-        first = ReferencePlan(res.configs, res.status, res.message, res.timings.get("total", 0.0), res.tree_edges)
-    return res.configs[0], first, res
-
-
-def _check_goal(
-    planner: Any, task: Any, x0: np.ndarray, scene: Any, seed: int, res: Any, *, among_obstacles: bool
-) -> None:
-    """Fail fast, as `crtraj plan` does, when no configuration can ever put the tip on the goal safely
-    (`UnsolvableTaskError` "invalid_goal"), instead of running the loop until its duration ends.
-
-    among_obstacles (static obstacles, with the safety terms): the planner's goal IK among them
-    decides. Obstacles that move or breathe, or come from a live feed, may uncover the goal later,
-    so then only a goal the robot cannot reach even with no obstacles at all is refused. res: the
-    planner's result from x0 among `scene`, when there is one.
-    """
-    if res is not None and res.status not in (PlanStatus.INVALID_GOAL, PlanStatus.INVALID_START):
-        return  # the goal IK found a safe goal configuration: reachable
-    if not among_obstacles:
-        scene, res = scene.with_obstacles(()), None
-    if res is None:  # the goal IK runs before any search; one search iteration bounds the cost
-        res = planner.plan(
-            task.goal,
-            start_config=x0,
-            t0=0.0,
-            seed=seed,
-            goal_tolerance=task.goal_tolerance,
-            scene=scene,
-            stop=StopCondition(max_iterations=1),
-        )
-    if res.status is PlanStatus.INVALID_GOAL:
-        raise UnsolvableTaskError(PlanStatus.INVALID_GOAL, f"task.goal: {res.message}")
 
 
 # --------------------------------------------------------------- the command
@@ -374,7 +180,7 @@ def _run_and_write(req: ReplanRequest, problem: Problem, seed: int, feed: Any, o
             # with --approach the live run starts where the device is: its own verified motion is the approach
             x_dev = _device_config(problem, streamer) if streamer is not None and req.approach else None
             try:
-                loop = loop_from_problem(
+                loop = ClosedLoop.from_problem(
                     problem,
                     safety=req.safety,
                     seed=seed,

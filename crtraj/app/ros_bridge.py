@@ -21,9 +21,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from crtraj.app.replan import UnsolvableTaskError, loop_from_problem
+from crtraj.app.replan import UnsolvableTaskError
 from crtraj.app.run_output import write_run_files
-from crtraj.control.loop import RunStatus
+from crtraj.control.loop import ClosedLoop, RunStatus
+from crtraj.control.pacer import CallableClock
 from crtraj.core.errors import InputError
 from crtraj.core.fileio import (
     StagedDir,
@@ -141,7 +142,8 @@ def _run(req: RosBridgeRequest, problem: Problem, out: Path, parts: tuple[Any, .
         # the run starts where the robot is (its newest joint state), not at the task's start
         here = node.joint_state()
         x_robot = None if here is None else problem.robot.config(acts.actuation(here[0]))
-        loop = loop_from_problem(problem, seed=seed, feed=feed, lead=ros.lead, start_config=x_robot)
+        kw_clock = {} if pacing.clock is None else {"clock": CallableClock(pacing.clock, pacing.sleep or time.sleep)}
+        loop = ClosedLoop.from_problem(problem, seed=seed, feed=feed, lead=ros.lead, start_config=x_robot, **kw_clock)
     except UnsolvableTaskError as exc:
         print(f"{exc.status}: {exc}; no run, nothing written to {out}")
         print(f"crtraj: ros-bridge failed: {exc.status}: {exc}", file=sys.stderr)
@@ -152,7 +154,7 @@ def _run(req: RosBridgeRequest, problem: Problem, out: Path, parts: tuple[Any, .
     device = RosDevice(node, acts, loop.model, loop.servo, dt, verifier, lambda: loop.scene_now, lead=ros.lead, **kw)
     _plan_first(loop, node, acts)
     stage = stack.enter_context(StagedDir(out, RUN_FILES))
-    run = loop.run(device=device, clock=pacing.clock, sleep=pacing.sleep)
+    run = loop.run(device=device)
     ok = run.is_success() and not device.problem()
     staged = write_run_files(run, loop, stage.path, problem=problem, seed=seed, html=req.html)
     dest = out

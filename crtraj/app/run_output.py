@@ -9,9 +9,16 @@ from typing import Any
 from crtraj.control.loop import ClosedLoop, ReplanRun
 from crtraj.core.fileio import StagedDir, atomic_write_json, atomic_write_text
 from crtraj.io.plots import plot_run
-from crtraj.io.results import run_document
+from crtraj.io.results import RunContext, run_document
 from crtraj.io.run_files import RUN_FILES, save_npz
 from crtraj.viz.view import Visualizer
+
+
+def run_context(loop: ClosedLoop) -> RunContext:
+    """The plain data a run document records about the loop that made the run: model, scene, goal tolerance
+    (mm) and every option section (``replan``, ``tracking``, then ``loop`` and the loop's extra sections)."""
+    options = {"replan": loop.options, "tracking": loop.tracking_options, **loop.extra_options}
+    return RunContext(loop.model, loop.scene, loop.goal_tolerance, options)
 
 
 def write_run_files(
@@ -27,10 +34,11 @@ def write_run_files(
     time (`write_run` stages them and swaps the folder in whole). Returns the paths (keys json, npz, png,
     html) and, under "result", the result document as plain JSON data."""
     out = Path(folder)
-    result = run_document(run, loop, problem, seed)
+    context = run_context(loop)
+    result = run_document(run, context, problem, seed)
     paths: dict[str, Any] = {"json": atomic_write_json(out / "run.json", result)}
     paths["npz"] = save_npz(run, out / "run.npz")
-    paths["png"] = plot_run(run, loop, out / "run.png")
+    paths["png"] = plot_run(run, context, out / "run.png")
     if html:
         vis = Visualizer.for_result(result, play=True)
         try:

@@ -470,7 +470,7 @@ class SuiteRunner:
                 stop=self.planner_options.stop() | StopCondition(time_limit=o.planner_time),
                 seed=seed,
             )
-            loop = ClosedLoop(
+            loop = ClosedLoop.build(
                 self.model,
                 q.scene,
                 q.goal,

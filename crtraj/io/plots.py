@@ -15,8 +15,9 @@ from typing import Any
 import numpy as np
 from matplotlib.figure import Figure
 
-from crtraj.control.loop import REPORT_POINTS, ClosedLoop, ReplanRun
+from crtraj.control.run_record import REPORT_POINTS, ReplanRun
 from crtraj.core.fileio import atomic_write_bytes
+from crtraj.io.results import RunContext
 from crtraj.model.kinematics import Model
 
 
@@ -39,13 +40,14 @@ def per_obstacle_distance(
     return T, d - R - model.robot.body_radius
 
 
-def plot_run(run: ReplanRun, loop: ClosedLoop, path: str | os.PathLike[str], title: str = "") -> Path:
-    """PNG: body-obstacle distance over time (the paper's Fig. 4, panels a-5 and b-5) and tip errors."""
-    scene = loop.scene
+def plot_run(run: ReplanRun, context: RunContext, path: str | os.PathLike[str], title: str = "") -> Path:
+    """PNG: body-obstacle distance over time (the paper's Fig. 4, panels a-5 and b-5) and tip errors; context:
+    the run's model, scene and goal tolerance."""
+    scene = context.scene
     fig = Figure(figsize=(8.0, 6.4), dpi=110)
     ax1, ax2 = fig.subplots(2, 1, sharex=True)
     if scene.n_obstacles:
-        T, d = per_obstacle_distance(run, loop.model, scene)
+        T, d = per_obstacle_distance(run, context.model, scene)
         for i, o in enumerate(scene.obstacles):
             ax1.plot(T, d[:, i], lw=1.4, label=o.name or f"obstacle {i}")
     ax1.axhline(scene.safety_distance, color="tab:orange", ls="--", lw=1, label=f"D_sf = {scene.safety_distance:g} mm")
@@ -66,7 +68,11 @@ def plot_run(run: ReplanRun, loop: ClosedLoop, path: str | os.PathLike[str], tit
     ax2.semilogy(run.t, np.maximum(run.tip_error, 1e-4), label="tip tracking error (actual vs planned)")
     ax2.semilogy(run.t, np.maximum(run.goal_error, 1e-4), label="distance tip-goal")
     ax2.axhline(
-        loop.goal_tolerance, color="tab:green", ls="--", lw=1, label=f"goal tolerance {loop.goal_tolerance:g} mm"
+        context.goal_tolerance,
+        color="tab:green",
+        ls="--",
+        lw=1,
+        label=f"goal tolerance {context.goal_tolerance:g} mm",
     )
     ax2.set_xlabel("time (s)")
     ax2.set_ylabel("mm")

@@ -22,6 +22,7 @@ from crtraj.core.fileio import read_toml
 from crtraj.hardware.actuators import Actuators
 from crtraj.io.calibration_data import CalibrationRecord
 from crtraj.model.robot import Robot
+from crtraj.planning.rate_limits import RateLimits
 
 SECTIONS = (
     "name",
@@ -163,3 +164,11 @@ class Problem:
         if self.task is None:
             raise InputError("task: missing; add [task] with start and goal (mm)")
         return self.task
+
+    def rate_limits(self) -> RateLimits | None:
+        """The robot's actuator speed and acceleration limits as limits on configuration motion (None
+        without a ``[robot.actuators]`` table): the closed loop keeps its NLP, set-points and reference
+        within ``replan.limit_fraction`` of them, so a run can be streamed as it is."""
+        if self.robot.actuators is None:
+            return None
+        return Actuators.from_robot(self.robot).rate_limits(self.robot)

@@ -4,8 +4,9 @@
 document (`run_document`); both start with the same header (`header`). Every
 reader (the view, the streamer's use case, the command line) goes through
 `read_result`, which validates the document and returns a typed `Result`:
-one-line `InputError` naming the bad field otherwise. The schema is described
-in docs/architecture.md, section "Result schema". Units: mm, rad, s.
+one-line `InputError` naming the bad field otherwise. Every field is declared
+once in `crtraj.io.run_schema` (key, unit, shape, meaning, its writer's getter and
+its reader's check); the docs table comes from there too. Units: mm, rad, s.
 
 Versions: ``schema`` is `SCHEMA_VERSION`. A document without ``schema`` was
 written before the field existed and is read as version 1 (the same fields).
@@ -24,27 +25,23 @@ import casadi as ca
 import numpy as np
 
 from crtraj import __version__
-from crtraj.control.loop import ClosedLoop, ReplanRun
+from crtraj.control.run_record import ReplanRun
 from crtraj.core.errors import InputError
-from crtraj.core.fields import MAX_LENGTH, MAX_TIME, Table, check_array, check_float
+from crtraj.core.fields import Table
 from crtraj.core.fileio import read_json, to_jsonable
 from crtraj.hardware.admission import MotionRecord
+from crtraj.io import run_schema as rs
 from crtraj.model.identity import robot_difference
 from crtraj.model.kinematics import Model
 from crtraj.model.robot import Robot
 from crtraj.planning.result import PlanResult
-from crtraj.world.scene import MAX_OBSTACLES, Scene
+from crtraj.world.scene import Scene
 
 SCHEMA_VERSION = 1
 KINDS = ("plan", "replan")
-# Largest document read: each waypoint is an animation frame of a view and a row of set-points
-# (a 60 s replan run has a few thousand), each tree edge a line segment.
-MAX_WAYPOINTS = 100_000
-MAX_EDGES = 1_000_000
+MAX_WAYPOINTS, MAX_EDGES, MAX_EXECUTED = rs.MAX_WAYPOINTS, rs.MAX_EDGES, rs.MAX_EXECUTED
 # backbone points recorded per waypoint of a run document
 RUN_BACKBONE_POINTS = 21
-# Most executed-actuation samples read (`executed.q`: one per control period; 5.5 h at 100 Hz).
-MAX_EXECUTED = 2_000_000
 
 
 # ------------------------------------------------------------------ writing
@@ -61,19 +58,46 @@ def header(
     problem ``{name, path, seed}``, robot, scene, task and the options that made it."""
     if kind not in KINDS:
         raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
-    return {
-        "kind": kind,
-        "schema": SCHEMA_VERSION,
-        "crtraj_version": __version__,
-        "casadi_version": ca.__version__,
-        "numpy_version": np.__version__,
-        "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-        "problem": dict(problem),
-        "robot": robot.to_dict(),
-        "scene": scene.to_dict(),
-        "task": dict(task),
-        "options": dict(options),
-    }
+    return rs.compose(
+        rs.HEADER,
+        {
+            "kind": kind,
+            "schema": SCHEMA_VERSION,
+            "crtraj_version": __version__,
+            "casadi_version": ca.__version__,
+            "numpy_version": np.__version__,
+            "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+            "problem": dict(problem),
+            "robot": robot.to_dict(),
+            "scene": scene.to_dict(),
+            "task": dict(task),
+            "options": dict(options),
+        },
+    )
+
+
+@dataclass(frozen=True)
+class _PlanSource:
+    """What a plan's waypoint fields are read from: the result, its backbone points and obstacle states."""
+
+    result: PlanResult
+    backbone: np.ndarray
+    centers: np.ndarray
+    radii: np.ndarray
+
+    def obstacles(self, k: int) -> dict[str, np.ndarray]:
+        return {"centers": self.centers[k].reshape(-1, 3), "radii": self.radii[k].reshape(-1)}
+
+
+@dataclass(frozen=True)
+class _RunSource:
+    """What a run's waypoint fields are read from: the run record and its backbone points."""
+
+    run: ReplanRun
+    backbone: np.ndarray
+
+    def obstacles(self, k: int) -> dict[str, np.ndarray]:
+        return {"centers": self.run.centers[k], "radii": self.run.radii[k]}
 
 
 def plan_document(
@@ -92,105 +116,76 @@ def plan_document(
     r = result
     waypoints = []
     if len(r.t):
-        backbone = model.points(r.configs)
         centers, radii = scene.states(r.t)
-        for k in range(len(r.t)):
-            waypoints.append(
-                {
-                    "t": float(r.t[k]),
-                    "tip": r.tips[k],
-                    "x": r.configs[k],
-                    "q": r.cables[k],
-                    "backbone": backbone[k],
-                    "obstacles": {"centers": centers[k].reshape(-1, 3), "radii": radii[k].reshape(-1)},
-                }
-            )
+        src = _PlanSource(r, model.points(r.configs), centers, radii)
+        waypoints = [rs.write_fields(rs.PLAN_WAYPOINT, src, k) for k in range(len(r.t))]
     info = {"name": problem.name, "path": None if problem.path is None else str(problem.path), "seed": r.seed}
     doc = header("plan", problem=info, robot=model.robot, scene=scene, task=problem.require_task().to_dict(),
                  options=options)  # fmt: skip
-    doc |= {
-        "status": str(r.status),
-        "success": r.is_success(),
-        "message": r.message,
-        "timing": {**{f"{k}_s": v for k, v in r.timings.items()}, "setup_s": setup_time},
-        "summary": r.summary(),
-        "waypoints": waypoints,
-        "tree": {"edges": r.tree_edges},
-    }
+    raw = None
     if r.raw_configs is not None and len(r.raw_configs):
-        doc["raw_path"] = {"t": r.raw_t, "x": r.raw_configs, "tip": model.tip_position(r.raw_configs)}
-    if r.goal_configs is not None and len(r.goal_configs):
-        doc["goal_configs"] = r.goal_configs
+        raw = {"t": r.raw_t, "x": r.raw_configs, "tip": model.tip_position(r.raw_configs)}
+    goal_configs = r.goal_configs if r.goal_configs is not None and len(r.goal_configs) else None
+    timing = {**{f"{k}_s": v for k, v in r.timings.items()}, "setup_s": setup_time}
+    doc |= rs.compose(rs.VERDICT, _verdict_values(r.status, r.is_success(), r.message, r.summary(), timing))
+    doc |= rs.compose(
+        rs.PLAN_BODY,
+        {"waypoints": waypoints, "tree": {"edges": r.tree_edges}, "raw_path": raw, "goal_configs": goal_configs},
+    )
     return to_jsonable(doc)
 
 
-def _run_waypoints(run: ReplanRun, model: Model) -> list[dict[str, Any]]:
-    bb = model.points(run.x, RUN_BACKBONE_POINTS)
-    wps = []
-    for k in range(len(run.t)):
-        w: dict[str, Any] = {
-            "t": float(run.t[k]),
-            "tip": run.tip[k],
-            "x": run.x[k],
-            "q": run.q[k],
-            "q_command": run.q_command[k],
-            "backbone": bb[k],
-            "obstacles": {"centers": run.centers[k], "radii": run.radii[k]},
-            "clearance": float(run.clearance[k]),
-            "tip_error": float(run.tip_error[k]),
-        }
-        if k:  # the step that ended at t[k]
-            w["status"] = run.step_status[k - 1]
-            w["solver_status"] = run.solver_status[k - 1]
-            w["nlp_time"] = float(run.nlp_time[k - 1])
-            w["iteration_time"] = float(run.iter_time[k - 1])
-        wps.append(w)
-    return wps
+def _verdict_values(status: Any, success: bool, message: str, summary: Any, timing: Any) -> dict[str, Any]:
+    return {"status": str(status), "success": success, "message": message, "timing": timing, "summary": summary}
 
 
-def run_document(run: ReplanRun, loop: ClosedLoop, problem: Any = None, seed: int | None = None) -> dict[str, Any]:
+@dataclass(frozen=True)
+class RunContext:
+    """Plain data a run document records beside the run: the robot model (for the backbone points), the
+    scene, the task's goal tolerance (mm), and the option sections by name (objects with ``to_dict``)."""
+
+    model: Model
+    scene: Scene
+    goal_tolerance: float
+    options: Mapping[str, Any]
+
+
+def run_document(run: ReplanRun, context: RunContext, problem: Any = None, seed: int | None = None) -> dict[str, Any]:
     """A closed-loop run (kind "replan") as plain JSON data; problem: the `Problem` it ran, if any."""
-    task: dict[str, Any] = {"start": run.tip[0], "goal": run.goal, "goal_tolerance": loop.goal_tolerance}
+    task: dict[str, Any] = {"start": run.tip[0], "goal": run.goal, "goal_tolerance": context.goal_tolerance}
     if problem is not None and problem.task is not None:
         task = problem.task.to_dict()
-    options: dict[str, Any] = {"replan": loop.options.to_dict(), "tracking": loop.tracking_options.to_dict()}
-    options.update({k: v.to_dict() if hasattr(v, "to_dict") else v for k, v in loop.extra_options.items()})
+    options = {k: v.to_dict() if hasattr(v, "to_dict") else v for k, v in context.options.items()}
     info = {
         "name": getattr(problem, "name", "replan"),
         "path": str(problem.path) if getattr(problem, "path", None) is not None else None,
         "seed": problem.seed if seed is None and problem is not None else seed,
     }
     summary = run.summary()
-    doc = header("replan", problem=info, robot=loop.model.robot, scene=loop.scene, task=task, options=options)
-    doc |= {
-        "status": str(run.status),
-        "success": run.is_success(),
-        "message": run.message,
-        "timing": {
-            "setup_s": run.setup_time,
-            "wall_s": run.wall_time,
-            "median_iteration_s": summary["median_iteration_s"],
-            "p90_iteration_s": summary["p90_iteration_s"],
-            "planner_s": float(np.sum(run.plan_time)),
-            "nlp_s": float(np.sum(run.nlp_time)),
-        },
-        "summary": summary,
-        "nlp": run.nlp,
-        "waypoints": _run_waypoints(run, loop.model),
+    doc = header("replan", problem=info, robot=context.model.robot, scene=context.scene, task=task, options=options)
+    timing = {
+        "setup_s": run.setup_time,
+        "wall_s": run.wall_time,
+        "median_iteration_s": summary["median_iteration_s"],
+        "p90_iteration_s": summary["p90_iteration_s"],
+        "planner_s": float(np.sum(run.plan_time)),
+        "nlp_s": float(np.sum(run.nlp_time)),
     }
-    if len(run.executed):
-        # what a device is sent (`crtraj.hardware.setpoints.SetpointPath.from_executed`)
-        doc["executed"] = {"t0": float(run.t[0]), "dt": run.control_dt, "q": run.executed}
-    if run.feed:
-        doc["feed"] = run.feed  # the live feed: counters, options, every rejected or clamped message
-    if run.device:
-        doc["stream"] = run.device  # the live device stream (`DeviceLink.describe`)
-    if len(run.tree_edges):
-        doc["tree"] = {"edges": run.tree_edges}
+    doc |= rs.compose(rs.VERDICT, _verdict_values(run.status, run.is_success(), run.message, summary, timing))
+    src = _RunSource(run, context.model.points(run.x, RUN_BACKBONE_POINTS))
     refs = [{"step": int(k), "t": float(run.t[k]), "tip": tips} for k, tips in run.reference_tips]
-    if refs:
-        doc["reference"] = {"tip": refs[-1]["tip"]}
-        doc["references"] = refs
+    body = {
+        "nlp": run.nlp,
+        "waypoints": [rs.write_fields(rs.RUN_WAYPOINT, src, k, first=k == 0) for k in range(len(run.t))],
+        # what a device is sent (`crtraj.hardware.setpoints.SetpointPath.from_executed`)
+        "executed": {"t0": float(run.t[0]), "dt": run.control_dt, "q": run.executed} if len(run.executed) else None,
+        "feed": run.feed or None,  # the live feed: counters, options, every rejected or clamped message
+        "stream": run.device or None,  # the live device stream (`DeviceLink.describe`)
+        "tree": {"edges": run.tree_edges} if len(run.tree_edges) else None,
+        "reference": {"tip": refs[-1]["tip"]} if refs else None,
+        "references": refs or None,
+    }
+    doc |= rs.compose(rs.RUN_BODY, body)
     return to_jsonable(doc)
 
 
@@ -277,51 +272,13 @@ class Result:
         )
 
 
-def _field(d: Any, key: str, where: str) -> Any:
-    if not isinstance(d, Mapping):
-        raise InputError(f"{where or 'result'}: expected an object, got {type(d).__name__}")
-    if key not in d:
-        raise InputError(f"{where + '.' if where else ''}{key}: missing (required)")
-    return d[key]
-
-
-def _obstacles(obs: Any, where: str) -> tuple[np.ndarray, np.ndarray]:
-    """Centres (m, 3) and radii (m,) of one waypoint's obstacles (mm)."""
-    if not obs:
-        return np.zeros((0, 3)), np.zeros(0)
-    centers = _field(obs, "centers", where)
-    radii = _field(obs, "radii", where)
-    if isinstance(centers, list) and not centers:
-        c = np.zeros((0, 3))
-    else:
-        c = check_array(centers, f"{where}.centers", (None, 3), limit=MAX_LENGTH)
-    if c.shape[0] > MAX_OBSTACLES:
-        raise InputError(f"{where}.centers: at most {MAX_OBSTACLES} obstacles, got {c.shape[0]}")
-    r = check_array(radii, f"{where}.radii", (c.shape[0],), limit=MAX_LENGTH)
-    if np.any(r < 0):
-        raise InputError(f"{where}.radii: must be >= 0, got {r.min():g}")
-    return c, r
-
-
-def _actuation(q: Any, where: str, nq: int) -> np.ndarray:
-    """One waypoint's actuation (nq,) mm; NaN is written as null by `to_jsonable` and refused here."""
-    if not isinstance(q, list) or len(q) != nq:
-        got = len(q) if isinstance(q, list) else type(q).__name__
-        raise InputError(f"{where}: expected {nq} values (3 cables per segment, then z), got {got}")
-    for i, v in enumerate(q):
-        if v is None:
-            raise InputError(f"{where}[{i}]: must be finite, got null/NaN")
-        check_float(v, f"{where}[{i}]", limit=MAX_LENGTH)
-    return np.asarray(q, dtype=float)
-
-
 def _waypoints(wps: Any, nx: int, nq: int) -> tuple[np.ndarray, ...]:
     """(t, x, tip, q or None, centers, radii) of the waypoint list; errors name waypoints[k].field."""
     if not isinstance(wps, list) or not wps:
         raise InputError("waypoints: expected a non-empty list of waypoints")
     if len(wps) > MAX_WAYPOINTS:
         raise InputError(f"waypoints: at most {MAX_WAYPOINTS} are read, got {len(wps)}")
-    n = len(wps)
+    n, dims = len(wps), {"nx": nx, "nq": nq}
     t, x, tip = np.empty(n), np.empty((n, nx)), np.full((n, 3), np.nan)
     has_q = isinstance(wps[0], Mapping) and wps[0].get("q") is not None
     q = np.empty((n, nq)) if has_q else None
@@ -329,15 +286,17 @@ def _waypoints(wps: Any, nx: int, nq: int) -> tuple[np.ndarray, ...]:
     radii: list[np.ndarray] = []
     for i, w in enumerate(wps):
         where = f"waypoints[{i}]"
-        t[i] = check_float(_field(w, "t", where), f"{where}.t", limit=MAX_TIME)
+        v = rs.read_fields(w, rs.PLAN_WAYPOINT, where, dims)  # the fields every waypoint shares
+        t[i], x[i] = v["t"], v["x"]
         if i and t[i] < t[i - 1]:
             raise InputError(f"{where}.t: time goes backwards ({t[i]:g} s after {t[i - 1]:g} s)")
-        x[i] = check_array(_field(w, "x", where), f"{where}.x", (nx,), limit=MAX_LENGTH)
-        if w.get("tip") is not None:
-            tip[i] = check_array(w["tip"], f"{where}.tip", (3,), limit=MAX_LENGTH)
+        if "tip" in v:
+            tip[i] = v["tip"]
         if q is not None:
-            q[i] = _actuation(_field(w, "q", where), f"{where}.q", nq)
-        c, r = _obstacles(w.get("obstacles"), f"{where}.obstacles")
+            if "q" not in v:
+                raise rs.missing("q", where)
+            q[i] = v["q"]
+        c, r = v.get("obstacles", (np.zeros((0, 3)), np.zeros(0)))
         if centers and c.shape[0] != centers[0].shape[0]:
             raise InputError(f"{where}.obstacles: {c.shape[0]} obstacles, but waypoints[0] has {centers[0].shape[0]}")
         centers.append(c)
@@ -350,24 +309,13 @@ def _extras(doc: Mapping[str, Any]) -> dict[str, Any]:
     out: dict[str, Any] = {"start": None, "goal": None, "reference": None, "edges": None}
     task = doc.get("task") or {}
     if isinstance(task, Mapping):
-        for key in ("start", "goal"):
-            if task.get(key) is not None:
-                out[key] = check_array(task[key], f"task.{key}", (3,), limit=MAX_LENGTH)
+        out.update(rs.read_fields(task, rs.TASK, "task", {}))
     ref = doc.get("reference")
     if ref:
-        reference = check_array(_field(ref, "tip", "reference"), "reference.tip", (None, 3), limit=MAX_LENGTH)
-        if reference.shape[0] > MAX_WAYPOINTS:
-            raise InputError(f"reference.tip: at most {MAX_WAYPOINTS} points are read, got {reference.shape[0]}")
-        out["reference"] = reference
+        out["reference"] = rs.read_fields(ref, rs.REFERENCE, "reference", {})["tip"]
     tree = doc.get("tree")
     if tree:
-        raw_edges = _field(tree, "edges", "tree")
-        if not isinstance(raw_edges, list):
-            raise InputError("tree.edges: expected a list of [[x, y, z], [x, y, z]] pairs (mm)")
-        if len(raw_edges) > MAX_EDGES:
-            raise InputError(f"tree.edges: at most {MAX_EDGES} are read, got {len(raw_edges)}")
-        if raw_edges:
-            out["edges"] = check_array(raw_edges, "tree.edges", (None, 2, 3), limit=MAX_LENGTH)
+        out["edges"] = rs.read_fields(tree, rs.TREE, "tree", {})["edges"]
     return out
 
 
@@ -376,21 +324,15 @@ def _executed(doc: Mapping[str, Any], nq: int) -> tuple[float, float, np.ndarray
     ex = doc.get("executed")
     if ex is None:
         return None
-    t0 = check_float(_field(ex, "t0", "executed"), "executed.t0", limit=MAX_TIME)
-    dt = check_float(_field(ex, "dt", "executed"), "executed.dt", gt=0.0, le=10.0)
-    raw = _field(ex, "q", "executed")
-    if not isinstance(raw, list) or not raw:
-        raise InputError("executed.q: expected a non-empty list of actuation rows (mm)")
-    if len(raw) > MAX_EXECUTED:
-        raise InputError(f"executed.q: at most {MAX_EXECUTED} rows are read, got {len(raw)}")
-    return t0, dt, check_array(raw, "executed.q", (None, nq), limit=MAX_LENGTH)
+    v = rs.read_fields(ex, rs.EXECUTED, "executed", {"nq": nq})
+    return v["t0"], v["dt"], v["q"]
 
 
 def _kind_and_schema(doc: Mapping[str, Any]) -> tuple[str, int]:
     schema = doc.get("schema", 1)  # documents written before the field existed are version 1
     if isinstance(schema, bool) or not isinstance(schema, int) or schema != SCHEMA_VERSION:
         raise InputError(f"schema: unsupported version {schema!r} (this crtraj reads version {SCHEMA_VERSION})")
-    kind = doc.get("kind", "plan") if "schema" not in doc else _field(doc, "kind", "")
+    kind = doc.get("kind", "plan") if "schema" not in doc else rs.field_of(doc, "kind", "")
     if kind not in KINDS:
         raise InputError(f"kind: must be plan or replan, got {kind!r}")
     return kind, schema
@@ -451,7 +393,7 @@ def _parse(doc: Any, source: str) -> Result:
     if not isinstance(doc, Mapping):
         raise InputError(f"result: expected a JSON object (a crtraj plan/replan result), got {type(doc).__name__}")
     kind, schema = _kind_and_schema(doc)
-    robot = Robot.from_table(Table(_field(doc, "robot", ""), "robot"))
+    robot = Robot.from_table(Table(rs.field_of(doc, "robot", ""), "robot"))
     raw_scene = doc.get("scene")
     if raw_scene is not None and not isinstance(raw_scene, Mapping):
         raise InputError(f"scene: expected an object, got {type(raw_scene).__name__}")
@@ -459,7 +401,7 @@ def _parse(doc: Any, source: str) -> Result:
     workspace = None
     if isinstance(raw_scene, Mapping) and "workspace" in raw_scene and scene is not None:
         workspace = (np.array(scene.workspace_lo), np.array(scene.workspace_hi))
-    t, x, tip, q, centers, radii = _waypoints(_field(doc, "waypoints", ""), robot.nx, robot.nq)
+    t, x, tip, q, centers, radii = _waypoints(rs.field_of(doc, "waypoints", ""), robot.nx, robot.nq)
     return Result(
         kind=kind, schema=schema, robot=robot, scene=scene, **_verdict(doc, kind), t=t, x=x, tip=tip, q=q,
         centers=centers, radii=radii, **_extras(doc), workspace=workspace, executed=_executed(doc, robot.nq),
