@@ -16,6 +16,7 @@ from crtraj.core.errors import InputError
 from crtraj.core.fields import Table
 from crtraj.io.problem import load_robot
 from crtraj.model.cosserat import NO_LOAD, CosseratRod, RodLoad
+from crtraj.model.cosserat_cables import CableDrivenRod
 from crtraj.model.cosserat_map import segment_moments, tensions_for_bending
 from crtraj.model.mechanics import Mechanics
 from crtraj.model.robot import Robot, Segment
@@ -155,6 +156,7 @@ def test_bad_tensions_are_one_line_input_errors(one: CosseratRod) -> None:
         ({"shear_modulus": 0.0}, "robot.mechanics.shear_modulus: must be > 0"),
         ({"gravity": [0.0, -9.81]}, "robot.mechanics.gravity"),
         ({"steps": 0}, "robot.mechanics.steps"),
+        ({"tendon_stiffness": -5.0}, "robot.mechanics.tendon_stiffness: must be > 0"),
         ({"stiffness": 1.0}, "robot.mechanics.stiffness"),
     ],
 )
@@ -262,3 +264,49 @@ def test_cli_compare_bad_inputs_are_one_line_and_touch_nothing(tmp_path: Path) -
         assert out.returncode == 2
         assert out.stderr.count("\n") == 1 and message in out.stderr
     assert robot.read_bytes() == before
+
+
+@pytest.fixture(scope="module")
+def cabled(mech: Mechanics) -> CableDrivenRod:
+    return CableDrivenRod(Robot("one", RC, (Segment(L),)), mech)
+
+
+def test_one_shortened_tendon_takes_the_closed_form_tension(cabled: CableDrivenRod, mech: Mechanics) -> None:
+    """Tendon 1 shortened by d, the others paid out: they go slack, and tendon 1's path on the arc,
+    L (1 - tau / EA - tau r^2 / EI), equals its stretched length l (1 + tau / EA_t)."""
+    ea, ei, kt = mech.youngs_modulus * mech.area, mech.bending_stiffness, mech.tendon_stiffness
+    for ell in (99.9, 99.0):
+        sol = cabled.solve([ell, L + 5.0, L + 5.0])
+        assert sol.is_success()
+        tau = (L - ell) / (L / ea + L * RC**2 / ei + ell / kt)
+        np.testing.assert_allclose(sol.tensions, [tau, 0.0, 0.0], rtol=1e-9, atol=1e-12)
+        np.testing.assert_array_equal(sol.slack, [False, True, True])
+        assert np.all(sol.paths[1:] < L + 5.0)
+        expected = _arc_tip(tau * RC / ei, 1.0 - tau / ea, L)
+        assert np.linalg.norm(sol.rod.tip - expected) <= 1e-6 * L
+
+
+def test_paid_out_tendons_are_all_slack(cabled: CableDrivenRod) -> None:
+    """Every tendon longer than the rod: no tension, the straight rod."""
+    sol = cabled.solve([L + 1.0, L + 2.0, L + 1.0])
+    np.testing.assert_array_equal(sol.tensions, 0.0)
+    assert np.all(sol.slack)
+    np.testing.assert_allclose(sol.rod.tip, [0.0, 0.0, L], atol=1e-12)
+
+
+def test_equally_shortened_tendons_share_the_load(cabled: CableDrivenRod, mech: Mechanics) -> None:
+    """All three shortened by d: equal tensions with L (1 - 3 tau / EA) = (L - d)(1 + tau / EA_t)."""
+    d = 0.1
+    ea, kt = mech.youngs_modulus * mech.area, mech.tendon_stiffness
+    tau = d / (3.0 * L / ea + (L - d) / kt)
+    sol = cabled.solve([L - d] * 3)
+    np.testing.assert_allclose(sol.tensions, tau, rtol=1e-9)
+    assert sol.rod.tip[2] == pytest.approx(L * (1.0 - 3.0 * tau / ea), rel=1e-12)
+
+
+def test_bad_lengths_are_one_line_input_errors(cabled: CableDrivenRod) -> None:
+    """A non-positive or missing length names it."""
+    with pytest.raises(InputError, match=r"lengths\[2\]: must be > 0"):
+        cabled.solve([L, L, 0.0])
+    with pytest.raises(InputError, match="lengths"):
+        cabled.solve([L, L])

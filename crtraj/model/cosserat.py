@@ -118,7 +118,8 @@ class _Rod:
 
     # long: the Rucker-Webster right-hand side reads best as one block (loop over tendons, then the solve)
     def rhs(self, y: Any, tau: Any, tendons: range, fe: Any) -> Any:
-        """dy/ds of the state y = (p, vec R, v, u) with the tendons `tendons` passing through."""
+        """dy/ds of the state y = (p, vec R, v, u, tendon path lengths) with the tendons `tendons`
+        passing through (the others' path lengths stay put)."""
         R = ca.reshape(y[3:12], 3, 3)
         v, u = y[12:15], y[15:18]
         A = ca.SX.zeros(3, 3)
@@ -127,10 +128,12 @@ class _Rod:
         H = ca.SX.zeros(3, 3)
         a = ca.SX.zeros(3)
         b = ca.SX.zeros(3)
+        rates = ca.SX.zeros(len(self.r))
         for i in tendons:
             ri = _hat(self.r[i])
             pb = v + ca.cross(u, self.r[i])
             nrm = ca.norm_2(pb)
+            rates[i] = nrm  # |p_i'|: the tendon's path length grows at this rate
             t = pb / nrm
             # -tau hat(pb)^2 / |pb|^3 = (tau / |pb|) (I - t t^T): the tension's projector off the tangent
             Ai = (tau[i] / nrm) * (ca.SX.eye(3) - t @ t.T)
@@ -147,7 +150,7 @@ class _Rod:
         d = -ca.cross(u, strain) - R.T @ fe - a
         lhs = ca.vertcat(ca.horzcat(self.kse + A, G), ca.horzcat(B, self.kbt + H))
         dvu = _solve_dominant(lhs, ca.vertcat(d, c))
-        return ca.vertcat(R @ v, ca.reshape(R @ _hat(u), 9, 1), dvu)
+        return ca.vertcat(R @ v, ca.reshape(R @ _hat(u), 9, 1), dvu, rates)
 
     def terminations(self, y: Any, tau: Any, tendons: range) -> tuple[Any, Any]:
         """Force (N) and moment (N mm, about the backbone) that ending tendons apply to the disc."""
@@ -211,19 +214,20 @@ def build_shooting(robot: Robot, mech: Mechanics) -> ca.Function:
     N/mm, tip force (3) N, tip moment (3) N mm). r (6,): tip force error (N) and tip moment error /
     total length (N), twice: the rootfinder solves the first and returns the rest at the solution.
     points: 3 x (n_segments steps + 1) mm; R_tip: 3 x 3; turn: the largest angle (rad) the rod
-    turns through within one step (taken at the start of each step)."""
+    turns through within one step (taken at the start of each step); paths (3 n_segments,): each
+    tendon's path length (mm) from the base to its end disc in the deformed rod."""
     rod = _Rod(robot, mech)
     n_seg, nt = robot.n_segments, 3 * robot.n_segments
     w = ca.SX.sym("w", 6)
     p = ca.SX.sym("p", nt + 9)
     tau, fe, f_tip, m_tip = p[:nt], p[nt : nt + 3], p[nt + 3 : nt + 6], p[nt + 6 : nt + 9]
     v0, u0 = rod.strains(ca.SX.eye(3), w[:3], w[3:])
-    y = ca.vertcat(ca.SX.zeros(3), ca.reshape(ca.SX.eye(3), 9, 1), v0, u0)
+    y = ca.vertcat(ca.SX.zeros(3), ca.reshape(ca.SX.eye(3), 9, 1), v0, u0, ca.SX.zeros(nt))
     cols = [y[:3]]
     turns = []
     for k, seg in enumerate(robot.segments):
         passing = range(3 * k, nt)
-        ys = ca.SX.sym("y", 18)
+        ys = ca.SX.sym("y", 18 + nt)
         f = ca.Function("rod_rhs", [ys, p], [rod.rhs(ys, tau, passing, fe)])
         h = seg.length / mech.steps
         for _ in range(mech.steps):
@@ -235,13 +239,68 @@ def build_shooting(robot: Robot, mech: Mechanics) -> ca.Function:
         if k < n_seg - 1:  # the disc passes the internal wrench on, less what its tendons take
             R = ca.reshape(y[3:12], 3, 3)
             v, u = rod.strains(R, n - F, m - M)
-            y = ca.vertcat(y[:12], v, u)
+            y = ca.vertcat(y[:12], v, u, y[18:])
         else:
             res = ca.vertcat(n - F - f_tip, (m - M - m_tip) / robot.total_length)
     R_tip = ca.reshape(y[3:12], 3, 3)
-    outs = [res, ca.horzcat(*cols), R_tip, res, ca.mmax(ca.vertcat(*turns))]
-    names = ["r", "points", "R_tip", "residual", "turn"]
+    outs = [res, ca.horzcat(*cols), R_tip, res, ca.mmax(ca.vertcat(*turns)), y[18:]]
+    names = ["r", "points", "R_tip", "residual", "turn", "paths"]
     return ca.Function("rod_shooting", [w, p], outs, ["w", "p"], names)
+
+
+def load_vector(mech: Mechanics, load: RodLoad) -> np.ndarray:
+    """(distributed force N/mm, tip force N, tip moment N mm) of `load`, checked: the last 9 parameters."""
+    fe = mech.weight_per_length() if load.distributed is None else load.distributed
+    parts = {"distributed": fe, "tip_force": load.tip_force, "tip_moment": load.tip_moment}
+    vecs = [check_array(np.asarray(v, dtype=float), f"load.{k}", (3,), limit=MAX_MAGNITUDE) for k, v in parts.items()]
+    return np.concatenate(vecs)
+
+
+def check_tensions(tensions: Any, n: int) -> np.ndarray:
+    """n finite tensions >= 0 (N), or a one-line `InputError` naming the first bad one."""
+    t = check_array(np.asarray(tensions, dtype=float), "tensions", (n,), limit=MAX_TENSION)
+    bad = np.flatnonzero(t < 0)
+    if bad.size:
+        raise InputError(f"tensions[{bad[0]}]: a tendon cannot push; must be >= 0 N, got {t[bad[0]]}")
+    return t
+
+
+def straight_guess(robot: Robot, tensions: np.ndarray, loads: np.ndarray) -> np.ndarray:
+    """Base wrench (n(0) N, m(0) N mm) of the straight rod under the tensions and loads: a cold start."""
+    L = robot.total_length
+    fe, f_tip, m_tip = loads[:3], loads[3:6], loads[6:9]
+    e3 = np.array([0.0, 0.0, 1.0])
+    n0 = f_tip + L * fe - tensions.sum() * e3
+    m0 = m_tip + np.cross(L * e3, f_tip) + np.cross(0.5 * L * L * e3, fe)
+    rc = robot.cable_radius
+    angles = np.concatenate([robot.cable_angles(k) for k in range(robot.n_segments)])
+    for tau, a in zip(tensions, angles, strict=True):
+        m0 = m0 - tau * np.cross([rc * np.cos(a), rc * np.sin(a), 0.0], e3)
+    return np.concatenate([n0, m0])
+
+
+def newton_options(mech: Mechanics) -> dict[str, Any]:
+    """Options of the shooting rootfinders."""
+    # trial steps of the line search may leave the rod's domain (NaN); the status says if it failed
+    return {"abstol": mech.tolerance, "max_iter": mech.max_iter, "error_on_fail": False, "show_eval_warnings": False}
+
+
+def solution_status(stats: dict, w: np.ndarray, pts: Any, R: Any, res: Any, turn: Any, tolerance: float) -> RodSolution:
+    """The `RodSolution` of a rootfinder's output: converged, or why not, and then no shape."""
+    pts, R, res = np.asarray(pts), np.asarray(R), np.asarray(res)
+    iters = int(stats.get("iter_count", -1))
+    err = float(np.max(np.abs(res))) if np.all(np.isfinite(res)) else float("inf")
+    if not (np.all(np.isfinite(w)) and np.all(np.isfinite(pts))):
+        status = "not_finite"
+    elif err > 10.0 * tolerance or not stats.get("success", False):
+        status = "diverged"
+    elif float(turn) > MAX_TURN:
+        status = "under_resolved"
+    else:
+        status = "converged"
+    if status != "converged":  # never hand out a wrong shape
+        pts = np.full_like(pts, np.nan)
+    return RodSolution(status, pts.T.copy(), R, w[:3].copy(), w[3:6].copy(), err, iters)
 
 
 class CosseratRod:
@@ -255,14 +314,7 @@ class CosseratRod:
         self.robot = robot
         self.mech = Mechanics.from_robot(robot) if mech is None else mech
         self.shooting = build_shooting(robot, self.mech)
-        # trial steps of the line search may leave the rod's domain (NaN); the status says if it failed
-        opts = {
-            "abstol": self.mech.tolerance,
-            "max_iter": self.mech.max_iter,
-            "error_on_fail": False,
-            "show_eval_warnings": False,
-        }
-        self._newton = ca.rootfinder("rod_statics", "newton", self.shooting, opts)
+        self._newton = ca.rootfinder("rod_statics", "newton", self.shooting, newton_options(self.mech))
         self._warm: np.ndarray | None = None
         log.debug("cosserat rod of %s built: %d segments, %d steps each", robot.name, robot.n_segments, self.mech.steps)
 
@@ -270,64 +322,19 @@ class CosseratRod:
     def n_tendons(self) -> int:
         return 3 * self.robot.n_segments
 
-    def parameters(self, tensions: Any, load: RodLoad) -> np.ndarray:
-        """The parameter vector p of `build_shooting`; checks tensions and loads (one-line `InputError`)."""
-        t = check_array(np.asarray(tensions, dtype=float), "tensions", (self.n_tendons,), limit=MAX_TENSION)
-        bad = np.flatnonzero(t < 0)
-        if bad.size:
-            raise InputError(f"tensions[{bad[0]}]: a tendon cannot push; must be >= 0 N, got {t[bad[0]]}")
-        fe = self.mech.weight_per_length() if load.distributed is None else load.distributed
-        parts = {"distributed": fe, "tip_force": load.tip_force, "tip_moment": load.tip_moment}
-        vecs = [
-            check_array(np.asarray(v, dtype=float), f"load.{k}", (3,), limit=MAX_MAGNITUDE) for k, v in parts.items()
-        ]
-        return np.concatenate([t, *vecs])
-
-    def initial_guess(self, p: np.ndarray) -> np.ndarray:
-        """Base wrench of the straight rod under the same loads (a cold start)."""
-        nt, L = self.n_tendons, self.robot.total_length
-        tau, fe, f_tip, m_tip = p[:nt], p[nt : nt + 3], p[nt + 3 : nt + 6], p[nt + 6 :]
-        e3 = np.array([0.0, 0.0, 1.0])
-        n0 = f_tip + L * fe - tau.sum() * e3
-        m0 = m_tip + np.cross(L * e3, f_tip) + np.cross(0.5 * L * L * e3, fe)
-        for i in range(nt):
-            r = np.array(self._rod_r(i))
-            m0 = m0 - tau[i] * np.cross(r, e3)
-        return np.concatenate([n0, m0])
-
-    def _rod_r(self, i: int) -> tuple[float, float, float]:
-        a = self.robot.cable_angles(i // 3)[i % 3]
-        rc = self.robot.cable_radius
-        return (rc * np.cos(a), rc * np.sin(a), 0.0)
-
     def solve(self, tensions: Any, load: RodLoad = NO_LOAD, *, warm: bool = True) -> RodSolution:
         """Shape of the rod under tendon tensions (N) and `load`; starts from the last converged solve
         when `warm` (and from the straight rod if that fails)."""
-        p = self.parameters(tensions, load)
+        tau = check_tensions(tensions, self.n_tendons)
+        loads = load_vector(self.mech, load)
+        p = np.concatenate([tau, loads])
         starts = [self._warm] if warm and self._warm is not None else []
-        starts.append(self.initial_guess(p))
+        starts.append(straight_guess(self.robot, tau, loads))
         for w0 in starts:
-            sol = self._attempt(w0, p)
+            w, pts, R, res, turn, _paths = self._newton(w0, p)
+            sol = solution_status(self._newton.stats(), np.asarray(w).ravel(), pts, R, res, turn, self.mech.tolerance)
             if sol.is_success():
                 self._warm = np.concatenate([sol.base_force, sol.base_moment])
                 return sol
         log.info("cosserat solve failed (%s, residual %.3g N)", sol.status, sol.residual)
         return sol
-
-    def _attempt(self, w0: np.ndarray, p: np.ndarray) -> RodSolution:
-        w_dm, pts_dm, R_dm, res_dm, turn = self._newton(w0, p)
-        stats = self._newton.stats()
-        w, pts, R, res = np.asarray(w_dm).ravel(), np.asarray(pts_dm), np.asarray(R_dm), np.asarray(res_dm)
-        iters = int(stats.get("iter_count", -1))
-        err = float(np.max(np.abs(res))) if np.all(np.isfinite(res)) else float("inf")
-        if not (np.all(np.isfinite(w)) and np.all(np.isfinite(pts))):
-            status = "not_finite"
-        elif err > 10.0 * self.mech.tolerance or not stats.get("success", False):
-            status = "diverged"
-        elif float(turn) > MAX_TURN:
-            status = "under_resolved"
-        else:
-            status = "converged"
-        if status != "converged":  # never hand out a wrong shape
-            pts = np.full_like(pts, np.nan)
-        return RodSolution(status, pts.T.copy(), R, w[:3].copy(), w[3:].copy(), err, iters)

@@ -42,6 +42,7 @@ class Mechanics(Options):
     disc_mass: mass of one spacer disc (g). disc_spacing: distance between discs (mm); the discs'
     mass is smeared along the backbone as disc_mass / disc_spacing. gravity: acceleration vector in
     the robot's base frame (m/s^2; the base axis is +z, so a robot pointing up has (0, 0, -9.81)).
+    tendon_stiffness: EA of one tendon (N): its stretch under tension tau is tau / EA per unit length.
     steps: RK4 steps per segment of the shooting integrator. tolerance: largest shooting residual
     (N for forces, N mm / total length for moments) of a converged solve. max_iter: Newton iterations.
     """
@@ -55,6 +56,7 @@ class Mechanics(Options):
     disc_mass: float = option(0.0, ge=0.0, le=1e6)
     disc_spacing: float = option(10.0, gt=0.0, le=MAX_LENGTH)
     gravity: tuple[float, float, float] = option((0.0, 0.0, -9.81), read=False)
+    tendon_stiffness: float = option(10_000.0, gt=0.0, le=1e9)
     steps: int = option(20, ge=1, le=MAX_STEPS)
     tolerance: float = option(1e-9, gt=0.0, le=1.0)
     max_iter: int = option(50, ge=1, le=1000)
