@@ -116,7 +116,6 @@ class _Rod:
         pb = v + ca.cross(u, self.r[i])
         return pb / ca.norm_2(pb)
 
-    # long: the Rucker-Webster right-hand side reads best as one block (loop over tendons, then the solve)
     def rhs(self, y: Any, tau: Any, tendons: range, fe: Any) -> Any:
         """dy/ds of the state y = (p, vec R, v, u, tendon path lengths) with the tendons `tendons`
         passing through (the others' path lengths stay put)."""
