@@ -48,6 +48,7 @@ _USE_CASES = {
     "calibrate": "crtraj.app.calibrate:calibrate_command",
     "build": "crtraj.app.build:build_command",
     "ros-bridge": "crtraj.app.ros_bridge:ros_bridge_command",
+    "model-compare": "crtraj.app.model_compare:model_compare_command",
 }
 
 
@@ -536,6 +537,18 @@ def _add_calibrate(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(use_case="calibrate")
 
 
+def _add_model(sub: argparse._SubParsersAction) -> None:  # crtraj model compare ROBOT: PCC against the Cosserat rod
+    p = sub.add_parser("model", help="mechanics: compare the PCC model with Cosserat-rod statics")
+    c = p.add_subparsers(dest="model_command", metavar="MODEL_COMMAND", required=True).add_parser(
+        "compare", help="PCC against Cosserat-rod statics over random configurations (tip and body error, mm)"
+    )
+    c.add_argument("robot", metavar="ROBOT", help="robot TOML file with a [robot.mechanics] table")
+    c.add_argument("--samples", type=int, default=100, help="configurations, 1..100000 (default 100)")
+    c.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    c.add_argument("--plot", default=None, help="PNG plot of the discrepancies (default: none)")
+    c.set_defaults(use_case="model-compare")
+
+
 # Subcommands register themselves here in display order.
 _COMMANDS: tuple[Callable[[argparse._SubParsersAction], None], ...] = (
     _add_export,
@@ -551,6 +564,7 @@ _COMMANDS: tuple[Callable[[argparse._SubParsersAction], None], ...] = (
     _add_record,
     _add_calibrate,
     _add_build,
+    _add_model,
 )
 
 

@@ -21,6 +21,7 @@ from crtraj.core.fields import MAX_LENGTH, MAX_SEED, Table, check_name
 from crtraj.core.fileio import read_toml
 from crtraj.hardware.actuators import Actuators
 from crtraj.io.calibration_data import CalibrationRecord
+from crtraj.model.mechanics import Mechanics
 from crtraj.model.robot import Robot
 from crtraj.planning.rate_limits import RateLimits
 
@@ -79,6 +80,8 @@ def _checked(robot: Robot) -> Robot:
     """`robot`, after parsing its ``[robot.actuators]`` once so a bad key is a one-line error at load time."""
     if robot.actuators is not None:
         Actuators.from_robot(robot)
+    if robot.mechanics is not None:  # [robot.mechanics]: checked at load time like the actuators
+        Mechanics.from_robot(robot)
     return robot
 
 

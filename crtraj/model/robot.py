@@ -80,6 +80,9 @@ class Robot:
     collision_points: int = 10
     description: str = ""
     actuators: Mapping[str, Any] | None = field(default=None, compare=False)
+    # the raw [robot.mechanics] table (immutable) or None; `crtraj.model.mechanics.Mechanics.from_robot`
+    # parses it. Left out of `to_dict`: results describe the kinematic robot they were planned with.
+    mechanics: Mapping[str, Any] | None = field(default=None, compare=False)
 
     def __post_init__(self) -> None:
         if not self.segments:
@@ -111,6 +114,10 @@ class Robot:
             if not isinstance(self.actuators, Mapping):
                 raise InputError(f"robot.actuators: expected a table, got {type(self.actuators).__name__}")
             object.__setattr__(self, "actuators", _frozen(self.actuators))
+        if self.mechanics is not None:
+            if not isinstance(self.mechanics, Mapping):
+                raise InputError(f"robot.mechanics: expected a table, got {type(self.mechanics).__name__}")
+            object.__setattr__(self, "mechanics", _frozen(self.mechanics))
 
     def actuator_limits(self) -> ActuatorLimits | None:
         """The actuators' scale and speed/acceleration/position limits, or None without ``[robot.actuators]``."""
@@ -278,6 +285,7 @@ class Robot:
             collision_points=t.int("collision_points", 10, ge=2, le=MAX_COLLISION_POINTS),
             description=t.str("description", "", max_len=10_000),
             actuators=actuators,
+            mechanics=t.raw("mechanics", None),  # kept raw: crtraj.model.mechanics owns the schema
         )
         t.finish()
         return robot

@@ -1,0 +1,91 @@
+"""Cosserat-rod statics: the time of one warm-started solve of the two-segment robot, and of the compare tool.
+
+What is measured (problems/robots/cdsr2.toml, its [robot.mechanics], gravity on):
+
+- build: constructing `CosseratRod` (the symbolic shooting function and the rootfinder), once;
+- warm solve: `CosseratRod.solve` for a tension vector a small step (0.05 N per tendon) from the
+  previous solve, as a closed loop or the compare tool calls it; `--solves` of them, each timed
+  alone. Reported: median, 10th and 90th percentile of wall time and of the process's CPU time
+  (``time.process_time``, which moves far less with other jobs' load on a shared machine), and
+  the median Newton iterations;
+- compare: `compare_models` over `--samples` configurations (two solves each, one without and one
+  with gravity), wall and CPU time, per configuration.
+
+Target (issue 31): warm solve <= 2 ms. The date, the machine and its load average are printed with
+the numbers, since the load of other jobs moves wall times on a shared 2-core machine.
+
+Run: python benchmarks/mechanics.py [--solves 200] [--samples 50]
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import os
+import platform
+import statistics
+import time
+from pathlib import Path
+
+import numpy as np
+
+from crtraj.app.model_compare import compare_models, sample_configs
+from crtraj.io.problem import load_robot
+from crtraj.model.cosserat import CosseratRod, RodLoad
+from crtraj.model.mechanics import Mechanics
+
+ROBOT = Path(__file__).resolve().parent.parent / "problems" / "robots" / "cdsr2.toml"
+
+
+def _spread(values: list[float]) -> str:
+    """median [p10, p90] in ms."""
+    q = np.percentile(np.array(values) * 1e3, [10, 50, 90])
+    return f"{q[1]:.2f} ms [p10 {q[0]:.2f}, p90 {q[2]:.2f}]"
+
+
+def warm_solves(rod: CosseratRod, n: int) -> tuple[list[float], list[float], list[int]]:
+    """Wall and CPU seconds and Newton iterations of n warm-started solves along a tension ramp."""
+    tau0 = np.array([6.0, 0.0, 1.0, 0.0, 4.0, 0.0])
+    step = np.full(tau0.size, 0.05)
+    rod.solve(tau0, RodLoad())
+    walls, cpus, iters = [], [], []
+    for i in range(n):
+        tau = tau0 + step * (i % 40)  # up and back down a 2 N ramp: always near the last solution
+        w0, c0 = time.perf_counter(), time.process_time()
+        sol = rod.solve(tau, RodLoad())
+        walls.append(time.perf_counter() - w0)
+        cpus.append(time.process_time() - c0)
+        iters.append(sol.iterations)
+        if not sol.is_success():
+            raise RuntimeError(f"solve {i} failed: {sol.status}")
+    return walls, cpus, iters
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--solves", type=int, default=200)
+    ap.add_argument("--samples", type=int, default=50)
+    args = ap.parse_args()
+    stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    print(f"{stamp}, {platform.node()}, {os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f}")
+    robot = load_robot(ROBOT)
+    mech = Mechanics.from_robot(robot)
+    t = time.perf_counter()
+    rod = CosseratRod(robot, mech)
+    print(f"build: {time.perf_counter() - t:.2f} s ({mech.steps} RK4 steps per segment)")
+    walls, cpus, iters = warm_solves(rod, args.solves)
+    print(f"warm solve, {args.solves} solves: wall {_spread(walls)}; CPU {_spread(cpus)}")
+    print(f"  Newton iterations: median {statistics.median(iters):g}, max {max(iters)}")
+    configs = sample_configs(robot, args.samples, np.random.default_rng(0))
+    w0, c0 = time.perf_counter(), time.process_time()
+    cmp = compare_models(robot, mech, configs)
+    wall, cpu = time.perf_counter() - w0, time.process_time() - c0
+    print(
+        f"compare, {args.samples} configurations: wall {wall:.2f} s, CPU {cpu:.2f} s "
+        f"({1e3 * cpu / args.samples:.1f} ms CPU each, build included), {cmp.failures} failed"
+    )
+    print(f"load average after: {os.getloadavg()[0]:.2f}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,138 @@
+"""Cable-displacement input for the Cosserat rod: commanded tendon lengths, slack tendons by an active set.
+
+A servo does not set a tension; it sets how much tendon lies between the base disc and the tendon's end
+disc: the commanded length l_i (mm, unstretched). Under tension tau_i the tendon stretches to
+``l_i (1 + tau_i / EA_t)`` (EA_t: `Mechanics.tendon_stiffness`, N), and a taut tendon fills exactly its
+path P_i through the deformed rod (`crtraj.model.cosserat.build_shooting`'s ``paths``). A tendon
+cannot push: when its path is shorter than l_i it is slack and carries no tension. So each tendon is
+either taut (``P_i = l_i (1 + tau_i / EA_t)``, tau_i >= 0) or slack (tau_i = 0, P_i <= l_i).
+
+Solved by an active-set iteration around one Newton rootfinder (built once) on the unknowns
+(base wrench, tensions): start with every tendon taut; after each solve, release the taut tendons
+whose tension came out negative and take up the slack tendons whose path came out longer than their
+commanded length; stop when neither happens. The active set is a parameter of the rootfinder.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Any
+
+import casadi as ca
+import numpy as np
+
+from crtraj.core.errors import InputError
+from crtraj.core.fields import MAX_LENGTH, check_array
+from crtraj.model.cosserat import (
+    NO_LOAD,
+    RodLoad,
+    RodSolution,
+    build_shooting,
+    load_vector,
+    newton_options,
+    solution_status,
+    straight_guess,
+)
+from crtraj.model.mechanics import Mechanics
+from crtraj.model.robot import Robot
+
+log = logging.getLogger(__name__)
+
+# Path length tolerance (mm) of the slack test: far below any servo's resolution.
+SLACK_TOLERANCE = 1e-9
+
+
+@dataclass(frozen=True)
+class CableSolution:
+    """A displacement-mode solve: the rod's shape, the tensions it took (N), each tendon's path (mm),
+    which tendons went slack, and the active-set rounds used."""
+
+    rod: RodSolution
+    tensions: np.ndarray
+    paths: np.ndarray
+    slack: np.ndarray
+    rounds: int
+
+    def is_success(self) -> bool:
+        return self.rod.is_success()
+
+
+class CableDrivenRod:
+    """Statics of one robot under commanded tendon lengths (mm), in the robot's cable order."""
+
+    def __init__(self, robot: Robot, mech: Mechanics | None = None) -> None:
+        self.robot = robot
+        self.mech = Mechanics.from_robot(robot) if mech is None else mech
+        nt = 3 * robot.n_segments
+        shooting = build_shooting(robot, self.mech)
+        z = ca.SX.sym("z", 6 + nt)
+        q = ca.SX.sym("q", 2 * nt + 9)
+        lengths, taut, loads = q[:nt], q[nt : 2 * nt], q[2 * nt :]
+        tau = z[6:]
+        res, pts, R, _, turn, paths = shooting(z[:6], ca.vertcat(tau, loads))
+        stretched = lengths * (1.0 + tau / self.mech.tendon_stiffness)
+        cable = taut * (paths - stretched) + (1.0 - taut) * tau
+        outs = [ca.vertcat(res, cable), pts, R, res, turn, paths]
+        g = ca.Function("cable_shooting", [z, q], outs)
+        self._newton = ca.rootfinder("cable_statics", "newton", g, newton_options(self.mech))
+        self._warm: np.ndarray | None = None
+
+    @property
+    def n_tendons(self) -> int:
+        return 3 * self.robot.n_segments
+
+    def solve(self, lengths: Any, load: RodLoad = NO_LOAD) -> CableSolution:
+        """Shape and tensions under commanded tendon lengths (mm); warm-started from the last solve."""
+        ell = check_array(np.asarray(lengths, dtype=float), "lengths", (self.n_tendons,), limit=MAX_LENGTH)
+        bad = np.flatnonzero(ell <= 0)
+        if bad.size:
+            raise InputError(f"lengths[{bad[0]}]: must be > 0 mm, got {ell[bad[0]]}")
+        loads = load_vector(self.mech, load)
+        z = self._warm if self._warm is not None else self._cold(loads)
+        taut = np.ones(self.n_tendons, dtype=bool) if self._warm is None else z[6:] > 0.0
+        for rounds in range(1, 2 * self.n_tendons + 3):
+            sol, z, paths = self._attempt(z, np.concatenate([ell, taut.astype(float), loads]))
+            if not sol.is_success():
+                break
+            tau = z[6:]
+            release = taut & (tau < 0.0)
+            take_up = ~taut & (paths > ell + SLACK_TOLERANCE)
+            if not release.any() and not take_up.any():
+                self._warm = z.copy()
+                return CableSolution(sol, np.where(taut, tau, 0.0), paths, ~taut, rounds)
+            taut = (taut & ~release) | take_up
+            # restart from the straight rod holding the kept tensions: the last base wrench balanced
+            # tendons that pushed, and can be far from the new set's solution
+            kept = np.where(taut, np.maximum(tau, 0.0), 0.0)
+            z = np.concatenate([straight_guess(self.robot, kept, loads), kept])
+        else:
+            sol = _failed(sol, "active_set")
+        log.info("cable-displacement solve failed: %s", sol.status)
+        self._warm = None
+        nan = np.full(self.n_tendons, np.nan)
+        return CableSolution(sol, nan, nan, np.zeros(self.n_tendons, dtype=bool), rounds)
+
+    def _cold(self, loads: np.ndarray) -> np.ndarray:
+        """The straight rod without tension under the loads."""
+        zero = np.zeros(self.n_tendons)
+        return np.concatenate([straight_guess(self.robot, zero, loads), zero])
+
+    def _attempt(self, z0: np.ndarray, q: np.ndarray) -> tuple[RodSolution, np.ndarray, np.ndarray]:
+        z_dm, pts, R, res, turn, paths = self._newton(z0, q)
+        z = np.asarray(z_dm).ravel()
+        sol = solution_status(self._newton.stats(), z[:6], pts, R, res, turn, self.mech.tolerance)
+        return sol, z, np.asarray(paths).ravel()
+
+
+def _failed(sol: RodSolution, status: str) -> RodSolution:
+    """`sol` with `status` and no shape."""
+    return RodSolution(
+        status,
+        np.full_like(sol.points, np.nan),
+        sol.tip_rotation,
+        sol.base_force,
+        sol.base_moment,
+        sol.residual,
+        sol.iterations,
+    )

@@ -1,0 +1,312 @@
+"""Cosserat-rod statics (crtraj.model.cosserat) against closed forms, and the PCC comparison tool."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from crtraj.app.model_compare import compare_models, sample_configs
+from crtraj.core.errors import InputError
+from crtraj.core.fields import Table
+from crtraj.io.problem import load_robot
+from crtraj.model.cosserat import NO_LOAD, CosseratRod, RodLoad
+from crtraj.model.cosserat_cables import CableDrivenRod
+from crtraj.model.cosserat_map import segment_moments, tensions_for_bending
+from crtraj.model.mechanics import Mechanics
+from crtraj.model.robot import Robot, Segment
+
+ROOT = Path(__file__).resolve().parent.parent
+CDSR2 = ROOT / "problems" / "robots" / "cdsr2.toml"
+L = 100.0  # mm, the one-segment test rod
+RC = 2.5  # mm, its cable radius
+
+
+@pytest.fixture(scope="module")
+def mech() -> Mechanics:
+    return Mechanics(steps=20)
+
+
+@pytest.fixture(scope="module")
+def one(mech: Mechanics) -> CosseratRod:
+    """One 100 mm segment, cable 1 at angle 0 (+x)."""
+    return CosseratRod(Robot("one", RC, (Segment(L),)), mech)
+
+
+@pytest.fixture(scope="module")
+def cdsr2() -> Robot:
+    return load_robot(CDSR2)
+
+
+def _arc_tip(kappa: float, stretch: float, length: float) -> np.ndarray:
+    """Tip of the extensible rod with constant strains u = kappa e_y (rad per mm of undeformed length)
+    and v = stretch e_3: it turns through kappa * length on a circle of radius stretch / kappa, toward +x."""
+    a = kappa * length
+    return (stretch / kappa) * np.array([1.0 - math.cos(a), 0.0, math.sin(a)])
+
+
+def test_one_tendon_gives_the_exact_circular_arc(one: CosseratRod, mech: Mechanics) -> None:
+    """One tendon along a straight path: an arc of curvature tau r / EI, compressed by tau / EA."""
+    tau = 20.0
+    sol = one.solve([tau, 0.0, 0.0], NO_LOAD)
+    assert sol.is_success()
+    kappa = tau * RC / mech.bending_stiffness
+    stretch = 1.0 - tau / (mech.youngs_modulus * mech.area)
+    expected = _arc_tip(kappa, stretch, L)
+    assert np.linalg.norm(sol.tip - expected) <= 1e-6 * np.linalg.norm(expected)
+    # every node lies on that circle (centre (stretch / kappa, 0, 0))
+    radius = np.linalg.norm(sol.points - np.array([stretch / kappa, 0.0, 0.0]), axis=1)
+    np.testing.assert_allclose(radius, stretch / kappa, rtol=1e-6)
+    np.testing.assert_allclose(sol.points[:, 1], 0.0, atol=1e-9)
+
+
+def test_tendon_at_ninety_degrees_bends_toward_y(mech: Mechanics) -> None:
+    """The bending direction follows the tendon's angle: cable 1 at pi/2 bends the rod toward +y."""
+    rod = CosseratRod(Robot("one_y", RC, (Segment(L, cable_phase=math.pi / 2),)), mech)
+    tau = 10.0
+    sol = rod.solve([tau, 0.0, 0.0], NO_LOAD)
+    kappa = tau * RC / mech.bending_stiffness
+    ex = _arc_tip(kappa, 1.0 - tau / (mech.youngs_modulus * mech.area), L)
+    np.testing.assert_allclose(sol.tip, [0.0, ex[0], ex[2]], rtol=1e-6, atol=1e-9)
+
+
+def test_zero_tension_is_straight(one: CosseratRod) -> None:
+    """No tension, no load: the straight rod of the undeformed length."""
+    sol = one.solve([0.0, 0.0, 0.0], NO_LOAD)
+    np.testing.assert_allclose(sol.points[:, :2], 0.0, atol=1e-12)
+    np.testing.assert_allclose(sol.points[:, 2], np.linspace(0.0, L, 21), atol=1e-12)
+
+
+def test_equal_tensions_compress_axially(one: CosseratRod, mech: Mechanics) -> None:
+    """Equal tensions in the three tendons: straight, shortened by 3 T L / EA."""
+    tau = 15.0
+    sol = one.solve([tau, tau, tau], NO_LOAD)
+    ea = mech.youngs_modulus * mech.area
+    np.testing.assert_allclose(sol.tip[:2], 0.0, atol=1e-10)
+    assert sol.tip[2] == pytest.approx(L * (1.0 - 3.0 * tau / ea), rel=1e-12)
+    np.testing.assert_allclose(sol.base_force, [0.0, 0.0, -3.0 * tau], atol=1e-9)
+
+
+@pytest.mark.parametrize("force", [1e-3, 1e-2])
+def test_small_tip_load_matches_beam_theory(one: CosseratRod, mech: Mechanics, force: float) -> None:
+    """A cantilever under a small tip load: F L^3 / 3EI + F L / GA, up to the geometric nonlinearity
+    (relative order (F L^2 / EI)^2)."""
+    ei = mech.bending_stiffness
+    ga = mech.shear_modulus * mech.area
+    sol = one.solve([0.0, 0.0, 0.0], RodLoad(tip_force=(force, 0.0, 0.0), distributed=(0.0, 0.0, 0.0)))
+    linear = force * L**3 / (3.0 * ei) + force * L / ga
+    assert abs(sol.tip[0] / linear - 1.0) < (force * L**2 / ei) ** 2
+    # the base reacts the load: internal force F, moment L x F about the base
+    np.testing.assert_allclose(sol.base_force, [force, 0.0, 0.0], atol=1e-9)  # the solve tolerance
+    assert sol.base_moment[1] == pytest.approx(force * L, rel=1e-3)
+
+
+def test_halving_the_step_changes_the_tip_by_less_than_1e_4_mm(cdsr2: Robot) -> None:
+    """Step convergence on the two-segment robot with gravity: 10 vs 20 steps per segment."""
+    base = Mechanics.from_robot(cdsr2)
+    tau = np.array([6.0, 0.0, 1.0, 0.0, 4.0, 0.0])
+    tips = [CosseratRod(cdsr2, base.with_(steps=n)).solve(tau, RodLoad()).tip for n in (10, 20)]
+    assert np.all(np.isfinite(tips))
+    gap = np.linalg.norm(tips[0] - tips[1])
+    assert 0.0 < gap < 1e-4
+
+
+def test_warm_start_needs_fewer_iterations(one: CosseratRod) -> None:
+    """Solving again near the last solution takes fewer Newton iterations than from the straight rod."""
+    cold = one.solve([30.0, 5.0, 0.0], NO_LOAD, warm=False)
+    warm = one.solve([30.0, 5.0, 0.0], NO_LOAD)
+    assert cold.is_success() and warm.is_success()
+    assert warm.iterations < cold.iterations
+    np.testing.assert_allclose(warm.points, cold.points, atol=1e-8)
+
+
+def test_a_tension_that_breaks_the_solve_is_reported_not_shaped(one: CosseratRod) -> None:
+    """1000 N on one tendon (40 rad of bending in 100 mm): a failed status and no shape."""
+    sol = one.solve([1000.0, 0.0, 0.0], NO_LOAD, warm=False)
+    assert not sol.is_success()
+    assert np.all(np.isnan(sol.points))
+
+
+def test_a_shape_too_coarse_for_the_steps_is_reported(one: CosseratRod) -> None:
+    """100 N bends the rod 4.1 rad over 20 steps (> 0.2 rad a step): under_resolved, no shape."""
+    sol = one.solve([100.0, 0.0, 0.0], NO_LOAD, warm=False)
+    assert sol.status == "under_resolved"
+    assert np.all(np.isnan(sol.points))
+
+
+def test_bad_tensions_are_one_line_input_errors(one: CosseratRod) -> None:
+    """A negative tension, the wrong count or NaN name the tension."""
+    with pytest.raises(InputError, match=r"tensions\[1\]: a tendon cannot push"):
+        one.solve([1.0, -1.0, 0.0])
+    with pytest.raises(InputError, match="tensions"):
+        one.solve([1.0, 0.0])
+    with pytest.raises(InputError, match="tensions"):
+        one.solve([1.0, float("nan"), 0.0])
+
+
+@pytest.mark.parametrize(
+    ("table", "field"),
+    [
+        ({"youngs_modulus": -1.0}, "robot.mechanics.youngs_modulus: must be > 0"),
+        ({"shear_modulus": 0.0}, "robot.mechanics.shear_modulus: must be > 0"),
+        ({"gravity": [0.0, -9.81]}, "robot.mechanics.gravity"),
+        ({"steps": 0}, "robot.mechanics.steps"),
+        ({"tendon_stiffness": -5.0}, "robot.mechanics.tendon_stiffness: must be > 0"),
+        ({"stiffness": 1.0}, "robot.mechanics.stiffness"),
+    ],
+)
+def test_bad_mechanics_tables_name_the_field(table: dict, field: str) -> None:
+    """Each bad [robot.mechanics] value is one InputError naming its key."""
+    with pytest.raises(InputError, match=field.replace(".", r"\.")):
+        Mechanics.from_table(Table(table, "robot.mechanics"))
+
+
+def test_negative_modulus_in_python_is_refused() -> None:
+    """A Mechanics built in Python is checked like the file."""
+    with pytest.raises(InputError, match="youngs_modulus: must be > 0"):
+        Mechanics(youngs_modulus=-60_000.0)
+
+
+def test_robot_file_carries_mechanics_outside_its_dict(cdsr2: Robot) -> None:
+    """cdsr2.toml's [robot.mechanics] parses; the robot's dict (written into results) does not change."""
+    mech = Mechanics.from_robot(cdsr2)
+    assert mech.youngs_modulus == 60_000.0 and mech.gravity == (0.0, 0.0, -9.80665)
+    assert "mechanics" not in cdsr2.to_dict()
+    bare = dataclasses.replace(cdsr2, mechanics=None)
+    with pytest.raises(InputError, match=r"robot\.mechanics: missing"):
+        Mechanics.from_robot(bare)
+
+
+def test_weight_per_length_adds_backbone_and_discs() -> None:
+    """(rho A + m_disc / spacing) g, in N/mm, from the file's units."""
+    m = Mechanics(backbone_radius=0.5, backbone_density=8000.0, disc_mass=0.5, disc_spacing=5.0, gravity=(0, 0, -10))
+    per_mm = 8000.0 * 1e-9 * math.pi * 0.25 + 0.5e-3 / 5.0
+    np.testing.assert_allclose(m.weight_per_length(), [0.0, 0.0, -10.0 * per_mm], rtol=1e-14)
+
+
+def test_bending_map_reproduces_the_segment_moments(cdsr2: Robot) -> None:
+    """Tensions of the map: non-negative, the smallest per segment zero, and their moments r tau (-sin a,
+    cos a) summed over the tendons passing each segment equal EI times its curvature."""
+    mech = Mechanics.from_robot(cdsr2)
+    ub = np.array([[0.3, -0.2], [-0.5, 0.4]])
+    tau = tensions_for_bending(cdsr2, mech, ub)
+    assert np.all(tau >= 0.0)
+    np.testing.assert_allclose(tau.reshape(2, 3).min(axis=1), 0.0, atol=1e-12)
+    for k in range(2):
+        total = np.zeros(2)
+        for j in range(k, 2):
+            a = cdsr2.cable_angles(j)
+            total += cdsr2.cable_radius * (tau[3 * j : 3 * j + 3] @ np.stack([-np.sin(a), np.cos(a)], axis=1))
+        kappa = np.array([-ub[k, 1], ub[k, 0]]) / cdsr2.segments[k].length
+        np.testing.assert_allclose(total, mech.bending_stiffness * kappa, rtol=1e-12)
+    np.testing.assert_allclose(
+        segment_moments(cdsr2, mech, ub)[1], mech.bending_stiffness * np.array([-0.4, -0.5]) / 200
+    )
+
+
+def test_without_gravity_the_rod_follows_pcc_and_gravity_pulls_it_away(cdsr2: Robot) -> None:
+    """Weightless, the rod held by the mapped tensions is within 1 mm of the PCC backbone (only the
+    axial compression and tendon geometry differ); the discrepancy grows strictly with the mass."""
+    configs = sample_configs(cdsr2, 3, np.random.default_rng(1))
+    base = Mechanics.from_robot(cdsr2)
+    body = []
+    for disc_mass in (0.0, 0.1, 0.3, 1.0):
+        cmp = compare_models(cdsr2, base.with_(disc_mass=disc_mass), configs)
+        assert cmp.failures == 0
+        assert np.all(cmp.body_free < 1.0)
+        body.append(cmp.body_gravity)
+    body = np.array(body)
+    assert np.all(np.diff(body, axis=0) > 0.0)
+    weightless = compare_models(cdsr2, base.with_(backbone_density=0.0, disc_mass=0.0), configs)
+    np.testing.assert_allclose(weightless.body_gravity, weightless.body_free, atol=1e-9)
+
+
+def test_sample_configs_are_within_limits_and_seeded(cdsr2: Robot) -> None:
+    """Seeded, within the robot's limits."""
+    a = sample_configs(cdsr2, 5, np.random.default_rng(3))
+    b = sample_configs(cdsr2, 5, np.random.default_rng(3))
+    np.testing.assert_array_equal(a, b)
+    assert a.shape == (5, cdsr2.nx) and np.all(cdsr2.limit_violation(a) <= 0.0)
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "crtraj.cli", *args], capture_output=True, text=True, cwd=ROOT)
+
+
+def test_cli_compare_reports_and_plots(tmp_path: Path) -> None:
+    """`crtraj model compare` prints both cases' spreads and writes the PNG."""
+    plot = tmp_path / "cmp.png"
+    out = _cli("model", "compare", str(CDSR2), "--samples", "2", "--seed", "4", "--plot", str(plot))
+    assert out.returncode == 0, out.stderr
+    assert "no gravity: tip RMS" in out.stdout and "gravity:    tip RMS" in out.stdout
+    assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_cli_compare_bad_inputs_are_one_line_and_touch_nothing(tmp_path: Path) -> None:
+    """--samples 0, the robot file as --plot, a robot without [robot.mechanics]: exit 2, one line."""
+    robot = tmp_path / "r.toml"
+    robot.write_text(CDSR2.read_text())
+    before = robot.read_bytes()
+    bare = tmp_path / "bare.toml"
+    bare.write_text(CDSR2.read_text().split("[robot.mechanics]")[0])
+    cases = [
+        (["--samples", "0"], str(robot), "--samples: must be in"),
+        (["--plot", str(robot)], str(robot), "--plot:"),
+        ([], str(bare), "robot.mechanics: missing"),
+    ]
+    for extra, path, message in cases:
+        out = _cli("model", "compare", path, *extra)
+        assert out.returncode == 2
+        assert out.stderr.count("\n") == 1 and message in out.stderr
+    assert robot.read_bytes() == before
+
+
+@pytest.fixture(scope="module")
+def cabled(mech: Mechanics) -> CableDrivenRod:
+    return CableDrivenRod(Robot("one", RC, (Segment(L),)), mech)
+
+
+def test_one_shortened_tendon_takes_the_closed_form_tension(cabled: CableDrivenRod, mech: Mechanics) -> None:
+    """Tendon 1 shortened by d, the others paid out: they go slack, and tendon 1's path on the arc,
+    L (1 - tau / EA - tau r^2 / EI), equals its stretched length l (1 + tau / EA_t)."""
+    ea, ei, kt = mech.youngs_modulus * mech.area, mech.bending_stiffness, mech.tendon_stiffness
+    for ell in (99.9, 99.0):
+        sol = cabled.solve([ell, L + 5.0, L + 5.0])
+        assert sol.is_success()
+        tau = (L - ell) / (L / ea + L * RC**2 / ei + ell / kt)
+        np.testing.assert_allclose(sol.tensions, [tau, 0.0, 0.0], rtol=1e-9, atol=1e-12)
+        np.testing.assert_array_equal(sol.slack, [False, True, True])
+        assert np.all(sol.paths[1:] < L + 5.0)
+        expected = _arc_tip(tau * RC / ei, 1.0 - tau / ea, L)
+        assert np.linalg.norm(sol.rod.tip - expected) <= 1e-6 * L
+
+
+def test_paid_out_tendons_are_all_slack(cabled: CableDrivenRod) -> None:
+    """Every tendon longer than the rod: no tension, the straight rod."""
+    sol = cabled.solve([L + 1.0, L + 2.0, L + 1.0])
+    np.testing.assert_array_equal(sol.tensions, 0.0)
+    assert np.all(sol.slack)
+    np.testing.assert_allclose(sol.rod.tip, [0.0, 0.0, L], atol=1e-12)
+
+
+def test_equally_shortened_tendons_share_the_load(cabled: CableDrivenRod, mech: Mechanics) -> None:
+    """All three shortened by d: equal tensions with L (1 - 3 tau / EA) = (L - d)(1 + tau / EA_t)."""
+    d = 0.1
+    ea, kt = mech.youngs_modulus * mech.area, mech.tendon_stiffness
+    tau = d / (3.0 * L / ea + (L - d) / kt)
+    sol = cabled.solve([L - d] * 3)
+    np.testing.assert_allclose(sol.tensions, tau, rtol=1e-9)
+    assert sol.rod.tip[2] == pytest.approx(L * (1.0 - 3.0 * tau / ea), rel=1e-12)
+
+
+def test_bad_lengths_are_one_line_input_errors(cabled: CableDrivenRod) -> None:
+    """A non-positive or missing length names it."""
+    with pytest.raises(InputError, match=r"lengths\[2\]: must be > 0"):
+        cabled.solve([L, L, 0.0])
+    with pytest.raises(InputError, match="lengths"):
+        cabled.solve([L, L])
