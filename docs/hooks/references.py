@@ -71,7 +71,13 @@ def _subcommands(parser: argparse.ArgumentParser) -> tuple[dict[str, argparse.Ar
     for action in parser._actions:
         if isinstance(action, argparse._SubParsersAction):
             helps = {a.dest: a.help or "" for a in action._choices_actions}
-            return dict(action.choices), helps
+            commands: dict[str, argparse.ArgumentParser] = {}
+            for name, sub in action.choices.items():
+                commands[name] = sub
+                nested, nested_helps = _subcommands(sub)  # e.g. `model compare`
+                commands |= {f"{name} {n}": p for n, p in nested.items()}
+                helps |= {f"{name} {n}": h for n, h in nested_helps.items()}
+            return commands, helps
     return {}, {}
 
 
@@ -118,7 +124,7 @@ def cli_markdown(parser: argparse.ArgumentParser | None = None) -> str:
         "help text below is the parser's own. Exit codes: 0 success; 1 a well-formed task that could not be",
         "done (its status on stderr); 2 bad input, one line `crtraj: error: ...` naming the file, key or flag.",
         "",
-        "Commands: " + ", ".join(f"[`{name}`](#crtraj-{name})" for name in commands) + ".",
+        "Commands: " + ", ".join(f"[`{name}`](#crtraj-{name.replace(' ', '-')})" for name in commands) + ".",
         "",
     ]
     lines += _command_section(parser.prog, parser, "")

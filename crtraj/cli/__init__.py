@@ -1,6 +1,7 @@
 """The ``crtraj`` command.
 
-This module holds the argument parsers; each command's work is a use case in
+This package holds the argument parsers (the calibration and mechanics commands in
+`crtraj.cli.lab`); each command's work is a use case in
 `crtraj.app` (`_USE_CASES`) that calls the library, prints a short summary and
 returns an exit code. One rule for every command: user input errors (malformed
 files, flags, output paths; `InputError`) print one line ``crtraj: error: ...``
@@ -19,16 +20,15 @@ import argparse
 import importlib
 import sys
 from collections.abc import Callable, Sequence
-from pathlib import Path
 from typing import Any, NoReturn
 
 from crtraj import __version__
+from crtraj.cli.lab import add_calibrate, add_model, add_record
+from crtraj.cli.paths import DEFAULT_ROBOT
 from crtraj.core.errors import AdmissionError, InputError
 from crtraj.core.flags import strict_flag_types
 from crtraj.core.logs import configure_logging
 from crtraj.hardware.transport import TransportError
-
-DEFAULT_ROBOT = Path(__file__).resolve().parent.parent / "problems" / "robots" / "cdsr2.toml"
 
 # Every command's work is a use case in crtraj.app, named here as "module:function" and imported
 # only when its command runs (`_use_case`): importing them all at start-up would load CasADi,
@@ -444,111 +444,6 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(use_case="bench")
 
 
-# ------------------------------------------------------------------ calibration
-def _add_record(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "record",
-        help="write a calibration dataset: a stream log joined with a motion-capture marker file",
-        description="Join a stream log (crtraj stream --log, crtraj replan --stream) with a marker file (CSV or "
-        "JSON lines: timestamp, marker, x, y, z in mm, capture frame) by timestamp, interpolating the actuator "
-        "values at the marker times; or, with --excite, stream a built-in excitation motion that covers the "
-        "workspace (verified like any motion) to a device, log it, and join it with --markers when given.",
-    )
-    p.add_argument("--robot", default=str(DEFAULT_ROBOT), help="robot TOML file (default: problems/robots/cdsr2.toml)")
-    p.add_argument("--out", required=True, help="dataset JSON to write")
-    p.add_argument("--log", help="stream log (JSON lines) to read, or with --excite to write")
-    p.add_argument("--markers", help="marker file (CSV or JSON lines), positions in mm")
-    p.add_argument(
-        "--marker",
-        action="append",
-        default=None,
-        metavar="NAME=SEGMENT:ARC",
-        help="where a marker sits: segment (1-based) and arc length from its start (mm) or 'tip'; repeat per "
-        "marker (default: base=1:0, tip1=1:tip, tip=2:tip, the paper's markers)",
-    )
-    p.add_argument(
-        "--time-offset", type=float, default=0.0, help="marker time minus log time, s (default 0: same clock)"
-    )
-    p.add_argument(
-        "--values",
-        choices=["measured", "commanded"],
-        default="measured",
-        help="actuator values from the device's telemetry (default, when the log has any) or the set-points sent",
-    )
-    p.add_argument("--excite", action="store_true", help="stream the built-in excitation motion first")
-    p.add_argument("--duration", type=float, default=None, help="excitation: at least this long, s (default: limits)")
-    p.add_argument("--udp", metavar="HOST:PORT", help="excitation: device over UDP")
-    p.add_argument("--serial", metavar="DEVICE", help="excitation: device on a serial port")
-    p.add_argument("--baud", type=int, default=115200, help="serial baud rate (default 115200)")
-    p.add_argument("--dry-run", metavar="FILE", help="excitation: write the frames to FILE instead of a device")
-    p.add_argument("--problem", help="excitation: problem file whose [scene] the motion must keep clear of")
-    p.set_defaults(use_case="record")
-
-
-def _add_calibrate(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "calibrate",
-        help="fit the robot file's lengths, coupling, cable radius, zero offsets and capture frame to a dataset",
-        description="One CasADi least-squares NLP (pseudo-Huber loss, exact Jacobians, parameter bounds, held-out "
-        "split) fits the chosen parameters to a dataset written by crtraj record. Prints residuals per marker "
-        "before and after, the fitted values with standard errors and the parameters the data cannot determine "
-        "(held at their prior); writes the calibrated robot file (the original with only the fitted values "
-        "changed, plus a [calibration] table), a JSON report and a residual plot.",
-    )
-    p.add_argument(
-        "data", nargs="?", help="calibration dataset (JSON, from crtraj record); or give --log and --markers"
-    )
-    p.add_argument("--robot", default=str(DEFAULT_ROBOT), help="robot TOML file (default: problems/robots/cdsr2.toml)")
-    p.add_argument("--out", required=True, help="calibrated robot TOML file to write")
-    p.add_argument(
-        "--fit",
-        default="all",
-        help="comma-separated groups: lengths, coupling, cable_radius, zero_offsets, base_z, capture_frame "
-        "(default: all)",
-    )
-    p.add_argument("--report", help="JSON report (default: OUT with .report.json)")
-    p.add_argument("--plot", help="residual plot PNG (default: OUT with .residuals.png)")
-    p.add_argument("--loss-scale", type=float, default=None, help="pseudo-Huber scale, mm (default 1)")
-    p.add_argument("--holdout", type=float, default=None, help="held-out fraction of samples (default 0.2)")
-    p.add_argument(
-        "--noise",
-        type=float,
-        default=None,
-        metavar="MM",
-        help="marker noise per axis, mm, that the held-out residual is judged against (default: estimated from "
-        "the data)",
-    )
-    p.add_argument(
-        "--allow-at-bound",
-        action="append",
-        default=None,
-        metavar="NAME",
-        help="a parameter that may end at its bound without failing the fit (repeatable)",
-    )
-    p.add_argument("--log", help="instead of DATA: a stream log, joined with --markers as crtraj record does")
-    p.add_argument("--markers", help="with --log: the marker file (CSV or JSON lines, mm)")
-    p.add_argument(
-        "--marker", action="append", default=None, metavar="NAME=SEGMENT:ARC", help="with --log: as crtraj record"
-    )
-    p.add_argument("--time-offset", type=float, default=0.0, help="with --log: marker time minus log time, s")
-    p.add_argument(
-        "--values", choices=["measured", "commanded"], default="measured", help="with --log: as crtraj record"
-    )
-    p.set_defaults(use_case="calibrate")
-
-
-def _add_model(sub: argparse._SubParsersAction) -> None:  # crtraj model compare ROBOT: PCC against the Cosserat rod
-    p = sub.add_parser("model", help="mechanics: compare the PCC model with Cosserat-rod statics")
-    c = p.add_subparsers(dest="model_command", metavar="MODEL_COMMAND", required=True).add_parser(
-        "compare", help="PCC against Cosserat-rod statics over random configurations (tip and body error, mm)"
-    )
-    c.add_argument("robot", metavar="ROBOT", help="robot TOML file with a [robot.mechanics] table")
-    c.add_argument("--samples", type=int, default=100, help="configurations, 1..100000 (default 100)")
-    c.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    c.add_argument("--plot", default=None, help="PNG plot of the discrepancies (default: none)")
-    c.set_defaults(use_case="model-compare")
-
-
 # Subcommands register themselves here in display order.
 _COMMANDS: tuple[Callable[[argparse._SubParsersAction], None], ...] = (
     _add_export,
@@ -561,10 +456,10 @@ _COMMANDS: tuple[Callable[[argparse._SubParsersAction], None], ...] = (
     _add_replan,
     _add_ros_bridge,
     _add_bench,
-    _add_record,
-    _add_calibrate,
+    add_record,
+    add_calibrate,
     _add_build,
-    _add_model,
+    add_model,
 )
 
 
