@@ -44,17 +44,14 @@ def load_functions(library: Path, names: Sequence[str]) -> dict[str, ca.Function
     A library that does not load (not a shared object, truncated, a missing function) raises OSError with
     a short reason: the error `BuildCache.load` rebuilds on (CasADi's own is a many-line RuntimeError).
     """
-    try:
-        ctypes.CDLL(str(library))  # dlopen's one-line reason ("invalid ELF header") before CasADi's
-    except OSError as exc:
-        raise OSError(f"{library.name}: {_first_line(exc)}") from None
+    ctypes.CDLL(str(library))  # OSError with dlopen's one-line reason ("<path>: invalid ELF header") first
     try:
         return {n: ca.external(n, str(library)) for n in names}
     except RuntimeError as exc:
-        raise OSError(f"{library.name}: {_first_line(exc)}") from None
+        raise OSError(f"{library.name}: {_reason(exc)}") from None
 
 
-def _first_line(exc: BaseException) -> str:
+def _reason(exc: BaseException) -> str:
     """The last non-empty line of an error's first paragraph, at most 200 characters (CasADi's errors
     carry a source location and a search-path listing around the reason)."""
     lines = [ln.strip() for ln in str(exc).split("\n\n")[0].splitlines() if ln.strip()]
