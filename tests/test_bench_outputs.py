@@ -252,3 +252,15 @@ def test_output_set_replaces_a_marked_folder_whatever_it_holds(tmp_path):
     out.commit()
     assert sorted(p.name for p in logs.iterdir()) == sorted([MARKER, "one.log"])
     assert sorted(p.name for p in tmp_path.iterdir()) == ["logs"]  # the old folder is gone, no leftovers
+
+
+@pytest.mark.parametrize("content", [b"name,age\nann,3", b"planner,n_obstacles\n", b"\x00\x01binary"])
+def test_a_log_crtraj_did_not_write_is_never_appended_to_or_cut(tmp_path, content):
+    path = tmp_path / "runs.csv.partial"
+    path.write_bytes(content)
+    with pytest.raises(InputError, match=r"runs\.csv header"):
+        RunLog(path)
+    assert path.read_bytes() == content
+    (tmp_path / "dir.csv").mkdir()
+    with pytest.raises(InputError, match="not a regular file"):
+        RunLog(tmp_path / "dir.csv")

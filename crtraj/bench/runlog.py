@@ -48,6 +48,19 @@ def csv_text(records: list[RunRecord]) -> str:
     return buf.getvalue()
 
 
+def _check_ours(path: Path) -> None:
+    """An existing log is appended to only when it is one crtraj wrote: a regular file that is empty or
+    starts with this version's runs.csv header; anything else is one `InputError` line, left untouched."""
+    if not os.path.lexists(path):
+        return
+    if path.is_symlink() or not path.is_file():
+        raise InputError(f"{path}: not a regular file; give a runs log crtraj wrote, or a new name")
+    with open(path, "rb") as fh:
+        first = fh.readline(64 * 1024)
+    if first and first.rstrip(b"\r\n") != ",".join(RunRecord.fields()).encode("ascii"):
+        raise InputError(f"{path}: its first line is not the runs.csv header of this crtraj; not appended to")
+
+
 def _drop_torn_row(path: Path) -> None:
     """Cut a log that does not end in a newline back to its last complete line: the process writing it was
     killed in the middle of a row, and a resumed log must read back (`read_runs`)."""
@@ -65,11 +78,13 @@ def _drop_torn_row(path: Path) -> None:
 class RunLog:
     """Appends records to a CSV file, one flushed line each (the header first when the file is new).
 
-    A log left with a torn last row by a killed run is first cut back to its last complete row.
+    An existing file must be a runs log crtraj wrote (`InputError` otherwise, the file untouched); one left
+    with a torn last row by a killed run is first cut back to its last complete row.
     """
 
     def __init__(self, path: str | os.PathLike[str]) -> None:
         self.path = Path(path)
+        _check_ours(self.path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         _drop_torn_row(self.path)
         new = not self.path.exists() or self.path.stat().st_size == 0
