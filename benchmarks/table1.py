@@ -19,20 +19,27 @@ import concurrent.futures as cf
 import multiprocessing
 import os
 import platform
+import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+from crtraj.app.bench import TABLE1_FILES
 from crtraj.bench.records import LABELS, PAPER_COUNTS, PAPER_TABLE1, PLANNERS, BenchOptions
+from crtraj.bench.report import BenchReport
 from crtraj.bench.runner import Table1Bench
+from crtraj.core.errors import InputError
+from crtraj.core.fields import read_int
+from crtraj.core.fileio import check_output_file, check_outputs_not_inputs
 from crtraj.io.problem import load_robot
 from crtraj.planning.registry import BUILTIN
 
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def main() -> None:
+def _args() -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scenarios", type=int, default=100)
     ap.add_argument("--counts", default="1,3,5,7")
@@ -42,32 +49,43 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default="out/table1-bench")
     ap.add_argument("--dask", default=None, help="Dask scheduler address instead of local processes")
-    args = ap.parse_args()
+    return ap.parse_args()
 
-    planners = tuple(p.strip() for p in args.planners.split(",") if p.strip())
-    for p in planners:
-        BUILTIN.check_available(p)
-    counts = tuple(int(c) for c in args.counts.split(","))
-    robot = load_robot(ROOT / "problems" / "robots" / "cdsr2.toml")
-    opts = BenchOptions(
-        counts=counts, scenarios=args.scenarios, planners=planners, time_limit=args.time_limit, seed=args.seed
-    )
-    bench = Table1Bench(robot, opts)
-    client = None
+
+def _executor(args: argparse.Namespace, bench: Table1Bench) -> tuple[cf.Executor, Any, int]:
+    """(executor, Dask client or None, worker count) for --dask / --workers."""
     if args.dask:
         from distributed import Client
 
         client = Client(args.dask)
-        executor: cf.Executor = client.get_executor()
-        workers = sum(client.nthreads().values())
-    else:
-        workers = args.workers
-        executor = cf.ProcessPoolExecutor(
-            workers,
-            mp_context=multiprocessing.get_context("spawn"),
-            initializer=bench.initializer,
-            initargs=bench.initargs,
-        )
+        return client.get_executor(), client, sum(client.nthreads().values())
+    executor = cf.ProcessPoolExecutor(
+        args.workers,
+        mp_context=multiprocessing.get_context("spawn"),
+        initializer=bench.initializer,
+        initargs=bench.initargs,
+    )
+    return executor, None, args.workers
+
+
+def main() -> None:
+    args = _args()
+    planners = tuple(p.strip() for p in args.planners.split(",") if p.strip())
+    for p in planners:
+        BUILTIN.check_available(p)
+    counts = tuple(read_int(c, "--counts", ge=0, le=10**6) for c in args.counts.split(","))
+    robot_file = ROOT / "problems" / "robots" / "cdsr2.toml"
+    out = Path(args.out)
+    # before hours of runs: no output is the robot file, and every output can be written
+    check_outputs_not_inputs({f"--out ({n})": out / n for n in TABLE1_FILES}, {"robot": robot_file})
+    for n in TABLE1_FILES:
+        check_output_file(out / n, f"--out ({n})")
+    robot = load_robot(robot_file)
+    opts = BenchOptions(
+        counts=counts, scenarios=args.scenarios, planners=planners, time_limit=args.time_limit, seed=args.seed
+    )
+    bench = Table1Bench(robot, opts)
+    executor, client, workers = _executor(args, bench)
     print(
         f"machine: {platform.node()} {platform.machine()}, {os.cpu_count()} logical CPUs, load average "
         f"{os.getloadavg()[0]:.1f} at start; {workers} workers; time limit {args.time_limit:g} s; "
@@ -80,12 +98,20 @@ def main() -> None:
         executor.shutdown(wait=False)
         if client is not None:
             client.close()
-    report.write(args.out)
+    report.write(out)  # table1.md, runs.csv and scenarios.json together (crtraj.bench.outputs)
     print(
         f"wall time {time.perf_counter() - t0:.0f} s; load average {os.getloadavg()[0]:.1f} at the end; "
         f"files in {args.out}\n"
     )
+    _print_stats(report, planners, counts)
+    if "cspace" not in planners:
+        return
+    _print_targets(report, planners, counts)
+    _print_losses(report, planners, counts)
 
+
+def _print_stats(report: BenchReport, planners: tuple[str, ...], counts: tuple[int, ...]) -> None:
+    """Success, median / p90 / mean time (s), mean length (mm) and rejections per planner and count."""
     print(
         f"{'planner':<18} {'obs':>3} {'success':>8} {'median s':>9} {'p90 s':>8} {'mean s':>8} {'mean mm':>8} "
         f"{'rejected':>8}"
@@ -98,8 +124,9 @@ def main() -> None:
                 f"{s['time_p90']:>8.3f} {s['time_mean']:>8.3f} {s['length_mean']:>8.1f} {s['rejected']:>8d}"
             )
 
-    if "cspace" not in planners:
-        return
+
+def _print_targets(report: BenchReport, planners: tuple[str, ...], counts: tuple[int, ...]) -> None:
+    """The default planner against its targets (issue 5) and the paper's RRT*."""
     print("\ntargets for the default planner (cspace):")
     for c in counts:
         s = report.stats("cspace", c)
@@ -124,6 +151,10 @@ def main() -> None:
                 f"{verdict} (paired ratio {ratio:.2f} on {n} scenes both solved)"
             )
         print(line)
+
+
+def _print_losses(report: BenchReport, planners: tuple[str, ...], counts: tuple[int, ...]) -> None:
+    """Where the default planner loses to an OMPL planner (success, median time, paired path length)."""
     print("\nwhere the default planner loses to an OMPL planner (success, median time, paired path length):")
     lost = False
     for p in ("ompl-rrtstar", "ompl-rrtconnect"):
@@ -146,4 +177,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except InputError as exc:  # bad flags or outputs: one line, no traceback, nothing written
+        sys.exit(f"table1: error: {exc}")

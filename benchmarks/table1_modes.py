@@ -5,8 +5,9 @@ paper's check: ten collision points at 1-s step ends, `crtraj.planning.paper_che
 and rrt, rrtstar, cspace, ompl-rrtconnect, ompl-rrtstar with the strict check.
 Every run is judged by both checks (`crtraj.bench.runner.judge`). Runs go
 index-major (scenario 0 of every count and planner, then 1, ...), each row is
-appended to OUT/runs.csv the moment it finishes, and a rerun skips the rows
-already there, so an interrupted run loses nothing and can be continued.
+appended to OUT/runs.csv.partial the moment it finishes and OUT/runs.csv is
+replaced by all rows at the end, and a rerun skips the rows already there, so
+an interrupted run loses nothing and can be continued.
 Afterwards `crtraj bench modes OUT` writes the tables, plots and OMPL logs.
 
 `--min-tip-distance MM` draws start and goal tips at least that far apart (default 150 mm, the generator's)
@@ -22,10 +23,10 @@ from __future__ import annotations
 
 import argparse
 import concurrent.futures as cf
-import math
 import multiprocessing
 import os
 import platform
+import sys
 import time
 from dataclasses import replace
 from datetime import datetime, timezone
@@ -33,17 +34,21 @@ from pathlib import Path
 
 import numpy as np
 
+from crtraj.app.bench import TABLE1_FILES
 from crtraj.bench.paper_mode import PAPER_SCENES
 from crtraj.bench.records import BenchOptions
-from crtraj.bench.runlog import RunLog, read_runs
+from crtraj.bench.runlog import RunLog, csv_text, read_runs
 from crtraj.bench.runner import Table1Bench
+from crtraj.core.errors import InputError
+from crtraj.core.fields import MAX_LENGTH, read_int, read_number
+from crtraj.core.fileio import atomic_write_text, check_output_file
 from crtraj.io.problem import load_robot
 
 ROOT = Path(__file__).resolve().parent.parent
 PLANNERS = ("rrt-paper", "rrtstar-paper", "rrt", "rrtstar", "cspace", "ompl-rrtconnect", "ompl-rrtstar")
 
 
-def main() -> None:
+def _args() -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scenarios", type=int, default=100)
     ap.add_argument("--counts", default="1,3,5,7")
@@ -57,9 +62,40 @@ def main() -> None:
     box = ",".join(f"{v:g}" for v in (*PAPER_SCENES.tip_box_lo, *PAPER_SCENES.tip_box_hi))
     ap.add_argument("--tip-box", default=box, help="x0,y0,z0,x1,y1,z1 (mm): where start and goal tips are drawn")
     args = ap.parse_args()
+    try:
+        lo_hi = tuple(read_number(v, "--tip-box", limit=MAX_LENGTH) for v in args.tip_box.split(","))
+    except InputError:
+        lo_hi = ()
+    if len(lo_hi) != 6:
+        ap.error(f"--tip-box: expected 6 numbers x0,y0,z0,x1,y1,z1 (mm), got {args.tip_box!r}")
+    args.tip_box_lo_hi = lo_hi
+    return args
 
+
+def _resume(final: Path, live: Path) -> RunLog:
+    """The live log of this leg, continuing the rows already done.
+
+    Rows are appended the moment each run finishes (an interrupted run loses nothing and is resumed), but
+    to `live` (runs.csv.partial), never to runs.csv itself: runs.csv is replaced in one rename at the end
+    (`_publish`), so no reader ever sees a torn row there, and a runs.csv that does not read back as
+    crtraj's runs log (`read_runs`) is refused here, never appended to or replaced.
+    """
+    done = read_runs(final) if final.exists() else []
+    if not live.exists() and done:
+        atomic_write_text(live, csv_text(done))  # the live log starts from the finished legs
+    return RunLog(live)  # cuts a row torn by a killed leg
+
+
+def _publish(final: Path, live: Path) -> None:
+    """runs.csv := every row of the live log (one rename); the live log is then removed."""
+    atomic_write_text(final, csv_text(read_runs(live)))
+    live.unlink()
+
+
+def main() -> None:
+    args = _args()
     planners = tuple(p.strip() for p in args.planners.split(",") if p.strip())
-    counts = tuple(int(c) for c in args.counts.split(","))
+    counts = tuple(read_int(c, "--counts", ge=0, le=10**6) for c in args.counts.split(","))
     robot = load_robot(ROOT / "problems" / "robots" / "cdsr2.toml")
     opts = BenchOptions(
         counts=counts,
@@ -69,22 +105,15 @@ def main() -> None:
         seed=args.seed,
         cpu_budget=not args.wall_budget,
     )
-    try:
-        lo_hi = tuple(float(v) for v in args.tip_box.split(","))
-    except ValueError:
-        lo_hi = ()
-    if len(lo_hi) != 6 or not all(math.isfinite(v) for v in lo_hi):
-        ap.error(f"--tip-box: expected 6 numbers x0,y0,z0,x1,y1,z1 (mm), got {args.tip_box!r}")
+    lo_hi = args.tip_box_lo_hi
     scenes = replace(PAPER_SCENES, min_tip_distance=args.min_tip_distance, tip_box_lo=lo_hi[:3], tip_box_hi=lo_hi[3:])
     bench = Table1Bench(robot, opts, scenario_options=scenes)
     out = Path(args.out)
-    log_path = out / "runs.csv"
-    done = (
-        frozenset((r.planner, r.n_obstacles, r.index) for r in read_runs(log_path))
-        if log_path.exists()
-        else frozenset()
-    )
-    log = RunLog(log_path)
+    log_path, live = out / "runs.csv", out / "runs.csv.partial"
+    for p in (log_path, live, *(out / "single" / n for n in TABLE1_FILES)):
+        check_output_file(p, "--out")
+    log = _resume(log_path, live)
+    done = frozenset((r.planner, r.n_obstacles, r.index) for r in read_runs(live))
     executor = cf.ProcessPoolExecutor(
         args.workers,
         mp_context=multiprocessing.get_context("spawn"),
@@ -106,6 +135,7 @@ def main() -> None:
     finally:
         executor.shutdown(wait=False, cancel_futures=True)
         log.close()
+        _publish(log_path, live)
     if report.records:  # a rerun that finds every row done keeps the last leg's report
         report.write(out / "single")
     print(
@@ -140,4 +170,7 @@ def length_summary(bench: Table1Bench, rows: list) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except InputError as exc:  # bad flags, a runs.csv that is not crtraj's: one line, no traceback
+        sys.exit(f"table1_modes: error: {exc}")

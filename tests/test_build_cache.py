@@ -3,6 +3,7 @@ entries detected and rebuilt (never loaded), atomic builds, the no-compiler path
 
 from __future__ import annotations
 
+import hashlib
 import io
 import json
 import os
@@ -17,7 +18,7 @@ from conftest import require_tool
 
 from crtraj.core.build_cache import MANIFEST, BuildCache, BuildKey, default_root, find_compiler
 from crtraj.core.fileio import MARKER
-from crtraj.model.codegen import compiled_functions
+from crtraj.model.codegen import codegen_builder, compiled_functions
 
 # A stand-in compiler for the cache's own logic: the cache only records its identity; the build steps
 # below write their "library" bytes themselves.
@@ -254,3 +255,51 @@ def test_list_shows_unreadable_manifests(tmp_path):
     assert len(states) == 2 and all(s.startswith("unreadable manifest: ") for s in states)
     assert any("regular file" in s for s in states), states
     assert cache.clear() == 2 and cache.entries() == []
+
+
+def _norm_functions(calls: list[int]):
+    x = ca.SX.sym("x", 3)
+
+    def make():
+        calls.append(1)
+        return [ca.Function("bc_norm", [x], [ca.sqrt(ca.sumsqr(x)) + ca.sin(x[0])])]
+
+    return make
+
+
+def test_a_corrupt_compiled_library_whose_hash_matches_is_rebuilt_once_and_works(tmp_path):
+    """A cached library replaced by junk, its manifest hash updated to match (so it verifies), fails to load:
+    compiled_functions rebuilds it once and the rebuilt functions evaluate like the CasADi graph."""
+    cc = require_tool("cc", "gcc")
+    calls: list[int] = []
+    key = BuildKey("bc_corrupt", {"v": 1})
+    # built, never loaded in this process (a library loaded here must not be rewritten under it)
+    lib = BuildCache(tmp_path, compiler=cc).library(key, codegen_builder(_norm_functions(calls), key.name))
+    junk = b"\x7fELF" + b"\x00" * 60
+    lib.unlink()
+    lib.write_bytes(junk)
+    man = json.loads((lib.parent / MANIFEST).read_text())
+    man.update(size=len(junk), sha256=hashlib.sha256(junk).hexdigest())
+    (lib.parent / MANIFEST).write_text(json.dumps(man))
+    cache = BuildCache(tmp_path, compiler=cc)
+    assert cache.lookup(key) == lib  # it passes the hash check
+    f = compiled_functions(cache, key, ["bc_norm"], _norm_functions(calls))["bc_norm"]
+    v = np.array([0.3, -1.2, 2.5])
+    assert abs(float(f(v)) - (np.linalg.norm(v) + np.sin(v[0]))) < 1e-12
+    assert cache.builds == 1 and len(calls) == 2
+    assert cache.lookup(key) is not None and cache.lookup(key).read_bytes() != junk
+
+
+def test_a_compiled_library_that_does_not_load_after_its_rebuild_is_reported_in_one_line(tmp_path):
+    """A compiler whose output never loads: built, rebuilt once, then one RuntimeError line naming the entry."""
+    fake = tmp_path / "fake-cc"
+    fake.write_text('#!/bin/sh\nwhile [ $# -gt 0 ]; do [ "$1" = "-o" ] && printf "not a library" > "$2"; shift; done\n')
+    fake.chmod(0o755)
+    calls: list[int] = []
+    cache = BuildCache(tmp_path / "cache", compiler=str(fake))
+    key = BuildKey("bc_junk", {"v": 1})
+    with pytest.raises(RuntimeError) as info:
+        compiled_functions(cache, key, ["bc_norm"], _norm_functions(calls))
+    msg = str(info.value)
+    assert "\n" not in msg and "rebuilt library does not load" in msg and str(cache.entry_dir(key)) in msg
+    assert cache.builds == 2 and len(calls) == 2

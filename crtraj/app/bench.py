@@ -9,6 +9,7 @@ import math
 import multiprocessing
 import os
 import platform
+import re
 from collections.abc import Callable
 from dataclasses import replace
 from datetime import datetime, timezone
@@ -20,8 +21,9 @@ import numpy as np
 from crtraj import __version__
 from crtraj.app.suite import run_suite
 from crtraj.bench import modes
-from crtraj.bench.figures import write_figures
-from crtraj.bench.ompl_log import write_logs
+from crtraj.bench.figures import figure_files
+from crtraj.bench.ompl_log import LogSetup, log_files
+from crtraj.bench.outputs import OutputSet
 from crtraj.bench.paper_mode import CHECK_MODES, PAPER_ROWS, PAPER_SCENES, STRICT_ROWS
 from crtraj.bench.records import LABELS, PLANNERS, BenchOptions, _fmt, _pct
 from crtraj.bench.runlog import read_runs
@@ -29,7 +31,7 @@ from crtraj.bench.runner import Table1Bench
 from crtraj.bench.scenarios import ScenarioGenerator, ScenarioOptions
 from crtraj.core.errors import InputError
 from crtraj.core.fields import Table, read_int
-from crtraj.core.fileio import atomic_write_text, check_outputs_not_inputs, read_toml
+from crtraj.core.fileio import check_output_dir, check_output_file, check_outputs_not_inputs, read_toml
 from crtraj.io.problem import load_robot
 from crtraj.model.kinematics import Model
 from crtraj.planning.options import PlannerOptions
@@ -40,6 +42,10 @@ log = logging.getLogger(__name__)
 # What table1 writes into --out (`crtraj.bench.report.Table1Report.write`) and modes (`run_modes`).
 TABLE1_FILES = ("table1.md", "runs.csv", "scenarios.json")
 MODES_FILES = ("table1-modes.md", "success.png", "time_cdf.png", "length.png")
+# modes' OMPL logs: a folder of their own, replaced as a whole; its crtraj marker kind and its files' names
+OMPL_DIR = "ompl"
+OMPL_MARKER = "bench-ompl-logs"
+_LOG_NAME = re.compile(r"table1-[a-z]+-[0-9]+obs\.log")
 
 
 def _int(text: str, name: str) -> int:
@@ -48,8 +54,11 @@ def _int(text: str, name: str) -> int:
 
 
 def _check_outputs(out: Path, names: tuple[str, ...], inputs: dict[str, Any]) -> None:
-    """No file the command writes into `out` may be one of its inputs (one line naming both flags)."""
+    """Before any work: no file the command writes into `out` may be one of its inputs, and each must be
+    writable (one line naming the flag)."""
     check_outputs_not_inputs({f"--out ({n})": out / n for n in names}, inputs)
+    for n in names:
+        check_output_file(out / n, f"--out ({n})")
 
 
 def _parse_list(text: str, name: str, conv: Callable[[str], Any]) -> tuple[Any, ...]:
@@ -163,7 +172,11 @@ def run_modes(args: Any) -> int:
         raise InputError("--runs: give the runs.csv file(s) of `crtraj bench table1` runs, comma-separated")
     runs = _parse_list(args.runs, "--runs", str)
     out = Path(args.out or "docs/table1")
-    _check_outputs(out, MODES_FILES, {"--robot": args.robot, **{f"--runs ({r})": r for r in runs}})
+    ompl = out / OMPL_DIR
+    inputs = {"--robot": args.robot, **{f"--runs ({r})": r for r in runs}}
+    _check_outputs(out, MODES_FILES, inputs)
+    check_outputs_not_inputs({f"--out ({OMPL_DIR})": ompl}, inputs)
+    check_output_dir(ompl, f"--out ({OMPL_DIR})", _ompl_replaceable(ompl), OMPL_MARKER)
     records = [r for path in runs for r in read_runs(path)]
     if not records:
         raise InputError(f"--runs: no runs in {args.runs}")
@@ -175,25 +188,38 @@ def run_modes(args: Any) -> int:
         f"logical CPUs). Largest time per run (wall s) by planner: {limits}.\n\n{args.note or ''}"
     )
     rows = {"paper": PAPER_ROWS, "strict": STRICT_ROWS}
-    # the scenarios' straight start-to-goal distances, regenerated from their seeds (for the detour column)
+    outputs = OutputSet()
+    outputs.file(out / "table1-modes.md", modes.markdown(records, counts, header, _straight(records, args)))
+    for name, data in figure_files(records, rows, counts).items():
+        outputs.file(out / name, data)
+    setup = LogSetup(time_limit=5.0 if args.time_limit is None else args.time_limit, setup=header)
+    logs = log_files(records, rows, counts, setup)
+    outputs.folder(ompl, logs, marker=OMPL_MARKER, replaceable=_ompl_replaceable(ompl))
+    files = outputs.commit()
+    print(f"wrote {len(files)} files in {out}: " + ", ".join(f.name for f in files))
+    return 0
+
+
+def _ompl_replaceable(folder: Path) -> frozenset[str]:
+    """The names an existing DIR/ompl without crtraj's marker may hold and still be replaced: OMPL logs as
+    crtraj names them (`crtraj.bench.ompl_log.log_files`; versions before the marker wrote none)."""
+    try:
+        names = os.listdir(folder) if folder.is_dir() else []
+    except OSError:
+        return frozenset()
+    return frozenset(n for n in names if _LOG_NAME.fullmatch(n))
+
+
+def _straight(records: list[Any], args: Any) -> dict[tuple[int, int], float]:
+    """The scenarios' straight start-to-goal tip distances (mm), regenerated from their seeds (the detour
+    column)."""
     bounds = replace(PAPER_SCENES if args.scenes == "paper" else ScenarioOptions(), seed=args.seed)
     gen = ScenarioGenerator(Model(load_robot(args.robot)), bounds)
     straight = {}
     for c, i in sorted({(r.n_obstacles, r.index) for r in records}):
         sc = gen.generate(c, i)
         straight[(c, i)] = float(np.linalg.norm(sc.goal - sc.start_tip))
-    files = [atomic_write_text(out / "table1-modes.md", modes.markdown(records, counts, header, straight))]
-    files += write_figures(records, out, rows, counts)
-    files += write_logs(
-        records,
-        out / "ompl",
-        rows,
-        counts,
-        time_limit=5.0 if args.time_limit is None else args.time_limit,
-        setup=header,
-    )
-    print(f"wrote {len(files)} files in {out}: " + ", ".join(f.name for f in files))
-    return 0
+    return straight
 
 
 def _limits(records: list[Any]) -> dict[str, str]:

@@ -3,6 +3,10 @@
 The scene's obstacles are sampled from their own time functions (`crtraj.world.replay.FeedReplay`), with
 noise, latency, jitter and dropped messages, and sent to a `crtraj replan --feed` listener on 127.0.0.1.
 Units: mm, s, Hz.
+
+Inputs: the problem file (`crtraj.io.problem.Problem.load`: every number of its scene through the bounded
+field reader, `crtraj.core.fields`) and the flags (`ReplayOptions`: finite, within each option's bounds).
+A bad value is one error line naming it, before anything is sent. The command writes no files.
 """
 
 from __future__ import annotations

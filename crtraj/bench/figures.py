@@ -17,8 +17,8 @@ from typing import Any
 import numpy as np
 
 from crtraj.bench.modes import PAPER_OF, cell, label, mean_interval, wilson
+from crtraj.bench.outputs import OutputSet
 from crtraj.bench.records import PAPER_COUNTS, PAPER_TABLE1, RunRecord
-from crtraj.core.fileio import atomic_write_bytes
 
 
 def _pyplot() -> Any:
@@ -124,16 +124,25 @@ def length_plot(records: Sequence[RunRecord], rows: dict[str, Sequence[str]], co
     return data
 
 
+def figure_files(
+    records: Sequence[RunRecord], rows: dict[str, Sequence[str]], counts: Sequence[int]
+) -> dict[str, bytes]:
+    """{file name: PNG bytes} of success.png, time_cdf.png and length.png (nothing written)."""
+    return {
+        "success.png": success_plot(records, rows, counts),
+        "time_cdf.png": time_cdf_plot(records, rows),
+        "length.png": length_plot(records, rows, counts),
+    }
+
+
 def write_figures(
     records: Sequence[RunRecord],
     out_dir: str | os.PathLike[str],
     rows: dict[str, Sequence[str]],
     counts: Sequence[int],
 ) -> list[Path]:
-    """success.png, time_cdf.png and length.png in out_dir (atomically)."""
-    d = Path(out_dir)
-    return [
-        atomic_write_bytes(d / "success.png", success_plot(records, rows, counts)),
-        atomic_write_bytes(d / "time_cdf.png", time_cdf_plot(records, rows)),
-        atomic_write_bytes(d / "length.png", length_plot(records, rows, counts)),
-    ]
+    """success.png, time_cdf.png and length.png in out_dir (all together, `OutputSet`)."""
+    out = OutputSet()
+    for name, data in figure_files(records, rows, counts).items():
+        out.file(Path(out_dir) / name, data)
+    return out.commit()

@@ -54,12 +54,13 @@ import math
 import os
 import platform
 from collections.abc import Sequence
+from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 
 from crtraj import __version__
+from crtraj.bench.outputs import OutputSet
 from crtraj.bench.records import RunRecord
-from crtraj.core.fileio import atomic_write_text
 
 # (property name, OMPL type, value of a record)
 _PROPERTIES = (
@@ -163,6 +164,37 @@ def log_text(
     return text
 
 
+@dataclass(frozen=True)
+class LogSetup:
+    """What every log of a run states besides its runs: time_limit (s per run), setup (free text) and seed."""
+
+    time_limit: float
+    setup: str
+    seed: int = 0
+
+
+def log_files(
+    records: Sequence[RunRecord], modes: dict[str, Sequence[str]], counts: Sequence[int], setup: LogSetup
+) -> dict[str, str]:
+    """{file name: log text}: one log per (mode, obstacle count), ``table1-<mode>-<count>obs.log``."""
+    files = {}
+    for mode, planners in modes.items():
+        present = [p for p in planners if any(r.planner == p for r in records)]
+        for c in counts:
+            rs = [r for r in records if r.n_obstacles == c]
+            name = f"table1-{mode}-{c}obs"
+            files[f"{name}.log"] = log_text(
+                rs,
+                present,
+                experiment=name,
+                mode=mode,
+                time_limit=setup.time_limit,
+                setup=setup.setup,
+                seed=setup.seed,
+            )
+    return files
+
+
 def write_logs(
     records: Sequence[RunRecord],
     out_dir: str | os.PathLike[str],
@@ -173,13 +205,8 @@ def write_logs(
     setup: str,
     seed: int = 0,
 ) -> list[Path]:
-    """One log per (mode, obstacle count): OUT/table1-<mode>-<count>obs.log (written atomically)."""
-    files = []
-    for mode, planners in modes.items():
-        present = [p for p in planners if any(r.planner == p for r in records)]
-        for c in counts:
-            rs = [r for r in records if r.n_obstacles == c]
-            name = f"table1-{mode}-{c}obs"
-            text = log_text(rs, present, experiment=name, mode=mode, time_limit=time_limit, setup=setup, seed=seed)
-            files.append(atomic_write_text(Path(out_dir) / f"{name}.log", text))
-    return files
+    """One log per (mode, obstacle count): OUT/table1-<mode>-<count>obs.log (all together, `OutputSet`)."""
+    out = OutputSet()
+    for name, text in log_files(records, modes, counts, LogSetup(time_limit, setup, seed)).items():
+        out.file(Path(out_dir) / name, text)
+    return out.commit()

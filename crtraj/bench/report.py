@@ -11,10 +11,11 @@ from pathlib import Path
 import numpy as np
 
 from crtraj import __version__
+from crtraj.bench.outputs import OutputSet
 from crtraj.bench.records import LABELS, PAPER_COUNTS, PAPER_TABLE1, BenchOptions, RunRecord, _fmt, _pct
 from crtraj.bench.runlog import csv_text
 from crtraj.bench.scenarios import Scenario, ScenarioOptions
-from crtraj.core.fileio import atomic_write_json, atomic_write_text
+from crtraj.core.fileio import json_document, to_jsonable
 from crtraj.planning.options import PlannerOptions
 
 
@@ -192,25 +193,26 @@ class BenchReport:
     def csv_text(self) -> str:
         return csv_text(self.records)
 
-    def write(self, out_dir: str | os.PathLike[str]) -> list[Path]:
-        """Write table1.md, runs.csv and scenarios.json into out_dir (atomically)."""
+    def outputs(self, out_dir: str | os.PathLike[str]) -> OutputSet:
+        """table1.md, runs.csv and scenarios.json in out_dir, not yet written (`OutputSet.commit`)."""
         d = Path(out_dir)
-        files = [
-            atomic_write_text(d / "table1.md", self.markdown()),
-            atomic_write_text(d / "runs.csv", self.csv_text()),
-            atomic_write_json(
-                d / "scenarios.json",
-                {
-                    "crtraj_version": __version__,
-                    "created": self.created,
-                    "bench": self.options.to_dict(),
-                    "generator": self.scenario_options.to_dict(),
-                    "planner": self.planner_options.to_dict(),
-                    "scenarios": [s.to_dict() for s in self.scenarios],
-                },
-            ),
-        ]
-        return files
+        out = OutputSet()
+        out.file(d / "table1.md", self.markdown())
+        out.file(d / "runs.csv", self.csv_text())
+        scenarios = {
+            "crtraj_version": __version__,
+            "created": self.created,
+            "bench": self.options.to_dict(),
+            "generator": self.scenario_options.to_dict(),
+            "planner": self.planner_options.to_dict(),
+            "scenarios": [s.to_dict() for s in self.scenarios],
+        }
+        out.file(d / "scenarios.json", json_document(to_jsonable(scenarios)))
+        return out
+
+    def write(self, out_dir: str | os.PathLike[str]) -> list[Path]:
+        """Write table1.md, runs.csv and scenarios.json into out_dir, all together or none (`OutputSet`)."""
+        return self.outputs(out_dir).commit()
 
 
 def _paper(paper_cols: dict[int, int], planner: str, key: str, count: int) -> float:

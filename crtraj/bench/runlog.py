@@ -19,11 +19,14 @@ from typing import Any
 
 from crtraj.bench.records import RunRecord
 from crtraj.core.errors import InputError
+from crtraj.core.fields import read_int, read_number
 from crtraj.core.fileio import read_text
 
 # Most rows and bytes read back (a full table is 100 scenarios x 4 counts x 7 planners = 2800 rows, ~1 MB).
 MAX_ROWS = 200_000
 MAX_BYTES = 256 * 1024 * 1024
+# Largest integer cell (counts, indices, seeds, graph sizes): every value an exact float holds.
+MAX_INT = 2**53
 
 
 def record_row(r: RunRecord) -> dict[str, Any]:
@@ -45,12 +48,45 @@ def csv_text(records: list[RunRecord]) -> str:
     return buf.getvalue()
 
 
+def _check_ours(path: Path) -> None:
+    """An existing log is appended to only when it is one crtraj wrote: a regular file that is empty or
+    starts with this version's runs.csv header; anything else is one `InputError` line, left untouched."""
+    if not os.path.lexists(path):
+        return
+    if path.is_symlink() or not path.is_file():
+        raise InputError(f"{path}: not a regular file; give a runs log crtraj wrote, or a new name")
+    with open(path, "rb") as fh:
+        first = fh.readline(64 * 1024)
+    if first and first.rstrip(b"\r\n") != ",".join(RunRecord.fields()).encode("ascii"):
+        raise InputError(f"{path}: its first line is not the runs.csv header of this crtraj; not appended to")
+
+
+def _drop_torn_row(path: Path) -> None:
+    """Cut a log that does not end in a newline back to its last complete line: the process writing it was
+    killed in the middle of a row, and a resumed log must read back (`read_runs`)."""
+    if not path.is_file() or path.stat().st_size == 0:
+        return
+    with open(path, "rb+") as fh:
+        fh.seek(-1, os.SEEK_END)
+        if fh.read(1) == b"\n":
+            return
+        fh.seek(0)
+        data = fh.read()
+        fh.truncate(data.rfind(b"\n") + 1)
+
+
 class RunLog:
-    """Appends records to a CSV file, one flushed line each (the header first when the file is new)."""
+    """Appends records to a CSV file, one flushed line each (the header first when the file is new).
+
+    An existing file must be a runs log crtraj wrote (`InputError` otherwise, the file untouched); one left
+    with a torn last row by a killed run is first cut back to its last complete row.
+    """
 
     def __init__(self, path: str | os.PathLike[str]) -> None:
         self.path = Path(path)
+        _check_ours(self.path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        _drop_torn_row(self.path)
         new = not self.path.exists() or self.path.stat().st_size == 0
         self._f = open(self.path, "a", newline="", encoding="utf-8")  # noqa: SIM115 (held open for the run)
         self._w = csv.DictWriter(self._f, fieldnames=RunRecord.fields(), lineterminator="\n")
@@ -67,20 +103,17 @@ class RunLog:
 
 
 def _cell(kind: Any, text: str, where: str) -> Any:
+    """One cell as its field's type, through the bounded readers (`read_int`, `read_number`): a 400-digit
+    integer, 1e300, NaN or other scripts' digits are one `InputError` line naming `where` (row and column).
+    An empty float cell is NaN: the writer's spelling of a value that was not measured (`record_row`)."""
     if kind is bool or kind == "bool":
         if text not in ("True", "False"):
             raise InputError(f"{where}: expected True or False, got {text!r:.40}")
         return text == "True"
     if kind is int or kind == "int":
-        try:
-            return int(text)
-        except ValueError:
-            raise InputError(f"{where}: expected an integer, got {text!r:.40}") from None
+        return read_int(text, where, ge=0, le=MAX_INT)
     if kind is float or kind == "float":
-        try:
-            return float(text) if text else float("nan")
-        except ValueError:
-            raise InputError(f"{where}: expected a number, got {text!r:.40}") from None
+        return read_number(text, where) if text else float("nan")
     return text
 
 

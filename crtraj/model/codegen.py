@@ -9,6 +9,7 @@ same CasADi interface. `compiled_functions` does both: cached, or built, or None
 
 from __future__ import annotations
 
+import ctypes
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -38,8 +39,23 @@ def codegen_builder(
 
 
 def load_functions(library: Path, names: Sequence[str]) -> dict[str, ca.Function]:
-    """The functions `names` of a compiled library, as ``casadi.external`` Functions."""
-    return {n: ca.external(n, str(library)) for n in names}
+    """The functions `names` of a compiled library, as ``casadi.external`` Functions.
+
+    A library that does not load (not a shared object, truncated, a missing function) raises OSError with
+    a short reason: the error `BuildCache.load` rebuilds on (CasADi's own is a many-line RuntimeError).
+    """
+    ctypes.CDLL(str(library))  # OSError with dlopen's one-line reason ("<path>: invalid ELF header") first
+    try:
+        return {n: ca.external(n, str(library)) for n in names}
+    except RuntimeError as exc:
+        raise OSError(f"{library.name}: {_reason(exc)}") from None
+
+
+def _reason(exc: BaseException) -> str:
+    """The last non-empty line of an error's first paragraph, at most 200 characters (CasADi's errors
+    carry a source location and a search-path listing around the reason)."""
+    lines = [ln.strip() for ln in str(exc).split("\n\n")[0].splitlines() if ln.strip()]
+    return (lines[-1] if lines else type(exc).__name__)[:200]
 
 
 def compiled_functions(
@@ -49,7 +65,9 @@ def compiled_functions(
     a compiler.
 
     `make` builds the CasADi graphs; it runs only when the library must be built, never on a hit, so a
-    cached start-up does not pay for the symbolic construction.
+    cached start-up does not pay for the symbolic construction. A cached library that passes the hash
+    check but does not load is rebuilt once (`BuildCache.load`); when the rebuilt one does not load either,
+    RuntimeError says so in one line.
     """
 
     def checked() -> Sequence[ca.Function]:
@@ -59,5 +77,4 @@ def compiled_functions(
             raise RuntimeError(f"build of {key.name}: made functions {got}, expected {sorted(names)}")
         return funcs
 
-    lib = cache.library(key, codegen_builder(checked, key.name))
-    return None if lib is None else load_functions(lib, names)
+    return cache.load(key, codegen_builder(checked, key.name), lambda lib: load_functions(lib, names))
