@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from crtraj.core.errors import InputError
-from crtraj.core.fields import MAX_LENGTH, check_float
+from crtraj.core.fields import MAX_LENGTH, check_float, read_number
 
 # Marker coordinates (mm): a kilometre.
 POSITION_LIMIT = MAX_LENGTH
@@ -32,15 +32,9 @@ def number(v: Any, name: str, limit: float) -> float:
 
 
 def text_number(s: str, name: str, limit: float) -> float:
-    """A number written as text (a CSV field), bounded like `number`."""
-    text = s.strip()
-    if len(text) > 64:  # no plain number is this long: a 400-digit integer is refused here, by name
-        raise InputError(f"{name}: expected a number, got a field of {len(text)} characters")
-    try:
-        v = float(text)
-    except ValueError:
-        raise InputError(f"{name}: expected a number, got {text[:40]!r}") from None
-    return check_float(v, name, limit=limit)
+    """A number written as text (a CSV field), bounded like `number`: the core reader
+    (`crtraj.core.fields.read_number`), which also refuses other scripts' digits, ``_`` and 400-digit integers."""
+    return read_number(s, name, limit=limit)
 
 
 def _plain_numbers(v: Any) -> bool:
