@@ -8,11 +8,13 @@ file that existed before byte-identical (the harness of `test_fuzz`).
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import os
 import random
 
+import numpy as np
 import pytest
 from test_fuzz import (
     CASES,
@@ -31,6 +33,8 @@ from test_fuzz import (
 
 from crtraj import cli
 from crtraj.hardware.actuators import Actuators
+from crtraj.io.problem import load_robot
+from crtraj.model.calibration import Hardware, paper_markers, simulate_markers
 
 _UNICODE_DIGITS = ["\u0661\u0662", "\u00b2", "\uff11\uff12", "\u07c1", "1\u0662"]
 _HOSTILE = [10**400, -(10**400), 1e300, -1e300, math.nan, math.inf]
@@ -63,7 +67,17 @@ def _log_lines(names: list[str]) -> list[dict]:
     return [{"type": "header", "names": names}, *tx]
 
 
-_MARKER_ROWS = [(0.05 + 0.1 * k, m, (1.0 * k, 2.0, 100.0 + k)) for k in range(19) for m in ("base", "tip1", "tip")]
+@functools.cache
+def _marker_rows() -> list[tuple]:
+    """The paper's three markers where the nominal robot puts them (capture frame = robot frame, no noise) at the
+    log's values interpolated to the marker times, so the unmutated join passes `record`'s unit check."""
+    robot = load_robot(ROOT / "problems" / "robots" / "cdsr2.toml")
+    act = Actuators.from_robot(robot)
+    t = np.array([0.05 + 0.1 * k for k in range(19)])
+    values = np.repeat(0.1 * t[:, None], act.n, axis=1)  # the log: 0.01 k at 0.1 k s, every actuator
+    sites = paper_markers(robot.n_segments)
+    m, _ = simulate_markers(robot, Hardware(act.spool_radius, act.sign), act.zero_offset, np.zeros(6), values, sites)
+    return [(float(t[k]), s.name, tuple(float(c) for c in m[k, j])) for k in range(len(t)) for j, s in enumerate(sites)]
 
 
 def _markers_text(rows: list[tuple]) -> str:
@@ -87,10 +101,10 @@ def _hostile_log(rng: random.Random, names: list[str]) -> bytes:
 
 def _hostile_markers(rng: random.Random) -> bytes:
     """The marker CSV with one cell a Unicode-digit number, a 400-digit integer, 1e300 or inf; or random bytes."""
-    text = _markers_text(_MARKER_ROWS)
+    text = _markers_text(_marker_rows())
     if rng.random() < 0.25:
         return _garble(rng, text)
-    rows = [list(r) for r in _MARKER_ROWS]
+    rows = [list(r) for r in _marker_rows()]
     k = rng.randrange(len(rows))
     bad = rng.choice([*_UNICODE_DIGITS, "9" * 400, "1e300", "-inf"])
     if rng.random() < 0.5:
@@ -115,7 +129,7 @@ def test_fuzz_record_and_calibrate_logs_and_marker_files(record_inputs, tmp_path
     outs, robot_file, names = record_inputs
     log, mk = tmp_path / "log.jsonl", tmp_path / "m.csv"
     log.write_text("".join(json.dumps(x) + "\n" for x in _log_lines(names)))
-    mk.write_text(_markers_text(_MARKER_ROWS))
+    mk.write_text(_markers_text(_marker_rows()))
     control = ["record", "--robot", robot_file, "--log", str(log), "--markers", str(mk)]
     rc, err = run_main([*control, "--out", str(tmp_path / "d.json")], capsys)
     assert rc == 0, err  # the control: unmutated, the join works
@@ -123,7 +137,7 @@ def test_fuzz_record_and_calibrate_logs_and_marker_files(record_inputs, tmp_path
     for i in range(CASES):
         if i % 2:
             log.write_bytes(_hostile_log(rng, names))
-            mk.write_text(_markers_text(_MARKER_ROWS))
+            mk.write_text(_markers_text(_marker_rows()))
         else:
             log.write_text("".join(json.dumps(x) + "\n" for x in _log_lines(names)))
             mk.write_bytes(_hostile_markers(rng))
