@@ -170,11 +170,15 @@ class JtcEmulator:
         with self.lock:
             self.commanded.append((now, self._state["p"].copy()))
             self.lock.notify_all()
+        self.publish_state(now)
+        return True
+
+    def publish_state(self, now: float) -> None:
+        """Publish the joints' state (the current command) stamped `now` (s)."""
         js = self._js_type(name=list(self.joints), position=[float(x) for x in self._state["p"]])
         ns = round(now * 1e9)
         js.header.stamp.sec, js.header.stamp.nanosec = ns // 1_000_000_000, ns % 1_000_000_000
         self.js.publish(js)
-        return True
 
     def _adopt(self, msg, now: float) -> None:
         order = [list(msg.joint_names).index(j) for j in self.joints]

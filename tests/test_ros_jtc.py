@@ -148,7 +148,7 @@ def test_a_step_message_replays_the_committed_curve_from_any_arrival(arrival_aft
     committed, now, t = _committed(), 0.031, 0.1
     offsets = 0.02 * np.arange(1, 6)
     vals = committed.state(t)[0] + np.outer(offsets, [0.2, -0.1])
-    vel = np.tile([0.2, -0.1], (5, 1))
+    vel = np.tile([0.2, -0.1], (5, 1))  # the servo model's (the message carries the spline's instead)
     amax = np.array([3.0, 2.0])
     msg = step_message(committed, now, t, (offsets, vals, vel), amax, NAMES)
     assert rejection(msg, NAMES, now, DEFAULT) is None  # ends at rest: the default controller takes it
@@ -157,8 +157,16 @@ def test_a_step_message_replays_the_committed_curve_from_any_arrival(arrival_aft
     cur = executed(msg, arr, p0, v0)
     ts = np.linspace(arr, t, 200)
     assert np.allclose(cur.at(ts)[0], committed.at(ts)[0], atol=1e-12)
-    assert np.allclose(cur.at(t + offsets)[0][:-1], vals[:-1]) and np.allclose(cur.at(t + offsets[:-1])[1], vel[:-1])
-    duration, rest = stop_tail(vals[-1], vel[-1], amax, offsets[0])
+    assert np.allclose(cur.at(t + offsets[:-1])[0], vals[:-1])
+    # the step's segments are one cubic spline: velocity and acceleration continuous at its points, the velocity at
+    # its start the committed curve's, no acceleration at its end
+    e = 1e-7
+    for k in range(len(offsets) - 1):
+        left, right = cur.at(t + offsets[k] - e), cur.at(t + offsets[k] + e)
+        assert np.allclose(left[1], right[1], atol=1e-5) and np.allclose(left[2], right[2], atol=1e-2)
+    assert np.allclose(cur.at(t + e)[1], committed.state(t)[1], atol=1e-5)
+    assert np.allclose(cur.at(t + offsets[-1] - e)[2], 0.0, atol=1e-2)
+    duration, rest = stop_tail(vals[-1], msg.points[-2].velocities, amax, offsets[0])
     assert cur.end == pytest.approx(t + offsets[-1] + duration)
     assert np.allclose(cur.at(cur.end + 1.0)[0], rest) and np.allclose(cur.at(cur.end + 1.0)[1], 0.0)
     tail = np.linspace(t + offsets[-1], cur.end, 50)[1:-1]

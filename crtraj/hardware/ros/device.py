@@ -192,11 +192,11 @@ class RosDevice:
         """Check `msg` sent at loop time `now` as the controller will take and execute it; publish it and make
         its executed curve the committed one when it passes; else the reason."""
         names = tuple(self.node.names)
-        why = jtc.rejection(msg, names, now, self.controller)
+        why = jtc.rejection(msg, names, now, self.controller, epoch=self._origin)
         if why is not None:
             return f"the controller would refuse it: {why}"
         p0, v0 = self._curve.state(now)
-        curve = jtc.executed(msg, now, p0, v0)
+        curve = jtc.executed(msg, now, p0, v0, epoch=self._origin)
         stamps = now + self.spacing * np.arange(math.ceil((curve.end - now) / self.spacing - 1e-9) + 1)
         P, V, _ = curve.at(stamps)
         why = self.verifier.with_scene(self.scene_now()).failure(stamps[1:], P[1:], start=P[0], start_velocity=V[0])
@@ -264,7 +264,7 @@ class RosDevice:
         vel = np.array([p.velocities for p in msg.points])
         self.node.publish_trajectory(self._origin + msg.stamp, tfs, pos, vel)
         p0, v0 = self._curve.state(now)
-        self._curve = self._curve.since(now - 2.0).then(jtc.executed(msg, now, p0, v0))
+        self._curve = self._curve.since(now - 2.0).then(jtc.executed(msg, now, p0, v0, epoch=self._origin))
         self._vel = np.zeros(self.actuators.n)
         self._qc = self.actuators.actuation(self._curve.positions[-1])
         self.holds += 1

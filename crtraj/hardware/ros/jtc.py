@@ -110,8 +110,11 @@ class JtcMessage:
         return cls(tuple(msg.joint_names), seconds(msg.header.stamp), pts)  # type: ignore[attr-defined]
 
 
-def rejection(msg: JtcMessage, joints: tuple[str, ...], now: float, params: JtcParameters) -> str | None:
-    """Why the controller with `joints` refuses `msg` arriving at time `now` (s), or None when it takes it."""
+def rejection(
+    msg: JtcMessage, joints: tuple[str, ...], now: float, params: JtcParameters, epoch: float = 0.0
+) -> str | None:
+    """Why the controller with `joints` refuses `msg` arriving at time `now` (s), or None when it takes it.
+    epoch: the controller's clock reads epoch + t at time t of `msg` and `now` (its stamp 0 is "now")."""
     names = msg.joint_names
     if not names:
         return "empty joint names"
@@ -125,7 +128,7 @@ def rejection(msg: JtcMessage, joints: tuple[str, ...], now: float, params: JtcP
     if not msg.points:
         return "empty trajectory"
     end = msg.stamp + msg.points[-1].time_from_start
-    if msg.stamp != 0.0 and end < now:
+    if msg.stamp + epoch != 0.0 and end < now:
         return f"the trajectory ends in the past ({end:.6f} s < now {now:.6f} s)"
     for k, p in enumerate(msg.points):
         why = _point_rejection(k, p, len(names))
@@ -288,14 +291,15 @@ def executed(
     velocity: np.ndarray | None,
     joints: tuple[str, ...] | None = None,
     acceleration: np.ndarray | None = None,
+    epoch: float = 0.0,
 ) -> Spline:
     """The curve the controller commands from `arrival` (s) on for an accepted `msg`, in the order of
     `joints` (default: the message's order): the point before the trajectory is its state at arrival
     (position, and velocity / acceleration when its state carries them), then the message's points
     at stamp + time_from_start (stamp 0: the arrival). Points already due at arrival are passed over
-    by time: the curve from arrival on is the segment that contains it."""
+    by time: the curve from arrival on is the segment that contains it. epoch: as in `rejection`."""
     order = list(range(len(msg.joint_names))) if joints is None else [msg.joint_names.index(j) for j in joints]
-    start = arrival if msg.stamp == 0.0 else msg.stamp
+    start = arrival if msg.stamp + epoch == 0.0 else msg.stamp
     T = [arrival] + [start + p.time_from_start for p in msg.points]
     P = [np.asarray(position, dtype=float)] + [p.positions[order] for p in msg.points]
     V = [velocity] + [p.velocities[order] if p.velocities.size else None for p in msg.points]

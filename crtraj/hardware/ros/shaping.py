@@ -10,7 +10,8 @@ trajectory lies on the same cubic as the next knot), given the controller's stat
 commanded one (perfect tracking or ``open_loop_control``) with velocities.
 
 Each step's message (`step_message`) is therefore: the committed knots after `now` and before the
-step's start t, the committed state at t, the step's points, and a stop tail: one segment at constant
+step's start t, the committed state at t, the step's points (positions of the servo model, velocities
+of the cubic spline through them: `smooth_velocities`), and a stop tail: one segment at constant
 deceleration (a fraction `TAIL_FRACTION` of each actuator's acceleration limit) ending at rest. So the
 last point has zero velocity (the controller's default refuses anything else), and when the next
 message never comes the robot stops on a curve that was verified with this one.
@@ -49,10 +50,11 @@ def step_message(
     """The message (stamp and times in loop time s) for the step starting at t, sent at loop time `now`:
     the committed knots in (now, t), the committed state at t, the step's points (offsets (N,) s after t,
     values and velocities (N, n)), and the stop tail after the last point."""
-    offsets, values, vel = points
+    offsets, values, _ = points
     keep = (committed.times > now) & (committed.times < t - 1e-9)
     p_t, v_t = committed.state(t)
     spacing = float(offsets[0])
+    vel = smooth_velocities(p_t, v_t, values, spacing)
     duration, rest = stop_tail(values[-1], vel[-1], amax, spacing)
     idx = np.flatnonzero(keep)
     times = np.concatenate([committed.times[keep], [t], t + offsets, [t + offsets[-1] + duration]])
@@ -60,6 +62,28 @@ def step_message(
     V = np.vstack([np.array([_velocity(committed, i) for i in idx]).reshape(-1, P.shape[1]), v_t[None], vel])
     V = np.vstack([V, np.zeros((1, P.shape[1]))])
     return JtcMessage.from_arrays(names, times[0], times - times[0], P, V)
+
+
+def smooth_velocities(p0: np.ndarray, v0: np.ndarray, values: np.ndarray, h: float) -> np.ndarray:
+    """Velocities (N, n) at points `values` (N, n), `h` s apart after (p0, v0), that make the cubic segments
+    through them twice continuously differentiable (the cubic spline: the least squared acceleration through
+    these positions), clamped to v0 at the start and with zero acceleration at the last point."""
+    P = np.vstack([p0[None], values])
+    N = len(values)
+    M = np.zeros((N, N))
+    rhs = np.empty((N, P.shape[1]))
+    for k in range(1, N):  # acceleration continuous at point k: v[k-1] + 4 v[k] + v[k+1] = 3 (p[k+1] - p[k-1]) / h
+        M[k - 1, k - 1] = 4.0
+        if k >= 2:
+            M[k - 1, k - 2] = 1.0
+        M[k - 1, k] = 1.0
+        rhs[k - 1] = 3.0 * (P[k + 1] - P[k - 1]) / h - (v0 if k == 1 else 0.0)
+    # no acceleration at the last point: v[N-1] + 2 v[N] = 3 (p[N] - p[N-1]) / h
+    if N >= 2:
+        M[N - 1, N - 2] = 1.0
+    M[N - 1, N - 1] = 2.0
+    rhs[N - 1] = 3.0 * (P[N] - P[N - 1]) / h - (v0 if N == 1 else 0.0)
+    return np.linalg.solve(M, rhs)
 
 
 def hold_message(committed: Spline, now: float, spacing: float, names: tuple[str, ...]) -> JtcMessage:
