@@ -248,3 +248,31 @@ def test_record_may_not_overwrite_an_input(tmp_path, paper):
     with pytest.raises(InputError, match=r"^--record: .* is also problem"):
         run_ros_bridge(RosBridgeRequest(path, out=tmp_path / "run", record=path))
     assert path.read_text() == before
+
+
+def test_no_controller_subscribed_is_one_line(tmp_path, paper):
+    """Joint states and obstacles arrive, but nothing subscribes to /<controller>/joint_trajectory (the controller
+    is another one): one line naming ros.controller after ros.start_timeout, nothing written."""
+    _, acts, scene, _, start = paper
+    path = _problem(tmp_path, acts, {}, start_timeout=1.0)
+    ros = Problem.load(path).options(RosOptions, "ros")
+    clock = VirtualClock()
+    graphs = []
+
+    def ready(node, feed):
+        g = Graph(
+            ros.with_(controller="other_controller"), list(acts.names), start * si_scale(acts.units), scene, clock
+        )
+        graphs.append(g)
+        g.wait_matched()
+        g.publish_obstacles(0.0)
+        g.jtc.publish_state(0.0)
+
+    req = RosBridgeRequest(path, out=tmp_path / "run", html=False, quiet=True)
+    try:
+        with pytest.raises(InputError, match=r"^ros\.controller: nothing subscribes to /joint_trajectory_controller/"):
+            run_ros_bridge(req, clock=clock, sleep=clock.sleep, ready=ready)
+    finally:
+        for g in graphs:
+            g.close()
+    assert not (tmp_path / "run").exists()
