@@ -469,7 +469,7 @@ def test_close_leaves_no_threads_or_processes(paper):
     assert node.alive
     node.close()
     node.close()  # idempotent
-    assert not node.alive and not node._ctx.ok()
+    assert not node.alive and not node.context_ok
     assert set(threading.enumerate()) <= before
     assert set(_children()) <= children
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from crtraj.hardware.ros.controller import check_parameters
 from crtraj.hardware.ros.jtc import JtcMessage, JtcParameters, Spline, executed, rejection
 from crtraj.hardware.ros.shaping import TAIL_FRACTION, hold_message, step_message, stop_tail
 
@@ -185,3 +186,22 @@ def test_a_hold_keeps_the_committed_curve_or_rests():
     rest = hold_message(committed, 1.0, 0.02, NAMES)
     assert len(rest.points) == 1 and np.all(rest.points[0].velocities == 0.0)
     assert np.allclose(rest.points[0].positions, committed.positions[-1])
+
+
+def test_controller_parameters_that_would_not_execute_the_verified_curve_are_named():
+    """Interpolation other than splines, a commanded joint the controller lacks, and closed-loop control without
+    a velocity state are each refused in one line naming the parameter; the defaults pass."""
+    good = {"joints": ["a", "b"], "interpolation_method": "splines", "state_interfaces": ["position", "velocity"]}
+    params, why = check_parameters("jtc", good, NAMES)
+    assert why == "" and params == JtcParameters()
+    for change, field in (
+        ({"interpolation_method": "none"}, "jtc.interpolation_method"),
+        ({"joints": ["a"]}, "jtc.joints: no b"),
+        ({"state_interfaces": ["position"]}, "jtc.open_loop_control"),
+    ):
+        _, why = check_parameters("jtc", {**good, **change}, NAMES)
+        assert why.startswith(field) and "\n" not in why
+    open_loop = {**good, "state_interfaces": ["position"], "open_loop_control": True}
+    assert check_parameters("jtc", open_loop, NAMES)[1] == ""
+    params, _ = check_parameters("jtc", {**good, "allow_nonzero_velocity_at_trajectory_end": True}, NAMES)
+    assert params.allow_nonzero_velocity_at_trajectory_end

@@ -240,14 +240,17 @@ def _parameter(name: str, value):
     return Parameter(name, Parameter.Type.STRING_ARRAY, list(value))
 
 
-def test_record_may_not_overwrite_an_input(tmp_path, paper):
-    """--record naming the problem file: one line, nothing read from the graph."""
+def test_record_may_not_overwrite_an_input(tmp_path, capsys, paper):
+    """--record naming the problem file: one line from the command line, the file unchanged, nothing written."""
+    from crtraj.cli import main
+
     _, acts, *_ = paper
     path = _problem(tmp_path, acts, {})
     before = path.read_text()
-    with pytest.raises(InputError, match=r"^--record: .* is also problem"):
-        run_ros_bridge(RosBridgeRequest(path, out=tmp_path / "run", record=path))
-    assert path.read_text() == before
+    assert main(["ros-bridge", str(path), "--out", str(tmp_path / "run"), "--record", str(path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--record:" in err[0] and "is also problem" in err[0]
+    assert path.read_text() == before and not (tmp_path / "run").exists()
 
 
 def test_no_controller_subscribed_is_one_line(tmp_path, paper):

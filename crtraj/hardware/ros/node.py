@@ -149,7 +149,13 @@ class RosNode:
 
     @property
     def alive(self) -> bool:
+        """The spin thread runs."""
         return self._thread.is_alive()
+
+    @property
+    def context_ok(self) -> bool:
+        """The node's rclpy context is still up (False after `close`)."""
+        return bool(self._ctx.ok())
 
     # ------------------------------------------------------------- input
     def _reject(self, kind: str, message: str) -> None:
