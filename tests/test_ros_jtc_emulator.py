@@ -79,10 +79,12 @@ class Graph:
         self.thread = threading.Thread(target=self.executor.spin, daemon=True)
         self.thread.start()
         self.scene, self.frame = scene, ros.frame_id
+        self.spheres_sent = 0
         self._spheres = spheres
 
     def publish_obstacles(self, t: float) -> bool:
         self.mk.publish(self._spheres(self.frame, self.scene, t))
+        self.spheres_sent += len(self.scene.obstacles)
         return True
 
     def wait_matched(self) -> None:
@@ -106,10 +108,11 @@ def _run(path: Path, acts, scene, start, tmp_path: Path, joints, record: Path | 
     """`run_ros_bridge` on a virtual clock against the emulated controller: (exit code, the graph)."""
     ros = Problem.load(path).options(RosOptions, "ros")
     clock = VirtualClock()
-    graphs, nodes = [], []
+    graphs, nodes, feeds = [], [], []
 
     def ready(node, feed):
         nodes.append(node)
+        feeds.append(feed)
         g = Graph(ros, joints, start * si_scale(acts.units), scene, clock)
         graphs.append(g)
         g.wait_matched()
@@ -118,10 +121,14 @@ def _run(path: Path, acts, scene, start, tmp_path: Path, joints, record: Path | 
         g.jtc.publish_state(0.0)
 
     def sleep(dt: float) -> None:
-        # the controller takes each message before the clock moves on (as fast as real time)
+        # the controller takes each message before the clock moves on, and the bridge has every obstacle state and
+        # joint state of the time passed before it goes on (as fast as real time): the run never depends on speed
         if graphs and nodes:
             assert graphs[0].jtc.wait_received(nodes[0].published, HANG)
         clock.sleep(dt)
+        if graphs and nodes:
+            assert feeds[0].wait_for(graphs[0].spheres_sent, HANG)
+            assert nodes[0].wait_joint_state(graphs[0].jtc.commanded[-1][0] - 1e-6, HANG) is not None  # stamps: ns
 
     req = RosBridgeRequest(path, out=tmp_path / "run", html=False, quiet=True, record=record)
     try:
