@@ -45,6 +45,9 @@ OPTIONAL = {
     "visualization_msgs",
     "geometry_msgs",
     "builtin_interfaces",
+    "nav_msgs",
+    "rcl_interfaces",
+    "mcap",
     "toppra",
 }
 

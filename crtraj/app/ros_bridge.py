@@ -13,6 +13,7 @@ Units: mm, rad, s.
 from __future__ import annotations
 
 import contextlib
+import logging
 import math
 import sys
 import time
@@ -29,19 +30,26 @@ from crtraj.core.errors import InputError
 from crtraj.core.fileio import (
     StagedDir,
     check_output_dir,
+    check_output_file,
     check_outputs_not_inputs,
     failed_sibling,
     is_successful_result,
 )
 from crtraj.hardware.actuators import Actuators
-from crtraj.hardware.ros.device import RosDevice
+from crtraj.hardware.ros.controller import PARAMETERS, check_parameters
+from crtraj.hardware.ros.device import VERIFY_SUBSTEPS, RosDevice
+from crtraj.hardware.ros.jtc import JtcParameters
 from crtraj.hardware.ros.node import RosNode
 from crtraj.hardware.ros.options import RosOptions
+from crtraj.hardware.ros.record import McapRecorder
 from crtraj.hardware.verify import FrameVerifier
 from crtraj.io.problem import Problem
 from crtraj.io.run_files import RUN_FILES
 from crtraj.world.feed import ObstacleFeed
 from crtraj.world.scene import Scene
+
+log = logging.getLogger(__name__)
+PARAMETER_TIMEOUT = 2.0  # s to wait for the controller's parameter service
 
 
 @dataclass(frozen=True)
@@ -49,7 +57,7 @@ class RosBridgeRequest:
     """One `crtraj ros-bridge` run. problem: problem TOML (its ``[ros]`` section configures the
     bridge). out: run folder (default out/ros-bridge). seed: overrides the problem's. html: write
     run.html. overwrite_failed: a failed run may replace a successful one in out. quiet: print only
-    the summary lines."""
+    the summary lines. record: an MCAP file to log the messages sent and received to."""
 
     problem: Path
     out: Path | None = None
@@ -57,12 +65,20 @@ class RosBridgeRequest:
     html: bool = True
     overwrite_failed: bool = False
     quiet: bool = False
+    record: Path | None = None
 
 
-def _await_robot(node: RosNode, feed: ObstacleFeed, ros: RosOptions) -> None:
-    """Block until the robot's first joint state and a fresh state of every expected obstacle have
-    arrived; `InputError` naming the topic after ``ros.start_timeout`` wall-clock seconds."""
+def _await_robot(node: RosNode, feed: ObstacleFeed, ros: RosOptions) -> JtcParameters:
+    """Block until the robot's first joint state, a subscriber of the trajectory topic and a fresh state of
+    every expected obstacle have arrived; `InputError` naming the field after ``ros.start_timeout``
+    wall-clock seconds. Then the controller's parameters (`_controller_parameters`)."""
     if node.wait_joint_state(-math.inf, ros.start_timeout) is None:
+        if node.seen_names is not None:
+            missing = [j for j in node.names if j not in node.seen_names]
+            raise InputError(
+                f"ros.joints: the robot's joint states name {', '.join(node.seen_names[:20])}, not "
+                f"{', '.join(missing)}; map crtraj's actuators to the robot's joints with [ros.joints]"
+            )
         raise InputError(
             f"ros.joint_state_topic: no sensor_msgs/JointState naming {', '.join(node.names)} on "
             f"{ros.joint_state_topic} within {ros.start_timeout:g} s"
@@ -73,6 +89,46 @@ def _await_robot(node: RosNode, feed: ObstacleFeed, ros: RosOptions) -> None:
     st = feed.latest()
     if st.stale:
         raise InputError(f"ros.obstacle_topic: no obstacle states within {ros.start_timeout:g} s ({st.reason})")
+    if not node.wait_subscribers(ros.start_timeout):
+        raise InputError(
+            f"ros.controller: nothing subscribes to {ros.trajectory_topic_name} within {ros.start_timeout:g} s "
+            f"(is {ros.controller} loaded and active?)"
+        )
+    return _controller_parameters(node, ros)
+
+
+def _controller_parameters(node: RosNode, ros: RosOptions) -> JtcParameters:
+    """The controller's parameters through ``/<controller>/get_parameters`` (`check_parameters`); when the
+    service does not answer, the defaults, and a warning that nothing was checked."""
+    values = node.get_parameters(ros.controller, list(PARAMETERS), min(ros.start_timeout, PARAMETER_TIMEOUT))
+    if values is None:
+        log.warning(
+            "ros: /%s/get_parameters did not answer within %g s: the controller's parameters are NOT checked; "
+            "the bridge assumes the defaults (interpolation_method splines) and open_loop_control: true",
+            ros.controller,
+            min(ros.start_timeout, PARAMETER_TIMEOUT),
+        )
+        return JtcParameters()
+    params, why = check_parameters(ros.controller, values, node.names)
+    if why:
+        raise InputError(why)
+    log.info("ros: %s parameters checked: %s", ros.controller, values)
+    return params
+
+
+def _recorder(req: RosBridgeRequest, problem: Problem, acts: Actuators, ros: RosOptions) -> McapRecorder | None:
+    """The MCAP recorder of ``--record`` (None without it), after the checks that need no ROS graph: the
+    file is not an input, and every actuator in ``[ros.joints]`` is one of the robot's."""
+    unknown = [a for a, _ in ros.joints if a not in acts.names]
+    if unknown:
+        raise InputError(f"ros.joints.{unknown[0]}: not an actuator of the robot ({', '.join(acts.names)})")
+    if req.record is None:
+        return None
+    robot = problem.raw.get("robot")
+    robot_file = Path(req.problem).parent / robot if isinstance(robot, str) else None
+    check_outputs_not_inputs({"--record": req.record, "--out": req.out}, {"problem": req.problem, "robot": robot_file})
+    check_output_file(req.record, "--record")
+    return McapRecorder(req.record)
 
 
 def _plan_first(loop: Any, node: RosNode, acts: Actuators) -> None:
@@ -83,14 +139,6 @@ def _plan_first(loop: Any, node: RosNode, acts: Actuators) -> None:
     scene, _ = loop.obstacles.at(0.0)
     if st is not None and scene is not None:
         loop.initial_reference = loop.reference_source(loop.servo.config(acts.actuation(st[0])), 0.0, scene)
-
-
-@dataclass(frozen=True)
-class _Pacing:
-    """The bridge's time (s) and pacing; None: the ROS clock (the system time) and `time.sleep`."""
-
-    clock: Callable[[], float] | None = None
-    sleep: Callable[[float], None] | None = None
 
 
 def run_ros_bridge(
@@ -115,45 +163,75 @@ def run_ros_bridge(
     if problem.robot.actuators is None:
         raise InputError("robot.actuators: ros-bridge needs a [robot.actuators] table in the robot file")
     acts = Actuators.from_robot(problem.robot)
+    recorder = _recorder(req, problem, acts, ros)
     ids = [o.name for o in Scene.from_table(problem.section("scene")).obstacles]
     feed = ObstacleFeed(ros.udp_feed_port, max_age=ros.max_age, expected=ids, clock=clock or time.monotonic)
     with contextlib.ExitStack() as stack:
         stack.callback(feed.close)
-        node = stack.enter_context(RosNode(ros, acts, feed))
+        if recorder is not None:
+            stack.callback(recorder.discard)  # after a commit: nothing left to drop
+        node = stack.enter_context(RosNode(ros, acts, feed, recorder=recorder))
         print(
             f"ros-bridge: domain {node.domain_id} ({ros.discovery} discovery); joint states on "
             f"{ros.joint_state_topic}, obstacles ({', '.join(ids)}) on {ros.obstacle_topic} and "
             f"udp://127.0.0.1:{feed.address[1]}; "
-            f"publishing {ros.trajectory_topic} and {ros.markers_topic}",
+            f"publishing {ros.trajectory_topic_name} and {ros.markers_topic}",
             flush=True,
         )
         if ready is not None:
             ready(node, feed)
-        _await_robot(node, feed, ros)
-        return _run(req, problem, out, (stack, node, feed, acts, ros), _Pacing(clock, sleep))
+        controller = _await_robot(node, feed, ros)
+        parts = _Parts(stack, node, feed, acts, ros, controller, recorder)
+        return _run(req, problem, out, parts, _Pacing(clock, sleep))
 
 
-def _run(req: RosBridgeRequest, problem: Problem, out: Path, parts: tuple[Any, ...], pacing: _Pacing) -> int:
+@dataclass(frozen=True)
+class _Pacing:
+    """The bridge's time (s) and pacing; None: the ROS clock (the system time) and `time.sleep`."""
+
+    clock: Callable[[], float] | None = None
+    sleep: Callable[[float], None] | None = None
+
+
+@dataclass(frozen=True)
+class _Parts:
+    """What the bridge has set up before the loop: the exit stack, the node, the feed, the actuators, the
+    ``[ros]`` options, the controller's parameters and the MCAP recorder (or None)."""
+
+    stack: contextlib.ExitStack
+    node: RosNode
+    feed: ObstacleFeed
+    acts: Actuators
+    ros: RosOptions
+    controller: JtcParameters
+    recorder: McapRecorder | None
+
+
+def _run(req: RosBridgeRequest, problem: Problem, out: Path, parts: _Parts, pacing: _Pacing) -> int:
     """The loop against the live robot, from where it is now; its files staged and renamed into `out`
-    (or OUT.failed); the exit code. parts: the bridge's (exit stack, node, feed, actuators, [ros] options)."""
-    stack, node, feed, acts, ros = parts
+    (or OUT.failed), the MCAP log committed; the exit code."""
+    node, acts, ros = parts.node, parts.acts, parts.ros
     seed = problem.seed if req.seed is None else req.seed
     try:
         # the run starts where the robot is (its newest joint state), not at the task's start
         here = node.joint_state()
         x_robot = None if here is None else problem.robot.config(acts.actuation(here[0]))
         kw_clock = {} if pacing.clock is None else {"clock": CallableClock(pacing.clock, pacing.sleep or time.sleep)}
-        loop = ClosedLoop.from_problem(problem, seed=seed, feed=feed, lead=ros.lead, start_config=x_robot, **kw_clock)
+        loop = ClosedLoop.from_problem(
+            problem, seed=seed, feed=parts.feed, lead=ros.lead, start_config=x_robot, **kw_clock
+        )
     except UnsolvableTaskError as exc:
         print(f"{exc.status}: {exc}; no run, nothing written to {out}")
         print(f"crtraj: ros-bridge failed: {exc.status}: {exc}", file=sys.stderr)
         return 1
     dt = loop.options.dt
-    verifier = FrameVerifier(problem.robot, acts, loop.scene, dt / ros.points_per_step, model=loop.model)
+    spacing = dt / (ros.points_per_step * VERIFY_SUBSTEPS)  # the executed curve is checked this densely
+    verifier = FrameVerifier(problem.robot, acts, loop.scene, spacing, model=loop.model)
     kw: dict[str, Any] = {} if pacing.clock is None else {"clock": pacing.clock, "sleep": pacing.sleep or time.sleep}
-    device = RosDevice(node, acts, loop.model, loop.servo, dt, verifier, lambda: loop.scene_now, lead=ros.lead, **kw)
+    kw.update(lead=ros.lead, controller=parts.controller)
+    device = RosDevice(node, acts, loop.model, loop.servo, dt, verifier, lambda: loop.scene_now, **kw)
     _plan_first(loop, node, acts)
-    stage = stack.enter_context(StagedDir(out, RUN_FILES))
+    stage = parts.stack.enter_context(StagedDir(out, RUN_FILES))
     run = loop.run(device=device)
     ok = run.is_success() and not device.problem()
     staged = write_run_files(run, loop, stage.path, problem=problem, seed=seed, html=req.html)
@@ -161,6 +239,8 @@ def _run(req: RosBridgeRequest, problem: Problem, out: Path, parts: tuple[Any, .
     if not ok and not req.overwrite_failed and is_successful_result(out):
         dest = failed_sibling(out)
     dest = stage.commit(dest)
+    if parts.recorder is not None:
+        parts.recorder.commit()
     _print_summary(run, device, staged, dest, req.quiet)
     if run.status is RunStatus.INTERRUPTED:
         return 130
@@ -196,5 +276,6 @@ def ros_bridge_command(args: Any) -> int:
         html=not args.no_html,
         overwrite_failed=args.overwrite_failed,
         quiet=args.quiet,
+        record=Path(args.record) if getattr(args, "record", None) else None,
     )
     return run_ros_bridge(req)

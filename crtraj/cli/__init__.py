@@ -378,6 +378,11 @@ def _add_ros_bridge(sub: argparse._SubParsersAction) -> None:
         action="store_true",
         help="let a failed run replace a successful one in --out (default: it is written beside it, as OUT.failed)",
     )
+    p.add_argument(
+        "--record",
+        metavar="FILE",
+        help="log every message the bridge sent and received to an MCAP file (CDR, ros2msg schemas; Foxglove)",
+    )
     p.add_argument("--quiet", action="store_true", help="print only the summary lines")
     p.set_defaults(use_case="ros-bridge")
 

@@ -1,4 +1,5 @@
-"""The closed loop's device port over ROS 2: each verified step leaves as a JointTrajectory.
+"""The closed loop's device port over ROS 2: each verified step leaves as a JointTrajectory that a stock
+joint_trajectory_controller executes exactly as verified.
 
 `RosDevice` implements `crtraj.control.ports.Device` on a `crtraj.hardware.ros.node.RosNode`. Units:
 actuation q in mm, actuator values in rad / mm, times in s.
@@ -6,6 +7,7 @@ actuation q in mm, actuator values in rad / mm, times in s.
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from collections.abc import Callable
@@ -15,36 +17,43 @@ import numpy as np
 
 from crtraj.control.ports import DeviceError
 from crtraj.hardware.limits import LimitPeaks
+from crtraj.hardware.ros import jtc
 from crtraj.hardware.ros.messages import scene_markers
+from crtraj.hardware.ros.shaping import hold_message, step_message
+
+log = logging.getLogger(__name__)
 
 # backbone points shown in RViz
 VIEW_POINTS = 41
+# tip samples per trajectory point in the executed path shown in RViz
+PATH_SUBSAMPLES = 2
+# samples of the executed curve per trajectory point, for the verifier (its dt is the spacing)
+VERIFY_SUBSTEPS = 4
 
 
 class RosDevice:
-    """Drives a robot through ROS 2 topics; implements `crtraj.control.ports.Device`.
+    """Drives a robot through a joint_trajectory_controller (JTC); implements `crtraj.control.ports.Device`.
 
     Each step's motion is the servo model's response to the step's commands (`servo`, the loop's
-    first-order servo), sampled at `points_per_step` points with its exact velocities. Before
-    anything is published, those points pass `verifier` (a `crtraj.hardware.verify.FrameVerifier`
-    at the points' spacing) against the scene snapshot the loop checked the step with
-    (`scene_now`): actuator position, velocity and acceleration limits from the end of what was sent
-    (at its velocity, or at rest after a hold), cable consistency, configuration limits, and the
-    continuous body with D_sf. A step that fails is not sent: the device holds and the loop gets a
-    `DeviceError` naming the time and the reason. A hold publishes one point at rest at the last
-    point sent, starting when what is under way ends (it was checked; braking is always allowed).
+    first-order servo), sampled at `points_per_step` points with its exact velocities, shaped into one
+    message (`crtraj.hardware.ros.shaping.step_message`): the committed curve's knots from the send time
+    to the step's start, the step's points, and a stop tail to rest. Before anything is published the
+    curve the controller will execute from the message's arrival (`crtraj.hardware.ros.jtc.executed`,
+    the controller's state then being the committed curve's) passes the controller's own acceptance
+    rules (`jtc.rejection` with `jtc` parameters) and, sampled every `verifier.dt` s up to rest,
+    `verifier` (a `crtraj.hardware.verify.FrameVerifier`) against the scene snapshot the loop checked the
+    step with (`scene_now`): actuator position, velocity and acceleration limits, cable consistency,
+    configuration limits, and the continuous body with D_sf. A step that fails is not sent: the robot
+    stays on the committed curve, which stops on its verified tail, and the loop gets a `DeviceError`
+    naming the time and the reason. A hold re-sends the committed curve from now (it ends at rest).
 
-    Time (pipelined, like `crtraj.hardware.link.DeviceLink`): the bridge's `clock` (s; the ROS clock
-    by default, a virtual one in tests) stamps what is sent; loop time t is clock time origin + t, and
-    step t is computed and sent `lead` s before it starts, so steps join without a pause (a controller
-    follows the current trajectory until the next one's start stamp). The live obstacles are
-    predicted `lead` s ahead accordingly (`FeedObstacles`' lead). The commanded motion is one
-    timeline: the points sent, then rest at the last one. The measurement at loop time t is its
-    position at t, corrected by the newest joint state's deviation from the timeline at its stamp,
-    decayed with the servo's lag; a joint state older than ``ros.joint_state_timeout`` s means the
-    robot is lost and the run ends. A step not ready before its start time is refused (the robot
-    holds); once at rest, a late loop moves the origin on (`restarts`). `sleep` paces the loop (a
-    virtual clock's sleep advances it).
+    Time (pipelined): the bridge's `clock` (s; the ROS clock by default, a virtual one in tests) stamps
+    what is sent; loop time t is clock time origin + t, and step t is computed and sent `lead` s before
+    it starts. The measurement at loop time t is the committed curve at t, corrected by the newest
+    joint state's deviation from it at the state's stamp, decayed with the servo's lag; a joint state
+    older than ``ros.joint_state_timeout`` s means the robot is lost and the run ends. A step not ready
+    before its start time is refused; once at rest, a late loop moves the origin on (`restarts`).
+    `sleep` paces the loop (a virtual clock's sleep advances it).
     """
 
     def __init__(
@@ -60,6 +69,7 @@ class RosDevice:
         clock: Callable[[], float] = time.time,
         sleep: Callable[[float], None] = time.sleep,
         lead: float = 0.0,
+        controller: jtc.JtcParameters | None = None,
     ) -> None:
         self.node = node
         self.options = node.options
@@ -71,13 +81,15 @@ class RosDevice:
         self.scene_now = scene_now
         self.clock, self.sleep = clock, sleep
         self.lead = float(lead)
+        self.controller = jtc.JtcParameters() if controller is None else controller
         self.n_points = self.options.points_per_step
         self.offsets = self.dt * np.arange(1, self.n_points + 1) / self.n_points
+        # the verified curve is sampled at the verifier's spacing (finer than the points)
+        self.spacing = float(verifier.dt) if verifier is not None else self.dt / self.n_points
         self._origin = clock()
-        self._hist_t = np.zeros(1)  # the commanded timeline: loop times (s) and actuator values, then rest
-        self._hist_v = np.zeros((1, actuators.n))
-        self._end = 0.0  # loop time the motion sent so far ends (s)
-        self._last: np.ndarray | None = None  # last commanded actuator values and their velocity
+        self._curve = _rest(np.zeros(actuators.n))  # the committed curve (loop time), as the JTC executes it
+        self._end = 0.0  # loop time the last step sent ends (s)
+        self._last: np.ndarray | None = None  # actuator values and velocity at the end of the last step
         self._vel = np.zeros(actuators.n)
         self._qc: np.ndarray | None = None  # the command in force (actuation, mm)
         self._problem = ""
@@ -86,7 +98,12 @@ class RosDevice:
         self.refusal = ""
         self.late = 0
         self.restarts = 0  # times a late loop at rest moved the origin on
-        self.peaks = LimitPeaks(actuators, self.dt / self.n_points)  # of the points published
+        self.peaks = LimitPeaks(actuators, self.spacing)  # of the executed curves published
+
+    @property
+    def committed(self) -> jtc.Spline:
+        """The curve the controller executes from what was sent (loop time s, actuator values)."""
+        return self._curve
 
     # --------------------------------------------------------------- state
     def start_actuation(self) -> np.ndarray:
@@ -98,7 +115,7 @@ class RosDevice:
                 f"ros: no joint state on {self.options.joint_state_topic} within {self.options.start_timeout:g} s"
             )
         self._last, self._vel = st[0], np.zeros(self.actuators.n)
-        self._hist_t, self._hist_v, self._end = np.zeros(1), st[0][None].copy(), 0.0
+        self._curve, self._end = _rest(st[0]), 0.0
         return self.actuators.actuation(st[0])
 
     def begin(self, t_origin: float) -> None:
@@ -110,7 +127,7 @@ class RosDevice:
         return self._problem
 
     def measure(self, t: float, q: np.ndarray, qc: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
-        """The actuation (mm) at loop time t and the command in force: the commanded timeline at t,
+        """The actuation (mm) at loop time t and the command in force: the committed curve at t,
         corrected by the newest joint state's deviation from it at the state's stamp."""
         newest = self.clock() - self.options.joint_state_timeout
         st = self.node.joint_state()
@@ -129,8 +146,8 @@ class RosDevice:
         return q_now, (qc if self._joins(t) else q_now), True
 
     def _commanded(self, tau: float) -> np.ndarray:
-        """The commanded actuator values at loop time tau (rest at the ends of the timeline)."""
-        return np.array([np.interp(tau, self._hist_t, self._hist_v[:, i]) for i in range(self.actuators.n)])
+        """The commanded actuator values at loop time tau (the committed curve)."""
+        return self._curve.at(float(tau))[0]
 
     def _joins(self, t: float) -> bool:
         """Step t continues the motion sent so far without a pause (else it starts from rest)."""
@@ -153,34 +170,61 @@ class RosDevice:
         return self.actuators.command(Q), V * self.actuators.scale
 
     def move(self, t: float, q0: np.ndarray, commands: np.ndarray, control_dt: float) -> None:
-        """Verify and publish the step starting at loop time t; `DeviceError` (why) when it was not sent."""
+        """Verify the curve the controller will execute and publish the step starting at loop time t;
+        `DeviceError` (why) when it was not sent."""
         if self.estopped or self._problem:
             raise DeviceError(self._problem or "e-stopped")
-        late = self.clock() - (self._origin + t)
-        if late > 0.0:
-            self._refuse(t, f"ready {late:.3f} s after its start time (it is due ros.lead = {self.lead:g} s before)")
+        now = self.clock() - self._origin
+        if now > t:
+            self._refuse(t, f"ready {now - t:.3f} s after its start time (it is due ros.lead = {self.lead:g} s before)")
         values, vel = self.samples(q0, commands)
-        # the robot is at the end of what was sent: moving on from it, or at rest there
-        v0 = self._vel if self._joins(t) else np.zeros(self.actuators.n)
-        stamps = t + self.offsets
-        why = self.verifier.with_scene(self.scene_now()).failure(stamps, values, start=self._last, start_velocity=v0)
+        names = tuple(self.node.names)
+        msg = step_message(self._curve, now, t, (self.offsets, values, vel), self.actuators.amax, names)
+        why = self._verify(msg, now)
         if why is not None:
             self._refuse(t, why)
-        self.node.publish_trajectory(self._origin + t, self.offsets, values, vel)
-        self.peaks.add(values, self._last, v0)
-        keep = self._hist_t >= t - 2.0
-        keep[-1] = True  # the rest point the new step starts from
-        self._hist_t = np.concatenate([self._hist_t[keep], [t], stamps])
-        self._hist_v = np.concatenate([self._hist_v[keep], self._last[None], values])
         self._last, self._vel, self._end = values[-1], vel[-1], t + self.dt
         self._qc = np.asarray(commands[-1], dtype=float)
         self.moves += 1
         self._show(t + self.dt, values[-1])
 
+    def _verify(self, msg: jtc.JtcMessage, now: float) -> str | None:
+        """Check `msg` sent at loop time `now` as the controller will take and execute it; publish it and make
+        its executed curve the committed one when it passes; else the reason."""
+        names = tuple(self.node.names)
+        why = jtc.rejection(msg, names, now, self.controller, epoch=self._origin)
+        if why is not None:
+            return f"the controller would refuse it: {why}"
+        p0, v0 = self._curve.state(now)
+        curve = jtc.executed(msg, now, p0, v0, epoch=self._origin)
+        stamps = now + self.spacing * np.arange(math.ceil((curve.end - now) / self.spacing - 1e-9) + 1)
+        P, V, _ = curve.at(stamps)
+        why = self.verifier.with_scene(self.scene_now()).failure(stamps[1:], P[1:], start=P[0], start_velocity=V[0])
+        if why is not None:
+            return why
+        self._publish(msg, curve, stamps, P)
+        self.peaks.add(P[1:], P[0], V[0])
+        return None
+
+    def _publish(self, msg: jtc.JtcMessage, curve: jtc.Spline, stamps: np.ndarray, P: np.ndarray) -> None:
+        """Send `msg` (loop time) and make `curve` the committed one; show its tip path."""
+        tfs = np.array([p.time_from_start for p in msg.points])
+        pos = np.array([p.positions for p in msg.points])
+        vel = np.array([p.velocities for p in msg.points])
+        self.node.publish_trajectory(self._origin + msg.stamp, tfs, pos, vel)
+        self._curve = self._curve.since(stamps[0] - 2.0).then(curve)
+        publish_path = getattr(self.node, "publish_path", None)
+        if publish_path is not None and self.model is not None:
+            k = max(round(self.dt / self.n_points / self.spacing / PATH_SUBSAMPLES), 1)
+            X = self.model.robot.config(self.actuators.actuation(P[::k]))
+            tips = self.model.points(X, 2)[:, -1, :]
+            publish_path(self._origin + stamps[0], tips)
+
     def _refuse(self, t: float, why: str) -> None:
         """Count and record a refused step, hold, and raise the `DeviceError` the loop expects."""
         self.refused_steps += 1
         self.refusal = self.refusal or why
+        log.warning("ros: step at t=%.2f s refused before sending: %s", t, why)
         self.hold(f"step at t={t:.2f} s refused before sending: {why}")
         raise DeviceError(f"ros: step refused before sending: {why}")
 
@@ -200,9 +244,9 @@ class RosDevice:
         if lag < 0.0:
             self.sleep(-lag)
         elif lag > 0.0 and t > self._end + 1e-9:
-            # at rest: move loop time on, keeping the commanded timeline where it was in clock time
+            # at rest: move loop time on, keeping the committed curve where it was in clock time
             self._origin += lag
-            self._hist_t = self._hist_t - lag
+            self._curve = self._curve.shifted(-lag)
             self._end -= lag
             self.restarts += 1
         late = lag > self.dt
@@ -210,16 +254,21 @@ class RosDevice:
         return late
 
     def hold(self, reason: str) -> None:
-        """Publish the last commanded position at rest, one step ahead (the robot stays there)."""
+        """Re-send the committed curve from now: it stops on its verified tail (or stays at rest)."""
         if self._last is None:
             return
-        # after what was sent (it was checked and is under way): the robot stops at its last point
-        stamp = max(self.clock(), self._origin + self._end)
-        zero = np.zeros(self.actuators.n)
-        self.node.publish_trajectory(stamp, np.array([self.dt]), self._last[None], zero[None])
-        self._vel = zero
-        self._qc = self.actuators.actuation(self._last)
+        now = self.clock() - self._origin
+        msg = hold_message(self._curve, now, self.dt / self.n_points, tuple(self.node.names))
+        tfs = np.array([p.time_from_start for p in msg.points])
+        pos = np.array([p.positions for p in msg.points])
+        vel = np.array([p.velocities for p in msg.points])
+        self.node.publish_trajectory(self._origin + msg.stamp, tfs, pos, vel)
+        p0, v0 = self._curve.state(now)
+        self._curve = self._curve.since(now - 2.0).then(jtc.executed(msg, now, p0, v0, epoch=self._origin))
+        self._vel = np.zeros(self.actuators.n)
+        self._qc = self.actuators.actuation(self._curve.positions[-1])
         self.holds += 1
+        log.info("ros: hold (%s)", reason)
 
     def estop(self, reason: str) -> None:
         """Hold, and refuse every later move (final)."""
@@ -228,12 +277,12 @@ class RosDevice:
         self._problem = self._problem or f"e-stopped: {reason}"
 
     def finish(self, q_final: np.ndarray) -> dict[str, Any]:
-        """The robot stays at the last commanded position (the loop ends at rest); the report."""
+        """The robot stays where the committed curve comes to rest (the loop ends at rest); the report."""
         return self.describe()
 
     def limit_fractions(self) -> dict[str, float]:
-        """Largest actuator speed and acceleration of the points published, as fractions of the limits
-        (finite differences at the points' spacing, as the verifier checks them; NaN before any)."""
+        """Largest actuator speed and acceleration of the executed curves published, as fractions of the
+        limits (finite differences at the verifier's spacing, as it checks them; NaN before any)."""
         return self.peaks.as_dict()
 
     def describe(self) -> dict[str, Any]:
@@ -249,3 +298,9 @@ class RosDevice:
             "problem": self._problem,
             "ros": self.node.describe(),
         }
+
+
+def _rest(values: np.ndarray) -> jtc.Spline:
+    """A curve at rest at actuator `values` (one knot at loop time 0)."""
+    v = np.asarray(values, dtype=float)
+    return jtc.Spline.hermite(np.zeros(1), v[None], np.zeros((1, v.size)))

@@ -172,3 +172,43 @@ def scene_markers(
         s.color.r, s.color.g, s.color.b, s.color.a = 0.9, 0.3, 0.2, 0.5
         out.append(s)
     return MarkerArray(markers=out)
+
+
+def tip_path(frame_id: str, stamp: float, tips: np.ndarray) -> Any:
+    """A nav_msgs/Path of tip positions (M, 3) mm, every pose stamped `stamp` (s), in metres."""
+    from geometry_msgs.msg import PoseStamped
+    from nav_msgs.msg import Path
+
+    t = _time(stamp)
+    msg = Path()
+    msg.header.frame_id, msg.header.stamp = frame_id, t
+    for p in np.reshape(tips, (-1, 3)):
+        pose = PoseStamped()
+        pose.header.frame_id, pose.header.stamp = frame_id, t
+        pose.pose.position.x, pose.pose.position.y, pose.pose.position.z = (1e-3 * float(v) for v in p)
+        pose.pose.orientation.w = 1.0
+        msg.poses.append(pose)
+    return msg
+
+
+# rcl_interfaces/ParameterValue type codes and the field each is read from
+_PARAMETER_FIELDS = {
+    1: "bool_value",
+    2: "integer_value",
+    3: "double_value",
+    4: "string_value",
+    5: "byte_array_value",
+    6: "bool_array_value",
+    7: "integer_array_value",
+    8: "double_array_value",
+    9: "string_array_value",
+}
+
+
+def parameter_value(value: Any) -> Any:
+    """The Python value of an rcl_interfaces/ParameterValue (None when the parameter is not set)."""
+    field = _PARAMETER_FIELDS.get(int(value.type))
+    if field is None:
+        return None
+    v = getattr(value, field)
+    return v if isinstance(v, (bool, int, float, str)) else list(v)

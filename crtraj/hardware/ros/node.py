@@ -20,7 +20,17 @@ from typing import Any
 import numpy as np
 
 from crtraj.core.errors import InputError
-from crtraj.hardware.ros.messages import RejectedError, joint_state_values, marker_obstacles, si_scale, trajectory
+from crtraj.hardware.ros.messages import (
+    MAX_JOINTS,
+    MAX_NAME,
+    RejectedError,
+    joint_state_values,
+    marker_obstacles,
+    parameter_value,
+    si_scale,
+    tip_path,
+    trajectory,
+)
 from crtraj.hardware.ros.options import RosOptions
 
 MAX_EVENTS = 1000  # rejected messages kept (the counts stay exact beyond it)
@@ -63,18 +73,26 @@ class RosNode:
     """The bridge's node. actuators: the robot's `crtraj.hardware.actuators.Actuators` (their names are
     the joint names); feed: the `ObstacleFeed` that live SPHERE markers go to (None: markers are not
     subscribed). Joint values on the wire are in SI units as ROS expects (rad for the servos, m for
-    the base stage); this class converts to and from crtraj's (rad, mm). Raises `InputError` (one line) when
-    rclpy or the message packages are missing or the context cannot start."""
+    the base stage); this class converts to and from crtraj's (rad, mm). Joint names on the wire are
+    the robot's (``ros.joints`` maps the actuators' names to them). recorder: an object with
+    ``write(topic, msg, ns)`` (`crtraj.hardware.ros.record.McapRecorder`) that gets every message sent
+    and received. Raises `InputError` (one line) when rclpy or the message packages are missing or the
+    context cannot start."""
 
-    def __init__(self, options: RosOptions, actuators: Any, feed: Any = None, name: str = "crtraj") -> None:
+    def __init__(
+        self, options: RosOptions, actuators: Any, feed: Any = None, name: str = "crtraj", recorder: Any = None
+    ) -> None:
         self.options = options
-        self.names = tuple(actuators.names)
+        self.names = tuple(options.joint_name(a) for a in actuators.names)
+        self.recorder = recorder
+        self.seen_names: tuple[str, ...] | None = None  # of the last JointState refused for its names
         self.si = si_scale(actuators.units)
         self.feed = feed
         ros_environment(options)
         domain = domain_id(options)
         try:
             import rclpy
+            from nav_msgs.msg import Path
             from rclpy.executors import SingleThreadedExecutor
             from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
             from rclpy.signals import SignalHandlerOptions
@@ -100,8 +118,9 @@ class RosNode:
             rel = ReliabilityPolicy.RELIABLE if options.reliability == "reliable" else ReliabilityPolicy.BEST_EFFORT
             qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=options.depth, reliability=rel)
             n = self.node
-            self._traj = n.create_publisher(JointTrajectory, options.trajectory_topic, qos)
+            self._traj = n.create_publisher(JointTrajectory, options.trajectory_topic_name, qos)
             self._markers = n.create_publisher(MarkerArray, options.markers_topic, qos)
+            self._path = n.create_publisher(Path, options.path_topic, qos)
             n.create_subscription(JointState, options.joint_state_topic, self._on_joint_state, qos)
             if feed is not None:
                 n.create_subscription(MarkerArray, options.obstacle_topic, self._on_markers, qos)
@@ -150,7 +169,13 @@ class RosNode:
 
     @property
     def alive(self) -> bool:
+        """The spin thread runs."""
         return self._thread.is_alive()
+
+    @property
+    def context_ok(self) -> bool:
+        """The node's rclpy context is still up (False after `close`)."""
+        return bool(self._ctx.ok())
 
     # ------------------------------------------------------------- input
     def _reject(self, kind: str, message: str) -> None:
@@ -159,11 +184,18 @@ class RosNode:
             if len(self._events) < MAX_EVENTS:
                 self._events.append({"received": time.monotonic(), "kind": kind, "message": message})
 
+    def _record(self, topic: str, msg: Any) -> None:
+        if self.recorder is not None:
+            self.recorder.write(topic, msg, time.time_ns())
+
     def _on_joint_state(self, msg: Any) -> None:
+        self._record(self.options.joint_state_topic, msg)
         try:
             values, stamp = joint_state_values(msg, self.names)
             values = values / self.si
         except RejectedError as exc:
+            if exc.kind == "unknown_name" and len(msg.name) <= MAX_JOINTS:
+                self.seen_names = tuple(str(n)[:MAX_NAME] for n in msg.name)
             self._reject(exc.kind, str(exc))
             return
         except Exception as exc:  # the node must outlive any message
@@ -178,6 +210,7 @@ class RosNode:
             self._fresh.notify_all()
 
     def _on_markers(self, msg: Any) -> None:
+        self._record(self.options.obstacle_topic, msg)
         self.marker_arrays += 1
         try:
             states, refused = marker_obstacles(msg, self.options.frame_id)
@@ -215,11 +248,47 @@ class RosNode:
     def publish_trajectory(self, stamp: float, offsets: np.ndarray, values: np.ndarray, velocities: np.ndarray) -> None:
         """Publish a JointTrajectory starting at `stamp` (s): points at `offsets` (s after it) with actuator
         values (N, n) rad / mm and velocities rad/s, mm/s (sent in SI units)."""
-        self._traj.publish(trajectory(self.names, stamp, offsets, values * self.si, velocities * self.si))
+        msg = trajectory(self.names, stamp, offsets, values * self.si, velocities * self.si)
+        self._traj.publish(msg)
+        self._record(self.options.trajectory_topic_name, msg)
         self.published += 1
 
     def publish_markers(self, msg: Any) -> None:
         self._markers.publish(msg)
+        self._record(self.options.markers_topic, msg)
+
+    def publish_path(self, stamp: float, tips: np.ndarray) -> None:
+        """Publish the tip along an executed, verified curve (tips (M, 3) mm, from clock time `stamp` s) as a
+        nav_msgs/Path in metres."""
+        msg = tip_path(self.options.frame_id, stamp, tips)
+        self._path.publish(msg)
+        self._record(self.options.path_topic, msg)
+
+    def wait_subscribers(self, timeout: float) -> bool:
+        """Block until something subscribes to the trajectory topic (True), at most `timeout` wall-clock s."""
+        end = time.monotonic() + timeout
+        while self._traj.get_subscription_count() == 0:
+            if time.monotonic() >= end or self._stop.wait(0.05):
+                return self._traj.get_subscription_count() > 0
+        return True
+
+    def get_parameters(self, node_name: str, names: list[str], timeout: float) -> dict[str, Any] | None:
+        """The values of parameters `names` of node `node_name` through its ``get_parameters`` service (None
+        for a parameter it does not have); None when the service does not answer within `timeout` s."""
+        from rcl_interfaces.srv import GetParameters
+
+        client = self.node.create_client(GetParameters, f"/{node_name}/get_parameters")
+        try:
+            if not client.wait_for_service(timeout_sec=timeout):
+                return None
+            done = threading.Event()
+            future = client.call_async(GetParameters.Request(names=names))
+            future.add_done_callback(lambda _: done.set())
+            if not done.wait(timeout) or future.result() is None:
+                return None
+            return {n: parameter_value(v) for n, v in zip(names, future.result().values, strict=False)}
+        finally:
+            self.node.destroy_client(client)
 
     def matched(self) -> tuple[int, int]:
         """(subscribers of the trajectory topic, publishers of the joint-state topic) seen so far."""

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import Any, ClassVar
 
 from crtraj.core.errors import InputError
+from crtraj.core.fields import Table
 from crtraj.core.options import Options, option
 
+MAX_JOINT_NAME = 128
 _TOPIC_CHARS = frozenset("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_/~{}")
 
 
@@ -15,13 +17,18 @@ _TOPIC_CHARS = frozenset("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ01
 class RosOptions(Options):
     """The ``[ros]`` section (units s, Hz).
 
-    trajectory_topic: where each verified step is published (trajectory_msgs/JointTrajectory,
-    actuator names as joint names, rad for the servos and m for the base stage). joint_state_topic:
-    the robot's measured actuator positions (sensor_msgs/JointState, same names and units).
+    controller: the robot's joint_trajectory_controller (its parameters are read from
+    ``/<controller>/get_parameters`` at start when reachable). trajectory_topic: where each verified
+    step is published (trajectory_msgs/JointTrajectory, rad for the servos and m for the base stage;
+    default ``/<controller>/joint_trajectory``). joints: crtraj actuator name -> the robot's joint
+    name (``[ros.joints]``; an actuator not listed keeps its name). joint_state_topic: the robot's
+    measured joint positions (sensor_msgs/JointState, the robot's joint names, same units).
+    path_topic: the tip along each executed, verified curve (nav_msgs/Path, m) for RViz.
     obstacle_topic: live obstacles (visualization_msgs/MarkerArray; SPHERE markers, ``ns`` = the
     scene's obstacle name, position and scale in m). markers_topic: what the bridge shows in RViz
     (backbone and obstacles, MarkerArray, m). frame_id: the frame of every marker sent and
-    accepted. reliability and depth: the QoS of every topic (history keep-last `depth`).
+    accepted. reliability and depth: the QoS of every topic (history keep-last `depth`); best_effort
+    is refused, as a best_effort publisher never reaches the controller's reliable subscription.
     domain_id: the ROS domain (default: the environment's ROS_DOMAIN_ID, else 0). discovery:
     "localhost" keeps discovery on this machine (the default, as every crtraj server binds
     127.0.0.1), "subnet" lets other machines in.
@@ -37,10 +44,13 @@ class RosOptions(Options):
 
     SECTION: ClassVar[str] = "ros"
 
-    trajectory_topic: str = option("/crtraj/joint_trajectory", max_len=200)
+    controller: str = option("joint_trajectory_controller", max_len=200)
+    trajectory_topic: str = option("", max_len=200)
+    joints: tuple[tuple[str, str], ...] = option((), read=False)
     joint_state_topic: str = option("/joint_states", max_len=200)
     obstacle_topic: str = option("/crtraj/obstacles", max_len=200)
     markers_topic: str = option("/crtraj/markers", max_len=200)
+    path_topic: str = option("/crtraj/executed_path", max_len=200)
     frame_id: str = option("world", max_len=200)
     reliability: str = option("reliable", choices=("reliable", "best_effort"))
     depth: int = option(10, ge=1, le=1000)
@@ -53,9 +63,46 @@ class RosOptions(Options):
     max_age: float = option(0.2, gt=0.0, le=60.0)
     udp_feed_port: int = option(0, ge=0, le=65535)
 
+    @property
+    def trajectory_topic_name(self) -> str:
+        """The trajectory topic: ``trajectory_topic``, else ``/<controller>/joint_trajectory``."""
+        return self.trajectory_topic or f"/{self.controller}/joint_trajectory"
+
+    def joint_name(self, actuator: str) -> str:
+        """The robot's joint name of crtraj actuator `actuator`."""
+        return dict(self.joints).get(actuator, actuator)
+
+    @classmethod
+    def _read_extra(cls, t: Table) -> dict[str, Any]:
+        sub = t.table("joints")
+        pairs = tuple((key, sub.str(key, max_len=MAX_JOINT_NAME)) for key in sub.keys())
+        sub.finish()
+        return {"joints": pairs}
+
+    def to_dict(self) -> dict[str, Any]:
+        out = super().to_dict()
+        out["joints"] = dict(self.joints)
+        return out
+
     def _check(self) -> None:
-        for key in ("trajectory_topic", "joint_state_topic", "obstacle_topic", "markers_topic"):
+        if self.reliability == "best_effort":
+            raise InputError(
+                "ros.reliability: best_effort is refused: joint_trajectory_controller subscribes reliable, and a "
+                "best_effort publisher never reaches it (trajectories would be lost silently); use reliable"
+            )
+        if not self.controller or not set(self.controller) <= _TOPIC_CHARS or self.controller.startswith("/"):
+            raise InputError(
+                f"ros.controller: not a controller name (letters, digits, _ and /), got {self.controller[:60]!r}"
+            )
+        for actuator, joint in self.joints:
+            if not joint or not joint.isprintable() or not actuator:
+                raise InputError(f"ros.joints.{actuator[:40]}: expected a non-empty joint name, got {joint[:60]!r}")
+        joint_names = [j for _, j in self.joints]
+        if len(set(joint_names)) != len(joint_names):
+            raise InputError("ros.joints: two actuators map to the same joint name")
+        for key in ("trajectory_topic_name", "joint_state_topic", "obstacle_topic", "markers_topic", "path_topic"):
             name = getattr(self, key)
+            key = key.removesuffix("_name")
             if not name or not set(name) <= _TOPIC_CHARS or "//" in name or name.endswith("/"):
                 raise InputError(f"ros.{key}: not a ROS topic name (letters, digits, _ and /), got {name[:60]!r}")
         if not self.frame_id or not self.frame_id.isprintable():

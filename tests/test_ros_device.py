@@ -1,0 +1,123 @@
+"""The ROS device port (`crtraj.hardware.ros.device.RosDevice`) without ROS: a fake node records what would be
+published and serves chosen joint states; a virtual clock times it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import PAPER
+from feed_clock import VirtualClock
+
+from crtraj.control.ports import DeviceError
+from crtraj.control.tracking import TrackingController, TrackingOptions
+from crtraj.hardware.actuators import Actuators
+from crtraj.hardware.ros.device import RosDevice
+from crtraj.hardware.ros.options import RosOptions
+from crtraj.hardware.verify import FrameVerifier
+from crtraj.io.problem import Problem
+from crtraj.model.kinematics import Model
+from crtraj.world.scene import Scene
+
+
+def test_trajectory_points_follow_the_servo_model_exactly():
+    """Positions and velocities sent for a step: the first-order servo's response, checked against a fine
+    numerical integration of dq/dt = (c - q) / tau (no ROS needed)."""
+    from types import SimpleNamespace
+
+    problem = Problem.load(PAPER)
+    acts = Actuators.from_robot(problem.robot)
+    servo = TrackingController(Model(problem.robot), TrackingOptions()).servo
+    dev = RosDevice(SimpleNamespace(options=RosOptions(points_per_step=7)), acts, None, servo, 0.1, None, None)
+    rng = np.random.default_rng(3)
+    q0 = acts.actuation(np.zeros(acts.n)) + rng.normal(0, 0.5, acts.n)
+    C = q0 + rng.normal(0, 1.0, (5, acts.n))  # one command per 0.02 s period
+    values, vel = dev.samples(q0, C)
+    # independent: explicit Euler with 20000 sub-steps per period
+    h, n = 0.02, 20000
+    q, Q = q0.copy(), [q0.copy()]
+    for c in C:
+        for _ in range(n):
+            q = q + (h / n) * (c - q) / servo.tau
+            Q.append(q.copy())
+    Q = np.array(Q)
+    for k, off in enumerate(dev.offsets):
+        i = round(float(off) / (h / n))
+        assert np.allclose(acts.actuation(values[k]), Q[i], atol=1e-3)
+        left = (Q[i] - Q[i - 1]) / (h / n)  # the velocity at the point, from the period that ends there
+        assert np.allclose(vel[k] / acts.scale, left, rtol=1e-3, atol=1e-3)
+
+
+class _FakeNode:
+    """A node without ROS: records what would be published and serves a chosen joint state."""
+
+    def __init__(self, options: RosOptions, names=()) -> None:
+        self.options, self.sent, self.state, self.names = options, [], None, tuple(names)
+
+    def joint_state(self):
+        return self.state
+
+    def wait_joint_state(self, newer_than: float, timeout: float):
+        return self.state if self.state is not None and self.state[1] >= newer_than else None
+
+    def publish_trajectory(self, stamp, offsets, values, velocities) -> None:
+        self.sent.append((stamp, np.array(offsets), np.array(values), np.array(velocities)))
+
+    def publish_markers(self, msg) -> None:
+        pass
+
+
+def _hermite(t, T, P, V):
+    """Independent cubic Hermite through knots (T, P, V) at time t (positions)."""
+    k = int(np.clip(np.searchsorted(T, t, side="right") - 1, 0, len(T) - 2))
+    h = T[k + 1] - T[k]
+    x = (t - T[k]) / h
+    return (
+        (2 * x**3 - 3 * x**2 + 1) * P[k]
+        + (x**3 - 2 * x**2 + x) * h * V[k]
+        + (-2 * x**3 + 3 * x**2) * P[k + 1]
+        + (x**3 - x**2) * h * V[k + 1]
+    )
+
+
+def test_measurement_is_the_commanded_motion_corrected_by_the_joint_state():
+    """Sent lead s ahead, measured by prediction: the curve the controller executes at t plus the joint state's
+    deviation from it at its stamp, decayed with the servo lag (closed form, no ROS needed)."""
+    problem = Problem.load(PAPER)
+    acts = Actuators.from_robot(problem.robot)
+    model = Model(problem.robot)
+    servo = TrackingController(model, TrackingOptions()).servo
+    scene = Scene.from_table(problem.section("scene")).with_obstacles(())
+    ros = RosOptions(points_per_step=5, joint_state_timeout=1.0)
+    node, clock = _FakeNode(ros, acts.names), VirtualClock()
+    ver = FrameVerifier(problem.robot, acts, scene, 0.005, model=model)
+    dev = RosDevice(node, acts, model, servo, 0.1, ver, lambda: scene, clock=clock, sleep=clock.sleep, lead=0.2)
+    x0 = np.array([0.3, 0.0, 0.0, 0.0, 0.0])
+    q0 = problem.robot.cable_matrix()[1] + problem.robot.cable_matrix()[0] @ x0
+    node.state = (acts.command(q0), 0.0)
+    assert np.allclose(dev.start_actuation(), q0)
+    dev.begin(0.0)  # loop time 0 is clock time 0.2: the first step is sent now, 0.2 s ahead
+    C = np.repeat((q0 + 0.05)[None], 5, axis=0)
+    dev.move(0.0, q0, C, 0.02)
+    assert node.sent[-1][0] == pytest.approx(0.2) and dev.pace(0.1) is False and clock() == pytest.approx(0.1)
+    # the message: the state at the step's start (at rest), the step's 5 points, the stop tail's rest point
+    _, offs, vals, vels = node.sent[-1]
+    assert len(offs) == 7 and np.allclose(offs[:6], 0.02 * np.arange(6)) and np.all(vels[[0, -1]] == 0.0)
+    values = vals[1:6]
+    # the robot, measured at clock 0.25 (loop time 0.05), is 0.01 mm ahead on every actuator of what it executes
+    ref = _hermite(0.05, offs, vals, vels)  # the controller's cubic segments, at loop time 0.05
+    off = np.full(acts.n, 0.01)
+    node.state = (acts.command(acts.actuation(ref) + off), 0.25)
+    q, qc, ok = dev.measure(0.1, q0, C[-1])
+    expect = acts.actuation(values[-1]) + np.exp(-(0.1 - 0.05) / servo.tau) * off
+    assert ok and np.allclose(q, expect, atol=1e-9) and np.array_equal(qc, C[-1])
+    # a step not ready before its start is refused; the robot finishes what is under way: its stop tail
+    clock.advance_to(0.31)
+    with pytest.raises(DeviceError, match=r"ready 0\.010 s after its start time"):
+        dev.move(0.1, q, C, 0.02)
+    stamp, offs2, vals2, vels2 = node.sent[-1]
+    assert stamp == pytest.approx(0.2 + offs[-1]) and len(offs2) == 1
+    assert np.array_equal(vals2[0], vals[-1]) and np.all(vels2 == 0.0)
+    # no joint state newer than joint_state_timeout: the robot is lost
+    clock.advance_to(5.0)
+    dev.measure(0.2, q, qc)
+    assert "robot lost" in dev.problem()
