@@ -66,6 +66,8 @@ class CheckOptions(Options):
     points per collision check (>= 2). compiled: run the collision checks through the compiled
     kernel (C generated once per robot and cached, `crtraj build`) when a C compiler is available;
     false: the interpreted CasADi path (same results to rounding, several times slower).
+    broad_phase: the compiled edge check first drops, per motion, the obstacles too far away to decide
+    any of its samples (the same verdicts; false: every obstacle enters every sample, the old path).
     """
 
     SECTION: ClassVar[str] = "planner.check"
@@ -75,6 +77,7 @@ class CheckOptions(Options):
     resolution: float = option(3.0, ge=0.1, le=MAX_LENGTH)
     points: int = option(15, ge=2, le=1000)
     compiled: bool = option(True)
+    broad_phase: bool = option(True)
 
 
 @dataclass(frozen=True)
