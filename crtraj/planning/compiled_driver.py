@@ -82,16 +82,28 @@ int crtraj_clearance(long long N, const double* X, long long K, const double* S,
   return rc;
 }
 
-/* Grow the five interval buffers to hold at least `need` entries each (contents kept). */
+/* Grow the NB interval buffers to hold at least `need` entries each (contents kept). */
+#define CRTRAJ_NB 14
 static int crtraj_grow(double** buf, long long* cap, long long need) {
   int i;
   if (need <= *cap) return 0;
   *cap = 2 * need + 64;
-  for (i = 0; i < 5; ++i) {
+  for (i = 0; i < CRTRAJ_NB; ++i) {
     double* p = (double*) realloc(buf[i], sizeof(double) * (size_t) *cap);
     if (!p) return 1;
     buf[i] = p;
   }
+  return 0;
+}
+
+/* Grow an obstacle-index pool to at least `need` entries (contents kept). */
+static int crtraj_grow_pool(long long** pool, long long* cap, long long need) {
+  long long* p;
+  if (need <= *cap) return 0;
+  *cap = 2 * need + 64;
+  p = (long long*) realloc(*pool, sizeof(long long) * (size_t) *cap);
+  if (!p) return 1;
+  *pool = p;
   return 0;
 }
 
@@ -158,37 +170,28 @@ int crtraj_clearance_windows(long long N, const double* X, long long M, const do
   return rc;
 }
 
-/* The broad phase of one edge x(s) = xa + s dx, s in [0, 1], over the time window [t0, t0 + span]: the clearance
-   d_j (minus `inflate`) of every obstacle j at the edge's start xa, against its sphere over the whole window (its
-   fixed slot in a static scene). No body point moves more than B = bound along the edge, and every interval's
-   window sphere lies inside the whole window's (the capsule of a sub-window is part of the window's, on the same
-   line), so d_j - B bounds obstacle j's clearance at every sample of the edge from below. An obstacle whose bound
-   is at least the first level's largest h (plus slack for rounding) can never be the one that decides a sample
-   (c >= h certifies it whichever obstacle is nearest), so it is dropped from the narrow phase; the smallest
-   dropped bound is returned in *floor (every sample's clearance is taken as at most it, keeping `lower` a lower
-   bound). The kept slots (static) or table rows (moving) are copied to `kept`, their count to *Ke. NaN keeps. */
-static int crtraj_broad(crtraj_work* kb, const double* xa, double B, long long n, long long K, const double* S,
-                        const double* T, double origin, double t0, double span, double inflate, double* P,
-                        double* swept, double* kept, long long* Ke, double* floor) {
-  long long j, m = 0;
-  int k, rc, w = T ? 12 : 5;
-  const double* s = S;
-  double thr = 0.5 * B / (double) n * (1.0 + 1e-9) + 1e-6;
-  kb->arg[0] = xa; kb->res[0] = P;
+/* Clearance of configuration x against the m obstacles idx[0..m) (padding skipped), as crtraj_clear_one
+   computes it over all of them, and each one's own distance minus radius in d[0..m) (the obstacles after a
+   NaN: NaN). A static scene: slots S; moving obstacles: the sphere of table T's row over [lo, hi] (one
+   row of crtraj_swept, into sw). */
+static int crtraj_clear_idx(crtraj_work* kb, const double* x, const long long* idx, long long m, const double* S,
+                            const double* T, double origin, double lo, double hi, double* P, double* sw, double* d,
+                            double* out) {
+  long long q;
+  double best = INFINITY;
+  int rc;
+  kb->arg[0] = x; kb->res[0] = P;
   rc = crtraj_bb(kb->arg, kb->res, kb->iw, kb->w, 0);
-  if (T) { crtraj_swept(K, T, origin, t0, t0 + span, swept); s = swept; }
-  *floor = INFINITY;
-  for (j = 0; j < K; ++j) {
-    const double* slot = s + 5 * j;
-    const double* row = (T ? T + 12 * j : S + 5 * j);
-    double lb;
-    if (slot[4] <= 0.0) continue;  /* padding */
-    lb = crtraj_chord(P, slot) - slot[3] - inflate - B - 1e-6;
-    if (!rc && lb >= thr) { if (lb < *floor) *floor = lb; continue; }
-    for (k = 0; k < w; ++k) kept[w * m + k] = row[k];
-    ++m;
+  for (q = 0; q < m; ++q) {
+    const double* slot;
+    if (best != best) { d[q] = NAN; continue; }
+    if (T) { crtraj_swept(1, T + 12 * idx[q], origin, lo, hi, sw); slot = sw; }
+    else slot = S + 5 * idx[q];
+    if (slot[4] <= 0.0) { d[q] = INFINITY; continue; }  /* padding */
+    d[q] = crtraj_chord(P, slot) - slot[3];
+    if (d[q] < best || d[q] != d[q]) best = d[q];  /* NaN propagates: unknown is not clear */
   }
-  *Ke = m;
+  *out = best;
   return rc;
 }
 
@@ -200,44 +203,61 @@ static int crtraj_broad(crtraj_work* kb, const double* xa, double B, long long n
    c >= h = 0.5 B (tb - ta); unsafe when c + enl dt < 0 (colliding at every instant of the window,
    dt = dT (tb - ta)) or when c < 0 or h <= finest, with dt <= tres; else halved (prefix: only while ta < fail;
    else only while nothing failed). A static scene has enl = 0 and tres = inf: unsafe when c < 0 or h <= finest.
-   Out: fail[e] (certified fraction) and lower[e] (min c - h over certified intervals); *samples: clearances. */
+   Out: fail[e] (certified fraction) and lower[e] (min c - h over certified intervals); *samples: clearances.
+
+   Broad phase (from `broad` obstacles on, 0: never): every interval hands its halves only the obstacles that
+   can decide one of their samples. The halves' configurations lie within h (body motion) of the interval's
+   middle one and their windows within its window (so their spheres within its sphere: a sub-window's capsule
+   is part of the window's, on the same line), so obstacle j's clearance anywhere below is at least
+   d_j - h; when that exceeds every half's h (h / 2, plus slack for rounding), j cannot decide a sample
+   (c >= h certifies it whichever obstacle is nearest) and is dropped. The smallest dropped bound is the
+   halves' floor: their clearance is taken as at most it, so `lower` stays a lower bound; fail is unchanged. */
 #define ta buf[0]
 #define tb buf[1]
 #define mid buf[2]
 #define ua buf[3]
 #define ub buf[4]
+#define flo buf[5]   /* per interval: floor of its dropped obstacles (mm) */
+#define off buf[6]   /* per interval: its obstacle list in `pool` (offset, count) */
+#define cnt buf[7]
+#define uflo buf[8]  /* the next level's floors and lists */
+#define uoff buf[9]
+#define ucnt buf[10]
+#define cflo buf[11] /* per interval of this level: the floor and list its halves would get */
+#define coff buf[12]
+#define ccnt buf[13]
 static int crtraj_refine(long long E, const double* XA, const double* dX, const double* bound, const long long* n0,
                          const double* TA, const double* dT, long long K, const double* S, const double* T,
                          double origin, double inflate, double finest, double enl, double tres, int prefix,
                          long long broad, double* fail, double* lower, long long* samples) {
-  crtraj_work kb; long long e, i, n, cap = 0; int rc = 0;
-  double P[3 * CRTRAJ_NP], x[CRTRAJ_NX];
-  double* buf[5] = {NULL, NULL, NULL, NULL, NULL};  /* ta, tb, mid, ua, ub */
-  double* swept = T ? (double*) malloc(sizeof(double) * (size_t) (5 * K + 1)) : NULL;
-  /* the broad phase's kept obstacles of one edge: slots (static) or table rows (moving) */
-  double* kept = (double*) malloc(sizeof(double) * (size_t) ((T ? 12 : 5) * K + 1));
+  crtraj_work kb; long long e, i, q, n, cap = 0, pcap = 0, ncap = 0; int rc = 0;
+  double P[3 * CRTRAJ_NP], x[CRTRAJ_NX], sw[5];
+  double* buf[CRTRAJ_NB] = {NULL};
+  double* d = (double*) malloc(sizeof(double) * (size_t) (K + 1));
+  long long* pool = NULL;
+  long long* npool = NULL;
+  long long* lp;
   double* t;
+  int use = broad > 0 && K >= broad;
   *samples = 0;
-  if ((T && !swept) || !kept || crtraj_alloc(&kb, crtraj_bb_work)) {
-    free(swept); free(kept); crtraj_free(&kb); return 1;
+  if (!d || crtraj_alloc(&kb, crtraj_bb_work) || crtraj_grow_pool(&pool, &pcap, K + 1)) {
+    free(d); free(pool); crtraj_free(&kb); return 1;
   }
   for (e = 0; e < E && !rc; ++e) {
     const double* xa = XA + e * CRTRAJ_NX;
     const double* dx = dX + e * CRTRAJ_NX;
-    double f = 1.0, low = INFINITY, t0 = T ? TA[e] : 0.0, span = T ? dT[e] : 0.0, floor = INFINITY;
-    long long Ke = K;
-    const double* Se = S;
-    const double* Te = T;
+    double f = 1.0, low = INFINITY, t0 = T ? TA[e] : 0.0, span = T ? dT[e] : 0.0;
     n = n0[e];
     if (n < 1) { fail[e] = 0.0; lower[e] = -INFINITY; continue; }  /* no intervals: nothing certified */
-    if (broad > 0 && K >= broad) {
-      rc = crtraj_broad(&kb, xa, bound[e], n, K, S, T, origin, t0, span, inflate, P, swept, kept, &Ke, &floor);
-      if (T) Te = kept; else Se = kept;
-    }
     if (crtraj_grow(buf, &cap, 2 * n)) { rc = 1; break; }
-    for (i = 0; i < n; ++i) { ta[i] = (double) i / (double) n; tb[i] = (double) (i + 1) / (double) n; }
+    if (crtraj_grow_pool(&pool, &pcap, K + 1)) { rc = 1; break; }
+    for (q = 0; q < K; ++q) pool[q] = q;  /* the first level: every obstacle */
+    for (i = 0; i < n; ++i) {
+      ta[i] = (double) i / (double) n; tb[i] = (double) (i + 1) / (double) n;
+      flo[i] = INFINITY; off[i] = 0.0; cnt[i] = (double) K;
+    }
     while (n > 0 && !rc) {
-      long long m = 0;
+      long long m = 0, np = 0;
       if (crtraj_grow(buf, &cap, 2 * n)) { rc = 1; break; }  /* room for this level's children */
       /* the whole level first: the split rule sees this level's failures, as the numpy loop does */
       for (i = 0; i < n && !rc; ++i) {
@@ -245,32 +265,49 @@ static int crtraj_refine(long long E, const double* XA, const double* dX, const 
         double h = 0.5 * bound[e] * (tb[i] - ta[i]);
         double dt = span * (tb[i] - ta[i]);
         double c;
+        const long long* lst = pool + (long long) off[i];
+        long long ml = (long long) cnt[i];
         int j;
         for (j = 0; j < CRTRAJ_NX; ++j) x[j] = xa[j] + tm * dx[j];
-        if (T) crtraj_swept(Ke, Te, origin, t0 + ta[i] * span, t0 + tb[i] * span, swept);
-        rc = crtraj_clear_one(&kb, x, Ke, T ? swept : Se, P, &c);
+        rc = crtraj_clear_idx(&kb, x, lst, ml, S, T, origin, t0 + ta[i] * span, t0 + tb[i] * span, P, sw, d, &c);
         c = c - inflate - 0.0;
-        if (floor < c) c = floor;  /* the obstacles the broad phase dropped are at least this far */
+        if (flo[i] < c) c = flo[i];  /* the obstacles dropped above are at least this far */
         ++*samples;
         mid[i] = -1.0;
         if (c >= h) { if (c - h < low) low = c - h; }
         else if (c + enl * dt < 0.0 || ((c < 0.0 || h <= finest) && dt <= tres)) { if (ta[i] < f) f = ta[i]; }
         else mid[i] = tm;  /* neither certified nor unsafe: split */
+        if (mid[i] < 0.0) continue;
+        cflo[i] = flo[i]; coff[i] = off[i]; ccnt[i] = cnt[i];  /* without the broad phase: the same list */
+        if (use) {
+          double thr = 0.5 * h * (1.0 + 1e-9) + 1e-6;
+          if (crtraj_grow_pool(&npool, &ncap, np + ml + 1)) { rc = 1; break; }
+          coff[i] = (double) np;
+          for (q = 0; q < ml; ++q) {
+            double lb = d[q] - inflate - h - 1e-6;
+            if (lb >= thr) { if (lb < cflo[i]) cflo[i] = lb; }
+            else npool[np++] = lst[q];  /* NaN keeps */
+          }
+          ccnt[i] = (double) np - coff[i];
+        }
       }
       for (i = 0; i < n; ++i) {
         if (mid[i] < 0.0 || (prefix ? !(ta[i] < f) : !(f >= 1.0))) continue;
-        ua[m] = ta[i]; ub[m] = mid[i]; ++m;
-        ua[m] = mid[i]; ub[m] = tb[i]; ++m;
+        ua[m] = ta[i]; ub[m] = mid[i]; uflo[m] = cflo[i]; uoff[m] = coff[i]; ucnt[m] = ccnt[i]; ++m;
+        ua[m] = mid[i]; ub[m] = tb[i]; uflo[m] = cflo[i]; uoff[m] = coff[i]; ucnt[m] = ccnt[i]; ++m;
       }
       t = ta; ta = ua; ua = t;
       t = tb; tb = ub; ub = t;
+      t = flo; flo = uflo; uflo = t;
+      t = off; off = uoff; uoff = t;
+      t = cnt; cnt = ucnt; ucnt = t;
+      if (use) { lp = pool; pool = npool; npool = lp; q = pcap; pcap = ncap; ncap = q; }
       n = m;
     }
     fail[e] = f; lower[e] = low;
   }
-  for (i = 0; i < 5; ++i) free(buf[i]);
-  free(swept);
-  free(kept);
+  for (i = 0; i < CRTRAJ_NB; ++i) free(buf[i]);
+  free(d); free(pool); free(npool);
   crtraj_free(&kb);
   return rc;
 }
@@ -279,6 +316,15 @@ static int crtraj_refine(long long E, const double* XA, const double* dX, const 
 #undef mid
 #undef ua
 #undef ub
+#undef flo
+#undef off
+#undef cnt
+#undef uflo
+#undef uoff
+#undef ucnt
+#undef cflo
+#undef coff
+#undef ccnt
 
 /* A static scene: every interval against the same K slots S. */
 int crtraj_check_edges(long long E, const double* XA, const double* dX, const double* bound, const long long* n0,
