@@ -54,7 +54,7 @@ from crtraj.planning.compiled_validity import ValidityKernel, kernel_functions
 from crtraj.planning.context import PlanningContext
 from crtraj.planning.options import PlannerOptions
 from crtraj.planning.pipeline import STREAM_RATE, retime_result
-from crtraj.planning.registry import make_planner
+from crtraj.planning.registry import BUILTIN, make_planner
 from crtraj.planning.steer import SteerOptions
 from crtraj.planning.stop import StopCondition
 from crtraj.planning.validity import MotionValidator
@@ -180,7 +180,9 @@ def table1_rows(model: Model, options: PlannerOptions, count: int, n: int) -> di
     rows = {label: new_row() for label in ps}
     for i, sc in enumerate(table1_scenes(model, count, n)):
         for label, p in ps.items():
-            add(rows[label], timed_plan(p, sc.goal, start_config=sc.start, scene=sc.scene, stop=stop, seed=i))
+            out = timed_plan(p, sc.goal, start_config=sc.start, scene=sc.scene, stop=stop, seed=i)
+            res = out[0]
+            add(rows[label], out, res.is_success() and dense_clearance(model, sc.scene, res.t, res.configs) >= 0.0)
     return rows
 
 
@@ -211,14 +213,16 @@ def section_ompl(problem: Problem, model: Model, scene: Scene, options: PlannerO
     except Exception as exc:  # the bench extra is optional
         print(f"skipped: {exc}")
         return
-    o = options.with_(algorithm="cspace", time_limit=10.0)
-    stop = StopCondition(time_limit=10.0, max_iterations=options.max_iterations, first_solution=True)
+    # 5 s per query: OMPL fails many Table I queries, and each failure spends the whole limit
+    o = options.with_(algorithm="cspace", time_limit=5.0)
+    stop = StopCondition(time_limit=5.0, max_iterations=options.max_iterations, first_solution=True)
     print("first: time to the first solution (goal IK included); executable: + OMPL's simplification, + retiming")
     print("(`retime_result`, as plan_executable) for both; crtraj's first solution is already smoothed and verified")
     for name, queries in ompl_queries(problem, model, scene, sim1, n).items():
-        ctx = PlanningContext(model, scene if name == "sim 1" else Scene(), o)
+        # with the robot's rate limits, as plan_executable plans and retimes
+        ctx = PlanningContext.build(model, scene if name == "sim 1" else Scene(), o)
         runs = {
-            "crtraj": make_planner(model, ctx.scene, o, max_obstacles=8),
+            "crtraj": BUILTIN.create("cspace", ctx, None),
             "RRTConnect": OMPLPlanner(ctx, algorithm="RRTConnect", simplify=False),
             "RRTConnect+simplify": OMPLPlanner(ctx, algorithm="RRTConnect", simplify=True),
         }
@@ -335,7 +339,7 @@ def section_checks(model: Model, options: PlannerOptions, n: int = 400, repeat: 
 
 
 def section_loaders(model: Model, check_points: int, n: int = 512, repeat: int = 200) -> None:
-    print(f"\n== 5. loading the compiled code: batched backbone FK of {n} configurations ==")
+    print(f"\n== 6. loading the compiled code: batched backbone FK of {n} configurations ==")
     kernel = ValidityKernel.load(model, check_points, BuildCache())
     if kernel is None:
         print("skipped: no C compiler")
