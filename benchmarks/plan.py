@@ -1,31 +1,32 @@
-"""Planning time, interpreted (old) against compiled (new) validity, with OMPL over the same checker.
+"""Planning time of the cspace planner, old path against new, interleaved in one run, and against OMPL.
 
-Sections (each prints the old and the new path side by side, measured in this one run):
+"old" and "new" both run on the compiled validity kernel; "old" has neither the edge check's broad phase
+(``[planner.check] broad_phase = false``) nor the safe IK's rescue stage (``[planner.ik] rescue_starts = 0``),
+as the code before issue 29 (the other changes of that issue give identical plans and have no switch).
+Each query runs on both paths, one after the other, so both see the same load.
 
-1. Simulation 1 (problems/paper_static.toml): the default planner (cspace) with the interpreted CasADi
-   validity checks (``[planner.check] compiled = false``, the old path) and with the compiled kernel
-   (`crtraj.planning.compiled_validity`, the new path): success, median, p90 over the seeds, and
-   whether both paths gave identical plans. Targets (issue 14): median <= 15 ms, p90 <= 30 ms.
-   Beside it, optionally, the paper's task-space RRT* (`--rrtstar-seeds`).
-2. OMPL's RRTConnect and RRTstar on the same query and seeds, over the same compiled validator, timed
-   to their FIRST solution (goal IK included, no simplification): crtraj's median as a ratio of theirs.
-3. Table I scenes (`crtraj.bench.scenarios`, moving obstacles) at 7 obstacles: cspace median, old and
-   new. Target: new median <= 30 ms.
-4. Scaling: plan time against the obstacle count (1, 3, 7, 15, 31 spheres, Table I scenes) and the
-   segment count (2, 3, 4: cdsr2's 400 mm split into that many segments, 7 obstacles), old and new;
-   the plot goes to docs/scaling_plan.png (`--plot`).
-5. Loaders: the same compiled batched backbone FK called through ctypes on numpy buffers (the one
-   crtraj uses) and through ``casadi.external`` + ``map`` on CasADi's buffer API.
+1. Simulation 1 (problems/paper_static.toml), `--seeds` seeds: success, wall and CPU median / p90,
+   successes re-checked densely, IPOPT solves of the safe IK (the fallback), identical plans, path
+   length and clearance. Targets (new): median <= 3 ms, p90 <= 6 ms, 100 % success.
+2. OMPL RRTConnect over the same compiled validator, on sim 1 (the starts crtraj's start IK found) and on
+   the Table I scenes at 3 and 7 obstacles: time to the first solution (goal IK included), and time to an
+   executable motion: OMPL's path simplified by its PathSimplifier, then both retimed with
+   `crtraj.planning.pipeline.retime_result` (as `plan_executable`). Target: crtraj >= 3x faster.
+3. Table I scenes (`crtraj.bench.scenarios`, moving obstacles) at 7 obstacles, `--table1` scenes.
+   Targets (new): median <= 4 ms, p90 <= 10 ms.
+4. Scaling (`--scaling` scenes per point): CPU time against the obstacle count (1 to 100 spheres) and the
+   segment count (2, 3, 4 at 7 obstacles); the plot goes to `--plot` (docs/scaling_plan.png).
+   Target (new): 31 obstacles at most 3x the time at 1.
+5. Edge checks per second, with and without the broad phase, and the kernel's loaders (ctypes against
+   ``casadi.external``).
 
-Every plan time is the planner's own wall time for one query (`PlanResult.timings["total"]`), the
-planner built once and warmed up by one untimed query, and beside it the process CPU time of the query
-(`time.process_time`: on a machine shared with other jobs it moves far less with their load than wall
-time does; the scaling section and its plot use it); every success of sections 1-2 is re-checked
-independently (200 backbone points, every 10 ms of the timed path, numpy distances to the spheres).
-The compiled kernels come from the build cache (built before timing starts).
+Plan times are the planner's own wall time per query (`PlanResult.timings["total"]`), planners built once
+and warmed up by one untimed query, with the process CPU time beside it (`time.process_time`; on a machine
+shared with other jobs it moves far less with their load than wall time). Every success of sections 1-2
+is re-checked independently (200 backbone points every 10 ms of the timed path, numpy distances).
 
-Run: python benchmarks/plan.py [--seeds 20] [--ompl-seeds 10] [--table1 20] [--scaling 10] [--plot PATH]
-     [--rrtstar-seeds 0] [--skip-ompl]
+Run: python benchmarks/plan.py [--seeds 40] [--ompl-seeds 10] [--table1 20] [--scaling 10] [--plot PATH]
+     [--rrtstar-seeds 0]
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ import statistics
 import time
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import casadi as ca
 import numpy as np
@@ -51,13 +53,17 @@ from crtraj.model.robot import Robot, Segment
 from crtraj.planning.compiled_validity import ValidityKernel, kernel_functions
 from crtraj.planning.context import PlanningContext
 from crtraj.planning.options import PlannerOptions
-from crtraj.planning.registry import make_planner
+from crtraj.planning.pipeline import STREAM_RATE, retime_result
+from crtraj.planning.registry import BUILTIN, make_planner
 from crtraj.planning.steer import SteerOptions
 from crtraj.planning.stop import StopCondition
+from crtraj.planning.validity import MotionValidator
 from crtraj.world.scene import Scene
 
 ROOT = Path(__file__).resolve().parent.parent
-MODES = (("old (interpreted)", False), ("new (compiled)", True))
+# The two paths compared in every section (both on the compiled kernel): "old" without the edge check's broad
+# phase and without the IK's rescue stage (the code before issue 29), "new" the defaults.
+MODES = (("old", {"check": {"broad_phase": False}, "ik": {"rescue_starts": 0}}), ("new", {}))
 
 
 def paper_plan_time() -> float:
@@ -87,49 +93,119 @@ def summary(times: list[float]) -> str:
     return f"{statistics.median(times) * 1e3:7.1f} / {np.percentile(times, 90) * 1e3:6.1f} ms"
 
 
-def sim1_queries(planner, problem: Problem, model: Model, scene: Scene, seeds: range, stop: StopCondition) -> dict:
-    """Plan sim 1 for every seed (after one untimed warm-up): times, results, independent checks."""
-    task = problem.task
-    planner.plan(task.goal, start_tip=task.start, seed=10_000, stop=stop, goal_tolerance=task.goal_tolerance)
-    times, cpu, results, verified = [], [], [], 0
-    for seed in seeds:
-        c0 = time.process_time()
-        res = planner.plan(task.goal, start_tip=task.start, seed=seed, stop=stop, goal_tolerance=task.goal_tolerance)
-        cpu.append(time.process_time() - c0)
-        times.append(res.timings["total"])
-        results.append(res)
-        if res.is_success():
-            verified += dense_clearance(model, scene, res.t, res.configs) >= 0.0
-    ok = sum(r.is_success() for r in results)
-    return {"times": times, "cpu": cpu, "results": results, "success": ok, "verified": verified}
+def timed_plan(planner, goal, **kw) -> tuple[Any, float, float, int]:
+    """One query: (result, wall time s (the planner's own), CPU time s, IPOPT solves of its safe IK)."""
+    n0 = getattr(planner.ik, "nlp_solves", 0)
+    c0 = time.process_time()
+    res = planner.plan(goal, **kw)
+    cpu = time.process_time() - c0
+    return res, res.timings["total"], cpu, getattr(planner.ik, "nlp_solves", 0) - n0
+
+
+def new_row() -> dict:
+    return {"times": [], "cpu": [], "results": [], "nlp": 0, "verified": 0}
+
+
+def add(row: dict, out: tuple[Any, float, float, int], verified: bool = False) -> None:
+    res, wall, cpu, nlp = out
+    row["times"].append(wall)
+    row["cpu"].append(cpu)
+    row["results"].append(res)
+    row["nlp"] += nlp
+    row["verified"] += bool(verified)
+
+
+def successes(row: dict) -> int:
+    return sum(r.is_success() for r in row["results"])
+
+
+def planners(model: Model, scene: Scene, options: PlannerOptions, **kw) -> dict:
+    """The cspace planner of each mode (old, new), built once."""
+    return {label: make_planner(model, scene, options.with_(algorithm="cspace", **mode), **kw) for label, mode in MODES}
 
 
 def section_sim1(problem: Problem, model: Model, scene: Scene, options: PlannerOptions, n: int) -> dict:
-    print("\n== 1. simulation 1 (paper_static), cspace: old vs new validity ==")
-    rows = {}
-    for label, compiled in MODES:
-        planner = make_planner(model, scene, options.with_(algorithm="cspace", check={"compiled": compiled}))
-        rows[label] = sim1_queries(planner, problem, model, scene, range(n), options.stop())
-    old, new = rows[MODES[0][0]], rows[MODES[1][0]]
-    same = all(
-        np.array_equal(a.configs, b.configs) and np.array_equal(a.t, b.t)
-        for a, b in zip(old["results"], new["results"], strict=True)
-    )
-    print(f"{'path':<20s} {'success':>9s} {'wall median / p90':>22s} {'CPU median / p90':>22s}  verified")
-    for label, r in rows.items():
-        print(
-            f"{label:<20s} {r['success']:>4d}/{n:<4d} {summary(r['times']):>22s} {summary(r['cpu']):>22s}  "
-            f"{r['verified']}/{r['success']}"
-        )
-    speed = statistics.median(old["times"]) / statistics.median(new["times"])
-    speed_cpu = statistics.median(old["cpu"]) / statistics.median(new["cpu"])
-    print(f"speed-up (median): wall {speed:.1f}x, CPU {speed_cpu:.1f}x; identical plans for every seed: {same}")
-    print("targets: new median <= 15 ms, p90 <= 30 ms")
+    print(f"\n== 1. simulation 1 (paper_static), cspace, {n} seeds: old vs new, interleaved ==")
+    task, stop = problem.task, options.stop()
+    kw = {"start_tip": task.start, "stop": stop, "goal_tolerance": task.goal_tolerance}
+    ps = planners(model, scene, options)
+    rows = {label: new_row() for label in ps}
+    for p in ps.values():
+        p.plan(task.goal, seed=10_000, **kw)  # warm-up (builds, caches)
+    for seed in range(n):
+        for label, p in ps.items():
+            out = timed_plan(p, task.goal, seed=seed, **kw)
+            ok = out[0].is_success() and dense_clearance(model, scene, out[0].t, out[0].configs) >= 0.0
+            add(rows[label], out, ok)
+    print_rows(rows, n)
+    old, new = rows["old"]["results"], rows["new"]["results"]
+    same = sum(np.array_equal(a.configs, b.configs) and np.array_equal(a.t, b.t) for a, b in zip(old, new, strict=True))
+    both = [(a, b) for a, b in zip(old, new, strict=True) if a.is_success() and b.is_success()]
+    if both:
+        la, lb = np.mean([a.length for a, _ in both]), np.mean([b.length for _, b in both])
+        ca_, cb = min(a.min_clearance for a, _ in both), min(b.min_clearance for _, b in both)
+        print(f"identical plans: {same}/{n}; tip path length mean old {la:.1f} / new {lb:.1f} mm; ", end="")
+        print(f"smallest clearance old {ca_:.2f} / new {cb:.2f} mm")
+    print("targets (new): median <= 3 ms, p90 <= 6 ms, 100 % success, every success verified densely")
     return rows
 
 
-def section_ompl(problem: Problem, model: Model, scene: Scene, options: PlannerOptions, new: dict, n: int) -> None:
-    print("\n== 2. OMPL over the same compiled validator, time to FIRST solution (goal IK included) ==")
+def print_rows(rows: dict, n: int) -> None:
+    """The old/new table: success, wall and CPU median / p90, densely verified successes, IPOPT solves."""
+    print(f"{'path':<6s} {'success':>9s} {'wall median / p90':>22s} {'CPU median / p90':>22s}  verified  IPOPT")
+    for label, r in rows.items():
+        ok = successes(r)
+        print(
+            f"{label:<6s} {ok:>4d}/{n:<4d} {summary(r['times']):>22s} {summary(r['cpu']):>22s}  "
+            f"{r['verified']:>4d}/{ok:<4d} {r['nlp']:>4d}"
+        )
+    old, new = rows["old"], rows["new"]
+    wall = statistics.median(old["times"]) / statistics.median(new["times"])
+    cpu = statistics.median(old["cpu"]) / statistics.median(new["cpu"])
+    print(f"speed-up old/new (median): wall {wall:.2f}x, CPU {cpu:.2f}x")
+
+
+def table1_scenes(model: Model, count: int, n: int) -> list:
+    gen = ScenarioGenerator(model, ScenarioOptions(seed=0))
+    return [gen.generate(count, i) for i in range(n)]
+
+
+def table1_rows(model: Model, options: PlannerOptions, count: int, n: int) -> dict:
+    """cspace old and new, interleaved, on the first n Table I scenes with `count` moving obstacles."""
+    ps = planners(model, Scene(), options, max_obstacles=8)
+    stop = StopCondition(time_limit=5.0, max_iterations=options.max_iterations, first_solution=True)
+    warm = ScenarioGenerator(model, ScenarioOptions(seed=99)).generate(count, 0)
+    for p in ps.values():
+        p.plan(warm.goal, start_config=warm.start, scene=warm.scene, stop=stop, seed=0)
+    rows = {label: new_row() for label in ps}
+    for i, sc in enumerate(table1_scenes(model, count, n)):
+        for label, p in ps.items():
+            out = timed_plan(p, sc.goal, start_config=sc.start, scene=sc.scene, stop=stop, seed=i)
+            res = out[0]
+            add(rows[label], out, res.is_success() and dense_clearance(model, sc.scene, res.t, res.configs) >= 0.0)
+    return rows
+
+
+def ompl_queries(problem: Problem, model: Model, scene: Scene, sim1: dict, n: int) -> dict:
+    """The OMPL comparison's query sets: (goal, start configuration, scene) each."""
+    sets = {"sim 1": [(problem.task.goal, r.configs[0], scene) for r in sim1["new"]["results"][:n] if r.has_path]}
+    for count in (3, 7):
+        sets[f"Table I, {count} obstacles"] = [(sc.goal, sc.start, sc.scene) for sc in table1_scenes(model, count, n)]
+    return sets
+
+
+def executable(res: Any, context: PlanningContext, scene: Scene) -> tuple[bool, float]:
+    """Retime a result as `plan_executable` does (`retime_result`): (success, retime wall time s)."""
+    limits = context.robot.actuator_limits()
+    if not res.is_success() or limits is None or context.rate_limits is None:
+        return res.is_success(), 0.0
+    t1 = time.perf_counter()
+    out, _ = retime_result(res, context.validity_for(scene), context, limits, STREAM_RATE)
+    return out.is_success(), time.perf_counter() - t1
+
+
+def section_ompl(problem: Problem, model: Model, scene: Scene, options: PlannerOptions, sim1: dict, n: int) -> None:
+    print(f"\n== 2. against OMPL RRTConnect on the same compiled validator, {n} queries per scene set ==")
     try:
         from crtraj.planning.ompl import OMPLPlanner, import_ompl
 
@@ -137,58 +213,43 @@ def section_ompl(problem: Problem, model: Model, scene: Scene, options: PlannerO
     except Exception as exc:  # the bench extra is optional
         print(f"skipped: {exc}")
         return
-    task = problem.task
-    ours, ours_cpu = statistics.median(new["times"][:n]), statistics.median(new["cpu"][:n])
-    head = f"{'planner':<22s} {'success':>9s} {'wall median / p90':>22s} {'CPU median / p90':>22s}"
-    print(f"{head}  crtraj / it (wall, CPU)")
-    o = options.with_(check={"compiled": True}, time_limit=10.0)
-    for algo in ("RRTConnect", "RRTstar"):
-        planner = OMPLPlanner(PlanningContext(model, scene, o), algorithm=algo, simplify=False)
-        stop = StopCondition(time_limit=10.0, first_solution=True)
-        starts = [r.configs[0] for r in new["results"][:n]]
-        planner.plan(task.goal, start_config=starts[0], seed=10_000, stop=stop, goal_tolerance=task.goal_tolerance)
-        times, cpu, ok = [], [], 0
-        for seed, xs in enumerate(starts):
-            c0 = time.process_time()
-            res = planner.plan(task.goal, start_config=xs, seed=seed, stop=stop, goal_tolerance=task.goal_tolerance)
-            cpu.append(time.process_time() - c0)
-            times.append(res.timings["total"])
-            ok += res.is_success() and dense_clearance(model, scene, res.t, res.configs) >= 0.0
-        r_wall, r_cpu = ours / statistics.median(times), ours_cpu / statistics.median(cpu)
-        print(f"OMPL {algo:<17s} {ok:>4d}/{n:<4d} {summary(times):>22s} {summary(cpu):>22s}  {r_wall:.3f}, {r_cpu:.3f}")
-
-
-def table1_times(model: Model, options: PlannerOptions, count: int, n: int, compiled: bool) -> tuple[list, int, list]:
-    """cspace plan wall times (s), successes and CPU times (s) on the first n Table I scenes with `count` obstacles."""
-    gen = ScenarioGenerator(model, ScenarioOptions(seed=0))
-    scenes = [gen.generate(count, i) for i in range(n)]
-    o = options.with_(algorithm="cspace", check={"compiled": compiled})
-    planner = make_planner(model, Scene(), o, max_obstacles=8)
-    warm = ScenarioGenerator(model, ScenarioOptions(seed=99)).generate(count, 0)
+    # 5 s per query: OMPL fails many Table I queries, and each failure spends the whole limit
+    o = options.with_(algorithm="cspace", time_limit=5.0)
     stop = StopCondition(time_limit=5.0, max_iterations=options.max_iterations, first_solution=True)
-    planner.plan(warm.goal, start_config=warm.start, scene=warm.scene, stop=stop, seed=0)
-    times, cpu, ok = [], [], 0
-    for i, sc in enumerate(scenes):
-        c0 = time.process_time()
-        res = planner.plan(sc.goal, start_config=sc.start, scene=sc.scene, stop=stop, seed=i)
-        cpu.append(time.process_time() - c0)
-        times.append(res.timings["total"])
-        ok += res.is_success()
-    return times, ok, cpu
+    print("first: time to the first solution (goal IK included); executable: + OMPL's simplification, + retiming")
+    print("(`retime_result`, as plan_executable) for both; crtraj's first solution is already smoothed and verified")
+    for name, queries in ompl_queries(problem, model, scene, sim1, n).items():
+        # with the robot's rate limits, as plan_executable plans and retimes
+        ctx = PlanningContext.build(model, scene if name == "sim 1" else Scene(), o)
+        runs = {
+            "crtraj": BUILTIN.create("cspace", ctx, None),
+            "RRTConnect": OMPLPlanner(ctx, algorithm="RRTConnect", simplify=False),
+            "RRTConnect+simplify": OMPLPlanner(ctx, algorithm="RRTConnect", simplify=True),
+        }
+        first = {k: [] for k in runs}
+        exe = {k: [] for k in runs}
+        for i, (goal, xs, sc) in enumerate(queries):
+            for label, p in runs.items():
+                res = p.plan(goal, start_config=xs, scene=sc, stop=stop, seed=i)
+                ok, t_re = executable(res, ctx, sc)
+                ok = ok and dense_clearance(model, sc, res.t, res.configs) >= 0.0
+                first[label].append(res.timings["total"] if res.is_success() else np.inf)
+                exe[label].append(res.timings["total"] + t_re if ok else np.inf)
+        print(f"-- {name}: median / p90, success; crtraj's speed-up over RRTConnect")
+        for label in runs:
+            ok = int(np.isfinite(exe[label]).sum())
+            line = f"   {label:<20s} first {summary(first[label])}   executable {summary(exe[label])}"
+            print(f"{line}   {ok}/{len(queries)}")
+        sp_first = np.median(first["RRTConnect"]) / np.median(first["crtraj"])
+        sp_exe = np.median(exe["RRTConnect+simplify"]) / np.median(exe["crtraj"])
+        print(f"   speed-up (median): first solution {sp_first:.1f}x, executable {sp_exe:.1f}x (target >= 3x)")
 
 
 def section_table1(model: Model, options: PlannerOptions, n: int) -> None:
-    print(f"\n== 3. Table I scenes, 7 moving obstacles, cspace, {n} scenes ==")
-    meds, cpus = [], []
-    print(f"{'path':<20s} {'success':>9s} {'wall median / p90':>22s} {'CPU median / p90':>22s}")
-    for label, compiled in MODES:
-        times, ok, cpu = table1_times(model, options, 7, n, compiled)
-        meds.append(statistics.median(times))
-        cpus.append(statistics.median(cpu))
-        print(f"{label:<20s} {ok:>4d}/{n:<4d} {summary(times):>22s} {summary(cpu):>22s}")
-    print(
-        f"speed-up (median): wall {meds[0] / meds[1]:.1f}x, CPU {cpus[0] / cpus[1]:.1f}x; target: new median <= 30 ms"
-    )
+    print(f"\n== 3. Table I scenes, 7 moving obstacles, cspace, {n} scenes: old vs new, interleaved ==")
+    rows = table1_rows(model, options, 7, n)
+    print_rows(rows, n)
+    print("targets (new): median <= 4 ms, p90 <= 10 ms")
 
 
 def split_robot(robot: Robot, n_segments: int) -> Robot:
@@ -201,20 +262,26 @@ def split_robot(robot: Robot, n_segments: int) -> Robot:
 
 
 def section_scaling(model: Model, options: PlannerOptions, n: int, plot: str | None) -> None:
-    print(f"\n== 4. scaling: cspace CPU-time median over {n} Table I scenes, old / new (ms) ==")
-    counts = (1, 3, 7, 15, 31)
+    print(f"\n== 4. scaling: cspace CPU-time median over {n} Table I scenes, old / new (ms), interleaved ==")
     rows: dict[str, list[tuple[int, float, float]]] = {"obstacles": [], "segments": []}
-    for m in counts:
-        old = statistics.median(table1_times(model, options, m, n, False)[2])
-        new = statistics.median(table1_times(model, options, m, n, True)[2])
+    for m in (1, 3, 7, 15, 31, 100):
+        r = table1_rows(model, options, m, n)
+        old, new = statistics.median(r["old"]["cpu"]), statistics.median(r["new"]["cpu"])
         rows["obstacles"].append((m, old, new))
-        print(f"{m:>3d} obstacles (2 segments):  {old * 1e3:8.1f} / {new * 1e3:7.1f}   {old / new:5.1f}x")
+        ok = f"{successes(r['old'])}/{successes(r['new'])} of {n}"
+        print(
+            f"{m:>3d} obstacles (2 segments):  {old * 1e3:8.1f} / {new * 1e3:7.1f}   {old / new:5.2f}x   success {ok}"
+        )
+    base = rows["obstacles"][0]
+    for m, old, new in rows["obstacles"][1:]:
+        print(f"time at {m} / at 1 obstacle: old {old / base[1]:.1f}x, new {new / base[2]:.1f}x")
+    print("target (new): at 31 obstacles at most 3x the time at 1")
     for k in (2, 3, 4):
         mk = Model(split_robot(model.robot, k)) if k != 2 else model
-        old = statistics.median(table1_times(mk, options, 7, n, False)[2])
-        new = statistics.median(table1_times(mk, options, 7, n, True)[2])
+        r = table1_rows(mk, options, 7, n)
+        old, new = statistics.median(r["old"]["cpu"]), statistics.median(r["new"]["cpu"])
         rows["segments"].append((k, old, new))
-        print(f"{k:>3d} segments (7 obstacles):   {old * 1e3:8.1f} / {new * 1e3:7.1f}   {old / new:5.1f}x")
+        print(f"{k:>3d} segments (7 obstacles):   {old * 1e3:8.1f} / {new * 1e3:7.1f}   {old / new:5.2f}x")
     if plot:
         write_plot(rows, Path(plot), n)
 
@@ -231,12 +298,13 @@ def write_plot(rows: dict, path: Path, n: int) -> None:
         fig.subplots(1, 2), ("obstacles", "segments"), ("obstacles (spheres)", "segments"), strict=True
     ):
         x = [r[0] for r in rows[key]]
-        ax.plot(x, [r[1] * 1e3 for r in rows[key]], "o-", label="interpreted (old)")
-        ax.plot(x, [r[2] * 1e3 for r in rows[key]], "s-", label="compiled (new)")
+        ax.plot(x, [r[1] * 1e3 for r in rows[key]], "o-", label="old (no broad phase, no IK rescue)")
+        ax.plot(x, [r[2] * 1e3 for r in rows[key]], "s-", label="new")
         ax.set_xlabel(xlabel)
         ax.set_ylabel("cspace plan CPU time, median (ms)")
         ax.set_yscale("log")
-        ax.set_xticks(x)
+        ax.set_xscale("log" if key == "obstacles" else "linear")
+        ax.set_xticks(x, [str(v) for v in x])
         ax.grid(True, which="both", alpha=0.3)
         ax.legend()
     fig.suptitle(f"crtraj plan time, Table I scenes ({n} per point), {datetime.date.today()}, {platform.node()}")
@@ -245,8 +313,33 @@ def write_plot(rows: dict, path: Path, n: int) -> None:
     print(f"plot: {path}")
 
 
+def section_checks(model: Model, options: PlannerOptions, n: int = 400, repeat: int = 5) -> None:
+    print(
+        f"\n== 5. edge checks per CPU second: {n} random motions in Table I scenes, without / with the broad phase =="
+    )
+    rng = np.random.default_rng(0)
+    for count in (7, 31, 100):
+        sc = ScenarioGenerator(model, ScenarioOptions(seed=0)).generate(count, 0).scene
+        rates = []
+        for broad in (False, True):
+            v = MotionValidator(model, sc, check_points=options.check.points, broad_phase=broad)
+            XA, XB = v.sample(rng, n), v.sample(rng, n)
+            TA = rng.uniform(0.0, 5.0, n)
+            TB = TA + v.duration(XB - XA)
+            s0, c0 = v.n_samples, time.process_time()
+            for _ in range(repeat):
+                v.check_edges(XA, XB, TA, TB, prefix=False)
+            cpu = time.process_time() - c0
+            rates.append(((v.n_samples - s0) / cpu, n * repeat / cpu))
+        (s_old, e_old), (s_new, e_new) = rates
+        print(
+            f"{count:>3d} obstacles: samples/s {s_old:9.0f} -> {s_new:9.0f}, motions/s {e_old:7.0f} -> {e_new:7.0f} "
+            f"({e_new / e_old:.2f}x)"
+        )
+
+
 def section_loaders(model: Model, check_points: int, n: int = 512, repeat: int = 200) -> None:
-    print(f"\n== 5. loading the compiled code: batched backbone FK of {n} configurations ==")
+    print(f"\n== 6. loading the compiled code: batched backbone FK of {n} configurations ==")
     kernel = ValidityKernel.load(model, check_points, BuildCache())
     if kernel is None:
         print("skipped: no C compiler")
@@ -283,8 +376,8 @@ def section_loaders(model: Model, check_points: int, n: int = 512, repeat: int =
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--problem", default=str(ROOT / "problems" / "paper_static.toml"))
-    ap.add_argument("--seeds", type=int, default=20, help="seeds of sim 1 (0..N-1)")
-    ap.add_argument("--ompl-seeds", type=int, default=10, help="seeds of each OMPL planner (0 = skip)")
+    ap.add_argument("--seeds", type=int, default=40, help="seeds of sim 1 (0..N-1)")
+    ap.add_argument("--ompl-seeds", type=int, default=10, help="queries per OMPL scene set (0 = skip)")
     ap.add_argument("--table1", type=int, default=20, help="Table I scenes at 7 obstacles (0 = skip)")
     ap.add_argument("--scaling", type=int, default=0, help="scenes per scaling point (0 = skip)")
     ap.add_argument("--plot", default=None, help="write the scaling plot here (e.g. docs/scaling_plan.png)")
@@ -309,22 +402,25 @@ def main() -> None:
     print(f"problem: {problem.name} (start {problem.task.start.tolist()} -> goal {problem.task.goal.tolist()} mm)")
 
     rows = section_sim1(problem, model, scene, options, args.seeds)
-    new = rows[MODES[1][0]]
     if args.ompl_seeds > 0:
-        section_ompl(problem, model, scene, options, new, min(args.ompl_seeds, args.seeds))
+        section_ompl(problem, model, scene, options, rows, min(args.ompl_seeds, args.seeds))
     if args.rrtstar_seeds > 0:
         steer = problem.options(SteerOptions, "steer")
         p = make_planner(model, scene, options.with_(algorithm="rrtstar", time_limit=args.rrtstar_time_limit), steer)
         stop = StopCondition(
             time_limit=args.rrtstar_time_limit, max_iterations=options.max_iterations, first_solution=True
         )
-        r = sim1_queries(p, problem, model, scene, range(args.rrtstar_seeds), stop)
-        print(f"\ntask-space RRT* (paper's method): {r['success']}/{args.rrtstar_seeds} {summary(r['times'])}")
+        task = problem.task
+        r = new_row()
+        for seed in range(args.rrtstar_seeds):
+            add(r, timed_plan(p, task.goal, start_tip=task.start, seed=seed, stop=stop, goal_tolerance=0.5))
+        print(f"\ntask-space RRT* (paper's method): {successes(r)}/{args.rrtstar_seeds} {summary(r['times'])}")
     print(f"paper (Python, i7-12700H): {paper_plan_time() * 1e3:.0f} ms")
     if args.table1 > 0:
         section_table1(model, options, args.table1)
     if args.scaling > 0:
         section_scaling(model, options, args.scaling, args.plot)
+    section_checks(model, options)
     section_loaders(model, options.check.points)
     print(
         f"\nload average at the end: {os.getloadavg()[0]:.1f} (a shared machine: the old/new ratios of one run "

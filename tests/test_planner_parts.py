@@ -448,3 +448,29 @@ def test_timed_shortcut_and_spline_keep_times_speed_and_safety(sim1):
     Z, TZ = dedup_timed(np.stack([X[0], X[0], X[0], X[1]]), np.array([0.0, 0.0, 1.0, 2.0]))
     np.testing.assert_array_equal(TZ, [0.0, 1.0, 2.0])
     assert len(Z) == 3
+
+
+def test_rescue_replaces_the_nlp_with_batched_starts(sim1, validator):
+    """Sim 1's start tip sits between the spheres: from these 64 seeds no projection clears them, and without
+    the push-out stage the NLP runs. The rescue stage's batched starts around the projections find safe
+    configurations instead: no IPOPT solve runs, and each rescued configuration has its tip on the target
+    (independent FK), is within limits, keeps the NLP's margin and passes a dense check."""
+    problem, model, scene = sim1
+    start = problem.task.start
+    seeds = validator.sample(np.random.default_rng(5), 64)
+    kw = {"want": 2, "max_nlp": 8}
+    old = SafeIK(model, validator, 2, push_rounds=0)
+    old.solve(start, scene.pack(0.0, 2), seeds, **kw)
+    assert old.nlp_solves >= 2
+    ik = SafeIK(model, validator, 2, push_rounds=0, rescue_starts=32)
+    batch = ik.solve(start, scene.pack(0.0, 2), seeds, **kw)
+    assert ik.nlp_solves == 0 and batch.statuses["rescue"] == len(batch.safe) == 2
+    rescued = [s for s in batch.solutions if s.solver_status == "rescue"]
+    assert len(rescued) == 2
+    for s in rescued:
+        assert s.safe
+        assert np.linalg.norm(model.tip_position(s.x) - start) <= 1e-3
+        assert validator.within_limits(s.x[None])[0]
+        assert s.clearance >= ik.margin - 0.25
+        clear, _, _ = dense_path_check(model, scene, np.array([0.0]), s.x[None])
+        assert clear >= 0.0

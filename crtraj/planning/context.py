@@ -88,7 +88,14 @@ class PlanningContext:
         if check.mode == "paper":
             points = self.model.robot.collision_points
             return PaperValidator(self.model, scene, step=check.step, check_points=points, **common)
-        return MotionValidator(self.model, scene, check_points=check.points, compiled=check.compiled, **common)
+        return MotionValidator(
+            self.model,
+            scene,
+            check_points=check.points,
+            compiled=check.compiled,
+            broad_phase=check.broad_phase,
+            **common,
+        )
 
     def validity_for(self, scene: Any) -> MotionValidator:
         """The default scene's validator when `scene` is None or the default scene, else a new one."""

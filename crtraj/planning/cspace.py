@@ -84,7 +84,12 @@ class CSpacePlanner(PlannerBase):
         super().__init__(context)
         scene = context.scene
         m = scene.n_obstacles if max_obstacles is None else int(max_obstacles)
-        self.ik = SafeIK(self.model, self.validator, max(m, scene.n_obstacles), push_rounds=self.options.ik.push_rounds)
+        self.ik = self._safe_ik(max(m, scene.n_obstacles))
+
+    def _safe_ik(self, slots: int) -> SafeIK:
+        """The goal IK with `slots` obstacle slots in its NLP, as the options configure it."""
+        ik = self.options.ik
+        return SafeIK(self.model, self.validator, slots, push_rounds=ik.push_rounds, rescue_starts=ik.rescue_starts)
 
     # ------------------------------------------------------------------ query
     def plan(
@@ -175,7 +180,7 @@ class CSpacePlanner(PlannerBase):
 
     def _prepare(self, v: MotionValidator) -> None:
         if v.scene.n_obstacles > self.ik.max_obstacles:
-            self.ik = SafeIK(self.model, self.validator, v.scene.n_obstacles, push_rounds=self.options.ik.push_rounds)
+            self.ik = self._safe_ik(v.scene.n_obstacles)
 
     # ---------------------------------------------------------------- goal IK
     def _goal_configs(self, q: QueryStart, x_start: np.ndarray, statuses: dict[str, int]) -> np.ndarray:

@@ -212,7 +212,13 @@ class OMPLPlanner(PlannerBase):
         slots = packing.slot_count(n_obstacles)
         ik = self._iks.get(slots)
         if ik is None:
-            ik = SafeIK(self.model, v, slots, push_rounds=self.options.ik.push_rounds)
+            ik = SafeIK(
+                self.model,
+                v,
+                slots,
+                push_rounds=self.options.ik.push_rounds,
+                rescue_starts=self.options.ik.rescue_starts,
+            )
             self._iks[slots] = ik
         return ik
 

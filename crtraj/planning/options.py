@@ -39,7 +39,9 @@ class IKOptions(Options):
     the safety-constrained IPOPT NLP takes over. nlp_solves: at most this many NLP solves per IK
     query (the slow, rarely needed stage). push_rounds: rounds of the IK's push-out stage between
     the two (on-target projections that come too close to an obstacle move along the tip
-    constraint's null space until they clear it; 0 skips the stage). goal_window: dynamic scenes
+    constraint's null space until they clear it; 0 skips the stage). rescue_starts: before an NLP solve
+    from a projection, this many batched starts around it are projected and pushed out, and the safe
+    one nearest the seed is taken instead (0: the NLP runs as before). goal_window: dynamic scenes
     only: half of the IK starts keep clear of everything the obstacles sweep over
     [t0, t0 + goal_window] (s), by projection only (no NLP: often infeasible); the other half, with
     the NLP stage, keep clear at t0.
@@ -52,6 +54,7 @@ class IKOptions(Options):
     iterations: int = option(15, ge=0, le=10_000)
     nlp_solves: int = option(8, ge=0, le=1000)
     push_rounds: int = option(12, ge=0, le=1000)
+    rescue_starts: int = option(32, ge=0, le=10_000)
     goal_window: float = option(4.0, ge=0.0, le=MAX_TIME)
 
 
@@ -66,6 +69,8 @@ class CheckOptions(Options):
     points per collision check (>= 2). compiled: run the collision checks through the compiled
     kernel (C generated once per robot and cached, `crtraj build`) when a C compiler is available;
     false: the interpreted CasADi path (same results to rounding, several times slower).
+    broad_phase: the compiled edge check first drops, per motion, the obstacles too far away to decide
+    any of its samples (the same verdicts; false: every obstacle enters every sample, the old path).
     """
 
     SECTION: ClassVar[str] = "planner.check"
@@ -75,6 +80,7 @@ class CheckOptions(Options):
     resolution: float = option(3.0, ge=0.1, le=MAX_LENGTH)
     points: int = option(15, ge=2, le=1000)
     compiled: bool = option(True)
+    broad_phase: bool = option(True)
 
 
 @dataclass(frozen=True)

@@ -106,12 +106,14 @@ class PathPostprocessor:
             u, P1, P2, saving = u[good], P1[good], P2[good], saving[good]
             if not len(u):
                 continue
-            cands = [_splice(X, s, a, b, p1, p2) for a, b, p1, p2 in zip(u[:, 0], u[:, 1], P1, P2, strict=True)]
-            checked += len(cands)
-            ok = self._batch_ok(cands)
+            checked += len(u)
+            if v.static:  # only the new straight motion needs checking: no candidate path is built
+                ok = v.edges_valid(P1, P2)
+            else:
+                ok = self._batch_ok([_splice(X, s, a, b, p1, p2) for a, b, p1, p2 in zip(*u.T, P1, P2, strict=True)])
             if ok.any():
                 best = np.flatnonzero(ok)[np.argmax(saving[ok])]
-                X = dedup(cands[best][0])
+                X = dedup(_splice(X, s, u[best, 0], u[best, 1], P1[best], P2[best])[0])
         self.counts["shortcut_checks"] = self.counts.get("shortcut_checks", 0) + checked
         return dedup(X)
 

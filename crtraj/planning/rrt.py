@@ -90,7 +90,13 @@ class RRT(PlannerBase):
             margin=so.margin if self.paper else max(so.margin, self.steer_margin(scene)),
         )
         self.steer = SteerSolver(model, M, self.steer_options)
-        self.ik = SafeIK(model, self.validator, M, push_rounds=self.options.ik.push_rounds)
+        self.ik = SafeIK(
+            model,
+            self.validator,
+            M,
+            push_rounds=self.options.ik.push_rounds,
+            rescue_starts=self.options.ik.rescue_starts,
+        )
 
     def steer_margin(self, scene: Any) -> float:
         """Extra keep-out (mm) for the steer's points so its configurations pass the validator.
@@ -146,7 +152,13 @@ class RRT(PlannerBase):
         sc = v.scene
         if sc.n_obstacles > self.steer.max_obstacles:  # grow the NLPs' obstacle slots (built once more)
             self.steer = SteerSolver(self.model, sc.n_obstacles, self.steer_options)
-            self.ik = SafeIK(self.model, self.validator, sc.n_obstacles, push_rounds=self.options.ik.push_rounds)
+            self.ik = SafeIK(
+                self.model,
+                self.validator,
+                sc.n_obstacles,
+                push_rounds=self.options.ik.push_rounds,
+                rescue_starts=self.options.ik.rescue_starts,
+            )
         self.steer.reset_warm_start()  # the same seed must give the same plan
 
     def _fail(self, q: QueryStart, status: PlanStatus, msg: str, trees: list[SearchTree] | None = None) -> PlanResult:

@@ -47,6 +47,7 @@ import numpy as np
 
 from crtraj.core.fields import check_array
 from crtraj.model.kinematics import Model
+from crtraj.planning.ik_rescue import IKRescue
 from crtraj.planning.sampler import LIMIT_TOL
 from crtraj.planning.validity import MotionValidator
 from crtraj.world import packing
@@ -98,7 +99,8 @@ class SafeIK:
     the scene's safety distance and the final verification. max_obstacles: obstacle slots in the NLP
     (a scene may use fewer). margin: extra clearance (mm) the NLP keeps on top
     of the validator's, so solutions survive the validator's edge margins.
-    push_rounds: rounds of the push-out stage (`push_out`; 0 skips it).
+    push_rounds: rounds of the push-out stage (`push_out`; 0 skips it). rescue_starts: batched starts
+    around a projection before the NLP is solved from it (`crtraj.planning.ik_rescue`; 0: none).
     """
 
     def __init__(
@@ -111,6 +113,7 @@ class SafeIK:
         tip_tolerance: float = 1e-3,
         max_iter: int = 60,
         push_rounds: int = 12,
+        rescue_starts: int = 0,
     ) -> None:
         self.model = model
         self.validator = validator
@@ -120,6 +123,9 @@ class SafeIK:
         self.tip_tolerance = float(tip_tolerance)
         self.max_iter = int(max_iter)
         self.push_rounds = int(push_rounds)
+        # IPOPT solves (stage 3) since construction: a statistic (the benchmarks report how often it runs)
+        self.nlp_solves = 0
+        self.rescue = IKRescue(self, self.robot.nx, rescue_starts)
         self._solver: ca.Function | None = None
         self._lbg = self._ubg = np.zeros(0)
         self._box = self.robot.config_box()
@@ -427,6 +433,11 @@ class SafeIK:
                 break
             if deadline is not None and time.perf_counter() > deadline:
                 break
+            rescued = self.rescue.solve(run, i, deadline)
+            if rescued is not None:
+                run.add(IKSolution(rescued[0], "rescue", True, rescued[1], rescued[2], True, 0.0))
+                run.statuses["rescue"] = run.statuses.get("rescue", 0) + 1
+                continue
             # start from the projection, stay close to the seed itself
             p = np.concatenate([run.target, scene_pack, run.seeds[i], [inflate]])
             sol = self._nlp_solve(run, X[i], p)
@@ -438,6 +449,7 @@ class SafeIK:
         """One NLP solve from x0 with parameters p, checked (tip error, limits, clearance over t_check)."""
         v, t_check = run.v, run.t_check
         t1 = time.perf_counter()
+        self.nlp_solves += 1
         r = self.solver(x0=x0, p=p, lbx=self._box[0], ubx=self._box[1], lbg=self._lbg, ubg=self._ubg)
         st = self.solver.stats()
         # IPOPT meets the limits to its tolerance (~1e-8); put the result exactly inside
