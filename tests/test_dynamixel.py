@@ -432,9 +432,9 @@ def test_a_servo_rebooted_mid_stream_holds_at_once_naming_it(robot, acts, fault)
     def at_half():
         with sim.locked():
             if fault == "reboot":
-                chain.reboot(3, clock.now)
+                chain.reboot(3, clock.now())
             else:  # another program switched its torque off
-                chain.torque_off(3, clock.now)
+                chain.torque_off(3, clock.now())
             seen["writes"] = chain.counts["sync_writes"]
 
     clock.events.append((0.5, at_half))
