@@ -59,6 +59,7 @@ class X:
     DRIVE_MODE = 10  # 1: bit 0 reverse direction, bit 2 time-based profile
     OPERATING_MODE = 11  # 1: 3 position, 4 extended position, 5 current-based position
     HOMING_OFFSET = 20  # 4, signed ticks added to the present position (EEPROM)
+    HOMING_OFFSET_LIMIT = 1_044_479  # ticks, +- (the register's range)
     CURRENT_LIMIT = 38  # 2, 2.69 mA units (EEPROM)
     TORQUE_ENABLE = 64  # 1; EEPROM (< 64) is writable only with torque off
     LED = 65  # 1, RAM (power-up default 0): crtraj's "homed since power-up" marker

@@ -268,7 +268,8 @@ class ServoChain:
         """The status packets that answer one instruction packet at device time `now` (s)."""
         self.advance(now)
         self.counts["packets"] += 1
-        replies = self._returned(packet, self._dispatch(packet, now))
+        levels = {i: self._table[k][X.STATUS_RETURN] for k, i in enumerate(self.ids)}  # as the packet arrived
+        replies = self._returned(packet, self._dispatch(packet, now), levels)
         n = self.counts["packets"]
         if self.silent > 0 or (self.silent_after is not None and n > self.silent_after):
             self.silent = max(self.silent - 1, 0)
@@ -280,10 +281,10 @@ class ServoChain:
         self.counts["replies"] += len(replies)
         return replies
 
-    def _returned(self, p: dxl.Packet, replies: list[bytes]) -> list[bytes]:
+    def _returned(self, p: dxl.Packet, replies: list[bytes], levels: dict[int, int]) -> list[bytes]:
         """The replies each servo's Status Return Level lets out: 0 answers PING only, 1 PING and reads, 2 all."""
         need = 0 if p.instruction == dxl.PING else 1 if p.instruction in (dxl.READ, dxl.SYNC_READ) else 2
-        return [r for r in replies if self._table[self.ids.index(r[4])][X.STATUS_RETURN] >= need]
+        return [r for r in replies if levels[r[4]] >= need]
 
     def _dispatch(self, p: dxl.Packet, now: float) -> list[bytes]:
         if p.instruction == dxl.SYNC_READ and p.id == dxl.BROADCAST_ID:
@@ -413,13 +414,21 @@ class SimDynamixel:
     """A `ServoChain` served on a pseudo-terminal from a thread; `path` is the device to open.
 
     clock: the chain's device time (s; tests pass a virtual clock). wire_time:
-    delay replies by their bytes' time on a real wire at the chain's baud rate.
+    delay replies by their bytes' time on a real wire at the chain's baud rate
+    and the servos' Return Delay Time. power_cycle_at: power-cycle every servo
+    this long (clock s) after `serve` starts.
     """
 
     def __init__(
-        self, chain: ServoChain, *, clock: Callable[[], float] = time.monotonic, wire_time: bool = True
+        self,
+        chain: ServoChain,
+        *,
+        clock: Callable[[], float] = time.monotonic,
+        wire_time: bool = True,
+        power_cycle_at: float | None = None,
     ) -> None:
         self.chain = chain
+        self.power_cycle_at = power_cycle_at  # s after `serve` starts (clock time): every servo power-cycles once
         self.clock = clock
         self.wire_time = wire_time
         self._lock = threading.Lock()
@@ -467,7 +476,12 @@ class SimDynamixel:
     def serve(self, duration: float | None = None) -> None:
         """Answer packets until `stop` (or for `duration` s of wall time)."""
         end = None if duration is None else time.monotonic() + duration
+        cycle = None if self.power_cycle_at is None else self.clock() + self.power_cycle_at
         while not self._stop.is_set() and (end is None or time.monotonic() < end):
+            if cycle is not None and self.clock() >= cycle:
+                with self._lock:
+                    self.chain.power_cycle(self.clock())
+                cycle = None
             try:
                 ready, _, _ = select.select([self._master], [], [], 0.05)
                 if not ready:

@@ -85,10 +85,11 @@ __all__ = [
 ]
 
 
-def open_link(target: str, actuators: Actuators) -> Transport:
-    """The link to `target` (`Transport.open`); a ``dynamixel://`` bus needs the actuators (ids, tick scales)."""
+def open_link(target: str, actuators: Actuators, **dynamixel: Any) -> Transport:
+    """The link to `target` (`Transport.open`); a ``dynamixel://`` bus needs the actuators (ids, tick scales)
+    and takes `dynamixel` as keywords of `DynamixelTransport` (e.g. ``homing``)."""
     if target.startswith("dynamixel://"):
-        return open_dynamixel(target, actuators)
+        return open_dynamixel(target, actuators, **dynamixel)
     return Transport.open(target)
 
 

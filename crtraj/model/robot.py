@@ -80,6 +80,9 @@ class Robot:
     collision_points: int = 10
     description: str = ""
     actuators: Mapping[str, Any] | None = field(default=None, compare=False)
+    # the raw [robot.homing] and [robot.stop] tables (read by `crtraj.hardware.homing_spec`), or None
+    homing: Mapping[str, Any] | None = field(default=None, compare=False)
+    stop: Mapping[str, Any] | None = field(default=None, compare=False)
 
     def __post_init__(self) -> None:
         if not self.segments:
@@ -111,6 +114,12 @@ class Robot:
             if not isinstance(self.actuators, Mapping):
                 raise InputError(f"robot.actuators: expected a table, got {type(self.actuators).__name__}")
             object.__setattr__(self, "actuators", _frozen(self.actuators))
+        for name in ("homing", "stop"):
+            v = getattr(self, name)
+            if v is not None:
+                if not isinstance(v, Mapping):
+                    raise InputError(f"robot.{name}: expected a table, got {type(v).__name__}")
+                object.__setattr__(self, name, _frozen(v))
 
     def actuator_limits(self) -> ActuatorLimits | None:
         """The actuators' scale and speed/acceleration/position limits, or None without ``[robot.actuators]``."""
@@ -278,6 +287,8 @@ class Robot:
             collision_points=t.int("collision_points", 10, ge=2, le=MAX_COLLISION_POINTS),
             description=t.str("description", "", max_len=10_000),
             actuators=actuators,
+            homing=t.raw("homing", None),
+            stop=t.raw("stop", None),
         )
         t.finish()
         return robot
@@ -301,6 +312,9 @@ class Robot:
             d["description"] = self.description
         if self.actuators is not None:
             d["actuators"] = _plain(self.actuators)
+        for name in ("homing", "stop"):
+            if getattr(self, name) is not None:
+                d[name] = _plain(getattr(self, name))
         return d
 
 
