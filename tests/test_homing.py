@@ -15,7 +15,9 @@ import numpy as np
 import pytest
 from conftest import PROBLEMS, require_module
 
+from crtraj.app.approach import plan_approach
 from crtraj.app.sim_dynamixel import stops
+from crtraj.app.stream import admit_result
 from crtraj.cli import main
 from crtraj.core.clock import VirtualClock
 from crtraj.core.errors import InputError
@@ -26,7 +28,7 @@ from crtraj.hardware.dynamixel import open_dynamixel
 from crtraj.hardware.dynamixel_protocol import X
 from crtraj.hardware.homing import Homer, HomingError
 from crtraj.hardware.homing_spec import read_homing
-from crtraj.hardware.homing_state import HomingState, PowerUpCheck, state_path, unwrap
+from crtraj.hardware.homing_state import HomedServo, HomingState, PowerUpCheck, state_path, unwrap
 from crtraj.hardware.sim_dynamixel import TICKS_PER_REV, ServoChain, SimDynamixel
 from crtraj.hardware.stream import Streamer, StreamOptions
 from crtraj.hardware.transport import TransportError
@@ -73,6 +75,12 @@ def _chain(robot, acts, values, **kw) -> ServoChain:
     return ServoChain(acts.bus.ids, acts.bus.models, initial=acts.bus.ticks(values), stops=stops(robot, acts), **kw)
 
 
+def _write(chain: ServoChain, dxl_id: int, addr: int, value: int, size: int) -> None:
+    """A WRITE instruction to the chain, as another program on the bus would send it."""
+    params = addr.to_bytes(2, "little") + value.to_bytes(size, "little", signed=value < 0)
+    chain.handle(dxl.Packet(dxl_id, dxl.WRITE, params), 0.0)
+
+
 def _start(acts) -> np.ndarray:
     """A bent pose with the stage switched off at z = -150 mm (actuator values, rad and mm)."""
     robot = load_robot(ROBOT)
@@ -99,12 +107,13 @@ def _motion(robot, acts, start: np.ndarray):
 def test_power_cycle_reads_within_one_turn_plus_the_homing_offset_and_resets_ram():
     """After a power cycle each reading is the old one modulo a turn (plus the homing offset); LED reads 0."""
     chain = ServoChain([1, 2], [1030, 1030], initial=[-30720, 5000])
-    chain.handle(dxl.Packet(1, dxl.WRITE, bytes([X.LED, 0, 1])), 0.0)
-    chain.handle(dxl.Packet(2, dxl.WRITE, bytes([X.HOMING_OFFSET, 0]) + (-100).to_bytes(4, "little", signed=True)), 0)
+    _write(chain, 1, X.LED, 1, 1)
+    _write(chain, 2, X.HOMING_OFFSET, -100, 4)
     assert chain.positions(0.0).tolist() == [-30720, 4900]  # the offset moves the reading at once
     chain.power_cycle(1.0)
     assert chain.positions(1.0).tolist() == [-30720 % 4096, (4900 + 100) % 4096 - 100]
-    assert chain._read(0, X.LED, 1) == b"\x00"  # RAM at its power-up default: the homed marker is gone
+    assert chain.register(1, X.LED, 1) == 0  # RAM at its power-up default: the homed marker is gone
+    assert chain.register(2, X.HOMING_OFFSET, 4) == -100  # EEPROM kept
     chain.handle(dxl.Packet(1, dxl.REBOOT, b""), 2.0)
     assert chain.positions(2.0)[0] == -30720 % 4096
 
@@ -132,9 +141,9 @@ def test_connect_sets_return_delay_and_status_return_and_refuses_a_reverse_bit()
     clock = Clock()
     with SimDynamixel(chain, clock=clock, wire_time=False) as sim:
         open_dynamixel(f"dynamixel://{sim.path}", acts, warn=lambda m: None).close()
-        assert [t[X.RETURN_DELAY] for t in chain._table] == [0] * 7
-        assert [t[X.STATUS_RETURN] for t in chain._table] == [2] * 7
-        chain._table[2][X.DRIVE_MODE] = X.DRIVE_REVERSE
+        assert [chain.register(i, X.RETURN_DELAY, 1) for i in acts.bus.ids] == [0] * 7
+        assert [chain.register(i, X.STATUS_RETURN, 1) for i in acts.bus.ids] == [2] * 7
+        _write(chain, 3, X.DRIVE_MODE, X.DRIVE_REVERSE, 1)  # as a servo tool would (torque is off after close)
         with pytest.raises(TransportError) as e:
             open_dynamixel(f"dynamixel://{sim.path}", acts, warn=lambda m: None)
         assert "servo id 3 (s1c3): Drive Mode 0x01 has the reverse bit set" in str(e.value)
@@ -205,28 +214,28 @@ def test_a_spool_turned_while_unpowered_is_unwrapped_or_refused():
     clock = Clock()
     values = _start(acts)
     chain = ServoChain(acts.bus.ids, acts.bus.models, initial=acts.bus.ticks(values))
-    chain._shift[:] = 0.0
-    chain._x[1] += TICKS_PER_REV  # s1c2 reads one turn off (as after a turn while unpowered)
+    chain.turn_by_hand(2, TICKS_PER_REV)  # s1c2 turned a whole revolution while unpowered
     chain.power_cycle(0.0)
+    _write(chain, 7, X.LED, 1, 1)  # the stage counts as homed here: this test is about the spools
+    stage = HomingState((HomedServo(7, "z", 1030, 0, "index", "2026-01-01T00:00:00+00:00"),))
     with SimDynamixel(chain, clock=clock, wire_time=False) as sim:
+        assert np.any(np.abs(_reading(chain, acts, clock)[:-1] - values[:-1]) > 6.0)  # read a turn off
         link = _connect(sim, acts)
         try:
             for i in acts.bus.ids:
                 link.write(i, X.TORQUE_ENABLE, 0, 1, "torque off")
-            check = PowerUpCheck(link, acts, HomingState())
-            with pytest.raises(InputError) as e:  # the z stage first needs homing: refused, spools unwrapped
-                check.run()
-            assert "servo id 7 (z)" in str(e.value)
+            PowerUpCheck(link, acts, stage).run()
         finally:
             link.close()
         got = _reading(chain, acts, clock)[:-1]
         np.testing.assert_allclose(got, values[:-1], atol=acts.bus.resolution[0])
         chain.power_cycle(clock.now())
-        chain._x[2] = 2500.0  # s1c3 at 3.8 rad: past its limit of 2 rad, in no turn of its window
+        _write(chain, 7, X.LED, 1, 1)
+        chain.turn_by_hand(3, 2500 - chain.register(3, X.PRESENT_POSITION, 4))  # s1c3 to 3.8 rad, past its 2 rad
         link = _connect(sim, acts)
         try:
             with pytest.raises(InputError) as e:
-                PowerUpCheck(link, acts, HomingState()).run()
+                PowerUpCheck(link, acts, stage).run()
         finally:
             link.close()
         assert str(e.value).startswith("servo id 3 (s1c3): after a power-up it reads 2500 ticks")
@@ -257,7 +266,7 @@ def test_a_servo_that_never_stalls_is_one_line_and_nothing_is_written(tmp_path):
         finally:
             link.close()
     assert str(e.value).startswith("servo id 7 (z): no stall within 40 mm of travel")
-    assert chain._table[6][X.HOMING_OFFSET : X.HOMING_OFFSET + 4] == bytes(4)  # no offset written
+    assert chain.register(7, X.HOMING_OFFSET, 4) == 0  # no offset written
     assert not state_path(robot_file).exists()
 
 
@@ -278,3 +287,48 @@ def test_a_mark_never_confirmed_is_one_line_no_motion_and_nothing_written(tmp_pa
     ], err
     np.testing.assert_array_equal(before, after)
     assert not state_path(robot_file).exists()
+
+
+@pytest.fixture(scope="module")
+def sim1_plan(tmp_path_factory) -> Path:
+    """`crtraj plan problems/paper_static.toml --seed 1` (the paper's simulation 1), once."""
+    out = tmp_path_factory.mktemp("plan") / "plan.json"
+    assert main(["plan", str(PROBLEMS / "paper_static.toml"), "--seed", "1", "--out", str(out)]) == 0
+    return out
+
+
+def test_stream_approach_refuses_an_unhomed_stage_then_runs_after_homing(sim1_plan, tmp_path, capsys):
+    """`crtraj stream PLAN --dynamixel DEV --approach` after a power cycle with z at -150 mm: one line naming
+    z, nothing moves; after homing, the same run (approach planned and verified) completes."""
+    robot_file = _robot_file(tmp_path)
+    robot = load_robot(robot_file)
+    acts = Actuators.from_robot(robot)
+    clock = Clock()
+    chain = _chain(robot, acts, _start(acts))
+    chain.power_cycle(0.0)
+    capsys.readouterr()
+    with SimDynamixel(chain, clock=clock, wire_time=False) as sim:
+        before = chain.positions(clock.now()).copy()
+        goals = [chain.register(i, X.GOAL_POSITION, 4) for i in acts.bus.ids]
+        argv = ["stream", str(sim1_plan), "--dynamixel", sim.path, "--approach", "--robot", str(robot_file)]
+        assert main([*argv, "--log", str(tmp_path / "refused.jsonl")]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("crtraj: error: servo id 7 (z): not homed since its last power-up")
+        assert f"crtraj home --dynamixel {sim.path} --robot {robot_file}" in err[0]
+        np.testing.assert_array_equal(chain.positions(clock.now()), before)
+        assert [chain.register(i, X.GOAL_POSITION, 4) for i in acts.bus.ids] == goals  # no goal went out
+        assert not any(chain.torque(i) for i in acts.bus.ids)
+        link = _connect(sim, acts)
+        try:
+            homed = Homer(link, acts, dict(read_homing(robot, acts)), clock, lambda text: False).run()
+        finally:
+            link.close()
+        HomingState().merged(homed).save(state_path(robot_file))
+        motion = admit_result(sim1_plan, robot_file, rate=100.0)
+        link = _connect(sim, acts, homing=HomingState.load(state_path(robot_file)))
+        st = Streamer(link, acts, StreamOptions(rate=100.0, watchdog=10.0), None, clock=clock)
+        rep = st.run_path(motion, approach=True, plan_approach=plan_approach)
+        assert rep.status == "done", rep.message
+        assert not any(e[1] == "refused" for e in rep.events)
+        final = _reading(chain, acts, clock)
+        assert np.max(np.abs(final - motion.values[-1])) <= StreamOptions().settle_tolerance * (1 + 1e-9)

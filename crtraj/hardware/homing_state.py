@@ -148,13 +148,13 @@ class PowerUpCheck:
     def run(self) -> None:
         """Check (and unwrap) every servo; `InputError` naming the first that cannot be used. Torque must be off."""
         bus, win, multi = self.acts.bus, windows(self.acts), multi_turn(self.acts)
-        for k, dxl_id in enumerate(bus.ids):
-            marked = self.io.read(dxl_id, X.LED, 1) == 1
-            reading = self.io.read(dxl_id, X.PRESENT_POSITION, 4)
+        marked = [self.io.read(dxl_id, X.LED, 1) == 1 for dxl_id in bus.ids]
+        for k, dxl_id in enumerate(bus.ids):  # first the refusals, before anything is written
             if multi[k]:
-                self._check_homed(k, dxl_id, marked)
-            elif not marked:
-                self._unwrap(k, dxl_id, reading, win[k])
+                self._check_homed(k, dxl_id, marked[k])
+        for k, dxl_id in enumerate(bus.ids):
+            if not multi[k] and not marked[k]:
+                self._unwrap(k, dxl_id, self.io.read(dxl_id, X.PRESENT_POSITION, 4), win[k])
             lo, hi = win[k]
             reading = self.io.read(dxl_id, X.PRESENT_POSITION, 4)
             if not lo <= reading <= hi:

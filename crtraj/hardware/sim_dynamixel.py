@@ -159,6 +159,22 @@ class ServoChain:
         self.advance(now)
         self._reboot(self.ids.index(dxl_id), now)
 
+    def turn_by_hand(self, dxl_id: int, ticks: float, now: float = 0.0) -> None:
+        """A person turns the shaft of `dxl_id` (torque off) by `ticks`, within its mechanical stops."""
+        self.advance(now)
+        k = self.ids.index(dxl_id)
+        if self._table[k][X.TORQUE_ENABLE]:
+            raise InputError(f"sim-dynamixel: servo {dxl_id} holds its position (torque on): cannot turn it")
+        self._x[k] = float(self._clamp(self._x + np.eye(len(self.ids))[k] * ticks)[k])
+        self._replan(now)
+
+    def register(self, dxl_id: int, addr: int, size: int) -> int:
+        """The register of `dxl_id` as a READ would return it (signed for 2 and 4 bytes)."""
+        data = self._read(self.ids.index(dxl_id), addr, size)
+        if data is None:
+            raise InputError(f"sim-dynamixel: no register {addr} of size {size}")
+        return int.from_bytes(data, "little", signed=size > 1)
+
     def power_cycle(self, now: float = 0.0, dxl_id: int | None = None) -> None:
         """Power-cycle fault: every servo (or `dxl_id`) loses power and starts again, as a REBOOT does."""
         self.advance(now)
