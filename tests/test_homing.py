@@ -140,7 +140,7 @@ def test_connect_sets_return_delay_and_status_return_and_refuses_a_reverse_bit()
     chain = ServoChain(acts.bus.ids, acts.bus.models)
     clock = Clock()
     with SimDynamixel(chain, clock=clock, wire_time=False) as sim:
-        open_dynamixel(f"dynamixel://{sim.path}", acts, warn=lambda m: None).close()
+        open_dynamixel(f"dynamixel://{sim.path}", acts, warn=lambda m: None, stop_torque="off").close()
         assert [chain.register(i, X.RETURN_DELAY, 1) for i in acts.bus.ids] == [0] * 7
         assert [chain.register(i, X.STATUS_RETURN, 1) for i in acts.bus.ids] == [2] * 7
         _write(chain, 3, X.DRIVE_MODE, X.DRIVE_REVERSE, 1)  # as a servo tool would (torque is off after close)

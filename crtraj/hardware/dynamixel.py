@@ -147,6 +147,9 @@ class DynamixelTransport(Transport):
     homing: the homing state to check absolute positions against (`crtraj.hardware.homing_state.PowerUpCheck`,
     before torque comes on; `crtraj stream` always passes it); None skips the check (`crtraj home` itself).
     return_delay: Return Delay Time written to every servo (2 us units, 0..254). home_command: named in refusals.
+    stop_torque: ``[robot.stop] torque``: "keep" (an e-stop, after the streamer's planned stop, latches the
+    goals with the torque on, and `close` leaves it on: the cables stay taut, a lead-screw stage cannot
+    back-drive) or "off" (torque off at e-stop and close).
     """
 
     # Over 60 lines: the connection checks, each with its own one-line message, in the order a lab meets them.
@@ -162,6 +165,7 @@ class DynamixelTransport(Transport):
         homing: HomingState | None = None,
         return_delay: int = 0,
         home_command: str = "crtraj home",
+        stop_torque: str = "keep",
     ) -> None:
         sdk = _sdk()
         if actuators.bus is None:
@@ -180,6 +184,9 @@ class DynamixelTransport(Transport):
         if not 0 <= int(return_delay) <= 254:
             raise InputError(f"--return-delay: must be in 0..254 (2 us units), got {return_delay}")
         self.return_delay = int(return_delay)
+        if stop_torque not in ("keep", "off"):
+            raise InputError(f'robot.stop.torque: must be "keep" or "off", got {stop_torque!r}')
+        self.stop_torque = stop_torque
         self._sdk = sdk
         self._ph = sdk.PacketHandler(2.0)
         self._port = None
@@ -381,8 +388,9 @@ class DynamixelTransport(Transport):
             return
         t = time.perf_counter()
         if msg.kind == ESTOP:
-            self._torque_off(confirm=not self._estopped)  # the repeats of a latched e-stop: sync write only
-            self._estopped = True
+            if self.stop_torque == "off":
+                self._torque_off(confirm=not self._estopped)  # the repeats of a latched e-stop: sync write only
+            self._estopped = True  # "keep": the goals stay where the stop ended, torque on
         elif self._held is not None:  # a servo failed mid-stream: nothing moves the servos again
             raise TransportError(self._held)
         elif not self._estopped:  # after an e-stop nothing moves the servos again
@@ -499,10 +507,13 @@ class DynamixelTransport(Transport):
         self._port.clearPort()
 
     def close(self) -> None:
-        """Torque off, then close the port (idempotent)."""
+        """Torque off (with ``stop_torque="off"``), then close the port (idempotent)."""
         if self._port is None:
             return
         try:
+            if self.stop_torque == "keep":
+                log.info("%s: torque kept on (robot.stop.torque = keep)", self.description)
+                return
             silent = self._torque_off()
             if silent:
                 who = ", ".join(self.bus.name_of(i) for i in silent)
