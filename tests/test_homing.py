@@ -8,7 +8,10 @@ from __future__ import annotations
 import io
 import json
 import math
+import os
+import select
 import sys
+import termios
 from pathlib import Path
 
 import numpy as np
@@ -332,3 +335,47 @@ def test_stream_approach_refuses_an_unhomed_stage_then_runs_after_homing(sim1_pl
         assert not any(e[1] == "refused" for e in rep.events)
         final = _reading(chain, acts, clock)
         assert np.max(np.abs(final - motion.values[-1])) <= StreamOptions().settle_tolerance * (1 + 1e-9)
+
+
+def test_power_cycle_at_a_time_of_the_simulators_clock():
+    """`SimDynamixel(power_cycle_at=T)` power-cycles every servo once its clock passes T: the next packet
+    already meets the reading within one turn and the homed marker gone."""
+    clock = Clock()
+    chain = ServoChain([7], [1030], initial=[-30720])
+    _write(chain, 7, X.LED, 1, 1)
+    with SimDynamixel(chain, clock=clock, wire_time=False, power_cycle_at=0.5) as sim:
+        assert chain.register(7, X.PRESENT_POSITION, 4) == -30720
+        clock.advance(1.0)
+        fd = os.open(sim.path, os.O_RDWR | os.O_NOCTTY)
+        try:
+            attrs = termios.tcgetattr(fd)
+            attrs[4] = attrs[5] = termios.B1000000  # the bus rate (the simulator ignores other rates)
+            termios.tcsetattr(fd, termios.TCSANOW, attrs)
+            os.write(fd, dxl.encode(7, dxl.READ, bytes([X.LED, 0, 1, 0])))
+            assert select.select([fd], [], [], 5.0)[0]
+            reply = dxl.PacketReader().feed(os.read(fd, 64))
+        finally:
+            os.close(fd)
+    assert [p.params for p in reply] == [b"\x00\x00"]  # no error, LED 0: the marker is gone
+    assert chain.register(7, X.PRESENT_POSITION, 4) == -30720 % 4096
+
+
+@pytest.mark.parametrize(
+    ("section", "message"),
+    [
+        ('[robot.homing.q9]\nmethod = "index"\nreference = 0.0\n', "robot.homing.q9: not an actuator"),
+        ('[robot.homing.z]\nmethod = "magic"\nreference = 0.0\n', "robot.homing.z.method: must be one of"),
+        ('[robot.homing.z]\nmethod = "index"\n', "robot.homing.z.reference: missing"),
+        ('[robot.homing.z]\nmethod = "index"\nreference = 0.0\ndirection = 0\n', "robot.homing.z.direction"),
+        ('[robot.stop]\ntorque = "loose"\n', "robot.stop.torque: must be one of"),
+    ],
+)
+def test_bad_homing_and_stop_sections_are_one_line(tmp_path, section, message):
+    with pytest.raises(InputError) as e:
+        load_robot(_robot_file(tmp_path, section))
+    assert "\n" not in str(e.value) and str(e.value).startswith(message), str(e.value)
+
+
+def test_sim_dynamixel_power_cycle_at_must_be_a_time(capsys):
+    assert main(["sim-dynamixel", "--pty", "--power-cycle-at", "-1", "--duration", "0"]) == 2
+    assert capsys.readouterr().err.strip() == "crtraj: error: --power-cycle-at: must be in 0..1000000 s, got -1.0"

@@ -494,10 +494,7 @@ class SimDynamixel:
         end = None if duration is None else time.monotonic() + duration
         cycle = None if self.power_cycle_at is None else self.clock() + self.power_cycle_at
         while not self._stop.is_set() and (end is None or time.monotonic() < end):
-            if cycle is not None and self.clock() >= cycle:
-                with self._lock:
-                    self.chain.power_cycle(self.clock())
-                cycle = None
+            cycle = self._power_cycle_due(cycle)
             try:
                 ready, _, _ = select.select([self._master], [], [], 0.05)
                 if not ready:
@@ -509,10 +506,19 @@ class SimDynamixel:
             if termios.tcgetattr(self._master)[4] != _BAUD_TERMIOS.get(self.chain.baud):
                 self.wrong_baud += 1  # a host at another rate: a real bus sees noise, nobody answers
                 continue
+            cycle = self._power_cycle_due(cycle)  # before the packet: it meets the servos as they are now
             for packet in self._reader.feed(data):
                 with self._lock:
                     replies = self.chain.handle(packet, self.clock())
                 self._send(packet.size, replies, arrived)
+
+    def _power_cycle_due(self, cycle: float | None) -> float | None:
+        """Power-cycle every servo once the clock reaches `cycle` (s); the time still pending (None: done)."""
+        if cycle is None or self.clock() < cycle:
+            return cycle
+        with self._lock:
+            self.chain.power_cycle(self.clock())
+        return None
 
     def _send(self, request_size: int, replies: list[bytes], arrived: float) -> None:
         """Write the replies, after the wire time of the request and of each reply when modelled."""
