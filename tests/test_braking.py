@@ -19,6 +19,7 @@ from crtraj.hardware.braking import Braking, stop_frames
 from crtraj.hardware.protocol import ESTOP, MOVE, Frame
 from crtraj.hardware.sim_device import DeviceCore
 from crtraj.hardware.stream import Streamer, StreamOptions
+from crtraj.hardware.transport import TransportError
 
 RATE = 100.0
 DT = 1.0 / RATE
@@ -137,3 +138,25 @@ def test_estop_while_moving_sends_the_verified_stop_then_the_estop(motion, at):
     assert np.array_equal(F[-1], F[-2]) and np.array_equal(after[-1].values, F[-1])
     stamps = np.array([f.stamp for f in before[1:] + after[:m]])
     assert _min_clearance(motion, stamps, F[1:]) >= motion.scene.safety_distance - 0.25
+
+
+class _FailingLink(CoreLink):
+    """A link that breaks (every send raises) after `fail_at` frames."""
+
+    def __init__(self, core: DeviceCore, clock: VirtualClock, fail_at: int) -> None:
+        super().__init__(core, clock)
+        self.fail_at = fail_at
+
+    def send(self, frame: bytes) -> None:
+        if len(self.sent) >= self.fail_at:
+            raise TransportError("link down")
+        super().send(frame)
+
+
+def test_a_link_that_fails_while_moving_counts_as_latched(motion):
+    """No stop can be sent over a broken link: the device's own latch is the last resort, counted as such."""
+    clock = VirtualClock()
+    link = _FailingLink(DeviceCore(motion.actuators, initial=motion.values[0]), clock, fail_at=300)
+    rep = Streamer(link, motion.actuators, StreamOptions(rate=RATE), realtime=True, clock=clock).run_path(motion)
+    assert rep.status == "error" and "link down" in rep.message
+    assert rep.latched == 1 and rep.brakes == 0

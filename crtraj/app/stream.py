@@ -137,6 +137,8 @@ def _print_report(rep: StreamReport, dry_run: str | None) -> None:
     )
     if dev:
         print(f"  device: {dev}")
+    if rep.brakes or rep.latched:
+        print(f"  stop: {rep.brakes} planned stop(s) in {rep.brake_frames} frames; {rep.latched} latched")
     if rep.late_ticks:
         print(f"  {rep.late_ticks} ticks late (max {rep.max_lateness * 1000:.1f} ms)")
     print(f"  log: {rep.log}")

@@ -123,6 +123,8 @@ class StreamCycle:
             elif state.state == SETTLING:
                 self._tick_settling(now)
         except TransportError as exc:
+            if self.braking is not None and np.any(self._gate.velocity != 0.0):
+                self.braking.counts.latched += 1  # moving when the link failed: the device's latch is all there is
             state.fail(f"transport error: {exc}", "transport-error", str(exc))
 
     def _tick_waiting(self, now: float) -> None:
