@@ -5,16 +5,18 @@ differences of the frames, contact by this file's own numpy distances from backb
 from __future__ import annotations
 
 import itertools
+import re
 from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import PROBLEMS
+from conftest import PROBLEMS, paper_copy
 from devlink import CoreLink
 
 from crtraj.app.stream import admit_result
 from crtraj.cli import main
 from crtraj.core.clock import VirtualClock
+from crtraj.core.errors import AdmissionError
 from crtraj.hardware.braking import Braking, stop_frames
 from crtraj.hardware.protocol import ESTOP, MOVE, Frame
 from crtraj.hardware.sim_device import DeviceCore
@@ -160,3 +162,33 @@ def test_a_link_that_fails_while_moving_counts_as_latched(motion):
     rep = Streamer(link, motion.actuators, StreamOptions(rate=RATE), realtime=True, clock=clock).run_path(motion)
     assert rep.status == "error" and "link down" in rep.message
     assert rep.latched == 1 and rep.brakes == 0
+
+
+@pytest.mark.slow
+def test_stops_at_random_interrupt_times_of_a_sim2_run_are_verified_or_latched(tmp_path):
+    """The paper's simulation 2 (moving obstacles): each stop at a random interrupt time either passes the
+    streamer's check, and then keeps within the acceleration limits and clear of the moving obstacles at its
+    own times (own dense check), or is refused by that check (the stream would latch, counted)."""
+    out = tmp_path / "replan"
+    args = ["replan", str(paper_copy(tmp_path)), "--seed", "1", "--out", str(out), "--no-html", "--quiet"]
+    assert main(args) == 0
+    try:
+        motion = admit_result(out / "run.json", rate=RATE)
+    except AdmissionError as exc:  # too fast for the actuators as executed: stream it slower, as the CLI says
+        m = re.search(r"--time-scale (\d+\.\d+)", str(exc))
+        assert m, exc
+        motion = admit_result(out / "run.json", rate=RATE, time_scale=float(m.group(1)))
+    rng = np.random.default_rng(2)
+    stamps, values = motion.stamps, motion.values
+    braking = Braking(motion.actuators, DT, motion.verifier)
+    verified = 0
+    for k in rng.integers(1, len(stamps) - 1, size=25):
+        plan = braking.plan(values[k], (values[k] - values[k - 1]) / DT, float(stamps[k]))
+        if not len(plan.values) or not plan.ok:
+            continue
+        verified += 1
+        F = np.vstack([values[k - 1], values[k], plan.values])
+        assert np.all(np.abs(_accelerations(F)) <= motion.actuators.amax * (1 + 1e-9))
+        clearance = _min_clearance(motion, np.concatenate([[stamps[k]], plan.stamps]), F[1:])
+        assert clearance > 0.0 and clearance >= motion.scene.safety_distance - 0.25, clearance
+    assert verified >= 15
