@@ -8,7 +8,9 @@ its frames to the bus. Per frame:
 - MOVE / HOLD: the values (rad, mm) become ticks (`crtraj.hardware.servo_bus`)
   and go out as one Group Sync Write of the goal positions of every servo (one
   bus transaction per set-point);
-- ESTOP: one Group Sync Write of torque enable = 0 (torque off; latched);
+- ESTOP (after the streamer's planned stop, `crtraj.hardware.braking`): with ``stop_torque="off"`` one Group
+  Sync Write of torque enable = 0 (torque off); with "keep" (the default) the goals stay where the stop ended,
+  torque on; either way latched: no goal is written after it;
 - PING: opens the session (no bus traffic).
 
 Every `receive` is one Group Sync Read of torque enable, hardware error
@@ -21,7 +23,7 @@ rebooted, e.g. after a brown-out: its indirect addresses are then reset too,
 so the torque byte reads 0 either way), or a servo that misses `max_misses`
 reads in a row, is a `TransportError` naming the servo: the link holds at
 once (no goal is written after it) and the streamer stops and reports it.
-`close` turns the torque off.
+`close` turns the torque off with ``stop_torque="off"`` and leaves it on with "keep".
 
 Connecting checks, each failure one line: the port exists and opens, the
 servos answer at this baud rate (if none does, the other common rates are
