@@ -2,13 +2,15 @@
 with --dynamixel, against simulated Dynamixel servos on a pseudo-terminal through the official SDK.
 
 Run: python benchmarks/stream_timing.py [--seconds 5] [--rate 100]
-     python benchmarks/stream_timing.py --dynamixel [--seconds 5] [--rates 100,200,300]
+     python benchmarks/stream_timing.py --dynamixel [--seconds 5] [--rates 100,200,300] [--bauds 1000000,4000000]
+                                        [--return-delays 250,0]
 Prints medians / p90 / max from one run. Timings depend on the machine's load.
 
-The Dynamixel figures: the 7 servos of problems/robots/cdsr2.toml at 1 Mbaud, `crtraj sim-dynamixel` in its own
-process (as real servos are their own hardware). A pty has no baud rate: the simulator delays every reply by the
-wire time of the request and the replies at 1 Mbaud (10 bits per byte, one transfer at a time), so the rate is
-the one a real bus allows (with the servos' return delay time set to 0, and a 1 ms USB latency timer). Per tick
+The Dynamixel figures: the 7 servos of problems/robots/cdsr2.toml at 1 and 4 Mbaud, `crtraj sim-dynamixel` in its
+own process (as real servos are their own hardware), with Return Delay Time 250 (the factory default, 500 us per
+reply) and 0 (what crtraj sets at connect). A pty has no baud rate: the simulator delays every reply by the wire
+time of the request and the replies (10 bits per byte, one transfer at a time) plus each servo's Return Delay
+Time, so the rate is the one a real bus allows (with a 1 ms USB latency timer). Per tick
 the streamer does one Group Sync Write (49 bytes) and one Group Sync Read of 9 bytes per servo (21 + 7 x 20
 bytes): 210 bytes, 2.1 ms of wire time, so at most ~470 set-points/s on the wire alone.
 """
@@ -62,67 +64,75 @@ def _cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def dynamixel(args: argparse.Namespace, robot, acts: Actuators) -> None:
-    """Achieved set-point rate, sync-read round trip and send jitter over the Dynamixel link, per rate."""
-    from crtraj.hardware.dynamixel import open_dynamixel  # the optional extra: only for this mode
-
+def _start_sim(baud: int) -> tuple[subprocess.Popen, str]:
+    """`crtraj sim-dynamixel` at `baud` in its own process; (process, device path)."""
     sim = subprocess.Popen(
-        [sys.executable, "-m", "crtraj.cli", "sim-dynamixel", "--pty", "--duration", "600"],
+        [sys.executable, "-m", "crtraj.cli", "sim-dynamixel", "--pty", "--duration", "600", "--baud", str(baud)],
         stdout=subprocess.PIPE,
         text=True,
         env={**os.environ, "PYTHONPATH": str(ROOT)},
     )
-    try:
-        line = sim.stdout.readline()
-        dev = re.search(r"/dev/pts/\d+", line).group(0)
-        print(line.strip())
-        print(
-            f"{'rate':>6} {'achieved':>9} {'late':>6} {'read rtt median':>16} {'p90':>7} {'max':>7} "
-            f"{'|interval-period| median':>25} {'p90':>7}"
-        )
-        cost: list[tuple[float, float]] = []
-        for rate in (float(r) for r in args.rates.split(",")):
-            motion = admit(_record(robot, args.seconds), acts, rate=rate)
-            with tempfile.TemporaryDirectory() as tmp:
-                log = Path(tmp) / "run.jsonl"
-                try:
-                    tr = open_dynamixel(f"dynamixel://{dev}", acts)
-                except TransportError as exc:  # a loaded machine: the simulator missed its replies
-                    print(f"{rate:6.0f}   no connection: {exc}")
-                    continue
-                cpu0, sim0 = time.process_time(), _cpu_seconds(sim.pid)
-                rep = Streamer(tr, acts, StreamOptions(rate=rate), log).run_path(motion, approach=True)
-                host_cpu, sim_cpu = time.process_time() - cpu0, _cpu_seconds(sim.pid) - sim0
-                tx = [json.loads(x) for x in log.read_text().splitlines()]
-            walls = np.array([r["wall"] for r in tx if r["type"] == "tx" and r.get("kind") == "move"])
-            if len(walls) < 2 or not tr.timings:
-                print(f"{rate:6.0f}   no stream: {rep.status}: {rep.message}")
-                continue
-            achieved = (len(walls) - 1) / (walls[-1] - walls[0])
-            reads = np.array([t[1] for t in tr.timings]) * 1e3
-            jit = np.abs(np.diff(walls) - 1.0 / rate) * 1e3
-            ticks = rep.frames
-            host, dev_cpu = host_cpu / ticks * 1e3, sim_cpu / ticks * 1e3
-            print(
-                f"{rate:6.0f} {achieved:8.1f}/s {rep.late_ticks:6d} {np.median(reads):13.2f} ms "
-                f"{np.percentile(reads, 90):7.2f} {reads.max():7.2f} {np.median(jit):22.3f} ms "
-                f"{np.percentile(jit, 90):7.3f}   ({rep.status}, {rep.moves} set-points, "
-                f"{tr.counts['timeouts']} timeouts; CPU per tick: host {host:.2f} ms, simulator {dev_cpu:.2f} ms)"
-            )
-            cost.append((host, dev_cpu))
-        if not cost:
-            return
-        host, dev_cpu = np.median(np.array(cost), axis=0)
-        wire = 210 * 10 / 1e6 * 1e3
-        print(
-            f"per tick: {wire:.2f} ms on the wire (modelled) + {host:.2f} ms host CPU + {dev_cpu:.2f} ms simulator "
-            f"CPU (medians over the rates): an unloaded 2-core machine can sustain about "
-            f"{1e3 / (wire + host + dev_cpu):.0f} set-points/s; real servos reply in hardware, so about "
-            f"{1e3 / (wire + host):.0f}/s"
-        )
-    finally:
-        sim.terminate()
-        sim.wait(10)
+    line = sim.stdout.readline()
+    print(line.strip())
+    return sim, re.search(r"/dev/pts/\d+", line).group(0)
+
+
+def _one_rate(args, robot, acts: Actuators, dev: str, baud: int, delay: int, rate: float, sim_pid: int):
+    """Stream at `rate` over the link (Return Delay Time `delay`); print one row; (host, sim) CPU ms per tick."""
+    from crtraj.hardware.dynamixel import open_dynamixel  # the optional extra: only for this mode
+
+    motion = admit(_record(robot, args.seconds), acts, rate=rate)
+    with tempfile.TemporaryDirectory() as tmp:
+        log = Path(tmp) / "run.jsonl"
+        try:
+            tr = open_dynamixel(f"dynamixel://{dev}?baud={baud}", acts, return_delay=delay, stop_torque="off")
+        except TransportError as exc:  # a loaded machine: the simulator missed its replies
+            print(f"{rate:6.0f}   no connection: {exc}")
+            return None
+        cpu0, sim0 = time.process_time(), _cpu_seconds(sim_pid)
+        rep = Streamer(tr, acts, StreamOptions(rate=rate), log).run_path(motion, approach=True)
+        host_cpu, sim_cpu = time.process_time() - cpu0, _cpu_seconds(sim_pid) - sim0
+        tx = [json.loads(x) for x in log.read_text().splitlines()]
+    walls = np.array([r["wall"] for r in tx if r["type"] == "tx" and r.get("kind") == "move"])
+    if len(walls) < 2 or not tr.timings:
+        print(f"{rate:6.0f}   no stream: {rep.status}: {rep.message}")
+        return None
+    achieved = (len(walls) - 1) / (walls[-1] - walls[0])
+    reads = np.array([t[1] for t in tr.timings]) * 1e3
+    jit = np.abs(np.diff(walls) - 1.0 / rate) * 1e3
+    host, dev_cpu = host_cpu / rep.frames * 1e3, sim_cpu / rep.frames * 1e3
+    print(
+        f"{rate:6.0f} {achieved:8.1f}/s {rep.late_ticks:6d} {np.median(reads):13.2f} ms "
+        f"{np.percentile(reads, 90):7.2f} {reads.max():7.2f} {np.median(jit):22.3f} ms "
+        f"{np.percentile(jit, 90):7.3f}   ({rep.status}, {rep.moves} set-points, "
+        f"{tr.counts['timeouts']} timeouts; CPU per tick: host {host:.2f} ms, simulator {dev_cpu:.2f} ms)"
+    )
+    return host, dev_cpu
+
+
+def dynamixel(args: argparse.Namespace, robot, acts: Actuators) -> None:
+    """Achieved set-point rate, sync-read round trip and send jitter over the Dynamixel link, per bus rate,
+    Return Delay Time and stream rate."""
+    for baud in (int(b) for b in args.bauds.split(",")):
+        sim, dev = _start_sim(baud)
+        try:
+            for delay in (int(d) for d in args.return_delays.split(",")):
+                wire = 210 * 10 / baud * 1e3 + 7 * delay * 2e-3  # bytes on the wire + 7 return delays, ms
+                print(f"-- {baud} baud, Return Delay Time {delay} ({delay * 2} us): {wire:.2f} ms per tick modelled")
+                print(
+                    f"{'rate':>6} {'achieved':>9} {'late':>6} {'read rtt median':>16} {'p90':>7} {'max':>7} "
+                    f"{'|interval-period| median':>25} {'p90':>7}"
+                )
+                cost = [
+                    _one_rate(args, robot, acts, dev, baud, delay, float(r), sim.pid) for r in args.rates.split(",")
+                ]
+                cost = [c for c in cost if c is not None]
+                if cost:
+                    host, _ = np.median(np.array(cost), axis=0)
+                    print(f"   real servos (replies in hardware): about {1e3 / (wire + host):.0f} set-points/s")
+        finally:
+            sim.terminate()
+            sim.wait(10)
 
 
 def main() -> None:
@@ -131,6 +141,8 @@ def main() -> None:
     ap.add_argument("--rate", type=float, default=100.0)
     ap.add_argument("--dynamixel", action="store_true", help="time the Dynamixel link instead (needs the extra)")
     ap.add_argument("--rates", default="100,200,300", help="with --dynamixel: stream rates to try, Hz")
+    ap.add_argument("--bauds", default="1000000,4000000", help="with --dynamixel: bus rates to try")
+    ap.add_argument("--return-delays", default="250,0", help="with --dynamixel: Return Delay Times (2 us units)")
     args = ap.parse_args()
     robot = load_robot(ROOT / "problems" / "robots" / "cdsr2.toml")
     acts = Actuators.from_robot(robot)

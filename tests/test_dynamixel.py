@@ -81,7 +81,7 @@ def _stream(sim, acts, motion, clock, misses: int = 50, **opts):
     """Streamer and link on the simulator. The SDK's reply timeout is wall time (34 ms): on a loaded machine the
     simulator's thread may miss a few, so a test that is not about faults tolerates `misses` in a row, and the
     telemetry watchdog (virtual time: 10 ms per missed tick) waits 10 s."""
-    tr = open_dynamixel(f"dynamixel://{sim.path}", acts, warn=lambda m: None, max_misses=misses)
+    tr = open_dynamixel(f"dynamixel://{sim.path}", acts, warn=lambda m: None, max_misses=misses, stop_torque="off")
     opts.setdefault("watchdog", 10.0)
     st = Streamer(tr, acts, StreamOptions(rate=motion.rate, **opts), None, clock=clock)
     return st, tr
@@ -208,7 +208,7 @@ def test_connect_sets_extended_mode_profiles_and_torque_without_moving(acts):
     chain = sim.chain
     try:
         before = chain.positions(0.0).copy()
-        tr = DynamixelTransport(sim.path, 1_000_000, acts)
+        tr = DynamixelTransport(sim.path, 1_000_000, acts, stop_torque="off")
         assert all(chain.torque(i) for i in acts.bus.ids)
         t = chain._table[0]
         assert t[11] == 4  # extended position control
@@ -253,10 +253,13 @@ def test_torque_off_on_estop(robot, acts):
 
         clock.events.append((0.3, stop))
         rep = st.run_path(motion)
-        assert rep.status == "estop" and rep.estops >= 1
-        assert all(seen["torque_before"]) and not any(seen["torque_after"])
-        # with the torque off the servos stay where they were: nothing moved after the e-stop
-        assert np.array_equal(sim.chain.positions(clock.now()), seen["positions"])
+        assert rep.status == "estop" and rep.estops >= 1 and rep.brakes == 1 and rep.brake_frames >= 2
+        # the planned stop first (torque on while it brakes), then the e-stop: torque off (stop_torque="off")
+        assert all(seen["torque_before"]) and all(seen["torque_after"])
+        assert not any(sim.chain.torque(i) for i in acts.bus.ids)
+        # with the torque off the servos stay where they were: nothing moves after the close
+        here = sim.chain.positions(clock.now()).copy()
+        assert np.array_equal(sim.chain.positions(clock.now() + 1.0), here)
     finally:
         sim.stop()
 

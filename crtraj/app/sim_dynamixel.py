@@ -1,18 +1,25 @@
 """Use case: run simulated Dynamixel servos on a pseudo-terminal until Ctrl-C or --duration (`crtraj sim-dynamixel`).
 
 The servos are the robot file's bus (`[robot.actuators]` ids and model numbers); ``--at RESULT`` starts
-them at a result's first set-point, as if the robot had been moved there. Prints the device path to pass
-to ``crtraj stream RESULT --dynamixel PATH``.
+them at a result's first set-point, as if the robot had been moved there (and homed: the readings
+are absolute). Each ``hard_stop`` of ``[robot.homing]`` is a mechanical stop at its reference;
+``--power-cycle-at T`` power-cycles every servo after T s (the readings then fall within one turn).
+Prints the device path to pass to ``crtraj stream RESULT --dynamixel PATH``.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 from types import MappingProxyType
+from typing import Any
+
+import numpy as np
 
 from crtraj.core.errors import InputError
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.dynamixel_protocol import HW_ERROR_NAMES
+from crtraj.hardware.homing_spec import read_homing
 from crtraj.hardware.sim_dynamixel import ServoChain, SimDynamixel
 from crtraj.io.problem import load_robot
 from crtraj.io.results import read_result
@@ -31,6 +38,21 @@ def _hardware_error(text: str, ids: tuple[int, ...]) -> tuple[int, int]:
             f"{', '.join(_BITS)}; got {text!r}"
         )
     return int(dxl_id), _BITS[name]
+
+
+def stops(robot: Any, acts: Actuators) -> list[tuple[float, float]]:
+    """Mechanical stops (ticks) of the servos: one at the reference of each ``hard_stop`` homing spec, on its
+    approach side, so that `crtraj home` finds it; none for the others."""
+    specs = read_homing(robot, acts)
+    out = []
+    for k, name in enumerate(acts.names):
+        s = specs.get(name)
+        if s is None or s.method != "hard_stop":
+            out.append((-math.inf, math.inf))
+            continue
+        at = float(acts.bus.ticks(np.where(np.arange(acts.n) == k, s.reference, 0.0))[k])
+        out.append((at, math.inf) if s.direction < 0 else (-math.inf, at))
+    return out
 
 
 def sim_dynamixel_command(args: argparse.Namespace) -> int:
@@ -52,7 +74,7 @@ def sim_dynamixel_command(args: argparse.Namespace) -> int:
     for m in args.missing or ():
         if m not in bus.ids:
             raise InputError(f"--missing: {m} is not one of the robot's ids ({', '.join(map(str, bus.ids))})")
-    chain = ServoChain(bus.ids, bus.models, initial=initial, tau=args.tau, baud=args.baud)
+    chain = ServoChain(bus.ids, bus.models, initial=initial, tau=args.tau, baud=args.baud, stops=stops(robot, acts))
     for m in args.missing or ():
         chain.remove(m)
     for dxl_id, bits in faults:
@@ -61,7 +83,10 @@ def sim_dynamixel_command(args: argparse.Namespace) -> int:
         if value is not None and not 0 <= value <= 10**9:
             raise InputError(f"{flag}: must be in 0..1000000000 packets, got {value}")
     chain.silent_after, chain.corrupt_after = args.silent_after, args.corrupt_after
-    sim = SimDynamixel(chain, wire_time=not args.no_wire_time)
+    at = args.power_cycle_at
+    if at is not None and not (math.isfinite(at) and 0 <= at <= 1e6):
+        raise InputError(f"--power-cycle-at: must be in 0..1000000 s, got {at}")
+    sim = SimDynamixel(chain, wire_time=not args.no_wire_time, power_cycle_at=at)
     wire = "wire time of a real bus modelled" if not args.no_wire_time else "no wire time"
     print(
         f"sim-dynamixel on {sim.path} ({len(bus.ids)} servos, ids {', '.join(map(str, bus.ids))}, "

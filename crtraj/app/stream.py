@@ -26,6 +26,8 @@ from crtraj.core.fileio import StagedFile, check_output_file, check_outputs_not_
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.admission import AdmittedMotion, admit
 from crtraj.hardware.dynamixel import DEFAULT_BAUD
+from crtraj.hardware.homing_spec import read_stop
+from crtraj.hardware.homing_state import HomingState, homing_command, state_path
 from crtraj.hardware.setpoints import check_time_scale
 from crtraj.hardware.stream import Streamer, StreamOptions, StreamReport, open_link
 from crtraj.hardware.transport import parse_hostport
@@ -82,6 +84,20 @@ def _given(value: str, flag: str) -> str:
     return value
 
 
+def _homing(args: argparse.Namespace, motion: AdmittedMotion) -> dict[str, Any]:
+    """The absolute-position check of a ``--dynamixel`` stream (the homing state beside ``--robot``; none
+    without it: a multi-turn actuator is then refused, naming the command that homes it) and what happens
+    to the torque after a stop (``[robot.stop]``)."""
+    if getattr(args, "dynamixel", None) is None:
+        return {}
+    state = HomingState.load(state_path(args.robot)) if args.robot else HomingState()
+    return {
+        "homing": state,
+        "home_command": homing_command(args.robot, args.dynamixel),
+        "stop_torque": read_stop(load_robot(args.robot) if args.robot else motion.robot).torque,
+    }
+
+
 def _stream(args: argparse.Namespace, motion: AdmittedMotion, opts: StreamOptions, log: Path) -> StreamReport:
     """Open the transport and stream; a dry run's frames replace FILE only when the stream completes."""
     # the frames go to a temporary file that replaces FILE only when the stream completes:
@@ -89,7 +105,7 @@ def _stream(args: argparse.Namespace, motion: AdmittedMotion, opts: StreamOption
     dry_run = None if args.dry_run is None else _given(args.dry_run, "--dry-run")
     frames = StagedFile(check_output_file(dry_run, "--dry-run")) if dry_run is not None else None
     with frames or contextlib.nullcontext():
-        transport = open_link(_target(args, frames), motion.actuators)
+        transport = open_link(_target(args, frames), motion.actuators, **_homing(args, motion))
         if args.approach and not transport.has_telemetry:
             transport.close()
             raise InputError(
@@ -121,6 +137,8 @@ def _print_report(rep: StreamReport, dry_run: str | None) -> None:
     )
     if dev:
         print(f"  device: {dev}")
+    if rep.brakes or rep.latched:
+        print(f"  stop: {rep.brakes} planned stop(s) in {rep.brake_frames} frames; {rep.latched} latched")
     if rep.late_ticks:
         print(f"  {rep.late_ticks} ticks late (max {rep.max_lateness * 1000:.1f} ms)")
     print(f"  log: {rep.log}")

@@ -41,6 +41,7 @@ _USE_CASES = {
     "sim-device": "crtraj.app.sim_device:sim_device_command",
     "feed-replay": "crtraj.app.feed_replay:feed_replay_command",
     "sim-dynamixel": "crtraj.app.sim_dynamixel:sim_dynamixel_command",
+    "home": "crtraj.app.home:home_command",
     "plan": "crtraj.app.plan:plan_command",
     "replan": "crtraj.app.replan:replan_command",
     "bench": "crtraj.app.bench:bench_command",
@@ -233,8 +234,28 @@ def _add_sim_dynamixel(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--silent-after", type=int, metavar="N", help="fault: answer nothing after N packets (timeouts)")
     p.add_argument("--corrupt-after", type=int, metavar="N", help="fault: wrong CRC on every reply after N packets")
+    p.add_argument(
+        "--power-cycle-at", type=float, default=None, metavar="T", help="fault: power-cycle every servo after T s"
+    )
     p.add_argument("--duration", type=float, default=None, help="stop after this many s (default: until Ctrl-C)")
     p.set_defaults(use_case="sim-dynamixel")
+
+
+# ----------------------------------------------------------------------- home
+def _add_home(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "home",
+        help="home a Dynamixel robot after power-up ([robot.homing]) and write its homing state",
+        description="Runs each actuator's homing ([robot.homing]: a current-limited move to a mechanical stop, "
+        "or a mark confirmed by hand), unwraps the spools into their limits, verifies every reading and writes "
+        "the homing state next to the robot file. crtraj stream --dynamixel refuses servos not homed since "
+        "their last power-up.",
+    )
+    p.add_argument("--dynamixel", metavar="DEV", required=True, help="the servos' port, e.g. /dev/ttyUSB0")
+    p.add_argument("--baud", type=int, default=None, help="baud rate (default 1000000)")
+    p.add_argument("--robot", default=str(DEFAULT_ROBOT), help="robot TOML with [robot.actuators] and [robot.homing]")
+    p.add_argument("--state", default=None, help="homing state file (default: <robot>.homing.json beside it)")
+    p.set_defaults(use_case="home")
 
 
 # ----------------------------------------------------------------------- plan
@@ -457,6 +478,7 @@ _COMMANDS: tuple[Callable[[argparse._SubParsersAction], None], ...] = (
     _add_sim_device,
     _add_feed_replay,
     _add_sim_dynamixel,
+    _add_home,
     _add_plan,
     _add_replan,
     _add_ros_bridge,

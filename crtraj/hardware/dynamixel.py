@@ -8,7 +8,9 @@ its frames to the bus. Per frame:
 - MOVE / HOLD: the values (rad, mm) become ticks (`crtraj.hardware.servo_bus`)
   and go out as one Group Sync Write of the goal positions of every servo (one
   bus transaction per set-point);
-- ESTOP: one Group Sync Write of torque enable = 0 (torque off; latched);
+- ESTOP (after the streamer's planned stop, `crtraj.hardware.braking`): with ``stop_torque="off"`` one Group
+  Sync Write of torque enable = 0 (torque off); with "keep" (the default) the goals stay where the stop ended,
+  torque on; either way latched: no goal is written after it;
 - PING: opens the session (no bus traffic).
 
 Every `receive` is one Group Sync Read of torque enable, hardware error
@@ -21,14 +23,18 @@ rebooted, e.g. after a brown-out: its indirect addresses are then reset too,
 so the torque byte reads 0 either way), or a servo that misses `max_misses`
 reads in a row, is a `TransportError` naming the servo: the link holds at
 once (no goal is written after it) and the streamer stops and reports it.
-`close` turns the torque off.
+`close` turns the torque off with ``stop_torque="off"`` and leaves it on with "keep".
 
 Connecting checks, each failure one line: the port exists and opens, the
 servos answer at this baud rate (if none does, the other common rates are
 tried and the right one named), every id answers (a silent one is named),
 each model number is the robot file's, no hardware error bit is set, and the
-actuators' position limits fit the extended position range. Then it sets
-torque off, extended position control (operating mode 4: a spool turns more
+actuators' position limits fit the extended position range; with a homing
+state, every position is absolute (`crtraj.hardware.homing_state.PowerUpCheck`:
+a multi-turn actuator homed since its last power-up, a spool unwrapped into its
+limits). Then it sets torque off, checks Drive Mode (no reverse or time-based
+profile bit), sets Return Delay Time (0 by default: the factory 250 adds
+500 us to every reply), Status Return Level 2, extended position control (operating mode 4: a spool turns more
 than one revolution), the profile velocity and acceleration from the
 actuator limits, the indirect addresses, the goal to the present position,
 and torque on. On Linux
@@ -53,6 +59,7 @@ import numpy as np
 from crtraj.core.errors import InputError
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.dynamixel_protocol import BAUD_CODES, X, hardware_error_text
+from crtraj.hardware.homing_state import HomingState, PowerUpCheck
 from crtraj.hardware.protocol import ESTOP, PING, STATUS_ESTOP, Frame, Telemetry, seq_next
 from crtraj.hardware.servo_bus import ServoBus
 from crtraj.hardware.transport import Transport, TransportError
@@ -139,6 +146,12 @@ class DynamixelTransport(Transport):
 
     warn: where connection warnings go (default: a warning of the ``crtraj`` logger). sysfs: the USB-serial
     sysfs folder (tests point it elsewhere). max_misses: failed reads in a row that end the stream.
+    homing: the homing state to check absolute positions against (`crtraj.hardware.homing_state.PowerUpCheck`,
+    before torque comes on; `crtraj stream` always passes it); None skips the check (`crtraj home` itself).
+    return_delay: Return Delay Time written to every servo (2 us units, 0..254). home_command: named in refusals.
+    stop_torque: ``[robot.stop] torque``: "keep" (an e-stop, after the streamer's planned stop, latches the
+    goals with the torque on, and `close` leaves it on: the cables stay taut, a lead-screw stage cannot
+    back-drive) or "off" (torque off at e-stop and close).
     """
 
     # Over 60 lines: the connection checks, each with its own one-line message, in the order a lab meets them.
@@ -151,6 +164,10 @@ class DynamixelTransport(Transport):
         warn: Callable[[str], None] | None = None,
         sysfs: Path = SYSFS_USB_SERIAL,
         max_misses: int = 5,
+        homing: HomingState | None = None,
+        return_delay: int = 0,
+        home_command: str = "crtraj home",
+        stop_torque: str = "keep",
     ) -> None:
         sdk = _sdk()
         if actuators.bus is None:
@@ -166,6 +183,12 @@ class DynamixelTransport(Transport):
         self.warnings: list[str] = []
         self._warn = warn if warn is not None else log.warning
         self.max_misses = int(max_misses)
+        if not 0 <= int(return_delay) <= 254:
+            raise InputError(f"--return-delay: must be in 0..254 (2 us units), got {return_delay}")
+        self.return_delay = int(return_delay)
+        if stop_torque not in ("keep", "off"):
+            raise InputError(f'robot.stop.torque: must be "keep" or "off", got {stop_torque!r}')
+        self.stop_torque = stop_torque
         self._sdk = sdk
         self._ph = sdk.PacketHandler(2.0)
         self._port = None
@@ -188,6 +211,9 @@ class DynamixelTransport(Transport):
                 self.warnings.append(w)
                 self._warn(w)
             self._check_servos()
+            if homing is not None:
+                self._torque_off(confirm=True)
+                PowerUpCheck(self, actuators, homing, home_command).run()
             self._setup(actuators)
         except BaseException:
             with contextlib.suppress(Exception):  # a setup that failed half-way must not leave torque on
@@ -289,8 +315,22 @@ class DynamixelTransport(Transport):
             "servos' power supply and the data cable"
         )
 
+    def read(self, dxl_id: int, addr: int, size: int) -> int:
+        """One register of servo `dxl_id` (signed for 2 and 4 bytes); `TransportError` naming it on no answer."""
+        f = {1: self._ph.read1ByteTxRx, 2: self._ph.read2ByteTxRx, 4: self._ph.read4ByteTxRx}[size]
+        value, result, _ = self._ask(f, dxl_id, addr)
+        if result != self._sdk.COMM_SUCCESS:
+            raise TransportError(f"servo {self.bus.name_of(dxl_id)}: cannot read register {addr}")
+        if size == 4:
+            return _signed32(value)
+        return value - (1 << 16) if size == 2 and value >= 1 << 15 else value
+
+    def write(self, dxl_id: int, addr: int, value: int, size: int, what: str) -> None:
+        """Write one register (value as unsigned bytes); `TransportError` naming `what` when refused."""
+        self._write1(dxl_id, addr, value, size, what)
+
     def _write1(self, dxl_id: int, addr: int, value: int, size: int, what: str) -> None:
-        f = {1: self._ph.write1ByteTxRx, 4: self._ph.write4ByteTxRx}[size]
+        f = {1: self._ph.write1ByteTxRx, 2: self._ph.write2ByteTxRx, 4: self._ph.write4ByteTxRx}[size]
         result, error = self._ask(f, dxl_id, addr, value)
         if result != self._sdk.COMM_SUCCESS or error & 0x7F:
             raise TransportError(
@@ -304,6 +344,9 @@ class DynamixelTransport(Transport):
         for i in bus.ids:
             self._write1(i, X.TORQUE_ENABLE, 0, 1, "torque off")
         for k, i in enumerate(bus.ids):
+            self._check_drive_mode(i)
+            self._write1(i, X.RETURN_DELAY, self.return_delay, 1, "return delay time")
+            self._write1(i, X.STATUS_RETURN, 2, 1, "status return level")
             self._write1(i, X.OPERATING_MODE, X.EXTENDED_POSITION, 1, "extended position mode")
             # profile limits at or just above the actuator limits: the set-points already obey them, the
             # servo's own profile only smooths what the gate let through
@@ -325,6 +368,17 @@ class DynamixelTransport(Transport):
         for i in bus.ids:
             self._write1(i, X.TORQUE_ENABLE, 1, 1, "torque on")
 
+    def _check_drive_mode(self, dxl_id: int) -> None:
+        """Refuse a Drive Mode with the reverse or time-based-profile bit: the robot file's sign gives the
+        direction and the profile registers are in velocity units, so either bit would move the robot wrongly."""
+        mode = self.read(dxl_id, X.DRIVE_MODE, 1)
+        bits = [n for b, n in ((X.DRIVE_REVERSE, "reverse"), (X.DRIVE_TIME_PROFILE, "time-based profile")) if mode & b]
+        if bits:
+            raise TransportError(
+                f"servo {self.bus.name_of(dxl_id)}: Drive Mode 0x{mode:02x} has the {' and '.join(bits)} bit set, "
+                "which robot.actuators does not declare: clear it (register 10) and give the direction by sign"
+            )
+
     # -------------------------------------------------------------- frames
     def send(self, frame: bytes) -> None:
         """Carry one streamer frame (already through the limits gate) to the bus."""
@@ -336,8 +390,9 @@ class DynamixelTransport(Transport):
             return
         t = time.perf_counter()
         if msg.kind == ESTOP:
-            self._torque_off(confirm=not self._estopped)  # the repeats of a latched e-stop: sync write only
-            self._estopped = True
+            if self.stop_torque == "off":
+                self._torque_off(confirm=not self._estopped)  # the repeats of a latched e-stop: sync write only
+            self._estopped = True  # "keep": the goals stay where the stop ended, torque on
         elif self._held is not None:  # a servo failed mid-stream: nothing moves the servos again
             raise TransportError(self._held)
         elif not self._estopped:  # after an e-stop nothing moves the servos again
@@ -454,10 +509,13 @@ class DynamixelTransport(Transport):
         self._port.clearPort()
 
     def close(self) -> None:
-        """Torque off, then close the port (idempotent)."""
+        """Torque off (with ``stop_torque="off"``), then close the port (idempotent)."""
         if self._port is None:
             return
         try:
+            if self.stop_torque == "keep":
+                log.info("%s: torque kept on (robot.stop.torque = keep)", self.description)
+                return
             silent = self._torque_off()
             if silent:
                 who = ", ".join(self.bus.name_of(i) for i in silent)

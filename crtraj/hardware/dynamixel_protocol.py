@@ -55,14 +55,22 @@ class X:
     FIRMWARE = 6  # 1
     ID = 7  # 1
     BAUD_RATE = 8  # 1
-    RETURN_DELAY = 9  # 1, 2 us units
-    OPERATING_MODE = 11  # 1: 3 position, 4 extended position
+    RETURN_DELAY = 9  # 1, 2 us units (factory default 250: 500 us before every reply)
+    DRIVE_MODE = 10  # 1: bit 0 reverse direction, bit 2 time-based profile
+    OPERATING_MODE = 11  # 1: 3 position, 4 extended position, 5 current-based position
+    HOMING_OFFSET = 20  # 4, signed ticks added to the present position (EEPROM)
+    HOMING_OFFSET_LIMIT = 1_044_479  # ticks, +- (the register's range)
+    CURRENT_LIMIT = 38  # 2, 2.69 mA units (EEPROM)
     TORQUE_ENABLE = 64  # 1; EEPROM (< 64) is writable only with torque off
+    LED = 65  # 1, RAM (power-up default 0): crtraj's "homed since power-up" marker
+    STATUS_RETURN = 68  # 1, RAM: 0 answer PING only, 1 PING and READ, 2 every instruction
     HARDWARE_ERROR = 70  # 1, read-only
+    GOAL_CURRENT = 102  # 2, 2.69 mA units (current-based position mode)
     PROFILE_ACCELERATION = 108  # 4, 214.577 rev/min^2 units
     PROFILE_VELOCITY = 112  # 4, 0.229 rev/min units
     GOAL_POSITION = 116  # 4, ticks
     MOVING = 122  # 1
+    PRESENT_CURRENT = 126  # 2, signed, 2.69 mA units
     PRESENT_VELOCITY = 128  # 4, signed, 0.229 rev/min units
     PRESENT_POSITION = 132  # 4, signed, ticks
     PRESENT_VOLTAGE = 144  # 2, 0.1 V
@@ -73,6 +81,11 @@ class X:
     SIZE = 252  # bytes of control table the simulator keeps
 
     EXTENDED_POSITION = 4
+    CURRENT_POSITION = 5  # current-based position control (multi-turn, current limited by the goal current)
+    DRIVE_REVERSE, DRIVE_TIME_PROFILE = 0x01, 0x04
+    RETURN_DELAY_DEFAULT = 250  # factory default (x 2 us)
+    CURRENT_UNIT = 2.69  # mA per unit of goal / present current
+    CURRENT_LIMIT_DEFAULT = 1193  # units (3.2 A), XM430
     # extended position control: goal position range, ticks (+-256 revolutions)
     EXTENDED_LIMIT = 1_048_575
     VELOCITY_UNIT = 0.229  # rev/min per unit of profile / present velocity

@@ -27,9 +27,18 @@ has no baud rate, so the simulator reads the host's configured rate from the
 terminal settings and ignores a host at another rate (as a real bus would
 see garbage), and with ``wire_time`` delays every reply by the time its bytes
 and the request's take on a real wire (10 bits per byte at the bus rate,
-one transfer at a time), so measured rates are those of a real bus. The servos
-answer without a return delay (Return Delay Time 0, as set up for streaming;
-the factory default adds 500 us per reply).
+one transfer at a time), so measured rates are those of a real bus. Each reply
+also waits its servo's Return Delay Time (register 9, 2 us units, factory
+default 250 = 500 us; `crtraj stream` sets it to 0 at connect), and the
+Status Return Level (register 68) decides which instructions are answered.
+
+Power-up as on a real X-series servo: `power_cycle` and REBOOT turn the torque
+off, put RAM at its defaults (the LED, crtraj's homed marker, reads 0) and lose
+the multi-turn count: the present position reads within one turn (0..4095)
+plus the Homing Offset (register 20, EEPROM, kept). Each shaft may have
+mechanical ``stops`` (physical ticks); pressing one, the servo reads the
+current limit of its mode as Present Current (current-based position mode 5:
+the Goal Current), which is what hard-stop homing detects.
 """
 
 from __future__ import annotations
@@ -74,6 +83,7 @@ class ServoChain:
         initial: Sequence[int] | None = None,
         tau: float = 0.03,
         baud: int = 1_000_000,
+        stops: Sequence[tuple[float, float]] | None = None,
     ) -> None:
         if len(ids) != len(models) or not ids or len(set(ids)) != len(ids):
             raise InputError("sim-dynamixel: needs distinct ids, one model number each")
@@ -96,11 +106,17 @@ class ServoChain:
             struct.pack_into("<H", t, X.MODEL_NUMBER, int(models[k]))
             t[X.FIRMWARE], t[X.ID], t[X.BAUD_RATE] = 46, self.ids[k], codes[self.baud]
             t[X.OPERATING_MODE], t[13] = 3, 2  # position control, protocol 2
-            t[68] = 2  # status return level: answer every instruction
+            t[X.RETURN_DELAY] = X.RETURN_DELAY_DEFAULT
+            struct.pack_into("<H", t, X.CURRENT_LIMIT, X.CURRENT_LIMIT_DEFAULT)
+            t[X.STATUS_RETURN] = 2  # status return level: answer every instruction
+            struct.pack_into("<H", t, X.GOAL_CURRENT, X.CURRENT_LIMIT_DEFAULT)
             struct.pack_into("<H", t, X.PRESENT_VOLTAGE, 120)
             t[X.PRESENT_TEMPERATURE] = 35
             struct.pack_into("<i", t, X.GOAL_POSITION, int(np.rint(x0[k])))
-        self._x = x0.copy()  # measured positions (ticks)
+        self._x = x0.copy()  # measured positions (ticks, as reported: the shaft's position plus `_shift`)
+        self._shift = np.zeros(n)  # reported minus physical position (ticks): changes at power-up and homing offset
+        lim = np.full((n, 2), [-np.inf, np.inf]) if stops is None else np.asarray(stops, dtype=float).reshape(n, 2)
+        self.stops = lim  # mechanical stops of each shaft (physical ticks, the frame of `initial`)
         self._v = np.zeros(n)  # measured velocities (ticks/s)
         self._profile = ServoProfile(np.full(n, _UNLIMITED), np.full(n, _UNLIMITED), x0)
         self._t: float | None = None  # device time reached; the first call's time is the start
@@ -143,12 +159,41 @@ class ServoChain:
         self.advance(now)
         self._reboot(self.ids.index(dxl_id), now)
 
+    def turn_by_hand(self, dxl_id: int, ticks: float, now: float = 0.0) -> None:
+        """A person turns the shaft of `dxl_id` (torque off) by `ticks`, within its mechanical stops."""
+        self.advance(now)
+        k = self.ids.index(dxl_id)
+        if self._table[k][X.TORQUE_ENABLE]:
+            raise InputError(f"sim-dynamixel: servo {dxl_id} holds its position (torque on): cannot turn it")
+        self._x[k] = float(self._clamp(self._x + np.eye(len(self.ids))[k] * ticks)[k])
+        self._replan(now)
+
+    def register(self, dxl_id: int, addr: int, size: int) -> int:
+        """The register of `dxl_id` as a READ would return it (signed for 2 and 4 bytes)."""
+        data = self._read(self.ids.index(dxl_id), addr, size)
+        if data is None:
+            raise InputError(f"sim-dynamixel: no register {addr} of size {size}")
+        return int.from_bytes(data, "little", signed=size > 1)
+
+    def power_cycle(self, now: float = 0.0, dxl_id: int | None = None) -> None:
+        """Power-cycle fault: every servo (or `dxl_id`) loses power and starts again, as a REBOOT does."""
+        self.advance(now)
+        for k in range(len(self.ids)) if dxl_id is None else [self.ids.index(dxl_id)]:
+            self._reboot(k, now)
+
     def _reboot(self, k: int, now: float) -> None:
+        """Restart servo k: torque off, RAM (indirect addresses included) at its power-up defaults, and the
+        multi-turn count lost: the present position reads within one turn (0..4095) plus the homing offset."""
         t = self._table[k]
         t[X.HARDWARE_ERROR] = 0
-        self._torque(k, False, now)
-        t[64:120] = bytes(56)  # RAM back to its defaults (zero here), position kept
-        t[68] = 2
+        (offset,) = struct.unpack_from("<i", t, X.HOMING_OFFSET)
+        wrapped = (self._x[k] - offset) % TICKS_PER_REV + offset
+        self._shift[k] += wrapped - self._x[k]
+        self._x[k], self._v[k] = wrapped, 0.0
+        self._torque(k, False, now)  # after the wrap: the reference restarts from the position as read now
+        t[64:120] = bytes(56)  # RAM back to its defaults (zero here), the shaft where it is
+        t[X.STATUS_RETURN] = 2
+        t[X.GOAL_CURRENT : X.GOAL_CURRENT + 2] = t[X.CURRENT_LIMIT : X.CURRENT_LIMIT + 2]
         for j in range(X.INDIRECT_COUNT):  # each indirect address names its own data byte again
             struct.pack_into("<H", t, X.INDIRECT_ADDRESS + 2 * j, X.INDIRECT_DATA + j)
         struct.pack_into("<i", t, X.GOAL_POSITION, int(np.rint(self._x[k])))
@@ -172,17 +217,45 @@ class ServoChain:
             if self._t >= self._profile.end_time:  # the reference is at rest: one exact step to `now`
                 r = self._profile.target
                 decay = math.exp(-(now - self._t) / self.tau) if self.tau > 0 else 0.0
-                x_new = np.where(on, r + (self._x - r) * decay, self._x)
+                x_new = self._clamp(np.where(on, r + (self._x - r) * decay, self._x))
                 self._v = np.where(on, (r - x_new) / self.tau, 0.0) if self.tau > 0 else np.zeros_like(r)
+                self._v = np.where(x_new == self._x, 0.0, self._v)  # at a stop the shaft stands still
                 self._x, self._t = x_new, now
                 return
             h = min(1e-3, now - self._t)
             self._t += h
             r, _ = self._profile.sample(self._t)
             x_new = r + (self._x - r) * (math.exp(-h / self.tau) if self.tau > 0 else 0.0)
-            x_new = np.where(on, x_new, self._x)
+            x_new = self._clamp(np.where(on, x_new, self._x))
             self._v = (x_new - self._x) / h
             self._x = x_new
+
+    def _clamp(self, x: np.ndarray) -> np.ndarray:
+        """Positions `x` (reported ticks) held at the mechanical stops."""
+        return np.clip(x, self.stops[:, 0] + self._shift, self.stops[:, 1] + self._shift)
+
+    def _current(self, k: int) -> int:
+        """Present current (2.69 mA units): the current limit of the mode while the shaft presses a stop toward
+        its reference, else 0 (friction and load are not modelled)."""
+        t = self._table[k]
+        if not t[X.TORQUE_ENABLE]:
+            return 0
+        r = self._profile.target[k]
+        lo, hi = self.stops[k] + self._shift[k]
+        pressing = 1 if r > hi and self._x[k] >= hi else -1 if r < lo and self._x[k] <= lo else 0
+        mode_current = X.GOAL_CURRENT if t[X.OPERATING_MODE] == X.CURRENT_POSITION else X.CURRENT_LIMIT
+        (limit,) = struct.unpack_from("<H", t, mode_current)
+        return pressing * int(limit)
+
+    def reply_time(self, request_size: int, replies: list[bytes]) -> float:
+        """Bus time (s) of one transaction: the request's and replies' bytes at 10 bits each at the bus rate,
+        plus each replying servo's Return Delay Time (a sync read's replies come one after another)."""
+        wire = (request_size + sum(len(r) for r in replies)) * 10.0 / self.baud
+        return wire + sum(self.reply_delay(r[4]) for r in replies)
+
+    def reply_delay(self, dxl_id: int) -> float:
+        """The Return Delay Time of servo `dxl_id` (s): 2 us per unit of its register, before each reply."""
+        return 2e-6 * self._table[self.ids.index(dxl_id)][X.RETURN_DELAY]
 
     def _replan(self, now: float) -> None:
         """Re-plan every servo's reference from where it is toward its goal (or its position, torque off)."""
@@ -211,7 +284,8 @@ class ServoChain:
         """The status packets that answer one instruction packet at device time `now` (s)."""
         self.advance(now)
         self.counts["packets"] += 1
-        replies = self._dispatch(packet, now)
+        levels = {i: self._table[k][X.STATUS_RETURN] for k, i in enumerate(self.ids)}  # as the packet arrived
+        replies = self._returned(packet, self._dispatch(packet, now), levels)
         n = self.counts["packets"]
         if self.silent > 0 or (self.silent_after is not None and n > self.silent_after):
             self.silent = max(self.silent - 1, 0)
@@ -222,6 +296,11 @@ class ServoChain:
             replies = [r[:-1] + bytes([r[-1] ^ 0xFF]) for r in replies]
         self.counts["replies"] += len(replies)
         return replies
+
+    def _returned(self, p: dxl.Packet, replies: list[bytes], levels: dict[int, int]) -> list[bytes]:
+        """The replies each servo's Status Return Level lets out: 0 answers PING only, 1 PING and reads, 2 all."""
+        need = 0 if p.instruction == dxl.PING else 1 if p.instruction in (dxl.READ, dxl.SYNC_READ) else 2
+        return [r for r in replies if levels[r[4]] >= need]
 
     def _dispatch(self, p: dxl.Packet, now: float) -> list[bytes]:
         if p.instruction == dxl.SYNC_READ and p.id == dxl.BROADCAST_ID:
@@ -272,6 +351,7 @@ class ServoChain:
         struct.pack_into("<i", t, X.PRESENT_VELOCITY, int(np.clip(np.rint(rpm_units), -(2**31), 2**31 - 1)))
         goal = struct.unpack_from("<i", t, X.GOAL_POSITION)[0]
         t[X.MOVING] = 1 if abs(self._x[k] - goal) > 1 else 0
+        struct.pack_into("<h", t, X.PRESENT_CURRENT, self._current(k))
         first = max(0, addr - X.INDIRECT_DATA)
         for j in range(first, min(X.INDIRECT_COUNT, addr + length - X.INDIRECT_DATA)):  # mirrors of the bytes named
             (src,) = struct.unpack_from("<H", t, X.INDIRECT_ADDRESS + 2 * j)
@@ -296,7 +376,7 @@ class ServoChain:
         if lo_b < hi_b:
             trial[lo_b - base : hi_b - base] = data[lo_b - addr : hi_b - addr]
         goal = struct.unpack_from("<i", trial, X.GOAL_POSITION - base)[0]
-        extended = trial[0] == X.EXTENDED_POSITION
+        extended = trial[0] in (X.EXTENDED_POSITION, X.CURRENT_POSITION)
         lo, hi = (-X.EXTENDED_LIMIT, X.EXTENDED_LIMIT) if extended else (0, 4095)
         if addr < X.GOAL_POSITION + 4 and end > X.GOAL_POSITION and not lo <= goal <= hi:
             return dxl.ERR_DATA_LIMIT
@@ -306,7 +386,13 @@ class ServoChain:
         if addr <= X.TORQUE_ENABLE < end and torque > 1:
             return dxl.ERR_DATA_LIMIT
         was_on = t[X.TORQUE_ENABLE]
+        (offset,) = struct.unpack_from("<i", t, X.HOMING_OFFSET)
         t[addr:end] = data
+        if addr < X.HOMING_OFFSET + 4 and end > X.HOMING_OFFSET:  # the reading moves with the offset
+            d = struct.unpack_from("<i", t, X.HOMING_OFFSET)[0] - offset
+            self._x[k] += d
+            self._shift[k] += d
+            self._replan(now)
         if addr <= X.TORQUE_ENABLE < end and t[X.TORQUE_ENABLE] != was_on:
             self._torque(k, bool(t[X.TORQUE_ENABLE]), now)
         elif end > X.PROFILE_ACCELERATION and addr < X.GOAL_POSITION + 4 and replan:
@@ -344,13 +430,21 @@ class SimDynamixel:
     """A `ServoChain` served on a pseudo-terminal from a thread; `path` is the device to open.
 
     clock: the chain's device time (s; tests pass a virtual clock). wire_time:
-    delay replies by their bytes' time on a real wire at the chain's baud rate.
+    delay replies by their bytes' time on a real wire at the chain's baud rate
+    and the servos' Return Delay Time. power_cycle_at: power-cycle every servo
+    this long (clock s) after `serve` starts.
     """
 
     def __init__(
-        self, chain: ServoChain, *, clock: Callable[[], float] = time.monotonic, wire_time: bool = True
+        self,
+        chain: ServoChain,
+        *,
+        clock: Callable[[], float] = time.monotonic,
+        wire_time: bool = True,
+        power_cycle_at: float | None = None,
     ) -> None:
         self.chain = chain
+        self.power_cycle_at = power_cycle_at  # s after `serve` starts (clock time): every servo power-cycles once
         self.clock = clock
         self.wire_time = wire_time
         self._lock = threading.Lock()
@@ -398,7 +492,9 @@ class SimDynamixel:
     def serve(self, duration: float | None = None) -> None:
         """Answer packets until `stop` (or for `duration` s of wall time)."""
         end = None if duration is None else time.monotonic() + duration
+        cycle = None if self.power_cycle_at is None else self.clock() + self.power_cycle_at
         while not self._stop.is_set() and (end is None or time.monotonic() < end):
+            cycle = self._power_cycle_due(cycle)
             try:
                 ready, _, _ = select.select([self._master], [], [], 0.05)
                 if not ready:
@@ -410,15 +506,23 @@ class SimDynamixel:
             if termios.tcgetattr(self._master)[4] != _BAUD_TERMIOS.get(self.chain.baud):
                 self.wrong_baud += 1  # a host at another rate: a real bus sees noise, nobody answers
                 continue
+            cycle = self._power_cycle_due(cycle)  # before the packet: it meets the servos as they are now
             for packet in self._reader.feed(data):
                 with self._lock:
                     replies = self.chain.handle(packet, self.clock())
                 self._send(packet.size, replies, arrived)
 
+    def _power_cycle_due(self, cycle: float | None) -> float | None:
+        """Power-cycle every servo once the clock reaches `cycle` (s); the time still pending (None: done)."""
+        if cycle is None or self.clock() < cycle:
+            return cycle
+        with self._lock:
+            self.chain.power_cycle(self.clock())
+        return None
+
     def _send(self, request_size: int, replies: list[bytes], arrived: float) -> None:
         """Write the replies, after the wire time of the request and of each reply when modelled."""
-        per_byte = 10.0 / self.chain.baud
-        t = max(arrived, self._bus_free) + (request_size + sum(len(r) for r in replies)) * per_byte
+        t = max(arrived, self._bus_free) + self.chain.reply_time(request_size, replies)
         self._bus_free = t
         if not replies:
             return

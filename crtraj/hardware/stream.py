@@ -50,6 +50,7 @@ from crtraj.core.clock import Clock, VirtualClock, WallClock
 from crtraj.core.errors import AdmissionError, InputError
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.admission import AdmittedMotion
+from crtraj.hardware.braking import Braking
 from crtraj.hardware.dynamixel import open_dynamixel
 from crtraj.hardware.limits import LimitsGate
 from crtraj.hardware.protocol import ESTOP, HOLD, MOVE, SEQ_MOD, Telemetry
@@ -85,10 +86,11 @@ __all__ = [
 ]
 
 
-def open_link(target: str, actuators: Actuators) -> Transport:
-    """The link to `target` (`Transport.open`); a ``dynamixel://`` bus needs the actuators (ids, tick scales)."""
+def open_link(target: str, actuators: Actuators, **dynamixel: Any) -> Transport:
+    """The link to `target` (`Transport.open`); a ``dynamixel://`` bus needs the actuators (ids, tick scales)
+    and takes `dynamixel` as keywords of `DynamixelTransport` (e.g. ``homing``)."""
     if target.startswith("dynamixel://"):
-        return open_dynamixel(target, actuators)
+        return open_dynamixel(target, actuators, **dynamixel)
     return Transport.open(target)
 
 
@@ -112,6 +114,9 @@ class StreamReport:
     max_lateness: float = 0.0  # s
     log: str | None = None
     events: tuple[tuple[float, str, str], ...] = ()
+    brakes: int = 0  # stops planned within the acceleration limits, verified and sent
+    brake_frames: int = 0
+    latched: int = 0  # stops that fell back to latching the last set-point (check failed, refused, closed)
 
     @property
     def ok(self) -> bool:
@@ -169,6 +174,7 @@ class Streamer:
         parts = StreamParts(self._machine, self._buffer, self._monitor, self._log)
         self._sender = FrameSender(transport, self._gate, self.session, first_seq, parts)
         self._cycle = StreamCycle(self.options, transport, self._gate, parts, self._sender)
+        self._cycle.braking = Braking(actuators, self._dt)
         self._lock = threading.RLock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -334,6 +340,7 @@ class Streamer:
             if self.state != HELD:
                 raise StreamError(f"resume: stream is {self.state}, not held")
             self._buffer.clear()
+            self._cycle.clear_brake()
             self._monitor.source_ok()
             self._gate.reset(self._gate.position)
             self._machine.resume()
@@ -343,9 +350,11 @@ class Streamer:
         with self._lock:
             if self.state in (IDLE, CLOSED, ERROR, ESTOPPED):
                 return
-            self._machine.estop(reason, self._clock.now())
+            now = self._clock.now()
+            self._machine.estop(reason, now)
             try:
-                self._sender.hold(ESTOP)
+                if not self._cycle.brake_step(now):  # the stop's first frame, or the e-stop at rest
+                    self._sender.hold(ESTOP)
             except TransportError as exc:
                 self._machine.event("transport-error", str(exc))
 
@@ -376,6 +385,7 @@ class Streamer:
         nothing sent.
         """
         check_admitted(motion, self.actuators, self.options.rate)
+        self._cycle.braking = Braking(self.actuators, self._dt, motion.verifier)  # stops checked like frames
         if not self._realtime:  # a dry run streams as fast as the CPU allows
             self._machine.clock = VirtualClock()
         if initial is None and not self.transport.has_telemetry:
@@ -426,7 +436,8 @@ class Streamer:
         """One period of the loop; False when the loop ends."""
         with self._lock:
             self._cycle.tick(now)
-            return not self._machine.loop_ends(now, self.options.watchdog, stop_when_latched)
+            ends = self._machine.loop_ends(now, self.options.watchdog, stop_when_latched)
+            return not ends or (self._cycle.is_braking and self.state in (HELD, ESTOPPED))
 
     # ---------------------------------------------------------------- close
     def wait(self, timeout: float | None = None) -> bool:
@@ -446,6 +457,8 @@ class Streamer:
             self._thread.join(2.0)
         with self._lock:
             if self.state in LIVE and self._sender.counts["frames"]:
+                if self._cycle.is_braking:  # closed before the stop ended: the last resort is the latch
+                    self._cycle.braking.counts.latched += 1
                 try:
                     self._sender.hold(HOLD)
                 except TransportError as exc:
@@ -462,6 +475,7 @@ class Streamer:
     def _final_report(self, status: str | None, message: str | None) -> StreamReport:
         tel = self._monitor.last
         counts = self._sender.counts
+        brakes = self._cycle.braking.counts
         err = self._cycle.final_error
         if err is None and tel is not None and self._gate.position is not None and counts[MOVE]:
             err = float(np.max(np.abs(tel.positions - self._gate.position)))
@@ -482,4 +496,7 @@ class Streamer:
             max_lateness=max(self._pacer.max_lateness, 0.0),
             log=None if self._log.path is None else str(self._log.path),
             events=tuple(self._machine.events),
+            brakes=brakes.braked,
+            brake_frames=brakes.frames,
+            latched=brakes.latched,
         )

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from crtraj.hardware.braking import Braking
 from crtraj.hardware.limits import LimitsGate
 from crtraj.hardware.protocol import ESTOP, HOLD, MOVE, STATUS_ESTOP, Telemetry
 from crtraj.hardware.stream_options import StreamOptions
@@ -47,6 +48,55 @@ class StreamCycle:
         self._machine, self._buffer, self._monitor = parts.machine, parts.buffer, parts.monitor
         self._sender = sender
         self.final_error: float | None = None  # max |measured - final| on arrival (rad or mm)
+        self.braking: Braking | None = None  # plans the stop of a hold or e-stop (None: latch at once)
+        self._brake: list[tuple[float, np.ndarray]] = []  # the stop's frames still to send
+        self._braked_for: float | None = None  # the latch time whose stop was planned
+
+    @property
+    def is_braking(self) -> bool:
+        """A planned stop still has frames to send."""
+        return bool(self._brake)
+
+    def clear_brake(self) -> None:
+        """Forget a stop in progress (`Streamer.resume`, or a latch the device made itself)."""
+        self._brake = []
+        self._braked_for = self._machine.latched_at
+
+    def brake_step(self, now: float) -> bool:
+        """Send the next frame of the stop of the current hold or e-stop (planning it first); False when
+        there is none (at rest, no braking, or the stop failed its check: the caller latches)."""
+        if self.braking is None:
+            return False
+        m = self._machine
+        if self._braked_for != m.latched_at:
+            self._braked_for = m.latched_at
+            self._plan_brake(now)
+        if not self._brake:
+            return False
+        stamp, values = self._brake.pop(0)
+        if not self._sender.emit(MOVE, values, stamp):  # refused: the sender already held at the last frame
+            self._brake = []
+            self.braking.counts.latched += 1
+            return True
+        self.braking.counts.frames += 1
+        if not self._brake:  # at rest: the hold or e-stop frames now repeat for a watchdog period from here
+            m.latched_at = self._braked_for = now
+        return True
+
+    def _plan_brake(self, now: float) -> None:
+        gate, braking = self._gate, self.braking
+        if gate.position is None or braking is None:
+            return
+        plan = braking.plan(gate.position, gate.velocity, self._buffer.sent_stamp)
+        if not len(plan.values):
+            return
+        if not plan.ok:
+            braking.counts.latched += 1
+            self._machine.event("brake-refused", f"the stop failed its check ({plan.why}): latched", now)
+            return
+        braking.counts.braked += 1
+        self._machine.event("brake", f"stopping within the acceleration limits in {len(plan.values)} frames", now)
+        self._brake = list(zip(plan.stamps.tolist(), plan.values, strict=True))
 
     def tick(self, now: float) -> None:
         """One period at clock time `now` (s). Caller holds the stream's lock."""
@@ -56,14 +106,16 @@ class StreamCycle:
         try:
             self.poll_telemetry(now)
             if state.state == ESTOPPED:
-                self._sender.hold(ESTOP)
+                if not self.brake_step(now):
+                    self._sender.hold(ESTOP)
                 return
             if state.state not in (HELD, DONE) and self._transport.has_telemetry:
                 silent = self._monitor.silence(now)
                 if silent > self._options.watchdog:
                     state.latch(f"telemetry lost: nothing valid for {silent * 1000:.0f} ms", now, "telemetry-lost")
             if state.state == HELD:
-                self._sender.hold(HOLD)
+                if not self.brake_step(now):
+                    self._sender.hold(HOLD)
             elif state.state == WAITING:
                 self._tick_waiting(now)
             elif state.state == STREAMING:
@@ -71,6 +123,8 @@ class StreamCycle:
             elif state.state == SETTLING:
                 self._tick_settling(now)
         except TransportError as exc:
+            if self.braking is not None and np.any(self._gate.velocity != 0.0):
+                self.braking.counts.latched += 1  # moving when the link failed: the device's latch is all there is
             state.fail(f"transport error: {exc}", "transport-error", str(exc))
 
     def _tick_waiting(self, now: float) -> None:
@@ -151,6 +205,7 @@ class StreamCycle:
         if machine.state in LIVE:
             if tel.status & STATUS_ESTOP:
                 machine.estop("device reports an e-stop", now)
+                self.clear_brake()  # the device stopped itself: nothing to plan
             elif self._monitor.device_refused(tel):
                 machine.latch(
                     "device refused a set-point (its limits are stricter than the robot file's)", now, "refused"

@@ -20,6 +20,7 @@ from crtraj.core.errors import InputError
 from crtraj.core.fields import MAX_LENGTH, MAX_SEED, Table, check_name
 from crtraj.core.fileio import read_toml
 from crtraj.hardware.actuators import Actuators
+from crtraj.hardware.homing_spec import read_homing, read_stop
 from crtraj.io.calibration_data import CalibrationRecord
 from crtraj.model.mechanics import Mechanics
 from crtraj.model.robot import Robot
@@ -79,7 +80,9 @@ def load_robot(path: str | Path) -> Robot:
 def _checked(robot: Robot) -> Robot:
     """`robot`, after parsing its ``[robot.actuators]`` once so a bad key is a one-line error at load time."""
     if robot.actuators is not None:
-        Actuators.from_robot(robot)
+        acts = Actuators.from_robot(robot)
+        read_homing(robot, acts)
+    read_stop(robot)
     if robot.mechanics is not None:  # [robot.mechanics]: checked at load time like the actuators
         Mechanics.from_robot(robot)
     return robot

@@ -83,6 +83,9 @@ class Robot:
     # the raw [robot.mechanics] table (immutable) or None; `crtraj.model.mechanics.Mechanics.from_robot`
     # parses it. Left out of `to_dict`: results describe the kinematic robot they were planned with.
     mechanics: Mapping[str, Any] | None = field(default=None, compare=False)
+    # the raw [robot.homing] and [robot.stop] tables (read by `crtraj.hardware.homing_spec`), or None
+    homing: Mapping[str, Any] | None = field(default=None, compare=False)
+    stop: Mapping[str, Any] | None = field(default=None, compare=False)
 
     def __post_init__(self) -> None:
         if not self.segments:
@@ -114,10 +117,12 @@ class Robot:
             if not isinstance(self.actuators, Mapping):
                 raise InputError(f"robot.actuators: expected a table, got {type(self.actuators).__name__}")
             object.__setattr__(self, "actuators", _frozen(self.actuators))
-        if self.mechanics is not None:
-            if not isinstance(self.mechanics, Mapping):
-                raise InputError(f"robot.mechanics: expected a table, got {type(self.mechanics).__name__}")
-            object.__setattr__(self, "mechanics", _frozen(self.mechanics))
+        for name in ("mechanics", "homing", "stop"):
+            v = getattr(self, name)
+            if v is not None:
+                if not isinstance(v, Mapping):
+                    raise InputError(f"robot.{name}: expected a table, got {type(v).__name__}")
+                object.__setattr__(self, name, _frozen(v))
 
     def actuator_limits(self) -> ActuatorLimits | None:
         """The actuators' scale and speed/acceleration/position limits, or None without ``[robot.actuators]``."""
@@ -286,6 +291,8 @@ class Robot:
             description=t.str("description", "", max_len=10_000),
             actuators=actuators,
             mechanics=t.raw("mechanics", None),  # kept raw: crtraj.model.mechanics owns the schema
+            homing=t.raw("homing", None),
+            stop=t.raw("stop", None),
         )
         t.finish()
         return robot
@@ -309,6 +316,9 @@ class Robot:
             d["description"] = self.description
         if self.actuators is not None:
             d["actuators"] = _plain(self.actuators)
+        for name in ("homing", "stop"):
+            if getattr(self, name) is not None:
+                d[name] = _plain(getattr(self, name))
         return d
 
 
