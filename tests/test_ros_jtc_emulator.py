@@ -17,8 +17,8 @@ from conftest import PAPER, paper_copy, require_module
 from feed_clock import VirtualClock
 from jtc_emulator import JtcEmulator
 
-from crtraj.app.replan import loop_from_problem
 from crtraj.app.ros_bridge import RosBridgeRequest, run_ros_bridge
+from crtraj.control.loop import ClosedLoop
 from crtraj.core.errors import InputError
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.ros.messages import si_scale
@@ -37,7 +37,7 @@ def paper():
     """(problem, actuators, scene, model, the robot's start values) of the paper's simulation 2."""
     require_module("rclpy", "pip install -e '.[ros]'")
     problem = Problem.load(PAPER)
-    loop = loop_from_problem(problem)
+    loop = ClosedLoop.from_problem(problem)
     acts = Actuators.from_robot(problem.robot)
     start = acts.command(loop.tracker.initial_command(loop.x_start))
     return problem, acts, loop.scene, loop.model, start
