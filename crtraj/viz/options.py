@@ -52,7 +52,7 @@ class ViewOptions(Options):
     ghost_opacity: float = option(0.35, gt=0.0, le=1.0)
     start_color: str = option("#ffb000")
     goal_color: str = option("#e000e0")
-    path_color: str = option("#202020")
+    path_color: str = option("#8a8a8a")
     trail_color: str = option("#ff7f0e")
     tree_color: str = option("#8c8c8c")
     marker_radius: float = option(4.0, gt=0.0)

@@ -20,7 +20,7 @@ from crtraj.io.results import Result
 from crtraj.viz.options import ViewOptions
 from crtraj.viz.timeline import Timeline
 
-_DIGITS = 4  # decimals kept in the page's numbers (0.1 um, 0.1 ms): far below what the panel prints
+_DIGITS = 6  # decimals kept in the page's numbers (1 nm in mm, 1 us in s): far below what the panel prints
 
 
 def _asset(name: str) -> str:
