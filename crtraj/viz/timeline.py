@@ -132,7 +132,20 @@ def _fractions(run: Result, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     A = np.diff(V, axis=0) / dt[1:, None]
     vf = np.max(np.abs(V) / limits.vmax, axis=1)
     af = np.max(np.abs(A) / limits.amax, axis=1)
-    return np.interp(t, ts[1:], vf), np.interp(t, ts[2:], af)
+    return _window_max(ts[1:], vf, t), _window_max(ts[2:], af, t)
+
+
+def _window_max(ts: np.ndarray, f: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """The largest f over the samples (times ts) of each step (t[k-1], t[k]] (the first: up to t[0]); where a step
+    holds no sample, f interpolated at t[k]."""
+    out = np.interp(t, ts, f)
+    hi = np.searchsorted(ts, t, side="right")
+    lo = np.concatenate([[0], hi[:-1]])
+    full = hi > lo
+    if full.any():
+        # consecutive windows: reduceat from each non-empty window's start runs to the next one's start
+        out[full] = np.maximum.reduceat(f[: hi[-1]], lo[full])
+    return out
 
 
 def _events(doc: Mapping[str, Any], t: np.ndarray, status: tuple[str, ...], iteration: np.ndarray, deadline: float):
