@@ -186,10 +186,11 @@ _OLD_DEFAULTS = {
         ack_timeout=0.25, following_tolerance=5.0, fsync=False,
     ),
     ViewOptions: dict(
-        backbone_radius=1.0, disc_spacing=20.0, disc_thickness=2.0, disc_radius=None,
+        backbone_radius=None, disc_spacing=20.0, disc_thickness=2.0, disc_radius=None,
         segment_colors=("#1f77b4", "#2ca02c", "#9467bd", "#8c564b", "#17becf"), obstacle_color="#d62728",
-        obstacle_opacity=0.3, start_color="#ffb000", goal_color="#e000e0", path_color="#202020",
-        trail_color="#ff7f0e", tree_color="#8c8c8c", marker_radius=4.0, show_tree=True, play=True,
+        obstacle_opacity=0.3, shell_opacity=0.08, closest_color="#000000", ghost_opacity=0.35,
+        start_color="#ffb000", goal_color="#e000e0", path_color="#8a8a8a",
+        trail_color="#ff7f0e", tree_color="#8c8c8c", marker_radius=4.0, show_tree=None, play=True,
     ),
 }  # fmt: skip
 

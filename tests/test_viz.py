@@ -179,6 +179,12 @@ def test_scene_holds_every_named_object(shown, model, result):
         "/meshcat/tree",
         "/meshcat/workspace",
         "/meshcat/floor",
+        "/meshcat/robot/tip",
+        "/meshcat/shells/0",
+        "/meshcat/shells/1",
+        "/meshcat/closest/line",
+        "/meshcat/closest/body",
+        "/meshcat/closest/obstacle",
     ]:
         assert p in objs, p
 
@@ -188,9 +194,11 @@ def test_scene_holds_every_named_object(shown, model, result):
     def mat(path):
         return objs[path]["object"]["materials"][0]
 
-    # discs are the paper's 6 mm wide (robot.body_radius 3 mm), sent in metres
-    assert geom(discs[0])["type"] == "CylinderGeometry"
-    assert geom(discs[0])["radiusTop"] == pytest.approx(model.robot.body_radius * 1e-3)
+    # the backbone is a tube of the body radius clearance is measured with (3 mm), sent in metres; the discs
+    # stand out of it by half that
+    assert geom(backbone[0])["type"] == "CylinderGeometry"
+    assert geom(backbone[0])["radiusTop"] == pytest.approx(model.robot.body_radius * 1e-3)
+    assert geom(discs[0])["radiusTop"] == pytest.approx(1.5 * model.robot.body_radius * 1e-3)
     # one colour per segment: the first 10 chords are segment 1, the last 10 segment 2
     colors = [mat(p)["color"] for p in backbone]
     assert colors[:10] == [0x1F77B4] * 10 and colors[10:] == [0x2CA02C] * 10
@@ -198,6 +206,8 @@ def test_scene_holds_every_named_object(shown, model, result):
     # translucent unit spheres, scaled to the radius per frame
     assert geom("/meshcat/obstacles/0") == {**geom("/meshcat/obstacles/0"), "type": "SphereGeometry", "radius": 1.0}
     assert mat("/meshcat/obstacles/0")["transparent"] and mat("/meshcat/obstacles/0")["opacity"] < 1
+    # each D_sf shell is fainter than its obstacle
+    assert mat("/meshcat/shells/0")["opacity"] < mat("/meshcat/obstacles/0")["opacity"]
     # the tree holds both ends of every edge (float32, metres)
     tree = objs["/meshcat/tree"]["object"]["geometries"][0]["data"]["attributes"]["position"]
     pts = np.frombuffer(tree["array"].data, dtype=np.float32).reshape(-1, 3)
@@ -208,9 +218,10 @@ def test_scene_holds_every_named_object(shown, model, result):
     np.testing.assert_allclose(T["/meshcat/markers/goal"][:3, 3], GOAL * 1e-3, atol=1e-12)
 
 
-def test_camera_frames_every_object(shown, result):
-    """Every start/goal marker, obstacle extreme and workspace corner lies inside the camera's
-    view cone (75 deg vertical, 4:3), looking at meshcat's origin, where the scene centre is moved."""
+def test_camera_frames_every_object(shown, result, model):
+    """The robot at every waypoint, every start/goal marker and obstacle extreme (D_sf shell included) lies
+    inside the camera's view cone (75 deg vertical, the page's 1.6:1 scene pane), looking at meshcat's origin,
+    where the aim point is moved; and the view is filled: something comes close to its edge."""
     cmds = shown.scene_commands()
     shift = _last_transforms(shown)["/meshcat"]
     cam = [c for c in cmds if c["path"] == "/Cameras/default/rotated/<object>" and c["type"] == "set_property"]
@@ -221,18 +232,20 @@ def test_camera_frames_every_object(shown, result):
     right /= np.linalg.norm(right)
     up = np.cross(right, fwd)
     pts = [START, GOAL]
+    dsf = result["scene"]["safety_distance"]
     for w in result["waypoints"]:
         for ctr, r in zip(w["obstacles"]["centers"], w["obstacles"]["radii"], strict=True):
-            pts += [np.array(ctr) + r * e for e in np.vstack([np.eye(3), -np.eye(3)])]
-    ws = result["scene"]["workspace"]
-    pts += [np.array([x, y, z]) for x in (-150, 150) for y in (-150, 150) for z in (ws["lo"][2], ws["hi"][2])]
+            pts += [np.array(ctr) + (r + dsf) * e for e in np.vstack([np.eye(3), -np.eye(3)])]
+    X = np.array([w["x"] for w in result["waypoints"]])
+    pts += list(np.asarray(model.points(X, 21)).reshape(-1, 3))
     P = (shift @ np.c_[np.array(pts) * 1e-3, np.ones(len(pts))].T).T[:, :3] - eye
     depth = P @ fwd
-    tan = np.tan(np.radians(75 / 2))
+    tan, aspect = np.tan(np.radians(75 / 2)), 1.6
     assert np.all(depth > 0.05)
-    assert np.all(np.abs(P @ up) / depth < tan) and np.all(np.abs(P @ right) / depth < tan * 4 / 3)
-    # and it is framed tightly: something comes close to the edge of the view
-    assert max(np.max(np.abs(P @ up) / depth) / tan, np.max(np.abs(P @ right) / depth) / (tan * 4 / 3)) > 0.8
+    assert np.all(np.abs(P @ up) / depth < tan) and np.all(np.abs(P @ right) / depth < tan * aspect)
+    # and it is framed tightly, and centred: both edges of the tighter direction are nearly reached
+    v, h = (P @ up) / depth / tan, (P @ right) / depth / (tan * aspect)
+    assert max(min(v.max(), -v.min()), min(h.max(), -h.min())) > 0.85, (v.min(), v.max(), h.min(), h.max())
 
 
 def test_display_puts_every_cylinder_on_the_backbone(model):
@@ -253,42 +266,59 @@ def test_display_puts_every_cylinder_on_the_backbone(model):
     np.testing.assert_allclose(T["/meshcat/robot/discs/020"][:3, 3], model.tip_position(x) * 1e-3, atol=1e-12)
 
 
-def test_animation_has_one_key_per_waypoint_and_follows_the_run(shown, result):
+def _interp_keys(times, values, t):
+    """The page's straight-line interpolation of key values (K, ...) at times t (N,)."""
+    flat = values.reshape(len(times), -1)
+    return np.stack([np.interp(t, times, flat[:, j]) for j in range(flat.shape[1])], -1).reshape(len(t), -1)
+
+
+def test_animation_keys_follow_the_run_within_half_a_millimetre(shown, result, model):
+    """Keys sit at waypoint times (first and last included); between them the page's interpolation stays
+    within 0.5 mm of every disc the model puts at every waypoint; obstacles, their D_sf shells and the
+    closest-approach line follow the run at every key."""
     tracks, cmd = _animation(shown)
     wps = result["waypoints"]
-    t = np.array([w["t"] for w in wps])
+    t = np.array([w["t"] for w in wps]) - wps[0]["t"]
     assert cmd["options"] == {"play": False, "repetitions": 1}
-    # every moving node: 20 chords, 21 discs, the base, 2 obstacles
-    assert len(tracks) == 20 + 21 + 1 + 2
-    for path, tr in tracks.items():
-        for name, track in tr.items():
-            times, _ = _keys(track)
-            assert len(times) == len(wps), (path, name)
-            np.testing.assert_allclose(times, t - t[0], atol=1e-12)
-    clip = next(a for a in cmd["animations"] if a["path"] == "/meshcat/obstacles/0")["clip"]
-    assert clip["fps"] == 1  # key times are seconds
+    times, _ = _keys(tracks["/meshcat/robot/discs/000"][".position"])
+    k = np.searchsorted(t, times - 1e-6)
+    np.testing.assert_allclose(times, t[k], atol=1e-6)  # float32 key times
+    assert k[0] == 0 and k[-1] == len(wps) - 1 and 2 <= len(k) <= len(wps)
+    for tr in tracks.values():  # every moving node is keyed at the same times
+        for track in tr.values():
+            np.testing.assert_array_equal(_keys(track)[0], times)
+    X = np.array([w["x"] for w in wps])
+    joints = np.asarray(model.points(X, 21)).reshape(len(wps), 21, 3) * 1e-3  # the model's discs, metres
+    for j in range(21):
+        _, pos = _keys(tracks[f"/meshcat/robot/discs/{j:03d}"][".position"])
+        np.testing.assert_allclose(pos, joints[k, j], atol=2e-6)
+        assert np.abs(_interp_keys(times, pos, t) - joints[:, j]).max() <= 0.5e-3 + 2e-6, j
+    _, tip = _keys(tracks["/meshcat/robot/tip"][".position"])
+    np.testing.assert_allclose(tip * 1e3, np.array([w["tip"] for w in wps])[k], atol=2e-3)
+    dsf = result["scene"]["safety_distance"]
     for i in range(2):
         _, pos = _keys(tracks[f"/meshcat/obstacles/{i}"][".position"])
         _, scale = _keys(tracks[f"/meshcat/obstacles/{i}"][".scale"])
-        np.testing.assert_allclose(pos * 1e3, [w["obstacles"]["centers"][i] for w in wps], atol=1e-9)
-        radii = np.array([w["obstacles"]["radii"][i] for w in wps])
-        np.testing.assert_allclose(scale, np.repeat(radii[:, None], 3, axis=1) * 1e-3, atol=1e-12)
-    # the last disc follows the recorded tip, the first one the base translation z
-    _, tip = _keys(tracks["/meshcat/robot/discs/020"][".position"])
-    np.testing.assert_allclose(tip * 1e3, [w["tip"] for w in wps], atol=1e-9)
-    _, base = _keys(tracks["/meshcat/robot/discs/000"][".position"])
-    np.testing.assert_allclose(base * 1e3, [[0, 0, w["x"][-1]] for w in wps], atol=1e-9)
-    # each chord cylinder spans the two discs it joins, at every key
-    for i in range(20):
-        _, a = _keys(tracks[f"/meshcat/robot/discs/{i:03d}"][".position"])
-        _, b = _keys(tracks[f"/meshcat/robot/discs/{i + 1:03d}"][".position"])
-        tr = tracks[f"/meshcat/robot/backbone/{i:03d}"]
-        _, mid = _keys(tr[".position"])
-        _, q = _keys(tr[".quaternion"])
-        _, s = _keys(tr[".scale"])
-        np.testing.assert_allclose(mid, 0.5 * (a + b), atol=1e-12)
-        np.testing.assert_allclose(s[:, 1], np.linalg.norm(b - a, axis=1), atol=1e-12)
-        np.testing.assert_allclose(_rotate(q, np.array([0, 1.0, 0])) * s[:, 1:2], b - a, atol=1e-12)
+        _, shell = _keys(tracks[f"/meshcat/shells/{i}"][".scale"])
+        np.testing.assert_allclose(pos * 1e3, [wps[j]["obstacles"]["centers"][i] for j in k], atol=2e-3)
+        radii = np.array([wps[j]["obstacles"]["radii"][i] for j in k])
+        np.testing.assert_allclose(scale * 1e3, np.repeat(radii[:, None], 3, axis=1), atol=2e-3)
+        np.testing.assert_allclose(shell * 1e3, np.repeat(radii[:, None] + dsf, 3, axis=1), atol=2e-3)
+    # the closest-approach line runs from the body's surface to the nearest sphere's surface
+    _, a = _keys(tracks["/meshcat/closest/body"][".position"])
+    _, b = _keys(tracks["/meshcat/closest/obstacle"][".position"])
+    dense = np.asarray(model.points(X[k], 401)).reshape(len(k), 401, 3)
+    C = np.array([wps[j]["obstacles"]["centers"] for j in k])
+    R = np.array([wps[j]["obstacles"]["radii"] for j in k])
+    gap = np.linalg.norm(dense[:, :, None] - C[:, None], axis=-1).min(axis=1) - R - model.robot.body_radius
+    # (measured at 4 mm spacing: within 0.1 mm outside the spheres; a backbone through a sphere's centre is
+    # within half the spacing, where the distance has a kink)
+    g = gap.min(axis=1)
+    assert np.all(np.abs(np.linalg.norm(b - a, axis=1) * 1e3 - np.abs(g)) <= np.where(g > 0, 0.1, 2.0))
+    on_sphere = np.linalg.norm(b[:, None] * 1e3 - C, axis=-1) - R
+    np.testing.assert_allclose(np.abs(on_sphere).min(axis=1), 0.0, atol=2e-3)
+    body = np.linalg.norm(dense - a[:, None] * 1e3, axis=-1).min(axis=1)
+    np.testing.assert_allclose(body, model.robot.body_radius, atol=0.05)
 
 
 def test_show_waypoint_moves_robot_and_obstacles(result, model):
@@ -438,9 +468,11 @@ def test_server_listens_on_loopback_only_and_serves_the_same_scene(result):
         assert all(ip == "127.0.0.1" for ip, _ in socks), socks
         page = urllib.request.urlopen(vis.url, timeout=20).read().decode()
         assert "MeshCat" in page
-        # meshcat's own client asks the server for its static export: identical to ours
+        # meshcat's own client asks the server for its static export: ours is exactly that inside crtraj's page
+        from crtraj.viz.page import wrap_page
+
         other = meshcat.Visualizer(zmq_url=vis.zmq_url)
-        assert other.static_html() == vis.static_html()
+        assert wrap_page(other.static_html(), vis.page_data()) == vis.static_html()
         assert f'src="{vis.url}"' in vis.jupyter_cell().data
     finally:
         pid = vis.server_pid
@@ -457,8 +489,8 @@ def _segment_distance(p, a, b):
 
 
 def test_real_replan_run_is_drawn_on_its_recorded_backbone(tmp_path, capsys):
-    """`crtraj replan` on the paper's simulation 2: every waypoint is a key frame and the recorded
-    backbone points (computed by the replanner) lie on the drawn chain of cylinders."""
+    """`crtraj replan` on the paper's simulation 2: at every key frame the recorded backbone points (computed
+    by the replanner) lie on the drawn chain of cylinders, and the obstacles have the recorded radii."""
     assert main(["replan", str(PROBLEMS / "paper_dynamic.toml"), "--out", str(tmp_path), "--quiet", "--no-html"]) in (
         0,
         1,
@@ -466,19 +498,23 @@ def test_real_replan_run_is_drawn_on_its_recorded_backbone(tmp_path, capsys):
     capsys.readouterr()
     result = json.loads((tmp_path / "run.json").read_text())
     wps = result["waypoints"]
+    t = np.array([w["t"] for w in wps]) - wps[0]["t"]
     with Visualizer.for_result(result, play=False) as vis:
         tracks, _ = _animation(vis)
     n_discs = len([p for p in tracks if p.startswith("/meshcat/robot/discs/")])
+    times = _keys(tracks["/meshcat/robot/discs/000"][".position"])[0]
+    k = np.searchsorted(t, times - 1e-6)
+    np.testing.assert_allclose(times, t[k], atol=1e-5)
     joints = np.stack([_keys(tracks[f"/meshcat/robot/discs/{j:03d}"][".position"])[1] for j in range(n_discs)], 1)
-    assert joints.shape[:2] == (len(wps), n_discs)
+    assert joints.shape[:2] == (len(k), n_discs) and len(k) >= 10
     # PCC arcs between discs 20 mm apart bow at most R (1 - cos(10 mm / R)) < 0.8 mm away from the chord
-    for k, w in enumerate(wps):
-        d = _segment_distance(np.array(w["backbone"]) * 1e-3, joints[k, :-1], joints[k, 1:])
-        assert d.max() < 1.0e-3, (k, d.max())
+    for i, w in enumerate(wps[j] for j in k):
+        d = _segment_distance(np.array(w["backbone"]) * 1e-3, joints[i, :-1], joints[i, 1:])
+        assert d.max() < 1.0e-3, (i, d.max())
     m = len(wps[0]["obstacles"]["radii"])
     for i in range(m):
         _, scale = _keys(tracks[f"/meshcat/obstacles/{i}"][".scale"])
-        np.testing.assert_allclose(scale[:, 0] * 1e3, [w["obstacles"]["radii"][i] for w in wps], atol=1e-9)
+        np.testing.assert_allclose(scale[:, 0] * 1e3, [wps[j]["obstacles"]["radii"][i] for j in k], atol=2e-3)
 
 
 # ------------------------------------------------------------------- CLI
@@ -710,10 +746,11 @@ class _Browser:
             if "method" in ev:
                 self._events.append(ev)
 
-    def capture(self, page: Path | str, n_commands: int, png: Path) -> tuple[np.ndarray, dict]:
+    def capture(self, page: Path | str, n_commands: int, png: Path, probe: str = "null") -> tuple[np.ndarray, dict]:
         """Open `page` (an HTML file or a URL), wait until its viewer has handled `n_commands` meshcat
         commands and its animation is at rest, and return the picture, RGB (768, 1024, 3) in [0, 1],
-        and the page's state ({"handled": commands, "time": animation time in s})."""
+        and the page's state ({"handled": commands, "time": animation time in s, "probe": the value of the
+        JavaScript expression `probe` evaluated just before the picture})."""
         target = self.call("Target.createTarget", url="about:blank")["targetId"]
         session = self.call("Target.attachToTarget", targetId=target, flatten=True)["sessionId"]
         try:
@@ -727,6 +764,10 @@ class _Browser:
                               awaitPromise=True, returnByValue=True)  # fmt: skip
             if "exceptionDetails" in ready:
                 raise self._fail(f"page {page}: {ready['exceptionDetails']}")
+            probed = self.call("Runtime.evaluate", session, expression=probe, returnByValue=True)
+            if "exceptionDetails" in probed:
+                raise self._fail(f"page {page}: probe: {probed['exceptionDetails']}")
+            ready["result"]["value"]["probe"] = probed["result"].get("value")
             shot = self.call("Page.captureScreenshot", session, format="png")
         finally:
             self.call("Target.closeTarget", targetId=target)
@@ -770,6 +811,11 @@ BLUE, GREEN, RED = (190, 222, 0.3), (105, 140, 0.3), (340, 10, 0.2)
 MAGENTA, AMBER = (290, 310, 0.5), (36, 48, 0.5)
 
 
+def _scene_px(img):
+    """The scene pane of a 1024 x 768 page: the page's panels take 300 px on the right, 210 px at the bottom."""
+    return img[: 768 - 210, : 1024 - 300]
+
+
 def _centroid(mask):
     ys, xs = np.nonzero(mask)
     return np.array([xs.mean(), ys.mean()])
@@ -783,6 +829,7 @@ def test_browser_renders_robot_and_obstacles(browser, model, result, tmp_path):
     vis = Visualizer.for_result(result, play=False)
     img, _ = browser.capture(vis.save_html(tmp_path / "sim1.html"), _n_commands(vis), tmp_path / "sim1.png")
     assert img.shape == (768, 1024, 3)
+    img = _scene_px(img)
     # not blank: a failed WebGL context leaves one flat colour
     assert img.reshape(-1, 3).std(axis=0).max() > 0.05
     assert len(np.unique((img * 255).astype(np.uint8).reshape(-1, 3), axis=0)) > 200
@@ -792,23 +839,29 @@ def test_browser_renders_robot_and_obstacles(browser, model, result, tmp_path):
     # control: the same run without obstacles has no obstacle colour, robot colours stay
     bare = Visualizer.for_result(make_result(model, obstacles=False), play=False)
     img2, _ = browser.capture(bare.save_html(tmp_path / "bare.html"), _n_commands(bare), tmp_path / "bare.png")
+    img2 = _scene_px(img2)
     assert int(_mask(img2, *RED).sum()) < 50
     assert int(_mask(img2, *BLUE).sum()) > 80 and int(_mask(img2, *GREEN).sum()) > 80
 
 
 def test_browser_animation_carries_robot_from_start_to_goal(browser, model, tmp_path):
     """Paused, the tip segment is at the start marker; played (a 2 s run, in real time) until meshcat
-    reports the animation finished, it is at the goal marker."""
+    reports the animation finished, it is at the goal marker (both projected with the page's camera)."""
     result = make_result(model, duration=2.0)
+    probe = f"[crtrajView.project({START.tolist()}), crtrajView.project({GOAL.tolist()})]"
     still = Visualizer.for_result(result, play=False)
-    paused, state0 = browser.capture(still.save_html(tmp_path / "a.html"), _n_commands(still), tmp_path / "a.png")
+    paused, state0 = browser.capture(
+        still.save_html(tmp_path / "a.html"), _n_commands(still), tmp_path / "a.png", probe
+    )
     moving = Visualizer.for_result(result, play=True)
-    played, state1 = browser.capture(moving.save_html(tmp_path / "b.html"), _n_commands(moving), tmp_path / "b.png")
+    played, state1 = browser.capture(
+        moving.save_html(tmp_path / "b.html"), _n_commands(moving), tmp_path / "b.png", probe
+    )
+    paused, played = _scene_px(paused), _scene_px(played)
     # the page's own animation clock: at the start when paused, at the end (2 s) once played through
     assert state0["time"] == 0.0 and state1["time"] == pytest.approx(2.0, abs=1e-6), (state0, state1)
-    # marker pixels, found where nothing covers them: before the run, the robot is away from the goal
-    # and the start marker is outside the obstacles
-    start_px, goal_px = _centroid(_mask(paused, *AMBER)), _centroid(_mask(paused, *MAGENTA))
+    start_px, goal_px = (np.array(p) for p in state0["probe"])
+    assert np.linalg.norm(start_px - goal_px) > 100
     for img, near, far in ((paused, start_px, goal_px), (played, goal_px, start_px)):
         # the tip: the segment-2 pixel farthest from segment 1
         ys, xs = np.nonzero(_mask(img, *GREEN))
@@ -819,12 +872,14 @@ def test_browser_animation_carries_robot_from_start_to_goal(browser, model, tmp_
 
 
 def test_browser_live_server_page_matches_standalone_page(browser, result, tmp_path):
-    """The page served over the websocket renders the same picture as the standalone file."""
+    """The page served over the websocket renders the same picture as meshcat's standalone scene file."""
     vis = Visualizer.for_result(result, server=True, play=False)
     try:
         n = _n_commands(vis)
         live, _ = browser.capture(vis.url, n, tmp_path / "live.png")
-        static, _ = browser.capture(vis.save_html(tmp_path / "static.html"), n, tmp_path / "static.png")
+        scene = tmp_path / "static.html"
+        scene.write_text(vis.scene_html(), encoding="utf-8")
+        static, _ = browser.capture(scene, n, tmp_path / "static.png")
     finally:
         vis.close()
     assert int(_mask(live, *GREEN).sum()) > 80 and int(_mask(live, *RED).sum()) > 3000

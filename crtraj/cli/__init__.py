@@ -114,7 +114,13 @@ def _add_view(sub: argparse._SubParsersAction) -> None:
         "127.0.0.1 until Ctrl-C.",
     )
     p.add_argument("result", help="result JSON written by crtraj plan or crtraj replan")
+    p.add_argument("compare", nargs="?", default=None, help="a second result of the same robot, drawn as a ghost")
     p.add_argument("--html", metavar="FILE", help="write one self-contained HTML file (no server needed) and exit")
+    p.add_argument("--png", metavar="FILE", help="write a picture of the page at --at (headless Chromium) and exit")
+    p.add_argument("--mp4", metavar="FILE", help="write a video of the run (headless Chromium and ffmpeg) and exit")
+    p.add_argument("--at", type=float, default=None, help="time (s) of the --png picture (default: closest approach)")
+    p.add_argument("--size", default="1280x800", help="WIDTHxHEIGHT in pixels of --png/--mp4 (default 1280x800)")
+    p.add_argument("--fps", type=float, default=10.0, help="frames per second of --mp4 (default 10)")
     p.add_argument("--no-browser", action="store_true", help="do not open a browser tab, only print the URL")
     p.add_argument("--no-play", action="store_true", help="do not start the animation when the page opens")
     p.set_defaults(use_case="view")

@@ -94,3 +94,29 @@ def translation(p_m: np.ndarray) -> np.ndarray:
     T = np.eye(4)
     T[:3, 3] = p_m
     return T
+
+
+def fit_view(P: np.ndarray, view: np.ndarray, fov_deg: float, aspect: float) -> tuple[np.ndarray, float]:
+    """Aim point (3,) and camera distance of a perspective camera looking along -view (unit) that shows every
+    point of P (K, 3) with a little margin, centred in a window of width/height `aspect` (vertical field of
+    view fov_deg). Units of P."""
+    right = unit(np.cross([0.0, 0.0, 1.0], view))
+    if not np.any(right):
+        right = np.array([1.0, 0.0, 0.0])
+    up = np.cross(view, right)
+    tan_v = math.tan(math.radians(fov_deg / 2))
+    lo, hi = P.min(axis=0), P.max(axis=0)
+    center = 0.5 * (lo + hi)
+    floor = float(np.linalg.norm(np.maximum(0.5 * (hi - lo), 25.0)))  # never inside a small scene
+    dist = floor
+    for _ in range(4):  # perspective: re-aim at the middle of what the camera sees, then fit again
+        rel = P - center
+        need = rel @ view + np.maximum(np.abs(rel @ up) / tan_v, np.abs(rel @ right) / (tan_v * aspect))
+        dist = max(1.06 * float(need.max()), floor)
+        depth = dist - rel @ view
+        for axis in (up, right):
+            a = (rel @ axis) / depth  # tangent of each point's angle off the axis of view
+            center = center + axis * 0.5 * (a.max() + a.min()) * dist
+    rel = P - center
+    need = rel @ view + np.maximum(np.abs(rel @ up) / tan_v, np.abs(rel @ right) / (tan_v * aspect))
+    return center, max(1.06 * float(need.max()), floor)

@@ -24,18 +24,22 @@ MAX_SEGMENT_COLORS = 100
 class ViewOptions(Options):
     """How a scene is drawn; the problem file's ``[view]`` section.
 
-    backbone_radius: drawn radius of the backbone (mm; the real NiTi wire is
-    0.3 mm, drawn thicker so it stays visible). disc_spacing: largest arc
-    length between two discs (mm). disc_thickness (mm). disc_radius: None
-    means the robot's body_radius (mm; the paper's discs are 6 mm wide).
+    backbone_radius: drawn radius of the backbone tube (mm); None means the
+    robot's body_radius, the radius its clearance is measured with.
+    disc_spacing: largest arc length between two discs (mm). disc_thickness
+    (mm). disc_radius: None means 1.5 times the tube's radius (mm).
     segment_colors: "#rrggbb" per segment, cycled. obstacle_color and
-    obstacle_opacity (0..1). marker_radius: start/goal spheres (mm).
-    show_tree: draw planner trees. play: start the animation when the page opens.
+    obstacle_opacity (0..1); shell_opacity: the faint D_sf shell around each
+    obstacle. closest_color: the closest-approach line. marker_radius:
+    start/goal spheres (mm). ghost_opacity: the second robot of a comparison.
+    show_tree: None shows planner trees of plans and hides those of runs
+    (a layer the page's legend turns on). play: start the animation when the
+    page opens.
     """
 
     SECTION: ClassVar[str] = "view"
 
-    backbone_radius: float = option(1.0, gt=0.0)
+    backbone_radius: float | None = option(None, gt=0.0)
     disc_spacing: float = option(20.0, gt=0.0)
     disc_thickness: float = option(2.0, gt=0.0)
     disc_radius: float | None = option(None, gt=0.0)
@@ -43,13 +47,16 @@ class ViewOptions(Options):
     segment_colors: tuple[str, ...] = option(("#1f77b4", "#2ca02c", "#9467bd", "#8c564b", "#17becf"), read=False)
     obstacle_color: str = option("#d62728")
     obstacle_opacity: float = option(0.3, gt=0.0, le=1.0)
+    shell_opacity: float = option(0.08, gt=0.0, le=1.0)
+    closest_color: str = option("#000000")
+    ghost_opacity: float = option(0.35, gt=0.0, le=1.0)
     start_color: str = option("#ffb000")
     goal_color: str = option("#e000e0")
-    path_color: str = option("#202020")
+    path_color: str = option("#8a8a8a")
     trail_color: str = option("#ff7f0e")
     tree_color: str = option("#8c8c8c")
     marker_radius: float = option(4.0, gt=0.0)
-    show_tree: bool = option(True)
+    show_tree: bool | None = option(None)
     play: bool = option(True)
 
     def _check(self) -> None:
@@ -63,7 +70,15 @@ class ViewOptions(Options):
         for i, c in enumerate(colors):
             color_value(c, f"view.segment_colors[{i}]")
         object.__setattr__(self, "segment_colors", tuple(colors))  # a list from Python is stored as the file's
-        for name in ("obstacle_color", "start_color", "goal_color", "path_color", "trail_color", "tree_color"):
+        for name in (
+            "obstacle_color",
+            "start_color",
+            "goal_color",
+            "path_color",
+            "trail_color",
+            "tree_color",
+            "closest_color",
+        ):
             color_value(getattr(self, name), f"view.{name}")
 
     @classmethod

@@ -31,14 +31,17 @@ class SceneBuilder:
     """Draws one robot model's scene into a meshcat visualizer.
 
     vis: the meshcat visualizer (its window records or sends every command); model: the robot's model;
-    options: colours and sizes.
+    options: colours and sizes; prefix: the node the robot is drawn under ("robot", or "ghost" for the
+    second robot of a comparison, drawn at `options.ghost_opacity`).
     """
 
-    def __init__(self, vis: meshcat.Visualizer, model: Model, options: ViewOptions) -> None:
+    def __init__(self, vis: meshcat.Visualizer, model: Model, options: ViewOptions, prefix: str = "robot") -> None:
         self.vis = vis
         self.model = model
         self.robot = model.robot
         self.options = options
+        self.prefix = prefix
+        self.opacity = 1.0 if prefix == "robot" else options.ghost_opacity
         self._robot_drawn = False
         self._n_obstacles = -1
         self._layout()
@@ -100,39 +103,48 @@ class SceneBuilder:
             return
         o = self.options
         disc_r = self._disc_radius_m()
-        mats = [mg.MeshPhongMaterial(color=self._segment_color(k)) for k in range(self.robot.n_segments)]
+        mats = [self._material(self._segment_color(k)) for k in range(self.robot.n_segments)]
+        # one geometry per part, shared by every chord (unit height, stretched by the y scale) and every disc
+        tube = mg.Cylinder(1.0, self.tube_radius_mm() * M_PER_MM)
+        disc = mg.Cylinder(o.disc_thickness * M_PER_MM, disc_r)
         for i, k in enumerate(self._chord_segment):
-            # unit height, stretched per frame to the chord length by the y scale
-            self.node(f"robot/backbone/{i:03d}").set_object(
-                mg.Cylinder(1.0, o.backbone_radius * M_PER_MM), mats[int(k)]
-            )
+            self.node(f"{self.prefix}/backbone/{i:03d}").set_object(tube, mats[int(k)])
         for j, k in enumerate(self._disc_segment):
-            self.node(f"robot/discs/{j:03d}").set_object(mg.Cylinder(o.disc_thickness * M_PER_MM, disc_r), mats[int(k)])
+            self.node(f"{self.prefix}/discs/{j:03d}").set_object(disc, mats[int(k)])
+        tip = mg.Sphere(1.6 * disc_r)
+        self.node(f"{self.prefix}/tip").set_object(tip, self._material(self._segment_color(self.robot.n_segments - 1)))
         lo, hi = self.robot.z_range
-        grey = mg.MeshPhongMaterial(color=0x606060)
+        grey = self._material(0x606060)
         if hi > lo:
             rail = mg.Cylinder((hi - lo) * M_PER_MM, 1.5 * M_PER_MM)
-            self.node("robot/rail").set_object(rail, grey)
+            self.node(f"{self.prefix}/rail").set_object(rail, grey)
             mid = np.array([0.0, _RAIL_OFFSET_MM, 0.5 * (lo + hi)]) * M_PER_MM
-            self.node("robot/rail").set_transform(transforms(mid, Q_Y_TO_Z, np.ones(3)))
+            self.node(f"{self.prefix}/rail").set_transform(transforms(mid, Q_Y_TO_Z, np.ones(3)))
         # the carriage: from the rail to just past the first disc
         width = _RAIL_OFFSET_MM + 2.0 + disc_r / M_PER_MM + 1.0
         size = np.array([2 * disc_r / M_PER_MM + 2.0, width, 4.0]) * M_PER_MM
-        self.node("robot/base").set_object(mg.Box(size.tolist()), grey)
+        self.node(f"{self.prefix}/base").set_object(mg.Box(size.tolist()), grey)
         self._robot_drawn = True
+
+    def _material(self, color: int) -> mg.MeshPhongMaterial:
+        """A shaded material of `color`, see-through for a ghost robot."""
+        if self.opacity >= 1.0:
+            return mg.MeshPhongMaterial(color=color)
+        return mg.MeshPhongMaterial(color=color, opacity=self.opacity, transparent=True, depthWrite=False)
 
     def pose_robot(self, pose: RobotPoses, z_mm: float) -> None:
         """Move the robot's objects to the first configuration of `pose`, the base to translation z_mm (mm)."""
         for i in range(self.n_chords):
             scale = np.array([1.0, pose.chord_len[0, i], 1.0])
-            self.node(f"robot/backbone/{i:03d}").set_transform(
+            self.node(f"{self.prefix}/backbone/{i:03d}").set_transform(
                 transforms(pose.chord_mid[0, i], pose.chord_quat[0, i], scale)
             )
         for j in range(self.n_chords + 1):
-            self.node(f"robot/discs/{j:03d}").set_transform(
+            self.node(f"{self.prefix}/discs/{j:03d}").set_transform(
                 transforms(pose.joints[0, j], pose.disc_quat[0, j], np.ones(3))
             )
-        self.node("robot/base").set_transform(translation(self.base_position(z_mm)))
+        self.node(f"{self.prefix}/base").set_transform(translation(self.base_position(z_mm)))
+        self.node(f"{self.prefix}/tip").set_transform(translation(pose.joints[0, -1]))
 
     def rail_ends(self) -> np.ndarray:
         """Ends of the base rail (mm): the stroke of the base translation z."""
@@ -146,10 +158,16 @@ class SceneBuilder:
         z = np.asarray(z_mm, dtype=float) - 0.5 * self.options.disc_thickness - 2.0
         return np.stack([np.zeros_like(z), np.full_like(z, y), z], axis=-1) * M_PER_MM
 
+    def tube_radius_mm(self) -> float:
+        """Radius of the drawn backbone tube (mm): the option, else the body radius clearance is measured with."""
+        r = self.options.backbone_radius
+        return float(r) if r is not None else float(self.robot.body_radius)
+
     def _disc_radius_m(self) -> float:
         o = self.options
-        r = o.disc_radius if o.disc_radius is not None else self.robot.body_radius
-        return max(r, 1.5 * o.backbone_radius) * M_PER_MM
+        tube = self.tube_radius_mm()
+        r = o.disc_radius if o.disc_radius is not None else 1.5 * tube
+        return max(r, 1.2 * tube) * M_PER_MM
 
     # ------------------------------------------------------------ obstacles
     def draw_obstacles(self, m: int) -> None:
@@ -164,9 +182,31 @@ class SceneBuilder:
             transparent=o.obstacle_opacity < 1.0,
             depthWrite=o.obstacle_opacity >= 1.0,  # the robot inside a translucent sphere stays visible
         )
+        self.vis[f"{ROOT}/shells"].delete()
+        shell = mg.MeshLambertMaterial(
+            color=color_value(o.obstacle_color, "view.obstacle_color"),
+            opacity=o.shell_opacity,
+            transparent=True,
+            depthWrite=False,
+        )
+        sphere = mg.Sphere(1.0)  # one unit sphere for all, scaled to each radius by its transform
         for i in range(m):
-            self.node(f"obstacles/{i}").set_object(mg.Sphere(1.0), mat)  # unit sphere, scaled to the radius
+            self.node(f"obstacles/{i}").set_object(sphere, mat)
+            self.node(f"shells/{i}").set_object(sphere, shell)
         self._n_obstacles = m
+
+    def draw_closest(self) -> None:
+        """The closest-approach line (a unit-height cylinder stretched per frame) and its two end points."""
+        o = self.options
+        mat = mg.MeshBasicMaterial(color=color_value(o.closest_color, "view.closest_color"))
+        r = 0.6 * self.tube_radius_mm() * M_PER_MM
+        self.node("closest/line").set_object(mg.Cylinder(1.0, 0.8 * r), mat)
+        self.node("closest/body").set_object(mg.Sphere(r), mat)
+        self.node("closest/obstacle").set_object(mg.Sphere(r), mat)
+
+    def set_visible(self, name: str, visible: bool) -> None:
+        """Show or hide the layer `name` (the page's legend can turn it back on)."""
+        self.node(name).set_property("visible", visible)
 
     # --------------------------------------------------------------- markers
     def marker(self, name: str, p: np.ndarray, color: str) -> None:

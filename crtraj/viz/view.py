@@ -37,7 +37,6 @@ float32), and ``meshcat.Visualizer.close()`` raises (the window here closes).
 from __future__ import annotations
 
 import dataclasses
-import math
 import os
 import warnings
 from collections.abc import Mapping, Sequence
@@ -52,10 +51,13 @@ from crtraj.core.fileio import atomic_write_text
 from crtraj.io.results import Result, read_result
 from crtraj.model.kinematics import Model
 from crtraj.viz.animation import run_animation
-from crtraj.viz.geometry import M_PER_MM, transforms, translation, unit
+from crtraj.viz.geometry import M_PER_MM, cylinder_quat, fit_view, transforms, translation, unit
 from crtraj.viz.live import MeshcatWindow
 from crtraj.viz.options import MAX_SEGMENT_COLORS, ViewOptions
+from crtraj.viz.page import page_data, wrap_page
+from crtraj.viz.run_paths import draw_run_paths
 from crtraj.viz.scene import ROOT, SceneBuilder
+from crtraj.viz.timeline import Timeline, build_timeline
 
 with warnings.catch_warnings():
     # meshcat's server module installs a pyzmq < 17 event-loop shim and pyzmq warns about it
@@ -66,6 +68,8 @@ with warnings.catch_warnings():
 __all__ = ["MAX_SEGMENT_COLORS", "ViewOptions", "Visualizer"]
 
 _CAMERA_FOV_DEG = 75.0  # meshcat's default perspective camera
+# width / height of the page's scene pane (1280 x 800 window less the side panel and the plots): what is framed
+_PANE_ASPECT = 1.6
 
 
 class Visualizer:
@@ -98,7 +102,11 @@ class Visualizer:
         self._scene = SceneBuilder(self._vis, model, self.options)
         self._framed = False
         self._run: Result | None = None
+        self._safety = 0.0  # D_sf (mm) of the run shown: the radius added to each obstacle's shell
+        self._play = self.options.play
         self.animation: Animation | None = None
+        self.timeline: Timeline | None = None  # the shown run's per-waypoint numbers
+        self.compared: tuple[Result, Timeline] | None = None  # a second run drawn as a ghost
         self._scene.stage()
         if open:
             self.open()
@@ -168,31 +176,22 @@ class Visualizer:
         self._framed = False
         self._run = None
         self.animation = None
+        self.timeline = None
+        self.compared = None
 
     def frame_camera(self, points: Any, direction: Sequence[float] = (1.0, -0.6, 0.5)) -> None:
-        """Aim the camera at the bounding box of `points` (..., 3) (mm), looking along -direction.
+        """Aim the camera at `points` (..., 3) (mm), looking along -direction, so that they fill the page's
+        scene pane (`crtraj.viz.geometry.fit_view`).
 
-        The whole drawing (meshcat path /meshcat) is shifted so that the box centre sits at
+        The whole drawing (meshcat path /meshcat) is shifted so that the aim point sits at
         meshcat's origin, which is what the mouse orbits around.
         """
         P = np.asarray(points, dtype=float).reshape(-1, 3)
         P = P[np.all(np.isfinite(P), axis=1)]
         if P.size == 0:
             raise InputError("frame_camera: no finite points to frame")
-        lo, hi = P.min(axis=0), P.max(axis=0)
-        center = 0.5 * (lo + hi)
-        half = np.maximum(0.5 * (hi - lo), 25.0)
         view = unit(np.asarray(direction, dtype=float))  # from the target towards the camera
-        right = unit(np.cross([0.0, 0.0, 1.0], view))
-        if not np.any(right):
-            right = np.array([1.0, 0.0, 0.0])
-        up = np.cross(view, right)
-        corners = center + half * np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)])
-        rel = corners - center
-        # nearest camera distance at which every box corner is inside the frustum (4:3 window assumed)
-        tan_v = math.tan(math.radians(_CAMERA_FOV_DEG / 2))
-        need = rel @ view + np.maximum(np.abs(rel @ up) / tan_v, np.abs(rel @ right) / (tan_v * 4 / 3))
-        dist = 1.08 * float(need.max())
+        center, dist = fit_view(P[:: max(1, len(P) // 4000)], view, _CAMERA_FOV_DEG, _PANE_ASPECT)
         off = view * dist * M_PER_MM
         # meshcat 0.3.2's orbit controls look at and turn about the world origin whatever the
         # camera node's transform, so the scene root moves instead: the box centre goes to the origin
@@ -217,10 +216,11 @@ class Visualizer:
         C = np.zeros((0, 3)) if len(centers) == 0 else check_array(centers, "centers", (None, 3))
         R = check_array(radii, "radii", (C.shape[0],))
         self._scene.draw_obstacles(C.shape[0])
+        one = np.array([1.0, 0, 0, 0])
         for i in range(C.shape[0]):
-            self._vis[f"obstacles/{i}"].set_transform(
-                transforms(C[i] * M_PER_MM, np.array([1.0, 0, 0, 0]), np.full(3, R[i] * M_PER_MM))
-            )
+            self._vis[f"obstacles/{i}"].set_transform(transforms(C[i] * M_PER_MM, one, np.full(3, R[i] * M_PER_MM)))
+            shell = (R[i] + self._safety) * M_PER_MM
+            self._vis[f"shells/{i}"].set_transform(transforms(C[i] * M_PER_MM, one, np.full(3, shell)))
 
     # ------------------------------------------------------------------ runs
     def show_result(
@@ -228,10 +228,54 @@ class Visualizer:
     ) -> Visualizer:
         """Draw a plan/replan result (`crtraj.io.results.read_result`: a document or a `Result`) and replay it.
 
-        One key frame per waypoint at its time t (s); the robot, the obstacle
-        centres and radii move with the slider. The static scene shows the
-        first waypoint. play=None takes `options.play`.
+        Key frames at the waypoints' times t (s) (`crtraj.viz.animation.key_frames`); the robot, the obstacle
+        centres and radii, their D_sf shells and the closest-approach line move with the page's clock. The
+        static scene shows the first waypoint. play=None takes `options.play`.
         """
+        run = self._read_run(result)
+        self.clear()
+        self._run = run
+        self._safety = run.scene.safety_distance if run.scene is not None else 0.0
+        self.timeline = build_timeline(run, self.model)
+        scene = self._scene
+        poses = scene.poses(run.x)
+        scene.draw_robot()
+        scene.draw_obstacles(run.centers.shape[1])
+        if run.centers.shape[1]:
+            scene.draw_closest()
+        content = draw_run_paths(scene, run)
+        self._play = self.options.play if play is None else play
+        self.animation = run_animation(run, poses, scene, self.timeline) if animate and len(run.t) > 1 else None
+        self._send_animation()
+        frame = [poses.joints.reshape(-1, 3) / M_PER_MM, run.tip, *content]
+        if run.centers.shape[1]:
+            r = run.radii[..., None] + self._safety
+            frame += [(run.centers - r).reshape(-1, 3), (run.centers + r).reshape(-1, 3)]
+        allp = np.concatenate(frame)
+        scene.floor(allp.min(axis=0) - 10.0, allp.max(axis=0) + 10.0)
+        self.frame_camera(allp)
+        self.show_waypoint(0)
+        return self
+
+    def compare(self, result: Mapping[str, Any] | Result) -> Visualizer:
+        """Add a second result of the same robot, its robot ghosted (`options.ghost_opacity`), on the same clock.
+
+        Call after `show_result`; the page shows both sets of plots.
+        """
+        if self._run is None:
+            raise InputError("compare: no result shown yet; call show_result first")
+        run = self._read_run(result)
+        ghost = SceneBuilder(self._vis, self.model, self.options, prefix="ghost")
+        ghost.draw_robot()
+        poses = ghost.poses(run.x)
+        ghost.pose_robot(poses, run.x[0, -1])
+        self.compared = (run, build_timeline(run, self.model))
+        if self.animation is not None and len(run.t) > 1:
+            self.animation.clips.update(run_animation(run, poses, ghost, self.compared[1]).clips)
+            self._send_animation()
+        return self
+
+    def _read_run(self, result: Mapping[str, Any] | Result) -> Result:
         run = read_result(result)
         run.check_robot(self.robot, "this Visualizer draws")
         missing = np.isnan(run.tip).any(axis=1)
@@ -239,46 +283,14 @@ class Visualizer:
             tip = run.tip.copy()
             tip[missing] = self.model.tip_position(run.x[missing]).reshape(-1, 3)
             run = dataclasses.replace(run, tip=tip)
-        self.clear()
-        self._run = run
-        scene = self._scene
-        poses = scene.poses(run.x)
-        scene.draw_robot()
-        scene.draw_obstacles(run.centers.shape[1])
-        content = [poses.joints.reshape(-1, 3) / M_PER_MM, run.tip, scene.rail_ends()]
-        if run.centers.shape[1]:
-            r = run.radii[..., None]
-            content += [(run.centers - r).reshape(-1, 3), (run.centers + r).reshape(-1, 3)]
-        if run.start is not None:
-            scene.marker("start", run.start, self.options.start_color)
-            content.append(run.start[None])
-        if run.goal is not None:
-            scene.marker("goal", run.goal, self.options.goal_color)
-            content.append(run.goal[None])
-        planned = run.reference if run.reference is not None else (run.tip if run.kind == "plan" else None)
-        if planned is not None and len(planned) > 1:
-            scene.polyline("path/planned", planned, self.options.path_color, dots=True)
-            content.append(planned)
-        if run.kind == "replan" and len(run.tip) > 1:
-            scene.polyline("path/executed", run.tip, self.options.trail_color, dots=False)
-        if run.edges is not None and self.options.show_tree:
-            scene.tree(run.edges)
-            content.append(run.edges.reshape(-1, 3))
-        box = run.workspace
-        if box is not None:
-            scene.box("workspace", *box)
-            content.append(np.array(box))
-        allp = np.concatenate(content)
-        scene.floor(allp.min(axis=0) - 10.0, allp.max(axis=0) + 10.0)
-        self.frame_camera(allp)
-        if animate and len(run.t) > 1:
-            self.animation = run_animation(run, poses, scene)
-            self._vis.set_animation(self.animation, play=self.options.play if play is None else play, repetitions=1)
-        self.show_waypoint(0)
-        return self
+        return run
+
+    def _send_animation(self) -> None:
+        if self.animation is not None:
+            self._vis.set_animation(self.animation, play=self._play, repetitions=1)
 
     def show_waypoint(self, k: int) -> None:
-        """Show the robot and obstacles at waypoint k of the run drawn last."""
+        """Show the robot, the obstacles and the closest approach at waypoint k of the run drawn last."""
         if self._run is None:
             raise InputError("show_waypoint: no result shown yet; call show_result first")
         n = len(self._run.t)
@@ -286,11 +298,34 @@ class Visualizer:
             raise InputError(f"show_waypoint: k must be in [0, {n - 1}], got {k}")
         self.display(self._run.x[k])
         self.set_obstacles(self._run.centers[k], self._run.radii[k])
+        tl = self.timeline
+        if tl is not None and self._run.centers.shape[1]:
+            a, b = tl.body_point[k] * M_PER_MM, tl.obstacle_point[k] * M_PER_MM
+            d = b - a
+            quat = cylinder_quat(unit(d))
+            scale = np.array([1.0, np.linalg.norm(d), 1.0])
+            self._vis["closest/line"].set_transform(transforms(0.5 * (a + b), quat, scale))
+            self._vis["closest/body"].set_transform(translation(a))
+            self._vis["closest/obstacle"].set_transform(translation(b))
 
     # ---------------------------------------------------------------- export
     def static_html(self) -> str:
-        """The scene as one self-contained HTML page (meshcat's static export; no server needed)."""
+        """The scene as one self-contained HTML page: meshcat's static export inside the page around it
+        (heads-up panel, plots, controls, legend; `crtraj.viz.page`); no server needed."""
+        return wrap_page(self.scene_html(), self.page_data())
+
+    def scene_html(self) -> str:
+        """meshcat's own standalone page of the scene alone (what its server serves), without the page around it."""
         return self._vis.static_html()
+
+    def page_data(self) -> dict[str, Any]:
+        """What the page around the scene shows (`crtraj.viz.page.page_data`), as JSON-ready values."""
+        runs = []
+        if self._run is not None and self.timeline is not None:
+            runs.append((self._run, self.timeline))
+        if self.compared is not None:
+            runs.append(self.compared)
+        return page_data(runs, self.options)
 
     def save_html(self, path: str | os.PathLike[str]) -> Path:
         """Write `static_html` to `path` atomically; returns the path."""

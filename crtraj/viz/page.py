@@ -1,0 +1,100 @@
+"""The page around the scene: heads-up panel, synchronized plots, events, controls and legend.
+
+`page_data` gathers what the page shows from one or two drawn runs (their `Timeline`s) as JSON-ready values;
+`wrap_page` puts it, with the page's own HTML, CSS and JavaScript (package data in ``crtraj/viz/assets/``), into
+meshcat's standalone page, so the file stays one self-contained page that opens offline. The page's script reads
+meshcat's animation clock (``viewer.animator``) and drives it (seek, play, pause, speed). Lengths in mm, times in s.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Sequence
+from importlib import resources
+from typing import Any
+
+import numpy as np
+
+from crtraj.io.results import Result
+from crtraj.viz.options import ViewOptions
+from crtraj.viz.timeline import Timeline
+
+_DIGITS = 6  # decimals kept in the page's numbers (1 nm in mm, 1 us in s): far below what the panel prints
+
+
+def _asset(name: str) -> str:
+    return resources.files("crtraj.viz").joinpath("assets", name).read_text(encoding="utf-8")
+
+
+def _nums(a: Any) -> Any:
+    """Nested lists of rounded floats, None for NaN (JSON has no NaN)."""
+    arr = np.asarray(a, dtype=float)
+    if arr.ndim == 0:
+        v = float(arr)
+        return round(v, _DIGITS) if math.isfinite(v) else None
+    return [_nums(v) for v in arr]
+
+
+def _run_data(run: Result, tl: Timeline, label: str) -> dict[str, Any]:
+    names = [o.name for o in run.scene.obstacles] if run.scene is not None else []
+    names += [f"obstacle {i}" for i in range(len(names), tl.clearance.shape[1])]
+    return {
+        "label": label,
+        "kind": run.kind,
+        "verdict": f"{run.status}: {run.message}"[:200],
+        "t": _nums(tl.t),
+        "status": list(tl.status),
+        "obstacles": names[: tl.clearance.shape[1]],
+        "clearance": _nums(tl.clearance.T),
+        "near": [int(i) for i in tl.near],
+        "tip_error": _nums(tl.tip_error),
+        "iteration": _nums(tl.iteration),
+        "velocity": _nums(tl.velocity),
+        "acceleration": _nums(tl.acceleration),
+        "deadline": _nums(tl.deadline),
+        "safety_distance": tl.safety_distance,
+        "closest_t": _nums(tl.t[tl.closest_index]),
+        "events": [{"kind": e.kind, "t": _nums(e.t), "text": e.text} for e in tl.events],
+    }
+
+
+def page_data(runs: Sequence[tuple[Result, Timeline]], options: ViewOptions) -> dict[str, Any]:
+    """The page's data for the drawn run and, if any, the compared one (a ghost), as JSON-ready values."""
+    o = options
+    labels = ["A", "B"]
+    # the planner tree and the replans' references: shown for plans, hidden for runs (as `draw_run_paths` draws them)
+    n_seg = runs[0][0].robot.n_segments if runs else 0
+    layers_on = o.show_tree if o.show_tree is not None else bool(runs) and runs[0][0].kind == "plan"
+    return {
+        "runs": [_run_data(r, tl, labels[i] if len(runs) > 1 else "") for i, (r, tl) in enumerate(runs)],
+        "legend": [
+            *(
+                {"color": o.segment_colors[k % len(o.segment_colors)], "label": f"segment {k + 1}"}
+                for k in range(n_seg)
+            ),
+            {"color": o.obstacle_color, "label": "obstacle (faint shell: D_sf)", "layer": "shells"},
+            {"color": o.closest_color, "label": "closest approach", "layer": "closest"},
+            {"color": o.trail_color, "label": "executed tip path", "layer": "path/executed"},
+            {"color": o.path_color, "label": "planned tip path (ghost)", "layer": "path/planned"},
+            {"color": o.start_color, "label": "start", "layer": "markers/start"},
+            {"color": o.goal_color, "label": "goal", "layer": "markers/goal"},
+            {"color": o.tree_color, "label": "planner tree", "layer": "tree", "on": layers_on},
+            {"color": o.tree_color, "label": "replanned references", "layer": "references", "on": layers_on},
+        ],
+    }
+
+
+def wrap_page(meshcat_html: str, data: dict[str, Any]) -> str:
+    """meshcat's standalone page with the page around the scene added before its end (one file, offline)."""
+    # "</" inside a script would end it early; JSON allows the escaped solidus
+    blob = json.dumps(data, separators=(",", ":"), allow_nan=False).replace("</", "<\\/")
+    extra = (
+        f"<style>{_asset('page.css')}</style>\n{_asset('page.html')}\n"
+        f'<script id="crtraj-data" type="application/json">{blob}</script>\n'
+        f"<script>{_asset('page.js')}</script>\n"
+    )
+    head, sep, tail = meshcat_html.rpartition("</body>")
+    if not sep:
+        raise ValueError("meshcat's page has no </body>")
+    return head.replace("<title>MeshCat</title>", "<title>crtraj view</title>", 1) + extra + sep + tail

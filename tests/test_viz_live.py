@@ -1,0 +1,91 @@
+"""crtraj.viz.live_feed: the loop's hook never waits for drawing; the view draws the newest state at most
+30 times a second and counts what it dropped."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+from crtraj.viz.live_feed import LiveFeed
+
+HANG_S = 60.0  # a hang bound only; nothing here waits for time to pass
+
+
+class _Drawer:
+    """Records what it draws; the first draw waits until `release` is set."""
+
+    def __init__(self, fail_at: int = -1) -> None:
+        self.entered = threading.Event()
+        self.release = threading.Event()
+        self.xs: list[np.ndarray] = []
+        self.obstacles: list[tuple[np.ndarray, np.ndarray]] = []
+        self.fail_at = fail_at
+
+    def display(self, x):
+        self.entered.set()
+        assert self.release.wait(HANG_S)
+        if len(self.xs) == self.fail_at:
+            self.xs.append(None)
+            raise RuntimeError("draw failed")
+        self.xs.append(np.array(x))
+
+    def set_obstacles(self, centers, radii):
+        self.obstacles.append((np.array(centers), np.array(radii)))
+
+
+class _VirtualClock:
+    """Time stands still except when the view sleeps; every sleep is recorded."""
+
+    def __init__(self) -> None:
+        self.now = 0.0
+        self.waits: list[float] = []
+
+    def __call__(self) -> float:
+        return self.now
+
+    def sleep(self, s: float) -> None:
+        self.waits.append(s)
+        self.now += s
+
+
+def _state(i):
+    return float(i), np.full(5, float(i)), np.full((2, 3), float(i)), np.full(2, 10.0 + i)
+
+
+def test_publishing_while_the_view_draws_drops_all_but_the_newest():
+    """While the first state is being drawn, 9 more are published without waiting: the view then draws only
+    the newest, and counts the 8 it never drew."""
+    drawer, clock = _Drawer(), _VirtualClock()
+    feed = LiveFeed(drawer, clock=clock, sleep=clock.sleep)
+    feed.publish(*_state(0))
+    assert drawer.entered.wait(HANG_S)
+    for i in range(1, 10):
+        feed.publish(*_state(i))  # returns although the view is stuck drawing state 0
+    drawer.release.set()
+    feed.close()
+    assert [x[0] for x in drawer.xs] == [0.0, 9.0]
+    np.testing.assert_array_equal(drawer.obstacles[-1][1], [19.0, 19.0])
+    assert feed.summary() == {"published": 10, "drawn": 2, "dropped": 8, "failed": 0}
+    # drawing takes no virtual time: after each draw the view waits one full 1/30 s period
+    assert clock.waits == pytest.approx([1 / 30, 1 / 30])
+
+
+def test_a_late_view_does_not_burst_and_a_failed_draw_is_counted():
+    """A clock that jumps past the period: no wait, no catching up; a draw that raises is counted and logged,
+    the next state is still drawn."""
+    drawer, waits = _Drawer(fail_at=0), []
+    ticks = iter(np.arange(0.0, 100.0, 1.0))
+    feed = LiveFeed(drawer, rate=10.0, clock=lambda: float(next(ticks)), sleep=waits.append)
+    drawer.release.set()
+    feed.publish(*_state(0))
+    feed.close()
+    assert feed.summary() == {"published": 1, "drawn": 0, "dropped": 0, "failed": 1}
+    assert waits == []
+
+
+@pytest.mark.parametrize("rate", [0.0, 31.0, -1.0])
+def test_rate_is_at_most_30_hz(rate):
+    with pytest.raises(ValueError, match=r"^rate: expected \(0, 30\] Hz"):
+        LiveFeed(_Drawer(), rate=rate)
