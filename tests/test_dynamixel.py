@@ -210,10 +210,10 @@ def test_connect_sets_extended_mode_profiles_and_torque_without_moving(acts):
         before = chain.positions(0.0).copy()
         tr = DynamixelTransport(sim.path, 1_000_000, acts, stop_torque="off")
         assert all(chain.torque(i) for i in acts.bus.ids)
-        t = chain._table[0]
-        assert t[11] == 4  # extended position control
+        first = acts.bus.ids[0]
+        assert chain.register(first, 11, 1) == 4  # extended position control
         # profile velocity: 5 rad/s = 47.75 rev/min -> ceil(47.75 / 0.229) = 209 units
-        assert int.from_bytes(t[112:116], "little") == 209
+        assert chain.register(first, 112, 4) == 209
         assert np.array_equal(chain.positions(1.0), before)  # torque on did not move anything
         tr.close()
         assert not any(chain.torque(i) for i in acts.bus.ids)  # torque off on exit
@@ -392,7 +392,7 @@ def test_paper_simulation_2_streams_to_the_servos_end_to_end(tmp_path, capsys):
         assert rep.moves == len(motion.stamps) and not any(e[1] == "refused" for e in rep.events)
         # one bus transaction per set-point (plus the HOLD frames while settling and the torque off at exit)
         assert sim.chain.counts["sync_writes"] == rep.frames + 1
-        goals = [int.from_bytes(t[116:120], "little", signed=True) for t in sim.chain._table]
+        goals = [sim.chain.register(i, 116, 4) for i in acts.bus.ids]
         assert goals == acts.bus.ticks(motion.values[-1]).tolist()  # the final set-point, in ticks, as sent
         assert _settled(sim, acts, motion, clock)
     finally:

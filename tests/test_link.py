@@ -29,7 +29,7 @@ def test_follower_respects_limits_and_reproduces_the_verified_motion(robot):
     servo = ServoModel(robot, 0.05, 0.1)
     q0 = robot.cables(XS)
     link = DeviceLink(_FakeStreamer(acts, acts.command(q0)), servo, 0.1)
-    link._p, link._last_target = acts.command(q0), acts.command(q0)
+    link.follower.reset(acts.command(q0))
     # the verified motion inside one step equals the servo's closed form, period by period
     cmds = q0 + np.outer(np.arange(1, 6), np.append(np.full(6, 0.1), 1.5))
     off = np.linspace(0.001, 0.1, 37)
@@ -42,19 +42,19 @@ def test_follower_respects_limits_and_reproduces_the_verified_motion(robot):
     # a target with a velocity jump far beyond the limits: the set-points stay within them ...
     rng = np.random.default_rng(3)
     target = acts.command(q0) + np.cumsum(rng.normal(0.0, 0.05, (300, acts.n)), axis=0) * acts.vmax * 0.01
-    P = np.vstack([acts.command(q0)[None], link._follow(target)])
+    P = np.vstack([acts.command(q0)[None], link.follower.follow(target)])
     V = np.diff(P, axis=0) / 0.01
     A = np.diff(np.vstack([np.zeros(acts.n), V]), axis=0) / 0.01
     assert np.all(np.abs(V) <= acts.vmax) and np.all(np.abs(A) <= acts.amax)
     # ... and reach a target that stops, at rest, without overshooting it by more than round-off
     goal = target[-1]
-    tail = link._follow(np.repeat(goal[None], 400, axis=0))
+    tail = link.follower.follow(np.repeat(goal[None], 400, axis=0))
     np.testing.assert_allclose(tail[-1], goal, atol=1e-6)
-    np.testing.assert_allclose(link._v, 0.0, atol=1e-4)
+    np.testing.assert_allclose(link.follower.state.velocity, 0.0, atol=1e-4)
     # a smooth, feasible target is followed exactly
     smooth = goal + np.outer(np.sin(np.linspace(0, 1, 100)), 0.001 * acts.vmax)
-    link._p, link._v, link._last_target = smooth[0], np.zeros(acts.n), smooth[0]
-    np.testing.assert_allclose(link._follow(smooth[1:]), smooth[1:], atol=1e-3 * acts.vmax.max())
+    link.follower.reset(smooth[0])
+    np.testing.assert_allclose(link.follower.follow(smooth[1:]), smooth[1:], atol=1e-3 * acts.vmax.max())
 
 
 def test_stream_rate_must_divide_the_step(robot):
@@ -84,12 +84,12 @@ def test_a_refused_move_is_a_device_error_and_nothing_is_remembered(robot):
     link = DeviceLink(_RefusingStreamer(acts, acts.command(q0)), ServoModel(robot, 0.05, 0.1), 0.1)
     assert isinstance(link, Device)  # the loop's device port
     link.begin(0.0)
-    history = len(link._hist_t)
+    history = len(link.history)
     cmds = np.repeat((q0 + 0.05)[None], 5, axis=0)
     with pytest.raises(DeviceError, match="stream held: source stalled") as info:
         link.move(0.0, q0, cmds, 0.02)
     assert isinstance(info.value.__cause__, StreamError)  # wrapped, not swallowed
-    assert len(link._hist_t) == history and not link._moving  # a move not sent is not taken as sent
+    assert len(link.history) == history and not link.moving  # a move not sent is not taken as sent
 
 
 class _RecordingStreamer(_FakeStreamer):

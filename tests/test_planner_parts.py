@@ -76,7 +76,7 @@ def test_nearest_neighbors_match_brute_force(tree_min):
             assert d[j] == pytest.approx(d.min())
             np.testing.assert_array_equal(nn.within(q, 80.0), np.flatnonzero(d <= 80.0))
     np.testing.assert_array_equal(nn.points, pts)
-    assert (nn._tree is not None) == (tree_min < len(pts))
+    assert (nn.indexed > 0) == (tree_min < len(pts))
     with pytest.raises(IndexError):
         NearestNeighbors(2).nearest(np.zeros(2))
 

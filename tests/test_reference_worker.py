@@ -90,7 +90,7 @@ def test_the_worker_plans_exactly_what_the_source_plans_here(worker):
         _same(_ask(w, x, t, scene), here(x, t, scene))
     assert w.plans == 6 and w.alive and w.failure == ""
     # the worker only takes CPU time the control loop leaves idle (it would otherwise preempt a step)
-    assert os.sched_getscheduler(w._proc.pid) == os.SCHED_IDLE
+    assert os.sched_getscheduler(w.pid) == os.SCHED_IDLE
 
 
 def test_a_raising_planner_is_a_failed_plan_and_the_worker_goes_on(worker):

@@ -90,6 +90,11 @@ class ReferenceWorker:
         """The worker serves requests (started and not failed)."""
         return self._conn is not None and not self.failure
 
+    @property
+    def pid(self) -> int | None:
+        """The worker process's id while it runs (its scheduling class is visible to the OS), else None."""
+        return None if self._proc is None else self._proc.pid
+
     def submit(self, x: np.ndarray, t: float, scene: Any, pending: PendingPlan) -> None:
         """Ask for a path from configuration x (nx,) at loop time t (s) among `scene` (a `Scene`). A worker
         that has failed is not asked: `take` then gives the failed plan that says why."""

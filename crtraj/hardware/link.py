@@ -13,6 +13,7 @@ import numpy as np
 
 from crtraj.control.ports import DeviceError
 from crtraj.core.errors import InputError
+from crtraj.hardware.follower import SetpointFollower
 from crtraj.hardware.limits import LimitPeaks
 from crtraj.hardware.stream import StreamError
 
@@ -76,10 +77,7 @@ class DeviceLink:
         self.lead = max(o.prebuffer, dt) if lead is None else float(lead)
         if o.prebuffer < self.lead - 1e-9:
             raise InputError(f"stream.prebuffer: must be >= the link's lead {self.lead:g} s, got {o.prebuffer:g}")
-        self._vmax = 0.98 * self.actuators.vmax
-        self._amax = 0.98 * self.actuators.amax
-        self._p: np.ndarray | None = None  # last queued set-point (actuator values) and its velocity
-        self._v = np.zeros(self.actuators.n)
+        self.follower = SetpointFollower(self.fdt, 0.98 * self.actuators.vmax, 0.98 * self.actuators.amax)
         self._S: float | None = None  # the stream plays stamp tau at wall time S + tau
         self._first: float | None = None  # first stamp queued since the stream (re)started
         self._origin: float | None = None  # the loop computes step t at wall time origin + t
@@ -87,7 +85,6 @@ class DeviceLink:
         self._hist_q = np.zeros((0, self.actuators.n))
         self._requested = False
         self._moving = False  # motion queued since the stream (re)started
-        self._last_target: np.ndarray | None = None
         self.measured_steps = 0
         self.max_deviation = np.zeros(self.actuators.n)  # largest |set-point - verified motion| (rad, mm)
         self.peaks = LimitPeaks(self.actuators, self.fdt)  # of the frames queued for the device
@@ -96,6 +93,16 @@ class DeviceLink:
         self.report: Any = None
 
     # --------------------------------------------------------------- state
+    @property
+    def moving(self) -> bool:
+        """Motion has been queued since the stream (re)started."""
+        return self._moving
+
+    @property
+    def history(self) -> np.ndarray:
+        """The stamps (s) of the verified motion the link remembers (to compare telemetry with)."""
+        return self._hist_t.copy()
+
     def start_actuation(self) -> np.ndarray:
         """Where the device is (its start telemetry, as actuation q in mm)."""
         p = self.streamer.position
@@ -109,11 +116,11 @@ class DeviceLink:
         self._restart(0.0)
 
     def _restart(self, t: float) -> None:
-        self._p = np.asarray(self.streamer.position, dtype=float)
-        self._v = np.zeros(self.actuators.n)
-        self._S, self._first, self._moving, self._last_target = None, t, False, self._p
-        self.streamer.send_values(t, self._p)
-        self._remember(np.array([t]), self.actuators.actuation(self._p)[None])
+        p = np.asarray(self.streamer.position, dtype=float)
+        self.follower.reset(p)
+        self._S, self._first, self._moving = None, t, False
+        self.streamer.send_values(t, p)
+        self._remember(np.array([t]), self.actuators.actuation(p)[None])
 
     def _remember(self, stamps: np.ndarray, Q: np.ndarray) -> None:
         keep = self._hist_t > stamps[0] - 2.0 * self.lead - 1.0
@@ -165,11 +172,11 @@ class DeviceLink:
         stamps = t + self.fdt * np.arange(1, n + 1)
         Q = self.verified(q0, commands, control_dt, self.fdt * np.arange(1, n + 1))
         target = self.actuators.command(Q)
-        before = (self._p, self._v, self._last_target)
-        values = self._follow(target)
-        why = self._failure(stamps, values, before[0], before[1])
+        before = self.follower.state
+        values = self.follower.follow(target)
+        why = self._failure(stamps, values, before.position, before.velocity)
         if why is not None:
-            self._p, self._v, self._last_target = before
+            self.follower.state = before
             self.refused_steps += 1
             self.refusal = self.refusal or why
             self.hold(f"step at t={t:.2f} s refused before sending: {why}")
@@ -179,7 +186,7 @@ class DeviceLink:
             s.send_path(stamps, values)
         except StreamError as exc:  # held or stopped meanwhile; `problem` says whether that is final
             raise DeviceError(str(exc)) from exc
-        self.peaks.add(values, before[0], before[1])
+        self.peaks.add(values, before.position, before.velocity)
         self._moving = True
         self._remember(stamps, Q)
         self._clock_after_queue(t, stamps[-1])
@@ -201,27 +208,6 @@ class DeviceLink:
         tau = (offsets - j * h)[:, None]
         Q0 = np.array(starts)[j]
         return C[j] + np.exp(-tau / self.servo.tau) * (Q0 - C[j])
-
-    def _follow(self, target: np.ndarray) -> np.ndarray:
-        """Set-points tracking `target` (frames, n) with |v| <= vmax and |dv| <= amax dt per frame.
-
-        The target's own frame velocity is fed forward; the remaining error is closed at the
-        speed from which it can still brake to zero (sqrt(2 a e)), so the follower does not
-        overshoot a target that stops."""
-        dt, vmax, amax = self.fdt, self._vmax, self._amax
-        p, v = self._p, self._v
-        prev = p if self._last_target is None else self._last_target
-        out = np.empty_like(target)
-        for k, d in enumerate(target):
-            vt = (d - prev) / dt
-            e = d - (p + vt * dt)
-            corr = np.sign(e) * np.minimum(np.abs(e) / dt, np.sqrt(amax * np.abs(e)))
-            v_new = np.clip(v + np.clip(vt + corr - v, -amax * dt, amax * dt), -vmax, vmax)
-            p = p + v_new * dt
-            v, prev = v_new, d
-            out[k] = p
-        self._p, self._v, self._last_target = p, v, prev
-        return out
 
     def _clock_after_queue(self, t: float, last: float) -> None:
         now = time.perf_counter()
@@ -256,8 +242,7 @@ class DeviceLink:
         self._requested = True
         self._S, self._moving = None, False
         if s.position is not None:
-            self._p, self._v = np.asarray(s.position, dtype=float), np.zeros(self.actuators.n)
-            self._last_target = self._p
+            self.follower.reset(s.position)
 
     def estop(self, reason: str) -> None:
         self.streamer.estop(reason)
@@ -266,13 +251,14 @@ class DeviceLink:
         """Bring the set-points to rest at q_final (mm), let the device settle, close; the `StreamReport`.
         A held or stopped stream is only closed (the device stays where it is)."""
         s = self.streamer
-        if s.state in ("waiting", "streaming") and self._p is not None:
+        if s.state in ("waiting", "streaming") and self.follower.state.last_target is not None:
             goal = self.actuators.command(np.asarray(q_final, dtype=float))
-            p0, v0 = self._p, self._v
+            p0, v0 = self.follower.state.position, self.follower.state.velocity
             tail = []
             for _ in range(int(timeout / self.fdt)):
-                tail.append(self._follow(goal[None])[0])
-                if np.all(np.abs(tail[-1] - goal) <= 1e-6) and np.all(np.abs(self._v) * self.fdt <= 1e-6):
+                tail.append(self.follower.follow(goal[None])[0])
+                v = self.follower.state.velocity
+                if np.all(np.abs(tail[-1] - goal) <= 1e-6) and np.all(np.abs(v) * self.fdt <= 1e-6):
                     tail.append(goal)  # the last micro-step, far inside every limit
                     break
             t = float(self._hist_t[-1]) if len(self._hist_t) else 0.0

@@ -34,6 +34,11 @@ class NearestNeighbors:
         self._min_buffer = int(min_buffer)
         self._tree_min = int(tree_min)
 
+    @property
+    def indexed(self) -> int:
+        """How many of the points are in the KD-tree (the rest are searched linearly in a small buffer)."""
+        return self._n_tree
+
     def __len__(self) -> int:
         return self._n
 
