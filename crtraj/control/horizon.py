@@ -75,6 +75,7 @@ from crtraj.control.horizon_backends import (
     ScreenedBackend,
     ScreenStart,
 )
+from crtraj.control.horizon_broad import BroadPhase
 from crtraj.control.horizon_build import (
     CompiledParts,
     HorizonNLP,
@@ -197,6 +198,9 @@ class Replanner:
         seg, frac = model.arc_segments(model.arc_positions(o.points))
         self._slot_table = np.column_stack([np.eye(r.n_segments)[seg], frac])
         self._build(solver_wrapper)
+        # which obstacles of a larger scene enter the QP's slots (`obstacles_from_scene` with x0)
+        self.broad = BroadPhase(model, o.points, self.step_limit, self.N)
+        self.broad_overflows = 0  # steps on which more obstacles could matter than the QP has slots
         self._warm: _Warm | None = None
         self.solve_count = 0
 
@@ -258,8 +262,11 @@ class Replanner:
         Each slot's radius is the inflated rho of the module docstring (the
         NLP compares point distances with it directly).
         """
-        rho = np.sqrt((np.maximum(radii, 0.0) + self.inflate) ** 2 + (self.spacing / 2.0) ** 2)
-        return packing.pack(centers, rho, self.max_obstacles, "the replanner")
+        return packing.pack(centers, self._rho(radii), self.max_obstacles, "the replanner")
+
+    def _rho(self, radii: np.ndarray) -> np.ndarray:
+        """The inflated radii (mm) the NLP keeps its points outside of, from sphere radii (mm)."""
+        return np.sqrt((np.maximum(radii, 0.0) + self.inflate) ** 2 + (self.spacing / 2.0) ** 2)
 
     def step_windows(self, t0: float) -> tuple[np.ndarray, np.ndarray]:
         """(lo, hi) time windows (N,) s that step k's configuration is kept clear over: [t_k-1, t_k+1]."""
@@ -267,12 +274,23 @@ class Replanner:
         dt = self.options.dt
         return t0 + (k - 1) * dt, t0 + (k + 1) * dt
 
-    def obstacles_from_scene(self, scene: Any, t0: float) -> np.ndarray:
-        """Obstacle parameter (N, packing.WIDTH * max_obstacles) for the scene's known motion, horizon from t0 (s)."""
+    def obstacles_from_scene(self, scene: Any, t0: float, x0: np.ndarray | None = None) -> np.ndarray:
+        """Obstacle parameter (N, packing.WIDTH * max_obstacles) for the scene's known motion, horizon from t0 (s).
+
+        x0: the configuration (nx,) the horizon starts from. With it, a scene of more obstacles than the NLP's
+        slots fills them with the obstacles the horizon's reachable body can come near (`BroadPhase`): the
+        others cannot be active in any plan within reach. Without it such a scene is an `InputError`."""
         lo, hi = self.step_windows(float(t0))
         if scene.n_obstacles == 0:
             return self._inflated(np.zeros((self.N, 0, 3)), np.zeros((self.N, 0)))
         centers, radii = scene.swept_spheres(lo, hi)  # (N, M, 3), (N, M)
+        if x0 is not None and scene.n_obstacles > self.max_obstacles:
+            rho = self._rho(radii)
+            idx, relevant = self.broad.select(np.asarray(x0, dtype=float), centers, rho, self.max_obstacles)
+            if relevant > self.max_obstacles:
+                self.broad_overflows += 1
+                log.debug("horizon: %d obstacles can matter, the QP has %d slots", relevant, self.max_obstacles)
+            return packing.pack(centers[:, idx], rho[:, idx], self.max_obstacles, "the replanner")
         return self._inflated(centers, radii)
 
     def obstacles_from_states(
