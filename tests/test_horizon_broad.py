@@ -12,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from crtraj.control.horizon import Replanner, ReplanOptions
-from crtraj.control.horizon_broad import BroadPhase, step_reach
+from crtraj.control.horizon_broad import BroadPhase, Selection, step_reach
 from crtraj.control.loop import ClosedLoop, RunStatus
 from crtraj.control.loop_options import LoopOptions
 from crtraj.planning.metric import BodyMetric
@@ -169,3 +169,40 @@ def test_the_loop_builds_the_qp_for_qp_obstacles_and_runs_safely(model):
     assert run.status is RunStatus.REACHED, run.summary_line()
     assert run.collisions == 0 and run.safety_violations == 0
     assert loop.replanner.broad_overflows == 0
+
+
+def test_reselect_puts_an_entered_omitted_obstacle_into_a_slot(model, full):
+    """An omitted obstacle whose sphere holds a point of the solution is reported (its row) and goes into a slot
+    first; with none entered there is nothing to do."""
+    N = full.N
+    P = np.zeros((N, 3, 3))
+    P[:, :, 2] = [100.0, 200.0, 300.0]
+    centers = np.zeros((N, 3, 3))
+    centers[:, :, 2] = [100.0, 200.0, 600.0]
+    centers[:, :, 0] = [50.0, 30.0, 0.0]
+    rho = np.tile([[10.0, 40.0, 5.0]], (N, 1))  # obstacle 1 holds the point at z = 200 by 10 mm
+    sel = BroadPhase(model, OPTS.points, full.step_limit, N)
+    s = Selection.of(centers, rho, np.array([0]), 1)
+    worst, nxt = sel.reselect(s, P, 1)
+    assert worst == pytest.approx(-10.0) and nxt is not None and nxt.chosen.tolist() == [1]
+    worst, nxt = sel.reselect(Selection.of(centers, rho, np.array([1]), 1), P, 1)
+    assert worst == pytest.approx(40.0) and nxt is None
+
+
+def test_an_overflowing_qp_returns_no_plan_inside_an_omitted_obstacle(model, full):
+    """Scenes where more obstacles can matter than the QP's 2 slots: a feasible plan keeps every obstacle row of
+    the full NLP (all obstacles) satisfied."""
+    small = Replanner(model, OPTS, max_obstacles=2, safety_distance=5.0)
+    rng = np.random.default_rng(5)
+    plans = 0
+    for _ in range(6):
+        x0 = XS + rng.normal(0.0, [0.2, 0.2, 0.2, 0.2, 10.0])
+        scene = _scene_near(rng, model, x0, SLOTS)
+        ref = x0 + np.linspace(0.1, 1.0, OPTS.horizon)[:, None] * (XG - x0)
+        res = small.solve(x0, ref, small.obstacles_from_scene(scene, 0.0, x0))
+        small.reset()
+        if res.feasible:
+            plans += 1
+            rows = full.distances(res.configs.ravel(), full.obstacles_from_scene(scene, 0.0))
+            assert rows.min() >= -1e-6, res.solver_status
+    assert small.broad_overflows == 6 and plans >= 1

@@ -65,6 +65,7 @@ import casadi as ca
 import numpy as np
 
 from crtraj.control.horizon_backends import (
+    SCREEN_SOLVES,
     CompiledBackend,
     HorizonCall,
     HorizonQuery,
@@ -75,7 +76,7 @@ from crtraj.control.horizon_backends import (
     ScreenedBackend,
     ScreenStart,
 )
-from crtraj.control.horizon_broad import BroadPhase
+from crtraj.control.horizon_broad import BroadPhase, Selection
 from crtraj.control.horizon_build import (
     CompiledParts,
     HorizonNLP,
@@ -201,6 +202,7 @@ class Replanner:
         # which obstacles of a larger scene enter the QP's slots (`obstacles_from_scene` with x0)
         self.broad = BroadPhase(model, o.points, self.step_limit, self.N)
         self.broad_overflows = 0  # steps on which more obstacles could matter than the QP has slots
+        self._selection: Selection | None = None  # those, when they did (checked at the solution)
         self._warm: _Warm | None = None
         self.solve_count = 0
 
@@ -284,13 +286,13 @@ class Replanner:
         if scene.n_obstacles == 0:
             return self._inflated(np.zeros((self.N, 0, 3)), np.zeros((self.N, 0)))
         centers, radii = scene.swept_spheres(lo, hi)  # (N, M, 3), (N, M)
+        self._selection = None
         if x0 is not None and scene.n_obstacles > self.max_obstacles:
-            rho = self._rho(radii)
-            idx, relevant = self.broad.select(np.asarray(x0, dtype=float), centers, rho, self.max_obstacles)
-            if relevant > self.max_obstacles:
-                self.broad_overflows += 1
-                log.debug("horizon: %d obstacles can matter, the QP has %d slots", relevant, self.max_obstacles)
-            return packing.pack(centers[:, idx], rho[:, idx], self.max_obstacles, "the replanner")
+            packed, self._selection = self.broad.pack(
+                np.asarray(x0, float), centers, self._rho(radii), self.max_obstacles
+            )
+            self.broad_overflows += self._selection is not None
+            return packed
         return self._inflated(centers, radii)
 
     def obstacles_from_states(
@@ -370,6 +372,8 @@ class Replanner:
             log.debug("horizon: rescue ipopt after %s: %s", tried[-1].status, rr.status)
             r = replace(rr, status=f"{tried[-1].status}; rescue ipopt: {rr.status}")
             tried.append(r)
+        if self._selection is not None and obstacles is self._selection.packed:
+            r = self._omitted(r, p, tried, time_left)
         r = replace(r, wall=sum(x.wall for x in tried))
         return self._result(r, tried, rescued, used_warm)
 
@@ -457,6 +461,26 @@ class Replanner:
             r = self.backend.solve(replace(query, x0=r.x, lam_x0=lam_x, lam_g0=lam_g, start=here))
             tried.append(r)
         return r
+
+    def _omitted(self, r: HorizonCall, p: np.ndarray, tried: list[HorizonCall], time_left: float | None) -> HorizonCall:
+        """r checked against the obstacles the broad phase left out of a full QP (`BroadPhase.reselect`): solved
+        again from its point with the ones it enters in the slots (at most `SCREEN_SOLVES` times, while time is
+        left); if one is still entered, r with that violation (not a usable plan). A failed call is returned as is."""
+        sel = self._selection
+        for solves in range(SCREEN_SOLVES + 1):
+            if sel is None or self._infeasible(r):
+                return r  # a failed call is no plan either way
+            P = self.model.points(r.x.reshape(self.N, self.nx), self.options.points)
+            worst, sel = self.broad.reselect(sel, P, self.max_obstacles)
+            if sel is None:
+                return r
+            if solves == SCREEN_SOLVES or not _in_time(tried, time_left):
+                break
+            p = p.copy()
+            p[len(p) - sel.packed.size :] = sel.packed.ravel()
+            r = self._attempt(HorizonQuery(p, r.x), tried, time_left)
+        why = f"; an obstacle left out of the QP stays {-worst:.3g} mm inside its sphere"
+        return replace(r, violation=max(r.violation, -worst), ok=False, status=r.status + why)
 
     def _infeasible(self, r: HorizonCall) -> bool:
         """A solver call's iterate breaks a constraint (or is not finite): not a usable plan."""

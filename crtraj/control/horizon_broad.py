@@ -10,15 +10,45 @@ The obstacle row of point j, obstacle i and step k is ``|p_j(x_k) - c_ik| - rho_
 of `crtraj.control.horizon.Replanner`), so it is at least ``|p_j(x_0) - c_ik| - rho_ik - k reach``. An obstacle
 whose smallest such lower bound (its `gap`) is positive keeps every row of every plan the NLP can make
 strictly satisfied: it can never be active, and leaving it out of the QP changes neither the feasible plans
-within reach nor the solution. The loop still verifies every move against every obstacle. Units: mm, rad, s.
+within reach nor the solution. The loop still verifies every move against every obstacle.
+
+When more obstacles can matter than the QP has slots (a fast robot over a long horizon reaches most of its
+workspace), the slots take the nearest (`Selection`), and every omitted one is checked at the solution
+(`BroadPhase.reselect`): a solution that keeps all of them outside their spheres is a KKT point of the NLP
+with every obstacle (the omitted rows hold, with zero multipliers), as with the QP's screened points; one
+that enters an omitted sphere is solved again with it in a slot. Units: mm, rad, s.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
 from crtraj.model.kinematics import Model
 from crtraj.planning.metric import metric_matrix
+from crtraj.world import packing
+
+# an omitted obstacle's row below this (mm) is a violation (the QP's own rows hold to 1e-6)
+ROW_TOLERANCE = 1e-6
+
+
+@dataclass(frozen=True)
+class Selection:
+    """The obstacles that can matter over one horizon and the ones the QP gets: packed (N, packing.WIDTH *
+    slots) the QP's obstacle parameter; centres (N, r, 3) mm and inflated radii rho (N, r) mm of all r that
+    can matter; chosen (k,) the indices of those in the slots, ascending."""
+
+    packed: np.ndarray
+    centers: np.ndarray
+    rho: np.ndarray
+    chosen: np.ndarray
+
+    @classmethod
+    def of(cls, centers: np.ndarray, rho: np.ndarray, chosen: np.ndarray, slots: int) -> Selection:
+        """The selection of `chosen` among centres (N, r, 3) and rho (N, r), packed into `slots` slots."""
+        packed = packing.pack(centers[:, chosen], rho[:, chosen], slots, "the replanner")
+        return cls(packed, centers, rho, chosen)
 
 
 def step_reach(model: Model, step_limit: np.ndarray) -> float:
@@ -54,6 +84,35 @@ class BroadPhase:
         P = self.model.points(np.asarray(x0, dtype=float), self.points)  # (points, 3)
         d = np.linalg.norm(centers[:, :, None, :] - P[None, None], axis=-1).min(axis=-1)  # (N, m)
         return np.min(d - rho - self.reach_steps[:, None], axis=0, initial=np.inf)
+
+    def pack(
+        self, x0: np.ndarray, centers: np.ndarray, rho: np.ndarray, slots: int
+    ) -> tuple[np.ndarray, Selection | None]:
+        """The QP's obstacle parameter (N, packing.WIDTH * slots) for a horizon from x0 among centres (N, m, 3)
+        and rho (N, m) mm, and, when more obstacles can matter than there are slots, the `Selection` whose
+        omitted obstacles the solution must be checked against (else None)."""
+        g = self.gaps(x0, centers, rho)
+        can = np.flatnonzero(g <= 0.0)
+        if len(can) <= slots:
+            return packing.pack(centers[:, can], rho[:, can], slots, "the replanner"), None
+        chosen = np.sort(np.argsort(g[can], kind="stable")[:slots])
+        sel = Selection.of(centers[:, can], rho[:, can], chosen, slots)
+        return sel.packed, sel
+
+    def reselect(self, sel: Selection, P: np.ndarray, slots: int) -> tuple[float, Selection | None]:
+        """(worst, next): the smallest obstacle row (mm) of the obstacles `sel` left out, at the solution's
+        backbone points P (N, points, 3) mm; and, when one is inside its sphere, the selection that puts those
+        inside first and then the nearest at P into the slots (None when nothing is inside)."""
+        rows = np.linalg.norm(sel.centers[:, :, None, :] - P[:, None], axis=-1).min(axis=-1) - sel.rho  # (N, r)
+        near = rows.min(axis=0)
+        omitted = np.ones(len(near), dtype=bool)
+        omitted[sel.chosen] = False
+        worst = float(np.min(near[omitted], initial=np.inf))
+        if worst >= -ROW_TOLERANCE:
+            return worst, None
+        inside = omitted & (near < -ROW_TOLERANCE)
+        order = np.lexsort((near, ~inside))  # the omitted ones inside first, then by their rows at P
+        return worst, Selection.of(sel.centers, sel.rho, np.sort(order[:slots]), slots)
 
     def select(self, x0: np.ndarray, centers: np.ndarray, rho: np.ndarray, slots: int) -> tuple[np.ndarray, int]:
         """(indices, relevant): the obstacles that can matter (gap <= 0 mm), ascending, and how many there are.
