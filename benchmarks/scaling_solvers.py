@@ -209,8 +209,8 @@ def plot(rows: list[dict], out: Path, note: str) -> None:
             ax.plot(*zip(*comp, strict=True), "v-", color="C3", label="replan iteration, compiled C (CPU mean)")
         comp = [(xi, r["broad_cpu"]) for xi, r in zip(x, sel, strict=True) if np.isfinite(r["broad_cpu"])]
         if comp:
-            label = "replan iteration, compiled C, broad phase, <= 8 QP obstacles (CPU mean)"
-            ax.plot(*zip(*comp, strict=True), "D-", color="C4", label=label)
+            broad = "replan iteration, compiled C, broad phase, <= 8 QP obstacles (CPU mean)"
+            ax.plot(*zip(*comp, strict=True), "D-", color="C4", label=broad)
         ax.set_xlabel(label)
         ax.set_xticks(x)
         ax.set_xticklabels([str(v) for v in x])
