@@ -11,7 +11,9 @@ check (and replanning when needed), horizon NLP, tracking simulation and the
 dense verification of the move. Each configuration runs the closed loop for
 several planner seeds; the figures pool all iterations.
 
-Variants: "compiled" is the problem as shipped: the horizon's sqpmethod + daqp
+Variants: "compiled" is the problem as shipped (qp_obstacles = 8: a scene of more obstacles gets a QP of 8
+slots filled by the horizon's broad phase; "compiled-all" is the previous path, every obstacle in the QP,
+qp_obstacles = 0; on simulation 2's two spheres the two are the same computation): the horizon's sqpmethod + daqp
 generated as C (compiled once into the build cache, called through ctypes), a
 4 ms step deadline, 3 SQP iterations per call (max_calls 20), and reference
 paths planned by a worker process beside the loop ([loop] reference_delay =
@@ -29,7 +31,7 @@ deadline. 'p99 w/o plan' leaves out the iterations that planned a reference
 path or took one over; 'misses' counts the steps whose NLP result came after
 the deadline (they fall back to the last verified plan or a verified hold).
 
-Run: python benchmarks/replan.py [--seeds 3] [--solvers compiled,compiled-old,sqp,ipopt,sqp-qrqp]
+Run: python benchmarks/replan.py [--seeds 3] [--solvers compiled,compiled-all,compiled-old,sqp,ipopt,sqp-qrqp]
 """
 
 from __future__ import annotations
@@ -61,6 +63,8 @@ VARIANTS = {
     "sqp-qrqp": {"solver": "sqp", "qpsol": "qrqp", "compiled": False, "step_deadline": 0.0, "max_iter": 60},
     "ipopt": {"solver": "ipopt", "compiled": False, "step_deadline": 0.0, "max_iter": 60, "max_calls": 1},
     "compiled": {"solver": "sqp", "qpsol": "daqp", "compiled": True},
+    # the previous path: every obstacle of the scene in the QP, no broad phase (the switch: qp_obstacles = 0)
+    "compiled-all": {"solver": "sqp", "qpsol": "daqp", "compiled": True, "qp_obstacles": 0},
     "compiled-inline": {"solver": "sqp", "qpsol": "daqp", "compiled": True},
     "compiled-old": {
         "solver": "sqp", "qpsol": "daqp", "compiled": True, "closest_points": 0, "tol": 1e-6,
@@ -77,14 +81,36 @@ LOOP_VARIANTS = {
 }
 
 
-def run_variant(problem: Problem, name: str, seeds: list[int], safety: bool = True) -> dict:
+def _one(problem: Problem, name: str, seed: int, safety: bool) -> tuple[object, float]:
+    """One closed-loop run of variant `name` for planner seed `seed`: the run and its CPU s per step."""
     base = problem.options(ReplanOptions, "replan")
     opts = dataclasses.replace(base, **VARIANTS[name], safety=safety)
     lopts = dataclasses.replace(problem.options(LoopOptions, "loop"), **LOOP_VARIANTS.get(name, {}))
-    its, nlp, rows, quiet = [], [], [], []
+    loop = ClosedLoop.from_problem(problem, seed=seed, options=opts, loop_options=lopts)
+    c0 = time.process_time()
+    run = loop.run()
+    return run, (time.process_time() - c0) / max(1, run.steps)
+
+
+def run_variants(problem: Problem, names: list[str], seeds: list[int], safety: bool = True) -> list[dict]:
+    """Every variant for every seed, interleaved (all variants of one seed before the next seed, so a shared
+    machine's load falls on all of them alike); one summary per variant."""
+    raw: dict[str, list] = {n: [] for n in names}
     for seed in seeds:
-        loop = ClosedLoop.from_problem(problem, seed=seed, options=opts, loop_options=lopts)
-        run = loop.run()
+        for n in names:
+            raw[n].append(_one(problem, n, seed, safety))
+    return [_summary(n, raw[n]) for n in names]
+
+
+def run_variant(problem: Problem, name: str, seeds: list[int], safety: bool = True) -> dict:
+    """One variant over `seeds` (`run_variants` of one)."""
+    return run_variants(problem, [name], seeds, safety)[0]
+
+
+def _summary(name: str, runs: list) -> dict:
+    """The figures of one variant from its (run, CPU s per step) pairs."""
+    its, nlp, rows, quiet = [], [], [], []
+    for run, _ in runs:
         s = run.summary()
         its.append(run.iter_time)
         quiet.append(run.iter_time[run.plan_time == 0.0])
@@ -94,7 +120,8 @@ def run_variant(problem: Problem, name: str, seeds: list[int], safety: bool = Tr
     nl = np.concatenate(nlp)
     return {
         "variant": name,
-        "runs": len(seeds),
+        "runs": len(runs),
+        "cpu_step": float(np.mean([c for _, c in runs])),
         "reached": sum(r["reached_goal"] for r in rows),
         "collisions": sum(r["collisions"] for r in rows),
         "breaches": sum(r["safety_violations"] for r in rows),
@@ -131,7 +158,7 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=3, help="planner seeds per configuration (0..N-1)")
     ap.add_argument(
         "--solvers",
-        default="compiled,compiled-inline,compiled-old,sqp",
+        default="compiled,compiled-all,compiled-inline,compiled-old,sqp",
         help=f"comma list of {', '.join(VARIANTS)}",
     )
     args = ap.parse_args()
@@ -152,21 +179,20 @@ def main() -> None:
     head = (
         f"{'variant':<12} {'reached':>8} {'coll.':>6} {'min clr':>8} {'it med':>8} {'it p99':>8} {'w/o plan':>8} "
         f"{'it max':>8} "
-        f"{'NLP med':>8} {'NLP p99':>8} {'tip err':>8} {'sim s':>6} {'plans':>6} {'misses':>6}"
+        f"{'NLP med':>8} {'NLP p99':>8} {'tip err':>8} {'sim s':>6} {'plans':>6} {'misses':>6} {'cpu/st':>8}"
     )
     print(head)
     print("-" * len(head))
-    results = []
     t0 = time.perf_counter()
-    for n in names:
-        r = run_variant(problem, n, seeds)
-        results.append(r)
+    results = run_variants(problem, names, seeds)
+    for r in results:
+        n = r["variant"]
         print(
             f"{n:<12} {r['reached']:>4}/{r['runs']:<3} {r['collisions']:>6} {r['min_clearance']:>7.2f}m "
             f"{r['it_med'] * 1e3:>6.2f}ms {r['it_p99'] * 1e3:>6.2f}ms {r['it_p99_np'] * 1e3:>6.2f}ms "
             f"{r['it_max'] * 1e3:>6.0f}ms "
             f"{r['nlp_med'] * 1e3:>6.2f}ms {r['nlp_p99'] * 1e3:>6.2f}ms {r['tip_err']:>7.3f}m {r['duration']:>6.1f} "
-            f"{r['plans']:>6} {r['misses']:>6}"
+            f"{r['plans']:>6} {r['misses']:>6} {r['cpu_step'] * 1e3:>6.2f}ms"
         )
     print(
         f"{'paper':<12} {'':>8} {'':>6} {'':>8} {paper['iteration_s'] * 1e3:>6.0f}ms {'':>8} {'':>8} {'':>8} {'':>8} "
@@ -175,7 +201,9 @@ def main() -> None:
     print(
         "\n(m = mm; 'min clr' = smallest body clearance minus D_sf over every verification sample, 41 backbone "
         "points; 'plans' = reference paths planned, summed over runs; 'w/o plan' = p99 over the iterations "
-        "that neither planned nor took over a reference path; 'misses' = NLP results after the step deadline)"
+        "that neither planned nor took over a reference path; 'misses' = NLP results after the step deadline; "
+        "'cpu/st' = process CPU time per step of the whole loop, recording included; the variants run "
+        "interleaved, seed by seed)"
     )
     by = {r["variant"]: r for r in results}
     if "compiled" in by and "sqp" in by:
@@ -190,6 +218,13 @@ def main() -> None:
             f"compiled, references beside the loop vs inside the step: iteration median "
             f"x{inl['it_med'] / c['it_med']:.2f}, p99 x{inl['it_p99'] / c['it_p99']:.2f}, "
             f"max x{inl['it_max'] / c['it_max']:.2f}; deadline misses {c['misses']} vs {inl['misses']}"
+        )
+    if "compiled" in by and "compiled-all" in by:
+        c, a = by["compiled"], by["compiled-all"]
+        print(
+            f"compiled, broad phase (qp_obstacles {problem.options(ReplanOptions, 'replan').qp_obstacles}) vs every "
+            f"obstacle in the QP (qp_obstacles 0): iteration median x{a['it_med'] / c['it_med']:.2f}, p99 "
+            f"x{a['it_p99'] / c['it_p99']:.2f}, CPU per step x{a['cpu_step'] / c['cpu_step']:.2f}"
         )
     if "compiled" in by and "compiled-old" in by:
         c, old = by["compiled"], by["compiled-old"]

@@ -1,8 +1,10 @@
 """How the steer step and a replanning iteration grow with the obstacle count and the number of segments.
 
 Robots: cdsr2 (2 segments) and cdsr2 extended to 3 and 4 segments by repeating its second segment.
-Scenes: m spheres of radius 15 mm (m = 1, 3, 7, 15, 31 with 2 segments; 7 with 3 and 4 segments),
-seeded, placed around the robot clear of its start and goal bodies.
+Scenes: m spheres of radius 15 mm (m = 1, 3, 7, 15, 31, 100 with 2 segments; 7 with 3 and 4 segments),
+seeded, placed around the robot clear of its start and goal bodies. The steer and the interpreted and
+"all obstacles in the QP" replan columns stop at --old-up-to obstacles (default 31): past that their
+one-off builds take minutes.
 
 - steer: 40 seeded steer problems per scene (benchmarks/steer.py's generator), median wall time of
   `SteerSolver.solve` with sqpmethod + daqp interpreted, and with ``--compiled M``, the compiled C step
@@ -11,7 +13,10 @@ seeded, placed around the robot clear of its start and goal bodies.
   reference; median time per iteration and median horizon-NLP time (sqpmethod + daqp interpreted), and
   with ``--compiled-replan M`` the compiled horizon NLP as problems/paper_dynamic.toml runs it (iteration
   cap 3 per call, up to 20 calls; no deadline, so every solve converges) for every scene of at most M
-  obstacles (each new size is one C build of the horizon NLP, about a minute).
+  obstacles (each new size is one C build of the horizon NLP, about a minute). That column puts every
+  obstacle in the QP (``qp_obstacles = 0``, the previous path); the "broad" column is the same with the
+  shipped ``qp_obstacles = 8``: a QP of at most 8 obstacle slots, filled each step by the horizon's broad
+  phase (`crtraj.control.horizon_broad`), every move still verified against every obstacle.
 
 Writes docs/scaling_solvers.png (two panels: vs obstacles, vs segments) and prints the table with the
 date, machine and load. Run: python benchmarks/scaling_solvers.py [--compiled 7] [--compiled-replan 31]
@@ -44,7 +49,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "benchmarks"))
 from steer import make_problems  # noqa: E402 - the steer benchmark's own problem generator
 
-OBSTACLES = (1, 3, 7, 15, 31)
+OBSTACLES = (1, 3, 7, 15, 31, 100)
 SEGMENTS = (2, 3, 4)
 SEG_OBSTACLES = 7
 
@@ -99,12 +104,15 @@ def steer_ms(model: Model, scene: Scene, compiled: bool, n: int = 40) -> tuple[f
     return float(np.median(times) * 1e3), ok / n
 
 
-def replan_ms(model: Model, scene: Scene, compiled: bool = False) -> tuple[float, float, float, float]:
+def replan_ms(
+    model: Model, scene: Scene, compiled: bool = False, qp_obstacles: int = 0
+) -> tuple[float, float, float, float]:
     """(median iteration ms, median NLP ms, p99 iteration ms (wall), mean CPU ms per iteration) of a 3 s
-    closed-loop run; compiled: the horizon NLP in C with the shipped problem's iteration cap."""
+    closed-loop run; compiled: the horizon NLP in C with the shipped problem's iteration cap; qp_obstacles:
+    the QP's obstacle slots (0: every obstacle of the scene)."""
     xs, xg = configs(model)
     cap = {"compiled": True, "max_iter": 3, "max_calls": 20} if compiled else {}
-    opts = ReplanOptions(solver="sqp", qpsol="daqp", points=16, **cap)
+    opts = ReplanOptions(solver="sqp", qpsol="daqp", points=16, qp_obstacles=qp_obstacles, **cap)
     loop = ClosedLoop.build(
         model, scene, model.tip_position(xg), xs, options=opts, loop_options=LoopOptions(duration=3.0), goal_config=xg
     )
@@ -125,6 +133,9 @@ def main() -> int:
     ap.add_argument(
         "--compiled-replan", type=int, default=0, help="also time the compiled replanning up to this many obstacles"
     )
+    ap.add_argument(
+        "--old-up-to", type=int, default=31, help="steer, interpreted and all-obstacle replan up to this many obstacles"
+    )
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "scaling_solvers.png")
     args = ap.parse_args()
     base = Problem.load(ROOT / "problems" / "paper_static.toml").robot
@@ -133,22 +144,30 @@ def main() -> int:
     rows = []
     print(
         f"{'segments':>8} {'obstacles':>9} {'steer cpu ms':>12} {'ok':>5} {'compiled cpu ms':>15} {'iter ms':>8} "
-        f"{'iter p99':>8} {'NLP ms':>7} {'iter cpu ms':>11} {'compiled iter cpu ms':>20} {'compiled NLP ms':>15}"
+        f"{'iter p99':>8} {'NLP ms':>7} {'iter cpu ms':>11} {'compiled iter cpu ms':>20} {'compiled NLP ms':>15} "
+        f"{'broad iter cpu ms':>17} {'broad NLP ms':>12}"
     )
     for n, m in cases:
         model = Model(robot_with(base, n))
         scene = scene_for(model, m, seed=10 * n + m)
-        st, ok = steer_ms(model, scene, compiled=False)
-        cst = steer_ms(model, scene, compiled=True)[0] if m <= args.compiled else float("nan")
-        it, nlp, p99, cpu = replan_ms(model, scene)
-        cnlp = ccpu = float("nan")  # not timed: printed as nan, not plotted
+        nan = float("nan")  # not timed: printed as nan, not plotted
+        old = m <= args.old_up_to
+        st, ok = steer_ms(model, scene, compiled=False) if old else (nan, nan)
+        cst = steer_ms(model, scene, compiled=True)[0] if m <= min(args.compiled, args.old_up_to) else nan
+        it, nlp, p99, cpu = replan_ms(model, scene) if old else (nan, nan, nan, nan)
+        cnlp = ccpu = bnlp = bcpu = nan
         if m <= args.compiled_replan:
-            _, cnlp, _, ccpu = replan_ms(model, scene, compiled=True)
+            # interleaved: the previous path (every obstacle in the QP), then the broad phase's
+            if old:
+                _, cnlp, _, ccpu = replan_ms(model, scene, compiled=True)
+            _, bnlp, _, bcpu = replan_ms(model, scene, compiled=True, qp_obstacles=8)
         row = {"segments": n, "obstacles": m, "steer": st, "ok": ok, "compiled": cst}
-        rows.append(row | {"iter": it, "p99": p99, "nlp": nlp, "iter_cpu": cpu, "compiled_iter_cpu": ccpu})
+        rows.append(
+            row | {"iter": it, "p99": p99, "nlp": nlp, "iter_cpu": cpu, "compiled_iter_cpu": ccpu, "broad_cpu": bcpu}
+        )
         print(
             f"{n:>8} {m:>9} {st:>12.3f} {ok:>5.2f} {cst:>15.3f} {it:>8.2f} {p99:>8.2f} {nlp:>7.2f} {cpu:>11.2f} "
-            f"{ccpu:>20.2f} {cnlp:>15.2f}",
+            f"{ccpu:>20.2f} {cnlp:>15.2f} {bcpu:>17.2f} {bnlp:>12.2f}",
             flush=True,
         )
     stamp = f"{datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC"
@@ -176,16 +195,22 @@ def plot(rows: list[dict], out: Path, note: str) -> None:
         ),
     ):
         x = [r[key] for r in sel]
-        ax.plot(x, [r["steer"] for r in sel], "o-", color="C0", label="steer, sqp + daqp interpreted (CPU median)")
+        fin = [(xi, r["steer"]) for xi, r in zip(x, sel, strict=True) if np.isfinite(r["steer"])]
+        ax.plot(*zip(*fin, strict=True), "o-", color="C0", label="steer, sqp + daqp interpreted (CPU median)")
         comp = [(xi, r["compiled"]) for xi, r in zip(x, sel, strict=True) if np.isfinite(r["compiled"])]
         if comp:
             ax.plot(*zip(*comp, strict=True), "s-", color="C1", label="steer, compiled C (CPU median)")
-        ax.plot(x, [r["iter_cpu"] for r in sel], "^-", color="C2", label="replan iteration, interpreted (CPU mean)")
+        fin = [(xi, r["iter_cpu"]) for xi, r in zip(x, sel, strict=True) if np.isfinite(r["iter_cpu"])]
+        ax.plot(*zip(*fin, strict=True), "^-", color="C2", label="replan iteration, interpreted (CPU mean)")
         comp = [
             (xi, r["compiled_iter_cpu"]) for xi, r in zip(x, sel, strict=True) if np.isfinite(r["compiled_iter_cpu"])
         ]
         if comp:
             ax.plot(*zip(*comp, strict=True), "v-", color="C3", label="replan iteration, compiled C (CPU mean)")
+        comp = [(xi, r["broad_cpu"]) for xi, r in zip(x, sel, strict=True) if np.isfinite(r["broad_cpu"])]
+        if comp:
+            broad = "replan iteration, compiled C, broad phase, <= 8 QP obstacles (CPU mean)"
+            ax.plot(*zip(*comp, strict=True), "D-", color="C4", label=broad)
         ax.set_xlabel(label)
         ax.set_xticks(x)
         ax.set_xticklabels([str(v) for v in x])

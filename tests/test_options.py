@@ -175,7 +175,7 @@ _OLD_DEFAULTS = {
         rescue=True, safety=True, compiled=False, step_deadline=0.0,
         # issue 14: the QP keeps the 3 closest points per obstacle and step, and stops at a dual residual of
         # 1e-4 (mm^2 per unit of x) instead of 1e-6, both for the replan iteration's time
-        closest_points=3, tol=1e-4,
+        closest_points=3, tol=1e-4, qp_obstacles=8,
     ),
     LoopOptions: dict(
         duration=60.0, replan_period=0.0, planner_time=1.0, stall_time=3.0, reference_speed=0.7,

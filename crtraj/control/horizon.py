@@ -65,6 +65,7 @@ import casadi as ca
 import numpy as np
 
 from crtraj.control.horizon_backends import (
+    SCREEN_SOLVES,
     CompiledBackend,
     HorizonCall,
     HorizonQuery,
@@ -75,6 +76,7 @@ from crtraj.control.horizon_backends import (
     ScreenedBackend,
     ScreenStart,
 )
+from crtraj.control.horizon_broad import BroadPhase, Selection
 from crtraj.control.horizon_build import (
     CompiledParts,
     HorizonNLP,
@@ -197,6 +199,10 @@ class Replanner:
         seg, frac = model.arc_segments(model.arc_positions(o.points))
         self._slot_table = np.column_stack([np.eye(r.n_segments)[seg], frac])
         self._build(solver_wrapper)
+        # which obstacles of a larger scene enter the QP's slots (`obstacles_from_scene` with x0)
+        self.broad = BroadPhase(model, o.points, self.step_limit, self.N)
+        self.broad_overflows = 0  # steps on which more obstacles could matter than the QP has slots
+        self._selection: Selection | None = None  # those, when they did (checked at the solution)
         self._warm: _Warm | None = None
         self.solve_count = 0
 
@@ -258,8 +264,11 @@ class Replanner:
         Each slot's radius is the inflated rho of the module docstring (the
         NLP compares point distances with it directly).
         """
-        rho = np.sqrt((np.maximum(radii, 0.0) + self.inflate) ** 2 + (self.spacing / 2.0) ** 2)
-        return packing.pack(centers, rho, self.max_obstacles, "the replanner")
+        return packing.pack(centers, self._rho(radii), self.max_obstacles, "the replanner")
+
+    def _rho(self, radii: np.ndarray) -> np.ndarray:
+        """The inflated radii (mm) the NLP keeps its points outside of, from sphere radii (mm)."""
+        return np.sqrt((np.maximum(radii, 0.0) + self.inflate) ** 2 + (self.spacing / 2.0) ** 2)
 
     def step_windows(self, t0: float) -> tuple[np.ndarray, np.ndarray]:
         """(lo, hi) time windows (N,) s that step k's configuration is kept clear over: [t_k-1, t_k+1]."""
@@ -267,12 +276,23 @@ class Replanner:
         dt = self.options.dt
         return t0 + (k - 1) * dt, t0 + (k + 1) * dt
 
-    def obstacles_from_scene(self, scene: Any, t0: float) -> np.ndarray:
-        """Obstacle parameter (N, packing.WIDTH * max_obstacles) for the scene's known motion, horizon from t0 (s)."""
+    def obstacles_from_scene(self, scene: Any, t0: float, x0: np.ndarray | None = None) -> np.ndarray:
+        """Obstacle parameter (N, packing.WIDTH * max_obstacles) for the scene's known motion, horizon from t0 (s).
+
+        x0: the configuration (nx,) the horizon starts from. With it, a scene of more obstacles than the NLP's
+        slots fills them with the obstacles the horizon's reachable body can come near (`BroadPhase`): the
+        others cannot be active in any plan within reach. Without it such a scene is an `InputError`."""
         lo, hi = self.step_windows(float(t0))
         if scene.n_obstacles == 0:
             return self._inflated(np.zeros((self.N, 0, 3)), np.zeros((self.N, 0)))
         centers, radii = scene.swept_spheres(lo, hi)  # (N, M, 3), (N, M)
+        self._selection = None
+        if x0 is not None and scene.n_obstacles > self.max_obstacles:
+            packed, self._selection = self.broad.pack(
+                np.asarray(x0, float), centers, self._rho(radii), self.max_obstacles
+            )
+            self.broad_overflows += self._selection is not None
+            return packed
         return self._inflated(centers, radii)
 
     def obstacles_from_states(
@@ -352,6 +372,8 @@ class Replanner:
             log.debug("horizon: rescue ipopt after %s: %s", tried[-1].status, rr.status)
             r = replace(rr, status=f"{tried[-1].status}; rescue ipopt: {rr.status}")
             tried.append(r)
+        if self._selection is not None and obstacles is self._selection.packed:
+            r = self._omitted(r, p, tried, time_left)
         r = replace(r, wall=sum(x.wall for x in tried))
         return self._result(r, tried, rescued, used_warm)
 
@@ -439,6 +461,26 @@ class Replanner:
             r = self.backend.solve(replace(query, x0=r.x, lam_x0=lam_x, lam_g0=lam_g, start=here))
             tried.append(r)
         return r
+
+    def _omitted(self, r: HorizonCall, p: np.ndarray, tried: list[HorizonCall], time_left: float | None) -> HorizonCall:
+        """r checked against the obstacles the broad phase left out of a full QP (`BroadPhase.reselect`): solved
+        again from its point with the ones it enters in the slots (at most `SCREEN_SOLVES` times, while time is
+        left); if one is still entered, r with that violation (not a usable plan). A failed call is returned as is."""
+        sel = self._selection
+        for solves in range(SCREEN_SOLVES + 1):
+            if sel is None or self._infeasible(r):
+                return r  # a failed call is no plan either way
+            P = self.model.points(r.x.reshape(self.N, self.nx), self.options.points)
+            worst, sel = self.broad.reselect(sel, P, self.max_obstacles)
+            if sel is None:
+                return r
+            if solves == SCREEN_SOLVES or not _in_time(tried, time_left):
+                break
+            p = p.copy()
+            p[len(p) - sel.packed.size :] = sel.packed.ravel()
+            r = self._attempt(HorizonQuery(p, r.x), tried, time_left)
+        why = f"; an obstacle left out of the QP stays {-worst:.3g} mm inside its sphere"
+        return replace(r, violation=max(r.violation, -worst), ok=False, status=r.status + why)
 
     def _infeasible(self, r: HorizonCall) -> bool:
         """A solver call's iterate breaks a constraint (or is not finite): not a usable plan."""

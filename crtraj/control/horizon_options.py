@@ -56,6 +56,10 @@ class ReplanOptions(Options):
     Horizon NLP: horizon N (steps), dt (s per step), points (backbone points
     constrained per configuration), closest_points (0 = all: how many of
     those points per obstacle and step the QP keeps, see `Replanner`),
+    qp_obstacles (0 = all: in a scene of more obstacles than this, the
+    QP is built for this many, and a broad phase picks, each step, the
+    obstacles the horizon's reachable body can come near,
+    `crtraj.control.horizon_broad`; every move is still verified against all),
     margin (mm of clearance kept on top of
     D_sf + body radius + sampling bounds, for servo lag), weights
     (tip_weight, config_weight, velocity_weight, smooth_weight,
@@ -94,6 +98,7 @@ class ReplanOptions(Options):
     dt: float = option(0.1, ge=1e-3, le=10.0)
     points: int = option(16, ge=2, le=200)
     closest_points: int = option(3, ge=0, le=200)
+    qp_obstacles: int = option(8, ge=0, le=10_000)
     margin: float = option(1.5, ge=0.0)
     tip_weight: float = option(1.0, ge=0.0)
     config_weight: float = option(0.01, ge=0.0)

@@ -194,7 +194,9 @@ class ClosedLoop:
         milliseconds that would otherwise land in step 0. The replanner's warm start is forgotten."""
         rp, dt, p = self.replanner, self.options.dt, self.parts
         X_ref = p.references.horizon_reference(robot.x, rp.N, dt)
-        res = rp.solve(robot.x, X_ref, rp.obstacles_from_scene(p.checks.scene_now, robot.t), x_prev=robot.x_prev)
+        res = rp.solve(
+            robot.x, X_ref, rp.obstacles_from_scene(p.checks.scene_now, robot.t, robot.x), x_prev=robot.x_prev
+        )
         rp.reset()
         x1 = res.configs[0] if res.feasible else robot.x
         sim = p.motion.track(robot.q, robot.qc, robot.x, x1, robot.t, robot.inc)
@@ -289,7 +291,7 @@ class ClosedLoop:
         p.checks.use(scene_t)
         refs = p.references.update(k, robot.x, t, dt * rp.N)
         X_ref = p.references.horizon_reference(robot.x, rp.N, dt)
-        obstacles = rp.obstacles_from_scene(scene_t, t)
+        obstacles = rp.obstacles_from_scene(scene_t, t, robot.x)
         deadline = self.options.step_deadline
         left = deadline - (self.clock.now() - t_iter) if deadline else None
         late = p.policy.solve(robot.x, X_ref, obstacles, robot.x_prev, left)
