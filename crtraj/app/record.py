@@ -19,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+from crtraj.app.plant_sim import PLANTS, PRETENSION
+from crtraj.app.record_plant import plant_dataset
 from crtraj.app.stream import _print_report, _stream
 from crtraj.core.errors import InputError
 from crtraj.core.fields import check_float
@@ -44,6 +46,7 @@ from crtraj.model.calibration import (
 from crtraj.model.calibration.timing import detect_time_offset
 from crtraj.model.excitation import excitation_path
 from crtraj.model.robot import Robot
+from crtraj.model.rod_drive import RodDrive
 from crtraj.world.scene import Scene
 
 # Share of each actuator's speed and acceleration limit the excitation may use.
@@ -157,6 +160,26 @@ def _check_timing(
         )
 
 
+def _record_plant(args: argparse.Namespace, robot: Robot, sites: tuple[MarkerSite, ...], out: Path) -> int:
+    """`--excite --plant MODEL`: the excitation filmed on the simulated rod (`crtraj.app.record_plant`)."""
+    if not args.excite or any(x is not None for x in (args.udp, args.serial, args.dry_run, args.log, args.markers)):
+        raise InputError("--plant: a simulated capture of the excitation: give --excite and none of --udp, "
+                         "--serial, --dry-run, --log, --markers")  # fmt: skip
+    if args.plant not in PLANTS:
+        raise InputError(f"--plant: unknown plant {args.plant!r} (choose from {', '.join(PLANTS)})")
+    drive = RodDrive(robot, pretension=PRETENSION, gravity=args.plant == "cosserat")
+    prob = Problem.load(args.problem) if args.problem else None
+    scene = prob.options(Scene, "scene") if prob else Scene()
+    motion = excitation_motion(robot, Actuators.from_robot(robot), scene, duration=args.duration)
+    data = plant_dataset(motion, drive, sites, rate=args.capture_rate, seed=prob.seed if prob else 0)
+    data.write(out)
+    print(
+        f"dataset: {display_path(out)}: {data.n} samples of {len(sites)} markers filmed on the {args.plant} rod "
+        f"({data.t[-1]:.1f} s of excitation at {args.capture_rate:g} Hz, 0.3 mm capture noise)"
+    )
+    return 0
+
+
 def record_command(args: argparse.Namespace) -> int:
     """`crtraj record ...` (arguments from `crtraj.cli`); returns the exit code."""
     out = check_output_file(args.out, "--out")
@@ -168,6 +191,8 @@ def record_command(args: argparse.Namespace) -> int:
         raise InputError(f"{args.robot}: robot.actuators: missing; a dataset records actuator values")
     sites = marker_sites(args.marker, robot)
     log = args.log
+    if getattr(args, "plant", None):
+        return _record_plant(args, robot, sites, out)
     if args.excite:
         if sum(x is not None for x in (args.udp, args.serial, args.dry_run)) != 1:
             raise InputError("--excite: give exactly one of --udp, --serial, --dry-run")

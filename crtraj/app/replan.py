@@ -21,10 +21,12 @@ from typing import Any
 import numpy as np
 
 from crtraj.app.approach import plan_approach
+from crtraj.app.plant_sim import attach_plant, make_plant, plant_lines, plant_verdict
 from crtraj.app.run_output import write_run_files
 from crtraj.control.horizon import ReplanOptions
 from crtraj.control.loop import ClosedLoop, ReplanRun, RunStatus
 from crtraj.control.problem_loop import UnsolvableTaskError
+from crtraj.control.rod_plant import RodPlant
 from crtraj.core.errors import InputError
 from crtraj.core.fileio import StagedDir, check_output_dir, failed_sibling, is_successful_result
 from crtraj.core.lazy import lazy_module
@@ -61,10 +63,13 @@ class ReplanRequest:
     afterwards. approach: the device may start away from the task's start. time_scale: replay slow-down
     (streamed afterwards only). quiet: print only the summary line. true_robot: a robot file whose
     parameters differ from the problem's (a simulation: a motion-capture tip marker films this robot,
-    `crtraj.hardware.mocap.SimulatedMocap`, and the run reports its measured tip error). tip_feedback: the
+    `crtraj.hardware.mocap.SimulatedMocap`, and the run reports its measured tip error; with plant: the
+    rod's robot file). tip_feedback: the
     loop corrects its model's error with that measured tip. mocap_port: listen on 127.0.0.1:PORT for the live
     capture's tip marker (`crtraj.hardware.mocap.MocapTip`, through the robot file's calibrated capture frame;
-    live runs only: with feed and stream).
+    live runs only: with feed and stream). plant: "cosserat" (or "cosserat-weightless") simulates the robot
+    with the Cosserat rod (`crtraj.app.plant_sim`): its shape is judged against the obstacles and its tip
+    is the loop's tip measurement.
     """
 
     problem: Path
@@ -82,6 +87,7 @@ class ReplanRequest:
     true_robot: Path | None = None
     tip_feedback: bool = False
     mocap_port: int | None = None
+    plant: str | None = None
 
 
 @dataclass(frozen=True)
@@ -94,6 +100,7 @@ class _Written:
     ok: bool  # reached the goal without breaking D_sf (also without the safety terms), and a live stream completed
     dest: Path
     paths: dict[str, Any]
+    plant: RodPlant | None = None  # the simulated plant (--plant)
 
 
 def run_replan(req: ReplanRequest, *, view: Callable[[dict[str, Any]], None] | None = None) -> int:
@@ -105,8 +112,12 @@ def run_replan(req: ReplanRequest, *, view: Callable[[dict[str, Any]], None] | N
         raise InputError(f"--seed: must be >= 0, got {req.seed}")
     if req.stream:
         check_stream_safety(req.safety)
-    if req.tip_feedback and req.true_robot is None and req.mocap_port is None:
-        raise InputError("--tip-feedback: needs a tip measurement: --mocap-port (live) or --true-robot (simulated)")
+    if req.tip_feedback and req.true_robot is None and req.mocap_port is None and req.plant is None:
+        raise InputError(
+            "--tip-feedback: needs a tip measurement: --mocap-port (live), --true-robot or --plant (simulated)"
+        )
+    if req.plant is not None and (req.stream or req.feed or req.mocap_port is not None):
+        raise InputError("--plant: a simulation; it cannot be combined with --stream, --feed or --mocap-port")
     if req.true_robot is not None and (req.stream or req.feed or req.mocap_port is not None):
         raise InputError("--true-robot: a simulation; it cannot be combined with --stream, --feed or --mocap-port")
     if req.mocap_port is not None and not (req.stream and req.feed):
@@ -132,8 +143,11 @@ def run_replan(req: ReplanRequest, *, view: Callable[[dict[str, Any]], None] | N
     return _exit_code(done, streamed)
 
 
-def _tip_sensor(req: ReplanRequest, problem: Problem) -> SimulatedMocap | MocapTip | None:
-    """The live capture's tip (--mocap-port), the simulated motion capture of --true-robot, or None."""
+def _tip_sensor(req: ReplanRequest, problem: Problem) -> SimulatedMocap | MocapTip | RodPlant | None:
+    """The live capture's tip (--mocap-port), the simulated motion capture of --true-robot, the simulated
+    plant (--plant: the tip of its shape), or None."""
+    if req.plant is not None:
+        return make_plant(req.plant, problem, load_robot(req.true_robot) if req.true_robot else None)
     if req.mocap_port is not None:
         ref = problem.raw.get("robot")
         rec = read_calibration(problem.path.parent / ref) if isinstance(ref, str) and problem.path else None
@@ -198,13 +212,17 @@ def _run_and_write(req: ReplanRequest, problem: Problem, seed: int, feed: Any, o
                 link = _live_link(streamer, req.approach, problem, loop, sopts)
             if not req.quiet:
                 _print_header(problem, seed, loop, live_obstacles=feed is not None)
-            run = loop.run(device=link)
+            if isinstance(sensor, RodPlant):
+                attach_plant(sensor, loop)
+            run = loop.run(device=sensor if isinstance(sensor, RodPlant) else link)
         finally:
             if link is not None:
                 link.streamer.close()  # a no-op after a normal run: the run closed it
             if feed is not None:
                 feed.close()
         ok = run.is_success()  # reached the goal safely, --no-safety or not
+        if isinstance(sensor, RodPlant):
+            ok = ok and not plant_verdict(sensor)  # and safely by the plant's shape
         if link is not None:
             ok = ok and link.report.ok
         staged = write_run_files(run, loop, stage.path, problem=problem, seed=seed, html=req.html)
@@ -214,7 +232,7 @@ def _run_and_write(req: ReplanRequest, problem: Problem, seed: int, feed: Any, o
             dest = failed_sibling(out)
         dest = stage.commit(dest)
     paths = {k: (v if k == "result" else dest / Path(v).name) for k, v in staged.items()}
-    return _Written(run, loop, link, ok, dest, paths)
+    return _Written(run, loop, link, ok, dest, paths, sensor if isinstance(sensor, RodPlant) else None)
 
 
 def _print_header(problem: Problem, seed: int, loop: ClosedLoop, *, live_obstacles: bool) -> None:
@@ -237,7 +255,10 @@ def _print_summary(req: ReplanRequest, done: _Written, out: Path, t0: float) -> 
     print(line)
     if not req.quiet:
         print(f"  {run.limits_line()}")
-    if run.measured_tip is not None:
+    if done.plant is not None:
+        for text in plant_lines(done.plant, run):
+            print(f"  {text}")
+    elif run.measured_tip is not None:
         print(f"  {measured_tip_line(run, req.tip_feedback)}")
     if link is not None:
         rep = link.report
@@ -275,6 +296,8 @@ def _exit_code(done: _Written, streamed: bool) -> int:
         why = f"{run.status}: {run.message}"
         if run.reached and run.safety_violations:
             why = f"unsafe: {run.safety_violations} steps closer than D_sf, {run.collisions} touching an obstacle"
+        elif done.plant is not None and plant_verdict(done.plant):
+            why = plant_verdict(done.plant)
         elif link is not None and run.reached:
             why = f"live stream {link.report.status}: {link.report.message}"
         print(f"crtraj: replan failed: {why} (run in {dest})", file=sys.stderr)
@@ -393,6 +416,7 @@ def replan_command(args: Any) -> int:
         true_robot=Path(args.true_robot) if getattr(args, "true_robot", None) else None,
         tip_feedback=bool(getattr(args, "tip_feedback", False)),
         mocap_port=getattr(args, "mocap_port", None),
+        plant=getattr(args, "plant", None),
     )
     view = (lambda result: view_module.serve(result, "the run", not args.no_browser)) if args.view else None
     return run_replan(req, view=view)

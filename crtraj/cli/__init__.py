@@ -328,13 +328,19 @@ def _add_replan(sub: argparse._SubParsersAction) -> None:
         "--true-robot",
         metavar="FILE",
         help="simulation: a robot file with the robot's real parameters (e.g. perturbed); a simulated motion-capture "
-        "tip marker films it and the run reports the measured tip error",
+        "tip marker films it and the run reports the measured tip error; with --plant: the rod's robot file",
     )
     p.add_argument(
         "--tip-feedback",
         action="store_true",
         help="use the motion-capture tip as the loop's measurement: it corrects the remaining model error "
-        "(needs --mocap-port or --true-robot)",
+        "(needs --mocap-port, --true-robot or --plant)",
+    )
+    p.add_argument(
+        "--plant",
+        metavar="MODEL",
+        help="simulation: the robot is a Cosserat rod (cosserat: with the robot file's gravity; cosserat-weightless); "
+        "the loop still plans with PCC, the rod's shape is judged against the obstacles and its tip is measured",
     )
     p.add_argument(
         "--mocap-port",

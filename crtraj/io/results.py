@@ -173,6 +173,7 @@ def run_document(run: ReplanRun, context: RunContext, problem: Any = None, seed:
     }
     doc |= rs.compose(rs.VERDICT, _verdict_values(run.status, run.is_success(), run.message, summary, timing))
     src = _RunSource(run, context.model.points(run.x, RUN_BACKBONE_POINTS))
+    plant = _plant(run.device, summary)
     refs = [{"step": int(k), "t": float(run.t[k]), "tip": tips} for k, tips in run.reference_tips]
     body = {
         "nlp": run.nlp,
@@ -180,13 +181,23 @@ def run_document(run: ReplanRun, context: RunContext, problem: Any = None, seed:
         # what a device is sent (`crtraj.hardware.setpoints.SetpointPath.from_executed`)
         "executed": {"t0": float(run.t[0]), "dt": run.control_dt, "q": run.executed} if len(run.executed) else None,
         "feed": run.feed or None,  # the live feed: counters, options, every rejected or clamped message
-        "stream": run.device or None,  # the live device stream (`DeviceLink.describe`)
+        "stream": None if plant else run.device or None,  # the live device stream (`DeviceLink.describe`)
+        "plant": plant,  # a simulated plant (`crtraj.control.rod_plant.RodPlant.describe`)
         "tree": {"edges": run.tree_edges} if len(run.tree_edges) else None,
         "reference": {"tip": refs[-1]["tip"]} if refs else None,
         "references": refs or None,
     }
     doc |= rs.compose(rs.RUN_BODY, body)
     return to_jsonable(doc)
+
+
+def _plant(device: dict[str, Any], summary: dict[str, Any]) -> dict[str, Any] | None:
+    """A simulated plant's report (`rs.PLANT`) with PCC's own view of the run beside it; None for a
+    live device or none."""
+    if not device or device.get("kind") != "plant":
+        return None
+    keys = ("final_tip_error_mm", "min_clearance_mm", "collisions", "safety_violations", "reached_goal")
+    return rs.compose(rs.PLANT, {**device, "pcc": {k: summary[k] for k in keys}})
 
 
 # ------------------------------------------------------------------ reading

@@ -319,9 +319,34 @@ RUN_BODY = (
     Field("executed", "s, mm", "object", "`t0`, `dt`, `q`: what a device is sent (`crtraj.control.executed`)"),
     Field("feed", "", "object", "a live obstacle feed's counters, options and rejected messages"),
     Field("stream", "", "object", "a live device stream's report (`DeviceLink.describe`)"),
+    Field("plant", "", "object", "the simulated plant of `crtraj replan --plant cosserat` (below)"),
     Field("tree", "mm", "object", "`edges` (E, 2, 3): the last reference planner's tree"),
     Field("reference", "mm", "object", "`tip` (M, 3): the last reference path tracked"),
     Field("references", "", "list", "every reference path: `step`, `t` (s), `tip` (M, 3) mm"),
+)
+
+# `crtraj.control.rod_plant.RodPlant.describe`, plus PCC's own view of the same run
+PLANT = (
+    Field("kind", "", "string", '"plant"', True),
+    Field("model", "", "string", '"cosserat": the Cosserat rod in cable-length mode (`crtraj.model.rod_drive`)', True),
+    Field("gravity", "", "bool", "the rod carried its weight (`[robot.mechanics]` gravity)", True),
+    Field("pretension_n", "N", "float", "tendon tension at the straight pose"),
+    Field("tip_noise_mm", "mm", "float", "standard deviation per axis of the plant's tip readings"),
+    Field("periods", "", "int", "control periods the plant was judged at"),
+    Field("final_tip_error_mm", "mm", "float", "the rod's tip to the goal at the end", True),
+    Field("min_clearance_mm", "mm", "float", "smallest clearance (minus D_sf) of the rod's body", True),
+    Field("collisions", "", "int", "control periods the rod's body touched an obstacle", True),
+    Field("safety_violations", "", "int", "control periods the rod's body came closer than D_sf", True),
+    Field("failed_solves", "", "int", "control periods whose rod solve did not converge (no shape)"),
+    Field("failure", "", "string", "why the plant stopped the run ('' when it did not)"),
+    Field("holds", "", "int", "steps the loop held the servos"),
+    Field("estop", "", "string", "why the loop e-stopped the plant ('' when it did not)"),
+    Field("solves", "", "int", "rod solves"),
+    Field("t", "s", "(M,)", "times: 0, then the end of every control period"),
+    Field("q", "mm", "(M, nq)", "the plant's actuation at those times"),
+    Field("tip", "mm", "(M, 3)", "the rod's tip at those times"),
+    Field("clearance", "mm", "(M,)", "the rod's clearance (minus D_sf) at those times, null where the solve failed"),
+    Field("pcc", "mm", "object", "PCC's own view of the run: `final_tip_error_mm`, `min_clearance_mm`, ..."),
 )
 
 REFERENCE = (Field("tip", "mm", "(M, 3)", "tip polyline of the reference path", True, read=read_polyline),)
@@ -384,6 +409,7 @@ TABLES = (
     ("Run waypoint (run.json `waypoints[k]`)", RUN_WAYPOINT),
     ("Waypoint obstacles (`waypoints[k].obstacles`)", OBSTACLES),
     ("Executed actuation (run.json `executed`)", EXECUTED),
+    ("Simulated plant (run.json `plant`)", PLANT),
     ("Arrays (run.npz)", NPZ),
 )
 

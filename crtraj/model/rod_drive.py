@@ -1,0 +1,125 @@
+"""The Cosserat rod driven by a PCC robot's actuation: servo positions -> commanded tendon lengths -> shape.
+
+crtraj's servos are position controlled: each sets how much tendon lies between the base disc and the
+tendon's end disc. `RodDrive` turns the loop's actuation q (mm, `crtraj.model.robot.Robot.cables`) into
+those commanded lengths and solves the rod in cable-length mode (`crtraj.model.cosserat_cables`).
+
+The length map. The configuration x = `Robot.config(q)` has effective bending vectors u_bar_k (rad,
+`Robot.bending`). On a circular arc a tendon at the body-frame angle a, radius r, has the path
+``L - r u_bar . (cos a, sin a)`` exactly, and a tendon of segment k passes every segment j <= k. The
+tensions that hold that shape on a weightless rod are `crtraj.model.cosserat_map.tensions_for_bending`
+(the smallest of each segment equal to `pretension`); under them the backbone shortens by
+``F_j / EA`` per length (F_j: the tensions passing segment j) and each tendon stretches by
+``1 + tau_i / EA_t``. The commanded (unstretched) length is the path so shortened, divided by that
+stretch:
+
+    l_i = sum_{j <= k} (L_j (1 - F_j / EA) - r u_bar_j . (cos a_i, sin a_i)) / (1 + tau_i / EA_t)
+
+This is the drive of a robot whose servos were zeroed on the straight pose under pretension and that
+compensates the tendons' stretch with PCC's own tensions: the rod then differs from PCC only by
+mechanics the PCC model leaves out (how the tendon loads act along the rod, gravity, any tip load).
+Without the stretch compensation the rod would miss PCC by tens of mm: holding cdsr2's segment at
+pi takes about 40 N, which stretches a 9000 N tendon 0.9 mm over 200 mm, 0.35 rad at r = 2.5 mm.
+
+The rod's backbone is in its base frame with the base at the origin; the robot's base stage moves it by
+the actuation's last entry z (mm) along the base axis. Units: mm, N, rad.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from crtraj.core.errors import InputError
+from crtraj.core.fields import check_array, check_float
+from crtraj.model.cosserat import NO_LOAD, RodLoad
+from crtraj.model.cosserat_cables import CableDrivenRod, CableSolution
+from crtraj.model.cosserat_map import tensions_for_bending
+from crtraj.model.mechanics import Mechanics
+from crtraj.model.robot import Robot
+
+log = logging.getLogger(__name__)
+
+# Largest pretension (N): a few times the tension that bends a segment of cdsr2 through pi (about 40 N).
+MAX_PRETENSION = 200.0
+
+
+@dataclass(frozen=True)
+class RodShape:
+    """One solve of the driven rod. points: backbone (mm, world frame: base stage applied), NaN rows when
+    the solve failed; cable: the displacement-mode solution (tensions N, slack tendons, status)."""
+
+    points: np.ndarray
+    cable: CableSolution
+
+    def is_success(self) -> bool:
+        return self.cable.is_success()
+
+    @property
+    def tip(self) -> np.ndarray:
+        """Tip position (mm, world frame)."""
+        return self.points[-1]
+
+    @property
+    def status(self) -> str:
+        return self.cable.rod.status
+
+
+class RodDrive:
+    """The rod of `robot` driven by actuation q (see the module docstring).
+
+    mech: the ``[robot.mechanics]`` (default: the robot file's; `InputError` when it has none).
+    pretension: N in every tendon at the straight pose. gravity: apply the robot's weight
+    (`Mechanics.weight_per_length`); False: a weightless rod (no load).
+    """
+
+    def __init__(
+        self, robot: Robot, mech: Mechanics | None = None, *, pretension: float = 1.0, gravity: bool = True
+    ) -> None:
+        self.robot = robot
+        self.mech = Mechanics.from_robot(robot) if mech is None else mech
+        self.pretension = check_float(pretension, "pretension", gt=0.0, le=MAX_PRETENSION)
+        self.gravity = bool(gravity)
+        self.load = RodLoad() if self.gravity else NO_LOAD
+        self.rod = CableDrivenRod(robot, self.mech)
+
+    def lengths(self, q: np.ndarray) -> np.ndarray:
+        """Commanded tendon lengths (mm, cable order) for actuation q (nq,) mm (the module docstring)."""
+        r, m = self.robot, self.mech
+        q = check_array(np.asarray(q, dtype=float), "q", (r.nq,))
+        n = r.n_segments
+        ub = r.bending(r.config(q)).reshape(n, 2)
+        tau = tensions_for_bending(r, m, ub, self.pretension)
+        passing = np.cumsum(tau.reshape(n, 3).sum(axis=1)[::-1])[::-1]  # N through each segment
+        lengths = np.array([s.length for s in r.segments])
+        short = lengths * (1.0 - passing / (m.youngs_modulus * m.area))
+        out = np.empty(3 * n)
+        for k in range(n):
+            d = np.stack([np.cos(r.cable_angles(k)), np.sin(r.cable_angles(k))], axis=1)  # (3, 2)
+            path = short[: k + 1].sum() - r.cable_radius * d @ ub[: k + 1].sum(axis=0)
+            out[3 * k : 3 * k + 3] = path / (1.0 + tau[3 * k : 3 * k + 3] / m.tendon_stiffness)
+        return out
+
+    def shape(self, q: np.ndarray) -> RodShape:
+        """The rod's shape at actuation q (mm): solved in cable-length mode, warm-started from the last
+        solve; the points are NaN when the solve did not converge (its status says why)."""
+        ell = self.lengths(q)
+        if np.any(ell <= 0.0):
+            raise InputError(f"q: gives a tendon length <= 0 mm ({float(ell.min()):.3g} mm)")
+        sol = self.rod.solve(ell, self.load)
+        pts = np.array(sol.rod.points, dtype=float)
+        pts[:, 2] += float(q[-1])  # the base stage
+        return RodShape(pts, sol)
+
+    def point_at(self, points: np.ndarray, segment: int, arc: float | None) -> np.ndarray:
+        """The backbone point (3,) mm at `arc` mm along `segment` (0-based; None: its end) of `points`
+        (a `shape`'s), interpolated linearly between the rod's integration nodes (exact at nodes)."""
+        seg = self.robot.segments[segment]
+        steps = self.mech.steps
+        f = steps if arc is None else float(arc) / seg.length * steps
+        i = min(int(np.floor(f)), steps - 1)
+        w = f - i
+        base = segment * steps
+        return (1.0 - w) * points[base + i] + w * points[base + i + 1]
