@@ -8,6 +8,12 @@ import argparse
 from crtraj.cli.paths import DEFAULT_ROBOT
 
 
+_PLANT_HELP = (
+    "excitation, simulated: film the Cosserat rod (cosserat, or cosserat-weightless) instead of a device; the "
+    "markers are read off its shape (0.3 mm capture noise), no device or marker file is needed"
+)
+
+
 def add_record(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "record",
@@ -45,12 +51,7 @@ def add_record(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--baud", type=int, default=115200, help="serial baud rate (default 115200)")
     p.add_argument("--dry-run", metavar="FILE", help="excitation: write the frames to FILE instead of a device")
     p.add_argument("--problem", help="excitation: problem file whose [scene] the motion must keep clear of")
-    p.add_argument(
-        "--plant",
-        metavar="MODEL",
-        help="excitation, simulated: film the Cosserat rod (cosserat, or cosserat-weightless) instead of a device; "
-        "the markers are read off its shape (0.3 mm capture noise), no device or marker file is needed",
-    )
+    p.add_argument("--plant", metavar="MODEL", help=_PLANT_HELP)
     p.add_argument("--capture-rate", type=float, default=10.0, help="with --plant: frames per second (default 10)")
     p.set_defaults(use_case="record")
 
