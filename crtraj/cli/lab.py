@@ -7,7 +7,6 @@ import argparse
 
 from crtraj.cli.paths import DEFAULT_ROBOT
 
-
 _PLANT_HELP = (
     "excitation, simulated: film the Cosserat rod (cosserat, or cosserat-weightless) instead of a device; the "
     "markers are read off its shape (0.3 mm capture noise), no device or marker file is needed"
