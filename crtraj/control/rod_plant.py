@@ -180,6 +180,8 @@ class RodPlant:
         return False
 
     def finish(self, q_final: np.ndarray) -> dict[str, Any]:
+        """The run ended: a held last step is judged, and the report returned."""
+        self.pace(self._t)
         return self.describe()
 
     def limit_fractions(self) -> dict[str, float]:
