@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import logging
 import math
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -84,6 +85,7 @@ class RodPlant:
         self._hold_from: float | None = None  # loop time a held step began (judged when it ends, in `pace`)
         self._estop = ""
         self.solves = 0
+        self.solve_time: list[float] = []
         self.periods, self.control_dt = 1, 0.0
 
     def attach(
@@ -101,7 +103,9 @@ class RodPlant:
         q = np.asarray(q, dtype=float)
         if self._last is not None and np.array_equal(self._last[0], q):
             return self._last[1]
+        t0 = time.perf_counter()
         s = self.drive.shape(q if self.to_plant is None else np.asarray(self.to_plant(q), dtype=float).reshape(-1))
+        self.solve_time.append(time.perf_counter() - t0)  # s of wall time: what the plant costs a simulation
         self.solves += 1
         self._last = (q.copy(), s)
         return s
@@ -217,6 +221,7 @@ class RodPlant:
             "holds": self._holds,
             "estop": self._estop,
             "solves": self.solves,
+            "median_solve_s": float(np.median(self.solve_time)) if self.solve_time else math.nan,
             "t": tr.t,
             "q": [list(map(float, q)) for q in tr.q],
             "tip": tips.tolist(),
@@ -231,5 +236,6 @@ class RodPlant:
         return (
             f"plant (Cosserat rod, {g}): final tip error {d['final_tip_error_mm']:.2f} mm, "
             f"min clearance {d['min_clearance_mm']:.2f} mm, collisions {d['collisions']} "
-            f"(D_sf breaches {d['safety_violations']}) over {d['periods']} control periods{fail}"
+            f"(D_sf breaches {d['safety_violations']}) over {d['periods']} control periods; {d['solves']} rod solves, "
+            f"median {d['median_solve_s'] * 1e3:.1f} ms{fail}"
         )

@@ -342,6 +342,7 @@ PLANT = (
     Field("holds", "", "int", "steps the loop held the servos"),
     Field("estop", "", "string", "why the loop e-stopped the plant ('' when it did not)"),
     Field("solves", "", "int", "rod solves"),
+    Field("median_solve_s", "s", "float", "median wall time of one rod solve (cable-length mode, warm-started)"),
     Field("t", "s", "(M,)", "times: 0, then the end of every control period"),
     Field("q", "mm", "(M, nq)", "the plant's actuation at those times"),
     Field("tip", "mm", "(M, 3)", "the rod's tip at those times"),
