@@ -37,6 +37,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
+from crtraj.core.build_cache import BuildCache
 from crtraj.core.errors import InputError
 from crtraj.core.fields import MAX_MAGNITUDE, check_array
 from crtraj.model.mechanics import Mechanics
@@ -207,6 +208,63 @@ def _rk4(f: Any, y: Any, h: float) -> Any:
     return y + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
 
 
+@dataclass(frozen=True)
+class RodPieces:
+    """The rod's shooting as small CasADi Functions of the state y = (p, vec R, v, u, tendon paths) and
+    the parameters p (see `build_shooting`): `init` w -> y(0); `steps[k]` one RK4 step of segment k,
+    (y, p) -> (y after the step, the angle (rad) the rod turns through in it); `jumps[k]` the disc at
+    the end of segment k < last, (y, p) -> y; `tip` (y, p) -> r, the tip residual. Chaining them gives
+    the shooting function; calling them with SX inlines them, with MX keeps the graph small."""
+
+    init: ca.Function
+    steps: tuple[ca.Function, ...]
+    jumps: tuple[ca.Function, ...]
+    tip: ca.Function
+    n_steps: int
+
+
+def rod_pieces(robot: Robot, mech: Mechanics) -> RodPieces:
+    """The `RodPieces` of one robot and its mechanics (built once; SX inside)."""
+    rod = _Rod(robot, mech)
+    n_seg, nt = robot.n_segments, 3 * robot.n_segments
+    y = ca.SX.sym("y", 18 + nt)
+    p = ca.SX.sym("p", nt + 9)
+    tau, fe, f_tip, m_tip = p[:nt], p[nt : nt + 3], p[nt + 3 : nt + 6], p[nt + 6 : nt + 9]
+    w = ca.SX.sym("w", 6)
+    v0, u0 = rod.strains(ca.SX.eye(3), w[:3], w[3:])
+    y0 = ca.vertcat(ca.SX.zeros(3), ca.reshape(ca.SX.eye(3), 9, 1), v0, u0, ca.SX.zeros(nt))
+    steps, jumps = [], []
+    for k, seg in enumerate(robot.segments):
+        f = ca.Function("rod_rhs", [y, p], [rod.rhs(y, tau, range(3 * k, nt), fe)])
+        h = seg.length / mech.steps
+        y_next = _rk4(lambda z, f=f: f(z, p), y, h)
+        steps.append(ca.Function(f"rod_step{k}", [y, p], [y_next, h * ca.norm_2(y[15:18])]))
+        F, M = rod.terminations(y, tau, range(3 * k, 3 * k + 3))
+        n, m = rod.internal(y)
+        if k < n_seg - 1:  # the disc passes the internal wrench on, less what its tendons take
+            v, u = rod.strains(ca.reshape(y[3:12], 3, 3), n - F, m - M)
+            jumps.append(ca.Function(f"rod_jump{k}", [y, p], [ca.vertcat(y[:12], v, u, y[18:])]))
+        else:
+            res = ca.vertcat(n - F - f_tip, (m - M - m_tip) / robot.total_length)
+    tip = ca.Function("rod_tip", [y, p], [res])
+    return RodPieces(ca.Function("rod_init", [w], [y0]), tuple(steps), tuple(jumps), tip, mech.steps)
+
+
+def march(pieces: RodPieces, w: Any, p: Any) -> tuple[Any, Any, Any, Any]:
+    """Integrate from the base wrench w to the tip: (residual r, points 3 x (n_segments steps + 1),
+    tip state y, largest turn per step); symbolic in whatever type w and p are (SX inlines, MX calls)."""
+    y = pieces.init(w)
+    cols, turns = [y[:3]], []
+    for k, step in enumerate(pieces.steps):
+        for _ in range(pieces.n_steps):
+            y, turn = step(y, p)
+            turns.append(turn)
+            cols.append(y[:3])
+        if k < len(pieces.jumps):
+            y = pieces.jumps[k](y, p)
+    return pieces.tip(y, p), ca.horzcat(*cols), y, ca.mmax(ca.vertcat(*turns))
+
+
 def build_shooting(robot: Robot, mech: Mechanics) -> ca.Function:
     """The shooting function (w, p) -> (r, points, R_tip, r) of the unknown base wrench
     w = (n(0) N, m(0) N mm) and the parameters p = (tensions (3 n_segments) N, distributed force (3)
@@ -215,34 +273,11 @@ def build_shooting(robot: Robot, mech: Mechanics) -> ca.Function:
     points: 3 x (n_segments steps + 1) mm; R_tip: 3 x 3; turn: the largest angle (rad) the rod
     turns through within one step (taken at the start of each step); paths (3 n_segments,): each
     tendon's path length (mm) from the base to its end disc in the deformed rod."""
-    rod = _Rod(robot, mech)
-    n_seg, nt = robot.n_segments, 3 * robot.n_segments
+    nt = 3 * robot.n_segments
     w = ca.SX.sym("w", 6)
     p = ca.SX.sym("p", nt + 9)
-    tau, fe, f_tip, m_tip = p[:nt], p[nt : nt + 3], p[nt + 3 : nt + 6], p[nt + 6 : nt + 9]
-    v0, u0 = rod.strains(ca.SX.eye(3), w[:3], w[3:])
-    y = ca.vertcat(ca.SX.zeros(3), ca.reshape(ca.SX.eye(3), 9, 1), v0, u0, ca.SX.zeros(nt))
-    cols = [y[:3]]
-    turns = []
-    for k, seg in enumerate(robot.segments):
-        passing = range(3 * k, nt)
-        ys = ca.SX.sym("y", 18 + nt)
-        f = ca.Function("rod_rhs", [ys, p], [rod.rhs(ys, tau, passing, fe)])
-        h = seg.length / mech.steps
-        for _ in range(mech.steps):
-            turns.append(h * ca.norm_2(y[15:18]))
-            y = _rk4(lambda z, f=f: f(z, p), y, h)
-            cols.append(y[:3])
-        F, M = rod.terminations(y, tau, range(3 * k, 3 * k + 3))
-        n, m = rod.internal(y)
-        if k < n_seg - 1:  # the disc passes the internal wrench on, less what its tendons take
-            R = ca.reshape(y[3:12], 3, 3)
-            v, u = rod.strains(R, n - F, m - M)
-            y = ca.vertcat(y[:12], v, u, y[18:])
-        else:
-            res = ca.vertcat(n - F - f_tip, (m - M - m_tip) / robot.total_length)
-    R_tip = ca.reshape(y[3:12], 3, 3)
-    outs = [res, ca.horzcat(*cols), R_tip, res, ca.mmax(ca.vertcat(*turns)), y[18:]]
+    res, points, y, turn = march(rod_pieces(robot, mech), w, p)
+    outs = [res, points, ca.reshape(y[3:12], 3, 3), res, turn, y[18:]]
     names = ["r", "points", "R_tip", "residual", "turn", "paths"]
     return ca.Function("rod_shooting", [w, p], outs, ["w", "p"], names)
 
@@ -307,15 +342,45 @@ class CosseratRod:
 
     solve(tensions, load) -> RodSolution. Tensions (N) are ordered as the robot's cables (segment by
     segment, cable 1..3), the order of the actuation vector q.
+
+    compiled: solve with generated C through the build cache (`crtraj.model.cosserat_compiled`; about
+    0.5 ms a warm solve instead of 13 ms; the first use per robot compiles for some seconds) when a C
+    compiler is found; False, or no compiler: CasADi's Newton rootfinder in the interpreter. Both find
+    the same root to the same tolerance. build_cache: where the libraries go (None: the default cache).
     """
 
-    def __init__(self, robot: Robot, mech: Mechanics | None = None) -> None:
+    def __init__(
+        self,
+        robot: Robot,
+        mech: Mechanics | None = None,
+        *,
+        compiled: bool = True,
+        build_cache: BuildCache | None = None,
+    ) -> None:
         self.robot = robot
         self.mech = Mechanics.from_robot(robot) if mech is None else mech
-        self.shooting = build_shooting(robot, self.mech)
-        self._newton = ca.rootfinder("rod_statics", "newton", self.shooting, newton_options(self.mech))
+        self._shooting: ca.Function | None = None
+        self._newton: ca.Function | None = None
+        self._compiled = None
+        if compiled:
+            from crtraj.model.cosserat_compiled import CompiledShooting  # it builds on this module
+
+            self._compiled = CompiledShooting.load(robot, self.mech, build_cache or BuildCache())
         self._warm: np.ndarray | None = None
+        self._jac: np.ndarray | None = None
         log.debug("cosserat rod of %s built: %d segments, %d steps each", robot.name, robot.n_segments, self.mech.steps)
+
+    @property
+    def compiled(self) -> bool:
+        """True when solves run the generated C."""
+        return self._compiled is not None
+
+    @property
+    def shooting(self) -> ca.Function:
+        """The SX shooting function (`build_shooting`), built on first use."""
+        if self._shooting is None:
+            self._shooting = build_shooting(self.robot, self.mech)
+        return self._shooting
 
     @property
     def n_tendons(self) -> int:
@@ -330,10 +395,22 @@ class CosseratRod:
         starts = [self._warm] if warm and self._warm is not None else []
         starts.append(straight_guess(self.robot, tau, loads))
         for w0 in starts:
-            w, pts, R, res, turn, _paths = self._newton(w0, p)
-            sol = solution_status(self._newton.stats(), np.asarray(w).ravel(), pts, R, res, turn, self.mech.tolerance)
+            sol = self._attempt(w0, p, warm and w0 is self._warm)
             if sol.is_success():
                 self._warm = np.concatenate([sol.base_force, sol.base_moment])
                 return sol
         log.info("cosserat solve failed (%s, residual %.3g N)", sol.status, sol.residual)
         return sol
+
+    def _attempt(self, w0: np.ndarray, p: np.ndarray, keep_jacobian: bool) -> RodSolution:
+        """One Newton run from w0: compiled (reusing the last Jacobian when `keep_jacobian`) or interpreted."""
+        tol = self.mech.tolerance
+        if self._compiled is not None:
+            jac0 = self._jac if keep_jacobian else None
+            w, res, shape, self._jac, stats = self._compiled.chord_newton(w0, p, jac0, tol, self.mech.max_iter)
+            pts, R, turn = shape[:3]
+            return solution_status(stats.as_dict(), w, pts, R, res, turn, tol)
+        if self._newton is None:
+            self._newton = ca.rootfinder("rod_statics", "newton", self.shooting, newton_options(self.mech))
+        w, pts, R, res, turn, _paths = self._newton(w0, p)
+        return solution_status(self._newton.stats(), np.asarray(w).ravel(), pts, R, res, turn, tol)
