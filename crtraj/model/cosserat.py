@@ -52,6 +52,10 @@ MAX_TENSION = 1e5
 # the shape to be trusted (a step of 0.2 rad errs by about (0.2)^4 / 120 = 1e-5 of its length), and
 # the solve says so ("under_resolved": raise [robot.mechanics] steps) instead of returning it.
 MAX_TURN = 0.2
+# The warm start extrapolates along the last two solutions when the new parameter step points within
+# about 25 degrees of the last one (cosine above this), by at most this many last steps.
+PREDICT_ALIGNMENT = 0.9
+PREDICT_MAX = 2.0
 
 
 def _hat(w: Any) -> Any:
@@ -367,6 +371,7 @@ class CosseratRod:
 
             self._compiled = CompiledShooting.load(robot, self.mech, build_cache or BuildCache())
         self._warm: np.ndarray | None = None
+        self._history: list[tuple[np.ndarray, np.ndarray]] = []  # the last two (parameters, base wrench)
         self._jac: np.ndarray | None = None
         log.debug("cosserat rod of %s built: %d segments, %d steps each", robot.name, robot.n_segments, self.mech.steps)
 
@@ -392,15 +397,33 @@ class CosseratRod:
         tau = check_tensions(tensions, self.n_tendons)
         loads = load_vector(self.mech, load)
         p = np.concatenate([tau, loads])
-        starts = [self._warm] if warm and self._warm is not None else []
-        starts.append(straight_guess(self.robot, tau, loads))
-        for w0 in starts:
-            sol = self._attempt(w0, p, warm and w0 is self._warm)
+        use_warm = warm and self._warm is not None
+        for start in ("warm", "straight") if use_warm else ("straight",):
+            w0 = self._predict(p) if start == "warm" else straight_guess(self.robot, tau, loads)
+            sol = self._attempt(w0, p, start == "warm")
             if sol.is_success():
                 self._warm = np.concatenate([sol.base_force, sol.base_moment])
+                self._history = [*self._history[-1:], (p, self._warm)]
                 return sol
         log.info("cosserat solve failed (%s, residual %.3g N)", sol.status, sol.residual)
         return sol
+
+    def _predict(self, p: np.ndarray) -> np.ndarray:
+        """Warm start for parameters p: the last solution, moved along the last two solutions' secant by
+        the share of the last parameter step that the new step repeats (a sequence of nearby solves, as
+        along a path, then starts second-order close); the last solution when the steps do not line up."""
+        assert self._warm is not None
+        if len(self._history) < 2:
+            return self._warm
+        (p0, w0), (p1, w1) = self._history
+        old, new = p1 - p0, p - p1
+        nn, no = float(new @ new), float(old @ old)
+        if no == 0.0 or nn == 0.0:
+            return self._warm
+        along = float(new @ old)
+        if along <= PREDICT_ALIGNMENT * np.sqrt(nn * no):
+            return self._warm
+        return w1 + min(along / no, PREDICT_MAX) * (w1 - w0)
 
     def _attempt(self, w0: np.ndarray, p: np.ndarray, keep_jacobian: bool) -> RodSolution:
         """One Newton run from w0: compiled (reusing the last Jacobian when `keep_jacobian`) or interpreted."""

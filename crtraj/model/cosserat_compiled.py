@@ -13,10 +13,13 @@ the generated C holds each piece once, and two libraries go through the build ca
   the Jacobian is needed rarely (below).
 
 The iteration (`chord_newton`): Newton's method on r(w) = 0 that keeps the Jacobian of the previous
-solve (a warm start is near it) and takes residual-only steps while they contract (each step at least
-halves max |r|); when one does not, or none is kept, it evaluates the exact Jacobian at the current
-point and continues with full Newton steps, as CasADi's Newton rootfinder does. It stops when max |r|
-<= the tolerance (the rootfinder's ``abstol``), or after max_iter steps. The solution is the same
+solve (a warm start is near it), corrects it by Broyden's rank-one secant update after each step, and
+takes residual-only steps while they contract (each step at least halves max |r|); when one does not, or none is kept, it evaluates the exact Jacobian at the current
+point and continues with full Newton steps, as CasADi's Newton rootfinder does. The chord converges
+linearly, so it does not stop at the tolerance (the rootfinder's ``abstol``) but goes on to the
+rounding floor: it stops when max |r| <= `POLISH` x the tolerance, or <= the tolerance and a step no
+longer halves it (or after max_iter steps). Its answer is then as exact as a full Newton step's, which lands far below the
+tolerance. The solution is the same
 root as the interpreted path's (the same residual, the same tolerance).
 """
 
@@ -41,6 +44,8 @@ log = logging.getLogger(__name__)
 
 # A residual-only step must shrink max |r| at least this much, or the Jacobian is re-evaluated.
 CONTRACTION = 0.5
+# Below this fraction of the tolerance the answer is at the rounding floor: stop without another step.
+POLISH = 1e-3
 # Bumped whenever the generated functions change meaning (the sources' hash is in the key too).
 GENERATOR = 1
 _SOURCES = ("cosserat.py", "cosserat_compiled.py")
@@ -150,7 +155,7 @@ class CompiledShooting:
         fresh, n_jac, it = False, 0, 0
         while it < max_iter:
             err = float(np.max(np.abs(r)))
-            if not np.isfinite(err) or err <= tolerance:
+            if not np.isfinite(err) or err <= POLISH * tolerance:
                 break
             if jac is None or not np.all(np.isfinite(jac)):
                 _, jac_dm = self.resjac(w, p)
@@ -161,9 +166,15 @@ class CompiledShooting:
                 break
             r_new, shape_new = self.residual(w_new, p)
             err_new = float(np.max(np.abs(r_new)))
-            if not fresh and not (err_new <= CONTRACTION * err):  # stale Jacobian: refresh, step again
-                jac = None
-                continue
+            if not (err_new <= CONTRACTION * err):
+                if err <= tolerance:  # at the rounding floor: done
+                    break
+                if not fresh:  # stale Jacobian: refresh it here and step again
+                    jac = None
+                    continue
+            # Broyden's rank-one update: the secant along the step, so the chord converges superlinearly
+            dw, dr = w_new - w, r_new - r
+            jac = jac + np.outer(dr - jac @ dw, dw) / float(dw @ dw) if float(dw @ dw) > 0.0 else jac
             w, r, shape, fresh, it = w_new, r_new, shape_new, False, it + 1
         err = float(np.max(np.abs(r)))
         ok = bool(np.isfinite(err) and err <= tolerance)
