@@ -1,5 +1,6 @@
-"""The parsers of the lab commands: a calibration dataset (`record`), the fit (`calibrate`), and the mechanics
-model against PCC (`model compare`) and the re-check of a result with it (`verify`). Each sets ``use_case`` to its entry in `crtraj.cli._USE_CASES`."""
+"""The parsers of the lab commands: a calibration dataset (`record`), the fit (`calibrate`), the mechanics
+model against PCC (`model compare`) and a result re-checked with it (`verify`). Each sets ``use_case`` to its
+entry in `crtraj.cli._USE_CASES`."""
 
 from __future__ import annotations
 
@@ -127,7 +128,9 @@ def add_verify(sub: argparse._SubParsersAction) -> None:  # crtraj verify RESULT
     p.add_argument("--model", choices=["cosserat"], required=True, help="the mechanics model to verify with")
     p.add_argument("--robot", default=None, help="robot TOML with [robot.mechanics] (default: the result's problem's)")
     p.add_argument("--no-gravity", action="store_true", help="the rod without its weight")
-    p.add_argument("--substeps", type=int, default=1, help="frames per waypoint interval, 1..100 (default 1: the waypoints)")
+    p.add_argument(
+        "--substeps", type=int, default=1, help="frames per waypoint interval, 1..100 (default 1: the waypoints)"
+    )
     p.add_argument("--safety-distance", type=float, default=None, help="D_sf to check in mm (default: the scene's)")
     p.add_argument("--strict", action="store_true", help="exit 1 also when D_sf does not hold under the rod")
     p.set_defaults(use_case="verify")

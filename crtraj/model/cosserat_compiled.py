@@ -14,13 +14,13 @@ the generated C holds each piece once, and two libraries go through the build ca
 
 The iteration (`chord_newton`): Newton's method on r(w) = 0 that keeps the Jacobian of the previous
 solve (a warm start is near it), corrects it by Broyden's rank-one secant update after each step, and
-takes residual-only steps while they contract (each step at least halves max |r|); when one does not, or none is kept, it evaluates the exact Jacobian at the current
-point and continues with full Newton steps, as CasADi's Newton rootfinder does. The chord converges
-linearly, so it does not stop at the tolerance (the rootfinder's ``abstol``) but goes on to the
-rounding floor: it stops when max |r| <= `POLISH` x the tolerance, or <= the tolerance and a step no
-longer halves it (or after max_iter steps). Its answer is then as exact as a full Newton step's, which lands far below the
-tolerance. The solution is the same
-root as the interpreted path's (the same residual, the same tolerance).
+takes residual-only steps while they contract (each step at least halves max |r|); when one does not,
+or none is kept, it evaluates the exact Jacobian at the current point and continues with full Newton
+steps, as CasADi's Newton rootfinder does. A chord converges linearly, so it does not stop at the
+tolerance (the rootfinder's ``abstol``) but goes on to the rounding floor: it stops when max |r| <=
+`POLISH` x the tolerance, or <= the tolerance and a step no longer halves it (or after max_iter steps).
+Its answer is then as exact as a full Newton step's, which lands far below the tolerance: the same
+root as the interpreted path's.
 """
 
 from __future__ import annotations
