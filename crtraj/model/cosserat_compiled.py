@@ -87,13 +87,14 @@ def resjac_function(pieces: RodPieces, nt: int) -> ca.Function:
 
 
 def _key(name: str, robot: Robot, mech: Mechanics, flags: tuple[str, ...]) -> BuildKey:
-    """Cache key: the robot's description, the mechanics, the flags and the generating sources' hash."""
+    """Cache key: the robot's description, the stiffness and steps, the flags and the generating sources' hash."""
     here = Path(__file__).resolve().parent
     digest = hashlib.sha256(b"".join((here / f).read_bytes() for f in _SOURCES)).hexdigest()
     robot_spec = {k: v for k, v in robot.to_dict().items() if k not in ("description", "actuators")}
     spec = {
         "robot": robot_spec,
-        "mechanics": mech.to_dict(),
+        # what the generated code bakes in; loads, tolerances and masses are parameters or Python's
+        "mechanics": {k: getattr(mech, k) for k in ("youngs_modulus", "shear_modulus", "backbone_radius", "steps")},
         "flags": list(flags),
         "generator": GENERATOR,
         "sources": digest,
