@@ -36,7 +36,7 @@ import numpy as np
 
 from crtraj.core.build_cache import BuildCache, BuildKey
 from crtraj.model.codegen import compiled_functions
-from crtraj.model.cosserat import RodPieces, march, rod_pieces
+from crtraj.model.cosserat_rod import RodPieces, march, rod_pieces
 from crtraj.model.mechanics import Mechanics
 from crtraj.model.robot import Robot
 
@@ -48,7 +48,7 @@ CONTRACTION = 0.5
 POLISH = 1e-3
 # Bumped whenever the generated functions change meaning (the sources' hash is in the key too).
 GENERATOR = 1
-_SOURCES = ("cosserat.py", "cosserat_compiled.py")
+_SOURCES = ("cosserat_rod.py", "cosserat_compiled.py")
 
 
 def _tangent(f: ca.Function, name: str, n_dir: int) -> ca.Function:
