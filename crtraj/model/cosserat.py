@@ -53,6 +53,10 @@ MAX_TENSION = 1e5
 # the shape to be trusted (a step of 0.2 rad errs by about (0.2)^4 / 120 = 1e-5 of its length), and
 # the solve says so ("under_resolved": raise [robot.mechanics] steps) instead of returning it.
 MAX_TURN = 0.2
+# The warm start extrapolates along the last two solutions when the new parameter step points within
+# about 25 degrees of the last one (cosine above this), by at most this many last steps.
+PREDICT_ALIGNMENT = 0.9
+PREDICT_MAX = 2.0
 
 
 @dataclass(frozen=True)
@@ -140,16 +144,6 @@ def straight_guess(robot: Robot, tensions: np.ndarray, loads: np.ndarray) -> np.
     return np.concatenate([n0, m0])
 
 
-def _straight_sensitivity(robot: Robot, mech: Mechanics) -> np.ndarray:
-    """d(base wrench) / d(parameters) (6, 3 n_segments + 9) of the straight rod (`straight_guess` is linear):
-    where the warm start's sensitivity estimate begins."""
-    nt = 3 * robot.n_segments
-    zero = straight_guess(robot, np.zeros(nt), np.zeros(9))
-    eye = np.eye(nt + 9)
-    cols = [straight_guess(robot, e[:nt], e[nt:]) - zero for e in eye]
-    return np.column_stack(cols)
-
-
 def newton_options(mech: Mechanics) -> dict[str, Any]:
     """Options of the shooting rootfinders."""
     # trial steps of the line search may leave the rod's domain (NaN); the status says if it failed
@@ -202,8 +196,7 @@ class CosseratRod:
         if compiled:
             self._compiled = CompiledShooting.load(robot, self.mech, build_cache or BuildCache())
         self._warm: np.ndarray | None = None
-        self._last_p: np.ndarray | None = None  # the parameters of the last converged solve
-        self._sens = _straight_sensitivity(robot, self.mech)  # d(base wrench) / d(parameters), estimated
+        self._history: list[tuple[np.ndarray, np.ndarray]] = []  # the last two (parameters, base wrench)
         self._jac: np.ndarray | None = None
         log.debug("cosserat rod of %s built: %d segments, %d steps each", robot.name, robot.n_segments, self.mech.steps)
 
@@ -234,27 +227,28 @@ class CosseratRod:
             w0 = self._predict(p) if start == "warm" else straight_guess(self.robot, tau, loads)
             sol = self._attempt(w0, p, start == "warm")
             if sol.is_success():
-                w = np.concatenate([sol.base_force, sol.base_moment])
-                self._learn(p, w)
-                self._warm, self._last_p = w, p
+                self._warm = np.concatenate([sol.base_force, sol.base_moment])
+                self._history = [*self._history[-1:], (p, self._warm)]
                 return sol
         log.info("cosserat solve failed (%s, residual %.3g N)", sol.status, sol.residual)
         return sol
 
     def _predict(self, p: np.ndarray) -> np.ndarray:
-        """Warm start for parameters p: the last solution moved by the estimated sensitivity times the
-        parameter step, so a nearby solve starts second-order close once the estimate has learnt."""
-        assert self._warm is not None and self._last_p is not None
-        return self._warm + self._sens @ (p - self._last_p)
-
-    def _learn(self, p: np.ndarray, w: np.ndarray) -> None:
-        """Broyden's rank-one update of the sensitivity estimate with the step from the last solve to this one."""
-        if self._warm is None or self._last_p is None:
-            return
-        dp, dw = p - self._last_p, w - self._warm
-        nn = float(dp @ dp)
-        if nn > 0.0 and np.all(np.isfinite(dw)):
-            self._sens += np.outer(dw - self._sens @ dp, dp) / nn
+        """Warm start for parameters p: the last solution, moved along the last two solutions' secant by
+        the share of the last parameter step that the new step repeats (a sequence of nearby solves, as
+        along a path, then starts second-order close); the last solution when the steps do not line up."""
+        assert self._warm is not None
+        if len(self._history) < 2:
+            return self._warm
+        (p0, w0), (p1, w1) = self._history
+        old, new = p1 - p0, p - p1
+        nn, no = float(new @ new), float(old @ old)
+        if no == 0.0 or nn == 0.0:
+            return self._warm
+        along = float(new @ old)
+        if along <= PREDICT_ALIGNMENT * np.sqrt(nn * no):
+            return self._warm
+        return w1 + min(along / no, PREDICT_MAX) * (w1 - w0)
 
     def _attempt(self, w0: np.ndarray, p: np.ndarray, keep_jacobian: bool) -> RodSolution:
         """One Newton run from w0: compiled (reusing the last Jacobian when `keep_jacobian`) or interpreted."""
