@@ -89,12 +89,12 @@ def test_verify_matches_a_direct_per_frame_solve_and_distance(robot: Robot) -> N
         for pts, out in ((sol.points, rod_c), (pcc_nodes(model, xk, mech.steps), pcc_c)):
             world = pts + np.array([0.0, 0.0, xk[-1]])
             out.append(np.min(np.linalg.norm(world - c, axis=1)) - r - robot.body_radius - D_SF)
-    np.testing.assert_allclose(v.rod_clearance, rod_c, atol=1e-6)
+    np.testing.assert_allclose(v.rod_clearance, rod_c, atol=1e-3)  # verify solves to 1e-6 N: ~1e-4 mm
     np.testing.assert_allclose(v.pcc_clearance, pcc_c, atol=1e-9)
     assert v.failed == 0
-    assert v.rod.clearance == pytest.approx(min(rod_c), abs=1e-6)
+    assert v.rod.clearance == pytest.approx(min(rod_c), abs=1e-3)
     assert v.rod.t == pytest.approx(tt[int(np.argmin(rod_c))])
-    assert v.clearance_loss == pytest.approx(max(np.array(pcc_c) - np.array(rod_c)), abs=1e-6)
+    assert v.clearance_loss == pytest.approx(max(np.array(pcc_c) - np.array(rod_c)), abs=1e-3)
 
 
 def _sideways(robot: Robot) -> Robot:
@@ -119,7 +119,7 @@ def test_gravity_sag_into_an_obstacle_is_caught(robot: Robot, tmp_path: Path) ->
     doc = _document(side, scene, t, np.stack([x, x]))
     v = verify_cosserat(read_result(doc), side)
     assert v.pcc.clearance > 5.0 and v.contact and not v.holds
-    assert v.rod.clearance == pytest.approx(4.0 - 3.0 - robot.body_radius - D_SF, abs=1e-6)
+    assert v.rod.clearance == pytest.approx(4.0 - 3.0 - robot.body_radius - D_SF, abs=1e-3)
     res = tmp_path / "side.json"
     res.write_text(json.dumps(doc), encoding="utf-8")
     robot_file = tmp_path / "side.toml"
