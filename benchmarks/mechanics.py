@@ -2,12 +2,15 @@
 
 What is measured (problems/robots/cdsr2.toml, its [robot.mechanics], gravity on):
 
-- build: constructing `CosseratRod` (the symbolic shooting function and the rootfinder), once;
-- warm solve: `CosseratRod.solve` for a tension vector a small step (0.05 N per tendon) from the
-  previous solve, as a closed loop or the compare tool calls it; `--solves` of them, each timed
-  alone. Reported: median, 10th and 90th percentile of wall time and of the process's CPU time
-  (``time.process_time``, which moves far less with other jobs' load on a shared machine), and
-  the median Newton iterations;
+- build: constructing `CosseratRod`, once: the old path (``compiled=False``: the SX shooting function
+  and CasADi's Newton rootfinder, interpreted) and the new one (generated C from the build cache,
+  `crtraj.model.cosserat_compiled`; the first build of a robot compiles, later ones load);
+- warm solve: `CosseratRod.solve` for a tension vector a small random step (up to 0.05 N per tendon)
+  from the previous solve, as a closed loop or the compare tool calls it; `--solves` of them, each timed
+  alone, old path and new path in the same run. Reported: median, 10th and 90th percentile of wall
+  time and of the process's CPU time (``time.process_time``, which moves far less with other jobs'
+  load on a shared machine), and the median Newton iterations;
+- cold solve: the same tensions with ``warm=False`` (from the straight rod), old and new;
 - compare: `compare_models` over `--samples` configurations (two solves each, one without and one
   with gravity), wall and CPU time, per configuration.
 
@@ -43,16 +46,18 @@ def _spread(values: list[float]) -> str:
     return f"{q[1]:.2f} ms [p10 {q[0]:.2f}, p90 {q[2]:.2f}]"
 
 
-def warm_solves(rod: CosseratRod, n: int) -> tuple[list[float], list[float], list[int]]:
-    """Wall and CPU seconds and Newton iterations of n warm-started solves along a tension ramp."""
-    tau0 = np.array([6.0, 0.0, 1.0, 0.0, 4.0, 0.0])
-    step = np.full(tau0.size, 0.05)
-    rod.solve(tau0, RodLoad())
+def warm_solves(rod: CosseratRod, n: int, warm: bool = True) -> tuple[list[float], list[float], list[int]]:
+    """Wall and CPU seconds and Newton iterations of n solves along a seeded random walk of the tensions
+    (each tendon moves by up to 0.05 N per solve, independently), warm-started or not. A random walk, not a
+    ramp: along a ramp the warm start's secant predictor would be nearly exact and flatter the figure."""
+    rng = np.random.default_rng(0)
+    tau = np.array([6.0, 0.0, 1.0, 0.0, 4.0, 0.0])
+    rod.solve(tau, RodLoad())
     walls, cpus, iters = [], [], []
     for i in range(n):
-        tau = tau0 + step * (i % 40)  # up and back down a 2 N ramp: always near the last solution
+        tau = np.maximum(tau + rng.uniform(-0.05, 0.05, tau.size), 0.0)
         w0, c0 = time.perf_counter(), time.process_time()
-        sol = rod.solve(tau, RodLoad())
+        sol = rod.solve(tau, RodLoad(), warm=warm)
         walls.append(time.perf_counter() - w0)
         cpus.append(time.process_time() - c0)
         iters.append(sol.iterations)
@@ -70,12 +75,17 @@ def main() -> None:
     print(f"{stamp}, {platform.node()}, {os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f}")
     robot = load_robot(ROBOT)
     mech = Mechanics.from_robot(robot)
-    t = time.perf_counter()
-    rod = CosseratRod(robot, mech)
-    print(f"build: {time.perf_counter() - t:.2f} s ({mech.steps} RK4 steps per segment)")
-    walls, cpus, iters = warm_solves(rod, args.solves)
-    print(f"warm solve, {args.solves} solves: wall {_spread(walls)}; CPU {_spread(cpus)}")
-    print(f"  Newton iterations: median {statistics.median(iters):g}, max {max(iters)}")
+    rods = {}
+    for name, compiled in (("old (interpreted)", False), ("new (compiled)", True)):
+        t = time.perf_counter()
+        rods[name] = CosseratRod(robot, mech, compiled=compiled)
+        rods[name].solve(np.zeros(6), RodLoad(), warm=False)  # the interpreted path builds its graphs here
+        print(f"{name}: build and first solve {time.perf_counter() - t:.2f} s ({mech.steps} RK4 steps per segment)")
+    for kind, warm in (("warm", True), ("cold", False)):
+        for name, rod in rods.items():
+            walls, cpus, iters = warm_solves(rod, args.solves, warm)
+            print(f"{kind} solve, {name}, {args.solves} solves: wall {_spread(walls)}; CPU {_spread(cpus)}")
+            print(f"  Newton iterations: median {statistics.median(iters):g}, max {max(iters)}")
     configs = sample_configs(robot, args.samples, np.random.default_rng(0))
     w0, c0 = time.perf_counter(), time.process_time()
     cmp = compare_models(robot, mech, configs)

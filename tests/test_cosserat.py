@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import require_tool
 
 from crtraj.app.model_compare import compare_models, sample_configs
 from crtraj.core.errors import InputError
@@ -310,3 +311,33 @@ def test_bad_lengths_are_one_line_input_errors(cabled: CableDrivenRod) -> None:
         cabled.solve([L, L, 0.0])
     with pytest.raises(InputError, match="lengths"):
         cabled.solve([L, L])
+
+
+def test_compiled_path_finds_the_interpreted_root_and_its_jacobian_is_exact(cdsr2: Robot) -> None:
+    """The generated C (chord Newton, warm-started along a sequence) gives the interpreted rootfinder's shapes,
+    and its Jacobian matches central differences of its own residual."""
+    require_tool("cc", "gcc", "clang", hint="the compiled Cosserat path")
+    mech = Mechanics.from_robot(cdsr2)
+    fast, slow = CosseratRod(cdsr2, mech), CosseratRod(cdsr2, mech, compiled=False)
+    assert fast.compiled and not slow.compiled
+    rng = np.random.default_rng(3)
+    tau = np.array([6.0, 0.0, 1.0, 0.0, 4.0, 0.0])
+    for step in range(12):  # a ramp (the secant predictor), then random steps, then a jump
+        tau = tau + (0.3 if step < 4 else rng.uniform(-0.5, 0.5, 6) if step < 11 else 3.0)
+        tau = np.maximum(tau, 0.0)
+        a, b = fast.solve(tau, RodLoad()), slow.solve(tau, RodLoad(), warm=False)
+        assert a.is_success() and b.is_success()
+        np.testing.assert_allclose(a.points, b.points, atol=1e-7)
+        assert a.residual <= mech.tolerance
+    p = np.concatenate([tau, mech.weight_per_length(), np.zeros(6)])
+    w = np.concatenate([a.base_force, a.base_moment]) + 0.01
+    _, jac = fast._compiled.resjac(w, p)
+    h = 1e-5
+    fd = np.column_stack(
+        [
+            (fast._compiled.residual(w + h * e, p)[0] - fast._compiled.residual(w - h * e, p)[0]) / (2 * h)
+            for e in np.eye(6)
+        ]
+    )
+    # central differences err by about h^2 |r'''| (1e-6 here): far below any wrong entry's size
+    np.testing.assert_allclose(np.asarray(jac), fd, rtol=1e-4, atol=1e-5 * np.abs(fd).max())

@@ -23,7 +23,7 @@ from collections.abc import Callable, Sequence
 from typing import Any, NoReturn
 
 from crtraj import __version__
-from crtraj.cli.lab import add_calibrate, add_model, add_record
+from crtraj.cli.lab import add_calibrate, add_model, add_record, add_verify
 from crtraj.cli.paths import DEFAULT_ROBOT
 from crtraj.core.errors import AdmissionError, InputError
 from crtraj.core.flags import strict_flag_types
@@ -50,6 +50,7 @@ _USE_CASES = {
     "build": "crtraj.app.build:build_command",
     "ros-bridge": "crtraj.app.ros_bridge:ros_bridge_command",
     "model-compare": "crtraj.app.model_compare:model_compare_command",
+    "verify": "crtraj.app.verify:verify_command",
 }
 
 
@@ -499,6 +500,7 @@ _COMMANDS: tuple[Callable[[argparse._SubParsersAction], None], ...] = (
     add_calibrate,
     _add_build,
     add_model,
+    add_verify,
 )
 
 

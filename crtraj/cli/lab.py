@@ -1,5 +1,6 @@
-"""The parsers of the lab commands: a calibration dataset (`record`), the fit (`calibrate`), and the mechanics
-model against PCC (`model compare`). Each sets ``use_case`` to its entry in `crtraj.cli._USE_CASES`."""
+"""The parsers of the lab commands: a calibration dataset (`record`), the fit (`calibrate`), the mechanics
+model against PCC (`model compare`) and a result re-checked with it (`verify`). Each sets ``use_case`` to its
+entry in `crtraj.cli._USE_CASES`."""
 
 from __future__ import annotations
 
@@ -117,3 +118,26 @@ def add_model(sub: argparse._SubParsersAction) -> None:  # crtraj model compare 
     c.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     c.add_argument("--plot", default=None, help="PNG plot of the discrepancies (default: none)")
     c.set_defaults(use_case="model-compare")
+
+
+def add_verify(sub: argparse._SubParsersAction) -> None:  # crtraj verify RESULT --model cosserat
+    p = sub.add_parser(
+        "verify",
+        help="re-check a plan or run against its obstacles with the Cosserat-rod shape of every frame",
+        description="Re-check a result (crtraj plan or crtraj replan output) against its scene's obstacles, at "
+        "each frame's time, with the shape of the Cosserat-rod statics model (the tensions that hold each PCC "
+        "bending on a weightless rod, then the robot's weight) as well as PCC. Prints each model's minimum "
+        "clearance (mm, beyond D_sf), where and when, whether D_sf holds, and the extra D_sf the result needs. "
+        "Exit 1 when the rod's body touches an obstacle or a rod solve fails (with --strict also when D_sf "
+        "does not hold), 2 on bad input.",
+    )
+    p.add_argument("result", metavar="RESULT", help="result JSON of crtraj plan or crtraj replan")
+    p.add_argument("--model", choices=["cosserat"], required=True, help="the mechanics model to verify with")
+    p.add_argument("--robot", default=None, help="robot TOML with [robot.mechanics] (default: the result's problem's)")
+    p.add_argument("--no-gravity", action="store_true", help="the rod without its weight")
+    p.add_argument(
+        "--substeps", type=int, default=1, help="frames per waypoint interval, 1..100 (default 1: the waypoints)"
+    )
+    p.add_argument("--safety-distance", type=float, default=None, help="D_sf to check in mm (default: the scene's)")
+    p.add_argument("--strict", action="store_true", help="exit 1 also when D_sf does not hold under the rod")
+    p.set_defaults(use_case="verify")

@@ -19,10 +19,11 @@ from crtraj.core.build_cache import BuildCache, BuildKey, compile_shared
 
 
 def codegen_builder(
-    make: Callable[[], Sequence[ca.Function]], name: str, extra_c: str = ""
+    make: Callable[[], Sequence[ca.Function]], name: str, extra_c: str = "", flags: tuple[str, ...] = ()
 ) -> Callable[[Path, str], Path]:
     """The build step of a cache entry: C of the functions `make()` returns, followed by `extra_c` (a
-    hand-written driver calling them, say), generated into the folder and compiled to lib<name>.so.
+    hand-written driver calling them, say), generated into the folder and compiled to lib<name>.so
+    (`flags` after the cache's own, so ``("-O0",)`` overrides its optimisation level).
 
     `make` runs only when the step runs (a cache miss), so a hit never builds the CasADi graphs.
     """
@@ -33,7 +34,7 @@ def codegen_builder(
             gen.add(f)
         src = folder / f"{name}.c"
         src.write_text(gen.dump() + extra_c, encoding="utf-8")
-        return compile_shared(compiler, [src], folder / f"lib{name}.so")
+        return compile_shared(compiler, [src], folder / f"lib{name}.so", flags)
 
     return build
 
@@ -59,7 +60,11 @@ def _reason(exc: BaseException) -> str:
 
 
 def compiled_functions(
-    cache: BuildCache, key: BuildKey, names: Sequence[str], make: Callable[[], Sequence[ca.Function]]
+    cache: BuildCache,
+    key: BuildKey,
+    names: Sequence[str],
+    make: Callable[[], Sequence[ca.Function]],
+    flags: tuple[str, ...] = (),
 ) -> dict[str, ca.Function] | None:
     """The functions `names` of `key`, loaded from the cache (built from `make()` on a miss); None without
     a compiler.
@@ -77,4 +82,4 @@ def compiled_functions(
             raise RuntimeError(f"build of {key.name}: made functions {got}, expected {sorted(names)}")
         return funcs
 
-    return cache.load(key, codegen_builder(checked, key.name), lambda lib: load_functions(lib, names))
+    return cache.load(key, codegen_builder(checked, key.name, flags=flags), lambda lib: load_functions(lib, names))

@@ -37,29 +37,26 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
+from crtraj.core.build_cache import BuildCache
 from crtraj.core.errors import InputError
 from crtraj.core.fields import MAX_MAGNITUDE, check_array
+from crtraj.model.cosserat_compiled import CompiledShooting
+from crtraj.model.cosserat_rod import march, rod_pieces
 from crtraj.model.mechanics import Mechanics
 from crtraj.model.robot import Robot
 
 log = logging.getLogger(__name__)
 
-_E3 = ca.DM([0.0, 0.0, 1.0])
 # Largest tension (N) accepted: far above any cable's breaking load; beyond it is a unit slip.
 MAX_TENSION = 1e5
 # Largest angle (rad) the rod may turn through in one RK4 step: beyond it the step is too coarse for
 # the shape to be trusted (a step of 0.2 rad errs by about (0.2)^4 / 120 = 1e-5 of its length), and
 # the solve says so ("under_resolved": raise [robot.mechanics] steps) instead of returning it.
 MAX_TURN = 0.2
-
-
-def _hat(w: Any) -> Any:
-    """Skew matrix of a 3-vector: hat(w) x = w x x."""
-    return ca.vertcat(
-        ca.horzcat(0, -w[2], w[1]),
-        ca.horzcat(w[2], 0, -w[0]),
-        ca.horzcat(-w[1], w[0], 0),
-    )
+# The warm start extrapolates along the last two solutions when the new parameter step points within
+# about 25 degrees of the last one (cosine above this), by at most this many last steps.
+PREDICT_ALIGNMENT = 0.9
+PREDICT_MAX = 2.0
 
 
 @dataclass(frozen=True)
@@ -99,114 +96,6 @@ class RodSolution:
         return self.points[-1]
 
 
-class _Rod:
-    """The symbolic pieces of one robot's rod: stiffness, tendon positions, ODE, jumps, residual."""
-
-    def __init__(self, robot: Robot, mech: Mechanics) -> None:
-        self.robot, self.mech = robot, mech
-        self.kse = ca.DM(mech.shear_extension())
-        self.kbt = ca.DM(mech.bending_torsion())
-        rc = robot.cable_radius
-        self.r = [
-            ca.DM([rc * np.cos(a), rc * np.sin(a), 0.0]) for k in range(robot.n_segments) for a in robot.cable_angles(k)
-        ]
-
-    def tangent(self, v: Any, u: Any, i: int) -> Any:
-        """Unit tangent of tendon i in the body frame (p_i' / |p_i'|, R^T applied)."""
-        pb = v + ca.cross(u, self.r[i])
-        return pb / ca.norm_2(pb)
-
-    def rhs(self, y: Any, tau: Any, tendons: range, fe: Any) -> Any:
-        """dy/ds of the state y = (p, vec R, v, u, tendon path lengths) with the tendons `tendons`
-        passing through (the others' path lengths stay put)."""
-        R = ca.reshape(y[3:12], 3, 3)
-        v, u = y[12:15], y[15:18]
-        A = ca.SX.zeros(3, 3)
-        B = ca.SX.zeros(3, 3)
-        G = ca.SX.zeros(3, 3)
-        H = ca.SX.zeros(3, 3)
-        a = ca.SX.zeros(3)
-        b = ca.SX.zeros(3)
-        rates = ca.SX.zeros(len(self.r))
-        for i in tendons:
-            ri = _hat(self.r[i])
-            pb = v + ca.cross(u, self.r[i])
-            nrm = ca.norm_2(pb)
-            rates[i] = nrm  # |p_i'|: the tendon's path length grows at this rate
-            t = pb / nrm
-            # -tau hat(pb)^2 / |pb|^3 = (tau / |pb|) (I - t t^T): the tension's projector off the tangent
-            Ai = (tau[i] / nrm) * (ca.SX.eye(3) - t @ t.T)
-            Bi = ri @ Ai
-            A += Ai
-            B += Bi
-            G -= Ai @ ri
-            H -= Bi @ ri
-            ai = Ai @ ca.cross(u, pb)
-            a += ai
-            b += ri @ ai
-        strain = self.kse @ (v - _E3)
-        c = -ca.cross(u, self.kbt @ u) - ca.cross(v, strain) - b
-        d = -ca.cross(u, strain) - R.T @ fe - a
-        lhs = ca.vertcat(ca.horzcat(self.kse + A, G), ca.horzcat(B, self.kbt + H))
-        dvu = _solve_dominant(lhs, ca.vertcat(d, c))
-        return ca.vertcat(R @ v, ca.reshape(R @ _hat(u), 9, 1), dvu, rates)
-
-    def terminations(self, y: Any, tau: Any, tendons: range) -> tuple[Any, Any]:
-        """Force (N) and moment (N mm, about the backbone) that ending tendons apply to the disc."""
-        R = ca.reshape(y[3:12], 3, 3)
-        v, u = y[12:15], y[15:18]
-        F = ca.SX.zeros(3)
-        M = ca.SX.zeros(3)
-        for i in tendons:
-            Fi = -tau[i] * (R @ self.tangent(v, u, i))
-            F += Fi
-            M += ca.cross(R @ self.r[i], Fi)
-        return F, M
-
-    def internal(self, y: Any) -> tuple[Any, Any]:
-        """Internal force n (N) and moment m (N mm) of the backbone, base frame."""
-        R = ca.reshape(y[3:12], 3, 3)
-        return R @ self.kse @ (y[12:15] - _E3), R @ self.kbt @ y[15:18]
-
-    def strains(self, R: Any, n: Any, m: Any) -> tuple[Any, Any]:
-        """Body strains (v, u) of internal force n and moment m (base frame) at rotation R."""
-        return ca.solve(self.kse, R.T @ n) + _E3, ca.solve(self.kbt, R.T @ m)
-
-
-def _solve_dominant(M: Any, rhs: Any) -> Any:
-    """x with M x = rhs by Gaussian elimination without pivoting.
-
-    M = [K_se + A, G; B, K_bt + H] is strongly diagonally dominant for any tension a backbone can bear
-    (the tendon terms scale with tension, the diagonal with EA, GA, EI), so no pivoting is needed; this
-    needs a few times fewer symbolic operations than a QR solve, which the Jacobian multiplies.
-    """
-    n = M.shape[0]
-    a = [[M[i, j] for j in range(n)] for i in range(n)]
-    b = [rhs[i] for i in range(n)]
-    for k in range(n):
-        for i in range(k + 1, n):
-            f = a[i][k] / a[k][k]
-            for j in range(k + 1, n):
-                a[i][j] = a[i][j] - f * a[k][j]
-            b[i] = b[i] - f * b[k]
-    x: list[Any] = [None] * n
-    for i in reversed(range(n)):
-        acc = b[i]
-        for j in range(i + 1, n):
-            acc = acc - a[i][j] * x[j]
-        x[i] = acc / a[i][i]
-    return ca.vertcat(*x)
-
-
-def _rk4(f: Any, y: Any, h: float) -> Any:
-    """One classical Runge-Kutta step of dy/ds = f(y)."""
-    k1 = f(y)
-    k2 = f(y + 0.5 * h * k1)
-    k3 = f(y + 0.5 * h * k2)
-    k4 = f(y + h * k3)
-    return y + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
-
-
 def build_shooting(robot: Robot, mech: Mechanics) -> ca.Function:
     """The shooting function (w, p) -> (r, points, R_tip, r) of the unknown base wrench
     w = (n(0) N, m(0) N mm) and the parameters p = (tensions (3 n_segments) N, distributed force (3)
@@ -215,34 +104,11 @@ def build_shooting(robot: Robot, mech: Mechanics) -> ca.Function:
     points: 3 x (n_segments steps + 1) mm; R_tip: 3 x 3; turn: the largest angle (rad) the rod
     turns through within one step (taken at the start of each step); paths (3 n_segments,): each
     tendon's path length (mm) from the base to its end disc in the deformed rod."""
-    rod = _Rod(robot, mech)
-    n_seg, nt = robot.n_segments, 3 * robot.n_segments
+    nt = 3 * robot.n_segments
     w = ca.SX.sym("w", 6)
     p = ca.SX.sym("p", nt + 9)
-    tau, fe, f_tip, m_tip = p[:nt], p[nt : nt + 3], p[nt + 3 : nt + 6], p[nt + 6 : nt + 9]
-    v0, u0 = rod.strains(ca.SX.eye(3), w[:3], w[3:])
-    y = ca.vertcat(ca.SX.zeros(3), ca.reshape(ca.SX.eye(3), 9, 1), v0, u0, ca.SX.zeros(nt))
-    cols = [y[:3]]
-    turns = []
-    for k, seg in enumerate(robot.segments):
-        passing = range(3 * k, nt)
-        ys = ca.SX.sym("y", 18 + nt)
-        f = ca.Function("rod_rhs", [ys, p], [rod.rhs(ys, tau, passing, fe)])
-        h = seg.length / mech.steps
-        for _ in range(mech.steps):
-            turns.append(h * ca.norm_2(y[15:18]))
-            y = _rk4(lambda z, f=f: f(z, p), y, h)
-            cols.append(y[:3])
-        F, M = rod.terminations(y, tau, range(3 * k, 3 * k + 3))
-        n, m = rod.internal(y)
-        if k < n_seg - 1:  # the disc passes the internal wrench on, less what its tendons take
-            R = ca.reshape(y[3:12], 3, 3)
-            v, u = rod.strains(R, n - F, m - M)
-            y = ca.vertcat(y[:12], v, u, y[18:])
-        else:
-            res = ca.vertcat(n - F - f_tip, (m - M - m_tip) / robot.total_length)
-    R_tip = ca.reshape(y[3:12], 3, 3)
-    outs = [res, ca.horzcat(*cols), R_tip, res, ca.mmax(ca.vertcat(*turns)), y[18:]]
+    res, points, y, turn = march(rod_pieces(robot, mech), w, p)
+    outs = [res, points, ca.reshape(y[3:12], 3, 3), res, turn, y[18:]]
     names = ["r", "points", "R_tip", "residual", "turn", "paths"]
     return ca.Function("rod_shooting", [w, p], outs, ["w", "p"], names)
 
@@ -307,15 +173,44 @@ class CosseratRod:
 
     solve(tensions, load) -> RodSolution. Tensions (N) are ordered as the robot's cables (segment by
     segment, cable 1..3), the order of the actuation vector q.
+
+    compiled: solve with generated C through the build cache (`crtraj.model.cosserat_compiled`; about
+    0.5 ms a warm solve instead of 13 ms; the first use per robot compiles for some seconds) when a C
+    compiler is found; False, or no compiler: CasADi's Newton rootfinder in the interpreter. Both find
+    the same root to the same tolerance. build_cache: where the libraries go (None: the default cache).
     """
 
-    def __init__(self, robot: Robot, mech: Mechanics | None = None) -> None:
+    def __init__(
+        self,
+        robot: Robot,
+        mech: Mechanics | None = None,
+        *,
+        compiled: bool = True,
+        build_cache: BuildCache | None = None,
+    ) -> None:
         self.robot = robot
         self.mech = Mechanics.from_robot(robot) if mech is None else mech
-        self.shooting = build_shooting(robot, self.mech)
-        self._newton = ca.rootfinder("rod_statics", "newton", self.shooting, newton_options(self.mech))
+        self._shooting: ca.Function | None = None
+        self._newton: ca.Function | None = None
+        self._compiled = None
+        if compiled:
+            self._compiled = CompiledShooting.load(robot, self.mech, build_cache or BuildCache())
         self._warm: np.ndarray | None = None
+        self._history: list[tuple[np.ndarray, np.ndarray]] = []  # the last two (parameters, base wrench)
+        self._jac: np.ndarray | None = None
         log.debug("cosserat rod of %s built: %d segments, %d steps each", robot.name, robot.n_segments, self.mech.steps)
+
+    @property
+    def compiled(self) -> bool:
+        """True when solves run the generated C."""
+        return self._compiled is not None
+
+    @property
+    def shooting(self) -> ca.Function:
+        """The SX shooting function (`build_shooting`), built on first use."""
+        if self._shooting is None:
+            self._shooting = build_shooting(self.robot, self.mech)
+        return self._shooting
 
     @property
     def n_tendons(self) -> int:
@@ -327,13 +222,43 @@ class CosseratRod:
         tau = check_tensions(tensions, self.n_tendons)
         loads = load_vector(self.mech, load)
         p = np.concatenate([tau, loads])
-        starts = [self._warm] if warm and self._warm is not None else []
-        starts.append(straight_guess(self.robot, tau, loads))
-        for w0 in starts:
-            w, pts, R, res, turn, _paths = self._newton(w0, p)
-            sol = solution_status(self._newton.stats(), np.asarray(w).ravel(), pts, R, res, turn, self.mech.tolerance)
+        use_warm = warm and self._warm is not None
+        for start in ("warm", "straight") if use_warm else ("straight",):
+            w0 = self._predict(p) if start == "warm" else straight_guess(self.robot, tau, loads)
+            sol = self._attempt(w0, p, start == "warm")
             if sol.is_success():
                 self._warm = np.concatenate([sol.base_force, sol.base_moment])
+                self._history = [*self._history[-1:], (p, self._warm)]
                 return sol
         log.info("cosserat solve failed (%s, residual %.3g N)", sol.status, sol.residual)
         return sol
+
+    def _predict(self, p: np.ndarray) -> np.ndarray:
+        """Warm start for parameters p: the last solution, moved along the last two solutions' secant by
+        the share of the last parameter step that the new step repeats (a sequence of nearby solves, as
+        along a path, then starts second-order close); the last solution when the steps do not line up."""
+        assert self._warm is not None
+        if len(self._history) < 2:
+            return self._warm
+        (p0, w0), (p1, w1) = self._history
+        old, new = p1 - p0, p - p1
+        nn, no = float(new @ new), float(old @ old)
+        if no == 0.0 or nn == 0.0:
+            return self._warm
+        along = float(new @ old)
+        if along <= PREDICT_ALIGNMENT * np.sqrt(nn * no):
+            return self._warm
+        return w1 + min(along / no, PREDICT_MAX) * (w1 - w0)
+
+    def _attempt(self, w0: np.ndarray, p: np.ndarray, keep_jacobian: bool) -> RodSolution:
+        """One Newton run from w0: compiled (reusing the last Jacobian when `keep_jacobian`) or interpreted."""
+        tol = self.mech.tolerance
+        if self._compiled is not None:
+            jac0 = self._jac if keep_jacobian else None
+            w, res, shape, self._jac, stats = self._compiled.chord_newton(w0, p, jac0, tol, self.mech.max_iter)
+            pts, R, turn = shape[:3]
+            return solution_status(stats.as_dict(), w, pts, R, res, turn, tol)
+        if self._newton is None:
+            self._newton = ca.rootfinder("rod_statics", "newton", self.shooting, newton_options(self.mech))
+        w, pts, R, res, turn, _paths = self._newton(w0, p)
+        return solution_status(self._newton.stats(), np.asarray(w).ravel(), pts, R, res, turn, tol)

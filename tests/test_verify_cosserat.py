@@ -1,0 +1,150 @@
+"""`crtraj verify --model cosserat` (crtraj.app.verify) against an independent per-frame computation, and a
+gravity sag that PCC cannot see."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from crtraj.app.verify import frames, verify_cosserat
+from crtraj.core.fields import Table
+from crtraj.io.problem import load_robot
+from crtraj.io.results import read_result
+from crtraj.model.cosserat import CosseratRod, RodLoad
+from crtraj.model.cosserat_map import pcc_nodes, tensions_for_bending
+from crtraj.model.kinematics import Model
+from crtraj.model.mechanics import Mechanics
+from crtraj.model.robot import Robot
+from crtraj.world.scene import Scene
+
+ROOT = Path(__file__).resolve().parent.parent
+CDSR2 = ROOT / "problems" / "robots" / "cdsr2.toml"
+D_SF = 5.0
+# one obstacle moving on a line (linear profile) and breathing: c(t) = C0 + (t / DUR) (TO - C0), R = A + B sin(W t)
+C0, TO, DUR = np.array([60.0, 40.0, 300.0]), np.array([20.0, -30.0, 250.0]), 4.0
+A, B, W = 25.0, 8.0, 1.3
+
+
+@pytest.fixture(scope="module")
+def robot() -> Robot:
+    return load_robot(CDSR2)
+
+
+def _scene(obstacles: list[dict]) -> Scene:
+    return Scene.from_table(Table({"safety_distance": D_SF, "obstacle": obstacles}, "scene"))
+
+
+def _document(robot: Robot, scene: Scene, t: np.ndarray, x: np.ndarray) -> dict:
+    """A minimal plan document: header, verdict, waypoints (t, x)."""
+    return {
+        "kind": "plan",
+        "schema": 1,
+        "robot": robot.to_dict(),
+        "scene": scene.to_dict(),
+        "status": "exact",
+        "success": True,
+        "message": "",
+        "timing": {"setup_s": 0.5, "total_s": 0.5},
+        "summary": {},
+        "waypoints": [{"t": float(tk), "x": xk.tolist()} for tk, xk in zip(t, x, strict=True)],
+    }
+
+
+def _path(robot: Robot, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """n configurations on a line from a bend toward +x to one toward +y, with the base moving up."""
+    x0, x1 = np.zeros(robot.nx), np.zeros(robot.nx)
+    x0[:4], x1[:4] = [0.5, 0.0, 0.3, 0.1], [0.0, 0.6, -0.2, 0.4]
+    x0[-1], x1[-1] = robot.z_range[0], 0.5 * (robot.z_range[0] + robot.z_range[1])
+    s = np.linspace(0.0, 1.0, n)[:, None]
+    return np.linspace(0.0, DUR, n), (1 - s) * x0 + s * x1
+
+
+def test_verify_matches_a_direct_per_frame_solve_and_distance(robot: Robot) -> None:
+    """Every frame's clearance under both models equals a cold interpreted rod solve + numpy distances."""
+    obstacle = {
+        "center": C0.tolist(),
+        "radius": {"mean": A, "amplitude": B, "omega": W},
+        "motion": {"to": TO.tolist(), "duration": DUR},
+    }
+    scene = _scene([obstacle])
+    t, x = _path(robot, 6)
+    result = read_result(_document(robot, scene, t, x))
+    v = verify_cosserat(result, robot, substeps=2)
+    tt, xx = frames(t, x, 2)
+    assert len(v.t) == 11 and np.allclose(tt[1::2], 0.5 * (t[:-1] + t[1:]))
+    mech, model = Mechanics.from_robot(robot), Model(robot)
+    ref = CosseratRod(robot, mech, compiled=False)
+    rod_c, pcc_c = [], []
+    for tk, xk in zip(tt, xx, strict=True):
+        c = C0 + min(tk / DUR, 1.0) * (TO - C0)
+        r = A + B * np.sin(W * tk)
+        sol = ref.solve(tensions_for_bending(robot, mech, robot.bending(xk)), RodLoad(), warm=False)
+        assert sol.is_success()
+        for pts, out in ((sol.points, rod_c), (pcc_nodes(model, xk, mech.steps), pcc_c)):
+            world = pts + np.array([0.0, 0.0, xk[-1]])
+            out.append(np.min(np.linalg.norm(world - c, axis=1)) - r - robot.body_radius - D_SF)
+    np.testing.assert_allclose(v.rod_clearance, rod_c, atol=1e-3)  # verify solves to 1e-6 N: ~1e-4 mm
+    np.testing.assert_allclose(v.pcc_clearance, pcc_c, atol=1e-9)
+    assert v.failed == 0
+    assert v.rod.clearance == pytest.approx(min(rod_c), abs=1e-3)
+    assert v.rod.t == pytest.approx(tt[int(np.argmin(rod_c))])
+    assert v.clearance_loss == pytest.approx(max(np.array(pcc_c) - np.array(rod_c)), abs=1e-3)
+
+
+def _sideways(robot: Robot) -> Robot:
+    """cdsr2 lying on its side: gravity along -x of the base frame."""
+    mech = dict(robot.mechanics or {})
+    mech["gravity"] = [-9.80665, 0.0, 0.0]
+    return dataclasses.replace(robot, mechanics=mech)
+
+
+def test_gravity_sag_into_an_obstacle_is_caught(robot: Robot, tmp_path: Path) -> None:
+    """A straight robot lying sideways sags onto a sphere placed under its tip: PCC keeps D_sf, the rod
+    touches; the command says CONTACT and exits 1, and without gravity it passes."""
+    side = _sideways(robot)
+    x = robot.straight(robot.z_range[0])
+    sagged = CosseratRod(side).solve(np.zeros(6), RodLoad())
+    assert sagged.is_success()
+    tip = sagged.tip + np.array([0.0, 0.0, x[-1]])
+    pcc_tip = Model(robot).tip_position(x)
+    assert np.linalg.norm(tip - pcc_tip) > 30.0  # the sag is large against D_sf + body + radius
+    scene = _scene([{"center": (tip - np.array([4.0, 0.0, 0.0])).tolist(), "radius": 3.0}])
+    t = np.array([0.0, 1.0])
+    doc = _document(side, scene, t, np.stack([x, x]))
+    v = verify_cosserat(read_result(doc), side)
+    assert v.pcc.clearance > 5.0 and v.contact and not v.holds
+    assert v.rod.clearance == pytest.approx(4.0 - 3.0 - robot.body_radius - D_SF, abs=1e-3)
+    res = tmp_path / "side.json"
+    res.write_text(json.dumps(doc), encoding="utf-8")
+    robot_file = tmp_path / "side.toml"
+    text = CDSR2.read_text(encoding="utf-8").replace("gravity = [0.0, 0.0, -9.80665]", "gravity = [-9.80665, 0, 0]")
+    robot_file.write_text(text, encoding="utf-8")
+    cmd = [sys.executable, "-m", "crtraj.cli", "verify", str(res), "--model", "cosserat", "--robot", str(robot_file)]
+    out = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=600)
+    assert out.returncode == 1, out.stderr
+    assert "CONTACT" in out.stdout and "extra D_sf this result needs" in out.stdout
+    free = subprocess.run([*cmd, "--no-gravity"], capture_output=True, text=True, cwd=ROOT, timeout=600)
+    assert free.returncode == 0, free.stdout + free.stderr
+    assert "Cosserat: min clearance" in free.stdout and "holds" in free.stdout
+
+
+def test_bad_verify_inputs_are_one_line(robot: Robot, tmp_path: Path) -> None:
+    """A missing --model, a bad --substeps, or a result without mechanics to find: one line, exit 2."""
+    t, x = _path(robot, 3)
+    res = tmp_path / "r.json"
+    res.write_text(json.dumps(_document(robot, _scene([]), t, x)), encoding="utf-8")
+    base = [sys.executable, "-m", "crtraj.cli", "verify", str(res)]
+    for extra, needle in (
+        ([], "--model"),
+        (["--model", "cosserat", "--robot", str(CDSR2), "--substeps", "0"], "--substeps"),
+        (["--model", "cosserat"], "--robot"),
+    ):
+        out = subprocess.run(base + extra, capture_output=True, text=True, cwd=ROOT, timeout=600)
+        assert out.returncode == 2 and needle in out.stderr
+        assert len(out.stderr.strip().splitlines()) == 1, out.stderr
