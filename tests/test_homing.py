@@ -143,7 +143,9 @@ def test_connect_sets_return_delay_and_status_return_and_refuses_a_reverse_bit()
     chain = ServoChain(acts.bus.ids, acts.bus.models)
     clock = Clock()
     with SimDynamixel(chain, clock=clock, wire_time=False) as sim:
-        open_dynamixel(f"dynamixel://{sim.path}", acts, warn=lambda m: None, stop_torque="off").close()
+        open_dynamixel(
+            f"dynamixel://{sim.path}", acts, warn=lambda m: None, stop_torque="off", power_up_check=False
+        ).close()
         assert [chain.register(i, X.RETURN_DELAY, 1) for i in acts.bus.ids] == [0] * 7
         assert [chain.register(i, X.STATUS_RETURN, 1) for i in acts.bus.ids] == [2] * 7
         _write(chain, 3, X.DRIVE_MODE, X.DRIVE_REVERSE, 1)  # as a servo tool would (torque is off after close)
@@ -169,6 +171,8 @@ def test_unwrap_refuses_a_reading_in_no_turn_of_the_window():
 
 # ------------------------------------------------------------- end to end
 def _connect(sim, acts, **kw):
+    """A link; without a homing state it is `crtraj home`'s (no power-up check), with one a streaming link's."""
+    kw.setdefault("power_up_check", "homing" in kw)
     return open_dynamixel(f"dynamixel://{sim.path}", acts, warn=lambda m: None, max_misses=50, **kw)
 
 
@@ -220,7 +224,7 @@ def test_a_spool_turned_while_unpowered_is_unwrapped_or_refused():
     chain.turn_by_hand(2, TICKS_PER_REV)  # s1c2 turned a whole revolution while unpowered
     chain.power_cycle(0.0)
     _write(chain, 7, X.LED, 1, 1)  # the stage counts as homed here: this test is about the spools
-    stage = HomingState((HomedServo(7, "z", 1030, 0, "index", "2026-01-01T00:00:00+00:00"),))
+    stage = HomingState((HomedServo(7, "z", 1030, 0, "index", "2026-01-01T00:00:00+00:00", 0, 46),))
     with SimDynamixel(chain, clock=clock, wire_time=False) as sim:
         assert np.any(np.abs(_reading(chain, acts, clock)[:-1] - values[:-1]) > 6.0)  # read a turn off
         link = _connect(sim, acts)
