@@ -205,3 +205,22 @@ def test_power_cycle_home_plan_approach_and_stream_sim1_from_the_cli(tmp_path, c
     assert clear_r + scene.safety_distance > 0.0  # no contact anywhere the shafts went
     tip = model.tip_position(x_reached[-1])
     assert np.linalg.norm(tip - np.asarray(problem.task.goal)) <= problem.task.goal_tolerance + 0.5
+
+
+def test_crtraj_home_on_a_servo_that_never_stalls_is_one_line_and_writes_nothing(tmp_path, capsys):
+    """No mechanical stop within the travel: `crtraj home` ends with one line naming the servo, exit 2, the
+    torque off, no Homing Offset written and no state file."""
+    robot_file = tmp_path / "robot.toml"
+    robot_file.write_text(ROBOT.read_text() + Z_HOMING + "travel = 20.0\n")
+    robot = load_robot(robot_file)
+    acts = Actuators.from_robot(robot)
+    chain = ServoChain(
+        acts.bus.ids, acts.bus.models, initial=acts.bus.ticks(acts.command(robot.cables(robot.straight(-150.0))))
+    )
+    with SimDynamixel(chain, wire_time=False, power_cycle_at=0.0) as sim:
+        assert main(["home", "--dynamixel", sim.path, "--robot", str(robot_file)]) == 2
+        line = _one_error_line(capsys)
+        assert line.startswith("crtraj: error: servo id 7 (z): no stall within 20 mm of travel"), line
+        assert line.endswith("no mechanical stop found; nothing written"), line
+        assert chain.register(7, X.HOMING_OFFSET, 4) == 0 and not chain.torque(7)
+    assert not state_path(robot_file).exists()
