@@ -1,11 +1,44 @@
-"""Test helper: simulated Dynamixel servos that count as homed (absolute readings, marker lit, state file)."""
+"""Test helpers for the Dynamixel tests: the stage's homing section, a virtual clock the simulator can call,
+sim 1's plan once per module, and simulated servos that count as homed (marker lit, matching state entries)."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
+import pytest
+from conftest import PROBLEMS
+
+from crtraj.cli import main
+from crtraj.core.clock import VirtualClock
 from crtraj.hardware import dynamixel_protocol as dxl
 from crtraj.hardware.dynamixel_protocol import X
 from crtraj.hardware.homing_state import HomedServo, HomingState, multi_turn
 from crtraj.hardware.sim_dynamixel import ServoChain
+
+ROBOT = PROBLEMS / "robots" / "cdsr2.toml"
+Z_HOMING = """
+[robot.homing.z]
+method = "hard_stop"
+reference = -200.0     # mm: the stage's lower mechanical stop
+direction = -1
+speed = 20.0           # mm/s
+current = 300.0        # mA
+"""
+
+
+class Clock(VirtualClock):
+    """Virtual time shared by the link's users and the simulated servos (which call it)."""
+
+    def __call__(self) -> float:
+        return self.now()
+
+
+@pytest.fixture(scope="module")
+def sim1_plan(tmp_path_factory) -> Path:
+    """`crtraj plan problems/paper_static.toml --seed 1` (the paper's simulation 1), once per module."""
+    out = tmp_path_factory.mktemp("plan") / "plan.json"
+    assert main(["plan", str(PROBLEMS / "paper_static.toml"), "--seed", "1", "--out", str(out)]) == 0
+    return out
 
 
 def write(chain: ServoChain, dxl_id: int, addr: int, value: int, size: int, now: float = 0.0) -> None:

@@ -9,10 +9,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import PROBLEMS, require_module
-from dxl_helpers import homed_state, write
+from conftest import require_module
+from dxl_helpers import ROBOT, Clock, homed_state, write
 
-from crtraj.core.clock import VirtualClock
 from crtraj.core.errors import InputError
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.admission import MotionRecord, admit
@@ -24,15 +23,7 @@ from crtraj.hardware.transport import TransportError
 from crtraj.io.problem import load_robot
 from crtraj.world.scene import Scene
 
-ROBOT = PROBLEMS / "robots" / "cdsr2.toml"
 S1C2 = "[robot.actuators.servo.s1c2]\nid = 2\n"
-
-
-class Clock(VirtualClock):
-    """Virtual time shared by the link's users and the simulated servos (which call it)."""
-
-    def __call__(self) -> float:
-        return self.now()
 
 
 @pytest.fixture(autouse=True)
@@ -59,6 +50,14 @@ def _motion(robot, acts):
 
 def _connect(sim, acts, **kw):
     return open_dynamixel(f"dynamixel://{sim.path}", acts, warn=lambda m: None, max_misses=50, **kw)
+
+
+def _refused(acts, chain) -> str:
+    """The one-line refusal of connecting to `chain` (its servos homed where they stand)."""
+    with SimDynamixel(chain, clock=Clock(), wire_time=False) as sim, pytest.raises(TransportError) as e:
+        _connect(sim, acts, homing=homed_state(chain, acts))
+    assert "\n" not in str(e.value)
+    return str(e.value)
 
 
 def test_the_simulated_reverse_bit_flips_the_counting_not_the_shaft():
@@ -109,10 +108,7 @@ def test_an_undeclared_reverse_bit_is_refused_naming_the_servo_and_the_key(tmp_p
     acts = Actuators.from_robot(load_robot(ROBOT))
     chain = ServoChain(acts.bus.ids, acts.bus.models)
     write(chain, 5, X.DRIVE_MODE, X.DRIVE_REVERSE, 1)
-    with SimDynamixel(chain, clock=Clock(), wire_time=False) as sim, pytest.raises(TransportError) as e:
-        _connect(sim, acts, homing=homed_state(chain, acts))
-    text = str(e.value)
-    assert "\n" not in text
+    text = _refused(acts, chain)
     assert text.startswith(
         "servo id 5 (s2c2): Drive Mode 0x01 has the reverse bit set, which the robot file does not declare: "
         "add drive_mode = { reverse = true } to [robot.actuators.servo.s2c2]"
@@ -128,10 +124,8 @@ def test_the_time_based_profile_is_refused_on_the_servo_and_in_the_robot_file(tm
     acts = Actuators.from_robot(load_robot(ROBOT))
     chain = ServoChain(acts.bus.ids, acts.bus.models)
     write(chain, 7, X.DRIVE_MODE, X.DRIVE_TIME_PROFILE, 1)
-    with SimDynamixel(chain, clock=Clock(), wire_time=False) as sim, pytest.raises(TransportError) as e:
-        _connect(sim, acts, homing=homed_state(chain, acts))
-    text = str(e.value)
-    assert "\n" not in text and text.startswith("servo id 7 (z): Drive Mode 0x04 has the time-based profile bit set")
+    text = _refused(acts, chain)
+    assert text.startswith("servo id 7 (z): Drive Mode 0x04 has the time-based profile bit set")
     assert "crtraj does not support the time-based profile" in text and "clear bit 2 of register 10" in text
     with pytest.raises(InputError) as e2:
         load_robot(_robot_file(tmp_path, z="drive_mode = { time_based_profile = true }\n"))

@@ -14,15 +14,16 @@ import sys
 import termios
 from pathlib import Path
 
+import dxl_helpers
 import numpy as np
 import pytest
-from conftest import PROBLEMS, require_module
+from conftest import require_module
+from dxl_helpers import ROBOT, Z_HOMING, Clock
 
 from crtraj.app.approach import plan_approach
 from crtraj.app.sim_dynamixel import stops
 from crtraj.app.stream import admit_result
 from crtraj.cli import main
-from crtraj.core.clock import VirtualClock
 from crtraj.core.errors import InputError
 from crtraj.hardware import dynamixel_protocol as dxl
 from crtraj.hardware.actuators import Actuators
@@ -38,22 +39,7 @@ from crtraj.hardware.transport import TransportError
 from crtraj.io.problem import load_robot
 from crtraj.world.scene import Scene
 
-ROBOT = PROBLEMS / "robots" / "cdsr2.toml"
-Z_HOMING = """
-[robot.homing.z]
-method = "hard_stop"
-reference = -200.0     # mm: the stage's lower mechanical stop
-direction = -1
-speed = 20.0           # mm/s
-current = 300.0        # mA
-"""
-
-
-class Clock(VirtualClock):
-    """Virtual time shared by the link's users and the simulated servos (which call it)."""
-
-    def __call__(self) -> float:
-        return self.now()
+sim1_plan = dxl_helpers.sim1_plan  # the fixture, shared
 
 
 @pytest.fixture(autouse=True)
@@ -294,14 +280,6 @@ def test_a_mark_never_confirmed_is_one_line_no_motion_and_nothing_written(tmp_pa
     ], err
     np.testing.assert_array_equal(before, after)
     assert not state_path(robot_file).exists()
-
-
-@pytest.fixture(scope="module")
-def sim1_plan(tmp_path_factory) -> Path:
-    """`crtraj plan problems/paper_static.toml --seed 1` (the paper's simulation 1), once."""
-    out = tmp_path_factory.mktemp("plan") / "plan.json"
-    assert main(["plan", str(PROBLEMS / "paper_static.toml"), "--seed", "1", "--out", str(out)]) == 0
-    return out
 
 
 def test_stream_approach_refuses_an_unhomed_stage_then_runs_after_homing(sim1_plan, tmp_path, capsys):

@@ -13,9 +13,11 @@ import json
 import sys
 from pathlib import Path
 
+import dxl_helpers
 import numpy as np
 import pytest
 from conftest import PROBLEMS, paper_copy, require_module
+from dxl_helpers import ROBOT, Z_HOMING
 from test_planner_helpers import dense_path_check
 
 from crtraj.cli import main
@@ -28,15 +30,7 @@ from crtraj.io.problem import Problem, load_robot
 from crtraj.model.kinematics import Model
 from crtraj.world.scene import Scene
 
-ROBOT = PROBLEMS / "robots" / "cdsr2.toml"
-Z_HOMING = """
-[robot.homing.z]
-method = "hard_stop"
-reference = -200.0     # mm: the stage's lower mechanical stop
-direction = -1
-speed = 20.0           # mm/s
-current = 300.0        # mA
-"""
+sim1_plan = dxl_helpers.sim1_plan  # the fixture, shared
 
 
 @pytest.fixture(autouse=True)
@@ -136,14 +130,6 @@ def test_replan_stream_dynamixel_refuses_a_power_cycled_stage_then_runs_after_ho
     q_last = np.asarray(run["waypoints"][-1]["q"], dtype=float)
     reached = acts.bus.values(np.rint(chain.positions(sim.clock())))
     assert np.max(np.abs(reached - acts.command(q_last))) <= 0.01 + 1e-9  # the settle tolerance (rad, mm)
-
-
-@pytest.fixture(scope="module")
-def sim1_plan(tmp_path_factory) -> Path:
-    """`crtraj plan problems/paper_static.toml --seed 1` (the paper's simulation 1), once."""
-    out = tmp_path_factory.mktemp("plan") / "plan.json"
-    assert main(["plan", str(PROBLEMS / "paper_static.toml"), "--seed", "1", "--out", str(out)]) == 0
-    return out
 
 
 def test_a_state_file_of_another_servo_is_refused_in_one_line(sim1_plan, tmp_path, capsys):
