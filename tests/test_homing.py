@@ -361,3 +361,37 @@ def test_bad_homing_and_stop_sections_are_one_line(tmp_path, section, message):
 def test_sim_dynamixel_power_cycle_at_must_be_a_time(capsys):
     assert main(["sim-dynamixel", "--pty", "--power-cycle-at", "-1", "--duration", "0"]) == 2
     assert capsys.readouterr().err.strip() == "crtraj: error: --power-cycle-at: must be in 0..1000000 s, got -1.0"
+
+
+class _ChainIO:
+    """`ServoIO` straight on a chain (no bus): reads its registers, writes as a WRITE instruction would."""
+
+    def __init__(self, chain: ServoChain) -> None:
+        self.chain = chain
+
+    def read(self, dxl_id: int, addr: int, size: int) -> int:
+        return self.chain.register(dxl_id, addr, size)
+
+    def write(self, dxl_id: int, addr: int, value: int, size: int, what: str) -> None:
+        _write(self.chain, dxl_id, addr, value, size)
+
+
+def test_a_state_file_without_the_servo_identity_is_refused_until_homed_again(tmp_path):
+    """A state file written before the identity was recorded (no model information, no firmware) matches no
+    servo: the marked stage is refused in one line naming it, with the command that homes it."""
+    acts = Actuators.from_robot(load_robot(ROBOT))
+    chain = ServoChain(acts.bus.ids, acts.bus.models, initial=acts.bus.ticks(_start(acts)))
+    _write(chain, 7, X.LED, 1, 1)
+    old = {"kind": "crtraj-homing", "servos": [{"id": 7, "name": "z", "model": 1030, "offset": 0, "method": "index",
+                                                "time": "2026-11-30T00:00:00+00:00"}]}  # fmt: skip
+    path = tmp_path / "robot.homing.json"
+    path.write_text(json.dumps(old))
+    state = HomingState.load(path)
+    assert state.get(7).identity() == (1030, -1, -1)
+    with pytest.raises(InputError) as e:
+        PowerUpCheck(_ChainIO(chain), acts, state, "crtraj home --dynamixel D").run()
+    assert str(e.value) == (
+        "servo id 7 (z): model 1030, model information 0, firmware 46 is not the servo the homing state file "
+        "recorded (model 1030, model information -1, firmware -1): another servo on this id; run crtraj home "
+        "--dynamixel D"
+    )
