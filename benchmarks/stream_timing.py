@@ -85,7 +85,9 @@ def _one_rate(args, robot, acts: Actuators, dev: str, baud: int, delay: int, rat
     with tempfile.TemporaryDirectory() as tmp:
         log = Path(tmp) / "run.jsonl"
         try:
-            tr = open_dynamixel(f"dynamixel://{dev}?baud={baud}", acts, return_delay=delay, stop_torque="off")
+            # its own simulator, started in place: no power-up to check (that check is timed nowhere here)
+            url = f"dynamixel://{dev}?baud={baud}"
+            tr = open_dynamixel(url, acts, return_delay=delay, stop_torque="off", power_up_check=False)
         except TransportError as exc:  # a loaded machine: the simulator missed its replies
             print(f"{rate:6.0f}   no connection: {exc}")
             return None

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import PROBLEMS, paper_copy, require_module
+from dxl_helpers import homed_state
 
 from crtraj.app.stream import admit_result
 from crtraj.cli import main
@@ -81,7 +82,10 @@ def _stream(sim, acts, motion, clock, misses: int = 50, **opts):
     """Streamer and link on the simulator. The SDK's reply timeout is wall time (34 ms): on a loaded machine the
     simulator's thread may miss a few, so a test that is not about faults tolerates `misses` in a row, and the
     telemetry watchdog (virtual time: 10 ms per missed tick) waits 10 s."""
-    tr = open_dynamixel(f"dynamixel://{sim.path}", acts, warn=lambda m: None, max_misses=misses, stop_torque="off")
+    state = homed_state(sim.chain, acts, clock.now())  # the readings are absolute: homed where they stand
+    tr = open_dynamixel(
+        f"dynamixel://{sim.path}", acts, warn=lambda m: None, max_misses=misses, stop_torque="off", homing=state
+    )
     opts.setdefault("watchdog", 10.0)
     st = Streamer(tr, acts, StreamOptions(rate=motion.rate, **opts), None, clock=clock)
     return st, tr
@@ -190,13 +194,14 @@ def test_latency_timer_above_1ms_is_a_warning(acts, tmp_path):
     (tmp_path / tty / "latency_timer").write_text("16\n")
     warned: list[str] = []
     try:
-        tr = DynamixelTransport(sim.path, 1_000_000, acts, warn=warned.append, sysfs=tmp_path)
+        homed = homed_state(sim.chain, acts)
+        tr = DynamixelTransport(sim.path, 1_000_000, acts, warn=warned.append, sysfs=tmp_path, homing=homed)
         tr.close()
         assert len(warned) == 1 and "\n" not in warned[0]
         assert "latency timer is 16 ms" in warned[0] and f"echo 1 | sudo tee {tmp_path / tty}" in warned[0]
         (tmp_path / tty / "latency_timer").write_text("1\n")
         warned.clear()
-        DynamixelTransport(sim.path, 1_000_000, acts, warn=warned.append, sysfs=tmp_path).close()
+        DynamixelTransport(sim.path, 1_000_000, acts, warn=warned.append, sysfs=tmp_path, homing=homed).close()
         assert warned == []
     finally:
         sim.stop()
@@ -208,7 +213,7 @@ def test_connect_sets_extended_mode_profiles_and_torque_without_moving(acts):
     chain = sim.chain
     try:
         before = chain.positions(0.0).copy()
-        tr = DynamixelTransport(sim.path, 1_000_000, acts, stop_torque="off")
+        tr = DynamixelTransport(sim.path, 1_000_000, acts, stop_torque="off", homing=homed_state(chain, acts))
         assert all(chain.torque(i) for i in acts.bus.ids)
         first = acts.bus.ids[0]
         assert chain.register(first, 11, 1) == 4  # extended position control
@@ -231,7 +236,8 @@ def test_a_short_motion_streams_and_ends_at_its_final_set_point(robot, acts):
         rep = st.run_path(motion)
         assert rep.status == "done" and rep.moves == len(motion.stamps)
         assert _settled(sim, acts, motion, clock)
-        assert sim.chain.counts["sync_writes"] == rep.frames + 1  # one per frame, one torque off at exit
+        # one per frame, one torque off at connect (before the power-up check) and one at exit
+        assert sim.chain.counts["sync_writes"] == rep.frames + 2
         assert not any(sim.chain.torque(i) for i in acts.bus.ids)  # closed: torque off
     finally:
         sim.stop()
@@ -325,7 +331,8 @@ def test_a_motion_that_does_not_start_at_the_servos_is_refused_before_sending(ro
         st, _ = _stream(sim, acts, motion, clock)
         rep = st.run_path(motion)
         assert rep.status == "refused" and rep.moves == 0 and "--approach" in rep.message
-        assert sim.chain.counts["sync_writes"] == 1  # only the torque off at exit: no goal reached the servos
+        # only the torque off at connect and at exit: no goal reached the servos
+        assert sim.chain.counts["sync_writes"] == 2
         assert np.array_equal(sim.chain.positions(clock.now() + 1.0), before)
     finally:
         sim.stop()
@@ -390,8 +397,8 @@ def test_paper_simulation_2_streams_to_the_servos_end_to_end(tmp_path, capsys):
         rep = st.run_path(motion)
         assert rep.status == "done", rep.message
         assert rep.moves == len(motion.stamps) and not any(e[1] == "refused" for e in rep.events)
-        # one bus transaction per set-point (plus the HOLD frames while settling and the torque off at exit)
-        assert sim.chain.counts["sync_writes"] == rep.frames + 1
+        # one bus transaction per set-point (plus the HOLD frames while settling, the torque off at connect and at exit)
+        assert sim.chain.counts["sync_writes"] == rep.frames + 2
         goals = [sim.chain.register(i, 116, 4) for i in acts.bus.ids]
         assert goals == acts.bus.ticks(motion.values[-1]).tolist()  # the final set-point, in ticks, as sent
         assert _settled(sim, acts, motion, clock)

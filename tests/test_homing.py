@@ -14,15 +14,16 @@ import sys
 import termios
 from pathlib import Path
 
+import dxl_helpers
 import numpy as np
 import pytest
-from conftest import PROBLEMS, require_module
+from conftest import require_module
+from dxl_helpers import ROBOT, Z_HOMING, Clock
 
 from crtraj.app.approach import plan_approach
 from crtraj.app.sim_dynamixel import stops
 from crtraj.app.stream import admit_result
 from crtraj.cli import main
-from crtraj.core.clock import VirtualClock
 from crtraj.core.errors import InputError
 from crtraj.hardware import dynamixel_protocol as dxl
 from crtraj.hardware.actuators import Actuators
@@ -38,22 +39,7 @@ from crtraj.hardware.transport import TransportError
 from crtraj.io.problem import load_robot
 from crtraj.world.scene import Scene
 
-ROBOT = PROBLEMS / "robots" / "cdsr2.toml"
-Z_HOMING = """
-[robot.homing.z]
-method = "hard_stop"
-reference = -200.0     # mm: the stage's lower mechanical stop
-direction = -1
-speed = 20.0           # mm/s
-current = 300.0        # mA
-"""
-
-
-class Clock(VirtualClock):
-    """Virtual time shared by the link's users and the simulated servos (which call it)."""
-
-    def __call__(self) -> float:
-        return self.now()
+sim1_plan = dxl_helpers.sim1_plan  # the fixture, shared
 
 
 @pytest.fixture(autouse=True)
@@ -143,7 +129,9 @@ def test_connect_sets_return_delay_and_status_return_and_refuses_a_reverse_bit()
     chain = ServoChain(acts.bus.ids, acts.bus.models)
     clock = Clock()
     with SimDynamixel(chain, clock=clock, wire_time=False) as sim:
-        open_dynamixel(f"dynamixel://{sim.path}", acts, warn=lambda m: None, stop_torque="off").close()
+        open_dynamixel(
+            f"dynamixel://{sim.path}", acts, warn=lambda m: None, stop_torque="off", power_up_check=False
+        ).close()
         assert [chain.register(i, X.RETURN_DELAY, 1) for i in acts.bus.ids] == [0] * 7
         assert [chain.register(i, X.STATUS_RETURN, 1) for i in acts.bus.ids] == [2] * 7
         _write(chain, 3, X.DRIVE_MODE, X.DRIVE_REVERSE, 1)  # as a servo tool would (torque is off after close)
@@ -169,6 +157,8 @@ def test_unwrap_refuses_a_reading_in_no_turn_of_the_window():
 
 # ------------------------------------------------------------- end to end
 def _connect(sim, acts, **kw):
+    """A link; without a homing state it is `crtraj home`'s (no power-up check), with one a streaming link's."""
+    kw.setdefault("power_up_check", "homing" in kw)
     return open_dynamixel(f"dynamixel://{sim.path}", acts, warn=lambda m: None, max_misses=50, **kw)
 
 
@@ -220,7 +210,7 @@ def test_a_spool_turned_while_unpowered_is_unwrapped_or_refused():
     chain.turn_by_hand(2, TICKS_PER_REV)  # s1c2 turned a whole revolution while unpowered
     chain.power_cycle(0.0)
     _write(chain, 7, X.LED, 1, 1)  # the stage counts as homed here: this test is about the spools
-    stage = HomingState((HomedServo(7, "z", 1030, 0, "index", "2026-01-01T00:00:00+00:00"),))
+    stage = HomingState((HomedServo(7, "z", 1030, 0, "index", "2026-01-01T00:00:00+00:00", 0, 46),))
     with SimDynamixel(chain, clock=clock, wire_time=False) as sim:
         assert np.any(np.abs(_reading(chain, acts, clock)[:-1] - values[:-1]) > 6.0)  # read a turn off
         link = _connect(sim, acts)
@@ -290,14 +280,6 @@ def test_a_mark_never_confirmed_is_one_line_no_motion_and_nothing_written(tmp_pa
     ], err
     np.testing.assert_array_equal(before, after)
     assert not state_path(robot_file).exists()
-
-
-@pytest.fixture(scope="module")
-def sim1_plan(tmp_path_factory) -> Path:
-    """`crtraj plan problems/paper_static.toml --seed 1` (the paper's simulation 1), once."""
-    out = tmp_path_factory.mktemp("plan") / "plan.json"
-    assert main(["plan", str(PROBLEMS / "paper_static.toml"), "--seed", "1", "--out", str(out)]) == 0
-    return out
 
 
 def test_stream_approach_refuses_an_unhomed_stage_then_runs_after_homing(sim1_plan, tmp_path, capsys):
@@ -379,3 +361,37 @@ def test_bad_homing_and_stop_sections_are_one_line(tmp_path, section, message):
 def test_sim_dynamixel_power_cycle_at_must_be_a_time(capsys):
     assert main(["sim-dynamixel", "--pty", "--power-cycle-at", "-1", "--duration", "0"]) == 2
     assert capsys.readouterr().err.strip() == "crtraj: error: --power-cycle-at: must be in 0..1000000 s, got -1.0"
+
+
+class _ChainIO:
+    """`ServoIO` straight on a chain (no bus): reads its registers, writes as a WRITE instruction would."""
+
+    def __init__(self, chain: ServoChain) -> None:
+        self.chain = chain
+
+    def read(self, dxl_id: int, addr: int, size: int) -> int:
+        return self.chain.register(dxl_id, addr, size)
+
+    def write(self, dxl_id: int, addr: int, value: int, size: int, what: str) -> None:
+        _write(self.chain, dxl_id, addr, value, size)
+
+
+def test_a_state_file_without_the_servo_identity_is_refused_until_homed_again(tmp_path):
+    """A state file written before the identity was recorded (no model information, no firmware) matches no
+    servo: the marked stage is refused in one line naming it, with the command that homes it."""
+    acts = Actuators.from_robot(load_robot(ROBOT))
+    chain = ServoChain(acts.bus.ids, acts.bus.models, initial=acts.bus.ticks(_start(acts)))
+    _write(chain, 7, X.LED, 1, 1)
+    old = {"kind": "crtraj-homing", "servos": [{"id": 7, "name": "z", "model": 1030, "offset": 0, "method": "index",
+                                                "time": "2026-11-30T00:00:00+00:00"}]}  # fmt: skip
+    path = tmp_path / "robot.homing.json"
+    path.write_text(json.dumps(old))
+    state = HomingState.load(path)
+    assert state.get(7).identity() == (1030, -1, -1)
+    with pytest.raises(InputError) as e:
+        PowerUpCheck(_ChainIO(chain), acts, state, "crtraj home --dynamixel D").run()
+    assert str(e.value) == (
+        "servo id 7 (z): model 1030, model information 0, firmware 46 is not the servo the homing state file "
+        "recorded (model 1030, model information -1, firmware -1): another servo on this id; run crtraj home "
+        "--dynamixel D"
+    )

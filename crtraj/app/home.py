@@ -48,7 +48,7 @@ def home_command(args: argparse.Namespace) -> int:
     check_output_file(out, "--state")
     old = HomingState.load(out)
     url = f"dynamixel://{args.dynamixel}?baud={args.baud or DEFAULT_BAUD}"
-    link = open_dynamixel(url, acts)
+    link = open_dynamixel(url, acts, power_up_check=False)  # homing makes the positions absolute itself
     try:
         homer = Homer(link, acts, specs, WallClock(), confirm_on_stdin)
         homer.check()  # before anything moves

@@ -32,6 +32,9 @@ from crtraj.core.fileio import StagedDir, check_output_dir, failed_sibling, is_s
 from crtraj.core.lazy import lazy_module
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.admission import admit, check_stream_safety
+from crtraj.hardware.dynamixel import parse_url
+from crtraj.hardware.homing_spec import read_stop
+from crtraj.hardware.homing_state import homing_command, state_path
 from crtraj.hardware.link import DeviceLink
 from crtraj.hardware.mocap import MocapTip, SimulatedMocap
 from crtraj.hardware.setpoints import check_time_scale
@@ -324,9 +327,25 @@ def _actuators(problem: Problem) -> Actuators:
     return Actuators.from_robot(problem.robot)
 
 
+def _link_options(target: str, problem: Problem) -> dict[str, Any]:
+    """A Dynamixel link's keywords: the homing state file beside the problem's robot file (none for an inline
+    robot: its multi-turn actuators are then refused), the command that homes it, and ``[robot.stop]``."""
+    if not target.startswith("dynamixel://"):
+        return {}
+    ref = problem.raw.get("robot")
+    robot_file = problem.path.parent / ref if isinstance(ref, str) and problem.path is not None else None
+    return {
+        "homing": state_path(robot_file) if robot_file is not None else None,
+        "home_command": homing_command(robot_file, parse_url(target)[0]),
+        "stop_torque": read_stop(problem.robot).torque,
+    }
+
+
 def _connect_live(address: str, problem: Problem, sopts: Any, out: Path) -> Streamer:
     """Connect to the device for a live run and start its stream (its log in out/stream.jsonl)."""
-    streamer = Streamer.open(_stream_target(address), _actuators(problem), sopts, out / "stream.jsonl")
+    target = _stream_target(address)
+    link = _link_options(target, problem)
+    streamer = Streamer.open(target, _actuators(problem), sopts, out / "stream.jsonl", link=link)
     try:
         streamer.start()
     except StreamError as exc:
@@ -392,7 +411,7 @@ def _stream_run(req: ReplanRequest, problem: Problem, paths: dict[str, Any]) -> 
         rate=opts.rate,
     )
     print(f"streaming the run ({motion.path.duration:.2f} s) to {target}", flush=True)
-    streamer = Streamer.open(target, actuators, opts, log)
+    streamer = Streamer.open(target, actuators, opts, log, link=_link_options(target, problem))
     rep = streamer.run_path(motion, approach=req.approach, plan_approach=plan_approach)
     print(f"  stream {rep.status}: {rep.message}; {rep.frames} frames; log {rep.log}")
     return rep.ok

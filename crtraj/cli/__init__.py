@@ -255,8 +255,8 @@ def _add_home(sub: argparse._SubParsersAction) -> None:
         help="home a Dynamixel robot after power-up ([robot.homing]) and write its homing state",
         description="Runs each actuator's homing ([robot.homing]: a current-limited move to a mechanical stop, "
         "or a mark confirmed by hand), unwraps the spools into their limits, verifies every reading and writes "
-        "the homing state next to the robot file. crtraj stream --dynamixel refuses servos not homed since "
-        "their last power-up.",
+        "the homing state next to the robot file. crtraj stream --dynamixel and crtraj replan --stream "
+        "dynamixel:// refuse servos not homed since their last power-up.",
     )
     p.add_argument("--dynamixel", metavar="DEV", required=True, help="the servos' port, e.g. /dev/ttyUSB0")
     p.add_argument("--baud", type=int, default=None, help="baud rate (default 1000000)")

@@ -10,6 +10,7 @@ problems/robots/cdsr2.toml.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -64,19 +65,20 @@ class Actuators:
             object.__setattr__(self, name, a)
 
     # ------------------------------------------------------------------ names
+    # n, names, units and scale are the robot description's (`ActuatorLimits`): delegated, not repeated
     @property
     def n(self) -> int:
         """Number of actuators (3 per segment + the z stage)."""
-        return 3 * self.n_segments + 1
+        return self.limits.n
 
     @property
     def names(self) -> tuple[str, ...]:
-        return (*tuple(f"s{k + 1}c{i + 1}" for k in range(self.n_segments) for i in range(3)), "z")
+        return self.limits.names
 
     @property
     def units(self) -> tuple[str, ...]:
         """Position unit of each actuator's value."""
-        return ("rad",) * (3 * self.n_segments) + ("mm",)
+        return self.limits.units
 
     def index(self, name: str) -> int:
         """Position of actuator `name`; `InputError` for an unknown name."""
@@ -88,7 +90,7 @@ class Actuators:
     @property
     def scale(self) -> np.ndarray:
         """d value / d q: sign / spool radius (rad/mm) for servos, sign for the stage."""
-        return np.concatenate([self.sign[:-1] / self.spool_radius, self.sign[-1:]])
+        return self.limits.scale
 
     # ---------------------------------------------------------- conversions
     def for_robot(self, robot: Any) -> Actuators:
@@ -119,9 +121,9 @@ class Actuators:
         q = self._rest() + (a2 - self.zero_offset) / self.scale
         return q[0] if a.ndim == 1 else q
 
-    @property
+    @cached_property
     def limits(self) -> ActuatorLimits:
-        """The scale and limits of these actuators, as the robot description holds them."""
+        """The scale and limits of these actuators, as the robot description holds them (built once)."""
         arrays = (self.spool_radius, self.sign, self.zero_offset, self.lower, self.upper, self.vmax, self.amax)
         return ActuatorLimits(self.n_segments, *arrays)
 

@@ -29,11 +29,16 @@ Connecting checks, each failure one line: the port exists and opens, the
 servos answer at this baud rate (if none does, the other common rates are
 tried and the right one named), every id answers (a silent one is named),
 each model number is the robot file's, no hardware error bit is set, and the
-actuators' position limits fit the extended position range; with a homing
-state, every position is absolute (`crtraj.hardware.homing_state.PowerUpCheck`:
-a multi-turn actuator homed since its last power-up, a spool unwrapped into its
-limits). Then it sets torque off, checks Drive Mode (no reverse or time-based
-profile bit), sets Return Delay Time (0 by default: the factory 250 adds
+actuators' position limits fit the extended position range, and Drive Mode
+carries no bit the robot file does not declare (`crtraj.hardware.drive_mode`:
+no undeclared reverse bit, never the time-based profile). Then it sets torque
+off and the declared reverse bits, and checks that every position is absolute
+(`crtraj.hardware.homing_state.PowerUpCheck`: a multi-turn actuator homed since
+its last power-up, matching the homing state file; a spool unwrapped into its
+limits). That check is on by default: every caller that opens a link to move
+the robot (``crtraj stream``, ``crtraj replan --stream``, a `Streamer.open`)
+gets it; only ``crtraj home`` turns it off (``power_up_check=False``). Then it
+sets Return Delay Time (0 by default: the factory 250 adds
 500 us to every reply), Status Return Level 2, extended position control (operating mode 4: a spool turns more
 than one revolution), the profile velocity and acceleration from the
 actuator limits, the indirect addresses, the goal to the present position,
@@ -58,6 +63,7 @@ import numpy as np
 
 from crtraj.core.errors import InputError
 from crtraj.hardware.actuators import Actuators
+from crtraj.hardware.drive_mode import DriveModeCheck
 from crtraj.hardware.dynamixel_protocol import BAUD_CODES, X, hardware_error_text
 from crtraj.hardware.homing_state import HomingState, PowerUpCheck
 from crtraj.hardware.protocol import ESTOP, PING, STATUS_ESTOP, Frame, Telemetry, seq_next
@@ -146,8 +152,10 @@ class DynamixelTransport(Transport):
 
     warn: where connection warnings go (default: a warning of the ``crtraj`` logger). sysfs: the USB-serial
     sysfs folder (tests point it elsewhere). max_misses: failed reads in a row that end the stream.
-    homing: the homing state to check absolute positions against (`crtraj.hardware.homing_state.PowerUpCheck`,
-    before torque comes on; `crtraj stream` always passes it); None skips the check (`crtraj home` itself).
+    homing: the homing state (or the path of its file, `crtraj.hardware.homing_state.state_path` of the robot
+    file) that absolute positions are checked against (`crtraj.hardware.homing_state.PowerUpCheck`, before
+    torque comes on); None: no state, so every multi-turn actuator is refused until homed.
+    power_up_check: False skips that check (only `crtraj home`, which makes the positions absolute itself).
     return_delay: Return Delay Time written to every servo (2 us units, 0..254). home_command: named in refusals.
     stop_torque: ``[robot.stop] torque``: "keep" (an e-stop, after the streamer's planned stop, latches the
     goals with the torque on, and `close` leaves it on: the cables stay taut, a lead-screw stage cannot
@@ -164,7 +172,8 @@ class DynamixelTransport(Transport):
         warn: Callable[[str], None] | None = None,
         sysfs: Path = SYSFS_USB_SERIAL,
         max_misses: int = 5,
-        homing: HomingState | None = None,
+        homing: HomingState | str | Path | None = None,
+        power_up_check: bool = True,
         return_delay: int = 0,
         home_command: str = "crtraj home",
         stop_torque: str = "keep",
@@ -189,6 +198,8 @@ class DynamixelTransport(Transport):
         if stop_torque not in ("keep", "off"):
             raise InputError(f'robot.stop.torque: must be "keep" or "off", got {stop_torque!r}')
         self.stop_torque = stop_torque
+        # a bad state file is one line before the port opens
+        state = homing if isinstance(homing, HomingState) else HomingState.load(homing) if homing else HomingState()
         self._sdk = sdk
         self._ph = sdk.PacketHandler(2.0)
         self._port = None
@@ -211,9 +222,14 @@ class DynamixelTransport(Transport):
                 self.warnings.append(w)
                 self._warn(w)
             self._check_servos()
-            if homing is not None:
-                self._torque_off(confirm=True)
-                PowerUpCheck(self, actuators, homing, home_command).run()
+            drive = DriveModeCheck(self, bus)
+            why = drive.refusal()  # before anything is written
+            if why is not None:
+                raise TransportError(why)
+            self._torque_off(confirm=True)
+            drive.apply()
+            if power_up_check:
+                PowerUpCheck(self, actuators, state, home_command).run()
             self._setup(actuators)
         except BaseException:
             with contextlib.suppress(Exception):  # a setup that failed half-way must not leave torque on
@@ -344,7 +360,6 @@ class DynamixelTransport(Transport):
         for i in bus.ids:
             self._write1(i, X.TORQUE_ENABLE, 0, 1, "torque off")
         for k, i in enumerate(bus.ids):
-            self._check_drive_mode(i)
             self._write1(i, X.RETURN_DELAY, self.return_delay, 1, "return delay time")
             self._write1(i, X.STATUS_RETURN, 2, 1, "status return level")
             self._write1(i, X.OPERATING_MODE, X.EXTENDED_POSITION, 1, "extended position mode")
@@ -367,17 +382,6 @@ class DynamixelTransport(Transport):
             self._write1(i, X.GOAL_POSITION, present & 0xFFFFFFFF, 4, "goal position")
         for i in bus.ids:
             self._write1(i, X.TORQUE_ENABLE, 1, 1, "torque on")
-
-    def _check_drive_mode(self, dxl_id: int) -> None:
-        """Refuse a Drive Mode with the reverse or time-based-profile bit: the robot file's sign gives the
-        direction and the profile registers are in velocity units, so either bit would move the robot wrongly."""
-        mode = self.read(dxl_id, X.DRIVE_MODE, 1)
-        bits = [n for b, n in ((X.DRIVE_REVERSE, "reverse"), (X.DRIVE_TIME_PROFILE, "time-based profile")) if mode & b]
-        if bits:
-            raise TransportError(
-                f"servo {self.bus.name_of(dxl_id)}: Drive Mode 0x{mode:02x} has the {' and '.join(bits)} bit set, "
-                "which robot.actuators does not declare: clear it (register 10) and give the direction by sign"
-            )
 
     # -------------------------------------------------------------- frames
     def send(self, frame: bytes) -> None:

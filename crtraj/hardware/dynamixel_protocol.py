@@ -52,6 +52,7 @@ class X:
     """X-series control table addresses (bytes) and sizes, from the XM430 e-manual."""
 
     MODEL_NUMBER = 0  # 2, read-only
+    MODEL_INFORMATION = 2  # 4, read-only (the X-series has no serial-number register)
     FIRMWARE = 6  # 1
     ID = 7  # 1
     BAUD_RATE = 8  # 1

@@ -38,7 +38,15 @@ from crtraj.core.errors import InputError
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.dynamixel_protocol import X
 from crtraj.hardware.homing_spec import HomingSpec
-from crtraj.hardware.homing_state import HomedServo, HomingState, PowerUpCheck, ServoIO, multi_turn, now_text
+from crtraj.hardware.homing_state import (
+    HomedServo,
+    HomingState,
+    PowerUpCheck,
+    ServoIO,
+    identity,
+    multi_turn,
+    now_text,
+)
 
 log = logging.getLogger(__name__)
 
@@ -106,7 +114,8 @@ class Homer:
         self.io.write(dxl_id, X.OPERATING_MODE, X.EXTENDED_POSITION, 1, "extended position mode")
         self.io.write(dxl_id, X.LED, 1, 1, "homed marker (LED)")
         log.info("homed %s: homing offset %d ticks", self.bus.name_of(dxl_id), offset)
-        return HomedServo(dxl_id, spec.name, self.bus.models[k], offset, spec.method, now_text())
+        model, info, firmware = identity(self.io, dxl_id)
+        return HomedServo(dxl_id, spec.name, model, offset, spec.method, now_text(), info, firmware)
 
     def _set_offset(self, k: int, spec: HomingSpec) -> int:
         """Write the Homing Offset that makes servo k read its reference, and verify the reading."""

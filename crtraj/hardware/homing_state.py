@@ -16,9 +16,14 @@ How crtraj knows a servo's reading is absolute:
   nothing else crtraj does writes it, its default is documented as 0, and the
   lit LED shows a person which servos are homed.)
 - The state file (`state_path`: ``<robot>.homing.json`` next to the robot
-  file) records per servo its id, model, the Homing Offset written and the
-  time; a servo whose model or offset differs from the file is not the one
-  that was homed.
+  file) records per servo its identity, the Homing Offset written and the
+  time. The issue asks for a serial number: the X-series control table has
+  none (EEPROM holds Model Number, Model Information, Firmware Version and ID,
+  nothing per unit), so the identity is id + model number + model information
+  + firmware version, and a servo whose identity or offset differs from the
+  file is refused as not the one homed. Two units of one model and firmware
+  look alike on the bus; a swapped one is still caught, by the marker: it
+  was powered up after the homing, so its LED reads 0.
 
 `PowerUpCheck` runs at connect, before torque comes on: a multi-turn actuator
 (position limits spanning a turn or more) must carry the marker and match the
@@ -35,7 +40,7 @@ taut; crtraj never uses it with a 2 pi offset.
 from __future__ import annotations
 
 import datetime as _dt
-from dataclasses import asdict, dataclass
+from dataclasses import MISSING, asdict, dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -70,7 +75,9 @@ def state_path(robot_file: str | Path) -> Path:
 
 @dataclass(frozen=True)
 class HomedServo:
-    """One homed servo: bus id, actuator name, model number, Homing Offset written (ticks), method, UTC time."""
+    """One homed servo: bus id, actuator name, model number, Homing Offset written (ticks), method, UTC time,
+    and the rest of its identity: Model Information (register 2) and Firmware Version (register 6); -1 in a
+    file written before they were recorded (it then matches no servo: home again)."""
 
     id: int
     name: str
@@ -78,6 +85,21 @@ class HomedServo:
     offset: int
     method: str
     time: str
+    model_information: int = -1
+    firmware: int = -1
+
+    def identity(self) -> tuple[int, int, int]:
+        """(model number, model information, firmware version)."""
+        return (self.model, self.model_information, self.firmware)
+
+
+def identity(io: ServoIO, dxl_id: int) -> tuple[int, int, int]:
+    """(model number, model information, firmware version) read from servo `dxl_id`."""
+    return (
+        io.read(dxl_id, X.MODEL_NUMBER, 2) & 0xFFFF,
+        io.read(dxl_id, X.MODEL_INFORMATION, 4),
+        io.read(dxl_id, X.FIRMWARE, 1),
+    )
 
 
 @dataclass(frozen=True)
@@ -98,7 +120,10 @@ class HomingState:
         data = read_json(p, MAX_STATE_BYTES)
         try:
             rows = data["servos"]
-            return cls(tuple(HomedServo(**{k: r[k] for k in HomedServo.__dataclass_fields__}) for r in rows))
+            fields = HomedServo.__dataclass_fields__
+            return cls(
+                tuple(HomedServo(**{k: r[k] for k in fields if k in r or fields[k].default is MISSING}) for r in rows)
+            )
         except (KeyError, TypeError) as exc:
             raise InputError(f"{p}: not a homing state file (servos: {exc}); run crtraj home again") from None
 
@@ -175,10 +200,17 @@ class PowerUpCheck:
             )
         entry = self.state.get(dxl_id)
         offset = self.io.read(dxl_id, X.HOMING_OFFSET, 4)
-        if entry is None or entry.model != bus.models[k] or entry.offset != offset:
-            was = "no entry" if entry is None else f"offset {entry.offset}, model {entry.model}"
+        if entry is None or entry.offset != offset:
+            was = "no entry" if entry is None else f"offset {entry.offset}"
             raise InputError(
                 f"{who}: its homing offset {offset} does not match the homing state file ({was}); run {self.command}"
+            )
+        found = identity(self.io, dxl_id)
+        if found != entry.identity():
+            raise InputError(
+                f"{who}: model {found[0]}, model information {found[1]}, firmware {found[2]} is not the servo the "
+                f"homing state file recorded (model {entry.model}, model information {entry.model_information}, "
+                f"firmware {entry.firmware}): another servo on this id; run {self.command}"
             )
 
     def _unwrap(self, k: int, dxl_id: int, reading: int, win: np.ndarray) -> None:

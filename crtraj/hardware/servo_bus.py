@@ -6,7 +6,9 @@ override, ``[robot.actuators.z]`` for the stage):
 - ``id``: the servo's bus id (0..252), per actuator, all different;
 - ``ticks_per_rev``: encoder ticks per output revolution (4096 for the X-series);
 - ``model``: the model number the servo must report (XM430-W350: 1020);
-- ``lead`` (z only): mm of stage travel per revolution of its servo.
+- ``lead`` (z only): mm of stage travel per revolution of its servo;
+- ``drive_mode = { reverse = true }``: the servo's Drive Mode register (10) as it must be
+  (`DriveMode`): connect sets a declared reverse bit and refuses a bit it finds undeclared.
 
 Either no actuator has an ``id`` (the robot has no Dynamixel bus) or every
 actuator has one. The actuator value (`crtraj.hardware.actuators`: rad for a
@@ -29,10 +31,57 @@ from typing import Any
 import numpy as np
 
 from crtraj.core.fields import MAX_LENGTH, Table
+from crtraj.core.options import Options, option
 
 MAX_TICKS_PER_REV = 1 << 20
 MAX_MODEL = 0xFFFF
-BUS_KEYS = ("id", "ticks_per_rev", "model")
+BUS_KEYS = ("id", "ticks_per_rev", "model", "drive_mode")
+TIME_PROFILE_UNSUPPORTED = (
+    "crtraj does not support the time-based profile: with Drive Mode bit 2 the servo reads Profile Velocity and "
+    "Profile Acceleration as times (ms per goal), so the speed and acceleration caps crtraj writes from the "
+    "actuator limits (the servo's own backstop under every streamed set-point) would not exist"
+)
+
+
+@dataclass(frozen=True)
+class DriveMode(Options):
+    """Drive Mode (register 10, EEPROM) of one servo, as the robot file declares it: an inline table
+    ``drive_mode = { reverse = true }`` in ``[robot.actuators.servo.<name>]``, ``[robot.actuators.z]`` or once for
+    all servos in ``[robot.actuators]``.
+
+    reverse: bit 0, the direction of rotation. ROBOTIS X-series e-manual: normal mode (0) counts
+    counter-clockwise (seen from the front) as positive, reverse mode (1) clockwise; Goal Position, Present
+    Position and Present Velocity all follow the bit. Declared, connect sets the bit (torque off) and the values
+    crtraj sends and reads stay in the servo's own counting: the robot file's ``sign`` describes the values
+    as the reversed servo reports them, crtraj never negates them itself. Setting the bit changes what the servo
+    reads, so crtraj then clears the servo's homed marker: a spool is unwrapped again, a multi-turn actuator
+    must be homed again. A reverse bit found on a servo that does not declare it is a one-line refusal.
+    time_based_profile: bit 2. Only false: crtraj does not support the time-based profile, because the servo
+    then reads Profile Velocity and Acceleration as times (ms per goal) and the speed and acceleration caps
+    crtraj writes from the actuator limits would not exist; the bit found on a servo is a one-line refusal.
+    """
+
+    SECTION = "robot.actuators.drive_mode"
+
+    reverse: bool = option(False)
+    time_based_profile: bool = option(False)
+
+    @property
+    def bits(self) -> int:
+        """The register value these declarations give (bit 0 reverse, bit 2 time-based profile)."""
+        return (0x01 if self.reverse else 0) | (0x04 if self.time_based_profile else 0)
+
+
+def _drive_mode(t: Table, base: dict[str, Any]) -> DriveMode:
+    """`DriveMode` of `t`'s ``drive_mode`` table (else `base`'s, else the default); one line for a bit crtraj
+    cannot honour."""
+    if not t.has("drive_mode"):
+        return base.get("drive_mode") or DriveMode()
+    sub = t.table("drive_mode")
+    mode = DriveMode.from_table(sub)
+    if mode.time_based_profile:
+        raise sub.error("time_based_profile", f"true is not supported: {TIME_PROFILE_UNSUPPORTED}")
+    return mode
 
 
 def read_bus_keys(t: Table, base: dict[str, Any], stage: bool) -> dict[str, Any]:
@@ -40,6 +89,7 @@ def read_bus_keys(t: Table, base: dict[str, Any], stage: bool) -> dict[str, Any]
     d: dict[str, Any] = {"id": t.int("id", None, ge=0, le=252) if t.has("id") else None}
     for key, hi in (("ticks_per_rev", MAX_TICKS_PER_REV), ("model", MAX_MODEL)):
         d[key] = t.int(key, ge=1 if key == "ticks_per_rev" else 0, le=hi) if t.has(key) else base.get(key)
+    d["drive_mode"] = _drive_mode(t, base)
     if stage:
         d["lead"] = t.float("lead", gt=0.0, limit=MAX_LENGTH) if t.has("lead") else None
     return d
@@ -50,6 +100,7 @@ class ServoBus:
     """Bus ids, model numbers and tick scales of the nq actuators (cable servos, then the stage).
 
     per_rev: actuator units per output revolution (2 pi rad for servos, the lead in mm for the stage).
+    drive_modes: each servo's declared Drive Mode (`DriveMode`; empty: every servo in normal mode).
     """
 
     names: tuple[str, ...]
@@ -57,6 +108,7 @@ class ServoBus:
     models: tuple[int, ...]
     ticks_per_rev: tuple[int, ...]
     per_rev: tuple[float, ...]
+    drive_modes: tuple[DriveMode, ...] = ()
 
     @classmethod
     def from_rows(cls, names: tuple[str, ...], rows: list[dict[str, Any]], where: list[str]) -> ServoBus | None:
@@ -91,7 +143,12 @@ class ServoBus:
             models=tuple(int(r["model"]) for r in rows),
             ticks_per_rev=tuple(int(r["ticks_per_rev"]) for r in rows),
             per_rev=tuple(per_rev),
+            drive_modes=tuple(r.get("drive_mode") or DriveMode() for r in rows),
         )
+
+    def drive_mode(self, k: int) -> DriveMode:
+        """The declared Drive Mode of actuator k (normal when none was declared)."""
+        return self.drive_modes[k] if self.drive_modes else DriveMode()
 
     @property
     def resolution(self) -> np.ndarray:
@@ -117,5 +174,7 @@ class ServoBus:
             d: dict[str, Any] = {"id": self.ids[i], "ticks_per_rev": self.ticks_per_rev[i], "model": self.models[i]}
             if i == len(self.ids) - 1:
                 d["lead"] = self.per_rev[i]
+            if self.drive_mode(i).reverse:
+                d["drive_mode"] = {"reverse": True}
             out.append(d)
         return out

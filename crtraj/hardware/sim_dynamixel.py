@@ -39,6 +39,13 @@ plus the Homing Offset (register 20, EEPROM, kept). Each shaft may have
 mechanical ``stops`` (physical ticks); pressing one, the servo reads the
 current limit of its mode as Present Current (current-based position mode 5:
 the Goal Current), which is what hard-stop homing detects.
+
+Drive Mode's reverse bit (register 10, bit 0) as the e-manual defines it: in
+reverse mode the servo counts clockwise as positive, so Goal Position, Present
+Position and Present Velocity all run against the shaft's normal direction.
+The chain keeps each shaft's physical position (`shaft`, in the ticks of
+``initial``, normal counting); writing the bit (torque off, EEPROM) flips the
+reading about the Homing Offset with the shaft left where it is.
 """
 
 from __future__ import annotations
@@ -165,8 +172,18 @@ class ServoChain:
         k = self.ids.index(dxl_id)
         if self._table[k][X.TORQUE_ENABLE]:
             raise InputError(f"sim-dynamixel: servo {dxl_id} holds its position (torque on): cannot turn it")
-        self._x[k] = float(self._clamp(self._x + np.eye(len(self.ids))[k] * ticks)[k])
+        self._x[k] = float(self._clamp(self._x + np.eye(len(self.ids))[k] * ticks * self._direction()[k])[k])
         self._replan(now)
+
+    def shaft(self, now: float) -> np.ndarray:
+        """Physical shaft positions (ticks, float, normal counting in the frame of ``initial``) at `now`:
+        what the mechanism sees whatever the Drive Mode, the Homing Offset or a power-up does to the readings."""
+        self.advance(now)
+        return self._direction() * (self._x - self._shift)
+
+    def _direction(self) -> np.ndarray:
+        """+1 per servo in normal mode, -1 in reverse mode (Drive Mode bit 0)."""
+        return np.array([-1.0 if t[X.DRIVE_MODE] & X.DRIVE_REVERSE else 1.0 for t in self._table])
 
     def register(self, dxl_id: int, addr: int, size: int) -> int:
         """The register of `dxl_id` as a READ would return it (signed for 2 and 4 bytes)."""
@@ -230,9 +247,14 @@ class ServoChain:
             self._v = (x_new - self._x) / h
             self._x = x_new
 
+    def _stops_read(self) -> np.ndarray:
+        """(n, 2) the mechanical stops as the servos read them (reported ticks, low <= high)."""
+        return np.sort(self._direction()[:, None] * self.stops + self._shift[:, None], axis=1)
+
     def _clamp(self, x: np.ndarray) -> np.ndarray:
         """Positions `x` (reported ticks) held at the mechanical stops."""
-        return np.clip(x, self.stops[:, 0] + self._shift, self.stops[:, 1] + self._shift)
+        lim = self._stops_read()
+        return np.clip(x, lim[:, 0], lim[:, 1])
 
     def _current(self, k: int) -> int:
         """Present current (2.69 mA units): the current limit of the mode while the shaft presses a stop toward
@@ -241,7 +263,7 @@ class ServoChain:
         if not t[X.TORQUE_ENABLE]:
             return 0
         r = self._profile.target[k]
-        lo, hi = self.stops[k] + self._shift[k]
+        lo, hi = self._stops_read()[k]
         pressing = 1 if r > hi and self._x[k] >= hi else -1 if r < lo and self._x[k] <= lo else 0
         mode_current = X.GOAL_CURRENT if t[X.OPERATING_MODE] == X.CURRENT_POSITION else X.CURRENT_LIMIT
         (limit,) = struct.unpack_from("<H", t, mode_current)
@@ -387,7 +409,13 @@ class ServoChain:
             return dxl.ERR_DATA_LIMIT
         was_on = t[X.TORQUE_ENABLE]
         (offset,) = struct.unpack_from("<i", t, X.HOMING_OFFSET)
+        reverse = t[X.DRIVE_MODE] & X.DRIVE_REVERSE
         t[addr:end] = data
+        if (t[X.DRIVE_MODE] & X.DRIVE_REVERSE) != reverse:  # the counting flips about the offset, the shaft stays
+            self._x[k], self._shift[k] = 2 * offset - self._x[k], 2 * offset - self._shift[k]
+            self._v[k] = 0.0
+            struct.pack_into("<i", t, X.GOAL_POSITION, int(np.rint(self._x[k])))
+            self._replan(now)
         if addr < X.HOMING_OFFSET + 4 and end > X.HOMING_OFFSET:  # the reading moves with the offset
             d = struct.unpack_from("<i", t, X.HOMING_OFFSET)[0] - offset
             self._x[k] += d

@@ -189,11 +189,14 @@ class Streamer:
         actuators: Actuators,
         options: StreamOptions | None = None,
         log: str | Path | None = None,
+        *,
+        link: dict[str, Any] | None = None,
         **kw: Any,
     ) -> Streamer:
         """Open ``udp://HOST:PORT``, ``serial://DEV?baud=N``, ``file://PATH`` or ``dynamixel://DEV?baud=N``
-        (the servos of ``actuators.bus``, `crtraj.hardware.dynamixel`) and wrap it."""
-        return cls(open_link(target, actuators), actuators, options, log, **kw)
+        (the servos of ``actuators.bus``, `crtraj.hardware.dynamixel`, with `link` as its keywords, e.g. the
+        ``homing`` state file its power-up check reads) and wrap it."""
+        return cls(open_link(target, actuators, **(link or {})), actuators, options, log, **kw)
 
     def __enter__(self) -> Streamer:
         return self
