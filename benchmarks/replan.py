@@ -155,6 +155,12 @@ def _summary(name: str, runs: list) -> dict:
     }
 
 
+def _ratios(new: dict, old: dict) -> str:
+    """old / new of the time figures of two variants' summaries."""
+    keys = {"nlp_med": "NLP median", "it_med": "iteration median", "it_p99": "p99", "cpu_step": "CPU per step"}
+    return ", ".join(f"{text} x{old[k] / new[k]:.2f}" for k, text in keys.items())
+
+
 def _merge(dicts: list[dict]) -> dict:
     out: dict = {}
     for d in dicts:
@@ -231,12 +237,8 @@ def main() -> None:
         )
     if "compiled" in by and "compiled-unfused" in by:
         c, u = by["compiled"], by["compiled-unfused"]
-        print(
-            f"compiled, one fused C call vs solver + KKT calls and the numpy row check: NLP median "
-            f"x{u['nlp_med'] / c['nlp_med']:.2f}, iteration median x{u['it_med'] / c['it_med']:.2f}, p99 "
-            f"x{u['it_p99'] / c['it_p99']:.2f}, CPU per step x{u['cpu_step'] / c['cpu_step']:.2f}; deadline misses "
-            f"{c['misses']} vs {u['misses']}"
-        )
+        why = f"deadline misses {c['misses']} vs {u['misses']}"
+        print(f"compiled, one fused C call vs solver + KKT calls and the numpy row check: {_ratios(c, u)}; {why}")
     if "compiled" in by and "compiled-inline" in by:
         c, inl = by["compiled"], by["compiled-inline"]
         print(
