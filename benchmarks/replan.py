@@ -19,6 +19,8 @@ generated as C (compiled once into the build cache, called through ctypes), a
 paths planned by a worker process beside the loop ([loop] reference_delay =
 0.2 s). "compiled-inline": the same with each reference path planned inside
 the step that asks for it (reference_delay = 0, the previous round's loop).
+"compiled-unfused": "compiled" with the solver, its KKT check and the row check as two C calls and numpy
+(fused = false; "compiled" makes them one generated C call, issue 29).
 "compiled-old": the compiled solver with the QP of the previous round (every
 backbone point of every step, closest_points = 0; dual tolerance 1e-6), 60
 iterations, no deadline, inline references. "sqp", "sqp-qrqp", "ipopt": the
@@ -31,7 +33,8 @@ deadline. 'p99 w/o plan' leaves out the iterations that planned a reference
 path or took one over; 'misses' counts the steps whose NLP result came after
 the deadline (they fall back to the last verified plan or a verified hold).
 
-Run: python benchmarks/replan.py [--seeds 3] [--solvers compiled,compiled-all,compiled-old,sqp,ipopt,sqp-qrqp]
+Run: python benchmarks/replan.py [--seeds 3] [--deadline 0.002]
+         [--solvers compiled,compiled-unfused,compiled-all,compiled-old,sqp,ipopt,sqp-qrqp]
 """
 
 from __future__ import annotations
@@ -63,6 +66,8 @@ VARIANTS = {
     "sqp-qrqp": {"solver": "sqp", "qpsol": "qrqp", "compiled": False, "step_deadline": 0.0, "max_iter": 60},
     "ipopt": {"solver": "ipopt", "compiled": False, "step_deadline": 0.0, "max_iter": 60, "max_calls": 1},
     "compiled": {"solver": "sqp", "qpsol": "daqp", "compiled": True},
+    # issue 29's old path: the solver call, then the KKT call, then the row check in numpy (fused = false)
+    "compiled-unfused": {"solver": "sqp", "qpsol": "daqp", "compiled": True, "fused": False},
     # the previous path: every obstacle of the scene in the QP, no broad phase (the switch: qp_obstacles = 0)
     "compiled-all": {"solver": "sqp", "qpsol": "daqp", "compiled": True, "qp_obstacles": 0},
     "compiled-inline": {"solver": "sqp", "qpsol": "daqp", "compiled": True},
@@ -81,9 +86,15 @@ LOOP_VARIANTS = {
 }
 
 
+# --deadline: the step deadline (s) of the variants that keep the problem's (None: the problem's)
+DEADLINE: list[float | None] = [None]
+
+
 def _one(problem: Problem, name: str, seed: int, safety: bool) -> tuple[object, float]:
     """One closed-loop run of variant `name` for planner seed `seed`: the run and its CPU s per step."""
     base = problem.options(ReplanOptions, "replan")
+    if DEADLINE[0] is not None:
+        base = dataclasses.replace(base, step_deadline=DEADLINE[0])  # a variant's own deadline still wins
     opts = dataclasses.replace(base, **VARIANTS[name], safety=safety)
     lopts = dataclasses.replace(problem.options(LoopOptions, "loop"), **LOOP_VARIANTS.get(name, {}))
     loop = ClosedLoop.from_problem(problem, seed=seed, options=opts, loop_options=lopts)
@@ -144,6 +155,12 @@ def _summary(name: str, runs: list) -> dict:
     }
 
 
+def _ratios(new: dict, old: dict) -> str:
+    """old / new of the time figures of two variants' summaries."""
+    keys = {"nlp_med": "NLP median", "it_med": "iteration median", "it_p99": "p99", "cpu_step": "CPU per step"}
+    return ", ".join(f"{text} x{old[k] / new[k]:.2f}" for k, text in keys.items())
+
+
 def _merge(dicts: list[dict]) -> dict:
     out: dict = {}
     for d in dicts:
@@ -158,10 +175,12 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=3, help="planner seeds per configuration (0..N-1)")
     ap.add_argument(
         "--solvers",
-        default="compiled,compiled-all,compiled-inline,compiled-old,sqp",
+        default="compiled,compiled-unfused,compiled-all,compiled-inline,compiled-old,sqp",
         help=f"comma list of {', '.join(VARIANTS)}",
     )
+    ap.add_argument("--deadline", type=float, default=None, help="step deadline s (default: the problem's)")
     args = ap.parse_args()
+    DEADLINE[0] = args.deadline
     problem = Problem.load(args.problem)
     seeds = list(range(args.seeds))
     names = [s.strip() for s in args.solvers.split(",") if s.strip()]
@@ -175,7 +194,11 @@ def main() -> None:
         f"{datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC"
     )
     o = problem.options(ReplanOptions, "replan")
-    print(f"horizon {o.horizon} x {o.dt:g} s, {o.points} points/config; times per control iteration\n")
+    deadline = o.step_deadline if args.deadline is None else args.deadline
+    print(
+        f"horizon {o.horizon} x {o.dt:g} s, {o.points} points/config, step deadline {deadline * 1e3:g} ms; "
+        "times per control iteration\n"
+    )
     head = (
         f"{'variant':<12} {'reached':>8} {'coll.':>6} {'min clr':>8} {'it med':>8} {'it p99':>8} {'w/o plan':>8} "
         f"{'it max':>8} "
@@ -212,6 +235,10 @@ def main() -> None:
             f"\ncompiled vs interpreted sqp + daqp: NLP median x{i['nlp_med'] / c['nlp_med']:.2f}, "
             f"iteration median x{i['it_med'] / c['it_med']:.2f}, iteration p99 x{i['it_p99'] / c['it_p99']:.2f}"
         )
+    if "compiled" in by and "compiled-unfused" in by:
+        c, u = by["compiled"], by["compiled-unfused"]
+        why = f"deadline misses {c['misses']} vs {u['misses']}"
+        print(f"compiled, one fused C call vs solver + KKT calls and the numpy row check: {_ratios(c, u)}; {why}")
     if "compiled" in by and "compiled-inline" in by:
         c, inl = by["compiled"], by["compiled-inline"]
         print(
@@ -254,6 +281,9 @@ def main() -> None:
         ("no-safety run shows negative clearance", ns["min_clearance"] < 0),
         (f"issue 14: iteration median <= 2 ms ({best['it_med'] * 1e3:.2f} ms)", best["it_med"] <= 0.002),
         (f"issue 14: iteration p99 <= 4 ms ({best['it_p99'] * 1e3:.2f} ms)", best["it_p99"] <= 0.004),
+        (f"issue 29: iteration median <= 0.5 ms ({best['it_med'] * 1e3:.2f} ms)", best["it_med"] <= 0.0005),
+        (f"issue 29: iteration p99 <= 1 ms ({best['it_p99'] * 1e3:.2f} ms)", best["it_p99"] <= 0.001),
+        (f"issue 29: 0 misses at a 2 ms deadline ({best['misses']} at {deadline * 1e3:g} ms)", best["misses"] == 0),
     ]
     for text, ok in checks:
         print(f"  [{'ok' if ok else 'MISSED'}] {text}")

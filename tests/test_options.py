@@ -172,7 +172,7 @@ _OLD_DEFAULTS = {
         horizon=10, dt=0.1, points=16, margin=1.5, tip_weight=1.0, config_weight=0.01, velocity_weight=0.02,
         smooth_weight=0.2, terminal_weight=10.0, max_cable_speed=8.0, max_z_speed=40.0, solver="ipopt",
         qpsol="daqp", hessian="gauss-newton", max_iter=60, max_calls=1, max_solve_time=0.5, limit_fraction=0.9,
-        rescue=True, safety=True, compiled=False, step_deadline=0.0,
+        rescue=True, safety=True, compiled=False, fused=True, step_deadline=0.0,
         # issue 14: the QP keeps the 3 closest points per obstacle and step, and stops at a dual residual of
         # 1e-4 (mm^2 per unit of x) instead of 1e-6, both for the replan iteration's time
         closest_points=3, tol=1e-4, qp_obstacles=8,

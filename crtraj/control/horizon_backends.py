@@ -18,7 +18,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from crtraj.control.horizon_build import CompiledParts
+from crtraj.control.horizon_build import FUSED_OUT, CompiledParts
 from crtraj.planning.compiled_nlp import CompiledFunction
 
 # With `closest_points`, at most this many solves of the QP's NLP per query of `ScreenedBackend`: a solution that
@@ -161,10 +161,29 @@ class CompiledBackend:
         self.tol = tol
 
     def solve(self, query: HorizonQuery) -> HorizonCall:
-        """One call of the compiled solver and its KKT check."""
+        """One call of the compiled solver and its KKT check (one foreign call with `CompiledParts.fused`)."""
         t_start = time.perf_counter()
-        sol, st = self._call(self.check.args(query))
+        if self.parts.fused is not None:
+            sol, st = self._fused(query)
+        else:
+            sol, st = self._call(self.check.args(query))
         return self.check.record(sol, st, time.perf_counter() - t_start)
+
+    def _fused(self, query: HorizonQuery) -> tuple[dict[str, Any], dict[str, Any]]:
+        """`_call` as one call of the fused function (solver, KKT check and row check in C; the bounds are its
+        constants): the same outputs and the same test of success."""
+        lam_x0 = None if query.lam_g0 is None else query.lam_x0  # as `RowCheck.args`: both or neither
+        out = self.parts.fused(query.x0, query.p, lam_x0, query.lam_g0)  # type: ignore[misc]
+        sol = {k: a.copy() for k, a in zip(FUSED_OUT, out, strict=True)}
+        du, pr = float(sol.pop("du")[0]), float(sol.pop("violation")[0])
+        sol["f"] = float(sol["f"][0])
+        return sol, self._stats(pr, du)
+
+    def _stats(self, pr: float, du: float) -> dict[str, Any]:
+        """The stats sqpmethod would give for a point of primal violation pr and dual residual du."""
+        ok = bool(np.isfinite(du) and np.isfinite(pr)) and pr < 1e-7 and du < self.tol
+        status = "Solve_Succeeded" if ok else f"Not_Converged (compiled sqpmethod: primal {pr:.2g}, dual {du:.2g})"
+        return {"success": ok, "return_status": status, "iter_count": -1, "violation": pr}
 
     def _call(self, args: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
         """The compiled solver's outputs and the stats sqpmethod would give."""
@@ -175,10 +194,7 @@ class CompiledBackend:
         du_, distances, tips = self.parts.kkt(sol["x"], args["p"], sol["lam_g"], sol["lam_x"])
         du = float(du_[0])
         sol["distances"], sol["tips"] = distances.copy(), tips.copy()
-        pr = self.check.violation(sol["x"], sol["g"])
-        ok = bool(np.isfinite(du) and np.isfinite(pr)) and pr < 1e-7 and du < self.tol
-        status = "Solve_Succeeded" if ok else f"Not_Converged (compiled sqpmethod: primal {pr:.2g}, dual {du:.2g})"
-        return sol, {"success": ok, "return_status": status, "iter_count": -1, "violation": pr}
+        return sol, self._stats(self.check.violation(sol["x"], sol["g"]), du)
 
 
 class ObstacleRows:

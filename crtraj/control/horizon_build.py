@@ -343,6 +343,7 @@ class CompiledParts:
     step: CompiledFunction
     kkt: CompiledFunction
     distance: CompiledFunction | None
+    fused: CompiledFunction | None = None
 
 
 def build_compiled(spec: HorizonSpec, built: HorizonNLP, solver: ca.Function) -> tuple[str, CompiledParts | None]:
@@ -364,14 +365,41 @@ def build_compiled(spec: HorizonSpec, built: HorizonNLP, solver: ca.Function) ->
     outs = [ca.norm_inf(grad), *built.checked]
     kkt = ca.Function(f"horizon_kkt_{spec.tag}", [xv, p, lam_g, lam_x], outs, {"cse": True})
     extra = [] if built.all_distance is None else [built.all_distance]
+    fused = [fused_function(spec, built, solver, kkt)] if o.fused else []
     try:
-        lib, how = compiled_library(f"horizon_{spec.tag}", [solver, kkt, *extra], o.qpsol)
+        lib, how = compiled_library(f"horizon_{spec.tag}", [solver, kkt, *extra, *fused], o.qpsol)
     except (RuntimeError, OSError) as exc:
         log.debug("horizon: compiling the solver failed: %s", exc)
         return f"compiled: build failed ({str(exc).strip().splitlines()[-1]}): interpreted solver", None
     if lib is None:
         return f"compiled: {how}", None
     distance = CompiledFunction(lib, extra[0].name()) if extra else None
+    one = CompiledFunction(lib, fused[0].name()) if fused else None
     return f"compiled: {how}", CompiledParts(
-        CompiledFunction(lib, solver.name()), CompiledFunction(lib, kkt.name()), distance
+        CompiledFunction(lib, solver.name()), CompiledFunction(lib, kkt.name()), distance, one
+    )
+
+
+FUSED_OUT = ("x", "f", "g", "lam_x", "lam_g", "du", "distances", "tips", "violation")
+
+
+def fused_function(spec: HorizonSpec, built: HorizonNLP, solver: ca.Function, kkt: ca.Function) -> ca.Function:
+    """One function of a solver call (option `fused`): (x0, p, lam_x0, lam_g0) -> `FUSED_OUT`, the sqpmethod
+    `solver` with the box and row bounds as constants, its KKT check (dual residual, every obstacle row of the
+    full NLP, tips) at the returned point, and the largest violation of the box and rows (mixed units; what
+    `RowCheck.violation` computes in numpy), so that a solver call is one foreign call."""
+    n, ng = built.nlp["x"].numel(), built.nlp["g"].numel()
+    N = spec.options.horizon
+    lo, hi = (np.tile(b, N) for b in spec.model.robot.config_box())
+    x0, p = ca.MX.sym("x0", n), ca.MX.sym("p", built.nlp["p"].numel())
+    lx, lg = ca.MX.sym("lam_x0", n), ca.MX.sym("lam_g0", ng)
+    sol = solver(x0=x0, p=p, lbx=lo, ubx=hi, lbg=built.lbg, ubg=built.ubg, lam_x0=lx, lam_g0=lg)
+    x, g = sol["x"], sol["g"]
+    du, dist, tips = kkt(x, p, sol["lam_g"], sol["lam_x"])
+    # the same terms as `RowCheck.violation` (an infinite bound gives -inf, never the maximum)
+    terms = [ca.DM(built.lbg) - g, g - ca.DM(built.ubg), ca.DM(lo) - x, x - ca.DM(hi), ca.MX(0.0)]
+    viol = ca.mmax(ca.vertcat(*terms))
+    outs = [x, sol["f"], g, sol["lam_x"], sol["lam_g"], du, dist, tips, viol]
+    return ca.Function(
+        f"horizon_fused_{spec.tag}", [x0, p, lx, lg], outs, ["x0", "p", "lam_x0", "lam_g0"], list(FUSED_OUT)
     )

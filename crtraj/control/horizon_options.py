@@ -77,6 +77,10 @@ class ReplanOptions(Options):
     ctypes; convergence is sqpmethod's own KKT test on the returned point
     (the generated code reports no iteration count: -1). Without a C
     compiler the interpreted solver runs (`Replanner.compiled_message`).
+    fused (with compiled): the solver, its KKT check and the check of the
+    box and rows are one generated C function called once per solver call on
+    preallocated buffers (issue 29); false: the solver and the KKT check are
+    two calls and the rows are checked in numpy (the previous path).
     step_deadline (s, 0 = none): wall-time deadline of one replanning
     iteration; a solve that finishes after it is not used (the loop falls
     back to the last verified plan, shifted, or a verified hold) and is
@@ -118,6 +122,7 @@ class ReplanOptions(Options):
     rescue: bool = option(True)
     safety: bool = option(True)
     compiled: bool = option(False)
+    fused: bool = option(True)
     step_deadline: float = option(0.0, ge=0.0, le=3600.0)
 
     def _check(self) -> None:
