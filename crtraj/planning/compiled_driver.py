@@ -365,4 +365,70 @@ int crtraj_motion_bound(long long N, const double* dX, double* B) {
   crtraj_free(&k);
   return rc;
 }
+/* Batched damped least-squares projection onto tip(x) = target (`SafeIK.project`), every configuration of X
+   (N x CRTRAJ_NX, in place) on its own: per step the smallest body motion (metric W, Winv = W^-1, row-major)
+   that removes the tip error e, capped at `step` mm, dx = W^-1 J^T (J W^-1 J^T + damping I)^-1 e, then back
+   into the bending discs |C u|_k <= tmax_k (C, Cinv: the coupling matrix and its inverse, 2 nseg square,
+   row-major) and the z stroke [zlo, zhi], as `ConfigSampler.project_limits` does. A configuration stops as
+   soon as its tip error is below tol (mm) or after `iters` steps; err: its last tip error (mm). */
+int crtraj_project(long long N, double* X, const double* target, long long iters, const double* Winv,
+                   double damping, double step, double tol, long long nseg, const double* C, const double* Cinv,
+                   const double* tmax, double zlo, double zhi, double* err) {
+  crtraj_work k; long long i, it; int rc = 0, r, c, m, n2 = (int) (2 * nseg);
+  double P[3], J[3 * CRTRAJ_NX], JW[3 * CRTRAJ_NX], A[9], e[3], y[3], ub[CRTRAJ_NX];
+  if (n2 >= CRTRAJ_NX) return 2;
+  if (crtraj_alloc(&k, crtraj_tipjac_work)) { crtraj_free(&k); return 1; }
+  for (i = 0; i < N && !rc; ++i) {
+    double* x = X + i * CRTRAJ_NX;
+    for (it = 0; ; ++it) {
+      double en, s, l11, l21, l31, l22, l32, l33, z1, z2, z3;
+      k.arg[0] = x; k.res[0] = P; k.res[1] = J;  /* J: 3 x nx column-major, J[r + 3 c] */
+      rc = crtraj_tipjac(k.arg, k.res, k.iw, k.w, 0);
+      if (rc) break;
+      for (r = 0; r < 3; ++r) e[r] = target[r] - P[r];
+      en = sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2]);
+      err[i] = en;
+      if (it >= iters || en < tol || en != en) break;
+      s = fmin(1.0, step / fmax(en, 1e-300));
+      for (r = 0; r < 3; ++r) e[r] *= s;
+      for (r = 0; r < 3; ++r)
+        for (c = 0; c < CRTRAJ_NX; ++c) {
+          double acc = 0.0;
+          for (m = 0; m < CRTRAJ_NX; ++m) acc += J[r + 3 * m] * Winv[m * CRTRAJ_NX + c];
+          JW[r * CRTRAJ_NX + c] = acc;
+        }
+      for (r = 0; r < 3; ++r)
+        for (c = 0; c < 3; ++c) {
+          double acc = (r == c) ? damping : 0.0;
+          for (m = 0; m < CRTRAJ_NX; ++m) acc += JW[r * CRTRAJ_NX + m] * J[c + 3 * m];
+          A[3 * r + c] = acc;
+        }
+      /* A is symmetric positive definite (damping > 0): Cholesky */
+      l11 = sqrt(A[0]); l21 = A[3] / l11; l31 = A[6] / l11;
+      l22 = sqrt(A[4] - l21 * l21); l32 = (A[7] - l31 * l21) / l22;
+      l33 = sqrt(A[8] - l31 * l31 - l32 * l32);
+      z1 = e[0] / l11; z2 = (e[1] - l21 * z1) / l22; z3 = (e[2] - l31 * z1 - l32 * z2) / l33;
+      y[2] = z3 / l33; y[1] = (z2 - l32 * y[2]) / l22; y[0] = (z1 - l21 * y[1] - l31 * y[2]) / l11;
+      for (c = 0; c < CRTRAJ_NX; ++c) x[c] += JW[c] * y[0] + JW[CRTRAJ_NX + c] * y[1] + JW[2 * CRTRAJ_NX + c] * y[2];
+      for (r = 0; r < n2; ++r) {
+        double acc = 0.0;
+        for (m = 0; m < n2; ++m) acc += C[r * n2 + m] * x[m];
+        ub[r] = acc;
+      }
+      for (r = 0; r < nseg; ++r) {
+        double nr = sqrt(ub[2 * r] * ub[2 * r] + ub[2 * r + 1] * ub[2 * r + 1]);
+        double f = fmin(1.0, tmax[r] / fmax(nr, 1e-300));
+        ub[2 * r] *= f; ub[2 * r + 1] *= f;
+      }
+      for (r = 0; r < n2; ++r) {
+        double acc = 0.0;
+        for (m = 0; m < n2; ++m) acc += Cinv[r * n2 + m] * ub[m];
+        x[r] = acc;
+      }
+      x[CRTRAJ_NX - 1] = fmin(fmax(x[CRTRAJ_NX - 1], zlo), zhi);
+    }
+  }
+  crtraj_free(&k);
+  return rc;
+}
 """

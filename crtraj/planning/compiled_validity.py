@@ -12,6 +12,9 @@ rounding), and a small hand-written C driver loops over a whole batch in one cal
   are padding and skipped, so one library serves every obstacle count. stride 0: the same slots for
   every configuration (a static scene); 5 K: slots of their own per configuration (swept spheres);
 - ``crtraj_tip_jac(N, X, P, J)``: tip positions (N, 3) mm and tip Jacobians (N, 3, nx);
+- ``crtraj_project(N, X, target, ...)``: the safe IK's batched damped least-squares projection onto a tip
+  target (`crtraj.planning.safe_ik.SafeIK.project`), the whole Newton loop per configuration in C, each
+  configuration stopping as soon as its tip is on the target;
 - ``crtraj_motion_bound(N, dX, B)``: the body-motion bound B(dx) (mm, `crtraj.planning.metric`; it agrees
   with numpy's to 1e-12, but the planners keep numpy's, whose rounding times every motion, so that both
   paths give identical plans);
@@ -37,6 +40,7 @@ from __future__ import annotations
 
 import ctypes
 import hashlib
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -51,7 +55,7 @@ from crtraj.planning.metric import metric_matrix
 from crtraj.world import packing
 
 # Version of the generated code and driver: raising it makes every cached kernel foreign (rebuilt).
-GENERATOR = 8
+GENERATOR = 9
 # Most check points a kernel is generated for: the generated FK grows with them (100 points: ~15 s of
 # gcc); denser checks (reports, tests) stay on the interpreted path.
 MAX_COMPILED_POINTS = 200
@@ -121,6 +125,9 @@ class ValidityKernel:
         self._tip_jac = lib.crtraj_tip_jac
         self._tip_jac.argtypes = [_N, _P, _P, _P]
         self._motion_bound = lib.crtraj_motion_bound
+        self._project = lib.crtraj_project
+        self._project.argtypes = [_N, _P, _P, _N, _P] + [ctypes.c_double] * 3 + [_N, _P, _P, _P]
+        self._project.argtypes += [ctypes.c_double, ctypes.c_double, _P]
         self._motion_bound.argtypes = [_N, _P, _P]
         self._check_edges = lib.crtraj_check_edges
         self._check_edges.argtypes = [_N, _P, _P, _P, _P, _N, _P, ctypes.c_double, ctypes.c_double, ctypes.c_int]
@@ -134,6 +141,7 @@ class ValidityKernel:
             self._clearance_windows,
             self._tip_jac,
             self._motion_bound,
+            self._project,
             self._check_edges,
             self._check_moving,
         ):
@@ -297,3 +305,50 @@ class ValidityKernel:
         out = np.empty(len(dX))
         self._check(self._motion_bound(len(dX), _ptr(dX), _ptr(out)), "motion bound")
         return out
+
+    def project(
+        self, X: Any, target: Any, iterations: int, limits: ProjectionLimits, steps: ProjectionSteps
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Damped least-squares projection of configurations X (N, nx) onto tip = target (3,) mm, at most
+        `iterations` steps each, every configuration stopping once its tip error is below `steps.tol` mm.
+        Returns (new configurations (N, nx), tip errors (N,) mm)."""
+        X = self._configs(X).copy()
+        tgt = np.ascontiguousarray(target, dtype=float)
+        err = np.full(len(X), np.inf)
+        lim, st = limits, steps
+        rc = self._project(
+            len(X), _ptr(X), _ptr(tgt), int(iterations), _ptr(st.w_inv), st.damping, st.step, st.tol,
+            len(lim.tmax), _ptr(lim.coupling), _ptr(lim.coupling_inv), _ptr(lim.tmax), lim.z_range[0],
+            lim.z_range[1], _ptr(err),
+        )  # fmt: skip
+        self._check(rc, "IK projection")
+        return X, err
+
+
+@dataclass(frozen=True)
+class ProjectionLimits:
+    """The limits `ValidityKernel.project` projects into: coupling matrix and its inverse (2 n_seg square),
+    the bending-disc radii tmax (n_seg,) rad and the z stroke (mm); contiguous float64 arrays."""
+
+    coupling: np.ndarray
+    coupling_inv: np.ndarray
+    tmax: np.ndarray
+    z_range: tuple[float, float]
+
+    @classmethod
+    def of(cls, robot: Any) -> ProjectionLimits:
+        C = np.ascontiguousarray(robot.coupling_matrix(), dtype=float)
+        tmax = np.ascontiguousarray([s.theta_max for s in robot.segments], dtype=float)
+        z = (float(robot.z_range[0]), float(robot.z_range[1]))
+        return cls(C, np.ascontiguousarray(np.linalg.inv(C)), tmax, z)
+
+
+@dataclass(frozen=True)
+class ProjectionSteps:
+    """The Newton steps of `ValidityKernel.project`: W^-1 (nx, nx) of the body metric W = M^T M, the damping,
+    the largest tip error removed per step (mm) and the tip tolerance (mm) a configuration stops at."""
+
+    w_inv: np.ndarray
+    damping: float
+    step: float
+    tol: float

@@ -89,7 +89,14 @@ class CSpacePlanner(PlannerBase):
     def _safe_ik(self, slots: int) -> SafeIK:
         """The goal IK with `slots` obstacle slots in its NLP, as the options configure it."""
         ik = self.options.ik
-        return SafeIK(self.model, self.validator, slots, push_rounds=ik.push_rounds, rescue_starts=ik.rescue_starts)
+        return SafeIK(
+            self.model,
+            self.validator,
+            slots,
+            push_rounds=ik.push_rounds,
+            rescue_starts=ik.rescue_starts,
+            compiled=ik.compiled,
+        )
 
     # ------------------------------------------------------------------ query
     def plan(

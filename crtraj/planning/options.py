@@ -41,7 +41,9 @@ class IKOptions(Options):
     the two (on-target projections that come too close to an obstacle move along the tip
     constraint's null space until they clear it; 0 skips the stage). rescue_starts: before an NLP solve
     from a projection, this many batched starts around it are projected and pushed out, and the safe
-    one nearest the seed is taken instead (0: the NLP runs as before). goal_window: dynamic scenes
+    one nearest the seed is taken instead (0: the NLP runs as before). compiled: the batch projection's
+    Newton loop runs in the compiled kernel (when the checks have one), each start stopping once on
+    target (false: the numpy loop). goal_window: dynamic scenes
     only: half of the IK starts keep clear of everything the obstacles sweep over
     [t0, t0 + goal_window] (s), by projection only (no NLP: often infeasible); the other half, with
     the NLP stage, keep clear at t0.
@@ -55,6 +57,7 @@ class IKOptions(Options):
     nlp_solves: int = option(8, ge=0, le=1000)
     push_rounds: int = option(12, ge=0, le=1000)
     rescue_starts: int = option(32, ge=0, le=10_000)
+    compiled: bool = option(True)
     goal_window: float = option(4.0, ge=0.0, le=MAX_TIME)
 
 
