@@ -204,6 +204,8 @@ static int crtraj_clear_idx(crtraj_work* kb, const double* x, const long long* i
    dt = dT (tb - ta)) or when c < 0 or h <= finest, with dt <= tres; else halved (prefix: only while ta < fail;
    else only while nothing failed). A static scene has enl = 0 and tres = inf: unsafe when c < 0 or h <= finest.
    Out: fail[e] (certified fraction) and lower[e] (min c - h over certified intervals); *samples: clearances.
+   prefix bit 1 (first): stop after the first motion certified whole (VAMP's early exit across a batch whose
+   caller wants the first valid motion of an order): the motions after it get fail = -1 (not checked).
 
    Broad phase (from `broad` obstacles on, 0: never): every interval hands its halves only the obstacles that
    can decide one of their samples. The halves' configurations lie within h (body motion) of the interval's
@@ -239,6 +241,8 @@ static int crtraj_refine(long long E, const double* XA, const double* dX, const 
   long long* lp;
   double* t;
   int use = broad > 0 && K >= broad;
+  int first = prefix & 2;
+  prefix &= 1;
   *samples = 0;
   if (!d || crtraj_alloc(&kb, crtraj_bb_work) || crtraj_grow_pool(&pool, &pcap, K + 1)) {
     free(d); free(pool); crtraj_free(&kb); return 1;
@@ -305,6 +309,10 @@ static int crtraj_refine(long long E, const double* XA, const double* dX, const 
       n = m;
     }
     fail[e] = f; lower[e] = low;
+    if (first && f >= 1.0 && !rc) {
+      for (i = e + 1; i < E; ++i) { fail[i] = -1.0; lower[i] = -INFINITY; }
+      break;
+    }
   }
   for (i = 0; i < CRTRAJ_NB; ++i) free(buf[i]);
   free(d); free(pool); free(npool);

@@ -55,7 +55,7 @@ from crtraj.planning.metric import metric_matrix
 from crtraj.world import packing
 
 # Version of the generated code and driver: raising it makes every cached kernel foreign (rebuilt).
-GENERATOR = 9
+GENERATOR = 10
 # Most check points a kernel is generated for: the generated FK grows with them (100 points: ~15 s of
 # gcc); denser checks (reports, tests) stay on the interpreted path.
 MAX_COMPILED_POINTS = 200
@@ -230,6 +230,7 @@ class ValidityKernel:
         finest: float,
         prefix: bool,
         broad: int = 0,
+        first: bool = False,
     ) -> tuple[np.ndarray, np.ndarray, int]:
         """The static-scene adaptive edge check (`MotionValidator.check_edges`) in C.
 
@@ -238,13 +239,14 @@ class ValidityKernel:
         clearance; finest (mm): the smallest interval's h. broad: with at least this many obstacle slots
         (0: never), a broad phase per motion keeps only the obstacles that can decide one of its samples
         (module docstring): fail is the same either way; lower stays a lower bound of the clearance but may
-        be smaller. Returns (fail (E,), lower (E,) mm, samples).
+        be smaller. first: stop after the first motion certified whole; the motions after it are not checked
+        (fail -1, lower -inf). Returns (fail (E,), lower (E,) mm, samples).
         """
         S = np.ascontiguousarray(slots, dtype=float)
         if S.ndim != 1:
             raise ValueError(f"check_edges: flat slots (K*{packing.WIDTH},) expected, got {S.shape}")
         K = S.shape[0] // packing.WIDTH
-        flags = (float(inflate), float(finest), int(bool(prefix)), int(broad))
+        flags = (float(inflate), float(finest), int(bool(prefix)) | (2 if first else 0), int(broad))
         return self._run_edges(self._check_edges, XA, dX, bound, n0, (K, _ptr(S), *flags))
 
     def check_edges_moving(
@@ -263,13 +265,14 @@ class ValidityKernel:
         time_resolution: float,
         prefix: bool,
         broad: int = 0,
+        first: bool = False,
     ) -> tuple[np.ndarray, np.ndarray, int]:
         """The adaptive edge check among moving obstacles (`MotionValidator.check_edges`) in C.
 
         As `check_edges`, and: TA, dT (E,) s: each motion's start time and duration (relative to the
         scene's time origin `origin` s); table (M, 12): `Scene.motion_table`; enlargement (mm/s): how fast
         a window's swept sphere can outgrow any one instant's; time_resolution (s): the longest window an
-        uncertified interval may be declared unsafe at without being split. broad: as in `check_edges`.
+        uncertified interval may be declared unsafe at without being split. broad, first: as in `check_edges`.
         """
         E = len(XA)
         TA = np.ascontiguousarray(np.broadcast_to(TA, (E,)), dtype=float)
@@ -278,7 +281,7 @@ class ValidityKernel:
         if T.ndim != 2 or T.shape[1] != 12:
             raise ValueError(f"check_edges_moving: an obstacle table (M, 12) expected, got {T.shape}")
         scalars = (float(origin), float(inflate), float(finest), float(enlargement), float(time_resolution))
-        middle = (_ptr(TA), _ptr(dT), len(T), _ptr(T), *scalars, int(bool(prefix)), int(broad))
+        middle = (_ptr(TA), _ptr(dT), len(T), _ptr(T), *scalars, int(bool(prefix)) | (2 if first else 0), int(broad))
         return self._run_edges(self._check_moving, XA, dX, bound, n0, middle)
 
     def _run_edges(

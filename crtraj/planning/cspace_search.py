@@ -88,10 +88,12 @@ class CSpaceSearch:
         XA = np.repeat(self.x_start[None], G, axis=0)
         dur = v.duration(self.goals - XA)
         self.counts["edge_checks"] = G
-        ok = np.flatnonzero(v.edges_valid(XA, self.goals, self.t0, self.t0 + dur))
+        # the shortest valid motion: the first valid in the order of duration (ties: lowest index, as argmin)
+        order = np.argsort(dur, kind="stable")
+        k = v.first_valid(XA[order], self.goals[order], self.t0, self.t0 + dur[order])
         direct = None
-        if len(ok):
-            best = ok[np.argmin(dur[ok])]
+        if k >= 0:
+            best = order[k]
             direct = np.stack([self.x_start, self.goals[best]])
             # a direct motion to a far goal configuration can be much longer than a small detour
             # to the nearest one: then the via round competes
@@ -149,13 +151,13 @@ class CSpaceSearch:
         GB = self.goals[np.argmin(d, axis=1)]
         TA = t_via[good]
         TB = TA + v.duration(GB - VA)
-        ok2 = v.edges_valid(VA, GB, TA, TB)
+        # the shortest valid two-motion path: the first valid in the order of arrival time
+        order = np.argsort(TB - self.t0, kind="stable")
+        first = v.first_valid(VA[order], GB[order], TA[order], TB[order])
         self.counts["edge_checks"] += len(VA)
-        if not ok2.any():
+        if first < 0:
             return None
-        # the shortest valid two-motion path
-        total = (TB - self.t0)[ok2]
-        k = np.flatnonzero(ok2)[int(np.argmin(total))]
+        k = int(order[first])
         cost = float(v.motion_bound(VA[k] - self.x_start) + v.motion_bound(GB[k] - VA[k]))
         tree.add(v.metric(GB[k]), GB[k], float(TB[k]), cost, int(k) + 1)
         return np.stack([self.x_start, VA[k], GB[k]])

@@ -74,6 +74,9 @@ class CheckOptions(Options):
     false: the interpreted CasADi path (same results to rounding, several times slower).
     broad_phase: the compiled edge check first drops, per motion, the obstacles too far away to decide
     any of its samples (the same verdicts; false: every obstacle enters every sample, the old path).
+    early_exit: where a planner wants the best valid motion of a batch (shortcuts, the goal and via
+    connections), the compiled check runs the motions best first and stops at the first certified one
+    (the same plans; false: the whole batch is checked, the old path).
     """
 
     SECTION: ClassVar[str] = "planner.check"
@@ -84,6 +87,7 @@ class CheckOptions(Options):
     points: int = option(15, ge=2, le=1000)
     compiled: bool = option(True)
     broad_phase: bool = option(True)
+    early_exit: bool = option(True)
 
 
 @dataclass(frozen=True)

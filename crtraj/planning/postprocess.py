@@ -108,11 +108,15 @@ class PathPostprocessor:
                 continue
             checked += len(u)
             if v.static:  # only the new straight motion needs checking: no candidate path is built
-                ok = v.edges_valid(P1, P2)
+                # the valid one that saves most: the first valid in the order of saving (ties: lowest
+                # index, as argmax), so the check can stop there
+                order = np.argsort(-saving, kind="stable")
+                k = v.first_valid(P1[order], P2[order])
+                best = int(order[k]) if k >= 0 else -1
             else:
                 ok = self._batch_ok([_splice(X, s, a, b, p1, p2) for a, b, p1, p2 in zip(*u.T, P1, P2, strict=True)])
-            if ok.any():
-                best = np.flatnonzero(ok)[np.argmax(saving[ok])]
+                best = int(np.flatnonzero(ok)[np.argmax(saving[ok])]) if ok.any() else -1
+            if best >= 0:
                 X = dedup(_splice(X, s, u[best, 0], u[best, 1], P1[best], P2[best])[0])
         self.counts["shortcut_checks"] = self.counts.get("shortcut_checks", 0) + checked
         return dedup(X)

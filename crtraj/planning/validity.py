@@ -75,6 +75,7 @@ class _EdgeBatch:
     finest: float
     tres: float
     prefix: bool
+    first: bool = False
 
     def parts(self) -> tuple[Any, ...]:
         """The fields in order (unpacked by the two edge-check loops)."""
@@ -97,6 +98,8 @@ class MotionValidator:
     compiled: check with the compiled kernel when a C compiler is available (same results, faster).
     broad_phase: the compiled edge check drops, per motion, the obstacles that cannot decide any of its
     samples (from `BROAD_MIN` obstacles on; the same verdicts, less work among many obstacles).
+    early_exit: `first_valid` stops the compiled check at the first motion certified whole (the same
+    answer; False: every motion of the batch is checked).
 
     Parts: `state` (`StateValidityChecker`), `space` (`BodyMetric`),
     `sampler` (`ConfigSampler`); the methods below that only forward to them
@@ -116,6 +119,7 @@ class MotionValidator:
         rate_limits: RateLimits | None = None,
         compiled: bool = True,
         broad_phase: bool = True,
+        early_exit: bool = True,
     ) -> None:
         if check_points < 2:
             raise InputError(f"check_points: must be >= 2, got {check_points}")
@@ -144,6 +148,7 @@ class MotionValidator:
         # for clearances only; the same numbers, kept for cross-checks)
         self.compiled_loop = True
         self.broad_phase = bool(broad_phase)
+        self.early_exit = bool(early_exit)
         # adaptive edge checks start from intervals of this much body motion (mm)
         self.coarse = 16.0 * self.resolution
 
@@ -260,6 +265,7 @@ class MotionValidator:
         TB: np.ndarray | float = 0.0,
         *,
         prefix: bool = True,
+        first: bool = False,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Adaptive check of many straight motions XA[i] -> XB[i] (E, nx) during [TA[i], TB[i]] (s).
 
@@ -281,7 +287,8 @@ class MotionValidator:
         its start to the fraction f (1: the whole motion); lower (E,), a lower
         bound of the clearance over the certified part (mm). With
         prefix=False a motion stops being refined at its first unsafe
-        interval and f only tells safe (1) from unsafe (< 1).
+        interval and f only tells safe (1) from unsafe (< 1). first: the compiled check may stop after
+        the first motion certified whole; the motions after it are then not checked (f -1).
         """
         XA = np.atleast_2d(np.asarray(XA, dtype=float))
         XB = np.atleast_2d(np.asarray(XB, dtype=float))
@@ -295,7 +302,7 @@ class MotionValidator:
         finest = 0.5 * self.resolution * (1.0 + 1e-9)
         # static scenes: every window is irrelevant, so no split in time
         tres = np.inf if self.static else self.time_resolution * (1.0 + 1e-9)
-        batch = _EdgeBatch(XA, dX, bound, n0, TA, dT, finest, tres, prefix)
+        batch = _EdgeBatch(XA, dX, bound, n0, TA, dT, finest, tres, prefix, first)
         kernel = self.state.kernel
         if kernel is not None and self.compiled_loop and self.scene.n_obstacles and E and np.isfinite(bound).all():
             # the same loop in C, with the same arithmetic, operation for operation
@@ -311,7 +318,7 @@ class MotionValidator:
         assert kernel is not None
         if self.static:
             fail, lower, samples = kernel.check_edges(
-                XA, dX, bound, n0, self.state.static_slots, self.inflate, finest, prefix, self._broad()
+                XA, dX, bound, n0, self.state.static_slots, self.inflate, finest, prefix, self._broad(), b.first
             )
             self.state.n_samples += samples
             return fail, lower
@@ -320,7 +327,7 @@ class MotionValidator:
         scene = self.scene
         fail, lower, samples = kernel.check_edges_moving(
             XA, dX, bound, n0, TA, dT, scene.motion_table(), scene.time_origin, self.inflate, finest,
-            self.state.enlargement_rate, tres, prefix, self._broad(),
+            self.state.enlargement_rate, tres, prefix, self._broad(), b.first,
         )  # fmt: skip
         self.state.n_samples += samples
         return fail, lower
@@ -366,6 +373,16 @@ class MotionValidator:
         """True per motion XA[i] -> XB[i] that is certified safe over [TA[i], TB[i]] (bool (E,))."""
         f, _ = self.check_edges(XA, XB, TA, TB, prefix=False)
         return f >= 1.0
+
+    def first_valid(
+        self, XA: np.ndarray, XB: np.ndarray, TA: np.ndarray | float = 0.0, TB: np.ndarray | float = 0.0
+    ) -> int:
+        """Index of the first motion XA[i] -> XB[i] over [TA[i], TB[i]], in the order given, that `edges_valid`
+        certifies; -1 when none is. Order the motions best first and this is the best valid one; with
+        `early_exit` the compiled check stops there, so the motions after it cost nothing."""
+        f, _ = self.check_edges(XA, XB, TA, TB, prefix=False, first=self.early_exit)
+        ok = np.flatnonzero(f >= 1.0)
+        return int(ok[0]) if len(ok) else -1
 
     def valid_prefix(self, xa: np.ndarray, xb: np.ndarray, ta: float = 0.0, tb: float = 0.0) -> float:
         """Largest certified fraction f in [0, 1] of the motion xa -> xb (time linear from ta to tb).
