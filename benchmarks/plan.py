@@ -1,7 +1,8 @@
 """Planning time of the cspace planner, old path against new, interleaved in one run, and against OMPL.
 
 "old" and "new" both run on the compiled validity kernel; "old" has neither the edge check's broad phase
-(``[planner.check] broad_phase = false``) nor the safe IK's rescue stage (``[planner.ik] rescue_starts = 0``),
+(``[planner.check] broad_phase = false``) nor its early exit across a batch (``early_exit = false``), nor the
+safe IK's rescue stage (``[planner.ik] rescue_starts = 0``) nor its compiled projection (``compiled = false``),
 as the code before issue 29 (the other changes of that issue give identical plans and have no switch).
 Each query runs on both paths, one after the other, so both see the same load.
 
@@ -63,7 +64,10 @@ from crtraj.world.scene import Scene
 ROOT = Path(__file__).resolve().parent.parent
 # The two paths compared in every section (both on the compiled kernel): "old" without the edge check's broad
 # phase and without the IK's rescue stage (the code before issue 29), "new" the defaults.
-MODES = (("old", {"check": {"broad_phase": False}, "ik": {"rescue_starts": 0}}), ("new", {}))
+MODES = (
+    ("old", {"check": {"broad_phase": False, "early_exit": False}, "ik": {"rescue_starts": 0, "compiled": False}}),
+    ("new", {}),
+)
 
 
 def paper_plan_time() -> float:

@@ -329,7 +329,7 @@ class CSpacePlanner(PlannerBase):
             smoothed=smoothed,
             cost=float(np.sum(v.motion_bound(np.diff(final, axis=0)))),
             goal_configs=run.goals,
-            tree_edges=tree_edges(self.model, run.trees),
+            tree_edges=tree_edges(run.q.validator, run.trees),
             timings=q.timings,
             counts=q.counts,
             T=T,
@@ -343,7 +343,7 @@ class CSpacePlanner(PlannerBase):
             planner=self.name,
             robot=self.robot,
             goal_configs=run.goals,
-            tree_edges=tree_edges(self.model, run.trees),
+            tree_edges=tree_edges(run.q.validator, run.trees),
         )
 
 

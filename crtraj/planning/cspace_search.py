@@ -29,6 +29,8 @@ MAX_WAIT = 4.0
 RANDOM_NODE = 0.25
 # A timed-tree node whose extensions failed this often is no longer extended (obstacles took its place).
 DEAD_NODE = 8
+# start -> via motions checked per round of the via connection (with the validator's early exit)
+VIA_CHUNK = 8
 
 
 class CSpaceSearch:
@@ -133,8 +135,25 @@ class CSpaceSearch:
         local = v.project_limits(v.config_from_metric(y))
         vias = np.concatenate([local, v.sample(rng, K - n_local)])
         t_via = self.t0 + v.duration(vias - self.x_start)
-        ok1 = v.edges_valid(np.repeat(self.x_start[None], K, axis=0), vias, self.t0, t_via)
-        self.counts["edge_checks"] = self.counts.get("edge_checks", 0) + K
+        # each via tries its nearest goal configuration (body-motion metric); the two-motion paths are
+        # checked in the order of arrival (ties: lowest index), a chunk of start -> via motions at a time,
+        # until one is valid: the shortest valid one, as checking them all would find
+        GB = self.goals[np.argmin(v.motion_bound(vias[:, None, :] - self.goals[None, :, :]), axis=1)]
+        TB = t_via + v.duration(GB - vias)
+        order = np.argsort(TB - self.t0, kind="stable")
+        chunk = VIA_CHUNK if v.early_exit else K
+        ok1 = np.zeros(K, dtype=bool)
+        k = -1
+        for c in range(0, K, chunk):
+            idx = order[c : c + chunk]
+            ok1[idx] = v.edges_valid(np.repeat(self.x_start[None], len(idx), axis=0), vias[idx], self.t0, t_via[idx])
+            self.counts["edge_checks"] = self.counts.get("edge_checks", 0) + len(idx)
+            idx = idx[ok1[idx]]
+            first = v.first_valid(vias[idx], GB[idx], t_via[idx], TB[idx])
+            self.counts["edge_checks"] += len(idx)
+            if first >= 0:
+                k = int(idx[first])
+                break
         good = np.flatnonzero(ok1)
         self.via_seeds = vias[good]
         # the verified motions form a one-level tree (kept for drawing)
@@ -143,24 +162,11 @@ class CSpaceSearch:
         for x, t in zip(vias[good], t_via[good], strict=True):
             tree.add(v.metric(x), x, float(t), float(v.motion_bound(x - self.x_start)), 0)
         self.trees = [tree]
-        if not len(good):
+        if k < 0:
             return None
-        # each via tries its nearest goal configuration (body-motion metric)
-        d = v.motion_bound(vias[good][:, None, :] - self.goals[None, :, :])  # (V, G)
-        VA = vias[good]
-        GB = self.goals[np.argmin(d, axis=1)]
-        TA = t_via[good]
-        TB = TA + v.duration(GB - VA)
-        # the shortest valid two-motion path: the first valid in the order of arrival time
-        order = np.argsort(TB - self.t0, kind="stable")
-        first = v.first_valid(VA[order], GB[order], TA[order], TB[order])
-        self.counts["edge_checks"] += len(VA)
-        if first < 0:
-            return None
-        k = int(order[first])
-        cost = float(v.motion_bound(VA[k] - self.x_start) + v.motion_bound(GB[k] - VA[k]))
-        tree.add(v.metric(GB[k]), GB[k], float(TB[k]), cost, int(k) + 1)
-        return np.stack([self.x_start, VA[k], GB[k]])
+        cost = float(v.motion_bound(vias[k] - self.x_start) + v.motion_bound(GB[k] - vias[k]))
+        tree.add(v.metric(GB[k]), GB[k], float(TB[k]), cost, int(np.searchsorted(good, k)) + 1)
+        return np.stack([self.x_start, vias[k], GB[k]])
 
     # ------------------------------------------------------------ tree growth
     def connect(self) -> np.ndarray | None:

@@ -305,9 +305,9 @@ class PathPostprocessor:
         """Assemble a `PlanResult` for the final path X (already verified); T, raw_t: the
         waypoint times of a timed path (default: full speed from t0)."""
         model = self.v.model
-        tips = model.tip_position(X)
+        tips = self.v.tip_position(X)
         dense = self.resample(X, self.v.resolution)
-        length = float(np.sum(np.linalg.norm(np.diff(model.tip_position(dense), axis=0), axis=1)))
+        length = float(np.sum(np.linalg.norm(np.diff(self.v.tip_position(dense), axis=0), axis=1)))
         counts = {**counts, **self.counts}
         T = self.times(X) if T is None else T
         return PlanResult(
@@ -363,7 +363,8 @@ def empty_result(
 
 
 def tree_edges(model: Any, trees: list[Any], tips: list[np.ndarray] | None = None) -> np.ndarray:
-    """(E, 2, 3) tip positions (mm) of every tree edge, for drawing."""
+    """(E, 2, 3) tip positions (mm) of every tree edge, for drawing (model: anything with `tip_position`, the
+    model or a validator)."""
     parts = []
     for i, tr in enumerate(trees):
         if len(tr) < 2:

@@ -302,6 +302,10 @@ class SafeIK:
         alpha = np.minimum((required + PUSH_EXTRA - ca_) / np.maximum(gain, 1e-12), PUSH_STEP / np.maximum(move, 1e-12))
         return self.project(target, validator.project_limits(Xa + alpha[:, None] * d), PUSH_NEWTON)
 
+    def tips(self, v: MotionValidator, X: np.ndarray) -> np.ndarray:
+        """Tip positions (N, 3) mm of X (N, nx): with `compiled`, the validator's (its kernel's), else the model's."""
+        return v.tip_position(X) if self.compiled else self.model.tip_position(X)
+
     def _tip_jacobian(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Tips (S, 3) mm and tip Jacobians (S, 3, nx) of configurations X (S, nx): the validator's compiled
         kernel when it has one, else one mapped CasADi call."""
@@ -419,7 +423,7 @@ class SafeIK:
             must=len(front),
             deadline=deadline,
         )
-        err[cand] = np.linalg.norm(self.model.tip_position(X[cand]) - run.target, axis=1)
+        err[cand] = np.linalg.norm(self.tips(run.v, X[cand]) - run.target, axis=1)
         ok = (clear[cand] >= run.required) & (err[cand] <= run.tol) & run.v.within_limits(X[cand])
         good[cand] = ok
         for i in cand[ok]:

@@ -374,12 +374,23 @@ class MotionValidator:
         f, _ = self.check_edges(XA, XB, TA, TB, prefix=False)
         return f >= 1.0
 
+    def tip_position(self, X: np.ndarray) -> np.ndarray:
+        """Tip positions (N, 3) mm of configurations X (N, nx): the compiled kernel when there is one (one C call,
+        no CasADi map built per batch size), else the model's."""
+        X = np.atleast_2d(np.asarray(X, dtype=float))
+        kernel = self.state.kernel
+        if kernel is not None and len(X):
+            return kernel.tip_jacobian(X)[0]
+        return self.model.tip_position(X)
+
     def first_valid(
         self, XA: np.ndarray, XB: np.ndarray, TA: np.ndarray | float = 0.0, TB: np.ndarray | float = 0.0
     ) -> int:
         """Index of the first motion XA[i] -> XB[i] over [TA[i], TB[i]], in the order given, that `edges_valid`
         certifies; -1 when none is. Order the motions best first and this is the best valid one; with
         `early_exit` the compiled check stops there, so the motions after it cost nothing."""
+        if not len(XA):
+            return -1
         f, _ = self.check_edges(XA, XB, TA, TB, prefix=False, first=self.early_exit)
         ok = np.flatnonzero(f >= 1.0)
         return int(ok[0]) if len(ok) else -1
