@@ -98,6 +98,18 @@ _P = ctypes.c_void_p
 _N = ctypes.c_longlong
 
 
+def per_item(a: Any, n: int) -> np.ndarray:
+    """a (a scalar, or one value per item (n,)) as a contiguous float64 (n,) array: what
+    ``np.ascontiguousarray(np.broadcast_to(a, (n,)), dtype=float)`` gives, without its ~5 us per call (the edge
+    checks call it several times per batch, many batches per query)."""
+    a = np.asarray(a, dtype=float)
+    if a.shape == (n,):
+        return np.ascontiguousarray(a)
+    if a.ndim == 0:
+        return np.full(n, float(a))
+    return np.ascontiguousarray(np.broadcast_to(a, (n,)))
+
+
 def _ptr(a: np.ndarray) -> int:
     """The address of a contiguous array's data (``a.ctypes.data`` builds a helper object per call: ~10 us, more
     than some of the kernel calls it feeds)."""
@@ -202,8 +214,8 @@ class ValidityKernel:
         T = np.ascontiguousarray(table, dtype=float)
         if T.ndim != 2 or T.shape[1] != 12:
             raise ValueError(f"clearance_windows: an obstacle table (M, 12) expected, got {T.shape}")
-        lo = np.ascontiguousarray(np.broadcast_to(lo, (N,)), dtype=float)
-        hi = np.ascontiguousarray(np.broadcast_to(hi, (N,)), dtype=float)
+        lo = per_item(lo, N)
+        hi = per_item(hi, N)
         out = np.empty(N)
         args = (N, _ptr(X), len(T), _ptr(T), float(origin), _ptr(lo), _ptr(hi))
         self._check(self._clearance_windows(*args, _ptr(out)), "clearance")
@@ -275,8 +287,8 @@ class ValidityKernel:
         uncertified interval may be declared unsafe at without being split. broad, first: as in `check_edges`.
         """
         E = len(XA)
-        TA = np.ascontiguousarray(np.broadcast_to(TA, (E,)), dtype=float)
-        dT = np.ascontiguousarray(np.broadcast_to(dT, (E,)), dtype=float)
+        TA = per_item(TA, E)
+        dT = per_item(dT, E)
         T = np.ascontiguousarray(table, dtype=float)
         if T.ndim != 2 or T.shape[1] != 12:
             raise ValueError(f"check_edges_moving: an obstacle table (M, 12) expected, got {T.shape}")

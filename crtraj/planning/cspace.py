@@ -180,6 +180,8 @@ class CSpacePlanner(PlannerBase):
         path = search.run()
         run.trees = search.trees
         q.timings["search"] = time.perf_counter() - t1
+        if path is not None:  # a verified path exists from here on (before shortcuts and smoothing)
+            q.timings["first_solution"] = time.perf_counter() - query.clock.t_start
         q.counts["iterations"] = query.clock.iterations
         if path is None:
             return self._approximate(run)

@@ -159,8 +159,9 @@ class CSpaceSearch:
         # the verified motions form a one-level tree (kept for drawing)
         tree = SearchTree(v.robot.nx, v.robot.nx)
         tree.add(v.metric(self.x_start), self.x_start, self.t0, 0.0, -1)
-        for x, t in zip(vias[good], t_via[good], strict=True):
-            tree.add(v.metric(x), x, float(t), float(v.motion_bound(x - self.x_start)), 0)
+        keys, costs = v.metric(vias[good]), v.motion_bound(vias[good] - self.x_start)
+        for key, x, t, cost in zip(keys, vias[good], t_via[good], costs, strict=True):
+            tree.add(key, x, float(t), float(cost), 0)
         self.trees = [tree]
         if k < 0:
             return None

@@ -50,6 +50,7 @@ import numpy as np
 
 from crtraj.core.errors import InputError
 from crtraj.model.kinematics import Model
+from crtraj.planning.compiled_validity import per_item
 from crtraj.planning.kernels import Kernels
 from crtraj.planning.metric import BodyMetric
 from crtraj.planning.rate_limits import RateLimits
@@ -249,8 +250,8 @@ class MotionValidator:
         XA = np.atleast_2d(np.asarray(XA, dtype=float))
         XB = np.atleast_2d(np.asarray(XB, dtype=float))
         E = XA.shape[0]
-        TA = np.broadcast_to(np.asarray(TA, dtype=float), (E,))
-        TB = np.broadcast_to(np.asarray(TB, dtype=float), (E,))
+        TA = per_item(TA, E)
+        TB = per_item(TB, E)
         X, e, _, t_lo, t_hi, margin = self._samples(XA, XB, TA, TB)
         c = self.clearance(X, t_lo, t_hi, margin)
         per_edge = np.full(E, np.inf)
@@ -293,8 +294,8 @@ class MotionValidator:
         XA = np.atleast_2d(np.asarray(XA, dtype=float))
         XB = np.atleast_2d(np.asarray(XB, dtype=float))
         E = XA.shape[0]
-        TA = np.broadcast_to(np.asarray(TA, dtype=float), (E,))
-        TB = np.broadcast_to(np.asarray(TB, dtype=float), (E,))
+        TA = per_item(TA, E)
+        TB = per_item(TB, E)
         dX = XB - XA
         dT = TB - TA
         bound = self.motion_bound(dX)
