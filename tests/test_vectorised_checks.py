@@ -6,6 +6,8 @@ and off, each verified by an independent dense check."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from conftest import require_tool
@@ -23,6 +25,8 @@ from crtraj.planning.options import PlannerOptions
 from crtraj.planning.postprocess import _at
 from crtraj.planning.registry import BUILTIN
 from crtraj.planning.validity import MotionValidator
+from crtraj.world import packing
+from crtraj.world.obstacle import Obstacle
 from crtraj.world.scene import Scene
 
 
@@ -110,3 +114,33 @@ def test_points_along_a_polyline_match_np_interp():
         u = np.concatenate([rng.uniform(-1.0, s[-1] + 1.0, 20), s])
         ref = np.stack([np.interp(u, s, X[:, j]) for j in range(5)], axis=-1)
         np.testing.assert_array_equal(_at(X, s, u), ref)
+
+
+def test_swept_spheres_without_breathing_match_the_scene(model: Model, kernels: Kernels):
+    """Obstacles that move (linear, sin, cos profiles) without breathing (amplitude 0) or stand still: the
+    spheres the C check sweeps over random windows (it skips the sine ranges a profile does not use) give
+    the clearances of `Scene.swept_spheres`' spheres bit for bit, with and without a time origin."""
+    rng = np.random.default_rng(7)
+    obs = [
+        Obstacle(
+            name=f"o{i}",
+            center=tuple(rng.uniform([-150, -150, 100], [150, 150, 400])),
+            radius=float(rng.uniform(15, 40)),
+            amplitude=0.0,
+            to=tuple(rng.uniform([-150, -150, 100], [150, 150, 400])) if i < 6 else None,
+            duration=float(rng.uniform(0.5, 3.0)),
+            profile=("linear", "sin", "cos")[i % 3],
+        )
+        for i in range(8)
+    ]
+    scene = Scene(obstacles=tuple(obs), safety_distance=5.0)
+    v = MotionValidator(model, scene, kernels=kernels)
+    k = v.state.kernel
+    X = v.sample(rng, 400)
+    lo = rng.uniform(0.0, 4.0, len(X))
+    hi = lo + rng.uniform(0.0, 1.0, len(X))
+    for sc in (scene, replace(scene, time_origin=0.7)):
+        slots = packing.pack(*sc.swept_spheres(lo, hi), sc.n_obstacles)
+        np.testing.assert_array_equal(
+            k.clearance_windows(X, sc.motion_table(), sc.time_origin, lo, hi), k.clearance(X, slots)
+        )

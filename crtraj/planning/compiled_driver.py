@@ -37,14 +37,15 @@ int crtraj_points(long long N, const double* X, double* P) {
    in the operation order of the interpreted CasADi expression (state_validity); sqrt is monotone, so the
    square root of the smallest square is the smallest distance, bit for bit. */
 static double crtraj_chord(const double* P, const double* c) {
+  const double* AB = P + 3 * CRTRAJ_NP;  /* crtraj_prep's chord vectors and squared lengths */
+  const double* DEN = P + 6 * CRTRAJ_NP;
   double best = INFINITY;
   int i;
   for (i = 0; i < CRTRAJ_NP - 1; ++i) {
     const double* a = P + 3 * i;
-    const double* b = a + 3;
-    double abx = b[0] - a[0], aby = b[1] - a[1], abz = b[2] - a[2];
+    double abx = AB[3 * i], aby = AB[3 * i + 1], abz = AB[3 * i + 2];
     double acx = c[0] - a[0], acy = c[1] - a[1], acz = c[2] - a[2];
-    double den = fmax(abx * abx + aby * aby + abz * abz, 1e-300);
+    double den = DEN[i];
     double u = fmin(fmax((acx * abx + acy * aby + acz * abz) / den, 0.0), 1.0);
     double dx = acx - abx * u, dy = acy - aby * u, dz = acz - abz * u;
     double d2 = dx * dx + dy * dy + dz * dz;
@@ -54,13 +55,31 @@ static double crtraj_chord(const double* P, const double* c) {
   return sqrt(best);
 }
 
-/* Clearance of one configuration x against K slots (padding skipped); P: room for its points. */
+/* The chords of the points P (3 x CRTRAJ_NP) that crtraj_chord needs for every obstacle, computed once per
+   configuration (the same operations, so the same numbers): after the points, the chord vectors b - a
+   (3 x (CRTRAJ_NP - 1)), then their squared lengths (at least 1e-300). P holds 7 CRTRAJ_NP doubles. */
+static void crtraj_prep(double* P) {
+  double* AB = P + 3 * CRTRAJ_NP;
+  double* DEN = P + 6 * CRTRAJ_NP;
+  int i;
+  for (i = 0; i < CRTRAJ_NP - 1; ++i) {
+    const double* a = P + 3 * i;
+    const double* b = a + 3;
+    double abx = b[0] - a[0], aby = b[1] - a[1], abz = b[2] - a[2];
+    AB[3 * i] = abx; AB[3 * i + 1] = aby; AB[3 * i + 2] = abz;
+    DEN[i] = fmax(abx * abx + aby * aby + abz * abz, 1e-300);
+  }
+}
+
+/* Clearance of one configuration x against K slots (padding skipped); P: room for its points and chords
+   (7 CRTRAJ_NP doubles, crtraj_prep). */
 static int crtraj_clear_one(crtraj_work* kb, const double* x, long long K, const double* s, double* P, double* out) {
   long long j;
   double best = INFINITY;
   int rc;
   kb->arg[0] = x; kb->res[0] = P;
   rc = crtraj_bb(kb->arg, kb->res, kb->iw, kb->w, 0);
+  crtraj_prep(P);
   for (j = 0; j < K; ++j) {
     const double* slot = s + 5 * j;
     double dist;
@@ -75,7 +94,7 @@ static int crtraj_clear_one(crtraj_work* kb, const double* x, long long K, const
 
 int crtraj_clearance(long long N, const double* X, long long K, const double* S, long long stride, double* d) {
   crtraj_work kb; long long i; int rc = 0;
-  double P[3 * CRTRAJ_NP];
+  double P[7 * CRTRAJ_NP];
   if (crtraj_alloc(&kb, crtraj_bb_work)) { crtraj_free(&kb); return 1; }
   for (i = 0; i < N && !rc; ++i) rc = crtraj_clear_one(&kb, X + i * CRTRAJ_NX, K, S + i * stride, P, d + i);
   crtraj_free(&kb);
@@ -133,13 +152,18 @@ static void crtraj_swept(long long M, const double* T, double origin, double lo,
   for (j = 0; j < M; ++j) {
     const double* o = T + 12 * j;
     double dur = o[6], code = o[7], A = o[8], B = o[9], w = o[10], ph = o[11];
-    double slo, shi, clo, chi, rlo, rhi, smin, smax, a[3], b[3], d[3];
-    crtraj_sin_range(0.5 * pi * pa / dur, 0.5 * pi * pb / dur, &slo, &shi);
-    crtraj_sin_range(pi * pa / dur + pi / 2, pi * pb / dur + pi / 2, &clo, &chi);
+    double slo, shi, clo, chi, rlo = 0.0, rhi = 0.0, smin, smax, a[3], b[3], d[3];
+    /* only the sine ranges the profile uses are computed (the others' values are never read); without
+       breathing (B = 0) the radius term B * sin is +-0 for any finite sine, and A + (+-0) is A */
     if (code == 0.0) { smin = crtraj_clip01(pa / dur); smax = crtraj_clip01(pb / dur); }
-    else if (code == 1.0) { smin = slo; smax = shi; }
-    else { smin = 0.5 * (1.0 - chi); smax = 0.5 * (1.0 - clo); }
-    crtraj_sin_range(w * tt0 + ph, w * tt1 + ph, &rlo, &rhi);
+    else if (code == 1.0) {
+      crtraj_sin_range(0.5 * pi * pa / dur, 0.5 * pi * pb / dur, &slo, &shi);
+      smin = slo; smax = shi;
+    } else {
+      crtraj_sin_range(pi * pa / dur + pi / 2, pi * pb / dur + pi / 2, &clo, &chi);
+      smin = 0.5 * (1.0 - chi); smax = 0.5 * (1.0 - clo);
+    }
+    if (B != 0.0) crtraj_sin_range(w * tt0 + ph, w * tt1 + ph, &rlo, &rhi);
     for (k = 0; k < 3; ++k) {
       a[k] = o[k] + smin * o[3 + k];
       b[k] = o[k] + smax * o[3 + k];
@@ -157,7 +181,7 @@ static void crtraj_swept(long long M, const double* T, double origin, double lo,
 int crtraj_clearance_windows(long long N, const double* X, long long M, const double* T, double origin,
                              const double* lo, const double* hi, double* d) {
   crtraj_work kb; long long i; int rc = 0;
-  double P[3 * CRTRAJ_NP];
+  double P[7 * CRTRAJ_NP];
   double* S = (double*) malloc(sizeof(double) * 5 * (size_t) (M > 0 ? M : 1));
   if (!S) return 1;
   if (crtraj_alloc(&kb, crtraj_bb_work)) { crtraj_free(&kb); free(S); return 1; }
@@ -182,6 +206,7 @@ static int crtraj_clear_idx(crtraj_work* kb, const double* x, const long long* i
   int rc;
   kb->arg[0] = x; kb->res[0] = P;
   rc = crtraj_bb(kb->arg, kb->res, kb->iw, kb->w, 0);
+  crtraj_prep(P);
   for (q = 0; q < m; ++q) {
     const double* slot;
     if (best != best) { d[q] = NAN; continue; }
@@ -233,7 +258,7 @@ static int crtraj_refine(long long E, const double* XA, const double* dX, const 
                          double origin, double inflate, double finest, double enl, double tres, int prefix,
                          long long broad, double* fail, double* lower, long long* samples) {
   crtraj_work kb; long long e, i, q, n, cap = 0, pcap = 0, ncap = 0; int rc = 0;
-  double P[3 * CRTRAJ_NP], x[CRTRAJ_NX], sw[5];
+  double P[7 * CRTRAJ_NP], x[CRTRAJ_NX], sw[5];
   double* buf[CRTRAJ_NB] = {NULL};
   double* d = (double*) malloc(sizeof(double) * (size_t) (K + 1));
   long long* pool = NULL;
