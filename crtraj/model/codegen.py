@@ -19,10 +19,11 @@ from crtraj.core.build_cache import BuildCache, BuildKey, compile_shared
 
 
 def codegen_builder(
-    make: Callable[[], Sequence[ca.Function]], name: str, extra_c: str = ""
+    make: Callable[[], Sequence[ca.Function]], name: str, extra_c: str = "", flags: tuple[str, ...] = ()
 ) -> Callable[[Path, str], Path]:
     """The build step of a cache entry: C of the functions `make()` returns, followed by `extra_c` (a
-    hand-written driver calling them, say), generated into the folder and compiled to lib<name>.so.
+    hand-written driver calling them, say), generated into the folder and compiled to lib<name>.so (with the
+    compiler `flags` after the defaults; they must be part of the entry's key).
 
     `make` runs only when the step runs (a cache miss), so a hit never builds the CasADi graphs.
     """
@@ -33,7 +34,7 @@ def codegen_builder(
             gen.add(f)
         src = folder / f"{name}.c"
         src.write_text(gen.dump() + extra_c, encoding="utf-8")
-        return compile_shared(compiler, [src], folder / f"lib{name}.so")
+        return compile_shared(compiler, [src], folder / f"lib{name}.so", flags)
 
     return build
 
