@@ -157,13 +157,17 @@ def section_sim1(problem: Problem, model: Model, scene: Scene, options: PlannerO
 
 
 def print_rows(rows: dict, n: int) -> None:
-    """The old/new table: success, wall and CPU median / p90, densely verified successes, IPOPT solves."""
-    print(f"{'path':<6s} {'success':>9s} {'wall median / p90':>22s} {'CPU median / p90':>22s}  verified  IPOPT")
+    """The old/new table: success, wall and CPU median / p90, densely verified successes, IPOPT solves, edge-check
+    samples per query (median)."""
+    head = f"{'path':<6s} {'success':>9s} {'wall median / p90':>22s} {'CPU median / p90':>22s}"
+    print(f"{head}  verified  IPOPT  samples")
     for label, r in rows.items():
         ok = successes(r)
+        # edge-check samples per query (median): what the early exits save
+        samples = statistics.median(res.counts.get("collision_samples", 0) for res in r["results"])
         print(
             f"{label:<6s} {ok:>4d}/{n:<4d} {summary(r['times']):>22s} {summary(r['cpu']):>22s}  "
-            f"{r['verified']:>4d}/{ok:<4d} {r['nlp']:>4d}"
+            f"{r['verified']:>4d}/{ok:<4d} {r['nlp']:>4d}  {samples:7.0f}"
         )
     old, new = rows["old"], rows["new"]
     wall = statistics.median(old["times"]) / statistics.median(new["times"])
