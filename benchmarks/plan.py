@@ -312,7 +312,7 @@ def write_plot(rows: dict, path: Path, n: int) -> None:
         fig.subplots(1, 2), ("obstacles", "segments"), ("obstacles (spheres)", "segments"), strict=True
     ):
         x = [r[0] for r in rows[key]]
-        ax.plot(x, [r[1] * 1e3 for r in rows[key]], "o-", label="old (no broad phase, no IK rescue)")
+        ax.plot(x, [r[1] * 1e3 for r in rows[key]], "o-", label="old (issue 29 switched off)")
         ax.plot(x, [r[2] * 1e3 for r in rows[key]], "s-", label="new")
         ax.set_xlabel(xlabel)
         ax.set_ylabel("cspace plan CPU time, median (ms)")
