@@ -24,6 +24,7 @@ from crtraj.planning.kernels import Kernels
 from crtraj.planning.options import PlannerOptions
 from crtraj.planning.postprocess import _at
 from crtraj.planning.registry import BUILTIN
+from crtraj.planning.sampler import LIMIT_TOL, ConfigSampler
 from crtraj.planning.validity import MotionValidator
 from crtraj.world import packing
 from crtraj.world.obstacle import Obstacle
@@ -149,3 +150,25 @@ def test_swept_spheres_without_breathing_match_the_scene(model: Model, kernels: 
         np.testing.assert_array_equal(
             k.clearance_windows(X, sc.motion_table(), sc.time_origin, lo, hi), k.clearance(X, slots)
         )
+
+
+def test_sampler_limit_test_is_the_robots(model: Model):
+    """`ConfigSampler.within_limits` (matrices kept from construction) gives `Robot.limit_violation <= LIMIT_TOL`
+    on random configurations in and beyond the limits, for the two-segment robot and a coupled three-segment one."""
+    from crtraj.model.robot import Segment
+
+    rng = np.random.default_rng(11)
+    three = replace(
+        model.robot,
+        name="three",
+        segments=tuple(Segment(130.0, 1.2, k * np.pi / 3) for k in range(3)),
+        coupling=-0.5,
+        actuators=None,
+    )
+    for robot in (model.robot, three):
+        s = ConfigSampler(robot)
+        X = s.sample(rng, 3000) * rng.uniform(0.8, 1.2, (3000, 1))
+        X[:, -1] = rng.uniform(robot.z_range[0] - 5.0, robot.z_range[1] + 5.0, 3000)
+        ok = s.within_limits(X)
+        np.testing.assert_array_equal(ok, robot.limit_violation(X) <= LIMIT_TOL)
+        assert 0 < ok.sum() < len(ok)
