@@ -23,7 +23,8 @@ def codegen_builder(
 ) -> Callable[[Path, str], Path]:
     """The build step of a cache entry: C of the functions `make()` returns, followed by `extra_c` (a
     hand-written driver calling them, say), generated into the folder and compiled to lib<name>.so
-    (`flags` after the cache's own, so ``("-O0",)`` overrides its optimisation level).
+    (`flags` after the cache's own, so ``("-O0",)`` overrides its optimisation level; they must be part of the
+    entry's key).
 
     `make` runs only when the step runs (a cache miss), so a hit never builds the CasADi graphs.
     """

@@ -37,14 +37,15 @@ int crtraj_points(long long N, const double* X, double* P) {
    in the operation order of the interpreted CasADi expression (state_validity); sqrt is monotone, so the
    square root of the smallest square is the smallest distance, bit for bit. */
 static double crtraj_chord(const double* P, const double* c) {
+  const double* AB = P + 3 * CRTRAJ_NP;  /* crtraj_prep's chord vectors and squared lengths */
+  const double* DEN = P + 6 * CRTRAJ_NP;
   double best = INFINITY;
   int i;
   for (i = 0; i < CRTRAJ_NP - 1; ++i) {
     const double* a = P + 3 * i;
-    const double* b = a + 3;
-    double abx = b[0] - a[0], aby = b[1] - a[1], abz = b[2] - a[2];
+    double abx = AB[3 * i], aby = AB[3 * i + 1], abz = AB[3 * i + 2];
     double acx = c[0] - a[0], acy = c[1] - a[1], acz = c[2] - a[2];
-    double den = fmax(abx * abx + aby * aby + abz * abz, 1e-300);
+    double den = DEN[i];
     double u = fmin(fmax((acx * abx + acy * aby + acz * abz) / den, 0.0), 1.0);
     double dx = acx - abx * u, dy = acy - aby * u, dz = acz - abz * u;
     double d2 = dx * dx + dy * dy + dz * dz;
@@ -54,13 +55,31 @@ static double crtraj_chord(const double* P, const double* c) {
   return sqrt(best);
 }
 
-/* Clearance of one configuration x against K slots (padding skipped); P: room for its points. */
+/* The chords of the points P (3 x CRTRAJ_NP) that crtraj_chord needs for every obstacle, computed once per
+   configuration (the same operations, so the same numbers): after the points, the chord vectors b - a
+   (3 x (CRTRAJ_NP - 1)), then their squared lengths (at least 1e-300). P holds 7 CRTRAJ_NP doubles. */
+static void crtraj_prep(double* P) {
+  double* AB = P + 3 * CRTRAJ_NP;
+  double* DEN = P + 6 * CRTRAJ_NP;
+  int i;
+  for (i = 0; i < CRTRAJ_NP - 1; ++i) {
+    const double* a = P + 3 * i;
+    const double* b = a + 3;
+    double abx = b[0] - a[0], aby = b[1] - a[1], abz = b[2] - a[2];
+    AB[3 * i] = abx; AB[3 * i + 1] = aby; AB[3 * i + 2] = abz;
+    DEN[i] = fmax(abx * abx + aby * aby + abz * abz, 1e-300);
+  }
+}
+
+/* Clearance of one configuration x against K slots (padding skipped); P: room for its points and chords
+   (7 CRTRAJ_NP doubles, crtraj_prep). */
 static int crtraj_clear_one(crtraj_work* kb, const double* x, long long K, const double* s, double* P, double* out) {
   long long j;
   double best = INFINITY;
   int rc;
   kb->arg[0] = x; kb->res[0] = P;
   rc = crtraj_bb(kb->arg, kb->res, kb->iw, kb->w, 0);
+  crtraj_prep(P);
   for (j = 0; j < K; ++j) {
     const double* slot = s + 5 * j;
     double dist;
@@ -75,7 +94,7 @@ static int crtraj_clear_one(crtraj_work* kb, const double* x, long long K, const
 
 int crtraj_clearance(long long N, const double* X, long long K, const double* S, long long stride, double* d) {
   crtraj_work kb; long long i; int rc = 0;
-  double P[3 * CRTRAJ_NP];
+  double P[7 * CRTRAJ_NP];
   if (crtraj_alloc(&kb, crtraj_bb_work)) { crtraj_free(&kb); return 1; }
   for (i = 0; i < N && !rc; ++i) rc = crtraj_clear_one(&kb, X + i * CRTRAJ_NX, K, S + i * stride, P, d + i);
   crtraj_free(&kb);
@@ -133,13 +152,18 @@ static void crtraj_swept(long long M, const double* T, double origin, double lo,
   for (j = 0; j < M; ++j) {
     const double* o = T + 12 * j;
     double dur = o[6], code = o[7], A = o[8], B = o[9], w = o[10], ph = o[11];
-    double slo, shi, clo, chi, rlo, rhi, smin, smax, a[3], b[3], d[3];
-    crtraj_sin_range(0.5 * pi * pa / dur, 0.5 * pi * pb / dur, &slo, &shi);
-    crtraj_sin_range(pi * pa / dur + pi / 2, pi * pb / dur + pi / 2, &clo, &chi);
+    double slo, shi, clo, chi, rlo = 0.0, rhi = 0.0, smin, smax, a[3], b[3], d[3];
+    /* only the sine ranges the profile uses are computed (the others' values are never read); without
+       breathing (B = 0) the radius term B * sin is +-0 for any finite sine, and A + (+-0) is A */
     if (code == 0.0) { smin = crtraj_clip01(pa / dur); smax = crtraj_clip01(pb / dur); }
-    else if (code == 1.0) { smin = slo; smax = shi; }
-    else { smin = 0.5 * (1.0 - chi); smax = 0.5 * (1.0 - clo); }
-    crtraj_sin_range(w * tt0 + ph, w * tt1 + ph, &rlo, &rhi);
+    else if (code == 1.0) {
+      crtraj_sin_range(0.5 * pi * pa / dur, 0.5 * pi * pb / dur, &slo, &shi);
+      smin = slo; smax = shi;
+    } else {
+      crtraj_sin_range(pi * pa / dur + pi / 2, pi * pb / dur + pi / 2, &clo, &chi);
+      smin = 0.5 * (1.0 - chi); smax = 0.5 * (1.0 - clo);
+    }
+    if (B != 0.0) crtraj_sin_range(w * tt0 + ph, w * tt1 + ph, &rlo, &rhi);
     for (k = 0; k < 3; ++k) {
       a[k] = o[k] + smin * o[3 + k];
       b[k] = o[k] + smax * o[3 + k];
@@ -157,7 +181,7 @@ static void crtraj_swept(long long M, const double* T, double origin, double lo,
 int crtraj_clearance_windows(long long N, const double* X, long long M, const double* T, double origin,
                              const double* lo, const double* hi, double* d) {
   crtraj_work kb; long long i; int rc = 0;
-  double P[3 * CRTRAJ_NP];
+  double P[7 * CRTRAJ_NP];
   double* S = (double*) malloc(sizeof(double) * 5 * (size_t) (M > 0 ? M : 1));
   if (!S) return 1;
   if (crtraj_alloc(&kb, crtraj_bb_work)) { crtraj_free(&kb); free(S); return 1; }
@@ -182,6 +206,7 @@ static int crtraj_clear_idx(crtraj_work* kb, const double* x, const long long* i
   int rc;
   kb->arg[0] = x; kb->res[0] = P;
   rc = crtraj_bb(kb->arg, kb->res, kb->iw, kb->w, 0);
+  crtraj_prep(P);
   for (q = 0; q < m; ++q) {
     const double* slot;
     if (best != best) { d[q] = NAN; continue; }
@@ -204,6 +229,8 @@ static int crtraj_clear_idx(crtraj_work* kb, const double* x, const long long* i
    dt = dT (tb - ta)) or when c < 0 or h <= finest, with dt <= tres; else halved (prefix: only while ta < fail;
    else only while nothing failed). A static scene has enl = 0 and tres = inf: unsafe when c < 0 or h <= finest.
    Out: fail[e] (certified fraction) and lower[e] (min c - h over certified intervals); *samples: clearances.
+   prefix bit 1 (first): stop after the first motion certified whole (VAMP's early exit across a batch whose
+   caller wants the first valid motion of an order): the motions after it get fail = -1 (not checked).
 
    Broad phase (from `broad` obstacles on, 0: never): every interval hands its halves only the obstacles that
    can decide one of their samples. The halves' configurations lie within h (body motion) of the interval's
@@ -231,7 +258,7 @@ static int crtraj_refine(long long E, const double* XA, const double* dX, const 
                          double origin, double inflate, double finest, double enl, double tres, int prefix,
                          long long broad, double* fail, double* lower, long long* samples) {
   crtraj_work kb; long long e, i, q, n, cap = 0, pcap = 0, ncap = 0; int rc = 0;
-  double P[3 * CRTRAJ_NP], x[CRTRAJ_NX], sw[5];
+  double P[7 * CRTRAJ_NP], x[CRTRAJ_NX], sw[5];
   double* buf[CRTRAJ_NB] = {NULL};
   double* d = (double*) malloc(sizeof(double) * (size_t) (K + 1));
   long long* pool = NULL;
@@ -239,6 +266,8 @@ static int crtraj_refine(long long E, const double* XA, const double* dX, const 
   long long* lp;
   double* t;
   int use = broad > 0 && K >= broad;
+  int first = prefix & 2;
+  prefix &= 1;
   *samples = 0;
   if (!d || crtraj_alloc(&kb, crtraj_bb_work) || crtraj_grow_pool(&pool, &pcap, K + 1)) {
     free(d); free(pool); crtraj_free(&kb); return 1;
@@ -305,6 +334,10 @@ static int crtraj_refine(long long E, const double* XA, const double* dX, const 
       n = m;
     }
     fail[e] = f; lower[e] = low;
+    if (first && f >= 1.0 && !rc) {
+      for (i = e + 1; i < E; ++i) { fail[i] = -1.0; lower[i] = -INFINITY; }
+      break;
+    }
   }
   for (i = 0; i < CRTRAJ_NB; ++i) free(buf[i]);
   free(d); free(pool); free(npool);
@@ -361,6 +394,72 @@ int crtraj_motion_bound(long long N, const double* dX, double* B) {
   for (i = 0; i < N && !rc; ++i) {
     k.arg[0] = dX + i * CRTRAJ_NX; k.res[0] = B + i;
     rc = crtraj_mb(k.arg, k.res, k.iw, k.w, 0);
+  }
+  crtraj_free(&k);
+  return rc;
+}
+/* Batched damped least-squares projection onto tip(x) = target (`SafeIK.project`), every configuration of X
+   (N x CRTRAJ_NX, in place) on its own: per step the smallest body motion (metric W, Winv = W^-1, row-major)
+   that removes the tip error e, capped at `step` mm, dx = W^-1 J^T (J W^-1 J^T + damping I)^-1 e, then back
+   into the bending discs |C u|_k <= tmax_k (C, Cinv: the coupling matrix and its inverse, 2 nseg square,
+   row-major) and the z stroke [zlo, zhi], as `ConfigSampler.project_limits` does. A configuration stops as
+   soon as its tip error is below tol (mm) or after `iters` steps; err: its last tip error (mm). */
+int crtraj_project(long long N, double* X, const double* target, long long iters, const double* Winv,
+                   double damping, double step, double tol, long long nseg, const double* C, const double* Cinv,
+                   const double* tmax, double zlo, double zhi, double* err) {
+  crtraj_work k; long long i, it; int rc = 0, r, c, m, n2 = (int) (2 * nseg);
+  double P[3], J[3 * CRTRAJ_NX], JW[3 * CRTRAJ_NX], A[9], e[3], y[3], ub[CRTRAJ_NX];
+  if (n2 >= CRTRAJ_NX) return 2;
+  if (crtraj_alloc(&k, crtraj_tipjac_work)) { crtraj_free(&k); return 1; }
+  for (i = 0; i < N && !rc; ++i) {
+    double* x = X + i * CRTRAJ_NX;
+    for (it = 0; ; ++it) {
+      double en, s, l11, l21, l31, l22, l32, l33, z1, z2, z3;
+      k.arg[0] = x; k.res[0] = P; k.res[1] = J;  /* J: 3 x nx column-major, J[r + 3 c] */
+      rc = crtraj_tipjac(k.arg, k.res, k.iw, k.w, 0);
+      if (rc) break;
+      for (r = 0; r < 3; ++r) e[r] = target[r] - P[r];
+      en = sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2]);
+      err[i] = en;
+      if (it >= iters || en < tol || en != en) break;
+      s = fmin(1.0, step / fmax(en, 1e-300));
+      for (r = 0; r < 3; ++r) e[r] *= s;
+      for (r = 0; r < 3; ++r)
+        for (c = 0; c < CRTRAJ_NX; ++c) {
+          double acc = 0.0;
+          for (m = 0; m < CRTRAJ_NX; ++m) acc += J[r + 3 * m] * Winv[m * CRTRAJ_NX + c];
+          JW[r * CRTRAJ_NX + c] = acc;
+        }
+      for (r = 0; r < 3; ++r)
+        for (c = 0; c < 3; ++c) {
+          double acc = (r == c) ? damping : 0.0;
+          for (m = 0; m < CRTRAJ_NX; ++m) acc += JW[r * CRTRAJ_NX + m] * J[c + 3 * m];
+          A[3 * r + c] = acc;
+        }
+      /* A is symmetric positive definite (damping > 0): Cholesky */
+      l11 = sqrt(A[0]); l21 = A[3] / l11; l31 = A[6] / l11;
+      l22 = sqrt(A[4] - l21 * l21); l32 = (A[7] - l31 * l21) / l22;
+      l33 = sqrt(A[8] - l31 * l31 - l32 * l32);
+      z1 = e[0] / l11; z2 = (e[1] - l21 * z1) / l22; z3 = (e[2] - l31 * z1 - l32 * z2) / l33;
+      y[2] = z3 / l33; y[1] = (z2 - l32 * y[2]) / l22; y[0] = (z1 - l21 * y[1] - l31 * y[2]) / l11;
+      for (c = 0; c < CRTRAJ_NX; ++c) x[c] += JW[c] * y[0] + JW[CRTRAJ_NX + c] * y[1] + JW[2 * CRTRAJ_NX + c] * y[2];
+      for (r = 0; r < n2; ++r) {
+        double acc = 0.0;
+        for (m = 0; m < n2; ++m) acc += C[r * n2 + m] * x[m];
+        ub[r] = acc;
+      }
+      for (r = 0; r < nseg; ++r) {
+        double nr = sqrt(ub[2 * r] * ub[2 * r] + ub[2 * r + 1] * ub[2 * r + 1]);
+        double f = fmin(1.0, tmax[r] / fmax(nr, 1e-300));
+        ub[2 * r] *= f; ub[2 * r + 1] *= f;
+      }
+      for (r = 0; r < n2; ++r) {
+        double acc = 0.0;
+        for (m = 0; m < n2; ++m) acc += Cinv[r * n2 + m] * ub[m];
+        x[r] = acc;
+      }
+      x[CRTRAJ_NX - 1] = fmin(fmax(x[CRTRAJ_NX - 1], zlo), zhi);
+    }
   }
   crtraj_free(&k);
   return rc;

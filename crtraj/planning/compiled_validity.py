@@ -12,6 +12,9 @@ rounding), and a small hand-written C driver loops over a whole batch in one cal
   are padding and skipped, so one library serves every obstacle count. stride 0: the same slots for
   every configuration (a static scene); 5 K: slots of their own per configuration (swept spheres);
 - ``crtraj_tip_jac(N, X, P, J)``: tip positions (N, 3) mm and tip Jacobians (N, 3, nx);
+- ``crtraj_project(N, X, target, ...)``: the safe IK's batched damped least-squares projection onto a tip
+  target (`crtraj.planning.safe_ik.SafeIK.project`), the whole Newton loop per configuration in C, each
+  configuration stopping as soon as its tip is on the target;
 - ``crtraj_motion_bound(N, dX, B)``: the body-motion bound B(dx) (mm, `crtraj.planning.metric`; it agrees
   with numpy's to 1e-12, but the planners keep numpy's, whose rounding times every motion, so that both
   paths give identical plans);
@@ -37,6 +40,7 @@ from __future__ import annotations
 
 import ctypes
 import hashlib
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -51,10 +55,13 @@ from crtraj.planning.metric import metric_matrix
 from crtraj.world import packing
 
 # Version of the generated code and driver: raising it makes every cached kernel foreign (rebuilt).
-GENERATOR = 8
+GENERATOR = 12
 # Most check points a kernel is generated for: the generated FK grows with them (100 points: ~15 s of
 # gcc); denser checks (reports, tests) stay on the interpreted path.
 MAX_COMPILED_POINTS = 200
+# Compiler flags of the kernel after the build cache's defaults (-O2, no contraction into fused multiply-adds):
+# -O3 keeps IEEE arithmetic (no reassociation), so the same numbers, ~10 % faster backbone points.
+KERNEL_FLAGS = ("-O3",)
 # Largest batch one driver call takes; callers split larger ones (bounds the driver's int arithmetic).
 MAX_BATCH = 1 << 24
 
@@ -74,6 +81,7 @@ def kernel_key(model: Model, check_points: int) -> BuildKey:
     # the driver's text is part of the key too: a changed driver can never load a stale library
     driver = hashlib.sha256(DRIVER.encode("utf-8")).hexdigest()
     spec = {"robot": robot, "check_points": int(check_points), "generator": GENERATOR, "driver": driver}
+    spec["flags"] = list(KERNEL_FLAGS)
     return BuildKey("crtraj_validity", spec)
 
 
@@ -92,6 +100,18 @@ def kernel_functions(model: Model, check_points: int) -> list[ca.Function]:
 
 _P = ctypes.c_void_p
 _N = ctypes.c_longlong
+
+
+def per_item(a: Any, n: int) -> np.ndarray:
+    """a (a scalar, or one value per item (n,)) as a contiguous float64 (n,) array: what
+    ``np.ascontiguousarray(np.broadcast_to(a, (n,)), dtype=float)`` gives, without its ~5 us per call (the edge
+    checks call it several times per batch, many batches per query)."""
+    a = np.asarray(a, dtype=float)
+    if a.shape == (n,):
+        return np.ascontiguousarray(a)
+    if a.ndim == 0:
+        return np.full(n, float(a))
+    return np.ascontiguousarray(np.broadcast_to(a, (n,)))
 
 
 def _ptr(a: np.ndarray) -> int:
@@ -121,6 +141,9 @@ class ValidityKernel:
         self._tip_jac = lib.crtraj_tip_jac
         self._tip_jac.argtypes = [_N, _P, _P, _P]
         self._motion_bound = lib.crtraj_motion_bound
+        self._project = lib.crtraj_project
+        self._project.argtypes = [_N, _P, _P, _N, _P] + [ctypes.c_double] * 3 + [_N, _P, _P, _P]
+        self._project.argtypes += [ctypes.c_double, ctypes.c_double, _P]
         self._motion_bound.argtypes = [_N, _P, _P]
         self._check_edges = lib.crtraj_check_edges
         self._check_edges.argtypes = [_N, _P, _P, _P, _P, _N, _P, ctypes.c_double, ctypes.c_double, ctypes.c_int]
@@ -134,6 +157,7 @@ class ValidityKernel:
             self._clearance_windows,
             self._tip_jac,
             self._motion_bound,
+            self._project,
             self._check_edges,
             self._check_moving,
         ):
@@ -144,7 +168,7 @@ class ValidityKernel:
         """The kernel of `model` at `check_points`, from `cache` (built on a miss); None without a C compiler."""
         key = kernel_key(model, check_points)
         defines = f"\n#define CRTRAJ_NX {model.robot.nx}\n#define CRTRAJ_NP {int(check_points)}\n"
-        build = codegen_builder(lambda: kernel_functions(model, check_points), key.name, defines + DRIVER)
+        build = codegen_builder(lambda: kernel_functions(model, check_points), key.name, defines + DRIVER, KERNEL_FLAGS)
         return cache.load(key, build, lambda lib: cls(lib, model.robot.nx, check_points))
 
     def _configs(self, X: Any) -> np.ndarray:
@@ -194,8 +218,8 @@ class ValidityKernel:
         T = np.ascontiguousarray(table, dtype=float)
         if T.ndim != 2 or T.shape[1] != 12:
             raise ValueError(f"clearance_windows: an obstacle table (M, 12) expected, got {T.shape}")
-        lo = np.ascontiguousarray(np.broadcast_to(lo, (N,)), dtype=float)
-        hi = np.ascontiguousarray(np.broadcast_to(hi, (N,)), dtype=float)
+        lo = per_item(lo, N)
+        hi = per_item(hi, N)
         out = np.empty(N)
         args = (N, _ptr(X), len(T), _ptr(T), float(origin), _ptr(lo), _ptr(hi))
         self._check(self._clearance_windows(*args, _ptr(out)), "clearance")
@@ -222,6 +246,7 @@ class ValidityKernel:
         finest: float,
         prefix: bool,
         broad: int = 0,
+        first: bool = False,
     ) -> tuple[np.ndarray, np.ndarray, int]:
         """The static-scene adaptive edge check (`MotionValidator.check_edges`) in C.
 
@@ -230,13 +255,14 @@ class ValidityKernel:
         clearance; finest (mm): the smallest interval's h. broad: with at least this many obstacle slots
         (0: never), a broad phase per motion keeps only the obstacles that can decide one of its samples
         (module docstring): fail is the same either way; lower stays a lower bound of the clearance but may
-        be smaller. Returns (fail (E,), lower (E,) mm, samples).
+        be smaller. first: stop after the first motion certified whole; the motions after it are not checked
+        (fail -1, lower -inf). Returns (fail (E,), lower (E,) mm, samples).
         """
         S = np.ascontiguousarray(slots, dtype=float)
         if S.ndim != 1:
             raise ValueError(f"check_edges: flat slots (K*{packing.WIDTH},) expected, got {S.shape}")
         K = S.shape[0] // packing.WIDTH
-        flags = (float(inflate), float(finest), int(bool(prefix)), int(broad))
+        flags = (float(inflate), float(finest), int(bool(prefix)) | (2 if first else 0), int(broad))
         return self._run_edges(self._check_edges, XA, dX, bound, n0, (K, _ptr(S), *flags))
 
     def check_edges_moving(
@@ -255,22 +281,23 @@ class ValidityKernel:
         time_resolution: float,
         prefix: bool,
         broad: int = 0,
+        first: bool = False,
     ) -> tuple[np.ndarray, np.ndarray, int]:
         """The adaptive edge check among moving obstacles (`MotionValidator.check_edges`) in C.
 
         As `check_edges`, and: TA, dT (E,) s: each motion's start time and duration (relative to the
         scene's time origin `origin` s); table (M, 12): `Scene.motion_table`; enlargement (mm/s): how fast
         a window's swept sphere can outgrow any one instant's; time_resolution (s): the longest window an
-        uncertified interval may be declared unsafe at without being split. broad: as in `check_edges`.
+        uncertified interval may be declared unsafe at without being split. broad, first: as in `check_edges`.
         """
         E = len(XA)
-        TA = np.ascontiguousarray(np.broadcast_to(TA, (E,)), dtype=float)
-        dT = np.ascontiguousarray(np.broadcast_to(dT, (E,)), dtype=float)
+        TA = per_item(TA, E)
+        dT = per_item(dT, E)
         T = np.ascontiguousarray(table, dtype=float)
         if T.ndim != 2 or T.shape[1] != 12:
             raise ValueError(f"check_edges_moving: an obstacle table (M, 12) expected, got {T.shape}")
         scalars = (float(origin), float(inflate), float(finest), float(enlargement), float(time_resolution))
-        middle = (_ptr(TA), _ptr(dT), len(T), _ptr(T), *scalars, int(bool(prefix)), int(broad))
+        middle = (_ptr(TA), _ptr(dT), len(T), _ptr(T), *scalars, int(bool(prefix)) | (2 if first else 0), int(broad))
         return self._run_edges(self._check_moving, XA, dX, bound, n0, middle)
 
     def _run_edges(
@@ -297,3 +324,50 @@ class ValidityKernel:
         out = np.empty(len(dX))
         self._check(self._motion_bound(len(dX), _ptr(dX), _ptr(out)), "motion bound")
         return out
+
+    def project(
+        self, X: Any, target: Any, iterations: int, limits: ProjectionLimits, steps: ProjectionSteps
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Damped least-squares projection of configurations X (N, nx) onto tip = target (3,) mm, at most
+        `iterations` steps each, every configuration stopping once its tip error is below `steps.tol` mm.
+        Returns (new configurations (N, nx), tip errors (N,) mm)."""
+        X = self._configs(X).copy()
+        tgt = np.ascontiguousarray(target, dtype=float)
+        err = np.full(len(X), np.inf)
+        lim, st = limits, steps
+        rc = self._project(
+            len(X), _ptr(X), _ptr(tgt), int(iterations), _ptr(st.w_inv), st.damping, st.step, st.tol,
+            len(lim.tmax), _ptr(lim.coupling), _ptr(lim.coupling_inv), _ptr(lim.tmax), lim.z_range[0],
+            lim.z_range[1], _ptr(err),
+        )  # fmt: skip
+        self._check(rc, "IK projection")
+        return X, err
+
+
+@dataclass(frozen=True)
+class ProjectionLimits:
+    """The limits `ValidityKernel.project` projects into: coupling matrix and its inverse (2 n_seg square),
+    the bending-disc radii tmax (n_seg,) rad and the z stroke (mm); contiguous float64 arrays."""
+
+    coupling: np.ndarray
+    coupling_inv: np.ndarray
+    tmax: np.ndarray
+    z_range: tuple[float, float]
+
+    @classmethod
+    def of(cls, robot: Any) -> ProjectionLimits:
+        C = np.ascontiguousarray(robot.coupling_matrix(), dtype=float)
+        tmax = np.ascontiguousarray([s.theta_max for s in robot.segments], dtype=float)
+        z = (float(robot.z_range[0]), float(robot.z_range[1]))
+        return cls(C, np.ascontiguousarray(np.linalg.inv(C)), tmax, z)
+
+
+@dataclass(frozen=True)
+class ProjectionSteps:
+    """The Newton steps of `ValidityKernel.project`: W^-1 (nx, nx) of the body metric W = M^T M, the damping,
+    the largest tip error removed per step (mm) and the tip tolerance (mm) a configuration stops at."""
+
+    w_inv: np.ndarray
+    damping: float
+    step: float
+    tol: float

@@ -94,6 +94,7 @@ class PlanningContext:
             check_points=check.points,
             compiled=check.compiled,
             broad_phase=check.broad_phase,
+            early_exit=check.early_exit,
             **common,
         )
 

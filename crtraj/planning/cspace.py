@@ -89,7 +89,14 @@ class CSpacePlanner(PlannerBase):
     def _safe_ik(self, slots: int) -> SafeIK:
         """The goal IK with `slots` obstacle slots in its NLP, as the options configure it."""
         ik = self.options.ik
-        return SafeIK(self.model, self.validator, slots, push_rounds=ik.push_rounds, rescue_starts=ik.rescue_starts)
+        return SafeIK(
+            self.model,
+            self.validator,
+            slots,
+            push_rounds=ik.push_rounds,
+            rescue_starts=ik.rescue_starts,
+            compiled=ik.compiled,
+        )
 
     # ------------------------------------------------------------------ query
     def plan(
@@ -173,6 +180,8 @@ class CSpacePlanner(PlannerBase):
         path = search.run()
         run.trees = search.trees
         q.timings["search"] = time.perf_counter() - t1
+        if path is not None:  # a verified path exists from here on (before shortcuts and smoothing)
+            q.timings["first_solution"] = time.perf_counter() - query.clock.t_start
         q.counts["iterations"] = query.clock.iterations
         if path is None:
             return self._approximate(run)
@@ -322,7 +331,7 @@ class CSpacePlanner(PlannerBase):
             smoothed=smoothed,
             cost=float(np.sum(v.motion_bound(np.diff(final, axis=0)))),
             goal_configs=run.goals,
-            tree_edges=tree_edges(self.model, run.trees),
+            tree_edges=tree_edges(run.q.validator, run.trees),
             timings=q.timings,
             counts=q.counts,
             T=T,
@@ -336,7 +345,7 @@ class CSpacePlanner(PlannerBase):
             planner=self.name,
             robot=self.robot,
             goal_configs=run.goals,
-            tree_edges=tree_edges(self.model, run.trees),
+            tree_edges=tree_edges(run.q.validator, run.trees),
         )
 
 

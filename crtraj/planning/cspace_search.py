@@ -29,6 +29,8 @@ MAX_WAIT = 4.0
 RANDOM_NODE = 0.25
 # A timed-tree node whose extensions failed this often is no longer extended (obstacles took its place).
 DEAD_NODE = 8
+# start -> via motions checked per round of the via connection (with the validator's early exit)
+VIA_CHUNK = 8
 
 
 class CSpaceSearch:
@@ -88,10 +90,12 @@ class CSpaceSearch:
         XA = np.repeat(self.x_start[None], G, axis=0)
         dur = v.duration(self.goals - XA)
         self.counts["edge_checks"] = G
-        ok = np.flatnonzero(v.edges_valid(XA, self.goals, self.t0, self.t0 + dur))
+        # the shortest valid motion: the first valid in the order of duration (ties: lowest index, as argmin)
+        order = np.argsort(dur, kind="stable")
+        k = v.first_valid(XA[order], self.goals[order], self.t0, self.t0 + dur[order])
         direct = None
-        if len(ok):
-            best = ok[np.argmin(dur[ok])]
+        if k >= 0:
+            best = order[k]
             direct = np.stack([self.x_start, self.goals[best]])
             # a direct motion to a far goal configuration can be much longer than a small detour
             # to the nearest one: then the via round competes
@@ -131,34 +135,39 @@ class CSpaceSearch:
         local = v.project_limits(v.config_from_metric(y))
         vias = np.concatenate([local, v.sample(rng, K - n_local)])
         t_via = self.t0 + v.duration(vias - self.x_start)
-        ok1 = v.edges_valid(np.repeat(self.x_start[None], K, axis=0), vias, self.t0, t_via)
-        self.counts["edge_checks"] = self.counts.get("edge_checks", 0) + K
+        # each via tries its nearest goal configuration (body-motion metric); the two-motion paths are
+        # checked in the order of arrival (ties: lowest index), a chunk of start -> via motions at a time,
+        # until one is valid: the shortest valid one, as checking them all would find
+        GB = self.goals[np.argmin(v.motion_bound(vias[:, None, :] - self.goals[None, :, :]), axis=1)]
+        TB = t_via + v.duration(GB - vias)
+        order = np.argsort(TB - self.t0, kind="stable")
+        chunk = VIA_CHUNK if v.early_exit else K
+        ok1 = np.zeros(K, dtype=bool)
+        k = -1
+        for c in range(0, K, chunk):
+            idx = order[c : c + chunk]
+            ok1[idx] = v.edges_valid(np.repeat(self.x_start[None], len(idx), axis=0), vias[idx], self.t0, t_via[idx])
+            self.counts["edge_checks"] = self.counts.get("edge_checks", 0) + len(idx)
+            idx = idx[ok1[idx]]
+            first = v.first_valid(vias[idx], GB[idx], t_via[idx], TB[idx])
+            self.counts["edge_checks"] += len(idx)
+            if first >= 0:
+                k = int(idx[first])
+                break
         good = np.flatnonzero(ok1)
         self.via_seeds = vias[good]
         # the verified motions form a one-level tree (kept for drawing)
         tree = SearchTree(v.robot.nx, v.robot.nx)
         tree.add(v.metric(self.x_start), self.x_start, self.t0, 0.0, -1)
-        for x, t in zip(vias[good], t_via[good], strict=True):
-            tree.add(v.metric(x), x, float(t), float(v.motion_bound(x - self.x_start)), 0)
+        keys, costs = v.metric(vias[good]), v.motion_bound(vias[good] - self.x_start)
+        for key, x, t, cost in zip(keys, vias[good], t_via[good], costs, strict=True):
+            tree.add(key, x, float(t), float(cost), 0)
         self.trees = [tree]
-        if not len(good):
+        if k < 0:
             return None
-        # each via tries its nearest goal configuration (body-motion metric)
-        d = v.motion_bound(vias[good][:, None, :] - self.goals[None, :, :])  # (V, G)
-        VA = vias[good]
-        GB = self.goals[np.argmin(d, axis=1)]
-        TA = t_via[good]
-        TB = TA + v.duration(GB - VA)
-        ok2 = v.edges_valid(VA, GB, TA, TB)
-        self.counts["edge_checks"] += len(VA)
-        if not ok2.any():
-            return None
-        # the shortest valid two-motion path
-        total = (TB - self.t0)[ok2]
-        k = np.flatnonzero(ok2)[int(np.argmin(total))]
-        cost = float(v.motion_bound(VA[k] - self.x_start) + v.motion_bound(GB[k] - VA[k]))
-        tree.add(v.metric(GB[k]), GB[k], float(TB[k]), cost, int(k) + 1)
-        return np.stack([self.x_start, VA[k], GB[k]])
+        cost = float(v.motion_bound(vias[k] - self.x_start) + v.motion_bound(GB[k] - vias[k]))
+        tree.add(v.metric(GB[k]), GB[k], float(TB[k]), cost, int(np.searchsorted(good, k)) + 1)
+        return np.stack([self.x_start, vias[k], GB[k]])
 
     # ------------------------------------------------------------ tree growth
     def connect(self) -> np.ndarray | None:

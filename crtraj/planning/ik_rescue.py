@@ -26,7 +26,7 @@ ROUNDS = 12
 
 
 class IKRescue:
-    """Multi-start rescue for one `SafeIK` (`ik`, duck-typed: `project`, `push_out`, `model`); starts:
+    """Multi-start rescue for one `SafeIK` (`ik`, duck-typed: `project`, `push_out`, `tips`); starts:
     configurations per rescue (0: never rescue, the NLP runs as before)."""
 
     def __init__(self, ik: Any, nx: int, starts: int) -> None:
@@ -59,7 +59,7 @@ class IKRescue:
             enough=1,
             deadline=deadline,
         )
-        err = np.linalg.norm(ik.model.tip_position(X) - run.target, axis=1)
+        err = np.linalg.norm(ik.tips(v, X) - run.target, axis=1)
         ok = np.flatnonzero((clear >= run.required) & (err <= run.tol) & v.within_limits(X))
         if not len(ok):
             return None

@@ -218,6 +218,7 @@ class OMPLPlanner(PlannerBase):
                 slots,
                 push_rounds=self.options.ik.push_rounds,
                 rescue_starts=self.options.ik.rescue_starts,
+                compiled=self.options.ik.compiled,
             )
             self._iks[slots] = ik
         return ik

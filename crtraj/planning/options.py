@@ -41,7 +41,9 @@ class IKOptions(Options):
     the two (on-target projections that come too close to an obstacle move along the tip
     constraint's null space until they clear it; 0 skips the stage). rescue_starts: before an NLP solve
     from a projection, this many batched starts around it are projected and pushed out, and the safe
-    one nearest the seed is taken instead (0: the NLP runs as before). goal_window: dynamic scenes
+    one nearest the seed is taken instead (0: the NLP runs as before). compiled: the batch projection's
+    Newton loop runs in the compiled kernel (when the checks have one), each start stopping once on
+    target (false: the numpy loop). goal_window: dynamic scenes
     only: half of the IK starts keep clear of everything the obstacles sweep over
     [t0, t0 + goal_window] (s), by projection only (no NLP: often infeasible); the other half, with
     the NLP stage, keep clear at t0.
@@ -55,6 +57,7 @@ class IKOptions(Options):
     nlp_solves: int = option(8, ge=0, le=1000)
     push_rounds: int = option(12, ge=0, le=1000)
     rescue_starts: int = option(32, ge=0, le=10_000)
+    compiled: bool = option(True)
     goal_window: float = option(4.0, ge=0.0, le=MAX_TIME)
 
 
@@ -71,6 +74,9 @@ class CheckOptions(Options):
     false: the interpreted CasADi path (same results to rounding, several times slower).
     broad_phase: the compiled edge check first drops, per motion, the obstacles too far away to decide
     any of its samples (the same verdicts; false: every obstacle enters every sample, the old path).
+    early_exit: where a planner wants the best valid motion of a batch (shortcuts, the goal and via
+    connections), the compiled check runs the motions best first and stops at the first certified one
+    (the same plans; false: the whole batch is checked, the old path).
     """
 
     SECTION: ClassVar[str] = "planner.check"
@@ -81,6 +87,7 @@ class CheckOptions(Options):
     points: int = option(15, ge=2, le=1000)
     compiled: bool = option(True)
     broad_phase: bool = option(True)
+    early_exit: bool = option(True)
 
 
 @dataclass(frozen=True)

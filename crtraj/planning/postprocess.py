@@ -31,6 +31,7 @@ speed bound), and it is verified at its own times.
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -108,11 +109,15 @@ class PathPostprocessor:
                 continue
             checked += len(u)
             if v.static:  # only the new straight motion needs checking: no candidate path is built
-                ok = v.edges_valid(P1, P2)
+                # the valid one that saves most: the first valid in the order of saving (ties: lowest
+                # index, as argmax), so the check can stop there
+                order = np.argsort(-saving, kind="stable")
+                k = v.first_valid(P1[order], P2[order])
+                best = int(order[k]) if k >= 0 else -1
             else:
                 ok = self._batch_ok([_splice(X, s, a, b, p1, p2) for a, b, p1, p2 in zip(*u.T, P1, P2, strict=True)])
-            if ok.any():
-                best = np.flatnonzero(ok)[np.argmax(saving[ok])]
+                best = int(np.flatnonzero(ok)[np.argmax(saving[ok])]) if ok.any() else -1
+            if best >= 0:
                 X = dedup(_splice(X, s, u[best, 0], u[best, 1], P1[best], P2[best])[0])
         self.counts["shortcut_checks"] = self.counts.get("shortcut_checks", 0) + checked
         return dedup(X)
@@ -177,18 +182,11 @@ class PathPostprocessor:
             u, P1, P2, saving = u[good], P1[good], P2[good], saving[good]
             if not len(u):
                 continue
-            # most saving first, a few at a time: the round keeps only the best valid one
-            order = np.argsort(-saving)
-            ok = np.zeros(len(u), dtype=bool)
-            for k0 in range(0, len(order), SHORTCUT_CHUNK):
-                idx = order[k0 : k0 + SHORTCUT_CHUNK]
-                checked += len(idx)
-                ok[idx] = v.edges_valid(P1[idx], P2[idx], u[idx, 0], u[idx, 1])
-                if ok[idx].any():
-                    break
+            # most saving first: the round keeps the best valid one whose cut pieces verify (of at most 3)
+            found = self._timed_first(P1, P2, u, saving) if v.early_exit else self._timed_chunks(P1, P2, u, saving)
             # the pieces of the old motions that the splice cuts are checked as well, so every motion of
             # the result is certified as it stands (a piece of a certified motion need not be)
-            for best in np.flatnonzero(ok)[np.argsort(-saving[ok])][:3]:
+            for best in found:
                 a, b = u[best]
                 i = int(np.searchsorted(T, a, side="right"))
                 j = int(np.searchsorted(T, b, side="left"))
@@ -201,6 +199,34 @@ class PathPostprocessor:
                     break
         self.counts["shortcut_checks"] = self.counts.get("shortcut_checks", 0) + checked
         return dedup_timed(X, T)
+
+    def _timed_chunks(self, P1: np.ndarray, P2: np.ndarray, u: np.ndarray, saving: np.ndarray) -> Iterator[int]:
+        """Timed shortcut candidates P1 -> P2 over [u0, u1] (s), most saving first, SHORTCUT_CHUNK checked at
+        a time: the valid ones of the first chunk that has any (at most 3), most saving first."""
+        order = np.argsort(-saving)
+        ok = np.zeros(len(u), dtype=bool)
+        for k0 in range(0, len(order), SHORTCUT_CHUNK):
+            idx = order[k0 : k0 + SHORTCUT_CHUNK]
+            self.counts["shortcut_checks"] = self.counts.get("shortcut_checks", 0) + len(idx)
+            ok[idx] = self.v.edges_valid(P1[idx], P2[idx], u[idx, 0], u[idx, 1])
+            if ok[idx].any():
+                break
+        yield from (int(i) for i in np.flatnonzero(ok)[np.argsort(-saving[ok])][:3])
+
+    def _timed_first(self, P1: np.ndarray, P2: np.ndarray, u: np.ndarray, saving: np.ndarray) -> Iterator[int]:
+        """As `_timed_chunks`, with the validator's early exit: the first valid candidate in the order of
+        saving (ties: lowest index), then, when the caller asks again, the next valid one after it (at most 3);
+        the candidates after the one returned are not checked until then."""
+        order = np.argsort(-saving, kind="stable")
+        pos = 0
+        for _ in range(3):
+            rest = order[pos:]
+            k = self.v.first_valid(P1[rest], P2[rest], u[rest, 0], u[rest, 1])
+            self.counts["shortcut_checks"] = self.counts.get("shortcut_checks", 0) + (k + 1 if k >= 0 else len(rest))
+            if k < 0:
+                return
+            yield int(rest[k])
+            pos += k + 1
 
     def smooth_timed(self, X: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
         """`smooth` of a timed path; returns (path, times, smoothed?)."""
@@ -301,9 +327,9 @@ class PathPostprocessor:
         """Assemble a `PlanResult` for the final path X (already verified); T, raw_t: the
         waypoint times of a timed path (default: full speed from t0)."""
         model = self.v.model
-        tips = model.tip_position(X)
+        tips = self.v.tip_position(X)
         dense = self.resample(X, self.v.resolution)
-        length = float(np.sum(np.linalg.norm(np.diff(model.tip_position(dense), axis=0), axis=1)))
+        length = float(np.sum(np.linalg.norm(np.diff(self.v.tip_position(dense), axis=0), axis=1)))
         counts = {**counts, **self.counts}
         T = self.times(X) if T is None else T
         return PlanResult(
@@ -359,7 +385,8 @@ def empty_result(
 
 
 def tree_edges(model: Any, trees: list[Any], tips: list[np.ndarray] | None = None) -> np.ndarray:
-    """(E, 2, 3) tip positions (mm) of every tree edge, for drawing."""
+    """(E, 2, 3) tip positions (mm) of every tree edge, for drawing (model: anything with `tip_position`, the
+    model or a validator)."""
     parts = []
     for i, tr in enumerate(trees):
         if len(tr) < 2:
@@ -379,8 +406,19 @@ def _splice(X: np.ndarray, s: np.ndarray, a: float, b: float, p1: np.ndarray, p2
 
 
 def _at(X: np.ndarray, s: np.ndarray, u: np.ndarray) -> np.ndarray:
-    """Points at arc positions u along the polyline X with cumulative arc s."""
-    return np.stack([np.interp(u, s, X[:, j]) for j in range(X.shape[1])], axis=-1)
+    """Points at arc positions u along the polyline X with cumulative arc s (non-decreasing): every coordinate
+    as `np.interp` computes it (slope (X[j+1] - X[j]) / (s[j+1] - s[j]) times (u - s[j]) plus X[j], X[j] at
+    u = s[j], the end points beyond the ends), in one pass for all coordinates."""
+    j = np.clip(np.searchsorted(s, u, side="right") - 1, 0, max(len(s) - 2, 0))
+    if len(s) < 2:
+        return np.repeat(X[:1], len(u), axis=0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        slope = (X[j + 1] - X[j]) / (s[j + 1] - s[j])[:, None]
+        out = slope * (u - s[j])[:, None] + X[j]
+    out = np.where((u == s[j])[:, None], X[j], out)
+    out[u >= s[-1]] = X[-1]
+    out[u < s[0]] = X[0]
+    return out
 
 
 def dedup_timed(X: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

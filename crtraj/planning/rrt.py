@@ -96,6 +96,7 @@ class RRT(PlannerBase):
             M,
             push_rounds=self.options.ik.push_rounds,
             rescue_starts=self.options.ik.rescue_starts,
+            compiled=self.options.ik.compiled,
         )
 
     def steer_margin(self, scene: Any) -> float:
@@ -158,6 +159,7 @@ class RRT(PlannerBase):
                 sc.n_obstacles,
                 push_rounds=self.options.ik.push_rounds,
                 rescue_starts=self.options.ik.rescue_starts,
+                compiled=self.options.ik.compiled,
             )
         self.steer.reset_warm_start()  # the same seed must give the same plan
 

@@ -47,6 +47,7 @@ import numpy as np
 
 from crtraj.core.fields import check_array
 from crtraj.model.kinematics import Model
+from crtraj.planning.compiled_validity import ProjectionLimits, ProjectionSteps
 from crtraj.planning.ik_rescue import IKRescue
 from crtraj.planning.sampler import LIMIT_TOL
 from crtraj.planning.validity import MotionValidator
@@ -101,6 +102,8 @@ class SafeIK:
     of the validator's, so solutions survive the validator's edge margins.
     push_rounds: rounds of the push-out stage (`push_out`; 0 skips it). rescue_starts: batched starts
     around a projection before the NLP is solved from it (`crtraj.planning.ik_rescue`; 0: none).
+    compiled: run the projection's Newton loop in the validator's compiled kernel when it has one (each
+    configuration stops once on target; False: the numpy loop, every configuration stepping until all are).
     """
 
     def __init__(
@@ -114,6 +117,7 @@ class SafeIK:
         max_iter: int = 60,
         push_rounds: int = 12,
         rescue_starts: int = 0,
+        compiled: bool = True,
     ) -> None:
         self.model = model
         self.validator = validator
@@ -139,6 +143,9 @@ class SafeIK:
         self._fd = PUSH_FD / np.linalg.norm(Mx, axis=0)
         self._damping = 1e-3
         self._step = 150.0  # mm of tip error removed per Newton step at most
+        self.compiled = bool(compiled)
+        self._limits = ProjectionLimits.of(self.robot)
+        self._steps = ProjectionSteps(np.ascontiguousarray(self._W_inv), self._damping, self._step, self.tip_tolerance)
 
     @property
     def solver(self) -> ca.Function:
@@ -195,8 +202,12 @@ class SafeIK:
         error (at most `step` mm of it), then the configuration is projected
         back into the bending discs and z stroke. All seeds move at once:
         one CasADi call per iteration evaluates every tip and Jacobian.
-        Returns (configurations (S, nx), tip errors (S,) mm).
+        Returns (configurations (S, nx), tip errors (S,) mm). With `compiled` and a compiled kernel the
+        loop runs in C (`ValidityKernel.project`), each configuration stopping once its tip is on target.
         """
+        kernel = self.validator.state.kernel if self.compiled else None
+        if kernel is not None:
+            return kernel.project(np.atleast_2d(seeds), target, iterations, self._limits, self._steps)
         X = np.atleast_2d(np.asarray(seeds, dtype=float)).copy()
         S = X.shape[0]
         err = np.full(S, np.inf)
@@ -290,6 +301,10 @@ class SafeIK:
         move = validator.motion_bound(d)
         alpha = np.minimum((required + PUSH_EXTRA - ca_) / np.maximum(gain, 1e-12), PUSH_STEP / np.maximum(move, 1e-12))
         return self.project(target, validator.project_limits(Xa + alpha[:, None] * d), PUSH_NEWTON)
+
+    def tips(self, v: MotionValidator, X: np.ndarray) -> np.ndarray:
+        """Tip positions (N, 3) mm of X (N, nx): with `compiled`, the validator's (its kernel's), else the model's."""
+        return v.tip_position(X) if self.compiled else self.model.tip_position(X)
 
     def _tip_jacobian(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Tips (S, 3) mm and tip Jacobians (S, 3, nx) of configurations X (S, nx): the validator's compiled
@@ -408,7 +423,7 @@ class SafeIK:
             must=len(front),
             deadline=deadline,
         )
-        err[cand] = np.linalg.norm(self.model.tip_position(X[cand]) - run.target, axis=1)
+        err[cand] = np.linalg.norm(self.tips(run.v, X[cand]) - run.target, axis=1)
         ok = (clear[cand] >= run.required) & (err[cand] <= run.tol) & run.v.within_limits(X[cand])
         good[cand] = ok
         for i in cand[ok]:

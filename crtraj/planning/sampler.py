@@ -24,10 +24,20 @@ class ConfigSampler:
         self._coupling = robot.coupling_matrix()
         self._coupling_inv = np.linalg.inv(self._coupling)
         self._tmax = np.array([s.theta_max for s in robot.segments])
+        self._cables = robot.cable_matrix()[0]
+        self._strokes = np.repeat([robot.cable_stroke(k) for k in range(robot.n_segments)], 3)
 
     def within_limits(self, X: np.ndarray) -> np.ndarray:
-        """True per configuration when it respects every limit (bool (N,))."""
-        return self.robot.limit_violation(X) <= LIMIT_TOL
+        """True per configuration when it respects every limit (bool (N,)): `Robot.limit_violation`'s
+        arithmetic, operation for operation, on matrices kept from construction (it rebuilds them per call)."""
+        x = np.atleast_2d(np.asarray(X, dtype=float))
+        n = self.robot.n_segments
+        ub = (x[..., : 2 * n] @ self._coupling.T).reshape(*x.shape[:-1], n, 2)
+        v_theta = np.max(np.linalg.norm(ub, axis=-1) - self._tmax, axis=-1)
+        v_cable = np.max(np.abs((x @ self._cables.T)[:, : 3 * n]) - self._strokes, axis=-1)
+        lo, hi = self.robot.z_range
+        v_z = np.maximum(lo - x[:, -1], x[:, -1] - hi)
+        return np.maximum(np.maximum(v_theta, v_cable), v_z) <= LIMIT_TOL
 
     def sample(self, rng: np.random.Generator, n: int) -> np.ndarray:
         """n configurations drawn uniformly within the limits (n, nx).

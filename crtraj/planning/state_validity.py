@@ -19,6 +19,7 @@ import numpy as np
 
 from crtraj.core.errors import InputError
 from crtraj.model.kinematics import Model
+from crtraj.planning.compiled_validity import per_item
 from crtraj.planning.kernels import Kernels
 from crtraj.planning.sampler import ConfigSampler
 from crtraj.world import margin, packing
@@ -166,8 +167,8 @@ class StateValidityChecker:
             C = self._static_c.T  # (3, M): broadcast to every configuration
             R = self._static_r[None, :]
         else:
-            lo = np.broadcast_to(np.asarray(t_lo, dtype=float), (N,))
-            hi = lo if t_hi is None else np.broadcast_to(np.asarray(t_hi, dtype=float), (N,))
+            lo = per_item(t_lo, N)
+            hi = lo if t_hi is None else per_item(t_hi, N)
             centers, radii = self.scene.swept_spheres(lo, hi)  # (N, M, 3), (N, M)
             C = centers.transpose(2, 0, 1).reshape(3, N * M)  # M columns per configuration
             R = radii.reshape(1, N * M)
@@ -193,8 +194,8 @@ class StateValidityChecker:
         if self.static:
             return self.kernel.clearance(X, self.static_slots)
         N = X.shape[0]
-        lo = np.broadcast_to(np.asarray(t_lo, dtype=float), (N,))
-        hi = lo if t_hi is None else np.broadcast_to(np.asarray(t_hi, dtype=float), (N,))
+        lo = per_item(t_lo, N)
+        hi = lo if t_hi is None else per_item(t_hi, N)
         for name, t in (("t0", lo), ("t1", hi)):
             if not np.isfinite(t).all():
                 raise InputError(f"{name}: contains NaN or infinity")  # as `Scene.swept_spheres` says it

@@ -50,6 +50,7 @@ import numpy as np
 
 from crtraj.core.errors import InputError
 from crtraj.model.kinematics import Model
+from crtraj.planning.compiled_validity import per_item
 from crtraj.planning.kernels import Kernels
 from crtraj.planning.metric import BodyMetric
 from crtraj.planning.rate_limits import RateLimits
@@ -75,6 +76,7 @@ class _EdgeBatch:
     finest: float
     tres: float
     prefix: bool
+    first: bool = False
 
     def parts(self) -> tuple[Any, ...]:
         """The fields in order (unpacked by the two edge-check loops)."""
@@ -97,6 +99,8 @@ class MotionValidator:
     compiled: check with the compiled kernel when a C compiler is available (same results, faster).
     broad_phase: the compiled edge check drops, per motion, the obstacles that cannot decide any of its
     samples (from `BROAD_MIN` obstacles on; the same verdicts, less work among many obstacles).
+    early_exit: `first_valid` stops the compiled check at the first motion certified whole (the same
+    answer; False: every motion of the batch is checked).
 
     Parts: `state` (`StateValidityChecker`), `space` (`BodyMetric`),
     `sampler` (`ConfigSampler`); the methods below that only forward to them
@@ -116,6 +120,7 @@ class MotionValidator:
         rate_limits: RateLimits | None = None,
         compiled: bool = True,
         broad_phase: bool = True,
+        early_exit: bool = True,
     ) -> None:
         if check_points < 2:
             raise InputError(f"check_points: must be >= 2, got {check_points}")
@@ -144,6 +149,7 @@ class MotionValidator:
         # for clearances only; the same numbers, kept for cross-checks)
         self.compiled_loop = True
         self.broad_phase = bool(broad_phase)
+        self.early_exit = bool(early_exit)
         # adaptive edge checks start from intervals of this much body motion (mm)
         self.coarse = 16.0 * self.resolution
 
@@ -244,8 +250,8 @@ class MotionValidator:
         XA = np.atleast_2d(np.asarray(XA, dtype=float))
         XB = np.atleast_2d(np.asarray(XB, dtype=float))
         E = XA.shape[0]
-        TA = np.broadcast_to(np.asarray(TA, dtype=float), (E,))
-        TB = np.broadcast_to(np.asarray(TB, dtype=float), (E,))
+        TA = per_item(TA, E)
+        TB = per_item(TB, E)
         X, e, _, t_lo, t_hi, margin = self._samples(XA, XB, TA, TB)
         c = self.clearance(X, t_lo, t_hi, margin)
         per_edge = np.full(E, np.inf)
@@ -260,6 +266,7 @@ class MotionValidator:
         TB: np.ndarray | float = 0.0,
         *,
         prefix: bool = True,
+        first: bool = False,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Adaptive check of many straight motions XA[i] -> XB[i] (E, nx) during [TA[i], TB[i]] (s).
 
@@ -281,13 +288,14 @@ class MotionValidator:
         its start to the fraction f (1: the whole motion); lower (E,), a lower
         bound of the clearance over the certified part (mm). With
         prefix=False a motion stops being refined at its first unsafe
-        interval and f only tells safe (1) from unsafe (< 1).
+        interval and f only tells safe (1) from unsafe (< 1). first: the compiled check may stop after
+        the first motion certified whole; the motions after it are then not checked (f -1).
         """
         XA = np.atleast_2d(np.asarray(XA, dtype=float))
         XB = np.atleast_2d(np.asarray(XB, dtype=float))
         E = XA.shape[0]
-        TA = np.broadcast_to(np.asarray(TA, dtype=float), (E,))
-        TB = np.broadcast_to(np.asarray(TB, dtype=float), (E,))
+        TA = per_item(TA, E)
+        TB = per_item(TB, E)
         dX = XB - XA
         dT = TB - TA
         bound = self.motion_bound(dX)
@@ -295,7 +303,7 @@ class MotionValidator:
         finest = 0.5 * self.resolution * (1.0 + 1e-9)
         # static scenes: every window is irrelevant, so no split in time
         tres = np.inf if self.static else self.time_resolution * (1.0 + 1e-9)
-        batch = _EdgeBatch(XA, dX, bound, n0, TA, dT, finest, tres, prefix)
+        batch = _EdgeBatch(XA, dX, bound, n0, TA, dT, finest, tres, prefix, first)
         kernel = self.state.kernel
         if kernel is not None and self.compiled_loop and self.scene.n_obstacles and E and np.isfinite(bound).all():
             # the same loop in C, with the same arithmetic, operation for operation
@@ -311,7 +319,7 @@ class MotionValidator:
         assert kernel is not None
         if self.static:
             fail, lower, samples = kernel.check_edges(
-                XA, dX, bound, n0, self.state.static_slots, self.inflate, finest, prefix, self._broad()
+                XA, dX, bound, n0, self.state.static_slots, self.inflate, finest, prefix, self._broad(), b.first
             )
             self.state.n_samples += samples
             return fail, lower
@@ -320,7 +328,7 @@ class MotionValidator:
         scene = self.scene
         fail, lower, samples = kernel.check_edges_moving(
             XA, dX, bound, n0, TA, dT, scene.motion_table(), scene.time_origin, self.inflate, finest,
-            self.state.enlargement_rate, tres, prefix, self._broad(),
+            self.state.enlargement_rate, tres, prefix, self._broad(), b.first,
         )  # fmt: skip
         self.state.n_samples += samples
         return fail, lower
@@ -366,6 +374,27 @@ class MotionValidator:
         """True per motion XA[i] -> XB[i] that is certified safe over [TA[i], TB[i]] (bool (E,))."""
         f, _ = self.check_edges(XA, XB, TA, TB, prefix=False)
         return f >= 1.0
+
+    def tip_position(self, X: np.ndarray) -> np.ndarray:
+        """Tip positions (N, 3) mm of configurations X (N, nx): the compiled kernel when there is one (one C call,
+        no CasADi map built per batch size), else the model's."""
+        X = np.atleast_2d(np.asarray(X, dtype=float))
+        kernel = self.state.kernel
+        if kernel is not None and len(X):
+            return kernel.tip_jacobian(X)[0]
+        return self.model.tip_position(X)
+
+    def first_valid(
+        self, XA: np.ndarray, XB: np.ndarray, TA: np.ndarray | float = 0.0, TB: np.ndarray | float = 0.0
+    ) -> int:
+        """Index of the first motion XA[i] -> XB[i] over [TA[i], TB[i]], in the order given, that `edges_valid`
+        certifies; -1 when none is. Order the motions best first and this is the best valid one; with
+        `early_exit` the compiled check stops there, so the motions after it cost nothing."""
+        if not len(XA):
+            return -1
+        f, _ = self.check_edges(XA, XB, TA, TB, prefix=False, first=self.early_exit)
+        ok = np.flatnonzero(f >= 1.0)
+        return int(ok[0]) if len(ok) else -1
 
     def valid_prefix(self, xa: np.ndarray, xb: np.ndarray, ta: float = 0.0, tb: float = 0.0) -> float:
         """Largest certified fraction f in [0, 1] of the motion xa -> xb (time linear from ta to tb).
