@@ -14,6 +14,7 @@ from typing import Any
 from crtraj.core.errors import InputError
 from crtraj.core.fileio import check_output_file, check_outputs_not_inputs
 from crtraj.io.results import Result, read_result
+from crtraj.viz.live_page import LiveView
 from crtraj.viz.render import Picture, parse_size, render_mp4, render_png
 from crtraj.viz.view import Visualizer
 
@@ -44,6 +45,56 @@ def serve(result: Mapping[str, Any] | Result, label: str, open_browser: bool, pl
     except KeyboardInterrupt:
         print("stopped", flush=True)
     return 0
+
+
+class LiveSession:
+    """`crtraj replan --view`: the loop feeds a served full page while it runs (`crtraj.viz.live_page.LiveView`);
+    afterwards the same page shows the finished run until Ctrl-C. open_browser: open the page at the start."""
+
+    def __init__(self, open_browser: bool) -> None:
+        self.open_browser = open_browser
+        self.view: LiveView | None = None
+
+    def start(self, loop: Any) -> Any:
+        """Serve the live page of `loop` (a `ClosedLoop`); returns its observer (the feed)."""
+        self.view = LiveView.for_loop(loop)
+        print(f"live view of the run at {self.view.url}", flush=True)
+        if self.open_browser:
+            self.view.vis.open()
+        return self.view.feed
+
+    def stop(self) -> None:
+        """Stop feeding the page (the loop has ended) and print the feed's counts."""
+        if self.view is None:
+            return
+        c = self.view.stop_feed()
+        print(
+            f"  live view: {c['published']} states, {c['drawn']} drawn, {c['dropped']} dropped frames (a newer state "
+            f"came before the view drew it; the run's files have every state), {c['failed']} failed draws",
+            flush=True,
+        )
+
+    def serve(self, result: Mapping[str, Any] | Result) -> int:
+        """Show the finished run on the live page until Ctrl-C (a new server when the loop never started)."""
+        if self.view is None:
+            return serve(result, "the run", self.open_browser)
+        vis = self.view.vis
+        try:
+            with vis:
+                res = read_result(result)
+                vis.show_result(res)
+                print(f"serving the run ({res.kind}, {len(res.t)} waypoints) at {vis.url}", flush=True)
+                print("press Ctrl-C to stop", flush=True)
+                while True:
+                    time.sleep(_IDLE_S)
+        except KeyboardInterrupt:
+            print("stopped", flush=True)
+        return 0
+
+    def close(self) -> None:
+        """Stop the feed and the server (idempotent)."""
+        if self.view is not None:
+            self.view.close()
 
 
 def _outputs(args: argparse.Namespace) -> dict[str, Any]:

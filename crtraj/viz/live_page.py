@@ -1,0 +1,189 @@
+"""The full page of a running loop: what a `LiveFeed` draws on for `crtraj replan --view`.
+
+`LivePage` is a `crtraj.viz.live_feed.LiveFeed` drawer over a served `crtraj.viz.view.Visualizer`: it draws the
+newest state (robot, obstacles with their D_sf shells, the closest-approach line) and, from every step the loop
+recorded since the last draw, grows the page's numbers (`crtraj.viz.page.run_fields`): time, step status,
+clearance to each obstacle, tip error against the plan, iteration time against the deadline, and the events
+(replans, abnormal steps, deadline misses). The served page polls them, so its heads-up panel shows the newest
+step and its plots grow. Everything here runs on the feed's thread, never on the loop's. Lengths in mm, times in s.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from crtraj.model.kinematics import Model
+from crtraj.viz.live_feed import MAX_RATE_HZ, LiveFeed
+from crtraj.viz.page import legend, run_fields
+from crtraj.viz.timeline import EVENT_STATUSES, Event, Timeline, closest_approach
+
+
+class LivePage:
+    """Draws a running loop on a served Visualizer `vis` and keeps its page's numbers.
+
+    model: the loop's model. safety_distance: D_sf (mm). deadline: the step deadline (s, NaN: none). names: the
+    obstacles' names. goal: (3,) mm.
+    """
+
+    def __init__(
+        self,
+        vis: Any,
+        model: Model,
+        *,
+        safety_distance: float,
+        deadline: float,
+        names: Sequence[str],
+        goal: Any,
+    ) -> None:
+        self.vis, self.model = vis, model
+        self.safety = float(safety_distance)
+        self.deadline = float(deadline) if deadline and deadline > 0 else math.nan
+        self.names = list(names)
+        m = len(self.names)
+        self.t: list[float] = []
+        self.status: list[str] = []
+        self.clearance = np.zeros((0, m))
+        self.near = np.zeros(0, dtype=int)
+        self.tip_error: list[float] = []
+        self.iteration: list[float] = []
+        self.events: list[Event] = []
+        self._closest: tuple[np.ndarray, np.ndarray] | None = None
+        self.verdict = "running"
+        vis.start_live(self.safety, goal, m)
+
+    # ----------------------------------------------------------- the drawer
+    def display(self, x: Any) -> None:
+        """Draw the robot at x (nx,) and the closest approach of the newest step seen."""
+        self.vis.display(x)
+        if self._closest is not None:
+            self.vis.set_closest(*self._closest)
+
+    def set_obstacles(self, centers: Any, radii: Any) -> None:
+        """Draw the obstacles (m, 3) / (m,) mm."""
+        self.vis.set_obstacles(centers, radii)
+
+    def extend(self, entries: Sequence[tuple[Any, Any]]) -> None:
+        """Add the loop's records (StateRecord, StepRecord or None) to the page's numbers and send the page."""
+        states = [s for s, _ in entries]
+        X = np.array([s.x for s in states], dtype=float)
+        m = len(self.names)
+        C = np.array([np.reshape(s.centers, (-1, 3))[:m] for s in states], dtype=float).reshape(len(X), m, 3)
+        R = np.array([np.reshape(s.radii, -1)[:m] for s in states], dtype=float).reshape(len(X), m)
+        clear, near, body, obst = closest_approach(self.model, X, C, R, self.safety)
+        planned = np.array([s.planned for s in states], dtype=float)
+        tips = np.reshape(self.model.tip_position(X), (-1, 3))
+        err = np.linalg.norm(tips - np.reshape(self.model.tip_position(planned), (-1, 3)), axis=1)
+        self.clearance = np.vstack([self.clearance, clear])
+        self.near = np.concatenate([self.near, near])
+        if m:
+            self._closest = (body[-1], obst[-1])
+        for (state, step), e in zip(entries, err, strict=True):
+            self._add(float(state.t), step, float(e))
+        self.push()
+
+    def _add(self, t: float, step: Any, tip_error: float) -> None:
+        status = str(step.step_status) if step is not None else ""
+        it = float(step.iter_time) if step is not None else math.nan
+        if status in EVENT_STATUSES and (not self.status or self.status[-1] != status):
+            self.events.append(Event("dropout" if status == "stale" else status, t, f"step status {status}"))
+        if math.isfinite(self.deadline) and it > self.deadline:
+            self.events.append(Event("deadline", t, f"iteration {it * 1e3:.1f} ms > {self.deadline * 1e3:g} ms"))
+        if step is not None and step.replanned and self.t:
+            self.events.append(Event("replan", t, "new reference"))
+        self.t.append(t)
+        self.status.append(status)
+        self.tip_error.append(tip_error)
+        self.iteration.append(it)
+
+    # ------------------------------------------------------------- the page
+    def timeline(self) -> Timeline:
+        """The numbers so far as a `Timeline` (no actuator fractions live: NaN)."""
+        n = len(self.t)
+        nan3 = np.full((n, 3), np.nan)
+        return Timeline(
+            t=np.array(self.t, dtype=float),
+            status=tuple(self.status),
+            clearance=self.clearance,
+            near=self.near,
+            body_point=nan3,
+            obstacle_point=nan3,
+            tip_error=np.array(self.tip_error, dtype=float),
+            iteration=np.array(self.iteration, dtype=float),
+            deadline=self.deadline,
+            velocity=np.full(n, np.nan),
+            acceleration=np.full(n, np.nan),
+            safety_distance=self.safety,
+            events=tuple(self.events),
+        )
+
+    def data(self, live: bool = True) -> dict[str, Any]:
+        """The page's data: one run (the loop so far); live: the page keeps polling for more."""
+        o = self.vis.options
+        run = run_fields(self.timeline(), "", "replan", self.verdict, self.names)
+        return {"live": live, "runs": [run], "legend": legend(o, self.model.robot.n_segments, False)}
+
+    def push(self, live: bool = True) -> None:
+        """Send the page's data to the server."""
+        self.vis.push_page(self.data(live))
+
+
+class LiveView:
+    """A served full page (127.0.0.1) fed by a running loop: a `Visualizer` with a server, a `LivePage` drawing
+    on it and the `LiveFeed` thread between the loop and the page (`feed` is the loop's observer).
+
+    model, goal (3,) mm, scene (safety_distance mm, obstacles with names), deadline (s, 0/None: none); rate: Hz of
+    drawing (<= 30); options: `crtraj.viz.options.ViewOptions`; timeout: s for the server's start-up and replies.
+    """
+
+    def __init__(
+        self,
+        model: Model,
+        goal: Any,
+        scene: Any,
+        deadline: float | None,
+        *,
+        rate: float = MAX_RATE_HZ,
+        options: Any = None,
+        timeout: float = 60.0,
+    ) -> None:
+        from crtraj.viz.view import Visualizer  # the view imports meshcat; this module stays light for tests
+
+        self.vis = Visualizer(model, server=True, options=options, timeout=timeout)
+        try:
+            self.page = LivePage(
+                self.vis,
+                model,
+                safety_distance=scene.safety_distance,
+                deadline=deadline or math.nan,
+                names=[o.name for o in scene.obstacles],
+                goal=goal,
+            )
+            self.page.push()
+            self.feed = LiveFeed(self.page, rate=rate)
+        except BaseException:
+            self.vis.close()
+            raise
+
+    @classmethod
+    def for_loop(cls, loop: Any, **kw: Any) -> LiveView:
+        """The live view of a `crtraj.control.loop.ClosedLoop` (its model, goal, scene and step deadline)."""
+        return cls(loop.model, loop.goal, loop.scene, loop.options.step_deadline, **kw)
+
+    @property
+    def url(self) -> str | None:
+        """The full page's address on 127.0.0.1."""
+        return self.vis.url
+
+    def stop_feed(self) -> dict[str, int]:
+        """Draw what is pending, stop the feed's thread; the feed's counters (published, drawn, dropped, failed)."""
+        self.feed.close()
+        return self.feed.summary()
+
+    def close(self) -> None:
+        """Stop the feed and the server (idempotent)."""
+        self.feed.close()
+        self.vis.close()
