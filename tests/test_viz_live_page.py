@@ -188,16 +188,33 @@ def test_the_served_result_page_is_the_full_page(browser, model):
     assert len(served) >= 6 and served == static, (served, static)
 
 
-def _page_parts(html: str) -> tuple[str, dict]:
-    """(the page without its data, the data)."""
-    m = re.search(r'<script id="crtraj-data" type="application/json">(.*?)</script>', html, re.S)
-    return html[: m.start(1)] + html[m.end(1) :], json.loads(m.group(1).replace("<\\/", "</"))
+_UUID = re.compile(r"[0-9a-f]{8}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{12}")
+
+
+def _plain(v):
+    """JSON for msgpack's binary values: bytes and extension types (typed arrays) as hex."""
+    if isinstance(v, (bytes, bytearray)):
+        return v.hex()
+    return {"ext": v.type, "data": bytes(v.data).hex()}
+
+
+def _page(result_path: Path) -> tuple[str, dict]:
+    """What `crtraj view RESULT --html` puts in the page: meshcat's scene commands (as JSON, every object uuid,
+    which meshcat makes fresh for each drawing, numbered in order of appearance) and the page's data."""
+    vis = Visualizer.for_result(read_result(result_path), play=False)
+    try:
+        text = json.dumps(vis.scene_commands(), default=_plain)
+        data = vis.page_data()
+    finally:
+        vis.close()
+    ids: dict[str, str] = {}
+    return _UUID.sub(lambda m: ids.setdefault(m.group(0), f"id{len(ids)}"), text), data
 
 
 def test_a_live_run_writes_the_same_page_as_a_run_without_the_view(tmp_path, capsys):
     """The same seeded run (no step deadline: nothing depends on the machine's speed) with and without the live
-    view: `crtraj view RUN --html` pages are identical except the iteration times (wall-clock measurements);
-    the live run printed its page's address and its dropped-frame count."""
+    view: `crtraj view RUN --html` gives the same scene and the same page data except the iteration times (wall-clock
+    measurements); the live run printed its page's address and its dropped-frame count."""
     problem = paper_copy(tmp_path)
     pages = {}
     for name in ("bare", "live"):
@@ -208,17 +225,12 @@ def test_a_live_run_writes_the_same_page_as_a_run_without_the_view(tmp_path, cap
         finally:
             if live is not None:
                 live.close()
-        vis = Visualizer.for_result(read_result(tmp_path / name / "run.json"), play=False)
-        try:
-            pages[name] = vis.static_html()
-        finally:
-            vis.close()
+        pages[name] = _page(tmp_path / name / "run.json")
     out = capsys.readouterr().out
     assert re.search(r"live view of the run at http://127\.0\.0\.1:\d+/crtraj/", out), out
     assert re.search(r"live view: \d+ states, \d+ drawn, \d+ dropped frames", out), out
-    shell_bare, data_bare = _page_parts(pages["bare"])
-    shell_live, data_live = _page_parts(pages["live"])
-    assert shell_live == shell_bare  # the scene (meshcat's commands) and the page's code
+    (scene_bare, data_bare), (scene_live, data_live) = pages["bare"], pages["live"]
+    assert scene_live == scene_bare  # every meshcat command: robot, obstacles, paths, the animation's key frames
     it_bare = data_bare["runs"][0].pop("iteration")
     it_live = data_live["runs"][0].pop("iteration")
     assert len(it_bare) == len(it_live)
