@@ -31,14 +31,23 @@ def static_html(result: Mapping[str, Any] | Result, play: bool | None = None) ->
         vis.close()
 
 
-def serve(result: Mapping[str, Any] | Result, label: str, open_browser: bool, play: bool | None = None) -> int:
-    """Serve a result in the meshcat view on 127.0.0.1 until Ctrl-C; returns 0."""
+def serve(
+    result: Mapping[str, Any] | Result,
+    label: str,
+    open_browser: bool,
+    play: bool | None = None,
+    vis: Visualizer | None = None,
+) -> int:
+    """Serve a result in the full page on 127.0.0.1 until Ctrl-C; returns 0. vis: a served Visualizer to show it
+    on (a live view's, whose page is open already and reloads to the result); None: a new one."""
     res = read_result(result)
     try:  # Ctrl-C is the normal way out, whenever it comes; leaving the block stops the server
-        with Visualizer.for_result(res, server=True, play=play) as vis:
-            print(f"serving {label} ({res.kind}, {len(res.t)} waypoints) at {vis.url}", flush=True)
+        if vis is not None:
+            vis.show_result(res, play=play)
+        with vis if vis is not None else Visualizer.for_result(res, server=True, play=play) as shown:
+            print(f"serving {label} ({res.kind}, {len(res.t)} waypoints) at {shown.url}", flush=True)
             if open_browser:
-                vis.open()
+                shown.open()
             print("press Ctrl-C to stop", flush=True)
             while True:
                 time.sleep(_IDLE_S)
@@ -78,18 +87,7 @@ class LiveSession:
         """Show the finished run on the live page until Ctrl-C (a new server when the loop never started)."""
         if self.view is None:
             return serve(result, "the run", self.open_browser)
-        vis = self.view.vis
-        try:
-            with vis:
-                res = read_result(result)
-                vis.show_result(res)
-                print(f"serving the run ({res.kind}, {len(res.t)} waypoints) at {vis.url}", flush=True)
-                print("press Ctrl-C to stop", flush=True)
-                while True:
-                    time.sleep(_IDLE_S)
-        except KeyboardInterrupt:
-            print("stopped", flush=True)
-        return 0
+        return serve(result, "the run", False, vis=self.view.vis)
 
     def close(self) -> None:
         """Stop the feed and the server (idempotent)."""

@@ -71,6 +71,8 @@ class LiveFeed:
         self.drawn = 0  # states drawn
         self.dropped = 0  # states replaced by a newer one before they were drawn
         self.failed = 0  # draws that raised (logged; the loop is never stopped by its view)
+        # s of this thread's CPU time spent drawing: while it runs Python it holds the GIL the loop's thread needs
+        self.draw_cpu = 0.0
         self._thread = threading.Thread(target=self._run, name="crtraj-live-view", daemon=True)
         self._thread.start()
 
@@ -111,6 +113,7 @@ class LiveFeed:
             state, new = self._take()
             if state is None:
                 return
+            cpu = time.thread_time()
             try:
                 if extend is not None and new:
                     extend(new)
@@ -120,6 +123,7 @@ class LiveFeed:
             except Exception:  # a failed draw must not stop the feed nor reach the loop
                 self.failed += 1
                 log.warning("live view: drawing the state at t = %.3f s failed", state.t, exc_info=True)
+            self.draw_cpu += time.thread_time() - cpu
             next_at += self.period
             wait = next_at - self._clock()
             if wait > 0:

@@ -2,7 +2,7 @@
 
 `LivePage` is a `crtraj.viz.live_feed.LiveFeed` drawer over a served `crtraj.viz.view.Visualizer`: it draws the
 newest state (robot, obstacles with their D_sf shells, the closest-approach line) and, from every step the loop
-recorded since the last draw, grows the page's numbers (`crtraj.viz.page.run_fields`): time, step status,
+recorded since the last draw, grows the page's numbers (in `crtraj.viz.page.run_fields`' layout): time, step status,
 clearance to each obstacle, tip error against the plan, iteration time against the deadline, and the events
 (replans, abnormal steps, deadline misses). The served page polls them, so its heads-up panel shows the newest
 step and its plots grow. Everything here runs on the feed's thread, never on the loop's. Lengths in mm, times in s.
@@ -18,8 +18,8 @@ import numpy as np
 
 from crtraj.model.kinematics import Model
 from crtraj.viz.live_feed import MAX_RATE_HZ, LiveFeed
-from crtraj.viz.page import legend, run_fields
-from crtraj.viz.timeline import EVENT_STATUSES, Event, Timeline, closest_approach
+from crtraj.viz.page import legend, nums
+from crtraj.viz.timeline import EVENT_STATUSES, Event, closest_approach
 
 
 class LivePage:
@@ -44,14 +44,16 @@ class LivePage:
         self.deadline = float(deadline) if deadline and deadline > 0 else math.nan
         self.names = list(names)
         m = len(self.names)
+        # the page's numbers, kept JSON-ready as they come (each draw converts only the new steps)
         self.t: list[float] = []
         self.status: list[str] = []
-        self.clearance = np.zeros((0, m))
-        self.near = np.zeros(0, dtype=int)
-        self.tip_error: list[float] = []
-        self.iteration: list[float] = []
+        self.clearance: list[list[float | None]] = [[] for _ in range(m)]
+        self.near: list[int] = []
+        self.tip_error: list[float | None] = []
+        self.iteration: list[float | None] = []
         self.events: list[Event] = []
-        self._closest: tuple[np.ndarray, np.ndarray] | None = None
+        self._closest_t, self._closest = 0.0, math.inf
+        self._closest_pair: tuple[np.ndarray, np.ndarray] | None = None
         self.verdict = "running"
         vis.start_live(self.safety, goal, m)
 
@@ -59,8 +61,8 @@ class LivePage:
     def display(self, x: Any) -> None:
         """Draw the robot at x (nx,) and the closest approach of the newest step seen."""
         self.vis.display(x)
-        if self._closest is not None:
-            self.vis.set_closest(*self._closest)
+        if self._closest_pair is not None:
+            self.vis.set_closest(*self._closest_pair)
 
     def set_obstacles(self, centers: Any, radii: Any) -> None:
         """Draw the obstacles (m, 3) / (m,) mm."""
@@ -77,10 +79,14 @@ class LivePage:
         planned = np.array([s.planned for s in states], dtype=float)
         tips = np.reshape(self.model.tip_position(X), (-1, 3))
         err = np.linalg.norm(tips - np.reshape(self.model.tip_position(planned), (-1, 3)), axis=1)
-        self.clearance = np.vstack([self.clearance, clear])
-        self.near = np.concatenate([self.near, near])
+        for i in range(m):
+            self.clearance[i].extend(nums(clear[:, i]))
+        self.near.extend(int(i) for i in near)
         if m:
-            self._closest = (body[-1], obst[-1])
+            self._closest_pair = (body[-1], obst[-1])
+            k = int(np.argmin(clear.min(axis=1)))
+            if clear[k].min() < self._closest:
+                self._closest, self._closest_t = float(clear[k].min()), float(states[k].t)
         for (state, step), e in zip(entries, err, strict=True):
             self._add(float(state.t), step, float(e))
         self.push()
@@ -94,37 +100,35 @@ class LivePage:
             self.events.append(Event("deadline", t, f"iteration {it * 1e3:.1f} ms > {self.deadline * 1e3:g} ms"))
         if step is not None and step.replanned and self.t:
             self.events.append(Event("replan", t, "new reference"))
-        self.t.append(t)
+        self.t.append(nums(t))
         self.status.append(status)
-        self.tip_error.append(tip_error)
-        self.iteration.append(it)
+        self.tip_error.append(nums(tip_error))
+        self.iteration.append(nums(it))
 
     # ------------------------------------------------------------- the page
-    def timeline(self) -> Timeline:
-        """The numbers so far as a `Timeline` (no actuator fractions live: NaN)."""
-        n = len(self.t)
-        nan3 = np.full((n, 3), np.nan)
-        return Timeline(
-            t=np.array(self.t, dtype=float),
-            status=tuple(self.status),
-            clearance=self.clearance,
-            near=self.near,
-            body_point=nan3,
-            obstacle_point=nan3,
-            tip_error=np.array(self.tip_error, dtype=float),
-            iteration=np.array(self.iteration, dtype=float),
-            deadline=self.deadline,
-            velocity=np.full(n, np.nan),
-            acceleration=np.full(n, np.nan),
-            safety_distance=self.safety,
-            events=tuple(self.events),
-        )
-
     def data(self, live: bool = True) -> dict[str, Any]:
-        """The page's data: one run (the loop so far); live: the page keeps polling for more."""
-        o = self.vis.options
-        run = run_fields(self.timeline(), "", "replan", self.verdict, self.names)
-        return {"live": live, "runs": [run], "legend": legend(o, self.model.robot.n_segments, False)}
+        """The page's data (`crtraj.viz.page.run_fields`' layout): one run, the loop so far (no actuator fractions
+        live: null); live: the page keeps polling for more."""
+        n = len(self.t)
+        run = {
+            "label": "",
+            "kind": "replan",
+            "verdict": self.verdict,
+            "t": list(self.t),
+            "status": list(self.status),
+            "obstacles": list(self.names),
+            "clearance": [list(c) for c in self.clearance],
+            "near": list(self.near),
+            "tip_error": list(self.tip_error),
+            "iteration": list(self.iteration),
+            "velocity": [None] * n,
+            "acceleration": [None] * n,
+            "deadline": nums(self.deadline),
+            "safety_distance": self.safety,
+            "closest_t": nums(self._closest_t),
+            "events": [{"kind": e.kind, "t": nums(e.t), "text": e.text} for e in self.events],
+        }
+        return {"live": live, "runs": [run], "legend": legend(self.vis.options, self.model.robot.n_segments, False)}
 
     def push(self, live: bool = True) -> None:
         """Send the page's data to the server."""

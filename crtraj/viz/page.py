@@ -27,13 +27,13 @@ def _asset(name: str) -> str:
     return resources.files("crtraj.viz").joinpath("assets", name).read_text(encoding="utf-8")
 
 
-def _nums(a: Any) -> Any:
+def nums(a: Any) -> Any:
     """Nested lists of rounded floats, None for NaN (JSON has no NaN)."""
     arr = np.asarray(a, dtype=float)
     if arr.ndim == 0:
         v = float(arr)
         return round(v, _DIGITS) if math.isfinite(v) else None
-    return [_nums(v) for v in arr]
+    return [nums(v) for v in arr]
 
 
 def _run_data(run: Result, tl: Timeline, label: str) -> dict[str, Any]:
@@ -48,19 +48,19 @@ def run_fields(tl: Timeline, label: str, kind: str, verdict: str, names: Sequenc
         "label": label,
         "kind": kind,
         "verdict": verdict[:200],
-        "t": _nums(tl.t),
+        "t": nums(tl.t),
         "status": list(tl.status),
         "obstacles": list(names[: tl.clearance.shape[1]]),
-        "clearance": _nums(tl.clearance.T),
+        "clearance": nums(tl.clearance.T),
         "near": [int(i) for i in tl.near],
-        "tip_error": _nums(tl.tip_error),
-        "iteration": _nums(tl.iteration),
-        "velocity": _nums(tl.velocity),
-        "acceleration": _nums(tl.acceleration),
-        "deadline": _nums(tl.deadline),
+        "tip_error": nums(tl.tip_error),
+        "iteration": nums(tl.iteration),
+        "velocity": nums(tl.velocity),
+        "acceleration": nums(tl.acceleration),
+        "deadline": nums(tl.deadline),
         "safety_distance": tl.safety_distance,
-        "closest_t": _nums(tl.t[tl.closest_index]) if len(tl.t) else 0.0,
-        "events": [{"kind": e.kind, "t": _nums(e.t), "text": e.text} for e in tl.events],
+        "closest_t": nums(tl.t[tl.closest_index]) if len(tl.t) else 0.0,
+        "events": [{"kind": e.kind, "t": nums(e.t), "text": e.text} for e in tl.events],
     }
 
 
@@ -93,7 +93,7 @@ def legend(o: ViewOptions, n_seg: int, layers_on: bool) -> list[dict[str, Any]]:
 
 
 def page_json(data: dict[str, Any]) -> str:
-    """The page's data as compact JSON (no NaN: `_nums` made them null)."""
+    """The page's data as compact JSON (no NaN: `nums` made them null)."""
     return json.dumps(data, separators=(",", ":"), allow_nan=False)
 
 

@@ -370,6 +370,10 @@ class Visualizer:
 
         Make it the last expression of the cell.
         """
-        if self.url:
-            return self._vis.jupyter_cell(height=height)
+        if self.url:  # meshcat's own cell, with the full page in its frame
+            from IPython.display import HTML
+
+            frame = f'<iframe src="{self.url}" style="width: 100%; height: 100%; border: none"></iframe>'
+            box = f"height: {int(height)}px; width: 100%; overflow-x: auto; overflow-y: hidden; resize: both"
+            return HTML(f'<div style="{box}">{frame}</div>')
         return self._vis.render_static(height=height)
