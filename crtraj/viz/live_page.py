@@ -20,6 +20,7 @@ from crtraj.model.kinematics import Model
 from crtraj.viz.live_feed import MAX_RATE_HZ, LiveFeed
 from crtraj.viz.page import legend, nums
 from crtraj.viz.timeline import EVENT_STATUSES, Event, closest_approach
+from crtraj.viz.view import Visualizer
 
 
 class LivePage:
@@ -154,8 +155,6 @@ class LiveView:
         options: Any = None,
         timeout: float = 60.0,
     ) -> None:
-        from crtraj.viz.view import Visualizer  # the view imports meshcat; this module stays light for tests
-
         self.vis = Visualizer(model, server=True, options=options, timeout=timeout)
         try:
             self.page = LivePage(

@@ -24,6 +24,8 @@ import warnings
 from pathlib import Path
 from typing import Any
 
+from crtraj.viz.page import wrap_page_json
+
 with warnings.catch_warnings():
     # meshcat's server module installs a pyzmq < 17 event-loop shim and pyzmq warns about it
     warnings.filterwarnings("ignore", category=DeprecationWarning, message=r"zmq\.eventloop\.ioloop")
@@ -102,8 +104,6 @@ class _PageHandler(tornado.web.RequestHandler):
         self.bridge = bridge
 
     def get(self) -> None:
-        from crtraj.viz.page import wrap_page_json  # the page's assets are read once per request, in the child only
-
         shell = Path(VIEWER_ROOT, VIEWER_HTML).read_text(encoding="utf-8")
         shell = shell.replace('src="main.min.js"', 'src="/static/main.min.js"')
         self.set_header("Cache-Control", "no-store")

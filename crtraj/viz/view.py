@@ -63,6 +63,7 @@ with warnings.catch_warnings():
     # meshcat's server module installs a pyzmq < 17 event-loop shim and pyzmq warns about it
     warnings.filterwarnings("ignore", category=DeprecationWarning, message=r"zmq\.eventloop\.ioloop")
     import meshcat
+    from IPython.display import HTML  # meshcat's own dependency, for its notebook cell
     from meshcat.animation import Animation
 
 __all__ = ["MAX_SEGMENT_COLORS", "ViewOptions", "Visualizer"]
@@ -371,8 +372,6 @@ class Visualizer:
         Make it the last expression of the cell.
         """
         if self.url:  # meshcat's own cell, with the full page in its frame
-            from IPython.display import HTML
-
             frame = f'<iframe src="{self.url}" style="width: 100%; height: 100%; border: none"></iframe>'
             box = f"height: {int(height)}px; width: 100%; overflow-x: auto; overflow-y: hidden; resize: both"
             return HTML(f'<div style="{box}">{frame}</div>')
