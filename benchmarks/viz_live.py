@@ -2,7 +2,7 @@
 
 Issue 30: the live view updates the page at up to 30 Hz from its own thread "so the loop's timing does not change".
 This runs the paper's simulation 2 (problems/paper_dynamic.toml, one seed) alternately without the view and with
-it (a served `crtraj.viz.live_page.LiveView`, its page open in headless Chromium when there is one, so the server
+it (a served `crtraj.viz.live_view.LiveView`, its page open in headless Chromium when there is one, so the server
 really pushes to a browser), and prints per run and pooled: the loop's iteration time (median, p99, max), its
 deadline misses, and the view's published / drawn / dropped frames. Old path = without the view, new = with it.
 Wall-clock numbers on a shared machine: the load is printed with them. The deterministic bound (the view adds a
@@ -23,7 +23,7 @@ import numpy as np
 from crtraj.control.loop import ClosedLoop
 from crtraj.io.problem import Problem
 from crtraj.viz.chromium import Chromium, find_chromium
-from crtraj.viz.live_page import LiveView
+from crtraj.viz.live_view import LiveView
 
 ROOT = Path(__file__).resolve().parent.parent
 

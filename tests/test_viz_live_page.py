@@ -24,7 +24,8 @@ from crtraj.control.run_record import StateRecord, StepRecord
 from crtraj.io.results import read_result
 from crtraj.viz.chromium import Chromium
 from crtraj.viz.live_feed import LiveFeed
-from crtraj.viz.live_page import LivePage, LiveView
+from crtraj.viz.live_page import LivePage
+from crtraj.viz.live_view import LiveView
 from crtraj.viz.view import Visualizer
 from crtraj.world.scene import Obstacle, Scene
 

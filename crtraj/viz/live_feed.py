@@ -109,16 +109,20 @@ class LiveFeed:
     def _run(self) -> None:
         next_at = self._clock()
         extend = getattr(self.drawer, "extend", None)
+        draw = getattr(self.drawer, "draw", None)  # a drawer that takes the whole draw at once (another process)
         while True:
             state, new = self._take()
             if state is None:
                 return
             cpu = time.thread_time()
             try:
-                if extend is not None and new:
-                    extend(new)
-                self.drawer.display(state.x)
-                self.drawer.set_obstacles(state.centers, state.radii)
+                if draw is not None:
+                    draw(state, new)
+                else:
+                    if extend is not None and new:
+                        extend(new)
+                    self.drawer.display(state.x)
+                    self.drawer.set_obstacles(state.centers, state.radii)
                 self.drawn += 1
             except Exception:  # a failed draw must not stop the feed nor reach the loop
                 self.failed += 1

@@ -17,10 +17,8 @@ from typing import Any
 import numpy as np
 
 from crtraj.model.kinematics import Model
-from crtraj.viz.live_feed import MAX_RATE_HZ, LiveFeed
 from crtraj.viz.page import legend, nums
 from crtraj.viz.timeline import EVENT_STATUSES, Event, closest_approach
-from crtraj.viz.view import Visualizer
 
 
 class LivePage:
@@ -134,59 +132,3 @@ class LivePage:
     def push(self, live: bool = True) -> None:
         """Send the page's data to the server."""
         self.vis.push_page(self.data(live))
-
-
-class LiveView:
-    """A served full page (127.0.0.1) fed by a running loop: a `Visualizer` with a server, a `LivePage` drawing
-    on it and the `LiveFeed` thread between the loop and the page (`feed` is the loop's observer).
-
-    model, goal (3,) mm, scene (safety_distance mm, obstacles with names), deadline (s, 0/None: none); rate: Hz of
-    drawing (<= 30); options: `crtraj.viz.options.ViewOptions`; timeout: s for the server's start-up and replies.
-    """
-
-    def __init__(
-        self,
-        model: Model,
-        goal: Any,
-        scene: Any,
-        deadline: float | None,
-        *,
-        rate: float = MAX_RATE_HZ,
-        options: Any = None,
-        timeout: float = 60.0,
-    ) -> None:
-        self.vis = Visualizer(model, server=True, options=options, timeout=timeout)
-        try:
-            self.page = LivePage(
-                self.vis,
-                model,
-                safety_distance=scene.safety_distance,
-                deadline=deadline or math.nan,
-                names=[o.name for o in scene.obstacles],
-                goal=goal,
-            )
-            self.page.push()
-            self.feed = LiveFeed(self.page, rate=rate)
-        except BaseException:
-            self.vis.close()
-            raise
-
-    @classmethod
-    def for_loop(cls, loop: Any, **kw: Any) -> LiveView:
-        """The live view of a `crtraj.control.loop.ClosedLoop` (its model, goal, scene and step deadline)."""
-        return cls(loop.model, loop.goal, loop.scene, loop.options.step_deadline, **kw)
-
-    @property
-    def url(self) -> str | None:
-        """The full page's address on 127.0.0.1."""
-        return self.vis.url
-
-    def stop_feed(self) -> dict[str, int]:
-        """Draw what is pending, stop the feed's thread; the feed's counters (published, drawn, dropped, failed)."""
-        self.feed.close()
-        return self.feed.summary()
-
-    def close(self) -> None:
-        """Stop the feed and the server (idempotent)."""
-        self.feed.close()
-        self.vis.close()
