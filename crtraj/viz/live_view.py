@@ -57,8 +57,10 @@ class LiveView:
         return self.vis.url
 
     def stop_feed(self) -> dict[str, int]:
-        """Draw what is pending, stop the feed's thread; the feed's counters (published, drawn, dropped, failed)."""
+        """Draw what is pending, stop the feed's thread and the drawing process (the server stays); the feed's
+        counters (published, drawn, dropped, failed)."""
         self.feed.close()
+        self.drawer.close()
         return self.feed.summary()
 
     def close(self) -> None:
