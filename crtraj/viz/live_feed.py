@@ -6,7 +6,8 @@ change; `LiveFeed.publish` does the same for a bare state. The feed's thread dra
 times a second and counts the states it never drew (`dropped`). Drawing goes to anything with ``display(x)`` and
 ``set_obstacles(centers, radii)`` (a live `crtraj.viz.view.Visualizer`); a drawer that also has
 ``extend(entries)`` (`crtraj.viz.live_page.LivePage`) gets every (state, step) observed since its last draw, so its
-plots miss no step. Lengths in mm, times in s.
+plots miss no step; a drawer with ``draw(state, entries)`` (`crtraj.viz.live_child.ChildDrawer`: another process
+draws) gets both at once instead. Lengths in mm, times in s.
 """
 
 from __future__ import annotations
