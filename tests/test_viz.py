@@ -28,6 +28,7 @@ from crtraj.cli import main
 from crtraj.core.errors import InputError
 from crtraj.core.fields import Table
 from crtraj.core.fileio import atomic_write_json, to_jsonable
+from crtraj.viz import chromium
 from crtraj.viz.geometry import cylinder_quat
 from crtraj.viz.view import ViewOptions, Visualizer
 
@@ -467,7 +468,8 @@ def test_server_listens_on_loopback_only_and_serves_the_same_scene(result):
         assert sorted(p for _, p in socks) == sorted([web_port, int(vis.zmq_url.rsplit(":", 1)[1])])
         assert all(ip == "127.0.0.1" for ip, _ in socks), socks
         page = urllib.request.urlopen(vis.url, timeout=20).read().decode()
-        assert "MeshCat" in page
+        assert "MeshCat" in page and 'id="crtraj-hud"' in page  # the full page: meshcat's scene inside crtraj's
+        assert "MeshCat" in urllib.request.urlopen(vis.scene_url, timeout=20).read().decode()
         # meshcat's own client asks the server for its static export: ours is exactly that inside crtraj's page
         from crtraj.viz.page import wrap_page
 
@@ -573,9 +575,10 @@ def test_cli_view_serves_until_ctrl_c(result, tmp_path):
     )
     try:
         lines = _Lines(proc.stdout)
-        url = lines.wait_for(r"at (http://127\.0\.0\.1:\d+/static/)", 60).group(1)
+        url = lines.wait_for(r"at (http://127\.0\.0\.1:\d+/crtraj/)", 60).group(1)
         lines.wait_for("Ctrl-C", 10)
-        assert "MeshCat" in urllib.request.urlopen(url, timeout=20).read().decode()
+        page = urllib.request.urlopen(url, timeout=20).read().decode()
+        assert "MeshCat" in page and 'id="crtraj-hud"' in page  # the full page
         servers = _server_children(proc.pid)
         assert len(servers) == 1
         proc.send_signal(signal.SIGINT)
@@ -594,23 +597,8 @@ def test_cli_view_serves_until_ctrl_c(result, tmp_path):
 # holds in it (every scene command handled, the animation loaded and, if it plays, finished), never after
 # a fixed or virtual-time window, so a slow machine only takes longer. BROWSER_HANG_S bounds a hang only.
 BROWSER_HANG_S = 600.0
-CHROMIUM_FLAGS = (
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-quic",
-    "--no-first-run",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-    "--disable-dev-shm-usage",
-    "--hide-scrollbars",
-    # WebGL with --disable-gpu runs on SwiftShader; newer Chromium wants it allowed explicitly
-    "--use-angle=swiftshader",
-    "--enable-unsafe-swiftshader",
-    "--window-size=1024,768",
-    "--remote-debugging-pipe",
-)
+# the library's flags (crtraj.viz.chromium), at this module's window size
+CHROMIUM_FLAGS = (*chromium.FLAGS, "--window-size=1024,768", "--remote-debugging-pipe")
 
 # Runs in every page before its own scripts: counts the meshcat commands the viewer has handled (meshcat's
 # bundle assigns self.MeshCat once; the setter wraps Viewer.handle_command then) and records page errors.
@@ -656,20 +644,6 @@ new Promise((resolve, reject) => {
 """
 
 
-_FD_TRAMPOLINE = """
-import fcntl, os, sys
-r, w = (int(a) for a in sys.argv[1:3])
-moved = [fcntl.fcntl(fd, fcntl.F_DUPFD_CLOEXEC, 5) for fd in (r, w)]  # off 3 and 4 first
-for fd in (r, w):
-    os.close(fd)
-os.dup2(moved[0], 3)
-os.dup2(moved[1], 4)
-for fd in moved:
-    os.close(fd)
-os.execv(sys.argv[3], sys.argv[3:])
-"""
-
-
 class _Browser:
     """One headless Chromium; `capture` opens a page in a new tab and returns its picture."""
 
@@ -681,7 +655,7 @@ class _Browser:
         from_r, from_w = os.pipe()
         self._log = (profile / "chromium.log").open("wb")
         self.proc = subprocess.Popen(
-            [sys.executable, "-c", _FD_TRAMPOLINE, str(to_r), str(from_w), exe,
+            [sys.executable, "-c", chromium.TRAMPOLINE, str(to_r), str(from_w), exe,
              *CHROMIUM_FLAGS, f"--user-data-dir={profile}", "about:blank"],
             stdin=subprocess.DEVNULL, stdout=self._log, stderr=subprocess.STDOUT, pass_fds=(to_r, from_w),
         )  # fmt: skip
@@ -876,7 +850,7 @@ def test_browser_live_server_page_matches_standalone_page(browser, result, tmp_p
     vis = Visualizer.for_result(result, server=True, play=False)
     try:
         n = _n_commands(vis)
-        live, _ = browser.capture(vis.url, n, tmp_path / "live.png")
+        live, _ = browser.capture(vis.scene_url, n, tmp_path / "live.png")
         scene = tmp_path / "static.html"
         scene.write_text(vis.scene_html(), encoding="utf-8")
         static, _ = browser.capture(scene, n, tmp_path / "static.png")

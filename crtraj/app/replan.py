@@ -106,10 +106,11 @@ class _Written:
     plant: RodPlant | None = None  # the simulated plant (--plant)
 
 
-def run_replan(req: ReplanRequest, *, view: Callable[[dict[str, Any]], None] | None = None) -> int:
+def run_replan(req: ReplanRequest, *, view: Callable[[dict[str, Any]], None] | None = None, watch: Any = None) -> int:
     """Run `req` as ``crtraj replan`` does, printing its progress and summary; returns the exit code
     (0 success, 1 failed or unsolvable, 130 interrupted). Bad input raises `InputError` before any long
-    work. view: called with the result document afterwards (e.g. to serve the 3-D replay)."""
+    work. view: called with the result document afterwards (e.g. to serve the 3-D replay). watch: a live view
+    (`crtraj.app.view.LiveSession`): ``watch.start(loop)`` gives the loop's observer, ``watch.stop()`` ends it."""
     check_time_scale(req.time_scale)
     if req.seed is not None and req.seed < 0:
         raise InputError(f"--seed: must be >= 0, got {req.seed}")
@@ -131,7 +132,7 @@ def run_replan(req: ReplanRequest, *, view: Callable[[dict[str, Any]], None] | N
     seed = problem.seed if req.seed is None else req.seed
     t0 = time.perf_counter()
     feed = _open_feed(req.feed, req.feed_max_age, problem) if req.feed else None
-    done = _run_and_write(req, problem, seed, feed, out)
+    done = _run_and_write(req, problem, seed, feed, out, watch)
     if done is None:
         return 1
     _print_summary(req, done, out, t0)
@@ -179,7 +180,9 @@ def _open_feed(address: str, max_age: float, problem: Problem) -> ObstacleFeed:
     return feed
 
 
-def _run_and_write(req: ReplanRequest, problem: Problem, seed: int, feed: Any, out: Path) -> _Written | None:
+def _run_and_write(  # long: the run's resources (stage, stream, feed, live view) share one exit stack
+    req: ReplanRequest, problem: Problem, seed: int, feed: Any, out: Path, watch: Any = None
+) -> _Written | None:
     """Build the loop, run it (live with a feed and a device) and write its files; None when the task
     is unsolvable (said on stdout and stderr, nothing written)."""
     live = feed is not None and bool(req.stream)
@@ -215,9 +218,12 @@ def _run_and_write(req: ReplanRequest, problem: Problem, seed: int, feed: Any, o
                 link = _live_link(streamer, req.approach, problem, loop, sopts)
             if not req.quiet:
                 _print_header(problem, seed, loop, live_obstacles=feed is not None)
+            if watch is not None:
+                stack.callback(watch.stop)  # the feed stops (and says what it dropped) however the run ends
             if isinstance(sensor, RodPlant):
                 attach_plant(sensor, loop)
-            run = loop.run(device=sensor if isinstance(sensor, RodPlant) else link)
+            device = sensor if isinstance(sensor, RodPlant) else link
+            run = loop.run(device=device, observer=watch.start(loop) if watch is not None else None)
         finally:
             if link is not None:
                 link.streamer.close()  # a no-op after a normal run: the run closed it
@@ -437,5 +443,10 @@ def replan_command(args: Any) -> int:
         mocap_port=getattr(args, "mocap_port", None),
         plant=getattr(args, "plant", None),
     )
-    view = (lambda result: view_module.serve(result, "the run", not args.no_browser)) if args.view else None
-    return run_replan(req, view=view)
+    if not args.view:
+        return run_replan(req)
+    live = view_module.LiveSession(open_browser=not args.no_browser)  # the loop feeds it as it runs
+    try:
+        return run_replan(req, view=live.serve, watch=live)
+    finally:
+        live.close()

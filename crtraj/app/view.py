@@ -14,6 +14,7 @@ from typing import Any
 from crtraj.core.errors import InputError
 from crtraj.core.fileio import check_output_file, check_outputs_not_inputs
 from crtraj.io.results import Result, read_result
+from crtraj.viz.live_view import LiveView
 from crtraj.viz.render import Picture, parse_size, render_mp4, render_png
 from crtraj.viz.view import Visualizer
 
@@ -30,20 +31,68 @@ def static_html(result: Mapping[str, Any] | Result, play: bool | None = None) ->
         vis.close()
 
 
-def serve(result: Mapping[str, Any] | Result, label: str, open_browser: bool, play: bool | None = None) -> int:
-    """Serve a result in the meshcat view on 127.0.0.1 until Ctrl-C; returns 0."""
+def serve(
+    result: Mapping[str, Any] | Result,
+    label: str,
+    open_browser: bool,
+    play: bool | None = None,
+    vis: Visualizer | None = None,
+) -> int:
+    """Serve a result in the full page on 127.0.0.1 until Ctrl-C; returns 0. vis: a served Visualizer to show it
+    on (a live view's, whose page is open already and reloads to the result); None: a new one."""
     res = read_result(result)
     try:  # Ctrl-C is the normal way out, whenever it comes; leaving the block stops the server
-        with Visualizer.for_result(res, server=True, play=play) as vis:
-            print(f"serving {label} ({res.kind}, {len(res.t)} waypoints) at {vis.url}", flush=True)
+        if vis is not None:
+            vis.show_result(res, play=play)
+        with vis if vis is not None else Visualizer.for_result(res, server=True, play=play) as shown:
+            print(f"serving {label} ({res.kind}, {len(res.t)} waypoints) at {shown.url}", flush=True)
             if open_browser:
-                vis.open()
+                shown.open()
             print("press Ctrl-C to stop", flush=True)
             while True:
                 time.sleep(_IDLE_S)
     except KeyboardInterrupt:
         print("stopped", flush=True)
     return 0
+
+
+class LiveSession:
+    """`crtraj replan --view`: the loop feeds a served full page while it runs (`crtraj.viz.live_view.LiveView`);
+    afterwards the same page shows the finished run until Ctrl-C. open_browser: open the page at the start."""
+
+    def __init__(self, open_browser: bool) -> None:
+        self.open_browser = open_browser
+        self.view: LiveView | None = None
+
+    def start(self, loop: Any) -> Any:
+        """Serve the live page of `loop` (a `ClosedLoop`); returns its observer (the feed)."""
+        self.view = LiveView.for_loop(loop)
+        print(f"live view of the run at {self.view.url}", flush=True)
+        if self.open_browser:
+            self.view.vis.open()
+        return self.view.feed
+
+    def stop(self) -> None:
+        """Stop feeding the page (the loop has ended) and print the feed's counts."""
+        if self.view is None:
+            return
+        c = self.view.stop_feed()
+        print(
+            f"  live view: {c['published']} states, {c['drawn']} drawn, {c['dropped']} dropped frames (a newer state "
+            f"came before the view drew it; the run's files have every state), {c['failed']} failed draws",
+            flush=True,
+        )
+
+    def serve(self, result: Mapping[str, Any] | Result) -> int:
+        """Show the finished run on the live page until Ctrl-C (a new server when the loop never started)."""
+        if self.view is None:
+            return serve(result, "the run", self.open_browser)
+        return serve(result, "the run", False, vis=self.view.vis)
+
+    def close(self) -> None:
+        """Stop the feed and the server (idempotent)."""
+        if self.view is not None:
+            self.view.close()
 
 
 def _outputs(args: argparse.Namespace) -> dict[str, Any]:

@@ -322,7 +322,11 @@ def _add_replan(sub: argparse._SubParsersAction) -> None:
         help="let a failed run replace a successful one in --out (default: it is written beside it, as OUT.failed)",
     )
     _add_replan_live(p)
-    p.add_argument("--view", action="store_true", help="afterwards, serve the 3-D replay on 127.0.0.1 until Ctrl-C")
+    p.add_argument(
+        "--view",
+        action="store_true",
+        help="serve the live 3-D page on 127.0.0.1 as the loop runs (up to 30 Hz), then its replay until Ctrl-C",
+    )
     p.add_argument("--no-browser", action="store_true", help="with --view: only print the URL")
     p.add_argument("--quiet", action="store_true", help="print only the summary line")
     p.add_argument(

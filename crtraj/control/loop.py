@@ -51,7 +51,7 @@ import numpy as np
 
 from crtraj.control.horizon import HorizonStatus, Replanner
 from crtraj.control.loop_setup import LoopConfig, LoopParts, LoopSpec, assemble
-from crtraj.control.ports import Device, DeviceError
+from crtraj.control.ports import Device, DeviceError, StepObserver
 from crtraj.control.problem_loop import ProblemLike, ProblemRun, spec_from_problem
 from crtraj.control.recorder import RunEnding
 from crtraj.control.reference import ReferencePlan
@@ -146,6 +146,7 @@ class ClosedLoop:
         progress: Callable[[int, float, str], None] | None = None,
         realtime: bool | None = None,
         device: Device | None = None,
+        observer: StepObserver | None = None,
     ) -> ReplanRun:
         """Simulate from the start configuration until the goal is held, or `duration` runs out.
 
@@ -158,6 +159,8 @@ class ClosedLoop:
         step holds the device, an unsafe step e-stops it and ends the run, and
         Ctrl-C holds it and ends the run (status "interrupted"). The device is
         finished (settled at the final actuation) and closed on return.
+        observer: told of every recorded state and step as it is kept, on this thread (a live view,
+        `crtraj.control.ports.StepObserver`; it keeps references only, so the loop's timing does not change).
         """
         t_wall = time.perf_counter()
         p = self.parts
@@ -168,6 +171,7 @@ class ClosedLoop:
         robot = _Robot(0.0, q, q.copy(), x, x.copy(), q, np.zeros_like(x))
         for part in (p.tip, p.references, p.recorder, p.policy):
             part.start()
+        p.recorder.observer = observer
         p.pacer.start(realtime, device)
         p.tip.sense(robot.t, robot.q, robot.x, p.references)
         refused = self._start(robot, live)

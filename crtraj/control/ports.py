@@ -1,9 +1,9 @@
 """Ports of the closed loop: what it needs from an obstacle source and from a device.
 
-The loop (`crtraj.control.loop.ClosedLoop`) talks to the world and to hardware only through these
-protocols, so it never imports hardware or viewing code. Implementations live in the layer that owns
-them: `crtraj.world.sources` (obstacle sources) and `crtraj.hardware.link` (a device driven through the
-streamer). Units: mm, rad, s.
+The loop (`crtraj.control.loop.ClosedLoop`) talks to the world, to hardware and to a live view only through
+these protocols, so it never imports hardware or viewing code. Implementations live in the layer that owns
+them: `crtraj.world.sources` (obstacle sources), `crtraj.hardware.link` (a device driven through the
+streamer) and `crtraj.viz.live_feed` (a live view, `StepObserver`). Units: mm, rad, s.
 """
 
 from __future__ import annotations
@@ -112,4 +112,18 @@ class TipSensor(Protocol):
     def tip(self, t: float, q: np.ndarray) -> np.ndarray | None:
         """The measured tip (3,) mm at loop time t, or None when the marker is not seen. q: the actuation
         (mm) the loop believes in force (a simulated sensor uses it; a real one ignores it)."""
+        ...
+
+
+@runtime_checkable
+class StepObserver(Protocol):
+    """Something that watches a running loop, e.g. a live view (`crtraj.viz.live_feed.LiveFeed`).
+
+    Called on the loop's thread once per recorded state, so it must cost O(1): keep references and return,
+    never copy arrays, draw or wait (the records are frozen and the loop never changes their arrays).
+    """
+
+    def observe(self, state: Any, step: Any) -> None:
+        """The newest `crtraj.control.run_record.StateRecord` (t s, x, centers mm, ...) and the
+        `StepRecord` of the step that led to it (None for the record at the start)."""
         ...

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from crtraj.control.executed import limit_fractions
-from crtraj.control.ports import Device, ObstacleSource
+from crtraj.control.ports import Device, ObstacleSource, StepObserver
 from crtraj.control.run_record import REPORT_POINTS, ReplanRun, RunStatus, StateRecord, StepRecord
 from crtraj.model.kinematics import Model
 from crtraj.planning.rate_limits import RateLimits
@@ -60,6 +60,7 @@ class RunRecorder:
 
     def __init__(self, setup: RecorderSetup) -> None:
         self.setup = setup
+        self.observer: StepObserver | None = None  # told of each record as it is kept (a live view)
         self.start()
 
     def start(self) -> None:
@@ -89,10 +90,14 @@ class RunRecorder:
         if self.states:
             state = _drop_first_sample(state)
         self.states.append(state)
+        if self.observer is not None and len(self.states) == 1:
+            self.observer.observe(state, None)
 
     def record_step(self, step: StepRecord) -> None:
-        """Keep the record of one control step."""
+        """Keep the record of one control step (after the state it led to) and tell the observer, if any."""
         self.steps.append(step)
+        if self.observer is not None:
+            self.observer.observe(self.states[-1], step)
 
     def build(self, ending: RunEnding, source: ObstacleSource, device: Device | None) -> ReplanRun:
         """The run's record: arrays built once from the records."""

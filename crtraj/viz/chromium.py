@@ -44,7 +44,7 @@ FLAGS = (
     "--enable-unsafe-swiftshader",
 )
 
-_TRAMPOLINE = """
+TRAMPOLINE = """
 import fcntl, os, sys
 r, w = (int(a) for a in sys.argv[1:3])
 moved = [fcntl.fcntl(fd, fcntl.F_DUPFD_CLOEXEC, 5) for fd in (r, w)]  # off 3 and 4 first
@@ -99,7 +99,7 @@ class Chromium:
         from_r, from_w = os.pipe()
         self._log = open(Path(self._profile) / "chromium.log", "wb")  # noqa: SIM115 - closed by close()
         self.proc = subprocess.Popen(
-            [sys.executable, "-c", _TRAMPOLINE, str(to_r), str(from_w), exe, *FLAGS, "--remote-debugging-pipe",
+            [sys.executable, "-c", TRAMPOLINE, str(to_r), str(from_w), exe, *FLAGS, "--remote-debugging-pipe",
              f"--user-data-dir={self._profile}", "about:blank"],
             stdin=subprocess.DEVNULL, stdout=self._log, stderr=subprocess.STDOUT, pass_fds=(to_r, from_w),
         )  # fmt: skip

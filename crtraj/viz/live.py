@@ -76,14 +76,26 @@ class MeshcatWindow:
         if self._sock is not None:
             self._request(data["type"].encode("utf-8"), data["path"].encode("utf-8"), packed)
 
+    def send_page(self, data_json: str) -> None:
+        """Replace the data of the server's full page (`crtraj.viz.server.PAGE_PATH`); no-op without a server."""
+        if self._sock is not None:
+            self._request(meshcat_server.PAGE_COMMAND, b"", data_json.encode("utf-8"))
+
+    @property
+    def page_url(self) -> str | None:
+        """The server's full page (scene, panel, plots, legend), None without a server."""
+        if not self.web_url:
+            return None
+        return self.web_url.removesuffix("/static/").rstrip("/") + meshcat_server.PAGE_PATH
+
     def get_scene(self) -> str:
         """The standalone page of everything recorded (meshcat's name for it)."""
         return self.recorder.static_html()
 
     def open(self) -> MeshcatWindow:
         """Open the live page in the default browser (no-op without a server)."""
-        if self.web_url:
-            webbrowser.open(self.web_url, new=2)
+        if self.page_url:
+            webbrowser.open(self.page_url, new=2)
         return self
 
     def close(self) -> None:

@@ -1,9 +1,13 @@
 """A live view of a running loop: the loop hands each step's state over without waiting; a separate thread draws.
 
-`LiveFeed.publish` is the hook a closed loop calls once per step (it only stores the newest state under a lock, so
-the loop's timing does not change); the feed's thread draws the newest state at most `rate` times a second and
-counts the states it never drew (`dropped`). Drawing goes to anything with ``display(x)`` and
-``set_obstacles(centers, radii)`` (a live `crtraj.viz.view.Visualizer`). Lengths in mm, times in s.
+`LiveFeed.observe` is the closed loop's observer port (`crtraj.control.ports.StepObserver`): the loop calls it once
+per recorded step and it only keeps a reference to the (frozen) record under a lock, so the loop's timing does not
+change; `LiveFeed.publish` does the same for a bare state. The feed's thread draws the newest state at most `rate`
+times a second and counts the states it never drew (`dropped`). Drawing goes to anything with ``display(x)`` and
+``set_obstacles(centers, radii)`` (a live `crtraj.viz.view.Visualizer`); a drawer that also has
+``extend(entries)`` (`crtraj.viz.live_page.LivePage`) gets every (state, step) observed since its last draw, so its
+plots miss no step; a drawer with ``draw(state, entries)`` (`crtraj.viz.live_child.ChildDrawer`: another process
+draws) gets both at once instead. Lengths in mm, times in s.
 """
 
 from __future__ import annotations
@@ -60,12 +64,16 @@ class LiveFeed:
         self._clock = clock
         self._sleep = sleep
         self._lock = threading.Condition()
-        self._pending: LiveState | None = None
+        self._pending: Any = None  # the newest state not drawn yet (t, x, centers, radii)
+        self._history: list[tuple[Any, Any]] = []  # every observed (state, step), by reference
+        self._seen = 0  # how many of them the drawer's `extend` has had
         self._closed = False
         self.published = 0  # states handed over by the loop
         self.drawn = 0  # states drawn
         self.dropped = 0  # states replaced by a newer one before they were drawn
         self.failed = 0  # draws that raised (logged; the loop is never stopped by its view)
+        # s of this thread's CPU time spent drawing: while it runs Python it holds the GIL the loop's thread needs
+        self.draw_cpu = 0.0
         self._thread = threading.Thread(target=self._run, name="crtraj-live-view", daemon=True)
         self._thread.start()
 
@@ -74,33 +82,53 @@ class LiveFeed:
         state = LiveState(
             float(t), np.array(x, dtype=float), np.array(centers, dtype=float), np.array(radii, dtype=float)
         )
+        self._keep(state, None, history=False)
+
+    def observe(self, state: Any, step: Any) -> None:
+        """The loop's observer port (`crtraj.control.ports.StepObserver`), once per recorded state: keeps a
+        reference to the frozen `StateRecord` (and its `StepRecord`, None at the start); O(1), no copy."""
+        self._keep(state, step, history=True)
+
+    def _keep(self, state: Any, step: Any, history: bool) -> None:
         with self._lock:
             if self._pending is not None:
                 self.dropped += 1
             self._pending = state
+            if history:
+                self._history.append((state, step))
             self.published += 1
             self._lock.notify()
 
-    def _take(self) -> LiveState | None:
+    def _take(self) -> tuple[Any, list[tuple[Any, Any]]]:
         with self._lock:
             while self._pending is None and not self._closed:
                 self._lock.wait()
             state, self._pending = self._pending, None
-            return state
+            new, self._seen = self._history[self._seen :], len(self._history)
+            return state, new
 
     def _run(self) -> None:
         next_at = self._clock()
+        extend = getattr(self.drawer, "extend", None)
+        draw = getattr(self.drawer, "draw", None)  # a drawer that takes the whole draw at once (another process)
         while True:
-            state = self._take()
+            state, new = self._take()
             if state is None:
                 return
+            cpu = time.thread_time()
             try:
-                self.drawer.display(state.x)
-                self.drawer.set_obstacles(state.centers, state.radii)
+                if draw is not None:
+                    draw(state, new)
+                else:
+                    if extend is not None and new:
+                        extend(new)
+                    self.drawer.display(state.x)
+                    self.drawer.set_obstacles(state.centers, state.radii)
                 self.drawn += 1
             except Exception:  # a failed draw must not stop the feed nor reach the loop
                 self.failed += 1
                 log.warning("live view: drawing the state at t = %.3f s failed", state.t, exc_info=True)
+            self.draw_cpu += time.thread_time() - cpu
             next_at += self.period
             wait = next_at - self._clock()
             if wait > 0:

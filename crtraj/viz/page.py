@@ -27,35 +27,40 @@ def _asset(name: str) -> str:
     return resources.files("crtraj.viz").joinpath("assets", name).read_text(encoding="utf-8")
 
 
-def _nums(a: Any) -> Any:
+def nums(a: Any) -> Any:
     """Nested lists of rounded floats, None for NaN (JSON has no NaN)."""
     arr = np.asarray(a, dtype=float)
     if arr.ndim == 0:
         v = float(arr)
         return round(v, _DIGITS) if math.isfinite(v) else None
-    return [_nums(v) for v in arr]
+    return [nums(v) for v in arr]
 
 
 def _run_data(run: Result, tl: Timeline, label: str) -> dict[str, Any]:
     names = [o.name for o in run.scene.obstacles] if run.scene is not None else []
     names += [f"obstacle {i}" for i in range(len(names), tl.clearance.shape[1])]
+    return run_fields(tl, label, run.kind, f"{run.status}: {run.message}", names)
+
+
+def run_fields(tl: Timeline, label: str, kind: str, verdict: str, names: Sequence[str]) -> dict[str, Any]:
+    """One run's part of the page data: its timeline's numbers; names: the obstacles' (one per clearance column)."""
     return {
         "label": label,
-        "kind": run.kind,
-        "verdict": f"{run.status}: {run.message}"[:200],
-        "t": _nums(tl.t),
+        "kind": kind,
+        "verdict": verdict[:200],
+        "t": nums(tl.t),
         "status": list(tl.status),
-        "obstacles": names[: tl.clearance.shape[1]],
-        "clearance": _nums(tl.clearance.T),
+        "obstacles": list(names[: tl.clearance.shape[1]]),
+        "clearance": nums(tl.clearance.T),
         "near": [int(i) for i in tl.near],
-        "tip_error": _nums(tl.tip_error),
-        "iteration": _nums(tl.iteration),
-        "velocity": _nums(tl.velocity),
-        "acceleration": _nums(tl.acceleration),
-        "deadline": _nums(tl.deadline),
+        "tip_error": nums(tl.tip_error),
+        "iteration": nums(tl.iteration),
+        "velocity": nums(tl.velocity),
+        "acceleration": nums(tl.acceleration),
+        "deadline": nums(tl.deadline),
         "safety_distance": tl.safety_distance,
-        "closest_t": _nums(tl.t[tl.closest_index]),
-        "events": [{"kind": e.kind, "t": _nums(e.t), "text": e.text} for e in tl.events],
+        "closest_t": nums(tl.t[tl.closest_index]) if len(tl.t) else 0.0,
+        "events": [{"kind": e.kind, "t": nums(e.t), "text": e.text} for e in tl.events],
     }
 
 
@@ -68,27 +73,39 @@ def page_data(runs: Sequence[tuple[Result, Timeline]], options: ViewOptions) -> 
     layers_on = o.show_tree if o.show_tree is not None else bool(runs) and runs[0][0].kind == "plan"
     return {
         "runs": [_run_data(r, tl, labels[i] if len(runs) > 1 else "") for i, (r, tl) in enumerate(runs)],
-        "legend": [
-            *(
-                {"color": o.segment_colors[k % len(o.segment_colors)], "label": f"segment {k + 1}"}
-                for k in range(n_seg)
-            ),
-            {"color": o.obstacle_color, "label": "obstacle (faint shell: D_sf)", "layer": "shells"},
-            {"color": o.closest_color, "label": "closest approach", "layer": "closest"},
-            {"color": o.trail_color, "label": "executed tip path", "layer": "path/executed"},
-            {"color": o.path_color, "label": "planned tip path (ghost)", "layer": "path/planned"},
-            {"color": o.start_color, "label": "start", "layer": "markers/start"},
-            {"color": o.goal_color, "label": "goal", "layer": "markers/goal"},
-            {"color": o.tree_color, "label": "planner tree", "layer": "tree", "on": layers_on},
-            {"color": o.tree_color, "label": "replanned references", "layer": "references", "on": layers_on},
-        ],
+        "legend": legend(o, n_seg, layers_on),
     }
+
+
+def legend(o: ViewOptions, n_seg: int, layers_on: bool) -> list[dict[str, Any]]:
+    """The legend: every colour of the scene; items with a layer can be switched (layers_on: tree, references)."""
+    return [
+        *({"color": o.segment_colors[k % len(o.segment_colors)], "label": f"segment {k + 1}"} for k in range(n_seg)),
+        {"color": o.obstacle_color, "label": "obstacle (faint shell: D_sf)", "layer": "shells"},
+        {"color": o.closest_color, "label": "closest approach", "layer": "closest"},
+        {"color": o.trail_color, "label": "executed tip path", "layer": "path/executed"},
+        {"color": o.path_color, "label": "planned tip path (ghost)", "layer": "path/planned"},
+        {"color": o.start_color, "label": "start", "layer": "markers/start"},
+        {"color": o.goal_color, "label": "goal", "layer": "markers/goal"},
+        {"color": o.tree_color, "label": "planner tree", "layer": "tree", "on": layers_on},
+        {"color": o.tree_color, "label": "replanned references", "layer": "references", "on": layers_on},
+    ]
+
+
+def page_json(data: dict[str, Any]) -> str:
+    """The page's data as compact JSON (no NaN: `nums` made them null)."""
+    return json.dumps(data, separators=(",", ":"), allow_nan=False)
 
 
 def wrap_page(meshcat_html: str, data: dict[str, Any]) -> str:
     """meshcat's standalone page with the page around the scene added before its end (one file, offline)."""
+    return wrap_page_json(meshcat_html, page_json(data))
+
+
+def wrap_page_json(meshcat_html: str, data_json: str) -> str:
+    """`wrap_page` with the data already as JSON (the served page: `crtraj.viz.server`)."""
     # "</" inside a script would end it early; JSON allows the escaped solidus
-    blob = json.dumps(data, separators=(",", ":"), allow_nan=False).replace("</", "<\\/")
+    blob = data_json.replace("</", "<\\/")
     extra = (
         f"<style>{_asset('page.css')}</style>\n{_asset('page.html')}\n"
         f'<script id="crtraj-data" type="application/json">{blob}</script>\n'

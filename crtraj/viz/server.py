@@ -4,6 +4,10 @@ meshcat 0.3.2's own server listens on every interface; here its web and ZMQ
 sockets bind to the loopback interface. The server runs as a child process
 (``python -m crtraj.viz.server``) that exits when its parent closes its stdin
 or dies, so a crashed notebook never leaves a server behind.
+
+Beside meshcat's own page (``/static/``) the server serves crtraj's full page (``/crtraj/``: the scene with the
+heads-up panel, plots, events and legend of `crtraj.viz.page`) and the page's data (``/crtraj/data.json``), which a
+client replaces with the ZMQ command ``crtraj_page`` (frames: command, "", the JSON); a live page polls it.
 """
 
 from __future__ import annotations
@@ -20,12 +24,18 @@ import warnings
 from pathlib import Path
 from typing import Any
 
+from crtraj.viz.page import wrap_page_json
+
 with warnings.catch_warnings():
     # meshcat's server module installs a pyzmq < 17 event-loop shim and pyzmq warns about it
     warnings.filterwarnings("ignore", category=DeprecationWarning, message=r"zmq\.eventloop\.ioloop")
-    from meshcat.servers.zmqserver import ZMQWebSocketBridge
+    import tornado.web
+    from meshcat.servers.zmqserver import VIEWER_HTML, VIEWER_ROOT, ZMQWebSocketBridge
 
 HOST = "127.0.0.1"  # the only interface a crtraj server listens on
+PAGE_COMMAND = b"crtraj_page"  # the ZMQ command that replaces the full page's data
+PAGE_PATH = "/crtraj/"  # where the full page is served
+_EMPTY_PAGE = b'{"runs":[],"legend":[]}'
 _POLL_S = 0.05  # how often the parent looks for the child's start-up lines
 
 
@@ -87,8 +97,46 @@ def _exit_when_parent_goes() -> None:
     os._exit(0)
 
 
+class _PageHandler(tornado.web.RequestHandler):
+    """The full page: meshcat's served page (websocket scene) inside crtraj's page, with the newest data."""
+
+    def initialize(self, bridge: _LoopbackBridge) -> None:
+        self.bridge = bridge
+
+    def get(self) -> None:
+        shell = Path(VIEWER_ROOT, VIEWER_HTML).read_text(encoding="utf-8")
+        shell = shell.replace('src="main.min.js"', 'src="/static/main.min.js"')
+        self.set_header("Cache-Control", "no-store")
+        self.set_header("Content-Type", "text/html; charset=utf-8")
+        self.write(wrap_page_json(shell, self.bridge.page_json.decode("utf-8")))
+
+
+class _DataHandler(tornado.web.RequestHandler):
+    """The full page's data (JSON), polled by a live page."""
+
+    def initialize(self, bridge: _LoopbackBridge) -> None:
+        self.bridge = bridge
+
+    def get(self) -> None:
+        self.set_header("Cache-Control", "no-store")
+        self.set_header("Content-Type", "application/json")
+        self.write(self.bridge.page_json)
+
+
 class _LoopbackBridge(ZMQWebSocketBridge):
-    """meshcat's bridge with its web socket on 127.0.0.1 too."""
+    """meshcat's bridge with its web socket on 127.0.0.1 too, and crtraj's full page beside meshcat's."""
+
+    page_json = _EMPTY_PAGE
+
+    def handle_zmq(self, frames: list[bytes]) -> None:
+        if frames and frames[0] == PAGE_COMMAND:
+            if len(frames) == 3:
+                self.page_json = bytes(frames[2])
+                self.zmq_socket.send(b"ok")
+            else:
+                self.zmq_socket.send(b"error: expected 3 frames")
+            return
+        super().handle_zmq(frames)
 
     # meshcat 0.3.x has no option for the web socket's bind address: its `host` binds the ZMQ socket and names the
     # page's address, but the tornado app its `make_app` builds is listened on without one. Overriding `make_app`
@@ -96,6 +144,13 @@ class _LoopbackBridge(ZMQWebSocketBridge):
     # meshcat to >=0.3.2,<0.4, the versions with that constructor.
     def make_app(self) -> Any:
         app = super().make_app()
+        app.add_handlers(
+            r".*",
+            [
+                (PAGE_PATH, _PageHandler, {"bridge": self}),
+                (PAGE_PATH + "data.json", _DataHandler, {"bridge": self}),
+            ],
+        )
         # tornado's listen() binds every interface unless given an address
         app.listen = functools.partial(app.listen, address=HOST)
         return app

@@ -54,7 +54,7 @@ from crtraj.viz.animation import run_animation
 from crtraj.viz.geometry import M_PER_MM, cylinder_quat, fit_view, transforms, translation, unit
 from crtraj.viz.live import MeshcatWindow
 from crtraj.viz.options import MAX_SEGMENT_COLORS, ViewOptions
-from crtraj.viz.page import page_data, wrap_page
+from crtraj.viz.page import page_data, page_json, wrap_page
 from crtraj.viz.run_paths import draw_run_paths
 from crtraj.viz.scene import ROOT, SceneBuilder
 from crtraj.viz.timeline import Timeline, build_timeline
@@ -63,6 +63,7 @@ with warnings.catch_warnings():
     # meshcat's server module installs a pyzmq < 17 event-loop shim and pyzmq warns about it
     warnings.filterwarnings("ignore", category=DeprecationWarning, message=r"zmq\.eventloop\.ioloop")
     import meshcat
+    from IPython.display import HTML  # meshcat's own dependency, for its notebook cell
     from meshcat.animation import Animation
 
 __all__ = ["MAX_SEGMENT_COLORS", "ViewOptions", "Visualizer"]
@@ -139,7 +140,13 @@ class Visualizer:
 
     @property
     def url(self) -> str | None:
-        """The page's address (http://127.0.0.1:PORT/static/), None when offline."""
+        """The full page's address (http://127.0.0.1:PORT/crtraj/: the scene with the heads-up panel, plots,
+        events and legend, as in `static_html`), None when offline."""
+        return self._window.page_url
+
+    @property
+    def scene_url(self) -> str | None:
+        """meshcat's own page of the scene alone (http://127.0.0.1:PORT/static/), None when offline."""
         return self._window.web_url
 
     @property
@@ -255,6 +262,7 @@ class Visualizer:
         scene.floor(allp.min(axis=0) - 10.0, allp.max(axis=0) + 10.0)
         self.frame_camera(allp)
         self.show_waypoint(0)
+        self.push_page()
         return self
 
     def compare(self, result: Mapping[str, Any] | Result) -> Visualizer:
@@ -273,6 +281,7 @@ class Visualizer:
         if self.animation is not None and len(run.t) > 1:
             self.animation.clips.update(run_animation(run, poses, ghost, self.compared[1]).clips)
             self._send_animation()
+        self.push_page()
         return self
 
     def _read_run(self, result: Mapping[str, Any] | Result) -> Result:
@@ -300,13 +309,19 @@ class Visualizer:
         self.set_obstacles(self._run.centers[k], self._run.radii[k])
         tl = self.timeline
         if tl is not None and self._run.centers.shape[1]:
-            a, b = tl.body_point[k] * M_PER_MM, tl.obstacle_point[k] * M_PER_MM
-            d = b - a
-            quat = cylinder_quat(unit(d))
-            scale = np.array([1.0, np.linalg.norm(d), 1.0])
-            self._vis["closest/line"].set_transform(transforms(0.5 * (a + b), quat, scale))
-            self._vis["closest/body"].set_transform(translation(a))
-            self._vis["closest/obstacle"].set_transform(translation(b))
+            self.set_closest(tl.body_point[k], tl.obstacle_point[k])
+
+    def set_closest(self, body_point: Any, obstacle_point: Any) -> None:
+        """Put the closest-approach line between body_point and obstacle_point (3,) mm."""
+        a, b = np.asarray(body_point, float) * M_PER_MM, np.asarray(obstacle_point, float) * M_PER_MM
+        if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
+            return
+        d = b - a
+        quat = cylinder_quat(unit(d))
+        scale = np.array([1.0, np.linalg.norm(d), 1.0])
+        self._vis["closest/line"].set_transform(transforms(0.5 * (a + b), quat, scale))
+        self._vis["closest/body"].set_transform(translation(a))
+        self._vis["closest/obstacle"].set_transform(translation(b))
 
     # ---------------------------------------------------------------- export
     def static_html(self) -> str:
@@ -327,6 +342,22 @@ class Visualizer:
             runs.append(self.compared)
         return page_data(runs, self.options)
 
+    def push_page(self, data: dict[str, Any] | None = None) -> None:
+        """Send the full page's data (default: `page_data`) to the server, whose page shows it (no-op offline)."""
+        if self._window.web_url:
+            self._window.send_page(page_json(self.page_data() if data is None else data))
+
+    def start_live(self, safety_distance: float, goal: Any, n_obstacles: int) -> None:
+        """Prepare a live view of a running loop: the robot, `n_obstacles` obstacles with shells of
+        D_sf = safety_distance (mm), the closest-approach line and the goal (3,) mm marked."""
+        self.clear()
+        self._safety = float(safety_distance)
+        self._scene.draw_robot()
+        self._scene.draw_obstacles(n_obstacles)
+        if n_obstacles:
+            self._scene.draw_closest()
+        self._scene.marker("goal", check_array(goal, "goal", (3,)), self.options.goal_color)
+
     def save_html(self, path: str | os.PathLike[str]) -> Path:
         """Write `static_html` to `path` atomically; returns the path."""
         return atomic_write_text(path, self.static_html())
@@ -340,6 +371,8 @@ class Visualizer:
 
         Make it the last expression of the cell.
         """
-        if self.url:
-            return self._vis.jupyter_cell(height=height)
+        if self.url:  # meshcat's own cell, with the full page in its frame
+            frame = f'<iframe src="{self.url}" style="width: 100%; height: 100%; border: none"></iframe>'
+            box = f"height: {int(height)}px; width: 100%; overflow-x: auto; overflow-y: hidden; resize: both"
+            return HTML(f'<div style="{box}">{frame}</div>')
         return self._vis.render_static(height=height)

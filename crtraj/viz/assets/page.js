@@ -3,16 +3,17 @@
 // JSON in #crtraj-data (mm, s). window.crtrajView is the page's small API (tests, PNG/MP4 export).
 (function () {
   "use strict";
-  const data = JSON.parse(document.getElementById("crtraj-data").textContent);
-  const runs = data.runs;
+  let data = JSON.parse(document.getElementById("crtraj-data").textContent);
+  let runs = data.runs;
   const STATUS_COLORS = { move: "#2e7d32", suboptimal: "#8d8a12", fallback: "#e65100", hold: "#6a1b9a",
     unsafe: "#c62828", stale: "#455a64", estop: "#000000" };
   const EVENT_COLORS = { replan: "#1565c0", fallback: "#e65100", hold: "#6a1b9a", deadline: "#c62828",
     estop: "#000000", dropout: "#455a64", unsafe: "#c62828" };
   const OBSTACLE_LINES = ["#d62728", "#ff7f0e", "#8c564b", "#e377c2", "#7f7f7f"];
   const $ = (id) => document.getElementById(id);
-  const duration = Math.max(0, ...runs.map((r) => (r.t.length ? r.t[r.t.length - 1] : 0)));
-  const frames = runs.length ? runs[0].t : [0];
+  const lastT = () => Math.max(0, ...runs.map((r) => (r.t.length ? r.t[r.t.length - 1] : 0)));
+  let duration = lastT();
+  let frames = runs.length && runs[0].t.length ? runs[0].t : [0];
   let shownTime = 0; // the page's time when meshcat has no animation to keep it
   let ready = false;
 
@@ -236,7 +237,7 @@
     fitPane();
     const hash = new URLSearchParams(location.hash.slice(1));
     if (hash.has("t")) { if (hasClock()) animator().pause(); seek(parseFloat(hash.get("t")) || 0); }
-    else if (!playing()) seek(0); // meshcat activates its actions only when it plays: a paused page seeks
+    else if (!playing()) seek(data.live ? duration : 0); // meshcat activates its actions only when it plays: a paused page seeks
     if (hash.has("speed")) setSpeed(parseFloat(hash.get("speed")));
     ready = true;
     document.body.dataset.crtrajReady = "1";
@@ -245,7 +246,7 @@
     requestAnimationFrame(loop);
   }
   function waitForScene(tries) { // meshcat applies its commands asynchronously (fetch of data: URLs)
-    const expectClock = duration > 0;
+    const expectClock = duration > 0 && !data.live; // a live page has no animation: it follows the newest step
     if (window.viewer && (!expectClock || hasClock())) { start(); return; }
     if (tries > 600) { start(); return; }
     setTimeout(() => waitForScene(tries + 1), 10);
@@ -266,6 +267,25 @@
   });
   window.addEventListener("resize", () => { fitPane(); for (const p of plots) p.draw(); refresh(); });
   buildLegend(); buildEvents(); buildPlots(); refresh();
-  window.crtrajView = { seek, play, pause, step, setSpeed, project, time: now, isReady: () => ready, data };
+  // ------------------------------------------------------------ live: the served page of a running loop
+  // polls the server's data (crtraj.viz.server) and shows the newest step; when the run ends, the server's
+  // data is the finished run's (live false) and the page reloads to its replay.
+  function load(d) {
+    data = d; runs = d.runs; duration = lastT();
+    frames = runs.length && runs[0].t.length ? runs[0].t : [0];
+    plots.length = 0; $("crtraj-plots").innerHTML = ""; $("crtraj-events").innerHTML = "";
+    buildEvents(); buildPlots();
+    shownTime = duration;
+    refresh();
+  }
+  function poll() {
+    fetch("data.json", { cache: "no-store" }).then((r) => r.json()).then((d) => {
+      if (!d.live) { location.reload(); return; }
+      load(d); setTimeout(poll, 250);
+    }).catch(() => setTimeout(poll, 1000));
+  }
+  if (data.live) { shownTime = duration; setTimeout(poll, 250); }
+  window.crtrajView = { seek, play, pause, step, setSpeed, project, time: now, isReady: () => ready,
+    get data() { return data; } };
   waitForScene(0);
 })();
