@@ -79,7 +79,7 @@ class _Robot:
     inc: np.ndarray
 
     def now(self) -> RobotNow:
-        return RobotNow(self.t, self.q, self.qc, self.x, self.inc)
+        return RobotNow(self.t, self.q, self.qc, self.x, self.inc, self.q_last)
 
 
 class ClosedLoop:
