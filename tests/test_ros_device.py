@@ -137,7 +137,7 @@ def test_a_step_later_than_the_lateness_bound_is_refused_not_sent(margin):
     model = Model(problem.robot)
     servo = TrackingController(model, TrackingOptions()).servo
     scene = Scene.from_table(problem.section("scene")).with_obstacles(())
-    node, clock = _FakeNode(RosOptions(points_per_step=5), acts.names), VirtualClock()
+    node, clock = _FakeNode(RosOptions(points_per_step=5), acts.names), VirtualClock(1.0)
     ver = FrameVerifier(problem.robot, acts, scene, 0.005, model=model)
     dev = RosDevice(
         node, acts, model, servo, 0.1, ver, lambda: scene, clock=clock, sleep=clock.sleep, lead=0.2,
@@ -146,23 +146,25 @@ def test_a_step_later_than_the_lateness_bound_is_refused_not_sent(margin):
     q0 = problem.robot.cable_matrix()[1]
     node.state = (acts.command(q0), 0.0)
     dev.start_actuation()
-    dev.begin(0.0)  # loop time t is clock time t + 0.2
-    q, bound = q0.copy(), 0.2 - margin
+    dev.begin(0.0)  # loop time t is clock time 1.2 + t
+    q, qc, bound = q0.copy(), q0.copy(), 0.2 - margin
     dz = np.zeros(acts.n)
     dz[-1] = 0.02  # the z stage moves 0.02 mm a step
     for k, late in enumerate([0.0, bound * 0.5, bound]):
         t = 0.1 * k
-        clock.advance_to(t + late)  # step t is due to be sent at clock time t (0.2 s before it starts)
-        C = np.repeat((q + dz)[None], 5, axis=0)
+        clock.advance_to(1.0 + t + late)  # step t is due to be sent 0.2 s before it starts
+        C = qc + np.outer(np.arange(1, 6) / 5, dz)  # a ramp of set-points
         dev.move(t, q, C, 0.02)
         stamp = node.sent[-1][0]
         assert k == 0 or stamp <= clock() + 1e-12  # its first point is due when it is sent (after the start at rest)
-        q = C[-1]
+        for c in C:  # where the servo model is at the step's end
+            q = servo.advance(q, c, 0.02)
+        qc = C[-1]
     assert dev.refused_steps == dev.late_refused == 0 and len(node.sent) == 3
     before = dev.committed
-    clock.advance_to(0.3 + bound + 0.001)
+    clock.advance_to(1.3 + bound + 0.001)
     with pytest.raises(DeviceError, match=r"late, beyond the bound"):
-        dev.move(0.3, q, np.repeat((q + dz)[None], 5, axis=0), 0.02)
+        dev.move(0.3, q, qc + np.outer(np.arange(1, 6) / 5, dz), 0.02)
     assert dev.refused_steps == dev.late_refused == 1 and len(node.sent) == 4 and dev.holds == 1
-    ts = np.linspace(clock() - 0.2, before.end + 0.1, 200)
+    ts = np.linspace(clock() - 1.2, before.end + 0.1, 200)
     assert np.allclose(dev.committed.at(ts)[0], before.at(ts)[0], atol=1e-12)  # the hold: the same curve

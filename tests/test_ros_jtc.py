@@ -273,3 +273,22 @@ def test_the_state_lag_changes_the_point_before_and_the_model_follows_it():
         runs[lag] = got
     assert np.allclose(runs[0.0], committed.at(ts)[0], atol=1e-12)
     assert np.max(np.abs(runs[0.012] - runs[0.0])) > 1e-6
+
+
+def test_a_due_knot_at_controller_clock_zero_is_not_sent_as_stamp_zero():
+    """The committed knot due at the send time lies at controller clock 0 (ROS sim time starts there): a message
+    stamped 0 would start "now" instead, so the message starts at the next knot, its stamp non-zero, and the
+    model's executed curve (the point before the trajectory used) is still the committed curve."""
+    committed = _committed()  # knots every 0.02 s from loop time 0
+    epoch, now, t = 0.0, 0.031, 0.1
+    plain = step_message(
+        committed, now, t, (0.02 * np.arange(1, 3), np.zeros((2, 2)), np.zeros((2, 2))), np.ones(2), NAMES
+    )
+    assert plain.stamp == pytest.approx(0.02)  # the last knot at or before now
+    shifted = committed.shifted(-0.02)  # now the due knot is at clock time 0
+    pts = (0.02 * np.arange(1, 3), np.zeros((2, 2)), np.zeros((2, 2)))
+    msg = step_message(shifted, now - 0.02, t - 0.02, pts, np.ones(2), NAMES, epoch)
+    assert msg.stamp + epoch != 0.0 and msg.stamp == pytest.approx(0.02)
+    cur = executed(msg, now - 0.02, *shifted.state(now - 0.02), epoch=epoch)
+    ts = np.linspace(now - 0.02, t - 0.02, 50)
+    assert np.allclose(cur.at(ts)[0], shifted.at(ts)[0], atol=1e-12)

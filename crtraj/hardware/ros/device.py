@@ -193,7 +193,7 @@ class RosDevice:
             )
         values, vel = self.samples(q0, commands)
         names = tuple(self.node.names)
-        msg = step_message(self._curve, now, t, (self.offsets, values, vel), self.actuators.amax, names)
+        msg = step_message(self._curve, now, t, (self.offsets, values, vel), self.actuators.amax, names, self._origin)
         why = self._verify(msg, now)
         if why is not None:
             self._refuse(t, why)
@@ -274,7 +274,7 @@ class RosDevice:
         if self._last is None:
             return
         now = self.clock() - self._origin
-        msg = hold_message(self._curve, now, self.dt / self.n_points, tuple(self.node.names))
+        msg = hold_message(self._curve, now, self.dt / self.n_points, tuple(self.node.names), self._origin)
         tfs = np.array([p.time_from_start for p in msg.points])
         pos = np.array([p.positions for p in msg.points])
         vel = np.array([p.velocities for p in msg.points])

@@ -49,13 +49,14 @@ def step_message(
     points: tuple[np.ndarray, np.ndarray, np.ndarray],
     amax: np.ndarray,
     names: tuple[str, ...],
+    epoch: float = 0.0,
 ) -> JtcMessage:
     """The message (stamp and times in loop time s) for the step starting at t, sent at loop time `now`:
     the committed knots from the last one at or before `now` to t (exclusive), the committed state at t, the
     step's points (offsets (N,) s after t, values and velocities (N, n)), and the stop tail after the last
-    point."""
+    point. epoch: the controller's clock reads epoch + loop time (see `_due`)."""
     offsets, values, _ = points
-    keep = (committed.times >= _due(committed, now)) & (committed.times < t - 1e-9)
+    keep = (committed.times >= _due(committed, now, epoch)) & (committed.times < t - 1e-9)
     p_t, v_t = committed.state(t)
     spacing = float(offsets[0])
     vel = smooth_velocities(p_t, v_t, values, spacing)
@@ -90,10 +91,12 @@ def smooth_velocities(p0: np.ndarray, v0: np.ndarray, values: np.ndarray, h: flo
     return np.linalg.solve(M, rhs)
 
 
-def hold_message(committed: Spline, now: float, spacing: float, names: tuple[str, ...]) -> JtcMessage:
+def hold_message(
+    committed: Spline, now: float, spacing: float, names: tuple[str, ...], epoch: float = 0.0
+) -> JtcMessage:
     """What to send to keep the robot on its committed curve to rest (its knots from the last one at or before
     `now`), or, when it is at rest already, one point at rest there `spacing` s from now."""
-    keep = (committed.times >= _due(committed, now)) & np.any(committed.times > now)
+    keep = (committed.times >= _due(committed, now, epoch)) & np.any(committed.times > now)
     if np.any(keep):
         idx = np.flatnonzero(keep)
         V = np.array([_velocity(committed, i) for i in idx])
@@ -103,10 +106,14 @@ def hold_message(committed: Spline, now: float, spacing: float, names: tuple[str
     return JtcMessage.from_arrays(names, now + spacing, np.zeros(1), rest, np.zeros_like(rest))
 
 
-def _due(curve: Spline, now: float) -> float:
+def _due(curve: Spline, now: float, epoch: float = 0.0) -> float:
     """Time of the curve's last knot at or before `now` (its first knot when there is none): the first point of
-    a message sent at `now`, already due when it arrives."""
+    a message sent at `now`, already due when it arrives. A knot at controller clock time 0 (epoch + time; ROS
+    sim time starts there) would make the message's stamp 0, which the controller reads as "now": the next knot
+    is taken instead (the point before the trajectory is then used, as `jtc.executed` models)."""
     k = max(int(np.searchsorted(curve.times, now, side="right")) - 1, 0)
+    if curve.times[k] + epoch == 0.0 and k + 1 < len(curve.times):
+        k += 1
     return float(curve.times[k])
 
 
