@@ -28,16 +28,10 @@ import numpy as np
 
 
 class StopVerifier(Protocol):
-    """What checks a stop's frames (`crtraj.hardware.verify.FrameVerifier` implements it)."""
+    """What checks a stop's frames (`crtraj.hardware.verify.FrameVerifier` implements it): the first reason the
+    frames (stamps (N,) s, values (N, n)) after `start` moving at `start_velocity` may not be sent, or None."""
 
-    def failure(
-        self,
-        stamps: np.ndarray,
-        values: np.ndarray,
-        *,
-        start: np.ndarray | None = None,
-        start_velocity: np.ndarray | None = None,
-    ) -> str | None: ...
+    def failure(self, stamps: np.ndarray, values: np.ndarray, **start: Any) -> str | None: ...
 
 
 @dataclass(frozen=True)
