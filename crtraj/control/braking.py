@@ -20,11 +20,18 @@ the junction with the frame before the stop is ``-dt^2 v / N``: within the limit
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np
+
+# A stop longer than this (s) comes from an inconsistent state (a position jump read as a velocity), not a motion
+# the loop made: `servo_stop` does not plan it (logged; the hold then commands the measured position).
+MAX_STOP_TIME = 60.0
+
+log = logging.getLogger(__name__)
 
 
 class StopVerifier(Protocol):
@@ -111,12 +118,16 @@ def servo_stop(servo: Any, q: np.ndarray, q_last: np.ndarray, h: float, limits: 
     set-point of each period). Q is `stop_frames` on the actuation, within ``limits`` (a `RateLimits` on
     configurations, mapped through the servo's affine ``config``); C inverts the first-order servo model
     over one period (``Q_k = C_k + d (Q_{k-1} - C_k)``, ``d = servo.decay(h)``), so the simulated plant
-    executes Q exactly. Empty arrays at rest."""
+    executes Q exactly. Empty arrays at rest (or for a stop over `MAX_STOP_TIME`: an inconsistent state)."""
     q = np.asarray(q, dtype=float)
     nq = q.size
     dxdq = servo.config(np.eye(nq)) - servo.config(np.zeros(nq))  # (nq, nx): row i = d config / d q_i
     J = np.asarray(limits.jacobian, dtype=float) @ dxdq.T  # limited actuator rate per mm/s of actuation
-    Q = stop_frames(q, (q - np.asarray(q_last, dtype=float)) / h, limits.amax, h, J)
+    v = (q - np.asarray(q_last, dtype=float)) / h
+    if stop_periods(v, limits.amax, h, J) * h > MAX_STOP_TIME:
+        log.warning("servo_stop: a stop over %g s: q and q_last are not one period apart; not planned", MAX_STOP_TIME)
+        return np.empty((0, q.size)), np.empty((0, q.size))
+    Q = stop_frames(q, v, limits.amax, h, J)
     if not len(Q):
         return Q, Q.copy()
     d = servo.decay(h)

@@ -77,9 +77,11 @@ class _Robot:
     x_prev: np.ndarray
     q_last: np.ndarray
     inc: np.ndarray
+    on_device: bool = False  # q is a device's measurement: the device brakes a hold itself
 
     def now(self) -> RobotNow:
-        return RobotNow(self.t, self.q, self.qc, self.x, self.inc, self.q_last)
+        # a measured q and the model's q_last give no velocity to plan a stop from
+        return RobotNow(self.t, self.q, self.qc, self.x, self.inc, None if self.on_device else self.q_last)
 
 
 class ClosedLoop:
@@ -260,6 +262,7 @@ class ClosedLoop:
                 if why_not:
                     return self._finish(robot, RunStatus.DEVICE, why_not, t_wall, device)
                 robot.q, robot.qc, _ = device.measure(t, robot.q, robot.qc)
+                robot.on_device = True
                 robot.x = self.servo.config(robot.q)
             status = self._step(k, robot, device, t_iter)
             p.tip.sense(robot.t, robot.q, robot.x, p.references)
