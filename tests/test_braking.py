@@ -14,6 +14,7 @@ import pytest
 from conftest import PROBLEMS, paper_copy
 from devlink import CoreLink
 
+from crtraj.app.run_output import write_run_files
 from crtraj.app.stream import admit_result
 from crtraj.cli import main
 from crtraj.control.braking import servo_stop
@@ -176,12 +177,31 @@ def test_a_link_that_fails_while_moving_counts_as_latched(motion):
 
 
 @pytest.fixture(scope="module")
-def sim2_motion(tmp_path_factory):
-    """The paper's simulation 2 replanned (`crtraj replan`, seed 1, no step deadline), admitted at 100 Hz (slower
-    when the executed motion is too fast for the actuators, as the CLI says)."""
-    tmp = tmp_path_factory.mktemp("sim2")
-    out = tmp / "replan"
-    assert main(["replan", str(paper_copy(tmp)), "--seed", "1", "--out", str(out), "--no-html", "--quiet"]) == 0
+def loop_runs(tmp_path_factory):
+    """(loop, run, problem) of the closed loop, seed 1, on the paper's simulation 1 ("sim1", static obstacles) or 2
+    ("sim2", moving, without its step deadline), each run once for every test of this file."""
+    cache: dict[str, tuple] = {}
+
+    def get(name: str) -> tuple:
+        if name not in cache:
+            path = PROBLEMS / "paper_static.toml" if name == "sim1" else paper_copy(tmp_path_factory.mktemp(name))
+            problem = Problem.load(path)
+            loop = ClosedLoop.from_problem(problem, seed=1)
+            run = loop.run()
+            assert run.status == RunStatus.REACHED
+            cache[name] = (loop, run, problem)
+        return cache[name]
+
+    return get
+
+
+@pytest.fixture(scope="module")
+def sim2_motion(loop_runs, tmp_path_factory):
+    """The simulation-2 run written as `crtraj replan` writes it and admitted at 100 Hz (slower when the executed
+    motion is too fast for the actuators, as the CLI says)."""
+    loop, run, problem = loop_runs("sim2")
+    out = tmp_path_factory.mktemp("sim2run")
+    write_run_files(run, loop, out, problem=problem, seed=1, html=False)
     try:
         return admit_result(out / "run.json", rate=RATE)
     except AdmissionError as exc:
@@ -214,13 +234,10 @@ def test_stops_at_random_interrupt_times_of_a_sim2_run_are_verified_or_latched(s
 # ---------------------------------------------------------------------------------------- the closed loop's hold
 
 
-@pytest.fixture(scope="module", params=["sim1", "sim2"])
-def loop_run(request, tmp_path_factory):
-    """(loop, run) of the closed loop on the paper's simulation 1 (static obstacles) or 2 (moving), seed 1."""
-    path = PROBLEMS / "paper_static.toml" if request.param == "sim1" else paper_copy(tmp_path_factory.mktemp("p"))
-    loop = ClosedLoop.from_problem(Problem.load(path), seed=1)
-    run = loop.run()
-    assert run.status == RunStatus.REACHED
+@pytest.fixture(params=["sim1", "sim2"])
+def loop_run(request, loop_runs):
+    """(loop, run) of the closed loop on simulation 1 or 2."""
+    loop, run, _ = loop_runs(request.param)
     return loop, run
 
 
@@ -311,3 +328,12 @@ def test_a_hold_while_moving_stops_the_simulated_robot_within_the_limits(tmp_pat
     assert np.all(np.abs(acc) <= limits.amax * (1 + 1e-6)), np.max(np.abs(acc) / limits.amax)  # an instant stop: ~30x
     end = round(1.6 / h)
     assert np.max(np.abs(E[end] - E[end - 1])) <= 1e-9  # at rest before the gap ended
+
+
+def test_an_inconsistent_state_is_not_planned_as_a_stop(loop_runs):
+    """q and q_last far more than one period's motion apart (a position jump, not a velocity): no stop of millions
+    of periods is planned; the hold commands the measured position."""
+    loop, run, _ = loop_runs("sim1")
+    q = run.executed[10]
+    Q, C = servo_stop(loop.servo, q, q - 1e4, run.control_dt, loop.parts.motion.brake_limits)
+    assert Q.shape == C.shape == (0, q.size)
