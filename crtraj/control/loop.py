@@ -19,9 +19,10 @@ updates its path based on its current position") at the replanner's step dt:
    bounds), together with a safe way to stop after it (holding the end
    configuration over the next step is safe);
 5. if the move fails verification or the NLP failed, try the previous
-   solution's next move, then holding still (actuators commanded to their
-   measured positions: the servos stop where they are); if even holding is
-   unsafe, apply the least unsafe of these and report it.
+   solution's next move, then holding: at rest, actuators commanded to their
+   measured positions; moving, a stop within the acceleration limits
+   (`crtraj.control.braking`), verified over its whole duration; if even
+   holding is unsafe, apply the least unsafe of these and report it.
 
 A live device is driven through the `crtraj.control.ports.Device` port; the loop
 never imports hardware or viewing code. Every step records time,
