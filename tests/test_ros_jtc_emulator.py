@@ -43,10 +43,12 @@ def paper():
     return problem, acts, loop.scene, loop.model, start
 
 
-def _problem(tmp_path: Path, acts: Actuators, joints: dict[str, str], **ros) -> Path:
-    """paper_dynamic.toml without its deadline, on this run's domain, with [ros.joints] = `joints`."""
+def _problem(tmp_path: Path, acts: Actuators, joints: dict[str, str], loop: dict | None = None, **ros) -> Path:
+    """paper_dynamic.toml without its deadline, on this run's domain, with [ros.joints] = `joints` (and [loop]
+    values `loop`)."""
     values = {"domain_id": DOMAIN, "max_age": 0.35, "joint_state_timeout": HANG, "start_timeout": HANG, **ros}
-    p = paper_copy(tmp_path, "paper_ros_jtc.toml", {("ros", k): v for k, v in values.items()})
+    table = {("ros", k): v for k, v in values.items()} | {("loop", k): v for k, v in (loop or {}).items()}
+    p = paper_copy(tmp_path, "paper_ros_jtc.toml", table)
     p.write_text(p.read_text() + "\n[ros.joints]\n" + "".join(f'{a} = "{j}"\n' for a, j in joints.items()))
     return p
 
@@ -183,7 +185,9 @@ def test_a_stock_controller_executes_simulation_2_as_verified(tmp_path, paper, m
     (independent dense check); the run is recorded to MCAP."""
     _, acts, scene, model, start = paper
     joints = {a: f"robot/{a}_joint" for a in acts.names}
-    path = _problem(tmp_path, acts, joints, state_lag=LAG_PERIODS * 0.004)
+    # references planned inside the steps (no worker process beside the loop, whose paths would arrive at steps that
+    # depend on the machine's load): on the virtual clock the whole run is then the same on any machine
+    path = _problem(tmp_path, acts, joints, loop={"reference_delay": 0.0}, state_lag=LAG_PERIODS * 0.004)
     ros = Problem.load(path).options(RosOptions, "ros")
     bound = ros.lead - ros.arrival_margin
     rng = np.random.default_rng(5)
