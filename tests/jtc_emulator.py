@@ -6,10 +6,11 @@ ros2_controllers JTC documents for its topic interface, written here without crt
   velocities / accelerations empty or one per joint, no efforts, strictly increasing time_from_start, a
   non-zero stamp whose last point is in the past, and (unless ``allow_nonzero_velocity_at_trajectory_end``)
   non-zero velocity at the last point. Refusals are recorded in `rejected`.
-- At its next control cycle an accepted message replaces the current trajectory at once: the state then
-  (perfect tracking: the old trajectory's command at that time, with its velocity and acceleration) becomes
-  the point before the trajectory, stamped with the cycle time; stamp 0 means the cycle time. (A real
-  controller reads the state one cycle late, so its point before lags by up to one period; not modelled.)
+- At its first control cycle at least `latency` s after receipt (0: the next cycle) an accepted message
+  replaces the current trajectory at once. The point before the trajectory is the state as the controller
+  reads it at the start of that update (perfect tracking: the command of `lag` s before, one control period
+  by default, as ros2_control reads state before it writes the command; with its velocity and
+  acceleration), stamped with the cycle time; stamp 0 means the cycle time.
 - Each cycle samples the trajectory: the segment before the first point from the point before, then the
   segment that contains the time; each segment linear, cubic or quintic by what both ends carry (its
   polynomial solved from the boundary conditions); after the end, the last point.
@@ -88,6 +89,8 @@ class JtcEmulator:
         period=0.004,
         joint_state_topic="/joint_states",
         allow_nonzero_velocity_at_trajectory_end=False,
+        lag=None,
+        latency=0.0,
     ):
         import rclpy
         from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -95,6 +98,8 @@ class JtcEmulator:
         from trajectory_msgs.msg import JointTrajectory
 
         self.joints, self.clock, self.period = tuple(joints), clock, float(period)
+        self.lag = self.period if lag is None else float(lag)
+        self.latency = float(latency)
         self.allow_nonzero_end = allow_nonzero_velocity_at_trajectory_end
         self.node = rclpy.create_node(name, context=ctx)
         for key, value in (
@@ -110,7 +115,8 @@ class JtcEmulator:
         self.received, self.rejected, self.accepted = [], [], 0
         self.commanded: list[tuple[float, np.ndarray]] = []
         self.adopted: list[tuple[float, dict]] = []  # (cycle time, the message as adopted)
-        self._pending = None
+        self._pending: list = []  # (receipt time, message)
+        self._history: list = []  # (cycle time, state commanded then), the last few cycles
         self._active = None  # (time before, state before, start time, points)
         self._state = {"p": np.asarray(start, dtype=float), "v": np.zeros(len(start)), "a": np.zeros(len(start))}
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
@@ -127,7 +133,7 @@ class JtcEmulator:
             self.received.append(msg)
             if why is None:
                 self.accepted += 1
-                self._pending = msg
+                self._pending.append((self.clock(), msg))
             else:
                 self.rejected.append(why)
             self.lock.notify_all()
@@ -158,15 +164,14 @@ class JtcEmulator:
         with self.lock:
             if not self._running:
                 return False
-            msg, self._pending = self._pending, None
-        if msg is not None:
-            if self._active is not None:
-                p, v, a = self._sample(now)  # the state at arrival: where the old trajectory commands now
-                self._state = {"p": p, "v": v, "a": a}
-            self._adopt(msg, now)
+            due = [m for r, m in self._pending if r + self.latency <= now + 1e-12]
+            self._pending = [(r, m) for r, m in self._pending if r + self.latency > now + 1e-12]
+        if due:
+            self._adopt(due[-1], now)  # several due at once: the last replaces the others
         if self._active is not None:
             p, v, a = self._sample(now)
             self._state = {"p": p, "v": v, "a": a}
+        self._history = [*self._history[-64:], (now, dict(self._state))]
         with self.lock:
             self.commanded.append((now, self._state["p"].copy()))
             self.lock.notify_all()
@@ -190,9 +195,19 @@ class JtcEmulator:
             pt["v"] = np.array(p.velocities)[order] if len(p.velocities) else None
             pt["a"] = np.array(p.accelerations)[order] if len(p.accelerations) else None
             points.append(pt)
-        before = dict(self._state)
+        before = self._state_read(now)
         self._active = (now, before, points)
         self.adopted.append((now, {"before": before, "points": points}))
+
+    def _state_read(self, now: float) -> dict:
+        """The state the controller reads at the start of its update at `now`: the command of `lag` s before
+        (the newest cycle at or before then; the start state before the first cycle). Lag 0: the old
+        trajectory's command at `now` itself (an idealised controller)."""
+        if self.lag <= 0.0 and self._active is not None:
+            p, v, a = self._sample(now)
+            return {"p": p, "v": v, "a": a}
+        old = [st for t, st in self._history if t <= now - self.lag + 1e-12]
+        return dict(old[-1]) if old else dict(self._state if not self._history else self._history[0][1])
 
     def _sample(self, t: float):
         t_before, before, points = self._active

@@ -112,12 +112,59 @@ def test_measurement_is_the_commanded_motion_corrected_by_the_joint_state():
     assert ok and np.allclose(q, expect, atol=1e-9) and np.array_equal(qc, C[-1])
     # a step not ready before its start is refused; the robot finishes what is under way: its stop tail
     clock.advance_to(0.31)
-    with pytest.raises(DeviceError, match=r"ready 0\.010 s after its start time"):
+    with pytest.raises(
+        DeviceError, match=r"ready 0\.210 s late, beyond the bound .* \(\+0\.010 s from its start time\)"
+    ):
         dev.move(0.1, q, C, 0.02)
     stamp, offs2, vals2, vels2 = node.sent[-1]
-    assert stamp == pytest.approx(0.2 + offs[-1]) and len(offs2) == 1
-    assert np.array_equal(vals2[0], vals[-1]) and np.all(vels2 == 0.0)
+    # the hold: the committed knots from the last one already due (the step's last point, at loop time 0.1) to rest
+    assert stamp == pytest.approx(0.2 + offs[-2]) and len(offs2) == 2
+    assert np.array_equal(vals2, vals[-2:]) and np.array_equal(vels2, vels[-2:]) and np.all(vels2[-1] == 0.0)
     # no joint state newer than joint_state_timeout: the robot is lost
     clock.advance_to(5.0)
     dev.measure(0.2, q, qc)
     assert "robot lost" in dev.problem()
+
+
+@pytest.mark.parametrize("margin", [0.0, 0.05])
+def test_a_step_later_than_the_lateness_bound_is_refused_not_sent(margin):
+    """Steps computed late on a virtual clock (lead 0.2 s, arrival margin `margin`): up to the bound lead - margin
+    each is published, and its message starts at a committed knot already due (it survives arrival up to
+    `margin` later); a bound and 1 ms late, the step is refused and counted (late_refused), and the only message
+    that leaves is the hold: the committed curve, unchanged."""
+    problem = Problem.load(PAPER)
+    acts = Actuators.from_robot(problem.robot)
+    model = Model(problem.robot)
+    servo = TrackingController(model, TrackingOptions()).servo
+    scene = Scene.from_table(problem.section("scene")).with_obstacles(())
+    node, clock = _FakeNode(RosOptions(points_per_step=5), acts.names), VirtualClock(1.0)
+    ver = FrameVerifier(problem.robot, acts, scene, 0.005, model=model)
+    dev = RosDevice(
+        node, acts, model, servo, 0.1, ver, lambda: scene, clock=clock, sleep=clock.sleep, lead=0.2,
+        arrival_margin=margin, state_lag=0.01,
+    )  # fmt: skip
+    q0 = problem.robot.cable_matrix()[1]
+    node.state = (acts.command(q0), 0.0)
+    dev.start_actuation()
+    dev.begin(0.0)  # loop time t is clock time 1.2 + t
+    q, qc, bound = q0.copy(), q0.copy(), 0.2 - margin
+    dz = np.zeros(acts.n)
+    dz[-1] = 0.02  # the z stage moves 0.02 mm a step
+    for k, late in enumerate([0.0, bound * 0.5, bound]):
+        t = 0.1 * k
+        clock.advance_to(1.0 + t + late)  # step t is due to be sent 0.2 s before it starts
+        C = qc + np.outer(np.arange(1, 6) / 5, dz)  # a ramp of set-points
+        dev.move(t, q, C, 0.02)
+        stamp = node.sent[-1][0]
+        assert k == 0 or stamp <= clock() + 1e-12  # its first point is due when it is sent (after the start at rest)
+        for c in C:  # where the servo model is at the step's end
+            q = servo.advance(q, c, 0.02)
+        qc = C[-1]
+    assert dev.refused_steps == dev.late_refused == 0 and len(node.sent) == 3
+    before = dev.committed
+    clock.advance_to(1.3 + bound + 0.001)
+    with pytest.raises(DeviceError, match=r"late, beyond the bound"):
+        dev.move(0.3, q, qc + np.outer(np.arange(1, 6) / 5, dz), 0.02)
+    assert dev.refused_steps == dev.late_refused == 1 and len(node.sent) == 4 and dev.holds == 1
+    ts = np.linspace(clock() - 1.2, before.end + 0.1, 200)
+    assert np.allclose(dev.committed.at(ts)[0], before.at(ts)[0], atol=1e-12)  # the hold: the same curve

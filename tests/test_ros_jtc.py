@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from crtraj.hardware.ros.controller import check_parameters
-from crtraj.hardware.ros.jtc import JtcMessage, JtcParameters, Spline, executed, rejection
+from crtraj.hardware.ros.jtc import JtcMessage, JtcParameters, Spline, executed, rejection, state_before
 from crtraj.hardware.ros.shaping import TAIL_FRACTION, hold_message, step_message, stop_tail
 
 NAMES = ("a", "b")
@@ -205,3 +205,90 @@ def test_controller_parameters_that_would_not_execute_the_verified_curve_are_nam
     assert check_parameters("jtc", open_loop, NAMES)[1] == ""
     params, _ = check_parameters("jtc", {**good, "allow_nonzero_velocity_at_trajectory_end": True}, NAMES)
     assert params.allow_nonzero_velocity_at_trajectory_end
+
+
+def _emulate(msg, arrival: float, before: dict, times: np.ndarray) -> np.ndarray:
+    """Independent: what the test's JTC emulator (`jtc_emulator.JtcEmulator`, its own polynomial solves) commands
+    at `times` after adopting `msg` at `arrival` with the point before the trajectory `before` ({p, v, a})."""
+    from jtc_emulator import JtcEmulator
+
+    emu = JtcEmulator.__new__(JtcEmulator)  # its sampling only: no rclpy node
+    start = arrival if msg.stamp == 0.0 else msg.stamp
+    pts = [
+        {"t": start + p.time_from_start, "p": p.positions, "v": p.velocities if p.velocities.size else None, "a": None}
+        for p in msg.points
+    ]
+    emu._active = (arrival, before, pts)
+    return np.array([emu._sample(float(c))[0] for c in times])
+
+
+def _before(curve: Spline, t: float) -> dict:
+    p, v, a = curve.at(t)
+    return {"p": p, "v": v, "a": a}
+
+
+@pytest.mark.parametrize("lag", [0.0, 0.004, 0.012])
+def test_a_step_computed_late_within_the_bound_executes_the_same_curve_whatever_the_lag(lag):
+    """A step due at t, computed up to lead - margin late and arriving up to margin after it was sent, read by a
+    controller whose state lags by `lag`: what the (independently emulated) controller commands from arrival on
+    is, to 1e-12, the curve the bridge verified, and the same for every lateness and arrival: the committed curve
+    until t, then the step."""
+    # loop time 1 s on (a stamp of 0 would mean "now" to the controller)
+    committed, t, lead, margin = _committed().shifted(1.0), 1.16, 0.15, 0.02
+    offsets = 0.02 * np.arange(1, 6)
+    vals = committed.state(t)[0] + np.outer(offsets, [0.2, -0.1])
+    vel = np.tile([0.2, -0.1], (5, 1))
+    amax = np.array([3.0, 2.0])
+    reference = None
+    cycles = 1.0 + np.arange(0.0, 0.6, 0.004)
+    for late in np.linspace(0.0, lead - margin, 7):
+        now = t - lead + late
+        msg = step_message(committed, now, t, (offsets, vals, vel), amax, NAMES)
+        assert msg.stamp <= now and rejection(msg, NAMES, now, DEFAULT) is None  # its first point is already due
+        verified = executed(msg, now, *state_before(committed, now, lag))
+        ts = cycles[cycles >= now]
+        expect = verified.at(ts)[0]
+        assert np.allclose(expect[ts < t], committed.at(ts[ts < t])[0], atol=1e-12)
+        reference = expect[ts >= t - margin] if reference is None else reference
+        assert np.allclose(expect[ts >= t - margin], reference, atol=1e-12)  # the same for every lateness
+        for arrival in (now, now + margin / 2, now + margin):
+            got = _emulate(msg, arrival, _before(committed, arrival - lag), ts[ts >= arrival])
+            assert np.allclose(got, verified.at(ts[ts >= arrival])[0], atol=1e-12)
+
+
+def test_the_state_lag_changes_the_point_before_and_the_model_follows_it():
+    """A message whose first point lies after its arrival (as a hold at rest, or a message shaped the old way):
+    the controller's lagged state changes what it executes (by more than 1e-6), and the model with `state_before`
+    predicts the emulated controller to 1e-12 for each lag."""
+    committed, now = _committed(), 0.031
+    keep = committed.times > now
+    T = committed.times[keep]
+    msg = JtcMessage.from_arrays(NAMES, T[0], T - T[0], committed.positions[keep], np.array(committed.velocities)[keep])
+    ts = np.arange(now, 0.25, 0.002)
+    runs = {}
+    for lag in (0.0, 0.004, 0.012):
+        got = _emulate(msg, now, _before(committed, now - lag), ts)
+        model = executed(msg, now, *state_before(committed, now, lag)).at(ts)[0]
+        assert np.allclose(got, model, atol=1e-12)
+        runs[lag] = got
+    assert np.allclose(runs[0.0], committed.at(ts)[0], atol=1e-12)
+    assert np.max(np.abs(runs[0.012] - runs[0.0])) > 1e-6
+
+
+def test_a_due_knot_at_controller_clock_zero_is_not_sent_as_stamp_zero():
+    """The committed knot due at the send time lies at controller clock 0 (ROS sim time starts there): a message
+    stamped 0 would start "now" instead, so the message starts at the next knot, its stamp non-zero, and the
+    model's executed curve (the point before the trajectory used) is still the committed curve."""
+    committed = _committed()  # knots every 0.02 s from loop time 0
+    epoch, now, t = 0.0, 0.031, 0.1
+    plain = step_message(
+        committed, now, t, (0.02 * np.arange(1, 3), np.zeros((2, 2)), np.zeros((2, 2))), np.ones(2), NAMES
+    )
+    assert plain.stamp == pytest.approx(0.02)  # the last knot at or before now
+    shifted = committed.shifted(-0.02)  # now the due knot is at clock time 0
+    pts = (0.02 * np.arange(1, 3), np.zeros((2, 2)), np.zeros((2, 2)))
+    msg = step_message(shifted, now - 0.02, t - 0.02, pts, np.ones(2), NAMES, epoch)
+    assert msg.stamp + epoch != 0.0 and msg.stamp == pytest.approx(0.02)
+    cur = executed(msg, now - 0.02, *shifted.state(now - 0.02), epoch=epoch)
+    ts = np.linspace(now - 0.02, t - 0.02, 50)
+    assert np.allclose(cur.at(ts)[0], shifted.at(ts)[0], atol=1e-12)

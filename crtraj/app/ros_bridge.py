@@ -228,7 +228,7 @@ def _run(req: RosBridgeRequest, problem: Problem, out: Path, parts: _Parts, paci
     spacing = dt / (ros.points_per_step * VERIFY_SUBSTEPS)  # the executed curve is checked this densely
     verifier = FrameVerifier(problem.robot, acts, loop.scene, spacing, model=loop.model)
     kw: dict[str, Any] = {} if pacing.clock is None else {"clock": pacing.clock, "sleep": pacing.sleep or time.sleep}
-    kw.update(lead=ros.lead, controller=parts.controller)
+    kw.update(lead=ros.lead, controller=parts.controller, arrival_margin=ros.arrival_margin, state_lag=ros.state_lag)
     device = RosDevice(node, acts, loop.model, loop.servo, dt, verifier, lambda: loop.scene_now, **kw)
     _plan_first(loop, node, acts)
     stage = parts.stack.enter_context(StagedDir(out, RUN_FILES))
@@ -254,7 +254,8 @@ def _print_summary(run: Any, device: RosDevice, staged: dict[str, Any], dest: Pa
     d = device.describe()
     r = d["ros"]
     print(
-        f"  ros: {d['moves']} steps published, {d['holds']} holds, {d['refused_steps']} refused before sending; "
+        f"  ros: {d['moves']} steps published, {d['holds']} holds, {d['refused_steps']} refused before sending "
+        f"({d['late_refused']} too late); "
         f"{r['joint_states']} joint states, {r['marker_arrays']} marker arrays, rejected {r['rejected'] or 'none'}"
     )
     if not quiet:

@@ -19,9 +19,10 @@ updates its path based on its current position") at the replanner's step dt:
    bounds), together with a safe way to stop after it (holding the end
    configuration over the next step is safe);
 5. if the move fails verification or the NLP failed, try the previous
-   solution's next move, then holding still (actuators commanded to their
-   measured positions: the servos stop where they are); if even holding is
-   unsafe, apply the least unsafe of these and report it.
+   solution's next move, then holding: at rest, actuators commanded to their
+   measured positions; moving, a stop within the acceleration limits
+   (`crtraj.control.braking`), verified over its whole duration; if even
+   holding is unsafe, apply the least unsafe of these and report it.
 
 A live device is driven through the `crtraj.control.ports.Device` port; the loop
 never imports hardware or viewing code. Every step records time,
@@ -77,9 +78,11 @@ class _Robot:
     x_prev: np.ndarray
     q_last: np.ndarray
     inc: np.ndarray
+    on_device: bool = False  # q is a device's measurement: the device brakes a hold itself
 
     def now(self) -> RobotNow:
-        return RobotNow(self.t, self.q, self.qc, self.x, self.inc)
+        # a measured q and the model's q_last give no velocity to plan a stop from
+        return RobotNow(self.t, self.q, self.qc, self.x, self.inc, None if self.on_device else self.q_last)
 
 
 class ClosedLoop:
@@ -264,6 +267,7 @@ class ClosedLoop:
                 if why_not:
                     return self._finish(robot, RunStatus.DEVICE, why_not, t_wall, device)
                 robot.q, robot.qc, _ = device.measure(t, robot.q, robot.qc)
+                robot.on_device = True
                 robot.x = self.servo.config(robot.q)
             status = self._step(k, robot, device, t_iter)
             p.tip.sense(robot.t, robot.q, robot.x, p.references)

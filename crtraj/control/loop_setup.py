@@ -155,7 +155,8 @@ def assemble(spec: LoopSpec) -> tuple[LoopParts, LoopConfig]:
         raise InputError("replanner: its dt and horizon must match the loop's options")
     obstacles: ObstacleSource = SceneObstacles(scene) if spec.obstacles is None else spec.obstacles
     checks = SceneChecks(model, scene, spec.loop_options)
-    motion = StepMotion(tracker, checks, o.dt, cfg.n_sub, spec.loop_options.check_resolution)
+    # a hold while moving is a stop within the same limits as the executed motion's samples
+    motion = StepMotion(tracker, checks, o.dt, cfg.n_sub, spec.loop_options.check_resolution, brake_limits=sampled)
     # the tip sensor is always read and recorded; with tip_feedback the loop also corrects its model's
     # error: a low-pass estimate of measured minus model tip shifts the goal the reference planner aims
     # the model's tip at (output-disturbance correction)

@@ -30,13 +30,15 @@ class Choice:
 @dataclass(frozen=True)
 class RobotNow:
     """Where the robot is at the step's start t (s): actuation q and set-point qc (nq,) mm, configuration
-    x (nx,), and the set-point's configuration change in the last control period (inc, nx)."""
+    x (nx,), the set-point's configuration change in the last control period (inc, nx), and the actuation
+    one control period before (q_last, mm; None: unknown, a hold then stops at once)."""
 
     t: float
     q: np.ndarray
     qc: np.ndarray
     x: np.ndarray
     inc: np.ndarray
+    q_last: np.ndarray | None = None
 
 
 class StepPolicy:
@@ -68,10 +70,11 @@ class StepPolicy:
         return replace(res, status=HorizonStatus.SKIPPED, solver_status=why)
 
     def stale(self, now: RobotNow, why: str) -> tuple[Choice, HorizonResult]:
-        """No trustworthy obstacle state: keep the actuators where they are; the step's record says why."""
+        """No trustworthy obstacle state: stop (within the acceleration limits when moving) and stay; the
+        step's record says why."""
         self.last_plan = None
         self.replanner.reset()
-        hold = self.motion.hold(now.q, now.x, now.t)
+        hold = self.motion.hold(now.q, now.x, now.t, now.q_last)
         return Choice(StepStatus.STALE, now.x.copy(), hold, math.nan), skipped(self.replanner, f"skipped: {why}")
 
     def choose(self, now: RobotNow, res: HorizonResult, keep_warm: bool = False) -> Choice:
@@ -113,14 +116,24 @@ class StepPolicy:
         return choice
 
     def _least_unsafe(self, now: RobotNow, tried: list[Choice]) -> Choice:
-        """No candidate move verified: hold (command every actuator to its measured position, so the
-        first-order servos stay put) when that is safe or no worse than the best move tried, else that move."""
-        hold = self.motion.hold(now.q, now.x, now.t)
-        bound_h = self.checks.hold_clearance(now.x, now.t, self.options.dt)
+        """No candidate move verified: hold when that is safe or no worse than the best move tried, else that
+        move. At rest a hold commands every actuator to its measured position (the first-order servos stay
+        put); moving, it is the stop within the acceleration limits (`StepMotion.stop`), whose whole duration
+        and the rest after it are verified like any move."""
+        hold, bound_h = self.hold(now)
         best = max(tried, key=lambda c: c.bound) if tried else None
         if bound_h >= 0.0 or best is None or best.bound <= bound_h:
             return Choice(StepStatus.HOLD if bound_h >= 0.0 else StepStatus.UNSAFE, now.x.copy(), hold, bound_h)
         return Choice(StepStatus.UNSAFE, best.planned, best.motion, best.bound)
+
+    def hold(self, now: RobotNow) -> tuple[Motion, float]:
+        """The hold's motion for this step and its conservative clearance bound (mm, minus D_sf): of the whole
+        stop and of resting after it for one step when moving, else of staying at now.x for one step."""
+        dt = self.options.dt
+        if now.q_last is None or self.motion.brake_limits is None or not np.any(now.q != now.q_last):
+            return self.motion.hold(now.q, now.x, now.t), self.checks.hold_clearance(now.x, now.t, dt)
+        motion, (T, X) = self.motion.stop(now.q, now.q_last, now.t)
+        return motion, self.checks.verify(T, X, (T[-1], max(T[-1], now.t + dt) + dt))
 
     def _keep_plan(self, status: StepStatus, res: HorizonResult, keep_warm: bool = False) -> None:
         """Keep what remains of the applied NLP solution (the next step's fallback); forget the replanner's

@@ -39,7 +39,8 @@ class RosDevice:
     message (`crtraj.hardware.ros.shaping.step_message`): the committed curve's knots from the send time
     to the step's start, the step's points, and a stop tail to rest. Before anything is published the
     curve the controller will execute from the message's arrival (`crtraj.hardware.ros.jtc.executed`,
-    the controller's state then being the committed curve's) passes the controller's own acceptance
+    the point before the trajectory being the committed curve `state_lag` s before arrival, as the
+    controller reads its state one update late) passes the controller's own acceptance
     rules (`jtc.rejection` with `jtc` parameters) and, sampled every `verifier.dt` s up to rest,
     `verifier` (a `crtraj.hardware.verify.FrameVerifier`) against the scene snapshot the loop checked the
     step with (`scene_now`): actuator position, velocity and acceleration limits, cable consistency,
@@ -51,8 +52,11 @@ class RosDevice:
     what is sent; loop time t is clock time origin + t, and step t is computed and sent `lead` s before
     it starts. The measurement at loop time t is the committed curve at t, corrected by the newest
     joint state's deviation from it at the state's stamp, decayed with the servo's lag; a joint state
-    older than ``ros.joint_state_timeout`` s means the robot is lost and the run ends. A step not ready
-    before its start time is refused; once at rest, a late loop moves the origin on (`restarts`).
+    older than ``ros.joint_state_timeout`` s means the robot is lost and the run ends. A message may
+    take up to `arrival_margin` s to reach the controller: a step ready later than that before its
+    start (computed more than ``lead - arrival_margin`` s late) is refused and counted (`late_refused`);
+    within that bound its lateness changes nothing in what the robot executes. Once at rest, a late
+    loop moves the origin on (`restarts`).
     `sleep` paces the loop (a virtual clock's sleep advances it).
     """
 
@@ -70,6 +74,8 @@ class RosDevice:
         sleep: Callable[[float], None] = time.sleep,
         lead: float = 0.0,
         controller: jtc.JtcParameters | None = None,
+        arrival_margin: float = 0.0,
+        state_lag: float = 0.0,
     ) -> None:
         self.node = node
         self.options = node.options
@@ -81,6 +87,7 @@ class RosDevice:
         self.scene_now = scene_now
         self.clock, self.sleep = clock, sleep
         self.lead = float(lead)
+        self.arrival_margin, self.state_lag = float(arrival_margin), float(state_lag)
         self.controller = jtc.JtcParameters() if controller is None else controller
         self.n_points = self.options.points_per_step
         self.offsets = self.dt * np.arange(1, self.n_points + 1) / self.n_points
@@ -97,6 +104,7 @@ class RosDevice:
         self.moves = self.holds = self.refused_steps = self.measured_steps = 0
         self.refusal = ""
         self.late = 0
+        self.late_refused = 0  # steps ready too late to arrive before their start (beyond the lateness bound)
         self.restarts = 0  # times a late loop at rest moved the origin on
         self.peaks = LimitPeaks(actuators, self.spacing)  # of the executed curves published
 
@@ -175,11 +183,17 @@ class RosDevice:
         if self.estopped or self._problem:
             raise DeviceError(self._problem or "e-stopped")
         now = self.clock() - self._origin
-        if now > t:
-            self._refuse(t, f"ready {now - t:.3f} s after its start time (it is due ros.lead = {self.lead:g} s before)")
+        if now + self.arrival_margin > t + 1e-9:
+            # it might arrive after its start, when the robot is on the previous step's stop tail already
+            self.late_refused += 1
+            self._refuse(
+                t,
+                f"ready {now - (t - self.lead):.3f} s late, beyond the bound ros.lead - ros.arrival_margin = "
+                f"{self.lead - self.arrival_margin:.3f} s ({now - t:+.3f} s from its start time)",
+            )
         values, vel = self.samples(q0, commands)
         names = tuple(self.node.names)
-        msg = step_message(self._curve, now, t, (self.offsets, values, vel), self.actuators.amax, names)
+        msg = step_message(self._curve, now, t, (self.offsets, values, vel), self.actuators.amax, names, self._origin)
         why = self._verify(msg, now)
         if why is not None:
             self._refuse(t, why)
@@ -195,7 +209,9 @@ class RosDevice:
         why = jtc.rejection(msg, names, now, self.controller, epoch=self._origin)
         if why is not None:
             return f"the controller would refuse it: {why}"
-        p0, v0 = self._curve.state(now)
+        # the point before the trajectory is the controller's lagged state (never used: the message's first point
+        # is already due when it arrives; `crtraj.hardware.ros.shaping`)
+        p0, v0 = jtc.state_before(self._curve, now, self.state_lag)
         curve = jtc.executed(msg, now, p0, v0, epoch=self._origin)
         stamps = now + self.spacing * np.arange(math.ceil((curve.end - now) / self.spacing - 1e-9) + 1)
         P, V, _ = curve.at(stamps)
@@ -258,12 +274,12 @@ class RosDevice:
         if self._last is None:
             return
         now = self.clock() - self._origin
-        msg = hold_message(self._curve, now, self.dt / self.n_points, tuple(self.node.names))
+        msg = hold_message(self._curve, now, self.dt / self.n_points, tuple(self.node.names), self._origin)
         tfs = np.array([p.time_from_start for p in msg.points])
         pos = np.array([p.positions for p in msg.points])
         vel = np.array([p.velocities for p in msg.points])
         self.node.publish_trajectory(self._origin + msg.stamp, tfs, pos, vel)
-        p0, v0 = self._curve.state(now)
+        p0, v0 = jtc.state_before(self._curve, now, self.state_lag)
         self._curve = self._curve.since(now - 2.0).then(jtc.executed(msg, now, p0, v0, epoch=self._origin))
         self._vel = np.zeros(self.actuators.n)
         self._qc = self.actuators.actuation(self._curve.positions[-1])
@@ -294,6 +310,7 @@ class RosDevice:
             "refused_steps": self.refused_steps,
             "refusal": self.refusal,
             "late_steps": self.late,
+            "late_refused": self.late_refused,
             "restarts": self.restarts,
             "problem": self._problem,
             "ros": self.node.describe(),

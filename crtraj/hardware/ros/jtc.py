@@ -10,8 +10,10 @@ The model follows the controller's documented behaviour on its topic interface
   past refused, and a last point with non-zero velocity refused unless
   ``allow_nonzero_velocity_at_trajectory_end`` (false by default in current releases).
 - An accepted message replaces the current trajectory at once. At its first control cycle (the
-  arrival) the controller stores its state then as "the point before the trajectory" (the measured
-  state, or the last command with ``open_loop_control``), stamped with the arrival time.
+  arrival) the controller stores its state as "the point before the trajectory" (the measured
+  state, or the last command with ``open_loop_control``), stamped with the arrival time. That state
+  is read at the start of the update, before the cycle's command: it is the state one controller
+  period old (`state_before`, lag ``1 / update_rate``), not the state at the arrival time.
 - ``header.stamp`` 0 means "start now": the start time becomes the arrival time. Point k is due at
   start + ``time_from_start[k]``.
 - Between the point before and the first point, and between consecutive points, the controller
@@ -284,6 +286,13 @@ def segment_coefficients(kind: str, h: float, a: tuple[np.ndarray, ...], b: tupl
     return c
 
 
+def state_before(curve: Spline, arrival: float, lag: float) -> tuple[np.ndarray, np.ndarray]:
+    """The point before the trajectory of a message arriving at `arrival` (s) while the controller commands
+    `curve`: its state read at the start of that update, i.e. the curve `lag` s earlier (one controller period
+    for a ros2_control JTC: 1 / update_rate; 0 for an idealised one). (positions, velocities)."""
+    return curve.state(float(arrival) - max(float(lag), 0.0))
+
+
 def executed(
     msg: JtcMessage,
     arrival: float,
@@ -294,8 +303,9 @@ def executed(
     epoch: float = 0.0,
 ) -> Spline:
     """The curve the controller commands from `arrival` (s) on for an accepted `msg`, in the order of
-    `joints` (default: the message's order): the point before the trajectory is its state at arrival
-    (position, and velocity / acceleration when its state carries them), then the message's points
+    `joints` (default: the message's order): the point before the trajectory is its state as read at
+    arrival (position, and velocity / acceleration when its state carries them; `state_before` gives it
+    with the controller's state lag), then the message's points
     at stamp + time_from_start (stamp 0: the arrival). Points already due at arrival are passed over
     by time: the curve from arrival on is the segment that contains it. epoch: as in `rejection`."""
     order = list(range(len(msg.joint_names))) if joints is None else [msg.joint_names.index(j) for j in joints]

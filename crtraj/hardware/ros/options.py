@@ -33,8 +33,12 @@ class RosOptions(Options):
     "localhost" keeps discovery on this machine (the default, as every crtraj server binds
     127.0.0.1), "subnet" lets other machines in.
     points_per_step: trajectory points per replan step (each checked before it is sent). lead: s
-    each step is sent before it starts (the live obstacles are predicted that far ahead); a step not
-    ready by its start is refused and the robot held.
+    each step is sent before it starts (the live obstacles are predicted that far ahead).
+    arrival_margin: s a message may take to reach the controller; a step not ready that long before
+    its start (more than ``lead - arrival_margin`` s late) is refused, counted and the robot held.
+    state_lag: s the controller's state lags its command when it reads it for the point before a
+    new trajectory (one update period of ros2_control, 1 / update_rate; the bridge's messages never
+    use that point, and its verification models it).
     joint_state_timeout: s the bridge waits for a joint state at least as new as the step it
     measures before it gives up on the robot. start_timeout: s to wait for the first joint state
     and obstacles. max_age: s after which an obstacle's state is stale (the loop then holds).
@@ -58,6 +62,8 @@ class RosOptions(Options):
     discovery: str = option("localhost", choices=("localhost", "subnet"))
     points_per_step: int = option(5, ge=1, le=100)
     lead: float = option(0.2, ge=0.0, le=10.0)
+    arrival_margin: float = option(0.02, ge=0.0, le=1.0)
+    state_lag: float = option(0.01, ge=0.0, le=1.0)
     joint_state_timeout: float = option(1.0, gt=0.0, le=60.0)
     start_timeout: float = option(10.0, gt=0.0, le=600.0)
     max_age: float = option(0.2, gt=0.0, le=60.0)
@@ -85,6 +91,11 @@ class RosOptions(Options):
         return out
 
     def _check(self) -> None:
+        if self.lead <= self.arrival_margin:
+            raise InputError(
+                f"ros.arrival_margin: must be less than ros.lead ({self.lead:g} s), got {self.arrival_margin:g} s "
+                "(every step would be refused as late)"
+            )
         if self.reliability == "best_effort":
             raise InputError(
                 "ros.reliability: best_effort is refused: joint_trajectory_controller subscribes reliable, and a "

@@ -4,13 +4,16 @@ The controller replaces its trajectory at once when a message arrives and spline
 then (the point before the trajectory) to the message's first point (`crtraj.hardware.ros.jtc`).
 The bridge's committed curve (everything it sent, as the controller executes it) is piecewise cubic:
 every point carries positions and velocities, none accelerations. A cubic is fixed by positions and
-velocities at both ends, so a message whose first points are the committed curve's own knots after
-the send time reproduces the committed curve exactly from any arrival time on (the point before the
-trajectory lies on the same cubic as the next knot), given the controller's state at arrival is the
-commanded one (perfect tracking or ``open_loop_control``) with velocities.
+velocities at both ends, so a message made of the committed curve's own knots reproduces the committed
+curve exactly. Its first point is the committed knot at or before the send time `now`: it is already
+due when the message arrives, so the controller samples the message's own segments and never uses the
+point before the trajectory (its state at arrival, which a real controller reads one update late: a
+lagged, slightly different point). Whenever the message arrives between `now` and the step's start t,
+and whatever the controller's state lag, the robot stays on the committed curve: arrival latency and a
+step computed late by up to ``ros.lead - ros.arrival_margin`` change nothing in the executed curve.
 
-Each step's message (`step_message`) is therefore: the committed knots after `now` and before the
-step's start t, the committed state at t, the step's points (positions of the servo model, velocities
+Each step's message (`step_message`) is therefore: the committed knots from the last one at or before
+`now` to the step's start t, the committed state at t, the step's points (positions of the servo model, velocities
 of the cubic spline through them: `smooth_velocities`), and a stop tail: one segment at constant
 deceleration (a fraction `TAIL_FRACTION` of each actuator's acceleration limit) ending at rest. So the
 last point has zero velocity (the controller's default refuses anything else), and when the next
@@ -46,12 +49,14 @@ def step_message(
     points: tuple[np.ndarray, np.ndarray, np.ndarray],
     amax: np.ndarray,
     names: tuple[str, ...],
+    epoch: float = 0.0,
 ) -> JtcMessage:
     """The message (stamp and times in loop time s) for the step starting at t, sent at loop time `now`:
-    the committed knots in (now, t), the committed state at t, the step's points (offsets (N,) s after t,
-    values and velocities (N, n)), and the stop tail after the last point."""
+    the committed knots from the last one at or before `now` to t (exclusive), the committed state at t, the
+    step's points (offsets (N,) s after t, values and velocities (N, n)), and the stop tail after the last
+    point. epoch: the controller's clock reads epoch + loop time (see `_due`)."""
     offsets, values, _ = points
-    keep = (committed.times > now) & (committed.times < t - 1e-9)
+    keep = (committed.times >= _due(committed, now, epoch)) & (committed.times < t - 1e-9)
     p_t, v_t = committed.state(t)
     spacing = float(offsets[0])
     vel = smooth_velocities(p_t, v_t, values, spacing)
@@ -86,10 +91,12 @@ def smooth_velocities(p0: np.ndarray, v0: np.ndarray, values: np.ndarray, h: flo
     return np.linalg.solve(M, rhs)
 
 
-def hold_message(committed: Spline, now: float, spacing: float, names: tuple[str, ...]) -> JtcMessage:
-    """What to send to keep the robot on its committed curve to rest (its knots after `now`), or, when it is
-    at rest already, one point at rest there `spacing` s from now."""
-    keep = committed.times > now
+def hold_message(
+    committed: Spline, now: float, spacing: float, names: tuple[str, ...], epoch: float = 0.0
+) -> JtcMessage:
+    """What to send to keep the robot on its committed curve to rest (its knots from the last one at or before
+    `now`), or, when it is at rest already, one point at rest there `spacing` s from now."""
+    keep = (committed.times >= _due(committed, now, epoch)) & np.any(committed.times > now)
     if np.any(keep):
         idx = np.flatnonzero(keep)
         V = np.array([_velocity(committed, i) for i in idx])
@@ -97,6 +104,17 @@ def hold_message(committed: Spline, now: float, spacing: float, names: tuple[str
         return JtcMessage.from_arrays(names, T[0], T - T[0], committed.positions[keep], V)
     rest = committed.positions[-1][None]
     return JtcMessage.from_arrays(names, now + spacing, np.zeros(1), rest, np.zeros_like(rest))
+
+
+def _due(curve: Spline, now: float, epoch: float = 0.0) -> float:
+    """Time of the curve's last knot at or before `now` (its first knot when there is none): the first point of
+    a message sent at `now`, already due when it arrives. A knot at controller clock time 0 (epoch + time; ROS
+    sim time starts there) would make the message's stamp 0, which the controller reads as "now": the next knot
+    is taken instead (the point before the trajectory is then used, as `jtc.executed` models)."""
+    k = max(int(np.searchsorted(curve.times, now, side="right")) - 1, 0)
+    if curve.times[k] + epoch == 0.0 and k + 1 < len(curve.times):
+        k += 1
+    return float(curve.times[k])
 
 
 def _velocity(curve: Spline, k: int) -> np.ndarray:
