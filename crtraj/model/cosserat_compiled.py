@@ -86,10 +86,13 @@ def resjac_function(pieces: RodPieces, nt: int) -> ca.Function:
     return ca.Function("rod_resjac", [w, p], [r, dr], ["w", "p"], ["r", "J"])
 
 
-def _key(name: str, robot: Robot, mech: Mechanics, flags: tuple[str, ...]) -> BuildKey:
-    """Cache key: the robot's description, the stiffness and steps, the flags and the generating sources' hash."""
+def build_key(
+    name: str, robot: Robot, mech: Mechanics, flags: tuple[str, ...], extra: tuple[str, ...] = ()
+) -> BuildKey:
+    """Cache key: the robot's description, the stiffness and steps, the flags and the generating sources' hash
+    (this package's `_SOURCES` and the `extra` files beside them)."""
     here = Path(__file__).resolve().parent
-    digest = hashlib.sha256(b"".join((here / f).read_bytes() for f in _SOURCES)).hexdigest()
+    digest = hashlib.sha256(b"".join((here / f).read_bytes() for f in (*_SOURCES, *extra))).hexdigest()
     robot_spec = {k: v for k, v in robot.to_dict().items() if k not in ("description", "actuators")}
     spec = {
         "robot": robot_spec,
@@ -134,7 +137,8 @@ class CompiledShooting:
             return pieces[0]
 
         fast, slow = ("-O2",), ("-O0",)
-        shape_key, jac_key = _key("crtraj_rod_shape", robot, mech, fast), _key("crtraj_rod_jac", robot, mech, slow)
+        shape_key = build_key("crtraj_rod_shape", robot, mech, fast)
+        jac_key = build_key("crtraj_rod_jac", robot, mech, slow)
         shape = compiled_functions(cache, shape_key, ["rod_shape"], lambda: [shape_function(made(), nt)], fast)
         jac = compiled_functions(cache, jac_key, ["rod_resjac"], lambda: [resjac_function(made(), nt)], slow)
         if shape is None or jac is None:
