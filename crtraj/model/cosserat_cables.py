@@ -160,6 +160,8 @@ class CableDrivenRod:
             same = self._jac_taut is not None and np.array_equal(taut, self._jac_taut)
             jac0 = self._jac if same else None
             z, res, shape, self._jac, stats = self._compiled.chord_newton(z0, q, jac0, tol, self.mech.max_iter)
+            if not stats.success and jac0 is not None:  # the kept Jacobian led astray: again from z0 with a fresh one
+                z, res, shape, self._jac, stats = self._compiled.chord_newton(z0, q, None, tol, self.mech.max_iter)
             self._jac_taut = taut.copy()
             pts, R, turn, paths = shape
             sol = solution_status(stats.as_dict(), z[:6], pts, R, res[:6], turn, tol)
