@@ -26,40 +26,18 @@ import casadi as ca
 import numpy as np
 
 from crtraj.core.build_cache import BuildCache
-from crtraj.model.codegen import compiled_functions
-from crtraj.model.cosserat_compiled import CompiledShooting, build_key, shape_function
-from crtraj.model.cosserat_rod import RodPieces, rod_pieces
+from crtraj.model.cosserat_compiled import CompiledShooting, load_pair, tangent_march
+from crtraj.model.cosserat_rod import RodPieces
 from crtraj.model.mechanics import Mechanics
 from crtraj.model.robot import Robot
 
 
-def _tangent(f: ca.Function, name: str, dp: ca.DM) -> ca.Function:
-    """(y, D, p) -> (f's first output, its forward tangents along (D, dp)): y moves along D, p along the constant dp."""
-    y, p = f.sx_in(0), f.sx_in(1)
-    D = ca.SX.sym("D", y.numel(), dp.shape[1])
-    out = f.call([y, p])[0]
-    return ca.Function(name, [y, D, p], [out, ca.jtimes(out, ca.vertcat(y, p), ca.vertcat(D, dp))])
-
-
 def cable_jac_function(pieces: RodPieces, nt: int) -> ca.Function:
     """cable_jac (w, p) -> (r, P, dr/dz, dP/dz) with z = (w, tau): 6 + nt forward tangents through every step."""
-    nz = 6 + nt
-    dp = ca.DM.zeros(nt + 9, nz)
+    dp = ca.DM.zeros(nt + 9, 6 + nt)
     dp[:nt, 6:] = ca.DM.eye(nt)  # the tensions are p's first nt entries; the loads do not move
     w, p = ca.MX.sym("w", 6), ca.MX.sym("p", nt + 9)
-    steps = [_tangent(s, f"cable_dstep{k}", dp) for k, s in enumerate(pieces.steps)]
-    jumps = [_tangent(j, f"cable_djump{k}", dp) for k, j in enumerate(pieces.jumps)]
-    tip = _tangent(pieces.tip, "cable_dtip", dp)
-    wi = pieces.init.sx_in(0)
-    y0 = pieces.init.call([wi])[0]
-    init = ca.Function("cable_dinit", [wi], [y0, ca.horzcat(ca.jacobian(y0, wi), ca.SX.zeros(y0.numel(), nt))])
-    y, dy = init(w)
-    for k, step in enumerate(steps):
-        for _ in range(pieces.n_steps):
-            y, dy = step(y, dy, p)
-        if k < len(jumps):
-            y, dy = jumps[k](y, dy, p)
-    r, dr = tip(y, dy, p)
+    r, y, dr, dy = tangent_march(pieces, w, p, dp, "cable")
     outs = [r, y[18:], dr, dy[18:, :]]
     return ca.Function("cable_jac", [w, p], outs, ["w", "p"], ["r", "paths", "dr", "dpaths"])
 
@@ -76,24 +54,8 @@ class CompiledCables(CompiledShooting):
     @classmethod
     def load_cables(cls, robot: Robot, mech: Mechanics, cache: BuildCache) -> CompiledCables | None:
         """From the build cache (generated and compiled on a miss); None without a C compiler."""
-        if not cache.available():
-            return None
-        nt = 3 * robot.n_segments
-        pieces: list[RodPieces] = []
-
-        def made() -> RodPieces:  # built only on a miss, once for both libraries
-            if not pieces:
-                pieces.append(rod_pieces(robot, mech))
-            return pieces[0]
-
-        fast, slow = ("-O2",), ("-O0",)
-        shape_key = build_key("crtraj_rod_shape", robot, mech, fast)  # the tension mode's library
-        jac_key = build_key("crtraj_cable_jac", robot, mech, slow, extra=("cosserat_cable_compiled.py",))
-        shape = compiled_functions(cache, shape_key, ["rod_shape"], lambda: [shape_function(made(), nt)], fast)
-        jac = compiled_functions(cache, jac_key, ["cable_jac"], lambda: [cable_jac_function(made(), nt)], slow)
-        if shape is None or jac is None:
-            return None
-        return cls(shape["rod_shape"], jac["cable_jac"], mech.tendon_stiffness, nt)
+        pair = load_pair(robot, mech, cache, "cable_jac", cable_jac_function, ("cosserat_cable_compiled.py",))
+        return None if pair is None else cls(*pair, mech.tendon_stiffness, 3 * robot.n_segments)
 
     def _split(self, z: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         nt = self.nt
