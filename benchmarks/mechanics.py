@@ -73,11 +73,12 @@ def warm_solves(rod: CosseratRod, n: int, warm: bool = True) -> tuple[list[float
     return walls, cpus, iters
 
 
-def cable_solves(robot: Robot, rod: CableDrivenRod, n: int) -> tuple[list[float], list[float], list[int]]:
+def cable_solves(drive: RodDrive, rod: CableDrivenRod, n: int) -> tuple[list[float], list[float], list[int]]:
     """Wall and CPU seconds and Newton iterations of n warm cable-length solves (gravity on) along a seeded
-    random walk of the actuation: each cable moves by up to 0.05 mm per solve, the base stage stays."""
+    random walk of the actuation: each cable moves by up to 0.05 mm per solve, the base stage stays; the
+    commanded lengths are `drive`'s (its own rod is not used)."""
     rng = np.random.default_rng(0)
-    drive = RodDrive(robot, rod.mech, pretension=1.0)
+    robot = drive.robot
     q = robot.cables(robot.straight(0.0)) + np.concatenate([[1.0, -0.5, 0.5, -1.0], np.zeros(robot.nq - 4)])
     rod.solve(drive.lengths(q), RodLoad())
     walls, cpus, iters = [], [], []
@@ -96,12 +97,13 @@ def cable_solves(robot: Robot, rod: CableDrivenRod, n: int) -> tuple[list[float]
 
 def cable_mode(robot: Robot, mech: Mechanics, n: int) -> None:
     """Print the cable-length mode's build and warm solves, old and new path."""
+    drive = RodDrive(robot, mech, pretension=1.0)  # the length map (builds or loads the compiled rod once)
     for name, compiled in (("old (interpreted)", False), ("new (compiled)", True)):
         t = time.perf_counter()
         rod = CableDrivenRod(robot, mech, compiled=compiled)
-        rod.solve(RodDrive(robot, mech).lengths(robot.cables(robot.straight(0.0))), RodLoad())
+        rod.solve(drive.lengths(robot.cables(robot.straight(0.0))), RodLoad())
         print(f"cable-length mode, {name}: build and first solve {time.perf_counter() - t:.2f} s")
-        walls, cpus, iters = cable_solves(robot, rod, n)
+        walls, cpus, iters = cable_solves(drive, rod, n)
         print(f"warm cable-length solve, {name}, {n} solves: wall {_spread(walls)}; CPU {_spread(cpus)}")
         print(f"  Newton iterations: median {statistics.median(iters):g}, max {max(iters)}")
 
