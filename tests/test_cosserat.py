@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import io
 import math
 import subprocess
 import sys
@@ -13,6 +14,7 @@ import pytest
 from conftest import require_tool
 
 from crtraj.app.model_compare import compare_models, sample_configs
+from crtraj.core.build_cache import BuildCache
 from crtraj.core.errors import InputError
 from crtraj.core.fields import Table
 from crtraj.io.problem import load_robot
@@ -385,3 +387,17 @@ def test_compiled_cable_mode_finds_the_interpreted_root_and_its_jacobian_is_exac
     # central differences err by about h^2 |F'''|: far below any wrong entry's size
     np.testing.assert_allclose(jac, fd, rtol=1e-4, atol=1e-5 * np.abs(fd).max())
     np.testing.assert_array_equal(jac[6 + 1], np.eye(6 + nt)[6 + 1])  # a slack row: c = tau_i, nothing else
+
+
+def test_cable_mode_without_a_compiler_falls_back_to_the_interpreter(mech: Mechanics, tmp_path: Path) -> None:
+    """No C compiler: one notice line, the interpreted rootfinder, and still the closed-form tensions of
+    three equally shortened tendons (test_equally_shortened_tendons_share_the_load)."""
+    out = io.StringIO()
+    rod = CableDrivenRod(
+        Robot("one", RC, (Segment(L),)), mech, build_cache=BuildCache(tmp_path, compiler=None, notice=out)
+    )
+    assert not rod.compiled
+    assert out.getvalue().count("\n") == 1 and "interpreted" in out.getvalue()
+    d = 0.1
+    tau = d / (3.0 * L / (mech.youngs_modulus * mech.area) + (L - d) / mech.tendon_stiffness)
+    np.testing.assert_allclose(rod.solve([L - d] * 3).tensions, tau, rtol=1e-9)

@@ -12,6 +12,10 @@ the generated C holds each piece once, and two libraries go through the build ca
   tangents), at -O0: ten times the code, which gcc -O1 takes minutes over; -O0 compiles in seconds and
   the Jacobian is needed rarely (below).
 
+The cable-length mode (`crtraj.model.cosserat_cable_compiled`) reuses ``rod_shape`` (the same cache entry),
+the forward-mode march (`tangent_march`, there with tangents in the tensions too), the loader (`load_pair`)
+and the iteration.
+
 The iteration (`chord_newton`): Newton's method on r(w) = 0 that keeps the Jacobian of the previous
 solve (a warm start is near it), corrects it by Broyden's rank-one secant update after each step, and
 takes residual-only steps while they contract (each step at least halves max |r|); when one does not,
