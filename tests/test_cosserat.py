@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import io
 import math
 import subprocess
 import sys
@@ -13,6 +14,7 @@ import pytest
 from conftest import require_tool
 
 from crtraj.app.model_compare import compare_models, sample_configs
+from crtraj.core.build_cache import BuildCache
 from crtraj.core.errors import InputError
 from crtraj.core.fields import Table
 from crtraj.io.problem import load_robot
@@ -21,6 +23,7 @@ from crtraj.model.cosserat_cables import CableDrivenRod
 from crtraj.model.cosserat_map import segment_moments, tensions_for_bending
 from crtraj.model.mechanics import Mechanics
 from crtraj.model.robot import Robot, Segment
+from crtraj.model.rod_drive import RodDrive
 
 ROOT = Path(__file__).resolve().parent.parent
 CDSR2 = ROOT / "problems" / "robots" / "cdsr2.toml"
@@ -341,3 +344,60 @@ def test_compiled_path_finds_the_interpreted_root_and_its_jacobian_is_exact(cdsr
     )
     # central differences err by about h^2 |r'''| (1e-6 here): far below any wrong entry's size
     np.testing.assert_allclose(np.asarray(jac), fd, rtol=1e-4, atol=1e-5 * np.abs(fd).max())
+
+
+def test_compiled_cable_mode_finds_the_interpreted_root_and_its_jacobian_is_exact(cdsr2: Robot) -> None:
+    """The cable-length mode in generated C (chord Newton on wrench and tensions) gives the interpreted
+    rootfinder's shape (to 1e-7 mm), tensions (to 1e-7 N) and slack set along a sequence of commanded
+    lengths with gravity (small steps, a slack tendon, a jump back), and its Jacobian dF/dz, with a mixed
+    active set, matches central differences of its own residual."""
+    require_tool("cc", "gcc", "clang", hint="the compiled Cosserat path")
+    mech = Mechanics.from_robot(cdsr2)
+    fast, slow = CableDrivenRod(cdsr2, mech), CableDrivenRod(cdsr2, mech, compiled=False)
+    assert fast.compiled and not slow.compiled
+    drive = RodDrive(cdsr2, mech, pretension=1.0)
+    rng = np.random.default_rng(4)
+    x = cdsr2.straight(0.0)
+    slack_seen = False
+    for step in range(10):
+        x = x + np.concatenate([rng.uniform(-0.15, 0.15, x.size - 1), [0.0]])
+        ell = drive.lengths(cdsr2.cables(x))
+        if step in (5, 6):  # pay tendon 2 of segment 1 out by 2 mm: it goes slack
+            ell[1] += 2.0
+        a, b = fast.solve(ell, RodLoad()), slow.solve(ell, RodLoad())
+        assert a.is_success() and b.is_success()
+        np.testing.assert_array_equal(a.slack, b.slack)
+        slack_seen |= bool(a.slack.any())
+        np.testing.assert_allclose(a.rod.points, b.rod.points, atol=1e-7)
+        np.testing.assert_allclose(a.tensions, b.tensions, atol=1e-7)
+        assert a.rod.residual <= mech.tolerance
+    assert slack_seen
+    nt = fast.n_tendons
+    taut = np.array([1.0, 0.0, 1.0, 1.0, 1.0, 0.0])
+    q = np.concatenate([ell, taut, mech.weight_per_length(), np.zeros(6)])
+    z = np.concatenate([a.rod.base_force, a.rod.base_moment, a.tensions]) + 0.01
+    _, jac = fast._compiled.jacobian(z, q)
+    h = 1e-5
+    fd = np.column_stack(
+        [
+            (fast._compiled.residual(z + h * e, q)[0] - fast._compiled.residual(z - h * e, q)[0]) / (2 * h)
+            for e in np.eye(6 + nt)
+        ]
+    )
+    # central differences err by about h^2 |F'''|: far below any wrong entry's size
+    np.testing.assert_allclose(jac, fd, rtol=1e-4, atol=1e-5 * np.abs(fd).max())
+    np.testing.assert_array_equal(jac[6 + 1], np.eye(6 + nt)[6 + 1])  # a slack row: c = tau_i, nothing else
+
+
+def test_cable_mode_without_a_compiler_falls_back_to_the_interpreter(mech: Mechanics, tmp_path: Path) -> None:
+    """No C compiler: one notice line, the interpreted rootfinder, and still the closed-form tensions of
+    three equally shortened tendons (test_equally_shortened_tendons_share_the_load)."""
+    out = io.StringIO()
+    rod = CableDrivenRod(
+        Robot("one", RC, (Segment(L),)), mech, build_cache=BuildCache(tmp_path, compiler=None, notice=out)
+    )
+    assert not rod.compiled
+    assert out.getvalue().count("\n") == 1 and "interpreted" in out.getvalue()
+    d = 0.1
+    tau = d / (3.0 * L / (mech.youngs_modulus * mech.area) + (L - d) / mech.tendon_stiffness)
+    np.testing.assert_allclose(rod.solve([L - d] * 3).tensions, tau, rtol=1e-9)

@@ -11,6 +11,8 @@ Solved by an active-set iteration around one Newton rootfinder (built once) on t
 (base wrench, tensions): start with every tendon taut; after each solve, release the taut tendons
 whose tension came out negative and take up the slack tendons whose path came out longer than their
 commanded length; stop when neither happens. The active set is a parameter of the rootfinder.
+The rootfinder runs in generated C when a compiler is found (`crtraj.model.cosserat_cable_compiled`),
+in CasADi's interpreter otherwise.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
+from crtraj.core.build_cache import BuildCache
 from crtraj.core.errors import InputError
 from crtraj.core.fields import MAX_LENGTH, check_array
 from crtraj.model.cosserat import (
@@ -34,6 +37,7 @@ from crtraj.model.cosserat import (
     solution_status,
     straight_guess,
 )
+from crtraj.model.cosserat_cable_compiled import CompiledCables
 from crtraj.model.mechanics import Mechanics
 from crtraj.model.robot import Robot
 
@@ -59,24 +63,53 @@ class CableSolution:
 
 
 class CableDrivenRod:
-    """Statics of one robot under commanded tendon lengths (mm), in the robot's cable order."""
+    """Statics of one robot under commanded tendon lengths (mm), in the robot's cable order.
 
-    def __init__(self, robot: Robot, mech: Mechanics | None = None) -> None:
+    compiled: evaluate the residual and its Jacobian in generated C through the build cache and solve
+    with the chord Newton (`crtraj.model.cosserat_cable_compiled`; the first use per robot compiles for
+    some seconds) when a C compiler is found; False, or no compiler: CasADi's Newton rootfinder in the
+    interpreter. Same active set, same root to the tolerance. build_cache: where the libraries go.
+    """
+
+    def __init__(
+        self,
+        robot: Robot,
+        mech: Mechanics | None = None,
+        *,
+        compiled: bool = True,
+        build_cache: BuildCache | None = None,
+    ) -> None:
         self.robot = robot
         self.mech = Mechanics.from_robot(robot) if mech is None else mech
-        nt = 3 * robot.n_segments
-        shooting = build_shooting(robot, self.mech)
-        z = ca.SX.sym("z", 6 + nt)
-        q = ca.SX.sym("q", 2 * nt + 9)
-        lengths, taut, loads = q[:nt], q[nt : 2 * nt], q[2 * nt :]
-        tau = z[6:]
-        res, pts, R, _, turn, paths = shooting(z[:6], ca.vertcat(tau, loads))
-        stretched = lengths * (1.0 + tau / self.mech.tendon_stiffness)
-        cable = taut * (paths - stretched) + (1.0 - taut) * tau
-        outs = [ca.vertcat(res, cable), pts, R, res, turn, paths]
-        g = ca.Function("cable_shooting", [z, q], outs)
-        self._newton = ca.rootfinder("cable_statics", "newton", g, newton_options(self.mech))
+        self._newton: ca.Function | None = None
+        self._compiled: CompiledCables | None = None
+        if compiled:
+            self._compiled = CompiledCables.load_cables(robot, self.mech, build_cache or BuildCache())
         self._warm: np.ndarray | None = None
+        self._jac: np.ndarray | None = None  # the compiled path's last Jacobian, kept for the same active set
+        self._jac_taut: np.ndarray | None = None
+
+    @property
+    def compiled(self) -> bool:
+        """True when solves run the generated C (`crtraj.model.cosserat_cable_compiled`)."""
+        return self._compiled is not None
+
+    def _interpreted(self) -> ca.Function:
+        """CasADi's Newton rootfinder on the inlined SX residual F(z; q), built on first use."""
+        if self._newton is None:
+            nt = self.n_tendons
+            shooting = build_shooting(self.robot, self.mech)
+            z = ca.SX.sym("z", 6 + nt)
+            q = ca.SX.sym("q", 2 * nt + 9)
+            lengths, taut, loads = q[:nt], q[nt : 2 * nt], q[2 * nt :]
+            tau = z[6:]
+            res, pts, R, _, turn, paths = shooting(z[:6], ca.vertcat(tau, loads))
+            stretched = lengths * (1.0 + tau / self.mech.tendon_stiffness)
+            cable = taut * (paths - stretched) + (1.0 - taut) * tau
+            outs = [ca.vertcat(res, cable), pts, R, res, turn, paths]
+            g = ca.Function("cable_shooting", [z, q], outs)
+            self._newton = ca.rootfinder("cable_statics", "newton", g, newton_options(self.mech))
+        return self._newton
 
     @property
     def n_tendons(self) -> int:
@@ -119,9 +152,24 @@ class CableDrivenRod:
         return np.concatenate([straight_guess(self.robot, zero, loads), zero])
 
     def _attempt(self, z0: np.ndarray, q: np.ndarray) -> tuple[RodSolution, np.ndarray, np.ndarray]:
-        z_dm, pts, R, res, turn, paths = self._newton(z0, q)
+        """One Newton run from z0 with the active set in q: compiled (chord Newton, starting from the last
+        Jacobian when the active set is the last one's) or interpreted; the same root either way."""
+        tol = self.mech.tolerance
+        if self._compiled is not None:
+            taut = q[self.n_tendons : 2 * self.n_tendons]
+            same = self._jac_taut is not None and np.array_equal(taut, self._jac_taut)
+            jac0 = self._jac if same else None
+            z, res, shape, self._jac, stats = self._compiled.chord_newton(z0, q, jac0, tol, self.mech.max_iter)
+            if not stats.success and jac0 is not None:  # the kept Jacobian led astray: again from z0 with a fresh one
+                z, res, shape, self._jac, stats = self._compiled.chord_newton(z0, q, None, tol, self.mech.max_iter)
+            self._jac_taut = taut.copy()
+            pts, R, turn, paths = shape
+            sol = solution_status(stats.as_dict(), z[:6], pts, R, res[:6], turn, tol)
+            return sol, z, np.asarray(paths).ravel()
+        newton = self._interpreted()
+        z_dm, pts, R, res, turn, paths = newton(z0, q)
         z = np.asarray(z_dm).ravel()
-        sol = solution_status(self._newton.stats(), z[:6], pts, R, res, turn, self.mech.tolerance)
+        sol = solution_status(newton.stats(), z[:6], pts, R, res, turn, tol)
         return sol, z, np.asarray(paths).ravel()
 
 

@@ -12,6 +12,10 @@ the generated C holds each piece once, and two libraries go through the build ca
   tangents), at -O0: ten times the code, which gcc -O1 takes minutes over; -O0 compiles in seconds and
   the Jacobian is needed rarely (below).
 
+The cable-length mode (`crtraj.model.cosserat_cable_compiled`) reuses ``rod_shape`` (the same cache entry),
+the forward-mode march (`tangent_march`, there with tangents in the tensions too), the loader (`load_pair`)
+and the iteration.
+
 The iteration (`chord_newton`): Newton's method on r(w) = 0 that keeps the Jacobian of the previous
 solve (a warm start is near it), corrects it by Broyden's rank-one secant update after each step, and
 takes residual-only steps while they contract (each step at least halves max |r|); when one does not,
@@ -27,6 +31,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -51,12 +56,32 @@ GENERATOR = 1
 _SOURCES = ("cosserat_rod.py", "cosserat_compiled.py")
 
 
-def _tangent(f: ca.Function, name: str, n_dir: int) -> ca.Function:
-    """(y, D, p) -> (f's outputs..., d out0/dy D): f(y, p) with n_dir forward tangents of its first output."""
+def _tangent(f: ca.Function, name: str, dp: ca.DM) -> ca.Function:
+    """(y, D, p) -> (f's first output, its forward tangents along (D, dp)): y moves along D, p along the
+    constant dp (zero: derivatives with respect to y only)."""
     y, p = f.sx_in(0), f.sx_in(1)
-    D = ca.SX.sym("D", y.numel(), n_dir)
-    outs = f.call([y, p])
-    return ca.Function(name, [y, D, p], [outs[0], ca.jtimes(outs[0], y, D)])
+    D = ca.SX.sym("D", y.numel(), dp.shape[1])
+    out = f.call([y, p])[0]
+    return ca.Function(name, [y, D, p], [out, ca.jtimes(out, ca.vertcat(y, p), ca.vertcat(D, dp))])
+
+
+def tangent_march(pieces: RodPieces, w: ca.MX, p: ca.MX, dp: ca.DM, prefix: str) -> tuple[Any, Any, Any, Any]:
+    """Integrate from w to the tip in forward mode: (r, tip state y, dr, dy) with respect to
+    (w, the directions dp (n_p x k) of p): 6 + k tangents through every step, jump and the tip."""
+    steps = [_tangent(s, f"{prefix}_dstep{k}", dp) for k, s in enumerate(pieces.steps)]
+    jumps = [_tangent(j, f"{prefix}_djump{k}", dp) for k, j in enumerate(pieces.jumps)]
+    tip = _tangent(pieces.tip, f"{prefix}_dtip", dp)
+    wi = pieces.init.sx_in(0)
+    y0 = pieces.init.call([wi])[0]
+    dy0 = ca.horzcat(ca.jacobian(y0, wi), ca.SX.zeros(y0.numel(), dp.shape[1] - 6))
+    y, dy = ca.Function(f"{prefix}_dinit", [wi], [y0, dy0])(w)
+    for k, step in enumerate(steps):
+        for _ in range(pieces.n_steps):
+            y, dy = step(y, dy, p)
+        if k < len(jumps):
+            y, dy = jumps[k](y, dy, p)
+    r, dr = tip(y, dy, p)
+    return r, y, dr, dy
 
 
 def shape_function(pieces: RodPieces, nt: int) -> ca.Function:
@@ -70,26 +95,17 @@ def shape_function(pieces: RodPieces, nt: int) -> ca.Function:
 def resjac_function(pieces: RodPieces, nt: int) -> ca.Function:
     """rod_resjac (w, p) -> (r, dr/dw): forward mode with six tangents through every step."""
     w, p = ca.MX.sym("w", 6), ca.MX.sym("p", nt + 9)
-    steps = [_tangent(s, f"rod_dstep{k}", 6) for k, s in enumerate(pieces.steps)]
-    jumps = [_tangent(j, f"rod_djump{k}", 6) for k, j in enumerate(pieces.jumps)]
-    tip = _tangent(pieces.tip, "rod_dtip", 6)
-    wi = pieces.init.sx_in(0)
-    y0 = pieces.init.call([wi])[0]
-    init = ca.Function("rod_dinit", [wi], [y0, ca.jacobian(y0, wi)])
-    y, dy = init(w)
-    for k, step in enumerate(steps):
-        for _ in range(pieces.n_steps):
-            y, dy = step(y, dy, p)
-        if k < len(jumps):
-            y, dy = jumps[k](y, dy, p)
-    r, dr = tip(y, dy, p)
+    r, _, dr, _ = tangent_march(pieces, w, p, ca.DM.zeros(nt + 9, 6), "rod")
     return ca.Function("rod_resjac", [w, p], [r, dr], ["w", "p"], ["r", "J"])
 
 
-def _key(name: str, robot: Robot, mech: Mechanics, flags: tuple[str, ...]) -> BuildKey:
-    """Cache key: the robot's description, the stiffness and steps, the flags and the generating sources' hash."""
+def build_key(
+    name: str, robot: Robot, mech: Mechanics, flags: tuple[str, ...], extra: tuple[str, ...] = ()
+) -> BuildKey:
+    """Cache key: the robot's description, the stiffness and steps, the flags and the generating sources' hash
+    (this package's `_SOURCES` and the `extra` files beside them)."""
     here = Path(__file__).resolve().parent
-    digest = hashlib.sha256(b"".join((here / f).read_bytes() for f in _SOURCES)).hexdigest()
+    digest = hashlib.sha256(b"".join((here / f).read_bytes() for f in (*_SOURCES, *extra))).hexdigest()
     robot_spec = {k: v for k, v in robot.to_dict().items() if k not in ("description", "actuators")}
     spec = {
         "robot": robot_spec,
@@ -100,6 +116,37 @@ def _key(name: str, robot: Robot, mech: Mechanics, flags: tuple[str, ...]) -> Bu
         "sources": digest,
     }
     return BuildKey(name, spec)
+
+
+def load_pair(
+    robot: Robot,
+    mech: Mechanics,
+    cache: BuildCache,
+    jac_name: str,
+    jac_function: Callable[[RodPieces, int], ca.Function],
+    extra: tuple[str, ...] = (),
+) -> tuple[ca.Function, ca.Function] | None:
+    """(rod_shape at -O2, the Jacobian function `jac_name` = jac_function(pieces, nt) at -O0) from the build
+    cache, generated and compiled on a miss; None without a C compiler. `extra`: further generating sources
+    (beside this module) whose hash goes into the Jacobian's key."""
+    if not cache.available():
+        return None
+    nt = 3 * robot.n_segments
+    pieces: list[RodPieces] = []
+
+    def made() -> RodPieces:  # built only on a miss, once for both libraries
+        if not pieces:
+            pieces.append(rod_pieces(robot, mech))
+        return pieces[0]
+
+    fast, slow = ("-O2",), ("-O0",)
+    shape_key = build_key("crtraj_rod_shape", robot, mech, fast)
+    jac_key = build_key(f"crtraj_{jac_name}", robot, mech, slow, extra)
+    shape = compiled_functions(cache, shape_key, ["rod_shape"], lambda: [shape_function(made(), nt)], fast)
+    jac = compiled_functions(cache, jac_key, [jac_name], lambda: [jac_function(made(), nt)], slow)
+    if shape is None or jac is None:
+        return None
+    return shape["rod_shape"], jac[jac_name]
 
 
 @dataclass(frozen=True)
@@ -123,23 +170,8 @@ class CompiledShooting:
     @classmethod
     def load(cls, robot: Robot, mech: Mechanics, cache: BuildCache) -> CompiledShooting | None:
         """From the build cache (generated and compiled on a miss); None without a C compiler."""
-        if not cache.available():
-            return None
-        nt = 3 * robot.n_segments
-        pieces: list[RodPieces] = []
-
-        def made() -> RodPieces:  # built only on a miss, once for both libraries
-            if not pieces:
-                pieces.append(rod_pieces(robot, mech))
-            return pieces[0]
-
-        fast, slow = ("-O2",), ("-O0",)
-        shape_key, jac_key = _key("crtraj_rod_shape", robot, mech, fast), _key("crtraj_rod_jac", robot, mech, slow)
-        shape = compiled_functions(cache, shape_key, ["rod_shape"], lambda: [shape_function(made(), nt)], fast)
-        jac = compiled_functions(cache, jac_key, ["rod_resjac"], lambda: [resjac_function(made(), nt)], slow)
-        if shape is None or jac is None:
-            return None
-        return cls(shape["rod_shape"], jac["rod_resjac"])
+        pair = load_pair(robot, mech, cache, "rod_resjac", resjac_function)
+        return None if pair is None else cls(*pair)
 
     def residual(self, w: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, list[Any]]:
         """r (6,) at w, and the shape outputs (points, R_tip, turn, paths)."""
