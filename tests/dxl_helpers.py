@@ -1,5 +1,6 @@
 """Test helpers for the Dynamixel tests: the stage's homing section, a virtual clock the simulator can call,
-sim 1's plan once per module, and simulated servos that count as homed (marker lit, matching state entries)."""
+the in-process simulator behind the command line (`in_process`), sim 1's plan once per module, and simulated
+servos that count as homed (marker lit, matching state entries)."""
 
 from __future__ import annotations
 
@@ -9,11 +10,14 @@ import pytest
 from conftest import PROBLEMS
 
 from crtraj.cli import main
+from crtraj.core import clock as clock_module
 from crtraj.core.clock import VirtualClock
+from crtraj.hardware import dynamixel
 from crtraj.hardware import dynamixel_protocol as dxl
 from crtraj.hardware.dynamixel_protocol import X
 from crtraj.hardware.homing_state import HomedServo, HomingState, multi_turn
 from crtraj.hardware.sim_dynamixel import ServoChain
+from crtraj.hardware.sim_dynamixel_port import SimPort
 
 ROBOT = PROBLEMS / "robots" / "cdsr2.toml"
 Z_HOMING = """
@@ -31,6 +35,25 @@ class Clock(VirtualClock):
 
     def __call__(self) -> float:
         return self.now()
+
+
+def in_process(monkeypatch, chain: ServoChain, clock: VirtualClock, device: str = "/dev/crtraj-sim0") -> list[SimPort]:
+    """Through the library's test seams (undone after the test): every use case's clock is `clock`, and the
+    Dynamixel link opens a fresh in-process `SimPort` on `chain` for `device` (any other device as before):
+    `crtraj.cli.main` then drives the simulated servos with the SDK's real bytes, on virtual time. The ports
+    opened, in order."""
+    opened: list[SimPort] = []
+    real = dynamixel.port_factory
+
+    def factory(sdk, name: str):
+        if name != device:
+            return real(sdk, name)
+        opened.append(SimPort(chain, clock, name=name))
+        return opened[-1]
+
+    monkeypatch.setattr(clock_module, "clock_factory", lambda: clock)
+    monkeypatch.setattr(dynamixel, "port_factory", factory)
+    return opened
 
 
 @pytest.fixture(scope="module")
