@@ -4,6 +4,7 @@ servos that count as homed (marker lit, matching state entries)."""
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 import pytest
@@ -37,23 +38,69 @@ class Clock(VirtualClock):
         return self.now()
 
 
-def in_process(monkeypatch, chain: ServoChain, clock: VirtualClock, device: str = "/dev/crtraj-sim0") -> list[SimPort]:
-    """Through the library's test seams (undone after the test): every use case's clock is `clock`, and the
-    Dynamixel link opens a fresh in-process `SimPort` on `chain` for `device` (any other device as before):
-    `crtraj.cli.main` then drives the simulated servos with the SDK's real bytes, on virtual time. The ports
-    opened, in order."""
-    opened: list[SimPort] = []
+_SERVED: dict[str, InProcessSim] = {}  # the started in-process simulators, by device name
+
+
+class InProcessSim:
+    """`SimDynamixel`'s test interface (`path`, `chain`, `clock`, `locked`, `start`, `stop`, a context) without a
+    pseudo-terminal or a thread: opening `path` through the Dynamixel link gives the SDK a fresh `SimPort` on the
+    chain at `clock` (once `serve_in_process` is in place), so the SDK's reply timeouts are virtual time too
+    and nothing depends on how fast the machine answers."""
+
+    _made = 0
+
+    def __init__(self, chain: ServoChain, *, clock: VirtualClock, wire_time: bool = False) -> None:
+        InProcessSim._made += 1
+        self.path = f"/dev/crtraj-sim{InProcessSim._made}"  # no such file: only the seam knows it
+        self.chain, self.clock, self.wire_time = chain, clock, wire_time
+        self.ports: list[SimPort] = []
+
+    def open(self) -> SimPort:
+        self.ports.append(SimPort(self.chain, self.clock, name=self.path, wire_time=self.wire_time))
+        return self.ports[-1]
+
+    @property
+    def wrong_baud(self) -> int:
+        """Packets its ports ignored because the host's rate was not the bus rate."""
+        return sum(p.wrong_baud for p in self.ports)
+
+    def locked(self) -> contextlib.AbstractContextManager:
+        return contextlib.nullcontext()  # one thread: nothing to lock against
+
+    def start(self) -> InProcessSim:
+        _SERVED[self.path] = self
+        return self
+
+    def stop(self) -> None:
+        _SERVED.pop(self.path, None)
+
+    def __enter__(self) -> InProcessSim:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+def serve_in_process(monkeypatch) -> None:
+    """Through the library's port seam (undone after the test): the path of a started `InProcessSim` opens its
+    `SimPort`; any other device as before."""
     real = dynamixel.port_factory
 
     def factory(sdk, name: str):
-        if name != device:
-            return real(sdk, name)
-        opened.append(SimPort(chain, clock, name=name))
-        return opened[-1]
+        sim = _SERVED.get(name)
+        return real(sdk, name) if sim is None else sim.open()
 
-    monkeypatch.setattr(clock_module, "clock_factory", lambda: clock)
     monkeypatch.setattr(dynamixel, "port_factory", factory)
-    return opened
+
+
+def in_process(monkeypatch, chain: ServoChain, clock: VirtualClock) -> InProcessSim:
+    """`chain` served in process for the whole test, and every use case's clock `clock` (the library's clock
+    seam): `crtraj.cli.main` then drives the simulated servos with the SDK's real bytes, on virtual time."""
+    serve_in_process(monkeypatch)
+    monkeypatch.setattr(clock_module, "clock_factory", lambda: clock)
+    sim = InProcessSim(chain, clock=clock).start()
+    monkeypatch.setitem(_SERVED, sim.path, sim)
+    return sim
 
 
 @pytest.fixture(scope="module")

@@ -1,13 +1,14 @@
 """First power-on from the command line, against the Dynamixel simulator (the servos `crtraj sim-dynamixel`
 serves, here in process: the SDK's bytes reach them through `SimPort`, so the test can read the shafts): a
 power-cycled z stage at -150 mm is refused by `crtraj replan --stream dynamixel://DEV` (live and after the
-run) and by `crtraj stream` with one line naming it; `crtraj home --dynamixel DEV` homes it; then replan streams sim 2, and the issue's "done when" chain
-power-cycle, home, plan, approach and stream sim 1 ends at the goal with every frame sent keeping D_sf and the
-positions the simulated shafts actually reached free of contact by an independent dense check.
+run) and by `crtraj stream` with one line naming it; `crtraj home --dynamixel DEV` homes it; then replan
+streams sim 2, and the issue's "done when" chain power-cycle, home, plan, approach and stream sim 1 ends at
+the goal with every frame sent keeping D_sf and the positions the simulated shafts actually reached free of
+contact by an independent dense check.
 
 The command line runs on one virtual clock shared with the servos (the library's test seams,
-`dxl_helpers.in_process`): the servos' motion, the streamer's pacing and watchdogs, the SDK's reply timeouts and the homing's waits all
-take virtual time, so each run is the same under any load; nothing here depends on the wall clock."""
+`dxl_helpers.in_process`): the servos' motion, the streamer's pacing and watchdogs, the SDK's reply timeouts
+and the homing's waits all take virtual time, so each run is the same under any load."""
 
 from __future__ import annotations
 
@@ -32,9 +33,6 @@ from crtraj.model.kinematics import Model
 from crtraj.world.scene import Scene
 
 sim1_plan = dxl_helpers.sim1_plan  # the fixture, shared
-
-
-DEV = "/dev/crtraj-sim0"  # the device name the simulated servos stand behind (no such file)
 
 
 @pytest.fixture(autouse=True)
@@ -87,8 +85,8 @@ def _untouched(chain, acts, now, before, goals) -> None:
     assert not any(chain.torque(i) for i in acts.bus.ids)
 
 
-def _home(robot_file, capsys) -> dict:
-    assert main(["home", "--dynamixel", DEV, "--robot", str(robot_file)]) == 0
+def _home(dev: str, robot_file, capsys) -> dict:
+    assert main(["home", "--dynamixel", dev, "--robot", str(robot_file)]) == 0
     out = capsys.readouterr().out
     assert "homed z (id 7, model 1030) by hard_stop" in out
     return json.loads(state_path(robot_file).read_text())
@@ -104,9 +102,9 @@ def test_replan_stream_dynamixel_refuses_a_power_cycled_stage_then_runs_after_ho
     problem = paper_copy(tmp_path, values={("robot",): str(robot_file)})
     clock = Clock()
     chain = _power_cycled_chain(robot, acts, robot.straight(-150.0), clock)
-    in_process(monkeypatch, chain, clock, DEV)
-    home = f"run crtraj home --dynamixel {DEV} --robot {robot_file}"
-    base = ["replan", str(problem), "--quiet", "--no-html", "--stream", f"dynamixel://{DEV}", "--approach"]
+    dev = in_process(monkeypatch, chain, clock).path
+    home = f"run crtraj home --dynamixel {dev} --robot {robot_file}"
+    base = ["replan", str(problem), "--quiet", "--no-html", "--stream", f"dynamixel://{dev}", "--approach"]
     # live: the link is refused at connect, before the loop runs
     assert main([*base, "--feed", "udp://127.0.0.1:0", "--out", str(tmp_path / "live")]) == 2
     line = _one_error_line(capsys)
@@ -120,7 +118,7 @@ def test_replan_stream_dynamixel_refuses_a_power_cycled_stage_then_runs_after_ho
     line = _one_error_line(capsys)
     assert line.startswith("crtraj: error: servo id 7 (z): not homed since its last power-up") and home in line
     _untouched(chain, acts, clock.now(), before, goals)
-    saved = _home(robot_file, capsys)
+    saved = _home(dev, robot_file, capsys)
     z = saved["servos"][0]
     assert (z["id"], z["model"], z["model_information"], z["firmware"]) == (7, 1030, 0, 46)
     assert acts.bus.values(chain.positions(clock.now()))[-1] == pytest.approx(-200.0, abs=0.01)
@@ -141,11 +139,11 @@ def test_a_state_file_of_another_servo_is_refused_in_one_line(sim1_plan, tmp_pat
     acts = Actuators.from_robot(robot)
     clock = Clock()
     chain = _power_cycled_chain(robot, acts, robot.straight(-150.0), clock)
-    in_process(monkeypatch, chain, clock, DEV)
-    saved = _home(robot_file, capsys)
+    dev = in_process(monkeypatch, chain, clock).path
+    saved = _home(dev, robot_file, capsys)
     saved["servos"][0]["firmware"] = 45
     state_path(robot_file).write_text(json.dumps(saved))
-    argv = ["stream", str(sim1_plan), "--dynamixel", DEV, "--approach", "--robot", str(robot_file)]
+    argv = ["stream", str(sim1_plan), "--dynamixel", dev, "--approach", "--robot", str(robot_file)]
     assert main([*argv, "--log", str(tmp_path / "s.jsonl")]) == 2
     line = _one_error_line(capsys)
     assert line.startswith(
@@ -164,19 +162,20 @@ def test_power_cycle_home_plan_approach_and_stream_sim1_from_the_cli(tmp_path, c
     clock = Clock()
     chain = _power_cycled_chain(robot, acts, np.array([0.9, -0.6, 0.3, 0.5, -150.0]), clock)
     rec = Recorder(chain)
-    ports = in_process(monkeypatch, chain, clock, DEV)
+    sim = in_process(monkeypatch, chain, clock)
+    dev = sim.path
     plan = tmp_path / "plan.json"
     problem = Problem.load(PROBLEMS / "paper_static.toml")
-    _home(robot_file, capsys)
+    _home(dev, robot_file, capsys)
     assert main(["plan", str(PROBLEMS / "paper_static.toml"), "--seed", "1", "--out", str(plan)]) == 0
     capsys.readouterr()
     rec.rows.clear()
     log = tmp_path / "stream.jsonl"
-    argv = ["stream", str(plan), "--dynamixel", DEV, "--approach", "--robot", str(robot_file)]
+    argv = ["stream", str(plan), "--dynamixel", dev, "--approach", "--robot", str(robot_file)]
     assert main([*argv, "--log", str(log)]) == 0, capsys.readouterr()
     out = capsys.readouterr().out
     assert "done: completed" in out, out
-    assert len(ports) == 2 and ports[-1].timeouts == 0  # home, stream; every read of the stream answered
+    assert len(sim.ports) == 2 and sim.ports[-1].timeouts == 0  # home, stream; every read of the stream answered
     records = [json.loads(x) for x in log.read_text().splitlines()]
     report = next(r for r in records if r["type"] == "report")
     assert report["status"] == "done" and report["latched"] == 0
@@ -208,8 +207,8 @@ def test_crtraj_home_on_a_servo_that_never_stalls_is_one_line_and_writes_nothing
     )
     clock = Clock()
     chain.power_cycle(clock.now())
-    in_process(monkeypatch, chain, clock, DEV)
-    assert main(["home", "--dynamixel", DEV, "--robot", str(robot_file)]) == 2
+    dev = in_process(monkeypatch, chain, clock).path
+    assert main(["home", "--dynamixel", dev, "--robot", str(robot_file)]) == 2
     line = _one_error_line(capsys)
     assert line.startswith("crtraj: error: servo id 7 (z): no stall within 20 mm of travel"), line
     assert line.endswith("no mechanical stop found; nothing written"), line
