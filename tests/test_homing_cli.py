@@ -102,7 +102,8 @@ def test_replan_stream_dynamixel_refuses_a_power_cycled_stage_then_runs_after_ho
     problem = paper_copy(tmp_path, values={("robot",): str(robot_file)})
     clock = Clock()
     chain = _power_cycled_chain(robot, acts, robot.straight(-150.0), clock)
-    dev = in_process(monkeypatch, chain, clock).path
+    sim = in_process(monkeypatch, chain, clock)
+    dev = sim.path
     home = f"run crtraj home --dynamixel {dev} --robot {robot_file}"
     base = ["replan", str(problem), "--quiet", "--no-html", "--stream", f"dynamixel://{dev}", "--approach"]
     # live: the link is refused at connect, before the loop runs
@@ -125,6 +126,7 @@ def test_replan_stream_dynamixel_refuses_a_power_cycled_stage_then_runs_after_ho
     assert main([*base, "--out", str(tmp_path / "r2")]) == 0, capsys.readouterr()
     out = capsys.readouterr().out
     assert "stream done: completed" in out, out
+    assert len(sim.ports) == 4 and sim.ports[-1].timeouts == 0  # live, r1, home, r2: every read answered
     run = json.loads((tmp_path / "r2" / "run.json").read_text())
     q_last = np.asarray(run["waypoints"][-1]["q"], dtype=float)
     reached = acts.bus.values(np.rint(chain.positions(clock.now())))
