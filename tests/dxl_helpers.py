@@ -1,19 +1,24 @@
 """Test helpers for the Dynamixel tests: the stage's homing section, a virtual clock the simulator can call,
-sim 1's plan once per module, and simulated servos that count as homed (marker lit, matching state entries)."""
+the in-process simulator behind the command line (`in_process`), sim 1's plan once per module, and simulated
+servos that count as homed (marker lit, matching state entries)."""
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 import pytest
 from conftest import PROBLEMS
 
 from crtraj.cli import main
+from crtraj.core import clock as clock_module
 from crtraj.core.clock import VirtualClock
+from crtraj.hardware import dynamixel
 from crtraj.hardware import dynamixel_protocol as dxl
 from crtraj.hardware.dynamixel_protocol import X
 from crtraj.hardware.homing_state import HomedServo, HomingState, multi_turn
 from crtraj.hardware.sim_dynamixel import ServoChain
+from crtraj.hardware.sim_dynamixel_port import SimPort
 
 ROBOT = PROBLEMS / "robots" / "cdsr2.toml"
 Z_HOMING = """
@@ -31,6 +36,71 @@ class Clock(VirtualClock):
 
     def __call__(self) -> float:
         return self.now()
+
+
+_SERVED: dict[str, InProcessSim] = {}  # the started in-process simulators, by device name
+
+
+class InProcessSim:
+    """`SimDynamixel`'s test interface (`path`, `chain`, `clock`, `locked`, `start`, `stop`, a context) without a
+    pseudo-terminal or a thread: opening `path` through the Dynamixel link gives the SDK a fresh `SimPort` on the
+    chain at `clock` (once `serve_in_process` is in place), so the SDK's reply timeouts are virtual time too
+    and nothing depends on how fast the machine answers."""
+
+    _made = 0
+
+    def __init__(self, chain: ServoChain, *, clock: VirtualClock, wire_time: bool = False) -> None:
+        InProcessSim._made += 1
+        self.path = f"/dev/crtraj-sim{InProcessSim._made}"  # no such file: only the seam knows it
+        self.chain, self.clock, self.wire_time = chain, clock, wire_time
+        self.ports: list[SimPort] = []
+
+    def open(self) -> SimPort:
+        self.ports.append(SimPort(self.chain, self.clock, name=self.path, wire_time=self.wire_time))
+        return self.ports[-1]
+
+    @property
+    def wrong_baud(self) -> int:
+        """Packets its ports ignored because the host's rate was not the bus rate."""
+        return sum(p.wrong_baud for p in self.ports)
+
+    def locked(self) -> contextlib.AbstractContextManager:
+        return contextlib.nullcontext()  # one thread: nothing to lock against
+
+    def start(self) -> InProcessSim:
+        _SERVED[self.path] = self
+        return self
+
+    def stop(self) -> None:
+        _SERVED.pop(self.path, None)
+
+    def __enter__(self) -> InProcessSim:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+def serve_in_process(monkeypatch) -> None:
+    """Through the library's port seam (undone after the test): the path of a started `InProcessSim` opens its
+    `SimPort`; any other device as before."""
+    real = dynamixel.port_factory
+
+    def factory(sdk, name: str):
+        sim = _SERVED.get(name)
+        return real(sdk, name) if sim is None else sim.open()
+
+    monkeypatch.setattr(dynamixel, "port_factory", factory)
+
+
+def in_process(monkeypatch, chain: ServoChain, clock: VirtualClock) -> InProcessSim:
+    """`chain` served in process for the whole test, and every use case's clock `clock` (the library's clock
+    seam): `crtraj.cli.main` then drives the simulated servos with the SDK's real bytes, on virtual time."""
+    serve_in_process(monkeypatch)
+    monkeypatch.setattr(clock_module, "clock_factory", lambda: clock)
+    sim = InProcessSim(chain, clock=clock).start()
+    monkeypatch.setitem(_SERVED, sim.path, sim)
+    return sim
 
 
 @pytest.fixture(scope="module")

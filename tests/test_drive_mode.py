@@ -10,14 +10,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import require_module
-from dxl_helpers import ROBOT, Clock, homed_state, write
+from dxl_helpers import ROBOT, Clock, InProcessSim, homed_state, serve_in_process, write
 
 from crtraj.core.errors import InputError
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.admission import MotionRecord, admit
 from crtraj.hardware.dynamixel import open_dynamixel
 from crtraj.hardware.dynamixel_protocol import X
-from crtraj.hardware.sim_dynamixel import ServoChain, SimDynamixel
+from crtraj.hardware.sim_dynamixel import ServoChain
 from crtraj.hardware.stream import Streamer, StreamOptions
 from crtraj.hardware.transport import TransportError
 from crtraj.io.problem import load_robot
@@ -27,8 +27,9 @@ S1C2 = "[robot.actuators.servo.s1c2]\nid = 2\n"
 
 
 @pytest.fixture(autouse=True)
-def _sdk():
+def _sdk(monkeypatch):
     require_module("dynamixel_sdk", "pip install 'crtraj[dynamixel]'")
+    serve_in_process(monkeypatch)  # the simulators below answer in process, on their virtual clock
 
 
 def _robot_file(tmp_path: Path, s1c2: str = "", z: str = "") -> Path:
@@ -54,7 +55,7 @@ def _connect(sim, acts, **kw):
 
 def _refused(acts, chain) -> str:
     """The one-line refusal of connecting to `chain` (its servos homed where they stand)."""
-    with SimDynamixel(chain, clock=Clock(), wire_time=False) as sim, pytest.raises(TransportError) as e:
+    with InProcessSim(chain, clock=Clock(), wire_time=False) as sim, pytest.raises(TransportError) as e:
         _connect(sim, acts, homing=homed_state(chain, acts))
     assert "\n" not in str(e.value)
     return str(e.value)
@@ -88,7 +89,7 @@ def test_a_declared_reversed_servo_moves_the_robot_the_right_way(tmp_path):
     clock = Clock()
     chain = ServoChain(acts.bus.ids, acts.bus.models, initial=mount * acts.bus.ticks(motion.values[0]))
     shaft0 = chain.shaft(0.0).copy()
-    with SimDynamixel(chain, clock=clock, wire_time=False) as sim:
+    with InProcessSim(chain, clock=clock, wire_time=False) as sim:
         link = _connect(sim, acts, homing=homed_state(chain, acts), stop_torque="off")
         assert chain.register(2, X.DRIVE_MODE, 1) == X.DRIVE_REVERSE  # the declared bit, set at connect
         rep = Streamer(link, acts, StreamOptions(rate=100.0, watchdog=10.0), None, clock=clock).run_path(motion)
@@ -143,7 +144,7 @@ def test_setting_a_declared_reverse_bit_on_the_stage_requires_homing_again(tmp_p
     (one line naming it) instead of using a reading mirrored about the offset."""
     acts = Actuators.from_robot(load_robot(_robot_file(tmp_path, z="drive_mode = { reverse = true }\n")))
     chain = ServoChain(acts.bus.ids, acts.bus.models, initial=acts.bus.ticks(np.r_[np.zeros(6), -150.0]))
-    with SimDynamixel(chain, clock=Clock(), wire_time=False) as sim:
+    with InProcessSim(chain, clock=Clock(), wire_time=False) as sim:
         state = homed_state(chain, acts)
         with pytest.raises(InputError) as e:
             _connect(sim, acts, homing=state)

@@ -1,18 +1,17 @@
-"""The Dynamixel link through the official SDK against the Protocol 2.0 simulator on a pseudo-terminal:
+"""The Dynamixel link through the official SDK against the Protocol 2.0 simulator, in process (`SimPort`):
 connection checks (one line each), faults, torque off on e-stop and exit, and the paper's simulation 2
 streamed end to end. The streamer and the simulated servos share a virtual clock: no wall-clock timing."""
 
 from __future__ import annotations
 
 import re
-import sys
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 from conftest import PROBLEMS, paper_copy, require_module
-from dxl_helpers import homed_state
+from dxl_helpers import InProcessSim, homed_state, serve_in_process
 
 from crtraj.app.stream import admit_result
 from crtraj.cli import main
@@ -23,7 +22,7 @@ from crtraj.hardware.admission import MotionRecord, admit
 from crtraj.hardware.dynamixel import DynamixelTransport, open_dynamixel
 from crtraj.hardware.dynamixel_protocol import HW_OVERHEATING, HW_OVERLOAD
 from crtraj.hardware.dynamixel_protocol import crc16 as dxl_crc16
-from crtraj.hardware.sim_dynamixel import ServoChain, SimDynamixel
+from crtraj.hardware.sim_dynamixel import ServoChain
 from crtraj.hardware.stream import Streamer, StreamOptions
 from crtraj.hardware.transport import TransportError
 from crtraj.world.scene import Scene
@@ -48,13 +47,9 @@ class Clock(VirtualClock):
 
 
 @pytest.fixture(autouse=True)
-def _sdk():
+def _sdk(monkeypatch):
     require_module("dynamixel_sdk", "pip install 'crtraj[dynamixel]'")
-    # the SDK polls the port in a busy loop; let the simulator's thread in often
-    old = sys.getswitchinterval()
-    sys.setswitchinterval(1e-4)
-    yield
-    sys.setswitchinterval(old)
+    serve_in_process(monkeypatch)  # the simulators below answer in process, on their virtual clock
 
 
 @pytest.fixture
@@ -71,20 +66,26 @@ def _motion(robot, acts, seconds: float = 1.0, rate: float = 100.0):
     return admit(record, acts, rate=rate)
 
 
-def _sim(acts, clock, start=None, **kw) -> SimDynamixel:
+def _sim(acts, clock, start=None, **kw) -> InProcessSim:
     bus = acts.bus
     initial = None if start is None else bus.ticks(start)
     chain = ServoChain(bus.ids, bus.models, initial=initial, **kw)
-    return SimDynamixel(chain, clock=clock, wire_time=False).start()
+    return InProcessSim(chain, clock=clock, wire_time=False).start()
 
 
 def _stream(sim, acts, motion, clock, misses: int = 50, **opts):
-    """Streamer and link on the simulator. The SDK's reply timeout is wall time (34 ms): on a loaded machine the
-    simulator's thread may miss a few, so a test that is not about faults tolerates `misses` in a row, and the
-    telemetry watchdog (virtual time: 10 ms per missed tick) waits 10 s."""
+    """Streamer and link on the simulator, all on `clock` (the SDK's reply timeouts too: the simulator answers in
+    process). A test that is not about faults tolerates `misses` failed reads in a row, and the telemetry
+    watchdog waits 10 s."""
     state = homed_state(sim.chain, acts, clock.now())  # the readings are absolute: homed where they stand
     tr = open_dynamixel(
-        f"dynamixel://{sim.path}", acts, warn=lambda m: None, max_misses=misses, stop_torque="off", homing=state
+        f"dynamixel://{sim.path}",
+        acts,
+        warn=lambda m: None,
+        max_misses=misses,
+        stop_torque="off",
+        homing=state,
+        clock=clock,
     )
     opts.setdefault("watchdog", 10.0)
     st = Streamer(tr, acts, StreamOptions(rate=motion.rate, **opts), None, clock=clock)
@@ -167,7 +168,7 @@ def test_a_silent_servo_is_named_by_its_id(acts):
 def test_a_model_mismatch_is_refused(acts):
     bus = acts.bus
     chain = ServoChain(bus.ids, [*bus.models[:4], 1020, *bus.models[5:]])
-    sim = SimDynamixel(chain, clock=Clock(), wire_time=False).start()
+    sim = InProcessSim(chain, clock=Clock(), wire_time=False).start()
     try:
         with pytest.raises(TransportError) as e:
             DynamixelTransport(sim.path, 1_000_000, acts)

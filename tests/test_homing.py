@@ -18,7 +18,7 @@ import dxl_helpers
 import numpy as np
 import pytest
 from conftest import require_module
-from dxl_helpers import ROBOT, Z_HOMING, Clock
+from dxl_helpers import ROBOT, Z_HOMING, Clock, InProcessSim, in_process, serve_in_process
 
 from crtraj.app.approach import plan_approach
 from crtraj.app.sim_dynamixel import stops
@@ -43,9 +43,10 @@ sim1_plan = dxl_helpers.sim1_plan  # the fixture, shared
 
 
 @pytest.fixture(autouse=True)
-def _sdk():
+def _sdk(monkeypatch):
     require_module("dynamixel_sdk", "pip install 'crtraj[dynamixel]'")
-    old = sys.getswitchinterval()
+    serve_in_process(monkeypatch)  # the simulators below answer in process (all but the pseudo-terminal's test)
+    old = sys.getswitchinterval()  # that one's thread answers the test's own reads
     sys.setswitchinterval(1e-4)
     yield
     sys.setswitchinterval(old)
@@ -128,7 +129,7 @@ def test_connect_sets_return_delay_and_status_return_and_refuses_a_reverse_bit()
     acts = Actuators.from_robot(load_robot(ROBOT))
     chain = ServoChain(acts.bus.ids, acts.bus.models)
     clock = Clock()
-    with SimDynamixel(chain, clock=clock, wire_time=False) as sim:
+    with InProcessSim(chain, clock=clock, wire_time=False) as sim:
         open_dynamixel(
             f"dynamixel://{sim.path}", acts, warn=lambda m: None, stop_torque="off", power_up_check=False
         ).close()
@@ -174,7 +175,7 @@ def test_power_cycled_stage_is_refused_then_homed_then_streams(tmp_path):
     chain.power_cycle(0.0)
     z_read = _reading(chain, acts, clock)[-1]
     assert 0.0 <= z_read < 20.0 and abs(z_read - (-150.0)) > 100  # a lead-screw stage lost 7.5 turns
-    with SimDynamixel(chain, clock=clock, wire_time=False) as sim:
+    with InProcessSim(chain, clock=clock, wire_time=False) as sim:
         with pytest.raises(InputError) as e:
             _connect(sim, acts, homing=HomingState.load(state_path(robot_file)))
         assert "\n" not in str(e.value)
@@ -211,7 +212,7 @@ def test_a_spool_turned_while_unpowered_is_unwrapped_or_refused():
     chain.power_cycle(0.0)
     _write(chain, 7, X.LED, 1, 1)  # the stage counts as homed here: this test is about the spools
     stage = HomingState((HomedServo(7, "z", 1030, 0, "index", "2026-01-01T00:00:00+00:00", 0, 46),))
-    with SimDynamixel(chain, clock=clock, wire_time=False) as sim:
+    with InProcessSim(chain, clock=clock, wire_time=False) as sim:
         assert np.any(np.abs(_reading(chain, acts, clock)[:-1] - values[:-1]) > 6.0)  # read a turn off
         link = _connect(sim, acts)
         try:
@@ -251,7 +252,7 @@ def test_a_servo_that_never_stalls_is_one_line_and_nothing_is_written(tmp_path):
     acts = Actuators.from_robot(robot)
     clock = Clock()
     chain = ServoChain(acts.bus.ids, acts.bus.models, initial=acts.bus.ticks(_start(acts)))  # no stops
-    with SimDynamixel(chain, clock=clock, wire_time=False) as sim:
+    with InProcessSim(chain, clock=clock, wire_time=False) as sim:
         link = _connect(sim, acts)
         try:
             with pytest.raises(HomingError) as e:
@@ -269,10 +270,10 @@ def test_a_mark_never_confirmed_is_one_line_no_motion_and_nothing_written(tmp_pa
     robot = load_robot(robot_file)
     acts = Actuators.from_robot(robot)
     chain = ServoChain(acts.bus.ids, acts.bus.models, initial=acts.bus.ticks(_start(acts)))
-    with SimDynamixel(chain, wire_time=False) as sim:
-        before = chain.positions(sim.clock()).copy()
-        code = main(["home", "--dynamixel", sim.path, "--robot", str(robot_file)])
-        after = chain.positions(sim.clock())
+    sim = in_process(monkeypatch, chain, Clock())
+    before = chain.positions(sim.clock.now()).copy()
+    code = main(["home", "--dynamixel", sim.path, "--robot", str(robot_file)])
+    after = chain.positions(sim.clock.now())
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2
     assert err == [
@@ -292,7 +293,7 @@ def test_stream_approach_refuses_an_unhomed_stage_then_runs_after_homing(sim1_pl
     chain = _chain(robot, acts, _start(acts))
     chain.power_cycle(0.0)
     capsys.readouterr()
-    with SimDynamixel(chain, clock=clock, wire_time=False) as sim:
+    with InProcessSim(chain, clock=clock, wire_time=False) as sim:
         before = chain.positions(clock.now()).copy()
         goals = [chain.register(i, X.GOAL_POSITION, 4) for i in acts.bus.ids]
         argv = ["stream", str(sim1_plan), "--dynamixel", sim.path, "--approach", "--robot", str(robot_file)]

@@ -14,7 +14,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from crtraj.core.clock import WallClock
+from crtraj.core.clock import default_clock
 from crtraj.core.errors import InputError
 from crtraj.core.fileio import check_output_file, check_outputs_not_inputs
 from crtraj.hardware.actuators import Actuators
@@ -50,7 +50,7 @@ def home_command(args: argparse.Namespace) -> int:
     url = f"dynamixel://{args.dynamixel}?baud={args.baud or DEFAULT_BAUD}"
     link = open_dynamixel(url, acts, power_up_check=False)  # homing makes the positions absolute itself
     try:
-        homer = Homer(link, acts, specs, WallClock(), confirm_on_stdin)
+        homer = Homer(link, acts, specs, default_clock(), confirm_on_stdin)
         homer.check()  # before anything moves
         homed = homer.run()
     finally:

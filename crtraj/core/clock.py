@@ -8,6 +8,7 @@ the test advances it, so nothing in a test depends on how fast the machine is.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from typing import Protocol, runtime_checkable
 
 
@@ -56,3 +57,14 @@ class VirtualClock:
         if seconds < 0.0:
             raise ValueError(f"seconds: must be >= 0, got {seconds}")
         self._t += float(seconds)
+
+
+# Test seam, not a user-facing option: what `default_clock` makes. Production keeps the wall clock; end-to-end
+# tests set it (pytest's monkeypatch) to return one shared `VirtualClock`, so that the command line's streamer,
+# homing and Dynamixel link run on the same virtual time as an in-process simulator.
+clock_factory: Callable[[], Clock] = WallClock
+
+
+def default_clock() -> Clock:
+    """The clock of a use case that was given none: `clock_factory()` (the `WallClock`)."""
+    return clock_factory()

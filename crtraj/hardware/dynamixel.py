@@ -61,6 +61,7 @@ from urllib.parse import parse_qs, urlsplit
 
 import numpy as np
 
+from crtraj.core.clock import Clock, default_clock
 from crtraj.core.errors import InputError
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.drive_mode import DriveModeCheck
@@ -108,6 +109,21 @@ def latency_warning(device: str, sysfs: Path = SYSFS_USB_SERIAL) -> str | None:
         f"warning: {device}: the USB-serial latency timer is {ms} ms, which caps the set-point rate (every bus "
         f"read waits up to {ms} ms); lower it with: echo 1 | sudo tee {path}"
     )
+
+
+def sdk_port(sdk: Any, device: str) -> Any:
+    """The SDK's `PortHandler` of `device`; `TransportError` (one line) when there is no such device."""
+    if not os.path.exists(device):
+        raise TransportError(
+            f"{device}: no such port (is the USB-serial adapter, e.g. a U2D2, plugged in? see ls /dev/ttyUSB*)"
+        )
+    return sdk.PortHandler(device)
+
+
+# Test seam, not a user-facing option: how a device name becomes a port object. Production opens the SDK's
+# port; end-to-end tests set it (pytest's monkeypatch) to put the in-process simulator's port
+# (`crtraj.hardware.sim_dynamixel_port.SimPort`) behind one device name.
+port_factory: Callable[[Any, str], Any] = sdk_port
 
 
 def parse_url(url: str) -> tuple[str, int]:
@@ -160,6 +176,8 @@ class DynamixelTransport(Transport):
     stop_torque: ``[robot.stop] torque``: "keep" (an e-stop, after the streamer's planned stop, latches the
     goals with the torque on, and `close` leaves it on: the cables stay taut, a lead-screw stage cannot
     back-drive) or "off" (torque off at e-stop and close).
+    clock: stamps the telemetry and times the drain after a failed read (default
+    `crtraj.core.clock.default_clock()`, the wall clock; share the streamer's).
     """
 
     # Over 60 lines: the connection checks, each with its own one-line message, in the order a lab meets them.
@@ -177,8 +195,10 @@ class DynamixelTransport(Transport):
         return_delay: int = 0,
         home_command: str = "crtraj home",
         stop_torque: str = "keep",
+        clock: Clock | None = None,
     ) -> None:
         sdk = _sdk()
+        self._clock = default_clock() if clock is None else clock
         if actuators.bus is None:
             raise InputError(
                 "robot.actuators: no Dynamixel ids; add id, ticks_per_rev and model per servo (and lead for z), "
@@ -203,11 +223,7 @@ class DynamixelTransport(Transport):
         self._sdk = sdk
         self._ph = sdk.PacketHandler(2.0)
         self._port = None
-        if not os.path.exists(device):
-            raise TransportError(
-                f"{device}: no such port (is the USB-serial adapter, e.g. a U2D2, plugged in? see ls /dev/ttyUSB*)"
-            )
-        port = sdk.PortHandler(device)
+        port = port_factory(sdk, device)
         try:
             opened = port.openPort() and self._set_baud(port, self.baud)
         except Exception as exc:  # pyserial raises SerialException / OSError / ValueError
@@ -251,7 +267,7 @@ class DynamixelTransport(Transport):
         self.counts = {"timeouts": 0, "corrupt": 0, "writes": 0, "reads": 0}
         self.timings: deque[tuple[float, float]] = deque(maxlen=100_000)  # (write s, read s) per tick
         self._t_write = 0.0
-        self._t0 = time.monotonic()
+        self._t0 = self._clock.now()
         self.velocities = np.zeros(len(bus.ids))  # last present velocities (rad/s, mm/s)
 
     @staticmethod
@@ -457,7 +473,7 @@ class DynamixelTransport(Transport):
         self._seq = seq_next(self._seq)
         tel = Telemetry(
             seq=self._seq,
-            stamp=time.monotonic() - self._t0,
+            stamp=self._clock.now() - self._t0,
             ack=self._ack,
             status=STATUS_ESTOP if self._estopped else 0,
             positions=bus.values(ticks),
@@ -503,13 +519,14 @@ class DynamixelTransport(Transport):
     def _drain(self, quiet: float = 0.005, most: float = 0.1) -> None:
         """After a failed read, let late replies arrive and drop them (until `quiet` s of silence, at
         most `most` s), so the next read does not take a stale reply for its own."""
-        end = time.monotonic() + most
-        last = time.monotonic()
-        while time.monotonic() < end and time.monotonic() - last < quiet:
+        clock = self._clock
+        end = clock.now() + most
+        last = clock.now()
+        while clock.now() < end and clock.now() - last < quiet:
             if self._port.getBytesAvailable():
                 self._port.clearPort()
-                last = time.monotonic()
-            time.sleep(0.0005)
+                last = clock.now()
+            clock.sleep(0.0005)
         self._port.clearPort()
 
     def close(self) -> None:

@@ -46,7 +46,7 @@ from typing import Any
 
 import numpy as np
 
-from crtraj.core.clock import Clock, VirtualClock, WallClock
+from crtraj.core.clock import Clock, VirtualClock, default_clock
 from crtraj.core.errors import AdmissionError, InputError
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.admission import AdmittedMotion
@@ -139,9 +139,9 @@ class Streamer:
     when set-points are given as actuation q); log: JSON-lines run record
     path (None: no record). realtime: pace `run_path` by the clock
     (default: only when the transport has telemetry, so a dry run is instant).
-    clock: the time source (s) that paces and times the stream (default `WallClock`; tests inject a
-    `VirtualClock`). session: this run's session number (default: random, non-zero); first_seq:
-    the PING's sequence number (set-points follow from first_seq + 1, wrapping).
+    clock: the time source (s) that paces and times the stream (default `crtraj.core.clock.default_clock()`, the
+    `WallClock`; tests inject a `VirtualClock`). session: this run's session number (default: random, non-zero);
+    first_seq: the PING's sequence number (set-points follow from first_seq + 1, wrapping).
     """
 
     def __init__(
@@ -168,7 +168,7 @@ class Streamer:
         self._realtime = transport.has_telemetry if realtime is None else realtime
         self._log = RunLog(log, self.options.fsync)
         self._gate = LimitsGate(actuators, self._dt)
-        self._machine = StreamStateMachine(WallClock() if clock is None else clock, self._log)
+        self._machine = StreamStateMachine(default_clock() if clock is None else clock, self._log)
         self._buffer = SetpointBuffer(self._dt)
         self._monitor = StreamMonitor(self.session, actuators, self.options, self._log, first_seq)
         parts = StreamParts(self._machine, self._buffer, self._monitor, self._log)
