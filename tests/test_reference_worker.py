@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import signal
 
 import numpy as np
 import pytest
@@ -156,6 +157,26 @@ def test_close_ends_a_worker_that_is_still_planning(worker):
     assert started.wait(60.0)
     w.close()
     assert multiprocessing.active_children() == [] and w.pending is None
+
+
+def test_close_ends_a_worker_that_ignores_sigterm(worker):
+    """A child that terminate() cannot end (as a child left unscheduled on a loaded machine) is killed:
+    no process outlives close()."""
+    started = multiprocessing.Event()
+
+    class Deaf(EchoSource):
+        def __call__(self, x, t, scene):
+            signal.signal(signal.SIGTERM, signal.SIG_IGN)
+            started.set()
+            multiprocessing.Event().wait(3600.0)
+
+    w = worker(Deaf())
+    w.submit(XS, 1.0, Scene(obstacles=(BALL,)), PendingPlan(0, 1, "test"))
+    assert started.wait(60.0)
+    proc = w._proc
+    w.close()
+    assert not proc.is_alive() and proc.exitcode == -signal.SIGKILL
+    assert multiprocessing.active_children() == []
 
 
 def test_a_worker_that_never_replies_is_reported_not_waited_for_forever(worker):

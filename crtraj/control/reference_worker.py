@@ -152,7 +152,8 @@ class ReferenceWorker:
         return {"plans": self.plans, "wait_s": self.wait_time, "failure": self.failure}
 
     def close(self) -> None:
-        """End the worker (closing its pipe ends it; one still planning is terminated)."""
+        """End the worker (closing its pipe ends it; one still planning is terminated, then killed): no
+        process outlives this call."""
         conn, proc = self._conn, self._proc
         self._conn, self._proc = None, None
         if conn is not None:
@@ -162,6 +163,11 @@ class ReferenceWorker:
             if proc.is_alive():
                 proc.terminate()
                 proc.join(JOIN_TIMEOUT)
+            if proc.is_alive():
+                # a heavily loaded machine can leave a terminated child unscheduled past the timeout; SIGKILL
+                # cannot be ignored, so the join returns and no process outlives close()
+                proc.kill()
+                proc.join()
         self.pending = None
 
     # ----------------------------------------------------------------- internals
