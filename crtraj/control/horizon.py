@@ -86,6 +86,7 @@ from crtraj.control.horizon_build import (
     gauss_newton,
     nlp_solver,
 )
+from crtraj.control.horizon_stage import StageSolver
 from crtraj.control.horizon_options import (
     DIVERGED,
     HESSIANS,
@@ -221,7 +222,11 @@ class Replanner:
             closest_points=self._K,
         )
         nlp = self._nlp = build_nlp(spec)
-        self.solver = nlp_solver(o.solver, o, nlp.nlp, gauss_newton(o, nlp.r_vec, nlp.nlp, o.solver))
+        if o.solver == "sqp" and o.qpsol == "hpipm":
+            # the stage form for HPIPM (`horizon_stage`), called like the dense solver
+            self.solver = StageSolver(spec, nlp)
+        else:
+            self.solver = nlp_solver(o.solver, o, nlp.nlp, gauss_newton(o, nlp.r_vec, nlp.nlp, o.solver))
         self.compiled_message = ""
         parts: CompiledParts | None = None
         if o.compiled:

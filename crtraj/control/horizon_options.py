@@ -18,7 +18,7 @@ from crtraj.core.fields import Table
 from crtraj.core.options import Options, option
 
 SOLVERS = ("ipopt", "sqp")
-QP_SOLVERS = ("daqp", "qrqp", "osqp", "qpoases")
+QP_SOLVERS = ("daqp", "qrqp", "osqp", "qpoases", "hpipm")
 HESSIANS = ("gauss-newton", "exact")
 
 # Keys of the closed loop's own options, once read from [replan]: now the [loop] section
