@@ -86,7 +86,6 @@ from crtraj.control.horizon_build import (
     gauss_newton,
     nlp_solver,
 )
-from crtraj.control.horizon_stage import StageSolver
 from crtraj.control.horizon_options import (
     DIVERGED,
     HESSIANS,
@@ -100,6 +99,7 @@ from crtraj.control.horizon_options import (
     horizon_status,
 )
 from crtraj.control.horizon_rows import implied_rows, merge_parallel_rows, sagitta, shift_index
+from crtraj.control.horizon_stage import StageSolver
 from crtraj.core.errors import InputError
 from crtraj.core.fields import check_float
 from crtraj.model.kinematics import Model
