@@ -230,7 +230,8 @@ class Replanner:
         self.compiled_message = ""
         parts: CompiledParts | None = None
         if o.compiled:
-            self.compiled_message, parts = build_compiled(spec, nlp, self.solver)
+            stage = getattr(self.solver, "function", None)  # the stage form's dense-interface function
+            self.compiled_message, parts = build_compiled(spec, nlp, self.solver if stage is None else stage)
             log.debug("horizon: %s", self.compiled_message)
         self._rows = None
         if nlp.all_distance is not None:

@@ -84,6 +84,41 @@ class StageSolver:
             "ng": [len(idx) for idx in order] + [0],
         }
         self.solver = nlp_solver("sqp", o, stage_nlp, hess, structure)
+        # x_-1 .. x_N stacked (parameters then x) -> the stage variables: s_k = (x_k, x_k-1), u_k = x_k+1
+        col = np.arange((N + 2) * nx).reshape(N + 2, nx)
+        self.w_of = np.concatenate([np.concatenate([col[k + 1], col[k], col[k + 2]]) for k in range(N)])
+        self.w_of = np.concatenate([self.w_of, col[N + 1], col[N]])
+        self.function = self._dense_function()
+
+    def _dense_function(self) -> ca.Function:
+        """The stage solver as one CasADi function with sqpmethod's dense inputs and outputs (what
+        `build_compiled` generates C for): the index maps of `call`, symbolic."""
+        nx, n, ng = self.nx, self.N * self.nx, int(self.g_of.size)
+        names = ("x0", "p", "lbx", "ubx", "lbg", "ubg", "lam_x0", "lam_g0")
+        x0, p = ca.MX.sym("x0", n), ca.MX.sym("p", self.solver.size1_in("p"))
+        lbx, ubx, lx = (ca.MX.sym(k, n) for k in ("lbx", "ubx", "lam_x0"))
+        lbg, ubg, lg = (ca.MX.sym(k, ng) for k in ("lbg", "ubg", "lam_g0"))
+        v = ca.vertcat(p[nx : 2 * nx], p[:nx], x0)
+        w0 = v[self.w_of.tolist()]
+        lbw, ubw = ca.MX(ca.DM.ones(self.nw) * -np.inf), ca.MX(ca.DM.ones(self.nw) * np.inf)
+        s0 = list(range(2 * nx))
+        lbw[s0], ubw[s0] = w0[s0], w0[s0]
+        u = self.u_of.tolist()
+        lbw[u], ubw[u] = lbx, ubx
+        lbgs, ubgs, lam_gs = (ca.MX(ca.DM.zeros(self.ng)) for _ in range(3))
+        gi = self.g_of.tolist()
+        lbgs[gi], ubgs[gi], lam_gs[gi] = lbg, ubg, lg
+        lam_ws = ca.MX(ca.DM.zeros(self.nw))
+        lam_ws[u] = lx
+        sol = self.solver(x0=w0, p=p, lbx=lbw, ubx=ubw, lbg=lbgs, ubg=ubgs, lam_x0=lam_ws, lam_g0=lam_gs)
+        outs = [sol["x"][u], sol["f"], sol["g"][gi], sol["lam_x"][u], sol["lam_g"][gi], sol["lam_p"]]
+        return ca.Function(
+            "replan_sqp_stage",
+            [x0, p, lbx, ubx, lbg, ubg, lx, lg],
+            outs,
+            list(names),
+            ["x", "f", "g", "lam_x", "lam_g", "lam_p"],
+        )
 
     def call(self, args: dict[str, Any]) -> dict[str, Any]:
         """The dense solver's call: args and outputs in the dense NLP's variables and rows."""
