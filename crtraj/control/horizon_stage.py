@@ -66,7 +66,7 @@ class StageSolver:
             res.append(at_stage(built.r_vec[np.flatnonzero(r_step == j).tolist()], j))
         w = ca.vertcat(*[ca.vertcat(S[k], U[k]) for k in range(N)], S[N])
         gs, r = ca.vertcat(*rows), ca.vertcat(*res)
-        stage_nlp = {"x": w, "p": p, "f": ca.sumsqr(r), "g": gs}
+        stage_nlp = self.nlp = {"x": w, "p": p, "f": ca.sumsqr(r), "g": gs}
         # where each dense row and configuration sits among the stage rows and variables
         pos, at = [], 0
         for idx in order:
