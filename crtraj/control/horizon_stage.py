@@ -88,6 +88,9 @@ class StageSolver:
         col = np.arange((N + 2) * nx).reshape(N + 2, nx)
         self.w_of = np.concatenate([np.concatenate([col[k + 1], col[k], col[k + 2]]) for k in range(N)])
         self.w_of = np.concatenate([self.w_of, col[N + 1], col[N]])
+        # lam_x of x_j: the sum over its copies (u_j-1 and the two state copies, all boxed: HPIPM bounds every
+        # variable, and an infinite bound becomes 1e8, which slows its interior point; the gap rows' terms cancel)
+        self.gather = ca.DM(ca.Sparsity.triplet((N + 2) * nx, self.nw, self.w_of.tolist(), list(range(self.nw))), 1.0)
         self.function = self._dense_function()
 
     def _dense_function(self) -> ca.Function:
@@ -100,18 +103,17 @@ class StageSolver:
         lbg, ubg, lg = (ca.MX.sym(k, ng) for k in ("lbg", "ubg", "lam_g0"))
         v = ca.vertcat(p[nx : 2 * nx], p[:nx], x0)
         w0 = v[self.w_of.tolist()]
-        lbw, ubw = ca.MX(ca.DM.ones(self.nw) * -np.inf), ca.MX(ca.DM.ones(self.nw) * np.inf)
-        s0 = list(range(2 * nx))
-        lbw[s0], ubw[s0] = w0[s0], w0[s0]
+        lbw = ca.vertcat(p[nx : 2 * nx], p[:nx], lbx)[self.w_of.tolist()]
+        ubw = ca.vertcat(p[nx : 2 * nx], p[:nx], ubx)[self.w_of.tolist()]
         u = self.u_of.tolist()
-        lbw[u], ubw[u] = lbx, ubx
         lbgs, ubgs, lam_gs = (ca.MX(ca.DM.zeros(self.ng)) for _ in range(3))
         gi = self.g_of.tolist()
         lbgs[gi], ubgs[gi], lam_gs[gi] = lbg, ubg, lg
         lam_ws = ca.MX(ca.DM.zeros(self.nw))
         lam_ws[u] = lx
         sol = self.solver(x0=w0, p=p, lbx=lbw, ubx=ubw, lbg=lbgs, ubg=ubgs, lam_x0=lam_ws, lam_g0=lam_gs)
-        outs = [sol["x"][u], sol["f"], sol["g"][gi], sol["lam_x"][u], sol["lam_g"][gi], sol["lam_p"]]
+        lam_x = ca.mtimes(self.gather, sol["lam_x"])[2 * nx :]
+        outs = [sol["x"][u], sol["f"], sol["g"][gi], lam_x, sol["lam_g"][gi], sol["lam_p"]]
         return ca.Function(
             "replan_sqp_stage",
             [x0, p, lbx, ubx, lbg, ubg, lx, lg],
@@ -128,9 +130,9 @@ class StageSolver:
         cols = xs.reshape(N + 2, nx)  # x_-1 .. x_N
         w0 = np.concatenate([np.concatenate([cols[k + 1], cols[k], cols[k + 2]]) for k in range(N)])
         w0 = np.concatenate([w0, cols[N + 1], cols[N]])
-        lbw, ubw = np.full(self.nw, -np.inf), np.full(self.nw, np.inf)
-        lbw[: 2 * nx] = ubw[: 2 * nx] = w0[: 2 * nx]  # s_0 = (x_0, x_-1), given
-        lbw[self.u_of], ubw[self.u_of] = args["lbx"], args["ubx"]
+        # s_0 = (x_0, x_-1) given; every copy of x_j in its box
+        lbw = np.concatenate([xs[: 2 * nx], np.asarray(args["lbx"], dtype=float).ravel()])[self.w_of]
+        ubw = np.concatenate([xs[: 2 * nx], np.asarray(args["ubx"], dtype=float).ravel()])[self.w_of]
         lbg, ubg = np.zeros(self.ng), np.zeros(self.ng)  # the gap rows: equalities
         lbg[self.g_of], ubg[self.g_of] = args["lbg"], args["ubg"]
         a: dict[str, Any] = {"x0": w0, "p": p, "lbx": lbw, "ubx": ubw, "lbg": lbg, "ubg": ubg}
@@ -147,7 +149,7 @@ class StageSolver:
             "x": ca.DM(w[self.u_of]),
             "f": sol["f"],
             "g": ca.DM(gs[self.g_of]),
-            "lam_x": ca.DM(np.asarray(sol["lam_x"]).ravel()[self.u_of]),
+            "lam_x": ca.mtimes(self.gather, sol["lam_x"])[2 * nx :],
             "lam_g": ca.DM(np.asarray(sol["lam_g"]).ravel()[self.g_of]),
             "lam_p": sol["lam_p"],
         }
