@@ -300,7 +300,11 @@ _BAD = (
     (ReplanOptions, {"max_cable_speed": 0.0}, r"^replan\.max_cable_speed: must be > 0, got 0$"),
     (ReplanOptions, {"limit_fraction": 1.5}, r"^replan\.limit_fraction: must be <= 1, got 1\.5$"),
     (ReplanOptions, {"hessian": "bfgs"}, r"^replan\.hessian: must be one of gauss-newton, exact; got 'bfgs'$"),
-    (ReplanOptions, {"qpsol": "highs"}, r"^replan\.qpsol: must be one of daqp, qrqp, osqp, qpoases, hpipm; got 'highs'$"),
+    (
+        ReplanOptions,
+        {"qpsol": "highs"},
+        r"^replan\.qpsol: must be one of daqp, qrqp, osqp, qpoases, hpipm; got 'highs'$",
+    ),
     (ReplanOptions, {"safety": 0}, r"^replan\.safety: expected true or false"),
     (LoopOptions, {"duration": 0.0}, r"^loop\.duration: must be > 0, got 0$"),
     (LoopOptions, {"reference_speed": 1.5}, r"^loop\.reference_speed: must be <= 1, got 1\.5$"),
