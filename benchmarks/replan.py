@@ -21,6 +21,8 @@ paths planned by a worker process beside the loop ([loop] reference_delay =
 the step that asks for it (reference_delay = 0, the previous round's loop).
 "compiled-unfused": "compiled" with the solver, its KKT check and the row check as two C calls and numpy
 (fused = false; "compiled" makes them one generated C call, issue 29).
+"sqp-hpipm", "compiled-hpipm": the horizon QP in stage form (state (x_k, x_k-1), input x_k+1) solved by
+HPIPM (issue 29), interpreted as "sqp" runs and as generated C as "compiled" runs.
 "compiled-old": the compiled solver with the QP of the previous round (every
 backbone point of every step, closest_points = 0; dual tolerance 1e-6), 60
 iterations, no deadline, inline references. "sqp", "sqp-qrqp", "ipopt": the
@@ -34,7 +36,7 @@ path or took one over; 'misses' counts the steps whose NLP result came after
 the deadline (they fall back to the last verified plan or a verified hold).
 
 Run: python benchmarks/replan.py [--seeds 3] [--deadline 0.002]
-         [--solvers compiled,compiled-unfused,compiled-all,compiled-old,sqp,ipopt,sqp-qrqp]
+         [--solvers compiled,compiled-unfused,compiled-all,compiled-old,sqp,ipopt,sqp-qrqp,sqp-hpipm,compiled-hpipm]
 """
 
 from __future__ import annotations
@@ -71,6 +73,11 @@ VARIANTS = {
     # the previous path: every obstacle of the scene in the QP, no broad phase (the switch: qp_obstacles = 0)
     "compiled-all": {"solver": "sqp", "qpsol": "daqp", "compiled": True, "qp_obstacles": 0},
     "compiled-inline": {"solver": "sqp", "qpsol": "daqp", "compiled": True},
+    # issue 29: the stage-form QP for HPIPM (`crtraj.control.horizon_stage`), interpreted as "sqp" runs, and
+    # as generated C as "compiled" runs (the problem's deadline)
+    "sqp-hpipm": {"solver": "sqp", "qpsol": "hpipm", "compiled": False, "step_deadline": 0.0, "max_iter": 60,
+                  "max_calls": 1},
+    "compiled-hpipm": {"solver": "sqp", "qpsol": "hpipm", "compiled": True},
     "compiled-old": {
         "solver": "sqp", "qpsol": "daqp", "compiled": True, "closest_points": 0, "tol": 1e-6,
         "step_deadline": 0.0, "max_iter": 60, "max_calls": 1,
@@ -83,6 +90,7 @@ LOOP_VARIANTS = {
     "ipopt": {"reference_delay": 0.0},
     "compiled-inline": {"reference_delay": 0.0},
     "compiled-old": {"reference_delay": 0.0},
+    "sqp-hpipm": {"reference_delay": 0.0},
 }
 
 
@@ -253,6 +261,15 @@ def main() -> None:
             f"obstacle in the QP (qp_obstacles 0): iteration median x{a['it_med'] / c['it_med']:.2f}, p99 "
             f"x{a['it_p99'] / c['it_p99']:.2f}, CPU per step x{a['cpu_step'] / c['cpu_step']:.2f}"
         )
+    for dense, stage in (("sqp", "sqp-hpipm"), ("compiled", "compiled-hpipm")):
+        if dense in by and stage in by:
+            d, h = by[dense], by[stage]
+            print(
+                f"{stage} (stage-form QP, HPIPM) vs {dense} (dense QP, daqp): NLP median "
+                f"x{h['nlp_med'] / d['nlp_med']:.2f}, NLP p99 x{h['nlp_p99'] / d['nlp_p99']:.2f}, iteration median "
+                f"x{h['it_med'] / d['it_med']:.2f}, p99 x{h['it_p99'] / d['it_p99']:.2f}; misses {h['misses']} vs "
+                f"{d['misses']}"
+            )
     if "compiled" in by and "compiled-old" in by:
         c, old = by["compiled"], by["compiled-old"]
         print(

@@ -105,14 +105,14 @@ def steer_ms(model: Model, scene: Scene, compiled: bool, n: int = 40) -> tuple[f
 
 
 def replan_ms(
-    model: Model, scene: Scene, compiled: bool = False, qp_obstacles: int = 0
+    model: Model, scene: Scene, compiled: bool = False, qp_obstacles: int = 0, qpsol: str = "daqp"
 ) -> tuple[float, float, float, float]:
     """(median iteration ms, median NLP ms, p99 iteration ms (wall), mean CPU ms per iteration) of a 3 s
     closed-loop run; compiled: the horizon NLP in C with the shipped problem's iteration cap; qp_obstacles:
-    the QP's obstacle slots (0: every obstacle of the scene)."""
+    the QP's obstacle slots (0: every obstacle of the scene); qpsol: "hpipm" is the stage-form QP (issue 29)."""
     xs, xg = configs(model)
     cap = {"compiled": True, "max_iter": 3, "max_calls": 20} if compiled else {}
-    opts = ReplanOptions(solver="sqp", qpsol="daqp", points=16, qp_obstacles=qp_obstacles, **cap)
+    opts = ReplanOptions(solver="sqp", qpsol=qpsol, points=16, qp_obstacles=qp_obstacles, **cap)
     loop = ClosedLoop.build(
         model, scene, model.tip_position(xg), xs, options=opts, loop_options=LoopOptions(duration=3.0), goal_config=xg
     )

@@ -300,7 +300,11 @@ _BAD = (
     (ReplanOptions, {"max_cable_speed": 0.0}, r"^replan\.max_cable_speed: must be > 0, got 0$"),
     (ReplanOptions, {"limit_fraction": 1.5}, r"^replan\.limit_fraction: must be <= 1, got 1\.5$"),
     (ReplanOptions, {"hessian": "bfgs"}, r"^replan\.hessian: must be one of gauss-newton, exact; got 'bfgs'$"),
-    (ReplanOptions, {"qpsol": "highs"}, r"^replan\.qpsol: must be one of daqp, qrqp, osqp, qpoases; got 'highs'$"),
+    (
+        ReplanOptions,
+        {"qpsol": "highs"},
+        r"^replan\.qpsol: must be one of daqp, qrqp, osqp, qpoases, hpipm; got 'highs'$",
+    ),
     (ReplanOptions, {"safety": 0}, r"^replan\.safety: expected true or false"),
     (LoopOptions, {"duration": 0.0}, r"^loop\.duration: must be > 0, got 0$"),
     (LoopOptions, {"reference_speed": 1.5}, r"^loop\.reference_speed: must be <= 1, got 1\.5$"),
@@ -409,7 +413,7 @@ def test_replan_keeps_its_moved_to_loop_error_and_qp_solver_check():
         value = 1 if key == "reference_speed" else 2
         assert LoopOptions.from_table(Table({key: value}, "loop")).to_dict()[key] == value  # read under [loop]
     # every QP solver this CasADi build lacks is refused for "sqp" (one line), from a file and from Python
-    for qp in ("daqp", "qrqp", "osqp", "qpoases"):
+    for qp in ("daqp", "qrqp", "osqp", "qpoases", "hpipm"):
         if ca.has_conic(qp):
             assert ReplanOptions(solver="sqp", qpsol=qp).qpsol == qp
         else:

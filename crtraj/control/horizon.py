@@ -99,6 +99,7 @@ from crtraj.control.horizon_options import (
     horizon_status,
 )
 from crtraj.control.horizon_rows import implied_rows, merge_parallel_rows, sagitta, shift_index
+from crtraj.control.horizon_stage import StageSolver
 from crtraj.core.errors import InputError
 from crtraj.core.fields import check_float
 from crtraj.model.kinematics import Model
@@ -221,11 +222,16 @@ class Replanner:
             closest_points=self._K,
         )
         nlp = self._nlp = build_nlp(spec)
-        self.solver = nlp_solver(o.solver, o, nlp.nlp, gauss_newton(o, nlp.r_vec, nlp.nlp, o.solver))
+        if o.solver == "sqp" and o.qpsol == "hpipm":
+            # the stage form for HPIPM (`horizon_stage`), called like the dense solver
+            self.solver = StageSolver(spec, nlp)
+        else:
+            self.solver = nlp_solver(o.solver, o, nlp.nlp, gauss_newton(o, nlp.r_vec, nlp.nlp, o.solver))
         self.compiled_message = ""
         parts: CompiledParts | None = None
         if o.compiled:
-            self.compiled_message, parts = build_compiled(spec, nlp, self.solver)
+            stage = getattr(self.solver, "function", None)  # the stage form's dense-interface function
+            self.compiled_message, parts = build_compiled(spec, nlp, self.solver if stage is None else stage)
             log.debug("horizon: %s", self.compiled_message)
         self._rows = None
         if nlp.all_distance is not None:

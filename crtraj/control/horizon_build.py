@@ -271,8 +271,11 @@ def gauss_newton(options: ReplanOptions, r_vec: ca.SX, nlp: dict[str, ca.SX], ki
     return ca.Function("nlp_hess_l", [xv, p, lam_f, lam_g], [out], {"cse": True})
 
 
-def nlp_solver(kind: str, options: ReplanOptions, nlp: dict[str, ca.SX], hess: ca.Function | None) -> ca.Function:
-    """A CasADi solver of `nlp`: "ipopt", or "sqp" (sqpmethod with the QP solver ``qpsol``)."""
+def nlp_solver(
+    kind: str, options: ReplanOptions, nlp: dict[str, ca.SX], hess: ca.Function | None, qp_extra: dict | None = None
+) -> ca.Function:
+    """A CasADi solver of `nlp`: "ipopt", or "sqp" (sqpmethod with the QP solver ``qpsol``, given `qp_extra`
+    among its options: the stage structure for HPIPM)."""
     # calc_lam_p off: the parametric sensitivities are never used, and computing them is a full gradient over
     # every parameter after each solve
     common: dict[str, Any] = {
@@ -285,7 +288,9 @@ def nlp_solver(kind: str, options: ReplanOptions, nlp: dict[str, ca.SX], hess: c
         common["hess_lag"] = hess
     if kind == "ipopt":
         return ca.nlpsol("replan_ipopt", "ipopt", nlp, {**common, **_ipopt_options(options)})
-    return ca.nlpsol("replan_sqp", "sqpmethod", nlp, {**common, **_sqp_options(options)})
+    sqp = _sqp_options(options)
+    sqp["qpsol_options"].update(qp_extra or {})
+    return ca.nlpsol("replan_sqp", "sqpmethod", nlp, {**common, **sqp})
 
 
 def _ipopt_options(o: ReplanOptions) -> dict[str, Any]:
@@ -317,6 +322,10 @@ def _sqp_options(o: ReplanOptions) -> dict[str, Any]:
         qp_opts["max_iter"] = 200
     if o.qpsol == "osqp":
         qp_opts["osqp"] = {"verbose": False}
+    if o.qpsol == "hpipm":
+        # HPIPM's "speed" mode (Cholesky Riccati): the generated code defaults to "robust", whose LQ factorisations
+        # made the compiled solve 40x slower than the dense daqp one on simulation 2
+        qp_opts["hpipm"] = {"mode": "speed", "warm_start": 1}
     if o.qpsol == "qpoases":
         qp_opts["printLevel"] = "none"
     opts = {

@@ -18,7 +18,7 @@ from crtraj.core.fields import Table
 from crtraj.core.options import Options, option
 
 SOLVERS = ("ipopt", "sqp")
-QP_SOLVERS = ("daqp", "qrqp", "osqp", "qpoases")
+QP_SOLVERS = ("daqp", "qrqp", "osqp", "qpoases", "hpipm")
 HESSIANS = ("gauss-newton", "exact")
 
 # Keys of the closed loop's own options, once read from [replan]: now the [loop] section
@@ -72,7 +72,10 @@ class ReplanOptions(Options):
     IPOPT, built alongside), safety (false drops the obstacle constraints),
     limit_fraction (share (0, 1] of each actuator's speed and acceleration limit the
     NLP and the tracking may use, when the robot's actuator limits are given).
-    compiled (with solver "sqp" and qpsol daqp or qrqp): generate C for the
+    qpsol "hpipm" (issue 29): the same NLP in stage form, state (x_k, x_k-1)
+    and input x_k+1, for HPIPM's Riccati interior point
+    (`crtraj.control.horizon_stage`); same rows, answers and success test.
+    compiled (with solver "sqp" and qpsol daqp, qrqp or hpipm): generate C for the
     whole sqpmethod solver, compile it once (cached) and call it through
     ctypes; convergence is sqpmethod's own KKT test on the returned point
     (the generated code reports no iteration count: -1). Without a C

@@ -31,7 +31,7 @@ from crtraj.core.build_cache import BuildCache, BuildKey, compile_shared
 # Live `CompiledFunction`s of one function at a time (memory slots compiled into the library).
 MAX_INSTANCES = 64
 # QP solvers whose CasADi interface generates C (daqp: linked from CasADi's static library)
-CODEGEN_QP = ("daqp", "qrqp")
+CODEGEN_QP = ("daqp", "qrqp", "hpipm")
 
 _INT = ctypes.c_longlong  # casadi_int (long long in CasADi's generated code)
 
@@ -150,9 +150,16 @@ def _casadi_dir() -> Path:
 
 def _qp_build(qpsol: str) -> tuple[tuple[str, ...], list[Path]]:
     """(compiler flags, extra link inputs) for the QP solver's generated interface."""
+    root = _casadi_dir()
+    if qpsol == "hpipm":
+        # HPIPM and BLASFEO as the shared libraries CasADi ships, found at run time by the rpath
+        inc = root / "include"
+        return (f"-I{inc}", f"-I{inc / 'hpipm'}", f"-I{inc / 'blasfeo'}", f"-Wl,-rpath,{root}"), [
+            root / "libhpipm.so",
+            root / "libblasfeo.so",
+        ]
     if qpsol != "daqp":
         return (), []
-    root = _casadi_dir()
     return (f"-I{root / 'include'}", f"-I{root / 'include' / 'daqp'}"), [root / "libdaqpstat.a"]
 
 
