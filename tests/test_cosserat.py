@@ -129,6 +129,24 @@ def test_warm_start_needs_fewer_iterations(one: CosseratRod) -> None:
     np.testing.assert_allclose(warm.points, cold.points, atol=1e-8)
 
 
+def test_solve_path_unpolished_stays_within_the_tolerance_of_cold_solves(mech: Mechanics) -> None:
+    """A path of nearby tensions solved by `solve_path` without polish (each solve stops once its residual is
+    within the 1e-6 N tolerance): every shape converged, its residual within the tolerance, its points within
+    1e-3 mm of an independent cold full-Newton solve; bad paths are one-line input errors."""
+    rod = CosseratRod(Robot("one", RC, (Segment(L),)), mech.with_(tolerance=1e-6))
+    ref = CosseratRod(Robot("one", RC, (Segment(L),)), mech, compiled=False)
+    s = np.linspace(0.0, 1.0, 40)[:, None]
+    path = np.hstack([20.0 * s, 5.0 * s**2, 3.0 * (1.0 - s)])
+    sols = rod.solve_path(path, NO_LOAD, polish=1.0)
+    assert all(sol.is_success() and sol.residual <= 1e-6 for sol in sols)
+    for tau, sol in zip(path[::7], sols[::7], strict=True):
+        np.testing.assert_allclose(sol.points, ref.solve(tau, NO_LOAD, warm=False).points, atol=1e-3)
+    with pytest.raises(InputError, match="a tendon cannot push"):
+        rod.solve_path([[1.0, 0.0, 0.0], [1.0, -1.0, 0.0]])
+    with pytest.raises(InputError, match=r"tensions: expected shape \(N, 3\)"):
+        rod.solve_path([1.0, 0.0, 0.0])
+
+
 def test_a_tension_that_breaks_the_solve_is_reported_not_shaped(one: CosseratRod) -> None:
     """1000 N on one tendon (40 rad of bending in 100 mm): a failed status and no shape."""
     sol = one.solve([1000.0, 0.0, 0.0], NO_LOAD, warm=False)
@@ -210,6 +228,10 @@ def test_bending_map_reproduces_the_segment_moments(cdsr2: Robot) -> None:
         np.testing.assert_allclose(total, mech.bending_stiffness * kappa, rtol=1e-12)
     np.testing.assert_allclose(
         segment_moments(cdsr2, mech, ub)[1], mech.bending_stiffness * np.array([-0.4, -0.5]) / 200
+    )
+    many = np.stack([ub, -ub, np.zeros_like(ub)])  # many at once: each row as alone
+    np.testing.assert_array_equal(
+        tensions_for_bending(cdsr2, mech, many), [tensions_for_bending(cdsr2, mech, u) for u in many]
     )
 
 

@@ -40,7 +40,7 @@ import numpy as np
 from crtraj.core.build_cache import BuildCache
 from crtraj.core.errors import InputError
 from crtraj.core.fields import MAX_MAGNITUDE, check_array
-from crtraj.model.cosserat_compiled import CompiledShooting
+from crtraj.model.cosserat_compiled import POLISH, CompiledShooting
 from crtraj.model.cosserat_rod import march, rod_pieces
 from crtraj.model.mechanics import Mechanics
 from crtraj.model.robot import Robot
@@ -220,12 +220,26 @@ class CosseratRod:
         """Shape of the rod under tendon tensions (N) and `load`; starts from the last converged solve
         when `warm` (and from the straight rod if that fails)."""
         tau = check_tensions(tensions, self.n_tendons)
+        return self._solve(tau, load_vector(self.mech, load), warm, POLISH)
+
+    def solve_path(self, tensions: Any, load: RodLoad = NO_LOAD, *, polish: float = POLISH) -> list[RodSolution]:
+        """`solve` (warm) for each row of tensions (N, 3 n_segments) N in turn, checked once: a path of
+        nearby configurations. polish (<= 1): as `CompiledShooting.chord_newton`'s; 1 stops each compiled
+        solve as soon as its residual is within the tolerance (every shape still to the tolerance)."""
+        tau = np.asarray(tensions, dtype=float)
+        if tau.ndim != 2 or tau.shape[1] != self.n_tendons:
+            raise InputError(f"tensions: expected shape (N, {self.n_tendons}), got {tau.shape}")
+        check_tensions(tau.ravel(), tau.size)
         loads = load_vector(self.mech, load)
+        return [self._solve(row, loads, True, polish) for row in tau]
+
+    def _solve(self, tau: np.ndarray, loads: np.ndarray, warm: bool, polish: float) -> RodSolution:
+        """`solve` on checked tensions and load vector."""
         p = np.concatenate([tau, loads])
         use_warm = warm and self._warm is not None
         for start in ("warm", "straight") if use_warm else ("straight",):
             w0 = self._predict(p) if start == "warm" else straight_guess(self.robot, tau, loads)
-            sol = self._attempt(w0, p, start == "warm")
+            sol = self._attempt(w0, p, start == "warm", polish)
             if sol.is_success():
                 self._warm = np.concatenate([sol.base_force, sol.base_moment])
                 self._history = [*self._history[-1:], (p, self._warm)]
@@ -250,12 +264,12 @@ class CosseratRod:
             return self._warm
         return w1 + min(along / no, PREDICT_MAX) * (w1 - w0)
 
-    def _attempt(self, w0: np.ndarray, p: np.ndarray, keep_jacobian: bool) -> RodSolution:
+    def _attempt(self, w0: np.ndarray, p: np.ndarray, keep_jacobian: bool, polish: float = POLISH) -> RodSolution:
         """One Newton run from w0: compiled (reusing the last Jacobian when `keep_jacobian`) or interpreted."""
         tol = self.mech.tolerance
         if self._compiled is not None:
             jac0 = self._jac if keep_jacobian else None
-            w, res, shape, self._jac, stats = self._compiled.chord_newton(w0, p, jac0, tol, self.mech.max_iter)
+            w, res, shape, self._jac, stats = self._compiled.chord_newton(w0, p, jac0, tol, self.mech.max_iter, polish)
             pts, R, turn = shape[:3]
             return solution_status(stats.as_dict(), w, pts, R, res, turn, tol)
         if self._newton is None:

@@ -179,16 +179,23 @@ class CompiledShooting:
         return np.asarray(out[0]).ravel(), out[1:]
 
     def chord_newton(
-        self, w0: np.ndarray, p: np.ndarray, jac: np.ndarray | None, tolerance: float, max_iter: int
+        self,
+        w0: np.ndarray,
+        p: np.ndarray,
+        jac: np.ndarray | None,
+        tolerance: float,
+        max_iter: int,
+        polish: float = POLISH,
     ) -> tuple[np.ndarray, np.ndarray, list[Any], np.ndarray | None, NewtonStats]:
         """(w, r, shape outputs, Jacobian kept, stats) of the iteration from w0 (module docstring);
-        `jac` is the Jacobian to start with (the last solve's) or None."""
+        `jac` is the Jacobian to start with (the last solve's) or None; `polish` (<= 1) replaces `POLISH`
+        (1: stop as soon as max |r| <= tolerance, one residual evaluation fewer on a warm path)."""
         w = np.asarray(w0, dtype=float).copy()
         r, shape = self.residual(w, p)
         fresh, n_jac, it = False, 0, 0
         while it < max_iter:
             err = float(np.max(np.abs(r)))
-            if not np.isfinite(err) or err <= POLISH * tolerance:
+            if not np.isfinite(err) or err <= polish * tolerance:
                 break
             if jac is None or not np.all(np.isfinite(jac)):
                 _, jac_dm = self.resjac(w, p)

@@ -19,28 +19,30 @@ from crtraj.model.robot import Robot
 
 
 def segment_moments(robot: Robot, mech: Mechanics, u_bar: np.ndarray) -> np.ndarray:
-    """Body-frame bending moments (N mm), (n_segments, 2), that hold the effective bending vectors
-    u_bar (n_segments, 2) rad as constant curvatures: bending toward +x is a moment about +y."""
-    ub = np.asarray(u_bar, dtype=float).reshape(robot.n_segments, 2)
+    """Body-frame bending moments (N mm), (..., n_segments, 2), that hold the effective bending vectors
+    u_bar (..., n_segments, 2) rad as constant curvatures: bending toward +x is a moment about +y."""
+    ub = np.asarray(u_bar, dtype=float)
+    ub = ub.reshape(*ub.shape[:-2], robot.n_segments, 2) if ub.ndim >= 2 else ub.reshape(robot.n_segments, 2)
     lengths = np.array([s.length for s in robot.segments])
-    kappa = np.stack([-ub[:, 1], ub[:, 0]], axis=1) / lengths[:, None]
+    kappa = np.stack([-ub[..., 1], ub[..., 0]], axis=-1) / lengths[:, None]
     return mech.bending_stiffness * kappa
 
 
 def tensions_for_bending(robot: Robot, mech: Mechanics, u_bar: np.ndarray, pretension: float = 0.0) -> np.ndarray:
     """Tendon tensions (N), (3 n_segments,) in cable order, that bend a weightless rod to u_bar (rad,
-    (n_segments, 2)); the smallest tension of each segment equals `pretension` (N)."""
+    (n_segments, 2)); the smallest tension of each segment equals `pretension` (N). Many at once: u_bar
+    (N, n_segments, 2) gives (N, 3 n_segments)."""
     moments = segment_moments(robot, mech, u_bar)
     r = robot.cable_radius
-    out = np.empty(3 * robot.n_segments)
+    out = np.empty((*moments.shape[:-2], 3 * robot.n_segments))
     for k in range(robot.n_segments):
-        own = moments[k] - (moments[k + 1] if k + 1 < robot.n_segments else 0.0)
+        own = moments[..., k, :] - (moments[..., k + 1, :] if k + 1 < robot.n_segments else 0.0)
         a = robot.cable_angles(k)
         # tendon i at angle a_i adds the body moment tau_i r (-sin a_i, cos a_i); the three unit
         # directions d_i satisfy sum d_i d_i^T = 3/2 I, so tau_i = 2/(3 r) d_i . own is the least-norm share
         d = np.stack([-np.sin(a), np.cos(a)], axis=1)
-        share = (2.0 / (3.0 * r)) * d @ own
-        out[3 * k : 3 * k + 3] = share - share.min() + pretension
+        share = (2.0 / (3.0 * r)) * own @ d.T
+        out[..., 3 * k : 3 * k + 3] = share - share.min(axis=-1, keepdims=True) + pretension
     return out
 
 
