@@ -168,16 +168,13 @@ def solution_status(stats: dict, w: np.ndarray, pts: Any, R: Any, res: Any, turn
     return RodSolution(status, pts.T.copy(), R, w[:3].copy(), w[3:6].copy(), err, iters)
 
 
-class CosseratRod:
-    """Tendon-tension statics of one robot: build once, then `solve` many times (warm-started).
+class RodStatics:
+    """What every rod-statics solver of one robot shares: the robot, its mechanics, the optional generated C
+    (loaded through the build cache by `_load_compiled`), the warm start and the last Jacobian.
 
-    solve(tensions, load) -> RodSolution. Tensions (N) are ordered as the robot's cables (segment by
-    segment, cable 1..3), the order of the actuation vector q.
-
-    compiled: solve with generated C through the build cache (`crtraj.model.cosserat_compiled`; about
-    0.5 ms a warm solve instead of 13 ms; the first use per robot compiles for some seconds) when a C
-    compiler is found; False, or no compiler: CasADi's Newton rootfinder in the interpreter. Both find
-    the same root to the same tolerance. build_cache: where the libraries go (None: the default cache).
+    compiled: solve with generated C when a C compiler is found; False, or no compiler: CasADi's Newton
+    rootfinder in the interpreter (same root to the same tolerance). build_cache: where the libraries go
+    (None: the default cache).
     """
 
     def __init__(
@@ -190,15 +187,18 @@ class CosseratRod:
     ) -> None:
         self.robot = robot
         self.mech = Mechanics.from_robot(robot) if mech is None else mech
-        self._shooting: ca.Function | None = None
-        self._newton: ca.Function | None = None
-        self._compiled = None
-        if compiled:
-            self._compiled = CompiledShooting.load(robot, self.mech, build_cache or BuildCache())
+        self._compiled: Any = self._load_compiled(build_cache or BuildCache()) if compiled else None
         self._warm: np.ndarray | None = None
-        self._history: list[tuple[np.ndarray, np.ndarray]] = []  # the last two (parameters, base wrench)
-        self._jac: np.ndarray | None = None
-        log.debug("cosserat rod of %s built: %d segments, %d steps each", robot.name, robot.n_segments, self.mech.steps)
+        self._jac: np.ndarray | None = None  # the compiled path's last Jacobian (chord Newton)
+        self._newton: ca.Function | None = None  # the interpreted rootfinder, built on first use
+        self._setup()
+
+    def _setup(self) -> None:
+        """State of one kind of statics beyond the shared one."""
+
+    def _load_compiled(self, cache: BuildCache) -> Any:
+        """The generated solver of this kind of statics (None: interpret)."""
+        return None
 
     @property
     def compiled(self) -> bool:
@@ -206,15 +206,37 @@ class CosseratRod:
         return self._compiled is not None
 
     @property
+    def n_tendons(self) -> int:
+        return 3 * self.robot.n_segments
+
+
+class CosseratRod(RodStatics):
+    """Tendon-tension statics of one robot: build once, then `solve` many times (warm-started).
+
+    solve(tensions, load) -> RodSolution. Tensions (N) are ordered as the robot's cables (segment by
+    segment, cable 1..3), the order of the actuation vector q.
+
+    compiled: solve with generated C through the build cache (`crtraj.model.cosserat_compiled`; about
+    0.5 ms a warm solve instead of 13 ms; the first use per robot compiles for some seconds) when a C
+    compiler is found; False, or no compiler: CasADi's Newton rootfinder in the interpreter. Both find
+    the same root to the same tolerance. build_cache: where the libraries go (None: the default cache).
+    """
+
+    def _setup(self) -> None:
+        self._shooting: ca.Function | None = None
+        self._history: list[tuple[np.ndarray, np.ndarray]] = []  # the last two (parameters, base wrench)
+        robot = self.robot
+        log.debug("cosserat rod of %s built: %d segments, %d steps each", robot.name, robot.n_segments, self.mech.steps)
+
+    def _load_compiled(self, cache: BuildCache) -> CompiledShooting:
+        return CompiledShooting.load(self.robot, self.mech, cache)
+
+    @property
     def shooting(self) -> ca.Function:
         """The SX shooting function (`build_shooting`), built on first use."""
         if self._shooting is None:
             self._shooting = build_shooting(self.robot, self.mech)
         return self._shooting
-
-    @property
-    def n_tendons(self) -> int:
-        return 3 * self.robot.n_segments
 
     def solve(self, tensions: Any, load: RodLoad = NO_LOAD, *, warm: bool = True) -> RodSolution:
         """Shape of the rod under tendon tensions (N) and `load`; starts from the last converged solve

@@ -31,6 +31,7 @@ from crtraj.model.cosserat import (
     NO_LOAD,
     RodLoad,
     RodSolution,
+    RodStatics,
     build_shooting,
     load_vector,
     newton_options,
@@ -38,8 +39,6 @@ from crtraj.model.cosserat import (
     straight_guess,
 )
 from crtraj.model.cosserat_cable_compiled import CompiledCables
-from crtraj.model.mechanics import Mechanics
-from crtraj.model.robot import Robot
 
 log = logging.getLogger(__name__)
 
@@ -62,7 +61,7 @@ class CableSolution:
         return self.rod.is_success()
 
 
-class CableDrivenRod:
+class CableDrivenRod(RodStatics):
     """Statics of one robot under commanded tendon lengths (mm), in the robot's cable order.
 
     compiled: evaluate the residual and its Jacobian in generated C through the build cache and solve
@@ -71,28 +70,11 @@ class CableDrivenRod:
     interpreter. Same active set, same root to the tolerance. build_cache: where the libraries go.
     """
 
-    def __init__(
-        self,
-        robot: Robot,
-        mech: Mechanics | None = None,
-        *,
-        compiled: bool = True,
-        build_cache: BuildCache | None = None,
-    ) -> None:
-        self.robot = robot
-        self.mech = Mechanics.from_robot(robot) if mech is None else mech
-        self._newton: ca.Function | None = None
-        self._compiled: CompiledCables | None = None
-        if compiled:
-            self._compiled = CompiledCables.load_cables(robot, self.mech, build_cache or BuildCache())
-        self._warm: np.ndarray | None = None
-        self._jac: np.ndarray | None = None  # the compiled path's last Jacobian, kept for the same active set
-        self._jac_taut: np.ndarray | None = None
+    def _setup(self) -> None:
+        self._jac_taut: np.ndarray | None = None  # the active set the last Jacobian belongs to
 
-    @property
-    def compiled(self) -> bool:
-        """True when solves run the generated C (`crtraj.model.cosserat_cable_compiled`)."""
-        return self._compiled is not None
+    def _load_compiled(self, cache: BuildCache) -> CompiledCables:
+        return CompiledCables.load_cables(self.robot, self.mech, cache)
 
     def _interpreted(self) -> ca.Function:
         """CasADi's Newton rootfinder on the inlined SX residual F(z; q), built on first use."""
@@ -110,10 +92,6 @@ class CableDrivenRod:
             g = ca.Function("cable_shooting", [z, q], outs)
             self._newton = ca.rootfinder("cable_statics", "newton", g, newton_options(self.mech))
         return self._newton
-
-    @property
-    def n_tendons(self) -> int:
-        return 3 * self.robot.n_segments
 
     def solve(self, lengths: Any, load: RodLoad = NO_LOAD) -> CableSolution:
         """Shape and tensions under commanded tendon lengths (mm); warm-started from the last solve."""

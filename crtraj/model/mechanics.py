@@ -11,7 +11,6 @@ Derived stiffnesses are in N (EA, GA) and N mm^2 (EI, GJ), the distributed weigh
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -20,7 +19,7 @@ import numpy as np
 from crtraj.core.errors import InputError
 from crtraj.core.fields import MAX_LENGTH, Table
 from crtraj.core.options import Options, option
-from crtraj.model.robot import Robot
+from crtraj.model.robot import Robot, plain
 
 # Largest modulus accepted (N/mm^2): 1e7 MPa is 50 times diamond; anything above is a unit slip.
 MAX_MODULUS = 1e7
@@ -76,7 +75,7 @@ class Mechanics(Options):
         """The robot's ``[robot.mechanics]`` section; `InputError` when the robot file has none."""
         if robot.mechanics is None:
             raise InputError(f"robot.mechanics: missing; robot {robot.name!r} needs a [robot.mechanics] table")
-        return cls.from_table(Table(_plain(robot.mechanics), cls.SECTION))
+        return cls.from_table(Table(plain(robot.mechanics), cls.SECTION))
 
     # ------------------------------------------------------------ derived values
     @property
@@ -114,12 +113,3 @@ class Mechanics(Options):
     def weight_per_length(self) -> np.ndarray:
         """Distributed gravity force (N/mm) in the base frame: mass per length (kg/mm) x g (m/s^2)."""
         return self.mass_per_length * np.asarray(self.gravity)
-
-
-def _plain(v: Any) -> Any:
-    """Plain dicts and lists of a frozen robot table (the `Table` reader takes lists, not tuples)."""
-    if isinstance(v, Mapping):
-        return {k: _plain(x) for k, x in v.items()}
-    if isinstance(v, tuple):
-        return [_plain(x) for x in v]
-    return v

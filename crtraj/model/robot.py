@@ -315,10 +315,10 @@ class Robot:
         if self.description:
             d["description"] = self.description
         if self.actuators is not None:
-            d["actuators"] = _plain(self.actuators)
+            d["actuators"] = plain(self.actuators)
         for name in ("homing", "stop"):
             if getattr(self, name) is not None:
-                d[name] = _plain(getattr(self, name))
+                d[name] = plain(getattr(self, name))
         return d
 
 
@@ -331,10 +331,11 @@ def _frozen(v: Any) -> Any:
     return v
 
 
-def _plain(v: Any) -> Any:
-    """The plain dicts and lists of `_frozen` data (for JSON and TOML writers)."""
+def plain(v: Any) -> Any:
+    """The plain dicts and lists of `_frozen` data (for JSON and TOML writers, and the `Table` reader, which
+    takes lists, not tuples)."""
     if isinstance(v, Mapping):
-        return {k: _plain(x) for k, x in v.items()}
+        return {k: plain(x) for k, x in v.items()}
     if isinstance(v, tuple):
-        return [_plain(x) for x in v]
+        return [plain(x) for x in v]
     return v

@@ -32,12 +32,7 @@ def synthetic_values(robot: Robot, hw: Hardware, n: int, seed: int, *, planar_di
     lo, hi = robot.z_range
     mid, half = (lo + hi) / 2, (hi - lo) / 4
     x[:, -1] = mid + half * (2 * rng.random(n) - 1)
-    A, _ = robot.cable_matrix()
-    dq = x @ A.T
-    values = np.empty_like(dq)
-    values[:, :-1] = hw.sign[:-1] * dq[:, :-1] / hw.spool_radius
-    values[:, -1] = hw.sign[-1] * dq[:, -1]
-    return values
+    return servo_values(robot, hw, x)
 
 
 def simulate_markers(
@@ -121,6 +116,11 @@ def synthetic_motion(robot: Robot, hw: Hardware, t: np.ndarray, seed: int) -> np
         x[:, 2 * k + 1] = amp * wave()
     lo, hi = robot.z_range
     x[:, -1] = (lo + hi) / 2 + (hi - lo) / 4 * wave()
+    return servo_values(robot, hw, x)
+
+
+def servo_values(robot: Robot, hw: Hardware, x: np.ndarray) -> np.ndarray:
+    """The readings (rad for spools, mm for the stage) the servos give at configurations x (N, n_x)."""
     A, _ = robot.cable_matrix()
     dq = x @ A.T
     values = np.empty_like(dq)
