@@ -97,6 +97,42 @@ def test_panel_shows_the_recorded_numbers_at_three_times(run, browser):
         tab.close()
 
 
+def test_headline_answers_when_which_obstacle_how_close_and_whether_the_loop_held(run, browser):
+    """The line under the controls says, without another file: the closest approach's time, obstacle and distance
+    (found here independently: every waypoint at 2001 backbone points), the hold, fallback and deadline-miss
+    counts that run.json's summary (the loop's own counts) gives, and the iterations over the deadline."""
+    doc = _doc(run)
+    wps, summary = doc["waypoints"], doc["summary"]
+    model = Model(load_robot(PROBLEMS / "robots" / "cdsr2.toml"))
+    names = [o["name"] for o in doc["scene"]["obstacle"]]
+    dense = []
+    for w in wps:
+        d, _, _ = _dense_closest(model, np.array(w["x"]), w["obstacles"]["centers"], w["obstacles"]["radii"])
+        dense.append(d)
+    dense = np.array(dense)  # (waypoints, obstacles) mm, surface to surface
+    dist = float(dense.min())
+    tab = browser.open((run / "view.html").as_uri(), W, H, offline=True)
+    try:
+        text = tab.evaluate("document.getElementById('crtraj-verdict').textContent")
+    finally:
+        tab.close()
+    m = re.search(r"closest: ([0-9.]+) mm to (\S+) at ([0-9.]+) s \(([-+0-9.]+) mm beyond D_sf", text)
+    assert m, text
+    t = np.array([w["t"] - wps[0]["t"] for w in wps])
+    k, j = int(np.argmin(np.abs(t - float(m.group(3))))), names.index(m.group(2))
+    assert abs(t[k] - float(m.group(3))) < 0.006, text  # a waypoint's time, to the 2 decimals shown
+    assert abs(float(m.group(1)) - dist) < 0.1, (text, dist)
+    assert dense[k, j] - dist < 0.1, (text, dense[k, j], dist)  # that obstacle at that time is the closest approach
+    assert abs(float(m.group(4)) - (dist - doc["scene"]["safety_distance"])) < 0.1
+    assert f"smallest distance over the executed motion {summary['min_distance_mm']:.2f} mm" in text, text
+    assert summary["min_distance_mm"] <= dist + 0.1  # the executed samples include the frames
+    counts = summary["status_counts"]
+    assert f"{counts.get('hold', 0)} hold steps, {counts.get('fallback', 0)} fallback steps" in text, text
+    assert f"{summary['deadline_misses']} deadline misses (solve later than 4 ms, unused)" in text, text
+    over = sum(w["iteration_time"] > 4e-3 for w in doc["waypoints"] if w.get("iteration_time") is not None)
+    assert f"{over} iterations over 4 ms" in text, text
+
+
 def test_distance_line_is_where_the_camera_projects_it(run, browser, tmp_path):
     """At the closest approach (found independently), the pixels the closest-approach layer changes (the
     picture with it against the picture without it) lie on the segment between the two projected closest

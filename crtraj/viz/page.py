@@ -39,7 +39,15 @@ def nums(a: Any) -> Any:
 def _run_data(run: Result, tl: Timeline, label: str) -> dict[str, Any]:
     names = [o.name for o in run.scene.obstacles] if run.scene is not None else []
     names += [f"obstacle {i}" for i in range(len(names), tl.clearance.shape[1])]
-    return run_fields(tl, label, run.kind, f"{run.status}: {run.message}", names)
+    summary = run.data.get("summary")
+    summary = summary if isinstance(summary, dict) else {}
+    late, dense = summary.get("deadline_misses"), summary.get("min_distance_mm")
+    fields = run_fields(tl, label, run.kind, f"{run.status}: {run.message}", names)
+    fields["headline"] = headline(tl, names, late if isinstance(late, int) else None)
+    if isinstance(dense, (int, float)) and fields["headline"]:
+        # the frames are the loop's steps; the run's own check also covers the executed samples between them
+        fields["headline"] += f" \u00b7 smallest distance over the executed motion {dense:.2f} mm"
+    return fields
 
 
 def run_fields(tl: Timeline, label: str, kind: str, verdict: str, names: Sequence[str]) -> dict[str, Any]:
@@ -60,8 +68,35 @@ def run_fields(tl: Timeline, label: str, kind: str, verdict: str, names: Sequenc
         "deadline": nums(tl.deadline),
         "safety_distance": tl.safety_distance,
         "closest_t": nums(tl.t[tl.closest_index]) if len(tl.t) else 0.0,
+        "headline": headline(tl, names, None),
         "events": [{"kind": e.kind, "t": nums(e.t), "text": e.text} for e in tl.events],
     }
+
+
+def headline(tl: Timeline, names: Sequence[str], late: int | None) -> str:
+    """One line that answers what a reader asks first: when and to which obstacle the body came closest, by how
+    much (surface to surface, mm, and beyond D_sf), how often the loop held or fell back (steps), and its deadline:
+    `late` horizon solves that came after it and were not used (the loop's own count; None: not recorded) and
+    iterations that took longer. A plan, which has no loop, gives only the approach."""
+    parts = []
+    if tl.clearance.shape[1] and len(tl.t):
+        k = tl.closest_index
+        j = int(tl.near[k])
+        c = float(tl.clearance[k, j])
+        name = names[j] if j < len(names) else f"obstacle {j}"
+        parts.append(
+            f"closest: {c + tl.safety_distance:.2f} mm to {name} at {float(tl.t[k]):.2f} s "
+            f"({c:+.2f} mm beyond D_sf{', inside D_sf' if c < 0 else ''})"
+        )
+    if any(tl.status):
+        held = sum(s == "hold" for s in tl.status)
+        fallback = sum(s == "fallback" for s in tl.status)
+        parts.append(f"{held} hold steps, {fallback} fallback steps")
+    if math.isfinite(tl.deadline):
+        over = int(np.sum(tl.iteration > tl.deadline))
+        missed = "" if late is None else f"{late} deadline misses (solve later than {tl.deadline * 1e3:g} ms, unused), "
+        parts.append(f"{missed}{over} iterations over {tl.deadline * 1e3:g} ms")
+    return " \u00b7 ".join(parts)
 
 
 def page_data(runs: Sequence[tuple[Result, Timeline]], options: ViewOptions) -> dict[str, Any]:

@@ -191,7 +191,8 @@
     }));
     const closest = $("crtraj-verdict");
     closest.textContent = runs.map((r) => (runs.length > 1 ? r.label + ": " : "") + r.verdict +
-      (r.obstacles.length ? ` \u00b7 closest approach at ${r.closest_t.toFixed(2)} s` : "")).join("  |  ");
+      (r.headline ? ` \u00b7 ${r.headline}` : "")).join("  |  ");
+    closest.title = closest.textContent;
   }
   function setLayer(path, on) {
     if (!window.viewer) return;
