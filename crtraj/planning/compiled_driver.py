@@ -254,7 +254,7 @@ static int crtraj_clear_idx(crtraj_work* kb, const double* x, const long long* i
 #define coff buf[12]
 #define ccnt buf[13]
 static int crtraj_refine(long long E, const double* XA, const double* dX, const double* bound, const long long* n0,
-                         const double* TA, const double* dT, long long K, const double* S, const double* T,
+                         double coarse, const double* TA, const double* dT, long long K, const double* S, const double* T,
                          double origin, double inflate, double finest, double enl, double tres, int prefix,
                          long long broad, double* fail, double* lower, long long* samples) {
   crtraj_work kb; long long e, i, q, n, cap = 0, pcap = 0, ncap = 0; int rc = 0;
@@ -276,7 +276,8 @@ static int crtraj_refine(long long E, const double* XA, const double* dX, const 
     const double* xa = XA + e * CRTRAJ_NX;
     const double* dx = dX + e * CRTRAJ_NX;
     double f = 1.0, low = INFINITY, t0 = T ? TA[e] : 0.0, span = T ? dT[e] : 0.0;
-    n = n0[e];
+    /* n0 NULL: max(1, ceil(bound / coarse)) intervals, as numpy computes them (bounds checked finite) */
+    n = n0 ? n0[e] : (long long) fmax(1.0, ceil(bound[e] / coarse));
     if (n < 1) { fail[e] = 0.0; lower[e] = -INFINITY; continue; }  /* no intervals: nothing certified */
     if (crtraj_grow(buf, &cap, 2 * n)) { rc = 1; break; }
     if (crtraj_grow_pool(&pool, &pcap, K + 1)) { rc = 1; break; }
@@ -363,8 +364,20 @@ static int crtraj_refine(long long E, const double* XA, const double* dX, const 
 int crtraj_check_edges(long long E, const double* XA, const double* dX, const double* bound, const long long* n0,
                        long long K, const double* S, double inflate, double finest, int prefix, long long broad,
                        double* fail, double* lower, long long* samples) {
-  return crtraj_refine(E, XA, dX, bound, n0, NULL, NULL, K, S, NULL, 0.0, inflate, finest, 0.0, INFINITY, prefix,
+  return crtraj_refine(E, XA, dX, bound, n0, 0.0, NULL, NULL, K, S, NULL, 0.0, inflate, finest, 0.0, INFINITY, prefix,
                        broad, fail, lower, samples);
+}
+
+/* crtraj_check_edges with each motion's first interval count max(1, ceil(bound / coarse)) computed here, as the
+   numpy caller would (one array less to build per call). Returns 3 without checking anything when a bound is not
+   finite (the caller's numpy loop then says which). */
+int crtraj_check_static(long long E, const double* XA, const double* dX, const double* bound, double coarse,
+                        long long K, const double* S, double inflate, double finest, int prefix, long long broad,
+                        double* fail, double* lower, long long* samples) {
+  long long e;
+  for (e = 0; e < E; ++e) if (!isfinite(bound[e])) return 3;
+  return crtraj_refine(E, XA, dX, bound, NULL, coarse, NULL, NULL, K, S, NULL, 0.0, inflate, finest, 0.0, INFINITY,
+                       prefix, broad, fail, lower, samples);
 }
 
 /* Moving, breathing obstacles (table T, M rows): every interval against the spheres of its time window. */
@@ -373,7 +386,7 @@ int crtraj_check_edges_moving(long long E, const double* XA, const double* dX, c
                               const double* T, double origin, double inflate, double finest, double enl,
                               double tres, int prefix, long long broad, double* fail, double* lower,
                               long long* samples) {
-  return crtraj_refine(E, XA, dX, bound, n0, TA, dT, M, NULL, T, origin, inflate, finest, enl, tres, prefix,
+  return crtraj_refine(E, XA, dX, bound, n0, 0.0, TA, dT, M, NULL, T, origin, inflate, finest, enl, tres, prefix,
                        broad, fail, lower, samples);
 }
 

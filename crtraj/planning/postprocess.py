@@ -101,20 +101,26 @@ class PathPostprocessor:
             u = u[(u[:, 1] - u[:, 0]) > v.resolution]
             if not len(u):
                 continue
-            P1, P2 = _at(X, s, u[:, 0]), _at(X, s, u[:, 1])
-            saving = (u[:, 1] - u[:, 0]) - v.motion_bound(P2 - P1)
+            # both ends of every candidate in one pass (the same numbers as one pass per end)
+            P = _at(X, s, np.concatenate([u[:, 0], u[:, 1]]))
+            P1, P2 = P[: len(u)], P[len(u) :]
+            bound = v.motion_bound(P2 - P1)
+            saving = (u[:, 1] - u[:, 0]) - bound
             good = saving > 1e-6
-            u, P1, P2, saving = u[good], P1[good], P2[good], saving[good]
-            if not len(u):
-                continue
-            checked += len(u)
+            checked += int(np.count_nonzero(good))
             if v.static:  # only the new straight motion needs checking: no candidate path is built
                 # the valid one that saves most: the first valid in the order of saving (ties: lowest
                 # index, as argmax), so the check can stop there
-                order = np.argsort(-saving, kind="stable")
-                k = v.first_valid(P1[order], P2[order])
+                order = np.flatnonzero(good)
+                if not len(order):
+                    continue
+                order = order[np.argsort(-saving[order], kind="stable")]
+                k = v.first_valid(P1[order], P2[order], bound=bound[order])
                 best = int(order[k]) if k >= 0 else -1
             else:
+                u, P1, P2, saving = u[good], P1[good], P2[good], saving[good]
+                if not len(u):
+                    continue
                 ok = self._batch_ok([_splice(X, s, a, b, p1, p2) for a, b, p1, p2 in zip(*u.T, P1, P2, strict=True)])
                 best = int(np.flatnonzero(ok)[np.argmax(saving[ok])]) if ok.any() else -1
             if best >= 0:

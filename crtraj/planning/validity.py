@@ -267,6 +267,7 @@ class MotionValidator:
         *,
         prefix: bool = True,
         first: bool = False,
+        bound: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Adaptive check of many straight motions XA[i] -> XB[i] (E, nx) during [TA[i], TB[i]] (s).
 
@@ -289,22 +290,35 @@ class MotionValidator:
         bound of the clearance over the certified part (mm). With
         prefix=False a motion stops being refined at its first unsafe
         interval and f only tells safe (1) from unsafe (< 1). first: the compiled check may stop after
-        the first motion certified whole; the motions after it are then not checked (f -1).
+        the first motion certified whole; the motions after it are then not checked (f -1). bound: the
+        motions' body-motion bounds (E,) mm when the caller has them (`motion_bound(XB - XA)`, the same
+        numbers), so they are not computed twice.
         """
         XA = np.atleast_2d(np.asarray(XA, dtype=float))
         XB = np.atleast_2d(np.asarray(XB, dtype=float))
         E = XA.shape[0]
+        dX = XB - XA
+        # numpy's product rounds one motion (a matrix-vector product) differently from a batch of them, whose
+        # rows it computes alike whatever the batch: a caller's bounds of a batch are used from two motions on
+        bound = self.motion_bound(dX) if bound is None or E < 2 else np.asarray(bound, dtype=float)
+        finest = 0.5 * self.resolution * (1.0 + 1e-9)
+        kernel = self.state.kernel
+        if self.static and kernel is not None and self.compiled_loop and self.scene.n_obstacles and E:
+            # a static scene's compiled check needs no times: the loop in C, with the numpy loop's arithmetic,
+            # entered without the batch the numpy loop needs (a query makes many small calls)
+            out = kernel.check_edges_coarse(
+                XA, dX, bound, self.coarse, self.state.static_slots, self.inflate, finest, prefix, self._broad(), first
+            )
+            if out is not None:
+                self.state.n_samples += out[2]
+                return out[0], out[1]
         TA = per_item(TA, E)
         TB = per_item(TB, E)
-        dX = XB - XA
         dT = TB - TA
-        bound = self.motion_bound(dX)
         n0 = np.maximum(1, np.ceil(bound / self.coarse)).astype(int)
-        finest = 0.5 * self.resolution * (1.0 + 1e-9)
         # static scenes: every window is irrelevant, so no split in time
         tres = np.inf if self.static else self.time_resolution * (1.0 + 1e-9)
         batch = _EdgeBatch(XA, dX, bound, n0, TA, dT, finest, tres, prefix, first)
-        kernel = self.state.kernel
         if kernel is not None and self.compiled_loop and self.scene.n_obstacles and E and np.isfinite(bound).all():
             # the same loop in C, with the same arithmetic, operation for operation
             out = self._check_edges_compiled(batch)
@@ -385,14 +399,20 @@ class MotionValidator:
         return self.model.tip_position(X)
 
     def first_valid(
-        self, XA: np.ndarray, XB: np.ndarray, TA: np.ndarray | float = 0.0, TB: np.ndarray | float = 0.0
+        self,
+        XA: np.ndarray,
+        XB: np.ndarray,
+        TA: np.ndarray | float = 0.0,
+        TB: np.ndarray | float = 0.0,
+        bound: np.ndarray | None = None,
     ) -> int:
         """Index of the first motion XA[i] -> XB[i] over [TA[i], TB[i]], in the order given, that `edges_valid`
         certifies; -1 when none is. Order the motions best first and this is the best valid one; with
-        `early_exit` the compiled check stops there, so the motions after it cost nothing."""
+        `early_exit` the compiled check stops there, so the motions after it cost nothing. bound: as in
+        `check_edges`."""
         if not len(XA):
             return -1
-        f, _ = self.check_edges(XA, XB, TA, TB, prefix=False, first=self.early_exit)
+        f, _ = self.check_edges(XA, XB, TA, TB, prefix=False, first=self.early_exit, bound=bound)
         ok = np.flatnonzero(f >= 1.0)
         return int(ok[0]) if len(ok) else -1
 
