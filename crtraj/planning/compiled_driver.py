@@ -254,9 +254,9 @@ static int crtraj_clear_idx(crtraj_work* kb, const double* x, const long long* i
 #define coff buf[12]
 #define ccnt buf[13]
 static int crtraj_refine(long long E, const double* XA, const double* dX, const double* bound, const long long* n0,
-                         double coarse, const double* TA, const double* dT, long long K, const double* S, const double* T,
-                         double origin, double inflate, double finest, double enl, double tres, int prefix,
-                         long long broad, double* fail, double* lower, long long* samples) {
+                         double coarse, const double* TA, const double* dT, long long K, const double* S,
+                         const double* T, double origin, double inflate, double finest, double enl, double tres,
+                         int prefix, long long broad, double* fail, double* lower, long long* samples) {
   crtraj_work kb; long long e, i, q, n, cap = 0, pcap = 0, ncap = 0; int rc = 0;
   double P[7 * CRTRAJ_NP], x[CRTRAJ_NX], sw[5];
   double* buf[CRTRAJ_NB] = {NULL};
@@ -380,13 +380,16 @@ int crtraj_check_static(long long E, const double* XA, const double* dX, const d
                        prefix, broad, fail, lower, samples);
 }
 
-/* Moving, breathing obstacles (table T, M rows): every interval against the spheres of its time window. */
-int crtraj_check_edges_moving(long long E, const double* XA, const double* dX, const double* bound,
-                              const long long* n0, const double* TA, const double* dT, long long M,
-                              const double* T, double origin, double inflate, double finest, double enl,
-                              double tres, int prefix, long long broad, double* fail, double* lower,
-                              long long* samples) {
-  return crtraj_refine(E, XA, dX, bound, n0, 0.0, TA, dT, M, NULL, T, origin, inflate, finest, enl, tres, prefix,
+/* Moving, breathing obstacles (table T, M rows): every interval against the spheres of its time window, with
+   the first interval counts computed here (as crtraj_check_static). Returns 3
+   without checking anything when a bound, start time or duration is not finite. */
+int crtraj_check_moving_auto(long long E, const double* XA, const double* dX, const double* bound, double coarse,
+                             const double* TA, const double* dT, long long M, const double* T, double origin,
+                             double inflate, double finest, double enl, double tres, int prefix, long long broad,
+                             double* fail, double* lower, long long* samples) {
+  long long e;
+  for (e = 0; e < E; ++e) if (!isfinite(bound[e]) || !isfinite(TA[e]) || !isfinite(dT[e])) return 3;
+  return crtraj_refine(E, XA, dX, bound, NULL, coarse, TA, dT, M, NULL, T, origin, inflate, finest, enl, tres, prefix,
                        broad, fail, lower, samples);
 }
 

@@ -21,7 +21,9 @@ rounding), and a small hand-written C driver loops over a whole batch in one cal
 - ``crtraj_check_edges(...)``: the adaptive certification of straight motions of
   `crtraj.planning.validity.MotionValidator.check_edges` for a static scene, the whole refinement loop
   in C with numpy's arithmetic, operation for operation (so it returns the same numbers);
-- ``crtraj_check_edges_moving(...)``: the same among moving, breathing obstacles: every interval is
+  ``crtraj_check_static(...)`` the same with each motion's first interval count computed in C, as the
+  validator counts them (what the planners call: less Python per call);
+- ``crtraj_check_moving_auto(...)``: the same among moving, breathing obstacles: every interval is
   checked against the spheres that contain each obstacle over its time window (`Scene.swept_spheres`,
   computed in C from `Scene.motion_table` with numpy's arithmetic: libm's sin, the same operation order,
   no contraction into fused multiply-adds), so it too returns the numpy loop's numbers bit for bit.
@@ -155,10 +157,13 @@ class ValidityKernel:
         self._check_static = lib.crtraj_check_static
         self._check_static.argtypes = [_N, _P, _P, _P, ctypes.c_double, _N, _P, ctypes.c_double, ctypes.c_double]
         self._check_static.argtypes += [ctypes.c_int, _N, _P, _P, _P]
-        self._slots: tuple[Any, int] = (None, 0)  # the last static slots passed and their address
-        self._check_moving = lib.crtraj_check_edges_moving
-        self._check_moving.argtypes = [_N, _P, _P, _P, _P, _P, _P, _N, _P] + [ctypes.c_double] * 5
-        self._check_moving.argtypes += [ctypes.c_int, _N, _P, _P, _P]
+        self._check_moving_auto = lib.crtraj_check_moving_auto
+        self._check_moving_auto.argtypes = [_N, _P, _P, _P, ctypes.c_double, _P, _P, _N, _P] + [ctypes.c_double] * 5
+        self._check_moving_auto.argtypes += [ctypes.c_int, _N, _P, _P, _P]
+        # the last static slots and obstacle table passed, with their addresses: the same scene's arrays come back
+        # call after call (a table is read-only, whose address costs a dict per call)
+        self._slots: tuple[Any, int] = (None, 0)
+        self._table: tuple[Any, int] = (None, 0)
         for f in (
             self._points,
             self._clearance,
@@ -168,7 +173,7 @@ class ValidityKernel:
             self._project,
             self._check_edges,
             self._check_static,
-            self._check_moving,
+            self._check_moving_auto,
         ):
             f.restype = ctypes.c_int
 
@@ -291,66 +296,69 @@ class ValidityKernel:
         of body motion per first interval), as `MotionValidator.check_edges` counts them: the same results with
         less Python per call (a query makes many small ones). None, with nothing checked, when a bound is not
         finite. Returns (fail (E,), lower (E,) mm, samples)."""
-        XA = self._configs(XA)
-        dX = self._configs(dX)
-        E = len(XA)
-        bound = np.ascontiguousarray(bound, dtype=float)
-        if dX.shape != XA.shape or bound.shape != (E,):
-            raise ValueError("check_edges: XA, dX (E, nx) and bound (E,) expected")
         S, p_slots = self._slots
-        if slots is not S:  # the same scene's slots come back call after call: their address is kept
+        if slots is not S:
             S = np.ascontiguousarray(slots, dtype=float)
             if S.ndim != 1:
                 raise ValueError(f"check_edges: flat slots (K*{packing.WIDTH},) expected, got {S.shape}")
             p_slots = _ptr(S)
             if S is slots:
                 self._slots = (S, p_slots)
-        out = np.empty(2 * E)  # fail, then lower
-        samples = np.zeros(1, dtype=np.int64)
-        p = _ptr(out)
-        flags = int(bool(prefix)) | (2 if first else 0)
-        K = S.shape[0] // packing.WIDTH
-        args = (E, _ptr(XA), _ptr(dX), _ptr(bound), float(coarse), K, p_slots, float(inflate), float(finest), flags)
-        rc = self._check_static(*args, int(broad), p, p + 8 * E, _ptr(samples))
-        if rc == 3:
-            return None
-        self._check(rc, "edge check")
-        return out[:E], out[E:], int(samples[0])
+        flags = (float(inflate), float(finest), int(bool(prefix)) | (2 if first else 0), int(broad))
+        return self._run_auto(self._check_static, XA, dX, bound, coarse, (S.shape[0] // packing.WIDTH, p_slots), flags)
 
-    def check_edges_moving(
+    def check_edges_moving_coarse(
         self,
         XA: np.ndarray,
         dX: np.ndarray,
         bound: np.ndarray,
-        n0: np.ndarray,
+        coarse: float,
         TA: np.ndarray,
         dT: np.ndarray,
         table: np.ndarray,
         origin: float,
-        inflate: float,
-        finest: float,
-        enlargement: float,
-        time_resolution: float,
+        limits: tuple[float, float, float, float],
         prefix: bool,
         broad: int = 0,
         first: bool = False,
-    ) -> tuple[np.ndarray, np.ndarray, int]:
-        """The adaptive edge check among moving obstacles (`MotionValidator.check_edges`) in C.
-
-        As `check_edges`, and: TA, dT (E,) s: each motion's start time and duration (relative to the
-        scene's time origin `origin` s); table (M, 12): `Scene.motion_table`; enlargement (mm/s): how fast
-        a window's swept sphere can outgrow any one instant's; time_resolution (s): the longest window an
-        uncertified interval may be declared unsafe at without being split. broad, first: as in `check_edges`.
-        """
+    ) -> tuple[np.ndarray, np.ndarray, int] | None:
+        """`check_edges_moving` with the first intervals counted in C, as `check_edges_coarse`: limits = (inflate,
+        finest, enlargement, time_resolution). None, with nothing checked, when a bound, start time or duration
+        is not finite."""
         E = len(XA)
         TA = per_item(TA, E)
         dT = per_item(dT, E)
-        T = np.ascontiguousarray(table, dtype=float)
-        if T.ndim != 2 or T.shape[1] != 12:
-            raise ValueError(f"check_edges_moving: an obstacle table (M, 12) expected, got {T.shape}")
-        scalars = (float(origin), float(inflate), float(finest), float(enlargement), float(time_resolution))
-        middle = (_ptr(TA), _ptr(dT), len(T), _ptr(T), *scalars, int(bool(prefix)) | (2 if first else 0), int(broad))
-        return self._run_edges(self._check_moving, XA, dX, bound, n0, middle)
+        T, p_table = self._table
+        if table is not T:
+            T = np.ascontiguousarray(table, dtype=float)
+            if T.ndim != 2 or T.shape[1] != 12:
+                raise ValueError(f"check_edges_moving: an obstacle table (M, 12) expected, got {T.shape}")
+            p_table = _ptr(T)
+            if T is table:
+                self._table = (T, p_table)
+        middle = (_ptr(TA), _ptr(dT), len(T), p_table, float(origin))
+        flags = (*(float(x) for x in limits), int(bool(prefix)) | (2 if first else 0), int(broad))
+        return self._run_auto(self._check_moving_auto, XA, dX, bound, coarse, middle, flags)
+
+    def _run_auto(
+        self, fn: Any, XA: Any, dX: Any, bound: Any, coarse: float, middle: tuple[Any, ...], flags: tuple[Any, ...]
+    ) -> tuple[np.ndarray, np.ndarray, int] | None:
+        """Call a C edge check that counts first intervals itself: (E, XA, dX, bound, coarse, *middle, *flags,
+        fail, lower, &samples); None when it found a value not finite (code 3)."""
+        XA = self._configs(XA)
+        dX = self._configs(dX)
+        E = len(XA)
+        bound = np.ascontiguousarray(bound, dtype=float)
+        if dX.shape != XA.shape or bound.shape != (E,):
+            raise ValueError("check_edges: XA, dX (E, nx) and bound (E,) expected")
+        out = np.empty(2 * E)  # fail, then lower
+        samples = np.zeros(1, dtype=np.int64)
+        p = _ptr(out)
+        rc = fn(E, _ptr(XA), _ptr(dX), _ptr(bound), float(coarse), *middle, *flags, p, p + 8 * E, _ptr(samples))
+        if rc == 3:
+            return None
+        self._check(rc, "edge check")
+        return out[:E], out[E:], int(samples[0])
 
     def _run_edges(
         self, fn: Any, XA: Any, dX: Any, bound: Any, n0: Any, middle: tuple[Any, ...]

@@ -302,8 +302,11 @@ class MotionValidator:
         # rows it computes alike whatever the batch: a caller's bounds of a batch are used from two motions on
         bound = self.motion_bound(dX) if bound is None or E < 2 else np.asarray(bound, dtype=float)
         finest = 0.5 * self.resolution * (1.0 + 1e-9)
+        # static scenes: every window is irrelevant, so no split in time
+        tres = np.inf if self.static else self.time_resolution * (1.0 + 1e-9)
         kernel = self.state.kernel
-        if self.static and kernel is not None and self.compiled_loop and self.scene.n_obstacles and E:
+        fast = kernel is not None and self.compiled_loop and self.scene.n_obstacles and E
+        if fast and self.static:
             # a static scene's compiled check needs no times: the loop in C, with the numpy loop's arithmetic,
             # entered without the batch the numpy loop needs (a query makes many small calls)
             out = kernel.check_edges_coarse(
@@ -315,37 +318,20 @@ class MotionValidator:
         TA = per_item(TA, E)
         TB = per_item(TB, E)
         dT = TB - TA
-        n0 = np.maximum(1, np.ceil(bound / self.coarse)).astype(int)
-        # static scenes: every window is irrelevant, so no split in time
-        tres = np.inf if self.static else self.time_resolution * (1.0 + 1e-9)
-        batch = _EdgeBatch(XA, dX, bound, n0, TA, dT, finest, tres, prefix, first)
-        if kernel is not None and self.compiled_loop and self.scene.n_obstacles and E and np.isfinite(bound).all():
-            # the same loop in C, with the same arithmetic, operation for operation
-            out = self._check_edges_compiled(batch)
+        if fast and not self.static:
+            scene = self.scene
+            limits = (self.inflate, finest, self.state.enlargement_rate, tres)
+            out = kernel.check_edges_moving_coarse(
+                XA, dX, bound, self.coarse, TA, dT, scene.motion_table(), scene.time_origin, limits, prefix,
+                self._broad(), first,
+            )  # fmt: skip
             if out is not None:
-                return out
-        return self._refine_edges(batch)
-
-    def _check_edges_compiled(self, b: _EdgeBatch) -> tuple[np.ndarray, np.ndarray] | None:
-        """`check_edges` in the compiled kernel; None when a time is not finite (the numpy loop says which)."""
-        XA, dX, bound, n0, TA, dT, finest, tres, prefix = b.parts()
-        kernel = self.state.kernel
-        assert kernel is not None
-        if self.static:
-            fail, lower, samples = kernel.check_edges(
-                XA, dX, bound, n0, self.state.static_slots, self.inflate, finest, prefix, self._broad(), b.first
-            )
-            self.state.n_samples += samples
-            return fail, lower
-        if not (np.isfinite(TA).all() and np.isfinite(dT).all()):
-            return None
-        scene = self.scene
-        fail, lower, samples = kernel.check_edges_moving(
-            XA, dX, bound, n0, TA, dT, scene.motion_table(), scene.time_origin, self.inflate, finest,
-            self.state.enlargement_rate, tres, prefix, self._broad(), b.first,
-        )  # fmt: skip
-        self.state.n_samples += samples
-        return fail, lower
+                self.state.n_samples += out[2]
+                return out[0], out[1]
+        # the numpy loop: no compiled kernel (or no obstacle, or no motion), or a value that is not finite (the
+        # compiled check refused it without checking anything; the numpy loop says which)
+        n0 = np.maximum(1, np.ceil(bound / self.coarse)).astype(int)
+        return self._refine_edges(_EdgeBatch(XA, dX, bound, n0, TA, dT, finest, tres, prefix, first))
 
     def _broad(self) -> int:
         """The compiled edge check's broad-phase threshold (obstacle count; 0: off)."""
