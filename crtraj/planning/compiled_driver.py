@@ -231,6 +231,9 @@ static int crtraj_clear_idx(crtraj_work* kb, const double* x, const long long* i
    Out: fail[e] (certified fraction) and lower[e] (min c - h over certified intervals); *samples: clearances.
    prefix bit 1 (first): stop after the first motion certified whole (VAMP's early exit across a batch whose
    caller wants the first valid motion of an order): the motions after it get fail = -1 (not checked).
+   prefix bit 2 (verdict, with bit 0 clear): a motion stops at its first unsafe interval, within its level too
+   (early exit within a motion): fail < 1 still marks it unsafe, but need not be the fraction the whole level
+   would give, and lower may be larger; a safe motion is checked exactly as without the bit.
 
    Broad phase (from `broad` obstacles on, 0: never): every interval hands its halves only the obstacles that
    can decide one of their samples. The halves' configurations lie within h (body motion) of the interval's
@@ -267,6 +270,7 @@ static int crtraj_refine(long long E, const double* XA, const double* dX, const 
   double* t;
   int use = broad > 0 && K >= broad;
   int first = prefix & 2;
+  int verdict = (prefix & 4) && !(prefix & 1);
   prefix &= 1;
   *samples = 0;
   if (!d || crtraj_alloc(&kb, crtraj_bb_work) || crtraj_grow_pool(&pool, &pcap, K + 1)) {
@@ -287,7 +291,7 @@ static int crtraj_refine(long long E, const double* XA, const double* dX, const 
       flo[i] = INFINITY; off[i] = 0.0; cnt[i] = (double) K;
     }
     while (n > 0 && !rc) {
-      long long m = 0, np = 0;
+      long long m = 0, np = 0, nd = n;
       if (crtraj_grow(buf, &cap, 2 * n)) { rc = 1; break; }  /* room for this level's children */
       /* the whole level first: the split rule sees this level's failures, as the numpy loop does */
       for (i = 0; i < n && !rc; ++i) {
@@ -305,7 +309,10 @@ static int crtraj_refine(long long E, const double* XA, const double* dX, const 
         ++*samples;
         mid[i] = -1.0;
         if (c >= h) { if (c - h < low) low = c - h; }
-        else if (c + enl * dt < 0.0 || ((c < 0.0 || h <= finest) && dt <= tres)) { if (ta[i] < f) f = ta[i]; }
+        else if (c + enl * dt < 0.0 || ((c < 0.0 || h <= finest) && dt <= tres)) {
+          if (ta[i] < f) f = ta[i];
+          if (verdict) { nd = i + 1; break; }  /* unsafe: the rest of the motion cannot change that */
+        }
         else mid[i] = tm;  /* neither certified nor unsafe: split */
         if (mid[i] < 0.0) continue;
         cflo[i] = flo[i]; coff[i] = off[i]; ccnt[i] = cnt[i];  /* without the broad phase: the same list */
@@ -321,7 +328,7 @@ static int crtraj_refine(long long E, const double* XA, const double* dX, const 
           ccnt[i] = (double) np - coff[i];
         }
       }
-      for (i = 0; i < n; ++i) {
+      for (i = 0; i < nd; ++i) {
         if (mid[i] < 0.0 || (prefix ? !(ta[i] < f) : !(f >= 1.0))) continue;
         ua[m] = ta[i]; ub[m] = mid[i]; uflo[m] = cflo[i]; uoff[m] = coff[i]; ucnt[m] = ccnt[i]; ++m;
         ua[m] = mid[i]; ub[m] = tb[i]; uflo[m] = cflo[i]; uoff[m] = coff[i]; ucnt[m] = ccnt[i]; ++m;

@@ -57,7 +57,7 @@ from crtraj.planning.metric import metric_matrix
 from crtraj.world import packing
 
 # Version of the generated code and driver: raising it makes every cached kernel foreign (rebuilt).
-GENERATOR = 13
+GENERATOR = 14
 # Most check points a kernel is generated for: the generated FK grows with them (100 points: ~15 s of
 # gcc); denser checks (reports, tests) stay on the interpreted path.
 MAX_COMPILED_POINTS = 200
@@ -124,6 +124,11 @@ def _ptr(a: np.ndarray) -> int:
         return ctypes.addressof(ctypes.c_char.from_buffer(a))
     except (TypeError, ValueError):
         return a.__array_interface__["data"][0]
+
+
+def _mode(prefix: bool, first: bool, verdict: bool) -> int:
+    """The edge checks' mode bits: 1 prefix, 2 first (stop after the first motion certified whole), 4 verdict."""
+    return int(bool(prefix)) | (2 if first else 0) | (4 if verdict else 0)
 
 
 class ValidityKernel:
@@ -291,11 +296,14 @@ class ValidityKernel:
         prefix: bool,
         broad: int = 0,
         first: bool = False,
+        verdict: bool = False,
     ) -> tuple[np.ndarray, np.ndarray, int] | None:
         """`check_edges` with each motion's first intervals max(1, ceil(bound / coarse)) counted in C (coarse: mm
         of body motion per first interval), as `MotionValidator.check_edges` counts them: the same results with
         less Python per call (a query makes many small ones). None, with nothing checked, when a bound is not
-        finite. Returns (fail (E,), lower (E,) mm, samples)."""
+        finite. verdict (with prefix False): a motion stops at its first unsafe interval, so fail < 1 marks it
+        unsafe without being its first unsafe fraction (and lower is not the whole motion's); safe motions are
+        checked exactly as without it. Returns (fail (E,), lower (E,) mm, samples)."""
         S, p_slots = self._slots
         if slots is not S:
             S = np.ascontiguousarray(slots, dtype=float)
@@ -304,7 +312,7 @@ class ValidityKernel:
             p_slots = _ptr(S)
             if S is slots:
                 self._slots = (S, p_slots)
-        flags = (float(inflate), float(finest), int(bool(prefix)) | (2 if first else 0), int(broad))
+        flags = (float(inflate), float(finest), _mode(prefix, first, verdict), int(broad))
         return self._run_auto(self._check_static, XA, dX, bound, coarse, (S.shape[0] // packing.WIDTH, p_slots), flags)
 
     def check_edges_moving_coarse(
@@ -321,10 +329,13 @@ class ValidityKernel:
         prefix: bool,
         broad: int = 0,
         first: bool = False,
+        verdict: bool = False,
     ) -> tuple[np.ndarray, np.ndarray, int] | None:
-        """`check_edges_moving` with the first intervals counted in C, as `check_edges_coarse`: limits = (inflate,
-        finest, enlargement, time_resolution). None, with nothing checked, when a bound, start time or duration
-        is not finite."""
+        """`check_edges_coarse` among moving obstacles: TA, dT (E,) s: each motion's start time and duration
+        (relative to the scene's time origin `origin` s); table (M, 12): `Scene.motion_table`; limits = (inflate
+        mm, finest mm, enlargement mm/s: how fast a window's swept sphere can outgrow any one instant's,
+        time_resolution s: the longest window an uncertified interval may be declared unsafe at without being
+        split). None, with nothing checked, when a bound, start time or duration is not finite."""
         E = len(XA)
         TA = per_item(TA, E)
         dT = per_item(dT, E)
@@ -337,7 +348,7 @@ class ValidityKernel:
             if T is table:
                 self._table = (T, p_table)
         middle = (_ptr(TA), _ptr(dT), len(T), p_table, float(origin))
-        flags = (*(float(x) for x in limits), int(bool(prefix)) | (2 if first else 0), int(broad))
+        flags = (*(float(x) for x in limits), _mode(prefix, first, verdict), int(broad))
         return self._run_auto(self._check_moving_auto, XA, dX, bound, coarse, middle, flags)
 
     def _run_auto(

@@ -268,6 +268,7 @@ class MotionValidator:
         prefix: bool = True,
         first: bool = False,
         bound: np.ndarray | None = None,
+        verdict: bool = False,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Adaptive check of many straight motions XA[i] -> XB[i] (E, nx) during [TA[i], TB[i]] (s).
 
@@ -292,7 +293,9 @@ class MotionValidator:
         interval and f only tells safe (1) from unsafe (< 1). first: the compiled check may stop after
         the first motion certified whole; the motions after it are then not checked (f -1). bound: the
         motions' body-motion bounds (E,) mm when the caller has them (`motion_bound(XB - XA)`, the same
-        numbers), so they are not computed twice.
+        numbers), so they are not computed twice. verdict (with prefix=False): the compiled check stops a
+        motion at its first unsafe interval, within a level too, so f < 1 marks an unsafe motion without
+        being the fraction the full check gives, and lower is not the whole motion's (a safe motion: the same).
         """
         XA = np.atleast_2d(np.asarray(XA, dtype=float))
         XB = np.atleast_2d(np.asarray(XB, dtype=float))
@@ -310,8 +313,9 @@ class MotionValidator:
             # a static scene's compiled check needs no times: the loop in C, with the numpy loop's arithmetic,
             # entered without the batch the numpy loop needs (a query makes many small calls)
             out = kernel.check_edges_coarse(
-                XA, dX, bound, self.coarse, self.state.static_slots, self.inflate, finest, prefix, self._broad(), first
-            )
+                XA, dX, bound, self.coarse, self.state.static_slots, self.inflate, finest, prefix, self._broad(), first,
+                verdict,
+            )  # fmt: skip
             if out is not None:
                 self.state.n_samples += out[2]
                 return out[0], out[1]
@@ -323,7 +327,7 @@ class MotionValidator:
             limits = (self.inflate, finest, self.state.enlargement_rate, tres)
             out = kernel.check_edges_moving_coarse(
                 XA, dX, bound, self.coarse, TA, dT, scene.motion_table(), scene.time_origin, limits, prefix,
-                self._broad(), first,
+                self._broad(), first, verdict,
             )  # fmt: skip
             if out is not None:
                 self.state.n_samples += out[2]
@@ -372,7 +376,7 @@ class MotionValidator:
         self, XA: np.ndarray, XB: np.ndarray, TA: np.ndarray | float = 0.0, TB: np.ndarray | float = 0.0
     ) -> np.ndarray:
         """True per motion XA[i] -> XB[i] that is certified safe over [TA[i], TB[i]] (bool (E,))."""
-        f, _ = self.check_edges(XA, XB, TA, TB, prefix=False)
+        f, _ = self.check_edges(XA, XB, TA, TB, prefix=False, verdict=True)
         return f >= 1.0
 
     def tip_position(self, X: np.ndarray) -> np.ndarray:
@@ -398,7 +402,7 @@ class MotionValidator:
         `check_edges`."""
         if not len(XA):
             return -1
-        f, _ = self.check_edges(XA, XB, TA, TB, prefix=False, first=self.early_exit, bound=bound)
+        f, _ = self.check_edges(XA, XB, TA, TB, prefix=False, first=self.early_exit, bound=bound, verdict=True)
         ok = np.flatnonzero(f >= 1.0)
         return int(ok[0]) if len(ok) else -1
 
