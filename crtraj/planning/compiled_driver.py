@@ -400,6 +400,49 @@ int crtraj_check_moving_auto(long long E, const double* XA, const double* dX, co
                        broad, fail, lower, samples);
 }
 
+/* A B-spline curve of degree k (knots tk, nt of them; coefficients C, nc x dim, row-major) at the N parameters x,
+   into out (N x dim): crtraj.core.splines.BSplineCurve.__call__ operation for operation (the knot span among the
+   nonempty spans of the base interval, clipped to the first and last; de Boor's recursion with the same
+   products and sums), so the same numbers. */
+int crtraj_bspline(long long N, const double* x, long long nt, const double* tk, long long nc, long long dim,
+                   const double* C, long long k, double* out) {
+  long long p, lo = k, hi, s, cnt, i, j, r, q;
+  double* d;
+  if (k < 0 || nt != nc + k + 1 || dim < 1) return 2;
+  d = (double*) malloc(sizeof(double) * (size_t) ((k + 1) * dim));
+  if (!d) return 1;
+  hi = nc;  /* the base interval's spans are k .. nc - 1 */
+  for (p = 0; p < N; ++p) {
+    double xp = x[p];
+    /* searchsorted(tk[spans], x, "right") - 1 among the nonempty spans, clipped: the last span starting at or
+       before x, else the first */
+    long long first = -1, last = -1;
+    cnt = 0;
+    i = -1;
+    for (s = lo; s < hi; ++s) {
+      if (!(tk[s + 1] > tk[s])) continue;
+      if (first < 0) first = s;
+      last = s;
+      if (tk[s] <= xp) { i = s; ++cnt; }
+    }
+    if (first < 0) { free(d); return 2; }
+    if (xp != xp) i = last;  /* numpy sorts NaN last */
+    else if (cnt == 0) i = first;
+    for (j = 0; j <= k; ++j)
+      for (q = 0; q < dim; ++q) d[j * dim + q] = C[(i - k + j) * dim + q];
+    for (r = 1; r <= k; ++r)
+      for (j = k; j >= r; --j) {
+        double left = tk[i - k + j];
+        double den = tk[i + 1 + j - r] - left;
+        double alpha = (xp - left) / den;
+        for (q = 0; q < dim; ++q) d[j * dim + q] = (1.0 - alpha) * d[(j - 1) * dim + q] + alpha * d[j * dim + q];
+      }
+    for (q = 0; q < dim; ++q) out[p * dim + q] = d[k * dim + q];
+  }
+  free(d);
+  return 0;
+}
+
 int crtraj_tip_jac(long long N, const double* X, double* P, double* J) {
   crtraj_work k; long long i; int rc = 0;
   if (crtraj_alloc(&k, crtraj_tipjac_work)) { crtraj_free(&k); return 1; }

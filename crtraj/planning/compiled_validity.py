@@ -15,6 +15,8 @@ rounding), and a small hand-written C driver loops over a whole batch in one cal
 - ``crtraj_project(N, X, target, ...)``: the safe IK's batched damped least-squares projection onto a tip
   target (`crtraj.planning.safe_ik.SafeIK.project`), the whole Newton loop per configuration in C, each
   configuration stopping as soon as its tip is on the target;
+- ``crtraj_bspline(...)``: `crtraj.core.splines.BSplineCurve` at many parameters, operation for operation (the
+  smoothing's spline samples, `crtraj.planning.postprocess`);
 - ``crtraj_motion_bound(N, dX, B)``: the body-motion bound B(dx) (mm, `crtraj.planning.metric`; it agrees
   with numpy's to 1e-12, but the planners keep numpy's, whose rounding times every motion, so that both
   paths give identical plans);
@@ -57,7 +59,7 @@ from crtraj.planning.metric import metric_matrix
 from crtraj.world import packing
 
 # Version of the generated code and driver: raising it makes every cached kernel foreign (rebuilt).
-GENERATOR = 14
+GENERATOR = 15
 # Most check points a kernel is generated for: the generated FK grows with them (100 points: ~15 s of
 # gcc); denser checks (reports, tests) stay on the interpreted path.
 MAX_COMPILED_POINTS = 200
@@ -159,6 +161,8 @@ class ValidityKernel:
         self._check_edges = lib.crtraj_check_edges
         self._check_edges.argtypes = [_N, _P, _P, _P, _P, _N, _P, ctypes.c_double, ctypes.c_double, ctypes.c_int]
         self._check_edges.argtypes += [_N, _P, _P, _P]
+        self._bspline = lib.crtraj_bspline
+        self._bspline.argtypes = [_N, _P, _N, _P, _N, _N, _P, _N, _P]
         self._check_static = lib.crtraj_check_static
         self._check_static.argtypes = [_N, _P, _P, _P, ctypes.c_double, _N, _P, ctypes.c_double, ctypes.c_double]
         self._check_static.argtypes += [ctypes.c_int, _N, _P, _P, _P]
@@ -179,6 +183,7 @@ class ValidityKernel:
             self._check_edges,
             self._check_static,
             self._check_moving_auto,
+            self._bspline,
         ):
             f.restype = ctypes.c_int
 
@@ -388,6 +393,20 @@ class ValidityKernel:
         rc = fn(*head, *middle, _ptr(fail), _ptr(lower), ctypes.addressof(samples))
         self._check(rc, "edge check")
         return fail, lower, int(samples.value)
+
+    def bspline(self, knots: np.ndarray, coeffs: np.ndarray, k: int, x: Any) -> np.ndarray:
+        """The B-spline curve of degree k with these knots (nc + k + 1,) and coefficients (nc, dim) at the
+        parameters x (N,): `crtraj.core.splines.BSplineCurve` (already checked there) evaluated in C, the same
+        numbers. Returns (N, dim)."""
+        tk = np.ascontiguousarray(knots, dtype=float)
+        C = np.ascontiguousarray(coeffs, dtype=float)
+        x = np.ascontiguousarray(x, dtype=float)
+        if C.ndim != 2 or x.ndim != 1 or tk.shape != (len(C) + k + 1,):
+            raise ValueError(f"bspline: knots (nc+k+1,), coefficients (nc, dim), x (N,) expected, got {C.shape}")
+        out = np.empty((len(x), C.shape[1]))
+        rc = self._bspline(len(x), _ptr(x), len(tk), _ptr(tk), len(C), C.shape[1], _ptr(C), int(k), _ptr(out))
+        self._check(rc, "B-spline")
+        return out
 
     def motion_bound(self, dX: Any) -> np.ndarray:
         """Body-motion bound (N,) mm of configuration changes dX (N, nx)."""

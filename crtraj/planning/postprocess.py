@@ -31,7 +31,7 @@ speed bound), and it is verified at its own times.
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
@@ -266,7 +266,7 @@ class PathPostprocessor:
         P = np.concatenate([XT[:1], legs.reshape(-1, XT.shape[1])])
         k, n = 3, len(P)
         knots = np.concatenate([np.zeros(k), np.linspace(0.0, 1.0, n - k + 1), np.ones(k)])
-        spl = BSplineCurve(knots, P, k)
+        spl = self._curve(knots, P, k)
         uu = np.linspace(0.0, 1.0, 40 * n)
         F = spl(uu)
         dF = np.diff(F, axis=0)
@@ -278,6 +278,15 @@ class PathPostprocessor:
         return Y[:, :-1], TY
 
     # --------------------------------------------------------------- smoothing
+    def _curve(self, knots: np.ndarray, P: np.ndarray, k: int) -> Callable[[np.ndarray], np.ndarray]:
+        """The B-spline curve (`BSplineCurve`, which checks its input) as a function of its parameter: evaluated
+        in the validator's compiled kernel when it has one (the same numbers, without numpy's per-step arrays)."""
+        spl = BSplineCurve(knots, P, k)
+        kernel = self.v.state.kernel
+        if kernel is None:
+            return spl
+        return lambda x: kernel.bspline(spl.knots, spl.coeffs, spl.k, x)
+
     def smooth(self, X: np.ndarray) -> tuple[np.ndarray, bool]:
         """B-spline corner rounding, verified; returns (path, smoothed?)."""
         if not self.o.smooth or len(X) < 3:
@@ -301,7 +310,7 @@ class PathPostprocessor:
         P = np.concatenate([X[:1], legs.reshape(-1, X.shape[1])])
         k, n = 3, len(P)
         knots = np.concatenate([np.zeros(k), np.linspace(0.0, 1.0, n - k + 1), np.ones(k)])
-        spl = BSplineCurve(knots, P, k)
+        spl = self._curve(knots, P, k)
         uu = np.linspace(0.0, 1.0, 40 * n)
         F = spl(uu)
         s = np.concatenate([[0.0], np.cumsum(v.motion_bound(np.diff(F, axis=0)))])
