@@ -39,6 +39,7 @@ goal configurations for the 5-DOF robot).
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -325,7 +326,7 @@ class SafeIK:
     def solve(
         self,
         target: np.ndarray,
-        scene_pack: np.ndarray,
+        scene_pack: np.ndarray | Callable[[], np.ndarray],
         seeds: np.ndarray,
         *,
         t_check: tuple[float, float] = (0.0, 0.0),
@@ -349,7 +350,8 @@ class SafeIK:
         still fewer exist, solves the safety-constrained NLP with IPOPT from
         the remaining configurations (most promising first: highest clearance,
         then smallest tip error). scene_pack: `Scene.pack` / `Scene.pack_over`
-        output for the NLP's obstacles; t_check: the time window (s) the
+        output for the NLP's obstacles, or a function that returns it (called only when an NLP is solved, which
+        is rare); t_check: the time window (s) the
         validator re-verifies every solution over. dedup: solutions closer
         than this body motion (mm) to a kept one are dropped. deadline: a
         `time.perf_counter()` value after which no further NLP is started.
@@ -393,8 +395,8 @@ class SafeIK:
                 ok = v.within_limits(run.X[idx]) & (run.clear[idx] >= run.required)
                 run.good[idx] = ok
                 run.checked[idx] = True
-                for i in idx[ok]:
-                    run.add(IKSolution(run.X[i], "projection", True, float(run.err[i]), float(run.clear[i]), True, 0.0))
+                X, err, c = run.X, run.err, run.clear
+                run.add_all([IKSolution(X[i], "projection", True, float(err[i]), float(c[i]), True, 0.0) for i in idx[ok]])
             if len(run.kept) >= run.want or done_it >= newton_iterations:
                 break
 
@@ -431,10 +433,19 @@ class SafeIK:
         run.statuses["push-out"] = int(ok.sum())
 
     def _nlp_stage(
-        self, run: _IKRun, forced: list[int], scene_pack: np.ndarray, max_nlp: int | None, deadline: float | None
+        self,
+        run: _IKRun,
+        forced: list[int],
+        scene_pack: np.ndarray | Callable[[], np.ndarray],
+        max_nlp: int | None,
+        deadline: float | None,
     ) -> None:
         """Stage 3: the safety-constrained NLP from the remaining configurations, the forced ones first,
         then the converged ones by clearance, then by tip error; until enough exist or time runs out."""
+        if (not forced and len(run.kept) >= run.want) or max_nlp == 0:
+            return  # no solve would start: the loop below would stop at once
+        if callable(scene_pack):
+            scene_pack = scene_pack()
         X, clear, err = run.X, run.clear, run.err
         converged = err <= run.tol
         rest = np.flatnonzero(~run.good)
@@ -517,6 +528,26 @@ class _IKRun:
         self.sols.append(sol)
         self.keep(sol.x)
 
+    def add_all(self, sols: list[IKSolution]) -> None:
+        """`add` of each of `sols` in turn, with the body-motion bounds between them and the kept ones in one
+        call: the same decisions, up to the rounding of a batch's product against one row's (a bound within
+        ~1e-13 mm of `dedup`)."""
+        if len(sols) < 2:
+            for sol in sols:
+                self.add(sol)
+            return
+        self.sols.extend(sols)
+        X = np.array([sol.x for sol in sols])
+        ref = np.concatenate([np.array(self.kept).reshape(-1, X.shape[1]), X])
+        K = len(self.kept)
+        B = self.v.motion_bound(X[:, None, :] - ref[None, :, :])  # (new, kept + new)
+        keep = list(range(K))
+        for j in range(len(X)):
+            if keep and np.min(B[j, keep]) < self.dedup:
+                continue
+            keep.append(K + j)
+            self.kept.append(sols[j].x)
+
 
 def format_statuses(statuses: dict[str, int]) -> str:
     """'Solve_Succeeded x3, Infeasible_Problem_Detected x2' (for messages)."""
@@ -556,7 +587,7 @@ def resolve_start(
     st = check_array(start_tip, "start_tip", (3,))
     batch = ik.solve(
         st,
-        validator.scene.pack(t0, ik.max_obstacles),
+        lambda: validator.scene.pack(t0, ik.max_obstacles),
         validator.sample(rng, seeds),
         t_check=(t0, t0),
         want=1,
