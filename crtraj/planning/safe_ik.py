@@ -395,8 +395,9 @@ class SafeIK:
                 ok = v.within_limits(run.X[idx]) & (run.clear[idx] >= run.required)
                 run.good[idx] = ok
                 run.checked[idx] = True
-                X, err, c = run.X, run.err, run.clear
-                run.add_all([IKSolution(X[i], "projection", True, float(err[i]), float(c[i]), True, 0.0) for i in idx[ok]])
+                X, e, c = run.X, run.err, run.clear
+                sols = [IKSolution(X[i], "projection", True, float(e[i]), float(c[i]), True, 0.0) for i in idx[ok]]
+                run.add_all(sols)
             if len(run.kept) >= run.want or done_it >= newton_iterations:
                 break
 
