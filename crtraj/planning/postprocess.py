@@ -181,15 +181,22 @@ class PathPostprocessor:
             k = B // 3
             if k:  # a third of the candidates join two waypoints
                 u[:k] = T[np.sort(rng.choice(len(X), size=(k, 2)), axis=1)]
-            P1, P2 = _at(X, T, u[:, 0]), _at(X, T, u[:, 1])
-            saving = np.interp(u[:, 1], T, s) - np.interp(u[:, 0], T, s) - v.motion_bound(P2 - P1)
+            # both ends of every candidate in one pass (the same numbers as one pass per end)
+            P = _at(X, T, np.concatenate([u[:, 0], u[:, 1]]))
+            P1, P2 = P[:B], P[B:]
+            dP = P2 - P1
+            bound = v.motion_bound(dP)
+            saving = np.interp(u[:, 1], T, s) - np.interp(u[:, 0], T, s) - bound
             # the new motion must not be faster than max_speed and the actuators' speed limits allow
-            good = (saving > 1e-6) & (v.duration(P2 - P1) <= (u[:, 1] - u[:, 0]) * (1.0 - 1e-9))
-            u, P1, P2, saving = u[good], P1[good], P2[good], saving[good]
+            good = (saving > 1e-6) & (v.space.duration(dP, bound) <= (u[:, 1] - u[:, 0]) * (1.0 - 1e-9))
+            u, P1, P2, saving, bound = u[good], P1[good], P2[good], saving[good], bound[good]
             if not len(u):
                 continue
             # most saving first: the round keeps the best valid one whose cut pieces verify (of at most 3)
-            found = self._timed_first(P1, P2, u, saving) if v.early_exit else self._timed_chunks(P1, P2, u, saving)
+            if v.early_exit:
+                found = self._timed_first(P1, P2, u, saving, bound)
+            else:
+                found = self._timed_chunks(P1, P2, u, saving)
             # the pieces of the old motions that the splice cuts are checked as well, so every motion of
             # the result is certified as it stands (a piece of a certified motion need not be)
             for best in found:
@@ -219,15 +226,18 @@ class PathPostprocessor:
                 break
         yield from (int(i) for i in np.flatnonzero(ok)[np.argsort(-saving[ok])][:3])
 
-    def _timed_first(self, P1: np.ndarray, P2: np.ndarray, u: np.ndarray, saving: np.ndarray) -> Iterator[int]:
+    def _timed_first(
+        self, P1: np.ndarray, P2: np.ndarray, u: np.ndarray, saving: np.ndarray, bound: np.ndarray
+    ) -> Iterator[int]:
         """As `_timed_chunks`, with the validator's early exit: the first valid candidate in the order of
         saving (ties: lowest index), then, when the caller asks again, the next valid one after it (at most 3);
-        the candidates after the one returned are not checked until then."""
+        the candidates after the one returned are not checked until then. bound: the candidates' body-motion
+        bounds (mm)."""
         order = np.argsort(-saving, kind="stable")
         pos = 0
         for _ in range(3):
             rest = order[pos:]
-            k = self.v.first_valid(P1[rest], P2[rest], u[rest, 0], u[rest, 1])
+            k = self.v.first_valid(P1[rest], P2[rest], u[rest, 0], u[rest, 1], bound[rest])
             self.counts["shortcut_checks"] = self.counts.get("shortcut_checks", 0) + (k + 1 if k >= 0 else len(rest))
             if k < 0:
                 return
