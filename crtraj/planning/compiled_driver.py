@@ -101,6 +101,11 @@ int crtraj_clearance(long long N, const double* X, long long K, const double* S,
   return rc;
 }
 
+/* From this many obstacles on, a broad phase also runs before a motion's first level (when it has several
+   intervals): one more configuration against every obstacle, so that the first level's intervals check only the
+   obstacles that can decide them. */
+#define CRTRAJ_EDGE_BROAD 12
+
 /* Grow the NB interval buffers to hold at least `need` entries each (contents kept). */
 #define CRTRAJ_NB 14
 static int crtraj_grow(double** buf, long long* cap, long long need) {
@@ -241,7 +246,9 @@ static int crtraj_clear_idx(crtraj_work* kb, const double* x, const long long* i
    is part of the window's, on the same line), so obstacle j's clearance anywhere below is at least
    d_j - h; when that exceeds every half's h (h / 2, plus slack for rounding), j cannot decide a sample
    (c >= h certifies it whichever obstacle is nearest) and is dropped. The smallest dropped bound is the
-   halves' floor: their clearance is taken as at most it, so `lower` stays a lower bound; fail is unchanged. */
+   halves' floor: their clearance is taken as at most it, so `lower` stays a lower bound; fail is unchanged.
+   With CRTRAJ_EDGE_BROAD obstacles or more and at least two first intervals, the same rule runs once before the
+   first level, from the motion's middle configuration over its whole window (one more sample). */
 #define ta buf[0]
 #define tb buf[1]
 #define mid buf[2]
@@ -286,9 +293,29 @@ static int crtraj_refine(long long E, const double* XA, const double* dX, const 
     if (crtraj_grow(buf, &cap, 2 * n)) { rc = 1; break; }
     if (crtraj_grow_pool(&pool, &pcap, K + 1)) { rc = 1; break; }
     for (q = 0; q < K; ++q) pool[q] = q;  /* the first level: every obstacle */
-    for (i = 0; i < n; ++i) {
-      ta[i] = (double) i / (double) n; tb[i] = (double) (i + 1) / (double) n;
-      flo[i] = INFINITY; off[i] = 0.0; cnt[i] = (double) K;
+    {
+      double floor0 = INFINITY;
+      long long kept = K;
+      if (use && n >= 2 && K >= CRTRAJ_EDGE_BROAD) {
+        /* the first level's broad phase: the middle configuration over the whole window. Every first-level
+           middle lies within bound / 2 (body motion) of it and its window within the whole one, so obstacle
+           q's clearance there is at least d_q - bound / 2; beyond every first-level h it decides no sample */
+        double hmax = 0.5 * bound[e] / (double) n * (1.0 + 1e-6) + 1e-6, c0;
+        int j;
+        for (j = 0; j < CRTRAJ_NX; ++j) x[j] = xa[j] + 0.5 * dx[j];
+        rc = crtraj_clear_idx(&kb, x, pool, K, S, T, origin, t0, t0 + span, P, sw, d, &c0);
+        ++*samples;
+        kept = 0;
+        for (q = 0; q < K; ++q) {
+          double lb = d[q] - inflate - 0.5 * bound[e] - 1e-6;
+          if (lb >= hmax) { if (lb < floor0) floor0 = lb; }
+          else pool[kept++] = q;  /* NaN keeps */
+        }
+      }
+      for (i = 0; i < n; ++i) {
+        ta[i] = (double) i / (double) n; tb[i] = (double) (i + 1) / (double) n;
+        flo[i] = floor0; off[i] = 0.0; cnt[i] = (double) kept;
+      }
     }
     while (n > 0 && !rc) {
       long long m = 0, np = 0, nd = n;

@@ -59,7 +59,7 @@ from crtraj.planning.metric import metric_matrix
 from crtraj.world import packing
 
 # Version of the generated code and driver: raising it makes every cached kernel foreign (rebuilt).
-GENERATOR = 15
+GENERATOR = 16
 # Most check points a kernel is generated for: the generated FK grows with them (100 points: ~15 s of
 # gcc); denser checks (reports, tests) stay on the interpreted path.
 MAX_COMPILED_POINTS = 200
