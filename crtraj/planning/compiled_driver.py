@@ -470,6 +470,61 @@ int crtraj_bspline(long long N, const double* x, long long nt, const double* tk,
   return 0;
 }
 
+/* MotionValidator.path_clearance in one call: the K - 1 straight motions X[i] -> X[i + 1] (X: K x CRTRAJ_NX) over
+   [Tm[i], Tm[i + 1]] (s, before the scene's time origin), each sampled at ns = max(1, ceil(bound[i] / res)) + 1
+   configurations (both ends) at their own instants, as the numpy samples are; per motion, the smallest sample
+   clearance minus `inflate` (mm) into pe[i]. Obstacles: K slots S (a static scene, T NULL) or the M rows of the
+   table T (each sample against the obstacles' spheres at its instant). Exact broad phase: the first sample of
+   a motion is checked against every obstacle; obstacle q's clearance anywhere on the motion is at least its
+   clearance there minus the motion's body-motion bound and what the obstacle can move and grow meanwhile
+   (enl mm/s times the duration), so an obstacle whose bound is not below that first sample's clearance never
+   sets the minimum and the other samples skip it: the same minima, bit for bit. Returns 3 without computing
+   anything when a value is not finite. */
+int crtraj_path_clearance(long long K, const double* X, const double* Tm, const double* bound, double res,
+                          long long M, const double* S, const double* T, double origin, double inflate, double enl,
+                          double* pe, long long* samples) {
+  crtraj_work kb; long long e, k, q, ns, kept = M; int rc = 0, j;
+  double P[7 * CRTRAJ_NP], x[CRTRAJ_NX], sw[5];
+  double* d = (double*) malloc(sizeof(double) * (size_t) (M + 1));
+  long long* all = (long long*) malloc(sizeof(long long) * (size_t) (M + 1));
+  long long* idx = (long long*) malloc(sizeof(long long) * (size_t) (M + 1));
+  *samples = 0;
+  for (e = 0; e + 1 < K; ++e)
+    if (!isfinite(bound[e]) || !isfinite(Tm[e]) || !isfinite(Tm[e + 1])) { free(d); free(all); free(idx); return 3; }
+  if (!d || !all || !idx || crtraj_alloc(&kb, crtraj_bb_work)) {
+    free(d); free(all); free(idx); crtraj_free(&kb); return 1;
+  }
+  for (q = 0; q < M; ++q) all[q] = q;
+  for (e = 0; e + 1 < K && !rc; ++e) {
+    const double* xa = X + e * CRTRAJ_NX;
+    const double* xb = xa + CRTRAJ_NX;
+    double ta = Tm[e], dt = Tm[e + 1] - Tm[e], m = INFINITY, c0 = 0.0, slack = 0.0;
+    ns = (long long) fmax(1.0, ceil(bound[e] / res));
+    for (k = 0; k <= ns && !rc; ++k) {
+      double tau = (double) k / (double) ns, t = ta + tau * dt, c;
+      for (j = 0; j < CRTRAJ_NX; ++j) x[j] = xa[j] + tau * (xb[j] - xa[j]);
+      if (k == 0) {
+        rc = crtraj_clear_idx(&kb, x, all, M, S, T, origin, t, t, P, sw, d, &c);
+        c0 = c - inflate;
+        slack = bound[e] + enl * fabs(dt) + 1e-6;
+        kept = 0;
+        for (q = 0; q < M; ++q)
+          if (!(d[q] - inflate - slack >= c0)) idx[kept++] = q;  /* NaN keeps */
+      } else {
+        rc = crtraj_clear_idx(&kb, x, idx, kept, S, T, origin, t, t, P, sw, d, &c);
+      }
+      ++*samples;
+      c = c - inflate - 0.0;
+      if (c < m || c != c) m = c;
+      if (m != m) break;
+    }
+    pe[e] = m;
+  }
+  free(d); free(all); free(idx);
+  crtraj_free(&kb);
+  return rc;
+}
+
 int crtraj_tip_jac(long long N, const double* X, double* P, double* J) {
   crtraj_work k; long long i; int rc = 0;
   if (crtraj_alloc(&k, crtraj_tipjac_work)) { crtraj_free(&k); return 1; }

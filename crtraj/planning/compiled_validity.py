@@ -15,6 +15,8 @@ rounding), and a small hand-written C driver loops over a whole batch in one cal
 - ``crtraj_project(N, X, target, ...)``: the safe IK's batched damped least-squares projection onto a tip
   target (`crtraj.planning.safe_ik.SafeIK.project`), the whole Newton loop per configuration in C, each
   configuration stopping as soon as its tip is on the target;
+- ``crtraj_path_clearance(...)``: `crtraj.planning.validity.MotionValidator.path_clearance` (a result's measured
+  clearance) in one call, with an exact broad phase per motion (the same minima);
 - ``crtraj_bspline(...)``: `crtraj.core.splines.BSplineCurve` at many parameters, operation for operation (the
   smoothing's spline samples, `crtraj.planning.postprocess`);
 - ``crtraj_motion_bound(N, dX, B)``: the body-motion bound B(dx) (mm, `crtraj.planning.metric`; it agrees
@@ -59,7 +61,7 @@ from crtraj.planning.metric import metric_matrix
 from crtraj.world import packing
 
 # Version of the generated code and driver: raising it makes every cached kernel foreign (rebuilt).
-GENERATOR = 16
+GENERATOR = 17
 # Most check points a kernel is generated for: the generated FK grows with them (100 points: ~15 s of
 # gcc); denser checks (reports, tests) stay on the interpreted path.
 MAX_COMPILED_POINTS = 200
@@ -161,6 +163,9 @@ class ValidityKernel:
         self._check_edges = lib.crtraj_check_edges
         self._check_edges.argtypes = [_N, _P, _P, _P, _P, _N, _P, ctypes.c_double, ctypes.c_double, ctypes.c_int]
         self._check_edges.argtypes += [_N, _P, _P, _P]
+        self._path_clearance = lib.crtraj_path_clearance
+        self._path_clearance.argtypes = [_N, _P, _P, _P, ctypes.c_double, _N, _P, _P] + [ctypes.c_double] * 3
+        self._path_clearance.argtypes += [_P, _P]
         self._bspline = lib.crtraj_bspline
         self._bspline.argtypes = [_N, _P, _N, _P, _N, _N, _P, _N, _P]
         self._check_static = lib.crtraj_check_static
@@ -184,6 +189,7 @@ class ValidityKernel:
             self._check_static,
             self._check_moving_auto,
             self._bspline,
+            self._path_clearance,
         ):
             f.restype = ctypes.c_int
 
@@ -393,6 +399,43 @@ class ValidityKernel:
         rc = fn(*head, *middle, _ptr(fail), _ptr(lower), ctypes.addressof(samples))
         self._check(rc, "edge check")
         return fail, lower, int(samples.value)
+
+    def path_clearance(
+        self,
+        X: Any,
+        T: Any,
+        bound: Any,
+        resolution: float,
+        obstacles: tuple[np.ndarray | None, np.ndarray | None, float],
+        inflate: float,
+        enlargement: float,
+    ) -> tuple[np.ndarray, int] | None:
+        """`MotionValidator.path_clearance`'s per-motion minima (K - 1,) mm of the path X (K, nx) timed T (K,) s,
+        sampled every `resolution` mm of body motion (bound: the motions' body-motion bounds (K - 1,) mm), with
+        the exact broad phase of the C function (the same minima). obstacles: (static slots, None, 0) or (None,
+        `Scene.motion_table`, the scene's time origin s); enlargement (mm/s): how fast an obstacle's clearance
+        can change. Returns (minima, samples), or None when a value is not finite (nothing computed)."""
+        X = self._configs(X)
+        T = np.ascontiguousarray(T, dtype=float)
+        bound = np.ascontiguousarray(bound, dtype=float)
+        K = len(X)
+        if T.shape != (K,) or bound.shape != (max(K - 1, 0),):
+            raise ValueError("path_clearance: X (K, nx), T (K,) and bound (K-1,) expected")
+        S, table, origin = obstacles
+        if table is not None:
+            A = np.ascontiguousarray(table, dtype=float)
+            M, pS, pT = len(A), 0, _ptr(A)
+        else:
+            A = np.ascontiguousarray(S, dtype=float)
+            M, pS, pT = len(A) // packing.WIDTH, _ptr(A), 0
+        out = np.empty(max(K - 1, 0))
+        samples = np.zeros(1, dtype=np.int64)
+        args = (K, _ptr(X), _ptr(T), _ptr(bound), float(resolution), M, pS, pT, float(origin), float(inflate))
+        rc = self._path_clearance(*args, float(enlargement), _ptr(out) if len(out) else 0, _ptr(samples))
+        if rc == 3:
+            return None
+        self._check(rc, "path clearance")
+        return out, int(samples[0])
 
     def bspline(self, knots: np.ndarray, coeffs: np.ndarray, k: int, x: Any) -> np.ndarray:
         """The B-spline curve of degree k with these knots (nc + k + 1,) and coefficients (nc, dim) at the

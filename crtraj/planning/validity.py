@@ -427,6 +427,20 @@ class MotionValidator:
         if len(X) == 1:
             c = self.clearance(X, T[0])
             return float(c[0]), c
+        kernel = self.state.kernel
+        if kernel is not None and self.scene.n_obstacles and T.shape == (len(X),):
+            # the same samples and minima in one compiled call, which skips per motion the obstacles that
+            # cannot set its minimum
+            sc = self.scene
+            moving = (None, sc.motion_table(), sc.time_origin)
+            obstacles = (self.state.static_slots, None, 0.0) if self.static else moving
+            bound = self.motion_bound(np.diff(X, axis=0))
+            out = kernel.path_clearance(
+                X, T, bound, self.resolution, obstacles, self.inflate, self.state.enlargement_rate
+            )
+            if out is not None:
+                self.state.n_samples += out[1]
+                return float(out[0].min()), out[0]
         S, e, tau, _, _, _ = self._samples(X[:-1], X[1:], T[:-1], T[1:])
         ts = T[:-1][e] + tau * (T[1:] - T[:-1])[e]
         c = self.clearance(S, ts, ts)
