@@ -56,10 +56,13 @@ import numpy as np
 from crtraj.core.build_cache import BuildCache, BuildKey
 from crtraj.model.codegen import codegen_builder
 from crtraj.model.kinematics import Model
-from crtraj.planning.compiled_driver import DRIVER
+from crtraj.planning.compiled_driver import DRIVER as EDGE_DRIVER
+from crtraj.planning.compiled_path_driver import PATH_DRIVER
 from crtraj.planning.metric import metric_matrix
 from crtraj.world import packing
 
+# The hand-written C around the generated functions: the edge checks' driver, then the path functions.
+DRIVER = EDGE_DRIVER + PATH_DRIVER
 # Version of the generated code and driver: raising it makes every cached kernel foreign (rebuilt).
 GENERATOR = 17
 # Most check points a kernel is generated for: the generated FK grows with them (100 points: ~15 s of

@@ -50,6 +50,7 @@ from crtraj.core.fields import check_array
 from crtraj.model.kinematics import Model
 from crtraj.planning.compiled_validity import ProjectionLimits, ProjectionSteps
 from crtraj.planning.ik_rescue import IKRescue
+from crtraj.planning.ik_run import IKRun, format_statuses
 from crtraj.planning.sampler import LIMIT_TOL
 from crtraj.planning.validity import MotionValidator
 from crtraj.world import packing
@@ -370,7 +371,7 @@ class SafeIK:
         seeds = np.atleast_2d(np.asarray(seeds, dtype=float))
         want = len(seeds) if want is None else int(want)
         # the NLP keeps `margin`; allow for its tolerance
-        run = _IKRun(np.asarray(target, dtype=float), seeds, v, t_check, tol, self.margin - 0.25, want, dedup)
+        run = IKRun(np.asarray(target, dtype=float), seeds, v, t_check, tol, self.margin - 0.25, want, dedup)
         self._project_stage(run, newton_iterations)
         run.statuses["projection"] = int(run.good.sum())
         forced = [i for i in always if 0 <= i < len(seeds) and not run.good[i]]
@@ -381,7 +382,7 @@ class SafeIK:
         safe = np.array(run.kept) if run.kept else np.zeros((0, self.robot.nx))
         return IKBatch(tuple(run.sols), safe, time.perf_counter() - t_start, run.statuses)
 
-    def _project_stage(self, run: _IKRun, newton_iterations: int) -> None:
+    def _project_stage(self, run: IKRun, newton_iterations: int) -> None:
         """Stage 1: project in blocks of Newton steps, stopping as soon as enough safe configurations exist."""
         v, t_check, done_it = run.v, run.t_check, 0
         while True:
@@ -401,7 +402,7 @@ class SafeIK:
             if len(run.kept) >= run.want or done_it >= newton_iterations:
                 break
 
-    def _push_stage(self, run: _IKRun, forced: list[int], rounds: int, deadline: float | None) -> None:
+    def _push_stage(self, run: IKRun, forced: list[int], rounds: int, deadline: float | None) -> None:
         """Stage 2: push out the on-target projections that came too close: the forced ones first, then
         (while configurations are missing) the others, most promising (highest clearance) first."""
         X, clear, err, good = run.X, run.clear, run.err, run.good
@@ -435,7 +436,7 @@ class SafeIK:
 
     def _nlp_stage(
         self,
-        run: _IKRun,
+        run: IKRun,
         forced: list[int],
         scene_pack: np.ndarray | Callable[[], np.ndarray],
         max_nlp: int | None,
@@ -472,7 +473,7 @@ class SafeIK:
             if sol.safe and sol.clearance >= run.required:
                 run.keep(sol.x)
 
-    def _nlp_solve(self, run: _IKRun, x0: np.ndarray, p: np.ndarray) -> IKSolution:
+    def _nlp_solve(self, run: IKRun, x0: np.ndarray, p: np.ndarray) -> IKSolution:
         """One NLP solve from x0 with parameters p, checked (tip error, limits, clearance over t_check)."""
         v, t_check = run.v, run.t_check
         t1 = time.perf_counter()
@@ -489,70 +490,6 @@ class SafeIK:
         ins = bool(v.within_limits(xs[None])[0]) if ok else False
         c = float(v.clearance(xs[None], t_check[0], t_check[1])[0]) if ok else -np.inf
         return IKSolution(xs, status, ok, tip_err, c, ins, time.perf_counter() - t1)
-
-
-class _IKRun:
-    """The running state of one `SafeIK.solve` call: the seeds, their projections X (S, nx), tip
-    errors (mm) and clearances (mm), which were checked and found safe, every solution tried, and the
-    distinct safe configurations kept (closer than `dedup` mm of body motion to a kept one: dropped)."""
-
-    def __init__(
-        self,
-        target: np.ndarray,
-        seeds: np.ndarray,
-        v: MotionValidator,
-        t_check: tuple[float, float],
-        tol: float,
-        required: float,
-        want: int,
-        dedup: float,
-    ) -> None:
-        S = len(seeds)
-        self.target, self.seeds, self.v, self.t_check = target, seeds, v, t_check
-        self.tol, self.required, self.want, self.dedup = tol, required, want, dedup
-        self.X = seeds.copy()
-        self.err = np.full(S, np.inf)
-        self.clear = np.full(S, -np.inf)
-        self.checked = np.zeros(S, dtype=bool)
-        self.good = np.zeros(S, dtype=bool)
-        self.sols: list[IKSolution] = []
-        self.kept: list[np.ndarray] = []
-        self.statuses: dict[str, int] = {}
-
-    def keep(self, x: np.ndarray) -> None:
-        if self.kept and np.min(self.v.motion_bound(np.array(self.kept) - x)) < self.dedup:
-            return
-        self.kept.append(x)
-
-    def add(self, sol: IKSolution) -> None:
-        """A safe solution of stage 1 or 2: recorded and kept."""
-        self.sols.append(sol)
-        self.keep(sol.x)
-
-    def add_all(self, sols: list[IKSolution]) -> None:
-        """`add` of each of `sols` in turn, with the body-motion bounds between them and the kept ones in one
-        call: the same decisions, up to the rounding of a batch's product against one row's (a bound within
-        ~1e-13 mm of `dedup`)."""
-        if len(sols) < 2:
-            for sol in sols:
-                self.add(sol)
-            return
-        self.sols.extend(sols)
-        X = np.array([sol.x for sol in sols])
-        ref = np.concatenate([np.array(self.kept).reshape(-1, X.shape[1]), X])
-        K = len(self.kept)
-        B = self.v.motion_bound(X[:, None, :] - ref[None, :, :])  # (new, kept + new)
-        keep = list(range(K))
-        for j in range(len(X)):
-            if keep and np.min(B[j, keep]) < self.dedup:
-                continue
-            keep.append(K + j)
-            self.kept.append(sols[j].x)
-
-
-def format_statuses(statuses: dict[str, int]) -> str:
-    """'Solve_Succeeded x3, Infeasible_Problem_Detected x2' (for messages)."""
-    return ", ".join(f"{k} x{n}" for k, n in statuses.items()) or "none tried"
 
 
 def resolve_start(
