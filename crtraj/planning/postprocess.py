@@ -434,13 +434,18 @@ def _at(X: np.ndarray, s: np.ndarray, u: np.ndarray) -> np.ndarray:
     """Points at arc positions u along the polyline X with cumulative arc s (non-decreasing): every coordinate
     as `np.interp` computes it (slope (X[j+1] - X[j]) / (s[j+1] - s[j]) times (u - s[j]) plus X[j], X[j] at
     u = s[j], the end points beyond the ends), in one pass for all coordinates."""
-    j = np.clip(np.searchsorted(s, u, side="right") - 1, 0, max(len(s) - 2, 0))
-    if len(s) < 2:
+    n = len(s)
+    if n < 2:
         return np.repeat(X[:1], len(u), axis=0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        slope = (X[j + 1] - X[j]) / (s[j + 1] - s[j])[:, None]
-        out = slope * (u - s[j])[:, None] + X[j]
-    out = np.where((u == s[j])[:, None], X[j], out)
+    j = np.minimum(np.maximum(s.searchsorted(u, side="right") - 1, 0), n - 2)
+    Xj, sj = X[j], s[j]
+    den = s[j + 1] - sj
+    # a zero-length piece is only ever picked for u before the start or at / beyond the end, whose rows are
+    # replaced below: dividing by 1 there spares the division warnings (and numpy's error-state switch)
+    den[den == 0.0] = 1.0
+    out = (X[j + 1] - Xj) / den[:, None] * (u - sj)[:, None] + Xj
+    at = u == sj
+    out[at] = Xj[at]
     out[u >= s[-1]] = X[-1]
     out[u < s[0]] = X[0]
     return out
