@@ -83,9 +83,9 @@ def test_verdict_mode_checks_fewer_samples_among_obstacles(model: Model, kernels
 
 
 def test_first_intervals_counted_in_c_give_the_same_numbers(model: Model, kernels: Kernels):
-    """`ValidityKernel.check_edges_coarse` (first intervals max(1, ceil(bound / coarse)) counted in C) returns
-    `check_edges` with numpy-counted intervals bit for bit, for both modes; a bound that is not finite is refused
-    (None) before anything is checked."""
+    """`ValidityKernel.check_edges` given a coarse interval (first intervals max(1, ceil(bound / coarse))
+    counted in C) returns the call with numpy-counted intervals bit for bit, for both modes; a bound that is
+    not finite is refused (None) before anything is checked."""
     rng = np.random.default_rng(2)
     v = MotionValidator(model, random_scene(rng, 9, moving=False), kernels=kernels)
     k = v.state.kernel
@@ -96,13 +96,13 @@ def test_first_intervals_counted_in_c_give_the_same_numbers(model: Model, kernel
     slots = v.state.static_slots
     for prefix in (True, False):
         ref = k.check_edges(XA, dX, bound, n0, slots, v.inflate, 1.5, prefix, 3)
-        out = k.check_edges_coarse(XA, dX, bound, v.coarse, slots, v.inflate, 1.5, prefix, 3)
+        out = k.check_edges(XA, dX, bound, v.coarse, slots, v.inflate, 1.5, prefix, 3)
         assert out is not None
         for a, b in zip(out, ref, strict=True):
             np.testing.assert_array_equal(a, b)
     bad = bound.copy()
     bad[7] = np.nan
-    assert k.check_edges_coarse(XA, dX, bad, v.coarse, slots, v.inflate, 1.5, False, 3) is None
+    assert k.check_edges(XA, dX, bad, v.coarse, slots, v.inflate, 1.5, False, 3) is None
 
 
 @settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])

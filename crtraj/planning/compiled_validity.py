@@ -273,37 +273,7 @@ class ValidityKernel:
         XA: np.ndarray,
         dX: np.ndarray,
         bound: np.ndarray,
-        n0: np.ndarray,
-        slots: np.ndarray,
-        inflate: float,
-        finest: float,
-        prefix: bool,
-        broad: int = 0,
-        first: bool = False,
-    ) -> tuple[np.ndarray, np.ndarray, int]:
-        """The static-scene adaptive edge check (`MotionValidator.check_edges`) in C.
-
-        XA, dX (E, nx): motion starts and changes; bound (E,) mm: their body-motion bounds; n0 (E,): first
-        intervals per motion; slots: the scene's packed obstacles; inflate (mm) subtracted from every
-        clearance; finest (mm): the smallest interval's h. broad: with at least this many obstacle slots
-        (0: never), a broad phase per motion keeps only the obstacles that can decide one of its samples
-        (module docstring): fail is the same either way; lower stays a lower bound of the clearance but may
-        be smaller. first: stop after the first motion certified whole; the motions after it are not checked
-        (fail -1, lower -inf). Returns (fail (E,), lower (E,) mm, samples).
-        """
-        S = np.ascontiguousarray(slots, dtype=float)
-        if S.ndim != 1:
-            raise ValueError(f"check_edges: flat slots (K*{packing.WIDTH},) expected, got {S.shape}")
-        K = S.shape[0] // packing.WIDTH
-        flags = (float(inflate), float(finest), int(bool(prefix)) | (2 if first else 0), int(broad))
-        return self._run_edges(self._check_edges, XA, dX, bound, n0, (K, _ptr(S), *flags))
-
-    def check_edges_coarse(
-        self,
-        XA: np.ndarray,
-        dX: np.ndarray,
-        bound: np.ndarray,
-        coarse: float,
+        n0: np.ndarray | float,
         slots: np.ndarray,
         inflate: float,
         finest: float,
@@ -312,24 +282,36 @@ class ValidityKernel:
         first: bool = False,
         verdict: bool = False,
     ) -> tuple[np.ndarray, np.ndarray, int] | None:
-        """`check_edges` with each motion's first intervals max(1, ceil(bound / coarse)) counted in C (coarse: mm
-        of body motion per first interval), as `MotionValidator.check_edges` counts them: the same results with
-        less Python per call (a query makes many small ones). None, with nothing checked, when a bound is not
-        finite. verdict (with prefix False): a motion stops at its first unsafe interval, so fail < 1 marks it
-        unsafe without being its first unsafe fraction (and lower is not the whole motion's); safe motions are
-        checked exactly as without it. Returns (fail (E,), lower (E,) mm, samples)."""
+        """The static-scene adaptive edge check (`MotionValidator.check_edges`) in C.
+
+        XA, dX (E, nx): motion starts and changes; bound (E,) mm: their body-motion bounds; n0: (E,) first
+        intervals per motion, or a number, coarse (mm of body motion per first interval): then each motion's
+        max(1, ceil(bound / coarse)) first intervals are counted in C, as `MotionValidator.check_edges` counts
+        them (less Python per call; None, with nothing checked, when a bound is not finite); slots: the scene's
+        packed obstacles; inflate (mm) subtracted from every clearance; finest (mm): the smallest interval's h.
+        broad: with at least this many obstacle slots (0: never), a broad phase per motion keeps only the
+        obstacles that can decide one of its samples (module docstring): fail is the same either way; lower
+        stays a lower bound of the clearance but may be smaller. first: stop after the first motion certified
+        whole; the motions after it are not checked (fail -1, lower -inf). verdict (with prefix False): a
+        motion stops at its first unsafe interval, so fail < 1 marks it unsafe without being its first unsafe
+        fraction (and lower is not the whole motion's); safe motions are checked exactly as without it.
+        Returns (fail (E,), lower (E,) mm, samples).
+        """
         S, p_slots = self._slots
-        if slots is not S:
+        if slots is not S:  # the same scene's slots come back call after call: their address is kept
             S = np.ascontiguousarray(slots, dtype=float)
             if S.ndim != 1:
                 raise ValueError(f"check_edges: flat slots (K*{packing.WIDTH},) expected, got {S.shape}")
             p_slots = _ptr(S)
             if S is slots:
                 self._slots = (S, p_slots)
+        K = S.shape[0] // packing.WIDTH
         flags = (float(inflate), float(finest), _mode(prefix, first, verdict), int(broad))
-        return self._run_auto(self._check_static, XA, dX, bound, coarse, (S.shape[0] // packing.WIDTH, p_slots), flags)
+        if np.ndim(n0) == 0:
+            return self._run_auto(self._check_static, XA, dX, bound, float(n0), (K, p_slots), flags)
+        return self._run_edges(self._check_edges, XA, dX, bound, n0, (K, p_slots, *flags))
 
-    def check_edges_moving_coarse(
+    def check_edges_moving(
         self,
         XA: np.ndarray,
         dX: np.ndarray,
@@ -345,11 +327,12 @@ class ValidityKernel:
         first: bool = False,
         verdict: bool = False,
     ) -> tuple[np.ndarray, np.ndarray, int] | None:
-        """`check_edges_coarse` among moving obstacles: TA, dT (E,) s: each motion's start time and duration
-        (relative to the scene's time origin `origin` s); table (M, 12): `Scene.motion_table`; limits = (inflate
-        mm, finest mm, enlargement mm/s: how fast a window's swept sphere can outgrow any one instant's,
-        time_resolution s: the longest window an uncertified interval may be declared unsafe at without being
-        split). None, with nothing checked, when a bound, start time or duration is not finite."""
+        """`check_edges` (first intervals counted in C) among moving obstacles: TA, dT (E,) s: each motion's
+        start time and duration (relative to the scene's time origin `origin` s); table (M, 12):
+        `Scene.motion_table`; limits = (inflate mm, finest mm, enlargement mm/s: how fast a window's swept sphere
+        can outgrow any one instant's, time_resolution s: the longest window an uncertified interval may be
+        declared unsafe at without being split). None, with nothing checked, when a bound, start time or
+        duration is not finite."""
         E = len(XA)
         TA = per_item(TA, E)
         dT = per_item(dT, E)

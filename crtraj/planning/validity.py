@@ -312,7 +312,7 @@ class MotionValidator:
         if fast and self.static:
             # a static scene's compiled check needs no times: the loop in C, with the numpy loop's arithmetic,
             # entered without the batch the numpy loop needs (a query makes many small calls)
-            out = kernel.check_edges_coarse(
+            out = kernel.check_edges(
                 XA, dX, bound, self.coarse, self.state.static_slots, self.inflate, finest, prefix, self._broad(), first,
                 verdict,
             )  # fmt: skip
@@ -325,7 +325,7 @@ class MotionValidator:
         if fast and not self.static:
             scene = self.scene
             limits = (self.inflate, finest, self.state.enlargement_rate, tres)
-            out = kernel.check_edges_moving_coarse(
+            out = kernel.check_edges_moving(
                 XA, dX, bound, self.coarse, TA, dT, scene.motion_table(), scene.time_origin, limits, prefix,
                 self._broad(), first, verdict,
             )  # fmt: skip
