@@ -64,7 +64,7 @@ from crtraj.world import packing
 # The hand-written C around the generated functions: the edge checks' driver, then the path functions.
 DRIVER = EDGE_DRIVER + PATH_DRIVER
 # Version of the generated code and driver: raising it makes every cached kernel foreign (rebuilt).
-GENERATOR = 17
+GENERATOR = 18
 # Most check points a kernel is generated for: the generated FK grows with them (100 points: ~15 s of
 # gcc); denser checks (reports, tests) stay on the interpreted path.
 MAX_COMPILED_POINTS = 200
@@ -102,7 +102,8 @@ def kernel_functions(model: Model, check_points: int) -> list[ca.Function]:
     bb = model.backbone_function(check_points)
     return [
         ca.Function("crtraj_bb", [x], [bb(x)]),
-        ca.Function("crtraj_tipjac", [x], [model.tip(x), model.jac_tip(x)]),
+        # common subexpressions of the tip and its Jacobian computed once (-14 % operations; the same numbers)
+        ca.Function("crtraj_tipjac", [x], [model.tip(x), model.jac_tip(x)], {"cse": True}),
         ca.Function("crtraj_mb", [x], [motion_bound_expr(x, metric, robot.n_segments)]),
     ]
 
