@@ -27,17 +27,29 @@ and warmed up by one untimed query, with the process CPU time beside it (`time.p
 shared with other jobs it moves far less with their load than wall time). Every success of sections 1-2
 is re-checked independently (200 backbone points every 10 ms of the timed path, numpy distances).
 
+With `--baseline REV` (a git revision, e.g. the previous stop's commit) the run starts with section 0: this
+code against REV's on the same queries (sim 1 and Table I at 7 obstacles), each side in its own process
+(`--ab-worker`), the sides alternating `--ab-rounds` times so both see the same load: CPU and wall medians,
+their ratio, identical plans, success, length, smallest clearance and the dense re-check.
+
 Run: python benchmarks/plan.py [--seeds 40] [--ompl-seeds 10] [--table1 20] [--scaling 10] [--plot PATH]
-     [--rrtstar-seeds 0]
+     [--rrtstar-seeds 0] [--baseline REV [--ab-rounds 3]]
 """
 
 from __future__ import annotations
 
 import argparse
 import datetime
+import hashlib
+import io
+import json
 import os
 import platform
 import statistics
+import subprocess
+import sys
+import tarfile
+import tempfile
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -387,6 +399,71 @@ def section_loaders(model: Model, check_points: int, n: int = 512, repeat: int =
     print(f"interpreted CasADi map (old):          {t_interp * 1e6:8.1f} us   ({t_interp / t_ctypes:.2f}x ctypes)")
 
 
+def ab_worker(problem_path: str, seeds: int, scenes: int) -> None:
+    """One side of section 0, with whatever crtraj is on the path: per query (wall s, CPU s, success, densely
+    verified, tip path length mm, smallest clearance mm, a digest of the timed path), as one JSON line."""
+    problem = Problem.load(problem_path)
+    model = Model(problem.robot)
+    scene = problem.options(Scene, "scene")
+    options = problem.options(PlannerOptions, "planner").with_(algorithm="cspace")
+    out: dict[str, list] = {"sim 1": [], "Table I, 7 obstacles": []}
+    task = problem.task
+    p = make_planner(model, scene, options)
+    kw = {"start_tip": task.start, "stop": options.stop(), "goal_tolerance": task.goal_tolerance}
+    p.plan(task.goal, seed=10_000, **kw)  # warm-up
+    queries = [("sim 1", p, task.goal, dict(kw, seed=s), scene) for s in range(seeds)]
+    p7 = make_planner(model, Scene(), options, max_obstacles=8)
+    stop = StopCondition(time_limit=5.0, max_iterations=options.max_iterations, first_solution=True)
+    warm = ScenarioGenerator(model, ScenarioOptions(seed=99)).generate(7, 0)
+    p7.plan(warm.goal, start_config=warm.start, scene=warm.scene, stop=stop, seed=0)
+    for i, sc in enumerate(table1_scenes(model, 7, scenes)):
+        queries.append(("Table I, 7 obstacles", p7, sc.goal, {"start_config": sc.start, "scene": sc.scene,
+                                                             "stop": stop, "seed": i}, sc.scene))  # fmt: skip
+    for name, planner, goal, kw_q, sc in queries:
+        res, wall, cpu, _ = timed_plan(planner, goal, **kw_q)
+        ok = res.is_success()
+        dense = ok and dense_clearance(model, sc, res.t, res.configs) >= 0.0
+        digest = hashlib.sha256(res.configs.tobytes() + res.t.tobytes()).hexdigest()
+        out[name].append([wall, cpu, ok, dense, float(res.length), float(res.min_clearance), digest])
+    print(json.dumps(out))
+
+
+def section_baseline(rev: str, problem_path: str, seeds: int, scenes: int, rounds: int) -> None:
+    """Section 0: this code against REV's (module docstring)."""
+    print(f"\n== 0. this code against {rev}: {seeds} sim-1 seeds, {scenes} Table I scenes, {rounds} rounds ==")
+    with tempfile.TemporaryDirectory(prefix="crtraj-baseline-") as tmp:
+        tar = subprocess.run(["git", "-C", str(ROOT), "archive", rev], capture_output=True, check=True).stdout
+        with tarfile.open(fileobj=io.BytesIO(tar)) as t:
+            t.extractall(tmp, filter="data")
+        sides = {rev: tmp, "this": str(ROOT)}
+        runs: dict[str, list[dict]] = {k: [] for k in sides}
+        for _ in range(rounds):
+            for label, tree in sides.items():
+                env = dict(os.environ, PYTHONPATH=tree)
+                cmd = [sys.executable, str(Path(__file__).resolve()), "--ab-worker", "--problem", problem_path]
+                cmd += ["--seeds", str(seeds), "--table1", str(scenes)]
+                done = subprocess.run(cmd, env=env, capture_output=True, text=True, check=True)
+                runs[label].append(json.loads(done.stdout.strip().splitlines()[-1]))
+    for name in runs["this"][0]:
+        print(f"-- {name}: CPU and wall median / p90 over {rounds} rounds (every query of every round)")
+        rows = {label: [q for r in rs for q in r[name]] for label, rs in runs.items()}
+        for label, qs in rows.items():
+            ok = sum(q[2] for q in qs) // rounds
+            dense = sum(q[3] for q in qs) // rounds
+            print(f"   {label:<12s} CPU {summary([q[1] for q in qs])}  wall {summary([q[0] for q in qs])}  "
+                  f"success {ok}/{len(qs) // rounds}, verified densely {dense}")  # fmt: skip
+        old, new = rows[rev], rows["this"]
+        cpu = statistics.median(q[1] for q in old) / statistics.median(q[1] for q in new)
+        wall = statistics.median(q[0] for q in old) / statistics.median(q[0] for q in new)
+        n = len(new) // rounds
+        same = sum(a[6] == b[6] for a, b in zip(old[:n], new[:n], strict=True))
+        both = [(a, b) for a, b in zip(old[:n], new[:n], strict=True) if a[2] and b[2]]
+        la, lb = np.mean([a[4] for a, _ in both]), np.mean([b[4] for _, b in both])
+        ca_, cb = min(a[5] for a, _ in both), min(b[5] for _, b in both)
+        print(f"   speed-up {rev} / this (median): CPU {cpu:.2f}x, wall {wall:.2f}x; identical plans {same}/{n}; "
+              f"tip path length mean {la:.1f} / {lb:.1f} mm; smallest clearance {ca_:.2f} / {cb:.2f} mm")  # fmt: skip
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--problem", default=str(ROOT / "problems" / "paper_static.toml"))
@@ -397,7 +474,13 @@ def main() -> None:
     ap.add_argument("--plot", default=None, help="write the scaling plot here (e.g. docs/scaling_plan.png)")
     ap.add_argument("--rrtstar-seeds", type=int, default=0, help="seeds of the paper's task-space RRT* (0 = skip)")
     ap.add_argument("--rrtstar-time-limit", type=float, default=10.0, help="s per RRT* query")
+    ap.add_argument("--baseline", default=None, help="git revision to compare this code against (section 0)")
+    ap.add_argument("--ab-rounds", type=int, default=3, help="alternating rounds of section 0")
+    ap.add_argument("--ab-worker", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.ab_worker:
+        ab_worker(args.problem, args.seeds, args.table1)
+        return
 
     problem = Problem.load(args.problem)
     model = Model(problem.robot)
@@ -414,6 +497,8 @@ def main() -> None:
         ValidityKernel.load(model, n, cache)
     print(f"build cache {cache.root}: kernels ready in {time.perf_counter() - t1:.2f} s ({cache.builds} built)")
     print(f"problem: {problem.name} (start {problem.task.start.tolist()} -> goal {problem.task.goal.tolist()} mm)")
+    if args.baseline:
+        section_baseline(args.baseline, args.problem, args.seeds, args.table1, args.ab_rounds)
 
     rows = section_sim1(problem, model, scene, options, args.seeds)
     if args.ompl_seeds > 0:

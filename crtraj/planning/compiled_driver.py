@@ -2,6 +2,10 @@
 configurations, obstacle slots and edge intervals around the CasADi-generated functions, the swept spheres of
 moving obstacles and the edge checks' broad phase. Kept apart from the Python loader only for its length."""
 
+# From this many obstacles on, the edge checks' broad phase also runs once before a motion's first level (one more
+# sample per motion of two or more first intervals; below it that sample costs more than it saves).
+EDGE_BROAD = 12
+
 # The driver: loops in C over configurations (and obstacle slots) around the CasADi-generated functions,
 # which each evaluate one configuration. Work arrays are sized once per call from the *_work functions.
 DRIVER = r"""
@@ -100,6 +104,11 @@ int crtraj_clearance(long long N, const double* X, long long K, const double* S,
   crtraj_free(&kb);
   return rc;
 }
+
+/* From this many obstacles on, a broad phase also runs before a motion's first level (when it has several
+   intervals): one more configuration against every obstacle, so that the first level's intervals check only the
+   obstacles that can decide them. */
+#define CRTRAJ_EDGE_BROAD @EDGE_BROAD@
 
 /* Grow the NB interval buffers to hold at least `need` entries each (contents kept). */
 #define CRTRAJ_NB 14
@@ -231,6 +240,9 @@ static int crtraj_clear_idx(crtraj_work* kb, const double* x, const long long* i
    Out: fail[e] (certified fraction) and lower[e] (min c - h over certified intervals); *samples: clearances.
    prefix bit 1 (first): stop after the first motion certified whole (VAMP's early exit across a batch whose
    caller wants the first valid motion of an order): the motions after it get fail = -1 (not checked).
+   prefix bit 2 (verdict, with bit 0 clear): a motion stops at its first unsafe interval, within its level too
+   (early exit within a motion): fail < 1 still marks it unsafe, but need not be the fraction the whole level
+   would give, and lower may be larger; a safe motion is checked exactly as without the bit.
 
    Broad phase (from `broad` obstacles on, 0: never): every interval hands its halves only the obstacles that
    can decide one of their samples. The halves' configurations lie within h (body motion) of the interval's
@@ -238,7 +250,9 @@ static int crtraj_clear_idx(crtraj_work* kb, const double* x, const long long* i
    is part of the window's, on the same line), so obstacle j's clearance anywhere below is at least
    d_j - h; when that exceeds every half's h (h / 2, plus slack for rounding), j cannot decide a sample
    (c >= h certifies it whichever obstacle is nearest) and is dropped. The smallest dropped bound is the
-   halves' floor: their clearance is taken as at most it, so `lower` stays a lower bound; fail is unchanged. */
+   halves' floor: their clearance is taken as at most it, so `lower` stays a lower bound; fail is unchanged.
+   With CRTRAJ_EDGE_BROAD obstacles or more and at least two first intervals, the same rule runs once before the
+   first level, from the motion's middle configuration over its whole window (one more sample). */
 #define ta buf[0]
 #define tb buf[1]
 #define mid buf[2]
@@ -254,9 +268,9 @@ static int crtraj_clear_idx(crtraj_work* kb, const double* x, const long long* i
 #define coff buf[12]
 #define ccnt buf[13]
 static int crtraj_refine(long long E, const double* XA, const double* dX, const double* bound, const long long* n0,
-                         const double* TA, const double* dT, long long K, const double* S, const double* T,
-                         double origin, double inflate, double finest, double enl, double tres, int prefix,
-                         long long broad, double* fail, double* lower, long long* samples) {
+                         double coarse, const double* TA, const double* dT, long long K, const double* S,
+                         const double* T, double origin, double inflate, double finest, double enl, double tres,
+                         int prefix, long long broad, double* fail, double* lower, long long* samples) {
   crtraj_work kb; long long e, i, q, n, cap = 0, pcap = 0, ncap = 0; int rc = 0;
   double P[7 * CRTRAJ_NP], x[CRTRAJ_NX], sw[5];
   double* buf[CRTRAJ_NB] = {NULL};
@@ -267,6 +281,7 @@ static int crtraj_refine(long long E, const double* XA, const double* dX, const 
   double* t;
   int use = broad > 0 && K >= broad;
   int first = prefix & 2;
+  int verdict = (prefix & 4) && !(prefix & 1);
   prefix &= 1;
   *samples = 0;
   if (!d || crtraj_alloc(&kb, crtraj_bb_work) || crtraj_grow_pool(&pool, &pcap, K + 1)) {
@@ -276,17 +291,38 @@ static int crtraj_refine(long long E, const double* XA, const double* dX, const 
     const double* xa = XA + e * CRTRAJ_NX;
     const double* dx = dX + e * CRTRAJ_NX;
     double f = 1.0, low = INFINITY, t0 = T ? TA[e] : 0.0, span = T ? dT[e] : 0.0;
-    n = n0[e];
+    /* n0 NULL: max(1, ceil(bound / coarse)) intervals, as numpy computes them (bounds checked finite) */
+    n = n0 ? n0[e] : (long long) fmax(1.0, ceil(bound[e] / coarse));
     if (n < 1) { fail[e] = 0.0; lower[e] = -INFINITY; continue; }  /* no intervals: nothing certified */
     if (crtraj_grow(buf, &cap, 2 * n)) { rc = 1; break; }
     if (crtraj_grow_pool(&pool, &pcap, K + 1)) { rc = 1; break; }
     for (q = 0; q < K; ++q) pool[q] = q;  /* the first level: every obstacle */
-    for (i = 0; i < n; ++i) {
-      ta[i] = (double) i / (double) n; tb[i] = (double) (i + 1) / (double) n;
-      flo[i] = INFINITY; off[i] = 0.0; cnt[i] = (double) K;
+    {
+      double floor0 = INFINITY;
+      long long kept = K;
+      if (use && n >= 2 && K >= CRTRAJ_EDGE_BROAD) {
+        /* the first level's broad phase: the middle configuration over the whole window. Every first-level
+           middle lies within bound / 2 (body motion) of it and its window within the whole one, so obstacle
+           q's clearance there is at least d_q - bound / 2; beyond every first-level h it decides no sample */
+        double hmax = 0.5 * bound[e] / (double) n * (1.0 + 1e-6) + 1e-6, c0;
+        int j;
+        for (j = 0; j < CRTRAJ_NX; ++j) x[j] = xa[j] + 0.5 * dx[j];
+        rc = crtraj_clear_idx(&kb, x, pool, K, S, T, origin, t0, t0 + span, P, sw, d, &c0);
+        ++*samples;
+        kept = 0;
+        for (q = 0; q < K; ++q) {
+          double lb = d[q] - inflate - 0.5 * bound[e] - 1e-6;
+          if (lb >= hmax) { if (lb < floor0) floor0 = lb; }
+          else pool[kept++] = q;  /* NaN keeps */
+        }
+      }
+      for (i = 0; i < n; ++i) {
+        ta[i] = (double) i / (double) n; tb[i] = (double) (i + 1) / (double) n;
+        flo[i] = floor0; off[i] = 0.0; cnt[i] = (double) kept;
+      }
     }
     while (n > 0 && !rc) {
-      long long m = 0, np = 0;
+      long long m = 0, np = 0, nd = n;
       if (crtraj_grow(buf, &cap, 2 * n)) { rc = 1; break; }  /* room for this level's children */
       /* the whole level first: the split rule sees this level's failures, as the numpy loop does */
       for (i = 0; i < n && !rc; ++i) {
@@ -304,7 +340,10 @@ static int crtraj_refine(long long E, const double* XA, const double* dX, const 
         ++*samples;
         mid[i] = -1.0;
         if (c >= h) { if (c - h < low) low = c - h; }
-        else if (c + enl * dt < 0.0 || ((c < 0.0 || h <= finest) && dt <= tres)) { if (ta[i] < f) f = ta[i]; }
+        else if (c + enl * dt < 0.0 || ((c < 0.0 || h <= finest) && dt <= tres)) {
+          if (ta[i] < f) f = ta[i];
+          if (verdict) { nd = i + 1; break; }  /* unsafe: the rest of the motion cannot change that */
+        }
         else mid[i] = tm;  /* neither certified nor unsafe: split */
         if (mid[i] < 0.0) continue;
         cflo[i] = flo[i]; coff[i] = off[i]; ccnt[i] = cnt[i];  /* without the broad phase: the same list */
@@ -320,7 +359,7 @@ static int crtraj_refine(long long E, const double* XA, const double* dX, const 
           ccnt[i] = (double) np - coff[i];
         }
       }
-      for (i = 0; i < n; ++i) {
+      for (i = 0; i < nd; ++i) {
         if (mid[i] < 0.0 || (prefix ? !(ta[i] < f) : !(f >= 1.0))) continue;
         ua[m] = ta[i]; ub[m] = mid[i]; uflo[m] = cflo[i]; uoff[m] = coff[i]; ucnt[m] = ccnt[i]; ++m;
         ua[m] = mid[i]; ub[m] = tb[i]; uflo[m] = cflo[i]; uoff[m] = coff[i]; ucnt[m] = ccnt[i]; ++m;
@@ -363,19 +402,35 @@ static int crtraj_refine(long long E, const double* XA, const double* dX, const 
 int crtraj_check_edges(long long E, const double* XA, const double* dX, const double* bound, const long long* n0,
                        long long K, const double* S, double inflate, double finest, int prefix, long long broad,
                        double* fail, double* lower, long long* samples) {
-  return crtraj_refine(E, XA, dX, bound, n0, NULL, NULL, K, S, NULL, 0.0, inflate, finest, 0.0, INFINITY, prefix,
+  return crtraj_refine(E, XA, dX, bound, n0, 0.0, NULL, NULL, K, S, NULL, 0.0, inflate, finest, 0.0, INFINITY, prefix,
                        broad, fail, lower, samples);
 }
 
-/* Moving, breathing obstacles (table T, M rows): every interval against the spheres of its time window. */
-int crtraj_check_edges_moving(long long E, const double* XA, const double* dX, const double* bound,
-                              const long long* n0, const double* TA, const double* dT, long long M,
-                              const double* T, double origin, double inflate, double finest, double enl,
-                              double tres, int prefix, long long broad, double* fail, double* lower,
-                              long long* samples) {
-  return crtraj_refine(E, XA, dX, bound, n0, TA, dT, M, NULL, T, origin, inflate, finest, enl, tres, prefix,
+/* crtraj_check_edges with each motion's first interval count max(1, ceil(bound / coarse)) computed here, as the
+   numpy caller would (one array less to build per call). Returns 3 without checking anything when a bound is not
+   finite (the caller's numpy loop then says which). */
+int crtraj_check_static(long long E, const double* XA, const double* dX, const double* bound, double coarse,
+                        long long K, const double* S, double inflate, double finest, int prefix, long long broad,
+                        double* fail, double* lower, long long* samples) {
+  long long e;
+  for (e = 0; e < E; ++e) if (!isfinite(bound[e])) return 3;
+  return crtraj_refine(E, XA, dX, bound, NULL, coarse, NULL, NULL, K, S, NULL, 0.0, inflate, finest, 0.0, INFINITY,
+                       prefix, broad, fail, lower, samples);
+}
+
+/* Moving, breathing obstacles (table T, M rows): every interval against the spheres of its time window, with
+   the first interval counts computed here (as crtraj_check_static). Returns 3
+   without checking anything when a bound, start time or duration is not finite. */
+int crtraj_check_moving_auto(long long E, const double* XA, const double* dX, const double* bound, double coarse,
+                             const double* TA, const double* dT, long long M, const double* T, double origin,
+                             double inflate, double finest, double enl, double tres, int prefix, long long broad,
+                             double* fail, double* lower, long long* samples) {
+  long long e;
+  for (e = 0; e < E; ++e) if (!isfinite(bound[e]) || !isfinite(TA[e]) || !isfinite(dT[e])) return 3;
+  return crtraj_refine(E, XA, dX, bound, NULL, coarse, TA, dT, M, NULL, T, origin, inflate, finest, enl, tres, prefix,
                        broad, fail, lower, samples);
 }
+
 
 int crtraj_tip_jac(long long N, const double* X, double* P, double* J) {
   crtraj_work k; long long i; int rc = 0;
@@ -464,4 +519,4 @@ int crtraj_project(long long N, double* X, const double* target, long long iters
   crtraj_free(&k);
   return rc;
 }
-"""
+""".replace("@EDGE_BROAD@", str(EDGE_BROAD))

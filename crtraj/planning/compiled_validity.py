@@ -15,13 +15,19 @@ rounding), and a small hand-written C driver loops over a whole batch in one cal
 - ``crtraj_project(N, X, target, ...)``: the safe IK's batched damped least-squares projection onto a tip
   target (`crtraj.planning.safe_ik.SafeIK.project`), the whole Newton loop per configuration in C, each
   configuration stopping as soon as its tip is on the target;
+- ``crtraj_path_clearance(...)``: `crtraj.planning.validity.MotionValidator.path_clearance` (a result's measured
+  clearance) in one call, with an exact broad phase per motion (the same minima);
+- ``crtraj_bspline(...)``: `crtraj.core.splines.BSplineCurve` at many parameters, operation for operation (the
+  smoothing's spline samples, `crtraj.planning.postprocess`);
 - ``crtraj_motion_bound(N, dX, B)``: the body-motion bound B(dx) (mm, `crtraj.planning.metric`; it agrees
   with numpy's to 1e-12, but the planners keep numpy's, whose rounding times every motion, so that both
   paths give identical plans);
 - ``crtraj_check_edges(...)``: the adaptive certification of straight motions of
   `crtraj.planning.validity.MotionValidator.check_edges` for a static scene, the whole refinement loop
   in C with numpy's arithmetic, operation for operation (so it returns the same numbers);
-- ``crtraj_check_edges_moving(...)``: the same among moving, breathing obstacles: every interval is
+  ``crtraj_check_static(...)`` the same with each motion's first interval count computed in C, as the
+  validator counts them (what the planners call: less Python per call);
+- ``crtraj_check_moving_auto(...)``: the same among moving, breathing obstacles: every interval is
   checked against the spheres that contain each obstacle over its time window (`Scene.swept_spheres`,
   computed in C from `Scene.motion_table` with numpy's arithmetic: libm's sin, the same operation order,
   no contraction into fused multiply-adds), so it too returns the numpy loop's numbers bit for bit.
@@ -50,12 +56,15 @@ import numpy as np
 from crtraj.core.build_cache import BuildCache, BuildKey
 from crtraj.model.codegen import codegen_builder
 from crtraj.model.kinematics import Model
-from crtraj.planning.compiled_driver import DRIVER
+from crtraj.planning.compiled_driver import DRIVER as EDGE_DRIVER
+from crtraj.planning.compiled_path_driver import PATH_DRIVER
 from crtraj.planning.metric import metric_matrix
 from crtraj.world import packing
 
+# The hand-written C around the generated functions: the edge checks' driver, then the path functions.
+DRIVER = EDGE_DRIVER + PATH_DRIVER
 # Version of the generated code and driver: raising it makes every cached kernel foreign (rebuilt).
-GENERATOR = 12
+GENERATOR = 18
 # Most check points a kernel is generated for: the generated FK grows with them (100 points: ~15 s of
 # gcc); denser checks (reports, tests) stay on the interpreted path.
 MAX_COMPILED_POINTS = 200
@@ -93,7 +102,8 @@ def kernel_functions(model: Model, check_points: int) -> list[ca.Function]:
     bb = model.backbone_function(check_points)
     return [
         ca.Function("crtraj_bb", [x], [bb(x)]),
-        ca.Function("crtraj_tipjac", [x], [model.tip(x), model.jac_tip(x)]),
+        # common subexpressions of the tip and its Jacobian computed once (-14 % operations; the same numbers)
+        ca.Function("crtraj_tipjac", [x], [model.tip(x), model.jac_tip(x)], {"cse": True}),
         ca.Function("crtraj_mb", [x], [motion_bound_expr(x, metric, robot.n_segments)]),
     ]
 
@@ -115,9 +125,18 @@ def per_item(a: Any, n: int) -> np.ndarray:
 
 
 def _ptr(a: np.ndarray) -> int:
-    """The address of a contiguous array's data (``a.ctypes.data`` builds a helper object per call: ~10 us, more
-    than some of the kernel calls it feeds)."""
-    return a.__array_interface__["data"][0]
+    """The address of a contiguous array's data. A ctypes view of a writable buffer gives it in ~0.5 us, a third
+    of ``a.__array_interface__`` (which builds a dict per call; the edge checks pass eight arrays per call, many
+    calls per query); read-only and empty arrays take that slower way."""
+    try:
+        return ctypes.addressof(ctypes.c_char.from_buffer(a))
+    except (TypeError, ValueError):
+        return a.__array_interface__["data"][0]
+
+
+def _mode(prefix: bool, first: bool, verdict: bool) -> int:
+    """The edge checks' mode bits: 1 prefix, 2 first (stop after the first motion certified whole), 4 verdict."""
+    return int(bool(prefix)) | (2 if first else 0) | (4 if verdict else 0)
 
 
 class ValidityKernel:
@@ -148,9 +167,21 @@ class ValidityKernel:
         self._check_edges = lib.crtraj_check_edges
         self._check_edges.argtypes = [_N, _P, _P, _P, _P, _N, _P, ctypes.c_double, ctypes.c_double, ctypes.c_int]
         self._check_edges.argtypes += [_N, _P, _P, _P]
-        self._check_moving = lib.crtraj_check_edges_moving
-        self._check_moving.argtypes = [_N, _P, _P, _P, _P, _P, _P, _N, _P] + [ctypes.c_double] * 5
-        self._check_moving.argtypes += [ctypes.c_int, _N, _P, _P, _P]
+        self._path_clearance = lib.crtraj_path_clearance
+        self._path_clearance.argtypes = [_N, _P, _P, _P, ctypes.c_double, _N, _P, _P] + [ctypes.c_double] * 3
+        self._path_clearance.argtypes += [_P, _P]
+        self._bspline = lib.crtraj_bspline
+        self._bspline.argtypes = [_N, _P, _N, _P, _N, _N, _P, _N, _P]
+        self._check_static = lib.crtraj_check_static
+        self._check_static.argtypes = [_N, _P, _P, _P, ctypes.c_double, _N, _P, ctypes.c_double, ctypes.c_double]
+        self._check_static.argtypes += [ctypes.c_int, _N, _P, _P, _P]
+        self._check_moving_auto = lib.crtraj_check_moving_auto
+        self._check_moving_auto.argtypes = [_N, _P, _P, _P, ctypes.c_double, _P, _P, _N, _P] + [ctypes.c_double] * 5
+        self._check_moving_auto.argtypes += [ctypes.c_int, _N, _P, _P, _P]
+        # the last static slots and obstacle table passed, with their addresses: the same scene's arrays come back
+        # call after call (a table is read-only, whose address costs a dict per call)
+        self._slots: tuple[Any, int] = (None, 0)
+        self._table: tuple[Any, int] = (None, 0)
         for f in (
             self._points,
             self._clearance,
@@ -159,7 +190,10 @@ class ValidityKernel:
             self._motion_bound,
             self._project,
             self._check_edges,
-            self._check_moving,
+            self._check_static,
+            self._check_moving_auto,
+            self._bspline,
+            self._path_clearance,
         ):
             f.restype = ctypes.c_int
 
@@ -240,65 +274,100 @@ class ValidityKernel:
         XA: np.ndarray,
         dX: np.ndarray,
         bound: np.ndarray,
-        n0: np.ndarray,
+        n0: np.ndarray | float,
         slots: np.ndarray,
         inflate: float,
         finest: float,
         prefix: bool,
         broad: int = 0,
         first: bool = False,
-    ) -> tuple[np.ndarray, np.ndarray, int]:
+        verdict: bool = False,
+    ) -> tuple[np.ndarray, np.ndarray, int] | None:
         """The static-scene adaptive edge check (`MotionValidator.check_edges`) in C.
 
-        XA, dX (E, nx): motion starts and changes; bound (E,) mm: their body-motion bounds; n0 (E,): first
-        intervals per motion; slots: the scene's packed obstacles; inflate (mm) subtracted from every
-        clearance; finest (mm): the smallest interval's h. broad: with at least this many obstacle slots
-        (0: never), a broad phase per motion keeps only the obstacles that can decide one of its samples
-        (module docstring): fail is the same either way; lower stays a lower bound of the clearance but may
-        be smaller. first: stop after the first motion certified whole; the motions after it are not checked
-        (fail -1, lower -inf). Returns (fail (E,), lower (E,) mm, samples).
+        XA, dX (E, nx): motion starts and changes; bound (E,) mm: their body-motion bounds; n0: (E,) first
+        intervals per motion, or a number, coarse (mm of body motion per first interval): then each motion's
+        max(1, ceil(bound / coarse)) first intervals are counted in C, as `MotionValidator.check_edges` counts
+        them (less Python per call; None, with nothing checked, when a bound is not finite); slots: the scene's
+        packed obstacles; inflate (mm) subtracted from every clearance; finest (mm): the smallest interval's h.
+        broad: with at least this many obstacle slots (0: never), a broad phase per motion keeps only the
+        obstacles that can decide one of its samples (module docstring): fail is the same either way; lower
+        stays a lower bound of the clearance but may be smaller. first: stop after the first motion certified
+        whole; the motions after it are not checked (fail -1, lower -inf). verdict (with prefix False): a
+        motion stops at its first unsafe interval, so fail < 1 marks it unsafe without being its first unsafe
+        fraction (and lower is not the whole motion's); safe motions are checked exactly as without it.
+        Returns (fail (E,), lower (E,) mm, samples).
         """
-        S = np.ascontiguousarray(slots, dtype=float)
-        if S.ndim != 1:
-            raise ValueError(f"check_edges: flat slots (K*{packing.WIDTH},) expected, got {S.shape}")
+        S, p_slots = self._slots
+        if slots is not S:  # the same scene's slots come back call after call: their address is kept
+            S = np.ascontiguousarray(slots, dtype=float)
+            if S.ndim != 1:
+                raise ValueError(f"check_edges: flat slots (K*{packing.WIDTH},) expected, got {S.shape}")
+            p_slots = _ptr(S)
+            if S is slots:
+                self._slots = (S, p_slots)
         K = S.shape[0] // packing.WIDTH
-        flags = (float(inflate), float(finest), int(bool(prefix)) | (2 if first else 0), int(broad))
-        return self._run_edges(self._check_edges, XA, dX, bound, n0, (K, _ptr(S), *flags))
+        flags = (float(inflate), float(finest), _mode(prefix, first, verdict), int(broad))
+        if np.ndim(n0) == 0:
+            return self._run_auto(self._check_static, XA, dX, bound, float(n0), (K, p_slots), flags)
+        return self._run_edges(self._check_edges, XA, dX, bound, n0, (K, p_slots, *flags))
 
     def check_edges_moving(
         self,
         XA: np.ndarray,
         dX: np.ndarray,
         bound: np.ndarray,
-        n0: np.ndarray,
+        coarse: float,
         TA: np.ndarray,
         dT: np.ndarray,
         table: np.ndarray,
         origin: float,
-        inflate: float,
-        finest: float,
-        enlargement: float,
-        time_resolution: float,
+        limits: tuple[float, float, float, float],
         prefix: bool,
         broad: int = 0,
         first: bool = False,
-    ) -> tuple[np.ndarray, np.ndarray, int]:
-        """The adaptive edge check among moving obstacles (`MotionValidator.check_edges`) in C.
-
-        As `check_edges`, and: TA, dT (E,) s: each motion's start time and duration (relative to the
-        scene's time origin `origin` s); table (M, 12): `Scene.motion_table`; enlargement (mm/s): how fast
-        a window's swept sphere can outgrow any one instant's; time_resolution (s): the longest window an
-        uncertified interval may be declared unsafe at without being split. broad, first: as in `check_edges`.
-        """
+        verdict: bool = False,
+    ) -> tuple[np.ndarray, np.ndarray, int] | None:
+        """`check_edges` (first intervals counted in C) among moving obstacles: TA, dT (E,) s: each motion's
+        start time and duration (relative to the scene's time origin `origin` s); table (M, 12):
+        `Scene.motion_table`; limits = (inflate mm, finest mm, enlargement mm/s: how fast a window's swept sphere
+        can outgrow any one instant's, time_resolution s: the longest window an uncertified interval may be
+        declared unsafe at without being split). None, with nothing checked, when a bound, start time or
+        duration is not finite."""
         E = len(XA)
         TA = per_item(TA, E)
         dT = per_item(dT, E)
-        T = np.ascontiguousarray(table, dtype=float)
-        if T.ndim != 2 or T.shape[1] != 12:
-            raise ValueError(f"check_edges_moving: an obstacle table (M, 12) expected, got {T.shape}")
-        scalars = (float(origin), float(inflate), float(finest), float(enlargement), float(time_resolution))
-        middle = (_ptr(TA), _ptr(dT), len(T), _ptr(T), *scalars, int(bool(prefix)) | (2 if first else 0), int(broad))
-        return self._run_edges(self._check_moving, XA, dX, bound, n0, middle)
+        T, p_table = self._table
+        if table is not T:
+            T = np.ascontiguousarray(table, dtype=float)
+            if T.ndim != 2 or T.shape[1] != 12:
+                raise ValueError(f"check_edges_moving: an obstacle table (M, 12) expected, got {T.shape}")
+            p_table = _ptr(T)
+            if T is table:
+                self._table = (T, p_table)
+        middle = (_ptr(TA), _ptr(dT), len(T), p_table, float(origin))
+        flags = (*(float(x) for x in limits), _mode(prefix, first, verdict), int(broad))
+        return self._run_auto(self._check_moving_auto, XA, dX, bound, coarse, middle, flags)
+
+    def _run_auto(
+        self, fn: Any, XA: Any, dX: Any, bound: Any, coarse: float, middle: tuple[Any, ...], flags: tuple[Any, ...]
+    ) -> tuple[np.ndarray, np.ndarray, int] | None:
+        """Call a C edge check that counts first intervals itself: (E, XA, dX, bound, coarse, *middle, *flags,
+        fail, lower, &samples); None when it found a value not finite (code 3)."""
+        XA = self._configs(XA)
+        dX = self._configs(dX)
+        E = len(XA)
+        bound = np.ascontiguousarray(bound, dtype=float)
+        if dX.shape != XA.shape or bound.shape != (E,):
+            raise ValueError("check_edges: XA, dX (E, nx) and bound (E,) expected")
+        out = np.empty(2 * E)  # fail, then lower
+        samples = np.zeros(1, dtype=np.int64)
+        p = _ptr(out)
+        rc = fn(E, _ptr(XA), _ptr(dX), _ptr(bound), float(coarse), *middle, *flags, p, p + 8 * E, _ptr(samples))
+        if rc == 3:
+            return None
+        self._check(rc, "edge check")
+        return out[:E], out[E:], int(samples[0])
 
     def _run_edges(
         self, fn: Any, XA: Any, dX: Any, bound: Any, n0: Any, middle: tuple[Any, ...]
@@ -317,6 +386,57 @@ class ValidityKernel:
         rc = fn(*head, *middle, _ptr(fail), _ptr(lower), ctypes.addressof(samples))
         self._check(rc, "edge check")
         return fail, lower, int(samples.value)
+
+    def path_clearance(
+        self,
+        X: Any,
+        T: Any,
+        bound: Any,
+        resolution: float,
+        obstacles: tuple[np.ndarray | None, np.ndarray | None, float],
+        inflate: float,
+        enlargement: float,
+    ) -> tuple[np.ndarray, int] | None:
+        """`MotionValidator.path_clearance`'s per-motion minima (K - 1,) mm of the path X (K, nx) timed T (K,) s,
+        sampled every `resolution` mm of body motion (bound: the motions' body-motion bounds (K - 1,) mm), with
+        the exact broad phase of the C function (the same minima). obstacles: (static slots, None, 0) or (None,
+        `Scene.motion_table`, the scene's time origin s); enlargement (mm/s): how fast an obstacle's clearance
+        can change. Returns (minima, samples), or None when a value is not finite (nothing computed)."""
+        X = self._configs(X)
+        T = np.ascontiguousarray(T, dtype=float)
+        bound = np.ascontiguousarray(bound, dtype=float)
+        K = len(X)
+        if T.shape != (K,) or bound.shape != (max(K - 1, 0),):
+            raise ValueError("path_clearance: X (K, nx), T (K,) and bound (K-1,) expected")
+        S, table, origin = obstacles
+        if table is not None:
+            A = np.ascontiguousarray(table, dtype=float)
+            M, pS, pT = len(A), 0, _ptr(A)
+        else:
+            A = np.ascontiguousarray(S, dtype=float)
+            M, pS, pT = len(A) // packing.WIDTH, _ptr(A), 0
+        out = np.empty(max(K - 1, 0))
+        samples = np.zeros(1, dtype=np.int64)
+        args = (K, _ptr(X), _ptr(T), _ptr(bound), float(resolution), M, pS, pT, float(origin), float(inflate))
+        rc = self._path_clearance(*args, float(enlargement), _ptr(out) if len(out) else 0, _ptr(samples))
+        if rc == 3:
+            return None
+        self._check(rc, "path clearance")
+        return out, int(samples[0])
+
+    def bspline(self, knots: np.ndarray, coeffs: np.ndarray, k: int, x: Any) -> np.ndarray:
+        """The B-spline curve of degree k with these knots (nc + k + 1,) and coefficients (nc, dim) at the
+        parameters x (N,): `crtraj.core.splines.BSplineCurve` (already checked there) evaluated in C, the same
+        numbers. Returns (N, dim)."""
+        tk = np.ascontiguousarray(knots, dtype=float)
+        C = np.ascontiguousarray(coeffs, dtype=float)
+        x = np.ascontiguousarray(x, dtype=float)
+        if C.ndim != 2 or x.ndim != 1 or tk.shape != (len(C) + k + 1,):
+            raise ValueError(f"bspline: knots (nc+k+1,), coefficients (nc, dim), x (N,) expected, got {C.shape}")
+        out = np.empty((len(x), C.shape[1]))
+        rc = self._bspline(len(x), _ptr(x), len(tk), _ptr(tk), len(C), C.shape[1], _ptr(C), int(k), _ptr(out))
+        self._check(rc, "B-spline")
+        return out
 
     def motion_bound(self, dX: Any) -> np.ndarray:
         """Body-motion bound (N,) mm of configuration changes dX (N, nx)."""

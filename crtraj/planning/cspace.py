@@ -210,7 +210,7 @@ class CSpacePlanner(PlannerBase):
             "always": (0,),
         }
         if v.static or o.ik.goal_window == 0:
-            parts = [ik.solve(goal, sc.pack(t0, ik.max_obstacles), seeds, tip_tolerance=tip_tol, **kw)]
+            parts = [ik.solve(goal, lambda: sc.pack(t0, ik.max_obstacles), seeds, tip_tolerance=tip_tol, **kw)]
         else:
             # half the starts keep clear of everything the obstacles sweep over the goal window, by
             # projection only: that NLP is often infeasible (the spheres sweep over the goal region)
@@ -220,7 +220,7 @@ class CSpacePlanner(PlannerBase):
             parts = [
                 ik.solve(
                     goal,
-                    sc.pack_over(t0, t_end, ik.max_obstacles),
+                    lambda: sc.pack_over(t0, t_end, ik.max_obstacles),
                     seeds[:half],
                     t_check=(t0, t_end),
                     tip_tolerance=tip_tol,
@@ -228,7 +228,7 @@ class CSpacePlanner(PlannerBase):
                 ),
                 ik.solve(
                     goal,
-                    sc.pack(t0, ik.max_obstacles),
+                    lambda: sc.pack(t0, ik.max_obstacles),
                     np.concatenate([seeds[:1], seeds[half:]]),
                     t_check=(t0, t0),
                     tip_tolerance=tip_tol,

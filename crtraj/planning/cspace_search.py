@@ -160,8 +160,7 @@ class CSpaceSearch:
         tree = SearchTree(v.robot.nx, v.robot.nx)
         tree.add(v.metric(self.x_start), self.x_start, self.t0, 0.0, -1)
         keys, costs = v.metric(vias[good]), v.motion_bound(vias[good] - self.x_start)
-        for key, x, t, cost in zip(keys, vias[good], t_via[good], costs, strict=True):
-            tree.add(key, x, float(t), float(cost), 0)
+        tree.add_many(keys, vias[good], t_via[good], costs, np.zeros(len(good), dtype=int))
         self.trees = [tree]
         if k < 0:
             return None

@@ -38,7 +38,7 @@ class IKRescue:
 
     def solve(self, run: Any, i: int, deadline: float | None) -> tuple[np.ndarray, float, float] | None:
         """A safe configuration with the tip on `run.target` (mm) near seed i of the IK run `run`
-        (`crtraj.planning.safe_ik._IKRun`): (x (nx,), tip error mm, clearance mm), or None. No push-out
+        (`crtraj.planning.ik_run.IKRun`): (x (nx,), tip error mm, clearance mm), or None. No push-out
         round starts after `deadline` (a `time.perf_counter()` value)."""
         if self.starts == 0:
             return None

@@ -67,16 +67,17 @@ class BodyMetric:
         dy = np.asarray(dx, dtype=float) @ self.metric_matrix.T
         m = self._bend
         # each block's Euclidean length as np.linalg.norm computes it (sqrt of the summed squares), for a
-        # fraction of its cost on the control loop's single changes
-        yx, yy = dy[..., 0:m:2], dy[..., 1:m:2]
-        blocks = np.sqrt(yx * yx + yy * yy)
-        return blocks.sum(axis=-1) + np.abs(dy[..., -1])
+        # fraction of its cost on the control loop's single changes; add.reduce is sum without its wrapper
+        sq = dy * dy
+        blocks = np.sqrt(sq[..., 0:m:2] + sq[..., 1:m:2])
+        return np.add.reduce(blocks, axis=-1) + np.abs(dy[..., -1])
 
-    def duration(self, dx: np.ndarray) -> np.ndarray:
+    def duration(self, dx: np.ndarray, bound: np.ndarray | None = None) -> np.ndarray:
         """Shortest duration (s) of straight motions by dx (..., nx) at constant speed: the body-motion
-        bound over max_speed, and, with rate limits, max_i |J_i dx| / vmax_i."""
+        bound over max_speed, and, with rate limits, max_i |J_i dx| / vmax_i. bound: `motion_bound(dx)` when
+        the caller has it (mm)."""
         dx = np.asarray(dx, dtype=float)
-        t = self.motion_bound(dx) / self.max_speed
+        t = (self.motion_bound(dx) if bound is None else bound) / self.max_speed
         if self.rate_limits is not None:
             t = np.maximum(t, np.max(np.abs(dx @ self.rate_limits.jacobian.T) / self.rate_limits.vmax, axis=-1))
         return t

@@ -60,6 +60,20 @@ class NearestNeighbors:
             self._n_tree = self._n
         return self._n - 1
 
+    def add_many(self, P: np.ndarray) -> None:
+        """Insert the rows of P (m, dim) in order, as `add` one at a time would."""
+        P = np.asarray(P, dtype=float).reshape(-1, self.dim)
+        if self._n + len(P) >= self._tree_min:  # the KD-tree's rebuild points: one at a time
+            for p in P:
+                self.add(p)
+            return
+        while self._n + len(P) > len(self._data):
+            grown = np.empty((2 * len(self._data), self.dim))
+            grown[: self._n] = self._data[: self._n]
+            self._data = grown
+        self._data[self._n : self._n + len(P)] = P
+        self._n += len(P)
+
     def nearest(self, q: np.ndarray) -> tuple[int, float]:
         """Index and distance of the point nearest to q."""
         if self._n == 0:

@@ -73,11 +73,13 @@ class PaperValidator(MotionValidator):
         *,
         prefix: bool = True,
         first: bool = False,
+        bound: np.ndarray | None = None,
+        verdict: bool = False,
     ) -> tuple[np.ndarray, np.ndarray]:
         """The paper's check of motions XA[i] -> XB[i] over [TA[i], TB[i]]: (f, lower) as
         `MotionValidator.check_edges` (f: fraction up to the last passing sample before the first
         failing one, 1 when all pass; lower: smallest clearance of the samples checked, mm)."""
-        del prefix, first  # every sample of a motion is checked at once
+        del prefix, first, bound, verdict  # every sample of a motion is checked at once
         XA = np.atleast_2d(np.asarray(XA, dtype=float))
         XB = np.atleast_2d(np.asarray(XB, dtype=float))
         E = XA.shape[0]

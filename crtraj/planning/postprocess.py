@@ -31,7 +31,7 @@ speed bound), and it is verified at its own times.
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
@@ -101,20 +101,26 @@ class PathPostprocessor:
             u = u[(u[:, 1] - u[:, 0]) > v.resolution]
             if not len(u):
                 continue
-            P1, P2 = _at(X, s, u[:, 0]), _at(X, s, u[:, 1])
-            saving = (u[:, 1] - u[:, 0]) - v.motion_bound(P2 - P1)
+            # both ends of every candidate in one pass (the same numbers as one pass per end)
+            P = _at(X, s, np.concatenate([u[:, 0], u[:, 1]]))
+            P1, P2 = P[: len(u)], P[len(u) :]
+            bound = v.motion_bound(P2 - P1)
+            saving = (u[:, 1] - u[:, 0]) - bound
             good = saving > 1e-6
-            u, P1, P2, saving = u[good], P1[good], P2[good], saving[good]
-            if not len(u):
-                continue
-            checked += len(u)
+            checked += int(np.count_nonzero(good))
             if v.static:  # only the new straight motion needs checking: no candidate path is built
                 # the valid one that saves most: the first valid in the order of saving (ties: lowest
                 # index, as argmax), so the check can stop there
-                order = np.argsort(-saving, kind="stable")
-                k = v.first_valid(P1[order], P2[order])
+                order = np.flatnonzero(good)
+                if not len(order):
+                    continue
+                order = order[np.argsort(-saving[order], kind="stable")]
+                k = v.first_valid(P1[order], P2[order], bound=bound[order])
                 best = int(order[k]) if k >= 0 else -1
             else:
+                u, P1, P2, saving = u[good], P1[good], P2[good], saving[good]
+                if not len(u):
+                    continue
                 ok = self._batch_ok([_splice(X, s, a, b, p1, p2) for a, b, p1, p2 in zip(*u.T, P1, P2, strict=True)])
                 best = int(np.flatnonzero(ok)[np.argmax(saving[ok])]) if ok.any() else -1
             if best >= 0:
@@ -175,15 +181,22 @@ class PathPostprocessor:
             k = B // 3
             if k:  # a third of the candidates join two waypoints
                 u[:k] = T[np.sort(rng.choice(len(X), size=(k, 2)), axis=1)]
-            P1, P2 = _at(X, T, u[:, 0]), _at(X, T, u[:, 1])
-            saving = np.interp(u[:, 1], T, s) - np.interp(u[:, 0], T, s) - v.motion_bound(P2 - P1)
+            # both ends of every candidate in one pass (the same numbers as one pass per end)
+            P = _at(X, T, np.concatenate([u[:, 0], u[:, 1]]))
+            P1, P2 = P[:B], P[B:]
+            dP = P2 - P1
+            bound = v.motion_bound(dP)
+            saving = np.interp(u[:, 1], T, s) - np.interp(u[:, 0], T, s) - bound
             # the new motion must not be faster than max_speed and the actuators' speed limits allow
-            good = (saving > 1e-6) & (v.duration(P2 - P1) <= (u[:, 1] - u[:, 0]) * (1.0 - 1e-9))
-            u, P1, P2, saving = u[good], P1[good], P2[good], saving[good]
+            good = (saving > 1e-6) & (v.space.duration(dP, bound) <= (u[:, 1] - u[:, 0]) * (1.0 - 1e-9))
+            u, P1, P2, saving, bound = u[good], P1[good], P2[good], saving[good], bound[good]
             if not len(u):
                 continue
             # most saving first: the round keeps the best valid one whose cut pieces verify (of at most 3)
-            found = self._timed_first(P1, P2, u, saving) if v.early_exit else self._timed_chunks(P1, P2, u, saving)
+            if v.early_exit:
+                found = self._timed_first(P1, P2, u, saving, bound)
+            else:
+                found = self._timed_chunks(P1, P2, u, saving)
             # the pieces of the old motions that the splice cuts are checked as well, so every motion of
             # the result is certified as it stands (a piece of a certified motion need not be)
             for best in found:
@@ -213,15 +226,18 @@ class PathPostprocessor:
                 break
         yield from (int(i) for i in np.flatnonzero(ok)[np.argsort(-saving[ok])][:3])
 
-    def _timed_first(self, P1: np.ndarray, P2: np.ndarray, u: np.ndarray, saving: np.ndarray) -> Iterator[int]:
+    def _timed_first(
+        self, P1: np.ndarray, P2: np.ndarray, u: np.ndarray, saving: np.ndarray, bound: np.ndarray
+    ) -> Iterator[int]:
         """As `_timed_chunks`, with the validator's early exit: the first valid candidate in the order of
         saving (ties: lowest index), then, when the caller asks again, the next valid one after it (at most 3);
-        the candidates after the one returned are not checked until then."""
+        the candidates after the one returned are not checked until then. bound: the candidates' body-motion
+        bounds (mm)."""
         order = np.argsort(-saving, kind="stable")
         pos = 0
         for _ in range(3):
             rest = order[pos:]
-            k = self.v.first_valid(P1[rest], P2[rest], u[rest, 0], u[rest, 1])
+            k = self.v.first_valid(P1[rest], P2[rest], u[rest, 0], u[rest, 1], bound[rest])
             self.counts["shortcut_checks"] = self.counts.get("shortcut_checks", 0) + (k + 1 if k >= 0 else len(rest))
             if k < 0:
                 return
@@ -260,7 +276,7 @@ class PathPostprocessor:
         P = np.concatenate([XT[:1], legs.reshape(-1, XT.shape[1])])
         k, n = 3, len(P)
         knots = np.concatenate([np.zeros(k), np.linspace(0.0, 1.0, n - k + 1), np.ones(k)])
-        spl = BSplineCurve(knots, P, k)
+        spl = self._curve(knots, P, k)
         uu = np.linspace(0.0, 1.0, 40 * n)
         F = spl(uu)
         dF = np.diff(F, axis=0)
@@ -272,6 +288,15 @@ class PathPostprocessor:
         return Y[:, :-1], TY
 
     # --------------------------------------------------------------- smoothing
+    def _curve(self, knots: np.ndarray, P: np.ndarray, k: int) -> Callable[[np.ndarray], np.ndarray]:
+        """The B-spline curve (`BSplineCurve`, which checks its input) as a function of its parameter: evaluated
+        in the validator's compiled kernel when it has one (the same numbers, without numpy's per-step arrays)."""
+        spl = BSplineCurve(knots, P, k)
+        kernel = self.v.state.kernel
+        if kernel is None:
+            return spl
+        return lambda x: kernel.bspline(spl.knots, spl.coeffs, spl.k, x)
+
     def smooth(self, X: np.ndarray) -> tuple[np.ndarray, bool]:
         """B-spline corner rounding, verified; returns (path, smoothed?)."""
         if not self.o.smooth or len(X) < 3:
@@ -295,7 +320,7 @@ class PathPostprocessor:
         P = np.concatenate([X[:1], legs.reshape(-1, X.shape[1])])
         k, n = 3, len(P)
         knots = np.concatenate([np.zeros(k), np.linspace(0.0, 1.0, n - k + 1), np.ones(k)])
-        spl = BSplineCurve(knots, P, k)
+        spl = self._curve(knots, P, k)
         uu = np.linspace(0.0, 1.0, 40 * n)
         F = spl(uu)
         s = np.concatenate([[0.0], np.cumsum(v.motion_bound(np.diff(F, axis=0)))])
@@ -409,13 +434,18 @@ def _at(X: np.ndarray, s: np.ndarray, u: np.ndarray) -> np.ndarray:
     """Points at arc positions u along the polyline X with cumulative arc s (non-decreasing): every coordinate
     as `np.interp` computes it (slope (X[j+1] - X[j]) / (s[j+1] - s[j]) times (u - s[j]) plus X[j], X[j] at
     u = s[j], the end points beyond the ends), in one pass for all coordinates."""
-    j = np.clip(np.searchsorted(s, u, side="right") - 1, 0, max(len(s) - 2, 0))
-    if len(s) < 2:
+    n = len(s)
+    if n < 2:
         return np.repeat(X[:1], len(u), axis=0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        slope = (X[j + 1] - X[j]) / (s[j + 1] - s[j])[:, None]
-        out = slope * (u - s[j])[:, None] + X[j]
-    out = np.where((u == s[j])[:, None], X[j], out)
+    j = np.minimum(np.maximum(s.searchsorted(u, side="right") - 1, 0), n - 2)
+    Xj, sj = X[j], s[j]
+    den = s[j + 1] - sj
+    # a zero-length piece is only ever picked for u before the start or at / beyond the end, whose rows are
+    # replaced below: dividing by 1 there spares the division warnings (and numpy's error-state switch)
+    den[den == 0.0] = 1.0
+    out = (X[j + 1] - Xj) / den[:, None] * (u - sj)[:, None] + Xj
+    at = u == sj
+    out[at] = Xj[at]
     out[u >= s[-1]] = X[-1]
     out[u < s[0]] = X[0]
     return out

@@ -39,6 +39,7 @@ goal configurations for the 5-DOF robot).
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -49,6 +50,7 @@ from crtraj.core.fields import check_array
 from crtraj.model.kinematics import Model
 from crtraj.planning.compiled_validity import ProjectionLimits, ProjectionSteps
 from crtraj.planning.ik_rescue import IKRescue
+from crtraj.planning.ik_run import IKRun, format_statuses
 from crtraj.planning.sampler import LIMIT_TOL
 from crtraj.planning.validity import MotionValidator
 from crtraj.world import packing
@@ -325,7 +327,7 @@ class SafeIK:
     def solve(
         self,
         target: np.ndarray,
-        scene_pack: np.ndarray,
+        scene_pack: np.ndarray | Callable[[], np.ndarray],
         seeds: np.ndarray,
         *,
         t_check: tuple[float, float] = (0.0, 0.0),
@@ -349,7 +351,8 @@ class SafeIK:
         still fewer exist, solves the safety-constrained NLP with IPOPT from
         the remaining configurations (most promising first: highest clearance,
         then smallest tip error). scene_pack: `Scene.pack` / `Scene.pack_over`
-        output for the NLP's obstacles; t_check: the time window (s) the
+        output for the NLP's obstacles, or a function that returns it (called only when an NLP is solved, which
+        is rare); t_check: the time window (s) the
         validator re-verifies every solution over. dedup: solutions closer
         than this body motion (mm) to a kept one are dropped. deadline: a
         `time.perf_counter()` value after which no further NLP is started.
@@ -368,7 +371,7 @@ class SafeIK:
         seeds = np.atleast_2d(np.asarray(seeds, dtype=float))
         want = len(seeds) if want is None else int(want)
         # the NLP keeps `margin`; allow for its tolerance
-        run = _IKRun(np.asarray(target, dtype=float), seeds, v, t_check, tol, self.margin - 0.25, want, dedup)
+        run = IKRun(np.asarray(target, dtype=float), seeds, v, t_check, tol, self.margin - 0.25, want, dedup)
         self._project_stage(run, newton_iterations)
         run.statuses["projection"] = int(run.good.sum())
         forced = [i for i in always if 0 <= i < len(seeds) and not run.good[i]]
@@ -379,7 +382,7 @@ class SafeIK:
         safe = np.array(run.kept) if run.kept else np.zeros((0, self.robot.nx))
         return IKBatch(tuple(run.sols), safe, time.perf_counter() - t_start, run.statuses)
 
-    def _project_stage(self, run: _IKRun, newton_iterations: int) -> None:
+    def _project_stage(self, run: IKRun, newton_iterations: int) -> None:
         """Stage 1: project in blocks of Newton steps, stopping as soon as enough safe configurations exist."""
         v, t_check, done_it = run.v, run.t_check, 0
         while True:
@@ -393,12 +396,13 @@ class SafeIK:
                 ok = v.within_limits(run.X[idx]) & (run.clear[idx] >= run.required)
                 run.good[idx] = ok
                 run.checked[idx] = True
-                for i in idx[ok]:
-                    run.add(IKSolution(run.X[i], "projection", True, float(run.err[i]), float(run.clear[i]), True, 0.0))
+                X, e, c = run.X, run.err, run.clear
+                sols = [IKSolution(X[i], "projection", True, float(e[i]), float(c[i]), True, 0.0) for i in idx[ok]]
+                run.add_all(sols)
             if len(run.kept) >= run.want or done_it >= newton_iterations:
                 break
 
-    def _push_stage(self, run: _IKRun, forced: list[int], rounds: int, deadline: float | None) -> None:
+    def _push_stage(self, run: IKRun, forced: list[int], rounds: int, deadline: float | None) -> None:
         """Stage 2: push out the on-target projections that came too close: the forced ones first, then
         (while configurations are missing) the others, most promising (highest clearance) first."""
         X, clear, err, good = run.X, run.clear, run.err, run.good
@@ -431,10 +435,19 @@ class SafeIK:
         run.statuses["push-out"] = int(ok.sum())
 
     def _nlp_stage(
-        self, run: _IKRun, forced: list[int], scene_pack: np.ndarray, max_nlp: int | None, deadline: float | None
+        self,
+        run: IKRun,
+        forced: list[int],
+        scene_pack: np.ndarray | Callable[[], np.ndarray],
+        max_nlp: int | None,
+        deadline: float | None,
     ) -> None:
         """Stage 3: the safety-constrained NLP from the remaining configurations, the forced ones first,
         then the converged ones by clearance, then by tip error; until enough exist or time runs out."""
+        if (not forced and len(run.kept) >= run.want) or max_nlp == 0:
+            return  # no solve would start: the loop below would stop at once
+        if callable(scene_pack):
+            scene_pack = scene_pack()
         X, clear, err = run.X, run.clear, run.err
         converged = err <= run.tol
         rest = np.flatnonzero(~run.good)
@@ -460,7 +473,7 @@ class SafeIK:
             if sol.safe and sol.clearance >= run.required:
                 run.keep(sol.x)
 
-    def _nlp_solve(self, run: _IKRun, x0: np.ndarray, p: np.ndarray) -> IKSolution:
+    def _nlp_solve(self, run: IKRun, x0: np.ndarray, p: np.ndarray) -> IKSolution:
         """One NLP solve from x0 with parameters p, checked (tip error, limits, clearance over t_check)."""
         v, t_check = run.v, run.t_check
         t1 = time.perf_counter()
@@ -477,50 +490,6 @@ class SafeIK:
         ins = bool(v.within_limits(xs[None])[0]) if ok else False
         c = float(v.clearance(xs[None], t_check[0], t_check[1])[0]) if ok else -np.inf
         return IKSolution(xs, status, ok, tip_err, c, ins, time.perf_counter() - t1)
-
-
-class _IKRun:
-    """The running state of one `SafeIK.solve` call: the seeds, their projections X (S, nx), tip
-    errors (mm) and clearances (mm), which were checked and found safe, every solution tried, and the
-    distinct safe configurations kept (closer than `dedup` mm of body motion to a kept one: dropped)."""
-
-    def __init__(
-        self,
-        target: np.ndarray,
-        seeds: np.ndarray,
-        v: MotionValidator,
-        t_check: tuple[float, float],
-        tol: float,
-        required: float,
-        want: int,
-        dedup: float,
-    ) -> None:
-        S = len(seeds)
-        self.target, self.seeds, self.v, self.t_check = target, seeds, v, t_check
-        self.tol, self.required, self.want, self.dedup = tol, required, want, dedup
-        self.X = seeds.copy()
-        self.err = np.full(S, np.inf)
-        self.clear = np.full(S, -np.inf)
-        self.checked = np.zeros(S, dtype=bool)
-        self.good = np.zeros(S, dtype=bool)
-        self.sols: list[IKSolution] = []
-        self.kept: list[np.ndarray] = []
-        self.statuses: dict[str, int] = {}
-
-    def keep(self, x: np.ndarray) -> None:
-        if self.kept and np.min(self.v.motion_bound(np.array(self.kept) - x)) < self.dedup:
-            return
-        self.kept.append(x)
-
-    def add(self, sol: IKSolution) -> None:
-        """A safe solution of stage 1 or 2: recorded and kept."""
-        self.sols.append(sol)
-        self.keep(sol.x)
-
-
-def format_statuses(statuses: dict[str, int]) -> str:
-    """'Solve_Succeeded x3, Infeasible_Problem_Detected x2' (for messages)."""
-    return ", ".join(f"{k} x{n}" for k, n in statuses.items()) or "none tried"
 
 
 def resolve_start(
@@ -556,7 +525,7 @@ def resolve_start(
     st = check_array(start_tip, "start_tip", (3,))
     batch = ik.solve(
         st,
-        validator.scene.pack(t0, ik.max_obstacles),
+        lambda: validator.scene.pack(t0, ik.max_obstacles),
         validator.sample(rng, seeds),
         t_check=(t0, t0),
         want=1,

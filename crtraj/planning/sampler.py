@@ -32,11 +32,15 @@ class ConfigSampler:
         arithmetic, operation for operation, on matrices kept from construction (it rebuilds them per call)."""
         x = np.atleast_2d(np.asarray(X, dtype=float))
         n = self.robot.n_segments
-        ub = (x[..., : 2 * n] @ self._coupling.T).reshape(*x.shape[:-1], n, 2)
-        v_theta = np.max(np.linalg.norm(ub, axis=-1) - self._tmax, axis=-1)
-        v_cable = np.max(np.abs((x @ self._cables.T)[:, : 3 * n]) - self._strokes, axis=-1)
+        sq = x[..., : 2 * n] @ self._coupling.T
+        sq *= sq
+        # each disc's radius as np.linalg.norm computes it (sqrt of the summed squares), and maximum.reduce for
+        # np.max: the same numbers without their wrappers (a query tests limits many times, often of one x)
+        v_theta = np.maximum.reduce(np.sqrt(sq[:, 0 : 2 * n : 2] + sq[:, 1 : 2 * n : 2]) - self._tmax, axis=-1)
+        v_cable = np.maximum.reduce(np.abs((x @ self._cables.T)[:, : 3 * n]) - self._strokes, axis=-1)
         lo, hi = self.robot.z_range
-        v_z = np.maximum(lo - x[:, -1], x[:, -1] - hi)
+        z = x[:, -1]
+        v_z = np.maximum(lo - z, z - hi)
         return np.maximum(np.maximum(v_theta, v_cable), v_z) <= LIMIT_TOL
 
     def sample(self, rng: np.random.Generator, n: int) -> np.ndarray:
@@ -54,10 +58,17 @@ class ConfigSampler:
             m = max(n - len(out), 8)
             rad = tmax * np.sqrt(rng.random((m, k)))
             ang = 2.0 * np.pi * rng.random((m, k))
-            ub = np.stack([rad * np.cos(ang), rad * np.sin(ang)], axis=-1).reshape(m, 2 * k)
+            ub = np.empty((m, k, 2))
+            ub[..., 0] = rad * np.cos(ang)
+            ub[..., 1] = rad * np.sin(ang)
             z = rng.uniform(robot.z_range[0], robot.z_range[1], size=(m, 1))
-            X = np.concatenate([ub @ C_inv.T, z], axis=1)
-            out = np.concatenate([out, X[self.within_limits(X)]])
+            X = np.empty((m, robot.nx))
+            X[:, : 2 * k] = ub.reshape(m, 2 * k) @ C_inv.T
+            X[:, 2 * k :] = z
+            ok = self.within_limits(X)
+            if not len(out) and ok.all():  # the usual case: one draw, all within limits
+                return X[:n]
+            out = np.concatenate([out, X[ok]])
         return out[:n]
 
     def project_limits(self, X: np.ndarray) -> np.ndarray:

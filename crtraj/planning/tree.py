@@ -46,6 +46,16 @@ class SearchTree:
         self.nn.add(key)
         return i
 
+    def add_many(self, keys: np.ndarray, x: np.ndarray, t: np.ndarray, cost: np.ndarray, parent: np.ndarray) -> None:
+        """Append the nodes (m of each argument's rows) in order, as `add` one at a time would."""
+        m = len(x)
+        while self._n + m > len(self._t):
+            self._grow()
+        sl = slice(self._n, self._n + m)
+        self._x[sl], self._t[sl], self._cost[sl], self._parent[sl] = x, t, cost, parent
+        self._n += m
+        self.nn.add_many(keys)
+
     @property
     def keys(self) -> np.ndarray:
         return self.nn.points

@@ -267,6 +267,8 @@ class MotionValidator:
         *,
         prefix: bool = True,
         first: bool = False,
+        bound: np.ndarray | None = None,
+        verdict: bool = False,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Adaptive check of many straight motions XA[i] -> XB[i] (E, nx) during [TA[i], TB[i]] (s).
 
@@ -289,49 +291,51 @@ class MotionValidator:
         bound of the clearance over the certified part (mm). With
         prefix=False a motion stops being refined at its first unsafe
         interval and f only tells safe (1) from unsafe (< 1). first: the compiled check may stop after
-        the first motion certified whole; the motions after it are then not checked (f -1).
+        the first motion certified whole; the motions after it are then not checked (f -1). bound: the
+        motions' body-motion bounds (E,) mm when the caller has them (`motion_bound(XB - XA)`, the same
+        numbers), so they are not computed twice. verdict (with prefix=False): the compiled check stops a
+        motion at its first unsafe interval, within a level too, so f < 1 marks an unsafe motion without
+        being the fraction the full check gives, and lower is not the whole motion's (a safe motion: the same).
         """
         XA = np.atleast_2d(np.asarray(XA, dtype=float))
         XB = np.atleast_2d(np.asarray(XB, dtype=float))
         E = XA.shape[0]
-        TA = per_item(TA, E)
-        TB = per_item(TB, E)
         dX = XB - XA
-        dT = TB - TA
-        bound = self.motion_bound(dX)
-        n0 = np.maximum(1, np.ceil(bound / self.coarse)).astype(int)
+        # numpy's product rounds one motion (a matrix-vector product) differently from a batch of them, whose
+        # rows it computes alike whatever the batch: a caller's bounds of a batch are used from two motions on
+        bound = self.motion_bound(dX) if bound is None or E < 2 else np.asarray(bound, dtype=float)
         finest = 0.5 * self.resolution * (1.0 + 1e-9)
         # static scenes: every window is irrelevant, so no split in time
         tres = np.inf if self.static else self.time_resolution * (1.0 + 1e-9)
-        batch = _EdgeBatch(XA, dX, bound, n0, TA, dT, finest, tres, prefix, first)
         kernel = self.state.kernel
-        if kernel is not None and self.compiled_loop and self.scene.n_obstacles and E and np.isfinite(bound).all():
-            # the same loop in C, with the same arithmetic, operation for operation
-            out = self._check_edges_compiled(batch)
+        fast = kernel is not None and self.compiled_loop and self.scene.n_obstacles and E
+        if fast and self.static:
+            # a static scene's compiled check needs no times: the loop in C, with the numpy loop's arithmetic,
+            # entered without the batch the numpy loop needs (a query makes many small calls)
+            out = kernel.check_edges(
+                XA, dX, bound, self.coarse, self.state.static_slots, self.inflate, finest, prefix, self._broad(), first,
+                verdict,
+            )  # fmt: skip
             if out is not None:
-                return out
-        return self._refine_edges(batch)
-
-    def _check_edges_compiled(self, b: _EdgeBatch) -> tuple[np.ndarray, np.ndarray] | None:
-        """`check_edges` in the compiled kernel; None when a time is not finite (the numpy loop says which)."""
-        XA, dX, bound, n0, TA, dT, finest, tres, prefix = b.parts()
-        kernel = self.state.kernel
-        assert kernel is not None
-        if self.static:
-            fail, lower, samples = kernel.check_edges(
-                XA, dX, bound, n0, self.state.static_slots, self.inflate, finest, prefix, self._broad(), b.first
-            )
-            self.state.n_samples += samples
-            return fail, lower
-        if not (np.isfinite(TA).all() and np.isfinite(dT).all()):
-            return None
-        scene = self.scene
-        fail, lower, samples = kernel.check_edges_moving(
-            XA, dX, bound, n0, TA, dT, scene.motion_table(), scene.time_origin, self.inflate, finest,
-            self.state.enlargement_rate, tres, prefix, self._broad(), b.first,
-        )  # fmt: skip
-        self.state.n_samples += samples
-        return fail, lower
+                self.state.n_samples += out[2]
+                return out[0], out[1]
+        TA = per_item(TA, E)
+        TB = per_item(TB, E)
+        dT = TB - TA
+        if fast and not self.static:
+            scene = self.scene
+            limits = (self.inflate, finest, self.state.enlargement_rate, tres)
+            out = kernel.check_edges_moving(
+                XA, dX, bound, self.coarse, TA, dT, scene.motion_table(), scene.time_origin, limits, prefix,
+                self._broad(), first, verdict,
+            )  # fmt: skip
+            if out is not None:
+                self.state.n_samples += out[2]
+                return out[0], out[1]
+        # the numpy loop: no compiled kernel (or no obstacle, or no motion), or a value that is not finite (the
+        # compiled check refused it without checking anything; the numpy loop says which)
+        n0 = np.maximum(1, np.ceil(bound / self.coarse)).astype(int)
+        return self._refine_edges(_EdgeBatch(XA, dX, bound, n0, TA, dT, finest, tres, prefix, first))
 
     def _broad(self) -> int:
         """The compiled edge check's broad-phase threshold (obstacle count; 0: off)."""
@@ -372,7 +376,7 @@ class MotionValidator:
         self, XA: np.ndarray, XB: np.ndarray, TA: np.ndarray | float = 0.0, TB: np.ndarray | float = 0.0
     ) -> np.ndarray:
         """True per motion XA[i] -> XB[i] that is certified safe over [TA[i], TB[i]] (bool (E,))."""
-        f, _ = self.check_edges(XA, XB, TA, TB, prefix=False)
+        f, _ = self.check_edges(XA, XB, TA, TB, prefix=False, verdict=True)
         return f >= 1.0
 
     def tip_position(self, X: np.ndarray) -> np.ndarray:
@@ -385,14 +389,20 @@ class MotionValidator:
         return self.model.tip_position(X)
 
     def first_valid(
-        self, XA: np.ndarray, XB: np.ndarray, TA: np.ndarray | float = 0.0, TB: np.ndarray | float = 0.0
+        self,
+        XA: np.ndarray,
+        XB: np.ndarray,
+        TA: np.ndarray | float = 0.0,
+        TB: np.ndarray | float = 0.0,
+        bound: np.ndarray | None = None,
     ) -> int:
         """Index of the first motion XA[i] -> XB[i] over [TA[i], TB[i]], in the order given, that `edges_valid`
         certifies; -1 when none is. Order the motions best first and this is the best valid one; with
-        `early_exit` the compiled check stops there, so the motions after it cost nothing."""
+        `early_exit` the compiled check stops there, so the motions after it cost nothing. bound: as in
+        `check_edges`."""
         if not len(XA):
             return -1
-        f, _ = self.check_edges(XA, XB, TA, TB, prefix=False, first=self.early_exit)
+        f, _ = self.check_edges(XA, XB, TA, TB, prefix=False, first=self.early_exit, bound=bound, verdict=True)
         ok = np.flatnonzero(f >= 1.0)
         return int(ok[0]) if len(ok) else -1
 
@@ -417,6 +427,20 @@ class MotionValidator:
         if len(X) == 1:
             c = self.clearance(X, T[0])
             return float(c[0]), c
+        kernel = self.state.kernel
+        if kernel is not None and self.scene.n_obstacles and T.shape == (len(X),):
+            # the same samples and minima in one compiled call, which skips per motion the obstacles that
+            # cannot set its minimum
+            sc = self.scene
+            moving = (None, sc.motion_table(), sc.time_origin)
+            obstacles = (self.state.static_slots, None, 0.0) if self.static else moving
+            bound = self.motion_bound(np.diff(X, axis=0))
+            out = kernel.path_clearance(
+                X, T, bound, self.resolution, obstacles, self.inflate, self.state.enlargement_rate
+            )
+            if out is not None:
+                self.state.n_samples += out[1]
+                return float(out[0].min()), out[0]
         S, e, tau, _, _, _ = self._samples(X[:-1], X[1:], T[:-1], T[1:])
         ts = T[:-1][e] + tau * (T[1:] - T[:-1])[e]
         c = self.clearance(S, ts, ts)
