@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from importlib import resources
 from typing import Any
 
@@ -62,6 +62,30 @@ def run_fields(tl: Timeline, label: str, kind: str, verdict: str, names: Sequenc
         "closest_t": nums(tl.t[tl.closest_index]) if len(tl.t) else 0.0,
         "events": [{"kind": e.kind, "t": nums(e.t), "text": e.text} for e in tl.events],
     }
+
+
+# the per-step lists of a run's page data (`run_fields`); "clearance" holds one such list per obstacle
+ROW_FIELDS = ("t", "status", "near", "tip_error", "iteration", "velocity", "acceleration")
+
+
+def append_rows(run: dict[str, Any], rows: Mapping[str, Any]) -> None:
+    """Add a live run's new steps to its page data `run` (`run_fields`' layout), in place, as the page's script
+    does. rows: the ROW_FIELDS lists and "clearance" (one list per obstacle) of the new steps, "k" the index of
+    the first, the "events" among them and the run's "closest_t" so far. Steps the run already has are skipped;
+    a gap (k beyond the run's length) is a ValueError."""
+    n, k = len(run["t"]), int(rows["k"])
+    if k > n:
+        raise ValueError(f"rows: step {k} does not follow step {n - 1}")
+    skip = n - k
+    if skip >= len(rows["t"]):
+        return
+    last = run["t"][-1] if n else -math.inf
+    for f in ROW_FIELDS:
+        run[f].extend(rows[f][skip:])
+    for have, new in zip(run["clearance"], rows["clearance"], strict=True):
+        have.extend(new[skip:])
+    run["events"].extend(e for e in rows["events"] if e["t"] > last)
+    run["closest_t"] = rows["closest_t"]
 
 
 def page_data(runs: Sequence[tuple[Result, Timeline]], options: ViewOptions) -> dict[str, Any]:
