@@ -10,7 +10,8 @@ drawing process, the meshcat server and the browser (all of Chromium's processes
 new = with it. Wall-clock numbers on a shared machine: the load before and after is printed with them, and the
 other processes' CPU use during the runs. The deterministic bound (the view adds a constant few function calls
 per iteration) is tests/test_viz_live_page.py's.
-Run: python benchmarks/viz_live.py [--problem P.toml] [--seed 2] [--repeat 3] [--no-browser] [--nice N]
+Run: python benchmarks/viz_live.py [--problem P.toml] [--seed 2] [--repeat 3] [--no-browser] [--nice N [N ...]]
+(--nice 0 19: the view at both niceness levels, alternating with the runs without it, as rows of one table).
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ import numpy as np
 from crtraj.control.loop import ClosedLoop
 from crtraj.io.problem import Problem
 from crtraj.viz.chromium import Chromium, find_chromium
-from crtraj.viz.live_view import LiveView
+from crtraj.viz.live_view import VIEW_NICE, LiveView
 
 ROOT = Path(__file__).resolve().parent.parent
 _TICK = os.sysconf("SC_CLK_TCK")
@@ -75,8 +76,7 @@ class Stamped:
 def one_run(problem: Problem, seed: int, view: bool, browser: Chromium | None, nice: int | None) -> dict:
     """One loop run; with view: fed to a served live page (open in `browser` if given)."""
     loop = ClosedLoop.from_problem(problem, seed=seed)
-    kw = {} if nice is None else {"nice": nice}
-    live = LiveView.for_loop(loop, **kw) if view else None
+    live = LiveView.for_loop(loop, nice=nice) if view else None
     tab = browser.open(live.url, 1280, 800) if live is not None and browser is not None else None
     bpid = browser.proc.pid if browser is not None and tab is not None else None
     pids = {"child": live.drawer.proc.pid, "server": live.vis.server_pid} if live is not None else {}
@@ -90,7 +90,7 @@ def one_run(problem: Problem, seed: int, view: bool, browser: Chromium | None, n
         others = machine_cpu_s() - all0 - (time.process_time() - mine0)
         used = {k: cpu_s(p) - before[k] for k, p in pids.items()}
         used["browser"] = cpu_s(bpid, tree=True) - before["browser"]
-        counts = {**live.stop_feed(), "cpu": live.feed.draw_cpu} if live is not None else {}
+        counts = {**live.stop_feed(), "cpu": live.feed.draw_cpu, "rate": live.feed.draw_rate()} if live else {}
     finally:
         if tab is not None:
             tab.close()
@@ -112,8 +112,8 @@ def frames_text(r: dict) -> str:
     n = max(1, r["drawn"])
     u = r["used"]
     return (
-        f"\n{'':28s} frames: {r['published']} published, {r['drawn']} drawn ({r['drawn'] / r['stepping']:.1f} per s of "
-        f"stepping, {r['stepping']:.2f} s), "
+        f"\n{'':28s} frames: {r['published']} published, {r['drawn']} drawn ({r['rate']:.1f} per s; the loop stepped "
+        f"{r['stepping']:.2f} s), "
         f"{r['dropped']} dropped; CPU per drawn frame: feed thread {1e3 * r['cpu'] / n:.2f} ms, drawing process "
         f"{1e3 * u['child'] / n:.2f} ms, server {1e3 * u['server'] / n:.2f} ms, browser {1e3 * u['browser'] / n:.2f} ms"
     )
@@ -125,7 +125,8 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=2)
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--no-browser", action="store_true", help="serve the live page without a browser on it")
-    ap.add_argument("--nice", type=int, default=None, help="niceness of the view's processes (default: LiveView's)")
+    ap.add_argument("--nice", type=int, nargs="+", default=[VIEW_NICE],
+                    help=f"niceness of the view's processes; several: each a row (default {VIEW_NICE})")  # fmt: skip
     args = ap.parse_args()
     problem = Problem.load(Path(args.problem))
     rev = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
@@ -134,32 +135,39 @@ def main() -> None:
           f"load {os.getloadavg()}")  # fmt: skip
     exe = None if args.no_browser else find_chromium()
     browser = Chromium(exe, timeout=300.0) if exe else None
-    print(f"problem {args.problem}, seed {args.seed}, {args.repeat} runs each, alternating; "
-          f"live page {'open in headless Chromium' if browser else 'served, no browser'}; "
-          f"view niceness {'default' if args.nice is None else args.nice}")  # fmt: skip
-    pooled: dict[bool, list[dict]] = {False: [], True: []}
+    configs = [("without --view (old)", None)] + [(f"with --view, nice {n} (new)", n) for n in args.nice]
+    print(f"problem {args.problem}, seed {args.seed}, {args.repeat} runs each, alternating: "
+          f"{', '.join(c for c, _ in configs)}; live page "
+          f"{'open in headless Chromium' if browser else 'served, no browser'}")  # fmt: skip
+    pooled: dict[str, list[dict]] = {c: [] for c, _ in configs}
     try:
         one_run(problem, args.seed, False, None, None)  # builds and caches the solvers: not measured
         for i in range(args.repeat):
-            for view in (False, True):
-                r = one_run(problem, args.seed, view, browser, args.nice)
-                pooled[view].append(r)
+            for name, nice in configs:
+                r = one_run(problem, args.seed, nice is not None, browser, nice)
+                pooled[name].append(r)
                 extra = f"  misses {r['misses']:3d}  {r['status']}; others' CPU {r['others'] / r['wall']:.2f} cores"
-                if view:
+                if nice is not None:
                     extra += frames_text(r)
-                print(line(f"run {i + 1} {'with' if view else 'without'} --view", r["iter"], extra), flush=True)
+                print(line(f"run {i + 1} {name.removesuffix(' (old)').removesuffix(' (new)')}", r["iter"], extra),
+                      flush=True)  # fmt: skip
     finally:
         if browser is not None:
             browser.close()
-    it = {v: np.concatenate([r["iter"] for r in pooled[v]]) for v in (False, True)}
-    miss = {v: sum(r["misses"] for r in pooled[v]) for v in (False, True)}
-    print(line("pooled without --view (old)", it[False], f"  misses {miss[False]}"))
-    print(line("pooled with --view (new)", it[True], f"  misses {miss[True]}"))
-    p99 = {v: np.percentile(it[v], 99) for v in (False, True)}
-    med = {v: np.median([np.percentile(r["iter"], 99) for r in pooled[v]]) for v in (False, True)}
-    print(f"p99 with / without: pooled {p99[True] / p99[False]:.3f}, median of the runs' p99 "
-          f"{med[True] / med[False]:.3f} (issue 30: <= 1.10); deadline misses with - without: "
-          f"{miss[True] - miss[False]:+d} (target 0)")  # fmt: skip
+    base = configs[0][0]
+    it = {c: np.concatenate([r["iter"] for r in rs]) for c, rs in pooled.items()}
+    miss = {c: sum(r["misses"] for r in rs) for c, rs in pooled.items()}
+    p99 = {c: np.percentile(v, 99) for c, v in it.items()}
+    med = {c: np.median([np.percentile(r["iter"], 99) for r in rs]) for c, rs in pooled.items()}
+    for name, nice in configs:
+        extra = f"  misses {miss[name]}"
+        if nice is not None:
+            rs = pooled[name]
+            extra += (f"\n{'':28s} p99 / without's: pooled {p99[name] / p99[base]:.3f}, median of the runs' p99 "
+                      f"{med[name] / med[base]:.3f} (issue 30: <= 1.10); deadline misses {miss[name] - miss[base]:+d} "
+                      f"(target 0); frames drawn {sum(r['drawn'] for r in rs)} of {sum(r['published'] for r in rs)} "
+                      f"published, {np.nanmedian([r['rate'] for r in rs]):.1f} per s")  # fmt: skip
+        print(line(f"pooled {name}", it[name], extra))
     print(f"load after {os.getloadavg()}")
 
 

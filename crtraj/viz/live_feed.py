@@ -74,6 +74,8 @@ class LiveFeed:
         self.failed = 0  # draws that raised (logged; the loop is never stopped by its view)
         # s of this thread's CPU time spent drawing: while it runs Python it holds the GIL the loop's thread needs
         self.draw_cpu = 0.0
+        self.first_draw: float | None = None  # clock time (s) the first and the last draw ended
+        self.last_draw: float | None = None
         self._thread = threading.Thread(target=self._run, name="crtraj-live-view", daemon=True)
         self._thread.start()
 
@@ -125,6 +127,8 @@ class LiveFeed:
                     self.drawer.display(state.x)
                     self.drawer.set_obstacles(state.centers, state.radii)
                 self.drawn += 1
+                self.last_draw = self._clock()
+                self.first_draw = self.last_draw if self.first_draw is None else self.first_draw
             except Exception:  # a failed draw must not stop the feed nor reach the loop
                 self.failed += 1
                 log.warning("live view: drawing the state at t = %.3f s failed", state.t, exc_info=True)
@@ -142,6 +146,12 @@ class LiveFeed:
             self._closed = True
             self._lock.notify()
         self._thread.join()
+
+    def draw_rate(self) -> float:
+        """Frames drawn per second between the first draw and the last (NaN with fewer than two)."""
+        if self.drawn < 2 or self.first_draw is None or self.last_draw is None or self.last_draw <= self.first_draw:
+            return float("nan")
+        return (self.drawn - 1) / (self.last_draw - self.first_draw)
 
     def summary(self) -> dict[str, int]:
         """Counters: published, drawn, dropped, failed."""
