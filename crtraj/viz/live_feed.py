@@ -110,14 +110,13 @@ class LiveFeed:
             return state, new
 
     def _run(self) -> None:
-        next_at = self._clock()
         extend = getattr(self.drawer, "extend", None)
         draw = getattr(self.drawer, "draw", None)  # a drawer that takes the whole draw at once (another process)
         while True:
             state, new = self._take()
             if state is None:
                 return
-            cpu = time.thread_time()
+            cpu, started = time.thread_time(), self._clock()
             try:
                 if draw is not None:
                     draw(state, new)
@@ -133,12 +132,11 @@ class LiveFeed:
                 self.failed += 1
                 log.warning("live view: drawing the state at t = %.3f s failed", state.t, exc_info=True)
             self.draw_cpu += time.thread_time() - cpu
-            next_at += self.period
-            wait = next_at - self._clock()
+            # the next draw starts a period after this one started, never sooner: no burst to catch up after a
+            # slow draw, nor after a wait for the loop's next state
+            wait = started + self.period - self._clock()
             if wait > 0:
                 self._sleep(wait)
-            else:
-                next_at = self._clock()  # late: do not try to catch up with a burst
 
     def close(self) -> None:
         """Draw what is pending, stop the thread and wait for it (idempotent)."""
