@@ -3,11 +3,12 @@
 `LiveFeed.observe` is the closed loop's observer port (`crtraj.control.ports.StepObserver`): the loop calls it once
 per recorded step and it only keeps a reference to the (frozen) record under a lock, so the loop's timing does not
 change; `LiveFeed.publish` does the same for a bare state. The feed's thread draws the newest state at most `rate`
-times a second and counts the states it never drew (`dropped`). Drawing goes to anything with ``display(x)`` and
-``set_obstacles(centers, radii)`` (a live `crtraj.viz.view.Visualizer`); a drawer that also has
-``extend(entries)`` (`crtraj.viz.live_page.LivePage`) gets every (state, step) observed since its last draw, so its
-plots miss no step; a drawer with ``draw(state, entries)`` (`crtraj.viz.live_child.ChildDrawer`: another process
-draws) gets both at once instead. Lengths in mm, times in s.
+times a second (each draw a full period after the previous one started) and counts the states it never drew
+(`dropped`). Drawing goes to anything with ``display(x)`` and ``set_obstacles(centers, radii)`` (a live
+`crtraj.viz.view.Visualizer`); a drawer that also has ``extend(entries)`` gets every (state, step) observed since
+its last draw, so its plots miss no step; a drawer with ``draw(state, entries)`` gets both at once instead
+(`crtraj.viz.live_child.ChildDrawer`: another process draws, with `crtraj.viz.live_page.LivePage`). Lengths in
+mm, times in s.
 """
 
 from __future__ import annotations
