@@ -10,13 +10,18 @@ drawing process, the meshcat server and the browser (all of Chromium's processes
 new = with it. Wall-clock numbers on a shared machine: the load before and after is printed with them, and the
 other processes' CPU use during the runs. The deterministic bound (the view adds a constant few function calls
 per iteration) is tests/test_viz_live_page.py's.
-Run: python benchmarks/viz_live.py [--problem P.toml] [--seed 2] [--repeat 3] [--no-browser] [--nice N [N ...]]
+A deadline miss changes a run's path (and the solves on it: the p99 of a run that missed once early is about twice
+a clean run's, with or without the view), so runs are comparable only on the same path: --no-deadline drops the
+step deadline, every run then takes the same path, and the iterations longer than the deadline are counted.
+Run: python benchmarks/viz_live.py [--problem P.toml] [--seed 2] [--repeat 3] [--no-browser] [--no-deadline]
+[--nice N [N ...]]
 (--nice 0 19: the view at both niceness levels, alternating with the runs without it, as rows of one table).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import platform
 import subprocess
@@ -25,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from crtraj.control.horizon_options import ReplanOptions
 from crtraj.control.loop import ClosedLoop
 from crtraj.io.problem import Problem
 from crtraj.viz.chromium import Chromium, find_chromium
@@ -73,9 +79,9 @@ class Stamped:
             self.first = self.first or self.last
 
 
-def one_run(problem: Problem, seed: int, view: bool, browser: Chromium | None, nice: int | None) -> dict:
-    """One loop run; with view: fed to a served live page (open in `browser` if given)."""
-    loop = ClosedLoop.from_problem(problem, seed=seed)
+def one_run(problem: Problem, seed: int, view: bool, browser: Chromium | None, nice: int | None, opts) -> dict:
+    """One loop run (replan options `opts`); with view: fed to a served live page (open in `browser` if given)."""
+    loop = ClosedLoop.from_problem(problem, seed=seed, options=opts)
     live = LiveView.for_loop(loop, nice=nice) if view else None
     tab = browser.open(live.url, 1280, 800) if live is not None and browser is not None else None
     bpid = browser.proc.pid if browser is not None and tab is not None else None
@@ -97,6 +103,7 @@ def one_run(problem: Problem, seed: int, view: bool, browser: Chromium | None, n
         if live is not None:
             live.close()
     return {"iter": np.asarray(run.iter_time) * 1e3, "misses": run.deadline_misses, "status": str(run.status),
+            "path": (len(run.t), tuple(run.step_status)),
             "wall": wall, "stepping": stepping, "used": used, "others": others - sum(used.values()),
             **counts}  # fmt: skip
 
@@ -125,10 +132,20 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=2)
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--no-browser", action="store_true", help="serve the live page without a browser on it")
+    ap.add_argument(
+        "--no-deadline",
+        action="store_true",
+        help="drop replan.step_deadline: every run takes the same path (a miss makes a run take another "
+        "path, with other solves), and the iterations over the problem's deadline are counted instead",
+    )
     ap.add_argument("--nice", type=int, nargs="+", default=[VIEW_NICE],
                     help=f"niceness of the view's processes; several: each a row (default {VIEW_NICE})")  # fmt: skip
     args = ap.parse_args()
     problem = Problem.load(Path(args.problem))
+    opts = problem.options(ReplanOptions, "replan")
+    deadline = opts.step_deadline * 1e3  # ms
+    if args.no_deadline:
+        opts = dataclasses.replace(opts, step_deadline=0.0)
     rev = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
     print(f"date {time.strftime('%Y-%m-%d %H:%M:%S %Z')}; machine {platform.node()} {platform.machine()}, "
           f"{os.cpu_count()} cores, Python {platform.python_version()}; commit {rev.stdout.strip() or '?'}; "
@@ -136,17 +153,21 @@ def main() -> None:
     exe = None if args.no_browser else find_chromium()
     browser = Chromium(exe, timeout=300.0) if exe else None
     configs = [("without --view (old)", None)] + [(f"with --view, nice {n} (new)", n) for n in args.nice]
-    print(f"problem {args.problem}, seed {args.seed}, {args.repeat} runs each, alternating: "
+    print(f"problem {args.problem}, seed {args.seed}, step deadline "
+          f"{'none (dropped: every run takes the same path)' if args.no_deadline else f'{deadline:g} ms'}, "
+          f"{args.repeat} runs each, alternating: "
           f"{', '.join(c for c, _ in configs)}; live page "
           f"{'open in headless Chromium' if browser else 'served, no browser'}")  # fmt: skip
     pooled: dict[str, list[dict]] = {c: [] for c, _ in configs}
     try:
-        one_run(problem, args.seed, False, None, None)  # builds and caches the solvers: not measured
+        one_run(problem, args.seed, False, None, None, opts)  # builds and caches the solvers: not measured
         for i in range(args.repeat):
             for name, nice in configs:
-                r = one_run(problem, args.seed, nice is not None, browser, nice)
+                r = one_run(problem, args.seed, nice is not None, browser, nice, opts)
                 pooled[name].append(r)
-                extra = f"  misses {r['misses']:3d}  {r['status']}; others' CPU {r['others'] / r['wall']:.2f} cores"
+                r["over"] = int(np.sum(r["iter"] > deadline)) if deadline > 0 else 0
+                extra = (f"  misses {r['misses']:3d}, over {deadline:g} ms {r['over']:3d}  {r['status']}; "
+                         f"others' CPU {r['others'] / r['wall']:.2f} cores")  # fmt: skip
                 if nice is not None:
                     extra += frames_text(r)
                 print(line(f"run {i + 1} {name.removesuffix(' (old)').removesuffix(' (new)')}", r["iter"], extra),
@@ -157,16 +178,21 @@ def main() -> None:
     base = configs[0][0]
     it = {c: np.concatenate([r["iter"] for r in rs]) for c, rs in pooled.items()}
     miss = {c: sum(r["misses"] for r in rs) for c, rs in pooled.items()}
+    over = {c: sum(r["over"] for r in rs) for c, rs in pooled.items()}
+    paths = [r["path"] for rs in pooled.values() for r in rs]
+    same = sum(p == paths[0] for p in paths)
+    print(f"runs on the first run's path (same steps, same statuses): {same} of {len(paths)}")
     p99 = {c: np.percentile(v, 99) for c, v in it.items()}
     med = {c: np.median([np.percentile(r["iter"], 99) for r in rs]) for c, rs in pooled.items()}
     for name, nice in configs:
-        extra = f"  misses {miss[name]}"
+        extra = f"  misses {miss[name]}, over {deadline:g} ms {over[name]}"
         if nice is not None:
             rs = pooled[name]
+            drawn, published = sum(r["drawn"] for r in rs), sum(r["published"] for r in rs)
             extra += (f"\n{'':28s} p99 / without's: pooled {p99[name] / p99[base]:.3f}, median of the runs' p99 "
-                      f"{med[name] / med[base]:.3f} (issue 30: <= 1.10); deadline misses {miss[name] - miss[base]:+d} "
-                      f"(target 0); frames drawn {sum(r['drawn'] for r in rs)} of {sum(r['published'] for r in rs)} "
-                      f"published, {np.nanmedian([r['rate'] for r in rs]):.1f} per s")  # fmt: skip
+                      f"{med[name] / med[base]:.3f} (issue 30: <= 1.10); deadline misses {miss[name] - miss[base]:+d}, "
+                      f"iterations over {deadline:g} ms {over[name] - over[base]:+d} (target 0); frames drawn {drawn} "
+                      f"of {published} published, {np.nanmedian([r['rate'] for r in rs]):.1f} per s")  # fmt: skip
         print(line(f"pooled {name}", it[name], extra))
     print(f"load after {os.getloadavg()}")
 
