@@ -9,6 +9,7 @@ import json
 import re
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -204,6 +205,37 @@ def test_the_served_live_page_is_the_full_page_and_shows_a_published_state(brows
     np.testing.assert_allclose(tip[:3], model.tip_position(x1).reshape(3) * 1e-3, atol=1e-6)
     np.testing.assert_allclose(obstacle, [*(C1[0] * 1e-3), *(np.full(3, R[0] * 1e-3))], atol=1e-6)
     assert served == page  # the server's copy (Python) and the page's (JavaScript) grew alike from the frames
+
+
+def test_the_live_page_turns_into_the_replay_when_the_run_ends(browser, model):
+    """A page open on a live run: when the run's result is shown on the same server (what `crtraj replan --view`
+    does at the end), the server tells the page (one web-socket message) and it reloads to the replay: the
+    finished run's numbers, meshcat's animation clock, no longer live."""
+    ball = Obstacle(center=(-3.5, 76.8, 394.4), radius=30.0, name="ball")
+    view = LiveView(model, np.array([10.0, -120.0, 170.0]), Scene(obstacles=(ball,), safety_distance=5.0), 0.004,
+                    timeout=HANG_S)  # fmt: skip
+    doc = make_result(model)
+    try:
+        view.feed.observe(_record(0.0, np.array([0.3, 0.0, 0.0, 0.0, 0.0]), [ball.center], [ball.radius]), None)
+        tab = browser.open(view.url, 1280, 800)
+        _wait_for_time(tab, 0.0)
+        view.stop_feed()
+        view.vis.show_result(doc, play=False)
+        replay = None
+        for _ in range(int(HANG_S / 0.05)):  # the page reloads meanwhile: poll until the new one is ready
+            try:
+                replay = tab.evaluate("window.crtrajView && crtrajView.isReady() && !crtrajView.data.live"
+                                      " ? [crtrajView.data.runs[0].t.length, window.viewer.animator.actions.length]"
+                                      " : null")  # fmt: skip
+            except RuntimeError:  # the old page's context went away under the call
+                replay = None
+            if replay:
+                break
+            time.sleep(0.05)
+        tab.close()
+    finally:
+        view.close()
+    assert replay is not None and replay[0] == len(doc["waypoints"]) and replay[1] > 0, replay
 
 
 def test_the_served_result_page_is_the_full_page(browser, model):
