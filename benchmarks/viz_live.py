@@ -138,6 +138,12 @@ def main() -> None:
         help="drop replan.step_deadline: every run takes the same path (a miss makes a run take another "
         "path, with other solves), and the iterations over the problem's deadline are counted instead",
     )
+    ap.add_argument(
+        "--quiet",
+        type=float,
+        default=0.1,
+        help="cores the other processes may use in a run counted as quiet (default 0.1)",
+    )
     ap.add_argument("--nice", type=int, nargs="+", default=[VIEW_NICE],
                     help=f"niceness of the view's processes; several: each a row (default {VIEW_NICE})")  # fmt: skip
     args = ap.parse_args()
@@ -194,7 +200,22 @@ def main() -> None:
                       f"iterations over {deadline:g} ms {over[name] - over[base]:+d} (target 0); frames drawn {drawn} "
                       f"of {published} published, {np.nanmedian([r['rate'] for r in rs]):.1f} per s")  # fmt: skip
         print(line(f"pooled {name}", it[name], extra))
+    quiet_rows(pooled, paths[0], args.quiet)
     print(f"load after {os.getloadavg()}")
+
+
+def quiet_rows(pooled: dict[str, list[dict]], path, cores: float) -> None:
+    """The same pooled rows over the runs on `path` during which the other processes used under `cores` cores (on
+    a shared machine, the runs that measure the loop and the view alone)."""
+    print(f"runs on the first run's path while the other processes used under {cores:g} cores:")
+    for name, rs in pooled.items():
+        rs = [r for r in rs if r["path"] == path and r["others"] / r["wall"] < cores]
+        if not rs:
+            print(f"  {name}: none")
+            continue
+        it = np.concatenate([r["iter"] for r in rs])
+        p99s = ", ".join(f"{np.percentile(r['iter'], 99):.2f}" for r in rs)
+        print(line(f"  {name}", it, f"  misses {sum(r['misses'] for r in rs)}; {len(rs)} runs, p99s {p99s} ms"))
 
 
 if __name__ == "__main__":
