@@ -5,6 +5,7 @@ waits for a stuck drawing is tests/test_viz_live.py's.)"""
 
 from __future__ import annotations
 
+import gc
 import json
 import re
 import sys
@@ -67,9 +68,16 @@ def _loop_run(model, observer):
     scene = Scene(obstacles=(BALL,), safety_distance=5.0)
     opts = ReplanOptions(horizon=6, points=12, solver="sqp")  # no step deadline: the work clock decides nothing
     marks: list[int] = []
-    with WorkClock() as clock:
-        loop = straight_loop(model, scene, options=opts, loop_options=LoopOptions(duration=3.0), clock=clock)
-        run = loop.run(observer=observer, progress=lambda k, t, s: marks.append(clock.calls))
+    # no cyclic garbage collection meanwhile: a collection runs on whichever thread's allocation triggers it, with
+    # the finalizers it calls, so the view's thread would move a few counted calls in or out of an iteration
+    gc.collect()
+    gc.disable()
+    try:
+        with WorkClock() as clock:
+            loop = straight_loop(model, scene, options=opts, loop_options=LoopOptions(duration=3.0), clock=clock)
+            run = loop.run(observer=observer, progress=lambda k, t, s: marks.append(clock.calls))
+    finally:
+        gc.enable()
     return run, np.diff(marks)
 
 

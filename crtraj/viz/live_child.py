@@ -106,10 +106,13 @@ class ChildDrawer:
             raise RuntimeError(f"live view: its drawing process did not start: {self._tail()}")
 
     def _send(self, *chunks: bytes) -> None:
+        # one write system call for the whole message: every call the feed thread makes into the system lets the
+        # loop's thread take the interpreter lock, and taking it back makes the loop wait for this thread
         assert self.proc.stdin is not None
-        for chunk in chunks:
-            self.proc.stdin.write(chunk)
-        self.proc.stdin.flush()
+        view = memoryview(b"".join(chunks))
+        fd = self.proc.stdin.fileno()
+        while view:
+            view = view[os.write(fd, view) :]
 
     def _line(self) -> str:
         assert self.proc.stdout is not None
