@@ -141,3 +141,17 @@ def test_append_rows_skips_what_the_page_has_and_refuses_a_gap():
     assert len(run["t"]) == 4
     with pytest.raises(ValueError, match="step 6 does not follow step 3"):
         append_rows(run, _rows(6, [0.6], []))
+
+
+def test_a_frame_the_server_refuses_raises(model):
+    """Rows that do not follow the server's page data (a gap) are refused by the server, and the drawing side
+    hears it (a RuntimeError naming the step), instead of a page that silently misses steps."""
+    vis = Visualizer(model, server=True, timeout=HANG_S)
+    try:
+        page = LivePage(vis, model, safety_distance=5.0, deadline=0.004, names=["ball"], goal=np.zeros(3))
+        page.push()
+        rows = _rows(5, [0.5], [])
+        with pytest.raises(RuntimeError, match="step 5 does not follow step -1"):
+            vis._window.send_frame([], np.zeros((0, 4, 4)), rows)
+    finally:
+        vis.close()

@@ -78,6 +78,10 @@ class MeshcatWindow:
         if self._sock is not None:
             self._request(data["type"].encode("utf-8"), data["path"].encode("utf-8"), packed)
 
+    def _checked(self, reply: bytes) -> None:
+        if reply != b"ok":
+            raise RuntimeError(f"meshcat server at {self.zmq_url}: {reply.decode('utf-8', errors='replace')[:200]}")
+
     @property
     def connected(self) -> bool:
         """Whether commands go to a meshcat server."""
@@ -96,12 +100,12 @@ class MeshcatWindow:
         msg = {"type": meshcat_server.FRAME_TYPE, "paths": paths, "matrices": msgpack.ExtType(0x17, cols.tobytes())}
         if rows is not None:
             msg["rows"] = rows
-        self._request(meshcat_server.FRAME_COMMAND, b"", packb(msg))
+        self._checked(self._request(meshcat_server.FRAME_COMMAND, b"", packb(msg)))
 
     def send_page(self, data_json: str) -> None:
         """Replace the data of the server's full page (`crtraj.viz.server.PAGE_PATH`); no-op without a server."""
         if self._sock is not None:
-            self._request(meshcat_server.PAGE_COMMAND, b"", data_json.encode("utf-8"))
+            self._checked(self._request(meshcat_server.PAGE_COMMAND, b"", data_json.encode("utf-8")))
 
     @property
     def page_url(self) -> str | None:
