@@ -89,3 +89,18 @@ def test_a_late_view_does_not_burst_and_a_failed_draw_is_counted():
 def test_rate_is_at_most_30_hz(rate):
     with pytest.raises(ValueError, match=r"^rate: expected \(0, 30\] Hz"):
         LiveFeed(_Drawer(), rate=rate)
+
+
+def test_draws_stay_a_period_apart_after_a_quiet_spell():
+    """The view starts, nothing comes for 5 s (the loop's set-up), then states: every draw is still followed by a
+    full period's wait (1/30 s on the virtual clock, where drawing takes no time), so no two draws come closer
+    than a period, also right after the quiet spell."""
+    drawer, clock = _Drawer(), _VirtualClock()
+    drawer.release.set()
+    feed = LiveFeed(drawer, clock=clock, sleep=clock.sleep)
+    clock.now = 5.0
+    feed.publish(*_state(0))
+    assert drawer.entered.wait(HANG_S)
+    feed.publish(*_state(1))
+    feed.close()
+    assert feed.drawn >= 1 and clock.waits == pytest.approx([1 / 30] * feed.drawn)

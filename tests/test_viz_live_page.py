@@ -5,10 +5,12 @@ waits for a stuck drawing is tests/test_viz_live.py's.)"""
 
 from __future__ import annotations
 
+import gc
 import json
 import re
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -66,9 +68,16 @@ def _loop_run(model, observer):
     scene = Scene(obstacles=(BALL,), safety_distance=5.0)
     opts = ReplanOptions(horizon=6, points=12, solver="sqp")  # no step deadline: the work clock decides nothing
     marks: list[int] = []
-    with WorkClock() as clock:
-        loop = straight_loop(model, scene, options=opts, loop_options=LoopOptions(duration=3.0), clock=clock)
-        run = loop.run(observer=observer, progress=lambda k, t, s: marks.append(clock.calls))
+    # no cyclic garbage collection meanwhile: a collection runs on whichever thread's allocation triggers it, with
+    # the finalizers it calls, so the view's thread would move a few counted calls in or out of an iteration
+    gc.collect()
+    gc.disable()
+    try:
+        with WorkClock() as clock:
+            loop = straight_loop(model, scene, options=opts, loop_options=LoopOptions(duration=3.0), clock=clock)
+            run = loop.run(observer=observer, progress=lambda k, t, s: marks.append(clock.calls))
+    finally:
+        gc.enable()
     return run, np.diff(marks)
 
 
@@ -100,15 +109,16 @@ def test_the_live_view_adds_constant_work_per_step_and_keeps_the_loops_p99(model
     np.testing.assert_allclose(page.t, bare.t, atol=1e-6)
 
 
-def _record(t: float, x: np.ndarray, centers, radii) -> StateRecord:
+def _record(t: float, x: np.ndarray, centers, radii, q=None) -> StateRecord:
     nq = 7
-    z = np.zeros(nq)
+    z = np.zeros(nq) if q is None else np.asarray(q, float)
     c, r = np.asarray(centers, float), np.asarray(radii, float)
     return StateRecord(t, x, z, z, 1.0, 6.0, 0.5, x, c, r, np.array([t]), x[None])
 
 
-def _step(status: str, iter_time: float) -> StepRecord:
-    return StepRecord(status, "ok", 0.001, 0.0, iter_time, 2, False, "", np.zeros((0, 7)), np.zeros((0, 7)))
+def _step(status: str, iter_time: float, executed=None) -> StepRecord:
+    ex = np.zeros((0, 7)) if executed is None else np.asarray(executed, float)
+    return StepRecord(status, "ok", 0.001, 0.0, iter_time, 2, False, "", np.zeros((0, 7)), ex)
 
 
 @pytest.fixture(scope="module")
@@ -125,45 +135,123 @@ def _panel(tab) -> dict[str, str]:
     )
 
 
-def _wait_for_time(tab, t: float) -> None:
-    """Wait (on the page's own polling, bounded by HANG_S) until the page shows time t (s)."""
+def _wait_until(tab, condition: str) -> None:
+    """Wait until the JavaScript `condition` holds in the page: polled every 20 ms by the page itself, bounded by
+    HANG_S (a CPU hog beside the test only makes it poll longer)."""
     tab.evaluate(
         "new Promise((res, rej) => { const t0 = performance.now(); const f = () => {"
-        f" if (Math.abs(parseFloat(document.getElementById('crtraj-time').dataset.t) - {t!r}) < 1e-6) res(true);"
-        f" else if (performance.now() - t0 > {HANG_S * 1000:.0f}) rej(new Error('no time {t}'));"
+        f" let ok = false; try {{ ok = ({condition}); }} catch (e) {{}} if (ok) res(true);"
+        f" else if (performance.now() - t0 > {HANG_S * 1000:.0f}) rej(new Error('no: ' + {condition!r}));"
         " else setTimeout(f, 20); }; f(); })",
         await_promise=True,
     )
 
 
+def _wait_for_time(tab, t: float) -> None:
+    """Wait (bounded by HANG_S) until the page shows time t (s)."""
+    _wait_until(tab, f"Math.abs(parseFloat(document.getElementById('crtraj-time').dataset.t) - {t!r}) < 1e-6")
+
+
+def _moving_cable(model, h: float, periods: int) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """A step from the straight pose in which cable 1 alone moves as c j^2 mm at the end of period j (h s each):
+    (q0, executed (periods, nq), and in closed form its largest velocity and acceleration fraction: the actuator
+    value changes by scale c (2j - 1) over period j, so the speed peaks at 9 scale c / h (j = 5), and the change
+    of speed is 2 scale c / h per period from the second on)."""
+    limits = model.robot.actuator_limits()
+    _, rest = model.robot.cable_matrix()
+    s, vmax, amax = abs(limits.scale[0]), limits.vmax[0], limits.amax[0]
+    c = 0.6 * h * vmax / ((2 * periods - 1) * s)  # the speed peaks at 60 % of the limit
+    j = np.arange(1, periods + 1)
+    executed = np.tile(rest, (periods, 1))
+    executed[:, 0] += c * j**2
+    return np.asarray(rest, float), executed, (2 * periods - 1) * s * c / (h * vmax), 2 * s * c / (h * h * amax)
+
+
 def test_the_served_live_page_is_the_full_page_and_shows_a_published_state(browser, model):
     """The live page (served on 127.0.0.1) has the panel, legend and plots; two states observed from a loop
-    appear in its panel: the newest step's status and iteration time, and the distance to the obstacle measured
-    independently (2001 backbone points)."""
+    appear on it: the newest step's status and iteration time, the distance to the obstacle measured
+    independently (2001 backbone points), the actuator velocity and acceleration fractions of the step's executed
+    samples (in closed form), and the scene's robot tip and obstacle where the model puts them (the frame's
+    transforms applied by the page's script); the page's own copy of the numbers equals the server's."""
     x0, x1 = np.array([0.3, 0.0, 0.0, 0.0, 0.0]), np.array([0.2, 0.1, -0.1, 0.05, -5.0])
     ball = Obstacle(center=(-3.5, 76.8, 394.4), radius=30.0, name="ball")
     scene = Scene(obstacles=(ball,), safety_distance=5.0)
+    q0, executed, vf, af = _moving_cable(model, 0.1 / 5, 5)
     view = LiveView(model, np.array([10.0, -120.0, 170.0]), scene, 0.004, timeout=HANG_S)
     try:
         assert view.url.startswith("http://127.0.0.1:") and view.url.endswith("/crtraj/")
         C, R = np.array([ball.center]), np.array([ball.radius])
-        view.feed.observe(_record(0.0, x0, C, R), None)
+        C1 = C + np.array([0.0, 0.0, 2.0])
+        view.feed.observe(_record(0.0, x0, C, R, q=q0), None)
         tab = browser.open(view.url, 1280, 800)
-        view.feed.observe(_record(0.1, x1, C + np.array([0.0, 0.0, 2.0]), R), _step("hold", 0.0062))
+        view.feed.observe(_record(0.1, x1, C1, R, q=executed[-1]), _step("hold", 0.0062, executed))
         _wait_for_time(tab, 0.1)
+        _wait_until(tab, "document.querySelectorAll('#crtraj-plots canvas').length === 3")
         panel = _panel(tab)
+        verdict = tab.evaluate("document.getElementById('crtraj-verdict').textContent")
         n_legend = tab.evaluate("document.querySelectorAll('#crtraj-legend label').length")
-        n_plots = tab.evaluate("document.querySelectorAll('#crtraj-plots canvas').length")
-        live = tab.evaluate("crtrajView.data.live")
+        page = tab.evaluate("crtrajView.data")
+        served = tab.evaluate("fetch('data.json').then((r) => r.json())", await_promise=True)
+        node = (
+            "(p) => { const o = window.viewer.scene_tree.find(p.split('/')).object;"
+            " return [...o.position.toArray(), ...o.scale.toArray()]; }"
+        )
+        tip, obstacle = (tab.evaluate(f"({node})('meshcat/{p}')") for p in ("robot/tip", "obstacles/0"))
         tab.close()
     finally:
         view.close()
-    assert live is True and n_legend >= 10 and n_plots == 3, (live, n_legend, n_plots)
+    assert page["live"] is True and n_legend >= 10, (page["live"], n_legend)
     assert "hold" in panel["0-status"] and panel["0-iteration"].startswith("6.20 / 4.0 ms"), panel
     P = np.asarray(model.points(x1[None], 2001)).reshape(-1, 3)
-    d = np.linalg.norm(P - (C[0] + [0.0, 0.0, 2.0]), axis=1).min() - R[0] - model.robot.body_radius
+    d = np.linalg.norm(P - C1[0], axis=1).min() - R[0] - model.robot.body_radius
     shown = float(re.match(r"(-?[0-9.]+) mm", panel["0-distance-0"]).group(1))
     assert abs(shown - d) < 0.1, (shown, d)
+    # the headline so far: the closer of the two states (independently), one hold step, one iteration over 4 ms
+    P0 = np.asarray(model.points(x0[None], 2001)).reshape(-1, 3)
+    d0 = np.linalg.norm(P0 - C[0], axis=1).min() - R[0] - model.robot.body_radius
+    m = re.search(r"closest: ([0-9.]+) mm to ball at ([0-9.]+) s", verdict)
+    assert m and abs(float(m.group(1)) - min(d0, d)) < 0.1, (verdict, d0, d)
+    assert float(m.group(2)) == (0.0 if d0 < d else 0.1), verdict
+    assert "1 hold steps, 0 fallback steps" in verdict and "1 iterations over 4 ms" in verdict, verdict
+    # the fractions: exact in the page's data, rounded to whole percent in the panel
+    run = page["runs"][0]
+    assert run["velocity"][0] is None and abs(run["velocity"][1] - vf) < 1e-6
+    assert abs(run["acceleration"][1] - af) < 1e-6
+    assert panel["0-velocity"] == f"{100 * vf:.0f} %" and panel["0-acceleration"] == f"{100 * af:.0f} %", panel
+    np.testing.assert_allclose(tip[:3], model.tip_position(x1).reshape(3) * 1e-3, atol=1e-6)
+    np.testing.assert_allclose(obstacle, [*(C1[0] * 1e-3), *(np.full(3, R[0] * 1e-3))], atol=1e-6)
+    assert served == page  # the server's copy (Python) and the page's (JavaScript) grew alike from the frames
+
+
+def test_the_live_page_turns_into_the_replay_when_the_run_ends(browser, model):
+    """A page open on a live run: when the run's result is shown on the same server (what `crtraj replan --view`
+    does at the end), the server tells the page (one web-socket message) and it reloads to the replay: the
+    finished run's numbers, meshcat's animation clock, no longer live."""
+    ball = Obstacle(center=(-3.5, 76.8, 394.4), radius=30.0, name="ball")
+    view = LiveView(model, np.array([10.0, -120.0, 170.0]), Scene(obstacles=(ball,), safety_distance=5.0), 0.004,
+                    timeout=HANG_S)  # fmt: skip
+    doc = make_result(model)
+    try:
+        view.feed.observe(_record(0.0, np.array([0.3, 0.0, 0.0, 0.0, 0.0]), [ball.center], [ball.radius]), None)
+        tab = browser.open(view.url, 1280, 800)
+        _wait_for_time(tab, 0.0)
+        view.stop_feed()
+        view.vis.show_result(doc, play=False)
+        replay = None
+        for _ in range(int(HANG_S / 0.05)):  # the page reloads meanwhile: poll until the new one is ready
+            try:
+                replay = tab.evaluate("window.crtrajView && crtrajView.isReady() && !crtrajView.data.live"
+                                      " ? [crtrajView.data.runs[0].t.length, window.viewer.animator.actions.length]"
+                                      " : null")  # fmt: skip
+            except RuntimeError:  # the old page's context went away under the call
+                replay = None
+            if replay:
+                break
+            time.sleep(0.05)
+        tab.close()
+    finally:
+        view.close()
+    assert replay is not None and replay[0] == len(doc["waypoints"]) and replay[1] > 0, replay
 
 
 def test_the_served_result_page_is_the_full_page(browser, model):

@@ -13,6 +13,8 @@ import weakref
 import webbrowser
 from typing import Any
 
+import msgpack
+import numpy as np
 import zmq
 
 from crtraj.viz import server as meshcat_server
@@ -23,11 +25,11 @@ class MeshcatWindow:
     """meshcat's ViewerWindow interface: every command goes to the in-process scene recorder and, when
     connected, to a meshcat server.
 
-    zmq_url: a running server's ZMQ address (None: none); start_server: start one as a child process;
-    timeout: s for the server's start-up and for every reply.
+    zmq_url: a running server's ZMQ address (None: none); start_server: start one as a child process (at
+    niceness `nice`, 0-19); timeout: s for the server's start-up and for every reply.
     """
 
-    def __init__(self, zmq_url: str | None, start_server: bool, timeout: float) -> None:
+    def __init__(self, zmq_url: str | None, start_server: bool, timeout: float, nice: int = 0) -> None:
         self.recorder = SceneRecorder()
         self._timeout_ms = int(timeout * 1000)
         self.server_proc: subprocess.Popen[bytes] | None = None
@@ -36,7 +38,7 @@ class MeshcatWindow:
         self.zmq_url: str | None = None
         self.web_url: str | None = None
         if start_server:
-            self.server_proc, self._log, self.zmq_url, self.web_url = meshcat_server.start_server(timeout)
+            self.server_proc, self._log, self.zmq_url, self.web_url = meshcat_server.start_server(timeout, nice)
             self._connect()
         elif zmq_url is not None:
             self.zmq_url = zmq_url
@@ -76,10 +78,34 @@ class MeshcatWindow:
         if self._sock is not None:
             self._request(data["type"].encode("utf-8"), data["path"].encode("utf-8"), packed)
 
+    def _checked(self, reply: bytes) -> None:
+        if reply != b"ok":
+            raise RuntimeError(f"meshcat server at {self.zmq_url}: {reply.decode('utf-8', errors='replace')[:200]}")
+
+    @property
+    def connected(self) -> bool:
+        """Whether commands go to a meshcat server."""
+        return self._sock is not None
+
+    def send_frame(self, paths: list[str], matrices: np.ndarray, rows: Any = None) -> None:
+        """One frame of a live run in one request: the 4x4 transforms matrices (K, 4, 4) of the K nodes `paths`
+        (meshcat paths) and, if given, the page's new numbers `rows` (`crtraj.viz.page.append_rows`). The server
+        forwards it to every page as one message (`crtraj.viz.server.FRAME_COMMAND`; the page's script applies
+        it). Not recorded: a frame is a moment of a live run, whose page is built from its result afterwards."""
+        if self._sock is None:
+            return
+        # three.js reads a matrix column by column; one float32 typed array (msgpack extension 0x17, which
+        # meshcat's page decodes to a Float32Array) for all of them
+        cols = np.ascontiguousarray(np.asarray(matrices, dtype=np.float32).transpose(0, 2, 1))
+        msg = {"type": meshcat_server.FRAME_TYPE, "paths": paths, "matrices": msgpack.ExtType(0x17, cols.tobytes())}
+        if rows is not None:
+            msg["rows"] = rows
+        self._checked(self._request(meshcat_server.FRAME_COMMAND, b"", packb(msg)))
+
     def send_page(self, data_json: str) -> None:
         """Replace the data of the server's full page (`crtraj.viz.server.PAGE_PATH`); no-op without a server."""
         if self._sock is not None:
-            self._request(meshcat_server.PAGE_COMMAND, b"", data_json.encode("utf-8"))
+            self._checked(self._request(meshcat_server.PAGE_COMMAND, b"", data_json.encode("utf-8")))
 
     @property
     def page_url(self) -> str | None:

@@ -3,11 +3,12 @@
 `LiveFeed.observe` is the closed loop's observer port (`crtraj.control.ports.StepObserver`): the loop calls it once
 per recorded step and it only keeps a reference to the (frozen) record under a lock, so the loop's timing does not
 change; `LiveFeed.publish` does the same for a bare state. The feed's thread draws the newest state at most `rate`
-times a second and counts the states it never drew (`dropped`). Drawing goes to anything with ``display(x)`` and
-``set_obstacles(centers, radii)`` (a live `crtraj.viz.view.Visualizer`); a drawer that also has
-``extend(entries)`` (`crtraj.viz.live_page.LivePage`) gets every (state, step) observed since its last draw, so its
-plots miss no step; a drawer with ``draw(state, entries)`` (`crtraj.viz.live_child.ChildDrawer`: another process
-draws) gets both at once instead. Lengths in mm, times in s.
+times a second (each draw a full period after the previous one started) and counts the states it never drew
+(`dropped`). Drawing goes to anything with ``display(x)`` and ``set_obstacles(centers, radii)`` (a live
+`crtraj.viz.view.Visualizer`); a drawer that also has ``extend(entries)`` gets every (state, step) observed since
+its last draw, so its plots miss no step; a drawer with ``draw(state, entries)`` gets both at once instead
+(`crtraj.viz.live_child.ChildDrawer`: another process draws, with `crtraj.viz.live_page.LivePage`). Lengths in
+mm, times in s.
 """
 
 from __future__ import annotations
@@ -74,6 +75,8 @@ class LiveFeed:
         self.failed = 0  # draws that raised (logged; the loop is never stopped by its view)
         # s of this thread's CPU time spent drawing: while it runs Python it holds the GIL the loop's thread needs
         self.draw_cpu = 0.0
+        self.first_draw: float | None = None  # clock time (s) the first and the last draw ended
+        self.last_draw: float | None = None
         self._thread = threading.Thread(target=self._run, name="crtraj-live-view", daemon=True)
         self._thread.start()
 
@@ -108,14 +111,13 @@ class LiveFeed:
             return state, new
 
     def _run(self) -> None:
-        next_at = self._clock()
         extend = getattr(self.drawer, "extend", None)
         draw = getattr(self.drawer, "draw", None)  # a drawer that takes the whole draw at once (another process)
         while True:
             state, new = self._take()
             if state is None:
                 return
-            cpu = time.thread_time()
+            cpu, started = time.thread_time(), self._clock()
             try:
                 if draw is not None:
                     draw(state, new)
@@ -125,16 +127,17 @@ class LiveFeed:
                     self.drawer.display(state.x)
                     self.drawer.set_obstacles(state.centers, state.radii)
                 self.drawn += 1
+                self.last_draw = self._clock()
+                self.first_draw = self.last_draw if self.first_draw is None else self.first_draw
             except Exception:  # a failed draw must not stop the feed nor reach the loop
                 self.failed += 1
                 log.warning("live view: drawing the state at t = %.3f s failed", state.t, exc_info=True)
             self.draw_cpu += time.thread_time() - cpu
-            next_at += self.period
-            wait = next_at - self._clock()
+            # the next draw starts a period after this one started, never sooner: no burst to catch up after a
+            # slow draw, nor after a wait for the loop's next state
+            wait = started + self.period - self._clock()
             if wait > 0:
                 self._sleep(wait)
-            else:
-                next_at = self._clock()  # late: do not try to catch up with a burst
 
     def close(self) -> None:
         """Draw what is pending, stop the thread and wait for it (idempotent)."""
@@ -142,6 +145,12 @@ class LiveFeed:
             self._closed = True
             self._lock.notify()
         self._thread.join()
+
+    def draw_rate(self) -> float:
+        """Frames drawn per second between the first draw and the last (NaN with fewer than two)."""
+        if self.drawn < 2 or self.first_draw is None or self.last_draw is None or self.last_draw <= self.first_draw:
+            return float("nan")
+        return (self.drawn - 1) / (self.last_draw - self.first_draw)
 
     def summary(self) -> dict[str, int]:
         """Counters: published, drawn, dropped, failed."""

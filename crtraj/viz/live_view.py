@@ -4,7 +4,8 @@
 (`crtraj.viz.live_child`) that draws a `crtraj.viz.live_page.LivePage` on that server, and the
 `crtraj.viz.live_feed.LiveFeed` thread between the loop and the child: `feed` is the loop's observer
 (`crtraj.control.ports.StepObserver`). The loop's thread only keeps references; the feed thread only packs the newest
-state and the new steps as JSON and waits for the child; the child does the drawing. Lengths in mm, times in s.
+state and the new steps into one buffer and waits for the child; the child does the drawing and sends each frame to
+the server as one message. Lengths in mm, times in s.
 """
 
 from __future__ import annotations
@@ -17,13 +18,18 @@ from crtraj.viz.live_child import ChildDrawer, setup_message
 from crtraj.viz.live_feed import MAX_RATE_HZ, LiveFeed
 from crtraj.viz.view import Visualizer
 
+# The drawing process and the server run at this niceness: on a busy machine the loop keeps the CPU and the view
+# takes what is left (benchmarks/viz_live.py measures both ways: docs/benchmarks.md).
+VIEW_NICE = 19
+
 
 class LiveView:
     """A served full page (127.0.0.1) fed by a running loop: a `Visualizer` with a server, a `LivePage` drawing
     on it and the `LiveFeed` thread between the loop and the page (`feed` is the loop's observer).
 
     model, goal (3,) mm, scene (safety_distance mm, obstacles with names), deadline (s, 0/None: none); rate: Hz of
-    drawing (<= 30); options: `crtraj.viz.options.ViewOptions`; timeout: s for the server's start-up and replies.
+    drawing (<= 30); options: `crtraj.viz.options.ViewOptions`; timeout: s for the server's start-up and replies;
+    nice: niceness (0-19) of the drawing process and the server.
     """
 
     def __init__(
@@ -36,11 +42,12 @@ class LiveView:
         rate: float = MAX_RATE_HZ,
         options: Any = None,
         timeout: float = 60.0,
+        nice: int = VIEW_NICE,
     ) -> None:
-        self.vis = Visualizer(model, server=True, options=options, timeout=timeout)
+        self.vis = Visualizer(model, server=True, options=options, timeout=timeout, nice=nice)
         try:
             zmq_url = self.vis.zmq_url or ""
-            self.drawer = ChildDrawer(setup_message(model, zmq_url, scene, deadline or math.nan, goal))
+            self.drawer = ChildDrawer(setup_message(model, zmq_url, scene, deadline or math.nan, goal), nice=nice)
         except BaseException:
             self.vis.close()
             raise

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from importlib import resources
 from typing import Any
 
@@ -75,28 +75,69 @@ def run_fields(tl: Timeline, label: str, kind: str, verdict: str, names: Sequenc
 
 def headline(tl: Timeline, names: Sequence[str], late: int | None) -> str:
     """One line that answers what a reader asks first: when and to which obstacle the body came closest, by how
-    much (surface to surface, mm, and beyond D_sf), how often the loop held or fell back (steps), and its deadline:
-    `late` horizon solves that came after it and were not used (the loop's own count; None: not recorded) and
-    iterations that took longer. A plan, which has no loop, gives only the approach."""
-    parts = []
+    much, how often the loop held or fell back, and its deadline (`headline_text`); late: the loop's own count of
+    horizon solves that came after the deadline and were not used (None: not recorded). A plan, which has no
+    loop, gives only the approach."""
+    closest = None
     if tl.clearance.shape[1] and len(tl.t):
         k = tl.closest_index
         j = int(tl.near[k])
-        c = float(tl.clearance[k, j])
-        name = names[j] if j < len(names) else f"obstacle {j}"
-        parts.append(
-            f"closest: {c + tl.safety_distance:.2f} mm to {name} at {float(tl.t[k]):.2f} s "
-            f"({c:+.2f} mm beyond D_sf{', inside D_sf' if c < 0 else ''})"
-        )
+        closest = (float(tl.clearance[k, j]), names[j] if j < len(names) else f"obstacle {j}", float(tl.t[k]))
+    counts = None
     if any(tl.status):
-        held = sum(s == "hold" for s in tl.status)
-        fallback = sum(s == "fallback" for s in tl.status)
-        parts.append(f"{held} hold steps, {fallback} fallback steps")
-    if math.isfinite(tl.deadline):
-        over = int(np.sum(tl.iteration > tl.deadline))
-        missed = "" if late is None else f"{late} deadline misses (solve later than {tl.deadline * 1e3:g} ms, unused), "
-        parts.append(f"{missed}{over} iterations over {tl.deadline * 1e3:g} ms")
+        counts = (sum(s == "hold" for s in tl.status), sum(s == "fallback" for s in tl.status))
+    over = int(np.sum(tl.iteration > tl.deadline)) if math.isfinite(tl.deadline) else 0
+    return headline_text(closest, tl.safety_distance, counts, late, over, tl.deadline)
+
+
+def headline_text(
+    closest: tuple[float, str, float] | None,
+    safety: float,
+    counts: tuple[int, int] | None,
+    late: int | None,
+    over: int,
+    deadline: float,
+) -> str:
+    """The headline's words. closest: (clearance beyond D_sf mm, obstacle, t s) of the closest approach, or
+    None; safety: D_sf mm; counts: (hold, fallback) steps, or None without a loop; late: deadline misses (None:
+    not recorded); over: iterations longer than the deadline (s; NaN: none)."""
+    parts = []
+    if closest is not None:
+        c, name, t = closest
+        inside = ", inside D_sf" if c < 0 else ""
+        parts.append(f"closest: {c + safety:.2f} mm to {name} at {t:.2f} s ({c:+.2f} mm beyond D_sf{inside})")
+    if counts is not None:
+        parts.append(f"{counts[0]} hold steps, {counts[1]} fallback steps")
+    if math.isfinite(deadline):
+        ms = f"{deadline * 1e3:g} ms"
+        missed = "" if late is None else f"{late} deadline misses (solve later than {ms}, unused), "
+        parts.append(f"{missed}{over} iterations over {ms}")
     return " \u00b7 ".join(parts)
+
+
+# the per-step lists of a run's page data (`run_fields`); "clearance" holds one such list per obstacle
+ROW_FIELDS = ("t", "status", "near", "tip_error", "iteration", "velocity", "acceleration")
+
+
+def append_rows(run: dict[str, Any], rows: Mapping[str, Any]) -> None:
+    """Add a live run's new steps to its page data `run` (`run_fields`' layout), in place, as the page's script
+    does. rows: the ROW_FIELDS lists and "clearance" (one list per obstacle) of the new steps, "k" the index of
+    the first, the "events" among them and the run's "closest_t" so far. Steps the run already has are skipped;
+    a gap (k beyond the run's length) is a ValueError."""
+    n, k = len(run["t"]), int(rows["k"])
+    if k > n:
+        raise ValueError(f"rows: step {k} does not follow step {n - 1}")
+    skip = n - k
+    if skip >= len(rows["t"]):
+        return
+    last = run["t"][-1] if n else -math.inf
+    for f in ROW_FIELDS:
+        run[f].extend(rows[f][skip:])
+    for have, new in zip(run["clearance"], rows["clearance"], strict=True):
+        have.extend(new[skip:])
+    run["events"].extend(e for e in rows["events"] if e["t"] > last)
+    run["closest_t"] = rows["closest_t"]
+    run["headline"] = rows.get("headline", run.get("headline", ""))
 
 
 def page_data(runs: Sequence[tuple[Result, Timeline]], options: ViewOptions) -> dict[str, Any]:

@@ -44,6 +44,7 @@ class SceneBuilder:
         self.opacity = 1.0 if prefix == "robot" else options.ghost_opacity
         self._robot_drawn = False
         self._n_obstacles = -1
+        self._paths: list[str] | None = None
         self._layout()
 
     def node(self, name: str) -> meshcat.Visualizer:
@@ -132,19 +133,29 @@ class SceneBuilder:
             return mg.MeshPhongMaterial(color=color)
         return mg.MeshPhongMaterial(color=color, opacity=self.opacity, transparent=True, depthWrite=False)
 
+    def robot_paths(self) -> list[str]:
+        """The meshcat paths of the robot's parts `robot_matrices` poses, in its order: chords, discs, base, tip."""
+        if self._paths is None:
+            p = self.prefix
+            names = [f"{p}/backbone/{i:03d}" for i in range(self.n_chords)]
+            names += [f"{p}/discs/{j:03d}" for j in range(self.n_chords + 1)] + [f"{p}/base", f"{p}/tip"]
+            self._paths = [self.node(n).path.lower() for n in names]
+        return self._paths
+
+    def robot_matrices(self, pose: RobotPoses, z_mm: float) -> np.ndarray:
+        """The 4x4 transforms (len(robot_paths()), 4, 4) (metres) of the robot's parts at the first configuration
+        of `pose`, the base at translation z_mm (mm)."""
+        n = self.n_chords
+        ones = np.ones(n)
+        chords = transforms(pose.chord_mid[0], pose.chord_quat[0], np.stack([ones, pose.chord_len[0], ones], axis=-1))
+        discs = transforms(pose.joints[0], pose.disc_quat[0], np.ones((n + 1, 3)))
+        ends = [translation(self.base_position(z_mm)), translation(pose.joints[0, -1])]
+        return np.concatenate([chords, discs, np.stack(ends)])
+
     def pose_robot(self, pose: RobotPoses, z_mm: float) -> None:
         """Move the robot's objects to the first configuration of `pose`, the base to translation z_mm (mm)."""
-        for i in range(self.n_chords):
-            scale = np.array([1.0, pose.chord_len[0, i], 1.0])
-            self.node(f"{self.prefix}/backbone/{i:03d}").set_transform(
-                transforms(pose.chord_mid[0, i], pose.chord_quat[0, i], scale)
-            )
-        for j in range(self.n_chords + 1):
-            self.node(f"{self.prefix}/discs/{j:03d}").set_transform(
-                transforms(pose.joints[0, j], pose.disc_quat[0, j], np.ones(3))
-            )
-        self.node(f"{self.prefix}/base").set_transform(translation(self.base_position(z_mm)))
-        self.node(f"{self.prefix}/tip").set_transform(translation(pose.joints[0, -1]))
+        for path, T in zip(self.robot_paths(), self.robot_matrices(pose, z_mm), strict=True):
+            self.vis[path].set_transform(T)
 
     def rail_ends(self) -> np.ndarray:
         """Ends of the base rail (mm): the stroke of the base translation z."""

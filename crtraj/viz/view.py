@@ -81,8 +81,9 @@ class Visualizer:
     `static_html` only; ``zmq_url`` connects to a running meshcat server
     instead. ``open=True`` opens the page in the default browser. `options`:
     colours and sizes (`ViewOptions`, the problem file's ``[view]``). `timeout`
-    (s) bounds the server's start-up and every reply. Lengths in mm, times in
-    s. Use as a context manager or call `close` to stop the server.
+    (s) bounds the server's start-up and every reply; `nice` (0-19) is the
+    niceness of the server it starts. Lengths in mm, times in s. Use as a
+    context manager or call `close` to stop the server.
     """
 
     def __init__(
@@ -94,11 +95,12 @@ class Visualizer:
         server: bool = True,
         options: ViewOptions | None = None,
         timeout: float = 60.0,
+        nice: int = 0,
     ) -> None:
         self.model = model
         self.robot = model.robot
         self.options = options if options is not None else ViewOptions()
-        self._window = MeshcatWindow(zmq_url, server and zmq_url is None, timeout)
+        self._window = MeshcatWindow(zmq_url, server and zmq_url is None, timeout, nice)
         self._vis = meshcat.Visualizer(window=self._window)
         self._scene = SceneBuilder(self._vis, model, self.options)
         self._framed = False
@@ -220,14 +222,19 @@ class Visualizer:
     # ------------------------------------------------------------ obstacles
     def set_obstacles(self, centers: Any, radii: Any) -> None:
         """Draw spheres with centres (m, 3) and radii (m,) in mm."""
+        for path, T in zip(*self._obstacle_frame(centers, radii), strict=True):
+            self._vis[path].set_transform(T)
+
+    def _obstacle_frame(self, centers: Any, radii: Any) -> tuple[list[str], np.ndarray]:
+        """The obstacles' and their shells' paths and 4x4 transforms (2 m, 4, 4) for centres (m, 3), radii (m,) mm."""
         C = np.zeros((0, 3)) if len(centers) == 0 else check_array(centers, "centers", (None, 3))
         R = check_array(radii, "radii", (C.shape[0],))
-        self._scene.draw_obstacles(C.shape[0])
-        one = np.array([1.0, 0, 0, 0])
-        for i in range(C.shape[0]):
-            self._vis[f"obstacles/{i}"].set_transform(transforms(C[i] * M_PER_MM, one, np.full(3, R[i] * M_PER_MM)))
-            shell = (R[i] + self._safety) * M_PER_MM
-            self._vis[f"shells/{i}"].set_transform(transforms(C[i] * M_PER_MM, one, np.full(3, shell)))
+        m = C.shape[0]
+        self._scene.draw_obstacles(m)
+        one = np.tile([1.0, 0, 0, 0], (m, 1))
+        scales = np.repeat(np.stack([R, R + self._safety])[..., None], 3, axis=-1) * M_PER_MM  # (2, m, 3)
+        mats = transforms(np.stack([C, C]) * M_PER_MM, np.stack([one, one]), scales).reshape(-1, 4, 4)
+        return [f"{ROOT}/{kind}/{i}" for kind in ("obstacles", "shells") for i in range(m)], mats
 
     # ------------------------------------------------------------------ runs
     def show_result(
@@ -313,15 +320,46 @@ class Visualizer:
 
     def set_closest(self, body_point: Any, obstacle_point: Any) -> None:
         """Put the closest-approach line between body_point and obstacle_point (3,) mm."""
+        for path, T in zip(*self._closest_frame(body_point, obstacle_point), strict=True):
+            self._vis[path].set_transform(T)
+
+    def _closest_frame(self, body_point: Any, obstacle_point: Any) -> tuple[list[str], np.ndarray]:
+        """The closest-approach line's and its end points' paths and 4x4 transforms (none for a non-finite point)."""
         a, b = np.asarray(body_point, float) * M_PER_MM, np.asarray(obstacle_point, float) * M_PER_MM
         if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
-            return
+            return [], np.zeros((0, 4, 4))
         d = b - a
-        quat = cylinder_quat(unit(d))
-        scale = np.array([1.0, np.linalg.norm(d), 1.0])
-        self._vis["closest/line"].set_transform(transforms(0.5 * (a + b), quat, scale))
-        self._vis["closest/body"].set_transform(translation(a))
-        self._vis["closest/obstacle"].set_transform(translation(b))
+        line = transforms(0.5 * (a + b), cylinder_quat(unit(d)), np.array([1.0, np.linalg.norm(d), 1.0]))
+        paths = [f"{ROOT}/closest/{name}" for name in ("line", "body", "obstacle")]
+        return paths, np.stack([line, translation(a), translation(b)])
+
+    def robot_poses(self, x: Any) -> Any:
+        """The poses (metres) of the drawn robot's parts at configurations x (nx,) or (N, nx)
+        (`crtraj.viz.geometry.RobotPoses`)."""
+        return self._scene.poses(x)
+
+    def draw_frame(self, x: Any, centers: Any, radii: Any, closest: Any = None, rows: Any = None) -> None:
+        """One frame of a live run: the robot at x (nx,), obstacles (m, 3) / (m,) mm and, if given, the closest
+        approach between closest's two points (mm). With a server, the frame is one message (`MeshcatWindow.
+        send_frame`: every transform at once, with `rows`, the page's new numbers, `crtraj.viz.page.append_rows`),
+        not one request per object; such frames are not recorded (a live run's page is built from its result).
+        Offline, each transform is set (and recorded) as by `display`."""
+        xa = check_array(x, "x", (self.robot.nx,))
+        self._scene.draw_robot()
+        pose = self._scene.poses(xa)
+        if not self._framed:
+            self.frame_camera(pose.joints[0] / M_PER_MM)
+        parts = [(self._scene.robot_paths(), self._scene.robot_matrices(pose, xa[-1]))]
+        parts.append(self._obstacle_frame(centers, radii))
+        if closest is not None:
+            parts.append(self._closest_frame(*closest))
+        paths = [path for names, _ in parts for path in names]
+        mats = np.concatenate([T for _, T in parts])
+        if self._window.connected:
+            self._window.send_frame(paths, mats, rows)
+            return
+        for path, T in zip(paths, mats, strict=True):
+            self._vis[path].set_transform(T)
 
     # ---------------------------------------------------------------- export
     def static_html(self) -> str:

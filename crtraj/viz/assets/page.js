@@ -269,23 +269,61 @@
   window.addEventListener("resize", () => { fitPane(); for (const p of plots) p.draw(); refresh(); });
   buildLegend(); buildEvents(); buildPlots(); refresh();
   // ------------------------------------------------------------ live: the served page of a running loop
-  // polls the server's data (crtraj.viz.server) and shows the newest step; when the run ends, the server's
-  // data is the finished run's (live false) and the page reloads to its replay.
+  // The server (crtraj.viz.server) sends each frame of the run as one web-socket message: the transforms of every
+  // moving node and the new steps' numbers (rows, appended as crtraj.viz.page.append_rows does). The panel follows
+  // the newest step; plots and events are redrawn at most every PLOT_MS. A "crtraj_page" message means the data
+  // changed as a whole: fetch it; when the run has ended (live false) the page reloads to its replay.
+  const ROW_FIELDS = ["t", "status", "near", "tip_error", "iteration", "velocity", "acceleration"];
+  const PLOT_MS = 250;
+  let stale = false, lastBuild = 0;
+  function rebuild() {
+    plots.length = 0; $("crtraj-plots").innerHTML = ""; $("crtraj-events").innerHTML = "";
+    buildEvents(); buildPlots(); lastBuild = performance.now(); stale = false;
+  }
   function load(d) {
     data = d; runs = d.runs; duration = lastT();
     frames = runs.length && runs[0].t.length ? runs[0].t : [0];
-    plots.length = 0; $("crtraj-plots").innerHTML = ""; $("crtraj-events").innerHTML = "";
-    buildEvents(); buildPlots();
     shownTime = duration;
-    refresh();
+    rebuild(); refresh();
   }
-  function poll() {
+  function fetchData() {
     fetch("data.json", { cache: "no-store" }).then((r) => r.json()).then((d) => {
-      if (!d.live) { location.reload(); return; }
-      load(d); setTimeout(poll, 250);
-    }).catch(() => setTimeout(poll, 1000));
+      if (!d.live && data.live) location.reload(); else if (d.live) load(d);
+    }).catch(() => setTimeout(fetchData, 1000));
   }
-  if (data.live) { shownTime = duration; setTimeout(poll, 250); }
+  function appendRows(rows) {
+    if (!data.live || !runs.length) return;
+    const r = runs[0], n = r.t.length;
+    if (rows.k > n) { fetchData(); return; } // a gap: frames came before this page's data
+    const skip = n - rows.k;
+    if (skip >= rows.t.length) return;
+    const last = n ? r.t[n - 1] : -Infinity;
+    for (const f of ROW_FIELDS) r[f].push(...rows[f].slice(skip));
+    rows.clearance.forEach((c, i) => r.clearance[i].push(...c.slice(skip)));
+    for (const e of rows.events) if (e.t > last) r.events.push(e);
+    r.closest_t = rows.closest_t;
+    if (rows.headline !== undefined) r.headline = rows.headline;
+    duration = lastT(); frames = r.t; shownTime = duration;
+    refresh();
+    stale = true;
+    if (performance.now() - lastBuild >= PLOT_MS) { rebuild(); refresh(); }
+  }
+  function applyFrame(cmd) {
+    const m = cmd.matrices;
+    cmd.paths.forEach((p, i) => window.viewer.set_transform(p.split("/").filter((s) => s), m.subarray(16 * i, 16 * i + 16)));
+    window.viewer.set_dirty();
+    if (cmd.rows) appendRows(cmd.rows);
+  }
+  if (window.viewer && window.viewer.handle_command) {
+    const meshcatCommand = window.viewer.handle_command.bind(window.viewer);
+    window.viewer.handle_command = (cmd) => {
+      if (cmd.type === "crtraj_frame") applyFrame(cmd);
+      else if (cmd.type === "crtraj_page") fetchData();
+      else meshcatCommand(cmd);
+    };
+  }
+  if (data.live) setInterval(() => { if (stale && performance.now() - lastBuild >= PLOT_MS) { rebuild(); refresh(); } }, PLOT_MS);
+  if (data.live) shownTime = duration;
   window.crtrajView = { seek, play, pause, step, setSpeed, project, time: now, isReady: () => ready,
     get data() { return data; } };
   waitForScene(0);
