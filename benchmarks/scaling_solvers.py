@@ -20,7 +20,8 @@ one-off builds take minutes.
 
 Writes docs/scaling_solvers.png (two panels: vs obstacles, vs segments) and prints the table with the
 date, machine and load. Run: python benchmarks/scaling_solvers.py [--compiled 7] [--compiled-replan 31]
-[--out docs/scaling_solvers.png]
+[--out docs/scaling_solvers.png] [--obstacles 1,7,31,100] [--segments 2] [--replan-only] (only the compiled
+replan columns; issue 29's 31-to-1 ratio is printed at the end)
 """
 
 from __future__ import annotations
@@ -137,10 +138,17 @@ def main() -> int:
         "--old-up-to", type=int, default=31, help="steer, interpreted and all-obstacle replan up to this many obstacles"
     )
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "scaling_solvers.png")
+    ap.add_argument("--obstacles", default=",".join(map(str, OBSTACLES)), help="comma list of obstacle counts")
+    ap.add_argument("--segments", default=",".join(map(str, SEGMENTS)), help="comma list of segment counts")
+    ap.add_argument(
+        "--replan-only", action="store_true", help="only the compiled replan columns (no steer, no interpreted replan)"
+    )
     args = ap.parse_args()
+    counts = [int(v) for v in args.obstacles.split(",")]
+    segments = [int(v) for v in args.segments.split(",")]
     base = Problem.load(ROOT / "problems" / "paper_static.toml").robot
     load0 = os.getloadavg()[0]
-    cases = [(2, m) for m in OBSTACLES] + [(n, SEG_OBSTACLES) for n in SEGMENTS if n != 2]
+    cases = [(2, m) for m in counts] + [(n, SEG_OBSTACLES) for n in segments if n != 2]
     rows = []
     print(
         f"{'segments':>8} {'obstacles':>9} {'steer cpu ms':>12} {'ok':>5} {'compiled cpu ms':>15} {'iter ms':>8} "
@@ -152,30 +160,48 @@ def main() -> int:
         scene = scene_for(model, m, seed=10 * n + m)
         nan = float("nan")  # not timed: printed as nan, not plotted
         old = m <= args.old_up_to
-        st, ok = steer_ms(model, scene, compiled=False) if old else (nan, nan)
-        cst = steer_ms(model, scene, compiled=True)[0] if m <= min(args.compiled, args.old_up_to) else nan
-        it, nlp, p99, cpu = replan_ms(model, scene) if old else (nan, nan, nan, nan)
-        cnlp = ccpu = bnlp = bcpu = nan
+        interp = old and not args.replan_only
+        st, ok = steer_ms(model, scene, compiled=False) if interp else (nan, nan)
+        cst = steer_ms(model, scene, compiled=True)[0] if interp and m <= min(args.compiled, args.old_up_to) else nan
+        it, nlp, p99, cpu = replan_ms(model, scene) if interp else (nan, nan, nan, nan)
+        cnlp = ccpu = bnlp = bcpu = bmed = nan
         if m <= args.compiled_replan:
             # interleaved: the previous path (every obstacle in the QP), then the broad phase's
             if old:
                 _, cnlp, _, ccpu = replan_ms(model, scene, compiled=True)
-            _, bnlp, _, bcpu = replan_ms(model, scene, compiled=True, qp_obstacles=8)
+            bmed, bnlp, _, bcpu = replan_ms(model, scene, compiled=True, qp_obstacles=8)
         row = {"segments": n, "obstacles": m, "steer": st, "ok": ok, "compiled": cst}
         rows.append(
-            row | {"iter": it, "p99": p99, "nlp": nlp, "iter_cpu": cpu, "compiled_iter_cpu": ccpu, "broad_cpu": bcpu}
+            row
+            | {"iter": it, "p99": p99, "nlp": nlp, "iter_cpu": cpu, "compiled_iter_cpu": ccpu, "broad_cpu": bcpu}
+            | {"broad_med": bmed, "broad_nlp": bnlp}
         )
         print(
             f"{n:>8} {m:>9} {st:>12.3f} {ok:>5.2f} {cst:>15.3f} {it:>8.2f} {p99:>8.2f} {nlp:>7.2f} {cpu:>11.2f} "
             f"{ccpu:>20.2f} {cnlp:>15.2f} {bcpu:>17.2f} {bnlp:>12.2f}",
             flush=True,
         )
+    _print_ratios(rows)
     stamp = f"{datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC"
     machine = f"{platform.machine()}, {os.cpu_count()} cores, load {load0:.1f} -> {os.getloadavg()[0]:.1f}"
     print(f"date {stamp}; machine {machine}")
     plot(rows, args.out, f"{stamp}, {machine}")
     print(f"wrote {args.out}")
     return 0
+
+
+def _print_ratios(rows: list[dict]) -> None:
+    """The broad phase's replan iteration at m obstacles over that at 1 (2 segments; issue 29's target: 31/1 <= 2x)."""
+    two = {r["obstacles"]: r for r in rows if r["segments"] == 2}
+    if 1 not in two or not np.isfinite(two[1]["broad_cpu"]):
+        return
+    one = two[1]
+    for m, r in sorted(two.items()):
+        if m > 1 and np.isfinite(r["broad_cpu"]):
+            print(
+                f"broad phase, {m} obstacles / 1: iteration CPU mean x{r['broad_cpu'] / one['broad_cpu']:.2f}, wall "
+                f"median x{r['broad_med'] / one['broad_med']:.2f}, NLP median x{r['broad_nlp'] / one['broad_nlp']:.2f}"
+            )
 
 
 def plot(rows: list[dict], out: Path, note: str) -> None:
@@ -196,12 +222,14 @@ def plot(rows: list[dict], out: Path, note: str) -> None:
     ):
         x = [r[key] for r in sel]
         fin = [(xi, r["steer"]) for xi, r in zip(x, sel, strict=True) if np.isfinite(r["steer"])]
-        ax.plot(*zip(*fin, strict=True), "o-", color="C0", label="steer, sqp + daqp interpreted (CPU median)")
+        if fin:
+            ax.plot(*zip(*fin, strict=True), "o-", color="C0", label="steer, sqp + daqp interpreted (CPU median)")
         comp = [(xi, r["compiled"]) for xi, r in zip(x, sel, strict=True) if np.isfinite(r["compiled"])]
         if comp:
             ax.plot(*zip(*comp, strict=True), "s-", color="C1", label="steer, compiled C (CPU median)")
         fin = [(xi, r["iter_cpu"]) for xi, r in zip(x, sel, strict=True) if np.isfinite(r["iter_cpu"])]
-        ax.plot(*zip(*fin, strict=True), "^-", color="C2", label="replan iteration, interpreted (CPU mean)")
+        if fin:
+            ax.plot(*zip(*fin, strict=True), "^-", color="C2", label="replan iteration, interpreted (CPU mean)")
         comp = [
             (xi, r["compiled_iter_cpu"]) for xi, r in zip(x, sel, strict=True) if np.isfinite(r["compiled_iter_cpu"])
         ]
