@@ -11,12 +11,12 @@ one-off builds take minutes.
   for every scene of at most M obstacles (each new size is one C build; minutes on a loaded machine).
 - replan: a 3 s closed-loop run (30 iterations) toward a goal configuration along the straight
   reference; median time per iteration and median horizon-NLP time (sqpmethod + daqp interpreted), and
-  with ``--compiled-replan M`` the compiled horizon NLP as problems/paper_dynamic.toml runs it (iteration
-  cap 3 per call, up to 20 calls; no deadline, so every solve converges) for every scene of at most M
+  with ``--compiled-replan M`` the compiled horizon NLP as problems/paper_dynamic.toml runs it (its iteration
+  cap per call and calls; no deadline, so every solve converges) for every scene of at most M
   obstacles (each new size is one C build of the horizon NLP, about a minute). That column puts every
   obstacle in the QP (``qp_obstacles = 0``, the previous path); the "broad" column is the same with the
-  shipped ``qp_obstacles = 8``: a QP of at most 8 obstacle slots, filled each step by the horizon's broad
-  phase (`crtraj.control.horizon_broad`), every move still verified against every obstacle.
+  shipped ``qp_obstacles = 8`` (``--broad-slots``): a QP of at most 8 obstacle slots, filled each step by the
+  horizon's broad phase (`crtraj.control.horizon_broad`), every move still verified against every obstacle.
 
 Writes docs/scaling_solvers.png (two panels: vs obstacles, vs segments) and prints the table with the
 date, machine and load. Run: python benchmarks/scaling_solvers.py [--compiled 7] [--compiled-replan 31]
@@ -51,6 +51,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from steer import make_problems  # noqa: E402 - the steer benchmark's own problem generator
 
 OBSTACLES = (1, 3, 7, 15, 31, 100)
+SHIPPED = Problem.load(ROOT / "problems" / "paper_dynamic.toml")
 SEGMENTS = (2, 3, 4)
 SEG_OBSTACLES = 7
 
@@ -112,7 +113,8 @@ def replan_ms(
     closed-loop run; compiled: the horizon NLP in C with the shipped problem's iteration cap; qp_obstacles:
     the QP's obstacle slots (0: every obstacle of the scene); qpsol: "hpipm" is the stage-form QP (issue 29)."""
     xs, xg = configs(model)
-    cap = {"compiled": True, "max_iter": 3, "max_calls": 20} if compiled else {}
+    shipped = SHIPPED.options(ReplanOptions, "replan")  # the iteration cap simulation 2 ships
+    cap = {"compiled": True, "max_iter": shipped.max_iter, "max_calls": shipped.max_calls} if compiled else {}
     opts = ReplanOptions(solver="sqp", qpsol=qpsol, points=16, qp_obstacles=qp_obstacles, **cap)
     loop = ClosedLoop.build(
         model, scene, model.tip_position(xg), xs, options=opts, loop_options=LoopOptions(duration=3.0), goal_config=xg
@@ -139,6 +141,7 @@ def main() -> int:
     )
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "scaling_solvers.png")
     ap.add_argument("--obstacles", default=",".join(map(str, OBSTACLES)), help="comma list of obstacle counts")
+    ap.add_argument("--broad-slots", type=int, default=8, help="the broad phase column's qp_obstacles")
     ap.add_argument("--segments", default=",".join(map(str, SEGMENTS)), help="comma list of segment counts")
     ap.add_argument(
         "--replan-only", action="store_true", help="only the compiled replan columns (no steer, no interpreted replan)"
@@ -169,7 +172,7 @@ def main() -> int:
             # interleaved: the previous path (every obstacle in the QP), then the broad phase's
             if old:
                 _, cnlp, _, ccpu = replan_ms(model, scene, compiled=True)
-            bmed, bnlp, _, bcpu = replan_ms(model, scene, compiled=True, qp_obstacles=8)
+            bmed, bnlp, _, bcpu = replan_ms(model, scene, compiled=True, qp_obstacles=args.broad_slots)
         row = {"segments": n, "obstacles": m, "steer": st, "ok": ok, "compiled": cst}
         rows.append(
             row
@@ -185,7 +188,7 @@ def main() -> int:
     stamp = f"{datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC"
     machine = f"{platform.machine()}, {os.cpu_count()} cores, load {load0:.1f} -> {os.getloadavg()[0]:.1f}"
     print(f"date {stamp}; machine {machine}")
-    plot(rows, args.out, f"{stamp}, {machine}")
+    plot(rows, args.out, f"{stamp}, {machine}", args.broad_slots)
     print(f"wrote {args.out}")
     return 0
 
@@ -204,7 +207,7 @@ def _print_ratios(rows: list[dict]) -> None:
             )
 
 
-def plot(rows: list[dict], out: Path, note: str) -> None:
+def plot(rows: list[dict], out: Path, note: str, slots: int = 8) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -237,7 +240,7 @@ def plot(rows: list[dict], out: Path, note: str) -> None:
             ax.plot(*zip(*comp, strict=True), "v-", color="C3", label="replan iteration, compiled C (CPU mean)")
         comp = [(xi, r["broad_cpu"]) for xi, r in zip(x, sel, strict=True) if np.isfinite(r["broad_cpu"])]
         if comp:
-            broad = "replan iteration, compiled C, broad phase, <= 8 QP obstacles (CPU mean)"
+            broad = f"replan iteration, compiled C, broad phase, <= {slots} QP obstacles (CPU mean)"
             ax.plot(*zip(*comp, strict=True), "D-", color="C4", label=broad)
         ax.set_xlabel(label)
         ax.set_xticks(x)
