@@ -11,11 +11,11 @@ check (and replanning when needed), horizon NLP, tracking simulation and the
 dense verification of the move. Each configuration runs the closed loop for
 several planner seeds; the figures pool all iterations.
 
-Variants: "compiled" is the problem as shipped (qp_obstacles = 8: a scene of more obstacles gets a QP of 8
+Variants: "compiled" is the problem as shipped (qp_obstacles = 3: a scene of more obstacles gets a QP of 3
 slots filled by the horizon's broad phase; "compiled-all" is the previous path, every obstacle in the QP,
 qp_obstacles = 0; on simulation 2's two spheres the two are the same computation): the horizon's sqpmethod + daqp
 generated as C (compiled once into the build cache, called through ctypes), a
-4 ms step deadline, 3 SQP iterations per call (max_calls 20), and reference
+4 ms step deadline, 1 SQP iteration per call (max_calls 60), and reference
 paths planned by a worker process beside the loop ([loop] reference_delay =
 0.2 s). "compiled-inline": the same with each reference path planned inside
 the step that asks for it (reference_delay = 0, the previous round's loop).
