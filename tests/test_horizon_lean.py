@@ -146,3 +146,17 @@ def test_a_sim2_loop_with_one_iteration_per_call_is_safe_and_reaches_the_goal(pr
     assert s["collisions"] == 0 and s["safety_violations"] == 0 and s["min_clearance_mm"] > 0.0
     assert s["deadline_misses"] == 0
     assert set(s["status_counts"]) <= {"move", "suboptimal"}
+
+
+def test_the_loop_keeps_its_setup_out_of_the_garbage_collector_during_its_steps(problem):
+    """During the steps every object the setup made is frozen (`gc.freeze`: the collector's full collections no
+    longer traverse them), and after the run the heap is unfrozen again (nothing stays uncollectable)."""
+    import gc
+
+    assert gc.get_freeze_count() == 0
+    loop = _loop(problem, duration=1.0, step_deadline=0.0)
+    counts: list[int] = []
+    run = loop.run(progress=lambda k, t, status: counts.append(gc.get_freeze_count()))
+    assert run.steps == len(counts) >= 5
+    assert min(counts) > 1000  # the setup's objects: CasADi functions, arrays, the planner's data
+    assert gc.get_freeze_count() == 0
