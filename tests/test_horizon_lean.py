@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import require_tool
+from test_horizon_fused import TOL, _close  # the fused call's tolerance and comparison
 
 from crtraj.control.horizon import Replanner, ReplanOptions
 from crtraj.control.horizon_buffers import ParameterBuffer
@@ -22,15 +23,12 @@ from crtraj.core.errors import InputError
 from crtraj.io.problem import Problem
 from crtraj.world import packing
 
-ROOT = Path(__file__).resolve().parent.parent
-# stated tolerance: both paths run the same generated solver code on the same numbers, so they agree to rounding
-TOL = 1e-9
-
 
 @pytest.fixture(scope="module")
 def problem() -> Problem:
+    """Simulation 2 as shipped (its compiled horizon needs a C compiler)."""
     require_tool("cc", "gcc", "clang", hint="the compiled horizon needs a C compiler")
-    return Problem.load(ROOT / "problems" / "paper_dynamic.toml")
+    return Problem.load(Path(__file__).resolve().parent.parent / "problems" / "paper_dynamic.toml")
 
 
 def _loop(problem: Problem, duration: float = 12.0, **replan) -> ClosedLoop:
@@ -38,11 +36,6 @@ def _loop(problem: Problem, duration: float = 12.0, **replan) -> ClosedLoop:
     opts = dataclasses.replace(problem.options(ReplanOptions, "replan"), **replan)
     lopts = dataclasses.replace(problem.options(LoopOptions, "loop"), reference_delay=0.0, duration=duration)
     return ClosedLoop.from_problem(problem, seed=0, options=opts, loop_options=lopts)
-
-
-def _close(a, b) -> bool:
-    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
-    return bool(np.all(np.abs(a - b) <= TOL * (1.0 + np.abs(b))))
 
 
 def test_the_parameter_buffer_is_the_concatenation_bit_for_bit(model):

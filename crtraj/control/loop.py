@@ -90,10 +90,11 @@ def _freeze_heap() -> bool:
     """Move every object alive now (the setup's CasADi functions, arrays, planner data) out of the cyclic garbage
     collector's reach for the run (issue 29): its full collections traverse them all, 1-4 ms pauses that landed
     inside every other step of a 31-obstacle run. Garbage made during the run is still collected; the caller
-    unfreezes at the end (then they are collectable again). False when something else froze the heap already."""
+    unfreezes at the end (then they are collectable again). No collection first: one costs 60-80 ms of CPU on
+    simulation 2's heap, and the few hundred unreachable objects it would free wait until the unfreeze. False
+    when something else froze the heap already."""
     if gc.get_freeze_count():
         return False
-    gc.collect()
     gc.freeze()
     return True
 
