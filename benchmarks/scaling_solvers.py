@@ -226,7 +226,7 @@ def plot(rows: list[dict], out: Path, note: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    fig, axes = plt.subplots(1, 2, figsize=(10, 5.2))
     for ax, key, sel, label in (
         (axes[0], "obstacles", [r for r in rows if r["segments"] == 2], "obstacles (2 segments)"),
         (
@@ -269,9 +269,10 @@ def plot(rows: list[dict], out: Path, note: str) -> None:
             ax.set_xticks(x)
             ax.set_xticklabels([str(v) for v in x])
         ax.grid(True, which="both", alpha=0.3)
-    axes[0].legend(fontsize=8)
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=2, fontsize=7)  # below the panels: no line hidden
     fig.suptitle(f"solver cost scaling ({note})", fontsize=9)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0.0, 0.2, 1.0, 1.0))
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=110)
 
