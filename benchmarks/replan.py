@@ -11,16 +11,19 @@ check (and replanning when needed), horizon NLP, tracking simulation and the
 dense verification of the move. Each configuration runs the closed loop for
 several planner seeds; the figures pool all iterations.
 
-Variants: "compiled" is the problem as shipped (qp_obstacles = 8: a scene of more obstacles gets a QP of 8
+Variants: "compiled" is the problem as shipped (qp_obstacles = 3: a scene of more obstacles gets a QP of 3
 slots filled by the horizon's broad phase; "compiled-all" is the previous path, every obstacle in the QP,
 qp_obstacles = 0; on simulation 2's two spheres the two are the same computation): the horizon's sqpmethod + daqp
 generated as C (compiled once into the build cache, called through ctypes), a
-4 ms step deadline, 3 SQP iterations per call (max_calls 20), and reference
+4 ms step deadline, 1 SQP iteration per call (max_calls 60), and reference
 paths planned by a worker process beside the loop ([loop] reference_delay =
 0.2 s). "compiled-inline": the same with each reference path planned inside
 the step that asks for it (reference_delay = 0, the previous round's loop).
 "compiled-unfused": "compiled" with the solver, its KKT check and the row check as two C calls and numpy
-(fused = false; "compiled" makes them one generated C call, issue 29).
+(fused = false; "compiled" makes them one generated C call on preallocated parameter buffers, issue 29).
+"compiled-3it": "compiled" with the previous stop's three SQP iterations per solver call (max_iter 3, max_calls 20;
+the problem now runs one per call, issue 29). "compiled-prev": the previous stop's path as a whole (three
+iterations a call, fused = false, and the heap left to the garbage collector during the steps).
 "sqp-hpipm", "compiled-hpipm": the horizon QP in stage form (state (x_k, x_k-1), input x_k+1) solved by
 HPIPM (issue 29), interpreted as "sqp" runs and as generated C as "compiled" runs.
 "compiled-old": the compiled solver with the QP of the previous round (every
@@ -36,7 +39,8 @@ path or took one over; 'misses' counts the steps whose NLP result came after
 the deadline (they fall back to the last verified plan or a verified hold).
 
 Run: python benchmarks/replan.py [--seeds 3] [--deadline 0.002]
-         [--solvers compiled,compiled-unfused,compiled-all,compiled-old,sqp,ipopt,sqp-qrqp,sqp-hpipm,compiled-hpipm]
+         [--solvers compiled,compiled-prev,compiled-unfused,compiled-3it,compiled-all,compiled-old,sqp,ipopt,sqp-qrqp,
+                    sqp-hpipm,compiled-hpipm]
 """
 
 from __future__ import annotations
@@ -48,9 +52,11 @@ import os
 import platform
 import time
 from pathlib import Path
+from unittest import mock
 
 import numpy as np
 
+from crtraj.control import loop as loop_module
 from crtraj.control.horizon import ReplanOptions
 from crtraj.control.loop import ClosedLoop
 from crtraj.control.loop_options import LoopOptions
@@ -61,7 +67,7 @@ ROOT = Path(__file__).resolve().parent.parent
 PAPER = read_toml(ROOT / "benchmarks" / "paper_results.toml")  # the paper's figures (a copy of its reference file)
 
 # [replan] overrides per variant, on top of the problem's (problems/paper_dynamic.toml: compiled, a 4 ms step
-# deadline, max_iter 3 per call, max_calls 20)
+# deadline, max_iter 1 per call, max_calls 60)
 VARIANTS = {
     # the interpreted paths, as the previous submission ran them: no deadline, 60 iterations, inline references
     "sqp": {"solver": "sqp", "qpsol": "daqp", "compiled": False, "step_deadline": 0.0, "max_iter": 60, "max_calls": 1},
@@ -72,6 +78,13 @@ VARIANTS = {
     "compiled-unfused": {"solver": "sqp", "qpsol": "daqp", "compiled": True, "fused": False},
     # the previous path: every obstacle of the scene in the QP, no broad phase (the switch: qp_obstacles = 0)
     "compiled-all": {"solver": "sqp", "qpsol": "daqp", "compiled": True, "qp_obstacles": 0},
+    # issue 29: the problem's one SQP iteration per solver call (a real-time iteration from the shifted warm
+    # start) against the previous stop's three (max_iter 3, max_calls 20: at most the same 60 iterations)
+    "compiled-3it": {"solver": "sqp", "qpsol": "daqp", "compiled": True, "max_iter": 3, "max_calls": 20},
+    # the previous stop's path as a whole: three iterations a call, solver and KKT check as two calls, the numpy
+    # row check and the parameters by concatenation (fused = false)
+    "compiled-prev": {"solver": "sqp", "qpsol": "daqp", "compiled": True, "max_iter": 3, "max_calls": 20,
+                      "fused": False},
     "compiled-inline": {"solver": "sqp", "qpsol": "daqp", "compiled": True},
     # issue 29: the stage-form QP for HPIPM (`crtraj.control.horizon_stage`), interpreted as "sqp" runs, and
     # as generated C as "compiled" runs (the problem's deadline)
@@ -94,6 +107,10 @@ LOOP_VARIANTS = {
 }
 
 
+# variants whose loop leaves the heap to the garbage collector during the steps, as before issue 29 (the loop now
+# freezes the setup's objects for the run: `crtraj.control.loop._freeze_heap`)
+UNFROZEN = {"compiled-prev"}
+
 # --deadline: the step deadline (s) of the variants that keep the problem's (None: the problem's)
 DEADLINE: list[float | None] = [None]
 
@@ -107,7 +124,12 @@ def _one(problem: Problem, name: str, seed: int, safety: bool) -> tuple[object, 
     lopts = dataclasses.replace(problem.options(LoopOptions, "loop"), **LOOP_VARIANTS.get(name, {}))
     loop = ClosedLoop.from_problem(problem, seed=seed, options=opts, loop_options=lopts)
     c0 = time.process_time()
-    run = loop.run()
+    if name in UNFROZEN:
+        # the previous stop's loop: the garbage collector's full collections traverse the whole heap in the steps
+        with mock.patch.object(loop_module, "_freeze_heap", lambda: False):
+            run = loop.run()
+    else:
+        run = loop.run()
     return run, (time.process_time() - c0) / max(1, run.steps)
 
 
@@ -165,8 +187,33 @@ def _summary(name: str, runs: list) -> dict:
 
 def _ratios(new: dict, old: dict) -> str:
     """old / new of the time figures of two variants' summaries."""
-    keys = {"nlp_med": "NLP median", "it_med": "iteration median", "it_p99": "p99", "cpu_step": "CPU per step"}
+    keys = {
+        "nlp_med": "NLP median",
+        "nlp_p99": "NLP p99",
+        "it_med": "iteration median",
+        "it_p99": "p99",
+        "it_max": "max",
+        "cpu_step": "CPU per step",
+    }
     return ", ".join(f"{text} x{old[k] / new[k]:.2f}" for k, text in keys.items())
+
+
+def _comparisons(qp_obstacles: int) -> list[tuple[str, str, str]]:
+    """(new variant, old variant, what the ratio compares) for every pair the run may hold."""
+    return [
+        ("compiled", "sqp", "compiled vs interpreted sqp + daqp"),
+        ("compiled", "compiled-unfused", "compiled, one fused C call on preallocated buffers vs solver + KKT calls "
+         "and the numpy row check"),
+        ("compiled", "compiled-prev", "this stop's step vs the previous stop's (issue 29)"),
+        ("compiled", "compiled-3it", "one SQP iteration per call vs three (the previous stop's)"),
+        ("compiled-3it", "compiled-prev", "three iterations a call: fused call on preallocated buffers vs not"),
+        ("compiled", "compiled-inline", "compiled, references beside the loop vs inside the step"),
+        ("compiled", "compiled-all", f"compiled, broad phase (qp_obstacles {qp_obstacles}) vs every obstacle in the "
+         "QP (qp_obstacles 0)"),
+        ("sqp", "sqp-hpipm", "dense QP, daqp vs the stage-form QP, HPIPM (interpreted)"),
+        ("compiled", "compiled-hpipm", "dense QP, daqp vs the stage-form QP, HPIPM (compiled)"),
+        ("compiled", "compiled-old", "compiled, this round's QP vs the previous round's"),
+    ]  # fmt: skip
 
 
 def _merge(dicts: list[dict]) -> dict:
@@ -237,45 +284,11 @@ def main() -> None:
         "interleaved, seed by seed)"
     )
     by = {r["variant"]: r for r in results}
-    if "compiled" in by and "sqp" in by:
-        c, i = by["compiled"], by["sqp"]
-        print(
-            f"\ncompiled vs interpreted sqp + daqp: NLP median x{i['nlp_med'] / c['nlp_med']:.2f}, "
-            f"iteration median x{i['it_med'] / c['it_med']:.2f}, iteration p99 x{i['it_p99'] / c['it_p99']:.2f}"
-        )
-    if "compiled" in by and "compiled-unfused" in by:
-        c, u = by["compiled"], by["compiled-unfused"]
-        why = f"deadline misses {c['misses']} vs {u['misses']}"
-        print(f"compiled, one fused C call vs solver + KKT calls and the numpy row check: {_ratios(c, u)}; {why}")
-    if "compiled" in by and "compiled-inline" in by:
-        c, inl = by["compiled"], by["compiled-inline"]
-        print(
-            f"compiled, references beside the loop vs inside the step: iteration median "
-            f"x{inl['it_med'] / c['it_med']:.2f}, p99 x{inl['it_p99'] / c['it_p99']:.2f}, "
-            f"max x{inl['it_max'] / c['it_max']:.2f}; deadline misses {c['misses']} vs {inl['misses']}"
-        )
-    if "compiled" in by and "compiled-all" in by:
-        c, a = by["compiled"], by["compiled-all"]
-        print(
-            f"compiled, broad phase (qp_obstacles {problem.options(ReplanOptions, 'replan').qp_obstacles}) vs every "
-            f"obstacle in the QP (qp_obstacles 0): iteration median x{a['it_med'] / c['it_med']:.2f}, p99 "
-            f"x{a['it_p99'] / c['it_p99']:.2f}, CPU per step x{a['cpu_step'] / c['cpu_step']:.2f}"
-        )
-    for dense, stage in (("sqp", "sqp-hpipm"), ("compiled", "compiled-hpipm")):
-        if dense in by and stage in by:
-            d, h = by[dense], by[stage]
-            print(
-                f"{stage} (stage-form QP, HPIPM) vs {dense} (dense QP, daqp): NLP median "
-                f"x{h['nlp_med'] / d['nlp_med']:.2f}, NLP p99 x{h['nlp_p99'] / d['nlp_p99']:.2f}, iteration median "
-                f"x{h['it_med'] / d['it_med']:.2f}, p99 x{h['it_p99'] / d['it_p99']:.2f}; misses {h['misses']} vs "
-                f"{d['misses']}"
-            )
-    if "compiled" in by and "compiled-old" in by:
-        c, old = by["compiled"], by["compiled-old"]
-        print(
-            f"compiled, this round's QP vs the previous round's: NLP median x{old['nlp_med'] / c['nlp_med']:.2f}, "
-            f"iteration median x{old['it_med'] / c['it_med']:.2f}, iteration p99 x{old['it_p99'] / c['it_p99']:.2f}"
-        )
+    print()
+    for new_, old_, text in _comparisons(problem.options(ReplanOptions, "replan").qp_obstacles):
+        if new_ in by and old_ in by:
+            a, b = by[new_], by[old_]
+            print(f"{text}: {_ratios(a, b)}; deadline misses {a['misses']} vs {b['misses']}")
     ns = run_variant(problem, names[0], seeds[:1], safety=False)
     print(
         f"\nwithout collision-free terms ({names[0]}, seed 0): min clearance {ns['min_clearance']:.2f} mm, "

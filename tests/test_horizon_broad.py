@@ -12,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from crtraj.control.horizon import Replanner, ReplanOptions
-from crtraj.control.horizon_broad import BroadPhase, Selection, step_reach
+from crtraj.control.horizon_broad import ROW_TOLERANCE, BroadPhase, Selection, step_reach
 from crtraj.control.loop import ClosedLoop, RunStatus
 from crtraj.control.loop_options import LoopOptions
 from crtraj.planning.metric import BodyMetric
@@ -206,3 +206,35 @@ def test_an_overflowing_qp_returns_no_plan_inside_an_omitted_obstacle(model, ful
             rows = full.distances(res.configs.ravel(), full.obstacles_from_scene(scene, 0.0))
             assert rows.min() >= -1e-6, res.solver_status
     assert small.broad_overflows == 6 and plans >= 1
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), m=st.integers(SLOTS + 1, 4 * SLOTS), t0=st.floats(0.0, 20.0))
+def test_with_more_obstacles_than_slots_the_narrow_phase_loses_none(model, full, seed, m, t0):
+    """Random scenes of more obstacles than the QP's slots and random plans within reach (issue 29): every obstacle
+    whose narrow-phase rows (every backbone point of every step against its inflated swept sphere, in numpy) the
+    plan enters is one the broad phase calls relevant, and is in the QP's slots or found by the check at the
+    solution (`BroadPhase.reselect`: its worst row below zero, and the entered ones first in the next slots)."""
+    rng = np.random.default_rng(seed)
+    x0 = XS + rng.normal(0.0, [0.3, 0.3, 0.3, 0.3, 20.0])
+    scene = _scene_near(rng, model, x0, m)
+    centers, radii = scene.swept_spheres(*full.step_windows(t0))
+    rho = full._rho(radii)
+    _, sel = full.broad.pack(x0, centers, rho, SLOTS)
+    relevant = np.flatnonzero(full.broad.gaps(x0, centers, rho) <= 0.0)
+    assert (sel is None) == (len(relevant) <= SLOTS)
+    for _ in range(5):
+        P = model.points(_reachable(rng, full, x0).reshape(full.N, full.nx), OPTS.points)  # (N, points, 3)
+        rows = np.linalg.norm(P[:, None] - centers[:, :, None], axis=-1) - rho[:, :, None]  # (N, m, points)
+        entered = set(np.flatnonzero(rows.min(axis=(0, 2)) < -ROW_TOLERANCE).tolist())
+        assert entered <= set(relevant.tolist())
+        if sel is None:
+            continue  # every relevant obstacle has a slot
+        missed = entered - set(relevant[sel.chosen].tolist())
+        worst, nxt = full.broad.reselect(sel, P, SLOTS)
+        if not missed:
+            assert nxt is None and worst >= -ROW_TOLERANCE
+            continue
+        assert nxt is not None and worst == pytest.approx(rows.min(axis=(0, 2))[list(missed)].min(), abs=1e-9)
+        if len(missed) <= SLOTS:
+            assert missed <= set(relevant[nxt.chosen].tolist())

@@ -32,9 +32,15 @@ def problem() -> Problem:
 
 
 def _loop(problem: Problem, qpsol: str, compiled: bool = False, duration: float = 6.0) -> ClosedLoop:
-    """Simulation 2, deterministic: no step deadline, references planned inline."""
+    """Simulation 2, deterministic: no step deadline, references planned inline; three SQP iterations a call (the
+    problem ships one since issue 29: most calls would then stop short of convergence)."""
     opts = dataclasses.replace(
-        problem.options(ReplanOptions, "replan"), qpsol=qpsol, compiled=compiled, step_deadline=0.0
+        problem.options(ReplanOptions, "replan"),
+        qpsol=qpsol,
+        compiled=compiled,
+        step_deadline=0.0,
+        max_iter=3,
+        max_calls=20,
     )
     lopts = dataclasses.replace(problem.options(LoopOptions, "loop"), reference_delay=0.0, duration=duration)
     return ClosedLoop.from_problem(problem, seed=0, options=opts, loop_options=lopts)

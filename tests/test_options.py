@@ -175,7 +175,9 @@ _OLD_DEFAULTS = {
         rescue=True, safety=True, compiled=False, fused=True, step_deadline=0.0,
         # issue 14: the QP keeps the 3 closest points per obstacle and step, and stops at a dual residual of
         # 1e-4 (mm^2 per unit of x) instead of 1e-6, both for the replan iteration's time
-        closest_points=3, tol=1e-4, qp_obstacles=8,
+        closest_points=3, tol=1e-4,
+        # issue 29: a QP of 3 obstacle slots, filled by the broad phase (31 obstacles within 2x of 1)
+        qp_obstacles=3,
     ),
     LoopOptions: dict(
         duration=60.0, replan_period=0.0, planner_time=1.0, stall_time=3.0, reference_speed=0.7,

@@ -77,6 +77,7 @@ from crtraj.control.horizon_backends import (
     ScreenStart,
 )
 from crtraj.control.horizon_broad import BroadPhase, Selection
+from crtraj.control.horizon_buffers import ParameterBuffer
 from crtraj.control.horizon_build import (
     CompiledParts,
     HorizonNLP,
@@ -200,6 +201,8 @@ class Replanner:
         seg, frac = model.arc_segments(model.arc_positions(o.points))
         self._slot_table = np.column_stack([np.eye(r.n_segments)[seg], frac])
         self._build(solver_wrapper)
+        # with the fused call (issue 29) the parameters are written in place into one preallocated buffer
+        self._buffer = ParameterBuffer(model, self.N, self.max_obstacles) if self.compiled and o.fused else None
         # which obstacles of a larger scene enter the QP's slots (`obstacles_from_scene` with x0)
         self.broad = BroadPhase(model, o.points, self.step_limit, self.N)
         self.broad_overflows = 0  # steps on which more obstacles could matter than the QP has slots
@@ -358,23 +361,27 @@ class Replanner:
         next solve.
         """
         x0 = np.asarray(x0, dtype=float).reshape(self.nx)
-        p = self._parameters(x0, reference, obstacles, x_prev, tip_reference)
-        cold = HorizonQuery(p, np.tile(np.clip(x0, self._box[0], self._box[1]), self.N))  # hold still: feasible
+        fill = self._parameters if self._buffer is None else self._buffer.fill
+        p = fill(x0, reference, obstacles, x_prev, tip_reference)
+
+        def cold() -> HorizonQuery:  # hold still: feasible (made only when it is tried)
+            return HorizonQuery(p, np.tile(np.clip(x0, self._box[0], self._box[1]), self.N))
+
         used_warm = warm and self._warm is not None and self._warm_fits(x0)
         w = self._warm if used_warm else None
-        query = cold if w is None else HorizonQuery(p, w.x, w.lam_x, w.lam_g, w.start)
+        query = cold() if w is None else HorizonQuery(p, w.x, w.lam_x, w.lam_g, w.start)
         tried: list[HorizonCall] = []
         r = self._attempt(query, tried, time_left)
         if used_warm and not r.ok and self._infeasible(r) and _in_time(tried, time_left):
             # a stale warm start can lead a solver astray: one cold retry before declaring failure (an iterate
             # the iteration cap stopped inside the constraints is a usable, if suboptimal, plan)
-            r = self._attempt(cold, tried, time_left)
+            r = self._attempt(cold(), tried, time_left)
         rescued = False
         # the rescue is for a failed solve: an iterate the cap stopped inside every constraint is a usable plan
         if not r.ok and self.rescue is not None and time_left is None and self._infeasible(r):
             rescued = True
             # IPOPT solves the full NLP: every point of every step against every obstacle
-            rr = self.rescue.solve(cold)
+            rr = self.rescue.solve(cold())
             log.debug("horizon: rescue ipopt after %s: %s", tried[-1].status, rr.status)
             r = replace(rr, status=f"{tried[-1].status}; rescue ipopt: {rr.status}")
             tried.append(r)

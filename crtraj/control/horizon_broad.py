@@ -51,6 +51,15 @@ class Selection:
         return cls(packed, centers, rho, chosen)
 
 
+def _nearest(C: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """min over the last axis of the distances (mm) between C (..., 1, 3) and P (..., n, 3), broadcast:
+    `np.linalg.norm`'s numbers (the same sum of squares, x, y, z in that order), by coordinate planes instead of
+    a strided reduction, and one square root per minimum (the root is monotone and correctly rounded, so the root
+    of the minimum is the minimum of the roots)."""
+    dx, dy, dz = (C[..., i] - P[..., i] for i in range(3))
+    return np.sqrt((dx * dx + dy * dy + dz * dz).min(axis=-1))
+
+
 def step_reach(model: Model, step_limit: np.ndarray) -> float:
     """Largest body-motion bound (mm) of one step whose actuator changes |A dx| stay within step_limit (nq,) mm.
 
@@ -82,7 +91,7 @@ class BroadPhase:
         """Per obstacle (m,) the smallest lower bound (mm) of its obstacle rows over every plan within reach of
         x0 (nx,): centres (N, m, 3) mm and inflated radii rho (N, m) mm of its slot at each step."""
         P = self.model.points(np.asarray(x0, dtype=float), self.points)  # (points, 3)
-        d = np.linalg.norm(centers[:, :, None, :] - P[None, None], axis=-1).min(axis=-1)  # (N, m)
+        d = _nearest(centers[:, :, None, :], P[None, None])  # (N, m)
         return np.min(d - rho - self.reach_steps[:, None], axis=0, initial=np.inf)
 
     def pack(
@@ -103,7 +112,7 @@ class BroadPhase:
         """(worst, next): the smallest obstacle row (mm) of the obstacles `sel` left out, at the solution's
         backbone points P (N, points, 3) mm; and, when one is inside its sphere, the selection that puts those
         inside first and then the nearest at P into the slots (None when nothing is inside)."""
-        rows = np.linalg.norm(sel.centers[:, :, None, :] - P[:, None], axis=-1).min(axis=-1) - sel.rho  # (N, r)
+        rows = _nearest(sel.centers[:, :, None, :], P[:, None]) - sel.rho  # (N, r)
         near = rows.min(axis=0)
         omitted = np.ones(len(near), dtype=bool)
         omitted[sel.chosen] = False

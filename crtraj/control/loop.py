@@ -42,6 +42,7 @@ with `ClosedLoop.build` (a robot, a scene and keyword options) or `ClosedLoop.fr
 from __future__ import annotations
 
 import contextlib
+import gc
 import math
 import time
 from collections.abc import Callable
@@ -83,6 +84,19 @@ class _Robot:
     def now(self) -> RobotNow:
         # a measured q and the model's q_last give no velocity to plan a stop from
         return RobotNow(self.t, self.q, self.qc, self.x, self.inc, None if self.on_device else self.q_last)
+
+
+def _freeze_heap() -> bool:
+    """Move every object alive now (the setup's CasADi functions, arrays, planner data) out of the cyclic garbage
+    collector's reach for the run (issue 29): its full collections traverse them all, 1-4 ms pauses that landed
+    inside every other step of a 31-obstacle run. Garbage made during the run is still collected; the caller
+    unfreezes at the end (then they are collectable again). No collection first: one costs 60-80 ms of CPU on
+    simulation 2's heap, and the few hundred unreachable objects it would free wait until the unfreeze. False
+    when something else froze the heap already."""
+    if gc.get_freeze_count():
+        return False
+    gc.freeze()
+    return True
 
 
 class ClosedLoop:
@@ -183,6 +197,7 @@ class ClosedLoop:
         p.references.plan_initial(robot.t)
         p.references.start_worker(realtime)
         self._warm_up(robot)
+        frozen = _freeze_heap()
         p.pacer.begin()
         try:
             return self._steps(robot, t_wall, progress, device)
@@ -194,6 +209,8 @@ class ClosedLoop:
             return self._finish(robot, RunStatus.INTERRUPTED, msg, t_wall, device)
         finally:
             p.references.close()
+            if frozen:
+                gc.unfreeze()
 
     def _warm_up(self, robot: _Robot) -> None:
         """Run a step's computations once, untimed, before the first step, and keep nothing of it. Their

@@ -55,19 +55,23 @@ class SceneChecks:
         by that half bound on top of the validator's chord/sagitta bounds.
         """
         v = self.validator
-        if len(X) == 1:
-            half, t_lo, t_hi = np.zeros(1), T[:1], T[:1]
-        else:
-            B = v.motion_bound(np.diff(X, axis=0))
-            half = 0.5 * np.concatenate([[B[0]], np.maximum(B[:-1], B[1:]), [B[-1]]])
-            t_lo = np.concatenate([[T[0]], T[:-1]])
-            t_hi = np.concatenate([T[1:], [T[-1]]])
+        n = len(X)
+        m = n + (after is not None)
+        # one buffer per array, written in place (the numbers of the concatenations they replace)
+        Xa, half, t_lo, t_hi = np.empty((m, X.shape[1])), np.zeros(m), np.empty(m), np.empty(m)
+        Xa[:n] = X
+        t_lo[0], t_hi[n - 1] = T[0], T[n - 1]
+        if n > 1:
+            B = v.motion_bound(X[1:] - X[:-1])
+            half[0], half[n - 1] = B[0], B[-1]
+            np.maximum(B[:-1], B[1:], out=half[1 : n - 1])
+            half[:n] *= 0.5
+            t_lo[1:n] = T[:-1]
+            t_hi[: n - 1] = T[1:]
         if after is not None:
-            X = np.concatenate([X, X[-1:]])
-            half = np.append(half, 0.0)
-            t_lo = np.append(t_lo, after[0])
-            t_hi = np.append(t_hi, after[1])
-        return float(np.min(v.clearance(X, t_lo, t_hi, half)))
+            Xa[n] = X[-1]
+            t_lo[n], t_hi[n] = after
+        return float(np.min(v.clearance(Xa, t_lo, t_hi, half)))
 
     def measure(self, T: np.ndarray, X: np.ndarray) -> float:
         """Sampled (not conservative) body clearance (mm, minus D_sf) along the motion, many points."""
