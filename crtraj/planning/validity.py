@@ -171,9 +171,10 @@ class MotionValidator:
         """Largest body-point motion (mm) for a change dx: `BodyMetric.motion_bound`."""
         return self.space.motion_bound(dx)
 
-    def duration(self, dx: np.ndarray) -> np.ndarray:
-        """Shortest constant-speed duration (s) of straight motions by dx: `BodyMetric.duration`."""
-        return self.space.duration(dx)
+    def duration(self, dx: np.ndarray, bound: np.ndarray | None = None) -> np.ndarray:
+        """Shortest constant-speed duration (s) of straight motions by dx: `BodyMetric.duration` (bound: their
+        `motion_bound` (mm) when the caller has it)."""
+        return self.space.duration(dx, bound)
 
     def durations(self, X: np.ndarray) -> np.ndarray:
         """Full-speed duration (s) of each motion of a path: `BodyMetric.durations`."""
@@ -373,10 +374,16 @@ class MotionValidator:
         return fail, lower
 
     def edges_valid(
-        self, XA: np.ndarray, XB: np.ndarray, TA: np.ndarray | float = 0.0, TB: np.ndarray | float = 0.0
+        self,
+        XA: np.ndarray,
+        XB: np.ndarray,
+        TA: np.ndarray | float = 0.0,
+        TB: np.ndarray | float = 0.0,
+        bound: np.ndarray | None = None,
     ) -> np.ndarray:
-        """True per motion XA[i] -> XB[i] that is certified safe over [TA[i], TB[i]] (bool (E,))."""
-        f, _ = self.check_edges(XA, XB, TA, TB, prefix=False, verdict=True)
+        """True per motion XA[i] -> XB[i] that is certified safe over [TA[i], TB[i]] (bool (E,)). bound: as in
+        `check_edges`."""
+        f, _ = self.check_edges(XA, XB, TA, TB, prefix=False, bound=bound, verdict=True)
         return f >= 1.0
 
     def tip_position(self, X: np.ndarray) -> np.ndarray:
