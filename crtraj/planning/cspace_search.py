@@ -155,7 +155,9 @@ class CSpaceSearch:
         for c in range(0, K, chunk):
             idx = order[c : c + chunk]
             XA = np.repeat(self.x_start[None], len(idx), axis=0)
-            ok1[idx] = v.edges_valid(XA, vias[idx], self.t0, t_via[idx], b1[idx])
+            # edges_valid with the bounds already computed
+            f, _ = v.check_edges(XA, vias[idx], self.t0, t_via[idx], prefix=False, bound=b1[idx], verdict=True)
+            ok1[idx] = f >= 1.0
             self.counts["edge_checks"] = self.counts.get("edge_checks", 0) + len(idx)
             idx = idx[ok1[idx]]
             first = v.first_valid(vias[idx], GB[idx], t_via[idx], TB[idx], b2[idx])

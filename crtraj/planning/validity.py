@@ -374,16 +374,10 @@ class MotionValidator:
         return fail, lower
 
     def edges_valid(
-        self,
-        XA: np.ndarray,
-        XB: np.ndarray,
-        TA: np.ndarray | float = 0.0,
-        TB: np.ndarray | float = 0.0,
-        bound: np.ndarray | None = None,
+        self, XA: np.ndarray, XB: np.ndarray, TA: np.ndarray | float = 0.0, TB: np.ndarray | float = 0.0
     ) -> np.ndarray:
-        """True per motion XA[i] -> XB[i] that is certified safe over [TA[i], TB[i]] (bool (E,)). bound: as in
-        `check_edges`."""
-        f, _ = self.check_edges(XA, XB, TA, TB, prefix=False, bound=bound, verdict=True)
+        """True per motion XA[i] -> XB[i] that is certified safe over [TA[i], TB[i]] (bool (E,))."""
+        f, _ = self.check_edges(XA, XB, TA, TB, prefix=False, verdict=True)
         return f >= 1.0
 
     def tip_position(self, X: np.ndarray) -> np.ndarray:
