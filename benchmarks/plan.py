@@ -21,6 +21,7 @@ Each query runs on both paths, one after the other, so both see the same load.
    Target (new): 31 obstacles at most 3x the time at 1.
 5. Edge checks per second, with and without the broad phase, and the kernel's loaders (ctypes against
    ``casadi.external``).
+7. With `--stages N`: where a query's time goes, per stage, in C and in Python (`benchmarks/plan_stages.py`).
 
 Plan times are the planner's own wall time per query (`PlanResult.timings["total"]`), planners built once
 and warmed up by one untimed query, with the process CPU time beside it (`time.process_time`; on a machine
@@ -73,6 +74,9 @@ from crtraj.planning.steer import SteerOptions
 from crtraj.planning.stop import StopCondition
 from crtraj.planning.validity import MotionValidator
 from crtraj.world.scene import Scene
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from plan_stages import section_stages  # a sibling module (the script may be run from anywhere)
 
 ROOT = Path(__file__).resolve().parent.parent
 # The two paths compared in every section (both on the compiled kernel): "old" without the edge check's broad
@@ -428,6 +432,22 @@ def ab_worker(problem_path: str, seeds: int, scenes: int) -> None:
     print(json.dumps(out))
 
 
+def stage_queries(problem: Problem, model: Model, scene: Scene, options: PlannerOptions, n: int) -> dict:
+    """Section 7's query sets (sim 1 from its start tip, Table I at 7 obstacles), planners built and warmed up."""
+    o = options.with_(algorithm="cspace")
+    task = problem.task
+    p = make_planner(model, scene, o)
+    kw = {"start_tip": task.start, "stop": o.stop(), "goal_tolerance": task.goal_tolerance}
+    p.plan(task.goal, seed=10_000, **kw)
+    p7 = make_planner(model, Scene(), o, max_obstacles=8)
+    stop = StopCondition(time_limit=5.0, max_iterations=o.max_iterations, first_solution=True)
+    warm = ScenarioGenerator(model, ScenarioOptions(seed=99)).generate(7, 0)
+    p7.plan(warm.goal, start_config=warm.start, scene=warm.scene, stop=stop, seed=0)
+    t1 = [(p7, sc.goal, {"start_config": sc.start, "scene": sc.scene, "stop": stop, "seed": i})
+          for i, sc in enumerate(table1_scenes(model, 7, n))]  # fmt: skip
+    return {"sim 1": [(p, task.goal, dict(kw, seed=s)) for s in range(n)], "Table I, 7 obstacles": t1}
+
+
 def section_baseline(rev: str, problem_path: str, seeds: int, scenes: int, rounds: int) -> None:
     """Section 0: this code against REV's (module docstring)."""
     print(f"\n== 0. this code against {rev}: {seeds} sim-1 seeds, {scenes} Table I scenes, {rounds} rounds ==")
@@ -477,6 +497,7 @@ def main() -> None:
     ap.add_argument("--baseline", default=None, help="git revision to compare this code against (section 0)")
     ap.add_argument("--ab-rounds", type=int, default=3, help="alternating rounds of section 0")
     ap.add_argument("--ab-worker", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--stages", type=int, default=0, help="queries per set of section 7 (0 = skip)")
     args = ap.parse_args()
     if args.ab_worker:
         ab_worker(args.problem, args.seeds, args.table1)
@@ -521,6 +542,8 @@ def main() -> None:
         section_scaling(model, options, args.scaling, args.plot)
     section_checks(model, options)
     section_loaders(model, options.check.points)
+    if args.stages > 0:
+        section_stages(stage_queries(problem, model, scene, options, args.stages))
     print(
         f"\nload average at the end: {os.getloadavg()[0]:.1f} (a shared machine: the old/new ratios of one run "
         "carry the argument, absolute times move with the load)"

@@ -474,3 +474,15 @@ def test_rescue_replaces_the_nlp_with_batched_starts(sim1, validator):
         assert s.clearance >= ik.margin - 0.25
         clear, _, _ = dense_path_check(model, scene, np.array([0.0]), s.x[None])
         assert clear >= 0.0
+
+
+def test_shortcut_pairs_draw_what_choice_drew():
+    """The shortcuts draw their waypoint pairs with `Generator.integers(0, n, dtype=int64)`, which is what
+    `Generator.choice(n, size)` computes (half its cost): the same pairs and the same stream after them, so the
+    plans of the earlier code are unchanged."""
+    for n in (2, 3, 7, 40):
+        for seed in range(20):
+            a, b = np.random.default_rng(seed), np.random.default_rng(seed)
+            x, y = a.choice(n, size=(5, 2)), b.integers(0, n, size=(5, 2), dtype=np.int64)
+            np.testing.assert_array_equal(x, y)
+            assert x.dtype == y.dtype and a.random() == b.random()

@@ -67,6 +67,32 @@ def test_early_exit_agrees_with_the_numpy_loop(model: Model, kernels: Kernels, s
     assert off.first_valid(XA, XB, TA, TB) == v.first_valid(XA, XB, TA, TB)
 
 
+@settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(seed=st.integers(0, 2**32 - 1), n=st.integers(1, 12), moving=st.booleans())
+def test_bounds_of_a_larger_batch_give_the_same_checks(model: Model, kernels: Kernels, seed, n, moving):
+    """The search's via round computes the body-motion bounds of all its candidates once and passes a chunk's
+    rows to `check_edges` (as `edges_valid` calls it) and `first_valid`: the rows equal the chunk's own bounds
+    bit for bit, so the verdicts, the first valid motion, the samples checked and the durations are those of
+    the check computing them."""
+    rng = np.random.default_rng(seed)
+    scene = random_scene(rng, n, moving)
+    v = MotionValidator(model, scene, kernels=kernels)
+    XA, XB, TA, TB = motions(v, rng, 32)
+    bound = v.motion_bound(XB - XA)
+    np.testing.assert_array_equal(v.duration(XB - XA, bound), v.duration(XB - XA))
+    for idx in (np.arange(8), rng.permutation(32)[: rng.integers(2, 12)], np.arange(32)):
+        np.testing.assert_array_equal(bound[idx], v.motion_bound(XB[idx] - XA[idx]))
+        s0 = v.n_samples
+        f, _ = v.check_edges(XA[idx], XB[idx], TA[idx], TB[idx], prefix=False, bound=bound[idx], verdict=True)
+        got = f >= 1.0
+        s1 = v.n_samples
+        np.testing.assert_array_equal(got, v.edges_valid(XA[idx], XB[idx], TA[idx], TB[idx]))
+        assert v.n_samples - s1 == s1 - s0
+        first = v.first_valid(XA[idx], XB[idx], TA[idx], TB[idx], bound[idx])
+        assert first == v.first_valid(XA[idx], XB[idx], TA[idx], TB[idx])
+        assert first == (int(np.flatnonzero(got)[0]) if got.any() else -1)
+
+
 def test_early_exit_checks_fewer_samples(model: Model, kernels: Kernels):
     """A batch whose first motion is valid: with the early exit only that motion is sampled."""
     rng = np.random.default_rng(4)

@@ -88,11 +88,14 @@ class CSpaceSearch:
         v = self.v
         G = len(self.goals)
         XA = np.repeat(self.x_start[None], G, axis=0)
-        dur = v.duration(self.goals - XA)
+        # the bounds once, for the durations and the check (a batch's rows: the numbers the check computes)
+        dX = self.goals - XA
+        bound = v.motion_bound(dX)
+        dur = v.duration(dX, bound)
         self.counts["edge_checks"] = G
         # the shortest valid motion: the first valid in the order of duration (ties: lowest index, as argmin)
         order = np.argsort(dur, kind="stable")
-        k = v.first_valid(XA[order], self.goals[order], self.t0, self.t0 + dur[order])
+        k = v.first_valid(XA[order], self.goals[order], self.t0, self.t0 + dur[order], bound[order])
         direct = None
         if k >= 0:
             best = order[k]
@@ -134,22 +137,30 @@ class CSpaceSearch:
         )
         local = v.project_limits(v.config_from_metric(y))
         vias = np.concatenate([local, v.sample(rng, K - n_local)])
-        t_via = self.t0 + v.duration(vias - self.x_start)
+        # body-motion bounds of both motions of every candidate once, for their durations and their checks
+        d1 = vias - self.x_start
+        b1 = v.motion_bound(d1)
+        t_via = self.t0 + v.duration(d1, b1)
         # each via tries its nearest goal configuration (body-motion metric); the two-motion paths are
         # checked in the order of arrival (ties: lowest index), a chunk of start -> via motions at a time,
         # until one is valid: the shortest valid one, as checking them all would find
         GB = self.goals[np.argmin(v.motion_bound(vias[:, None, :] - self.goals[None, :, :]), axis=1)]
-        TB = t_via + v.duration(GB - vias)
+        d2 = GB - vias
+        b2 = v.motion_bound(d2)
+        TB = t_via + v.duration(d2, b2)
         order = np.argsort(TB - self.t0, kind="stable")
         chunk = VIA_CHUNK if v.early_exit else K
         ok1 = np.zeros(K, dtype=bool)
         k = -1
         for c in range(0, K, chunk):
             idx = order[c : c + chunk]
-            ok1[idx] = v.edges_valid(np.repeat(self.x_start[None], len(idx), axis=0), vias[idx], self.t0, t_via[idx])
+            XA = np.repeat(self.x_start[None], len(idx), axis=0)
+            # edges_valid with the bounds already computed
+            f, _ = v.check_edges(XA, vias[idx], self.t0, t_via[idx], prefix=False, bound=b1[idx], verdict=True)
+            ok1[idx] = f >= 1.0
             self.counts["edge_checks"] = self.counts.get("edge_checks", 0) + len(idx)
             idx = idx[ok1[idx]]
-            first = v.first_valid(vias[idx], GB[idx], t_via[idx], TB[idx])
+            first = v.first_valid(vias[idx], GB[idx], t_via[idx], TB[idx], b2[idx])
             self.counts["edge_checks"] += len(idx)
             if first >= 0:
                 k = int(idx[first])

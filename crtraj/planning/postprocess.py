@@ -97,7 +97,7 @@ class PathPostprocessor:
             # a third of the candidates join two waypoints (skip whole vertices)
             k = B // 3
             if k:
-                u[:k] = s[np.sort(rng.choice(len(X), size=(k, 2)), axis=1)]
+                u[:k] = s[np.sort(rng.integers(0, len(X), size=(k, 2), dtype=np.int64), axis=1)]
             u = u[(u[:, 1] - u[:, 0]) > v.resolution]
             if not len(u):
                 continue
@@ -180,7 +180,7 @@ class PathPostprocessor:
             u = np.sort(T[0] + rng.random((B, 2)) * (T[-1] - T[0]), axis=1)
             k = B // 3
             if k:  # a third of the candidates join two waypoints
-                u[:k] = T[np.sort(rng.choice(len(X), size=(k, 2)), axis=1)]
+                u[:k] = T[np.sort(rng.integers(0, len(X), size=(k, 2), dtype=np.int64), axis=1)]
             # both ends of every candidate in one pass (the same numbers as one pass per end)
             P = _at(X, T, np.concatenate([u[:, 0], u[:, 1]]))
             P1, P2 = P[:B], P[B:]

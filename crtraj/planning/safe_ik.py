@@ -51,7 +51,6 @@ from crtraj.model.kinematics import Model
 from crtraj.planning.compiled_validity import ProjectionLimits, ProjectionSteps
 from crtraj.planning.ik_rescue import IKRescue
 from crtraj.planning.ik_run import IKRun, format_statuses
-from crtraj.planning.sampler import LIMIT_TOL
 from crtraj.planning.validity import MotionValidator
 from crtraj.world import packing
 
@@ -515,8 +514,10 @@ def resolve_start(
     robot = ik.robot
     if start_config is not None:
         xs = check_array(start_config, "start_config", (robot.nx,))
-        viol = float(robot.limit_violation(xs)[0])
-        if viol > LIMIT_TOL:
+        # the validator's limit test is Robot.limit_violation's arithmetic on kept matrices (the same verdict,
+        # a fraction of its cost); the violation itself is computed only for the message
+        if not validator.within_limits(xs[None])[0]:
+            viol = float(robot.limit_violation(xs)[0])
             return None, f"start configuration violates the robot limits by {viol:.3g}", 0
         c = float(validator.clearance(xs[None], t0)[0])
         if c < 0:

@@ -171,9 +171,10 @@ class MotionValidator:
         """Largest body-point motion (mm) for a change dx: `BodyMetric.motion_bound`."""
         return self.space.motion_bound(dx)
 
-    def duration(self, dx: np.ndarray) -> np.ndarray:
-        """Shortest constant-speed duration (s) of straight motions by dx: `BodyMetric.duration`."""
-        return self.space.duration(dx)
+    def duration(self, dx: np.ndarray, bound: np.ndarray | None = None) -> np.ndarray:
+        """Shortest constant-speed duration (s) of straight motions by dx: `BodyMetric.duration` (bound: their
+        `motion_bound` (mm) when the caller has it)."""
+        return self.space.duration(dx, bound)
 
     def durations(self, X: np.ndarray) -> np.ndarray:
         """Full-speed duration (s) of each motion of a path: `BodyMetric.durations`."""
