@@ -87,6 +87,7 @@ from crtraj.control.horizon_build import (
     gauss_newton,
     nlp_solver,
 )
+from crtraj.control.horizon_obstacles import ObstacleTable
 from crtraj.control.horizon_options import (
     DIVERGED,
     HESSIANS,
@@ -207,6 +208,7 @@ class Replanner:
         self.broad = BroadPhase(model, o.points, self.step_limit, self.N)
         self.broad_overflows = 0  # steps on which more obstacles could matter than the QP has slots
         self._selection: Selection | None = None  # those, when they did (checked at the solution)
+        self._table = ObstacleTable(self.step_windows, self._rho, None)  # empty until `tabulate_obstacles`
         self._warm: _Warm | None = None
         self.solve_count = 0
 
@@ -279,8 +281,9 @@ class Replanner:
         """The inflated radii (mm) the NLP keeps its points outside of, from sphere radii (mm)."""
         return np.sqrt((np.maximum(radii, 0.0) + self.inflate) ** 2 + (self.spacing / 2.0) ** 2)
 
-    def step_windows(self, t0: float) -> tuple[np.ndarray, np.ndarray]:
-        """(lo, hi) time windows (N,) s that step k's configuration is kept clear over: [t_k-1, t_k+1]."""
+    def step_windows(self, t0: Any) -> tuple[np.ndarray, np.ndarray]:
+        """(lo, hi) time windows (N,) s that step k's configuration is kept clear over: [t_k-1, t_k+1]; start
+        times t0 (T, 1) give (T, N)."""
         k = np.arange(1, self.N + 1)
         dt = self.options.dt
         return t0 + (k - 1) * dt, t0 + (k + 1) * dt
@@ -291,18 +294,36 @@ class Replanner:
         x0: the configuration (nx,) the horizon starts from. With it, a scene of more obstacles than the NLP's
         slots fills them with the obstacles the horizon's reachable body can come near (`BroadPhase`): the
         others cannot be active in any plan within reach. Without it such a scene is an `InputError`."""
-        lo, hi = self.step_windows(float(t0))
+        t0 = float(t0)
         if scene.n_obstacles == 0:
             return self._inflated(np.zeros((self.N, 0, 3)), np.zeros((self.N, 0)))
-        centers, radii = scene.swept_spheres(lo, hi)  # (N, M, 3), (N, M)
         self._selection = None
-        if x0 is not None and scene.n_obstacles > self.max_obstacles:
-            packed, self._selection = self.broad.pack(
-                np.asarray(x0, float), centers, self._rho(radii), self.max_obstacles
-            )
+        broad = x0 is not None and scene.n_obstacles > self.max_obstacles
+        j = self._table.row(scene, t0)  # tabulated before the run (`tabulate_obstacles`): the same numbers
+        if j is not None and not broad and self._table.packed is not None:
+            return self._table.packed[j]
+        if j is not None:
+            centers, rho = self._table.centers[j], self._table.rho[j]
+        else:
+            centers, radii = scene.swept_spheres(*self.step_windows(t0))  # (N, M, 3), (N, M)
+            rho = self._rho(radii)
+        if broad:
+            packed, self._selection = self.broad.pack(np.asarray(x0, float), centers, rho, self.max_obstacles)
             self.broad_overflows += self._selection is not None
             return packed
-        return self._inflated(centers, radii)
+        return packing.pack(centers, rho, self.max_obstacles, "the replanner")
+
+    def tabulate_obstacles(self, scene: Any, times: np.ndarray) -> None:
+        """Compute `obstacles_from_scene`'s spheres of a known scene for the horizon start times `times` (s) at
+        once (`crtraj.control.horizon_obstacles`): a later call at one of them looks them up (bit for bit the
+        same numbers)."""
+        fits = scene.n_obstacles <= self.max_obstacles
+        self._table = ObstacleTable(self.step_windows, self._rho, self._inflated_rho if fits else None)
+        self._table.tabulate(scene, times)
+
+    def _inflated_rho(self, centers: np.ndarray, rho: np.ndarray) -> np.ndarray:
+        """`_inflated` from radii already inflated (mm)."""
+        return packing.pack(centers, rho, self.max_obstacles, "the replanner")
 
     def obstacles_from_states(
         self,
