@@ -22,7 +22,7 @@ TIMES = np.array([0.0] + [round((k + 1) * DT, 12) for k in range(300)])  # the l
 
 def _direct(rp: Replanner, scene, t0: float, x0=None) -> np.ndarray:
     """`obstacles_from_scene` with no table (the per-step computation)."""
-    rp.tabulate_obstacles(scene, np.zeros(0))
+    rp.obstacle_table.tabulate(scene, np.zeros(0))
     return rp.obstacles_from_scene(scene, t0, x0)
 
 
@@ -30,18 +30,21 @@ def _direct(rp: Replanner, scene, t0: float, x0=None) -> np.ndarray:
 def test_every_tabulated_row_is_the_per_step_computation_bit_for_bit(model, slots):
     """Moving, breathing spheres (5, more or fewer than the slots; with more, the broad phase packs them from
     the table's centres and radii): at every step time of a 30 s run, and at times off the grid (computed per
-    step), the parameter and the broad phase's selection equal the untabulated call's bit for bit."""
+    step), the parameter (packed from the table or by the broad phase) equals the untabulated call's bit for bit."""
     rng = np.random.default_rng(3)
     rp = Replanner(model, OPTS, max_obstacles=slots, safety_distance=5.0)
     scene = _scene_near(rng, model, XS, 5)
     off = TIMES[:40] + 0.0371
     want = {float(t): _direct(rp, scene, t, XS) for t in (*TIMES, *off)}
-    rp.tabulate_obstacles(scene, TIMES)
-    assert rp._table.row(scene, float(TIMES[-1])) == len(TIMES) - 1 and rp._table.row(scene, 0.0371) is None
+    rp.obstacle_table.tabulate(scene, TIMES)
+    assert (
+        rp.obstacle_table.row(scene, float(TIMES[-1])) == len(TIMES) - 1
+        and rp.obstacle_table.row(scene, 0.0371) is None
+    )
     for t, w in want.items():
         got = rp.obstacles_from_scene(scene, t, XS)
         assert got.shape == w.shape and np.array_equal(got, w), t
-    assert (rp._table.packed is None) == (slots < 5)
+    assert (rp.obstacle_table.packed is None) == (slots < 5)
 
 
 def test_another_scene_is_computed_per_step_and_the_table_is_read_only(model):
@@ -51,8 +54,8 @@ def test_another_scene_is_computed_per_step_and_the_table_is_read_only(model):
     rp = Replanner(model, OPTS, max_obstacles=8, safety_distance=5.0)
     scene = _scene_near(rng, model, XS, 3)
     other = dataclasses.replace(scene)
-    rp.tabulate_obstacles(scene, TIMES)
-    assert rp._table.row(other, 0.5) is None and rp._table.row(scene, 0.5) is not None
+    rp.obstacle_table.tabulate(scene, TIMES)
+    assert rp.obstacle_table.row(other, 0.5) is None and rp.obstacle_table.row(scene, 0.5) is not None
     row = rp.obstacles_from_scene(scene, 0.5, XS)
     with pytest.raises(ValueError, match="read-only"):
         row[0, 0] = 1.0

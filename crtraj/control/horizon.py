@@ -208,7 +208,8 @@ class Replanner:
         self.broad = BroadPhase(model, o.points, self.step_limit, self.N)
         self.broad_overflows = 0  # steps on which more obstacles could matter than the QP has slots
         self._selection: Selection | None = None  # those, when they did (checked at the solution)
-        self._table = ObstacleTable(self.step_windows, self._rho, None)  # empty until `tabulate_obstacles`
+        # a known scene's spheres for the run's step times, tabulated before it (`ObstacleTable.tabulate`)
+        self.obstacle_table = ObstacleTable(self.step_windows, self._rho, self.max_obstacles)
         self._warm: _Warm | None = None
         self.solve_count = 0
 
@@ -282,8 +283,7 @@ class Replanner:
         return np.sqrt((np.maximum(radii, 0.0) + self.inflate) ** 2 + (self.spacing / 2.0) ** 2)
 
     def step_windows(self, t0: Any) -> tuple[np.ndarray, np.ndarray]:
-        """(lo, hi) time windows (N,) s that step k's configuration is kept clear over: [t_k-1, t_k+1]; start
-        times t0 (T, 1) give (T, N)."""
+        """(lo, hi) windows (N,) s step k's configuration is kept clear over: [t_k-1, t_k+1]; t0 (T, 1): (T, N)."""
         k = np.arange(1, self.N + 1)
         dt = self.options.dt
         return t0 + (k - 1) * dt, t0 + (k + 1) * dt
@@ -294,36 +294,15 @@ class Replanner:
         x0: the configuration (nx,) the horizon starts from. With it, a scene of more obstacles than the NLP's
         slots fills them with the obstacles the horizon's reachable body can come near (`BroadPhase`): the
         others cannot be active in any plan within reach. Without it such a scene is an `InputError`."""
-        t0 = float(t0)
         if scene.n_obstacles == 0:
             return self._inflated(np.zeros((self.N, 0, 3)), np.zeros((self.N, 0)))
-        self._selection = None
-        broad = x0 is not None and scene.n_obstacles > self.max_obstacles
-        j = self._table.row(scene, t0)  # tabulated before the run (`tabulate_obstacles`): the same numbers
-        if j is not None and not broad and self._table.packed is not None:
-            return self._table.packed[j]
-        if j is not None:
-            centers, rho = self._table.centers[j], self._table.rho[j]
-        else:
-            centers, radii = scene.swept_spheres(*self.step_windows(t0))  # (N, M, 3), (N, M)
-            rho = self._rho(radii)
-        if broad:
-            packed, self._selection = self.broad.pack(np.asarray(x0, float), centers, rho, self.max_obstacles)
-            self.broad_overflows += self._selection is not None
-            return packed
-        return packing.pack(centers, rho, self.max_obstacles, "the replanner")
-
-    def tabulate_obstacles(self, scene: Any, times: np.ndarray) -> None:
-        """Compute `obstacles_from_scene`'s spheres of a known scene for the horizon start times `times` (s) at
-        once (`crtraj.control.horizon_obstacles`): a later call at one of them looks them up (bit for bit the
-        same numbers)."""
-        fits = scene.n_obstacles <= self.max_obstacles
-        self._table = ObstacleTable(self.step_windows, self._rho, self._inflated_rho if fits else None)
-        self._table.tabulate(scene, times)
-
-    def _inflated_rho(self, centers: np.ndarray, rho: np.ndarray) -> np.ndarray:
-        """`_inflated` from radii already inflated (mm)."""
-        return packing.pack(centers, rho, self.max_obstacles, "the replanner")
+        self._selection, broad = None, x0 is not None and scene.n_obstacles > self.max_obstacles
+        packed, centers, rho = self.obstacle_table.spheres(scene, float(t0))  # looked up if tabulated, or computed
+        if not broad:
+            return packed if packed is not None else packing.pack(centers, rho, self.max_obstacles, "the replanner")
+        packed, self._selection = self.broad.pack(np.asarray(x0, float), centers, rho, self.max_obstacles)
+        self.broad_overflows += self._selection is not None
+        return packed
 
     def obstacles_from_states(
         self,

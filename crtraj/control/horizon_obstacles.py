@@ -17,6 +17,8 @@ from typing import Any
 
 import numpy as np
 
+from crtraj.world import packing
+
 # the most step times tabulated (a longer run computes its later steps per step, as before)
 MAX_ROWS = 20000
 
@@ -24,32 +26,34 @@ MAX_ROWS = 20000
 class ObstacleTable:
     """Swept spheres (centres, inflated radii) and packed slots of one scene for given horizon start times.
 
-    windows: t0 (T, 1) s -> (lo, hi) (T, N) s, the step windows of each start time (`Replanner.step_windows`'s
-    formula, broadcast). rho: radii (mm) -> inflated radii (mm). pack: (centres, inflated radii) -> slots (None
-    when the scene has more obstacles than slots: the broad phase then packs per step, from the centres).
+    windows: t0 (s; (T, 1) for T start times) -> (lo, hi) (N,) or (T, N) s, the step windows
+    (`Replanner.step_windows`). rho: radii (mm) -> inflated radii (mm). slots: the QP's obstacle slots (a scene
+    of more obstacles is not packed here: the broad phase packs it per step from the centres and radii).
     """
 
     def __init__(
         self,
-        windows: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
+        windows: Callable[[Any], tuple[np.ndarray, np.ndarray]],
         rho: Callable[[np.ndarray], np.ndarray],
-        pack: Callable[[np.ndarray, np.ndarray], np.ndarray] | None,
+        slots: int,
     ) -> None:
-        self._windows, self._rho, self._pack = windows, rho, pack
+        self._windows, self._rho, self.slots = windows, rho, slots
         self.scene: Any = None
         self._row: dict[float, int] = {}
-        self.centers = self.rho = self.packed = np.zeros(0)
+        self.centers = self.rho = np.zeros(0)
+        self.packed: np.ndarray | None = None
 
     def tabulate(self, scene: Any, times: np.ndarray) -> None:
         """Compute the rows of `scene` for horizon start times `times` (s; the first MAX_ROWS), replacing any."""
         t = np.asarray(times, dtype=float).ravel()[:MAX_ROWS]
-        self.scene, self._row = None, {}
+        self.scene, self._row, self.packed = None, {}, None
         if scene.n_obstacles == 0 or t.size == 0:
             return
         lo, hi = self._windows(t[:, None])
         centers, radii = scene.swept_spheres(lo, hi)  # (T, N, M, 3), (T, N, M)
         rho = self._rho(radii)
-        packed = self._pack(centers, rho) if self._pack is not None else None
+        fits = scene.n_obstacles <= self.slots
+        packed = packing.pack(centers, rho, self.slots, "the replanner") if fits else None
         for a in (centers, rho) if packed is None else (centers, rho, packed):
             a.setflags(write=False)  # handed out as they are: nobody may write into the table
         self.centers, self.rho, self.packed = centers, rho, packed
@@ -58,3 +62,12 @@ class ObstacleTable:
     def row(self, scene: Any, t0: float) -> int | None:
         """The row of start time t0 (s) of `scene` (the same object as tabulated), or None."""
         return self._row.get(t0) if scene is self.scene else None
+
+    def spheres(self, scene: Any, t0: float) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:
+        """(packed slots or None, centres (N, M, 3), inflated radii (N, M)) mm of the horizon from t0 (s): the
+        table's row (read-only views) when it holds one, else computed now (packed None)."""
+        j = self.row(scene, t0)
+        if j is None:
+            centers, radii = scene.swept_spheres(*self._windows(t0))
+            return None, centers, self._rho(radii)
+        return None if self.packed is None else self.packed[j], self.centers[j], self.rho[j]

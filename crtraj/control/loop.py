@@ -201,7 +201,7 @@ class ClosedLoop:
             # of the per-step call, looked up in the steps; issue 29)
             dt = self.options.dt
             times = [0.0] + [round((k + 1) * dt, 12) for k in range(self.loop_options.steps(dt))]
-            self.replanner.tabulate_obstacles(p.checks.scene_now, np.array(times))
+            self.replanner.obstacle_table.tabulate(p.checks.scene_now, np.array(times))
         self._warm_up(robot)
         frozen = _freeze_heap()
         p.pacer.begin()
