@@ -58,7 +58,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any
 
 import casadi as ca
@@ -75,6 +75,7 @@ from crtraj.control.horizon_backends import (
     RowCheck,
     ScreenedBackend,
     ScreenStart,
+    replace,
 )
 from crtraj.control.horizon_broad import BroadPhase, Selection
 from crtraj.control.horizon_buffers import ParameterBuffer
@@ -496,8 +497,8 @@ class Replanner:
         return replace(r, violation=max(r.violation, -worst), ok=False, status=r.status + why)
 
     def _infeasible(self, r: HorizonCall) -> bool:
-        """A solver call's iterate breaks a constraint (or is not finite): not a usable plan."""
-        return horizon_status(False, r.x.reshape(self.N, self.nx), r.violation) is HorizonStatus.FAILED
+        """`horizon_status`'s FAILED from `RowCheck.record`'s look (finite covers x; not finite: violation inf)."""
+        return not (r.finite and r.violation <= 1e-6)
 
     def _shifted(self, r: HorizonCall, reduced: bool) -> _Warm:
         """Previous solution moved one step earlier, the last step repeated (the next solve's start), with its
