@@ -23,7 +23,9 @@ the step that asks for it (reference_delay = 0, the previous round's loop).
 (fused = false; "compiled" makes them one generated C call on preallocated parameter buffers, issue 29).
 "compiled-3it": "compiled" with the previous stop's three SQP iterations per solver call (max_iter 3, max_calls 20;
 the problem now runs one per call, issue 29). "compiled-prev": the previous stop's path as a whole (three
-iterations a call, fused = false, and the heap left to the garbage collector during the steps).
+iterations a call, fused = false, the heap left to the garbage collector during the steps, the obstacle spheres
+computed in every step). "compiled-untabled": "compiled" with the obstacle spheres computed in every step instead
+of looked up in the table of the run's step times (`crtraj.control.horizon_obstacles`).
 "sqp-hpipm", "compiled-hpipm": the horizon QP in stage form (state (x_k, x_k-1), input x_k+1) solved by
 HPIPM (issue 29), interpreted as "sqp" runs and as generated C as "compiled" runs.
 "compiled-old": the compiled solver with the QP of the previous round (every
@@ -39,13 +41,14 @@ path or took one over; 'misses' counts the steps whose NLP result came after
 the deadline (they fall back to the last verified plan or a verified hold).
 
 Run: python benchmarks/replan.py [--seeds 3] [--deadline 0.002]
-         [--solvers compiled,compiled-prev,compiled-unfused,compiled-3it,compiled-all,compiled-old,sqp,ipopt,sqp-qrqp,
-                    sqp-hpipm,compiled-hpipm]
+         [--solvers compiled,compiled-prev,compiled-untabled,compiled-unfused,compiled-3it,compiled-all,compiled-old,
+                    sqp,ipopt,sqp-qrqp,sqp-hpipm,compiled-hpipm]
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import datetime
 import os
@@ -86,6 +89,8 @@ VARIANTS = {
     "compiled-prev": {"solver": "sqp", "qpsol": "daqp", "compiled": True, "max_iter": 3, "max_calls": 20,
                       "fused": False},
     "compiled-inline": {"solver": "sqp", "qpsol": "daqp", "compiled": True},
+    # "compiled" with the obstacle spheres computed in every step (the table of the run's step times off)
+    "compiled-untabled": {"solver": "sqp", "qpsol": "daqp", "compiled": True},
     # issue 29: the stage-form QP for HPIPM (`crtraj.control.horizon_stage`), interpreted as "sqp" runs, and
     # as generated C as "compiled" runs (the problem's deadline)
     "sqp-hpipm": {"solver": "sqp", "qpsol": "hpipm", "compiled": False, "step_deadline": 0.0, "max_iter": 60,
@@ -110,6 +115,9 @@ LOOP_VARIANTS = {
 # variants whose loop leaves the heap to the garbage collector during the steps, as before issue 29 (the loop now
 # freezes the setup's objects for the run: `crtraj.control.loop._freeze_heap`)
 UNFROZEN = {"compiled-prev"}
+# variants whose steps compute the horizon's obstacle spheres themselves, as before the table of the run's step times
+# (`crtraj.control.horizon_obstacles.ObstacleTable`, issue 29)
+UNTABLED = {"compiled-prev", "compiled-untabled"}
 
 # --deadline: the step deadline (s) of the variants that keep the problem's (None: the problem's)
 DEADLINE: list[float | None] = [None]
@@ -124,11 +132,13 @@ def _one(problem: Problem, name: str, seed: int, safety: bool) -> tuple[object, 
     lopts = dataclasses.replace(problem.options(LoopOptions, "loop"), **LOOP_VARIANTS.get(name, {}))
     loop = ClosedLoop.from_problem(problem, seed=seed, options=opts, loop_options=lopts)
     c0 = time.process_time()
-    if name in UNFROZEN:
-        # the previous stop's loop: the garbage collector's full collections traverse the whole heap in the steps
-        with mock.patch.object(loop_module, "_freeze_heap", lambda: False):
-            run = loop.run()
-    else:
+    with contextlib.ExitStack() as stack:
+        if name in UNFROZEN:
+            # the previous stop's loop: the garbage collector's full collections traverse the whole heap in the steps
+            stack.enter_context(mock.patch.object(loop_module, "_freeze_heap", lambda: False))
+        if name in UNTABLED:
+            table = loop.replanner.obstacle_table
+            stack.enter_context(mock.patch.object(table, "tabulate", lambda scene, times: None))
         run = loop.run()
     return run, (time.process_time() - c0) / max(1, run.steps)
 
@@ -206,6 +216,7 @@ def _comparisons(qp_obstacles: int) -> list[tuple[str, str, str]]:
          "and the numpy row check"),
         ("compiled", "compiled-prev", "this stop's step vs the previous stop's (issue 29)"),
         ("compiled", "compiled-3it", "one SQP iteration per call vs three (the previous stop's)"),
+        ("compiled", "compiled-untabled", "obstacle spheres looked up in the run's table vs computed every step"),
         ("compiled-3it", "compiled-prev", "three iterations a call: fused call on preallocated buffers vs not"),
         ("compiled", "compiled-inline", "compiled, references beside the loop vs inside the step"),
         ("compiled", "compiled-all", f"compiled, broad phase (qp_obstacles {qp_obstacles}) vs every obstacle in the "

@@ -231,6 +231,12 @@ class CompiledTracking:
         self._dims = np.array([nx, nq, m, ng, ctl.robot.n_segments], dtype=np.int64)
         self.nx, self.nq = nx, nq
         self._work = np.zeros(12 * nx + 4 * nq + 4 * m + 2 * ng + 8)
+        # the addresses of the arrays kept for the object's life, taken once (each `.ctypes.data` costs about 1 us)
+        self._dims_ptr, self._P_ptr, self._work_ptr = (
+            self._dims.ctypes.data,
+            self._P.ctypes.data,
+            self._work.ctypes.data,
+        )
 
     @classmethod
     def load(
@@ -259,9 +265,6 @@ class CompiledTracking:
         commanded actuators q, qc (nq, mm) and the last increment inc (nx): (q at the end, set-point at the end,
         sample times (S,), sample configurations (S, nx), set-points (n, nq)), as `_track` returns them; None
         when the samples would exceed `MAX_SAMPLES` (the caller simulates in numpy)."""
-        q = np.array(q, dtype=float)
-        qc = np.array(qc, dtype=float)
-        inc = np.array(inc, dtype=float)
         x0 = np.ascontiguousarray(x0, dtype=float)
         x1 = np.ascontiguousarray(x1, dtype=float)
         # samples: 1 + per period ceil(2 span / resolution), unknown before the call; one retry with the most
@@ -271,10 +274,11 @@ class CompiledTracking:
             X = np.empty((cap, self.nx))
             cmds = np.empty((n, self.nq))
             count = ctypes.c_longlong(0)
-            qq, qqc, ii = q.copy(), qc.copy(), inc.copy()
+            # fresh copies each try (the routine writes them; a retry starts from the caller's state again)
+            qq, qqc, ii = np.array(q, dtype=float), np.array(qc, dtype=float), np.array(inc, dtype=float)
             rc = self._fn(
-                self._dims.ctypes.data,
-                self._P.ctypes.data,
+                self._dims_ptr,
+                self._P_ptr,
                 int(n),
                 self.h,
                 float(dt),
@@ -290,7 +294,7 @@ class CompiledTracking:
                 T.ctypes.data,
                 X.ctypes.data,
                 ctypes.addressof(count),
-                self._work.ctypes.data,
+                self._work_ptr,
             )
             if rc == 0:
                 c = int(count.value)

@@ -58,7 +58,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any
 
 import casadi as ca
@@ -75,6 +75,7 @@ from crtraj.control.horizon_backends import (
     RowCheck,
     ScreenedBackend,
     ScreenStart,
+    replace,
 )
 from crtraj.control.horizon_broad import BroadPhase, Selection
 from crtraj.control.horizon_buffers import ParameterBuffer
@@ -87,6 +88,7 @@ from crtraj.control.horizon_build import (
     gauss_newton,
     nlp_solver,
 )
+from crtraj.control.horizon_obstacles import ObstacleTable
 from crtraj.control.horizon_options import (
     DIVERGED,
     HESSIANS,
@@ -207,6 +209,8 @@ class Replanner:
         self.broad = BroadPhase(model, o.points, self.step_limit, self.N)
         self.broad_overflows = 0  # steps on which more obstacles could matter than the QP has slots
         self._selection: Selection | None = None  # those, when they did (checked at the solution)
+        # a known scene's spheres for the run's step times, tabulated before it (`ObstacleTable.tabulate`)
+        self.obstacle_table = ObstacleTable(self.step_windows, self._rho, self.max_obstacles)
         self._warm: _Warm | None = None
         self.solve_count = 0
 
@@ -279,8 +283,8 @@ class Replanner:
         """The inflated radii (mm) the NLP keeps its points outside of, from sphere radii (mm)."""
         return np.sqrt((np.maximum(radii, 0.0) + self.inflate) ** 2 + (self.spacing / 2.0) ** 2)
 
-    def step_windows(self, t0: float) -> tuple[np.ndarray, np.ndarray]:
-        """(lo, hi) time windows (N,) s that step k's configuration is kept clear over: [t_k-1, t_k+1]."""
+    def step_windows(self, t0: Any) -> tuple[np.ndarray, np.ndarray]:
+        """(lo, hi) windows (N,) s step k's configuration is kept clear over: [t_k-1, t_k+1]; t0 (T, 1): (T, N)."""
         k = np.arange(1, self.N + 1)
         dt = self.options.dt
         return t0 + (k - 1) * dt, t0 + (k + 1) * dt
@@ -291,18 +295,15 @@ class Replanner:
         x0: the configuration (nx,) the horizon starts from. With it, a scene of more obstacles than the NLP's
         slots fills them with the obstacles the horizon's reachable body can come near (`BroadPhase`): the
         others cannot be active in any plan within reach. Without it such a scene is an `InputError`."""
-        lo, hi = self.step_windows(float(t0))
         if scene.n_obstacles == 0:
             return self._inflated(np.zeros((self.N, 0, 3)), np.zeros((self.N, 0)))
-        centers, radii = scene.swept_spheres(lo, hi)  # (N, M, 3), (N, M)
-        self._selection = None
-        if x0 is not None and scene.n_obstacles > self.max_obstacles:
-            packed, self._selection = self.broad.pack(
-                np.asarray(x0, float), centers, self._rho(radii), self.max_obstacles
-            )
-            self.broad_overflows += self._selection is not None
-            return packed
-        return self._inflated(centers, radii)
+        self._selection, broad = None, x0 is not None and scene.n_obstacles > self.max_obstacles
+        packed, centers, rho = self.obstacle_table.spheres(scene, float(t0))  # looked up if tabulated, or computed
+        if not broad:
+            return packed if packed is not None else packing.pack(centers, rho, self.max_obstacles, "the replanner")
+        packed, self._selection = self.broad.pack(np.asarray(x0, float), centers, rho, self.max_obstacles)
+        self.broad_overflows += self._selection is not None
+        return packed
 
     def obstacles_from_states(
         self,
@@ -496,8 +497,8 @@ class Replanner:
         return replace(r, violation=max(r.violation, -worst), ok=False, status=r.status + why)
 
     def _infeasible(self, r: HorizonCall) -> bool:
-        """A solver call's iterate breaks a constraint (or is not finite): not a usable plan."""
-        return horizon_status(False, r.x.reshape(self.N, self.nx), r.violation) is HorizonStatus.FAILED
+        """`horizon_status`'s FAILED from `RowCheck.record`'s look (finite covers x; not finite: violation inf)."""
+        return not (r.finite and r.violation <= 1e-6)
 
     def _shifted(self, r: HorizonCall, reduced: bool) -> _Warm:
         """Previous solution moved one step earlier, the last step repeated (the next solve's start), with its

@@ -196,6 +196,12 @@ class ClosedLoop:
             return self._finish(robot, *refused, t_wall, device)
         p.references.plan_initial(robot.t)
         p.references.start_worker(realtime)
+        if not live:
+            # a known scene: the horizon's obstacle spheres of every step's start time in one pass (the numbers
+            # of the per-step call, looked up in the steps; issue 29)
+            dt = self.options.dt
+            times = [0.0] + [round((k + 1) * dt, 12) for k in range(self.loop_options.steps(dt))]
+            self.replanner.obstacle_table.tabulate(p.checks.scene_now, np.array(times))
         self._warm_up(robot)
         frozen = _freeze_heap()
         p.pacer.begin()
