@@ -434,3 +434,22 @@ def test_documented_exit_codes_are_the_codes_main_returns(files, capsys):
     dev = str(files["dir"] / "ttyUSB-none")
     argv = ["stream", str(files["plan"]), "--dynamixel", dev, "--robot", str(CDSR2), "--log", str(files["dir"] / "d")]
     refused(capsys, argv, 1, f"{dev}: no such port")
+
+
+def test_a_bench_whose_worker_died_says_why_even_with_q(tmp_path, capsys, monkeypatch):
+    """`crtraj bench table1` whose worker process dies exits 1; its reason was a logger warning, which -q
+    silenced (exit 1, nothing on stderr). Now it is the failure line, -q or not; the finished runs are kept."""
+    import concurrent.futures as cf
+
+    from crtraj.bench.runner import Table1Bench
+
+    def die(self, tasks, executor):  # what `_execute` raises when the pool loses a process
+        raise cf.BrokenExecutor("A process in the process pool was terminated abruptly")
+        yield  # a generator, as `_execute` is
+
+    monkeypatch.setattr(Table1Bench, "_execute", die)
+    argv = ["bench", "table1", "--workers", "0", "--scenarios", "1", "--counts", "1", "--planners", "rrt"]
+    argv += ["--no-progress", "--out", str(tmp_path / "b")]
+    for quiet in ([], ["-q"]):
+        line = refused(capsys, [*quiet, *argv], 1, "crtraj: bench failed: a worker died (BrokenExecutor: ")
+        assert line.endswith("the files hold the 0 runs that finished"), line
