@@ -354,6 +354,14 @@ def test_true_robot_of_another_segment_count_speaks_of_segments(files, capsys):
         "crtraj: error: --true-robot: robot 'cdsr3' has 3 segments, the problem's robot has 2: give a copy of the "
         "problem's robot file with only its parameters changed"
     )
+    from crtraj.hardware.actuators import Actuators
+    from crtraj.hardware.mocap import check_true_robot
+
+    two = load_robot(CDSR2)  # the same segments with other parameters (here none): accepted
+    check_true_robot(two, Actuators.from_robot(two), Actuators.from_robot(two))
+    with pytest.raises(InputError, match="robot 'cdsr3' has 3 segments, the problem's robot has 2"):
+        three = load_robot(CDSR3)  # the --plant path (crtraj.app.plant_sim) asks the same question
+        check_true_robot(three, Actuators.from_robot(three), Actuators.from_robot(two))
 
 
 def test_two_actuators_on_one_joint_are_both_named():
