@@ -41,13 +41,3 @@ def robot_mismatch(mine: Robot, other: Robot) -> tuple[str, str, str] | None:
     if not all(_close(a, b) for a, b in zip(mine.z_range, other.z_range, strict=True)):
         return "z_range", str(list(other.z_range)), str(list(mine.z_range))
     return None
-
-
-def robot_difference(mine: Robot, other: Robot) -> str | None:
-    """None when `other` is the same robot as `mine`; else the first difference, as a short phrase
-    ("<field> <other's value>, not <mine's value>")."""
-    diff = robot_mismatch(mine, other)
-    if diff is None:
-        return None
-    field, theirs, ours = diff
-    return f"{theirs} segments, not {ours}" if field == "segments" else f"{field} {theirs}, not {ours}"
