@@ -111,7 +111,10 @@ def test_admission_refuses_unsafe_results(robot, model, mutate, message):
 def test_admission_refuses_a_result_for_another_robot(robot, model):
     other = other_robot(robot)
     record = read_result(good_result(robot, model)).motion_record()
-    with pytest.raises(AdmissionError, match=r"^robot: made for robot .*segment\[1\]\.length 200, not 150"):
+    # each robot's name is followed by its own value (issue 36: it was "the device is 'x' (200, not 150)")
+    match = r"^robot: made for robot '\w+' \(segment\[1\]\.length 200\), the device is robot '\w+' "
+    match += r"\(segment\[1\]\.length 150\); a result for another robot is never sent: plan it again with"
+    with pytest.raises(AdmissionError, match=match):
         admit(record, Actuators.from_robot(other), robot=other)
 
 
@@ -176,8 +179,11 @@ def test_cli_refuses_a_result_for_another_robot(robot, model, tmp_path, capsys):
     other.write_text(text.replace(distal, "[[robot.segment]]\nlength = 250.0\n"))
     rc, err = _stream(tmp_path, good_result(robot, model), capsys, "--robot", str(other))
     assert (
-        rc == 1 and len(err) == 1 and "robot: made for robot" in err[0] and "segment[1].length 200, not 250" in err[0]
-    )
+        rc == 1
+        and len(err) == 1
+        and "robot: made for robot" in err[0]
+        and "(segment[1].length 200), the device is robot 'cdsr2' (segment[1].length 250)" in err[0]
+    ), err
     assert not (tmp_path / "f.bin").exists()
     # the control: the same result streams (exit 0) with the robot it was made for
     rc, err = _stream(tmp_path, good_result(robot, model), capsys)

@@ -352,3 +352,36 @@ def test_end_to_end_no_traceback(args, needle, tmp_path):
     assert proc.stderr.count("\n") == 1 and proc.stderr.startswith("crtraj: error: "), proc.stderr
     assert needle in proc.stderr
     assert not (tmp_path / "v.html").exists() and not (tmp_path / "x").exists()
+
+
+# ------------------------------------------------------------ non-finite times in the validity checks
+
+
+@pytest.mark.parametrize("compiled", [False, True], ids=["numpy", "compiled"])
+@pytest.mark.parametrize("bad", [np.inf, -np.inf, np.nan])
+def test_non_finite_edge_times_are_refused_before_numpy_sees_them(bad, compiled, model, tmp_path):
+    """Issue 36: an infinite or NaN motion time is one InputError naming the time (t0, t1, t), never numpy's
+    "invalid value" RuntimeWarning first (pyproject's filterwarnings makes such a warning from the validity
+    module an error; here it is an error whatever the configuration)."""
+    import warnings
+
+    from crtraj.planning.kernels import Kernels
+    from crtraj.planning.validity import MotionValidator
+    from crtraj.world.scene import Scene
+
+    scene = Problem.load(ROOT / "problems" / "paper_dynamic.toml").options(Scene, "scene")
+    v = MotionValidator(model, scene, kernels=Kernels(), compiled=compiled)
+    assert (v.state.kernel is not None) == compiled
+    rng = np.random.default_rng(0)
+    XA, XB = v.sample(rng, 2), v.sample(rng, 2)
+    good = np.array([0.0, 1.0])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        for name, TA, TB in (("t0", np.array([0.0, bad]), good + 1), ("t1", good, np.array([1.0, bad]))):
+            for check in (v.check_edges, v.edge_clearance, v.edges_valid):
+                with pytest.raises(InputError, match=f"^{name}: contains NaN or infinity$"):
+                    check(XA, XB, TA, TB)
+        with pytest.raises(InputError, match=r"^t: contains NaN or infinity$"):
+            v.path_clearance(np.vstack([XA, XB]), np.array([0.0, 1.0, bad, 3.0]))
+        # finite times still pass through (the refusal is not a blanket one)
+        assert v.edge_clearance(XA, XB, good, good + 1)[0].shape == (2,)

@@ -132,8 +132,9 @@ def test_the_time_based_profile_is_refused_on_the_servo_and_in_the_robot_file(tm
         load_robot(_robot_file(tmp_path, z="drive_mode = { time_based_profile = true }\n"))
     assert "\n" not in str(e2.value)
     assert str(e2.value).startswith(
-        "robot.actuators.z.drive_mode.time_based_profile: true is not supported: crtraj does not support"
+        "robot.actuators.z.drive_mode.time_based_profile: crtraj does not support the time-based profile"
     ), str(e2.value)
+    assert str(e2.value).endswith("remove this key from the robot file") and len(str(e2.value)) < 200
     with pytest.raises(InputError) as e3:
         load_robot(_robot_file(tmp_path, s1c2="drive_mode = { reverse = 1 }\n"))
     assert str(e3.value).startswith("robot.actuators.servo.s1c2.drive_mode.reverse: expected true or false")

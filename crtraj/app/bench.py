@@ -10,6 +10,7 @@ import multiprocessing
 import os
 import platform
 import re
+import sys
 from collections.abc import Callable
 from dataclasses import replace
 from datetime import datetime, timezone
@@ -153,8 +154,15 @@ def run_table1(args: Any) -> int:
         print(f"  {LABELS.get(p, p):<18} " + "; ".join(cells))
     print(f"wrote {', '.join(str(f) for f in files)} ({report.wall_time:.0f} s)")
     if report.interrupted:
-        log.warning("%s; the files hold the %d runs that finished", report.note, len(report.records))
-        return 130 if "Ctrl-C" in report.note else 1
+        if "Ctrl-C" in report.note:
+            log.warning("%s; the files hold the %d runs that finished", report.note, len(report.records))
+            return 130
+        # a failure, not a diagnostic: said even with -q
+        print(
+            f"crtraj: bench failed: {report.note}; the files hold the {len(report.records)} runs that finished",
+            file=sys.stderr,
+        )
+        return 1
     return 0
 
 

@@ -82,7 +82,12 @@ def build_command(args: argparse.Namespace) -> int:
     if bad:
         raise InputError(f"--check-points: must be in [2, {MAX_COMPILED_POINTS}], got {bad[0]}")
     robot = load_robot(args.robot)
-    if not cache.available():
+    if cache.compiler is None:  # said here, not by the cache's warning (which -q silences): it is the failure
+        print(
+            "crtraj: build failed: no C compiler found (cc, gcc or clang, or CRTRAJ_CC names none); install one "
+            "(Debian: apt-get install gcc) or set CRTRAJ_CC to it",
+            file=sys.stderr,
+        )
         return 1
     model = Model(robot)
     try:

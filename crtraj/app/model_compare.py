@@ -15,6 +15,7 @@ import argparse
 import io
 import logging
 import os
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -172,4 +173,12 @@ def model_compare_command(args: argparse.Namespace) -> int:
         print(f"  rod solves that did not converge: {cmp.failures} configurations (left out)")
     if args.plot is not None:
         print(f"  plot: {plot_comparison(cmp, robot, args.plot)}")
-    return 1 if cmp.failures == len(configs) else 0
+    if cmp.failures == len(configs):
+        print(
+            f"crtraj: model compare failed: no rod solve converged ({cmp.failures} configurations); check "
+            f"[robot.mechanics] in {args.robot}: youngs_modulus {mech.youngs_modulus:g} MPa (too soft to carry "
+            "the robot's weight?), tolerance, max_iter",
+            file=sys.stderr,
+        )
+        return 1
+    return 0

@@ -15,6 +15,7 @@ from crtraj.control.loop import ClosedLoop, ReplanRun
 from crtraj.control.rod_plant import RodPlant
 from crtraj.core.errors import InputError
 from crtraj.hardware.actuators import Actuators
+from crtraj.hardware.mocap import check_true_robot
 from crtraj.io.problem import Problem
 from crtraj.model.robot import Robot
 from crtraj.model.rod_drive import RodDrive
@@ -46,8 +47,7 @@ def make_plant(
         if problem.robot.actuators is None or true_robot.actuators is None:
             raise InputError("--true-robot: both robot files need [robot.actuators] to pass servo values between them")
         sent, true_act = Actuators.from_robot(problem.robot), Actuators.from_robot(true_robot)
-        if sent.n != true_act.n:
-            raise InputError(f"--true-robot: {true_act.n} actuators, the loop's robot has {sent.n}")
+        check_true_robot(true_robot, true_act, sent)
 
         def to_plant(q: np.ndarray) -> np.ndarray:
             return true_act.actuation(sent.command(q)).reshape(-1)

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import sys
 import time
 from pathlib import Path
 
@@ -21,7 +22,7 @@ import numpy as np
 
 from crtraj.app.plant_sim import PLANTS, PRETENSION
 from crtraj.app.record_plant import plant_dataset
-from crtraj.app.stream import _print_report, _stream
+from crtraj.app.stream import _print_report, _stream, failure_line
 from crtraj.core.errors import InputError
 from crtraj.core.fields import check_float
 from crtraj.core.fileio import check_output_file, check_outputs_not_inputs
@@ -207,6 +208,7 @@ def record_command(args: argparse.Namespace) -> int:
         rep = _stream(stream_args, motion, opts, Path(log))
         _print_report(rep, args.dry_run)
         if not rep.ok:
+            print(f"crtraj: record failed: the excitation stream {failure_line(rep)}", file=sys.stderr)
             return 1
         if args.markers is None:
             shown, out_shown = display_path(log), display_path(out)

@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import sys
 import time
 from collections.abc import Mapping
 from pathlib import Path
@@ -167,4 +168,11 @@ def stream_command(args: argparse.Namespace) -> int:
     if rep.status == "refused" and rep.moves == 0:  # refused before anything was sent: one line, exit 1
         raise AdmissionError(f"{args.result}: {rep.message}")
     _print_report(rep, args.dry_run)
+    if not rep.ok:
+        print(f"crtraj: stream failed: {failure_line(rep)}", file=sys.stderr)
     return 0 if rep.ok else 1
+
+
+def failure_line(rep: StreamReport) -> str:
+    """Why a stream did not complete, on one line: its status, its message and where its record is."""
+    return " ".join(f"{rep.status}: {rep.message} (log {rep.log})".split())

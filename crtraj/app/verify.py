@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -180,7 +181,7 @@ def verify_cosserat(
     d_sf = result.scene.safety_distance if safety_distance is None else float(safety_distance)
     if not (np.isfinite(d_sf) and d_sf >= 0.0):
         raise InputError(f"--safety-distance: must be a finite number >= 0 mm, got {d_sf}")
-    result.check_robot(robot, "--robot")
+    result.check_robot(robot, "the robot to verify with", "give --robot the robot file the result was planned with")
     start, cpu = time.perf_counter(), time.process_time()
     if rod is None:
         mech = Mechanics.from_robot(robot)
@@ -221,11 +222,14 @@ def planning_seconds(result: Result) -> float | None:
 def _robot_for(args: argparse.Namespace, result: Result) -> Robot:
     """--robot, or the robot file of the problem the result names (its [robot.mechanics] is needed)."""
     if args.robot is not None:
-        return load_robot(args.robot)
-    path = (result.data.get("problem") or {}).get("path")
-    if not path or not Path(path).is_file():
-        raise InputError("--robot: the result names no readable problem file; give the robot TOML with --robot")
-    return Problem.load(path).robot
+        robot, who = load_robot(args.robot), f"--robot {args.robot}"
+    else:
+        path = (result.data.get("problem") or {}).get("path")
+        if not path or not Path(path).is_file():
+            raise InputError("--robot: the result names no readable problem file; give the robot TOML with --robot")
+        robot, who = Problem.load(path).robot, f"the robot of {path}"
+    result.check_robot(robot, who, "give --robot the robot file the result was planned with")
+    return robot
 
 
 def verify_command(args: argparse.Namespace) -> int:
@@ -256,6 +260,25 @@ def verify_command(args: argparse.Namespace) -> int:
     if took is not None and took > 0:
         ratio = f" ({v.seconds / took:.1f} x, {v.cpu_seconds / took:.1f} x the {took:.3f} s it took to make)"
     print(f"  verified in {v.seconds:.3f} s wall, {v.cpu_seconds:.3f} s CPU{ratio}")
-    if v.contact or v.failed:
+    why = _failure(v, args.strict)
+    if why is not None:
+        print(f"crtraj: verify failed: {why}", file=sys.stderr)
         return 1
-    return 1 if args.strict and not v.holds else 0
+    return 0
+
+
+def _failure(v: Verification, strict: bool) -> str | None:
+    """Why `crtraj verify` exits 1 (one line with the fix), or None: rod contact, rod solves that did not
+    converge, or (strict) D_sf broken under the rod."""
+    more = f"re-plan with [scene] safety_distance at least {v.extra_margin:.2f} mm larger"
+    if v.contact and v.rod is not None:
+        return f"CONTACT: under the Cosserat rod the body touches an obstacle ({v.rod.text()}); {more}"
+    if v.failed:
+        return (
+            f"{v.failed} of {len(v.t)} rod solves did not converge, those frames are not verified; check "
+            "[robot.mechanics] in the robot file (moduli, tolerance, max_iter)"
+        )
+    if strict and not v.holds:
+        where = "" if v.rod is None else f" ({v.rod.text()})"
+        return f"--strict: D_sf does not hold under the Cosserat rod{where}; {more}"
+    return None

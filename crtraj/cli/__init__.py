@@ -516,6 +516,25 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"crtraj: error: {_one_line(message)} (see {self.prog} --help)\n")
 
 
+def _add_talk_flags(p: argparse.ArgumentParser, top: bool) -> None:
+    """The global flags -v/--verbose and -q. A command's copies leave the value before the command alone
+    unless given (SUPPRESS), so they may stand on either side of the command name."""
+    talk = p.add_mutually_exclusive_group()
+    more, less = (0, False) if top else (argparse.SUPPRESS, argparse.SUPPRESS)
+    talk.add_argument("-v", "--verbose", action="count", default=more, help="more on stderr (-v: info, -vv: debug)")
+    talk.add_argument("-q", dest="quiet_log", action="store_true", default=less, help="only errors on stderr")
+
+
+def _subparsers(parser: argparse.ArgumentParser) -> list[argparse.ArgumentParser]:
+    """Every command's parser below `parser` (``model`` and ``model compare`` alike), each once."""
+    out: list[argparse.ArgumentParser] = []
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for p in dict.fromkeys(action.choices.values()):
+                out += [p, *_subparsers(p)]
+    return out
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``crtraj`` parser: global flags (``--version``, ``-v``, ``-q``) and one subparser per command."""
     parser = _Parser(
@@ -523,12 +542,12 @@ def build_parser() -> argparse.ArgumentParser:
         description="Safety-constrained motion planning for cable-driven continuum robots.",
     )
     parser.add_argument("--version", action="version", version=f"crtraj {__version__}")
-    talk = parser.add_mutually_exclusive_group()
-    talk.add_argument("-v", "--verbose", action="count", default=0, help="more on stderr (-v: info, -vv: debug)")
-    talk.add_argument("-q", dest="quiet_log", action="store_true", help="only errors on stderr (no warnings)")
+    _add_talk_flags(parser, top=True)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for add in _COMMANDS:
         add(sub)
+    for p in _subparsers(parser):  # `crtraj plan -v` as well as `crtraj -v plan`
+        _add_talk_flags(p, top=False)
     strict_flag_types(parser, empty_allowed=frozenset({"note"}))  # a blank --note line is meaningful
     return parser
 
@@ -543,6 +562,8 @@ def _one_line(exc: BaseException, width: int = 1000) -> str:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    if args.verbose and args.quiet_log:  # one on each side of the command: their group cannot see both
+        parser.error("argument -q: not allowed with argument -v/--verbose")
     configure_logging(args.verbose, args.quiet_log)
     if getattr(args, "use_case", None) is None and getattr(args, "func", None) is None:
         parser.print_help()

@@ -40,7 +40,7 @@ from crtraj.core.errors import AdmissionError, InputError
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.setpoints import SetpointPath, check_time_scale
 from crtraj.hardware.verify import FrameVerifier, VerifyOptions
-from crtraj.model.identity import robot_difference
+from crtraj.model.identity import robot_mismatch
 from crtraj.model.robot import Robot
 from crtraj.world.scene import Scene
 
@@ -144,11 +144,13 @@ def _refusal(record: MotionRecord, device_robot: Robot) -> str | None:
         )
     if record.scene is None:
         return "scene: missing: a result without its scene cannot be checked and is never sent"
-    diff = robot_difference(device_robot, record.robot)
+    diff = robot_mismatch(device_robot, record.robot)
     if diff is not None:
+        field, theirs, ours = diff
         return (
-            f"robot: made for robot '{record.robot.name}', the device is '{device_robot.name}' ({diff}); "
-            "a result for another robot is never sent"
+            f"robot: made for robot '{record.robot.name}' ({field} {theirs}), the device is robot "
+            f"'{device_robot.name}' ({field} {ours}); a result for another robot is never sent: plan it again with "
+            "the device's robot file"
         )
     return None
 

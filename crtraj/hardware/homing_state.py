@@ -117,7 +117,13 @@ class HomingState:
         p = Path(path)
         if not p.exists():
             return cls()
-        data = read_json(p, MAX_STATE_BYTES)
+        # crtraj writes this file itself (atomically): a damaged one is fixed by homing again, not by editing it
+        again = "delete it and run crtraj home again"
+        try:
+            data = read_json(p, MAX_STATE_BYTES)
+        except InputError as exc:
+            why = str(exc).removeprefix(f"{p}: ").split(";")[0]
+            raise InputError(f"{p}: damaged homing state file ({why}); {again}") from None
         try:
             rows = data["servos"]
             fields = HomedServo.__dataclass_fields__
@@ -125,7 +131,7 @@ class HomingState:
                 tuple(HomedServo(**{k: r[k] for k in fields if k in r or fields[k].default is MISSING}) for r in rows)
             )
         except (KeyError, TypeError) as exc:
-            raise InputError(f"{p}: not a homing state file (servos: {exc}); run crtraj home again") from None
+            raise InputError(f"{p}: not a homing state file (servos: {exc}); {again}") from None
 
     def save(self, path: str | Path) -> Path:
         """Write atomically (a crash leaves the old file or the new one, never half of one)."""

@@ -43,6 +43,16 @@ from crtraj.world.feed import MAX_COORDINATE, MAX_DATAGRAM_BYTES, MAX_NESTING, n
 MAX_DRAIN = 10_000
 
 
+def check_true_robot(true_robot: Robot, true_act: Actuators, commanded: Actuators) -> None:
+    """Refuse (one line) a --true-robot file that is not the loop's robot with other parameters: its segment
+    count (so its actuator count) must be the same, as each servo value is passed to it unchanged."""
+    if true_act.n_segments != commanded.n_segments or true_act.n != commanded.n:
+        raise InputError(
+            f"--true-robot: robot {true_robot.name!r} has {true_act.n_segments} segments, the problem's robot has "
+            f"{commanded.n_segments}: give a copy of the problem's robot file with only its parameters changed"
+        )
+
+
 class SimulatedMocap:
     """Tip readings of `true_robot` driven with the servo values `commanded` computes from the loop's q.
 
@@ -55,8 +65,7 @@ class SimulatedMocap:
         if true_robot.actuators is None:
             raise InputError(f"--true-robot: robot {true_robot.name!r} has no [robot.actuators] (its zero offsets)")
         true_act = Actuators.from_robot(true_robot)
-        if true_act.n != commanded.n:
-            raise InputError(f"--true-robot: {true_act.n} actuators, the loop's robot has {commanded.n}")
+        check_true_robot(true_robot, true_act, commanded)
         layout = Layout.build(true_robot, true_act.zero_offset, np.zeros(6), CalibrateOptions())
         site = (MarkerSite("tip", true_robot.n_segments - 1),)
         self._cm = CalibrationModel(true_robot, Hardware(true_act.spool_radius, true_act.sign), site, layout)

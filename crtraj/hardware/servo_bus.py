@@ -36,11 +36,10 @@ from crtraj.core.options import Options, option
 MAX_TICKS_PER_REV = 1 << 20
 MAX_MODEL = 0xFFFF
 BUS_KEYS = ("id", "ticks_per_rev", "model", "drive_mode")
-TIME_PROFILE_UNSUPPORTED = (
-    "crtraj does not support the time-based profile: with Drive Mode bit 2 the servo reads Profile Velocity and "
-    "Profile Acceleration as times (ms per goal), so the speed and acceleration caps crtraj writes from the "
-    "actuator limits (the servo's own backstop under every streamed set-point) would not exist"
-)
+# why the time-based profile is refused: with Drive Mode bit 2 the servo reads Profile Velocity and Profile
+# Acceleration as times (ms per goal), so the speed and acceleration caps crtraj writes from the actuator limits
+# (the servo's own backstop under every streamed set-point) would not exist
+TIME_PROFILE_UNSUPPORTED = "crtraj does not support the time-based profile (it would void the servo's speed caps)"
 
 
 @dataclass(frozen=True)
@@ -80,7 +79,7 @@ def _drive_mode(t: Table, base: dict[str, Any]) -> DriveMode:
     sub = t.table("drive_mode")
     mode = DriveMode.from_table(sub)
     if mode.time_based_profile:
-        raise sub.error("time_based_profile", f"true is not supported: {TIME_PROFILE_UNSUPPORTED}")
+        raise sub.error("time_based_profile", f"{TIME_PROFILE_UNSUPPORTED}: remove this key from the robot file")
     return mode
 
 

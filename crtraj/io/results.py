@@ -31,7 +31,7 @@ from crtraj.core.fields import Table
 from crtraj.core.fileio import read_json, to_jsonable
 from crtraj.hardware.admission import MotionRecord
 from crtraj.io import run_schema as rs
-from crtraj.model.identity import robot_difference
+from crtraj.model.identity import robot_mismatch
 from crtraj.model.kinematics import Model
 from crtraj.model.robot import Robot
 from crtraj.planning.result import PlanResult
@@ -250,14 +250,16 @@ class Result:
         """s from the first waypoint to the last."""
         return float(self.t[-1] - self.t[0])
 
-    def check_robot(self, robot: Robot, who: str) -> None:
-        """Refuse (one line) when this result was made for another robot than `robot`, which `who` uses."""
-        diff = robot_difference(robot, self.robot)
+    def check_robot(self, robot: Robot, who: str, fix: str) -> None:
+        """Refuse (one line) when this result was made for another robot than `robot`, which `who` (a phrase:
+        "--robot cdsr2.toml") names; the line gives both robots' value of the first field that differs, and
+        `fix`, what to change."""
+        diff = robot_mismatch(robot, self.robot)
         if diff is not None:
+            field, theirs, ours = diff
             raise InputError(
-                f"robot: the result was made for robot '{self.robot.name}' ({self.robot.n_segments} segments, "
-                f"lengths {[s.length for s in self.robot.segments]} mm, coupling {self.robot.coupling:g}), "
-                f"but {who} '{robot.name}' ({diff})"
+                f"robot: {self.source or 'the result'} was made for robot '{self.robot.name}' ({field} {theirs}), "
+                f"but {who} is robot '{robot.name}' ({field} {ours}); {fix}"
             )
 
     def motion_record(self) -> MotionRecord:

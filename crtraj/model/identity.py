@@ -22,21 +22,22 @@ def _close(a: float, b: float) -> bool:
     return math.isclose(a, b, rel_tol=_RTOL, abs_tol=_RTOL)
 
 
-def robot_difference(mine: Robot, other: Robot) -> str | None:
-    """None when `other` is the same robot as `mine`; else the first difference, as a short phrase."""
+def robot_mismatch(mine: Robot, other: Robot) -> tuple[str, str, str] | None:
+    """None when `other` is the same robot as `mine`; else the first difference as (field, other's value,
+    mine's value), each value as text ("segments", "3", "2")."""
     if mine.n_segments != other.n_segments:
-        return f"{other.n_segments} segments, not {mine.n_segments}"
+        return "segments", str(other.n_segments), str(mine.n_segments)
     for k, (a, b) in enumerate(zip(mine.segments, other.segments, strict=True)):
         for name in ("length", "theta_max", "cable_phase"):
             if not _close(getattr(a, name), getattr(b, name)):
-                return f"segment[{k}].{name} {getattr(b, name):g}, not {getattr(a, name):g}"
+                return f"segment[{k}].{name}", f"{getattr(b, name):g}", f"{getattr(a, name):g}"
         if (a.cable_stroke is None) != (b.cable_stroke is None) or (
             a.cable_stroke is not None and not _close(a.cable_stroke, b.cable_stroke)
         ):
-            return f"segment[{k}].cable_stroke {b.cable_stroke}, not {a.cable_stroke}"
+            return f"segment[{k}].cable_stroke", str(b.cable_stroke), str(a.cable_stroke)
     for name in ("cable_radius", "coupling", "body_radius"):
         if not _close(getattr(mine, name), getattr(other, name)):
-            return f"{name} {getattr(other, name):g}, not {getattr(mine, name):g}"
+            return name, f"{getattr(other, name):g}", f"{getattr(mine, name):g}"
     if not all(_close(a, b) for a, b in zip(mine.z_range, other.z_range, strict=True)):
-        return f"z_range {list(other.z_range)}, not {list(mine.z_range)}"
+        return "z_range", str(list(other.z_range)), str(list(mine.z_range))
     return None

@@ -62,6 +62,15 @@ from crtraj.planning.state_validity import StateValidityChecker
 BROAD_MIN = 3
 
 
+def _finite_times(T: Any, n: int, name: str) -> np.ndarray:
+    """`per_item(T, n)`, refused (one line naming `name`) when a time is NaN or infinite: such a time would
+    reach numpy's interval arithmetic (0 * inf) before the clearance check refuses it."""
+    t = per_item(T, n)
+    if not np.isfinite(t).all():
+        raise InputError(f"{name}: contains NaN or infinity")  # as `Scene.swept_spheres` says it
+    return t
+
+
 @dataclass(frozen=True)
 class _EdgeBatch:
     """Straight motions XA -> XA + step (E, nx) over [TA, TA + span] (s) to check: their body-motion bounds
@@ -251,8 +260,8 @@ class MotionValidator:
         XA = np.atleast_2d(np.asarray(XA, dtype=float))
         XB = np.atleast_2d(np.asarray(XB, dtype=float))
         E = XA.shape[0]
-        TA = per_item(TA, E)
-        TB = per_item(TB, E)
+        TA = _finite_times(TA, E, "t0")
+        TB = _finite_times(TB, E, "t1")
         X, e, _, t_lo, t_hi, margin = self._samples(XA, XB, TA, TB)
         c = self.clearance(X, t_lo, t_hi, margin)
         per_edge = np.full(E, np.inf)
@@ -320,8 +329,8 @@ class MotionValidator:
             if out is not None:
                 self.state.n_samples += out[2]
                 return out[0], out[1]
-        TA = per_item(TA, E)
-        TB = per_item(TB, E)
+        TA = _finite_times(TA, E, "t0")
+        TB = _finite_times(TB, E, "t1")
         dT = TB - TA
         if fast and not self.static:
             scene = self.scene
@@ -425,6 +434,8 @@ class MotionValidator:
         """
         X = np.atleast_2d(np.asarray(X, dtype=float))
         T = np.atleast_1d(np.asarray(T, dtype=float))
+        if not np.isfinite(T).all():
+            raise InputError("t: contains NaN or infinity")
         if len(X) == 1:
             c = self.clearance(X, T[0])
             return float(c[0]), c

@@ -246,7 +246,7 @@ class Visualizer:
         centres and radii, their D_sf shells and the closest-approach line move with the page's clock. The
         static scene shows the first waypoint. play=None takes `options.play`.
         """
-        run = self._read_run(result)
+        run = self._read_run(result, "the robot this Visualizer draws", "draw it with Visualizer.for_result")
         self.clear()
         self._run = run
         self._safety = run.scene.safety_distance if run.scene is not None else 0.0
@@ -279,7 +279,8 @@ class Visualizer:
         """
         if self._run is None:
             raise InputError("compare: no result shown yet; call show_result first")
-        run = self._read_run(result)
+        shown = f"the result shown ({self._run.source})" if self._run.source else "the result shown"
+        run = self._read_run(result, shown, "compare two results of the same robot file")
         ghost = SceneBuilder(self._vis, self.model, self.options, prefix="ghost")
         ghost.draw_robot()
         poses = ghost.poses(run.x)
@@ -291,9 +292,10 @@ class Visualizer:
         self.push_page()
         return self
 
-    def _read_run(self, result: Mapping[str, Any] | Result) -> Result:
+    def _read_run(self, result: Mapping[str, Any] | Result, who: str, fix: str) -> Result:
+        """`result` read, refused (`Result.check_robot`: `who`, `fix`) when it is not this Visualizer's robot."""
         run = read_result(result)
-        run.check_robot(self.robot, "this Visualizer draws")
+        run.check_robot(self.robot, who, fix)
         missing = np.isnan(run.tip).any(axis=1)
         if missing.any():
             tip = run.tip.copy()

@@ -108,9 +108,14 @@ class RosOptions(Options):
         for actuator, joint in self.joints:
             if not joint or not joint.isprintable() or not actuator:
                 raise InputError(f"ros.joints.{actuator[:40]}: expected a non-empty joint name, got {joint[:60]!r}")
-        joint_names = [j for _, j in self.joints]
-        if len(set(joint_names)) != len(joint_names):
-            raise InputError("ros.joints: two actuators map to the same joint name")
+        seen: dict[str, str] = {}
+        for actuator, joint in self.joints:
+            if joint in seen:
+                raise InputError(
+                    f"ros.joints: {seen[joint]} and {actuator} both map to joint {joint[:60]!r}; give each actuator "
+                    "its own joint name"
+                )
+            seen[joint] = actuator
         for key in ("trajectory_topic_name", "joint_state_topic", "obstacle_topic", "markers_topic", "path_topic"):
             name = getattr(self, key)
             key = key.removesuffix("_name")
