@@ -232,7 +232,7 @@ def _stub_path(tmp_path: Path, present: tuple[str, ...]) -> tuple[dict, Path]:
 
 
 def test_ci_tools_installs_each_missing_tool_on_a_bare_machine(tmp_path):
-    """With none of the tools (nor python3) on PATH, one apt-get install names every row's package, the C headers
+    """With none of the tools (nor python3) on PATH, a single install call names every row's package, the C headers
     and python3-venv; a machine that has them all installs nothing."""
     env, log = _stub_path(tmp_path / "bare", ())
     subprocess.run([env["PATH"] + "/bash", str(CI_TOOLS)], env=env, check=True, capture_output=True)
