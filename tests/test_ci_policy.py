@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import ast
 import os
+import shutil
 import subprocess
 import sys
 import xml.etree.ElementTree as ET
@@ -177,3 +178,68 @@ def test_ci_script_runs_exactly_the_readme_test_command():
     between = script[script.index("# --- the README's test command ---") + 1 :]
     assert between[1] == f"{command} || rc=$?", between[:3]
     assert "export CI=true" in script
+
+
+# ------------------------------------------------------- what .ci/run installs
+CI_TOOLS = TESTS.parent / ".ci" / "tools"
+
+
+def _tool_table() -> dict[str, str]:
+    """.ci/tools' table, tool -> Debian package, as the script itself prints it."""
+    out = subprocess.run(["bash", str(CI_TOOLS), "--list"], capture_output=True, text=True, check=True).stdout
+    return dict(line.split() for line in out.splitlines() if line.strip())
+
+
+def _required_tools() -> list[tuple[str, tuple[str, ...]]]:
+    """(place, names) of every require_tool call in the tests: any one of the names satisfies it."""
+    calls = []
+    for path in sorted(TESTS.glob("test_*.py")):
+        if path.name == Path(__file__).name:  # this file calls it with made-up names on purpose
+            continue
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id == "require_tool":
+                names = tuple(a.value for a in node.args if isinstance(a, ast.Constant) and isinstance(a.value, str))
+                calls.append((f"{path.name}:{node.lineno}", names))
+    return calls
+
+
+def test_ci_installs_every_tool_a_test_requires():
+    """Each require_tool call names at least one tool that .ci/tools installs, so a fresh CI machine has it."""
+    table = _tool_table()
+    calls = _required_tools()
+    assert {"ffprobe", "chromium", "cc"} <= {n for _, names in calls for n in names}  # the scan finds the known uses
+    orphans = [f"{where}: {', '.join(names)}" for where, names in calls if not set(names) & set(table)]
+    assert not orphans, f"tools no row of .ci/tools installs: {orphans}"
+    run = (TESTS.parent / ".ci" / "run").read_text()
+    assert run.index("bash .ci/tools") < run.index("python -m pytest"), ".ci/run installs the tools before the tests"
+
+
+def _stub_path(tmp_path: Path, present: tuple[str, ...]) -> tuple[dict, Path]:
+    """A PATH holding only bash, a few utilities, a recording stub apt-get and stubs of the `present` tools."""
+    bin_ = tmp_path / "bin"
+    bin_.mkdir(parents=True)
+    for util in ("bash", "sed"):
+        (bin_ / util).symlink_to(shutil.which(util))
+    log = tmp_path / "apt.log"
+    (bin_ / "apt-get").write_text(f'#!{shutil.which("bash")}\necho "$@" >> {log}\n')
+    (bin_ / "id").write_text(f"#!{shutil.which('bash')}\necho 0\n")  # root: no sudo
+    for tool in present:
+        (bin_ / tool).write_text(f"#!{shutil.which('bash')}\nexit 0\n")
+    for f in bin_.iterdir():
+        if not f.is_symlink():
+            f.chmod(0o755)
+    return {"PATH": str(bin_), "HOME": str(tmp_path)}, log
+
+
+def test_ci_tools_installs_each_missing_tool_on_a_bare_machine(tmp_path):
+    """With none of the tools (nor python3) on PATH, a single install call names every row's package, the C headers
+    and python3-venv; a machine that has them all installs nothing."""
+    env, log = _stub_path(tmp_path / "bare", ())
+    subprocess.run([env["PATH"] + "/bash", str(CI_TOOLS)], env=env, check=True, capture_output=True)
+    installs = [line.split() for line in log.read_text().splitlines() if line.startswith("install")]
+    assert len(installs) == 1, log.read_text()
+    wanted = set(_tool_table().values()) | {"libc6-dev", "python3-venv"}
+    assert set(installs[0]) - {"install", "-y", "-qq", "--no-install-recommends"} == wanted
+    env, log = _stub_path(tmp_path / "full", (*_tool_table(), "python3"))
+    subprocess.run([env["PATH"] + "/bash", str(CI_TOOLS)], env=env, check=True, capture_output=True)
+    assert not log.exists(), log.read_text()
