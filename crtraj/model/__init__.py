@@ -14,6 +14,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
         "crtraj.model.robot": ("Robot", "Segment"),
         "crtraj.model.kinematics": ("Model",),
         "crtraj.model.actuator_limits": ("ActuatorLimits",),
+        "crtraj.model.rate_limits": ("RateLimits",),
         "crtraj.model.mechanics": ("Mechanics",),
         "crtraj.model.cosserat": ("CosseratRod", "RodLoad", "RodSolution"),
         "crtraj.model.excitation": ("excitation_path",),

@@ -20,6 +20,5 @@ __all__, __getattr__, __dir__ = lazy_exports(
         "crtraj.planning.result": ("PlanResult", "PlanStatus"),
         "crtraj.planning.base": ("Planner",),
         "crtraj.planning.registry": ("BUILTIN", "PlannerRegistry", "PlannerSpec", "make_planner"),
-        "crtraj.planning.rate_limits": ("RateLimits",),
     },
 )
