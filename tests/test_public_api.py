@@ -280,7 +280,7 @@ def test_calibrate_robot_refuses_bad_outputs_before_any_work(tmp_path):
     robot_file = ROOT / "problems" / "robots" / "cdsr2.toml"
     data = tmp_path / "data.json"
     data.write_text("{}")
-    with pytest.raises(crtraj.InputError, match="out: .* is also robot_file"):
+    with pytest.raises(crtraj.InputError, match=r"out: .* is also robot_file"):
         crtraj.calibrate_robot(data, robot_file, robot_file)  # would overwrite its own input
     with pytest.raises(crtraj.InputError, match="unknown parameter group 'stiffness'"):
         crtraj.calibrate_robot(data, robot_file, tmp_path / "cal.toml", fit="stiffness")
