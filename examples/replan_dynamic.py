@@ -11,19 +11,17 @@ from pathlib import Path
 
 import numpy as np
 
-from crtraj.app.run_output import write_run
-from crtraj.control.loop import ClosedLoop
-from crtraj.io.problem import Problem
+import crtraj
 
 ROOT = Path(__file__).resolve().parent.parent
 out = Path(sys.argv[1]) if len(sys.argv) > 1 else Path("out") / "replan-example"
 
 # 1. The whole closed loop: planner reference, horizon NLP, tracking controller, verified moves.
-problem = Problem.load(ROOT / "problems" / "paper_dynamic.toml")
-loop = ClosedLoop.from_problem(problem)  # safety=False would switch the collision-free terms off
+problem = crtraj.Problem.load(ROOT / "problems" / "paper_dynamic.toml")
+loop = crtraj.ClosedLoop.from_problem(problem)  # safety=False would switch the collision-free terms off
 run = loop.run()
 print(run.summary_line())
-paths = write_run(run, loop, out, problem=problem, html=False)  # html=True also writes run.html (3-D replay)
+paths = crtraj.write_run(run, loop, out, problem=problem, html=False)  # html=True also writes run.html
 print("wrote", paths["json"], paths["png"])
 
 # Per-step records are plain arrays: time (s), actual configuration, actuation (mm), clearance (mm) ...

@@ -4,7 +4,7 @@ Run: python examples/stream_sim.py        (about 6 s; everything stays on 127.0.
 
 1. Builds a plan-style result (waypoints with t and q) from the real model:
    the straight robot bends both segments and lowers its base by 8 mm in 3 s.
-2. Admits it (`crtraj.hardware.admission.admit`) and streams it with
+2. Admits it (`crtraj.admit_result`) and streams it with
    `Streamer.run_path` to a `SimDevice` that drops 5 % of the datagrams and
    corrupts 2 %, and prints the report.
 3. Streams a live sequence with the control-step API (`start`,
@@ -19,15 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from crtraj.core.fileio import atomic_write_json, to_jsonable
-from crtraj.hardware.actuators import Actuators
-from crtraj.hardware.admission import admit
-from crtraj.hardware.sim_device import Faults, SimDevice
-from crtraj.hardware.stream import Streamer, StreamOptions
-from crtraj.io.problem import load_robot
-from crtraj.io.results import read_result
-from crtraj.model.kinematics import Model
-from crtraj.world.scene import Scene
+import crtraj
+from crtraj.core import atomic_write_json, to_jsonable
 
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "out" / "stream_demo"
@@ -41,30 +34,36 @@ def demo_result(robot, model, duration=3.0, n=16):
     X = x0 + (x1 - x0) * (0.5 - 0.5 * np.cos(np.pi * s))[:, None]
     Q, P = model.cables(X), model.tip_position(X)
     wps = [{"t": duration * s[k], "tip": P[k], "x": X[k], "q": Q[k]} for k in range(n)]
-    doc = {"kind": "plan", "robot": robot.to_dict(), "scene": Scene().to_dict(), "status": "success", "success": True}
+    doc = {
+        "kind": "plan",
+        "robot": robot.to_dict(),
+        "scene": crtraj.Scene().to_dict(),
+        "status": "success",
+        "success": True,
+    }
     return to_jsonable(doc | {"waypoints": wps})
 
 
 def main() -> None:
-    robot = load_robot(ROOT / "problems" / "robots" / "cdsr2.toml")
-    model = Model(robot)
-    acts = Actuators.from_robot(robot)
+    robot = crtraj.load_robot(ROOT / "problems" / "robots" / "cdsr2.toml")
+    model = crtraj.Model(robot)
+    acts = crtraj.Actuators.from_robot(robot)
     result = demo_result(robot, model)
     atomic_write_json(OUT / "result.json", result)
     print(f"wrote {OUT / 'result.json'}; try: crtraj stream {OUT / 'result.json'} --dry-run {OUT / 'frames.bin'}")
 
-    with SimDevice(acts, faults=Faults(drop=0.05, corrupt=0.02), seed=1) as dev:
+    with crtraj.SimDevice(acts, faults=crtraj.Faults(drop=0.05, corrupt=0.02), seed=1) as dev:
         # --- 1. a whole planned trajectory
-        motion = admit(read_result(result).motion_record(), acts)  # refuses failed, colliding, ... results
-        rep = Streamer.open(dev.url, acts, log=OUT / "run_path.jsonl").run_path(motion)
+        motion = crtraj.admit_result(result)  # refuses failed, colliding, ... results
+        rep = crtraj.Streamer.open(dev.url, acts, log=OUT / "run_path.jsonl").run_path(motion)
         print(
             f"run_path: {rep.status} ({rep.message}); {rep.moves} set-points, device {rep.device}, "
             f"final error {rep.final_error:.2g}"
         )
 
         # --- 2. control steps, as `crtraj replan --stream` does
-        opts = StreamOptions(prebuffer=0.3)
-        with Streamer.open(dev.url, acts, opts, log=OUT / "live.jsonl") as s:
+        opts = crtraj.StreamOptions(prebuffer=0.3)
+        with crtraj.Streamer.open(dev.url, acts, opts, log=OUT / "live.jsonl") as s:
             s.start()  # handshake; s.position is where the device stands
             x_start = robot.config(acts.actuation(s.position))
             t0 = time.monotonic()

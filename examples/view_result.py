@@ -17,18 +17,15 @@ from pathlib import Path
 
 import numpy as np
 
-from crtraj.io.problem import load_robot
-from crtraj.io.results import read_result
-from crtraj.model.kinematics import Model
-from crtraj.viz.view import Visualizer
+import crtraj
 
 ROBOT = Path(__file__).resolve().parent.parent / "problems" / "robots" / "cdsr2.toml"
 
 
 def serve(result_path: str) -> None:
     """Replay a result with meshcat's time slider until Ctrl-C."""
-    result = read_result(result_path)  # validated: one line naming the field if the file is off the schema
-    with Visualizer.for_result(result, server=True, open=True) as vis:
+    result = crtraj.read_result(result_path)  # validated: one line naming the field if the file is off the schema
+    with crtraj.Visualizer.for_result(result, server=True, open=True) as vis:
         print(f"{result_path}: {vis.url}  (Ctrl-C to stop)")
         try:
             while True:
@@ -39,14 +36,14 @@ def serve(result_path: str) -> None:
 
 def export(result_path: str, html_path: str) -> None:
     """The same page as one self-contained file (what `crtraj view --html` writes)."""
-    path = Visualizer.for_result(read_result(result_path)).save_html(html_path)
+    path = crtraj.Visualizer.for_result(crtraj.read_result(result_path)).save_html(html_path)
     print(f"wrote {path}")
 
 
 def pose(html_path: str) -> None:
     """The default robot at one configuration x = (u_1x, u_1y, u_2x, u_2y, z) among the paper's spheres."""
-    model = Model(load_robot(ROBOT))
-    vis = Visualizer(model, server=False)  # offline: only for the HTML file
+    model = crtraj.Model(crtraj.load_robot(ROBOT))
+    vis = crtraj.Visualizer(model, server=False)  # offline: only for the HTML file
     x = np.array([-0.33, 0.73, -0.09, 0.78, -33.0])  # rad, rad, rad, rad, mm: threads between the spheres
     centers = np.array([[0.0, 90.0, 330.0], [-10.0, -70.0, 250.0]])  # mm, paper simulation 1
     radii = np.array([65.0, 55.0])  # mm

@@ -84,6 +84,60 @@ def test_readme_python_quick_start_runs():
         assert proc.stdout.strip(), "the quick start prints its result"
 
 
+# ---------------------------------------------------------------------------------- examples and tutorials
+# Every script of examples/ runs as a user runs it (its arguments, then a line it must print, a regular
+# expression). Shell scripts (the rod calibration: minutes of rod simulation) are the command line's.
+EXAMPLES = {
+    "plan_static.py": ([], r"cspace: exact .*\n(.*\n)*wrote .*plan_static\.json"),
+    "replan_dynamic.py": (["{tmp}/replan"], r"reached goal yes, collisions 0 .*\n(.*\n)*horizon NLP: solved"),
+    "stream_sim.py": ([], r"run_path: done .*\n(.*\n)*live: +done"),
+    # the calibrated file moves the true robot's tip onto the plan (the nominal one misses it by ~150 mm)
+    "calibrate_synthetic.py": ([], r"refused: --time-offset.*\n(.*\n)*calibrated plan: .* max 0\.[0-4]\d* mm"),
+    "view_result.py": (["--pose", "{tmp}/pose.html"], r"wrote .*pose\.html"),
+}
+
+
+def test_every_example_is_run():
+    assert sorted(p.name for p in (ROOT / "examples").glob("*.py")) == sorted(EXAMPLES)
+
+
+def _run_python(args: list[str], cwd: Path) -> str:
+    proc = subprocess.run([sys.executable, *args], cwd=cwd, env=_env(), capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return proc.stdout
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", sorted(EXAMPLES))
+def test_example_runs(name, tmp_path):
+    args, expected = EXAMPLES[name]
+    out = _run_python([f"examples/{name}", *(a.format(tmp=tmp_path) for a in args)], ROOT)
+    assert re.search(expected, out), out[-3000:]
+
+
+def test_your_robot_tutorial_runs(tmp_path):
+    """docs/tutorials/your-robot.md as a reader follows it: its robot file saved as my_robot.toml, then its
+    Python: a scene, a plan, verified, admitted and streamed to the simulated device to the end."""
+    page = (ROOT / "docs" / "tutorials" / "your-robot.md").read_text(encoding="utf-8")
+    assert "Save this as `my_robot.toml`" in page
+    (toml,) = re.findall(r"```toml\n(.*?)```", page, flags=re.S)
+    (code,) = re.findall(r"```python\n(.*?)```", page, flags=re.S)
+    assert len(code.strip().splitlines()) <= 12
+    (tmp_path / "my_robot.toml").write_text(toml, encoding="utf-8")
+    out = _run_python(["-c", code], tmp_path)
+    assert re.fullmatch(r"exact in [\d.]+ s, [\d.]+ mm beyond D_sf; streamed: done\n", out), out
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("page", ["tutorials/plan-and-stream.md", "tutorials/replan-live.md", "concepts/model.md"])
+def test_tutorial_python_runs(page):
+    """The Python of the other pages runs as written, from the repository root."""
+    blocks = re.findall(r"```python\n(.*?)```", (ROOT / "docs" / page).read_text(encoding="utf-8"), flags=re.S)
+    assert blocks
+    for code in blocks:
+        _run_python(["-c", code], ROOT)
+
+
 # ------------------------------------------------------------------------------------------ CLI reference
 def _parser_options(parser: argparse.ArgumentParser) -> dict[str, set[str]]:
     """command -> its option strings and positional names, read from the parser itself."""

@@ -30,6 +30,8 @@ from crtraj.core.flags import strict_flag_types
 from crtraj.core.logs import configure_logging
 from crtraj.hardware.transport import TransportError
 
+__all__ = ["build_parser", "main"]
+
 # Every command's work is a use case in crtraj.app, named here as "module:function" and imported
 # only when its command runs (`_use_case`): importing them all at start-up would load CasADi,
 # SciPy, matplotlib and meshcat for every command, even `crtraj --help` (seconds, not 0.2 s).

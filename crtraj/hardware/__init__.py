@@ -1,1 +1,25 @@
-"""Actuators, limits, set-points, admission, the streamer, transports, protocol, simulated devices. Above: control."""
+"""Actuators, limits, set-points, admission, the streamer, transports, protocol, simulated devices. Above: control.
+
+Start here: `admit` (only an admitted motion drives a device) and `Streamer`. Public names load on first use
+(`crtraj.core.lazy.lazy_exports`).
+"""
+
+from __future__ import annotations
+
+from crtraj.core.lazy import lazy_exports
+
+__all__, __getattr__, __dir__ = lazy_exports(
+    __name__,
+    {
+        "crtraj.hardware.actuators": ("Actuators",),
+        "crtraj.hardware.admission": ("admit", "AdmittedMotion", "MotionRecord"),
+        "crtraj.hardware.verify": ("FrameVerifier", "VerifyOptions"),
+        "crtraj.hardware.stream": ("Streamer", "StreamReport", "open_link"),
+        "crtraj.hardware.stream_options": ("StreamOptions",),
+        "crtraj.hardware.stream_state": ("StreamError",),
+        "crtraj.hardware.transport": ("Transport", "TransportError"),
+        "crtraj.hardware.sim_device": ("SimDevice", "Faults"),
+        "crtraj.hardware.sim_dynamixel": ("SimDynamixel",),
+        "crtraj.hardware.homing_state": ("HomingState",),
+    },
+)

@@ -161,6 +161,8 @@ BUILTIN = PlannerRegistry(
         ),
     )
 )
+"""The built-in planners by name: ``rrt`` and ``rrtstar`` (the paper's Alg. 1 over tip positions), ``cspace``
+(the default) and, with OMPL installed, ``ompl-rrtstar`` and ``ompl-rrtconnect``; ``BUILTIN.create(name, context)``."""
 
 
 def make_planner(
