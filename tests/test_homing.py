@@ -18,10 +18,9 @@ import dxl_helpers
 import numpy as np
 import pytest
 from conftest import require_module
-from dxl_helpers import ROBOT, Z_HOMING, Clock, InProcessSim, in_process, serve_in_process
+from dxl_helpers import ROBOT, Z_HOMING, Clock, InProcessSim, in_process, robot_text, serve_in_process
 
 from crtraj.app.approach import plan_approach
-from crtraj.app.sim_dynamixel import stops
 from crtraj.app.stream import admit_result
 from crtraj.cli import main
 from crtraj.core.errors import InputError
@@ -34,6 +33,7 @@ from crtraj.hardware.homing import Homer, HomingError
 from crtraj.hardware.homing_spec import read_homing
 from crtraj.hardware.homing_state import HomedServo, HomingState, PowerUpCheck, state_path, unwrap
 from crtraj.hardware.sim_dynamixel import TICKS_PER_REV, ServoChain, SimDynamixel
+from crtraj.hardware.sim_dynamixel_robot import stops
 from crtraj.hardware.stream import Streamer, StreamOptions
 from crtraj.hardware.transport import TransportError
 from crtraj.io.problem import load_robot
@@ -53,9 +53,9 @@ def _sdk(monkeypatch):
 
 
 def _robot_file(tmp_path: Path, extra: str = Z_HOMING) -> Path:
-    """cdsr2.toml with `extra` appended, in tmp_path."""
+    """cdsr2.toml with `extra` in place of its own [robot.homing.z], in tmp_path."""
     p = tmp_path / "robot.toml"
-    p.write_text(ROBOT.read_text() + extra)
+    p.write_text(robot_text(extra))
     return p
 
 

@@ -19,7 +19,7 @@ import dxl_helpers
 import numpy as np
 import pytest
 from conftest import PROBLEMS, paper_copy, require_module
-from dxl_helpers import ROBOT, Z_HOMING, Clock, in_process
+from dxl_helpers import Z_HOMING, Clock, in_process, robot_text
 from test_planner_helpers import dense_path_check
 
 from crtraj.cli import main
@@ -42,7 +42,7 @@ def _sdk():
 
 def _robot_file(tmp_path: Path) -> Path:
     p = tmp_path / "robot.toml"
-    p.write_text(ROBOT.read_text() + Z_HOMING)
+    p.write_text(robot_text(Z_HOMING))
     return p
 
 
@@ -63,7 +63,7 @@ class Recorder:
 
 def _power_cycled_chain(robot, acts, x, clock: Clock) -> ServoChain:
     """Servos at configuration x with the stage's lower stop at its homing reference (-200 mm), power-cycled."""
-    from crtraj.app.sim_dynamixel import stops
+    from crtraj.hardware.sim_dynamixel_robot import stops
 
     chain = ServoChain(
         acts.bus.ids, acts.bus.models, initial=acts.bus.ticks(acts.command(robot.cables(x))), stops=stops(robot, acts)
@@ -201,7 +201,7 @@ def test_crtraj_home_on_a_servo_that_never_stalls_is_one_line_and_writes_nothing
     """No mechanical stop within the travel: `crtraj home` ends with one line naming the servo, exit 2, the
     torque off, no Homing Offset written and no state file."""
     robot_file = tmp_path / "robot.toml"
-    robot_file.write_text(ROBOT.read_text() + Z_HOMING + "travel = 20.0\n")
+    robot_file.write_text(robot_text(Z_HOMING + "travel = 20.0\n"))
     robot = load_robot(robot_file)
     acts = Actuators.from_robot(robot)
     chain = ServoChain(
