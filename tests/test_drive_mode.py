@@ -160,14 +160,18 @@ def test_setting_a_declared_reverse_bit_on_the_stage_requires_homing_again(tmp_p
 # Every Drive Mode the robot file accepts (where it is declared, what it says) with the register as a servo may
 # be found: clear, or already carrying the declared bit. (declaration, table it goes in, preset, reversed)
 _DECLARED = [
-    ("", "z", False, False),
-    ("drive_mode = { reverse = false }\n", "z", False, False),
-    ("drive_mode = { reverse = false, time_based_profile = false }\n", "z", False, False),
-    ("drive_mode = { reverse = true }\n", "z", False, True),
-    ("drive_mode = { reverse = true }\n", "z", True, True),
-    ("drive_mode = { reverse = true, time_based_profile = false }\n", "z", True, True),
-    ("drive_mode = { reverse = true }\n", "shared", False, True),
-    ("drive_mode = { reverse = true }\n", "shared", True, True),
+    pytest.param("", "z", False, False, id="undeclared"),
+    pytest.param("drive_mode = { reverse = false }\n", "z", False, False, id="normal"),
+    pytest.param(
+        "drive_mode = { reverse = false, time_based_profile = false }\n", "z", False, False, id="normal-velocity"
+    ),
+    pytest.param("drive_mode = { reverse = true }\n", "z", False, True, id="reverse-set-at-connect"),
+    pytest.param("drive_mode = { reverse = true }\n", "z", True, True, id="reverse-preset"),
+    pytest.param(
+        "drive_mode = { reverse = true, time_based_profile = false }\n", "z", True, True, id="reverse-velocity"
+    ),
+    pytest.param("drive_mode = { reverse = true }\n", "shared", False, True, id="all-reverse-set-at-connect"),
+    pytest.param("drive_mode = { reverse = true }\n", "shared", True, True, id="all-reverse-preset"),
 ]
 
 
