@@ -332,8 +332,9 @@ def _check_step(command: str, shown: list[str], proc: subprocess.CompletedProces
         assert any(pattern.fullmatch(out) for out in output.splitlines()), f"{command}\nno line {line!r}\n{output}"
 
 
-def _start_background(command: str, env: dict[str, str], cwd: Path) -> tuple[subprocess.Popen, str]:
-    """Start `command` (without its ``&``) in its own process group; the pseudo-terminal it prints."""
+def _start_background(command: str, env: dict[str, str], cwd: Path) -> tuple[subprocess.Popen, str, str]:
+    """Start `command` (without its ``&``) in its own process group; the pseudo-terminal it prints, and its output
+    up to that line."""
     proc = subprocess.Popen(
         ["bash", "-c", command],
         cwd=cwd,
@@ -348,7 +349,7 @@ def _start_background(command: str, env: dict[str, str], cwd: Path) -> tuple[sub
         seen.append(line)
         m = _PTY.search(line)
         if m:
-            return proc, m.group(1)
+            return proc, m.group(1), "".join(seen)
     raise AssertionError(f"{command}\nprinted no pseudo-terminal:\n{''.join(seen)}")
 
 
@@ -369,8 +370,9 @@ def test_tutorial_simulator_blocks_run_as_written(tutorial, text, tmp_path):
             command = command if pty is None else command.replace("/dev/pts/N", pty)
             shell = re.sub(r"\s+#.*$", "", command).strip()
             if shell.endswith("&"):
-                job, pty = _start_background(shell[:-1], env, tmp_path)
+                job, pty, printed = _start_background(shell[:-1], env, tmp_path)
                 jobs.append(job)
+                _check_step(command, shown, subprocess.CompletedProcess(shell, 0, printed, ""))
             elif (m := re.fullmatch(r"kill %(\d+)", shell)) is not None:
                 _stop(jobs[int(m.group(1)) - 1])
             else:

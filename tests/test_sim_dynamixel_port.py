@@ -118,3 +118,19 @@ def test_cli_sim_dynamixel_at_writes_the_homing_state_beside_the_robot(tmp_path,
     state = HomingState.load(state_path(robot))
     assert [(s.id, s.name, s.method) for s in state.servos] == [(7, "z", "hard_stop")]
     assert out[0].endswith(str(state_path(robot))) and out[1].startswith("sim-dynamixel on /dev/pts/")
+
+
+def test_a_stage_without_a_homing_section_starts_homed_at_an_index_where_it_stands(tmp_path):
+    """No [robot.homing.z]: `home_in_place` homes the stage as at an index mark where it stands (crtraj's index
+    homing, the operator's confirmation given), so it reads its start value and the stream's check accepts it."""
+    (path := tmp_path / "robot.toml").write_text(robot_text(""))
+    robot = load_robot(path)
+    acts = Actuators.from_robot(robot)
+    values = acts.command(robot.cables(np.array([0.2, 0.1, 0.3, 0.5, -150.0])))
+    chain = robot_chain(robot, acts, values)
+    homed, reached = home_in_place(robot, acts, chain, values)
+    assert [(h.id, h.method) for h in homed] == [(7, "index")]
+    reading = np.array([chain.register(i, X.PRESENT_POSITION, 4) for i in acts.bus.ids])
+    np.testing.assert_array_equal(reading, acts.bus.ticks(values))
+    assert chain.shaft(reached)[6] == pytest.approx(acts.bus.ticks(values)[6], abs=1.0)  # it never moved
+    PowerUpCheck(ChainIO(chain, VirtualClock(reached)), acts, HomingState(tuple(homed))).run()
