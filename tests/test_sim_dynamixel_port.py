@@ -134,3 +134,9 @@ def test_a_stage_without_a_homing_section_starts_homed_at_an_index_where_it_stan
     np.testing.assert_array_equal(reading, acts.bus.ticks(values))
     assert chain.shaft(reached)[6] == pytest.approx(acts.bus.ticks(values)[6], abs=1.0)  # it never moved
     PowerUpCheck(ChainIO(chain, VirtualClock(reached)), acts, HomingState(tuple(homed))).run()
+
+
+def test_cli_sim_dynamixel_state_without_at_is_one_line(capsys, tmp_path):
+    assert main(["sim-dynamixel", "--pty", "--state", str(tmp_path / "s.json"), "--duration", "0"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["crtraj: error: --state: only with --at (the homing state of the servos it starts homed)"], err

@@ -50,6 +50,8 @@ def _hardware_error(text: str, ids: tuple[int, ...]) -> tuple[int, int]:
 def _start(args: argparse.Namespace, acts: Actuators) -> np.ndarray | None:
     """The actuator values (rad, mm) of ``--at``'s first set-point; None without ``--at``."""
     if not args.at:
+        if args.state is not None:
+            raise InputError("--state: only with --at (the homing state of the servos it starts homed)")
         return None
     q = read_result(args.at).q
     if q is None:
