@@ -154,6 +154,28 @@ def test_a_state_file_of_another_servo_is_refused_in_one_line(sim1_plan, tmp_pat
     ), line
 
 
+def test_a_stream_without_robot_is_told_to_home_and_stream_with_one(sim1_plan, tmp_path, capsys, monkeypatch):
+    """Without --robot the stream has no homing state to read (it lies beside the robot file): the refusal of
+    a stage homed by `crtraj home --robot R` says to home and stream with the same --robot, exit 2, and
+    streaming so completes, so the user does not loop between home and stream."""
+    robot_file = _robot_file(tmp_path)
+    robot = load_robot(robot_file)
+    acts = Actuators.from_robot(robot)
+    clock = Clock()
+    chain = _power_cycled_chain(robot, acts, robot.straight(-150.0), clock)
+    dev = in_process(monkeypatch, chain, clock).path
+    _home(dev, robot_file, capsys)
+    argv = ["stream", str(sim1_plan), "--dynamixel", dev, "--approach", "--log", str(tmp_path / "s.jsonl")]
+    assert main(argv) == 2
+    line = _one_error_line(capsys)
+    assert line.startswith("crtraj: error: servo id 7 (z): its homing offset"), line
+    assert line.endswith(
+        f"run crtraj home --dynamixel {dev} --robot ROBOT.toml, then stream with the same --robot ROBOT.toml"
+    ), line
+    assert main([*argv, "--robot", str(robot_file)]) == 0
+    assert "done: completed" in capsys.readouterr().out
+
+
 def test_power_cycle_home_plan_approach_and_stream_sim1_from_the_cli(tmp_path, capsys, monkeypatch):
     """The issue's "done when", first half: power-cycle (z at -150 mm), `crtraj home`, `crtraj plan` sim 1,
     `crtraj stream --approach`: done at the goal; every frame sent keeps D_sf and every position the simulated
