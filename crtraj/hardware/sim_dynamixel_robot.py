@@ -112,13 +112,15 @@ def _index_specs(robot: Any, acts: Actuators, values: np.ndarray) -> dict[str, H
     return specs
 
 
-def home_in_place(robot: Any, acts: Actuators, chain: ServoChain, values: np.ndarray) -> tuple[list, float]:
-    """Power the servos up, home them with crtraj's `Homer` and move them back to actuator `values` (rad, mm,
-    where their shafts stood); the homing state entries (`HomedServo`) and the device time (s) reached."""
+def home_in_place(robot: Any, acts: Actuators, chain: ServoChain, values: np.ndarray) -> tuple[list[HomedServo], float]:
+    """Power the servos of a fresh `chain` (device time 0, from `robot_chain`) up, home them with crtraj's `Homer`
+    and move them back to actuator `values` (rad, mm, where their shafts stood); the homing state entries and
+    the device time (s) reached. A multi-turn actuator without a homing spec is homed as at an index mark where
+    it stands (the operator's confirmation given)."""
     clock = VirtualClock()
     chain.power_cycle(clock.now())
     io = ChainIO(chain, clock)
-    homed: list[HomedServo] = Homer(io, acts, _index_specs(robot, acts, values), clock, lambda text: True).run()
+    homed = Homer(io, acts, _index_specs(robot, acts, values), clock, lambda text: True).run()
     bus = acts.bus
     goals = bus.ticks(values)
     moving = [k for k, dxl_id in enumerate(bus.ids) if io.read(dxl_id, X.PRESENT_POSITION, 4) != goals[k]]
