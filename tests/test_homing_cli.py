@@ -92,6 +92,17 @@ def _home(dev: str, robot_file, capsys) -> dict:
     return json.loads(state_path(robot_file).read_text())
 
 
+def _homed_stage(tmp_path: Path, monkeypatch, capsys) -> tuple[Path, str, dict]:
+    """The robot file, the device of its servos power-cycled with the stage at -150 mm and served in process,
+    and the homing state `crtraj home` wrote for them."""
+    robot_file = _robot_file(tmp_path)
+    robot = load_robot(robot_file)
+    clock = Clock()
+    chain = _power_cycled_chain(robot, Actuators.from_robot(robot), robot.straight(-150.0), clock)
+    dev = in_process(monkeypatch, chain, clock).path
+    return robot_file, dev, _home(dev, robot_file, capsys)
+
+
 def test_replan_stream_dynamixel_refuses_a_power_cycled_stage_then_runs_after_home(tmp_path, capsys, monkeypatch):
     """`crtraj replan --stream dynamixel://DEV` (live with --feed, and after the run) refuses the power-cycled
     z stage with one line naming it and the command that homes it, before any goal reaches a servo; after
@@ -136,13 +147,7 @@ def test_replan_stream_dynamixel_refuses_a_power_cycled_stage_then_runs_after_ho
 def test_a_state_file_of_another_servo_is_refused_in_one_line(sim1_plan, tmp_path, capsys, monkeypatch):
     """The homing state file records each servo's identity (id, model number, model information, firmware: the
     X-series has no serial number); a file whose firmware differs from the servo's is refused, naming it."""
-    robot_file = _robot_file(tmp_path)
-    robot = load_robot(robot_file)
-    acts = Actuators.from_robot(robot)
-    clock = Clock()
-    chain = _power_cycled_chain(robot, acts, robot.straight(-150.0), clock)
-    dev = in_process(monkeypatch, chain, clock).path
-    saved = _home(dev, robot_file, capsys)
+    robot_file, dev, saved = _homed_stage(tmp_path, monkeypatch, capsys)
     saved["servos"][0]["firmware"] = 45
     state_path(robot_file).write_text(json.dumps(saved))
     argv = ["stream", str(sim1_plan), "--dynamixel", dev, "--approach", "--robot", str(robot_file)]
@@ -158,13 +163,7 @@ def test_a_stream_without_robot_is_told_to_home_and_stream_with_one(sim1_plan, t
     """Without --robot the stream has no homing state to read (it lies beside the robot file): the refusal of
     a stage homed by `crtraj home --robot R` says to home and stream with the same --robot, exit 2, and
     streaming so completes, so the user does not loop between home and stream."""
-    robot_file = _robot_file(tmp_path)
-    robot = load_robot(robot_file)
-    acts = Actuators.from_robot(robot)
-    clock = Clock()
-    chain = _power_cycled_chain(robot, acts, robot.straight(-150.0), clock)
-    dev = in_process(monkeypatch, chain, clock).path
-    _home(dev, robot_file, capsys)
+    robot_file, dev, _ = _homed_stage(tmp_path, monkeypatch, capsys)
     argv = ["stream", str(sim1_plan), "--dynamixel", dev, "--approach", "--log", str(tmp_path / "s.jsonl")]
     assert main(argv) == 2
     line = _one_error_line(capsys)
