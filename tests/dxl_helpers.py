@@ -5,6 +5,7 @@ servos that count as homed (marker lit, matching state entries)."""
 from __future__ import annotations
 
 import contextlib
+import re
 from pathlib import Path
 
 import pytest
@@ -29,6 +30,14 @@ direction = -1
 speed = 20.0           # mm/s
 current = 300.0        # mA
 """
+
+
+def robot_text(homing: str = Z_HOMING) -> str:
+    """cdsr2.toml's text with the ``[robot.homing.z]`` table it ships replaced by `homing` (appended)."""
+    text = ROBOT.read_text()
+    shipped = re.search(r"^\[robot\.homing\.z\]\n(?:(?!\[)[^\n]+\n)*", text, flags=re.M)
+    assert shipped, "cdsr2.toml ships a [robot.homing.z] table"
+    return text[: shipped.start()] + text[shipped.end() :] + homing
 
 
 class Clock(VirtualClock):

@@ -10,14 +10,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import require_module
-from dxl_helpers import ROBOT, Clock, InProcessSim, homed_state, serve_in_process, write
+from dxl_helpers import ROBOT, Z_HOMING, Clock, InProcessSim, homed_state, robot_text, serve_in_process, write
 
 from crtraj.core.errors import InputError
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.admission import MotionRecord, admit
 from crtraj.hardware.dynamixel import open_dynamixel
 from crtraj.hardware.dynamixel_protocol import X
+from crtraj.hardware.homing import Homer
+from crtraj.hardware.homing_spec import read_homing
+from crtraj.hardware.homing_state import HomingState
 from crtraj.hardware.sim_dynamixel import ServoChain
+from crtraj.hardware.sim_dynamixel_robot import robot_chain
 from crtraj.hardware.stream import Streamer, StreamOptions
 from crtraj.hardware.transport import TransportError
 from crtraj.io.problem import load_robot
@@ -152,3 +156,72 @@ def test_setting_a_declared_reverse_bit_on_the_stage_requires_homing_again(tmp_p
     assert str(e.value).startswith("servo id 7 (z): not homed since its last power-up or reboot")
     assert chain.register(7, X.DRIVE_MODE, 1) == X.DRIVE_REVERSE and chain.register(7, X.LED, 1) == 0
     assert not chain.torque(7)
+
+
+# Every Drive Mode the robot file accepts (where it is declared, what it says) with the register as a servo may
+# be found: clear, or already carrying the declared bit. (declaration, table it goes in, preset, reversed)
+_DECLARED = [
+    pytest.param("", "z", False, False, id="undeclared"),
+    pytest.param("drive_mode = { reverse = false }\n", "z", False, False, id="normal"),
+    pytest.param(
+        "drive_mode = { reverse = false, time_based_profile = false }\n", "z", False, False, id="normal-velocity"
+    ),
+    pytest.param("drive_mode = { reverse = true }\n", "z", False, True, id="reverse-set-at-connect"),
+    pytest.param("drive_mode = { reverse = true }\n", "z", True, True, id="reverse-preset"),
+    pytest.param(
+        "drive_mode = { reverse = true, time_based_profile = false }\n", "z", True, True, id="reverse-velocity"
+    ),
+    pytest.param("drive_mode = { reverse = true }\n", "shared", False, True, id="all-reverse-set-at-connect"),
+    pytest.param("drive_mode = { reverse = true }\n", "shared", True, True, id="all-reverse-preset"),
+]
+
+
+@pytest.mark.parametrize("direction", [-1, 1], ids=["stop-below", "stop-above"])
+@pytest.mark.parametrize(("declared", "where", "preset", "reversed_"), _DECLARED)
+def test_the_stage_homes_against_its_stop_under_every_drive_mode(
+    tmp_path, declared, where, preset, reversed_, direction
+):
+    """A power-cycled stage at -150 mm homes against the simulator's stop under every accepted Drive Mode, with
+    the stop on either side. Ground truth is the simulator's mechanism: the shaft ends pressed on the stop (its
+    physical position, normal counting), the servo then reads the reference, and after a move to z = v the shaft
+    stands mount * (ticks(v) - ticks(reference)) from the stop, mount = -1 for a reversed servo (it counts the
+    shaft backwards, ROBOTIS e-manual Drive Mode bit 0): the Homing Offset puts the reference on the stop and the
+    values run the right way. The spools read their true values again (unwrapped, reversed or not)."""
+    reference, v = (-200.0, -120.0) if direction < 0 else (100.0, 40.0)
+    homing = Z_HOMING.replace("-200.0", f"{reference}").replace("direction = -1", f"direction = {direction}")
+    text = robot_text(homing)
+    if where == "shared":
+        text = text.replace("[robot.actuators]\n", "[robot.actuators]\n" + declared, 1)
+    else:
+        text = text.replace("lead = 20.0", declared + "lead = 20.0")
+    (robot_file := tmp_path / "robot.toml").write_text(text)
+    robot = load_robot(robot_file)
+    acts = Actuators.from_robot(robot)
+    assert acts.bus.drive_mode(6).reverse is reversed_
+    values = acts.command(robot.cables(np.array([0.9, -0.6, 0.3, 0.5, -150.0])))
+    clock = Clock()
+    chain = robot_chain(robot, acts, values, preset=preset)
+    stop = chain.stops[6][0] if np.isfinite(chain.stops[6][0]) else chain.stops[6][1]  # physical ticks
+    chain.power_cycle(0.0)
+    with InProcessSim(chain, clock=clock, wire_time=False) as sim:
+        link = _connect(sim, acts, power_up_check=False)
+        try:
+            homed = Homer(link, acts, dict(read_homing(robot, acts)), clock, lambda text: False).run()
+        finally:
+            link.close()
+        assert chain.register(7, X.DRIVE_MODE, 1) == (X.DRIVE_REVERSE if reversed_ else 0)
+        assert chain.shaft(clock.now())[6] == pytest.approx(stop, abs=1.0)  # pressed on the true stop
+        z_ticks = [int(acts.bus.ticks(np.r_[np.zeros(6), z])[6]) for z in (reference, v)]
+        assert chain.register(7, X.PRESENT_POSITION, 4) == z_ticks[0]
+        got = acts.bus.values(np.array([chain.register(i, X.PRESENT_POSITION, 4) for i in acts.bus.ids]))
+        np.testing.assert_allclose(got[:-1], values[:-1], atol=acts.bus.resolution[0])
+        link = _connect(sim, acts, homing=HomingState(tuple(homed)))  # the stream's check accepts it
+        try:
+            link.write(7, X.GOAL_POSITION, int(z_ticks[1]) & 0xFFFFFFFF, 4, "goal position")
+            clock.sleep(30.0)
+            chain.advance(clock.now())
+            assert chain.register(7, X.PRESENT_POSITION, 4) == z_ticks[1]
+        finally:
+            link.close()
+    mount = -1.0 if reversed_ else 1.0
+    assert chain.shaft(clock.now())[6] == pytest.approx(stop + mount * (z_ticks[1] - z_ticks[0]), abs=1.0)

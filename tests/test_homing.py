@@ -18,10 +18,9 @@ import dxl_helpers
 import numpy as np
 import pytest
 from conftest import require_module
-from dxl_helpers import ROBOT, Z_HOMING, Clock, InProcessSim, in_process, serve_in_process
+from dxl_helpers import ROBOT, Z_HOMING, Clock, InProcessSim, in_process, robot_text, serve_in_process
 
 from crtraj.app.approach import plan_approach
-from crtraj.app.sim_dynamixel import stops
 from crtraj.app.stream import admit_result
 from crtraj.cli import main
 from crtraj.core.errors import InputError
@@ -34,6 +33,7 @@ from crtraj.hardware.homing import Homer, HomingError
 from crtraj.hardware.homing_spec import read_homing
 from crtraj.hardware.homing_state import HomedServo, HomingState, PowerUpCheck, state_path, unwrap
 from crtraj.hardware.sim_dynamixel import TICKS_PER_REV, ServoChain, SimDynamixel
+from crtraj.hardware.sim_dynamixel_robot import ChainIO, stops
 from crtraj.hardware.stream import Streamer, StreamOptions
 from crtraj.hardware.transport import TransportError
 from crtraj.io.problem import load_robot
@@ -53,9 +53,9 @@ def _sdk(monkeypatch):
 
 
 def _robot_file(tmp_path: Path, extra: str = Z_HOMING) -> Path:
-    """cdsr2.toml with `extra` appended, in tmp_path."""
+    """cdsr2.toml with `extra` in place of its own [robot.homing.z], in tmp_path."""
     p = tmp_path / "robot.toml"
-    p.write_text(ROBOT.read_text() + extra)
+    p.write_text(robot_text(extra))
     return p
 
 
@@ -364,19 +364,6 @@ def test_sim_dynamixel_power_cycle_at_must_be_a_time(capsys):
     assert capsys.readouterr().err.strip() == "crtraj: error: --power-cycle-at: must be in 0..1000000 s, got -1.0"
 
 
-class _ChainIO:
-    """`ServoIO` straight on a chain (no bus): reads its registers, writes as a WRITE instruction would."""
-
-    def __init__(self, chain: ServoChain) -> None:
-        self.chain = chain
-
-    def read(self, dxl_id: int, addr: int, size: int) -> int:
-        return self.chain.register(dxl_id, addr, size)
-
-    def write(self, dxl_id: int, addr: int, value: int, size: int, what: str) -> None:
-        _write(self.chain, dxl_id, addr, value, size)
-
-
 def test_a_state_file_without_the_servo_identity_is_refused_until_homed_again(tmp_path):
     """A state file written before the identity was recorded (no model information, no firmware) matches no
     servo: the marked stage is refused in one line naming it, with the command that homes it."""
@@ -390,7 +377,7 @@ def test_a_state_file_without_the_servo_identity_is_refused_until_homed_again(tm
     state = HomingState.load(path)
     assert state.get(7).identity() == (1030, -1, -1)
     with pytest.raises(InputError) as e:
-        PowerUpCheck(_ChainIO(chain), acts, state, "crtraj home --dynamixel D").run()
+        PowerUpCheck(ChainIO(chain, Clock()), acts, state, "crtraj home --dynamixel D").run()
     assert str(e.value) == (
         "servo id 7 (z): model 1030, model information 0, firmware 46 is not the servo the homing state file "
         "recorded (model 1030, model information -1, firmware -1): another servo on this id; run crtraj home "

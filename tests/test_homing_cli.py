@@ -19,7 +19,7 @@ import dxl_helpers
 import numpy as np
 import pytest
 from conftest import PROBLEMS, paper_copy, require_module
-from dxl_helpers import ROBOT, Z_HOMING, Clock, in_process
+from dxl_helpers import Z_HOMING, Clock, in_process, robot_text
 from test_planner_helpers import dense_path_check
 
 from crtraj.cli import main
@@ -42,7 +42,7 @@ def _sdk():
 
 def _robot_file(tmp_path: Path) -> Path:
     p = tmp_path / "robot.toml"
-    p.write_text(ROBOT.read_text() + Z_HOMING)
+    p.write_text(robot_text(Z_HOMING))
     return p
 
 
@@ -63,7 +63,7 @@ class Recorder:
 
 def _power_cycled_chain(robot, acts, x, clock: Clock) -> ServoChain:
     """Servos at configuration x with the stage's lower stop at its homing reference (-200 mm), power-cycled."""
-    from crtraj.app.sim_dynamixel import stops
+    from crtraj.hardware.sim_dynamixel_robot import stops
 
     chain = ServoChain(
         acts.bus.ids, acts.bus.models, initial=acts.bus.ticks(acts.command(robot.cables(x))), stops=stops(robot, acts)
@@ -90,6 +90,17 @@ def _home(dev: str, robot_file, capsys) -> dict:
     out = capsys.readouterr().out
     assert "homed z (id 7, model 1030) by hard_stop" in out
     return json.loads(state_path(robot_file).read_text())
+
+
+def _homed_stage(tmp_path: Path, monkeypatch, capsys) -> tuple[Path, str, dict]:
+    """The robot file, the device of its servos power-cycled with the stage at -150 mm and served in process,
+    and the homing state `crtraj home` wrote for them."""
+    robot_file = _robot_file(tmp_path)
+    robot = load_robot(robot_file)
+    clock = Clock()
+    chain = _power_cycled_chain(robot, Actuators.from_robot(robot), robot.straight(-150.0), clock)
+    dev = in_process(monkeypatch, chain, clock).path
+    return robot_file, dev, _home(dev, robot_file, capsys)
 
 
 def test_replan_stream_dynamixel_refuses_a_power_cycled_stage_then_runs_after_home(tmp_path, capsys, monkeypatch):
@@ -136,13 +147,7 @@ def test_replan_stream_dynamixel_refuses_a_power_cycled_stage_then_runs_after_ho
 def test_a_state_file_of_another_servo_is_refused_in_one_line(sim1_plan, tmp_path, capsys, monkeypatch):
     """The homing state file records each servo's identity (id, model number, model information, firmware: the
     X-series has no serial number); a file whose firmware differs from the servo's is refused, naming it."""
-    robot_file = _robot_file(tmp_path)
-    robot = load_robot(robot_file)
-    acts = Actuators.from_robot(robot)
-    clock = Clock()
-    chain = _power_cycled_chain(robot, acts, robot.straight(-150.0), clock)
-    dev = in_process(monkeypatch, chain, clock).path
-    saved = _home(dev, robot_file, capsys)
+    robot_file, dev, saved = _homed_stage(tmp_path, monkeypatch, capsys)
     saved["servos"][0]["firmware"] = 45
     state_path(robot_file).write_text(json.dumps(saved))
     argv = ["stream", str(sim1_plan), "--dynamixel", dev, "--approach", "--robot", str(robot_file)]
@@ -152,6 +157,22 @@ def test_a_state_file_of_another_servo_is_refused_in_one_line(sim1_plan, tmp_pat
         "crtraj: error: servo id 7 (z): model 1030, model information 0, firmware 46 is not the servo the homing "
         "state file recorded (model 1030, model information 0, firmware 45)"
     ), line
+
+
+def test_a_stream_without_robot_is_told_to_home_and_stream_with_one(sim1_plan, tmp_path, capsys, monkeypatch):
+    """Without --robot the stream has no homing state to read (it lies beside the robot file): the refusal of
+    a stage homed by `crtraj home --robot R` says to home and stream with the same --robot, exit 2, and
+    streaming so completes, so the user does not loop between home and stream."""
+    robot_file, dev, _ = _homed_stage(tmp_path, monkeypatch, capsys)
+    argv = ["stream", str(sim1_plan), "--dynamixel", dev, "--approach", "--log", str(tmp_path / "s.jsonl")]
+    assert main(argv) == 2
+    line = _one_error_line(capsys)
+    assert line.startswith("crtraj: error: servo id 7 (z): its homing offset"), line
+    assert line.endswith(
+        f"run crtraj home --dynamixel {dev} --robot ROBOT.toml, then stream with the same --robot ROBOT.toml"
+    ), line
+    assert main([*argv, "--robot", str(robot_file)]) == 0
+    assert "done: completed" in capsys.readouterr().out
 
 
 def test_power_cycle_home_plan_approach_and_stream_sim1_from_the_cli(tmp_path, capsys, monkeypatch):
@@ -201,7 +222,7 @@ def test_crtraj_home_on_a_servo_that_never_stalls_is_one_line_and_writes_nothing
     """No mechanical stop within the travel: `crtraj home` ends with one line naming the servo, exit 2, the
     torque off, no Homing Offset written and no state file."""
     robot_file = tmp_path / "robot.toml"
-    robot_file.write_text(ROBOT.read_text() + Z_HOMING + "travel = 20.0\n")
+    robot_file.write_text(robot_text(Z_HOMING + "travel = 20.0\n"))
     robot = load_robot(robot_file)
     acts = Actuators.from_robot(robot)
     chain = ServoChain(

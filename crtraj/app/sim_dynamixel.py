@@ -1,26 +1,33 @@
 """Use case: run simulated Dynamixel servos on a pseudo-terminal until Ctrl-C or --duration (`crtraj sim-dynamixel`).
 
-The servos are the robot file's bus (`[robot.actuators]` ids and model numbers); ``--at RESULT`` starts
-them at a result's first set-point, as if the robot had been moved there (and homed: the readings
-are absolute). Each ``hard_stop`` of ``[robot.homing]`` is a mechanical stop at its reference;
-``--power-cycle-at T`` power-cycles every servo after T s (the readings then fall within one turn).
-Prints the device path to pass to ``crtraj stream RESULT --dynamixel PATH``.
+The servos are the robot file's bus (`[robot.actuators]` ids, model numbers and declared Drive Modes); each
+``hard_stop`` of ``[robot.homing]`` is a mechanical stop at its reference
+(`crtraj.hardware.sim_dynamixel_robot`). ``--at RESULT`` starts them homed at the result's first set-point: they
+power up there, crtraj's own homing runs against them (the stage presses its stop, the spools are unwrapped)
+and they move back, so the servos present what a homed robot presents (homed markers lit, the Homing Offsets
+the homing computed), and the homing state it produced is written where ``crtraj home`` writes it (``--state``,
+default beside ``--robot``). ``--power-cycle-at T`` power-cycles every servo after T s (the readings then fall
+within one turn). Prints the device path to pass to ``crtraj stream RESULT --dynamixel PATH``.
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+import time
+from collections.abc import Callable
 from types import MappingProxyType
 from typing import Any
 
 import numpy as np
 
 from crtraj.core.errors import InputError
+from crtraj.core.fileio import check_output_file, check_outputs_not_inputs
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.dynamixel_protocol import HW_ERROR_NAMES
-from crtraj.hardware.homing_spec import read_homing
+from crtraj.hardware.homing_state import HomingState, state_path
 from crtraj.hardware.sim_dynamixel import ServoChain, SimDynamixel
+from crtraj.hardware.sim_dynamixel_robot import home_in_place, robot_chain
 from crtraj.io.problem import load_robot
 from crtraj.io.results import read_result
 
@@ -40,19 +47,33 @@ def _hardware_error(text: str, ids: tuple[int, ...]) -> tuple[int, int]:
     return int(dxl_id), _BITS[name]
 
 
-def stops(robot: Any, acts: Actuators) -> list[tuple[float, float]]:
-    """Mechanical stops (ticks) of the servos: one at the reference of each ``hard_stop`` homing spec, on its
-    approach side, so that `crtraj home` finds it; none for the others."""
-    specs = read_homing(robot, acts)
-    out = []
-    for k, name in enumerate(acts.names):
-        s = specs.get(name)
-        if s is None or s.method != "hard_stop":
-            out.append((-math.inf, math.inf))
-            continue
-        at = float(acts.bus.ticks(np.where(np.arange(acts.n) == k, s.reference, 0.0))[k])
-        out.append((at, math.inf) if s.direction < 0 else (-math.inf, at))
-    return out
+def _start(args: argparse.Namespace, acts: Actuators) -> np.ndarray | None:
+    """The actuator values (rad, mm) of ``--at``'s first set-point; None without ``--at``."""
+    if not args.at:
+        if args.state is not None:
+            raise InputError("--state: only with --at (the homing state of the servos it starts homed)")
+        return None
+    q = read_result(args.at).q
+    if q is None:
+        raise InputError(f"{args.at}: waypoints[0].q: missing (the actuation to start the servos at)")
+    return acts.command(q[0])
+
+
+def _homed(
+    args: argparse.Namespace, robot: Any, acts: Actuators, chain: ServoChain, start: np.ndarray
+) -> Callable[[], float]:
+    """Home `chain` where it stands and write the homing state (``--state``, default beside ``--robot``); the
+    device clock (s) of the served chain, continuing from the time the homing took."""
+    out = state_path(args.robot) if args.state is None else args.state
+    check_outputs_not_inputs({"--state": out}, {"--robot": args.robot, "--at": args.at})
+    check_output_file(out, "--state")
+    old = HomingState.load(out)
+    homed, reached = home_in_place(robot, acts, chain, start)
+    old.merged(homed).save(out)
+    for s in homed:
+        print(f"homed {s.name} (id {s.id}) by {s.method}: homing offset {s.offset} ticks; homing state: {out}")
+    origin = time.monotonic() - reached
+    return lambda: time.monotonic() - origin
 
 
 def sim_dynamixel_command(args: argparse.Namespace) -> int:
@@ -64,17 +85,13 @@ def sim_dynamixel_command(args: argparse.Namespace) -> int:
     if acts.bus is None:
         raise InputError(f"{args.robot}: robot.actuators: no Dynamixel ids (add id, ticks_per_rev, model per servo)")
     bus = acts.bus
-    initial = None
-    if args.at:
-        q = read_result(args.at).q
-        if q is None:
-            raise InputError(f"{args.at}: waypoints[0].q: missing (the actuation to start the servos at)")
-        initial = bus.ticks(acts.command(q[0]))
+    start = _start(args, acts)
     faults = [_hardware_error(h, bus.ids) for h in args.hardware_error or ()]
     for m in args.missing or ():
         if m not in bus.ids:
             raise InputError(f"--missing: {m} is not one of the robot's ids ({', '.join(map(str, bus.ids))})")
-    chain = ServoChain(bus.ids, bus.models, initial=initial, tau=args.tau, baud=args.baud, stops=stops(robot, acts))
+    chain = robot_chain(robot, acts, start, tau=args.tau, baud=args.baud)
+    clock = _homed(args, robot, acts, chain, start) if start is not None else time.monotonic
     for m in args.missing or ():
         chain.remove(m)
     for dxl_id, bits in faults:
@@ -86,7 +103,7 @@ def sim_dynamixel_command(args: argparse.Namespace) -> int:
     at = args.power_cycle_at
     if at is not None and not (math.isfinite(at) and 0 <= at <= 1e6):
         raise InputError(f"--power-cycle-at: must be in 0..1000000 s, got {at}")
-    sim = SimDynamixel(chain, wire_time=not args.no_wire_time, power_cycle_at=at)
+    sim = SimDynamixel(chain, clock=clock, wire_time=not args.no_wire_time, power_cycle_at=at)
     wire = "wire time of a real bus modelled" if not args.no_wire_time else "no wire time"
     print(
         f"sim-dynamixel on {sim.path} ({len(bus.ids)} servos, ids {', '.join(map(str, bus.ids))}, "

@@ -235,7 +235,12 @@ def _add_sim_dynamixel(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--baud", type=int, default=1_000_000, help="the servos' baud rate (default 1000000)")
     p.add_argument("--tau", type=float, default=0.03, help="servo time constant, s (default 0.03)")
-    p.add_argument("--at", metavar="RESULT", help="start the servos at this result's first set-point")
+    p.add_argument(
+        "--at", metavar="RESULT", help="start the servos homed (crtraj home run against them) at this result's start"
+    )
+    p.add_argument(
+        "--state", default=None, help="homing state file --at writes (default: <robot>.homing.json beside it)"
+    )
     p.add_argument("--no-wire-time", action="store_true", help="answer at once (default: as slow as a real wire)")
     p.add_argument("--missing", type=int, action="append", metavar="ID", help="fault: this id never answers")
     p.add_argument(

@@ -237,6 +237,9 @@ class PowerUpCheck:
 
 
 def homing_command(robot_file: Any, device: str) -> str:
-    """The command line that homes the robot (for the refusals' text)."""
-    robot = f" --robot {robot_file}" if robot_file else ""
-    return f"crtraj home --dynamixel {device}{robot}"
+    """The command line that homes the robot (for the refusals' text). Without a robot file the stream has no
+    homing state to read (it lies beside the robot file), so the text says to pass one: else `crtraj home`
+    would succeed and the same refusal would follow."""
+    if not robot_file:
+        return f"crtraj home --dynamixel {device} --robot ROBOT.toml, then stream with the same --robot ROBOT.toml"
+    return f"crtraj home --dynamixel {device} --robot {robot_file}"
