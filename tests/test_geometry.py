@@ -15,7 +15,12 @@
 from __future__ import annotations
 
 import math
+import os
+import re
+import subprocess
+import sys
 from dataclasses import replace
+from pathlib import Path
 
 import casadi as ca
 import numpy as np
@@ -559,3 +564,15 @@ def test_cubic_speed_bound_finds_the_fastest_instant_inside_a_piece():
         v, _ = k.speed_bound(ts[i] - 0.04, ts[i] + 0.04)
         assert speed[i] <= v + 1e-6
         assert speed[i] >= 0.999 * v
+
+
+def test_the_concept_pages_python_runs():
+    """The ```python block of docs/concepts/shapes.md runs as it is."""
+    page = Path(__file__).resolve().parent.parent / "docs" / "concepts" / "shapes.md"
+    blocks = re.findall(r"```python\n(.*?)```", page.read_text(encoding="utf-8"), flags=re.S)
+    assert len(blocks) == 1
+    root = page.parent.parent.parent
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    proc = subprocess.run([sys.executable, "-c", blocks[0]], cwd=root, env=env, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert proc.stdout.split() == ["[", "50.", "200.]"]
