@@ -16,11 +16,14 @@ as the surface moves, so it is L-Lipschitz in t, and over [t0, t1] with midpoint
 
     d(x, t) >= d(x, tm) - h L.
 
-A half space is unbounded (r infinite). Its distance ``n(t) . (x - o(t)) - s(t) offset``, with
-``o = p + R c`` and ``dn/dt = omega x n``, has the rate ``(omega x n) . (x - p) - n . dp/dt - ds/dt offset``
-(the terms in c cancel: the plane turns rigidly about p), so point-wise
-``|dd/dt| <= w |x - p(t)| + v + s_rate |offset|``, and with ``|x - p(t)| <= |x - p(tm)| + v h``:
-``d(x, t) >= d(x, tm) - h (w (|x - p(tm)| + v h) + v + s_rate |offset|)``.
+A half space is unbounded (r infinite), so no speed bounds all of its points; its distance is bounded
+directly. With ``d(x, t) = n(t) . (x - o(t)) - s(t) offset`` and ``o = p + R c``, the terms in c cancel
+(the plane turns rigidly about p): ``d(x, t) = n(t) . (x - p(t)) - n(t) . R(t) c - s(t) offset`` where
+``n . R c = (Q n) . c`` is constant. Hence, with tau = |t - tm|,
+``d(x, t) - d(x, tm) = (n(t) - n(tm)) . (x - p(tm)) - n(t) . (p(t) - p(tm)) - (s(t) - s(tm)) offset``, and
+``|n(t) - n(tm)| <= min(2, w tau)`` (a chord of the unit sphere is at most its arc and at most 2),
+``|p(t) - p(tm)| <= v tau``, ``|s(t) - s(tm)| <= s_rate tau``:
+``d(x, t) >= d(x, tm) - min(2, w h) |x - p(tm)| - v h - s_rate h |offset|``.
 """
 
 from __future__ import annotations
@@ -136,5 +139,5 @@ class MovingShape:
             return d - h * self.surface_speed(t0, t1)
         v, w, _, s_rate = self._speeds(t0, t1)
         p = self.motion.pose(tm)[0]
-        rate = w * (np.linalg.norm(x - p, axis=1) + v * h) + v + s_rate * abs(self.shape.offset)
-        return d - h * rate
+        turn = min(2.0, w * h) * np.linalg.norm(x - p, axis=1)
+        return d - turn - h * (v + s_rate * abs(self.shape.offset))
