@@ -85,8 +85,9 @@ class Keyframes:
     rotations: tuple[tuple[float, float, float, float], ...] | None = None
     interpolation: str = "linear"
     _curve: HermiteCubic | None = field(init=False, repr=False, compare=False, default=None)
+    _p: np.ndarray = field(init=False, repr=False, compare=False, default=None)
+    _q: np.ndarray = field(init=False, repr=False, compare=False, default=None)
 
-    # long: one check per field, each with its own message; splitting would only scatter them
     def __post_init__(self) -> None:
         t = check_array(self.times, "keyframes.times", (None,), limit=MAX_TIME)
         if len(t) < 1:
@@ -112,6 +113,10 @@ class Keyframes:
         object.__setattr__(self, "times", tuple(t.tolist()))
         object.__setattr__(self, "positions", tuple(tuple(r) for r in p.tolist()))
         object.__setattr__(self, "rotations", tuple(tuple(r) for r in q.tolist()))
+        p.setflags(write=False)
+        q.setflags(write=False)
+        object.__setattr__(self, "_p", p)
+        object.__setattr__(self, "_q", q)
         if self.interpolation == "cubic" and len(t) >= 2:
             object.__setattr__(self, "_curve", natural_cubic(t, p))
 
@@ -124,7 +129,7 @@ class Keyframes:
 
     def pose(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """(position (3,) mm, rotation matrix (3, 3)) at time t (s)."""
-        p, q = np.asarray(self.positions), np.asarray(self.rotations)
+        p, q = self._p, self._q
         if len(self.times) == 1:
             return p[0], matrix(q[0])
         k, u = self._segment(float(t))
@@ -141,7 +146,7 @@ class Keyframes:
         a, b = max(t0, ts[0]), min(t1, ts[-1])
         if len(ts) == 1 or a >= b:  # the pose holds: a single instant of motion moves nothing
             return 0.0, 0.0
-        p, q = np.asarray(self.positions), np.asarray(self.rotations)
+        p, q = self._p, self._q
         v = w = 0.0
         for k in range(len(ts) - 1):
             lo, hi = max(a, ts[k]), min(b, ts[k + 1])
