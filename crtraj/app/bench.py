@@ -32,6 +32,7 @@ from crtraj.bench.scenarios import ScenarioGenerator, ScenarioOptions
 from crtraj.core.errors import InputError
 from crtraj.core.fields import Table, read_int
 from crtraj.core.fileio import check_output_dir, check_output_file, check_outputs_not_inputs, read_toml
+from crtraj.core.interrupt import die_with_parent
 from crtraj.io.problem import load_robot
 from crtraj.model.kinematics import Model
 from crtraj.planning.options import PlannerOptions
@@ -71,6 +72,12 @@ def _parse_list(text: str, name: str, conv: Callable[[str], Any]) -> tuple[Any, 
     return items
 
 
+def _worker_start(parent: int, initializer: Callable[..., None], initargs: tuple[Any, ...]) -> None:
+    """A table1 worker process's start: it dies with this process (even a SIGKILLed one), then sets up."""
+    die_with_parent(parent)
+    initializer(*initargs)
+
+
 def _executor(args: Any, bench: Table1Bench, workers: int) -> tuple[cf.Executor | None, Any, int]:
     """(executor or None, Dask client or None, worker count) for --dask / --workers."""
     client = None
@@ -90,8 +97,8 @@ def _executor(args: Any, bench: Table1Bench, workers: int) -> tuple[cf.Executor 
         executor = cf.ProcessPoolExecutor(
             max_workers=workers,
             mp_context=multiprocessing.get_context("spawn"),
-            initializer=bench.initializer,
-            initargs=bench.initargs,
+            initializer=_worker_start,
+            initargs=(os.getpid(), bench.initializer, bench.initargs),
         )
     return executor, client, workers
 

@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from crtraj.core import interrupt
 from crtraj.core.errors import InputError
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.dynamixel_protocol import HW_ERROR_NAMES
@@ -96,7 +97,7 @@ def sim_dynamixel_command(args: argparse.Namespace) -> int:
     try:
         sim.serve(args.duration)
     except KeyboardInterrupt:
-        pass
+        interrupt.acknowledge()  # Ctrl-C is a server's normal end: exit 0
     finally:
         sim.stop()
     c = chain.counts
