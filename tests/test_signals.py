@@ -260,7 +260,7 @@ def _signal_once(name: str, args: list[str], out: Path, cpu_window: float, tmp_p
     else:
         run_env["CRTRAJ_CC"] = "none"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "crtraj.cli", *args],
+        [sys.executable, "-m", "crtraj.cli", "-q", *args],  # -q: warnings (the interpreted path) are not asked
         env=run_env,
         cwd=tmp_path,
         stdout=subprocess.DEVNULL,
@@ -295,6 +295,7 @@ def _signal_once(name: str, args: list[str], out: Path, cpu_window: float, tmp_p
 def _outputs(tmp_path: Path, *names: str) -> Path:
     """The output folder with a file of distinct bytes for each of `names` (a/b: in a subfolder)."""
     out = tmp_path / "o"
+    out.mkdir()
     for n in names:
         p = out / n
         p.parent.mkdir(parents=True, exist_ok=True)
@@ -307,20 +308,21 @@ def _outputs(tmp_path: Path, *names: str) -> Path:
 def test_signal_replan(tmp_path, plant):
     out = _outputs(tmp_path, "run/run.json", "run/run.png")
     args = ["replan", str(PAPER), "--out", str(out / "run"), "--quiet"]
-    _signal_once(f"replan-{plant}", args + (["--plant", "cosserat"] if plant == "cosserat" else []), out, 3.0, tmp_path)
+    _signal_once(f"replan-{plant}", args + (["--plant", "cosserat"] if plant == "cosserat" else []), out, 2.0, tmp_path)
 
 
 @pytest.mark.slow
 def test_signal_verify_cosserat(tmp_path):
     out = _outputs(tmp_path, "keep.txt")
-    _signal_once("verify", ["verify", str(RESULT), "--model", "cosserat"], out, 3.0, tmp_path)
+    args = ["verify", str(RESULT), "--model", "cosserat", "--robot", str(ROBOT)]
+    _signal_once("verify", args, out, 1.0, tmp_path)
 
 
 @pytest.mark.slow
 def test_signal_record(tmp_path):
     out = _outputs(tmp_path, "data.json")
     args = ["record", "--excite", "--plant", "cosserat", "--duration", "300", "--out", str(out / "data.json")]
-    _signal_once("record", args, out, 3.0, tmp_path)
+    _signal_once("record", args, out, 2.0, tmp_path)
 
 
 @pytest.mark.slow
@@ -334,7 +336,7 @@ def test_signal_calibrate(tmp_path):
 def test_signal_model_compare(tmp_path):
     out = _outputs(tmp_path, "compare.png")
     args = ["model", "compare", str(ROBOT), "--samples", "100000", "--plot", str(out / "compare.png")]
-    _signal_once("model-compare", args, out, 2.0, tmp_path)
+    _signal_once("model-compare", args, out, 1.5, tmp_path)
 
 
 @pytest.mark.slow
@@ -387,7 +389,8 @@ def test_signal_home(tmp_path):
     sim_args = ["sim-dynamixel", "--pty", "--robot", str(robot), "--power-cycle-at", "0", "--duration", "600"]
     sim, pty = _server(sim_args, r"on (/dev/\S+) ", tmp_path)
     try:
-        out = _outputs(tmp_path, "homing.json")
+        out = _outputs(tmp_path)
+        (out / "homing.json").write_text('{"kind": "crtraj-homing", "servos": []}\n')  # an earlier, empty state
         args = ["home", "--dynamixel", pty, "--robot", str(robot), "--state", str(out / "homing.json")]
         _signal_once("home", args, out, 0.5, tmp_path)
     finally:
