@@ -245,16 +245,19 @@ def _snapshot(folder: Path) -> dict[str, str]:
     }
 
 
-def _signal_once(name: str, args: list[str], out: Path, cpu_window: float, tmp_path: Path, env=None) -> None:
+def _signal_once(
+    name: str, args: list[str], out: Path, cpu_window: float, tmp_path: Path, writing: bool = False
+) -> None:
     """Run `crtraj args`, signal it at a random point within `cpu_window` s of its CPU time after its handler is
-    installed, and check the policy. `out`: the folder of the pre-created outputs (nothing in it may change)."""
+    installed (`writing`: after it began to write into `out`), and check the policy. `out`: the folder of the
+    pre-created outputs (nothing in it may change)."""
     rng = random.Random(f"{SEED}:{name}")
     signum = rng.choice([signal.SIGINT, signal.SIGTERM])
     at_cpu = rng.uniform(0.0, cpu_window)
     compiled = rng.random() < 0.25  # sometimes a fresh build cache and the compiler: the signal hits a compile
     before = _snapshot(out)
     mark = uuid.uuid4().hex
-    run_env = {**os.environ, **(env or {}), "CRTRAJ_SIGNAL_MARK": mark, "PYTHONPATH": str(ROOT)}
+    run_env = {**os.environ, "CRTRAJ_SIGNAL_MARK": mark, "PYTHONPATH": str(ROOT)}
     if compiled:
         run_env["CRTRAJ_CACHE_DIR"] = str(tmp_path / "fresh-cache")
     else:
@@ -271,9 +274,9 @@ def _signal_once(name: str, args: list[str], out: Path, cpu_window: float, tmp_p
     what = f"{name}: {signal.Signals(signum).name} at {at_cpu:.2f} s CPU ({'compiled' if compiled else 'interpreted'})"
     try:
         end = time.monotonic() + HANG_S
-        while not _handles_sigterm(proc.pid):  # the command's handler is in: its run begins
-            assert proc.poll() is None, f"{what}: exited {proc.returncode} before its handler was installed"
-            assert time.monotonic() < end, f"{what}: no handler installed"
+        while not _handles_sigterm(proc.pid) or (writing and _snapshot(out) == before):  # the run has begun
+            assert proc.poll() is None, f"{what}: exited {proc.returncode} before its run began"
+            assert time.monotonic() < end, f"{what}: its run never began"
             time.sleep(0.01)
         start = _cpu_s(proc.pid)
         while _cpu_s(proc.pid) - start < at_cpu:
@@ -373,8 +376,18 @@ def test_signal_stream(tmp_path):
     dev, addr = _server(["sim-device", "--udp", "127.0.0.1:0", "--duration", "600"], r"udp://(\S+?) ", tmp_path)
     try:
         out = _outputs(tmp_path, "stream.jsonl")
-        args = ["stream", str(RESULT), "--udp", addr, "--time-scale", "10", "--log", str(out / "stream.jsonl")]
-        _signal_once("stream", args, out, 1.0, tmp_path)
+        args = [
+            "stream",
+            str(RESULT),
+            "--udp",
+            addr,
+            "--approach",
+            "--time-scale",
+            "10",
+            "--log",
+            str(out / "stream.jsonl"),
+        ]
+        _signal_once("stream", args, out, 1.0, tmp_path, writing=True)  # while its log is written
     finally:
         _stop(dev)
 
