@@ -6,8 +6,8 @@ die with their parent, also when the parent is SIGKILLed (no cleanup code of the
 
 The command part signals each long-running command once, at a random point of its own progress: the seeded
 generator (CRTRAJ_SIGNAL_SEED, default 36) picks the signal (SIGINT or SIGTERM) and how much CPU time the
-command has spent since it installed its handler (read from /proc, so the point does not move with the
-machine's load). Then: the exit status is 130 or 143 with exactly one stderr line, the output files that
+command and its children have spent since it installed its handler (read from /proc, so the point does not
+move with the machine's load). Then: the exit status is 130 or 143 with exactly one stderr line, the output files that
 existed before are byte-identical, no temporary file is left in the output folder, and no process that
 carries the run's marker (an environment variable every child inherits) is alive 2 s later. Commands run
 interpreted (CRTRAJ_CC=none) unless the generator picks a fresh build cache with the C compiler (the signal
@@ -224,9 +224,26 @@ def test_children_die_with_a_sigkilled_parent(kind):
 
 # ------------------------------------------------------------------ every long-running command
 def _cpu_s(pid: int) -> float:
-    """CPU time (user + system) process `pid` has used, s."""
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    """CPU time (user + system) process `pid` has used, s (0 once it is gone)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return 0.0
     return (int(fields[11]) + int(fields[12])) / TICK
+
+
+class Progress:
+    """The CPU time the processes of a run (the marked ones: the command and its children, a compiler's
+    too) have used, s: the measure of how far the command has come, whatever the machine's load."""
+
+    def __init__(self, mark: str) -> None:
+        self.mark = mark
+        self.seen: dict[int, float] = {}
+
+    def __call__(self) -> float:
+        for pid in _marked(self.mark):
+            self.seen[pid] = max(self.seen.get(pid, 0.0), _cpu_s(pid))
+        return sum(self.seen.values())
 
 
 def _handles_sigterm(pid: int) -> bool:
@@ -278,8 +295,9 @@ def _signal_once(
             assert proc.poll() is None, f"{what}: exited {proc.returncode} before its run began"
             assert time.monotonic() < end, f"{what}: its run never began"
             time.sleep(0.01)
-        start = _cpu_s(proc.pid)
-        while _cpu_s(proc.pid) - start < at_cpu:
+        progress = Progress(mark)
+        start = progress()
+        while progress() - start < at_cpu:
             assert proc.poll() is None, f"{what}: finished before the signal: {proc.stderr.read()[-500:]!r}"
             assert time.monotonic() < end, f"{what}: never reached its point"
             time.sleep(0.01)

@@ -33,6 +33,7 @@ from crtraj.core.errors import InputError
 from crtraj.core.fields import Table, read_int
 from crtraj.core.fileio import check_output_dir, check_output_file, check_outputs_not_inputs, read_toml
 from crtraj.core.interrupt import die_with_parent
+from crtraj.core.logs import configure_logging
 from crtraj.io.problem import load_robot
 from crtraj.model.kinematics import Model
 from crtraj.planning.options import PlannerOptions
@@ -72,9 +73,12 @@ def _parse_list(text: str, name: str, conv: Callable[[str], Any]) -> tuple[Any, 
     return items
 
 
-def _worker_start(parent: int, initializer: Callable[..., None], initargs: tuple[Any, ...]) -> None:
-    """A table1 worker process's start: it dies with this process (even a SIGKILLed one), then sets up."""
+def _worker_start(parent: int, level: int, initializer: Callable[..., None], initargs: tuple[Any, ...]) -> None:
+    """A table1 worker process's start: it dies with this process (even a SIGKILLed one), logs at the command's
+    level (-q, -v), then sets up."""
     die_with_parent(parent)
+    configure_logging()
+    logging.getLogger("crtraj").setLevel(level)
     initializer(*initargs)
 
 
@@ -98,7 +102,7 @@ def _executor(args: Any, bench: Table1Bench, workers: int) -> tuple[cf.Executor 
             max_workers=workers,
             mp_context=multiprocessing.get_context("spawn"),
             initializer=_worker_start,
-            initargs=(os.getpid(), bench.initializer, bench.initargs),
+            initargs=(os.getpid(), logging.getLogger("crtraj").level, bench.initializer, bench.initargs),
         )
     return executor, client, workers
 
