@@ -106,6 +106,40 @@ def hold() -> None:
     _state.shield += 1
 
 
+class _CasadiStopFilter:
+    """sys.stderr while a command runs, without CasADi's line about the stop it caught (written in pieces:
+    ``CasADi - <time> WARNING("KeyboardInterruptException") [...]``): a stop is reported once, by the command.
+    Every other line passes unchanged."""
+
+    def __init__(self, stream: Any) -> None:
+        self._stream = stream
+        self._held = ""
+
+    def write(self, text: str) -> int:
+        if not (self._held or text.startswith("CasADi - ")):
+            return self._stream.write(text)
+        self._held += text
+        if "\n" in text:
+            line, self._held = self._held, ""
+            if "KeyboardInterruptException" not in line:
+                self._stream.write(line)
+        return len(text)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._stream, name)
+
+
+@contextlib.contextmanager
+def _quiet_casadi_stops() -> Iterator[None]:
+    stderr = sys.stderr
+    sys.stderr = _CasadiStopFilter(stderr)
+    try:
+        yield
+    finally:
+        if isinstance(sys.stderr, _CasadiStopFilter):
+            sys.stderr = stderr
+
+
 @contextlib.contextmanager
 def policy(last: bool = False) -> Iterator[None]:
     """Install the handler of SIGINT and SIGTERM for the command run inside the block; restore the previous
@@ -122,7 +156,8 @@ def policy(last: bool = False) -> Iterator[None]:
         if old[s] is not signal.SIG_IGN or s == signal.SIGTERM:
             signal.signal(s, _handle)
     try:
-        yield
+        with _quiet_casadi_stops():
+            yield
     finally:
         for s, h in old.items():
             signal.signal(s, signal.SIG_IGN if last else h if h is not None else signal.SIG_DFL)
