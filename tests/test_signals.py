@@ -157,6 +157,23 @@ def test_the_server_commands_end_on_ctrl_c_with_0_and_sigterm_stays_143():
         assert interrupt.requested() == signal.SIGTERM
 
 
+@pytest.mark.parametrize("after", ["systemerror", "exit 0"])
+def test_the_command_line_reports_a_stop_that_a_library_mangled_or_swallowed(monkeypatch, capsys, after):
+    """The issue's symptoms: a SystemError ("DM.__array__ returned a result with an exception set") after a
+    KeyboardInterrupt inside CasADi, and a command that ran on and exited 0: both are the stop, one line."""
+    import crtraj.cli as cli
+
+    def use_case(args) -> int:
+        _stop_here(signal.SIGTERM)
+        if after == "systemerror":
+            raise SystemError("<function DM.__array__ at 0x1> returned a result with an exception set")
+        return 0
+
+    monkeypatch.setattr(cli, "_use_case", lambda name: use_case)
+    assert cli.main(["verify", str(RESULT), "--model", "cosserat"]) == 143
+    assert capsys.readouterr().err == "crtraj: terminated\n"
+
+
 # ------------------------------------------------------------------ children die with their parent
 def _marked(mark: str) -> list[int]:
     """Live processes whose environment carries CRTRAJ_SIGNAL_MARK=mark (every child inherits it)."""
