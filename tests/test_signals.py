@@ -33,7 +33,7 @@ import pytest
 from conftest import PAPER, PROBLEMS, ROOT, default_sigint, paper_copy, require_module
 
 from crtraj.core import interrupt
-from crtraj.core.fileio import StagedDir, StagedFile, atomic_write_bytes, remove_staged
+from crtraj.core.fileio import StagedDir, StagedFile, atomic_write_bytes
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc, uses prctl (Linux)")
 
@@ -139,7 +139,7 @@ def test_nothing_is_committed_after_a_stop_and_no_temporary_file_stays(tmp_path)
             staged_dir.commit()
         with pytest.raises(interrupt.Interrupted):
             staged_file.commit()
-        remove_staged()  # what the command's end does (crtraj.cli.main)
+        interrupt.remove_temporaries()  # what the command's end does (crtraj.cli.main)
     assert target.read_bytes() == b"the user's result\n"
     assert (folder / "run.json").read_bytes() == b"old run\n"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["result.json", "run"]

@@ -28,7 +28,6 @@ from crtraj.cli.lab import add_calibrate, add_model, add_record, add_verify
 from crtraj.cli.paths import DEFAULT_ROBOT
 from crtraj.core import interrupt
 from crtraj.core.errors import AdmissionError, InputError
-from crtraj.core.fileio import remove_staged
 from crtraj.core.flags import strict_flag_types
 from crtraj.core.logs import configure_logging
 from crtraj.hardware.transport import TransportError
@@ -552,7 +551,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             return _main(argv)
         finally:
             interrupt.hold()  # the command is over: a late signal cuts no cleanup short
-            remove_staged()  # the temporary files an interruption left
+            interrupt.remove_temporaries()  # the temporary files an interruption left
 
 
 def _stopped() -> int:

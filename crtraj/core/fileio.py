@@ -9,8 +9,8 @@ folder in one step (`StagedDir`): readers see the old set or the new set,
 never a mix.
 
 Nothing is committed after a stop was requested (Ctrl-C, SIGTERM: every commit first calls
-`crtraj.core.interrupt.check`), and every temporary file or folder is known (`_staged`) until it is
-renamed or removed, so the command's last act, `remove_staged`, removes whatever an interruption left.
+`crtraj.core.interrupt.check`), and every temporary file or folder is known (`crtraj.core.interrupt.temporaries`)
+until it is renamed or removed, so the command's last act removes whatever an interruption left.
 
 Test hook: with the environment variables ``CRTRAJ_PAUSE_AT=<point>`` and
 ``CRTRAJ_PAUSE_SIGNAL=<file>`` set, the writer creates <file> when it reaches
@@ -49,25 +49,10 @@ import numpy as np
 
 from crtraj.core.errors import InputError
 from crtraj.core.interrupt import check as check_interrupt
-from crtraj.core.interrupt import shielded
+from crtraj.core.interrupt import shielded, temporaries
 
 _RENAME_EXCHANGE = 2  # linux/fs.h: swap two paths atomically (renameat2, Linux >= 3.15)
 _AT_FDCWD = -100
-
-
-# the temporary files and folders of this process not yet renamed into place or removed
-_staged: set[Path] = set()
-
-
-def remove_staged() -> None:
-    """Remove every temporary file and folder of this process's unfinished writes (an interrupted command's)."""
-    with shielded():
-        for p in list(_staged):
-            if p.is_dir() and not p.is_symlink():
-                shutil.rmtree(p, ignore_errors=True)
-            else:
-                p.unlink(missing_ok=True)
-            _staged.discard(p)
 
 
 def checkpoint(point: str) -> None:
@@ -143,7 +128,7 @@ def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> Path:
     target = Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
-    _staged.add(Path(tmp))
+    temporaries.add(Path(tmp))
     try:
         _usual_mode(Path(tmp))
         with os.fdopen(fd, "wb") as fh:
@@ -152,11 +137,10 @@ def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> Path:
         check_interrupt()  # a stopped command replaces nothing
         os.replace(tmp, target)
     except BaseException:
-        with shielded():
-            Path(tmp).unlink(missing_ok=True)
+        Path(tmp).unlink(missing_ok=True)
         raise
     finally:
-        _staged.discard(Path(tmp))
+        temporaries.discard(Path(tmp))
     _fsync_dir(target.parent)
     checkpoint("file-renamed")
     return target
@@ -225,7 +209,7 @@ class StagedFile:
         fd, tmp = tempfile.mkstemp(prefix=f".{self.target.name}.", suffix=".tmp", dir=self.target.parent)
         os.close(fd)
         self.path = Path(tmp)
-        _staged.add(self.path)
+        temporaries.add(self.path)
         _usual_mode(self.path)
         self.committed = False
 
@@ -240,7 +224,7 @@ class StagedFile:
         checkpoint("file-written")
         check_interrupt()  # a stopped command replaces nothing
         os.replace(self.path, self.target)
-        _staged.discard(self.path)
+        temporaries.discard(self.path)
         _fsync_dir(self.target.parent)
         self.committed = True
         checkpoint("file-renamed")
@@ -248,9 +232,8 @@ class StagedFile:
 
     def discard(self) -> None:
         if not self.committed:
-            with shielded():
-                self.path.unlink(missing_ok=True)
-                _staged.discard(self.path)
+            self.path.unlink(missing_ok=True)
+            temporaries.discard(self.path)
 
     def __enter__(self) -> StagedFile:
         return self
@@ -311,7 +294,7 @@ class StagedDir:
         self.target.parent.mkdir(parents=True, exist_ok=True)
         recover_dir(self.target)
         self.path = Path(tempfile.mkdtemp(prefix=f".{self.target.name}.", suffix=".tmp", dir=self.target.parent))
-        _staged.add(self.path)
+        temporaries.add(self.path)
         _usual_mode(self.path, directory=True)
         if marker is not None:
             mark_folder(self.path, marker)
@@ -353,13 +336,12 @@ class StagedDir:
             os.rename(self.path, dest)
             _fsync_dir(dest.parent)
             self.committed = True
-        _staged.discard(self.path)
+        temporaries.discard(self.path)
 
     def discard(self) -> None:
         if not self.committed:
-            with shielded():
-                shutil.rmtree(self.path, ignore_errors=True)
-                _staged.discard(self.path)
+            shutil.rmtree(self.path, ignore_errors=True)
+            temporaries.discard(self.path)
 
     def __enter__(self) -> StagedDir:
         return self

@@ -21,11 +21,13 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import os
+import shutil
 import signal
 import subprocess
 import sys
 import threading
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 SIGNALS = (signal.SIGINT, signal.SIGTERM)
@@ -161,6 +163,23 @@ def policy(last: bool = False) -> Iterator[None]:
     finally:
         for s, h in old.items():
             signal.signal(s, signal.SIG_IGN if last else h if h is not None else signal.SIG_DFL)
+
+
+# ------------------------------------------------------- temporary files
+# the temporary files and folders of this process's writes not yet renamed into place or removed
+# (crtraj.core.fileio adds and drops them); an interrupted command's end removes what is left
+temporaries: set[Path] = set()
+
+
+def remove_temporaries() -> None:
+    """Remove every temporary file and folder of this process's unfinished writes (an interrupted command's)."""
+    with shielded():
+        for p in list(temporaries):
+            if p.is_dir() and not p.is_symlink():
+                shutil.rmtree(p, ignore_errors=True)
+            else:
+                p.unlink(missing_ok=True)
+            temporaries.discard(p)
 
 
 # ---------------------------------------------------------------- children
