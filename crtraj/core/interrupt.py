@@ -13,7 +13,8 @@ process the signal killed). Commands whose normal end is Ctrl-C (the servers: vi
 `acknowledge` and exit 0.
 
 Children die with their parent (`die_with_parent`, `popen_child`): Linux delivers a signal to a child whose
-parent thread ends, even when the parent is SIGKILLed and no cleanup code of it runs.
+parent thread ends, even when the parent is SIGKILLed and no cleanup code of it runs; a program that starts
+children of its own (a C compiler) runs under `run_guarded`, which ends its whole process group.
 """
 
 from __future__ import annotations
