@@ -33,6 +33,8 @@ from crtraj.bench.scenarios import ScenarioGenerator, ScenarioOptions
 from crtraj.core.errors import InputError
 from crtraj.core.fields import Table, read_int
 from crtraj.core.fileio import check_output_dir, check_output_file, check_outputs_not_inputs, read_toml
+from crtraj.core.interrupt import die_with_parent
+from crtraj.core.logs import configure_logging
 from crtraj.io.problem import load_robot
 from crtraj.model.kinematics import Model
 from crtraj.planning.options import PlannerOptions
@@ -72,6 +74,15 @@ def _parse_list(text: str, name: str, conv: Callable[[str], Any]) -> tuple[Any, 
     return items
 
 
+def _worker_start(parent: int, level: int, initializer: Callable[..., None], initargs: tuple[Any, ...]) -> None:
+    """A table1 worker process's start: it dies with this process (even a SIGKILLed one), logs at the command's
+    level (-q, -v), then sets up."""
+    die_with_parent(parent)
+    configure_logging()
+    logging.getLogger("crtraj").setLevel(level)
+    initializer(*initargs)
+
+
 def _executor(args: Any, bench: Table1Bench, workers: int) -> tuple[cf.Executor | None, Any, int]:
     """(executor or None, Dask client or None, worker count) for --dask / --workers."""
     client = None
@@ -91,8 +102,8 @@ def _executor(args: Any, bench: Table1Bench, workers: int) -> tuple[cf.Executor 
         executor = cf.ProcessPoolExecutor(
             max_workers=workers,
             mp_context=multiprocessing.get_context("spawn"),
-            initializer=bench.initializer,
-            initargs=bench.initargs,
+            initializer=_worker_start,
+            initargs=(os.getpid(), logging.getLogger("crtraj").level, bench.initializer, bench.initargs),
         )
     return executor, client, workers
 

@@ -16,6 +16,7 @@ import contextlib
 import socket
 import time
 
+from crtraj.core import interrupt
 from crtraj.core.errors import InputError
 from crtraj.hardware.transport import parse_hostport
 from crtraj.io.problem import Problem
@@ -60,6 +61,7 @@ def feed_replay_command(args: argparse.Namespace) -> int:
             counts = replay.run(send, time.perf_counter, time.sleep)
             ended = "finished"
         except KeyboardInterrupt:
+            interrupt.acknowledge()  # Ctrl-C is a replay's normal end: exit 0
             counts, ended = replay.counts(), "interrupted"
     print(
         f"feed-replay {ended}: {counts.measured} states measured, {counts.sent} sent in {counts.datagrams} "

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from crtraj.core import interrupt
 from crtraj.core.errors import InputError
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.sim_device import Faults, SimDevice
@@ -30,7 +31,7 @@ def sim_device_command(args: argparse.Namespace) -> int:
     try:
         dev.serve(args.duration)
     except KeyboardInterrupt:
-        pass
+        interrupt.acknowledge()  # Ctrl-C is a server's normal end: exit 0
     finally:
         st = dev.state()
         dev.stop()

@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from crtraj.core import interrupt
 from crtraj.core.errors import InputError
 from crtraj.core.fileio import check_output_file, check_outputs_not_inputs
 from crtraj.hardware.actuators import Actuators
@@ -113,7 +114,7 @@ def sim_dynamixel_command(args: argparse.Namespace) -> int:
     try:
         sim.serve(args.duration)
     except KeyboardInterrupt:
-        pass
+        interrupt.acknowledge()  # Ctrl-C is a server's normal end: exit 0
     finally:
         sim.stop()
     c = chain.counts

@@ -105,7 +105,10 @@ def _stream(args: argparse.Namespace, motion: AdmittedMotion, opts: StreamOption
     # a refused or failed dry run leaves FILE as it was
     dry_run = None if args.dry_run is None else _given(args.dry_run, "--dry-run")
     frames = StagedFile(check_output_file(dry_run, "--dry-run")) if dry_run is not None else None
-    with frames or contextlib.nullcontext():
+    # the log is a journal, written as the stream goes (a crash keeps its lines); an existing log is replaced
+    # only by the log of a stream that ended (not by an interrupted one: crtraj.core.interrupt)
+    staged_log = StagedFile(log) if Path(log).exists() else None
+    with frames or contextlib.nullcontext(), staged_log or contextlib.nullcontext():
         transport = open_link(_target(args, frames), motion.actuators, **_homing(args, motion))
         if args.approach and not transport.has_telemetry:
             transport.close()
@@ -121,10 +124,12 @@ def _stream(args: argparse.Namespace, motion: AdmittedMotion, opts: StreamOption
             f"streaming {args.result} ({what}, {path.duration:.2f} s, ~{n} set-points at {opts.rate:g} Hz) to {to}",
             flush=True,
         )
-        streamer = Streamer(transport, motion.actuators, opts, log)
+        streamer = Streamer(transport, motion.actuators, opts, log if staged_log is None else staged_log.path)
         rep = streamer.run_path(motion, approach=args.approach, plan_approach=plan_approach)
         if frames is not None and rep.ok:
             frames.commit()
+        if staged_log is not None:
+            rep = dataclasses.replace(rep, log=str(staged_log.commit()))
     return rep
 
 

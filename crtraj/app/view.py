@@ -11,6 +11,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from crtraj.core import interrupt
 from crtraj.core.errors import InputError
 from crtraj.core.fileio import check_output_file, check_outputs_not_inputs
 from crtraj.io.results import Result, read_result
@@ -52,6 +53,7 @@ def serve(
             while True:
                 time.sleep(_IDLE_S)
     except KeyboardInterrupt:
+        interrupt.acknowledge()  # Ctrl-C is a server's normal end: exit 0
         print("stopped", flush=True)
     return 0
 

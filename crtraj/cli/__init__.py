@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import signal
 import sys
 from collections.abc import Callable, Sequence
 from typing import Any, NoReturn
@@ -25,6 +26,7 @@ from typing import Any, NoReturn
 from crtraj import __version__
 from crtraj.cli.lab import add_calibrate, add_model, add_record, add_verify
 from crtraj.cli.paths import DEFAULT_ROBOT
+from crtraj.core import interrupt
 from crtraj.core.errors import AdmissionError, InputError
 from crtraj.core.flags import strict_flag_types
 from crtraj.core.logs import configure_logging
@@ -567,6 +569,27 @@ def _one_line(exc: BaseException, width: int = 1000) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """The ``crtraj`` command: its exit code. Ctrl-C and SIGTERM have one handler for the whole command
+    (`crtraj.core.interrupt`): exit 130 or 143, one stderr line, nothing replaced, no temporary file left.
+    argv: the arguments (None: this process's, and the process ends with the command)."""
+    with interrupt.policy(last=argv is None):
+        try:
+            return _main(argv)
+        finally:
+            interrupt.hold()  # the command is over: a late signal cuts no cleanup short
+            interrupt.remove_temporaries()  # the temporary files an interruption left
+
+
+def _stopped() -> int:
+    """The end of a stopped command: one stderr line, the signal's exit code (SIGINT when none was seen: a
+    KeyboardInterrupt raised without one)."""
+    interrupt.hold()
+    signum = interrupt.requested() or signal.SIGINT
+    print(interrupt.message(signum), file=sys.stderr)
+    return interrupt.exit_code(signum)
+
+
+def _main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.verbose and args.quiet_log:  # one on each side of the command: their group cannot see both
@@ -577,7 +600,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     try:
         func = args.func if getattr(args, "func", None) is not None else _use_case(args.use_case)
-        return int(func(args) or 0)
+        code = int(func(args) or 0)
+        interrupt.check()  # a stop that came as the command ended, or that a library swallowed
+        return code
     except AdmissionError as exc:  # a readable result that may not drive a device: refused, not an input error
         print(f"crtraj: error: {_one_line(exc)}", file=sys.stderr)
         return 1
@@ -587,9 +612,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     except TransportError as exc:  # the device or port, not the input: a run-time failure
         print(f"crtraj: error: {_one_line(exc)}", file=sys.stderr)
         return 1
-    except KeyboardInterrupt:
-        print("crtraj: interrupted", file=sys.stderr)
-        return 130
+    except BaseException as exc:
+        # a stop is any exception once a signal came (what native code made of the KeyboardInterrupt: a
+        # SystemError, a solver's RuntimeError) and a KeyboardInterrupt without one
+        if interrupt.requested() or isinstance(exc, KeyboardInterrupt):
+            return _stopped()
+        raise
 
 
 if __name__ == "__main__":  # pragma: no cover

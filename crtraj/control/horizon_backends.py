@@ -19,6 +19,7 @@ import casadi as ca
 import numpy as np
 
 from crtraj.control.horizon_build import FUSED_OUT, CompiledParts
+from crtraj.core.interrupt import check as check_interrupt
 from crtraj.planning.compiled_nlp import CompiledFunction
 
 # With `closest_points`, at most this many solves of the QP's NLP per query of `ScreenedBackend`: a solution that
@@ -156,6 +157,7 @@ class InterpretedBackend:
         """One solver call and an independent look at what it returned."""
         t_start = time.perf_counter()
         sol = self.solver.call(self.check.args(query))
+        check_interrupt()  # CasADi turns a Ctrl-C into a stopped solve: stop here (crtraj.core.interrupt)
         st = self.solver.stats()
         return self.check.record(sol, st, time.perf_counter() - t_start)
 

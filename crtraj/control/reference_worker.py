@@ -20,7 +20,6 @@ import json
 import math
 import multiprocessing
 import os
-import signal
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from typing import Any
@@ -29,6 +28,7 @@ import numpy as np
 
 from crtraj.control.reference import ReferencePlan, ReferenceSource
 from crtraj.core.fields import Table
+from crtraj.core.interrupt import die_with_parent
 from crtraj.planning.result import PlanStatus
 from crtraj.world.scene import Scene
 
@@ -80,7 +80,8 @@ class ReferenceWorker:
         """Fork the worker. Call before the loop's first step (a fork copies the process: milliseconds)."""
         ctx = multiprocessing.get_context("fork")
         parent, child = ctx.Pipe(duplex=True)
-        proc = ctx.Process(target=_serve, args=(self.source, child, self.nx), name="crtraj-reference", daemon=True)
+        args = (self.source, child, self.nx, os.getpid())
+        proc = ctx.Process(target=_serve, args=args, name="crtraj-reference", daemon=True)
         proc.start()
         child.close()
         self._conn, self._proc = parent, proc
@@ -226,10 +227,10 @@ def _yield_to_the_loop() -> None:
             os.nice(19)
 
 
-def _serve(source: ReferenceSource, conn: Connection, nx: int) -> None:
-    """The worker's loop: read a request, plan, reply; end when the parent closes the pipe."""
-    # Ctrl-C is the parent's to handle: the worker ends when the parent closes the pipe
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+def _serve(source: ReferenceSource, conn: Connection, nx: int, parent: int) -> None:
+    """The worker's loop: read a request, plan, reply; end when the parent closes the pipe or dies."""
+    # Ctrl-C is the parent's to handle: the worker ends when the parent closes the pipe, or with the parent
+    die_with_parent(parent)
     _yield_to_the_loop()
     scene: Scene | None = None
     while True:

@@ -49,6 +49,7 @@ import platformdirs
 from crtraj import __version__
 from crtraj.core.errors import InputError
 from crtraj.core.fileio import atomic_write_json, is_marked, mark_folder, read_json, remove_marked, to_jsonable
+from crtraj.core.interrupt import run_guarded
 
 log = logging.getLogger(__name__)
 
@@ -141,7 +142,7 @@ def compile_shared(compiler: str, sources: list[Path], out: Path, flags: tuple[s
     """Compile C `sources` into the shared library `out`; RuntimeError with the compiler's last line on failure."""
     cmd = [compiler, *CFLAGS, *flags, "-o", str(out), *map(str, sources), "-lm"]
     try:
-        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=COMPILE_TIMEOUT, check=False)
+        proc = run_guarded(cmd, timeout=COMPILE_TIMEOUT)  # the compiler's own children die with this process too
     except subprocess.TimeoutExpired:
         raise RuntimeError(f"C compiler {compiler}: no result after {COMPILE_TIMEOUT:.0f} s") from None
     if proc.returncode != 0:

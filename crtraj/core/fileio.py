@@ -8,6 +8,10 @@ run.html) writes them into a temporary sibling folder that replaces the old
 folder in one step (`StagedDir`): readers see the old set or the new set,
 never a mix.
 
+Nothing is committed after a stop was requested (Ctrl-C, SIGTERM: every commit first calls
+`crtraj.core.interrupt.check`), and every temporary file or folder is known (`crtraj.core.interrupt.temporaries`)
+until it is renamed or removed, so the command's last act removes whatever an interruption left.
+
 Test hook: with the environment variables ``CRTRAJ_PAUSE_AT=<point>`` and
 ``CRTRAJ_PAUSE_SIGNAL=<file>`` set, the writer creates <file> when it reaches
 <point> and then waits forever, so a test can kill it there without racing a
@@ -44,6 +48,8 @@ from typing import Any
 import numpy as np
 
 from crtraj.core.errors import InputError
+from crtraj.core.interrupt import check as check_interrupt
+from crtraj.core.interrupt import shielded, temporaries
 
 _RENAME_EXCHANGE = 2  # linux/fs.h: swap two paths atomically (renameat2, Linux >= 3.15)
 _AT_FDCWD = -100
@@ -122,15 +128,19 @@ def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> Path:
     target = Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    temporaries.add(Path(tmp))
     try:
         _usual_mode(Path(tmp))
         with os.fdopen(fd, "wb") as fh:
             _write_synced(fh, data)
         checkpoint("file-written")
+        check_interrupt()  # a stopped command replaces nothing
         os.replace(tmp, target)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+    finally:
+        temporaries.discard(Path(tmp))
     _fsync_dir(target.parent)
     checkpoint("file-renamed")
     return target
@@ -199,6 +209,7 @@ class StagedFile:
         fd, tmp = tempfile.mkstemp(prefix=f".{self.target.name}.", suffix=".tmp", dir=self.target.parent)
         os.close(fd)
         self.path = Path(tmp)
+        temporaries.add(self.path)
         _usual_mode(self.path)
         self.committed = False
 
@@ -211,7 +222,9 @@ class StagedFile:
         """Make the staged file the target (atomic rename); returns the target."""
         _fsync_file(self.path)
         checkpoint("file-written")
+        check_interrupt()  # a stopped command replaces nothing
         os.replace(self.path, self.target)
+        temporaries.discard(self.path)
         _fsync_dir(self.target.parent)
         self.committed = True
         checkpoint("file-renamed")
@@ -220,6 +233,7 @@ class StagedFile:
     def discard(self) -> None:
         if not self.committed:
             self.path.unlink(missing_ok=True)
+            temporaries.discard(self.path)
 
     def __enter__(self) -> StagedFile:
         return self
@@ -280,6 +294,7 @@ class StagedDir:
         self.target.parent.mkdir(parents=True, exist_ok=True)
         recover_dir(self.target)
         self.path = Path(tempfile.mkdtemp(prefix=f".{self.target.name}.", suffix=".tmp", dir=self.target.parent))
+        temporaries.add(self.path)
         _usual_mode(self.path, directory=True)
         if marker is not None:
             mark_folder(self.path, marker)
@@ -296,6 +311,12 @@ class StagedDir:
                 _fsync_file(p)
         _fsync_dir(self.path)
         checkpoint("dir-staged")
+        check_interrupt()  # a stopped command replaces nothing
+        with shielded():  # begun, the swap is finished: a signal now stops the command after it
+            self._swap(dest)
+        return dest
+
+    def _swap(self, dest: Path) -> None:
         recover_dir(dest)
         if dest.exists():
             check_output_dir(dest, str(dest), self.replaceable, self.marker)
@@ -315,11 +336,12 @@ class StagedDir:
             os.rename(self.path, dest)
             _fsync_dir(dest.parent)
             self.committed = True
-        return dest
+        temporaries.discard(self.path)
 
     def discard(self) -> None:
         if not self.committed:
             shutil.rmtree(self.path, ignore_errors=True)
+            temporaries.discard(self.path)
 
     def __enter__(self) -> StagedDir:
         return self

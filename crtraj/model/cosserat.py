@@ -40,6 +40,7 @@ import numpy as np
 from crtraj.core.build_cache import BuildCache
 from crtraj.core.errors import InputError
 from crtraj.core.fields import MAX_MAGNITUDE, check_array
+from crtraj.core.interrupt import check as check_interrupt
 from crtraj.model.cosserat_compiled import POLISH, CompiledShooting
 from crtraj.model.cosserat_rod import march, rod_pieces
 from crtraj.model.mechanics import Mechanics
@@ -257,6 +258,7 @@ class CosseratRod(RodStatics):
 
     def _solve(self, tau: np.ndarray, loads: np.ndarray, warm: bool, polish: float) -> RodSolution:
         """`solve` on checked tensions and load vector."""
+        check_interrupt()  # a safe point between rod solves (crtraj.core.interrupt)
         p = np.concatenate([tau, loads])
         use_warm = warm and self._warm is not None
         for start in ("warm", "straight") if use_warm else ("straight",):

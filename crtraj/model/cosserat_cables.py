@@ -27,6 +27,7 @@ import numpy as np
 from crtraj.core.build_cache import BuildCache
 from crtraj.core.errors import InputError
 from crtraj.core.fields import MAX_LENGTH, check_array
+from crtraj.core.interrupt import check as check_interrupt
 from crtraj.model.cosserat import (
     NO_LOAD,
     RodLoad,
@@ -95,6 +96,7 @@ class CableDrivenRod(RodStatics):
 
     def solve(self, lengths: Any, load: RodLoad = NO_LOAD) -> CableSolution:
         """Shape and tensions under commanded tendon lengths (mm); warm-started from the last solve."""
+        check_interrupt()  # a safe point between rod solves (crtraj.core.interrupt)
         ell = check_array(np.asarray(lengths, dtype=float), "lengths", (self.n_tendons,), limit=MAX_LENGTH)
         bad = np.flatnonzero(ell <= 0)
         if bad.size:

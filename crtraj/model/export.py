@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import platform
 import shutil
-import subprocess
 from dataclasses import dataclass
 from pathlib import Path
 from types import MappingProxyType
@@ -23,6 +22,7 @@ import casadi as ca
 
 from crtraj import __version__
 from crtraj.core.fileio import atomic_write_bytes, atomic_write_json
+from crtraj.core.interrupt import run_guarded
 from crtraj.model.kinematics import Model
 
 # Units of every named input and output, for the export manifest.
@@ -79,11 +79,7 @@ def _compile(out: Path, cname: str, c_path: Path) -> tuple[Path | None, str]:
     suffix = ".dylib" if platform.system() == "Darwin" else ".so"
     lib = out / f"lib{cname}{suffix}"
     tmp_lib = out / f".lib{cname}.tmp{suffix}"
-    proc = subprocess.run(
-        [cc, "-O2", "-shared", "-fPIC", "-o", str(tmp_lib), str(c_path), "-lm"],
-        capture_output=True,
-        text=True,
-    )
+    proc = run_guarded([cc, "-O2", "-shared", "-fPIC", "-o", str(tmp_lib), str(c_path), "-lm"])
     if proc.returncode != 0:
         tmp_lib.unlink(missing_ok=True)
         return None, f"C compiler {cc} failed: {proc.stderr.strip().splitlines()[-1:]}"

@@ -47,6 +47,7 @@ import casadi as ca
 import numpy as np
 
 from crtraj.core.fields import check_array
+from crtraj.core.interrupt import check as check_interrupt
 from crtraj.model.kinematics import Model
 from crtraj.planning.compiled_validity import ProjectionLimits, ProjectionSteps
 from crtraj.planning.ik_rescue import IKRescue
@@ -478,6 +479,7 @@ class SafeIK:
         t1 = time.perf_counter()
         self.nlp_solves += 1
         r = self.solver(x0=x0, p=p, lbx=self._box[0], ubx=self._box[1], lbg=self._lbg, ubg=self._ubg)
+        check_interrupt()  # CasADi turns a Ctrl-C into a stopped solve: stop here (crtraj.core.interrupt)
         st = self.solver.stats()
         # IPOPT meets the limits to its tolerance (~1e-8); put the result exactly inside
         xs = self.validator.project_limits(np.asarray(r["x"], dtype=float).reshape(1, -1))[0]

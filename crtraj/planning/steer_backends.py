@@ -21,6 +21,7 @@ import casadi as ca
 import numpy as np
 
 from crtraj.core.errors import InputError
+from crtraj.core.interrupt import check as check_interrupt
 from crtraj.planning.nlp_backend import NLPBackend
 from crtraj.planning.steer_nlp import NlpCall, SteerNLP, SteerQuery, SteerSolution
 from crtraj.planning.steer_options import IPOPT_DEFAULTS, SQP_DEFAULTS, SteerOptions
@@ -147,8 +148,10 @@ class NlpsolBackend:
         try:
             sol = solver(**args)
         except RuntimeError as exc:  # evaluation errors (NaN) inside CasADi
+            check_interrupt()  # or what CasADi made of a Ctrl-C (crtraj.core.interrupt)
             self.warm.reset()
             return SteerSolution(call.x0.copy(), False, f"Evaluation_Error: {last_line(str(exc))}", 0, self.name)
+        check_interrupt()  # CasADi turns a Ctrl-C into a stopped solve: stop here (crtraj.core.interrupt)
         stats = solver.stats()
         # IPOPT relaxes bounds by ~1e-8 relative; project back so the re-check
         # judges the configuration that is actually returned

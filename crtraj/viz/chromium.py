@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from crtraj.core.errors import InputError
+from crtraj.core.interrupt import popen_child
 
 log = logging.getLogger(__name__)
 
@@ -102,6 +103,7 @@ class Chromium:
             [sys.executable, "-c", TRAMPOLINE, str(to_r), str(from_w), exe, *FLAGS, "--remote-debugging-pipe",
              f"--user-data-dir={self._profile}", "about:blank"],
             stdin=subprocess.DEVNULL, stdout=self._log, stderr=subprocess.STDOUT, pass_fds=(to_r, from_w),
+            **popen_child(),
         )  # fmt: skip
         os.close(to_r)
         os.close(from_w)

@@ -29,6 +29,7 @@ import numpy as np
 
 from crtraj.core.fields import Table
 from crtraj.core.fileio import to_jsonable
+from crtraj.core.interrupt import popen_child
 from crtraj.model.kinematics import Model
 from crtraj.model.robot import Robot
 from crtraj.viz.live_page import LivePage
@@ -99,6 +100,7 @@ class ChildDrawer:
             stdout=subprocess.PIPE,
             stderr=self._log,
             start_new_session=True,  # a Ctrl-C meant for the loop does not kill the view
+            **popen_child(),  # but the view dies with the loop's process, even a SIGKILLed one
         )
         self._send(json.dumps(to_jsonable(setup)).encode("utf-8") + b"\n")
         if self._line() != "ready":

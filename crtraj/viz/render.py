@@ -12,6 +12,7 @@ import subprocess
 from pathlib import Path
 
 from crtraj.core.errors import InputError
+from crtraj.core.interrupt import popen_child
 from crtraj.viz.chromium import Chromium
 
 DEFAULT_SIZE = (1280, 800)
@@ -63,7 +64,7 @@ def render_mp4(pic: Picture, out: Path, duration: float) -> Path:
            "-c:v", "libx264", "-pix_fmt", "yuv420p", "-vf", "pad=ceil(iw/2)*2:ceil(ih/2)*2", str(out)]  # fmt: skip
     with Chromium() as browser:
         tab = browser.open(pic.page.resolve().as_uri(), *pic.size, offline=True)
-        enc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stderr=subprocess.PIPE)
+        enc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stderr=subprocess.PIPE, **popen_child())
         try:
             for k in range(n):
                 tab.seek(min(duration, k / pic.fps))

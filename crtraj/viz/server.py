@@ -32,6 +32,7 @@ from typing import Any
 
 import msgpack
 
+from crtraj.core.interrupt import popen_child
 from crtraj.viz.page import append_rows, wrap_page_json
 from crtraj.viz.page import page_json as dump_page
 
@@ -76,6 +77,7 @@ def start_server(timeout: float, nice: int = 0) -> tuple[subprocess.Popen[bytes]
         stderr=subprocess.STDOUT,
         env=env,
         start_new_session=True,  # a Ctrl-C meant for a notebook cell does not kill the viewer
+        **popen_child(),  # but the viewer dies with this process, even a SIGKILLed one
     )
     deadline = time.monotonic() + timeout
     while True:

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from crtraj.core.errors import InputError
+from crtraj.core.fileio import StagedFile
 
 log = logging.getLogger(__name__)
 
@@ -111,8 +112,8 @@ class McapRecorder:
             raise InputError(f"--record: needs the mcap package (pip install -e '.[ros]'): {exc}") from None
         schemas = {name: schema_text(name) for name in RECORDED_TYPES}
         self.path = Path(path)
-        self._tmp = self.path.with_name(f".{self.path.name}.{os.getpid()}.partial")
-        self._fh = open(self._tmp, "wb")  # noqa: SIM115 - closed by commit / discard
+        self._staged = StagedFile(self.path)  # removed on every exit that does not commit (crtraj.core.fileio)
+        self._fh = open(self._staged.path, "wb")  # noqa: SIM115 - closed by commit / discard
         self._writer = Writer(self._fh)
         self._writer.start(profile="ros2", library="crtraj")
         self._lock = threading.Lock()
@@ -156,7 +157,7 @@ class McapRecorder:
             self._open = False
             self._writer.finish()
             self._fh.close()
-        os.replace(self._tmp, self.path)
+        self._staged.commit()
         log.info("ros: recorded %d messages to %s", self.messages, self.path)
         return self.path
 
@@ -166,7 +167,7 @@ class McapRecorder:
             if self._open:
                 self._open = False
                 self._fh.close()
-        self._tmp.unlink(missing_ok=True)
+        self._staged.discard()
 
 
 def type_name(msg: Any) -> str:

@@ -11,6 +11,7 @@ import casadi as ca
 import numpy as np
 
 from crtraj.core.errors import InputError
+from crtraj.core.interrupt import check as check_interrupt
 from crtraj.model.calibration.frames import align, rotation_vector
 from crtraj.model.calibration.identify import at_fit, identifiable, scaled_singular_values, weighted_jacobian
 from crtraj.model.calibration.layout import CalibrateOptions, Hardware, Layout
@@ -247,6 +248,7 @@ def _solve(
     lbx = (layout.lower[idx] - layout.prior[idx]) / layout.scale[idx]
     ubx = (layout.upper[idx] - layout.prior[idx]) / layout.scale[idx]
     sol = solver(x0=np.zeros(idx.size), lbx=lbx, ubx=ubx)
+    check_interrupt()  # CasADi turns a Ctrl-C into a stopped solve: stop here (crtraj.core.interrupt)
     t_solve = time.perf_counter() - t0
     st = solver.stats()
     out = layout.prior.copy()
