@@ -210,12 +210,20 @@ def test_the_readme_quick_start_is_one_import():
 
 
 def test_the_api_reference_documents_every_public_name_once():
-    """docs/reference/api.md renders `::: crtraj` blocks whose member lists together are crtraj.__all__."""
+    """docs/reference/api.md renders `::: crtraj` blocks whose member lists together are crtraj.__all__; a
+    sub-package not (yet) at the front door (`crtraj.world.geometry`) may have its own block, of names that are
+    in its own __all__ and not in crtraj's (one home per name)."""
     text = (ROOT / "docs" / "reference" / "api.md").read_text(encoding="utf-8")
-    assert not re.findall(r"^::: (?!crtraj$)", text, flags=re.M), "only `::: crtraj` blocks: one home per name"
-    listed = [n.strip() for group in re.findall(r"members: \[(.*?)\]", text) for n in group.split(",")]
-    assert len(listed) == len(set(listed))
-    assert sorted(listed) == sorted(_public(crtraj.__all__))
+    blocks = re.findall(r"^::: (\S+)\n(?:.*\n)*?\s*members: \[(.*?)\]", text, flags=re.M)
+    assert len(blocks) == len(re.findall(r"^::: ", text, flags=re.M)), "every block lists its members"
+    top = [n.strip() for home, group in blocks if home == "crtraj" for n in group.split(",")]
+    assert len(top) == len(set(top))
+    assert sorted(top) == sorted(_public(crtraj.__all__))
+    for home, group in blocks:
+        if home != "crtraj":
+            names = [n.strip() for n in group.split(",")]
+            assert set(names) <= set(importlib.import_module(home).__all__), home
+            assert not set(names) & set(crtraj.__all__), f"{home}: a name with two homes"
 
 
 # ------------------------------------------------------------------------------------------ library calls

@@ -224,7 +224,11 @@ def test_every_refusing_use_case_is_exercised():
     }
     # helpers of a command, refusing on its behalf (their command's cases reach them)
     helpers = {"approach": "stream", "plant_sim": "replan", "record_plant": "record", "suite": "bench"}
-    missing = {m for m in refusing - modules if helpers.get(m) not in modules}
+    # library calls with no command of their own: tests/test_public_api.py runs their refusals
+    library = {"calibrate_file", "plan_motion"}
+    api_tests = (ROOT / "tests" / "test_public_api.py").read_text()
+    assert all(f"def test_{n}" in api_tests for n in ("admit_plan_refuses", "calibrate_robot_refuses_bad")), "moved?"
+    missing = {m for m in refusing - modules - library if helpers.get(m) not in modules}
     assert not missing, f"no refusal case runs crtraj/app/{sorted(missing)}"
 
 
@@ -432,7 +436,7 @@ def test_documented_exit_codes_are_the_codes_main_returns(files, capsys):
     """docs/getting-started.md's table and the README give 0, 1 and 2 (130 for Ctrl-C); the Dynamixel
     tutorial gives exit 2 for `robot.actuators: ...` and `not homed ...` and 1 for the device's refusals."""
     table = (ROOT / "docs" / "getting-started.md").read_text().partition("## Exit codes")[2].partition("\n## ")[0]
-    assert {int(c) for c in re.findall(r"(?m)^\| (\d+) \|", table)} == {0, 1, 2}
+    assert {int(c) for c in re.findall(r"(?m)^\| (\d+) \|", table)} == {0, 1, 2, 130, 143}
     readme = (ROOT / "README.md").read_text()
     assert "1: a well-formed task that could not be done" in readme and "2: bad input" in readme
     tutorial = (ROOT / "docs" / "tutorials" / "dynamixel.md").read_text()

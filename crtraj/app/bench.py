@@ -108,6 +108,17 @@ def _executor(args: Any, bench: Table1Bench, workers: int) -> tuple[cf.Executor 
     return executor, client, workers
 
 
+def _planner_options(path: str | None) -> PlannerOptions:
+    """The [planner] table of --planner-config (the defaults without one); any other table is refused."""
+    if not path:
+        return PlannerOptions()
+    data = read_toml(path)
+    unknown = sorted(set(data) - {"planner"})
+    if unknown:
+        raise InputError(f"{path}: only a [planner] table is read here, found {unknown}")
+    return PlannerOptions.from_table(Table(data.get("planner", {}), "planner"))
+
+
 def run_table1(args: Any) -> int:
     """`crtraj bench table1 ...` (arguments from `crtraj.cli`); returns the exit code."""
     if args.table == "modes":
@@ -127,13 +138,7 @@ def run_table1(args: Any) -> int:
     )
     out = Path(args.out or "out/table1")
     _check_outputs(out, TABLE1_FILES, {"--robot": args.robot, "--planner-config": args.planner_config})
-    planner_options = PlannerOptions()
-    if args.planner_config:
-        data = read_toml(args.planner_config)
-        unknown = sorted(set(data) - {"planner"})
-        if unknown:
-            raise InputError(f"{args.planner_config}: only a [planner] table is read here, found {unknown}")
-        planner_options = PlannerOptions.from_table(Table(data.get("planner", {}), "planner"))
+    planner_options = _planner_options(args.planner_config)
     robot = load_robot(args.robot)
     for name in planners:
         if name not in CHECK_MODES:  # rrt-paper, rrtstar-paper: the bench's own entries
