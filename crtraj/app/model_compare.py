@@ -31,14 +31,13 @@ from crtraj.model.kinematics import Model
 from crtraj.model.mechanics import Mechanics
 from crtraj.model.robot import Robot
 from crtraj.model.rod_drive import RodDrive
+from crtraj.model.rod_surrogate import sample_within_limits
 
 log = logging.getLogger(__name__)
 
 MAX_SAMPLES = 100_000
 # N in every tendon at the straight pose (the smallest tension of each segment), as the plant's
 PRETENSION = 1.0
-# Rejection sampling of the configuration box: draws per wanted sample before giving up.
-_DRAWS_PER_SAMPLE = 200
 
 
 @dataclass(frozen=True)
@@ -86,16 +85,7 @@ class Comparison:
 
 def sample_configs(robot: Robot, n: int, rng: np.random.Generator) -> np.ndarray:
     """n configurations (n, nx) drawn uniformly from the configuration box, kept if within the limits."""
-    lo, hi = robot.config_box()
-    out: list[np.ndarray] = []
-    for _ in range(_DRAWS_PER_SAMPLE):
-        x = rng.uniform(lo, hi, size=(max(n, 16), robot.nx))
-        out.extend(x[robot.limit_violation(x) <= 0.0])
-        if len(out) >= n:
-            return np.array(out[:n])
-    raise InputError(
-        f"robot: fewer than {n} of {_DRAWS_PER_SAMPLE * max(n, 16)} random configurations are within limits"
-    )
+    return sample_within_limits(robot, n, rng)
 
 
 def _distances(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
