@@ -175,10 +175,16 @@ class RodDrive:
         x = np.atleast_2d(np.asarray(x, dtype=float))
         out = np.full((len(x), self.robot.n_segments * self.mech.steps + 1, 3), np.nan)
         failed = np.zeros(len(x), dtype=bool)
-        for i, xi in enumerate(x):
-            s = self.shape_config(xi)
-            if s.is_success():
-                out[i] = s.points
+        if self.actuation == "tension":  # every frame's tensions at once, checked once (verify's long paths)
+            assert isinstance(self.rod, CosseratRod)
+            tau = tensions_for_bending(self.robot, self.mech, self.robot.bending(x), self.pretension)
+            sols = self.rod.solve_path(tau, self.load, polish=self.polish)
+            shapes = [sol.points + np.array([0.0, 0.0, xi[-1]]) for sol, xi in zip(sols, x, strict=True)]
+        else:
+            shapes = [self.shape_config(xi).points for xi in x]
+        for i, pts in enumerate(shapes):
+            if np.all(np.isfinite(pts)):
+                out[i] = pts
             else:
                 failed[i] = True
         return out, failed
