@@ -234,7 +234,7 @@ def build_table(robot: Robot, mech: Mechanics, options: SurrogateOptions) -> np.
         if rod is None:
             ub = np.round(robot.bending(x).ravel(), 4).tolist()
             raise InputError(
-                f"rod surrogate: the rod's solve failed at bending {ub} rad ({sampler.drive.rod.__class__.__name__}); "
+                f"rod surrogate: the rod's solve failed at bending {ub} rad (actuation {sampler.drive.actuation}); "
                 "check [robot.mechanics] (moduli, steps, tolerance, max_iter)"
             )
         table[idx] = rod - sampler.pcc_points(x)
