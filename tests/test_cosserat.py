@@ -20,7 +20,8 @@ from crtraj.core.fields import Table
 from crtraj.io.problem import load_robot
 from crtraj.model.cosserat import NO_LOAD, CosseratRod, RodLoad
 from crtraj.model.cosserat_cables import CableDrivenRod
-from crtraj.model.cosserat_map import segment_moments, tensions_for_bending
+from crtraj.model.cosserat_map import pcc_nodes, segment_moments, tensions_for_bending
+from crtraj.model.kinematics import Model
 from crtraj.model.mechanics import Mechanics
 from crtraj.model.robot import Robot, Segment
 from crtraj.model.rod_drive import RodDrive
@@ -180,6 +181,7 @@ def test_bad_tensions_are_one_line_input_errors(one: CosseratRod) -> None:
         ({"steps": 0}, "robot.mechanics.steps"),
         ({"tendon_stiffness": -5.0}, "robot.mechanics.tendon_stiffness: must be > 0"),
         ({"stiffness": 1.0}, "robot.mechanics.stiffness"),
+        ({"actuation": "force"}, "robot.mechanics.actuation: must be one of cable_length, tension; got 'force'"),
     ],
 )
 def test_bad_mechanics_tables_name_the_field(table: dict, field: str) -> None:
@@ -252,6 +254,51 @@ def test_without_gravity_the_rod_follows_pcc_and_gravity_pulls_it_away(cdsr2: Ro
     np.testing.assert_allclose(weightless.body_gravity, weightless.body_free, atol=1e-9)
 
 
+def _with_actuation(robot: Robot, mode: str) -> Robot:
+    """`robot` with ``[robot.mechanics] actuation = mode``."""
+    return dataclasses.replace(robot, mechanics={**dict(robot.mechanics or {}), "actuation": mode})
+
+
+def _independent_rod(robot: Robot, mech: Mechanics, x: np.ndarray, mode: str) -> np.ndarray:
+    """The rod's backbone (mm, base at the origin) at configuration x with gravity, solved cold by the
+    interpreted rootfinders: under the tensions that hold x's bending on a weightless rod (1 N pretension),
+    or under the commanded cable lengths of `RodDrive.lengths` (its length map is checked against PCC in
+    test_rod_plant)."""
+    if mode == "tension":
+        tau = tensions_for_bending(robot, mech, robot.bending(x), 1.0)
+        sol = CosseratRod(robot, mech, compiled=False).solve(tau, RodLoad(), warm=False)
+        assert sol.is_success()
+        return sol.points
+    ell = RodDrive(robot, mech.with_(actuation="cable_length"), pretension=1.0).lengths(robot.cables(x))
+    cab = CableDrivenRod(robot, mech, compiled=False).solve(ell, RodLoad())
+    assert cab.is_success()
+    return cab.rod.points
+
+
+@pytest.mark.parametrize("mode", ["cable_length", "tension"])
+def test_the_robot_files_actuation_mode_decides_the_rod(cdsr2: Robot, mode: str) -> None:
+    """`RodDrive` and `compare_models` solve the rod in the robot file's actuation mode: the shapes equal
+    independent cold solves of that mode's statics, the mode is reported, and the two modes' shapes under
+    gravity are millimetres apart (so a consumer that ignored the mode would fail this test)."""
+    robot = _with_actuation(cdsr2, mode)
+    mech = Mechanics.from_robot(robot)
+    assert mech.actuation == mode and Mechanics.from_robot(cdsr2).actuation == "cable_length"  # the default
+    drive = RodDrive(robot)
+    assert drive.actuation == mode and mode in drive.describe()
+    configs = sample_configs(cdsr2, 2, np.random.default_rng(6))
+    configs[:, -1] = 0.0  # the comparison puts the base at the origin
+    cmp = compare_models(robot, mech, configs)
+    assert cmp.actuation == mode and cmp.failures == 0
+    other = "tension" if mode == "cable_length" else "cable_length"
+    for i, x in enumerate(configs):
+        mine = _independent_rod(cdsr2, mech, x, mode)
+        np.testing.assert_allclose(drive.shape_config(x).points, mine, atol=1e-6)
+        pcc = pcc_nodes(Model(cdsr2), x, mech.steps)
+        assert cmp.tip_gravity[i] == pytest.approx(np.linalg.norm(mine[-1] - pcc[-1]), abs=1e-6)
+        assert cmp.body_gravity[i] == pytest.approx(np.max(np.linalg.norm(mine - pcc, axis=1)), abs=1e-6)
+        assert np.linalg.norm(_independent_rod(cdsr2, mech, x, other)[-1] - mine[-1]) > 1.0
+
+
 def test_sample_configs_are_within_limits_and_seeded(cdsr2: Robot) -> None:
     """Seeded, within the robot's limits."""
     a = sample_configs(cdsr2, 5, np.random.default_rng(3))
@@ -265,12 +312,18 @@ def _cli(*args: str) -> subprocess.CompletedProcess:
 
 
 def test_cli_compare_reports_and_plots(tmp_path: Path) -> None:
-    """`crtraj model compare` prints both cases' spreads and writes the PNG."""
+    """`crtraj model compare` prints both cases' spreads and the robot file's actuation mode, and writes the PNG."""
     plot = tmp_path / "cmp.png"
     out = _cli("model", "compare", str(CDSR2), "--samples", "2", "--seed", "4", "--plot", str(plot))
     assert out.returncode == 0, out.stderr
     assert "no gravity: tip RMS" in out.stdout and "gravity:    tip RMS" in out.stdout
+    assert "(actuation cable_length)" in out.stdout  # cdsr2.toml names no mode: the position servos' default
     assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    tension = tmp_path / "tension.toml"
+    tension.write_text(CDSR2.read_text().replace("[robot.mechanics]", '[robot.mechanics]\nactuation = "tension"'))
+    out = _cli("model", "compare", str(tension), "--samples", "1")
+    assert out.returncode == 0, out.stderr
+    assert "(actuation tension)" in out.stdout
 
 
 def test_cli_compare_bad_inputs_are_one_line_and_touch_nothing(tmp_path: Path) -> None:
@@ -280,7 +333,10 @@ def test_cli_compare_bad_inputs_are_one_line_and_touch_nothing(tmp_path: Path) -
     before = robot.read_bytes()
     bare = tmp_path / "bare.toml"
     bare.write_text(CDSR2.read_text().split("[robot.mechanics]")[0])
+    force = tmp_path / "force.toml"
+    force.write_text(CDSR2.read_text().replace("[robot.mechanics]", '[robot.mechanics]\nactuation = "force"'))
     cases = [
+        ([], str(force), "robot.mechanics.actuation: must be one of cable_length, tension; got 'force'"),
         (["--samples", "0"], str(robot), "--samples: must be in"),
         (["--plot", str(robot)], str(robot), "--plot:"),
         ([], str(bare), "robot.mechanics: missing"),

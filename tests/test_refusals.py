@@ -298,14 +298,15 @@ def test_verify_contact_says_why_on_stderr(tmp_path, capsys):
     robot = load_robot(CDSR2)
     side = _sideways(robot)
     x = robot.straight(robot.z_range[0])
-    sagged = CosseratRod(side).solve(np.zeros(6), RodLoad())
+    sagged = CosseratRod(side).solve(np.ones(6), RodLoad())  # the straight pose's 1 N pretension
     tip = sagged.tip + np.array([0.0, 0.0, x[-1]])
     assert np.linalg.norm(tip - Model(robot).tip_position(x)) > 30.0  # the rod sags where PCC does not
     doc = _document(side, _scene([{"center": (tip - [4.0, 0.0, 0.0]).tolist(), "radius": 3.0}]), [0.0, 1.0], [x, x])
     res = tmp_path / "side.json"
     res.write_text(json.dumps(doc))
     robot_file = tmp_path / "side.toml"
-    robot_file.write_text(CDSR2.read_text().replace("gravity = [0.0, 0.0, -9.80665]", "gravity = [-9.80665, 0, 0]"))
+    text = CDSR2.read_text().replace("gravity = [0.0, 0.0, -9.80665]", "gravity = [-9.80665, 0, 0]")
+    robot_file.write_text(text.replace("[robot.mechanics]", '[robot.mechanics]\nactuation = "tension"'))  # as _sideways
     line = refused(
         capsys,
         ["verify", str(res), "--model", "cosserat", "--robot", str(robot_file)],

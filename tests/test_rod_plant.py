@@ -19,9 +19,9 @@ from crtraj.hardware.actuators import Actuators
 from crtraj.io.calibration_data import read_dataset
 from crtraj.io.problem import Problem, load_robot
 from crtraj.model.calibration import paper_markers
-from crtraj.model.cosserat import RodLoad
+from crtraj.model.cosserat import CosseratRod, RodLoad
 from crtraj.model.cosserat_cables import CableDrivenRod
-from crtraj.model.cosserat_map import pcc_nodes
+from crtraj.model.cosserat_map import pcc_nodes, tensions_for_bending
 from crtraj.model.kinematics import Model
 from crtraj.model.rod_drive import RodDrive
 
@@ -79,7 +79,7 @@ def test_weightless_plant_follows_pcc_within_the_compare_bound(cdsr2):
         pcc[:, 2] += x[-1]
         assert np.max(np.linalg.norm(s.points - pcc, axis=1)) < 1.0
     straight = drive.shape(cdsr2.cables(cdsr2.straight(-10.0)))
-    np.testing.assert_allclose(straight.cable.tensions, 1.0, rtol=1e-6)
+    np.testing.assert_allclose(straight.tensions, 1.0, rtol=1e-6)
     np.testing.assert_allclose(straight.tip[:2], 0.0, atol=1e-9)
     # the base stage at -10 mm; segment 1 carries all six tendons' 1 N, segment 2 three: compressed by F L / EA
     ea = drive.mech.youngs_modulus * drive.mech.area
@@ -98,6 +98,41 @@ def test_gravity_pulls_the_plant_off_pcc_and_more_with_more_mass(cdsr2):
     assert 1.0 < errs[0] < errs[1]
 
 
+@pytest.mark.parametrize("mode", ["cable_length", "tension"])
+def test_the_plant_runs_in_the_robot_files_actuation_mode(tmp_path, cdsr2, mode):
+    """`--plant cosserat` on a robot file with ``actuation = mode``: the plant's rod at the goal actuation
+    equals a cold interpreted solve of that mode's statics (fixed tensions, or the commanded cable lengths),
+    and its report and summary line name the mode."""
+    robot_file = tmp_path / f"{mode}.toml"
+    robot_file.write_text(CDSR2.read_text().replace("[robot.mechanics]", f'[robot.mechanics]\nactuation = "{mode}"'))
+    prob = tmp_path / "p.toml"
+    prob.write_text(_short_problem(tmp_path).read_text().replace(CDSR2.as_posix(), robot_file.as_posix()))
+    plant = make_plant("cosserat", Problem.load(prob), tip_noise=0.0)
+    q = cdsr2.cables(X_GOAL)
+    got = plant.shape(q)
+    assert got.is_success()
+    mech = plant.drive.mech
+    if mode == "tension":
+        tau = tensions_for_bending(cdsr2, mech, cdsr2.bending(X_GOAL), 1.0)
+        ref = CosseratRod(cdsr2, mech, compiled=False).solve(tau, RodLoad(), warm=False).points
+    else:
+        ell = RodDrive(cdsr2, pretension=1.0).lengths(q)
+        ref = CableDrivenRod(cdsr2, mech, compiled=False).solve(ell, RodLoad()).rod.points
+    np.testing.assert_allclose(got.points, ref, atol=1e-6)
+    assert plant.describe()["actuation"] == mode and f"actuation {mode}" in plant.summary_line()
+
+
+def test_the_two_actuation_modes_sag_differently(cdsr2):
+    """Under gravity the fixed tensions let the bent rod sag far more than the commanded cable lengths do
+    (the tendons of a position servo take up part of the weight): tips more than 5 mm apart at X_GOAL."""
+    tips = {}
+    for mode in ("cable_length", "tension"):
+        mech = RodDrive(cdsr2).mech.with_(actuation=mode)
+        tips[mode] = RodDrive(cdsr2, mech).shape(cdsr2.cables(X_GOAL)).tip
+    pcc = Model(cdsr2).tip_position(X_GOAL)
+    assert np.linalg.norm(tips["tension"] - pcc) > np.linalg.norm(tips["cable_length"] - pcc) + 5.0
+
+
 def _sphere_clearance(points: np.ndarray, t: float, body: float, d_sf: float) -> float:
     """Clearance (mm, minus D_sf) of the body around `points` from the static sphere BALL, by numpy."""
     c, r = np.array(BALL[0]), BALL[1]
@@ -113,10 +148,11 @@ def test_closed_loop_on_the_rod_reports_the_clearance_an_independent_check_finds
     out = tmp_path / "run"
     code = main(["replan", str(_short_problem(tmp_path)), "--plant", "cosserat", "--out", str(out), "--no-html"])
     text = capsys.readouterr().out
-    assert "plant (Cosserat rod, with gravity)" in text and "PCC's own view" in text
+    assert "plant (Cosserat rod, actuation cable_length, with gravity)" in text and "PCC's own view" in text
     doc = json.loads((out / "run.json").read_text())
     plant = doc["plant"]
     assert plant["kind"] == "plant" and plant["gravity"] is True and plant["failure"] == ""
+    assert plant["actuation"] == "cable_length"  # cdsr2.toml names no mode: the position servos' default
     q, t, clear = np.array(plant["q"]), np.array(plant["t"]), np.array(plant["clearance"], dtype=float)
     assert len(q) == len(t) == len(clear) == plant["periods"] + 1 > 20
     np.testing.assert_allclose(np.diff(t), 0.02, atol=1e-9)  # every control period of 0.02 s

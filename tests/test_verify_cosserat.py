@@ -17,10 +17,12 @@ from crtraj.core.fields import Table
 from crtraj.io.problem import load_robot
 from crtraj.io.results import read_result
 from crtraj.model.cosserat import CosseratRod, RodLoad
+from crtraj.model.cosserat_cables import CableDrivenRod
 from crtraj.model.cosserat_map import pcc_nodes, tensions_for_bending
 from crtraj.model.kinematics import Model
 from crtraj.model.mechanics import Mechanics
 from crtraj.model.robot import Robot
+from crtraj.model.rod_drive import RodDrive
 from crtraj.world.scene import Scene
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -65,8 +67,29 @@ def _path(robot: Robot, n: int) -> tuple[np.ndarray, np.ndarray]:
     return np.linspace(0.0, DUR, n), (1 - s) * x0 + s * x1
 
 
-def test_verify_matches_a_direct_per_frame_solve_and_distance(robot: Robot) -> None:
-    """Every frame's clearance under both models equals a cold interpreted rod solve + numpy distances."""
+def _with_actuation(robot: Robot, mode: str) -> Robot:
+    """`robot` with ``[robot.mechanics] actuation = mode``."""
+    return dataclasses.replace(robot, mechanics={**dict(robot.mechanics or {}), "actuation": mode})
+
+
+def _cold_rod(robot: Robot, mech: Mechanics, x: np.ndarray, mode: str) -> np.ndarray:
+    """The rod's backbone (mm, base at the origin) at x with gravity in `mode`, by a cold interpreted solve:
+    under the tensions that hold x's PCC bending (1 N pretension), or under `RodDrive`'s commanded lengths."""
+    if mode == "tension":
+        tau = tensions_for_bending(robot, mech, robot.bending(x), 1.0)
+        sol = CosseratRod(robot, mech, compiled=False).solve(tau, RodLoad(), warm=False)
+        assert sol.is_success()
+        return sol.points
+    cab = CableDrivenRod(robot, mech, compiled=False).solve(RodDrive(robot, mech).lengths(robot.cables(x)), RodLoad())
+    assert cab.is_success()
+    return cab.rod.points
+
+
+@pytest.mark.parametrize("mode", ["cable_length", "tension"])
+def test_verify_matches_a_direct_per_frame_solve_and_distance(robot: Robot, mode: str) -> None:
+    """Every frame's clearance under both models equals a cold interpreted rod solve in the robot file's
+    actuation mode + numpy distances, and the verification reports that mode."""
+    robot = _with_actuation(robot, mode)
     obstacle = {
         "center": C0.tolist(),
         "radius": {"mean": A, "amplitude": B, "omega": W},
@@ -76,17 +99,15 @@ def test_verify_matches_a_direct_per_frame_solve_and_distance(robot: Robot) -> N
     t, x = _path(robot, 6)
     result = read_result(_document(robot, scene, t, x))
     v = verify_cosserat(result, robot, substeps=2)
+    assert v.actuation == mode
     tt, xx = frames(t, x, 2)
     assert len(v.t) == 11 and np.allclose(tt[1::2], 0.5 * (t[:-1] + t[1:]))
     mech, model = Mechanics.from_robot(robot), Model(robot)
-    ref = CosseratRod(robot, mech, compiled=False)
     rod_c, pcc_c = [], []
     for tk, xk in zip(tt, xx, strict=True):
         c = C0 + min(tk / DUR, 1.0) * (TO - C0)
         r = A + B * np.sin(W * tk)
-        sol = ref.solve(tensions_for_bending(robot, mech, robot.bending(xk)), RodLoad(), warm=False)
-        assert sol.is_success()
-        for pts, out in ((sol.points, rod_c), (pcc_nodes(model, xk, mech.steps), pcc_c)):
+        for pts, out in ((_cold_rod(robot, mech, xk, mode), rod_c), (pcc_nodes(model, xk, mech.steps), pcc_c)):
             world = pts + np.array([0.0, 0.0, xk[-1]])
             out.append(np.min(np.linalg.norm(world - c, axis=1)) - r - robot.body_radius - D_SF)
     np.testing.assert_allclose(v.rod_clearance, rod_c, atol=1e-3)  # verify solves to 1e-6 N: ~1e-4 mm
@@ -98,18 +119,19 @@ def test_verify_matches_a_direct_per_frame_solve_and_distance(robot: Robot) -> N
 
 
 def _sideways(robot: Robot) -> Robot:
-    """cdsr2 lying on its side: gravity along -x of the base frame."""
+    """cdsr2 lying on its side, tension-controlled: gravity along -x of the base frame."""
     mech = dict(robot.mechanics or {})
     mech["gravity"] = [-9.80665, 0.0, 0.0]
+    mech["actuation"] = "tension"
     return dataclasses.replace(robot, mechanics=mech)
 
 
 def test_gravity_sag_into_an_obstacle_is_caught(robot: Robot, tmp_path: Path) -> None:
     """A straight robot lying sideways sags onto a sphere placed under its tip: PCC keeps D_sf, the rod
-    touches; the command says CONTACT and exits 1, and without gravity it passes."""
+    touches; the command says CONTACT and exits 1, names the mode, and without gravity it passes."""
     side = _sideways(robot)
     x = robot.straight(robot.z_range[0])
-    sagged = CosseratRod(side).solve(np.zeros(6), RodLoad())
+    sagged = CosseratRod(side).solve(np.ones(6), RodLoad())  # the straight pose's 1 N pretension
     assert sagged.is_success()
     tip = sagged.tip + np.array([0.0, 0.0, x[-1]])
     pcc_tip = Model(robot).tip_position(x)
@@ -124,11 +146,13 @@ def test_gravity_sag_into_an_obstacle_is_caught(robot: Robot, tmp_path: Path) ->
     res.write_text(json.dumps(doc), encoding="utf-8")
     robot_file = tmp_path / "side.toml"
     text = CDSR2.read_text(encoding="utf-8").replace("gravity = [0.0, 0.0, -9.80665]", "gravity = [-9.80665, 0, 0]")
+    text = text.replace("[robot.mechanics]", '[robot.mechanics]\nactuation = "tension"')
     robot_file.write_text(text, encoding="utf-8")
     cmd = [sys.executable, "-m", "crtraj.cli", "verify", str(res), "--model", "cosserat", "--robot", str(robot_file)]
     out = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=600)
     assert out.returncode == 1, out.stderr
     assert "CONTACT" in out.stdout and "extra D_sf this result needs" in out.stdout
+    assert "Cosserat rod (actuation tension) with gravity" in out.stdout
     free = subprocess.run([*cmd, "--no-gravity"], capture_output=True, text=True, cwd=ROOT, timeout=600)
     assert free.returncode == 0, free.stdout + free.stderr
     assert "Cosserat: min clearance" in free.stdout and "holds" in free.stdout

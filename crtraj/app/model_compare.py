@@ -1,10 +1,11 @@
 """Use case: how far is the PCC model from Cosserat-rod statics? (`crtraj model compare`).
 
-For N random configurations within the robot's limits (seeded), each PCC configuration's bending is
-mapped to the tendon tensions that hold it on a weightless rod (`crtraj.model.cosserat_map`); the
-rod is then solved without and with gravity (`crtraj.model.cosserat`). Reported per case: the tip
-discrepancy and the whole-body discrepancy (the largest distance between the two backbones at the
-rod's integration nodes), each as RMS, 95th percentile and maximum over the configurations, in mm.
+For N random configurations within the robot's limits (seeded), the rod is driven to each PCC
+configuration in the robot file's actuation mode (`crtraj.model.rod_drive.RodDrive`, ``[robot.mechanics]
+actuation``: the servos' commanded cable lengths, or the tensions that hold the PCC bending on a weightless
+rod) and solved without and with gravity (`crtraj.model.cosserat`). The mode is printed with the figures.
+Reported per case: the tip discrepancy and the whole-body discrepancy (the largest distance between the two
+backbones at the rod's integration nodes), each as RMS, 95th percentile and maximum over the configurations, in mm.
 The plot (--plot, PNG, written atomically) shows the sorted discrepancies and the worst
 configuration's two backbones.
 """
@@ -25,17 +26,18 @@ from matplotlib.figure import Figure
 from crtraj.core.errors import InputError
 from crtraj.core.fileio import atomic_write_bytes, check_output_file, check_outputs_not_inputs
 from crtraj.io.problem import load_robot
-from crtraj.model.cosserat import NO_LOAD, CosseratRod, RodLoad
-from crtraj.model.cosserat_map import pcc_nodes, tensions_for_bending
+from crtraj.model.cosserat_map import pcc_nodes
 from crtraj.model.kinematics import Model
 from crtraj.model.mechanics import Mechanics
 from crtraj.model.robot import Robot
+from crtraj.model.rod_drive import RodDrive
+from crtraj.model.rod_surrogate import sample_within_limits
 
 log = logging.getLogger(__name__)
 
 MAX_SAMPLES = 100_000
-# Rejection sampling of the configuration box: draws per wanted sample before giving up.
-_DRAWS_PER_SAMPLE = 200
+# N in every tendon at the straight pose (the smallest tension of each segment), as the plant's
+PRETENSION = 1.0
 
 
 @dataclass(frozen=True)
@@ -60,7 +62,8 @@ class Spread:
 class Comparison:
     """PCC against the rod over `configs` (N, nx). Per configuration (NaN where the rod failed):
     tip and whole-body discrepancy (mm) without gravity (`*_free`) and with it (`*_gravity`).
-    worst: (PCC points, rod points with gravity) of the configuration with the largest body error."""
+    worst: (PCC points, rod points with gravity) of the configuration with the largest body error.
+    actuation: the rod's actuation mode ("cable_length" or "tension")."""
 
     configs: np.ndarray
     tip_free: np.ndarray
@@ -68,6 +71,7 @@ class Comparison:
     tip_gravity: np.ndarray
     body_gravity: np.ndarray
     worst: tuple[np.ndarray, np.ndarray] | None
+    actuation: str
 
     @property
     def failures(self) -> int:
@@ -81,16 +85,7 @@ class Comparison:
 
 def sample_configs(robot: Robot, n: int, rng: np.random.Generator) -> np.ndarray:
     """n configurations (n, nx) drawn uniformly from the configuration box, kept if within the limits."""
-    lo, hi = robot.config_box()
-    out: list[np.ndarray] = []
-    for _ in range(_DRAWS_PER_SAMPLE):
-        x = rng.uniform(lo, hi, size=(max(n, 16), robot.nx))
-        out.extend(x[robot.limit_violation(x) <= 0.0])
-        if len(out) >= n:
-            return np.array(out[:n])
-    raise InputError(
-        f"robot: fewer than {n} of {_DRAWS_PER_SAMPLE * max(n, 16)} random configurations are within limits"
-    )
+    return sample_within_limits(robot, n, rng)
 
 
 def _distances(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
@@ -100,24 +95,26 @@ def _distances(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
 
 
 def compare_models(robot: Robot, mech: Mechanics, configs: np.ndarray) -> Comparison:
-    """PCC against Cosserat-rod statics at each configuration (see the module docstring)."""
-    rod, model = CosseratRod(robot, mech), Model(robot)
+    """PCC against Cosserat-rod statics at each configuration, in `mech`'s actuation mode (the module docstring)."""
+    model = Model(robot)
+    free_rod = RodDrive(robot, mech, pretension=PRETENSION, gravity=False)
+    heavy_rod = RodDrive(robot, mech, pretension=PRETENSION, gravity=True)
     n = len(configs)
     res = np.full((4, n), np.nan)
     worst: tuple[np.ndarray, np.ndarray] | None = None
     worst_body = -1.0
     for i, x in enumerate(configs):
-        tau = tensions_for_bending(robot, mech, robot.bending(x))
+        at_origin = np.array(x, dtype=float)
+        at_origin[-1] = 0.0  # pcc_nodes puts the base at the origin: so does the rod
         pcc = pcc_nodes(model, x, mech.steps)
-        free = rod.solve(tau, NO_LOAD)
-        heavy = rod.solve(tau, RodLoad())
+        free, heavy = free_rod.shape_config(at_origin), heavy_rod.shape_config(at_origin)
         if free.is_success():
             res[0, i], res[1, i] = _distances(free.points, pcc)
         if heavy.is_success():
             res[2, i], res[3, i] = _distances(heavy.points, pcc)
             if res[3, i] > worst_body:
                 worst, worst_body = (pcc, heavy.points), res[3, i]
-    return Comparison(np.asarray(configs), res[0], res[1], res[2], res[3], worst)
+    return Comparison(np.asarray(configs), res[0], res[1], res[2], res[3], worst, mech.actuation)
 
 
 def plot_comparison(cmp: Comparison, robot: Robot, path: str | os.PathLike[str]) -> Path:
@@ -146,7 +143,11 @@ def plot_comparison(cmp: Comparison, robot: Robot, path: str | os.PathLike[str])
         ax2.legend(fontsize=8)
     ax2.set_title("largest body discrepancy", fontsize=9)
     ax2.grid(alpha=0.3)
-    fig.suptitle(f"{robot.name}: PCC against Cosserat-rod statics, {len(cmp.configs)} configurations", fontsize=10)
+    fig.suptitle(
+        f"{robot.name}: PCC against Cosserat-rod statics (actuation {cmp.actuation}), "
+        f"{len(cmp.configs)} configurations",
+        fontsize=10,
+    )
     fig.tight_layout()
     buf = io.BytesIO()
     fig.savefig(buf, format="png")
@@ -166,7 +167,10 @@ def model_compare_command(args: argparse.Namespace) -> int:
     mech = Mechanics.from_robot(robot)
     configs = sample_configs(robot, args.samples, np.random.default_rng(args.seed))
     cmp = compare_models(robot, mech, configs)
-    print(f"robot '{robot.name}': PCC against Cosserat rod, {len(configs)} configurations (seed {args.seed})")
+    print(
+        f"robot '{robot.name}': PCC against Cosserat rod (actuation {cmp.actuation}), {len(configs)} configurations "
+        f"(seed {args.seed})"
+    )
     print(f"  no gravity: tip {cmp.spread('tip_free').text()}; body {cmp.spread('body_free').text()}")
     print(f"  gravity:    tip {cmp.spread('tip_gravity').text()}; body {cmp.spread('body_gravity').text()}")
     if cmp.failures:

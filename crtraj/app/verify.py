@@ -1,9 +1,10 @@
 """Use case: re-check a plan or a run against its obstacles with the Cosserat rod (`crtraj verify --model cosserat`).
 
 Every frame of the result (its waypoints, and `substeps` - 1 configurations linearly between each pair,
-at linearly interpolated times) is shaped twice: by PCC, and by Cosserat-rod statics under the tendon
-tensions that hold that PCC bending on a weightless rod (`crtraj.model.cosserat_map`, as `crtraj model
-compare` does), with the robot's weight unless ``gravity`` is off. Both shapes are sampled at the rod's
+at linearly interpolated times) is shaped twice: by PCC, and by Cosserat-rod statics driven in the robot
+file's actuation mode (`crtraj.model.rod_drive.RodDrive`, ``[robot.mechanics] actuation``: the commanded
+cable lengths of position-controlled servos, or the tendon tensions that hold that PCC bending on a
+weightless rod), with the robot's weight unless ``gravity`` is off. Both shapes are sampled at the rod's
 integration nodes (`[robot.mechanics] steps` per segment) and offset by the base translation; each node
 is the centre of the body's cross-section (radius ``robot.body_radius``), as in the planner's collision
 check (`crtraj.world.margin`). Obstacles are taken at each frame's time (moving, breathing) from the
@@ -14,7 +15,7 @@ Reported: each model's minimum clearance with where (frame, time, arc length alo
 obstacle), the largest PCC-to-rod node distance, the clearance the mechanics take away (largest
 per-frame PCC minus rod clearance) and the extra D_sf this result needs (minus the rod's minimum
 clearance, when negative). The rod solves run compiled and warm-started frame to frame
-(`crtraj.model.cosserat`), to `VERIFY_TOLERANCE`.
+(`crtraj.model.cosserat`), to `VERIFY_TOLERANCE`; the actuation mode is printed with the figures.
 """
 
 from __future__ import annotations
@@ -31,11 +32,10 @@ import numpy as np
 from crtraj.core.errors import InputError
 from crtraj.io.problem import Problem, load_robot
 from crtraj.io.results import Result, read_result
-from crtraj.model.cosserat import NO_LOAD, CosseratRod, RodLoad
-from crtraj.model.cosserat_map import tensions_for_bending
 from crtraj.model.kinematics import Model
 from crtraj.model.mechanics import Mechanics
 from crtraj.model.robot import Robot
+from crtraj.model.rod_drive import RodDrive
 from crtraj.world import margin
 
 log = logging.getLogger(__name__)
@@ -43,9 +43,11 @@ log = logging.getLogger(__name__)
 MAX_SUBSTEPS = 100
 # Shooting tolerance of the verification's rod solves (N); tighter [robot.mechanics] tolerances are kept. The
 # solves stop as soon as the tip residual is within it (no polish below, issue 31: verify within ten times the
-# planning time): on the sim-1/sim-2 plans the per-frame clearances then lie within 0.004 mm of the polished
-# solves' and within 0.003 mm of a cold 1e-11 N solve on the frames checked, below the 0.01 mm reported.
+# planning time): on the sim-1/sim-2 plans (tension mode) the per-frame clearances then lie within 0.004 mm of
+# the polished solves' and within 0.003 mm of a cold 1e-11 N solve on the frames checked, below the 0.01 mm reported.
 VERIFY_TOLERANCE = 1e-6
+# N in every tendon at the straight pose (the smallest tension of each segment), as the plant's
+PRETENSION = 1.0
 
 
 @dataclass(frozen=True)
@@ -71,7 +73,8 @@ class Closest:
 class Verification:
     """Per frame (N,): times t (s), clearance under PCC and under the rod (mm; NaN where the rod failed),
         largest node distance between the two shapes (mm). pcc, rod: the closest approach of each. failed:
-        frames whose rod solve did not converge. safety_distance: the D_sf checked (mm). seconds, cpu_seconds: wall
+        frames whose rod solve did not converge. safety_distance: the D_sf checked (mm). gravity: the rod carried
+        its weight. actuation: the rod's actuation mode ("cable_length" or "tension"). seconds, cpu_seconds: wall
     and process CPU time of the check (the CPU time moves far less with other jobs' load)."""
 
     t: np.ndarray
@@ -83,6 +86,7 @@ class Verification:
     failed: int
     safety_distance: float
     gravity: bool
+    actuation: str
     seconds: float
     cpu_seconds: float
 
@@ -130,25 +134,6 @@ def pcc_nodes_batch(model: Model, x: np.ndarray, steps: int) -> np.ndarray:
     return np.concatenate(rows, axis=1)
 
 
-def rod_nodes(rod: CosseratRod, x: np.ndarray, gravity: bool) -> tuple[np.ndarray, np.ndarray]:
-    """Rod backbone nodes (N, P, 3) mm, world frame, NaN rows where the solve failed; and the failed mask."""
-    robot, mech = rod.robot, rod.mech
-    load = RodLoad() if gravity else NO_LOAD
-    n_nodes = robot.n_segments * mech.steps + 1
-    out = np.full((len(x), n_nodes, 3), np.nan)
-    failed = np.zeros(len(x), dtype=bool)
-    # every frame's tensions at once, checked once; each solve starts from the last two frames' solutions and
-    # stops as soon as its residual is within the tolerance (no polish below it: the shapes are to the tolerance)
-    tensions = tensions_for_bending(robot, mech, robot.bending(x))
-    for i, sol in enumerate(rod.solve_path(tensions, load, polish=1.0)):
-        if sol.is_success():
-            out[i] = sol.points
-            out[i, :, 2] += x[i, -1]
-        else:
-            failed[i] = True
-    return out, failed
-
-
 def _clearances(nodes: np.ndarray, t: np.ndarray, result: Result, d_sf: float) -> np.ndarray:
     """Clearance (N, P, M) mm of every node to every obstacle at its frame's time."""
     if result.scene.n_obstacles == 0:
@@ -171,9 +156,10 @@ def verify_cosserat(
     gravity: bool = True,
     substeps: int = 1,
     safety_distance: float | None = None,
-    rod: CosseratRod | None = None,
+    drive: RodDrive | None = None,
 ) -> Verification:
-    """Re-check `result` with the Cosserat rod of `robot` (which carries [robot.mechanics]); see the module."""
+    """Re-check `result` with the Cosserat rod of `robot` (which carries [robot.mechanics]), in its actuation
+    mode; drive: the rod to use instead (its own mode and gravity); see the module."""
     if result.scene is None:
         raise InputError(f"{result.source or 'result'}: records no scene; nothing to verify against")
     if not 1 <= substeps <= MAX_SUBSTEPS:
@@ -183,15 +169,17 @@ def verify_cosserat(
         raise InputError(f"--safety-distance: must be a finite number >= 0 mm, got {d_sf}")
     result.check_robot(robot, "the robot to verify with", "give --robot the robot file the result was planned with")
     start, cpu = time.perf_counter(), time.process_time()
-    if rod is None:
+    if drive is None:
         mech = Mechanics.from_robot(robot)
-        rod = CosseratRod(robot, mech.with_(tolerance=max(mech.tolerance, VERIFY_TOLERANCE)))
+        mech = mech.with_(tolerance=max(mech.tolerance, VERIFY_TOLERANCE))
+        # each solve stops as soon as its residual is within the tolerance (no polish below it)
+        drive = RodDrive(robot, mech, pretension=PRETENSION, gravity=gravity, polish=1.0)
     t, x = frames(result.t, result.x, substeps)
-    steps = rod.mech.steps
+    steps = drive.mech.steps
     arcs = np.concatenate([[0.0]] + [s.length * np.arange(1, steps + 1) / steps for s in robot.segments])
     arcs[1:] += np.repeat(np.cumsum([0.0] + [s.length for s in robot.segments[:-1]]), steps)
     pcc = pcc_nodes_batch(Model(robot), x, steps)
-    nodes, failed = rod_nodes(rod, x, gravity)
+    nodes, failed = drive.nodes(x)
     c_pcc, c_rod = _clearances(pcc, t, result, d_sf), _clearances(nodes, t, result, d_sf)
     per_rod = c_rod.min(axis=(1, 2))  # NaN where the rod failed
     return Verification(
@@ -203,7 +191,8 @@ def verify_cosserat(
         None if failed.all() else _closest(c_rod, t, arcs),
         int(failed.sum()),
         d_sf,
-        gravity,
+        drive.gravity,
+        drive.actuation,
         time.perf_counter() - start,
         time.process_time() - cpu,
     )
@@ -242,7 +231,8 @@ def verify_command(args: argparse.Namespace) -> int:
     n_wp = len(result.t)
     print(
         f"{args.result}: {result.kind}, {len(v.t)} frames ({n_wp} waypoints, {args.substeps} per interval), "
-        f"Cosserat rod {'with' if v.gravity else 'without'} gravity, D_sf {v.safety_distance:g} mm, "
+        f"Cosserat rod (actuation {v.actuation}) {'with' if v.gravity else 'without'} gravity, "
+        f"D_sf {v.safety_distance:g} mm, "
         f"body radius {robot.body_radius:g} mm"
     )
     print(f"  PCC:      min clearance {v.pcc.text()}: D_sf {'holds' if v.pcc.clearance >= 0 else 'does not hold'}")

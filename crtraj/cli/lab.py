@@ -125,8 +125,9 @@ def add_verify(sub: argparse._SubParsersAction) -> None:  # crtraj verify RESULT
         "verify",
         help="re-check a plan or run against its obstacles with the Cosserat-rod shape of every frame",
         description="Re-check a result (crtraj plan or crtraj replan output) against its scene's obstacles, at "
-        "each frame's time, with the shape of the Cosserat-rod statics model (the tensions that hold each PCC "
-        "bending on a weightless rod, then the robot's weight) as well as PCC. Prints each model's minimum "
+        "each frame's time, with the shape of the Cosserat-rod statics model (driven in the robot file's "
+        "[robot.mechanics] actuation mode: commanded cable lengths or fixed tensions; with the robot's weight) as "
+        "well as PCC. Prints each model's minimum "
         "clearance (mm, beyond D_sf), where and when, whether D_sf holds, and the extra D_sf the result needs. "
         "Exit 1 when the rod's body touches an obstacle or a rod solve fails (with --strict also when D_sf "
         "does not hold), 2 on bad input.",

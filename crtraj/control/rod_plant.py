@@ -3,7 +3,8 @@
 The loop plans and verifies with PCC; `RodPlant` is the robot it drives. Each verified step's commands
 go through the loop's own servo model (`crtraj.control.tracking_servo.ServoModel`: position-controlled
 servos), and at the end of every control period the rod's shape at the reached actuator positions is
-solved in cable-length mode (`crtraj.model.rod_drive.RodDrive`). The loop's measurement is the plant's:
+solved in the robot file's actuation mode (`crtraj.model.rod_drive.RodDrive`: commanded cable lengths for
+position servos, the default, or fixed tensions; reported as ``actuation``). The loop's measurement is the plant's:
 the servos' readback (`measure`), and, as a `TipSensor`, the tip of the rod's shape (with optional
 capture noise), which the loop's tip sensing (`crtraj.control.tip_sensing`) corrects the goal with.
 
@@ -208,6 +209,7 @@ class RodPlant:
         return {
             "kind": "plant",
             "model": "cosserat",
+            "actuation": self.drive.actuation,
             "gravity": self.drive.gravity,
             "pretension_n": self.drive.pretension,
             "tip_noise_mm": self._noise,
@@ -234,7 +236,7 @@ class RodPlant:
         g = "with gravity" if d["gravity"] else "weightless"
         fail = f"; {d['failure']}" if d["failure"] else ""
         return (
-            f"plant (Cosserat rod, {g}): final tip error {d['final_tip_error_mm']:.2f} mm, "
+            f"plant (Cosserat rod, actuation {d['actuation']}, {g}): final tip error {d['final_tip_error_mm']:.2f} mm, "
             f"min clearance {d['min_clearance_mm']:.2f} mm, collisions {d['collisions']} "
             f"(D_sf breaches {d['safety_violations']}) over {d['periods']} control periods; {d['solves']} rod solves, "
             f"median {d['median_solve_s'] * 1e3:.1f} ms{fail}"

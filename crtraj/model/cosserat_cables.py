@@ -95,15 +95,28 @@ class CableDrivenRod(RodStatics):
         return self._newton
 
     def solve(self, lengths: Any, load: RodLoad = NO_LOAD) -> CableSolution:
-        """Shape and tensions under commanded tendon lengths (mm); warm-started from the last solve."""
+        """Shape and tensions under commanded tendon lengths (mm); warm-started from the last solve, and
+        started again from the straight rod with every tendon taut when the warm start fails (a warm start
+        from a pose with a slack tendon can lead Newton out of the rod's domain)."""
         check_interrupt()  # a safe point between rod solves (crtraj.core.interrupt)
         ell = check_array(np.asarray(lengths, dtype=float), "lengths", (self.n_tendons,), limit=MAX_LENGTH)
         bad = np.flatnonzero(ell <= 0)
         if bad.size:
             raise InputError(f"lengths[{bad[0]}]: must be > 0 mm, got {ell[bad[0]]}")
         loads = load_vector(self.mech, load)
-        z = self._warm if self._warm is not None else self._cold(loads)
-        taut = np.ones(self.n_tendons, dtype=bool) if self._warm is None else z[6:] > 0.0
+        starts = [] if self._warm is None else [(self._warm, self._warm[6:] > 0.0)]
+        starts.append((self._cold(loads), np.ones(self.n_tendons, dtype=bool)))
+        for z, taut in starts:
+            out = self._active_set(ell, loads, z, taut)
+            if out.is_success():
+                self._warm = np.concatenate([out.rod.base_force, out.rod.base_moment, out.tensions])
+                return out
+        log.info("cable-displacement solve failed: %s", out.rod.status)
+        self._warm = None
+        return out
+
+    def _active_set(self, ell: np.ndarray, loads: np.ndarray, z: np.ndarray, taut: np.ndarray) -> CableSolution:
+        """The active-set iteration (the module docstring) from unknowns z and taut set `taut`."""
         for rounds in range(1, 2 * self.n_tendons + 3):
             sol, z, paths = self._attempt(z, np.concatenate([ell, taut.astype(float), loads]))
             if not sol.is_success():
@@ -112,7 +125,6 @@ class CableDrivenRod(RodStatics):
             release = taut & (tau < 0.0)
             take_up = ~taut & (paths > ell + SLACK_TOLERANCE)
             if not release.any() and not take_up.any():
-                self._warm = z.copy()
                 return CableSolution(sol, np.where(taut, tau, 0.0), paths, ~taut, rounds)
             taut = (taut & ~release) | take_up
             # restart from the straight rod holding the kept tensions: the last base wrench balanced
@@ -121,8 +133,6 @@ class CableDrivenRod(RodStatics):
             z = np.concatenate([straight_guess(self.robot, kept, loads), kept])
         else:
             sol = _failed(sol, "active_set")
-        log.info("cable-displacement solve failed: %s", sol.status)
-        self._warm = None
         nan = np.full(self.n_tendons, np.nan)
         return CableSolution(sol, nan, nan, np.zeros(self.n_tendons, dtype=bool), rounds)
 

@@ -27,6 +27,9 @@ MAX_MODULUS = 1e7
 MAX_STEPS = 400
 # Largest |gravity component| (m/s^2): 100 g covers any centrifuge test; above it is a unit slip.
 MAX_GRAVITY = 1000.0
+# How the servos drive the tendons: they set each tendon's length (position-controlled, crtraj's Dynamixel
+# path) or its tension (force-controlled). The rod takes a different shape under each (docs/concepts/pcc-vs-rod.md).
+ACTUATION_MODES = ("cable_length", "tension")
 # kg/m^3 * mm^2 -> kg/mm; g -> kg
 _KG_PER_M3_TO_KG_PER_MM3 = 1e-9
 _KG_PER_G = 1e-3
@@ -42,6 +45,10 @@ class Mechanics(Options):
     mass is smeared along the backbone as disc_mass / disc_spacing. gravity: acceleration vector in
     the robot's base frame (m/s^2; the base axis is +z, so a robot pointing up has (0, 0, -9.81)).
     tendon_stiffness: EA of one tendon (N): its stretch under tension tau is tau / EA per unit length.
+    actuation: how the actuators drive the tendons, which decides the rod's shape for a configuration:
+    "cable_length" (position-controlled servos set each tendon's commanded length, `crtraj.model.rod_drive`;
+    the rod then finds its tensions, tendon stretch and gravity included) or "tension" (force-controlled
+    actuators hold the tensions that keep the PCC bending on a weightless rod, whatever the weight does).
     steps: RK4 steps per segment of the shooting integrator. tolerance: largest shooting residual
     (N for forces, N mm / total length for moments) of a converged solve. max_iter: Newton iterations.
     """
@@ -56,6 +63,7 @@ class Mechanics(Options):
     disc_spacing: float = option(10.0, gt=0.0, le=MAX_LENGTH)
     gravity: tuple[float, float, float] = option((0.0, 0.0, -9.81), read=False)
     tendon_stiffness: float = option(10_000.0, gt=0.0, le=1e9)
+    actuation: str = option("cable_length", choices=ACTUATION_MODES)
     steps: int = option(20, ge=1, le=MAX_STEPS)
     tolerance: float = option(1e-9, gt=0.0, le=1.0)
     max_iter: int = option(50, ge=1, le=1000)
