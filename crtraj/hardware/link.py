@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from crtraj.control.ports import DeviceError
+from crtraj.control.ports import DeviceError, Landing
 from crtraj.core.errors import InputError
 from crtraj.hardware.follower import SetpointFollower
 from crtraj.hardware.limits import LimitPeaks
@@ -190,6 +190,18 @@ class DeviceLink:
         self._moving = True
         self._remember(stamps, Q)
         self._clock_after_queue(t, stamps[-1])
+
+    def landing(self, t: float, periods: int, control_dt: float) -> Landing:
+        """A held or stopped stream brakes to rest at its last sent set-point: at rest there (`Device.landing`; the
+        next measurement has the telemetry). Streaming, the verified motion queued for the step."""
+        s = self.streamer
+        held = s.state != "streaming" or not self._moving
+        if held or s.position is None or len(self._hist_t) < 2:
+            p = s.position if s.position is not None else self.follower.state.position
+            return Landing.at_rest(self.actuators.actuation(p), periods)
+        stamps = t + control_dt * np.arange(periods + 1)
+        Q = np.array([np.interp(stamps, self._hist_t, self._hist_q[:, i]) for i in range(self.actuators.n)]).T
+        return Landing.first_order(Q[1:], np.diff(Q, axis=0) / control_dt, self.servo.tau)
 
     def _failure(self, stamps: np.ndarray, values: np.ndarray, p0: Any, v0: np.ndarray) -> str | None:
         """Why a step's frames may not leave (`FrameVerifier.failure` against the loop's scene), or None."""
