@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -22,6 +24,9 @@ class _FakeStreamer:
         self.actuators = actuators
         self.options = StreamOptions(prebuffer=0.1)
         self.position = position
+
+    def limit_fractions(self) -> dict:
+        return {"max_velocity_fraction": math.nan, "max_acceleration_fraction": math.nan}  # sent: nothing yet
 
 
 def test_follower_respects_limits_and_reproduces_the_verified_motion(robot):

@@ -336,6 +336,26 @@ class Streamer:
             if self.state not in TERMINAL and self.state != IDLE:
                 self._machine.latch(reason, self._clock.now())
 
+    def limit_fractions(self) -> dict[str, float]:
+        """Largest actuator speed and acceleration of every frame sent to the device so far (moves, stops and
+        holds, by the limits gate's finite differences), as fractions of the limits; NaN before any frame."""
+        with self._lock:
+            return self._sender.peaks.as_dict()
+
+    def wait_stopped(self, timeout: float) -> bool:
+        """Wait (up to `timeout` s on the stream's clock) until a held or e-stopped stream has sent its stop: the
+        last frame sent commands rest. True when it has (or nothing moves); closing before would latch the
+        hold at once, a stop outside the acceleration limits."""
+        deadline = self._clock.now() + timeout
+        while True:
+            with self._lock:
+                moving = self.state in (HELD, ESTOPPED) and bool(np.any(self._gate.velocity != 0.0))
+            if not moving:
+                return True
+            if self._thread is None or not self._thread.is_alive() or self._clock.now() >= deadline:
+                return False
+            self._clock.sleep(self._dt)
+
     def resume(self) -> None:
         """Leave a latched hold. Buffered set-points are discarded; new ones must
         start at `position` (at rest), as after `start`."""
@@ -416,9 +436,22 @@ class Streamer:
         except KeyboardInterrupt:
             with self._lock:
                 self._machine.latch("interrupted (Ctrl-C)", self._clock.now())
-                self._cycle.tick(self._clock.now())
+            self._brake_to_rest()
             return self.close(status="interrupted", message="interrupted (Ctrl-C): hold commanded")
         return self.close()
+
+    def _brake_to_rest(self) -> None:
+        """Run a held stream's periods in the calling thread until its verified stop has been sent (a stop
+        within the acceleration limits, `crtraj.hardware.braking`; at rest, one hold frame). Closing before
+        would latch the last set-point: a stop as hard as the device can. A second Ctrl-C latches at once."""
+
+        def braking(now: float) -> bool:
+            with self._lock:
+                self._cycle.tick(now)
+                return self._cycle.is_braking and self.state == HELD
+
+        with contextlib.suppress(KeyboardInterrupt):
+            self._pacer.run(self._clock, braking, self._stop)
 
     def _refuse(self, message: str) -> StreamReport:
         self._machine.event("refused", message)
