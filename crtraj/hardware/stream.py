@@ -337,15 +337,13 @@ class Streamer:
                 self._machine.latch(reason, self._clock.now())
 
     def limit_fractions(self) -> dict[str, float]:
-        """Largest actuator speed and acceleration of every frame sent to the device so far (moves, stops and
-        holds, by the limits gate's finite differences), as fractions of the limits; NaN before any frame."""
+        """Largest actuator speed and acceleration of every frame sent (holds too), as fractions of the limits."""
         with self._lock:
             return self._sender.peaks.as_dict()
 
     def wait_stopped(self, timeout: float) -> bool:
-        """Wait (up to `timeout` s on the stream's clock) until a held or e-stopped stream has sent its stop: the
-        last frame sent commands rest. True when it has (or nothing moves); closing before would latch the
-        hold at once, a stop outside the acceleration limits."""
+        """Wait up to `timeout` s (stream clock) until a held or e-stopped stream has sent its stop (the last frame
+        commands rest; closing before latches the hold, a stop outside the limits); True when it has."""
         deadline = self._clock.now() + timeout
         while True:
             with self._lock:
@@ -436,22 +434,16 @@ class Streamer:
         except KeyboardInterrupt:
             with self._lock:
                 self._machine.latch("interrupted (Ctrl-C)", self._clock.now())
-            self._brake_to_rest()
+            with contextlib.suppress(KeyboardInterrupt):  # brake to rest first (a second Ctrl-C: latch at once)
+                self._pacer.run(self._clock, self._braking_tick, self._stop)
             return self.close(status="interrupted", message="interrupted (Ctrl-C): hold commanded")
         return self.close()
 
-    def _brake_to_rest(self) -> None:
-        """Run a held stream's periods in the calling thread until its verified stop has been sent (a stop
-        within the acceleration limits, `crtraj.hardware.braking`; at rest, one hold frame). Closing before
-        would latch the last set-point: a stop as hard as the device can. A second Ctrl-C latches at once."""
-
-        def braking(now: float) -> bool:
-            with self._lock:
-                self._cycle.tick(now)
-                return self._cycle.is_braking and self.state == HELD
-
-        with contextlib.suppress(KeyboardInterrupt):
-            self._pacer.run(self._clock, braking, self._stop)
+    def _braking_tick(self, now: float) -> bool:
+        """One period of a held stream's stop (a latch at once is a stop outside the limits); False at rest."""
+        with self._lock:
+            self._cycle.tick(now)
+            return self._cycle.is_braking and self.state == HELD
 
     def _refuse(self, message: str) -> StreamReport:
         self._machine.event("refused", message)
