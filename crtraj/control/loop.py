@@ -171,10 +171,11 @@ class ClosedLoop:
         obstacle source, whose states are only meaningful in real time).
         device: drive a device live (a `Device`, e.g. `crtraj.hardware.link.DeviceLink`; real
         time): the run starts where the device is, every verified move is sent as it is chosen,
-        the device's telemetry is the measured configuration, a held or stale
-        step holds the device, an unsafe step e-stops it and ends the run, and
-        Ctrl-C holds it and ends the run (status "interrupted"). The device is
-        finished (settled at the final actuation) and closed on return.
+        the device's telemetry is the measured configuration, a held or stale step holds the device, a step
+        the device does not take (refused, late, held) is recorded as what it executes instead and the next
+        step starts there (`Device.landing`), an unsafe step e-stops it and ends the run, and Ctrl-C holds it
+        and ends the run (status "interrupted"). The device is finished (settled at the final actuation) and
+        closed on return.
         observer: told of every recorded state and step as it is kept, on this thread (a live view,
         `crtraj.control.ports.StepObserver`; it keeps references only, so the loop's timing does not change).
         """
