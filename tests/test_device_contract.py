@@ -62,6 +62,7 @@ class GatedDevice:
         self.late_flag = False
         self.estopped = ""
         self.executed: list[np.ndarray] = []  # the actuation at the end of every control period (mm)
+        self.lost_after: int | None = None  # steps after which the device is lost (None: never)
 
     def _a(self, q: np.ndarray) -> np.ndarray:
         return self.limits.jacobian @ self.servo.config(q)
@@ -81,7 +82,8 @@ class GatedDevice:
         pass
 
     def problem(self) -> str:
-        return ""
+        lost = self.lost_after is not None and len(self.outcomes) >= self.lost_after
+        return f"device lost after {self.lost_after} steps" if lost else ""
 
     def measure(self, t, q, qc):
         self._advance_to(t)
@@ -183,7 +185,7 @@ def loop(model, robot) -> ClosedLoop:
     )
 
 
-def _drive(loop: ClosedLoop, refuse: float, late_scale: float, seed: int):
+def _drive(loop: ClosedLoop, refuse: float, late_scale: float, seed: int, lost_after: int | None = None):
     dev = GatedDevice(
         loop.servo,
         loop.rate_limits,
@@ -193,16 +195,22 @@ def _drive(loop: ClosedLoop, refuse: float, late_scale: float, seed: int):
         late_scale,
         np.random.default_rng(seed),
     )
-    dev.dt = loop.options.dt
+    dev.dt, dev.lost_after = loop.options.dt, lost_after
     assert isinstance(dev, Device)
     return dev, loop.run(device=dev)
 
 
 @settings(max_examples=6, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(refuse=st.floats(0.1, 0.5), late_scale=st.floats(0.0, 0.03), seed=st.integers(0, 2**31 - 1))
-@example(refuse=0.5, late_scale=0.03, seed=7)
-def test_random_refusals_and_lateness_never_wedge_the_loop(loop, refuse, late_scale, seed):
-    dev, run = _drive(loop, refuse, late_scale, seed)
+@given(
+    refuse=st.floats(0.1, 0.5),
+    late_scale=st.floats(0.0, 0.03),
+    seed=st.integers(0, 2**31 - 1),
+    lost_after=st.one_of(st.none(), st.integers(10, 60)),
+)
+@example(refuse=0.5, late_scale=0.03, seed=7, lost_after=None)
+@example(refuse=0.3, late_scale=0.02, seed=11, lost_after=25)
+def test_random_refusals_and_lateness_never_wedge_the_loop(loop, refuse, late_scale, seed, lost_after):
+    dev, run = _drive(loop, refuse, late_scale, seed, lost_after)
     counts = dev.describe()
     note = (refuse, late_scale, seed, counts, dev.gate_refusals[:3], run.summary_line())
     assert counts["random"] + counts["late"] > 0, note  # the device did refuse
@@ -210,11 +218,14 @@ def test_random_refusals_and_lateness_never_wedge_the_loop(loop, refuse, late_sc
     assert counts["gate"] == 0, note
     # ... and no step held for longer than the bound while a feasible step existed (open space: always)
     assert dev.avoidable_streak() <= MAX_AVOIDABLE_HOLDS, note
-    # the run reached the goal, or stopped for a named reason with the device stopped
+    # the run reached the goal, or stopped for a named reason (here: only a lost device)
     if run.status is RunStatus.REACHED:
         assert np.linalg.norm(loop.model.tip_position(loop.servo.config(dev.q)) - loop.goal) <= loop.goal_tolerance
     else:
-        assert run.message and dev.outcomes[-1] != "moved", note
+        assert run.status is RunStatus.DEVICE and run.message == f"device lost after {lost_after} steps", note
+        assert len(dev.outcomes) == lost_after, note
+    # either way the run's last state is where the device is (its committed motion ends on the held set-point)
+    np.testing.assert_allclose(run.q[-1], dev.q, atol=1e-9)
     # the record follows the robot: every recorded state is the device's (its actuation at each step's start)
     assert run.steps == len(dev.outcomes)
 
