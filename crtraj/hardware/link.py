@@ -193,16 +193,10 @@ class DeviceLink:
         self._clock_after_queue(t, stamps[-1])
 
     def landing(self, t: float, periods: int, control_dt: float) -> Landing:
-        """A held or stopped stream brakes to rest at its last sent set-point: at rest there (`Device.landing`; the
-        next measurement has the telemetry). Streaming, the verified motion queued for the step."""
-        s = self.streamer
-        held = s.state != "streaming" or not self._moving
-        if held or s.position is None or len(self._hist_t) < 2:
-            p = s.position if s.position is not None else self.follower.state.position
-            return Landing.at_rest(self.actuators.actuation(p), periods)
-        stamps = t + control_dt * np.arange(periods + 1)
-        Q = np.array([np.interp(stamps, self._hist_t, self._hist_q[:, i]) for i in range(self.actuators.n)]).T
-        return Landing.first_order(Q[1:], np.diff(Q, axis=0) / control_dt, self.servo.tau)
+        """At rest at the stream's last sent set-point (`Device.landing`): the link holds the stream whenever a step
+        is not sent, and a held stream brakes to rest there (the next measurement has the telemetry)."""
+        p = self.streamer.position
+        return Landing.at_rest(self.actuators.actuation(self.follower.state.position if p is None else p), periods)
 
     def _failure(self, stamps: np.ndarray, values: np.ndarray, p0: Any, v0: np.ndarray) -> str | None:
         """Why a step's frames may not leave (`FrameVerifier.failure` against the loop's scene), or None."""
