@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -22,6 +24,9 @@ class _FakeStreamer:
         self.actuators = actuators
         self.options = StreamOptions(prebuffer=0.1)
         self.position = position
+
+    def limit_fractions(self) -> dict:
+        return {"max_velocity_fraction": math.nan, "max_acceleration_fraction": math.nan}  # sent: nothing yet
 
 
 def test_follower_respects_limits_and_reproduces_the_verified_motion(robot):
@@ -90,6 +95,10 @@ def test_a_refused_move_is_a_device_error_and_nothing_is_remembered(robot):
         link.move(0.0, q0, cmds, 0.02)
     assert isinstance(info.value.__cause__, StreamError)  # wrapped, not swallowed
     assert len(link.history) == history and not link.moving  # a move not sent is not taken as sent
+    # the loop plans on from where the held stream rests: its last sent set-point, not the unsent step's end
+    land = link.landing(0.0, 5, 0.02)
+    np.testing.assert_allclose(land.executed, np.repeat(q0[None], 5, axis=0), atol=1e-9)
+    np.testing.assert_allclose(land.commands, land.executed, atol=0.0)
 
 
 class _RecordingStreamer(_FakeStreamer):

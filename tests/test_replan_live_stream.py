@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 from conftest import free_udp_port
 from feed_clock import VirtualClock
 
@@ -278,5 +279,15 @@ def test_ctrl_c_holds_the_device_and_ends_the_run(tmp_path, robot, model):
     assert run.status is RunStatus.INTERRUPTED and run.steps == 9
     assert "stale" not in run.step_status
     assert link.report.status == "held" and "Ctrl-C" in link.report.message
-    kinds = [x["kind"] for x in _log(tmp_path / "s.jsonl") if x["type"] == "tx"]
+    lines = _log(tmp_path / "s.jsonl")
+    kinds = [x["kind"] for x in lines if x["type"] == "tx"]
     assert kinds[-1] == "hold" and "move" in kinds
+    # the device stopped within its limits: every frame it was sent, the hold's included (a hold commands rest, so
+    # one right after a moving frame is a stop in one period), by finite differences from rest; the stream braked
+    # before it closed, and the run reports exactly these frames' figures
+    tx = [x for x in lines if x["type"] == "tx" and x["kind"] in ("move", "hold", "estop")]
+    V = np.diff(np.array([x["values"] for x in tx]), axis=0) / 0.01
+    A = np.diff(np.vstack([np.zeros(acts.n), V]), axis=0) / 0.01
+    peak = float(np.max(np.abs(A) / acts.amax))
+    assert 0.5 < peak <= 1.0 + 1e-9 and any(x["type"] == "event" and x["event"] == "brake" for x in lines)
+    assert run.summary()["max_acceleration_fraction"] == pytest.approx(peak, rel=1e-9)

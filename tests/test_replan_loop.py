@@ -19,7 +19,7 @@ from crtraj.app.run_output import write_run
 from crtraj.control.horizon import HorizonResult, HorizonStatus, Replanner, ReplanOptions
 from crtraj.control.loop import ClosedLoop, RunStatus, StepStatus
 from crtraj.control.loop_options import LoopOptions
-from crtraj.control.ports import Device, DeviceError
+from crtraj.control.ports import Device, DeviceError, Landing
 from crtraj.control.tracking import TrackingOptions
 from crtraj.world.obstacle import Obstacle
 from crtraj.world.scene import Scene
@@ -348,6 +348,9 @@ class _RefusingDevice:
 
     def pace(self, t: float) -> bool:
         return False
+
+    def landing(self, t, periods, control_dt) -> Landing:
+        return Landing.at_rest(self.q0, periods)  # nothing was ever sent: the robot rests where it started
 
     def hold(self, reason: str) -> None:
         self.holds.append(reason)

@@ -168,3 +168,55 @@ def test_a_step_later_than_the_lateness_bound_is_refused_not_sent(margin):
     assert dev.refused_steps == dev.late_refused == 1 and len(node.sent) == 4 and dev.holds == 1
     ts = np.linspace(clock() - 1.2, before.end + 0.1, 200)
     assert np.allclose(dev.committed.at(ts)[0], before.at(ts)[0], atol=1e-12)  # the hold: the same curve
+
+
+def test_a_refused_step_lands_on_the_committed_stop_tail():
+    """Issue 36: after a step is refused, the loop plans from `RosDevice.landing`, the committed curve the robot
+    executes instead: its stop tail, then rest. Checked against an independent cubic Hermite through the last
+    step message's knots (the controller's segments), with the set-point the first-order servo needs to move so
+    (q + tau dq/dt, by central differences); `measure` gives the same set-point on the tail, not a rest at q."""
+    problem = Problem.load(PAPER)
+    acts = Actuators.from_robot(problem.robot)
+    model = Model(problem.robot)
+    servo = TrackingController(model, TrackingOptions()).servo
+    scene = Scene.from_table(problem.section("scene")).with_obstacles(())
+    node, clock = _FakeNode(RosOptions(points_per_step=5, joint_state_timeout=10.0), acts.names), VirtualClock(1.0)
+    ver = FrameVerifier(problem.robot, acts, scene, 0.005, model=model)
+    dev = RosDevice(node, acts, model, servo, 0.1, ver, lambda: scene, clock=clock, sleep=clock.sleep, lead=0.2)
+    q = problem.robot.cable_matrix()[1]
+    node.state = (acts.command(q), 0.0)
+    dev.start_actuation()
+    dev.begin(0.0)  # loop time t is clock time 1.2 + t
+    qc, dz = q.copy(), np.zeros(acts.n)
+    dz[-1] = 0.4  # the z stage ramps up to 4 mm/s
+    for k in range(3):
+        clock.advance_to(1.0 + 0.1 * k)
+        C = qc + np.outer(np.arange(1, 6) / 5, dz)
+        dev.move(0.1 * k, q, C, 0.02)
+        for c in C:
+            q = servo.advance(q, c, 0.02)
+        qc = C[-1]
+    stamp, offs, vals, vels = node.sent[-1]  # the last step: its points and its stop tail
+    clock.advance_to(1.501)  # step 0.3 is ready 1 ms beyond the lateness bound (0.2 s): refused
+    with pytest.raises(DeviceError, match="late"):
+        dev.move(0.3, q, qc + np.outer(np.arange(1, 6) / 5, dz), 0.02)
+    land = dev.landing(0.3, 5, 0.02)
+
+    def curve(t):  # independent: the step message's cubic Hermite at loop time t, resting after its last knot
+        tau = np.clip(t - (stamp - 1.2), offs[0], offs[-1])
+        return acts.actuation(_hermite(tau, offs, vals, vels))
+
+    times = 0.3 + 0.02 * np.arange(1, 6)
+    np.testing.assert_allclose(land.executed, [curve(t) for t in times], atol=1e-9)
+    e = 1e-6
+    rate = np.array([(curve(t + e) - curve(t - e)) / (2 * e) for t in times])
+    np.testing.assert_allclose(land.commands, land.executed + servo.tau * rate, atol=1e-5)
+    assert np.abs(rate[0, -1]) > 1.0  # still moving after the refused step's start: a rest there would be a jump
+    # the measurement off the sent steps: the committed set-point, consistent with the landing
+    node.state = (acts.command(curve(0.32)), 1.52)  # the joint state on the curve: no deviation to correct
+    q_m, qc_m, ok = dev.measure(0.32, q, qc)
+    assert ok and np.allclose(q_m, land.executed[0], atol=1e-9) and np.allclose(qc_m, land.commands[0], atol=1e-9)
+    # long after: at rest at the tail's end, every row equal
+    rest = dev.landing(5.0, 5, 0.02)
+    np.testing.assert_allclose(rest.executed, np.repeat(acts.actuation(vals[-1])[None], 5, axis=0), atol=1e-9)
+    np.testing.assert_allclose(rest.commands, rest.executed, atol=1e-9)

@@ -645,3 +645,37 @@ def test_hostile_telemetry_never_crashes_or_stops_the_streamer(acts, result, dat
     rep = s.run_path(path)
     assert rep.ok, rep.message
     assert rep.telemetry_errors >= calls["n"] // 10  # at least the foreign telemetry, every time
+
+
+def test_ctrl_c_brakes_within_the_limits_and_reports_the_frames_sent(acts, result):
+    """Issue 36: Ctrl-C while the device moves. The stream brakes to rest within the acceleration limits before it
+    closes (it used to close after one frame of its stop, latching the last set-point: a stop as hard as the device
+    can), and the figures it reports are those of every frame that left, the holds included, recomputed here from
+    the wire by finite differences from rest."""
+    path = admitted(result, acts)
+    clock = VirtualClock()
+    link = CoreLink(DeviceCore(acts), clock)
+    s = Streamer(link, acts, StreamOptions(), None, realtime=True, clock=clock)
+    real_receive, calls = link.receive, {"n": 0}
+
+    def receive() -> list[bytes]:
+        calls["n"] += 1
+        if calls["n"] == 120:  # well into the motion
+            raise KeyboardInterrupt
+        return real_receive()
+
+    link.receive = receive
+    rep = s.run_path(path)
+    assert rep.status == "interrupted" and rep.brakes == 1 and rep.latched == 0, (rep, calls)
+    frames = [Frame.decode(b) for b in link.sent]
+    frames = [f for f in frames if f.kind in (MOVE, HOLD, ESTOP)]
+    assert frames[-1].kind == HOLD
+    P = np.array([f.values for f in frames])
+    V = np.diff(P, axis=0) / 0.01
+    A = np.diff(np.vstack([np.zeros(acts.n), V]), axis=0) / 0.01
+    moving = np.abs(V[-40:-20]).max(axis=0) / acts.vmax
+    assert moving.max() > 0.05  # interrupted while moving: a latch would have stopped in one period
+    got = s.limit_fractions()
+    assert got["max_acceleration_fraction"] == pytest.approx(np.max(np.abs(A) / acts.amax), rel=1e-9)
+    assert got["max_velocity_fraction"] == pytest.approx(np.max(np.abs(V) / acts.vmax), rel=1e-9)
+    assert got["max_acceleration_fraction"] <= 1.0 + 1e-9

@@ -41,7 +41,6 @@ with `ClosedLoop.build` (a robot, a scene and keyword options) or `ClosedLoop.fr
 
 from __future__ import annotations
 
-import contextlib
 import gc
 import math
 import time
@@ -53,7 +52,7 @@ import numpy as np
 
 from crtraj.control.horizon import HorizonStatus, Replanner
 from crtraj.control.loop_setup import LoopConfig, LoopParts, LoopSpec, assemble
-from crtraj.control.ports import Device, DeviceError, StepObserver
+from crtraj.control.ports import Device, DeviceError, Landing, StepObserver
 from crtraj.control.problem_loop import ProblemLike, ProblemRun, spec_from_problem
 from crtraj.control.recorder import RunEnding
 from crtraj.control.reference import ReferencePlan
@@ -172,10 +171,11 @@ class ClosedLoop:
         obstacle source, whose states are only meaningful in real time).
         device: drive a device live (a `Device`, e.g. `crtraj.hardware.link.DeviceLink`; real
         time): the run starts where the device is, every verified move is sent as it is chosen,
-        the device's telemetry is the measured configuration, a held or stale
-        step holds the device, an unsafe step e-stops it and ends the run, and
-        Ctrl-C holds it and ends the run (status "interrupted"). The device is
-        finished (settled at the final actuation) and closed on return.
+        the device's telemetry is the measured configuration, a held or stale step holds the device, a step
+        the device does not take (refused, late, held) is recorded as what it executes instead and the next
+        step starts there (`Device.landing`), an unsafe step e-stops it and ends the run, and Ctrl-C holds it
+        and ends the run (status "interrupted"). The device is finished (settled at the final actuation) and
+        closed on return.
         observer: told of every recorded state and step as it is kept, on this thread (a live view,
         `crtraj.control.ports.StepObserver`; it keeps references only, so the loop's timing does not change).
         """
@@ -346,11 +346,19 @@ class ClosedLoop:
             choice, res, (reason, plan_time, replanned, charged) = self._decide(k, robot, scene_t, t_iter)
         iter_time = self.clock.now() - t_iter + charged - p.references.take_waited()
         q_new, qc_new, T, X, cmds = choice.motion
+        periods = p.motion.periods(robot.q, cmds)
         if device is not None:
-            self._drive(device, choice.status, t, robot.q, cmds, why, choice.bound)
+            landing, not_sent = self._drive(device, choice.status, t, robot.q, cmds, why, choice.bound)
+            if landing is not None:
+                # the device did not take the planned motion: the record and the next step follow what it executes
+                q_new, qc_new, cmds, periods = landing.q, landing.qc, landing.commands, landing.executed
+                T = t + self.options.dt / len(periods) * np.arange(len(periods) + 1)
+                X = self.servo.config(np.vstack([robot.q[None], periods]))
+                reason = "; ".join(filter(None, (reason, not_sent)))
+                if not_sent:
+                    p.policy.dropped()
         if scene_t is not None:
             reason = "; ".join(filter(None, (reason, p.references.ask(k, robot.x, t))))
-        periods = p.motion.periods(robot.q, cmds)
         measured = p.checks.measure(T, X)
         # the set-point's last change (configuration): the next step's acceleration history
         before = cmds[-2] if len(cmds) > 1 else robot.qc
@@ -380,16 +388,25 @@ class ClosedLoop:
 
     def _drive(
         self, device: Device, status: StepStatus, t: float, q0: np.ndarray, cmds: np.ndarray, why: str, bound: float
-    ) -> None:
-        """Pass the step starting at t (from actuation q0, mm) to the device: hold, e-stop or move."""
+    ) -> tuple[Landing | None, str]:
+        """Pass the step starting at t (from actuation q0, mm) to the device: hold, e-stop or move. (None, '')
+        when the device took the planned move; else (what it executes instead, `Device.landing`, and why the
+        move was not sent, '' for a hold): the next step starts from there, never from the unsent plan (a
+        loop that planned on from its own plan asked a held robot for the same impossible catch-up forever)."""
+        if status is StepStatus.UNSAFE:
+            device.estop(f"unsafe step at t={t:.2f} s (clearance bound {bound:.2f} mm)")
+            return None, ""  # the run ends at this step
+        h = self.options.dt / self.n_sub
+        not_sent = ""
         if status in (StepStatus.STALE, StepStatus.HOLD):
             device.hold(f"replanner {status} at t={t:.2f} s" + (f": {why}" if why else ""))
-        elif status is StepStatus.UNSAFE:
-            device.estop(f"unsafe step at t={t:.2f} s (clearance bound {bound:.2f} mm)")
         else:
-            # not sent (held or stopped meanwhile): `device.problem()` at the next step says whether that is final
-            with contextlib.suppress(DeviceError):
-                device.move(t, q0, cmds, self.options.dt / self.n_sub)
+            try:
+                device.move(t, q0, cmds, h)
+                return None, ""
+            except DeviceError as exc:  # `device.problem()` at the next step says whether that is final
+                not_sent = f"not sent: {exc}"
+        return device.landing(t, len(cmds), h), not_sent
 
     def _finish(
         self, robot: _Robot, status: RunStatus, message: str, t_wall: float, device: Device | None = None

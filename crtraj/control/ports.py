@@ -8,15 +8,51 @@ streamer) and `crtraj.viz.live_feed` (a live view, `StepObserver`). Units: mm, r
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
 
 class DeviceError(RuntimeError):
-    """A device could not take a command (held, stopped or disconnected meanwhile); the message says why.
-    The loop catches only this from a device; whether the device is lost for good is `Device.problem`'s
-    answer at the next step."""
+    """A device could not take a command (refused before sending, late, held, stopped or disconnected
+    meanwhile); the message says why. The loop catches only this from a device; whether the device is lost
+    for good is `Device.problem`'s answer at the next step."""
+
+
+@dataclass(frozen=True)
+class Landing:
+    """The motion a device will execute over one step as committed now, whatever became of the step the
+    loop planned (sent, refused, held, late): per control period, the set-point in force (commands) and
+    the actuation at the period's end (executed), both (n, nq) mm. The last row is where the next step
+    starts; the last two give its velocity and the set-point's last change, the history the next step's
+    acceleration limits continue from. A robot at rest has every row equal."""
+
+    commands: np.ndarray
+    executed: np.ndarray
+
+    @property
+    def q(self) -> np.ndarray:
+        """Actuation (mm) at the next step's start."""
+        return self.executed[-1]
+
+    @property
+    def qc(self) -> np.ndarray:
+        """The set-point (mm) in force at the next step's start."""
+        return self.commands[-1]
+
+    @classmethod
+    def at_rest(cls, q: np.ndarray, periods: int) -> Landing:
+        """Resting at actuation q (mm) with the set-point there, for `periods` control periods."""
+        rows = np.repeat(np.asarray(q, dtype=float).reshape(1, -1), periods, axis=0)
+        return cls(rows, rows.copy())
+
+    @classmethod
+    def first_order(cls, q: np.ndarray, velocity: np.ndarray, tau: float) -> Landing:
+        """From actuation q (n, nq) mm and its velocity (n, nq) mm/s at the ends of the control periods, under
+        first-order servos of time constant tau (s): the set-point in force is q + tau dq/dt."""
+        q = np.asarray(q, dtype=float)
+        return cls(q + tau * np.asarray(velocity, dtype=float), q.copy())
 
 
 @runtime_checkable
@@ -71,7 +107,15 @@ class Device(Protocol):
 
     def move(self, t: float, q0: np.ndarray, commands: np.ndarray, control_dt: float) -> None:
         """Send the verified motion of the step starting at t from q0 under `commands` (one per control
-        period of control_dt s); `DeviceError` when it was not sent."""
+        period of control_dt s); `DeviceError` when it was not sent (refused, late, held meanwhile)."""
+        ...
+
+    def landing(self, t: float, periods: int, control_dt: float) -> Landing:
+        """What the robot executes over the step from loop time t (`periods` control periods of control_dt s)
+        as committed now: the loop asks after every step the device did not take as planned (a `DeviceError`
+        from `move`, a hold, a stale step) and plans the next step from its last row, never from its own
+        unexecuted plan. A device that stops on a committed curve answers with that curve (moving until its
+        rest point, then resting there); a held device with its stop, else at rest where it is."""
         ...
 
     def pace(self, t: float) -> bool:

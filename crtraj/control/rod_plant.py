@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from crtraj.control.executed import limit_fractions
+from crtraj.control.ports import Landing
 from crtraj.control.tracking_servo import ServoModel
 from crtraj.core.errors import InputError
 from crtraj.model.rod_drive import RodDrive, RodShape
@@ -171,6 +172,11 @@ class RodPlant:
         """The servos hold where they are: the shape stays while the obstacles move (judged in `pace`)."""
         self._holds += 1
         self._hold_from = self._t
+
+    def landing(self, t: float, periods: int, control_dt: float) -> Landing:
+        """The servos stay where they are (a step the plant did not run, or a hold)."""
+        assert self._q is not None
+        return Landing.at_rest(self._q, periods)
 
     def estop(self, reason: str) -> None:
         self._estop = reason

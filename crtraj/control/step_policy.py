@@ -135,6 +135,12 @@ class StepPolicy:
         motion, (T, X) = self.motion.stop(now.q, now.q_last, now.t)
         return motion, self.checks.verify(T, X, (T[-1], max(T[-1], now.t + dt) + dt))
 
+    def dropped(self) -> None:
+        """The device did not execute the chosen move: the rest of its plan and the replanner's warm start no
+        longer match where the robot is going."""
+        self.last_plan = None
+        self.replanner.reset()
+
     def _keep_plan(self, status: StepStatus, res: HorizonResult, keep_warm: bool = False) -> None:
         """Keep what remains of the applied NLP solution (the next step's fallback); forget the replanner's
         warm start when the NLP's move was not applied, unless `keep_warm` (the replanner still checks that

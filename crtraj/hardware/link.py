@@ -5,13 +5,14 @@ Units: actuation q in mm, actuator values in rad / mm, times in s.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
-from crtraj.control.ports import DeviceError
+from crtraj.control.ports import DeviceError, Landing
 from crtraj.core.errors import InputError
 from crtraj.hardware.follower import SetpointFollower
 from crtraj.hardware.limits import LimitPeaks
@@ -191,6 +192,12 @@ class DeviceLink:
         self._remember(stamps, Q)
         self._clock_after_queue(t, stamps[-1])
 
+    def landing(self, t: float, periods: int, control_dt: float) -> Landing:
+        """At rest at the stream's last sent set-point (`Device.landing`): the link holds the stream whenever a step
+        is not sent, and a held stream brakes to rest there (the next measurement has the telemetry)."""
+        p = self.streamer.position
+        return Landing.at_rest(self.actuators.actuation(self.follower.state.position if p is None else p), periods)
+
     def _failure(self, stamps: np.ndarray, values: np.ndarray, p0: Any, v0: np.ndarray) -> str | None:
         """Why a step's frames may not leave (`FrameVerifier.failure` against the loop's scene), or None."""
         if self.verifier is None:
@@ -278,13 +285,19 @@ class DeviceLink:
                 s.wait(len(tail) * self.fdt + self.lead + s.options.settle_timeout + 2.0)
             except StreamError:
                 pass  # stopped meanwhile: the report says why
+        elif s.state in ("held", "estop"):
+            # a hold or e-stop while moving (Ctrl-C, a refusal) brakes within the limits on the stream's thread: let
+            # it finish, or closing now would latch the last set-point (a stop as hard as the device can)
+            s.wait_stopped(timeout)
         self.report = s.close()
         return self.report
 
     def limit_fractions(self) -> dict[str, float]:
-        """Largest actuator speed and acceleration of the frames queued for the device, as fractions of
-        the limits (the limits gate's finite differences at the stream rate; NaN before any frame)."""
-        return self.peaks.as_dict()
+        """Largest actuator speed and acceleration of the frames queued for the device and of every frame the
+        stream sent it (its stops and holds too: `Streamer.limit_fractions`), as fractions of the limits (the
+        limits gate's finite differences at the stream rate; NaN before any frame)."""
+        queued, sent = self.peaks.as_dict(), self.streamer.limit_fractions()
+        return {k: max(queued[k], sent[k]) if math.isfinite(sent[k]) else queued[k] for k in queued}
 
     def describe(self) -> dict[str, Any]:
         """What the link did, for the run record: the stream report and the follower's deviation."""

@@ -336,6 +336,24 @@ class Streamer:
             if self.state not in TERMINAL and self.state != IDLE:
                 self._machine.latch(reason, self._clock.now())
 
+    def limit_fractions(self) -> dict[str, float]:
+        """Largest actuator speed and acceleration of every frame sent (holds too), as fractions of the limits."""
+        with self._lock:
+            return self._sender.peaks.as_dict()
+
+    def wait_stopped(self, timeout: float) -> bool:
+        """Wait up to `timeout` s (stream clock) until a held or e-stopped stream has sent its stop (the last frame
+        commands rest; closing before latches the hold, a stop outside the limits); True when it has."""
+        deadline = self._clock.now() + timeout
+        while True:
+            with self._lock:
+                moving = self.state in (HELD, ESTOPPED) and bool(np.any(self._gate.velocity != 0.0))
+            if not moving:
+                return True
+            if self._thread is None or not self._thread.is_alive() or self._clock.now() >= deadline:
+                return False
+            self._clock.sleep(self._dt)
+
     def resume(self) -> None:
         """Leave a latched hold. Buffered set-points are discarded; new ones must
         start at `position` (at rest), as after `start`."""
@@ -416,9 +434,16 @@ class Streamer:
         except KeyboardInterrupt:
             with self._lock:
                 self._machine.latch("interrupted (Ctrl-C)", self._clock.now())
-                self._cycle.tick(self._clock.now())
+            with contextlib.suppress(KeyboardInterrupt):  # brake to rest first (a second Ctrl-C: latch at once)
+                self._pacer.run(self._clock, self._braking_tick, self._stop)
             return self.close(status="interrupted", message="interrupted (Ctrl-C): hold commanded")
         return self.close()
+
+    def _braking_tick(self, now: float) -> bool:
+        """One period of a held stream's stop (a latch at once is a stop outside the limits); False at rest."""
+        with self._lock:
+            self._cycle.tick(now)
+            return self._cycle.is_braking and self.state == HELD
 
     def _refuse(self, message: str) -> StreamReport:
         self._machine.event("refused", message)

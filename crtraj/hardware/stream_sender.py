@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from crtraj.hardware.limits import LimitsGate
+from crtraj.hardware.limits import LimitPeaks, LimitsGate
 from crtraj.hardware.protocol import ESTOP, HOLD, KIND_NAMES, MOVE, Frame, seq_next
 from crtraj.hardware.setpoint_buffer import SetpointBuffer
 from crtraj.hardware.stream_log import RunLog
@@ -55,6 +55,9 @@ class FrameSender:
         self._seq = first_seq  # the newest sequence number sent
         self.last_move_seq = first_seq  # the sequence number of the newest move frame
         self.counts = {"frames": 0, MOVE: 0, HOLD: 0, ESTOP: 0}  # frames sent, in all and by kind
+        # the largest speed and acceleration of every frame that left, holds included: a hold repeats the last
+        # values, so one that latches while moving counts as the stop in one period it commands
+        self.peaks = LimitPeaks(gate.actuators, gate.dt)
 
     def ping(self, dt: float) -> None:
         """Send the PING that opens the session (dt: the stream period, s). A PING carries no values and
@@ -87,6 +90,7 @@ class FrameSender:
             self.last_move_seq = self._seq
         if self._transport.has_telemetry:
             self._monitor.sent(frame.seq, self._machine.clock.now(), values)
+        self.peaks.add(values[None], self._gate.position, self._gate.velocity)
         self._gate.commit(kind, values)
         self.counts["frames"] += 1
         self.counts[kind] += 1

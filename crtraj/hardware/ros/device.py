@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from crtraj.control.ports import DeviceError
+from crtraj.control.ports import DeviceError, Landing
 from crtraj.hardware.limits import LimitPeaks
 from crtraj.hardware.ros import jtc
 from crtraj.hardware.ros.messages import scene_markers
@@ -151,11 +151,19 @@ class RosDevice:
         here = self.actuators.actuation(self._commanded(t))
         dev = self.actuators.actuation(st[0]) - self.actuators.actuation(self._commanded(st[1] - self._origin))
         q_now = here + self.servo.decay(max(t - (st[1] - self._origin), 0.0)) * dev
-        return q_now, (qc if self._joins(t) else q_now), True
+        # off the sent steps (a hold, a refusal) the set-point in force is the committed curve's: it may still be
+        # on its stop tail, and a next step planned from rest there would ask for a jump in acceleration
+        return q_now, (qc if self._joins(t) else self.landing(t - self.dt, 1, self.dt).qc), True
 
     def _commanded(self, tau: float) -> np.ndarray:
         """The commanded actuator values at loop time tau (the committed curve)."""
         return self._curve.at(float(tau))[0]
+
+    def landing(self, t: float, periods: int, control_dt: float) -> Landing:
+        """The committed curve over the step from loop time t (it stops on its verified tail and rests at its
+        end), as actuation and first-order set-points at the ends of the control periods."""
+        P, V, _ = self._curve.at(t + control_dt * np.arange(1, periods + 1))
+        return Landing.first_order(self.actuators.actuation(P), V / self.actuators.scale, self.servo.tau)
 
     def _joins(self, t: float) -> bool:
         """Step t continues the motion sent so far without a pause (else it starts from rest)."""
