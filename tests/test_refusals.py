@@ -322,10 +322,21 @@ def test_model_compare_without_a_converged_solve_says_why(tmp_path, capsys):
     """`crtraj model compare` with a Young's modulus too small for any rod solve to converge exited 1 saying
     nothing on stderr; now one line names the robot file, the modulus and the keys to check."""
     soft = tmp_path / "soft.toml"
-    text = re.sub(r"(?m)^youngs_modulus = .*$", "youngs_modulus = 1e-6", CDSR2.read_text())
+    # tension control: the rod is solved under the tensions (under cable lengths, the next test refuses sooner)
+    text = re.sub(r"(?m)^youngs_modulus = .*$", 'youngs_modulus = 1e-6\nactuation = "tension"', CDSR2.read_text())
     soft.write_text(re.sub(r"(?m)^steps = .*$", "steps = 4\nmax_iter = 5", text))  # fails as surely, sooner
     line = refused(capsys, ["model", "compare", str(soft), "--samples", "2"], 1, "crtraj: model compare failed:")
     assert f"[robot.mechanics] in {soft}: youngs_modulus 1e-06 MPa" in line and "2 configurations" in line, line
+
+
+def test_model_compare_of_a_rod_too_soft_for_its_cable_lengths_names_the_modulus(tmp_path, capsys):
+    """Under cable-length control the commanded lengths allow for the wire's shortening under tension: a
+    modulus so small that a segment would shorten below zero length is the robot file's fault, said as such
+    (it was "q: gives a tendon length <= 0 mm", naming a pose the user never gave)."""
+    soft = tmp_path / "soft.toml"
+    soft.write_text(re.sub(r"(?m)^youngs_modulus = .*$", "youngs_modulus = 1e-6", CDSR2.read_text()))
+    line = refused(capsys, ["model", "compare", str(soft), "--samples", "2"], 2, "crtraj: error: ")
+    assert "robot.mechanics.youngs_modulus: 1e-06 MPa is too soft" in line, line
 
 
 # ------------------------------------------------------------------ rewritten messages

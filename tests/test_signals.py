@@ -429,6 +429,8 @@ def test_signal_stream(tmp_path):
             "10",
             "--log",
             str(out / "stream.jsonl"),
+            "--watchdog",  # a loaded CI machine can starve the simulated device's telemetry for 0.1 s; this
+            "2.0",  # test is about the signal, not the telemetry watchdog (test_stream's)
         ]
         _signal_once("stream", args, out, 1.0, tmp_path, writing=True)  # while its log is written
     finally:
@@ -438,10 +440,10 @@ def test_signal_stream(tmp_path):
 @pytest.mark.slow
 def test_signal_home(tmp_path):
     require_module("dynamixel_sdk", "pip install 'crtraj[dynamixel]'")
-    from dxl_helpers import Z_HOMING
+    from dxl_helpers import Z_HOMING, robot_text
 
     robot = tmp_path / "robot.toml"
-    robot.write_text(ROBOT.read_text() + Z_HOMING)
+    robot.write_text(robot_text(Z_HOMING))  # the shipped [robot.homing.z] table replaced by the tests' own
     sim_args = ["sim-dynamixel", "--pty", "--robot", str(robot), "--power-cycle-at", "0", "--duration", "600"]
     sim, pty = _server(sim_args, r"on (/dev/\S+) ", tmp_path)
     try:

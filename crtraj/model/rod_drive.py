@@ -139,6 +139,12 @@ class RodDrive:
         passing = np.cumsum(tau.reshape(n, 3).sum(axis=1)[::-1])[::-1]  # N through each segment
         lengths = np.array([s.length for s in r.segments])
         short = lengths * (1.0 - passing / (m.youngs_modulus * m.area))
+        if np.any(short <= 0.0):  # the robot file's mechanics, not this pose: name them
+            raise InputError(
+                f"robot.mechanics.youngs_modulus: {m.youngs_modulus:g} MPa is too soft for the tendons' tension "
+                f"({float(passing.max()):.3g} N would shorten a segment to {float(short.min()):.3g} mm); check "
+                "youngs_modulus and the wire's diameter"
+            )
         out = np.empty(3 * n)
         for k in range(n):
             d = np.stack([np.cos(r.cable_angles(k)), np.sin(r.cable_angles(k))], axis=1)  # (3, 2)
