@@ -62,7 +62,8 @@ def test_require_module_returns_the_module():
 # ------------------------------------------------------------- every use of them
 def _sites() -> list[str]:
     """Node ids of every test that needs a tool or extra: tests that call require_tool/require_module,
-    and tests that take a fixture that does (found in the source, so a new use is covered too)."""
+    and tests that take a fixture that does, or that takes such a fixture (found in the source, so a new use is
+    covered too)."""
     out = []
     for path in sorted(TESTS.glob("test_*.py")):
         if path.name == Path(__file__).name:
@@ -75,7 +76,14 @@ def _sites() -> list[str]:
                 isinstance(c, ast.Call) and isinstance(c.func, ast.Name) and c.func.id in HELPERS for c in ast.walk(fn)
             )
 
-        needing = {fn.name for fn in funcs if calls_helper(fn) and not fn.name.startswith("test_")}  # fixtures
+        fixtures = [fn for fn in funcs if not fn.name.startswith("test_")]
+        needing = {fn.name for fn in fixtures if calls_helper(fn)}
+        # and fixtures that take one of those, at any depth (a browser fixture on a `chromium` one)
+        grown = True
+        while grown:
+            more = {fn.name for fn in fixtures if needing & {a.arg for a in fn.args.args}} - needing
+            needing |= more
+            grown = bool(more)
         for fn in funcs:
             if fn.name.startswith("test_") and (calls_helper(fn) or needing & {a.arg for a in fn.args.args}):
                 out.append(f"tests/{path.name}::{fn.name}")
