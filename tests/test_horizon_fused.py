@@ -15,6 +15,7 @@ from crtraj.control.horizon import ReplanOptions
 from crtraj.control.horizon_backends import CompiledBackend, HorizonQuery
 from crtraj.control.loop import ClosedLoop
 from crtraj.control.loop_options import LoopOptions
+from crtraj.control.run_record import ReplanRun
 from crtraj.io.problem import Problem
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -35,8 +36,12 @@ def _loop(problem: Problem, fused: bool) -> ClosedLoop:
     return ClosedLoop.from_problem(problem, seed=0, options=opts, loop_options=lopts)
 
 
-def _recorded(loop: ClosedLoop, monkeypatch: pytest.MonkeyPatch) -> list[HorizonQuery]:
-    """The queries the loop's compiled backend answers over a run."""
+@pytest.fixture(scope="module")
+def fused(problem) -> tuple[CompiledBackend, list[HorizonQuery], ReplanRun]:
+    """The fused loop's run over 12 s, once for both tests: its compiled backend, the queries it answered (warm and
+    cold starts) and the run."""
+    loop = _loop(problem, fused=True)
+    backend = loop.replanner.backend.inner
     seen: list[HorizonQuery] = []
     solve = CompiledBackend.solve
 
@@ -44,24 +49,22 @@ def _recorded(loop: ClosedLoop, monkeypatch: pytest.MonkeyPatch) -> list[Horizon
         seen.append(query)
         return solve(self, query)
 
-    monkeypatch.setattr(CompiledBackend, "solve", record)
-    loop.run()
-    monkeypatch.setattr(CompiledBackend, "solve", solve)
-    return seen
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(CompiledBackend, "solve", record)
+        run = loop.run()
+    return backend, seen, run
 
 
 def _close(a: np.ndarray, b: np.ndarray) -> bool:
     return bool(np.all(np.abs(np.asarray(a) - np.asarray(b)) <= TOL * (1.0 + np.abs(np.asarray(b)))))
 
 
-def test_the_fused_call_agrees_with_the_two_call_path_on_recorded_queries(problem, monkeypatch):
+def test_the_fused_call_agrees_with_the_two_call_path_on_recorded_queries(fused):
     """Every recorded query (warm and cold starts, with multipliers and without): the one fused C call returns
     the same point, multipliers, rows, obstacle rows, tips, violation and success test as the solver call followed
     by the KKT call and the numpy row check, to 1e-9 relative."""
-    loop = _loop(problem, fused=True)
-    backend = loop.replanner.backend.inner
+    backend, queries, _ = fused
     assert isinstance(backend, CompiledBackend) and backend.parts.fused is not None
-    queries = _recorded(loop, monkeypatch)
     assert len(queries) > 50 and any(q.lam_g0 is not None for q in queries) and any(q.lam_g0 is None for q in queries)
     for q in queries:
         new, st_new = backend._fused(q)
@@ -76,10 +79,10 @@ def test_the_fused_call_agrees_with_the_two_call_path_on_recorded_queries(proble
         assert abs(st_new["violation"] - backend.check.violation(new["x"], new["g"])) <= 1e-12
 
 
-def test_a_loop_with_the_fused_call_makes_the_same_decisions(problem):
+def test_a_loop_with_the_fused_call_makes_the_same_decisions(problem, fused):
     """Simulation 2 over the same 12 s, fused and not: the same status at every step, the same configurations
     and set-points (1e-9 mm / rad), and the dense verification holds (no collision, no D_sf breach)."""
-    runs = [_loop(problem, fused).run() for fused in (True, False)]
+    runs = [fused[2], _loop(problem, fused=False).run()]
     a, b = (r.summary() for r in runs)
     assert runs[0].steps == runs[1].steps > 50
     assert runs[0].step_status == runs[1].step_status

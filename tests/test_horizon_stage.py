@@ -52,6 +52,13 @@ def _inner(loop: ClosedLoop):
 
 
 @pytest.fixture(scope="module")
+def cc() -> str:
+    """The C compiler, asked for before the module's recorded run: without one the compiled test fails (skips
+    locally) at once, not after 6 s of simulation."""
+    return require_tool("cc", "gcc", "clang", hint="the compiled horizon needs a C compiler")
+
+
+@pytest.fixture(scope="module")
 def recorded(problem) -> list[HorizonQuery]:
     """The queries the dense daqp solver answers over 6 s of simulation 2 (the screened QP's parameters)."""
     loop = _loop(problem, "daqp")
@@ -114,9 +121,8 @@ def test_the_stage_form_agrees_with_the_dense_qp_on_recorded_queries(problem, re
     assert n_ok > len(recorded) // 2
 
 
-def test_the_compiled_stage_form_agrees_with_the_interpreted_one(problem, recorded):
+def test_the_compiled_stage_form_agrees_with_the_interpreted_one(cc, problem, recorded):
     """The stage form as generated C (HPIPM linked into the library) gives the interpreted stage solve's answer."""
-    require_tool("cc", "gcc", "clang", hint="the compiled horizon needs a C compiler")
     loop = _loop(problem, "hpipm", compiled=True)
     compiled, interp = _inner(loop), _inner(_loop(problem, "hpipm"))
     assert isinstance(compiled, CompiledBackend), loop.replanner.compiled_message

@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import ast
 import math
+import sys
+import threading
 from pathlib import Path
 
 import casadi as ca
 import numpy as np
 import pytest
-from conftest import PROBLEMS
+from conftest import PROBLEMS, calls_of
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -381,3 +383,54 @@ def test_segment_points_pick_every_backbone_point(name):
         Q = np.asarray(seg_fn(x, f)).reshape(3, -1, order="F")
         want = [[0.0, 0.0, z + starts[k] + f * s.length] for k, s in enumerate(m.robot.segments)]
         np.testing.assert_allclose(Q.T, want, atol=1e-12)
+
+
+# ---------------------------------------------------------------- threads (the loop's and a live view's)
+def _on_another_thread(fn) -> None:
+    th = threading.Thread(target=fn)
+    th.start()
+    th.join(60.0)
+    assert not th.is_alive()
+
+
+def test_another_threads_batch_sizes_leave_this_threads_evaluation_work_unchanged(model):
+    """A live view evaluates the loop's model on its own thread with batches of every size: this thread's next
+    evaluation makes exactly the calls it made before (its evaluators are neither evicted nor rebuilt), and
+    both threads' results are the model's own CasADi function's."""
+    m = Model(model.robot)
+    x = np.linspace(-0.4, 0.4, m.nx)
+    m.tip_position(x)  # builds this thread's evaluator
+    before = calls_of(lambda: m.tip_position(x))
+    seen = {}
+    _on_another_thread(lambda: seen.update({n: m.tip_position(np.tile(x, (n, 1))) for n in range(2, 80)}))
+    assert calls_of(lambda: m.tip_position(x)) == before
+    expected = np.asarray(m.tip(x)).ravel()
+    np.testing.assert_allclose(m.tip_position(x), expected, atol=1e-12)
+    for n, tips in seen.items():
+        np.testing.assert_allclose(tips, np.tile(expected, (n, 1)), atol=1e-12)
+
+
+def test_an_evaluation_on_another_thread_between_set_res_and_the_call_leaves_this_result_right(model):
+    """The interleaving a live view can cause, forced: right after this thread has pointed its evaluation buffer
+    at its argument and result, another thread evaluates the same function at another configuration; this
+    thread's call still writes its own tip (a shared buffer would have written the other's into the other's
+    array and left this result unwritten)."""
+    m = Model(model.robot)
+    x, y = np.full(m.nx, 0.3), np.full(m.nx, -0.2)
+    other = []
+    m.tip_position(x)
+    m.tip_position(y)
+
+    def hook(frame, event, arg):
+        if event == "return" and frame.f_code.co_name == "set_res" and not other:
+            other.append(None)  # once
+            _on_another_thread(lambda: other.append(m.tip_position(y)))
+
+    sys.setprofile(hook)
+    try:
+        got = m.tip_position(x)
+    finally:
+        sys.setprofile(None)
+    assert len(other) == 2, "the forced interleaving did not happen"
+    np.testing.assert_allclose(got, np.asarray(m.tip(x)).ravel(), atol=1e-12)
+    np.testing.assert_allclose(other[1], np.asarray(m.tip(y)).ravel(), atol=1e-12)

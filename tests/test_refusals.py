@@ -245,10 +245,15 @@ def test_a_failed_stream_says_why_on_stderr_not_only_stdout(files, capsys):
     assert report["status"] in line and report["message"] in line  # the log's own verdict, not another
 
 
-def test_stream_dynamixel_power_cycled_mid_stream_says_why(files, tmp_path, capsys, monkeypatch):
+@pytest.fixture(scope="module")
+def dynamixel_sdk():
+    """The Dynamixel SDK, asked for before `files` (a plan): without it the test fails (skips locally) at once."""
+    return require_module("dynamixel_sdk", "pip install 'crtraj[dynamixel]'")
+
+
+def test_stream_dynamixel_power_cycled_mid_stream_says_why(dynamixel_sdk, files, tmp_path, capsys, monkeypatch):
     """`crtraj stream --dynamixel` whose servos power-cycle mid-stream (torque off, positions relative):
     exit 1 with one stderr line naming what the stream met, the servos' status as the simulator had it."""
-    require_module("dynamixel_sdk", "pip install 'crtraj[dynamixel]'")
     from dxl_helpers import Clock, homed_state, in_process
 
     from crtraj.hardware.actuators import Actuators

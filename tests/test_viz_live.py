@@ -3,12 +3,15 @@
 
 from __future__ import annotations
 
+import sys
 import threading
+import time
 
 import numpy as np
 import pytest
+from conftest import calls_of
 
-from crtraj.viz.live_feed import LiveFeed
+from crtraj.viz.live_feed import LiveFeed, LiveState
 
 HANG_S = 60.0  # a hang bound only; nothing here waits for time to pass
 
@@ -104,3 +107,42 @@ def test_draws_stay_a_period_apart_after_a_quiet_spell():
     feed.publish(*_state(1))
     feed.close()
     assert feed.drawn >= 1 and clock.waits == pytest.approx([1 / 30] * feed.drawn)
+
+
+def _until(condition) -> None:
+    """Wait for `condition()` (a state of the view's thread), bounded by HANG_S only."""
+    for _ in range(int(HANG_S / 0.001)):
+        if condition():
+            return
+        time.sleep(0.001)
+    raise AssertionError("the view's thread never got there")
+
+
+def test_the_loops_hand_off_costs_the_same_whether_the_view_waits_or_draws():
+    """The loop's `observe` makes the same calls on the loop's thread while the view's thread is stuck drawing
+    and while it waits for the next state (a Condition's notify, for one, does more when a waiter is there): what
+    the loop's thread does never depends on where the view's thread is."""
+    drawer, clock = _Drawer(), _VirtualClock()
+    feed = LiveFeed(drawer, clock=clock, sleep=clock.sleep)
+    record = LiveState(0.0, np.zeros(5), np.zeros((2, 3)), np.ones(2))  # the frozen record the loop hands over
+    feed.observe(record, None)
+    assert drawer.entered.wait(HANG_S)
+    drawing = [calls_of(lambda: feed.observe(record, None)) for _ in range(3)]
+    drawer.release.set()
+
+    def waiting() -> bool:
+        """The view's thread is blocked waiting for the loop's next state (in the feed's `_take`)."""
+        frame = sys._current_frames().get(feed._thread.ident)
+        names = []
+        while frame is not None:
+            names.append(frame.f_code.co_name)
+            frame = frame.f_back
+        return bool(names) and names[0] in ("_take", "wait") and "_take" in names
+
+    _until(lambda: feed.drawn == 2 and waiting())
+    waited = [calls_of(lambda: feed.observe(record, None))]
+    _until(lambda: feed.drawn == 3 and waiting())
+    waited.append(calls_of(lambda: feed.observe(record, None)))
+    feed.close()
+    assert drawing == [drawing[0]] * 3 and waited == [drawing[0]] * 2, (drawing, waited)
+    assert feed.published == 6 and feed.drawn == 4 and feed.dropped == 2

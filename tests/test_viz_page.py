@@ -36,9 +36,15 @@ def run(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def browser():
-    """A headless Chromium; skips locally (fails under CI=true) without one."""
-    require_tool("chromium", "chromium-browser", "google-chrome", hint="Debian: apt-get install chromium")
+def chromium() -> str:
+    """Chromium's executable; skips locally (fails under CI=true) without one. The tests ask for it (or `browser`)
+    before `run`, so that without Chromium they fail (skip) at once, not after the simulation."""
+    return require_tool("chromium", "chromium-browser", "google-chrome", hint="Debian: apt-get install chromium")
+
+
+@pytest.fixture(scope="module")
+def browser(chromium):
+    """A headless Chromium."""
     with Chromium(timeout=300.0) as b:
         yield b
 
@@ -69,7 +75,7 @@ def _number(text):
     return float(re.match(r"\s*(-?[0-9.]+)", text).group(1))
 
 
-def test_panel_shows_the_recorded_numbers_at_three_times(run, browser):
+def test_panel_shows_the_recorded_numbers_at_three_times(browser, run):
     """Seeked to three waypoints, the panel shows that step's status, tip error and iteration time from run.json,
     and each obstacle's distance (and clearance beyond D_sf) measured independently, at 2001 backbone points, on
     the recorded configuration."""
@@ -97,7 +103,7 @@ def test_panel_shows_the_recorded_numbers_at_three_times(run, browser):
         tab.close()
 
 
-def test_headline_answers_when_which_obstacle_how_close_and_whether_the_loop_held(run, browser):
+def test_headline_answers_when_which_obstacle_how_close_and_whether_the_loop_held(browser, run):
     """The line under the controls says, without another file: the closest approach's time, obstacle and distance
     (found here independently: every waypoint at 2001 backbone points), the hold, fallback and deadline-miss
     counts that run.json's summary (the loop's own counts) gives, and the iterations over the deadline."""
@@ -133,7 +139,7 @@ def test_headline_answers_when_which_obstacle_how_close_and_whether_the_loop_hel
     assert f"{over} iterations over 4 ms" in text, text
 
 
-def test_distance_line_is_where_the_camera_projects_it(run, browser, tmp_path):
+def test_distance_line_is_where_the_camera_projects_it(browser, run, tmp_path):
     """At the closest approach (found independently), the pixels the closest-approach layer changes (the
     picture with it against the picture without it) lie on the segment between the two projected closest
     points and reach both ends."""
@@ -171,7 +177,7 @@ def _green(img, min_sat=0.12):
     return (h >= 95) & (h < 150) & (hsv[..., 1] >= min_sat)
 
 
-def test_compare_view_draws_two_robots(run, browser, tmp_path):
+def test_compare_view_draws_two_robots(browser, run, tmp_path):
     """`crtraj view A B`: B's robot (here held at A's last configuration) is drawn as a ghost at its tip,
     where a page of A alone has no segment-2 green; both runs are in the panel."""
     doc = _doc(run)
@@ -204,7 +210,7 @@ def test_compare_view_draws_two_robots(run, browser, tmp_path):
     assert _green(pictures["ab"][0][: PANE[1], : PANE[0]]).sum() > 200
 
 
-def test_page_opens_offline_and_loads_nothing(run, browser):
+def test_page_opens_offline_and_loads_nothing(browser, run):
     """With the network off the page becomes ready (the browser would fail `open` otherwise) and it loaded no
     resource but its own file and data: URLs."""
     tab = browser.open((run / "view.html").as_uri(), W, H, offline=True)
@@ -218,8 +224,7 @@ def test_page_opens_offline_and_loads_nothing(run, browser):
     assert not re.search(r"""(src|href)=["']?https?:""", html)
 
 
-def test_cli_png_is_a_picture_of_the_asked_size(run, tmp_path, capsys):
-    require_tool("chromium", "chromium-browser", "google-chrome", hint="Debian: apt-get install chromium")
+def test_cli_png_is_a_picture_of_the_asked_size(chromium, run, tmp_path, capsys):
     out = tmp_path / "at2.png"
     assert main(["view", str(run / "run.json"), "--png", str(out), "--at", "2", "--size", "640x400"]) == 0
     assert f"wrote {out} (640x400 px at t = 2.00 s)" in capsys.readouterr().out

@@ -13,6 +13,7 @@ All lengths in mm, angles in rad.
 
 from __future__ import annotations
 
+import threading
 from typing import Any
 
 import casadi as ca
@@ -106,7 +107,10 @@ class Model:
         g = [ca.sumsqr(ub[2 * k : 2 * k + 2]) for k in range(robot.n_segments)]
         g.append((ca.DM(A) @ x)[: 3 * robot.n_segments])
         self.limits = ca.Function("limits", [x], [ca.vertcat(*g)], ["x"], ["g"])
-        self._maps: dict[tuple[str, int], Any] = {}
+        # the evaluators (and their buffers) are per thread: a buffer holds its call's argument and result
+        # pointers between set_arg and the call, so two threads sharing one could swap each other's results; and
+        # another thread's batch sizes (a live view's) never evict, nor make rebuild, this thread's evaluators
+        self._local = threading.local()
         self._dense: dict[int, ca.Function] = {}
 
     # ------------------------------------------------------------ expressions
@@ -183,20 +187,23 @@ class Model:
         return a2, single
 
     def _evaluator(self, f: ca.Function, n: int) -> tuple[Any, Any]:
-        """A cached (buffer, eval) pair of `f` mapped over n configurations.
+        """A cached (buffer, eval) pair of `f` mapped over n configurations, this thread's own.
 
         Evaluating through CasADi's buffer API writes straight into numpy memory;
         converting a large DM result to numpy costs more than the evaluation itself.
         """
+        maps = getattr(self._local, "maps", None)
+        if maps is None:
+            maps = self._local.maps = {}
         key = (f.name(), n)
-        ev = self._maps.get(key)
+        ev = maps.get(key)
         if ev is None:
             if not f.sparsity_out(0).is_dense():
                 raise RuntimeError(f"{f.name()}: buffer evaluation needs a dense output (wrap it in ca.densify)")
-            if len(self._maps) > 64:
-                self._maps.clear()
+            if len(maps) > 64:
+                maps.clear()
             ev = (f if n == 1 else f.map(n, "serial")).buffer()
-            self._maps[key] = ev
+            maps[key] = ev
         return ev
 
     def _eval(self, f: ca.Function, x: Any, rows: int, cols: int) -> np.ndarray:

@@ -1,8 +1,9 @@
 """A live view of a running loop: the loop hands each step's state over without waiting; a separate thread draws.
 
 `LiveFeed.observe` is the closed loop's observer port (`crtraj.control.ports.StepObserver`): the loop calls it once
-per recorded step and it only keeps a reference to the (frozen) record under a lock, so the loop's timing does not
-change; `LiveFeed.publish` does the same for a bare state. The feed's thread draws the newest state at most `rate`
+per recorded step and it only puts a reference to the (frozen) record in a queue, one C call whose cost does not
+depend on what the view's thread is doing (waiting or drawing), so the loop's timing does not change;
+`LiveFeed.publish` does the same for a bare state. The feed's thread draws the newest state at most `rate`
 times a second (each draw a full period after the previous one started) and counts the states it never drew
 (`dropped`). Drawing goes to anything with ``display(x)`` and ``set_obstacles(centers, radii)`` (a live
 `crtraj.viz.view.Visualizer`); a drawer that also has ``extend(entries)`` gets every (state, step) observed since
@@ -15,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import queue
 import threading
 import time
 from collections.abc import Callable
@@ -25,6 +27,7 @@ import numpy as np
 log = logging.getLogger(__name__)
 
 MAX_RATE_HZ = 30.0
+_CLOSE = object()  # the queue's last item: draw what is pending, then stop
 
 
 class Drawer(Protocol):
@@ -64,11 +67,12 @@ class LiveFeed:
         self.period = 1.0 / rate
         self._clock = clock
         self._sleep = sleep
-        self._lock = threading.Condition()
-        self._pending: Any = None  # the newest state not drawn yet (t, x, centers, radii)
-        self._history: list[tuple[Any, Any]] = []  # every observed (state, step), by reference
-        self._seen = 0  # how many of them the drawer's `extend` has had
-        self._closed = False
+        # the loop's hand-off: a C queue whose put costs the loop's thread the same whether the view's thread waits
+        # on it or not (a Condition's notify does more work when a waiter is there), and never blocks on drawing
+        self._inbox: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        # every observed (state, step), by reference: a record's last reference goes with the feed, so neither
+        # thread frees records (nor runs their deallocators) while the loop runs
+        self._history: list[tuple[Any, Any]] = []
         self.published = 0  # states handed over by the loop
         self.drawn = 0  # states drawn
         self.dropped = 0  # states replaced by a newer one before they were drawn
@@ -93,28 +97,30 @@ class LiveFeed:
         self._keep(state, step, history=True)
 
     def _keep(self, state: Any, step: Any, history: bool) -> None:
-        with self._lock:
-            if self._pending is not None:
-                self.dropped += 1
-            self._pending = state
-            if history:
-                self._history.append((state, step))
-            self.published += 1
-            self._lock.notify()
+        self.published += 1
+        self._inbox.put((state, step, history))
 
-    def _take(self) -> tuple[Any, list[tuple[Any, Any]]]:
-        with self._lock:
-            while self._pending is None and not self._closed:
-                self._lock.wait()
-            state, self._pending = self._pending, None
-            new, self._seen = self._history[self._seen :], len(self._history)
-            return state, new
+    def _take(self) -> tuple[Any, list[tuple[Any, Any]], bool]:
+        """On the view's thread: wait for the loop's next state, then take all it handed over since the last draw;
+        (the newest state or None, the new (state, step) records, whether the feed is closing)."""
+        items = [self._inbox.get()]
+        while True:
+            try:
+                items.append(self._inbox.get_nowait())
+            except queue.Empty:
+                break
+        closing = any(item is _CLOSE for item in items)
+        kept = [item for item in items if item is not _CLOSE]
+        new = [(state, step) for state, step, history in kept if history]
+        self._history.extend(new)
+        self.dropped += max(len(kept) - 1, 0)
+        return (kept[-1][0] if kept else None), new, closing
 
     def _run(self) -> None:
         extend = getattr(self.drawer, "extend", None)
         draw = getattr(self.drawer, "draw", None)  # a drawer that takes the whole draw at once (another process)
         while True:
-            state, new = self._take()
+            state, new, closing = self._take()
             if state is None:
                 return
             cpu, started = time.thread_time(), self._clock()
@@ -138,12 +144,12 @@ class LiveFeed:
             wait = started + self.period - self._clock()
             if wait > 0:
                 self._sleep(wait)
+            if closing:
+                return
 
     def close(self) -> None:
         """Draw what is pending, stop the thread and wait for it (idempotent)."""
-        with self._lock:
-            self._closed = True
-            self._lock.notify()
+        self._inbox.put(_CLOSE)
         self._thread.join()
 
     def draw_rate(self) -> float:
