@@ -568,3 +568,44 @@ def test_home_check_reports_each_actuators_position_without_writing(homed_at_sta
         assert err == [f"crtraj: home --check: position not proven for z; run crtraj home --dynamixel {sim.path} "
                        f"--robot {robot_file}"], err  # fmt: skip
         assert seen and not {dxl.WRITE, dxl.SYNC_WRITE, dxl.CLEAR, dxl.REBOOT} & set(seen)
+
+
+class FreezingClock(Clock):
+    """The shared virtual clock; the host freezes once for `pause` s when it first sleeps past `at` (s)."""
+
+    def __init__(self, start: float, at: float, pause: float) -> None:
+        super().__init__(start)
+        self.at, self.pause = at, pause
+
+    def sleep(self, s: float) -> None:
+        super().sleep(s)
+        if self.pause and self.now() >= self.at:
+            pause, self.pause = self.pause, 0.0
+            super().sleep(pause)
+
+
+@pytest.mark.parametrize(("pause", "status"), [(0.15, "error"), (0.06, "done")])
+def test_a_host_frozen_longer_than_the_watchdog_mid_stream_stops_naming_the_servo(
+    sim1_plan, homed_at_start, monkeypatch, pause, status
+):
+    """A host frozen 150 ms mid-stream (nothing sent): the servos' watchdog (100 ms) stopped them, the next sync
+    read sees it and the stream stops, naming the first servo; frozen 60 ms (within the watchdog) it completes."""
+    from crtraj.hardware import dynamixel
+    from crtraj.hardware.dynamixel import open_dynamixel
+    from crtraj.hardware.stream import Streamer, StreamOptions
+
+    monkeypatch.setattr(dynamixel, "port_factory", dynamixel.port_factory)
+    robot_file, chain0, reached = homed_at_start
+    chain = copy.deepcopy(chain0)
+    motion = admit_result(str(sim1_plan), str(robot_file), rate=100.0)
+    clock = FreezingClock(reached, reached + 5.0, pause)
+    port = SimPort(chain, clock, name="/dev/sim")
+    dynamixel.port_factory = lambda sdk, name: port
+    state = HomingState.load(state_path(robot_file))
+    tr = open_dynamixel("dynamixel:///dev/sim", motion.actuators, homing=state, clock=clock, warn=lambda m: None)
+    rep = Streamer(tr, motion.actuators, StreamOptions(rate=motion.rate, watchdog=10.0), None, clock=clock).run_path(
+        motion
+    )
+    assert rep.status == status, rep.message
+    if status == "error":
+        assert "servo id 1 (s1c1): its bus watchdog stopped it (no instruction for 100 ms)" in rep.message
