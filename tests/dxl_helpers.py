@@ -127,10 +127,11 @@ def write(chain: ServoChain, dxl_id: int, addr: int, value: int, size: int, now:
 
 
 def homed_state(chain: ServoChain, acts, now: float = 0.0) -> HomingState:
-    """Mark every servo of `chain` homed (LED 1) where it stands, and the state file's entries that match
-    them: what `crtraj home` leaves behind for servos whose readings are already absolute."""
+    """Mark every servo of `chain` homed (LED 1, Operating Mode 4) where it stands, and the state file's entries
+    that match them: what `crtraj home` leaves behind for servos whose readings are already absolute."""
     entries = []
     for k, dxl_id in enumerate(acts.bus.ids):
+        write(chain, dxl_id, X.OPERATING_MODE, X.EXTENDED_POSITION, 1, now)  # the marker counts in mode 4 or 5
         write(chain, dxl_id, X.LED, 1, 1, now)
         if multi_turn(acts)[k]:
             entries.append(

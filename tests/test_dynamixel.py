@@ -237,8 +237,9 @@ def test_a_short_motion_streams_and_ends_at_its_final_set_point(robot, acts):
         rep = st.run_path(motion)
         assert rep.status == "done" and rep.moves == len(motion.stamps)
         assert _settled(sim, acts, motion, clock)
-        # one per frame, one torque off at connect (before the power-up check) and one at exit
-        assert sim.chain.counts["sync_writes"] == rep.frames + 2
+        # one per frame, one torque off at connect (before the power-up check) and one at exit, and the bus
+        # watchdog re-armed at the first frame (cleared, then set)
+        assert sim.chain.counts["sync_writes"] == rep.frames + 4
         assert not any(sim.chain.torque(i) for i in acts.bus.ids)  # closed: torque off
     finally:
         sim.stop()
@@ -398,8 +399,9 @@ def test_paper_simulation_2_streams_to_the_servos_end_to_end(tmp_path, capsys):
         rep = st.run_path(motion)
         assert rep.status == "done", rep.message
         assert rep.moves == len(motion.stamps) and not any(e[1] == "refused" for e in rep.events)
-        # one bus transaction per set-point (plus the HOLD frames while settling, the torque off at connect and at exit)
-        assert sim.chain.counts["sync_writes"] == rep.frames + 2
+        # one bus transaction per set-point (plus the HOLD frames while settling, the torque off at connect and at
+        # exit, the watchdog re-armed at the first frame)
+        assert sim.chain.counts["sync_writes"] == rep.frames + 4
         goals = [sim.chain.register(i, 116, 4) for i in acts.bus.ids]
         assert goals == acts.bus.ticks(motion.values[-1]).tolist()  # the final set-point, in ticks, as sent
         assert _settled(sim, acts, motion, clock)

@@ -32,7 +32,8 @@ from crtraj.hardware.dynamixel_protocol import X
 from crtraj.hardware.homing import Homer, HomingError
 from crtraj.hardware.homing_spec import read_homing
 from crtraj.hardware.homing_state import HomedServo, HomingState, PowerUpCheck, state_path, unwrap
-from crtraj.hardware.sim_dynamixel import TICKS_PER_REV, ServoChain, SimDynamixel
+from crtraj.hardware.sim_dynamixel import TICKS_PER_REV, ServoChain
+from crtraj.hardware.sim_dynamixel_pty import SimDynamixel
 from crtraj.hardware.sim_dynamixel_robot import ChainIO, stops
 from crtraj.hardware.stream import Streamer, StreamOptions
 from crtraj.hardware.transport import TransportError
@@ -369,6 +370,7 @@ def test_a_state_file_without_the_servo_identity_is_refused_until_homed_again(tm
     servo: the marked stage is refused in one line naming it, with the command that homes it."""
     acts = Actuators.from_robot(load_robot(ROBOT))
     chain = ServoChain(acts.bus.ids, acts.bus.models, initial=acts.bus.ticks(_start(acts)))
+    _write(chain, 7, X.OPERATING_MODE, X.EXTENDED_POSITION, 1)  # as homing leaves it: the marker counts in mode 4
     _write(chain, 7, X.LED, 1, 1)
     old = {"kind": "crtraj-homing", "servos": [{"id": 7, "name": "z", "model": 1030, "offset": 0, "method": "index",
                                                 "time": "2026-11-30T00:00:00+00:00"}]}  # fmt: skip

@@ -20,8 +20,9 @@ from crtraj.core.fileio import check_output_file, check_outputs_not_inputs
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.dynamixel import DEFAULT_BAUD, open_dynamixel
 from crtraj.hardware.homing import Homer
-from crtraj.hardware.homing_spec import read_homing
-from crtraj.hardware.homing_state import HomingState, state_path
+from crtraj.hardware.homing_check import ReadOnlyLink, proven
+from crtraj.hardware.homing_spec import read_homing, read_stop
+from crtraj.hardware.homing_state import HomingState, homing_command, state_path
 from crtraj.io.problem import load_robot
 
 
@@ -30,6 +31,23 @@ def confirm_on_stdin(text: str) -> bool:
     print(f"{text} [Enter]", flush=True)
     line = sys.stdin.readline()
     return line != ""
+
+
+def _check(url: str, acts: Actuators, state: HomingState, command: str) -> int:
+    """`crtraj home --check`: one line per actuator, proven or why not; exit 0 when all are proven, else 1 with
+    one stderr line naming them. Nothing is written to the servos or the state file."""
+    link = ReadOnlyLink(url, acts)
+    try:
+        rows = proven(link, acts, state, command)
+    finally:
+        link.close()
+    for name, why in rows:
+        print(f"{name}: proven" if why is None else f"{name}: not proven: {why}")
+    bad = [name for name, why in rows if why is not None]
+    if bad:
+        print(f"crtraj: home --check: position not proven for {', '.join(bad)}; run {command}", file=sys.stderr)
+        return 1
+    return 0
 
 
 def home_command(args: argparse.Namespace) -> int:
@@ -44,11 +62,14 @@ def home_command(args: argparse.Namespace) -> int:
         raise InputError(f"{args.robot}: robot.actuators: no Dynamixel ids (add id, ticks_per_rev, model per servo)")
     specs = dict(read_homing(robot, acts))
     out = state_path(args.robot) if args.state is None else args.state
+    url = f"dynamixel://{args.dynamixel}?baud={args.baud or DEFAULT_BAUD}"
+    if getattr(args, "check", False):
+        return _check(url, acts, HomingState.load(out), homing_command(args.robot, args.dynamixel))
     check_outputs_not_inputs({"--state": out}, {"--robot": args.robot})
     check_output_file(out, "--state")
     old = HomingState.load(out)
-    url = f"dynamixel://{args.dynamixel}?baud={args.baud or DEFAULT_BAUD}"
-    link = open_dynamixel(url, acts, power_up_check=False)  # homing makes the positions absolute itself
+    # homing makes the positions absolute itself; the bus watchdog guards it as it guards a stream
+    link = open_dynamixel(url, acts, power_up_check=False, bus_watchdog=read_stop(robot).bus_watchdog)
     try:
         homer = Homer(link, acts, specs, default_clock(), confirm_on_stdin)
         homer.check()  # before anything moves

@@ -344,6 +344,7 @@ def _link_options(target: str, problem: Problem) -> dict[str, Any]:
         "homing": state_path(robot_file) if robot_file is not None else None,
         "home_command": homing_command(robot_file, parse_url(target)[0]),
         "stop_torque": read_stop(problem.robot).torque,
+        "bus_watchdog": read_stop(problem.robot).bus_watchdog,
     }
 
 

@@ -27,7 +27,8 @@ from crtraj.core.fileio import check_output_file, check_outputs_not_inputs
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.dynamixel_protocol import HW_ERROR_NAMES
 from crtraj.hardware.homing_state import HomingState, state_path
-from crtraj.hardware.sim_dynamixel import ServoChain, SimDynamixel
+from crtraj.hardware.sim_dynamixel import ServoChain
+from crtraj.hardware.sim_dynamixel_pty import SimDynamixel
 from crtraj.hardware.sim_dynamixel_robot import home_in_place, robot_chain
 from crtraj.io.problem import load_robot
 from crtraj.io.results import read_result

@@ -91,11 +91,13 @@ def _homing(args: argparse.Namespace, motion: AdmittedMotion) -> dict[str, Any]:
     to the torque after a stop (``[robot.stop]``)."""
     if getattr(args, "dynamixel", None) is None:
         return {}
-    state = HomingState.load(state_path(args.robot)) if args.robot else HomingState()
+    # the file itself (the link records where it lets each servo go), else no state
+    state = state_path(args.robot) if args.robot else HomingState()
     return {
         "homing": state,
         "home_command": homing_command(args.robot, args.dynamixel),
-        "stop_torque": read_stop(load_robot(args.robot) if args.robot else motion.robot).torque,
+        "stop_torque": (stop := read_stop(load_robot(args.robot) if args.robot else motion.robot)).torque,
+        "bus_watchdog": stop.bus_watchdog,
     }
 
 

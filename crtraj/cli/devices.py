@@ -144,6 +144,7 @@ def add_home(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--baud", type=int, default=None, help="baud rate (default 1000000)")
     p.add_argument("--robot", default=str(DEFAULT_ROBOT), help="robot TOML with [robot.actuators] and [robot.homing]")
     p.add_argument("--state", default=None, help="homing state file (default: <robot>.homing.json beside it)")
+    p.add_argument("--check", action="store_true", help="only report whether each position is proven; move nothing")
     p.set_defaults(use_case="home")
 
 

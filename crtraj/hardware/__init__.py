@@ -19,7 +19,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
         "crtraj.hardware.stream_state": ("StreamError",),
         "crtraj.hardware.transport": ("Transport", "TransportError"),
         "crtraj.hardware.sim_device": ("SimDevice", "Faults"),
-        "crtraj.hardware.sim_dynamixel": ("SimDynamixel",),
+        "crtraj.hardware.sim_dynamixel_pty": ("SimDynamixel",),
         "crtraj.hardware.homing_state": ("HomingState",),
     },
 )

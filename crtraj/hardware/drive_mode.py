@@ -7,7 +7,10 @@ The ROBOTIS X-series e-manual defines two bits crtraj cares about:
   transparent to crtraj's values once the robot file's ``sign`` describes the values the servo reports;
 - bit 2, profile configuration: velocity-based (0) or time-based (1), where Profile Velocity and Profile
   Acceleration become times in ms. crtraj does not support it
-  (`crtraj.hardware.servo_bus.TIME_PROFILE_UNSUPPORTED`).
+  (`crtraj.hardware.servo_bus.TIME_PROFILE_UNSUPPORTED`);
+- bit 3, torque on by goal update: a goal written with the torque off turns it on and moves the servo, so a servo
+  that shut down (or stopped with ``torque = "off"``) would not stay stopped. crtraj refuses it
+  (`crtraj.hardware.servo_bus.TORQUE_ON_GOAL_UNSUPPORTED`).
 
 `DriveModeCheck.refusal` reads every servo's register and names the first that carries a bit the robot file
 does not declare (before anything is written); `apply` then sets the declared reverse bits (torque off:
@@ -22,7 +25,7 @@ import logging
 
 from crtraj.hardware.dynamixel_protocol import X
 from crtraj.hardware.homing_state import ServoIO
-from crtraj.hardware.servo_bus import TIME_PROFILE_UNSUPPORTED, ServoBus
+from crtraj.hardware.servo_bus import TIME_PROFILE_UNSUPPORTED, TORQUE_ON_GOAL_UNSUPPORTED, ServoBus
 
 log = logging.getLogger(__name__)
 
@@ -49,6 +52,11 @@ class DriveModeCheck:
                 return (
                     f"{who}: Drive Mode 0x{mode:02x} has the time-based profile bit set; {TIME_PROFILE_UNSUPPORTED}: "
                     "clear bit 2 of register 10 (e.g. with Dynamixel Wizard)"
+                )
+            if mode & X.DRIVE_TORQUE_ON_GOAL:
+                return (
+                    f"{who}: Drive Mode 0x{mode:02x} has bit 3 (torque on by goal update) set; "
+                    f"{TORQUE_ON_GOAL_UNSUPPORTED}: clear bit 3 of register 10 (e.g. with Dynamixel Wizard)"
                 )
             if mode & X.DRIVE_REVERSE and not self.bus.drive_mode(k).reverse:
                 return (

@@ -52,6 +52,7 @@ import contextlib
 import logging
 import math
 import os
+import termios
 import time
 from collections import deque
 from collections.abc import Callable
@@ -60,30 +61,46 @@ from typing import Any
 from urllib.parse import parse_qs, urlsplit
 
 import numpy as np
+import serial
 
 from crtraj.core.clock import Clock, default_clock
 from crtraj.core.errors import InputError
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.drive_mode import DriveModeCheck
-from crtraj.hardware.dynamixel_protocol import BAUD_CODES, X, hardware_error_text
-from crtraj.hardware.homing_state import HomingState, PowerUpCheck
+from crtraj.hardware.dynamixel_checks import (
+    SYSFS_USB_SERIAL,
+    ServoCheck,
+    check_baud,
+    check_ranges,
+    hardware_error_line,
+    latency_warning,
+)
+from crtraj.hardware.dynamixel_protocol import X
+from crtraj.hardware.dynamixel_watchdog import BusWatchdog, watchdog_units
+from crtraj.hardware.homing_state import HomingState, PowerUpCheck, multi_turn
 from crtraj.hardware.protocol import ESTOP, PING, STATUS_ESTOP, Frame, Telemetry, seq_next
-from crtraj.hardware.servo_bus import ServoBus
-from crtraj.hardware.transport import Transport, TransportError
+from crtraj.hardware.transport import LinkLostError, Transport, TransportError
 
 log = logging.getLogger(__name__)
 
 DEFAULT_BAUD = 1_000_000
-SYSFS_USB_SERIAL = Path("/sys/bus/usb-serial/devices")
 CONNECT_ATTEMPTS = 3  # tries of each transaction while connecting
 READ_BLOCK = 0.002  # s a port read may wait for its bytes (far below the SDK's 34 ms reply timeout)
-# the rates tried, in this order, when no servo answers at the requested one
-_PROBE_BAUDS = (1_000_000, 57_600, 115_200, 2_000_000, 3_000_000, 4_000_000, 9_600)
 # what one sync read returns, through the indirect addresses: (address, size) in this order
-_STATE = ((X.TORQUE_ENABLE, 1), (X.HARDWARE_ERROR, 1), (X.PRESENT_VELOCITY, 4), (X.PRESENT_POSITION, 4))
+_STATE = (
+    (X.TORQUE_ENABLE, 1),
+    (X.HARDWARE_ERROR, 1),
+    (X.PRESENT_VELOCITY, 4),
+    (X.PRESENT_POSITION, 4),
+    (X.BUS_WATCHDOG, 1),
+)
 _STATE_SIZE = sum(n for _, n in _STATE)
 _AT_TORQUE, _AT_ERROR = X.INDIRECT_DATA, X.INDIRECT_DATA + 1
-_AT_VELOCITY, _AT_POSITION = X.INDIRECT_DATA + 2, X.INDIRECT_DATA + 6
+_AT_VELOCITY, _AT_POSITION, _AT_WATCHDOG = X.INDIRECT_DATA + 2, X.INDIRECT_DATA + 6, X.INDIRECT_DATA + 10
+# what reaches the SDK's callers when the adapter goes away (USB-serial unplugged): pyserial raises
+# SerialException on a write or read, OSError from the ioctl behind in_waiting, termios.error from the flush
+# behind clearPort; the SDK catches none of them (and leaves its busy flag set)
+LINK_ERRORS = (serial.SerialException, OSError, termios.error)
 
 
 def _sdk() -> Any:
@@ -93,22 +110,6 @@ def _sdk() -> Any:
     except ImportError:
         raise InputError("--dynamixel: the Dynamixel SDK is not installed; pip install 'crtraj[dynamixel]'") from None
     return dynamixel_sdk
-
-
-def latency_warning(device: str, sysfs: Path = SYSFS_USB_SERIAL) -> str | None:
-    """The warning for a USB-serial latency timer above 1 ms (Linux), else None."""
-    tty = os.path.basename(os.path.realpath(device))
-    path = sysfs / tty / "latency_timer"
-    try:
-        ms = int(path.read_text().strip())
-    except (OSError, ValueError):
-        return None  # not a USB-serial adapter (or not Linux): nothing to say
-    if ms <= 1:
-        return None
-    return (
-        f"warning: {device}: the USB-serial latency timer is {ms} ms, which caps the set-point rate (every bus "
-        f"read waits up to {ms} ms); lower it with: echo 1 | sudo tee {path}"
-    )
 
 
 def sdk_port(sdk: Any, device: str) -> Any:
@@ -137,26 +138,6 @@ def parse_url(url: str) -> tuple[str, int]:
     if not (text.isascii() and text.isdecimal() and len(text) <= 10):  # int() takes other scripts' digits
         raise InputError(f"stream target: baud must be an integer, got {text[:40]!r}")
     return device, int(text)
-
-
-def check_baud(baud: int) -> int:
-    """`baud` when it is a Dynamixel bus rate; one-line `InputError` otherwise."""
-    if baud not in BAUD_CODES.values():
-        rates = ", ".join(str(b) for b in BAUD_CODES.values())
-        raise InputError(f"--baud: {baud} is not a Dynamixel bus rate ({rates})")
-    return baud
-
-
-def check_ranges(actuators: Actuators, bus: ServoBus) -> None:
-    """Every actuator's position limits must map into the extended position range (ticks)."""
-    for i, name in enumerate(actuators.names):
-        lim = np.abs(bus.ticks(np.array([actuators.lower, actuators.upper]))[:, i])
-        if lim.max() > X.EXTENDED_LIMIT:
-            u = actuators.units[i]
-            raise InputError(
-                f"robot.actuators ({name}): position limits [{actuators.lower[i]:g}, {actuators.upper[i]:g}] {u} "
-                f"are up to {lim.max()} ticks, beyond the extended position range +-{X.EXTENDED_LIMIT}"
-            )
 
 
 def _signed32(v: int) -> int:
@@ -196,6 +177,7 @@ class DynamixelTransport(Transport):
         home_command: str = "crtraj home",
         stop_torque: str = "keep",
         clock: Clock | None = None,
+        bus_watchdog: float = 0.1,
     ) -> None:
         sdk = _sdk()
         self._clock = default_clock() if clock is None else clock
@@ -218,11 +200,14 @@ class DynamixelTransport(Transport):
         if stop_torque not in ("keep", "off"):
             raise InputError(f'robot.stop.torque: must be "keep" or "off", got {stop_torque!r}')
         self.stop_torque = stop_torque
+        self.bus_watchdog = watchdog_units(bus_watchdog)
         # a bad state file is one line before the port opens
         state = homing if isinstance(homing, HomingState) else HomingState.load(homing) if homing else HomingState()
+        self._state, self._state_path = state, None if isinstance(homing, HomingState) or not homing else Path(homing)
         self._sdk = sdk
         self._ph = sdk.PacketHandler(2.0)
         self._port = None
+        self._lost: str | None = None  # why the link is gone (`_bus`), or None
         port = port_factory(sdk, device)
         try:
             opened = port.openPort() and self._set_baud(port, self.baud)
@@ -237,7 +222,9 @@ class DynamixelTransport(Transport):
             if w is not None:
                 self.warnings.append(w)
                 self._warn(w)
-            self._check_servos()
+            ServoCheck(self).run()
+            watchdog = BusWatchdog(self, bus, self.bus_watchdog)
+            tripped = watchdog.start()
             drive = DriveModeCheck(self, bus)
             why = drive.refusal()  # before anything is written
             if why is not None:
@@ -245,12 +232,14 @@ class DynamixelTransport(Transport):
             self._torque_off(confirm=True)
             drive.apply()
             if power_up_check:
+                watchdog.refuse_tripped(tripped, multi_turn(actuators), home_command)
                 PowerUpCheck(self, actuators, state, home_command).run()
             self._setup(actuators)
         except BaseException:
             with contextlib.suppress(Exception):  # a setup that failed half-way must not leave torque on
                 self._torque_off(confirm=False)
-            self._port.closePort()
+            with contextlib.suppress(*LINK_ERRORS):
+                self._port.closePort()
             self._port = None
             raise
         self._write_goal = sdk.GroupSyncWrite(port, self._ph, X.GOAL_POSITION, 4)
@@ -262,6 +251,7 @@ class DynamixelTransport(Transport):
         self._ack = 0
         self._seq = 0
         self._estopped = False
+        self._armed = False  # the bus watchdog re-armed at the session's first frame
         self._held: str | None = None  # why the link holds (a servo failed mid-stream), or None
         self._misses = 0
         self.counts = {"timeouts": 0, "corrupt": 0, "writes": 0, "reads": 0}
@@ -280,72 +270,36 @@ class DynamixelTransport(Transport):
             port.ser.timeout = READ_BLOCK
         return ok
 
+    # ------------------------------------------------------------ the bus
+    def _bus(self, call: Callable[..., Any], *args: Any) -> Any:
+        """`call(*args)`: the one place an SDK call (or a call on its port) is made. A serial or OS error (the
+        adapter unplugged) becomes `LinkLostError`, the SDK's busy flag released (it stays set when the error
+        escapes mid-packet), and every later call refuses at once without touching the port."""
+        if self._lost is not None:
+            raise LinkLostError(self._lost)
+        try:
+            return call(*args)
+        except LINK_ERRORS as exc:
+            if self._port is not None:
+                self._port.is_using = False
+            self._lost = (
+                f"{self.device}: the link to the servos is lost ({type(exc).__name__}: {exc}); is the USB-serial "
+                "adapter unplugged? the servos keep their last goal until their bus watchdog stops them: plug it "
+                "back in, check the robot, then stream again"
+            )
+            log.info("%s", self._lost)
+            raise LinkLostError(self._lost) from None
+
     # --------------------------------------------------------------- checks
     def _ask(self, call: Callable[..., tuple[Any, ...]], *args: Any) -> tuple[Any, ...]:
         """One connect-time transaction (an SDK call returning ``(..., result, error)``), tried up to
         `CONNECT_ATTEMPTS` times: a reply lost to line noise (or a busy host) is not yet a missing servo."""
-        out = call(self._port, *args)
+        out = self._bus(call, self._port, *args)
         for _ in range(CONNECT_ATTEMPTS - 1):
             if out[-2] == self._sdk.COMM_SUCCESS:
                 break
-            out = call(self._port, *args)
+            out = self._bus(call, self._port, *args)
         return out
-
-    def _check_servos(self) -> None:
-        """Every id answers with the robot file's model number and no hardware error."""
-        bus, ph = self.bus, self._ph
-        models: dict[int, int] = {}
-        for i in bus.ids:
-            model, result, _ = self._ask(ph.ping, i)
-            if result == self._sdk.COMM_SUCCESS:
-                models[i] = model
-        if not models:
-            raise TransportError(self._no_answer())
-        silent = [i for i in bus.ids if i not in models]
-        if silent:
-            answering = ", ".join(str(i) for i in models)
-            raise TransportError(
-                f"servo {bus.name_of(silent[0])} does not answer on {self.device} at {self.baud} baud (ids "
-                f"{answering} do): check its id, its power and the daisy chain up to it"
-            )
-        for k, i in enumerate(bus.ids):
-            if models[i] != bus.models[k]:
-                raise TransportError(
-                    f"servo {bus.name_of(i)} is model {models[i]}, the robot file says {bus.models[k]} "
-                    f"(robot.actuators model): another servo than the robot file describes"
-                )
-        for i in bus.ids:
-            bits, result, _ = self._ask(ph.read1ByteTxRx, i, X.HARDWARE_ERROR)
-            if result != self._sdk.COMM_SUCCESS:
-                raise TransportError(f"servo {bus.name_of(i)}: cannot read its hardware error status")
-            if bits:
-                raise TransportError(self._hardware_error_text(i, bits))
-
-    def _hardware_error_text(self, dxl_id: int, bits: int) -> str:
-        return (
-            f"servo {self.bus.name_of(dxl_id)}: hardware error: {hardware_error_text(bits)} (status 0x{bits:02x}); "
-            "its torque is off: remove the cause, then reboot or power-cycle it"
-        )
-
-    def _no_answer(self) -> str:
-        """Why no servo answered: another baud rate (tried and named), or no servo on the line at all."""
-        first = self.bus.ids[0]
-        for b in _PROBE_BAUDS:
-            if b == self.baud:
-                continue
-            self._set_baud(self._port, b)
-            _, result, _ = self._ask(self._ph.ping, first)
-            if result == self._sdk.COMM_SUCCESS:
-                self._set_baud(self._port, self.baud)
-                return (
-                    f"no servo answers on {self.device} at {self.baud} baud, but id {first} answers at {b} baud: "
-                    f"pass --baud {b} (or set the servos' baud rate)"
-                )
-        self._set_baud(self._port, self.baud)
-        return (
-            f"no servo answers on {self.device} (tried {self.baud} baud and the other common rates): check the "
-            "servos' power supply and the data cable"
-        )
 
     def read(self, dxl_id: int, addr: int, size: int) -> int:
         """One register of servo `dxl_id` (signed for 2 and 4 bytes); `TransportError` naming it on no answer."""
@@ -416,6 +370,8 @@ class DynamixelTransport(Transport):
         elif self._held is not None:  # a servo failed mid-stream: nothing moves the servos again
             raise TransportError(self._held)
         elif not self._estopped:  # after an e-stop nothing moves the servos again
+            if not self._armed:
+                self._arm_watchdog()
             ticks = self.bus.ticks(msg.values)
             if np.any(np.abs(ticks) > X.EXTENDED_LIMIT):
                 k = int(np.argmax(np.abs(ticks)))
@@ -426,12 +382,27 @@ class DynamixelTransport(Transport):
             for i, v in zip(self.bus.ids, ticks, strict=True):
                 u = int(v) & 0xFFFFFFFF
                 self._write_goal.changeParam(i, [u & 0xFF, (u >> 8) & 0xFF, (u >> 16) & 0xFF, u >> 24])
-            result = self._write_goal.txPacket()
+            result = self._bus(self._write_goal.txPacket)
             if result != self._sdk.COMM_SUCCESS:
                 raise TransportError(f"{self.description}: sync write failed ({self._ph.getTxRxResult(result)})")
             self.counts["writes"] += 1
         self._ack = msg.seq
         self._t_write = time.perf_counter() - t
+
+    def _sync_watchdog(self, units: int) -> None:
+        """One sync write of Bus Watchdog = `units` (20 ms) to every servo (no replies)."""
+        w = self._sdk.GroupSyncWrite(self._port, self._ph, X.BUS_WATCHDOG, 1)
+        for i in self.bus.ids:
+            w.addParam(i, [units])
+        self._bus(w.txPacket)
+
+    def _arm_watchdog(self) -> None:
+        """At the session's first frame: clear (0) and set the bus watchdog again; a trip counts from then on.
+        Between connect and the first frame (an approach being planned) the host may be silent longer than the
+        watchdog with the servos at rest: a trip then stopped nothing, and would leave the goals read-only."""
+        self._sync_watchdog(0)
+        self._sync_watchdog(self.bus_watchdog)
+        self._armed = True
 
     def _torque_off(self, confirm: bool = True) -> list[int]:
         """Torque off: one sync write to every servo at once, then (confirm) a write with a reply to each,
@@ -439,12 +410,12 @@ class DynamixelTransport(Transport):
         w = self._sdk.GroupSyncWrite(self._port, self._ph, X.TORQUE_ENABLE, 1)
         for i in self.bus.ids:
             w.addParam(i, [0])
-        w.txPacket()
+        self._bus(w.txPacket)
         if not confirm:
             return []
         silent = []
         for i in self.bus.ids:
-            result, _ = self._ph.write1ByteTxRx(self._port, i, X.TORQUE_ENABLE, 0)
+            result, _ = self._bus(self._ph.write1ByteTxRx, self._port, i, X.TORQUE_ENABLE, 0)
             if result != self._sdk.COMM_SUCCESS:
                 silent.append(i)
         return silent
@@ -455,7 +426,7 @@ class DynamixelTransport(Transport):
             return []
         t = time.perf_counter()
         group = self._read_state
-        result = group.txRxPacket()
+        result = self._bus(group.txRxPacket)
         if result != self._sdk.COMM_SUCCESS:
             self._miss(result)
             return []
@@ -489,7 +460,13 @@ class DynamixelTransport(Transport):
         bits = self._read_state.getData(dxl_id, _AT_ERROR, 1)
         why = None
         if bits:
-            why = self._hardware_error_text(dxl_id, bits)
+            why = hardware_error_line(self.bus, dxl_id, bits)
+        elif self._armed and self._read_state.getData(dxl_id, _AT_WATCHDOG, 1) == X.WATCHDOG_TRIPPED:
+            why = (
+                f"servo {self.bus.name_of(dxl_id)}: its bus watchdog stopped it (no instruction for "
+                f"{self.bus_watchdog * X.WATCHDOG_UNIT * 1000:.0f} ms); holding: check the host's load, then stream "
+                "again"
+            )
         elif not self._estopped and self._read_state.getData(dxl_id, _AT_TORQUE, 1) != 1:
             why = (
                 f"servo {self.bus.name_of(dxl_id)}: torque off mid-stream (it rebooted or lost power); holding: "
@@ -523,26 +500,44 @@ class DynamixelTransport(Transport):
         end = clock.now() + most
         last = clock.now()
         while clock.now() < end and clock.now() - last < quiet:
-            if self._port.getBytesAvailable():
-                self._port.clearPort()
+            if self._bus(self._port.getBytesAvailable):
+                self._bus(self._port.clearPort)
                 last = clock.now()
             clock.sleep(0.0005)
-        self._port.clearPort()
+        self._bus(self._port.clearPort)
+
+    def _record_last(self) -> None:
+        """Where each homed servo is let go (`HomedServo.last`), into the homing state file (when it was given
+        as a file): the next connect refuses one whose reading moved by whole turns since (a lost turn count)."""
+        if self._state_path is None or self._lost is not None or not self._state.servos:
+            return
+        try:
+            ids = [s.id for s in self._state.servos if s.id in self.bus.ids]
+            self._state.moved({i: self.read(i, X.PRESENT_POSITION, 4) for i in ids}).save(self._state_path)
+        except (TransportError, OSError) as exc:
+            self._warn(f"warning: {self._state_path}: where the servos stopped is not recorded ({exc})")
 
     def close(self) -> None:
-        """Torque off (with ``stop_torque="off"``), then close the port (idempotent)."""
+        """Torque off (with ``stop_torque="off"``), then close the port (idempotent; never raises for a lost
+        link: the servos cannot be reached, a warning says so)."""
         if self._port is None:
             return
         try:
+            self._record_last()
             if self.stop_torque == "keep":
                 log.info("%s: torque kept on (robot.stop.torque = keep)", self.description)
+                if self._lost is None:  # a clean end: the servos hold; the watchdog is for a host that dies
+                    self._sync_watchdog(0)
                 return
-            silent = self._torque_off()
+            silent = self._torque_off() if self._lost is None else []
             if silent:
                 who = ", ".join(self.bus.name_of(i) for i in silent)
                 self._warn(f"warning: torque off not confirmed by servo {who}: check it before approaching the robot")
+        except LinkLostError:
+            pass  # the report's one line already says the link is lost and the servos keep their last goal
         finally:
-            self._port.closePort()
+            with contextlib.suppress(*LINK_ERRORS):
+                self._port.closePort()
             self._port = None
 
 

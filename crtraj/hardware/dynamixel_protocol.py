@@ -32,6 +32,8 @@ MAX_ID = 252
 
 # Instructions.
 PING, READ, WRITE, REBOOT, STATUS, SYNC_READ, SYNC_WRITE = 0x01, 0x02, 0x03, 0x08, 0x55, 0x82, 0x83
+CLEAR = 0x10  # with CLEAR_MULTI_TURN: the present position back within one turn (torque off only)
+CLEAR_MULTI_TURN = bytes([0x01, 0x44, 0x58, 0x4C, 0x22])  # 0x01 then "DXL\"" (Protocol 2.0, Clear instruction)
 
 # Status packet error byte: bit 7 = alert (a hardware error is set), bits 0..6 = the error number.
 ERR_ALERT = 0x80
@@ -57,7 +59,7 @@ class X:
     ID = 7  # 1
     BAUD_RATE = 8  # 1
     RETURN_DELAY = 9  # 1, 2 us units (factory default 250: 500 us before every reply)
-    DRIVE_MODE = 10  # 1: bit 0 reverse direction, bit 2 time-based profile
+    DRIVE_MODE = 10  # 1: bit 0 reverse direction, bit 2 time-based profile, bit 3 torque on by goal update
     OPERATING_MODE = 11  # 1: 3 position, 4 extended position, 5 current-based position
     HOMING_OFFSET = 20  # 4, signed ticks added to the present position (EEPROM)
     HOMING_OFFSET_LIMIT = 1_044_479  # ticks, +- (the register's range)
@@ -65,7 +67,9 @@ class X:
     TORQUE_ENABLE = 64  # 1; EEPROM (< 64) is writable only with torque off
     LED = 65  # 1, RAM (power-up default 0): crtraj's "homed since power-up" marker
     STATUS_RETURN = 68  # 1, RAM: 0 answer PING only, 1 PING and READ, 2 every instruction
+    BUS_WATCHDOG = 98  # 1, RAM: 0 off (clears the error), 1..127 on (20 ms units, torque on only), -1 (0xFF) tripped
     HARDWARE_ERROR = 70  # 1, read-only
+    GOAL_PWM = 100  # 2: the first goal value (read-only after a Bus Watchdog stop)
     GOAL_CURRENT = 102  # 2, 2.69 mA units (current-based position mode)
     PROFILE_ACCELERATION = 108  # 4, 214.577 rev/min^2 units
     PROFILE_VELOCITY = 112  # 4, 0.229 rev/min units
@@ -81,14 +85,17 @@ class X:
     INDIRECT_COUNT = 28
     SIZE = 252  # bytes of control table the simulator keeps
 
+    POSITION = 3  # position control (single turn: switching to it, or torque on in it, loses the turn count)
     EXTENDED_POSITION = 4
     CURRENT_POSITION = 5  # current-based position control (multi-turn, current limited by the goal current)
-    DRIVE_REVERSE, DRIVE_TIME_PROFILE = 0x01, 0x04
+    DRIVE_REVERSE, DRIVE_TIME_PROFILE, DRIVE_TORQUE_ON_GOAL = 0x01, 0x04, 0x08
     RETURN_DELAY_DEFAULT = 250  # factory default (x 2 us)
     CURRENT_UNIT = 2.69  # mA per unit of goal / present current
     CURRENT_LIMIT_DEFAULT = 1193  # units (3.2 A), XM430
     # extended position control: goal position range, ticks (+-256 revolutions)
     EXTENDED_LIMIT = 1_048_575
+    WATCHDOG_UNIT = 0.020  # s per unit of Bus Watchdog
+    WATCHDOG_TRIPPED = 0xFF  # Bus Watchdog reads -1 after it stopped the servo
     VELOCITY_UNIT = 0.229  # rev/min per unit of profile / present velocity
     ACCELERATION_UNIT = 214.577  # rev/min^2 per unit of profile acceleration
 

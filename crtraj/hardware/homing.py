@@ -115,7 +115,8 @@ class Homer:
         self.io.write(dxl_id, X.LED, 1, 1, "homed marker (LED)")
         log.info("homed %s: homing offset %d ticks", self.bus.name_of(dxl_id), offset)
         model, info, firmware = identity(self.io, dxl_id)
-        return HomedServo(dxl_id, spec.name, model, offset, spec.method, now_text(), info, firmware)
+        last = self.io.read(dxl_id, X.PRESENT_POSITION, 4)  # where it is let go (`PowerUpCheck` checks it)
+        return HomedServo(dxl_id, spec.name, model, offset, spec.method, now_text(), info, firmware, last)
 
     def _set_offset(self, k: int, spec: HomingSpec) -> int:
         """Write the Homing Offset that makes servo k read its reference, and verify the reading."""

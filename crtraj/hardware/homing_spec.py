@@ -18,7 +18,10 @@ at the stop or mark; it must lie within the actuator's position limits.
 
 ``[robot.stop]`` says what happens after a stop (e-stop, hold or the end of
 a stream): ``torque = "keep"`` (default: the servos hold the braked pose, the
-cables stay taut, a lead-screw stage cannot back-drive) or ``"off"``.
+cables stay taut, a lead-screw stage cannot back-drive) or ``"off"``; and
+``bus_watchdog`` (s, default 0.1, 0.02..2.54 in 20 ms steps): a servo that hears
+no instruction for longer stops on its own with its profile (its Bus Watchdog,
+register 98), so a host that dies mid-motion leaves no servo running.
 """
 
 from __future__ import annotations
@@ -51,9 +54,11 @@ class HomingSpec:
 
 @dataclass(frozen=True)
 class StopSpec:
-    """torque: "keep" (hold the braked pose) or "off" after a stop."""
+    """torque: "keep" (hold the braked pose) or "off" after a stop. bus_watchdog: s without an instruction
+    after which each servo stops on its own (its Bus Watchdog, 20 ms steps, 0.02..2.54 s)."""
 
     torque: str = "keep"
+    bus_watchdog: float = 0.1
 
 
 def read_homing(robot: Any, actuators: Actuators) -> MappingProxyType[str, HomingSpec]:
@@ -103,5 +108,6 @@ def read_stop(robot: Any) -> StopSpec:
         return StopSpec()
     t = Table(robot.stop, "robot.stop")
     torque = t.str("torque", "keep", choices=("keep", "off"))
+    watchdog = t.float("bus_watchdog", 0.1, ge=0.02, le=2.54)
     t.finish()
-    return StopSpec(torque=torque)
+    return StopSpec(torque=torque, bus_watchdog=watchdog)

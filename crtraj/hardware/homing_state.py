@@ -40,7 +40,7 @@ taut; crtraj never uses it with a 2 pi offset.
 from __future__ import annotations
 
 import datetime as _dt
-from dataclasses import MISSING, asdict, dataclass
+from dataclasses import MISSING, asdict, dataclass, replace
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -77,7 +77,8 @@ def state_path(robot_file: str | Path) -> Path:
 class HomedServo:
     """One homed servo: bus id, actuator name, model number, Homing Offset written (ticks), method, UTC time,
     and the rest of its identity: Model Information (register 2) and Firmware Version (register 6); -1 in a
-    file written before they were recorded (it then matches no servo: home again)."""
+    file written before they were recorded (it then matches no servo: home again). last: its Present Position
+    (ticks) when crtraj last let it go (the end of the homing, of each stream); None: not recorded."""
 
     id: int
     name: str
@@ -87,6 +88,7 @@ class HomedServo:
     time: str
     model_information: int = -1
     firmware: int = -1
+    last: int | None = None
 
     def identity(self) -> tuple[int, int, int]:
         """(model number, model information, firmware version)."""
@@ -136,6 +138,10 @@ class HomingState:
     def save(self, path: str | Path) -> Path:
         """Write atomically (a crash leaves the old file or the new one, never half of one)."""
         return atomic_write_json(path, {"kind": "crtraj-homing", "servos": [asdict(s) for s in self.servos]})
+
+    def moved(self, readings: dict[int, int]) -> HomingState:
+        """This state with `last` set to `readings` (ticks, by id) for the servos it holds."""
+        return HomingState(tuple(replace(s, last=readings.get(s.id, s.last)) for s in self.servos))
 
     def merged(self, new: list[HomedServo]) -> HomingState:
         """This state with the entries of `new` replacing those of the same id."""
@@ -204,6 +210,14 @@ class PowerUpCheck:
                 f"{who}: not homed since its last power-up or reboot (its position reads within one turn); "
                 f"run {self.command}"
             )
+        # the marker is RAM: switching to Operating Mode 3 (or torque on in it) loses the turns and leaves it lit,
+        # so it counts only with a multi-turn mode read back (this check runs before connect writes mode 4)
+        mode = self.io.read(dxl_id, X.OPERATING_MODE, 1)
+        if mode not in (X.EXTENDED_POSITION, X.CURRENT_POSITION):
+            raise InputError(
+                f"{who}: Operating Mode reads {mode}, not 4 or 5 (multi-turn): in mode 3 a servo loses its turn "
+                f"count though its homed marker stays lit; run {self.command}"
+            )
         entry = self.state.get(dxl_id)
         offset = self.io.read(dxl_id, X.HOMING_OFFSET, 4)
         if entry is None or entry.offset != offset:
@@ -217,6 +231,21 @@ class PowerUpCheck:
                 f"{who}: model {found[0]}, model information {found[1]}, firmware {found[2]} is not the servo the "
                 f"homing state file recorded (model {entry.model}, model information {entry.model_information}, "
                 f"firmware {entry.firmware}): another servo on this id; run {self.command}"
+            )
+        self._check_last(k, dxl_id, entry)
+
+    def _check_last(self, k: int, dxl_id: int, entry: HomedServo) -> None:
+        """A multi-turn servo must read within half a turn of where crtraj last left it (`HomedServo.last`):
+        a Clear instruction or a spell in mode 3 moves the reading by whole turns, marker and mode unchanged."""
+        if entry.last is None:
+            return
+        n = int(self.acts.bus.ticks_per_rev[k])
+        reading = self.io.read(dxl_id, X.PRESENT_POSITION, 4)
+        if abs(reading - entry.last) * 2 >= n:
+            raise InputError(
+                f"servo {self.acts.bus.name_of(dxl_id)}: reads {reading} ticks, {(reading - entry.last) / n:+.2f} "
+                f"turns from where crtraj left it ({entry.last}): its turn count was lost (a Clear instruction, "
+                f"Operating Mode 3) or it was turned by hand; run {self.command}"
             )
 
     def _unwrap(self, k: int, dxl_id: int, reading: int, win: np.ndarray) -> None:

@@ -40,6 +40,9 @@ BUS_KEYS = ("id", "ticks_per_rev", "model", "drive_mode")
 # Acceleration as times (ms per goal), so the speed and acceleration caps crtraj writes from the actuator limits
 # (the servo's own backstop under every streamed set-point) would not exist
 TIME_PROFILE_UNSUPPORTED = "crtraj does not support the time-based profile (it would void the servo's speed caps)"
+# why "torque on by goal update" is refused: with Drive Mode bit 3 a goal written to a servo whose torque is off
+# (after a shutdown, or a stop with torque = "off") turns its torque on and moves it
+TORQUE_ON_GOAL_UNSUPPORTED = "crtraj does not support torque on by goal update (a goal would re-enable a stopped servo)"
 
 
 @dataclass(frozen=True)
@@ -58,17 +61,23 @@ class DriveMode(Options):
     time_based_profile: bit 2. Only false: crtraj does not support the time-based profile, because the servo
     then reads Profile Velocity and Acceleration as times (ms per goal) and the speed and acceleration caps
     crtraj writes from the actuator limits would not exist; the bit found on a servo is a one-line refusal.
+    torque_on_by_goal_update: bit 3. Only false: with it a goal written to a servo whose torque is off turns the
+    torque on and moves it, so a servo that shut down, or stopped with ``torque = "off"``, would not stay
+    stopped; the key, or the bit found on a servo, is a one-line refusal.
     """
 
     SECTION = "robot.actuators.drive_mode"
 
     reverse: bool = option(False)
     time_based_profile: bool = option(False)
+    torque_on_by_goal_update: bool = option(False)
 
     @property
     def bits(self) -> int:
-        """The register value these declarations give (bit 0 reverse, bit 2 time-based profile)."""
-        return (0x01 if self.reverse else 0) | (0x04 if self.time_based_profile else 0)
+        """The register value these declarations give (bit 0 reverse, bit 2 time-based profile, bit 3 torque on
+        by goal update)."""
+        bits = (0x01 if self.reverse else 0) | (0x04 if self.time_based_profile else 0)
+        return bits | (0x08 if self.torque_on_by_goal_update else 0)
 
 
 def _drive_mode(t: Table, base: dict[str, Any]) -> DriveMode:
@@ -80,6 +89,10 @@ def _drive_mode(t: Table, base: dict[str, Any]) -> DriveMode:
     mode = DriveMode.from_table(sub)
     if mode.time_based_profile:
         raise sub.error("time_based_profile", f"{TIME_PROFILE_UNSUPPORTED}: remove this key from the robot file")
+    if mode.torque_on_by_goal_update:
+        raise sub.error(
+            "torque_on_by_goal_update", f"{TORQUE_ON_GOAL_UNSUPPORTED}: remove this key from the robot file"
+        )
     return mode
 
 

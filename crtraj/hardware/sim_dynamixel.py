@@ -21,7 +21,7 @@ packets get no answer), `corrupt_replies` (a wrong CRC), `set_hardware_error`
 (an error bit: the servo drops its torque and flags the alert bit) and
 `remove` (a missing id).
 
-`SimDynamixel` puts a chain on a pseudo-terminal (`os.openpty`, raw mode) and
+`crtraj.hardware.sim_dynamixel_pty.SimDynamixel` puts a chain on a pseudo-terminal (`os.openpty`, raw mode) and
 serves it from a thread: the host opens `path` like a USB serial port. A pty
 has no baud rate, so the simulator reads the host's configured rate from the
 terminal settings and ignores a host at another rate (as a real bus would
@@ -40,6 +40,14 @@ mechanical ``stops`` (physical ticks); pressing one, the servo reads the
 current limit of its mode as Present Current (current-based position mode 5:
 the Goal Current), which is what hard-stop homing detects.
 
+The multi-turn count is also lost, the LED untouched, by switching to Operating Mode 3 (position control), by
+the torque coming on in mode 3, and by the Clear instruction (0x10, torque off only), as the e-manual says.
+
+Bus Watchdog (register 98) as the e-manual defines it: with the torque on and the register at 1..127 (20 ms
+units), a servo that hears no instruction packet for longer stops, braking with its profile from the
+reference's velocity; the register then reads -1 and the goal values are read-only (a range error) until 0 is
+written.
+
 Drive Mode's reverse bit (register 10, bit 0) as the e-manual defines it: in
 reverse mode the servo counts clockwise as positive, so Goal Position, Present
 Position and Present Velocity all run against the shaft's normal direction.
@@ -50,17 +58,9 @@ reading about the Homing Offset with the shaft left where it is.
 
 from __future__ import annotations
 
-import contextlib
 import math
-import os
-import select
 import struct
-import termios
-import threading
-import time
-import tty
-from collections.abc import Callable, Sequence
-from types import MappingProxyType
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -73,9 +73,35 @@ TICKS_PER_REV = 4096  # X-series encoder
 _UNLIMITED = 1e12  # ticks/s or ticks/s^2 for a profile register of 0
 _READ_ONLY = (range(0, 7), range(70, 71), range(120, X.INDIRECT_ADDRESS), range(X.INDIRECT_DATA, X.SIZE))
 _EEPROM_END = 64
-_BAUD_TERMIOS = MappingProxyType(
-    {b: getattr(termios, f"B{b}") for b in dxl.BAUD_CODES.values() if hasattr(termios, f"B{b}")}
-)
+
+
+def _watching(t: bytearray) -> bool:
+    """The servo with control table `t` has its Bus Watchdog armed: torque on and 1..127 (20 ms units)."""
+    return bool(t[X.TORQUE_ENABLE]) and 0 < t[X.BUS_WATCHDOG] <= 127
+
+
+def _watchdog_due(tables: list[bytearray], heard: float, reached: float | None, now: float) -> float | None:
+    """The device time (s) in [reached, now) when the first Bus Watchdog fires (a servo that heard no instruction
+    packet since `heard` for longer than its watchdog); None when none fires by `now`."""
+    first = min((heard + t[X.BUS_WATCHDOG] * X.WATCHDOG_UNIT for t in tables if _watching(t)), default=None)
+    return first if first is not None and reached is not None and reached <= first < now else None
+
+
+def _watchdog_stops(tables: list[bytearray], heard: float, now: float) -> list[int]:
+    """The servos whose Bus Watchdog fires by `now` (s): each register then reads -1 (ROBOTIS e-manual: the
+    servo stops, its goal values read-only until 0 is written)."""
+    out = [k for k, t in enumerate(tables) if _watching(t) and now >= heard + t[X.BUS_WATCHDOG] * X.WATCHDOG_UNIT]
+    for k in out:
+        tables[k][X.BUS_WATCHDOG] = X.WATCHDOG_TRIPPED
+    return out
+
+
+def _clear_refusal(t: bytearray, params: bytes) -> int:
+    """The status error of a Clear instruction to the servo with control table `t` (0: its turn count is lost):
+    only `dxl.CLEAR_MULTI_TURN`, only while stopped (torque off)."""
+    if bytes(params) != dxl.CLEAR_MULTI_TURN:
+        return dxl.ERR_DATA_RANGE
+    return dxl.ERR_RESULT_FAIL if t[X.TORQUE_ENABLE] else 0
 
 
 class ServoChain:
@@ -133,6 +159,7 @@ class ServoChain:
         self.silent_after: int | None = None  # timeout fault from this packet count on (None: never)
         self.corrupt_after: int | None = None  # corrupted-reply fault from this packet count on (None: never)
         self.counts = {"packets": 0, "replies": 0, "sync_writes": 0}
+        self._heard = 0.0  # device time (s) of the last instruction packet on the bus (the Bus Watchdog's)
 
     # --------------------------------------------------------------- faults
     def drop_replies(self, packets: int) -> None:
@@ -203,10 +230,7 @@ class ServoChain:
         multi-turn count lost: the present position reads within one turn (0..4095) plus the homing offset."""
         t = self._table[k]
         t[X.HARDWARE_ERROR] = 0
-        (offset,) = struct.unpack_from("<i", t, X.HOMING_OFFSET)
-        wrapped = (self._x[k] - offset) % TICKS_PER_REV + offset
-        self._shift[k] += wrapped - self._x[k]
-        self._x[k], self._v[k] = wrapped, 0.0
+        self._lose_turns(k, now)
         self._torque(k, False, now)  # after the wrap: the reference restarts from the position as read now
         t[64:120] = bytes(56)  # RAM back to its defaults (zero here), the shaft where it is
         t[X.STATUS_RETURN] = 2
@@ -215,7 +239,15 @@ class ServoChain:
             struct.pack_into("<H", t, X.INDIRECT_ADDRESS + 2 * j, X.INDIRECT_DATA + j)
         struct.pack_into("<i", t, X.GOAL_POSITION, int(np.rint(self._x[k])))
 
-    # -------------------------------------------------------------- physics
+    def _lose_turns(self, k: int, now: float) -> None:
+        """Servo k reads within one turn (0..4095) plus the Homing Offset, the shaft where it is (a lost count)."""
+        (offset,) = struct.unpack_from("<i", self._table[k], X.HOMING_OFFSET)
+        wrapped = (self._x[k] - offset) % TICKS_PER_REV + offset
+        self._shift[k] += wrapped - self._x[k]
+        self._x[k], self._v[k] = wrapped, 0.0
+        struct.pack_into("<i", self._table[k], X.GOAL_POSITION, int(np.rint(wrapped)))
+        self._replan(now)
+
     def positions(self, now: float) -> np.ndarray:
         """Measured positions (ticks, float) at device time `now`."""
         self.advance(now)
@@ -229,6 +261,15 @@ class ServoChain:
         if self._t is None:
             self._t = now
             self._profile.plan(self._x, np.zeros_like(self._x), self._x, now)
+        trip = _watchdog_due(self._table, self._heard, self._t, now)
+        if trip is not None:  # the Bus Watchdog fires first: move to then, stop the servos it stops, go on
+            self.advance(trip)
+            r, v = self._profile.sample(trip)  # each stops as its profile brakes, from the reference's velocity
+            goals = self._profile.target
+            for k in _watchdog_stops(self._table, self._heard, trip):
+                goals[k] = r[k] + v[k] * abs(v[k]) / (2 * self._profile.amax[k])
+                struct.pack_into("<i", self._table[k], X.GOAL_POSITION, int(np.rint(goals[k])))
+            self._profile.plan(r, v, goals, trip)
         on = np.array([t[X.TORQUE_ENABLE] == 1 for t in self._table])  # constant between packets
         while now > self._t + 1e-12:
             if self._t >= self._profile.end_time:  # the reference is at rest: one exact step to `now`
@@ -305,6 +346,7 @@ class ServoChain:
     def handle(self, packet: dxl.Packet, now: float) -> list[bytes]:
         """The status packets that answer one instruction packet at device time `now` (s)."""
         self.advance(now)
+        self._heard = now
         self.counts["packets"] += 1
         levels = {i: self._table[k][X.STATUS_RETURN] for k, i in enumerate(self.ids)}  # as the packet arrived
         replies = self._returned(packet, self._dispatch(packet, now), levels)
@@ -348,6 +390,11 @@ class ServoChain:
                 return [self._status(k, dxl.ERR_DATA_LENGTH)]
             (addr,) = struct.unpack_from("<H", p.params)
             return [self._status(k, self._write(k, addr, p.params[2:], now))]
+        if p.instruction == dxl.CLEAR:
+            error = _clear_refusal(self._table[k], p.params)
+            if not error:  # the turn count lost, the LED (crtraj's homed marker) untouched
+                self._lose_turns(k, now)
+            return [self._status(k, error)]
         if p.instruction == dxl.REBOOT:
             reply = self._status(k, 0)
             self._reboot(k, now)
@@ -402,12 +449,14 @@ class ServoChain:
         lo, hi = (-X.EXTENDED_LIMIT, X.EXTENDED_LIMIT) if extended else (0, 4095)
         if addr < X.GOAL_POSITION + 4 and end > X.GOAL_POSITION and not lo <= goal <= hi:
             return dxl.ERR_DATA_LIMIT
+        if t[X.BUS_WATCHDOG] == X.WATCHDOG_TRIPPED and addr < X.GOAL_POSITION + 4 and end > X.GOAL_PWM:
+            return dxl.ERR_DATA_RANGE  # after a watchdog stop the goal values are read-only until 98 reads 0
         torque = trial[X.TORQUE_ENABLE - base]
         if addr <= X.TORQUE_ENABLE < end and torque == 1 and t[X.HARDWARE_ERROR]:
             return dxl.ERR_RESULT_FAIL  # a servo in shutdown needs a reboot first
         if addr <= X.TORQUE_ENABLE < end and torque > 1:
             return dxl.ERR_DATA_LIMIT
-        was_on = t[X.TORQUE_ENABLE]
+        was_on, was_mode = t[X.TORQUE_ENABLE], t[X.OPERATING_MODE]
         (offset,) = struct.unpack_from("<i", t, X.HOMING_OFFSET)
         reverse = t[X.DRIVE_MODE] & X.DRIVE_REVERSE
         t[addr:end] = data
@@ -421,6 +470,9 @@ class ServoChain:
             self._x[k] += d
             self._shift[k] += d
             self._replan(now)
+        mode3 = t[X.OPERATING_MODE] == X.POSITION
+        if mode3 and (was_mode != X.POSITION or (t[X.TORQUE_ENABLE] and not was_on)):
+            self._lose_turns(k, now)  # e-manual: switching to position mode, or torque on in it, resets the turns
         if addr <= X.TORQUE_ENABLE < end and t[X.TORQUE_ENABLE] != was_on:
             self._torque(k, bool(t[X.TORQUE_ENABLE]), now)
         elif end > X.PROFILE_ACCELERATION and addr < X.GOAL_POSITION + 4 and replan:
@@ -452,111 +504,3 @@ class ServoChain:
                 self._write(self.ids.index(dxl_id), addr, body[j + 1 : j + block], now, replan=False)
         if addr < X.GOAL_POSITION + 4 and addr + length > X.PROFILE_ACCELERATION:
             self._replan(now)
-
-
-class SimDynamixel:
-    """A `ServoChain` served on a pseudo-terminal from a thread; `path` is the device to open.
-
-    clock: the chain's device time (s; tests pass a virtual clock). wire_time:
-    delay replies by their bytes' time on a real wire at the chain's baud rate
-    and the servos' Return Delay Time. power_cycle_at: power-cycle every servo
-    this long (clock s) after `serve` starts.
-    """
-
-    def __init__(
-        self,
-        chain: ServoChain,
-        *,
-        clock: Callable[[], float] = time.monotonic,
-        wire_time: bool = True,
-        power_cycle_at: float | None = None,
-    ) -> None:
-        self.chain = chain
-        self.power_cycle_at = power_cycle_at  # s after `serve` starts (clock time): every servo power-cycles once
-        self.clock = clock
-        self.wire_time = wire_time
-        self._lock = threading.Lock()
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self._reader = dxl.PacketReader()
-        self._bus_free = 0.0
-        self.wrong_baud = 0  # reads ignored because the host's rate was not the bus rate
-        self._master, self._slave = os.openpty()
-        tty.setraw(self._slave)
-        attrs = termios.tcgetattr(self._slave)
-        attrs[4] = attrs[5] = _BAUD_TERMIOS.get(chain.baud, attrs[4])
-        termios.tcsetattr(self._slave, termios.TCSANOW, attrs)
-        self.path = os.ttyname(self._slave)
-
-    @property
-    def bad_packets(self) -> int:
-        """Packets dropped for a bad CRC or length."""
-        return self._reader.bad_crc + self._reader.bad_length
-
-    def __enter__(self) -> SimDynamixel:
-        return self.start()
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
-
-    def start(self) -> SimDynamixel:
-        self._thread = threading.Thread(target=self.serve, name="crtraj-sim-dynamixel", daemon=True)
-        self._thread.start()
-        return self
-
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(2.0)
-        for fd in (self._master, self._slave):
-            with contextlib.suppress(OSError):
-                os.close(fd)
-        self._master = self._slave = -1
-
-    def locked(self) -> threading.Lock:
-        """Hold it to change the chain's faults while it serves."""
-        return self._lock
-
-    def serve(self, duration: float | None = None) -> None:
-        """Answer packets until `stop` (or for `duration` s of wall time)."""
-        end = None if duration is None else time.monotonic() + duration
-        cycle = None if self.power_cycle_at is None else self.clock() + self.power_cycle_at
-        while not self._stop.is_set() and (end is None or time.monotonic() < end):
-            cycle = self._power_cycle_due(cycle)
-            try:
-                ready, _, _ = select.select([self._master], [], [], 0.05)
-                if not ready:
-                    continue
-                data = os.read(self._master, 4096)
-            except OSError:
-                return  # closed
-            arrived = time.perf_counter()
-            if termios.tcgetattr(self._master)[4] != _BAUD_TERMIOS.get(self.chain.baud):
-                self.wrong_baud += 1  # a host at another rate: a real bus sees noise, nobody answers
-                continue
-            cycle = self._power_cycle_due(cycle)  # before the packet: it meets the servos as they are now
-            for packet in self._reader.feed(data):
-                with self._lock:
-                    replies = self.chain.handle(packet, self.clock())
-                self._send(packet.size, replies, arrived)
-
-    def _power_cycle_due(self, cycle: float | None) -> float | None:
-        """Power-cycle every servo once the clock reaches `cycle` (s); the time still pending (None: done)."""
-        if cycle is None or self.clock() < cycle:
-            return cycle
-        with self._lock:
-            self.chain.power_cycle(self.clock())
-        return None
-
-    def _send(self, request_size: int, replies: list[bytes], arrived: float) -> None:
-        """Write the replies, after the wire time of the request and of each reply when modelled."""
-        t = max(arrived, self._bus_free) + self.chain.reply_time(request_size, replies)
-        self._bus_free = t
-        if not replies:
-            return
-        if self.wire_time:  # one sleep to the end of the last reply (the host waits for all of them anyway)
-            delay = t - time.perf_counter()
-            if delay > 0:
-                time.sleep(delay)
-        with contextlib.suppress(OSError):
-            os.write(self._master, b"".join(replies))

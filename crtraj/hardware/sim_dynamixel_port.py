@@ -13,9 +13,18 @@ shared with the streamer and the homing, a run is the same on any machine under 
 
 Tests put a factory of these in `crtraj.hardware.dynamixel.port_factory` (the test seam, no flag reaches it), so
 that `crtraj.cli.main([...])` drives the simulator end to end. Times in s.
+
+Unplugging the adapter (`unplug_at`): from that clock time on, every call on the port raises what pyserial
+raises on a USB-serial adapter (or a pseudo-terminal) that went away: `serial.SerialException` on a write or
+a read, `OSError` (EIO) for the bytes waiting, `termios.error` (EIO) for a flush; closing still works.
 """
 
 from __future__ import annotations
+
+import errno
+import termios
+
+import serial
 
 from crtraj.core.clock import Clock
 from crtraj.hardware import dynamixel_protocol as dxl
@@ -42,6 +51,7 @@ class SimPort:
         self.packet_timeout = 0.0  # ms
         self.wrong_baud = 0  # packets written at another rate than the bus's: nobody answered
         self.timeouts = 0  # reads that found no reply and timed out
+        self.unplug_at: float | None = None  # clock time (s) the adapter is pulled out (None: never)
         self._rx = bytearray()
         self._reader = dxl.PacketReader()
 
@@ -53,7 +63,13 @@ class SimPort:
         self.is_open = False
         self._rx.clear()
 
+    def unplugged(self) -> bool:
+        """The adapter is out (`unplug_at` reached on the clock)."""
+        return self.unplug_at is not None and self.clock.now() >= self.unplug_at
+
     def clearPort(self) -> None:  # noqa: N802
+        if self.unplugged():
+            raise termios.error(errno.EIO, "Input/output error")
         self._rx.clear()
 
     def setBaudRate(self, baudrate: int) -> bool:  # noqa: N802
@@ -71,11 +87,15 @@ class SimPort:
 
     # ----------------------------------------------------------------- bytes
     def getBytesAvailable(self) -> int:  # noqa: N802
+        if self.unplugged():
+            raise OSError(errno.EIO, "Input/output error")
         return len(self._rx)
 
     def writePort(self, packet: list[int] | bytes) -> int:  # noqa: N802
         """The host sends `packet`: the chain handles every complete packet now; its replies are queued."""
         data = bytes(packet)
+        if self.unplugged():
+            raise serial.SerialException(f"write failed: {OSError(errno.EIO, 'Input/output error')}")
         if self.baudrate != self.chain.baud:
             self.wrong_baud += 1  # a host at another rate: the servos see noise, nobody answers
             return len(data)
@@ -88,6 +108,11 @@ class SimPort:
         return len(data)
 
     def readPort(self, length: int) -> bytes:  # noqa: N802
+        if self.unplugged():
+            raise serial.SerialException(
+                "device reports readiness to read but returned no data (device disconnected or multiple access on "
+                "port?)"
+            )
         out = bytes(self._rx[:length])
         del self._rx[:length]
         return out

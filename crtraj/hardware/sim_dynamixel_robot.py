@@ -21,6 +21,7 @@ homing state entries that ``crtraj home`` would have written. Ticks are the serv
 from __future__ import annotations
 
 import struct
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -134,4 +135,4 @@ def home_in_place(robot: Any, acts: Actuators, chain: ServoChain, values: np.nda
         clock.sleep(SETTLE_POLL)
     for k in moving:
         io.write(bus.ids[k], X.TORQUE_ENABLE, 0, 1, "torque off")
-    return homed, clock.now()
+    return [replace(h, last=io.read(h.id, X.PRESENT_POSITION, 4)) for h in homed], clock.now()

@@ -74,7 +74,7 @@ from crtraj.hardware.stream_state import (
     StreamError,
     StreamStateMachine,
 )
-from crtraj.hardware.transport import Transport, TransportError
+from crtraj.hardware.transport import LinkLostError, Transport, TransportError
 
 __all__ = [
     "ApproachPlanner",
@@ -275,7 +275,8 @@ class Streamer:
                     next_ping += 0.05
                 self._cycle.poll_telemetry(self._clock.now())
             except TransportError as exc:
-                self._machine.fail(f"transport error: {exc}", "transport-error", str(exc))
+                lost = "link_lost" if isinstance(exc, LinkLostError) else None
+                self._machine.fail(f"transport error: {exc}", "transport-error", str(exc), status=lost)
                 raise StreamError(f"{self.reason} (is the device running?)") from None
             if self._monitor.last is not None:
                 return self._monitor.last

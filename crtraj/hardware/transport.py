@@ -24,6 +24,11 @@ class TransportError(RuntimeError):
     """The link failed (socket error, serial error, disk full): streaming must stop."""
 
 
+class LinkLostError(TransportError):
+    """The link itself is gone (a USB-serial adapter unplugged, its device node removed): nothing more can be
+    sent or read on it; the streamer reports status ``link_lost``."""
+
+
 def parse_hostport(text: str, what: str) -> tuple[str, int]:
     """Split ``HOST:PORT``; `InputError` naming `what` when malformed."""
     host, sep, port = text.rpartition(":")
