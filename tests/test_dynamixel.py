@@ -462,3 +462,27 @@ def test_a_servo_rebooted_mid_stream_holds_at_once_naming_it(robot, acts, fault)
         assert chain.counts["sync_writes"] <= seen["writes"] + 2
     finally:
         sim.stop()
+
+
+def test_a_signal_during_an_sdk_transaction_waits_for_its_end():
+    """Ctrl-C or SIGTERM arriving inside one SDK call (the packet half on the wire) is raised after the call: a
+    packet cut mid-way left the SDK's busy flag set, and the stop that follows failed with "Port is in use!"."""
+    import os
+    import signal
+    from types import SimpleNamespace
+
+    from crtraj.core import interrupt
+    from crtraj.hardware.dynamixel import DynamixelTransport
+
+    done = []
+
+    def transaction():
+        os.kill(os.getpid(), signal.SIGTERM)  # delivered at the next bytecode, inside the call
+        done.append("second half")  # the rest of the packet
+        return 7
+
+    link = SimpleNamespace(_lost=None, _port=None)
+    with interrupt.policy():
+        with pytest.raises(interrupt.Interrupted):
+            DynamixelTransport._bus(link, transaction)
+    assert done == ["second half"]

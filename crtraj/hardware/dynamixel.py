@@ -65,6 +65,7 @@ import serial
 
 from crtraj.core.clock import Clock, default_clock
 from crtraj.core.errors import InputError
+from crtraj.core.interrupt import shielded
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.drive_mode import DriveModeCheck
 from crtraj.hardware.dynamixel_checks import (
@@ -278,7 +279,10 @@ class DynamixelTransport(Transport):
         if self._lost is not None:
             raise LinkLostError(self._lost)
         try:
-            return call(*args)
+            # a Ctrl-C or SIGTERM waits for the packet's end: one cut mid-packet leaves the SDK's busy flag set
+            # ("Port is in use!") and the bus mid-frame, so the stop that follows could not reach the servos
+            with shielded():
+                return call(*args)
         except LINK_ERRORS as exc:
             if self._port is not None:
                 self._port.is_using = False
