@@ -482,7 +482,6 @@ def test_a_signal_during_an_sdk_transaction_waits_for_its_end():
         return 7
 
     link = SimpleNamespace(_lost=None, _port=None)
-    with interrupt.policy():
-        with pytest.raises(interrupt.Interrupted):
-            DynamixelTransport._bus(link, transaction)
+    with interrupt.policy(), pytest.raises(interrupt.Interrupted):
+        DynamixelTransport._bus(link, transaction)
     assert done == ["second half"]
