@@ -16,7 +16,7 @@ from typing import Any
 
 from crtraj.core.errors import InputError
 from crtraj.hardware.actuators import Actuators
-from crtraj.hardware.dynamixel import CONNECT_ATTEMPTS, LINK_ERRORS, DynamixelTransport, _sdk, parse_url, port_factory
+from crtraj.hardware.dynamixel import LINK_ERRORS, DynamixelTransport, _sdk, parse_url, port_factory
 from crtraj.hardware.dynamixel_checks import ServoCheck, check_baud
 from crtraj.hardware.dynamixel_protocol import X
 from crtraj.hardware.homing_state import HomingState, PowerUpCheck, multi_turn, unwrap, windows
@@ -46,14 +46,7 @@ class ReadOnlyLink:
 
     _set_baud = staticmethod(DynamixelTransport._set_baud)
     _bus = DynamixelTransport._bus
-
-    def _ask(self, call: Any, *args: Any) -> tuple[Any, ...]:
-        out = self._bus(call, self._port, *args)
-        for _ in range(CONNECT_ATTEMPTS - 1):
-            if out[-2] == self._sdk.COMM_SUCCESS:
-                break
-            out = self._bus(call, self._port, *args)
-        return out
+    _ask = DynamixelTransport._ask
 
     read = DynamixelTransport.read
 
