@@ -153,6 +153,7 @@ def test_a_hold_latched_while_moving_ends_its_stop_before_the_link_resumes(robot
     from test_stream import _Capture, _check_frames
 
     from crtraj.core.clock import VirtualClock
+    from crtraj.hardware.protocol import MOVE
     from crtraj.hardware.stream import Streamer
 
     acts = Actuators.from_robot(robot)
@@ -180,10 +181,13 @@ def test_a_hold_latched_while_moving_ends_its_stop_before_the_link_resumes(robot
         ticks(10)
     ticks(12)  # queued up to t = 0.8 s; the loop is late: the buffer runs dry (inside the watchdog) while z moves
     braking = s.state == "held" and bool(np.any(s._gate.velocity != 0.0))
-    with pytest.raises(DeviceError, match="still braking to rest") if braking else contextlib.nullcontext():
+    with pytest.raises(DeviceError, match=r"stopping|still braking") if braking else contextlib.nullcontext():
         step(0.8, q)  # the late step arrives: it used to be queued, and its first frame refused
     ticks(60)
     assert [e for e in s._machine.events if e[1] == "refused"] == []
+    assert s.buffer.sent_stamp > 0.8 + 0.005  # the stop's frames are stamped on past the late step's start
+    with pytest.raises(DeviceError, match="stopping"):
+        step(0.8, acts.actuation(s.position))  # a restart stamped before them would send stamps back in time
     assert braking and s.state == "held" and s.reason.startswith("source stalled"), s.reason
     here = acts.actuation(s.position)
     q = step(0.9, here)  # resumes at rest where the stop ended
@@ -195,3 +199,6 @@ def test_a_hold_latched_while_moving_ends_its_stop_before_the_link_resumes(robot
     assert "refused" not in [e[1] for e in rep.events], rep.events
     assert rep.brakes == 1 and rep.brake_frames > 0
     _check_frames(cap.frames, acts, start, 0.01)
+    # on the wire, stamps never go back: the stop's frames, the holds after it, the restart and the steps after it
+    stamps = [f.stamp for f in cap.frames]
+    assert np.all(np.diff(stamps) >= 0.0) and np.all(np.diff([f.stamp for f in cap.frames if f.kind == MOVE]) > 0.0)

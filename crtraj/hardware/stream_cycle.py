@@ -79,6 +79,7 @@ class StreamCycle:
             self.braking.counts.latched += 1
             return True
         self.braking.counts.frames += 1
+        self._buffer.sent_stamp = stamp  # the hold frames after the stop repeat its last stamp: stamps never go back
         if not self._brake:  # at rest: the hold or e-stop frames now repeat for a watchdog period from here
             m.latched_at = self._braked_for = now
         return True
