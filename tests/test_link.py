@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
 
 import numpy as np
@@ -141,3 +142,63 @@ def test_the_limit_figures_of_a_live_run_are_those_of_the_frames_sent(robot):
     # the follower's 98 % of the limits, and reached: the jumps asked for far more
     assert 0.9 < got["max_acceleration_fraction"] <= 0.98 * (1 + 1e-9)
     assert link.describe()["max_acceleration_fraction"] == got["max_acceleration_fraction"]
+
+
+def test_a_hold_latched_while_moving_ends_its_stop_before_the_link_resumes(robot):
+    """In process, on the stream's virtual clock: a real `Streamer` (frames through its limits gate) driven by a
+    `DeviceLink`. The loop falls one step late while the device moves (the source stalls mid-motion, as under
+    CPU load): the stream latches ``source stalled`` and brakes within the limits; a move during the stop is a
+    `DeviceError` (resuming would reset the gate at rest mid-stop), and once at rest the link resumes from where
+    the stop ended. No frame is refused and every frame that left is within the limits (recomputed)."""
+    from test_stream import _Capture, _check_frames
+
+    from crtraj.core.clock import VirtualClock
+    from crtraj.hardware.protocol import MOVE
+    from crtraj.hardware.stream import Streamer
+
+    acts = Actuators.from_robot(robot)
+    clock, cap = VirtualClock(), _Capture()
+    s = Streamer(cap, acts, StreamOptions(prebuffer=0.1, watchdog=0.1), None, clock=clock)
+    q0 = robot.cables(XS)
+    start = acts.command(q0)
+    s.start(start, background=False)
+    link = DeviceLink(s, ServoModel(robot, 0.05, 0.1), 0.1)
+
+    def ticks(n: int) -> None:
+        for _ in range(n):
+            s._step(clock.now(), False)
+            clock.advance(0.01)
+
+    def step(t: float, q: np.ndarray) -> np.ndarray:
+        target = q + np.append(np.zeros(6), 0.6)  # z at ~6 mm/s: the device is moving when the loop is late
+        link.move(t, q, np.repeat(target[None], 5, axis=0), 0.02)
+        return target
+
+    link.begin(0.0)
+    q = step(0.0, q0)
+    for k in range(1, 8):
+        q = step(0.1 * k, q)
+        ticks(10)
+    ticks(12)  # queued up to t = 0.8 s; the loop is late: the buffer runs dry (inside the watchdog) while z moves
+    braking = s.state == "held" and bool(np.any(s._gate.velocity != 0.0))
+    with pytest.raises(DeviceError, match=r"stopping|still braking") if braking else contextlib.nullcontext():
+        step(0.8, q)  # the late step arrives: it used to be queued, and its first frame refused
+    ticks(60)
+    assert [e for e in s._machine.events if e[1] == "refused"] == []
+    assert s.buffer.sent_stamp > 0.8 + 0.005  # the stop's frames are stamped on past the late step's start
+    with pytest.raises(DeviceError, match="stopping"):
+        step(0.8, acts.actuation(s.position))  # a restart stamped before them would send stamps back in time
+    assert braking and s.state == "held" and s.reason.startswith("source stalled"), s.reason
+    here = acts.actuation(s.position)
+    q = step(0.9, here)  # resumes at rest where the stop ended
+    assert s.state == "waiting" and link.restarts == 1
+    for k in range(10, 13):
+        q = step(0.1 * k, q)
+        ticks(10)
+    rep = s.close()
+    assert "refused" not in [e[1] for e in rep.events], rep.events
+    assert rep.brakes == 1 and rep.brake_frames > 0
+    _check_frames(cap.frames, acts, start, 0.01)
+    # on the wire, stamps never go back: the stop's frames, the holds after it, the restart and the steps after it
+    stamps = [f.stamp for f in cap.frames]
+    assert np.all(np.diff(stamps) >= 0.0) and np.all(np.diff([f.stamp for f in cap.frames if f.kind == MOVE]) > 0.0)

@@ -152,8 +152,8 @@ def test_stalled_source_holds_within_the_watchdog_time(acts, tmp_path):
         s.start()
         p0 = s.position
         t0 = time.monotonic()
-        for k in range(30):  # a live source at 100 Hz for 0.3 s, then it stalls
-            s.send_values(0.01 * k, p0 + 1e-4 * (1 - np.cos(np.pi * k / 29)))
+        for k in range(31):  # a live source at 100 Hz for 0.3 s, at rest (the last frame repeated), then it stalls
+            s.send_values(0.01 * k, p0 + 1e-4 * (1 - np.cos(np.pi * min(k, 29) / 29)))
             time.sleep(max(0.0, t0 + 0.01 * (k + 1) - time.monotonic()))
         time.sleep(0.5)
         assert s.state == "held" and s.reason.startswith("source stalled")
@@ -679,3 +679,51 @@ def test_ctrl_c_brakes_within_the_limits_and_reports_the_frames_sent(acts, resul
     assert got["max_acceleration_fraction"] == pytest.approx(np.max(np.abs(A) / acts.amax), rel=1e-9)
     assert got["max_velocity_fraction"] == pytest.approx(np.max(np.abs(V) / acts.vmax), rel=1e-9)
     assert got["max_acceleration_fraction"] <= 1.0 + 1e-9
+
+
+def test_a_late_source_while_moving_brakes_within_the_limits_and_never_gets_refused(acts):
+    """The live loop late under load (an underrun shorter than the watchdog) while the device moves: the stream
+    used to send HOLD frames, a stop in one period that zeroes the gate's velocity, so the late set-points that then
+    arrived were refused for an acceleration of v/dt ("set-point refused: z acceleration ... exceeds limit").
+    Now the stream cannot stop in one period within the limits, so it latches the recoverable ``source stalled``
+    hold at once and brakes; every frame that leaves is within the limits (recomputed independently)."""
+    clock, cap = VirtualClock(), _Capture()
+    dt = 0.01
+    s = Streamer(cap, acts, StreamOptions(watchdog=0.1, prebuffer=0.05), None, clock=clock)
+    start = np.zeros(acts.n)
+    s.start(start, background=False)
+    z = acts.n - 1
+    v = 0.5 * acts.vmax[z]
+    k_ramp = int(np.ceil(v / (0.5 * acts.amax[z]) / dt))  # reach speed v at half the acceleration limit
+    speed = np.minimum(np.arange(1, 60) / k_ramp, 1.0) * v
+    path = np.tile(start, (speed.size, 1))
+    path[:, z] = np.cumsum(speed) * dt
+
+    def tick() -> None:
+        s._step(clock.now(), False)
+        clock.advance(dt)
+
+    s.send_path(dt * np.arange(40), path[:40])  # the source queues up to t = 0.39 s, then is late
+    while s.buffer.sent_stamp < 0.39 - 1e-9:
+        tick()
+    assert s.state == "streaming" and s.position[z] > 0.0
+    tick()  # one period late (well inside the watchdog): moving, the stream cannot just stop
+    with pytest.raises(StreamError, match="held"):  # braking already: the late set-points are not taken
+        s.send_path(dt * np.arange(40, 59), path[40:59])
+    assert s.state == "held" and s.reason.startswith("source stalled"), s.reason
+    with pytest.raises(StreamError, match="resume: stream is still braking to rest"):
+        s.resume()  # resetting the gate at rest mid-stop would let the next frame stop in one period
+    for _ in range(40):
+        tick()
+    assert s.state == "held" and s.reason.startswith("source stalled"), s.reason
+    s.resume()  # at rest: the source starts again from where the stop ended
+    here = s.position
+    s.send_path(1.0 + dt * np.arange(8), np.tile(here, (8, 1)))
+    s.finish()
+    for _ in range(20):
+        tick()
+    rep = s.close()
+    assert rep.status == "done", rep.message
+    assert "refused" not in [e[1] for e in rep.events], rep.events
+    assert rep.brakes == 1 and rep.brake_frames > 0
+    _check_frames(cap.frames, acts, start, dt)

@@ -51,6 +51,7 @@ class DeviceLink:
 
     # late-loop holds the link may resume from; any other hold (telemetry lost, device refusal) ends the run
     _RECOVERABLE = ("source stalled", "set-point refused")
+    _STOP_WAIT = 5.0  # s: longest a held stream's stop within the limits may take before the link resumes
 
     def __init__(
         self,
@@ -165,7 +166,13 @@ class DeviceLink:
         `commands` (one per control period of control_dt s). `DeviceError` (why) when it was not sent."""
         s = self.streamer
         if s.state == "held":
-            s.resume()
+            try:  # a hold latched while moving brakes within the limits: resume from where the stop ends
+                s.wait_stopped(self._STOP_WAIT)
+                if t < s.buffer.sent_stamp + 0.5 * self.fdt:  # the stop's frames ran past t: stamps never go back
+                    raise StreamError(f"device stream held: stopping (sent up to t={s.buffer.sent_stamp:.3f} s)")
+                s.resume()
+            except StreamError as exc:
+                raise DeviceError(str(exc)) from exc
             self._requested = False
             self.restarts += 1
             self._restart(t)

@@ -356,12 +356,12 @@ class Streamer:
             self._clock.sleep(self._dt)
 
     def resume(self) -> None:
-        """Leave a latched hold. Buffered set-points are discarded; new ones must
-        start at `position` (at rest), as after `start`."""
+        """Leave a latched hold at rest (braking: `StreamError`; `wait_stopped`); new set-points start at `position`."""
         with self._lock:
-            if self.state != HELD:
-                raise StreamError(f"resume: stream is {self.state}, not held")
-            self._buffer.clear()
+            if self.state != HELD or np.any(self._gate.velocity != 0.0):
+                why = "still braking to rest (wait_stopped first)" if self.state == HELD else f"{self.state}, not held"
+                raise StreamError(f"resume: stream is {why}")  # a gate reset mid-stop: a stop in one period
+            self._buffer.clear()  # queued set-points are discarded
             self._cycle.clear_brake()
             self._monitor.source_ok()
             self._gate.reset(self._gate.position)

@@ -79,6 +79,7 @@ class StreamCycle:
             self.braking.counts.latched += 1
             return True
         self.braking.counts.frames += 1
+        self._buffer.sent_stamp = stamp  # the hold frames after the stop repeat its last stamp: stamps never go back
         if not self._brake:  # at rest: the hold or e-stop frames now repeat for a watchdog period from here
             m.latched_at = self._braked_for = now
         return True
@@ -145,20 +146,32 @@ class StreamCycle:
             self._tick_settling(now)
             return
         if due.kind == "underrun":
-            first, waited = self._monitor.underrun(now)
-            if first:
-                self._machine.event("underrun", f"no set-point for t={due.stamp:g} s yet: holding", now)
-            if waited > self._options.watchdog:
-                self._machine.latch(
-                    f"source stalled: no set-point for t={due.stamp:g} s within {self._options.watchdog * 1000:.0f} ms",
-                    now,
-                    "stalled",
-                )
-            self._sender.hold(HOLD)
+            self._underrun(now, due.stamp)
             return
         self._monitor.source_ok()
         if self._sender.emit(MOVE, due.values, due.stamp):
             self._buffer.advance(due)
+
+    def _underrun(self, now: float, stamp: float) -> None:
+        """No set-point for `stamp` (s) yet. At rest the stream holds and waits up to the watchdog for the source.
+        Moving, a hold frame would be a stop in one period (outside the acceleration limits, and the gate, now at
+        rest, would refuse the late set-points' velocity): the stream latches the recoverable ``source stalled``
+        hold at once and brakes within the limits; the source resumes from rest where the stop ends."""
+        if np.any(self._gate.velocity != 0.0):
+            self._machine.latch(f"source stalled: no set-point for t={stamp:g} s while moving: braking", now, "stalled")
+            if not self.brake_step(now):
+                self._sender.hold(HOLD)
+            return
+        first, waited = self._monitor.underrun(now)
+        if first:
+            self._machine.event("underrun", f"no set-point for t={stamp:g} s yet: holding", now)
+        if waited > self._options.watchdog:
+            self._machine.latch(
+                f"source stalled: no set-point for t={stamp:g} s within {self._options.watchdog * 1000:.0f} ms",
+                now,
+                "stalled",
+            )
+        self._sender.hold(HOLD)
 
     def _tick_settling(self, now: float) -> None:
         self._sender.hold(HOLD)
