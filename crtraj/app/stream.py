@@ -27,7 +27,7 @@ from crtraj.core.fileio import StagedFile, check_output_file, check_outputs_not_
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.admission import AdmittedMotion, admit
 from crtraj.hardware.dynamixel import DEFAULT_BAUD
-from crtraj.hardware.homing_spec import read_stop
+from crtraj.hardware.homing_spec import read_homing, read_stop
 from crtraj.hardware.homing_state import HomingState, homing_command, state_path
 from crtraj.hardware.setpoints import check_time_scale
 from crtraj.hardware.stream import Streamer, StreamOptions, StreamReport, open_link
@@ -61,7 +61,12 @@ def admit_result(
         raise InputError(
             "robot.actuators: the result's robot has no [robot.actuators]; pass --robot problems/robots/cdsr2.toml"
         )
-    return admit(res.motion_record(), Actuators.from_robot(device), robot=device, time_scale=time_scale, rate=rate)
+    actuators = Actuators.from_robot(device)
+    # the robot's other hardware tables are read whatever the transport: a typo in them is named now, not at
+    # the first stream to servos that reads them
+    read_homing(device, actuators)
+    read_stop(device)
+    return admit(res.motion_record(), actuators, robot=device, time_scale=time_scale, rate=rate)
 
 
 def _target(args: argparse.Namespace, frames: StagedFile | None) -> str:
