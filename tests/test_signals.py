@@ -443,7 +443,11 @@ def test_signal_home(tmp_path):
     from dxl_helpers import Z_HOMING, robot_text
 
     robot = tmp_path / "robot.toml"
-    robot.write_text(robot_text(Z_HOMING))  # the shipped [robot.homing.z] table replaced by the tests' own
+    # the tests' own [robot.homing.z] in place of the shipped one, pressing toward its stop slowly: the homing must
+    # outlast the random signal point (at 20 mm/s it could finish first, exit 0)
+    slow = Z_HOMING.replace("speed = 20.0", "speed = 2.0")
+    assert slow != Z_HOMING
+    robot.write_text(robot_text(slow))
     sim_args = ["sim-dynamixel", "--pty", "--robot", str(robot), "--power-cycle-at", "0", "--duration", "600"]
     sim, pty = _server(sim_args, r"on (/dev/\S+) ", tmp_path)
     try:
