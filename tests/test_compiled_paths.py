@@ -130,7 +130,7 @@ def test_path_clearance_refuses_times_that_are_not_finite(model: Model, kernels:
     rng = np.random.default_rng(4)
     v = MotionValidator(model, random_scene(rng, 5, moving=True), kernels=kernels)
     X = v.sample(rng, 4)
-    with pytest.raises(InputError, match="^t: contains NaN or infinity"):
+    with pytest.raises(InputError, match=r"^t: contains NaN or infinity"):
         v.path_clearance(X, np.array([0.0, 1.0, np.inf, 3.0]))
 
 
