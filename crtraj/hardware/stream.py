@@ -74,7 +74,7 @@ from crtraj.hardware.stream_state import (
     StreamError,
     StreamStateMachine,
 )
-from crtraj.hardware.transport import LinkLostError, Transport, TransportError
+from crtraj.hardware.transport import Transport, TransportError
 
 __all__ = [
     "ApproachPlanner",
@@ -275,8 +275,7 @@ class Streamer:
                     next_ping += 0.05
                 self._cycle.poll_telemetry(self._clock.now())
             except TransportError as exc:
-                lost = "link_lost" if isinstance(exc, LinkLostError) else None
-                self._machine.fail(f"transport error: {exc}", "transport-error", str(exc), status=lost)
+                self._machine.transport_failed(exc)
                 raise StreamError(f"{self.reason} (is the device running?)") from None
             if self._monitor.last is not None:
                 return self._monitor.last

@@ -28,7 +28,7 @@ from crtraj.hardware.stream_state import (
     STREAMING,
     WAITING,
 )
-from crtraj.hardware.transport import LinkLostError, Transport, TransportError
+from crtraj.hardware.transport import Transport, TransportError
 
 
 class StreamCycle:
@@ -126,8 +126,7 @@ class StreamCycle:
         except TransportError as exc:
             if self.braking is not None and np.any(self._gate.velocity != 0.0):
                 self.braking.counts.latched += 1  # moving when the link failed: the device's latch is all there is
-            lost = "link_lost" if isinstance(exc, LinkLostError) else None  # the adapter is gone, not a servo
-            state.fail(f"transport error: {exc}", "transport-error", str(exc), status=lost)
+            state.transport_failed(exc)
 
     def _tick_waiting(self, now: float) -> None:
         if not self._buffer.ready(self._options.prebuffer):

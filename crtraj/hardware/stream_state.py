@@ -11,6 +11,7 @@ import logging
 
 from crtraj.core.clock import Clock
 from crtraj.hardware.stream_log import RunLog
+from crtraj.hardware.transport import LinkLostError
 
 IDLE, WAITING, STREAMING, SETTLING, HELD, DONE, ESTOPPED, ERROR, CLOSED = (
     "idle",
@@ -120,6 +121,11 @@ class StreamStateMachine:
             self.status_override = status
         self.reason = reason
         self.event(event, message)
+
+    def transport_failed(self, exc: Exception) -> None:
+        """Stop on a transport error; a lost link (the adapter gone, not a servo) reports status link_lost."""
+        lost = "link_lost" if isinstance(exc, LinkLostError) else None
+        self.fail(f"transport error: {exc}", "transport-error", str(exc), status=lost)
 
     def close(self) -> None:
         """The stream closed: a state that is not an outcome becomes closed."""
