@@ -168,7 +168,7 @@ class DeviceLink:
         if s.state == "held":
             try:  # a hold latched while moving brakes within the limits: resume from where the stop ends
                 s.wait_stopped(self._STOP_WAIT)
-                if t < s.buffer.sent_stamp + 0.5 * self.fdt:  # the stop's frames ran past t: stamps never go back
+                if t < s.buffer.sent_stamp - 1e-9:  # the stop's frames ran past t: stamps never go back
                     raise StreamError(f"device stream held: stopping (sent up to t={s.buffer.sent_stamp:.3f} s)")
                 s.resume()
             except StreamError as exc:
