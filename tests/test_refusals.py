@@ -72,7 +72,7 @@ def files(tmp_path_factory) -> dict[str, Path]:
     return {"plan": plan, "other": d / "other.json", "failed": d / "failed.json", "bare": d / "bare.toml", "dir": d}
 
 
-# (case id, argv with {plan} {other} {failed} {bare} {dir} placeholders, exit code, needle). Cheap: no solve.
+# (case id, argv with {plan} {other} {failed} {bare} {dir} format fields, exit code, needle). Cheap: no solve.
 CASES = [
     # the parser (every command): exit 2, one line with the command's --help
     ("no-such-command", ["fly"], 2, "invalid choice: 'fly'"),
