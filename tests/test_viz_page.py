@@ -92,8 +92,13 @@ def test_panel_shows_the_recorded_numbers_at_three_times(browser, run):
             w = wps[k]
             assert tab.evaluate("document.getElementById('crtraj-time').textContent") == f"t = {t + 1e-4:.2f} s"
             assert panel["0-status"] == w["status"], k
-            assert panel["0-tip_error"] == f"{w['tip_error']:.2f} mm", k
-            assert panel["0-iteration"].startswith(f"{1e3 * w['iteration_time']:.2f} / 4.0 ms"), k
+            # The page keeps 6 decimals and the panel prints 2: a value rounded twice may differ from one rounded
+            # once by one unit in the last printed place, so each shown number is checked to half a unit plus that
+            # first rounding.
+            assert panel["0-tip_error"].endswith(" mm"), k
+            assert abs(_number(panel["0-tip_error"]) - w["tip_error"]) <= 0.005 + 1e-6, k
+            assert " / 4.0 ms" in panel["0-iteration"], k
+            assert abs(_number(panel["0-iteration"]) - 1e3 * w["iteration_time"]) <= 0.005 + 1e-3, k
             dist, _, _ = _dense_closest(model, np.array(w["x"]), w["obstacles"]["centers"], w["obstacles"]["radii"])
             shown = np.array([_number(panel[f"0-distance-{i}"]) for i in range(len(dist))])
             np.testing.assert_allclose(shown, dist, atol=0.1)
