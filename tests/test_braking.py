@@ -14,21 +14,16 @@ import pytest
 from conftest import PROBLEMS, paper_copy
 from devlink import CoreLink
 
+from crtraj.app.devices import admit_result
 from crtraj.app.run_output import write_run_files
-from crtraj.app.stream import admit_result
 from crtraj.cli import main
-from crtraj.control.braking import servo_stop
-from crtraj.control.loop import ClosedLoop
-from crtraj.control.loop_setup import assemble
-from crtraj.control.problem_loop import ProblemRun, spec_from_problem
-from crtraj.control.run_record import RunStatus, StepStatus
-from crtraj.control.step_policy import RobotNow
+from crtraj.control.braking import servo_stop, stop_frames
+from crtraj.control.loop import ClosedLoop, ProblemRun, RobotNow, RunStatus, StepStatus, assemble, spec_from_problem
 from crtraj.core.clock import VirtualClock
 from crtraj.core.errors import AdmissionError
-from crtraj.hardware.braking import Braking, stop_frames
 from crtraj.hardware.protocol import ESTOP, MOVE, Frame
-from crtraj.hardware.sim_device import DeviceCore
-from crtraj.hardware.stream import Streamer, StreamOptions
+from crtraj.hardware.sim import DeviceCore
+from crtraj.hardware.stream import Braking, Streamer, StreamOptions
 from crtraj.hardware.transport import TransportError
 from crtraj.io.problem import Problem
 

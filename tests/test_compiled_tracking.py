@@ -1,5 +1,5 @@
-"""The C tracking simulation of one control step (crtraj.control.compiled_tracking) against the numpy one
-(`crtraj.control.step_motion.StepMotion.track` with TrackingController.step and ServoModel), limits binding and not."""
+"""The C tracking simulation of one control step (crtraj.control.tracking._compiled) against the numpy one
+(`StepMotion.track` with TrackingController.step and ServoModel), limits binding and not."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from conftest import PROBLEMS, require_tool
 
-from crtraj.control.compiled_tracking import CompiledTracking
 from crtraj.control.loop import ClosedLoop
+from crtraj.control.tracking._compiled import CompiledTracking
 from crtraj.core.build_cache import BuildCache
 from crtraj.io.problem import Problem
 

@@ -14,12 +14,12 @@ from crtraj.core.clock import VirtualClock
 from crtraj.core.errors import InputError
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.protocol import Telemetry
-from crtraj.hardware.setpoint_buffer import SetpointBuffer
-from crtraj.hardware.stream import StreamOptions
-from crtraj.hardware.stream_log import RunLog
-from crtraj.hardware.stream_monitor import StreamMonitor
-from crtraj.hardware.stream_pacing import RatePacer
-from crtraj.hardware.stream_state import StreamError, StreamStateMachine
+from crtraj.hardware.stream._buffer import SetpointBuffer
+from crtraj.hardware.stream._log import RunLog
+from crtraj.hardware.stream._monitor import StreamMonitor
+from crtraj.hardware.stream._pacing import RatePacer
+from crtraj.hardware.stream._state import StreamError, StreamStateMachine
+from crtraj.hardware.stream._streamer import StreamOptions
 
 DT = 0.01
 
