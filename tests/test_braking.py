@@ -266,12 +266,12 @@ def test_the_loops_hold_at_random_interrupt_times_is_a_verified_stop_within_the_
         Q, C = servo_stop(servo, q, q_last, h, limits)
         step, bound = policy.hold(RobotNow(t, q, q, servo.config(q), np.zeros(loop.robot.nx), q_last))
         if not len(Q):
-            assert np.array_equal(step[4], np.repeat(q[None], loop.n_sub, axis=0))  # at rest: commanded where it is
+            assert np.array_equal(step.commands, np.repeat(q[None], loop.n_sub, axis=0))  # at rest: held in place
             continue
         moving += 1
         assert np.allclose(motion.periods(q, C), Q, rtol=0, atol=1e-9)  # the plant executes the stop as planned
         n = min(loop.n_sub, len(Q))
-        assert np.array_equal(step[4][:n], C[:n]) and np.allclose(step[0], Q[n - 1], atol=1e-12)
+        assert np.array_equal(step.commands[:n], C[:n]) and np.allclose(step.q, Q[n - 1], atol=1e-12)
         X = servo.config(np.vstack([q_last, q, Q]))
         acc = np.diff(X, 2, axis=0) @ full.jacobian.T / h**2
         assert np.all(np.abs(acc) <= limits.amax * (1 + 1e-9)) and np.all(limits.amax <= full.amax)

@@ -149,11 +149,10 @@ def _in_time(tried: list[HorizonCall], time_left: float | None) -> bool:
 class Replanner:
     """The horizon NLP for one robot and at most `max_obstacles` obstacles, built once.
 
-    model: the robot's `Model`. options: `ReplanOptions`. safety_distance:
-    D_sf (mm, the scene's). rate_limits: the actuators' speed and acceleration
-    limits (`RateLimits`, full limits: the NLP uses ``options.limit_fraction`` of
-    them); None leaves only the mm/s rate limits. Use `obstacles_from_scene` /
-    `obstacles_from_states` to make the obstacle parameter, then `solve`.
+    model: the robot's `Model`. options: `ReplanOptions`. safety_distance: D_sf (mm, the scene's). rate_limits:
+    the actuators' speed and acceleration limits (`RateLimits`, full limits: the NLP uses ``options.limit_fraction``
+    of them); None leaves only the mm/s rate limits. Use `obstacles_from_scene` / `obstacles_from_states` to make
+    the obstacle parameter, then `solve`.
     solver_wrapper: called once with the interpreted solver of the QP's NLP (`solver`); what it returns (anything
     with ``call(args)`` and ``stats()``) is called instead, e.g. to inject a solver's failure (unused when the
     compiled C runs).
@@ -172,8 +171,7 @@ class Replanner:
         rate_limits: RateLimits | None = None,
         solver_wrapper: Callable[[ca.Function], Any] | None = None,
     ) -> None:
-        self.model = model
-        self.robot = model.robot
+        self.model, self.robot = model, model.robot
         self.options = ReplanOptions() if options is None else options
         if isinstance(max_obstacles, bool) or not isinstance(max_obstacles, (int, np.integer)) or max_obstacles < 0:
             raise InputError(f"max_obstacles: must be an integer >= 0, got {max_obstacles!r}")
@@ -183,8 +181,7 @@ class Replanner:
         self.nx, self.nq, self.N = r.nx, r.nq, o.horizon
         self.spacing = r.total_length / (o.points - 1)
         self.inflate = margin.inflation(self.safety_distance, r.body_radius, sagitta(r, self.spacing), o.margin)
-        A, _ = r.cable_matrix()
-        self._A = A
+        self._A, _ = r.cable_matrix()
         self.step_limit = np.append(np.full(3 * r.n_segments, o.max_cable_speed), o.max_z_speed) * o.dt  # mm
         self._box = r.config_box()
         self._box_lo, self._box_hi = np.tile(self._box[0], self.N), np.tile(self._box[1], self.N)
@@ -328,6 +325,10 @@ class Replanner:
         cb_ = c[None] + hi[:, None, None] * v[None]
         rmax = np.maximum(r[None] + lo[:, None] * rd[None], r[None] + hi[:, None] * rd[None])
         return self._inflated(0.5 * (ca_ + cb_), rmax + 0.5 * np.linalg.norm(cb_ - ca_, axis=-1))
+
+    def tabulate_obstacles(self, scene: Any, times: np.ndarray) -> None:
+        """Tabulate a known scene's obstacle spheres for the run's step start times (s), before the run."""
+        self.obstacle_table.tabulate(scene, times)
 
     # ------------------------------------------------------------------ solve
     def reset(self) -> None:

@@ -201,7 +201,7 @@ class ClosedLoop:
             # of the per-step call, looked up in the steps; issue 29)
             dt = self.options.dt
             times = [0.0] + [round((k + 1) * dt, 12) for k in range(self.loop_options.steps(dt))]
-            self.replanner.obstacle_table.tabulate(p.checks.scene_now, np.array(times))
+            self.replanner.tabulate_obstacles(p.checks.scene_now, np.array(times))
         self._warm_up(robot)
         frozen = _freeze_heap()
         p.pacer.begin()
@@ -231,10 +231,8 @@ class ClosedLoop:
         x1 = res.configs[0] if res.feasible else robot.x
         sim = p.motion.track(robot.q, robot.qc, robot.x, x1, robot.t, robot.inc)
         if self.options.safety:
-            p.checks.verify(sim[2], sim[3], (robot.t + dt, robot.t + 2 * dt))
-            ref = p.references.ref
-            if ref is not None:
-                p.references.reference_valid(ref, p.references.s_ref, robot.t)
+            p.checks.verify(sim.times, sim.configs, (robot.t + dt, robot.t + 2 * dt))
+            p.references.current_valid(robot.t)
 
     def _state_record(
         self,
@@ -345,7 +343,8 @@ class ClosedLoop:
         else:
             choice, res, (reason, plan_time, replanned, charged) = self._decide(k, robot, scene_t, t_iter)
         iter_time = self.clock.now() - t_iter + charged - p.references.take_waited()
-        q_new, qc_new, T, X, cmds = choice.motion
+        m = choice.motion
+        q_new, qc_new, T, X, cmds = m.q, m.qc, m.times, m.configs, m.commands
         periods = p.motion.periods(robot.q, cmds)
         if device is not None:
             landing, not_sent = self._drive(device, choice.status, t, robot.q, cmds, why, choice.bound)

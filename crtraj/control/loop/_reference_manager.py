@@ -99,6 +99,11 @@ class ReferenceManager:
         s = np.linspace(s_now, min(s_now + look, ref.end), 12)
         return self.checks.path_clear(ref.at(s), t + (s - s_now), o.dt)
 
+    def current_valid(self, t: float) -> bool | None:
+        """`reference_valid` of the reference followed now, from the progress along it, at t s (None: no
+        reference yet)."""
+        return None if self.ref is None else self.reference_valid(self.ref, self.s_ref, t)
+
     def replan_reason(self, t: float) -> str:
         """Why the reference path must be planned again at t (s) ('' when it need not)."""
         lo, ref = self.setup.loop_options, self.ref

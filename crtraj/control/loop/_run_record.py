@@ -17,9 +17,21 @@ import numpy as np
 # backbone points used to measure (not decide) clearance and to record the body
 REPORT_POINTS = 41
 
-# one step's simulated motion: (q at the end, set-point at the end, sample times (S,),
-# configurations at the samples (S, nx), set-points per control period (n_sub, nq))
-Motion = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+
+@dataclass(frozen=True)
+class Motion:
+    """One control step's simulated motion (units mm, rad, s).
+
+    q: actual actuation at the step's end (nq,) mm. qc: the set-point at the step's end (nq,) mm.
+    times: sample times (S,) s, the first the step's start. configs: configurations at the samples (S, nx).
+    commands: the set-points of the step's control periods (n_sub, nq) mm.
+    """
+
+    q: np.ndarray
+    qc: np.ndarray
+    times: np.ndarray
+    configs: np.ndarray
+    commands: np.ndarray
 
 
 class StepStatus(str, enum.Enum):

@@ -34,6 +34,17 @@ class SceneChecks:
             self.model, scene, check_points=lo.check_points, resolution=lo.check_resolution, kernels=self.kernels
         )
 
+    def compiled_build(self) -> tuple[Any, np.ndarray] | None:
+        """What a compiled step simulation is built with: (the kernels' build cache, the configuration metric
+        matrix), or None when the checks run interpreted (no C compiler, tip mode)."""
+        if not self.validator.runs_compiled():
+            return None
+        return self.kernels.build_cache, self.validator.metric_matrix
+
+    def motion_bound(self, dx: np.ndarray) -> np.ndarray:
+        """Body-motion bound (mm) of configuration changes dx (..., nx)."""
+        return self.validator.motion_bound(dx)
+
     def use(self, scene: Any) -> None:
         """Make `scene` the obstacles every check of this step uses."""
         if scene is not self.scene_now:

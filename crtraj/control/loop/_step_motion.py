@@ -40,15 +40,15 @@ class StepMotion:
         self.dt, self.n_sub, self.resolution = dt, n_sub, resolution
         self.brake_limits = brake_limits
         # with compiled checks (a C compiler), each step's tracking simulation runs in C as well
-        self.compiled = self._compiled() if checks.validator.state.kernel is not None else None
+        build = checks.compiled_build()
+        self.compiled = self._compiled(*build) if build is not None else None
 
-    def _compiled(self) -> CompiledTracking | None:
-        """The C tracking simulation (`crtraj.control.tracking._compiled`) from the validity kernel's build cache;
-        None in tip mode, without a C compiler, or when it fails to build (logged)."""
-        cache = self.checks.kernels.build_cache
+    def _compiled(self, cache: Any, metric_matrix: np.ndarray) -> CompiledTracking | None:
+        """The C tracking simulation (`CompiledTracking`) from the validity kernel's build cache; None when it
+        fails to build (logged)."""
         h = self.dt / self.n_sub
         try:
-            return CompiledTracking.load(self.tracker, h, self.checks.validator.space.metric_matrix, cache)
+            return CompiledTracking.load(self.tracker, h, metric_matrix, cache)
         except (RuntimeError, OSError) as exc:
             log.warning("compiled tracking unavailable (%s): simulating in numpy", exc)
             return None
@@ -58,16 +58,14 @@ class StepMotion:
 
         inc: the set-point's configuration change in the control period before t
         (the history of the actuator acceleration limits).
-        Returns (q at the end, set-point at the end, sample times (S,),
-        actual configurations at the samples (S, nx), set-points per control
-        period (n_sub, nq)). The first sample is the current state at t.
+        Returns the step's `Motion`; its first sample is the current state at t.
         """
-        n, ctl, servo, v = self.n_sub, self.tracker, self.servo, self.checks.validator
+        n, ctl, servo, checks = self.n_sub, self.tracker, self.servo, self.checks
         dt, resolution = self.dt, self.resolution
         if self.compiled is not None:
             done = self.compiled.step(q, qc, x0, x1, t, inc, n, dt, resolution)
             if done is not None:
-                return done
+                return Motion(*done)
         h = dt / n
         rate = (x1 - x0) / dt
         ts, xs = [np.array([t])], [servo.config(q)[None]]
@@ -77,14 +75,14 @@ class StepMotion:
             cmd = ctl.step(xm, qc, x0 + (j + 1) / n * (x1 - x0), h, x_reference_rate=rate, previous_increment=inc)
             inc = cmd.increment
             q_end = servo.advance(q, cmd.q, h)
-            span = float(v.motion_bound(servo.config(q_end) - xm))
+            span = float(checks.motion_bound(servo.config(q_end) - xm))
             ns = max(1, math.ceil(2.0 * span / resolution))
             tau = h * np.arange(1, ns + 1) / ns
             ts.append(t + j * h + tau)
             xs.append(servo.config(servo.trajectory(q, cmd.q, tau)))
             q, qc = q_end, cmd.q
             cmds[j] = qc
-        return q, qc, np.concatenate(ts), np.concatenate(xs), cmds
+        return Motion(q, qc, np.concatenate(ts), np.concatenate(xs), cmds)
 
     def periods(self, q: np.ndarray, cmds: np.ndarray) -> np.ndarray:
         """Actual actuation (n_sub, nq) mm at the end of each control period of a step that starts at q
@@ -117,7 +115,7 @@ class StepMotion:
         ts, xs = [np.array([t])], [self.servo.config(q)[None]]
         start = q
         for j, c in enumerate(C):
-            span = float(self.checks.validator.motion_bound(self.servo.config(Q[j]) - self.servo.config(start)))
+            span = float(self.checks.motion_bound(self.servo.config(Q[j]) - self.servo.config(start)))
             tau = h * np.arange(1, max(1, math.ceil(2.0 * span / self.resolution)) + 1)
             tau /= len(tau)
             ts.append(t + j * h + tau)
@@ -131,11 +129,11 @@ class StepMotion:
         Ts, Xs = T[in_step], X[in_step]
         if Ts[-1] < t + self.dt - 1e-12:  # at rest before the step ends
             Ts, Xs = np.append(Ts, t + self.dt), np.vstack([Xs, Xs[-1:]])
-        return (q_end, cmds[-1].copy(), Ts, Xs, cmds), (T, X)
+        return Motion(q_end, cmds[-1].copy(), Ts, Xs, cmds), (T, X)
 
     def _still(self, q: np.ndarray, x: np.ndarray, t: float) -> Motion:
         """The motion of holding still for one step from t: actuators commanded to their measured positions q."""
-        return (
+        return Motion(
             q.copy(),
             q.copy(),
             np.array([t, t + self.dt]),

@@ -18,8 +18,7 @@ from crtraj.control.loop._step_motion import StepMotion
 @dataclass(frozen=True)
 class Choice:
     """The move a step applies: its status, the configuration planned for the step's end (nx,), the
-    simulated motion (q end, set-point end, sample times, sample configurations, set-points per period)
-    and the conservative clearance bound (mm; NaN without safety)."""
+    simulated `Motion` and the conservative clearance bound (mm; NaN without safety)."""
 
     status: StepStatus
     planned: np.ndarray
@@ -93,7 +92,7 @@ class StepPolicy:
             if not self.options.safety:
                 chosen = Choice(status, x1, sim, math.nan)
                 break
-            bound = self.checks.verify(sim[2], sim[3], (t + dt, t + 2 * dt))
+            bound = self.checks.verify(sim.times, sim.configs, (t + dt, t + 2 * dt))
             tried.append(Choice(status, x1, sim, bound))
             if bound >= 0.0:
                 chosen = tried[-1]

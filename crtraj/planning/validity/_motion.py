@@ -162,6 +162,10 @@ class MotionValidator:
         # adaptive edge checks start from intervals of this much body motion (mm)
         self.coarse = 16.0 * self.resolution
 
+    def runs_compiled(self) -> bool:
+        """Whether the checks run in the compiled C kernel (a C compiler was found; not in tip mode)."""
+        return self.state.kernel is not None
+
     @property
     def n_samples(self) -> int:
         """Configurations checked so far (a statistic)."""
