@@ -75,6 +75,10 @@ class SetpointBuffer:
         self._stamps.extend(stamps.tolist())
         self._values.extend(values)
 
+    def finish(self) -> None:
+        """No more set-points will come."""
+        self.finished = True
+
     def clear(self) -> None:
         """Drop every queued set-point and the end mark (after a hold, a source starts again)."""
         self._stamps.clear()

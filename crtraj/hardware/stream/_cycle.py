@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from crtraj.control.braking import BrakeCounts, StopVerifier
 from crtraj.hardware.limits import LimitsGate
 from crtraj.hardware.protocol import ESTOP, HOLD, MOVE, STATUS_ESTOP, Telemetry
 from crtraj.hardware.stream._braking import Braking
@@ -36,11 +37,17 @@ class StreamCycle:
 
     options: the `StreamOptions`; transport: the link (its telemetry is read here); gate: the limits gate
     (`position` is the last commanded values); parts: the stream's state machine, buffer, monitor and log;
-    sender: where frames leave.
+    sender: where frames leave. braking: plans the stop of a hold or e-stop (None: latch at once).
     """
 
     def __init__(
-        self, options: StreamOptions, transport: Transport, gate: LimitsGate, parts: StreamParts, sender: FrameSender
+        self,
+        options: StreamOptions,
+        transport: Transport,
+        gate: LimitsGate,
+        parts: StreamParts,
+        sender: FrameSender,
+        braking: Braking | None = None,
     ) -> None:
         self._options = options
         self._transport = transport
@@ -48,9 +55,25 @@ class StreamCycle:
         self._machine, self._buffer, self._monitor = parts.machine, parts.buffer, parts.monitor
         self._sender = sender
         self.final_error: float | None = None  # max |measured - final| on arrival (rad or mm)
-        self.braking: Braking | None = None  # plans the stop of a hold or e-stop (None: latch at once)
+        self.braking = braking
         self._brake: list[tuple[float, np.ndarray]] = []  # the stop's frames still to send
         self._braked_for: float | None = None  # the latch time whose stop was planned
+
+    def check_stops_with(self, verifier: StopVerifier) -> None:
+        """Verify every stop's frames with `verifier` (an admitted motion's `FrameVerifier`) from now on, as its
+        frames are; the stop counts start again."""
+        if self.braking is not None:
+            self.braking = Braking(self.braking.actuators, self.braking.dt, verifier)
+
+    def count_latched(self) -> None:
+        """A stop cut short by the latch (the stream closed before it ended)."""
+        if self.braking is not None:
+            self.braking.counts.latched += 1
+
+    @property
+    def brake_counts(self) -> BrakeCounts:
+        """How the stream's stops went (planned, latched, frames sent, unverified)."""
+        return self.braking.counts if self.braking is not None else BrakeCounts()
 
     @property
     def is_braking(self) -> bool:

@@ -52,6 +52,16 @@ class StreamStateMachine:
         self.t_start = 0.0  # s (clock time) the stream started; event times count from it
         self.events: list[tuple[float, str, str]] = []
 
+    def use_clock(self, clock: Clock) -> None:
+        """Run on `clock` (a dry run's virtual time); only before the stream starts."""
+        if self.state != IDLE:
+            raise StreamError(f"use_clock: the stream is already {self.state}")
+        self.clock = clock
+
+    def mark_start(self) -> None:
+        """The stream starts now: event times count from the clock's reading."""
+        self.t_start = self.clock.now()
+
     def wall(self, now: float | None = None) -> float:
         """Time since the start (s), of `now` or of the clock's reading."""
         return (self.clock.now() if now is None else now) - self.t_start

@@ -173,8 +173,8 @@ class Streamer:
         self._monitor = StreamMonitor(self.session, actuators, self.options, self._log, first_seq)
         parts = StreamParts(self._machine, self._buffer, self._monitor, self._log)
         self._sender = FrameSender(transport, self._gate, self.session, first_seq, parts)
-        self._cycle = StreamCycle(self.options, transport, self._gate, parts, self._sender)
-        self._cycle.braking = Braking(actuators, self._dt)
+        braking = Braking(actuators, self._dt)  # plans the stop of a hold or e-stop
+        self._cycle = StreamCycle(self.options, transport, self._gate, parts, self._sender, braking)
         self._lock = threading.RLock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -244,7 +244,7 @@ class Streamer:
         """
         if self.state != IDLE:
             raise StreamError(f"start: streamer is already {self.state}")
-        self._machine.t_start = self._clock.now()
+        self._machine.mark_start()
         self._log.write(header_record(self.transport.description, self.session, self.options, self.actuators))
         if self.transport.has_telemetry:
             initial = self._handshake().positions
@@ -327,7 +327,7 @@ class Streamer:
     def finish(self) -> None:
         """No more set-points: stream to the last one, hold there and wait for the device to settle."""
         with self._lock:
-            self._buffer.finished = True
+            self._buffer.finish()
 
     # -------------------------------------------------------------- control
     def hold(self, reason: str = "hold requested") -> None:
@@ -406,9 +406,9 @@ class Streamer:
         nothing sent.
         """
         check_admitted(motion, self.actuators, self.options.rate)
-        self._cycle.braking = Braking(self.actuators, self._dt, motion.verifier)  # stops checked like frames
+        self._cycle.check_stops_with(motion.verifier)  # stops checked like frames
         if not self._realtime:  # a dry run streams as fast as the CPU allows
-            self._machine.clock = VirtualClock()
+            self._machine.use_clock(VirtualClock())
         if initial is None and not self.transport.has_telemetry:
             if approach:
                 raise StreamError("--approach needs a device with telemetry (its position is the approach start)")
@@ -486,7 +486,7 @@ class Streamer:
         with self._lock:
             if self.state in LIVE and self._sender.counts["frames"]:
                 if self._cycle.is_braking:  # closed before the stop ended: the last resort is the latch
-                    self._cycle.braking.counts.latched += 1
+                    self._cycle.count_latched()
                 try:
                     self._sender.hold(HOLD)
                 except TransportError as exc:
@@ -503,7 +503,7 @@ class Streamer:
     def _final_report(self, status: str | None, message: str | None) -> StreamReport:
         tel = self._monitor.last
         counts = self._sender.counts
-        brakes = self._cycle.braking.counts
+        brakes = self._cycle.brake_counts
         err = self._cycle.final_error
         if err is None and tel is not None and self._gate.position is not None and counts[MOVE]:
             err = float(np.max(np.abs(tel.positions - self._gate.position)))
