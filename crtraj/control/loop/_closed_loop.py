@@ -149,6 +149,18 @@ class ClosedLoop:
     def initial_reference(self, plan: ReferencePlan | None) -> None:
         self.references.initial = plan
 
+    def start_command(self) -> np.ndarray:
+        """The actuation (nq,) mm a run without a device starts from: the tracker's command at the start
+        configuration."""
+        return self.tracker.initial_command(self.x_start)
+
+    def plan_first_reference(self, q: np.ndarray) -> None:
+        """Plan the first reference path (`initial_reference`) from actuation q (nq,) mm among the obstacles as
+        the loop's source has them at t = 0, before the run; nothing while the source has no state yet."""
+        scene, _ = self.obstacles.at(0.0)
+        if scene is not None:
+            self.references.initial = self.reference_source(self.servo.config(q), 0.0, scene)
+
     @property
     def scene_now(self) -> Any:
         """The obstacles (a `crtraj.world.scene.Scene`, loop time) the current step was checked against: a
@@ -183,7 +195,7 @@ class ClosedLoop:
         p = self.parts
         live = bool(p.obstacles.live)
         realtime = live if realtime is None or device is not None else bool(realtime)
-        q = self.tracker.initial_command(self.x_start) if device is None else device.start_actuation()
+        q = self.start_command() if device is None else device.start_actuation()
         x = self.servo.config(q)
         robot = _Robot(0.0, q, q.copy(), x, x.copy(), q, np.zeros_like(x))
         for part in (p.tip, p.references, p.recorder, p.policy):
