@@ -18,10 +18,10 @@ import pytest
 from conftest import BALL, XG, XS, VirtualClock, straight_loop
 
 from crtraj.control.horizon import ReplanOptions
-from crtraj.control.loop._closed_loop import StepStatus
 from crtraj.control.loop._options import LoopOptions
 from crtraj.control.loop._reference import ReferencePlan
 from crtraj.control.loop._reference_worker import PendingPlan, ReferenceWorker
+from crtraj.control.loop._run_record import StepStatus
 from crtraj.planning.result import PlanStatus
 from crtraj.world.obstacle import Obstacle
 from crtraj.world.scene import Scene

@@ -53,7 +53,7 @@ from crtraj.model.kinematics import Model
 from crtraj.viz.animation import run_animation
 from crtraj.viz.geometry import M_PER_MM, cylinder_quat, fit_view, transforms, translation, unit
 from crtraj.viz.live import MeshcatWindow
-from crtraj.viz.options import MAX_SEGMENT_COLORS, ViewOptions
+from crtraj.viz.options import ViewOptions
 from crtraj.viz.page import page_data, page_json, wrap_page
 from crtraj.viz.run_paths import draw_run_paths
 from crtraj.viz.scene import ROOT, SceneBuilder
@@ -66,7 +66,7 @@ with warnings.catch_warnings():
     from IPython.display import HTML  # meshcat's own dependency, for its notebook cell
     from meshcat.animation import Animation
 
-__all__ = ["MAX_SEGMENT_COLORS", "ViewOptions", "Visualizer"]
+__all__ = ["Visualizer"]
 
 _CAMERA_FOV_DEG = 75.0  # meshcat's default perspective camera
 # width / height of the page's scene pane (1280 x 800 window less the side panel and the plots): what is framed

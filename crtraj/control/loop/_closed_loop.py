@@ -54,12 +54,12 @@ from crtraj.control.horizon import HorizonStatus, Replanner
 from crtraj.control.loop._problem import ProblemLike, ProblemRun, spec_from_problem
 from crtraj.control.loop._recorder import RunEnding
 from crtraj.control.loop._reference import ReferencePlan
-from crtraj.control.loop._run_record import REPORT_POINTS, ReplanRun, RunStatus, StateRecord, StepRecord, StepStatus
+from crtraj.control.loop._run_record import ReplanRun, RunStatus, StateRecord, StepRecord, StepStatus
 from crtraj.control.loop._setup import LoopConfig, LoopParts, LoopSpec, assemble
 from crtraj.control.loop._step_policy import Choice, RobotNow
 from crtraj.control.ports import Device, DeviceError, Landing, StepObserver
 
-__all__ = ["REPORT_POINTS", "ClosedLoop", "ReplanRun", "RunStatus", "StepStatus"]
+__all__ = ["ClosedLoop"]
 
 # LoopSpec fields whose None means "the default"
 _DEFAULTED = ("options", "loop_options", "tracking", "extra_options", "clock")

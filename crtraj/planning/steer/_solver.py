@@ -68,30 +68,13 @@ from crtraj.planning.steer._backends import (
 from crtraj.planning.steer._compiled import build_compiled
 from crtraj.planning.steer._nlp import SteerNLP, SteerQuery, config_scale
 from crtraj.planning.steer._options import (
-    IPOPT_DEFAULTS,
-    MAX_SOLVER_OPTIONS,
-    QP_SOLVERS,
-    SOLVERS,
-    SQP_DEFAULTS,
     SteerOptions,
 )
-from crtraj.planning.steer._result import SteerResult, SteerStatus, assess
+from crtraj.planning.steer._result import SteerResult, assess
 from crtraj.world import packing
 from crtraj.world.scene import Scene
 
-__all__ = [
-    "IPOPT_DEFAULTS",
-    "MAX_SOLVER_OPTIONS",
-    "QP_SOLVERS",
-    "SOLVERS",
-    "SQP_DEFAULTS",
-    "SteerOptions",
-    "SteerResult",
-    "SteerSolver",
-    "SteerStatus",
-    "config_scale",
-    "dls_step",
-]
+__all__ = ["SteerSolver", "dls_step"]
 
 
 def dls_step(
