@@ -36,7 +36,7 @@ from crtraj.core.fileio import (
     is_successful_result,
 )
 from crtraj.hardware.actuators import Actuators
-from crtraj.hardware.ros.controller import PARAMETERS, check_parameters
+from crtraj.hardware.ros.controller import check_parameters, parameter_names
 from crtraj.hardware.ros.device import VERIFY_SUBSTEPS, RosDevice
 from crtraj.hardware.ros.jtc import JtcParameters
 from crtraj.hardware.ros.node import RosNode
@@ -98,21 +98,28 @@ def _await_robot(node: RosNode, feed: ObstacleFeed, ros: RosOptions) -> JtcParam
 
 
 def _controller_parameters(node: RosNode, ros: RosOptions) -> JtcParameters:
-    """The controller's parameters through ``/<controller>/get_parameters`` (`check_parameters`); when the
-    service does not answer, the defaults, and a warning that nothing was checked."""
-    values = node.get_parameters(ros.controller, list(PARAMETERS), min(ros.start_timeout, PARAMETER_TIMEOUT))
+    """The controller's parameters through ``/<controller>/get_parameters`` (`check_parameters`, one line naming the
+    parameter on a refusal); when the service does not answer, a warning that nothing was checked and the model of
+    ``ros.distro`` (Humble for "auto") with its defaults."""
+    wait = min(ros.start_timeout, PARAMETER_TIMEOUT)
+    values = node.get_parameters(ros.controller, parameter_names(node.names), wait)
     if values is None:
+        params, why = check_parameters(ros.controller, {}, node.names, distro=ros.distro, update_rate=ros.update_rate)
         log.warning(
-            "ros: /%s/get_parameters did not answer within %g s: the controller's parameters are NOT checked; "
-            "the bridge assumes the defaults (interpolation_method splines) and open_loop_control: true",
+            "ros: /%s/get_parameters did not answer within %g s: the controller's parameters are NOT checked; the "
+            "bridge assumes %s's defaults (set ros.distro when that is not the robot's release)",
             ros.controller,
-            min(ros.start_timeout, PARAMETER_TIMEOUT),
+            wait,
+            params.distro,
         )
-        return JtcParameters()
-    params, why = check_parameters(ros.controller, values, node.names)
+    else:
+        params, why = check_parameters(
+            ros.controller, values, node.names, distro=ros.distro, update_rate=ros.update_rate
+        )
     if why:
         raise InputError(why)
-    log.info("ros: %s parameters checked: %s", ros.controller, values)
+    log.info("ros: %s (%s, lookahead %g s) parameters checked: %s", ros.controller, params.distro, params.lookahead,
+             values)  # fmt: skip
     return params
 
 

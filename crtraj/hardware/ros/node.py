@@ -273,20 +273,29 @@ class RosNode:
         return True
 
     def get_parameters(self, node_name: str, names: list[str], timeout: float) -> dict[str, Any] | None:
-        """The values of parameters `names` of node `node_name` through its ``get_parameters`` service (None
-        for a parameter it does not have); None when the service does not answer within `timeout` s."""
+        """The values of parameters `names` of node `node_name` through its ``get_parameters`` service (None for a
+        parameter it does not declare); None when the service does not answer within `timeout` s (one deadline
+        for all). One request per name, all sent at once: rclcpp's service answers a request naming one
+        undeclared parameter with no values at all, and which ones a controller declares differs per release."""
         from rcl_interfaces.srv import GetParameters
 
+        end = time.monotonic() + timeout
         client = self.node.create_client(GetParameters, f"/{node_name}/get_parameters")
         try:
             if not client.wait_for_service(timeout_sec=timeout):
                 return None
-            done = threading.Event()
-            future = client.call_async(GetParameters.Request(names=names))
-            future.add_done_callback(lambda _: done.set())
-            if not done.wait(timeout) or future.result() is None:
-                return None
-            return {n: parameter_value(v) for n, v in zip(names, future.result().values, strict=False)}
+            pending = threading.Semaphore(0)
+            futures = [client.call_async(GetParameters.Request(names=[n])) for n in names]
+            for f in futures:
+                f.add_done_callback(lambda _: pending.release())
+            for _ in futures:
+                if not pending.acquire(timeout=max(end - time.monotonic(), 0.0)):
+                    return None
+            out: dict[str, Any] = {}
+            for n, f in zip(names, futures, strict=True):
+                values = [] if f.result() is None else list(f.result().values)
+                out[n] = parameter_value(values[0]) if values else None
+            return out
         finally:
             self.node.destroy_client(client)
 
