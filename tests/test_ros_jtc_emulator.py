@@ -330,6 +330,20 @@ def test_rollings_default_blend_is_refused_with_its_fix(tmp_path, paper):
     )  # fmt: skip
 
 
+def test_a_speed_scaling_publisher_is_refused_on_jazzy(tmp_path, paper):
+    """A Jazzy controller with its defaults, and a node publishing on its ~/speed_scaling_input (any type; the real
+    one is control_msgs/SpeedScalingFactor): one line naming the topic, before anything is sent."""
+    from std_msgs.msg import Float64
+
+    def scaler(jtc):
+        jtc.node.create_publisher(Float64, "/joint_trajectory_controller/speed_scaling_input", 10)
+
+    _refused_at_start(
+        tmp_path, paper, r"^ros\.controller: something publishes on /joint_trajectory_controller/speed_scaling_input",
+        setup=scaler, distro="jazzy",
+    )  # fmt: skip
+
+
 def _parameter(name: str, value):
     from rclpy.parameter import Parameter
 

@@ -116,6 +116,12 @@ def _controller_parameters(node: RosNode, ros: RosOptions) -> JtcParameters:
         params, why = check_parameters(
             ros.controller, values, node.names, distro=ros.distro, update_rate=ros.update_rate
         )
+    scaling = f"/{ros.controller}/speed_scaling_input"
+    if not why and params.distro != "humble" and node.node.count_publishers(scaling):
+        why = (
+            f"ros.controller: something publishes on {scaling}, which changes {ros.controller}'s speed scaling while "
+            "it runs (the trajectory would not run as verified); stop that publisher"
+        )
     if why:
         raise InputError(why)
     log.info("ros: %s (%s, lookahead %g s) parameters checked: %s", ros.controller, params.distro, params.lookahead,
