@@ -46,8 +46,6 @@ COMMON = (
     "speed_scaling.initial_scaling_factor",
     "speed_scaling.state_interface",
 )
-# for backwards compatibility of imports: the names read besides the per-joint constraints
-PARAMETERS = COMMON
 # the parameter that marks each distro's JTC, newest first
 MARKERS = (("allow_trajectory_replacement", "rolling"), ("interpolate_from_desired_state", "jazzy"),
            ("open_loop_control", "humble"))  # fmt: skip
