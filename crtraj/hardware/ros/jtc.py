@@ -13,8 +13,9 @@ The model follows the controller's documented behaviour on its topic interface
 - An accepted message replaces the current trajectory at once. At its first control cycle (the
   arrival) the controller stores its state as "the point before the trajectory" (the measured
   state, or the last command with Humble's ``open_loop_control`` / later ``interpolate_from_desired_state``),
-  stamped with the arrival time. That state is read at the start of the update, before the cycle's command: it is the state one controller
-  period old (`state_before`, lag ``1 / update_rate``), not the state at the arrival time.
+  stamped with the arrival time. That state is read at the start of the update, before the cycle's
+  command: it is the state one controller period old (`state_before`, lag ``1 / update_rate``), not the
+  state at the arrival time.
 - ``header.stamp`` 0 means "start now": the start time becomes the arrival time. Point k is due at
   start + ``time_from_start[k]``.
 - Between the point before and the first point, and between consecutive points, the controller
