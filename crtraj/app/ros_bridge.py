@@ -50,6 +50,7 @@ from crtraj.world.scene import Scene
 
 log = logging.getLogger(__name__)
 PARAMETER_TIMEOUT = 2.0  # s to wait for the controller's parameter service
+PARAMETER_ANSWERS = 5.0  # s more for its answers, once found (a loaded graph answers slowly; no loop runs yet)
 
 
 @dataclass(frozen=True)
@@ -102,7 +103,7 @@ def _controller_parameters(node: RosNode, ros: RosOptions) -> JtcParameters:
     parameter on a refusal); when the service does not answer, a warning that nothing was checked and the model of
     ``ros.distro`` (Humble for "auto") with its defaults."""
     wait = min(ros.start_timeout, PARAMETER_TIMEOUT)
-    values = node.get_parameters(ros.controller, parameter_names(node.names), wait)
+    values = node.get_parameters(ros.controller, parameter_names(node.names), wait, PARAMETER_ANSWERS)
     if values is None:
         params, why = check_parameters(ros.controller, {}, node.names, distro=ros.distro, update_rate=ros.update_rate)
         log.warning(

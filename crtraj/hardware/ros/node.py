@@ -274,19 +274,21 @@ class RosNode:
                 return self._traj.get_subscription_count() > 0
         return True
 
-    def get_parameters(self, node_name: str, names: list[str], timeout: float) -> dict[str, Any] | None:
+    def get_parameters(
+        self, node_name: str, names: list[str], timeout: float, answer_timeout: float | None = None
+    ) -> dict[str, Any] | None:
         """The values of parameters `names` of node `node_name` through its ``get_parameters`` service (None for a
         parameter it does not declare); None when the service is not found within `timeout` s, or does not answer
-        every request within `timeout` s more. One request per name (`PARAMETER_WINDOW` in flight at once): rclcpp's
-        service answers a request naming one undeclared parameter with no values at all, and which ones a
-        controller declares differs per release."""
+        every request within `answer_timeout` s more (default `timeout`). One request per name, `PARAMETER_WINDOW`
+        in flight at once: rclcpp's service answers a request naming one undeclared parameter with no values at
+        all, and which ones a controller declares differs per release."""
         from rcl_interfaces.srv import GetParameters
 
         client = self.node.create_client(GetParameters, f"/{node_name}/get_parameters")
         try:
             if not client.wait_for_service(timeout_sec=timeout):
                 return None
-            end = time.monotonic() + timeout
+            end = time.monotonic() + (timeout if answer_timeout is None else answer_timeout)
             out: dict[str, Any] = {}
             for k in range(0, len(names), PARAMETER_WINDOW):
                 batch = names[k : k + PARAMETER_WINDOW]
