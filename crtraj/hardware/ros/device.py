@@ -50,7 +50,9 @@ class RosDevice:
 
     Time (pipelined): the bridge's `clock` (s; the ROS clock by default, a virtual one in tests) stamps
     what is sent; loop time t is clock time origin + t, and step t is computed and sent `lead` s before
-    it starts. The measurement at loop time t is the committed curve at t, corrected by the newest
+    it starts. Messages are stamped `controller.lookahead` s later than that (`jtc.message_epoch`): Jazzy
+    and later write their trajectory sampled one update period ahead, so each cycle commands the
+    committed curve at its own time. The measurement at loop time t is the committed curve at t, corrected by the newest
     joint state's deviation from it at the state's stamp, decayed with the servo's lag; a joint state
     older than ``ros.joint_state_timeout`` s means the robot is lost and the run ends. A message may
     take up to `arrival_margin` s to reach the controller: a step ready later than that before its
