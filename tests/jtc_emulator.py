@@ -8,8 +8,9 @@ distro's semantics, written from the controller's C++ source without crtraj's co
   (replacement, or Rolling's blend); the command written is recorded in `commanded` and published as
   sensor_msgs/JointState stamped with the cycle time (perfect tracking).
 - Its parameters are declared with the distro's names and defaults (overridable), plus ``joints``,
-  ``state_interfaces`` and ``update_rate``; ``/<name>/get_parameters`` answers as rclcpp's parameter service
-  does: a request naming one undeclared parameter gets no values at all.
+  ``state_interfaces``, ``update_rate`` and each joint's ``constraints.<joint>.trajectory`` and ``.goal``;
+  ``/<name>/get_parameters`` answers as rclcpp's parameter service does: a request naming one undeclared
+  parameter gets no values at all.
 
 Units: whatever the messages carry (rad, m), s.
 """
@@ -77,6 +78,7 @@ class JtcEmulator:
             "joints": list(self.joints),
             "state_interfaces": ["position", "velocity"] if velocity_state else ["position"],
             "update_rate": round(1.0 / self.period),
+            **{f"constraints.{j}.{k}": 0.0 for j in self.joints for k in ("trajectory", "goal")},
             **self.core.params,
         }
         for key, value in declared.items():

@@ -276,12 +276,14 @@ def test_joint_names_the_robot_does_not_have_are_one_line_and_nothing_moves(tmp_
     assert not (tmp_path / "run").exists()
 
 
-def _refused_at_start(tmp_path, paper, match: str, setup=None, **emulator) -> list:
-    """Run the bridge against an emulated controller (`emulator`: distro, params) that `setup(jtc)` may change: the
-    start is refused with one line matching `match`, nothing sent, no run written. Returns the graphs."""
+def _refused_at_start(tmp_path, paper, match: str, setup=None, joints=None, **emulator) -> list:
+    """Run the bridge against an emulated controller (`emulator`: distro, params) that `setup(jtc)` may change, with
+    [ros.joints] = `joints` (default: none): the start is refused with one line matching `match`, nothing sent, no
+    run written. Returns the graphs."""
     _, acts, scene, _, start = paper
-    names = list(acts.names)
-    path = _problem(tmp_path, acts, {}, start_timeout=5.0)
+    joints = joints or {}
+    names = [joints.get(a, a) for a in acts.names]
+    path = _problem(tmp_path, acts, joints, start_timeout=5.0)
     ros = Problem.load(path).options(RosOptions, "ros")
     clock = VirtualClock()
     graphs = []
@@ -318,16 +320,23 @@ def test_a_controller_with_other_joints_is_refused_from_its_parameters(tmp_path,
     )  # fmt: skip
 
 
-def test_rollings_default_blend_is_refused_with_its_fix(tmp_path, paper):
-    """A Rolling controller with its defaults (allow_trajectory_replacement: true), whose parameter service answers
-    as rclcpp's does (no values at all for a request naming an undeclared parameter, as open_loop_control is on
-    Rolling): the bridge still reads its parameters, tells Rolling, and refuses in one line naming the parameter
-    and the fix, before anything is sent."""
+@pytest.mark.parametrize(
+    ("distro", "params", "match"),
+    [
+        ("rolling", {}, r"allow_trajectory_replacement: true .* set allow_trajectory_replacement: false$"),
+        ("humble", {"constraints.s2c1_joint.trajectory": 0.05}, r"constraints\.s2c1_joint\.trajectory: 0\.05;"),
+        ("jazzy", {"speed_scaling.initial_scaling_factor": 0.5}, r"speed_scaling\.initial_scaling_factor: 0\.5;"),
+    ],
+)
+def test_settings_that_change_the_executed_curve_are_refused_with_their_fix(tmp_path, paper, distro, params, match):
+    """An emulated controller of each release whose parameter service answers as rclcpp's does (no values at all
+    for a request naming an undeclared parameter, as open_loop_control is on Rolling): the bridge still reads its
+    parameters, tells the release, and refuses in one line naming the parameter and the fix, before anything is
+    sent: Rolling's default blend, a path tolerance (Humble), a speed scaling factor (Jazzy)."""
+    joints = {a: f"{a}_joint" for a in paper[1].names}
     _refused_at_start(
-        tmp_path, paper,
-        r"^joint_trajectory_controller\.allow_trajectory_replacement: true .* set allow_trajectory_replacement: false$",
-        distro="rolling",
-    )  # fmt: skip
+        tmp_path, paper, r"^joint_trajectory_controller\." + match, joints=joints, distro=distro, params=params
+    )
 
 
 def test_a_speed_scaling_publisher_is_refused_on_jazzy(tmp_path, paper):
