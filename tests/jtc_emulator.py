@@ -108,7 +108,9 @@ class JtcEmulator:
 
     # ------------------------------------------------------------------ input
     def _on_trajectory(self, msg) -> None:
-        self.core.params.update({k: self.node.get_parameter(k).value for k in self.core.params})
+        self.core.params.update(
+            {k: self.node.get_parameter(k).value for k in self.core.params if self.node.has_parameter(k)}
+        )
         converted = from_ros(msg)
         why = self.core.refusal(converted, self.clock())
         with self.lock:

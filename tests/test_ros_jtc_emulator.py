@@ -339,6 +339,21 @@ def test_settings_that_change_the_executed_curve_are_refused_with_their_fix(tmp_
     )
 
 
+def test_a_controller_without_a_release_marker_is_named_and_still_checked(tmp_path, paper, caplog):
+    """A controller that declares none of the release markers (open_loop_control undeclared on a Humble one): a
+    warning names the unknown release and the assumption, and its parameters are still checked (cmd_timeout)."""
+
+    def unmark(jtc):
+        jtc.node.undeclare_parameter("open_loop_control")
+        jtc.node.set_parameters([Parameter("cmd_timeout", Parameter.Type.DOUBLE, 0.5)])
+
+    from rclpy.parameter import Parameter
+
+    caplog.set_level("WARNING", logger="crtraj.app.ros_bridge")
+    _refused_at_start(tmp_path, paper, r"^joint_trajectory_controller\.cmd_timeout: 0\.5 s;", setup=unmark)
+    assert any("its release is unknown; the bridge assumes humble" in r.getMessage() for r in caplog.records)
+
+
 def test_a_speed_scaling_publisher_is_refused_on_jazzy(tmp_path, paper):
     """A Jazzy controller with its defaults, and a node publishing on its ~/speed_scaling_input (any type; the real
     one is control_msgs/SpeedScalingFactor): one line naming the topic, before anything is sent."""

@@ -36,7 +36,7 @@ from crtraj.core.fileio import (
     is_successful_result,
 )
 from crtraj.hardware.actuators import Actuators
-from crtraj.hardware.ros.controller import check_parameters, parameter_names
+from crtraj.hardware.ros.controller import check_parameters, detect_distro, parameter_names
 from crtraj.hardware.ros.device import VERIFY_SUBSTEPS, RosDevice
 from crtraj.hardware.ros.jtc import JtcParameters
 from crtraj.hardware.ros.node import RosNode
@@ -117,6 +117,14 @@ def _controller_parameters(node: RosNode, ros: RosOptions) -> JtcParameters:
         params, why = check_parameters(
             ros.controller, values, node.names, distro=ros.distro, update_rate=ros.update_rate
         )
+        if detect_distro(values) is None:
+            log.warning(
+                "ros: %s declares none of allow_trajectory_replacement, interpolate_from_desired_state and "
+                "open_loop_control (is it a joint_trajectory_controller?): its release is unknown; the bridge "
+                "assumes %s (ros.distro)",
+                ros.controller,
+                params.distro,
+            )
     scaling = f"/{ros.controller}/speed_scaling_input"
     if not why and params.distro != "humble" and node.node.count_publishers(scaling):
         why = (
