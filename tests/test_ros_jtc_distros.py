@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from jtc_core import JtcCore, Msg, Pt
 
-from crtraj.hardware.ros.controller import check_parameters, detect_distro
-from crtraj.hardware.ros.jtc import JtcParameters, Spline, executed, message_epoch, rejection, state_before
-from crtraj.hardware.ros.shaping import step_message
+from crtraj.hardware.ros._controller import check_parameters, detect_distro
+from crtraj.hardware.ros._jtc import JtcParameters, Spline, executed, message_epoch, rejection, state_before
+from crtraj.hardware.ros._shaping import step_message
 
 NAMES = ("a", "b")
 PERIOD = 0.004  # s, a 250 Hz controller
@@ -29,7 +29,7 @@ def _wire(msg, epoch: float) -> Msg:
 
 
 def _drive(core: JtcCore, params: JtcParameters, *, seed: int, steps: int = 12, lag: float = PERIOD):
-    """Send `steps` replan steps the way `crtraj.hardware.ros.device.RosDevice` does (each sent `lead` s before it
+    """Send `steps` replan steps the way `crtraj.hardware.ros._device.RosDevice` does (each sent `lead` s before it
     starts, computed late by up to lead - margin, arriving up to `margin` after it was sent) to `core`, running its
     cycles on the controller clock. Returns the largest difference between what the controller commanded at each
     cycle and the committed (verified) curve of the newest message sent before that cycle."""
