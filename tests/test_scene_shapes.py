@@ -29,6 +29,7 @@ from crtraj.world.geometry import (
     StraightLine,
     chord_clearance,
     exact_distance,
+    exact_min_clearance,
     load_points,
     shape_from_table,
 )
@@ -244,3 +245,24 @@ def test_checker_bounds_the_dense_body_clearance():
     assert np.any(truth < 0) and np.any(truth > 0)
     near = np.abs(truth) < 30.0
     assert np.max(truth[near] - c[near]) < 6.0  # within the sagitta and the chord's tangent bound
+
+
+@pytest.mark.parametrize("kind", ["mesh", "points", "box"])
+def test_pruned_row_minimum_is_the_full_brute_force_one(kind, tmp_path):
+    """exact_min_clearance (only the pieces that can be nearest) equals the minimum of every distance."""
+    rng = np.random.default_rng(8)
+    _, m = _pipe(tmp_path)
+    geometry = {
+        "mesh": Mesh(np.asarray(m.triangles), 3.0),
+        "points": PointCloud(rng.uniform(-30, 30, size=(300, 3)), 2.0),
+        "box": Box((30, 20, 10)),
+    }[kind]
+    ms = MovingShape(geometry, StraightLine((0, 0, 0), (0, 0, 30), 1.0))
+    pts = rng.uniform(-70, 70, size=(20, 30, 3))
+    times = rng.uniform(0, 1, size=20)
+    full = np.array([exact_distance(ms, pts[i], times[i]).min() for i in range(20)])
+    if kind == "mesh":  # against every triangle, no pruning
+        full = np.array(
+            [point_triangle_distance((pts[i] - ms.frame(times[i])[0]), geometry.triangles).min() for i in range(20)]
+        )
+    np.testing.assert_allclose(exact_min_clearance(ms, pts, times), full, atol=1e-9)

@@ -12,9 +12,10 @@ what the scene and the checker ask. docs/concepts/shapes.md describes them.
 
 from crtraj.world.geometry._clearance import chord_clearance, shape_clearance
 from crtraj.world.geometry._distance import ALL_SHAPES, DistanceField, MovingShape
-from crtraj.world.geometry._exact import exact_clearances, exact_distance
+from crtraj.world.geometry._exact import exact_clearances, exact_distance, exact_min_clearance
 from crtraj.world.geometry._files import load_points, load_triangles
 from crtraj.world.geometry._motion import INTERPOLATIONS, Breathing, Fixed, Keyframes, Motion, StraightLine
+from crtraj.world.geometry._nlp import ShapeTerms
 from crtraj.world.geometry._points import MAX_POINTS, POINT_SETS, Mesh, PointCloud
 from crtraj.world.geometry._rotation import QUAT_TOL
 from crtraj.world.geometry._shapes import SHAPES, Box, Capsule, Cylinder, HalfSpace, Pose, Shape, Sphere
@@ -44,12 +45,14 @@ __all__ = [
     "PointCloud",
     "Pose",
     "Shape",
+    "ShapeTerms",
     "Sphere",
     "StraightLine",
     "casadi_distance",
     "chord_clearance",
     "exact_clearances",
     "exact_distance",
+    "exact_min_clearance",
     "load_points",
     "load_triangles",
     "shape_clearance",

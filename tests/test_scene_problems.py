@@ -1,0 +1,83 @@
+"""The shape scenes of problems/ (issue 39) plan from their files, and every 10 ms of the timed path keeps D_sf
+by an independent brute-force distance (triangles, 2-D sections, every point of a cloud); the safe IK's NLP
+keeps its check points outside a box."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from crtraj.app.plan import plan_problem
+from crtraj.io.problem import Problem, load_robot
+from crtraj.model.kinematics import Model
+from crtraj.planning.safe_ik import SafeIK
+from crtraj.planning.validity import MotionValidator
+from crtraj.world.geometry import Box, MovingShape, Pose, exact_distance, exact_min_clearance
+from crtraj.world.scene import Scene
+
+PROBLEMS = Path(__file__).resolve().parents[1] / "problems"
+
+
+def _every_10ms(t: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    times = np.append(np.arange(t[0], t[-1], 0.01), t[-1])
+    return times, np.stack([np.interp(times, t, x[:, j]) for j in range(x.shape[1])], axis=1)
+
+
+def _exact_clearance(model: Model, scene: Scene, times: np.ndarray, configs: np.ndarray) -> np.ndarray:
+    """(S,) body clearance beyond D_sf (mm): 100 fresh backbone points per configuration, brute force."""
+    pts = model.points(configs, 100)
+    d = np.min([exact_min_clearance(ms, pts, times + scene.time_origin) for ms in scene.shapes], axis=0)
+    return d - model.robot.body_radius - scene.safety_distance
+
+
+@pytest.fixture(scope="module")
+def plans():
+    out = {}
+    for name in ("shapes_table_pipe", "shapes_mesh", "shapes_cloud"):
+        out[name] = plan_problem(Problem.load(PROBLEMS / f"{name}.toml"))
+    return out
+
+
+@pytest.mark.parametrize("name", ["shapes_table_pipe", "shapes_mesh", "shapes_cloud"])
+def test_example_plans_keep_dsf_by_exact_distance(plans, name):
+    """The plan succeeds, and at every 10 ms of its timed path the body keeps D_sf from every shape by the
+    brute-force distance, with at most 40 mm to spare somewhere (the shapes are in the way)."""
+    run = plans[name]
+    assert run.result.is_success()
+    assert run.scene.n_shapes >= 1
+    times, configs = _every_10ms(np.asarray(run.result.t), np.asarray(run.result.configs))
+    clearance = _exact_clearance(run.model, run.scene, times, configs)
+    assert clearance.min() >= 0.0, f"{name}: {clearance.min():.3f} mm at t = {times[np.argmin(clearance)]:.2f} s"
+    assert clearance.min() < 40.0
+    assert len(times) >= 100 * float(run.result.t[-1])
+
+
+def test_the_exact_check_fails_a_plan_whose_scene_changed(plans):
+    """The same path against the scene with its table moved onto the robot's body mid-way: the exact check
+    finds the collision (the check is not vacuous)."""
+    run = plans["shapes_table_pipe"]
+    times, configs = _every_10ms(np.asarray(run.result.t), np.asarray(run.result.configs))
+    mid = run.model.points(configs[len(configs) // 2][None], 100)[0, 60]
+    table = run.scene.shapes[0]
+    moved = MovingShape(replace(table.shape, pose=Pose(tuple(mid), table.shape.pose.rotation)))
+    scene = replace(run.scene, shapes=(moved, *run.scene.shapes[1:]))
+    assert _exact_clearance(run.model, scene, times, configs).min() < -10.0
+
+
+def test_safe_ik_nlp_keeps_check_points_outside_a_box():
+    """Every solution the safe IK's NLP converges to (no push-out stage) keeps its check points at least the
+    inflation plus the IK's margin from the box by the brute-force distance: the box is in the NLP."""
+    model = Model(load_robot(PROBLEMS / "robots" / "cdsr2.toml"))
+    box = MovingShape(Box((30.0, 30.0, 30.0), Pose((40.0, 0.0, 300.0))))
+    v = MotionValidator(model, Scene(shapes=(box,)))
+    ik = SafeIK(model, v, 0, push_rounds=0)
+    seeds = v.sample(np.random.default_rng(0), 30)
+    batch = ik.solve(np.array([0.0, 0.0, 380.0]), np.zeros(0), seeds, want=8, always=tuple(range(8)))
+    solved = [s for s in batch.solutions if s.solver_status == "Solve_Succeeded"]
+    assert len(solved) >= 3 and ik.nlp_solves >= 3
+    for s in solved:
+        d = exact_distance(box, v.points(s.x[None])[0], 0.0)
+        assert d.min() >= v.inflate + ik.margin - 1e-5
