@@ -3,8 +3,9 @@
 The scene is one box of 120 x 80 x 70 mm turned 20 degrees about z, across the straight way from the start to
 the goal of problems/shapes_table_pipe.toml (cdsr2), so that the plan has to go round it. As spheres, the box
 is covered by a grid of nx x ny x nz spheres, each the sphere about its cell's centre through the cell's
-corners, with the most cells within the solvers' 100-sphere limit (`crtraj.world.scene.MAX_OBSTACLES`); the cover's error is how far it reaches beyond the box
-(the largest distance from the box of the cover's surface, measured on 20,000 samples of it).
+corners, with the most cells within the solvers' 100-sphere limit (`crtraj.world.scene.MAX_OBSTACLES`); the
+cover's error is how far it reaches beyond the box (the largest distance from the box of the cover's surface,
+measured on 20,000 samples of it).
 
 Figures: "plan" is `plan_problem` (cspace, the problem's seed; wall and CPU time of this process, median of
 --repeat), "checker" is `StateValidityChecker.clearance` on 2,000 random configurations (configurations per
