@@ -4,6 +4,12 @@ keeps its check points outside a box."""
 
 from __future__ import annotations
 
+import json
+import os
+import re
+import shlex
+import subprocess
+import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -81,3 +87,20 @@ def test_safe_ik_nlp_keeps_check_points_outside_a_box():
     for s in solved:
         d = exact_distance(box, v.points(s.x[None])[0], 0.0)
         assert d.min() >= v.inflate + ik.margin - 1e-5
+
+
+def test_the_shapes_page_shell_block_runs(tmp_path):
+    """docs/concepts/shapes.md's shell block runs as written from the repository root (`crtraj` as this tree's
+    `python -m crtraj.cli`) and writes a successful plan."""
+    page = (PROBLEMS.parent / "docs" / "concepts" / "shapes.md").read_text(encoding="utf-8")
+    blocks = re.findall(r"^```bash\n(.*?)^```", page, flags=re.S | re.M)
+    assert len(blocks) == 1
+    env = {**os.environ, "PYTHONPATH": str(PROBLEMS.parent)}
+    for line in blocks[0].strip().splitlines():
+        assert line.startswith("crtraj ")
+        cmd = [sys.executable, "-m", "crtraj.cli", *shlex.split(line)[1:]]
+        done = subprocess.run(cmd, cwd=PROBLEMS.parent, env=env, capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0, done.stderr
+        assert "exact with cspace" in done.stdout
+        out = shlex.split(line)[shlex.split(line).index("--out") + 1]
+        assert json.loads(Path(out).read_text())["summary"]["success"] is True
