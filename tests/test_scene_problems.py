@@ -20,6 +20,7 @@ from crtraj.app.plan import plan_problem
 from crtraj.io.problem import Problem, load_robot
 from crtraj.model.kinematics import Model
 from crtraj.planning.safe_ik import SafeIK
+from crtraj.planning.steer import SteerOptions, SteerSolver
 from crtraj.planning.validity import MotionValidator
 from crtraj.world.geometry import Box, MovingShape, Pose, exact_distance, exact_min_clearance
 from crtraj.world.scene import Scene
@@ -104,3 +105,19 @@ def test_the_shapes_page_shell_block_runs(tmp_path):
         assert "exact with cspace" in done.stdout
         out = shlex.split(line)[shlex.split(line).index("--out") + 1]
         assert json.loads(Path(out).read_text())["summary"]["success"] is True
+
+
+def test_steer_nlp_keeps_its_points_from_a_box():
+    """A steer step toward a tip just above a box: with the box in the scene the NLP's collision points keep
+    D_sf + disc radius + margin from it by the brute-force distance; the same step without it touches the box."""
+    model = Model(load_robot(PROBLEMS / "robots" / "cdsr2.toml"))
+    x0 = np.zeros(model.nx)
+    tip0 = model.tip_position(x0)
+    box = MovingShape(Box((40.0, 40.0, 10.0), Pose(tuple(tip0 + np.array([70.0, 0.0, -40.0])))))
+    target = tip0 + np.array([70.0, 0.0, -30.0])
+    steer = SteerSolver(model, 0, SteerOptions(solver="ipopt"))
+    res = steer.solve(x0, target, Scene(shapes=(box,)))
+    keep = 5.0 + model.robot.body_radius + steer.options.margin
+    assert exact_distance(box, steer.nlp.evaluate(res.x)[2], 0.0).min() >= keep - 1e-4
+    free = SteerSolver(model, 0, SteerOptions(solver="ipopt")).solve(x0, target, Scene())
+    assert exact_distance(box, steer.nlp.evaluate(free.x)[2], 0.0).min() < 1.0
