@@ -30,7 +30,7 @@ import numpy as np
 
 from crtraj.app.plan import plan_problem
 from crtraj.io.problem import Problem
-from crtraj.planning.state_validity import StateValidityChecker
+from crtraj.planning.validity import StateValidityChecker
 from crtraj.world.geometry import Box, MovingShape, Pose, exact_min_clearance
 from crtraj.world.obstacle import Obstacle
 from crtraj.world.scene import MAX_OBSTACLES, Scene

@@ -20,7 +20,7 @@ from crtraj.app.plan import plan_problem
 from crtraj.cli import main
 from crtraj.io.problem import Problem, load_robot
 from crtraj.model.kinematics import Model
-from crtraj.planning.safe_ik import SafeIK
+from crtraj.planning.ik import SafeIK
 from crtraj.planning.steer import SteerOptions, SteerSolver
 from crtraj.planning.validity import MotionValidator
 from crtraj.world.geometry import Box, MovingShape, Pose, exact_distance, exact_min_clearance

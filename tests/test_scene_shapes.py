@@ -13,7 +13,7 @@ from crtraj.core.errors import InputError
 from crtraj.core.fields import Table
 from crtraj.io.problem import Problem, load_robot
 from crtraj.model.kinematics import Model
-from crtraj.planning.state_validity import StateValidityChecker
+from crtraj.planning.validity import StateValidityChecker
 from crtraj.world.geometry import (
     MAX_POINTS,
     Box,
@@ -31,9 +31,9 @@ from crtraj.world.geometry import (
     exact_distance,
     exact_min_clearance,
     load_points,
+    point_triangle_distance,
     shape_from_table,
 )
-from crtraj.world.geometry._exact import point_triangle_distance
 from crtraj.world.scene import Scene
 
 ROBOT = (Path(__file__).resolve().parents[1] / "problems" / "robots" / "cdsr2.toml").as_posix()

@@ -12,7 +12,7 @@ what the scene and the checker ask. docs/concepts/shapes.md describes them.
 
 from crtraj.world.geometry._clearance import chord_clearance, shape_clearance
 from crtraj.world.geometry._distance import ALL_SHAPES, DistanceField, MovingShape
-from crtraj.world.geometry._exact import exact_clearances, exact_distance, exact_min_clearance
+from crtraj.world.geometry._exact import exact_clearances, exact_distance, exact_min_clearance, point_triangle_distance
 from crtraj.world.geometry._files import load_points, load_triangles
 from crtraj.world.geometry._motion import INTERPOLATIONS, Breathing, Fixed, Keyframes, Motion, StraightLine
 from crtraj.world.geometry._nlp import ShapeTerms
@@ -55,6 +55,7 @@ __all__ = [
     "exact_min_clearance",
     "load_points",
     "load_triangles",
+    "point_triangle_distance",
     "shape_clearance",
     "shape_from_table",
     "shape_to_dict",
