@@ -23,6 +23,7 @@ from crtraj.model.kinematics import Model
 from crtraj.planning.ik import SafeIK
 from crtraj.planning.steer import SteerOptions, SteerSolver
 from crtraj.planning.validity import MotionValidator
+from crtraj.viz.view import Visualizer
 from crtraj.world.geometry import Box, MovingShape, Pose, exact_distance, exact_min_clearance
 from crtraj.world.scene import Scene
 
@@ -131,3 +132,37 @@ def test_replan_refuses_shapes_in_one_line(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "scene.shape" in err and "crtraj plan" in err
     assert not out.exists() and list(tmp_path.iterdir()) == []
+
+
+def test_view_draws_each_shape_where_the_scene_puts_it(plans):
+    """The view of the table + pipe plan: one node per shape placed at the shape's frame (the sliding bar keyed
+    along its motion), a box of the table's size with a shell D_sf larger; the cloud plan's points are drawn
+    as all 1,500 points."""
+    run = plans["shapes_table_pipe"]
+    with Visualizer(run.model, server=False) as vis:
+        vis.show_result(run.document())
+        cmds = vis.scene_commands()
+    tf = {c["path"]: np.array(c["matrix"]).reshape(4, 4).T for c in cmds if c["type"] == "set_transform"}
+    objects = {c["path"]: c["object"] for c in cmds if c["type"] == "set_object"}
+    table = run.scene.shapes[0]
+    o, r, _ = table.frame(0.0)
+    np.testing.assert_allclose(tf["/meshcat/shapes/0"][:3, 3], o * 1e-3, atol=1e-9)
+    np.testing.assert_allclose(tf["/meshcat/shapes/0"][:3, :3], r, atol=1e-9)
+    geometries = {g["type"]: g for g in objects["/meshcat/shapes/0/body/0"]["geometries"]}
+    box = geometries["BoxGeometry"]
+    np.testing.assert_allclose([box["width"], box["height"], box["depth"]], [0.12, 0.08, 0.08], atol=1e-12)
+    shell = {g["type"]: g for g in objects["/meshcat/shapes/0/shell/0"]["geometries"]}["BoxGeometry"]
+    assert shell["width"] == pytest.approx(0.12 + 2 * run.scene.safety_distance * 1e-3)
+    anims = next(c for c in cmds if c["type"] == "set_animation")["animations"]
+    bar = {a["path"]: a for a in anims}["/meshcat/shapes/3"]
+    keys = {t["name"]: t for t in bar["clip"]["tracks"]}[".position"]["keys"]
+    ms = run.scene.shapes[3]
+    for k in keys[:: max(1, len(keys) // 5)]:
+        np.testing.assert_allclose(k["value"], ms.frame(k["time"])[0] * 1e-3, atol=1e-6)
+    cloud = plans["shapes_cloud"]
+    with Visualizer(cloud.model, server=False) as vis:
+        vis.show_result(cloud.document())
+        pts = [c for c in vis.scene_commands() if c["type"] == "set_object" and c["path"] == "/meshcat/shapes/0/body/0"]
+    position = pts[0]["object"]["geometries"][0]["data"]["attributes"]["position"]
+    drawn = np.frombuffer(position["array"].data, dtype=np.float32).reshape(-1, 3)
+    np.testing.assert_allclose(drawn, cloud.scene.shapes[0].shape.points * 1e-3, atol=1e-6)  # in the shape's frame

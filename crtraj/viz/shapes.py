@@ -148,3 +148,16 @@ def _quat_xyzw(r: np.ndarray) -> np.ndarray:
         q[j] = (r[j, i] + r[i, j]) / s
         q[k] = (r[k, i] + r[i, k]) / s
     return np.array(q)
+
+
+def shape_extent(shapes: tuple[MovingShape, ...], t: float) -> np.ndarray:
+    """Points (K, 3) mm that bound the bounded shapes at time t (s), for framing the camera: each shape's
+    bounding sphere's six extreme points (a half space is left out: it has no bound)."""
+    pts = [np.zeros((0, 3))]
+    for ms in shapes:
+        r = ms.shape.local_radius
+        if not math.isfinite(r):
+            continue
+        o, _, s = ms.frame(t)
+        pts.append(o + s * r * np.concatenate([np.eye(3), -np.eye(3)]))
+    return np.concatenate(pts)

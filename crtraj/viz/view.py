@@ -57,7 +57,7 @@ from crtraj.viz.options import MAX_SEGMENT_COLORS, ViewOptions
 from crtraj.viz.page import page_data, page_json, wrap_page
 from crtraj.viz.run_paths import draw_run_paths
 from crtraj.viz.scene import ROOT, SceneBuilder
-from crtraj.viz.shapes import draw_shapes
+from crtraj.viz.shapes import draw_shapes, shape_extent
 from crtraj.viz.timeline import Timeline, build_timeline
 
 with warnings.catch_warnings():
@@ -268,6 +268,8 @@ class Visualizer:
         if run.centers.shape[1]:
             r = run.radii[..., None] + self._safety
             frame += [(run.centers - r).reshape(-1, 3), (run.centers + r).reshape(-1, 3)]
+        if run.scene is not None:
+            frame.append(shape_extent(run.scene.shapes, run.t[0] + run.scene.time_origin))
         allp = np.concatenate(frame)
         scene.floor(allp.min(axis=0) - 10.0, allp.max(axis=0) + 10.0)
         self.frame_camera(allp)
