@@ -68,7 +68,7 @@ def cover_spheres(pts: np.ndarray, ball: float, max_spheres: int) -> tuple[np.nd
     return centres, far + ball
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # equal when the same object: arrays have no single truth value
 class PointCloud:
     """Balls of `radius` (mm) about `points` (K, 3) mm of the shape's frame (module docstring)."""
 
@@ -137,7 +137,7 @@ def surface_samples(tri: np.ndarray, spacing: float) -> tuple[np.ndarray, float]
     return samples, cover
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # equal when the same object: arrays have no single truth value
 class Mesh:
     """The surface of a triangle mesh, `triangles` (T, 3, 3) mm in the shape's frame, sampled every
     `spacing` mm (module docstring: its distance is conservative by at most `cover` mm)."""
