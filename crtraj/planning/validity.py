@@ -50,7 +50,7 @@ import numpy as np
 
 from crtraj.core.errors import InputError
 from crtraj.model.kinematics import Model
-from crtraj.planning.compiled_validity import per_item
+from crtraj.planning.compiled_validity import ValidityKernel, per_item
 from crtraj.planning.kernels import Kernels
 from crtraj.planning.metric import BodyMetric
 from crtraj.planning.rate_limits import RateLimits
@@ -200,6 +200,11 @@ class MotionValidator:
     def project_limits(self, X: np.ndarray) -> np.ndarray:
         """Configurations moved into the limits: `ConfigSampler.project_limits`."""
         return self.sampler.project_limits(X)
+
+    @property
+    def kernel(self) -> ValidityKernel | None:
+        """The compiled validity kernel this validator checks with (None: the interpreted path)."""
+        return self.state.kernel
 
     def within_limits(self, X: np.ndarray) -> np.ndarray:
         """True per configuration within every limit: `ConfigSampler.within_limits`."""
