@@ -45,15 +45,12 @@ from __future__ import annotations
 import argparse
 import datetime
 import hashlib
-import io
 import json
 import os
 import platform
 import statistics
 import subprocess
 import sys
-import tarfile
-import tempfile
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -79,7 +76,8 @@ from crtraj.planning.validity import MotionValidator
 from crtraj.world.scene import Scene
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from plan_stages import section_stages  # a sibling module (the script may be run from anywhere)
+from baseline_tree import revision_tree  # sibling modules (the script may be run from anywhere)
+from plan_stages import section_stages
 
 ROOT = Path(__file__).resolve().parent.parent
 # Section 2's row of crtraj's plans retimed the way before issue 41 (`retime_result(..., compiled=False)`).
@@ -494,10 +492,7 @@ def stage_queries(problem: Problem, model: Model, scene: Scene, options: Planner
 def section_baseline(rev: str, problem_path: str, seeds: int, scenes: int, rounds: int) -> None:
     """Section 0: this code against REV's (module docstring)."""
     print(f"\n== 0. this code against {rev}: {seeds} sim-1 seeds, {scenes} Table I scenes, {rounds} rounds ==")
-    with tempfile.TemporaryDirectory(prefix="crtraj-baseline-") as tmp:
-        tar = subprocess.run(["git", "-C", str(ROOT), "archive", rev], capture_output=True, check=True).stdout
-        with tarfile.open(fileobj=io.BytesIO(tar)) as t:
-            t.extractall(tmp, filter="data")
+    with revision_tree(rev) as tmp:
         sides = {rev: tmp, "this": str(ROOT)}
         runs: dict[str, list[dict]] = {k: [] for k in sides}
         for _ in range(rounds):

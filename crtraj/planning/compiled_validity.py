@@ -67,7 +67,7 @@ from crtraj.world import packing
 # The hand-written C around the generated functions: the edge checks' driver, the path functions, the retiming's.
 DRIVER = EDGE_DRIVER + PATH_DRIVER + RETIME_DRIVER
 # Version of the generated code and driver: raising it makes every cached kernel foreign (rebuilt).
-GENERATOR = 19
+GENERATOR = 20
 # Most check points a kernel is generated for: the generated FK grows with them (100 points: ~15 s of
 # gcc); denser checks (reports, tests) stay on the interpreted path.
 MAX_COMPILED_POINTS = 200
