@@ -21,7 +21,7 @@ from crtraj.planning.options import PlannerOptions
 from crtraj.planning.pipeline import retime_result
 from crtraj.planning.rate_limits import RateLimits
 from crtraj.planning.registry import BUILTIN
-from crtraj.planning.retime import _over_limits, _piece_law, _sample_law, _toppra_law, retime_curve
+from crtraj.planning.retime import _on_chord, _over_limits, _piece_law, _sample_law, _toppra_law, retime_curve
 from crtraj.world.scene import Scene
 
 PERIOD = 0.01
@@ -144,3 +144,26 @@ def test_sim1_executable_motion_is_the_same_with_the_compiled_law(seed):
     np.testing.assert_array_equal(out.tips, model.tip_position(py.configs))
     assert out.min_clearance == v.path_clearance(py.configs, py.stamps)[0]
     assert info["max_velocity_fraction"] <= options.limit_fraction + 1e-9
+
+
+def _on_chord_plain(a: np.ndarray, b: np.ndarray, inner: np.ndarray, tol: float) -> bool:
+    """The chord test as written before (differences of the parameters, np.linalg.norm)."""
+    d = b - a
+    dd = float(d @ d)
+    if dd == 0.0:
+        return False
+    u = (inner - a) @ d / dd
+    if np.any(np.diff(np.concatenate([[0.0], u, [1.0]])) < 0.0):
+        return False
+    return bool(np.max(np.linalg.norm(a + u[:, None] * d - inner, axis=1)) <= tol)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(2, 8), st.floats(1e-12, 1e-8))
+def test_chord_test_decides_as_before(seed, k, tol):
+    """`_on_chord` decides as the plain formulas on points near, on, before and beyond random chords."""
+    rng = np.random.default_rng(seed)
+    a, b = rng.normal(size=5), rng.normal(size=5)
+    u = np.sort(rng.uniform(-0.1, 1.1, size=k)) if rng.random() < 0.7 else rng.uniform(-0.1, 1.1, size=k)
+    inner = a + u[:, None] * (b - a) + rng.choice([0.0, 1e-11, 1e-9]) * rng.normal(size=(k, 5))
+    assert _on_chord(a, b, inner, tol) == _on_chord_plain(a, b, inner, tol)

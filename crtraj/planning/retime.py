@@ -162,9 +162,13 @@ def _on_chord(a: np.ndarray, b: np.ndarray, inner: np.ndarray, tol: float) -> bo
     if dd == 0.0:
         return False
     u = (inner - a) @ d / dd
-    if np.any(np.diff(np.concatenate([[0.0], u, [1.0]])) < 0.0):
+    # in order along the chord: 0 <= u_0 <= u_1 <= ... <= 1 (a difference of two doubles is negative exactly when
+    # the second is the smaller, so these comparisons decide as the differences did)
+    if u[0] < 0.0 or u[-1] > 1.0 or np.any(u[1:] < u[:-1]):
         return False
-    return bool(np.max(np.linalg.norm(a + u[:, None] * d - inner, axis=1)) <= tol)
+    w = a + u[:, None] * d - inner
+    # the largest distance as np.linalg.norm computes each (the square root of the summed squares)
+    return bool(np.sqrt(np.max((w * w).sum(axis=1))) <= tol)
 
 
 def motion_limits(D: np.ndarray, limits: RateLimits, metric: BodyMetric) -> tuple[np.ndarray, np.ndarray]:
