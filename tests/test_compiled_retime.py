@@ -14,14 +14,14 @@ from crtraj.core.build_cache import BuildCache
 from crtraj.core.errors import InputError
 from crtraj.io.problem import Problem
 from crtraj.model.kinematics import Model
-from crtraj.planning.compiled_validity import ValidityKernel
+from crtraj.model.rate_limits import RateLimits
 from crtraj.planning.context import PlanningContext
 from crtraj.planning.metric import BodyMetric
 from crtraj.planning.options import PlannerOptions
 from crtraj.planning.pipeline import retime_result
-from crtraj.planning.rate_limits import RateLimits
-from crtraj.planning.registry import BUILTIN
+from crtraj.planning.planners import BUILTIN
 from crtraj.planning.retime import _on_chord, _over_limits, _piece_law, _sample_law, _toppra_law, retime_curve
+from crtraj.planning.validity import ValidityKernel
 from crtraj.world.scene import Scene
 
 PERIOD = 0.01
