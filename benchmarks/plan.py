@@ -13,7 +13,9 @@ Each query runs on both paths, one after the other, so both see the same load.
    the Table I scenes at 3 and 7 obstacles: time to the first verified solution (goal IK included; crtraj: when
    its search returns, before shortcuts and smoothing), and time to an
    executable motion: OMPL's path simplified by its PathSimplifier, then both retimed with
-   `crtraj.planning.pipeline.retime_result` (as `plan_executable`). Target: crtraj >= 3x faster.
+   `crtraj.planning.pipeline.retime_result` (as `plan_executable`), the retimed frames re-checked densely.
+   Target: crtraj >= 3x faster. Beside them crtraj's same plans retimed the way before issue 41
+   (`compiled=False`: the phase pass in Python, the model's CasADi tips), right after the new retiming.
 3. Table I scenes (`crtraj.bench.scenarios`, moving obstacles) at 7 obstacles, `--table1` scenes.
    Targets (new): median <= 4 ms, p90 <= 10 ms.
 4. Scaling (`--scaling` scenes per point): CPU time against the obstacle count (1 to 100 spheres) and the
@@ -29,7 +31,8 @@ shared with other jobs it moves far less with their load than wall time). Every 
 is re-checked independently (200 backbone points every 10 ms of the timed path, numpy distances).
 
 With `--baseline REV` (a git revision, e.g. the previous stop's commit) the run starts with section 0: this
-code against REV's on the same queries (sim 1 and Table I at 7 obstacles), each side in its own process
+code against REV's on the same queries (sim 1 and Table I at 7 obstacles, the planner alone; and the executable
+motion, plan and `retime_result`, on sim 1 and Table I at 3 and 7 obstacles), each side in its own process
 (`--ab-worker`), the sides alternating `--ab-rounds` times so both see the same load: CPU and wall medians,
 their ratio, identical plans, success, length, smallest clearance and the dense re-check.
 
@@ -42,15 +45,12 @@ from __future__ import annotations
 import argparse
 import datetime
 import hashlib
-import io
 import json
 import os
 import platform
 import statistics
 import subprocess
 import sys
-import tarfile
-import tempfile
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -76,9 +76,12 @@ from crtraj.planning.validity._motion import MotionValidator
 from crtraj.world.scene import Scene
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from plan_stages import section_stages  # a sibling module (the script may be run from anywhere)
+from baseline_tree import revision_tree  # sibling modules (the script may be run from anywhere)
+from plan_stages import section_stages
 
 ROOT = Path(__file__).resolve().parent.parent
+# Section 2's row of crtraj's plans retimed the way before issue 41 (`retime_result(..., compiled=False)`).
+OLD_RETIME = "crtraj, retiming in Python"
 # The two paths compared in every section (both on the compiled kernel): "old" without the edge check's broad
 # phase and without the IK's rescue stage (the code before issue 29), "new" the defaults.
 MODES = (
@@ -220,14 +223,16 @@ def ompl_queries(problem: Problem, model: Model, scene: Scene, sim1: dict, n: in
     return sets
 
 
-def executable(res: Any, context: PlanningContext, scene: Scene) -> tuple[bool, float]:
-    """Retime a result as `plan_executable` does (`retime_result`): (success, retime wall time s)."""
+def executable(res: Any, context: PlanningContext, scene: Scene, compiled: bool = True) -> tuple[bool, float, Any]:
+    """Retime a result as `plan_executable` does (`retime_result`): (success, retime wall time s, the retimed
+    result). compiled False: the phase pass in Python and the model's CasADi tips (the retiming before issue 41)."""
     limits = context.robot.actuator_limits()
     if not res.is_success() or limits is None or context.rate_limits is None:
-        return res.is_success(), 0.0
+        return res.is_success(), 0.0, res
+    kw = {} if compiled else {"compiled": False}  # a baseline tree's retime_result has no switch
     t1 = time.perf_counter()
-    out, _ = retime_result(res, context.validity_for(scene), context, limits, STREAM_RATE)
-    return out.is_success(), time.perf_counter() - t1
+    out, _ = retime_result(res, context.validity_for(scene), context, limits, STREAM_RATE, **kw)
+    return out.is_success(), time.perf_counter() - t1, out
 
 
 def section_ompl(problem: Problem, model: Model, scene: Scene, options: PlannerOptions, sim1: dict, n: int) -> None:
@@ -244,7 +249,8 @@ def section_ompl(problem: Problem, model: Model, scene: Scene, options: PlannerO
     stop = StopCondition(time_limit=5.0, max_iterations=options.max_iterations, first_solution=True)
     print("first: time to the first verified solution (goal IK included; crtraj: when its search returns, before")
     print("shortcuts and smoothing); executable: crtraj's whole plan (shortcut, smoothed, verified), OMPL's path")
-    print("simplified by its PathSimplifier, then both retimed (`retime_result`, as plan_executable)")
+    print("simplified by its PathSimplifier, then both retimed (`retime_result`, as plan_executable) and the retimed")
+    print(f"frames re-checked densely; '{OLD_RETIME}': crtraj's same plans retimed as before issue 41")
     for name, queries in ompl_queries(problem, model, scene, sim1, n).items():
         # with the robot's rate limits, as plan_executable plans and retimes
         ctx = PlanningContext.build(model, scene if name == "sim 1" else Scene(), o)
@@ -253,26 +259,35 @@ def section_ompl(problem: Problem, model: Model, scene: Scene, options: PlannerO
             "RRTConnect": OMPLPlanner(ctx, algorithm="RRTConnect", simplify=False),
             "RRTConnect+simplify": OMPLPlanner(ctx, algorithm="RRTConnect", simplify=True),
         }
-        first = {k: [] for k in runs}
-        exe = {k: [] for k in runs}
+        first = {k: [] for k in [*runs, OLD_RETIME]}
+        exe = {k: [] for k in [*runs, OLD_RETIME]}
+        same = 0
         for i, (goal, xs, sc) in enumerate(queries):
             for label, p in runs.items():
                 res = p.plan(goal, start_config=xs, scene=sc, stop=stop, seed=i)
-                ok, t_re = executable(res, ctx, sc)
-                ok = ok and dense_clearance(model, sc, res.t, res.configs) >= 0.0
+                ok, t_re, out = executable(res, ctx, sc)
                 # crtraj: until its search returned a verified path (goal IK included), before shortcuts and
                 # smoothing, as OMPL's first solution; OMPL's own total otherwise
                 t_first = res.timings.get("first_solution", res.timings["total"])
+                if label == "crtraj":  # the same plan retimed the old way too, right after (the same load)
+                    ok_old, t_old, old = executable(res, ctx, sc, compiled=False)
+                    same += bool(np.array_equal(old.configs, out.configs) and np.array_equal(old.t, out.t))
+                    dense_old = ok_old and dense_clearance(model, sc, old.t, old.configs) >= 0.0
+                    first[OLD_RETIME].append(t_first if res.is_success() else np.inf)
+                    exe[OLD_RETIME].append(res.timings["total"] + t_old if dense_old else np.inf)
+                # the executable motion (retimed frames) re-checked densely
+                ok = ok and dense_clearance(model, sc, out.t, out.configs) >= 0.0
                 first[label].append(t_first if res.is_success() else np.inf)
                 exe[label].append(res.timings["total"] + t_re if ok else np.inf)
         print(f"-- {name}: median / p90, success; crtraj's speed-up over RRTConnect")
-        for label in runs:
+        for label in exe:
             ok = int(np.isfinite(exe[label]).sum())
-            line = f"   {label:<20s} first {summary(first[label])}   executable {summary(exe[label])}"
+            line = f"   {label:<28s} first {summary(first[label])}   executable {summary(exe[label])}"
             print(f"{line}   {ok}/{len(queries)}")
         sp_first = np.median(first["RRTConnect"]) / np.median(first["crtraj"])
         sp_exe = np.median(exe["RRTConnect+simplify"]) / np.median(exe["crtraj"])
         print(f"   speed-up (median): first solution {sp_first:.1f}x, executable {sp_exe:.1f}x (target >= 3x)")
+        print(f"   identical executable motions, compiled and Python retiming: {same}/{len(queries)}")
 
 
 def section_table1(model: Model, options: PlannerOptions, n: int) -> None:
@@ -429,7 +444,33 @@ def ab_worker(problem_path: str, seeds: int, scenes: int) -> None:
         dense = ok and dense_clearance(model, sc, res.t, res.configs) >= 0.0
         digest = hashlib.sha256(res.configs.tobytes() + res.t.tobytes()).hexdigest()
         out[name].append([wall, cpu, ok, dense, float(res.length), float(res.min_clearance), digest])
+    out.update(ab_executable(problem, model, scene, options, seeds, scenes))
     print(json.dumps(out))
+
+
+def ab_executable(problem: Problem, model: Model, scene: Scene, options: PlannerOptions, seeds: int, scenes: int):
+    """Section 0's executable motions: per query (plan + retime wall s, plan + retime CPU s, success, the retimed
+    frames verified densely, tip path length mm, clearance mm, a digest of the frames, the retiming's wall s)."""
+    out: dict[str, list] = {}
+    o = options.with_(algorithm="cspace")
+    stop = StopCondition(time_limit=5.0, max_iterations=o.max_iterations, first_solution=True)
+    goal, start = problem.task.goal, problem.task.start
+    sets = {"executable, sim 1": (scene, [(goal, {"start_tip": start, "seed": s}, scene) for s in range(seeds)])}
+    for count in (3, 7):
+        qs = [(sc.goal, {"start_config": sc.start, "scene": sc.scene, "seed": i}, sc.scene)
+              for i, sc in enumerate(table1_scenes(model, count, scenes))]  # fmt: skip
+        sets[f"executable, Table I, {count} obstacles"] = (Scene(), qs)
+    for name, (base, qs) in sets.items():
+        ctx = PlanningContext.build(model, base, o)
+        p, (g, kw0, sc0), rows = BUILTIN.create("cspace", ctx, None), qs[-1], out.setdefault(name, [])
+        executable(p.plan(g, stop=stop, **dict(kw0, seed=10_000)), ctx, sc0)  # warm-up
+        for goal, kw, sc in qs:
+            c0, res = time.process_time(), p.plan(goal, stop=stop, **kw)
+            ok, t_re, ex = executable(res, ctx, sc)
+            cpu, dense = time.process_time() - c0, ok and dense_clearance(model, sc, ex.t, ex.configs) >= 0.0
+            digest = hashlib.sha256(ex.configs.tobytes() + ex.t.tobytes()).hexdigest()
+            rows.append([res.timings["total"] + t_re, cpu, ok, dense, ex.length, ex.min_clearance, digest, t_re])
+    return out
 
 
 def stage_queries(problem: Problem, model: Model, scene: Scene, options: PlannerOptions, n: int) -> dict:
@@ -451,10 +492,7 @@ def stage_queries(problem: Problem, model: Model, scene: Scene, options: Planner
 def section_baseline(rev: str, problem_path: str, seeds: int, scenes: int, rounds: int) -> None:
     """Section 0: this code against REV's (module docstring)."""
     print(f"\n== 0. this code against {rev}: {seeds} sim-1 seeds, {scenes} Table I scenes, {rounds} rounds ==")
-    with tempfile.TemporaryDirectory(prefix="crtraj-baseline-") as tmp:
-        tar = subprocess.run(["git", "-C", str(ROOT), "archive", rev], capture_output=True, check=True).stdout
-        with tarfile.open(fileobj=io.BytesIO(tar)) as t:
-            t.extractall(tmp, filter="data")
+    with revision_tree(rev) as tmp:
         sides = {rev: tmp, "this": str(ROOT)}
         runs: dict[str, list[dict]] = {k: [] for k in sides}
         for _ in range(rounds):
@@ -482,6 +520,9 @@ def section_baseline(rev: str, problem_path: str, seeds: int, scenes: int, round
         ca_, cb = min(a[5] for a, _ in both), min(b[5] for _, b in both)
         print(f"   speed-up {rev} / this (median): CPU {cpu:.2f}x, wall {wall:.2f}x; identical plans {same}/{n}; "
               f"tip path length mean {la:.1f} / {lb:.1f} mm; smallest clearance {ca_:.2f} / {cb:.2f} mm")  # fmt: skip
+        if len(new[0]) > 7:  # executable motions: the retiming's own wall time
+            rt = {label: summary([q[7] for q in qs]) for label, qs in rows.items()}
+            print("   retiming alone, wall median / p90: " + ", ".join(f"{k} {v}" for k, v in rt.items()))
 
 
 def main() -> None:

@@ -40,7 +40,11 @@ deadline. 'p99 w/o plan' leaves out the iterations that planned a reference
 path or took one over; 'misses' counts the steps whose NLP result came after
 the deadline (they fall back to the last verified plan or a verified hold).
 
-Run: python benchmarks/replan.py [--seeds 3] [--deadline 0.002]
+With `--baseline REV` (a git revision) the first variant also runs on REV's tree: each seed on both trees, one
+process per seed and side, alternating (issue 41: the step before and after a change, in one run, under one load);
+the rows are labelled with the tree.
+
+Run: python benchmarks/replan.py [--seeds 3] [--deadline 0.002] [--baseline REV]
          [--solvers compiled,compiled-prev,compiled-untabled,compiled-unfused,compiled-3it,compiled-all,compiled-old,
                     sqp,ipopt,sqp-qrqp,sqp-hpipm,compiled-hpipm]
 """
@@ -51,10 +55,15 @@ import argparse
 import contextlib
 import dataclasses
 import datetime
+import hashlib
+import json
 import os
 import platform
+import subprocess
+import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 from unittest import mock
 
 import numpy as np
@@ -65,6 +74,9 @@ from crtraj.control.loop._closed_loop import ClosedLoop
 from crtraj.control.loop._options import LoopOptions
 from crtraj.core.fileio import read_toml
 from crtraj.io.problem import Problem
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from baseline_tree import revision_tree  # a sibling module (the script may be run from anywhere)
 
 ROOT = Path(__file__).resolve().parent.parent
 PAPER = read_toml(ROOT / "benchmarks" / "paper_results.toml")  # the paper's figures (a copy of its reference file)
@@ -227,6 +239,34 @@ def _comparisons(qp_obstacles: int) -> list[tuple[str, str, str]]:
     ]  # fmt: skip
 
 
+def _worker(problem: Problem, name: str, seed: int) -> None:
+    """One run of variant `name` for `seed` with whatever crtraj is on the path, as one JSON line (--baseline)."""
+    run, cpu = _one(problem, name, seed, True)
+    times = {k: np.asarray(getattr(run, k), float).tolist() for k in ("iter_time", "nlp_time", "plan_time")}
+    digest = hashlib.sha256(np.asarray(run.x, float).tobytes() + np.asarray(run.q_command, float).tobytes())
+    print(json.dumps({**times, "summary": run.summary(), "cpu": cpu, "digest": digest.hexdigest()}, default=float))
+
+
+def run_trees(args: argparse.Namespace, name: str, seeds: list[int]) -> list[dict]:
+    """Variant `name` on REV's tree and on this one (`--baseline`), seed by seed, each run in its own process."""
+    raw: dict[str, list] = {}
+    with revision_tree(args.baseline) as tmp:
+        for seed in seeds:
+            for label, tree in ((f"{name}@{args.baseline}", tmp), (f"{name}@this", str(ROOT))):
+                cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", str(seed), "--problem", args.problem]
+                cmd += ["--solvers", name] + ([] if args.deadline is None else ["--deadline", str(args.deadline)])
+                env = dict(os.environ, PYTHONPATH=tree)
+                out = json.loads(subprocess.run(cmd, env=env, capture_output=True, text=True, check=True).stdout)
+                arrays = {k: np.asarray(out[k]) for k in ("iter_time", "nlp_time", "plan_time")}
+                run = SimpleNamespace(**arrays, summary=lambda d=out["summary"]: d, digest=out["digest"])
+                raw.setdefault(label, []).append((run, out["cpu"]))
+    (old, a), (new, b) = raw.items()
+    same = sum(x.digest == y.digest for (x, _), (y, _) in zip(a, b, strict=True))
+    # without a deadline a run is the same computation on both trees; under one, late results depend on the load
+    print(f"identical runs (configurations and commands) {old} vs {new}: {same}/{len(a)}")
+    return [_summary(label, runs) for label, runs in raw.items()]
+
+
 def _merge(dicts: list[dict]) -> dict:
     out: dict = {}
     for d in dicts:
@@ -245,9 +285,14 @@ def main() -> None:
         help=f"comma list of {', '.join(VARIANTS)}",
     )
     ap.add_argument("--deadline", type=float, default=None, help="step deadline s (default: the problem's)")
+    ap.add_argument("--baseline", default=None, help="git revision: the first variant on its tree too (interleaved)")
+    ap.add_argument("--worker", type=int, default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
     DEADLINE[0] = args.deadline
     problem = Problem.load(args.problem)
+    if args.worker is not None:
+        _worker(problem, args.solvers.split(",")[0].strip(), args.worker)
+        return
     seeds = list(range(args.seeds))
     names = [s.strip() for s in args.solvers.split(",") if s.strip()]
     for n in names:
@@ -266,26 +311,27 @@ def main() -> None:
         "times per control iteration\n"
     )
     head = (
-        f"{'variant':<12} {'reached':>8} {'coll.':>6} {'min clr':>8} {'it med':>8} {'it p99':>8} {'w/o plan':>8} "
-        f"{'it max':>8} "
+        f"{'variant':<16} {'reached':>8} {'coll.':>6} {'min clr':>8} {'it med':>8} {'it p90':>8} {'it p99':>8} "
+        f"{'w/o plan':>8} {'it max':>8} "
         f"{'NLP med':>8} {'NLP p99':>8} {'tip err':>8} {'sim s':>6} {'plans':>6} {'misses':>6} {'cpu/st':>8}"
     )
     print(head)
     print("-" * len(head))
     t0 = time.perf_counter()
     results = run_variants(problem, names, seeds)
-    for r in results:
+    trees = run_trees(args, names[0], seeds) if args.baseline else []
+    for r in results + trees:
         n = r["variant"]
         print(
-            f"{n:<12} {r['reached']:>4}/{r['runs']:<3} {r['collisions']:>6} {r['min_clearance']:>7.2f}m "
-            f"{r['it_med'] * 1e3:>6.2f}ms {r['it_p99'] * 1e3:>6.2f}ms {r['it_p99_np'] * 1e3:>6.2f}ms "
-            f"{r['it_max'] * 1e3:>6.0f}ms "
+            f"{n:<16} {r['reached']:>4}/{r['runs']:<3} {r['collisions']:>6} {r['min_clearance']:>7.2f}m "
+            f"{r['it_med'] * 1e3:>6.2f}ms {r['it_p90'] * 1e3:>6.2f}ms {r['it_p99'] * 1e3:>6.2f}ms "
+            f"{r['it_p99_np'] * 1e3:>6.2f}ms {r['it_max'] * 1e3:>6.0f}ms "
             f"{r['nlp_med'] * 1e3:>6.2f}ms {r['nlp_p99'] * 1e3:>6.2f}ms {r['tip_err']:>7.3f}m {r['duration']:>6.1f} "
             f"{r['plans']:>6} {r['misses']:>6} {r['cpu_step'] * 1e3:>6.2f}ms"
         )
     print(
-        f"{'paper':<12} {'':>8} {'':>6} {'':>8} {paper['iteration_s'] * 1e3:>6.0f}ms {'':>8} {'':>8} {'':>8} {'':>8} "
-        f"{'':>8} {paper['tip_error_mm']:>7.2f}m"
+        f"{'paper':<16} {'':>8} {'':>6} {'':>8} {paper['iteration_s'] * 1e3:>6.0f}ms {'':>8} {'':>8} {'':>8} "
+        f"{'':>8} {'':>8} {'':>8} {paper['tip_error_mm']:>7.2f}m"
     )
     print(
         "\n(m = mm; 'min clr' = smallest body clearance minus D_sf over every verification sample, 41 backbone "
@@ -296,6 +342,10 @@ def main() -> None:
     )
     by = {r["variant"]: r for r in results}
     print()
+    if trees:
+        print(
+            f"{names[0]}, this tree vs {args.baseline}'s (seed by seed, alternating processes): {_ratios(*trees[::-1])}"
+        )
     for new_, old_, text in _comparisons(problem.options(ReplanOptions, "replan").qp_obstacles):
         if new_ in by and old_ in by:
             a, b = by[new_], by[old_]

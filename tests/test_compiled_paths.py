@@ -8,6 +8,7 @@ one filled node by node."""
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import replace
 
 import numpy as np
@@ -203,3 +204,30 @@ def test_tree_filled_at_once_is_the_tree_filled_node_by_node():
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
     for q in rng.normal(size=(10, 3)):
         assert a.nearest(q) == b.nearest(q)
+
+
+@settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(seed=st.integers(0, 2**32 - 1), n=st.integers(1, 40), moving=st.booleans(), origin=st.floats(0, 5))
+def test_path_clearance_of_frames_shares_their_samples_exactly(model: Model, kernels: Kernels, seed, n, moving, origin):
+    """Frames every 10 ms along a path (a retimed motion): a motion's last sample is the next one's first, bit for
+    bit, and the compiled call takes it once for both; the minima and the sample count stay those of the numpy
+    samples (every sample, every obstacle), bit for bit."""
+    rng = np.random.default_rng(seed)
+    scene = replace(random_scene(rng, n, moving), time_origin=origin)
+    v = MotionValidator(model, scene, kernels=kernels)
+    ends = v.sample(rng, 4)
+    f = np.linspace(0.0, 1.0, 60)[:, None]
+    X = np.concatenate([a + f * (b - a) for a, b in itertools.pairwise(ends)])
+    X[10:14] = X[10]  # a wait
+    X += 1e-3 * np.sin(np.arange(len(X)))[:, None]  # off the straight lines, across zero in places
+    T = 0.25 + 0.01 * np.arange(len(X))
+    # the precondition of the sharing holds for most frames here (else this test would not exercise it)
+    shared = np.all(X[:-1] + 1.0 * (X[1:] - X[:-1]) == X[1:], axis=1)
+    assert shared.mean() > 0.5
+    ref = numpy_path_clearance(v, X, T)
+    S, _, _, _, _, _ = v._samples(X[:-1], X[1:], T[:-1], T[1:])
+    s0 = v.n_samples
+    low, per = v.path_clearance(X, T)
+    np.testing.assert_array_equal(per, ref)
+    assert low == ref.min()
+    assert v.n_samples - s0 == len(S)

@@ -107,6 +107,7 @@ def retime_result(
     context: PlanningContext,
     actuators: ActuatorLimits,
     rate: float,
+    compiled: bool = True,
 ) -> tuple[PlanResult, dict[str, Any]]:
     """The result timed within `options.limit_fraction` of the context's rate limits and max_speed.
 
@@ -121,6 +122,8 @@ def retime_result(
     timing is kept (and the fractions below show by how much it exceeds the limits). Returns the
     result and a report: method, outcome, durations (s) and the largest velocity and acceleration
     as fractions of the full `actuators` limits, measured as the streamer samples the motion.
+    compiled: the curve's phase pass and the frames' tips in the validator's compiled kernel when it has one
+    (the same numbers; False: numpy, Python loops and the model's CasADi tips, for the benchmarks' comparison).
     """
     options, limits = context.options, context.rate_limits
     assert limits is not None, "retime_result needs a context with rate limits"
@@ -135,12 +138,14 @@ def retime_result(
     model = validator.model
 
     def timed(stamps: np.ndarray, Y: np.ndarray, clearance: float) -> PlanResult:
-        return replace(
-            result, t=stamps, configs=Y, tips=model.tip_position(Y), cables=model.cables(Y), min_clearance=clearance
-        )
+        # the tips from the compiled kernel when there is one: the model's numbers bit for bit, a seventh of the time
+        tips = validator.tip_position(Y) if compiled else model.tip_position(Y)
+        return replace(result, t=stamps, configs=Y, tips=tips, cables=model.cables(Y), min_clearance=clearance)
 
     out, outcome = result, "kept the verified timing (the retimed motion failed its collision check)"
-    curve = retime_curve(X, usable, metric, validator, t0=t0, period=period)
+    curve = retime_curve(
+        X, usable, metric, validator, t0=t0, period=period, kernel=validator.kernel if compiled else None
+    )
     if curve is not None:
         # the frames passed their own check at their times; their clearance is measured the same way
         out = timed(curve.stamps, curve.configs, validator.path_clearance(curve.configs, curve.stamps)[0])
@@ -169,6 +174,10 @@ def _setpoints(t: np.ndarray, values: np.ndarray, rate: float) -> np.ndarray:
     m = int(np.ceil((t1 - t0) / dt - 1e-9))
     stamps = t0 + dt * np.arange(0, m + 1)
     stamps[-1] = t1
+    if len(t) == m + 1 and np.array_equal(stamps, t):
+        # waypoints already every 1/rate s (a retimed motion): the cubic through them gives them back exactly
+        # (its basis at a knot is (1, 0, 0, 0), at the last (0, 0, 1, 0))
+        return np.array(values, dtype=float)
     with np.errstate(over="ignore", divide="ignore", invalid="ignore"):  # subnormal steps: slope 0
         slopes = pchip_slopes(t, values)
     slopes[0] = 0.0

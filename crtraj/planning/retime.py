@@ -162,9 +162,13 @@ def _on_chord(a: np.ndarray, b: np.ndarray, inner: np.ndarray, tol: float) -> bo
     if dd == 0.0:
         return False
     u = (inner - a) @ d / dd
-    if np.any(np.diff(np.concatenate([[0.0], u, [1.0]])) < 0.0):
+    # in order along the chord: 0 <= u_0 <= u_1 <= ... <= 1 (a difference of two doubles is negative exactly when
+    # the second is the smaller, so these comparisons decide as the differences did)
+    if u[0] < 0.0 or u[-1] > 1.0 or np.any(u[1:] < u[:-1]):
         return False
-    return bool(np.max(np.linalg.norm(a + u[:, None] * d - inner, axis=1)) <= tol)
+    w = a + u[:, None] * d - inner
+    # the largest distance as np.linalg.norm computes each (the square root of the summed squares)
+    return bool(np.sqrt(np.max((w * w).sum(axis=1))) <= tol)
 
 
 def motion_limits(D: np.ndarray, limits: RateLimits, metric: BodyMetric) -> tuple[np.ndarray, np.ndarray]:
@@ -290,10 +294,13 @@ class CurveTiming:
         return float(self.stamps[-1] - self.stamps[0])
 
 
-def _piece_law(P: np.ndarray, limits: RateLimits, metric: BodyMetric) -> tuple[Any, np.ndarray, np.ndarray]:
-    """(x(s), grid points, ds/dt at them) of a near time-optimal rest-to-rest law along the natural cubic
-    spline through P (K >= 3, nx), s the cumulative body-motion bound of the chords (mm); `InputError`
-    when there is none.
+def _piece_law(
+    P: np.ndarray, limits: RateLimits, metric: BodyMetric, kernel: Any = None
+) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray]:
+    """(x(s), grid points, ds/dt at them, the law's time (s) at them) of a near time-optimal rest-to-rest law along
+    the natural cubic spline through P (K >= 3, nx), s the cumulative body-motion bound of the chords (mm);
+    `InputError` when there is none. kernel: a `ValidityKernel` runs the pass and the knot times in one C call
+    (`ValidityKernel.phase_law`, the same numbers); None: numpy and the loops of `_phase_pass`.
 
     A forward-backward pass on x = (ds/dt)^2 over the grid (the phase-plane method, in closed form per
     interval): with q = J x(s) the actuator values, q' and q'' their s-derivatives, an actuator's
@@ -332,11 +339,21 @@ def _piece_law(P: np.ndarray, limits: RateLimits, metric: BodyMetric) -> tuple[A
     B = np.maximum(B[:-1], B[1:])
     if not np.all(np.isfinite(cap[1:-1])) or np.any(cap[1:-1] <= 0.0):
         raise InputError("retime: no speed is allowed somewhere along a curve piece")
-    x = _phase_pass(np.minimum(cap, 1e30), h, A, B)
-    sd = np.sqrt(x)
+    if kernel is not None:
+        h2 = 2.0 * h[:, None]
+        sd, T = kernel.phase_law(np.minimum(cap, 1e30), h2 * A, 1.0 + h2 * B, h)
+    else:
+        sd = np.sqrt(_phase_pass(np.minimum(cap, 1e30), h, A, B))
+        T = _knot_times(grid, sd)
     if np.any(sd[1:-1] <= 0.0):
         raise InputError("retime: no law along a curve piece")
-    return spline, grid, sd
+    return spline, grid, sd, T
+
+
+def _knot_times(gp: np.ndarray, sd: np.ndarray) -> np.ndarray:
+    """The law's time (s) at the grid points gp (mm) with ds/dt = sd there, constant ds2/dt2 between them."""
+    dt = 2.0 * np.diff(gp) / (sd[:-1] + sd[1:])
+    return np.concatenate([[0.0], np.cumsum(dt)])
 
 
 def _window_max(Y: np.ndarray, w: int) -> np.ndarray:
@@ -375,9 +392,11 @@ def _phase_pass(cap: np.ndarray, h: np.ndarray, A: np.ndarray, B: np.ndarray) ->
     return np.maximum(np.asarray(xs), 0.0)
 
 
-def _toppra_law(P: np.ndarray, limits: RateLimits, metric: BodyMetric) -> tuple[Any, np.ndarray, np.ndarray]:
+def _toppra_law(
+    P: np.ndarray, limits: RateLimits, metric: BodyMetric, kernel: Any = None
+) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray]:
     """The same law computed by toppra (TOPP-RA, the reference library), for the benchmark's comparison:
-    (x(s), grid points, ds/dt at them); `InputError` when toppra finds none."""
+    (x(s), grid points, ds/dt at them, times at them); `InputError` when toppra finds none. kernel: unused."""
     import toppra as ta  # the reference library: needed only by this cross-check (benchmarks, tests)
 
     ss = np.concatenate([[0.0], np.cumsum(metric.motion_bound(np.diff(P, axis=0)))])
@@ -411,15 +430,15 @@ def _toppra_law(P: np.ndarray, limits: RateLimits, metric: BodyMetric) -> tuple[
     sd = None if data.sd_vec is None else np.maximum(np.asarray(data.sd_vec, dtype=float), 0.0)
     if data.return_code != ta.algorithm.ParameterizationReturnCode.Ok or sd is None or np.any(sd[1:-1] <= 0.0):
         raise InputError(f"retime: toppra found no law along a curve piece ({data.return_code})")
-    return spline, np.asarray(data.gridpoints, dtype=float), sd
+    gp = np.asarray(data.gridpoints, dtype=float)
+    return spline, gp, sd, _knot_times(gp, sd)
 
 
-def _sample_law(spline: Any, gp: np.ndarray, sd: np.ndarray, period: float, slow: float) -> np.ndarray:
-    """Configurations every period along x(s) with ds/dt = sd at the grid points gp (constant ds2/dt2
-    between them, as TOPP-RA assumes), slowed `slow` >= 1 times and stretched to whole periods."""
+def _sample_law(spline: Any, gp: np.ndarray, sd: np.ndarray, T: np.ndarray, period: float, slow: float) -> np.ndarray:
+    """Configurations every period along x(s) with ds/dt = sd at the grid points gp, reached at the law's times T
+    (`_knot_times`: constant ds2/dt2 between them, as TOPP-RA assumes), slowed `slow` >= 1 times and stretched to
+    whole periods."""
     ds = np.diff(gp)
-    dt = 2.0 * ds / (sd[:-1] + sd[1:])
-    T = np.concatenate([[0.0], np.cumsum(dt)])
     n = max(1, math.ceil(slow * T[-1] / period - 1e-9))
     tau = np.arange(n + 1) * (T[-1] / n)  # the law's own time at each frame
     i = np.clip(np.searchsorted(T, tau, side="right") - 1, 0, len(ds) - 1)
@@ -443,17 +462,18 @@ def _over_limits(Y: np.ndarray, limits: RateLimits, metric: BodyMetric, period: 
 
 
 def _curve_piece(
-    P: np.ndarray, limits: RateLimits, metric: BodyMetric, period: float, law: Any = None
+    P: np.ndarray, limits: RateLimits, metric: BodyMetric, period: float, law: Any = None, kernel: Any = None
 ) -> np.ndarray | None:
     """Frames (n+1, nx) every period, rest to rest, along the curve through P (>= 3 corners) within
-    every limit, or None when the law (`_piece_law`, or `_toppra_law`) finds none or the slow-downs run out."""
+    every limit, or None when the law (`_piece_law`, or `_toppra_law`) finds none or the slow-downs run out.
+    kernel: passed to the law (`_piece_law`: its pass in C)."""
     try:
-        spline, gp, sd = (_piece_law if law is None else law)(P, limits, metric)
+        spline, gp, sd, T = (_piece_law if law is None else law)(P, limits, metric, kernel)
     except InputError:
         return None
     slow = 1.0
     for _ in range(MAX_SLOWDOWNS):
-        Y = _sample_law(spline, gp, sd, period, slow)
+        Y = _sample_law(spline, gp, sd, T, period, slow)
         Y[0], Y[-1] = P[0], P[-1]
         over = _over_limits(Y, limits, metric, period)
         if over <= 1.0:
@@ -463,12 +483,12 @@ def _curve_piece(
 
 
 def _piece_frames(
-    P: np.ndarray, limits: RateLimits, metric: BodyMetric, period: float, law: Any = None
+    P: np.ndarray, limits: RateLimits, metric: BodyMetric, period: float, law: Any = None, kernel: Any = None
 ) -> np.ndarray | None:
     """Frames of one piece between two stops: the chord law for one straight motion, else the curve."""
     if len(P) == 2:
         return retime(P, limits, metric, period=period).sample()[1]
-    return _curve_piece(P, limits, metric, period, law)
+    return _curve_piece(P, limits, metric, period, law, kernel)
 
 
 def _failures(validator: MotionValidator, stamps: np.ndarray, Y: np.ndarray, check: np.ndarray) -> np.ndarray:
@@ -478,7 +498,8 @@ def _failures(validator: MotionValidator, stamps: np.ndarray, Y: np.ndarray, che
     if not e.size:
         return e
     ok = validator.edges_valid(Y[e], Y[e + 1], stamps[e], stamps[e + 1])
-    ok &= validator.within_limits(Y[e]) & validator.within_limits(Y[e + 1])
+    inside = validator.within_limits(Y)  # once per frame (a frame ends one motion and starts the next)
+    ok &= inside[e] & inside[e + 1]
     return e[~ok]
 
 
@@ -491,6 +512,7 @@ def retime_curve(
     t0: float = 0.0,
     period: float = STREAM_PERIOD,
     method: str = "phase",
+    kernel: Any = None,
 ) -> CurveTiming | None:
     """The path X (K, nx) timed along the smoothed curve through its corners, stopping only where the
     curve fails its check (see the module docstring), or None when even the chords fail at their new
@@ -498,7 +520,8 @@ def retime_curve(
     usable actuator limits; metric: the body-speed limit; validator: the planner's motion check,
     against the scene at the frames' times. Among static obstacles the chords (the verified geometry)
     need no new check. method: "phase" (`_piece_law`, the closed-form phase-plane pass) or "toppra"
-    (the reference library, for comparison)."""
+    (the reference library, for comparison). kernel: a `ValidityKernel` (`MotionValidator.kernel`) runs the
+    phase pass and the knot times in C (the same numbers); None: numpy and Python loops."""
     if method not in ("phase", "toppra"):
         raise InputError(f"retime: method must be 'phase' or 'toppra', got {method!r}")
     law = _piece_law if method == "phase" else _toppra_law
@@ -512,7 +535,7 @@ def retime_curve(
         pieces = list(itertools.pairwise(stops))
         for a, b in pieces:
             if (a, b) not in laws:
-                laws[(a, b)] = _piece_frames(P[a : b + 1], limits, metric, period, law)
+                laws[(a, b)] = _piece_frames(P[a : b + 1], limits, metric, period, law, kernel)
         # piece index -> the frame near which it failed (None: no law along the whole piece)
         split: dict[int, np.ndarray | None] = {i: None for i, ab in enumerate(pieces) if laws[ab] is None}
         if not split:

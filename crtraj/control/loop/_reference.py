@@ -126,14 +126,16 @@ class TimedReference:
         dY = self.Y[1:] - self.Y[:-1]
         self._dY = dY
         self._den = np.maximum((dY * dY).sum(axis=1), 1e-300)
+        self._s_start, self._s_end = self.s[:-1].copy(), self.s[1:].copy()  # each segment's first and last time
 
     def at(self, s: np.ndarray) -> np.ndarray:
         """Configurations at path times s (s), clamped to the path."""
-        s = np.clip(np.asarray(s, dtype=float), 0.0, self.end)
+        # np.clip's numbers (maximum, then minimum) without its wrapper's cost (the loop asks every step)
+        s = np.minimum(np.maximum(np.asarray(s, dtype=float), 0.0), self.end)
         if self.end == 0.0:
             return np.broadcast_to(self.X[-1], (*s.shape, self.X.shape[1])).copy()
         # s >= 0 = self.s[0] here, so the segment index is >= 0 already; only its top needs a cap
-        i = np.minimum(np.searchsorted(self.s, s, side="right") - 1, len(self.X) - 2)
+        i = np.minimum(self.s.searchsorted(s, side="right") - 1, len(self.X) - 2)
         seg = self._ds[i]
         u = np.divide(s - self.s[i], seg, out=np.zeros_like(s), where=seg > 0)
         return self.X[i] + u[..., None] * self._dX[i]
@@ -144,14 +146,17 @@ class TimedReference:
             return 0.0
         y = self._metric(np.asarray(x, dtype=float)[None])[0]
         lo, hi = s_hint - back, s_hint + ahead
-        segs = np.flatnonzero((self.s[1:] >= lo) & (self.s[:-1] <= hi))
-        if not len(segs):
-            segs = np.arange(len(self.X) - 1)
-        A, AB = self.Y[segs], self._dY[segs]
-        u = np.clip(((y - A) * AB).sum(axis=1) / self._den[segs], 0.0, 1.0)
+        # the segments with s[i+1] >= lo and s[i] <= hi: s never decreases, so they are one run a..b-1, found by
+        # bisection and taken as views (the same rows as a mask over the whole path, without its cost per step)
+        a = int(self._s_end.searchsorted(lo, side="left"))
+        b = int(self._s_start.searchsorted(hi, side="right"))
+        if a >= b:
+            a, b = 0, len(self.X) - 1
+        A, AB = self.Y[a:b], self._dY[a:b]
+        u = np.minimum(np.maximum(((y - A) * AB).sum(axis=1) / self._den[a:b], 0.0), 1.0)
         w = A + u[:, None] * AB - y
         # the distance as np.linalg.norm computes it (ties in argmin stay the same)
         d = np.sqrt((w * w).sum(axis=1))
         j = int(d.argmin())
-        i = segs[j]
-        return float(np.clip(self.s[i] + u[j] * self._ds[i], lo, hi))
+        i = a + j
+        return min(max(float(self.s[i] + u[j] * self._ds[i]), lo), hi)

@@ -19,6 +19,8 @@ rounding), and a small hand-written C driver loops over a whole batch in one cal
   clearance) in one call, with an exact broad phase per motion (the same minima);
 - ``crtraj_bspline(...)``: `crtraj.core.splines.BSplineCurve` at many parameters, operation for operation (the
   smoothing's spline samples, `crtraj.planning.postprocess`);
+- ``crtraj_phase_law(...)``: the retiming's phase-plane pass along a smoothed curve and the law's knot times
+  (`crtraj.planning.retime`), operation for operation, so the same numbers;
 - ``crtraj_motion_bound(N, dX, B)``: the body-motion bound B(dx) (mm, `crtraj.planning.metric`; it agrees
   with numpy's to 1e-12, but the planners keep numpy's, whose rounding times every motion, so that both
   paths give identical plans);
@@ -59,12 +61,13 @@ from crtraj.model.kinematics import Model
 from crtraj.planning.metric import metric_matrix
 from crtraj.planning.validity._driver import DRIVER as EDGE_DRIVER
 from crtraj.planning.validity._path_driver import PATH_DRIVER
+from crtraj.planning.validity._retime_driver import RETIME_DRIVER
 from crtraj.world import packing
 
-# The hand-written C around the generated functions: the edge checks' driver, then the path functions.
-DRIVER = EDGE_DRIVER + PATH_DRIVER
+# The hand-written C around the generated functions: the edge checks' driver, the path functions, the retiming's.
+DRIVER = EDGE_DRIVER + PATH_DRIVER + RETIME_DRIVER
 # Version of the generated code and driver: raising it makes every cached kernel foreign (rebuilt).
-GENERATOR = 18
+GENERATOR = 20
 # Most check points a kernel is generated for: the generated FK grows with them (100 points: ~15 s of
 # gcc); denser checks (reports, tests) stay on the interpreted path.
 MAX_COMPILED_POINTS = 200
@@ -178,6 +181,8 @@ class ValidityKernel:
         self._check_moving_auto = lib.crtraj_check_moving_auto
         self._check_moving_auto.argtypes = [_N, _P, _P, _P, ctypes.c_double, _P, _P, _N, _P] + [ctypes.c_double] * 5
         self._check_moving_auto.argtypes += [ctypes.c_int, _N, _P, _P, _P]
+        self._phase_law = lib.crtraj_phase_law
+        self._phase_law.argtypes = [_N, _N, _P, _P, _P, _P, _P, _P]
         # the last static slots and obstacle table passed, with their addresses: the same scene's arrays come back
         # call after call (a table is read-only, whose address costs a dict per call)
         self._slots: tuple[Any, int] = (None, 0)
@@ -194,6 +199,7 @@ class ValidityKernel:
             self._check_moving_auto,
             self._bspline,
             self._path_clearance,
+            self._phase_law,
         ):
             f.restype = ctypes.c_int
 
@@ -437,6 +443,22 @@ class ValidityKernel:
         rc = self._bspline(len(x), _ptr(x), len(tk), _ptr(tk), len(C), C.shape[1], _ptr(C), int(k), _ptr(out))
         self._check(rc, "B-spline")
         return out
+
+    def phase_law(self, cap: Any, num: Any, den: Any, ds: Any) -> tuple[np.ndarray, np.ndarray]:
+        """The retiming's phase-plane pass (`crtraj.planning.retime._phase_pass`) and the law's knot times in one C
+        call, the same numbers: cap (n,) speed caps on (ds/dt)^2; num, den (n - 1, m): the interval bounds
+        x_next <= (x + num) / den; ds (n - 1,) mm: the grid's spacings. Returns (ds/dt (n,) mm/s, times (n,) s)."""
+        cap = np.ascontiguousarray(cap, dtype=float)
+        num = np.ascontiguousarray(num, dtype=float)
+        den = np.ascontiguousarray(den, dtype=float)
+        ds = np.ascontiguousarray(ds, dtype=float)
+        n = len(cap)
+        if n < 2 or num.ndim != 2 or num.shape != den.shape or num.shape[0] != n - 1 or ds.shape != (n - 1,):
+            raise ValueError(f"phase_law: cap (n,), num and den (n-1, m), ds (n-1,) expected, got {num.shape}")
+        sd, T = np.empty(n), np.empty(n)
+        rc = self._phase_law(n, num.shape[1], _ptr(cap), _ptr(num), _ptr(den), _ptr(ds), _ptr(sd), _ptr(T))
+        self._check(rc, "phase law")
+        return sd, T
 
     def motion_bound(self, dX: Any) -> np.ndarray:
         """Body-motion bound (N,) mm of configuration changes dX (N, nx)."""

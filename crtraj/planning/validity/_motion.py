@@ -53,7 +53,7 @@ from crtraj.model.kinematics import Model
 from crtraj.model.rate_limits import RateLimits
 from crtraj.planning.metric import BodyMetric
 from crtraj.planning.sampler import ConfigSampler
-from crtraj.planning.validity._compiled import per_item
+from crtraj.planning.validity._compiled import ValidityKernel, per_item
 from crtraj.planning.validity._kernels import Kernels
 from crtraj.planning.validity._state import StateValidityChecker
 
@@ -204,6 +204,11 @@ class MotionValidator:
     def project_limits(self, X: np.ndarray) -> np.ndarray:
         """Configurations moved into the limits: `ConfigSampler.project_limits`."""
         return self.sampler.project_limits(X)
+
+    @property
+    def kernel(self) -> ValidityKernel | None:
+        """The compiled validity kernel this validator checks with (None: the interpreted path)."""
+        return self.state.kernel
 
     def within_limits(self, X: np.ndarray) -> np.ndarray:
         """True per configuration within every limit: `ConfigSampler.within_limits`."""

@@ -3,6 +3,18 @@ finished path: its measured clearance (`MotionValidator.path_clearance`) and the
 Appended to `crtraj.planning.validity._driver.DRIVER` (they use its helpers); kept apart only for its length."""
 
 PATH_DRIVER = r"""
+#include <string.h>
+
+/* Whether the sample x at t (a motion's last) is, bit for bit, the first sample of the next motion xb -> xc from tb
+   over dt s (xb + 0 (xc - xb) at tb + 0 dt, as crtraj_path_clearance computes it); that sample into xn, tn. */
+static int crtraj_shared(const double* x, double t, const double* xb, const double* xc, double tb, double dt,
+                         double* xn, double* tn) {
+  int j;
+  for (j = 0; j < CRTRAJ_NX; ++j) xn[j] = xb[j] + 0.0 * (xc[j] - xb[j]);
+  *tn = tb + 0.0 * dt;
+  return t == *tn && !memcmp(&t, tn, sizeof t) && !memcmp(x, xn, sizeof(double) * CRTRAJ_NX);
+}
+
 /* MotionValidator.path_clearance in one call: the K - 1 straight motions X[i] -> X[i + 1] (X: K x CRTRAJ_NX) over
    [Tm[i], Tm[i + 1]] (s, before the scene's time origin), each sampled at ns = max(1, ceil(bound[i] / res)) + 1
    configurations (both ends) at their own instants, as the numpy samples are; per motion, the smallest sample
@@ -11,21 +23,28 @@ PATH_DRIVER = r"""
    a motion is checked against every obstacle; obstacle q's clearance anywhere on the motion is at least its
    clearance there minus the motion's body-motion bound and what the obstacle can move and grow meanwhile
    (enl mm/s times the duration), so an obstacle whose bound is not below that first sample's clearance never
-   sets the minimum and the other samples skip it: the same minima, bit for bit. Returns 3 without computing
-   anything when a value is not finite. */
+   sets the minimum and the other samples skip it: the same minima, bit for bit. Shared samples: where a motion's
+   last sample and the next motion's first are the same configuration at the same instant, bit for bit (the
+   frames of a retimed path, every period), the last sample is taken against every obstacle (a dropped obstacle
+   cannot lower this motion's minimum, above) and the next motion's first sample reuses it: one backbone per
+   shared configuration instead of two, the same minima and sample count. Returns 3 without computing anything
+   when a value is not finite. */
 int crtraj_path_clearance(long long K, const double* X, const double* Tm, const double* bound, double res,
                           long long M, const double* S, const double* T, double origin, double inflate, double enl,
                           double* pe, long long* samples) {
-  crtraj_work kb; long long e, k, q, ns, kept = M; int rc = 0, j;
-  double P[7 * CRTRAJ_NP], x[CRTRAJ_NX], sw[5];
+  crtraj_work kb; long long e, k, q, ns, kept = M; int rc = 0, j, have = 0;
+  double P[7 * CRTRAJ_NP], x[CRTRAJ_NX], sw[5], xn[CRTRAJ_NX], tn = 0.0, cn = 0.0;
   double* d = (double*) malloc(sizeof(double) * (size_t) (M + 1));
+  double* dn = (double*) malloc(sizeof(double) * (size_t) (M + 1));  /* the shared sample's distances */
   long long* all = (long long*) malloc(sizeof(long long) * (size_t) (M + 1));
   long long* idx = (long long*) malloc(sizeof(long long) * (size_t) (M + 1));
   *samples = 0;
   for (e = 0; e + 1 < K; ++e)
-    if (!isfinite(bound[e]) || !isfinite(Tm[e]) || !isfinite(Tm[e + 1])) { free(d); free(all); free(idx); return 3; }
-  if (!d || !all || !idx || crtraj_alloc(&kb, crtraj_bb_work)) {
-    free(d); free(all); free(idx); crtraj_free(&kb); return 1;
+    if (!isfinite(bound[e]) || !isfinite(Tm[e]) || !isfinite(Tm[e + 1])) {
+      free(d); free(dn); free(all); free(idx); return 3;
+    }
+  if (!d || !dn || !all || !idx || crtraj_alloc(&kb, crtraj_bb_work)) {
+    free(d); free(dn); free(all); free(idx); crtraj_free(&kb); return 1;
   }
   for (q = 0; q < M; ++q) all[q] = q;
   for (e = 0; e + 1 < K && !rc; ++e) {
@@ -37,12 +56,23 @@ int crtraj_path_clearance(long long K, const double* X, const double* Tm, const 
       double tau = (double) k / (double) ns, t = ta + tau * dt, c;
       for (j = 0; j < CRTRAJ_NX; ++j) x[j] = xa[j] + tau * (xb[j] - xa[j]);
       if (k == 0) {
-        rc = crtraj_clear_idx(&kb, x, all, M, S, T, origin, t, t, P, sw, d, &c);
+        if (have && t == tn && !memcmp(&t, &tn, sizeof t) && !memcmp(x, xn, sizeof x)) {
+          memcpy(d, dn, sizeof(double) * (size_t) M);  /* the previous motion's last sample, every obstacle */
+          c = cn;
+        } else {
+          rc = crtraj_clear_idx(&kb, x, all, M, S, T, origin, t, t, P, sw, d, &c);
+        }
+        have = 0;
         c0 = c - inflate;
         slack = bound[e] + enl * fabs(dt) + 1e-6;
         kept = 0;
         for (q = 0; q < M; ++q)
           if (!(d[q] - inflate - slack >= c0)) idx[kept++] = q;  /* NaN keeps */
+      } else if (k == ns && e + 2 < K
+                 && crtraj_shared(x, t, xb, xb + CRTRAJ_NX, Tm[e + 1], Tm[e + 2] - Tm[e + 1], xn, &tn)) {
+        rc = crtraj_clear_idx(&kb, x, all, M, S, T, origin, t, t, P, sw, dn, &c);
+        cn = c;
+        have = !rc;
       } else {
         rc = crtraj_clear_idx(&kb, x, idx, kept, S, T, origin, t, t, P, sw, d, &c);
       }
@@ -52,8 +82,9 @@ int crtraj_path_clearance(long long K, const double* X, const double* Tm, const 
       if (m != m) break;
     }
     pe[e] = m;
+    if (k <= ns) have = 0;  /* the motion stopped early: its last sample was not taken */
   }
-  free(d); free(all); free(idx);
+  free(d); free(dn); free(all); free(idx);
   crtraj_free(&kb);
   return rc;
 }
