@@ -158,6 +158,13 @@ def _add_plan(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--planner", choices=("cspace", "rrt", "rrtstar"), default=None, help="default: [planner] algorithm")
     p.add_argument("--seed", type=int, default=None, help="random seed (default: the problem's seed)")
     p.add_argument("--time-limit", type=float, default=None, help="planning time budget in s (default: [planner])")
+    p.add_argument(
+        "--model",
+        choices=("pcc", "rod"),
+        default=None,
+        help="the body to keep D_sf from: pcc, or rod (the Cosserat rod's under the robot file's "
+        "[robot.mechanics], with D_sf grown by the rod model's error bound); default: [planner] model",
+    )
     p.add_argument("--out", default=None, help="result JSON (default: out/plan-<name>.json)")
     p.add_argument(
         "--html", default=None, help="also write the standalone 3-D view to this HTML file (successful plans only)"
