@@ -30,14 +30,12 @@ from crtraj.model.cosserat_map import pcc_nodes
 from crtraj.model.kinematics import Model
 from crtraj.model.mechanics import Mechanics
 from crtraj.model.robot import Robot
-from crtraj.model.rod_drive import RodDrive
+from crtraj.model.rod_drive import robot_rod
 from crtraj.model.rod_surrogate import sample_within_limits
 
 log = logging.getLogger(__name__)
 
 MAX_SAMPLES = 100_000
-# N in every tendon at the straight pose (the smallest tension of each segment), as the plant's
-PRETENSION = 1.0
 
 
 @dataclass(frozen=True)
@@ -97,8 +95,8 @@ def _distances(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
 def compare_models(robot: Robot, mech: Mechanics, configs: np.ndarray) -> Comparison:
     """PCC against Cosserat-rod statics at each configuration, in `mech`'s actuation mode (the module docstring)."""
     model = Model(robot)
-    free_rod = RodDrive(robot, mech, pretension=PRETENSION, gravity=False)
-    heavy_rod = RodDrive(robot, mech, pretension=PRETENSION, gravity=True)
+    free_rod = robot_rod(robot, mech=mech, gravity=False)
+    heavy_rod = robot_rod(robot, mech=mech, gravity=True)
     n = len(configs)
     res = np.full((4, n), np.nan)
     worst: tuple[np.ndarray, np.ndarray] | None = None

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from crtraj.app.plant_sim import PLANTS, PRETENSION
+from crtraj.app.plant_sim import PLANTS
 from crtraj.app.record_plant import plant_dataset
 from crtraj.app.stream import _print_report, _stream, failure_line
 from crtraj.core.errors import InputError
@@ -47,7 +47,7 @@ from crtraj.model.calibration import (
 from crtraj.model.calibration.timing import detect_time_offset
 from crtraj.model.excitation import excitation_path
 from crtraj.model.robot import Robot
-from crtraj.model.rod_drive import RodDrive
+from crtraj.model.rod_drive import robot_rod
 from crtraj.world.scene import Scene
 
 # Share of each actuator's speed and acceleration limit the excitation may use.
@@ -168,7 +168,7 @@ def _record_plant(args: argparse.Namespace, robot: Robot, sites: tuple[MarkerSit
                          "--serial, --dry-run, --log, --markers")  # fmt: skip
     if args.plant not in PLANTS:
         raise InputError(f"--plant: unknown plant {args.plant!r} (choose from {', '.join(PLANTS)})")
-    drive = RodDrive(robot, pretension=PRETENSION, gravity=args.plant == "cosserat")
+    drive = robot_rod(robot, gravity=args.plant == "cosserat")
     prob = Problem.load(args.problem) if args.problem else None
     scene = prob.options(Scene, "scene") if prob else Scene()
     motion = excitation_motion(robot, Actuators.from_robot(robot), scene, duration=args.duration)

@@ -55,7 +55,7 @@ from crtraj.core.fileio import atomic_write_bytes, atomic_write_json, read_json
 from crtraj.model.kinematics import Model
 from crtraj.model.mechanics import Mechanics
 from crtraj.model.robot import Robot
-from crtraj.model.rod_drive import RodDrive
+from crtraj.model.rod_drive import PRETENSION, RodDrive
 
 log = logging.getLogger(__name__)
 
@@ -84,7 +84,7 @@ class SurrogateOptions:
     grid: int = 9
     holdout: int = 200
     seed: int = 0
-    pretension: float = 1.0
+    pretension: float = PRETENSION
 
     def __post_init__(self) -> None:
         if not MIN_GRID <= int(self.grid) <= MAX_GRID:
