@@ -124,3 +124,20 @@ def test_the_sagging_shelf_pcc_plan_breaches_dsf_on_the_rod_and_the_rod_plan_kee
     assert pcc_by_pcc >= 0.0 and pcc_by_rod < -1.0, verdicts  # PCC keeps D_sf only in its own eyes
     assert verdicts["rod"][1] >= 0.0, verdicts  # the rod plan keeps D_sf on the rod
     assert doc["options"]["body"]["planning_margin_mm"] == pytest.approx(rod.planning_margin)
+
+
+def test_the_replan_loop_plans_for_the_rod_body() -> None:
+    """ClosedLoop.from_problem(body="rod"): the loop's model (reference planner, horizon NLP, step verification)
+    is the rod model and its scene keeps D_sf plus the rod model's margin; its start tip is the rod's."""
+    from crtraj.control.loop import ClosedLoop
+
+    problem = Problem.load(PROBLEM)
+    loop = ClosedLoop.from_problem(problem, body="rod")
+    assert isinstance(loop.model, RodModel)
+    d_sf = problem.options(Scene, "scene").safety_distance
+    assert loop.scene.safety_distance == pytest.approx(d_sf + loop.model.planning_margin)
+    x0 = loop.x_start
+    task = problem.require_task()
+    rod_tip = RodDrive(ROBOT, Mechanics.from_robot(ROBOT)).shape_config(x0).tip
+    assert np.linalg.norm(rod_tip - np.asarray(task.start)) < task.goal_tolerance + loop.model.error.tip_bound
+    assert np.linalg.norm(Model(ROBOT).tip_position(x0) - np.asarray(task.start)) > 5.0  # PCC's tip is elsewhere
