@@ -134,6 +134,7 @@ def test_the_replan_loop_plans_for_the_rod_body() -> None:
     problem = Problem.load(PROBLEM)
     loop = ClosedLoop.from_problem(problem, body="rod")
     assert isinstance(loop.model, RodModel)
+    assert loop.extra_options["body"]["kind"] == "rod"  # recorded in the run document's options
     d_sf = problem.options(Scene, "scene").safety_distance
     assert loop.scene.safety_distance == pytest.approx(d_sf + loop.model.planning_margin)
     x0 = loop.x_start

@@ -21,7 +21,7 @@ from crtraj.control.tracking import TrackingOptions
 from crtraj.core.clock import Clock, WallClock
 from crtraj.core.errors import InputError
 from crtraj.core.fields import Table, check_array
-from crtraj.planning.body import planning_model, planning_scene
+from crtraj.planning.body import model_record, planning_model, planning_scene
 from crtraj.planning.options import PlannerOptions
 from crtraj.planning.rate_limits import RateLimits
 from crtraj.planning.registry import make_planner
@@ -123,7 +123,7 @@ def spec_from_problem(problem: ProblemLike, run: ProblemRun) -> LoopSpec:
     planner = make_planner(model, scene, popts, sopts)
     source: FeedObstacles | None = None
     scene0 = scene
-    extra: dict[str, Any] = {"planner": popts, "steer": sopts}
+    extra: dict[str, Any] = {"planner": popts, "steer": sopts, "body": model_record(model)}
     if run.feed is not None:
         run.feed.configure(feed_options)  # the problem's velocity bound and timestamp window
         extra["feed"] = feed_options
