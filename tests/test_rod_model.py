@@ -115,7 +115,7 @@ def test_the_sagging_shelf_pcc_plan_breaches_dsf_on_the_rod_and_the_rod_plan_kee
         run = plan_problem(problem, **kw)
         assert run.result.is_success(), (name, run.result.message)
         doc = run.document()
-        assert doc["options"]["body"]["kind"] == name
+        assert doc["options"]["body"]["kind"] == doc["options"]["planner"]["model"] == name
         assert doc["scene"]["safety_distance"] == problem.options(Scene, "scene").safety_distance
         v = verify_cosserat(read_result(doc), robot)
         assert v.failed == 0 and v.actuation == "cable_length" and v.gravity

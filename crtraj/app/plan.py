@@ -96,6 +96,8 @@ def plan_problem(
         changes["time_limit"] = float(time_limit)
     if body is not None:
         changes["model"] = body
+    elif model is not None:  # the options record the body of the model given
+        changes["model"] = model_record(model)["kind"]
     if changes:
         options = options.with_(**changes)
     steer_options = problem.options(SteerOptions, "steer")
