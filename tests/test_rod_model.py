@@ -1,9 +1,9 @@
-"""Planning for the rod's body (crtraj.model.rod_model, crtraj.planning.body, ``crtraj plan --model rod``).
+"""Planning for the rod's body (crtraj.model.cosserat.RodModel, crtraj.planning.body, ``crtraj plan --model rod``).
 
 The robot is problems/robots/cdsr1_side.toml: one 300 mm NiTi segment mounted sideways, whose rod sags up to
 17 mm below PCC's body. A small rod model (a 7 x 7 surrogate grid, a degree-6 polynomial) keeps the builds to
 a second; its measured error is what the planner adds to D_sf. The independent check of a plan is
-`crtraj.app.verify.verify_cosserat`: fresh rod solves at every waypoint (the robot file's actuation mode,
+`crtraj.app.lab.verify_cosserat`: fresh rod solves at every waypoint (the robot file's actuation mode,
 gravity) and numpy distances to the obstacles, no surrogate."""
 
 from __future__ import annotations
@@ -13,18 +13,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from crtraj.app.lab import verify_cosserat
 from crtraj.app.plan import plan_problem
-from crtraj.app.verify import verify_cosserat
 from crtraj.core.errors import InputError
 from crtraj.io.problem import Problem, load_robot
 from crtraj.io.results import read_result
+from crtraj.model.cosserat import RodDrive, RodModel, RodModelOptions, load_rod_model, sample_within_limits
+from crtraj.model.cosserat._surrogate import SurrogateOptions
 from crtraj.model.kinematics import Model
 from crtraj.model.mechanics import Mechanics
-from crtraj.model.rod_drive import RodDrive
-from crtraj.model.rod_model import RodModel, RodModelOptions, load_rod_model
-from crtraj.model.rod_surrogate import SurrogateOptions, sample_within_limits
 from crtraj.planning.body import planning_model, planning_scene
-from crtraj.planning.compiled_validity import kernel_key
+from crtraj.planning.validity import kernel_key
 from crtraj.world.scene import Scene
 
 ROOT = Path(__file__).resolve().parent.parent

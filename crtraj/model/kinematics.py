@@ -115,7 +115,7 @@ class Model:
 
     def identity(self) -> dict[str, Any] | None:
         """What makes this model's body differ from the robot file's PCC body (None: it is PCC's); part of the
-        key of anything compiled from the model (`crtraj.model.rod_model.RodModel`)."""
+        key of anything compiled from the model (`crtraj.model.cosserat.RodModel`)."""
         return None
 
     # ------------------------------------------------------------ expressions

@@ -1,6 +1,6 @@
 """Which body a plan keeps clear: ``[planner] model = "pcc" | "rod"`` (and ``--model`` of plan and replan).
 
-"pcc" is the robot file's PCC `Model`. "rod" is `crtraj.model.rod_model.RodModel`: the body the Cosserat rod
+"pcc" is the robot file's PCC `Model`. "rod" is `crtraj.model.cosserat.RodModel`: the body the Cosserat rod
 takes under the robot file's ``[robot.mechanics]`` (its actuation mode, gravity), as a polynomial correction
 of PCC fitted to the rod's surrogate, so every consumer of the Model (checker, safe IK, steer and horizon NLPs)
 sees that body with exact derivatives. Its measured error is paid for in the margin: the planner keeps
@@ -17,9 +17,9 @@ from pathlib import Path
 from typing import Any
 
 from crtraj.core.errors import InputError
+from crtraj.model.cosserat import RodModel, RodModelOptions, load_rod_model
 from crtraj.model.kinematics import Model
 from crtraj.model.robot import Robot
-from crtraj.model.rod_model import RodModel, RodModelOptions, load_rod_model
 from crtraj.planning.options import MODELS
 from crtraj.world.scene import Scene
 
