@@ -141,3 +141,14 @@ def test_the_replan_loop_plans_for_the_rod_body() -> None:
     rod_tip = RodDrive(ROBOT, Mechanics.from_robot(ROBOT)).shape_config(x0).tip
     assert np.linalg.norm(rod_tip - np.asarray(task.start)) < task.goal_tolerance + loop.model.error.tip_bound
     assert np.linalg.norm(Model(ROBOT).tip_position(x0) - np.asarray(task.start)) > 5.0  # PCC's tip is elsewhere
+
+
+def test_a_corrupt_rod_model_entry_is_rebuilt_not_used(rod: RodModel, cache: Path, caplog) -> None:
+    """A cache entry whose JSON is damaged is refused with one warning and rebuilt to the same coefficients."""
+    (entry,) = cache.glob(f"rod_model-{rod.identity()['rod_model']}.json")
+    entry.write_text(entry.read_text()[:-40])
+    with caplog.at_level("WARNING", logger="crtraj"):
+        again = load_rod_model(ROBOT, SMALL, cache_dir=cache)
+    assert "is unusable" in caplog.text and "rebuilding it" in caplog.text
+    assert np.allclose(again.correction.coef, rod.correction.coef, rtol=0.0, atol=1e-9)
+    assert load_rod_model(ROBOT, SMALL, cache_dir=cache).error == again.error  # and stored again
