@@ -162,9 +162,8 @@ def _plan_first(loop: Any, node: RosNode, acts: Actuators) -> None:
     the loop's clock starts: in the first step the planner would take longer than ``ros.lead``. (Every
     step still checks the reference against the obstacles of its time and replans when it is blocked.)"""
     st = node.joint_state()
-    scene, _ = loop.obstacles.at(0.0)
-    if st is not None and scene is not None:
-        loop.initial_reference = loop.reference_source(loop.servo.config(acts.actuation(st[0])), 0.0, scene)
+    if st is not None:
+        loop.plan_first_reference(acts.actuation(st[0]))
 
 
 def run_ros_bridge(
