@@ -463,3 +463,22 @@ def test_tutorial_step_check_sees_a_wrong_exit_code_and_a_missing_line():
     with pytest.raises(AssertionError, match="no line"):
         _check_step("a", steps[0][1], subprocess.CompletedProcess("a", 2, "", line.replace("not homed", "homed")))
     assert _simulator_blocks(), "the tutorials try the simulator"
+
+
+# ------------------------------------------------------------------ the mechanics page's block
+def test_mechanics_page_block_runs_as_written(tmp_path):
+    """docs/concepts/mechanics.md's block runs in a folder holding a copy of problems/, with the test interpreter's
+    `crtraj` first on PATH: it exits 0, the PCC plan's rod check says CONTACT and the rod plan's says D_sf holds."""
+    md = (ROOT / "docs" / "concepts" / "mechanics.md").read_text(encoding="utf-8")
+    (block,) = re.findall(r"^```bash\n(.*?)^```", md, flags=re.S | re.M)
+    shutil.copytree(ROOT / "problems", tmp_path / "problems")
+    env = _env()
+    env["PATH"] = f"{Path(sys.executable).parent}{os.pathsep}{env.get('PATH', '')}"
+    proc = subprocess.run(
+        ["bash", "-e", "-c", block], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=900
+    )
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 0, out[-3000:]
+    assert "D_sf CONTACT" in out and "PCC plan refused by the rod" in out, out[-3000:]
+    rod_check = out.split("out/shelf-rod.json: plan", 1)[1]
+    assert re.search(r"Cosserat: min clearance \d+\.\d+ mm .*: D_sf holds", rod_check), rod_check

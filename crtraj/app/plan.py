@@ -26,6 +26,7 @@ from crtraj.hardware.stream import StreamOptions
 from crtraj.io.problem import Problem
 from crtraj.io.results import plan_document
 from crtraj.model.kinematics import Model
+from crtraj.planning.body import margin_of, model_record, planning_model, planning_scene
 from crtraj.planning.context import PlanningContext
 from crtraj.planning.options import PlannerOptions
 from crtraj.planning.pipeline import plan_executable
@@ -55,6 +56,7 @@ class ProblemPlan:
         options: dict[str, Any] = {"planner": self.options.to_dict()}
         if self.steer_options is not None:
             options["steer"] = self.steer_options.to_dict()
+        options["body"] = model_record(self.model)
         doc = plan_document(self.problem, self.model, self.scene, self.result, options, self.setup_time)
         if self.timing is not None:
             doc["summary"] = {**doc["summary"], **to_jsonable(_executed(self.timing))}
@@ -73,13 +75,16 @@ def plan_problem(
     seed: int | None = None,
     time_limit: float | None = None,
     model: Model | None = None,
+    body: str | None = None,
     scene: Scene | None = None,
 ) -> ProblemPlan:
     """Plan a problem file's task with its ``[scene]``, ``[planner]``, ``[steer]`` and ``[stream]`` sections
     (`crtraj.planning.pipeline.plan_executable`).
 
-    algorithm, seed, time_limit (s) and scene (a `Scene` instead of the file's) override the file. The start is
-    ``task.start_config`` when given, else a safe IK solution for ``task.start``.
+    algorithm, seed, time_limit (s) and scene (a `Scene` instead of the file's) override the file; body: the
+    ``[planner] model`` ("pcc" or "rod", `crtraj.planning.body`); model: the `Model` to plan with instead (its
+    body and margin). The planner keeps D_sf plus the model's margin (`planning_scene`); the result records the
+    problem's scene. The start is ``task.start_config`` when given, else a safe IK solution for ``task.start``.
     """
     task = problem.require_task()
     t1 = time.perf_counter()
@@ -90,12 +95,16 @@ def plan_problem(
         changes["algorithm"] = algorithm
     if time_limit is not None:
         changes["time_limit"] = float(time_limit)
+    if body is not None:
+        changes["model"] = body
+    elif model is not None:  # the options record the body of the model given
+        changes["model"] = model_record(model)["kind"]
     if changes:
         options = options.with_(**changes)
     steer_options = problem.options(SteerOptions, "steer")
     rate = problem.options(StreamOptions, "stream").rate
-    model = Model(problem.robot) if model is None else model
-    context = PlanningContext.build(model, scene, options)
+    model = planning_model(problem.robot, options.model) if model is None else model
+    context = PlanningContext.build(model, planning_scene(scene, model), options)
     setup = time.perf_counter() - t1
     seed = problem.seed if seed is None else int(seed)
     start = {"start_config": task.start_config} if task.start_config is not None else {"start_tip": task.start}
@@ -110,6 +119,12 @@ def plan_problem(
     )
     result = run.result
     return ProblemPlan(problem, model, scene, options, run.steer_options, result, setup + run.setup_time, run.timing)
+
+
+def _margin_text(model: Model) -> str:
+    """' + 0.53 mm for the rod model's error' for a rod plan; '' for PCC."""
+    extra = margin_of(model)
+    return "" if extra == 0.0 else f" + {extra:.2f} mm for the rod model's error"
 
 
 def _executed(timing: dict[str, Any] | None) -> dict[str, Any]:
@@ -153,7 +168,8 @@ def _write_outputs(doc: dict[str, Any], success: bool, out: Path, args: argparse
 def plan_command(args: argparse.Namespace) -> int:
     """`crtraj plan PROBLEM ...` (arguments from `crtraj.cli`); returns the exit code."""
     problem, out = _check_plan_args(args)
-    run = plan_problem(problem, algorithm=args.planner, seed=args.seed, time_limit=args.time_limit)
+    body = getattr(args, "model", None)
+    run = plan_problem(problem, algorithm=args.planner, seed=args.seed, time_limit=args.time_limit, body=body)
     r = run.result
     doc = run.document()
     dest = _write_outputs(doc, r.is_success(), out, args)
@@ -162,8 +178,8 @@ def plan_command(args: argparse.Namespace) -> int:
     if r.has_path:
         print(
             f"  tip path {r.length:.1f} mm over {r.duration:.2f} s, {len(r.t)} waypoints, "
-            f"min clearance {r.min_clearance:.2f} mm (beyond D_sf {run.scene.safety_distance:g} mm), "
-            f"goal error {r.goal_error:.3f} mm"
+            f"min clearance {r.min_clearance:.2f} mm (beyond D_sf {run.scene.safety_distance:g} mm"
+            f"{_margin_text(run.model)}), goal error {r.goal_error:.3f} mm"
         )
     if run.timing is not None and r.has_path:
         tm = run.timing

@@ -17,7 +17,7 @@ from crtraj.core.errors import InputError
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.mocap import check_true_robot
 from crtraj.io.problem import Problem
-from crtraj.model.cosserat import RodDrive
+from crtraj.model.cosserat import robot_rod
 from crtraj.model.robot import Robot
 from crtraj.world.scene import Scene
 
@@ -25,8 +25,6 @@ from crtraj.world.scene import Scene
 PLANTS = ("cosserat", "cosserat-weightless")
 # mm per axis of the plant's tip readings: the paper's motion capture (as `SimulatedMocap`)
 TIP_NOISE = 0.3
-# N in every tendon at the straight pose
-PRETENSION = 1.0
 
 
 def make_plant(
@@ -52,7 +50,7 @@ def make_plant(
         def to_plant(q: np.ndarray) -> np.ndarray:
             return true_act.actuation(sent.command(q)).reshape(-1)
 
-    drive = RodDrive(robot, pretension=PRETENSION, gravity=name == "cosserat")
+    drive = robot_rod(robot, gravity=name == "cosserat")
     scene = Scene.from_table(problem.section("scene"))
     task = problem.require_task()
     return RodPlant(drive, scene, task.goal, tip_noise=tip_noise, seed=problem.seed, to_plant=to_plant)
@@ -64,11 +62,12 @@ def attach_plant(plant: RodPlant, loop: ClosedLoop) -> None:
     plant.attach(loop.servo, q0, loop.n_sub, loop.options.dt / loop.n_sub, loop.rate_limits)
 
 
-def plant_lines(plant: RodPlant, run: ReplanRun) -> list[str]:
-    """The plant's summary line and PCC's own view of the same run."""
+def plant_lines(plant: RodPlant, run: ReplanRun, body: str = "pcc") -> list[str]:
+    """The plant's summary line and the loop's model's own view of the same run (body: "pcc" or "rod")."""
     s = run.summary()
+    who = "PCC's" if body == "pcc" else "The rod model's"
     pcc = (
-        f"PCC's own view: final tip error {s['final_tip_error_mm']:.2f} mm, min clearance "
+        f"{who} own view: final tip error {s['final_tip_error_mm']:.2f} mm, min clearance "
         f"{s['min_clearance_mm']:.2f} mm, collisions {s['collisions']} (D_sf breaches {s['safety_violations']})"
     )
     return [plant.summary_line(), pcc]

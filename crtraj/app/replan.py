@@ -43,6 +43,7 @@ from crtraj.io.problem import Problem, load_robot
 from crtraj.io.results import read_result
 from crtraj.io.run_files import RUN_FILES
 from crtraj.model.kinematics import Model
+from crtraj.planning.body import model_record
 from crtraj.world.feed import ObstacleFeed
 from crtraj.world.scene import Scene
 
@@ -69,7 +70,8 @@ class ReplanRequest:
     capture's tip marker (`crtraj.hardware.mocap.MocapTip`, through the robot file's calibrated capture frame;
     live runs only: with feed and stream). plant: "cosserat" (or "cosserat-weightless") simulates the robot
     with the Cosserat rod (`crtraj.app.plant_sim`): its shape is judged against the obstacles and its tip
-    is the loop's tip measurement.
+    is the loop's tip measurement. model: the body the loop keeps D_sf from, "pcc" or "rod" (None: the
+    problem's ``[planner] model``; `crtraj.planning.body`).
     """
 
     problem: Path
@@ -88,6 +90,7 @@ class ReplanRequest:
     tip_feedback: bool = False
     mocap_port: int | None = None
     plant: str | None = None
+    model: str | None = None
 
 
 @dataclass(frozen=True)
@@ -206,6 +209,7 @@ def _run_and_write(  # long: the run's resources (stage, stream, feed, live view
                     start_config=x_dev,
                     tip_sensor=stack.enter_context(contextlib.closing(sensor)) if sensor else None,
                     tip_feedback=req.tip_feedback,
+                    body=req.model,
                 )
             except UnsolvableTaskError as exc:
                 print(f"{exc.status}: {exc}; no run, nothing written to {out}")
@@ -262,7 +266,7 @@ def _print_summary(req: ReplanRequest, done: _Written, out: Path, t0: float) -> 
     if not req.quiet:
         print(f"  {run.limits_line()}")
     if done.plant is not None:
-        for text in plant_lines(done.plant, run):
+        for text in plant_lines(done.plant, run, model_record(done.loop.model)["kind"]):
             print(f"  {text}")
     elif run.measured_tip is not None:
         print(f"  {measured_tip_line(run, req.tip_feedback)}")
@@ -440,6 +444,7 @@ def replan_command(args: Any) -> int:
         tip_feedback=bool(getattr(args, "tip_feedback", False)),
         mocap_port=getattr(args, "mocap_port", None),
         plant=getattr(args, "plant", None),
+        model=getattr(args, "model", None),
     )
     if not args.view:
         return run_replan(req)

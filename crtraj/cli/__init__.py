@@ -145,6 +145,17 @@ def _add_view(sub: argparse._SubParsersAction) -> None:
 # -------------------------------------------------------------- sim-dynamixel
 # ----------------------------------------------------------------------- home
 # ----------------------------------------------------------------------- plan
+def _add_model(p: argparse.ArgumentParser) -> None:
+    """--model of plan and replan: the body kept D_sf from (`crtraj.planning.body`)."""
+    p.add_argument(
+        "--model",
+        choices=("pcc", "rod"),
+        default=None,
+        help="the body to keep D_sf from: pcc, or rod (the Cosserat rod's under the robot file's "
+        "[robot.mechanics], with D_sf grown by the rod model's error bound); default: [planner] model",
+    )
+
+
 def _add_plan(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "plan",
@@ -158,6 +169,7 @@ def _add_plan(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--planner", choices=("cspace", "rrt", "rrtstar"), default=None, help="default: [planner] algorithm")
     p.add_argument("--seed", type=int, default=None, help="random seed (default: the problem's seed)")
     p.add_argument("--time-limit", type=float, default=None, help="planning time budget in s (default: [planner])")
+    _add_model(p)
     p.add_argument("--out", default=None, help="result JSON (default: out/plan-<name>.json)")
     p.add_argument(
         "--html", default=None, help="also write the standalone 3-D view to this HTML file (successful plans only)"
@@ -194,6 +206,7 @@ def _add_replan(sub: argparse._SubParsersAction) -> None:
         help="switch the collision-free terms off (NLP constraints, move verification, obstacles in the reference "
         "planner), as in the paper's Fig. 4(b): the body then runs into the obstacles",
     )
+    _add_model(p)
     p.add_argument("--no-html", action="store_true", help="do not write run.html")
     p.add_argument(
         "--overwrite-failed",

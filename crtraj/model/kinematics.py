@@ -113,6 +113,11 @@ class Model:
         self._local = threading.local()
         self._dense: dict[int, ca.Function] = {}
 
+    def identity(self) -> dict[str, Any] | None:
+        """What makes this model's body differ from the robot file's PCC body (None: it is PCC's); part of the
+        key of anything compiled from the model (`crtraj.model.cosserat.RodModel`)."""
+        return None
+
     # ------------------------------------------------------------ expressions
     def _frame_expr(self, frac_total: float | None = None) -> ca.SX:
         R = ca.SX.eye(3)

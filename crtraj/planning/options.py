@@ -24,6 +24,9 @@ ALGORITHMS = ("cspace", "rrt", "rrtstar")
 # "strict": the continuous body over continuous time (`MotionValidator`); "paper": the paper's
 # collision points at the ends of `step`-second steps only (`crtraj.planning.validity._paper_check`).
 CHECKS = ("strict", "paper")
+# The body the planner keeps clear: PCC's, or the rod's under the robot file's actuation and gravity
+# (`crtraj.planning.body`, ``[robot.mechanics]`` needed).
+MODELS = ("pcc", "rod")
 
 # Bounds: the highs keep one planner call within memory and a bounded number of solver calls (each far above
 # what the paper's problems use); step sizes have a positive floor so that the number of collision checks and
@@ -172,6 +175,9 @@ class PlannerOptions(Options):
     smooth: B-spline smoothing of the final path (verified; dropped if unsafe).
     corner: how far from each corner (mm of body motion) the spline starts cutting it.
     waypoint_step: largest body motion between returned waypoints (mm).
+    model: the body the plan keeps D_sf from: "pcc" (the default) or "rod", the body the Cosserat rod takes
+    under the robot file's ``[robot.mechanics]`` (its actuation mode, gravity), with D_sf grown by the rod
+    model's stated error bound (`crtraj.planning.body`).
     ik, check, cspace, rrt: the sub-tables ``[planner.ik]`` (`IKOptions`), ``[planner.check]``
     (`CheckOptions`), ``[planner.cspace]`` (`CSpaceOptions`) and ``[planner.rrt]`` (`RRTOptions`).
     """
@@ -190,6 +196,7 @@ class PlannerOptions(Options):
     smooth: bool = option(True)
     corner: float = option(40.0, ge=1e-3, le=MAX_LENGTH)
     waypoint_step: float = option(20.0, ge=0.1, le=MAX_LENGTH)
+    model: str = option("pcc", choices=MODELS)
     # the sub-tables' defaults are frozen, shared objects (RUF009 guards against mutable ones)
     ik: IKOptions = option(DEFAULT_IK, read=False)  # noqa: RUF009
     check: CheckOptions = option(DEFAULT_CHECK, read=False)  # noqa: RUF009

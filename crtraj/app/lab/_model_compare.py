@@ -26,7 +26,7 @@ from matplotlib.figure import Figure
 from crtraj.core.errors import InputError
 from crtraj.core.fileio import atomic_write_bytes, check_output_file, check_outputs_not_inputs
 from crtraj.io.problem import load_robot
-from crtraj.model.cosserat import RodDrive, pcc_nodes, sample_within_limits
+from crtraj.model.cosserat import pcc_nodes, robot_rod, sample_within_limits
 from crtraj.model.kinematics import Model
 from crtraj.model.mechanics import Mechanics
 from crtraj.model.robot import Robot
@@ -34,8 +34,6 @@ from crtraj.model.robot import Robot
 log = logging.getLogger(__name__)
 
 MAX_SAMPLES = 100_000
-# N in every tendon at the straight pose (the smallest tension of each segment), as the plant's
-PRETENSION = 1.0
 
 
 @dataclass(frozen=True)
@@ -95,8 +93,8 @@ def _distances(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
 def compare_models(robot: Robot, mech: Mechanics, configs: np.ndarray) -> Comparison:
     """PCC against Cosserat-rod statics at each configuration, in `mech`'s actuation mode (the module docstring)."""
     model = Model(robot)
-    free_rod = RodDrive(robot, mech, pretension=PRETENSION, gravity=False)
-    heavy_rod = RodDrive(robot, mech, pretension=PRETENSION, gravity=True)
+    free_rod = robot_rod(robot, mech=mech, gravity=False)
+    heavy_rod = robot_rod(robot, mech=mech, gravity=True)
     n = len(configs)
     res = np.full((4, n), np.nan)
     worst: tuple[np.ndarray, np.ndarray] | None = None

@@ -22,7 +22,7 @@ import numpy as np
 
 from crtraj.app.devices import failure_line, print_report, stream_motion
 from crtraj.app.lab._record_plant import plant_dataset
-from crtraj.app.plant_sim import PLANTS, PRETENSION
+from crtraj.app.plant_sim import PLANTS
 from crtraj.core.errors import InputError
 from crtraj.core.fields import check_float
 from crtraj.core.fileio import check_output_file, check_outputs_not_inputs
@@ -45,7 +45,7 @@ from crtraj.model.calibration import (
     initial_capture,
     paper_markers,
 )
-from crtraj.model.cosserat import RodDrive
+from crtraj.model.cosserat import robot_rod
 from crtraj.model.excitation import excitation_path
 from crtraj.model.robot import Robot
 from crtraj.world.scene import Scene
@@ -168,7 +168,7 @@ def _record_plant(args: argparse.Namespace, robot: Robot, sites: tuple[MarkerSit
                          "--serial, --dry-run, --log, --markers")  # fmt: skip
     if args.plant not in PLANTS:
         raise InputError(f"--plant: unknown plant {args.plant!r} (choose from {', '.join(PLANTS)})")
-    drive = RodDrive(robot, pretension=PRETENSION, gravity=args.plant == "cosserat")
+    drive = robot_rod(robot, gravity=args.plant == "cosserat")
     prob = Problem.load(args.problem) if args.problem else None
     scene = prob.options(Scene, "scene") if prob else Scene()
     motion = excitation_motion(robot, Actuators.from_robot(robot), scene, duration=args.duration)

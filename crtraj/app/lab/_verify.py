@@ -32,7 +32,7 @@ import numpy as np
 from crtraj.core.errors import InputError
 from crtraj.io.problem import Problem, load_robot
 from crtraj.io.results import Result, read_result
-from crtraj.model.cosserat import RodDrive
+from crtraj.model.cosserat import RodDrive, robot_rod
 from crtraj.model.kinematics import Model
 from crtraj.model.mechanics import Mechanics
 from crtraj.model.robot import Robot
@@ -46,8 +46,6 @@ MAX_SUBSTEPS = 100
 # planning time): on the sim-1/sim-2 plans (tension mode) the per-frame clearances then lie within 0.004 mm of
 # the polished solves' and within 0.003 mm of a cold 1e-11 N solve on the frames checked, below the 0.01 mm reported.
 VERIFY_TOLERANCE = 1e-6
-# N in every tendon at the straight pose (the smallest tension of each segment), as the plant's
-PRETENSION = 1.0
 
 
 @dataclass(frozen=True)
@@ -173,7 +171,7 @@ def verify_cosserat(
         mech = Mechanics.from_robot(robot)
         mech = mech.with_(tolerance=max(mech.tolerance, VERIFY_TOLERANCE))
         # each solve stops as soon as its residual is within the tolerance (no polish below it)
-        drive = RodDrive(robot, mech, pretension=PRETENSION, gravity=gravity, polish=1.0)
+        drive = robot_rod(robot, mech=mech, gravity=gravity, polish=1.0)
     t, x = frames(result.t, result.x, substeps)
     steps = drive.mech.steps
     arcs = np.concatenate([[0.0]] + [s.length * np.arange(1, steps + 1) / steps for s in robot.segments])

@@ -21,8 +21,8 @@ from crtraj.control.tracking import TrackingOptions
 from crtraj.core.clock import Clock, WallClock
 from crtraj.core.errors import InputError
 from crtraj.core.fields import Table, check_array
-from crtraj.model.kinematics import Model
 from crtraj.model.rate_limits import RateLimits
+from crtraj.planning.body import model_record, planning_model, planning_scene
 from crtraj.planning.options import PlannerOptions
 from crtraj.planning.planners import make_planner
 from crtraj.planning.result import PlanStatus
@@ -81,6 +81,9 @@ class ProblemRun:
     each step after it is computed, so the feed is predicted that far ahead. start_config: (nx,) the
     configuration the run starts from instead of the task's start (a live device's measured one).
     tip_sensor, tip_feedback: see `crtraj.control.loop._tip_sensing.TipSensing`. clock: the loop's one clock.
+    body: the body the loop keeps D_sf from, "pcc" or "rod" (`crtraj.planning.body`; None: ``[planner] model``);
+    with "rod" the whole loop (reference planner, horizon NLP, step verification) sees the rod's body and keeps
+    D_sf plus the rod model's error bound.
     """
 
     safety: bool | None = None
@@ -93,6 +96,7 @@ class ProblemRun:
     tip_sensor: TipSensor | None = None
     tip_feedback: bool = False
     clock: Clock = field(default_factory=WallClock)
+    body: str | None = None
 
 
 def spec_from_problem(problem: ProblemLike, run: ProblemRun) -> LoopSpec:
@@ -119,11 +123,12 @@ def spec_from_problem(problem: ProblemLike, run: ProblemRun) -> LoopSpec:
             "spheres only; plan this scene with `crtraj plan`, or give its obstacles as [[scene.obstacle]] spheres"
         )
     feed_options = problem.options(FeedOptions, "feed")  # checked even without a feed
-    model = Model(problem.robot)
+    model = planning_model(problem.robot, popts.model if run.body is None else run.body)
+    scene = planning_scene(scene, model)
     planner = make_planner(model, scene, popts, sopts)
     source: FeedObstacles | None = None
     scene0 = scene
-    extra: dict[str, Any] = {"planner": popts, "steer": sopts}
+    extra: dict[str, Any] = {"planner": popts, "steer": sopts, "body": model_record(model)}
     if run.feed is not None:
         run.feed.configure(feed_options)  # the problem's velocity bound and timestamp window
         extra["feed"] = feed_options

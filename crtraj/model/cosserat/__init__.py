@@ -1,5 +1,6 @@
 """Cosserat-rod statics of a tendon-driven robot (shooting in CasADi), its cable-length mode, its generated C, the
-rod driven by a PCC robot's actuation and the rod's tabulated correction to PCC. Units mm, rad, N.
+rod driven by a PCC robot's actuation, the rod's tabulated correction to PCC and the planner's model of the rod's
+body built on it. Units mm, rad, N.
 
 Public names load on first use (`crtraj.core.lazy.lazy_exports`); the modules behind them are private.
 """
@@ -15,6 +16,12 @@ __all__, __getattr__, __dir__ = lazy_exports(
         "crtraj.model.cosserat._drive": (
             "RodDrive",
             "RodShape",
+            "robot_rod",
+        ),
+        "crtraj.model.cosserat._rod_model": (
+            "RodModel",
+            "RodModelOptions",
+            "load_rod_model",
         ),
         "crtraj.model.cosserat._map": (
             "pcc_nodes",

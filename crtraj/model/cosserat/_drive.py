@@ -54,6 +54,8 @@ log = logging.getLogger(__name__)
 
 # Largest pretension (N): a few times the tension that bends a segment of cdsr2 through pi (about 40 N).
 MAX_PRETENSION = 200.0
+# N in every tendon at the straight pose: the one value of every consumer of a robot's rod (`robot_rod`).
+PRETENSION = 1.0
 
 
 @dataclass(frozen=True)
@@ -205,3 +207,15 @@ class RodDrive:
         w = f - i
         base = segment * steps
         return (1.0 - w) * points[base + i] + w * points[base + i + 1]
+
+
+def robot_rod(robot: Robot, *, gravity: bool = True, mech: Mechanics | None = None, polish: float = POLISH) -> RodDrive:
+    """The rod of `robot` as every consumer solves it: the plant (`crtraj replan --plant`, `crtraj record
+    --plant`), `crtraj verify --model cosserat`, `crtraj model compare` and the rod surrogate. One function
+    decides the physics, so they cannot disagree: the robot file's ``[robot.mechanics]`` (`mech`: a variant of
+    it, e.g. a looser tolerance; its actuation is the robot file's unless the caller changed it), its
+    ``actuation`` mode ("cable_length": the servos' commanded lengths; "tension": the tensions that hold the
+    PCC bending on a weightless rod), `PRETENSION` N at the straight pose; gravity: with the robot's weight;
+    polish: the tension-mode solves' polish (`RodDrive`). `InputError` when the robot file has no
+    ``[robot.mechanics]``."""
+    return RodDrive(robot, mech, pretension=PRETENSION, gravity=gravity, polish=polish)

@@ -52,7 +52,7 @@ from scipy.interpolate import CubicSpline, make_interp_spline
 from crtraj.core.build_cache import default_root
 from crtraj.core.errors import InputError
 from crtraj.core.fileio import atomic_write_bytes, atomic_write_json, read_json
-from crtraj.model.cosserat._drive import RodDrive
+from crtraj.model.cosserat._drive import PRETENSION, RodDrive
 from crtraj.model.kinematics import Model
 from crtraj.model.mechanics import Mechanics
 from crtraj.model.robot import Robot
@@ -84,7 +84,7 @@ class SurrogateOptions:
     grid: int = 9
     holdout: int = 200
     seed: int = 0
-    pretension: float = 1.0
+    pretension: float = PRETENSION
 
     def __post_init__(self) -> None:
         if not MIN_GRID <= int(self.grid) <= MAX_GRID:

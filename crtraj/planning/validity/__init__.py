@@ -16,6 +16,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "ProjectionLimits",
             "ProjectionSteps",
             "ValidityKernel",
+            "kernel_key",
         ),
         "crtraj.planning.validity._kernels": ("Kernels",),
         "crtraj.planning.validity._motion": ("MotionValidator",),

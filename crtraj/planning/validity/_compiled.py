@@ -94,6 +94,8 @@ def kernel_key(model: Model, check_points: int) -> BuildKey:
     driver = hashlib.sha256(DRIVER.encode("utf-8")).hexdigest()
     spec = {"robot": robot, "check_points": int(check_points), "generator": GENERATOR, "driver": driver}
     spec["flags"] = list(KERNEL_FLAGS)
+    if model.identity() is not None:  # a body other than PCC's (the rod's): its own library
+        spec["body"] = model.identity()
     return BuildKey("crtraj_validity", spec)
 
 

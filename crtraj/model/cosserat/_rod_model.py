@@ -1,0 +1,326 @@
+"""The body the rod takes as the planner's model: PCC plus a fitted correction (``[planner] model = "rod"``).
+
+`crtraj.model.cosserat._surrogate.RodSurrogate` tabulates the rod's correction Delta = rod - PCC at the collision
+points and interpolates it by a cubic B-spline. CasADi evaluates that spline only on MX graphs, while every
+consumer of the `Model` (the checker and its generated C, the safe IK, the steer and horizon NLPs) builds SX
+expressions. `RodModel` therefore carries the correction as a polynomial of total degree ``degree`` in the
+normalised bending vectors w_k = u_bar_k / theta_max_k (2 n_segments variables, each in the unit disc),
+
+    Delta(x) ~= sum_m c_m w^e_m   (3 x P, mm; P collision points, the last the tip),
+
+fitted by least squares to the spline at ``samples`` seeded random configurations within the limits. It is a
+plain SX expression of x: exact Jacobians and Hessians, and it generates to C with the rest of a checker.
+
+Between the collision points the correction is interpolated linearly along the arc (hat functions of the arc
+length), so every body function of the Model (``backbone``, ``backbone_function(n)``, ``points``,
+``segment_point_function``, ``tip``, ``jac_tip``) is the rod's body; the tip frame's rotation stays PCC's.
+
+Its error. The fit, the spline and the interpolation along the arc all err; what counts is the body the planner
+sees against the rod. After the fit, ``holdout`` seeded random configurations within the limits (not the fit's)
+are solved fresh (`RodSampler`, the robot file's actuation mode, gravity) and compared with the model at every
+integration node of the rod (``steps`` per segment, the nodes `crtraj verify --model cosserat` checks): the
+largest distance (body) and the tip's are the model's error, and ``BOUND_FACTOR`` times the body's is its
+stated bound, which the planner adds to D_sf (`planning_margin`).
+
+The cache. The coefficients and the measured error are kept beside the surrogate's table, under a key of the
+surrogate's digest (the robot file, its mechanics and the surrogate's options), these options and this
+source's hash: a changed robot file is a new entry, never a stale one.
+
+Units: mm, rad.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import itertools
+import json
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import casadi as ca
+import numpy as np
+
+from crtraj.core.build_cache import default_root
+from crtraj.core.errors import InputError
+from crtraj.core.fileio import atomic_write_json, read_json
+from crtraj.model.cosserat._surrogate import (
+    BOUND_FACTOR,
+    RodSampler,
+    RodSurrogate,
+    SurrogateError,
+    SurrogateOptions,
+    sample_within_limits,
+)
+from crtraj.model.kinematics import Model
+from crtraj.model.mechanics import Mechanics
+from crtraj.model.robot import Robot
+
+log = logging.getLogger(__name__)
+
+# Layout of a cache entry (a change makes every old entry foreign).
+FORMAT = 1
+MAX_DEGREE = 14
+MAX_SAMPLES = 200_000
+MAX_HOLDOUT = 100_000
+# Largest cache entry read (bytes): a degree-14 fit of 4 variables at 21 points is about 2 MB of JSON.
+_MAX_ENTRY_BYTES = 64 * 1024 * 1024
+
+
+@dataclass(frozen=True)
+class RodModelOptions:
+    """How the rod's body model is made. degree: total degree of the correction's polynomial. samples: random
+    configurations the polynomial is fitted on (the spline's values there). holdout: fresh rod solves the
+    error is measured on. seed: of both draws. surrogate: the tabulated surrogate's options."""
+
+    degree: int = 10
+    samples: int = 20_000
+    holdout: int = 200
+    seed: int = 0
+    surrogate: SurrogateOptions = field(default_factory=SurrogateOptions)
+
+    def __post_init__(self) -> None:
+        if not 1 <= int(self.degree) <= MAX_DEGREE:
+            raise InputError(f"rod model degree: must be in [1, {MAX_DEGREE}], got {self.degree}")
+        if not 1 <= int(self.samples) <= MAX_SAMPLES:
+            raise InputError(f"rod model samples: must be in [1, {MAX_SAMPLES}], got {self.samples}")
+        if not 1 <= int(self.holdout) <= MAX_HOLDOUT:
+            raise InputError(f"rod model holdout: must be in [1, {MAX_HOLDOUT}], got {self.holdout}")
+
+    def to_dict(self) -> dict[str, Any]:
+        s = self.surrogate
+        sur = {"grid": int(s.grid), "holdout": int(s.holdout), "seed": int(s.seed), "pretension": s.pretension}
+        return {"degree": int(self.degree), "samples": int(self.samples), "holdout": int(self.holdout)} | {
+            "seed": int(self.seed),
+            "surrogate": sur,
+        }
+
+
+def exponents(n_vars: int, degree: int) -> np.ndarray:
+    """Every exponent vector (M, n_vars) of total degree <= `degree`, in a fixed order."""
+    return np.array([e for e in itertools.product(range(degree + 1), repeat=n_vars) if sum(e) <= degree], dtype=int)
+
+
+def monomials(w: np.ndarray, exps: np.ndarray) -> np.ndarray:
+    """The monomials w^e (N, M) of points w (N, n_vars)."""
+    return np.prod(w[:, None, :] ** exps[None, :, :], axis=2)
+
+
+class Correction:
+    """Delta(w) (3 x P, mm) as a polynomial in the normalised bending vectors w (the module docstring).
+
+    exps: (M, 2 n_segments) exponents; coef: (M, 3 P) coefficients, column 3 j + i the coordinate i of point j;
+    arcs: (P,) the points' arc lengths (mm from the base)."""
+
+    def __init__(self, robot: Robot, exps: np.ndarray, coef: np.ndarray, arcs: np.ndarray) -> None:
+        self.robot = robot
+        self.exps = np.asarray(exps, dtype=int)
+        self.coef = np.asarray(coef, dtype=float)
+        self.arcs = np.asarray(arcs, dtype=float)
+        self.scale = np.repeat([1.0 / s.theta_max for s in robot.segments], 2)
+        if self.coef.shape != (len(self.exps), 3 * len(self.arcs)):
+            raise ValueError(
+                f"coefficients of shape {self.coef.shape}, expected {(len(self.exps), 3 * len(self.arcs))}"
+            )
+
+    @classmethod
+    def fit(cls, sur: RodSurrogate, degree: int, samples: int, rng: np.random.Generator) -> Correction:
+        """Least-squares fit to the spline `sur` at `samples` random configurations within the limits."""
+        r = sur.robot
+        xs = sample_within_limits(r, samples, rng)
+        delta = np.asarray(sur.function.map(len(xs))(xs.T))  # (3, P * N), configuration-major columns
+        y = delta.T.reshape(len(xs), -1)  # (N, 3 P): point j's coordinates at columns 3 j .. 3 j + 2
+        exps = exponents(2 * r.n_segments, degree)
+        scale = np.repeat([1.0 / s.theta_max for s in r.segments], 2)
+        phi = monomials(r.bending(xs).reshape(len(xs), -1) * scale, exps)
+        coef, *_ = np.linalg.lstsq(phi, y, rcond=None)
+        return cls(r, exps, coef, Model(r, sur.n_points).arc_positions(sur.n_points))
+
+    def expr(self, ub: Any) -> Any:
+        """Delta (3 x P) as an SX/MX expression of the effective bending vectors ub (2 n_segments,) rad."""
+        n = len(self.scale)
+        w = [ub[i] * float(self.scale[i]) for i in range(n)]
+        top = int(self.exps.max()) if len(self.exps) else 0
+        powers = [[1.0] + [None] * top for _ in range(n)]
+        for i in range(n):
+            for p in range(1, top + 1):
+                powers[i][p] = w[i] if p == 1 else powers[i][p - 1] * w[i]
+        terms = []
+        for e in self.exps:
+            t: Any = 1.0
+            for i, p in enumerate(e):
+                if p:
+                    t = t * powers[i][p]
+            terms.append(t)
+        flat = ca.mtimes(ca.DM(self.coef.T), ca.vertcat(*terms))  # (3 P,)
+        return ca.reshape(flat, 3, len(self.arcs))
+
+    def weights(self, arcs: np.ndarray) -> np.ndarray:
+        """Linear interpolation weights (len(arcs), P) of the correction at arc lengths `arcs` (mm)."""
+        return np.stack([np.interp(np.asarray(arcs, dtype=float), self.arcs, np.eye(len(self.arcs))[j]) for j in
+                         range(len(self.arcs))], axis=1)  # fmt: skip
+
+    def at_arc(self, delta: Any, s: Any) -> Any:
+        """The correction (3,) at a symbolic arc length s (mm): hat functions of the arc between the points."""
+        h = np.diff(self.arcs)
+        col: Any = 0.0
+        for j, a in enumerate(self.arcs):
+            left = h[j - 1] if j > 0 else h[0]
+            right = h[j] if j < len(h) else h[-1]
+            up = ca.fmax(0.0, ca.fmin(1.0 + (s - a) / left, 1.0 - (s - a) / right))
+            if j == 0:
+                up = ca.if_else(s <= a, 1.0, up)
+            if j == len(self.arcs) - 1:
+                up = ca.if_else(s >= a, 1.0, up)
+            col = col + up * delta[:, j]
+        return col
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"exponents": self.exps.tolist(), "coef": self.coef.tolist(), "arcs": self.arcs.tolist()}
+
+
+class RodModel(Model):
+    """The robot's `Model` whose body is the rod's (PCC plus `Correction`, the module docstring).
+
+    error: the measured error against the rod (mm); identity: what it was made from (the surrogate's digest,
+    the options), recorded with a plan and keyed into compiled kernels."""
+
+    def __init__(
+        self,
+        robot: Robot,
+        correction: Correction,
+        error: SurrogateError,
+        identity: dict[str, Any],
+        n_points: int | None = None,
+    ) -> None:
+        self.correction, self.error, self._identity = correction, error, dict(identity)
+        self._delta: Any = None
+        super().__init__(robot, n_points)
+
+    def identity(self) -> dict[str, Any] | None:
+        """What makes this model's body differ from PCC's (keys compiled kernels and results)."""
+        return dict(self._identity)
+
+    @property
+    def planning_margin(self) -> float:
+        """mm the planner adds to D_sf: the stated bound of the body's error (`BOUND_FACTOR` x measured)."""
+        return float(self.error.body_bound)
+
+    def describe(self) -> dict[str, Any]:
+        """The model as recorded with a plan: kind, identity, the measured error and the margin (mm)."""
+        e = self.error
+        return {"kind": "rod", **self._identity, "planning_margin_mm": self.planning_margin} | {
+            "error_mm": {"body_max": e.body_max, "body_p95": e.body_p95, "tip_max": e.tip_max, "samples": e.samples}
+        }
+
+    def _correction_expr(self) -> Any:
+        if self._delta is None:
+            self._delta = self.correction.expr(self._ub)
+        return self._delta
+
+    def _frame_expr(self, frac_total: float | None = None) -> ca.SX:
+        T = super()._frame_expr(frac_total)
+        T[:3, 3] = T[:3, 3] + self._correction_expr()[:, -1]
+        return T
+
+    def _points_expr(self, arcs: np.ndarray) -> ca.SX:
+        w = self.correction.weights(np.asarray(arcs, dtype=float))  # (n, P)
+        return super()._points_expr(arcs) + ca.mtimes(self._correction_expr(), ca.DM(w.T))
+
+    def segment_point_function(self) -> ca.Function:
+        """As `Model.segment_point_function`, with each segment's point moved by the correction at its arc."""
+        base = super().segment_point_function()
+        f = ca.SX.sym("f")
+        pts = base(self._x, f)
+        starts = np.cumsum([0.0] + [s.length for s in self.robot.segments])
+        d = self._correction_expr()
+        cols = [pts[:, k] + self.correction.at_arc(d, starts[k] + f * seg.length) for k, seg in
+                enumerate(self.robot.segments)]  # fmt: skip
+        return ca.Function("segment_points", [self._x, f], [ca.horzcat(*cols)], {"cse": True})
+
+    def points_at_arcs(self, arcs: np.ndarray) -> ca.Function:
+        """CasADi function x -> points (3 x len(arcs)) at arc lengths `arcs` (mm from the base)."""
+        return ca.Function("points_at_arcs", [self._x], [ca.densify(self._points_expr(np.asarray(arcs)))])
+
+
+def measure(model: RodModel, mech: Mechanics, options: RodModelOptions) -> SurrogateError:
+    """The model's body against fresh rod solves at every rod node, on `options.holdout` held-out configurations
+    (their own seed stream, not the fit's)."""
+    sampler = RodSampler(model.robot, mech, options.surrogate.pretension)
+    f = model.points_at_arcs(sampler.node_arcs)
+    xs = sample_within_limits(model.robot, options.holdout, np.random.default_rng([options.seed, 1]))
+    body, tip = [], []
+    for x in xs:
+        shape = sampler.drive.shape_config(x)
+        if not shape.is_success():
+            raise InputError(f"rod model: the rod's solve failed at held-out configuration {np.round(x, 4).tolist()}")
+        d = np.linalg.norm(np.asarray(f(x)).T - shape.points, axis=1)
+        body.append(d.max())
+        tip.append(d[-1])
+    b, t = np.array(body), np.array(tip)
+    return SurrogateError(
+        float(b.max()), float(np.percentile(b, 95)), float(t.max()), float(np.percentile(t, 95)), len(xs)
+    )
+
+
+def _key(sur: RodSurrogate, options: RodModelOptions) -> dict[str, Any]:
+    src = hashlib.sha256(Path(__file__).read_bytes()).hexdigest()
+    return {"format": FORMAT, "surrogate": sur.digest, "options": options.to_dict(), "source": src}
+
+
+def _digest(key: dict[str, Any]) -> str:
+    return hashlib.sha256(json.dumps(key, sort_keys=True, separators=(",", ":")).encode("utf-8")).hexdigest()
+
+
+def _read(path: Path, robot: Robot, key: dict[str, Any]) -> tuple[Correction, SurrogateError] | None:
+    """The cached correction and error of `key` at `path`, or None (missing or not checking out: rebuilt)."""
+    if not path.is_file():
+        return None
+    try:
+        man = read_json(path, _MAX_ENTRY_BYTES)
+        if not isinstance(man, dict) or man.get("key") != json.loads(json.dumps(key)):
+            raise ValueError("key")
+        c = man["correction"]
+        corr = Correction(robot, np.array(c["exponents"]), np.array(c["coef"]), np.array(c["arcs"]))
+        if not np.all(np.isfinite(corr.coef)):
+            raise ValueError("coefficients")
+        e = man["error_mm"]
+        err = SurrogateError(*(float(e[k]) for k in ("body_max", "body_p95", "tip_max", "tip_p95")), int(e["samples"]))
+    except (InputError, OSError, ValueError, KeyError, TypeError) as exc:
+        log.warning("rod model: cache entry %s is unusable (%s); rebuilding it", path.name, exc)
+        return None
+    return corr, err
+
+
+def load_rod_model(
+    robot: Robot, options: RodModelOptions | None = None, *, cache_dir: str | Path | None = None
+) -> RodModel:
+    """The rod's body model of `robot` (its ``[robot.mechanics]``; `InputError` naming the table when it has
+    none): from the cache when its entry checks out, else the surrogate loaded or built, the correction fitted,
+    its error measured and all stored (the module docstring)."""
+    options = RodModelOptions() if options is None else options
+    mech = Mechanics.from_robot(robot)
+    root = Path(cache_dir) if cache_dir is not None else default_root()
+    sur = RodSurrogate.load(robot, mech, options.surrogate, cache_dir=root)
+    key = _key(sur, options)
+    digest = _digest(key)
+    path = root / f"rod_model-{digest[:24]}.json"
+    identity = {"surrogate": sur.digest[:24], "rod_model": digest[:24], "actuation": mech.actuation}
+    found = _read(path, robot, key)
+    if found is not None:
+        return RodModel(robot, found[0], found[1], identity)
+    start = time.perf_counter()
+    corr = Correction.fit(sur, options.degree, options.samples, np.random.default_rng([options.seed, 0]))
+    model = RodModel(robot, corr, SurrogateError(0.0, 0.0, 0.0, 0.0, 0), identity)
+    model.error = measure(model, mech, options)
+    log.info("rod model of %s: fitted and measured in %.1f s; %s", robot.name, time.perf_counter() - start,
+             model.error.text())  # fmt: skip
+    e = model.error
+    entry = {"key": key, "correction": corr.to_dict()} | {
+        "error_mm": {"body_max": e.body_max, "body_p95": e.body_p95, "tip_max": e.tip_max, "tip_p95": e.tip_p95}
+        | {"samples": e.samples, "bound_factor": BOUND_FACTOR}
+    }
+    atomic_write_json(path, entry)
+    return model
