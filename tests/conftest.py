@@ -3,12 +3,14 @@ policy for tests that need a tool or an optional extra, and an order-free compar
 
 from __future__ import annotations
 
+import fcntl
 import importlib
 import os
 import shutil
 import signal
 import socket
 import sys
+import tempfile
 from pathlib import Path
 from types import ModuleType
 from typing import NoReturn
@@ -97,6 +99,31 @@ def require_module(name: str, hint: str = "") -> ModuleType:
         return importlib.import_module(name)
     except ImportError as exc:
         missing(f"optional module {name} is not importable: {exc}" + (f" ({hint})" if hint else ""))
+
+
+# ------------------------------------------------------------------ ROS domains
+_DOMAIN_LOCKS: list[int] = []  # open lock files of the domains this process holds (closed when it exits)
+
+
+def reserve_ros_domain(first: int = 10, count: int = 190) -> int:
+    """A ROS domain id in first..first + count - 1 that no other process on this machine holds, held by this
+    one until it exits (an exclusive flock on a file in the temp folder; the kernel drops it with the process,
+    also on SIGKILL). Two test runs side by side (several checkouts, CI beside a developer) on one domain see
+    each other's nodes on the same topic names: the robot of one would execute the other's trajectories. The
+    search starts at a pid-dependent id, so a second reservation by this process gets another domain."""
+    folder = Path(tempfile.gettempdir())
+    start = os.getpid() % count
+    for k in range(count):
+        domain = first + (start + len(_DOMAIN_LOCKS) + k) % count
+        fd = os.open(folder / f"crtraj-ros-domain-{domain}.lock", os.O_RDWR | os.O_CREAT, 0o666)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(fd)
+            continue
+        _DOMAIN_LOCKS.append(fd)
+        return domain
+    raise RuntimeError(f"no free ROS domain in {first}..{first + count - 1}: {count} test runs hold them all")
 
 
 # ------------------------------------------------------------ order-free compare

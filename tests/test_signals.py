@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import PAPER, PROBLEMS, ROOT, default_sigint, paper_copy, require_module
+from conftest import PAPER, PROBLEMS, ROOT, default_sigint, paper_copy, require_module, reserve_ros_domain
 
 from crtraj.core import interrupt
 from crtraj.core.fileio import StagedDir, StagedFile, atomic_write_bytes
@@ -467,7 +467,7 @@ def test_signal_home(tmp_path):
 @pytest.mark.slow
 def test_signal_ros_bridge(tmp_path):
     require_module("rclpy", "pip install -e '.[ros]'")
-    domain = 100 + os.getpid() % 100  # nobody else's graph: the bridge waits for a robot that never comes
+    domain = reserve_ros_domain()  # nobody else's graph: the bridge waits for a robot that never comes
     problem = paper_copy(tmp_path, values={("ros", "domain_id"): domain, ("ros", "start_timeout"): 600.0})
     out = _outputs(tmp_path, "run/run.json", "bridge.mcap")
     args = ["ros-bridge", str(problem), "--out", str(out / "run"), "--record", str(out / "bridge.mcap"), "--quiet"]
