@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import PAPER, paper_copy, require_module, reserve_ros_domain
+from conftest import PAPER, PLANNER_HANG_S, paper_copy, require_module, reserve_ros_domain
 from feed_clock import VirtualClock
 
 from crtraj.app.ros_bridge import RosBridgeRequest, run_ros_bridge
@@ -45,9 +45,13 @@ DOMAIN = reserve_ros_domain()  # this run's own ROS domain: no other run's nodes
 def _problem(tmp_path: Path, duration: float = 60.0) -> Path:
     """paper_dynamic.toml without its step deadline (`paper_copy`), a [ros] section on this run's domain (hang
     bounds only, and one more step of obstacle age than the robot's one-step latency needs) and a [loop]
-    duration of `duration` s."""
+    duration of `duration` s, its references planned inline."""
     ros = {"domain_id": DOMAIN, "max_age": 0.35, "joint_state_timeout": HANG, "start_timeout": HANG}
-    values = {("loop", "duration"): duration, **{("ros", k): v for k, v in ros.items()}}
+    # references planned inside the steps, with a hang bound for the planner's wall time only: a worker's path
+    # is taken over when it has arrived in wall-clock time, and a planner stopped by its time limit answers
+    # differently, so the run would depend on the machine's load
+    loop = {"duration": duration, "reference_delay": 0.0, "planner_time": PLANNER_HANG_S}
+    values = {**{("loop", k): v for k, v in loop.items()}, **{("ros", k): v for k, v in ros.items()}}
     return paper_copy(tmp_path, "paper_dynamic_ros.toml", values)
 
 
