@@ -20,8 +20,9 @@ from crtraj.core.errors import AdmissionError, InputError
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.admission import MotionRecord, admit
 from crtraj.hardware.dynamixel import DynamixelTransport, open_dynamixel
-from crtraj.hardware.dynamixel_protocol import HW_OVERHEATING, HW_OVERLOAD
+from crtraj.hardware.dynamixel_protocol import HW_OVERHEATING, HW_OVERLOAD, X
 from crtraj.hardware.dynamixel_protocol import crc16 as dxl_crc16
+from crtraj.hardware.dynamixel_protocol import status as dxl_status
 from crtraj.hardware.sim_dynamixel import ServoChain
 from crtraj.hardware.stream import Streamer, StreamOptions
 from crtraj.hardware.transport import TransportError
@@ -161,6 +162,34 @@ def test_a_silent_servo_is_named_by_its_id(acts):
         with pytest.raises(TransportError) as e:
             DynamixelTransport(sim.path, 1_000_000, acts)
         _one_line_error(e, "servo id 3 (s1c3) does not answer", "ids 1, 2, 4, 5, 6, 7 do")
+    finally:
+        sim.stop()
+
+
+@pytest.mark.parametrize("params", [b"", (1234).to_bytes(2, "little")], ids=["write-status", "2-byte-read"])
+def test_a_late_reply_of_another_size_is_not_taken_for_a_read(acts, params):
+    """A servo's status packet to an earlier write or 2-byte read, arriving late (a starved host or device answers
+    after the SDK's reply timeout), comes in before the reply to a 4-byte read: the SDK takes it (same id, valid CRC)
+    and would index past a write's status (IndexError) or read a 2-byte reply and its CRC as the value. The link
+    takes it as a corrupt reply and asks again: the servo's true reading."""
+    clock = Clock()
+    sim = _sim(acts, clock)
+    try:
+        tr = DynamixelTransport(sim.path, 1_000_000, acts, homing=homed_state(sim.chain, acts), clock=clock)
+        dxl_id = acts.bus.ids[0]
+        truth = tr.read(dxl_id, X.PRESENT_POSITION, 4)
+        port = sim.ports[-1]
+        send = port.writePort
+
+        def late_first(packet):  # the SDK cleared the port before sending: the late reply comes after that
+            port._rx += dxl_status(dxl_id, 0, params)
+            port.writePort = send
+            return send(packet)
+
+        port.writePort = late_first
+        assert tr.read(dxl_id, X.PRESENT_POSITION, 4) == truth
+        assert port.writePort is send  # the late reply was there
+        tr.close()
     finally:
         sim.stop()
 

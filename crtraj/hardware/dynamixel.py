@@ -76,6 +76,9 @@ from crtraj.hardware.dynamixel_checks import (
     hardware_error_line,
     latency_warning,
 )
+from crtraj.hardware.dynamixel_protocol import PING as DXL_PING
+from crtraj.hardware.dynamixel_protocol import READ as DXL_READ
+from crtraj.hardware.dynamixel_protocol import WRITE as DXL_WRITE
 from crtraj.hardware.dynamixel_protocol import X
 from crtraj.hardware.dynamixel_watchdog import BusWatchdog, watchdog_units
 from crtraj.hardware.homing_state import HomingState, PowerUpCheck, multi_turn
@@ -102,6 +105,8 @@ _AT_VELOCITY, _AT_POSITION, _AT_WATCHDOG = X.INDIRECT_DATA + 2, X.INDIRECT_DATA 
 # SerialException on a write or read, OSError from the ioctl behind in_waiting, termios.error from the flush
 # behind clearPort; the SDK catches none of them (and leaves its busy flag set)
 LINK_ERRORS = (serial.SerialException, OSError, termios.error)
+# indices into the SDK's packets (lists of bytes; header FF FF FD 00, then id)
+_LENGTH, _INSTRUCTION, _PARAMS = 5, 7, 8
 
 
 def _sdk() -> Any:
@@ -143,6 +148,27 @@ def parse_url(url: str) -> tuple[str, int]:
 
 def _signed32(v: int) -> int:
     return v - (1 << 32) if v >= 1 << 31 else v
+
+
+def _reply_sizes_checked(ph: Any, corrupt: int) -> Any:
+    """The SDK's Protocol 2.0 packet handler `ph`, whose ping, read and write transactions take a status packet of
+    the wrong size as corrupt (result `corrupt`, the SDK's COMM_RX_CORRUPT). A servo's late reply to an earlier
+    transaction (a starved host or device answers after the SDK's 34 ms timeout) passes the SDK's id check: a
+    4-byte read would take a 2-byte read's reply with its CRC for a value, or index past a write's and raise."""
+    raw = ph.txRxPacket
+
+    def transaction(port: Any, tx: list[int]) -> tuple[Any, int, int]:
+        rx, result, error = raw(port, tx)
+        n = {DXL_PING: 3, DXL_WRITE: 0}.get(tx[_INSTRUCTION])
+        if tx[_INSTRUCTION] == DXL_READ:
+            n = tx[_PARAMS + 2] | tx[_PARAMS + 3] << 8  # the bytes asked for
+        # a status packet's length field: instruction, error, the parameters and the CRC
+        if result == 0 and n is not None and (len(rx) < 7 or rx[_LENGTH] | rx[_LENGTH + 1] << 8 != n + 4):
+            return rx, corrupt, 0
+        return rx, result, error
+
+    ph.txRxPacket = transaction
+    return ph
 
 
 class DynamixelTransport(Transport):
@@ -206,7 +232,7 @@ class DynamixelTransport(Transport):
         state = homing if isinstance(homing, HomingState) else HomingState.load(homing) if homing else HomingState()
         self._state, self._state_path = state, None if isinstance(homing, HomingState) or not homing else Path(homing)
         self._sdk = sdk
-        self._ph = sdk.PacketHandler(2.0)
+        self._ph = _reply_sizes_checked(sdk.PacketHandler(2.0), sdk.COMM_RX_CORRUPT)
         self._port = None
         self._lost: str | None = None  # why the link is gone (`_bus`), or None
         port = port_factory(sdk, device)
@@ -297,11 +323,13 @@ class DynamixelTransport(Transport):
     # --------------------------------------------------------------- checks
     def _ask(self, call: Callable[..., tuple[Any, ...]], *args: Any) -> tuple[Any, ...]:
         """One connect-time transaction (an SDK call returning ``(..., result, error)``), tried up to
-        `CONNECT_ATTEMPTS` times: a reply lost to line noise (or a busy host) is not yet a missing servo."""
+        `CONNECT_ATTEMPTS` times: a reply lost to line noise (or a busy host) is not yet a missing servo. A try
+        after a failed one drains late replies first (a reply of the wrong size is refused: `_reply_sizes_checked`)."""
         out = self._bus(call, self._port, *args)
         for _ in range(CONNECT_ATTEMPTS - 1):
             if out[-2] == self._sdk.COMM_SUCCESS:
                 break
+            self._drain()
             out = self._bus(call, self._port, *args)
         return out
 
