@@ -21,6 +21,7 @@ from scipy.optimize import linear_sum_assignment
 
 from crtraj.control.horizon import Replanner
 from crtraj.control.loop import ClosedLoop
+from crtraj.core import interrupt
 from crtraj.core.clock import VirtualClock
 from crtraj.core.tomledit import set_values
 from crtraj.io.problem import load_robot
@@ -58,6 +59,16 @@ def private_build_cache(tmp_path_factory):
         if not os.environ.get("CRTRAJ_CACHE_DIR"):
             mp.setenv("CRTRAJ_CACHE_DIR", str(tmp_path_factory.mktemp("crtraj-cache")))
         yield
+
+
+@pytest.fixture(autouse=True)
+def no_stop_requested():
+    """Each test starts with no stop requested. A test that signals its own process inside `interrupt.policy`
+    leaves the request behind (in a command's process it ends the process), and a later test's library call
+    would raise it at its first safe point (`interrupt.check`), far from its cause."""
+    state = interrupt._state
+    state.signum = state.count = state.shield = 0
+    yield
 
 
 @pytest.fixture(scope="session")
