@@ -194,6 +194,29 @@ def test_a_late_reply_of_another_size_is_not_taken_for_a_read(acts, params):
         sim.stop()
 
 
+def test_a_pseudo_terminal_allows_a_scheduler_delay_per_reply():
+    """On a pseudo-terminal (sim-dynamixel's) each reply may take PTY_LATENCY_MS longer than the SDK allows a bus; a
+    character device that is not one (a USB adapter's place: /dev/null here) keeps the SDK's timeout."""
+    import os
+
+    import dynamixel_sdk
+
+    from crtraj.hardware.dynamixel import PTY_LATENCY_MS, sdk_port
+
+    master, slave = os.openpty()
+    try:
+        pty = sdk_port(dynamixel_sdk, os.ttyname(slave))
+        bus = sdk_port(dynamixel_sdk, "/dev/null")
+        for port in (pty, bus):
+            port.setPacketTimeout(11)
+        assert pty.packet_timeout == pytest.approx(bus.packet_timeout + PTY_LATENCY_MS)
+        # the SDK's own allowance (its port not opened: no bytes on the wire yet)
+        assert bus.packet_timeout == pytest.approx(2.0 * dynamixel_sdk.port_handler.LATENCY_TIMER + 2.0)
+    finally:
+        os.close(master)
+        os.close(slave)
+
+
 def test_a_model_mismatch_is_refused(acts):
     bus = acts.bus
     chain = ServoChain(bus.ids, [*bus.models[:4], 1020, *bus.models[5:]])

@@ -105,6 +105,9 @@ _AT_VELOCITY, _AT_POSITION, _AT_WATCHDOG = X.INDIRECT_DATA + 2, X.INDIRECT_DATA 
 # SerialException on a write or read, OSError from the ioctl behind in_waiting, termios.error from the flush
 # behind clearPort; the SDK catches none of them (and leaves its busy flag set)
 LINK_ERRORS = (serial.SerialException, OSError, termios.error)
+# a pseudo-terminal's reply allowance beyond the SDK's (ms), and Linux's device numbers of pseudo-terminal ends
+PTY_LATENCY_MS = 500.0
+_PTY_MAJORS = range(136, 144)
 # indices into the SDK's packets (lists of bytes; header FF FF FD 00, then id)
 _LENGTH, _INSTRUCTION, _PARAMS = 5, 7, 8
 
@@ -119,12 +122,27 @@ def _sdk() -> Any:
 
 
 def sdk_port(sdk: Any, device: str) -> Any:
-    """The SDK's `PortHandler` of `device`; `TransportError` (one line) when there is no such device."""
+    """The SDK's `PortHandler` of `device`; `TransportError` (one line) when there is no such device. On a
+    pseudo-terminal each reply may take `PTY_LATENCY_MS` longer: its other end is a program (`crtraj
+    sim-dynamixel`, a socat bridge), which answers when the scheduler runs it, not within a bus's microseconds."""
     if not os.path.exists(device):
         raise TransportError(
             f"{device}: no such port (is the USB-serial adapter, e.g. a U2D2, plugged in? see ls /dev/ttyUSB*)"
         )
-    return sdk.PortHandler(device)
+    port = sdk.PortHandler(device)
+    try:
+        pty = os.major(os.stat(device).st_rdev) in _PTY_MAJORS
+    except OSError:
+        pty = False
+    if pty:
+        timeout = port.setPacketTimeout
+
+        def patient(packet_length: int) -> None:
+            timeout(packet_length)
+            port.packet_timeout += PTY_LATENCY_MS
+
+        port.setPacketTimeout = patient
+    return port
 
 
 # Test seam, not a user-facing option: how a device name becomes a port object. Production opens the SDK's
