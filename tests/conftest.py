@@ -22,6 +22,7 @@ from scipy.optimize import linear_sum_assignment
 from crtraj.control.horizon import Replanner
 from crtraj.control.loop import ClosedLoop
 from crtraj.core import interrupt
+from crtraj.core.build_cache import BuildCache
 from crtraj.core.clock import VirtualClock
 from crtraj.core.tomledit import set_values
 from crtraj.io.problem import load_robot
@@ -59,6 +60,14 @@ def private_build_cache(tmp_path_factory):
         if not os.environ.get("CRTRAJ_CACHE_DIR"):
             mp.setenv("CRTRAJ_CACHE_DIR", str(tmp_path_factory.mktemp("crtraj-cache")))
         yield
+
+
+@pytest.fixture(scope="session")
+def build_cache(private_build_cache) -> BuildCache:
+    """The session's build cache (the folder of `private_build_cache`, which commands run by the tests use too): a
+    library built by one test file is loaded by the others, never compiled again. Tests of the cache itself (builds
+    counted, entries corrupted) make their own."""
+    return BuildCache()
 
 
 @pytest.fixture(autouse=True)
