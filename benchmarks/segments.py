@@ -24,11 +24,11 @@ from pathlib import Path
 
 import numpy as np
 
-from crtraj.control.loop import ClosedLoop
+from crtraj.control.loop._closed_loop import ClosedLoop
 from crtraj.io.problem import Problem
 from crtraj.model.kinematics import Model
 from crtraj.planning.options import PlannerOptions
-from crtraj.planning.registry import make_planner
+from crtraj.planning.planners._registry import make_planner
 from crtraj.planning.steer import SteerOptions
 from crtraj.world.scene import Scene
 

@@ -17,8 +17,8 @@ from crtraj.core.errors import InputError
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.mocap import check_true_robot
 from crtraj.io.problem import Problem
+from crtraj.model.cosserat import RodDrive
 from crtraj.model.robot import Robot
-from crtraj.model.rod_drive import RodDrive
 from crtraj.world.scene import Scene
 
 # --plant choices: the rod with the robot file's gravity, or weightless
@@ -60,7 +60,7 @@ def make_plant(
 
 def attach_plant(plant: RodPlant, loop: ClosedLoop) -> None:
     """Give the plant the loop's servo model, start actuation and control period."""
-    q0 = loop.tracker.initial_command(loop.x_start)
+    q0 = loop.start_command()
     plant.attach(loop.servo, q0, loop.n_sub, loop.options.dt / loop.n_sub, loop.rate_limits)
 
 

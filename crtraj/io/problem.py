@@ -20,11 +20,11 @@ from crtraj.core.errors import InputError
 from crtraj.core.fields import MAX_LENGTH, MAX_SEED, Table, check_name
 from crtraj.core.fileio import read_toml
 from crtraj.hardware.actuators import Actuators
-from crtraj.hardware.homing_spec import read_homing, read_stop
+from crtraj.hardware.dynamixel import read_homing, read_stop
 from crtraj.io.calibration_data import CalibrationRecord
 from crtraj.model.mechanics import Mechanics
+from crtraj.model.rate_limits import RateLimits
 from crtraj.model.robot import Robot
-from crtraj.planning.rate_limits import RateLimits
 
 SECTIONS = (
     "name",
@@ -54,6 +54,22 @@ def _file_name(ref: str, key: str) -> str:
     if not ref or "\0" in ref or len(ref) > 4096:
         raise InputError(f"{key}: expected a file name (relative to the problem file), got {ref[:60]!r}")
     return ref
+
+
+def _shape_files_resolved(data: dict[str, Any], base: Path) -> dict[str, Any]:
+    """`data` with each ``[[scene.shape]] file`` made relative to `base` (the problem file's folder) when it
+    is a relative path, so the scene reads the same file wherever it is asked from."""
+    scene = data.get("scene")
+    shapes = scene.get("shape") if isinstance(scene, dict) else None
+    if not isinstance(shapes, list):
+        return data
+    out = []
+    for st in shapes:
+        ref = st.get("file") if isinstance(st, dict) else None
+        if isinstance(ref, str) and ref and not Path(ref).is_absolute():
+            st = {**st, "file": str(base / _file_name(ref, "scene.shape.file"))}
+        out.append(st)
+    return {**data, "scene": {**scene, "shape": out}}
 
 
 class _FromTable(Protocol[T]):  # pragma: no cover - typing only
@@ -153,6 +169,7 @@ class Problem:
         for key in SECTIONS:
             top.raw(key, None)  # sections are validated by their owners
         top.finish()
+        data = _shape_files_resolved(data, path.parent if path is not None else Path.cwd())
         prob = cls(name, robot, task, seed, path, desc, dict(data))
         return prob
 
