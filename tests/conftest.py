@@ -3,12 +3,14 @@ policy for tests that need a tool or an optional extra, and an order-free compar
 
 from __future__ import annotations
 
+import fcntl
 import importlib
 import os
 import shutil
 import signal
 import socket
 import sys
+import tempfile
 from pathlib import Path
 from types import ModuleType
 from typing import NoReturn
@@ -19,6 +21,8 @@ from scipy.optimize import linear_sum_assignment
 
 from crtraj.control.horizon import Replanner
 from crtraj.control.loop import ClosedLoop
+from crtraj.core import interrupt
+from crtraj.core.build_cache import BuildCache
 from crtraj.core.clock import VirtualClock
 from crtraj.core.tomledit import set_values
 from crtraj.io.problem import load_robot
@@ -56,6 +60,24 @@ def private_build_cache(tmp_path_factory):
         if not os.environ.get("CRTRAJ_CACHE_DIR"):
             mp.setenv("CRTRAJ_CACHE_DIR", str(tmp_path_factory.mktemp("crtraj-cache")))
         yield
+
+
+@pytest.fixture(scope="session")
+def build_cache(private_build_cache) -> BuildCache:
+    """The session's build cache (the folder of `private_build_cache`, which commands run by the tests use too): a
+    library built by one test file is loaded by the others, never compiled again. Tests of the cache itself (builds
+    counted, entries corrupted) make their own."""
+    return BuildCache()
+
+
+@pytest.fixture(autouse=True)
+def no_stop_requested():
+    """Each test starts with no stop requested. A test that signals its own process inside `interrupt.policy`
+    leaves the request behind (in a command's process it ends the process), and a later test's library call
+    would raise it at its first safe point (`interrupt.check`), far from its cause."""
+    state = interrupt._state
+    state.signum = state.count = state.shield = 0
+    yield
 
 
 @pytest.fixture(scope="session")
@@ -97,6 +119,31 @@ def require_module(name: str, hint: str = "") -> ModuleType:
         return importlib.import_module(name)
     except ImportError as exc:
         missing(f"optional module {name} is not importable: {exc}" + (f" ({hint})" if hint else ""))
+
+
+# ------------------------------------------------------------------ ROS domains
+_DOMAIN_LOCKS: list[int] = []  # open lock files of the domains this process holds (closed when it exits)
+
+
+def reserve_ros_domain(first: int = 10, count: int = 190) -> int:
+    """A ROS domain id in first..first + count - 1 that no other process on this machine holds, held by this
+    one until it exits (an exclusive flock on a file in the temp folder; the kernel drops it with the process,
+    also on SIGKILL). Two test runs side by side (several checkouts, CI beside a developer) on one domain see
+    each other's nodes on the same topic names: the robot of one would execute the other's trajectories. The
+    search starts at a pid-dependent id, so a second reservation by this process gets another domain."""
+    folder = Path(tempfile.gettempdir())
+    start = os.getpid() % count
+    for k in range(count):
+        domain = first + (start + len(_DOMAIN_LOCKS) + k) % count
+        fd = os.open(folder / f"crtraj-ros-domain-{domain}.lock", os.O_RDWR | os.O_CREAT, 0o666)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(fd)
+            continue
+        _DOMAIN_LOCKS.append(fd)
+        return domain
+    raise RuntimeError(f"no free ROS domain in {first}..{first + count - 1}: {count} test runs hold them all")
 
 
 # ------------------------------------------------------------ order-free compare

@@ -14,7 +14,6 @@ from conftest import require_tool
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from crtraj.core.build_cache import BuildCache
 from crtraj.model.kinematics import Model
 from crtraj.planning.validity._driver import EDGE_BROAD
 from crtraj.planning.validity._kernels import Kernels
@@ -24,9 +23,9 @@ from crtraj.world.scene import Scene
 
 
 @pytest.fixture(scope="module")
-def kernels(tmp_path_factory):
+def kernels(build_cache):
     require_tool("cc", "gcc", hint="Debian: apt-get install gcc")
-    return Kernels(BuildCache(tmp_path_factory.mktemp("kernels")))
+    return Kernels(build_cache)
 
 
 def random_scene(rng: np.random.Generator, n: int, moving: bool) -> Scene:

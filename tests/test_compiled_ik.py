@@ -11,17 +11,16 @@ import pytest
 from conftest import require_tool
 from test_planner_helpers import dense_path_check, paper_static
 
-from crtraj.core.build_cache import BuildCache
 from crtraj.planning.ik._safe_ik import SafeIK
 from crtraj.planning.sampler import ConfigSampler
 from crtraj.planning.validity import Kernels, MotionValidator
 
 
 @pytest.fixture(scope="module")
-def sim1(tmp_path_factory):
+def sim1(build_cache):
     require_tool("cc", "gcc", hint="Debian: apt-get install gcc")
     problem, model, scene = paper_static()
-    v = MotionValidator(model, scene, kernels=Kernels(BuildCache(tmp_path_factory.mktemp("kernels"))))
+    v = MotionValidator(model, scene, kernels=Kernels(build_cache))
     assert v.state.kernel is not None
     return problem, model, scene, v
 

@@ -18,7 +18,6 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from test_broad_phase import motions, random_scene
 
-from crtraj.core.build_cache import BuildCache
 from crtraj.core.splines import BSplineCurve
 from crtraj.model.kinematics import Model
 from crtraj.planning.ik import IKRun
@@ -28,9 +27,9 @@ from crtraj.world.scene import Scene
 
 
 @pytest.fixture(scope="module")
-def kernels(tmp_path_factory):
+def kernels(build_cache):
     require_tool("cc", "gcc", hint="Debian: apt-get install gcc")
-    return Kernels(BuildCache(tmp_path_factory.mktemp("kernels")))
+    return Kernels(build_cache)
 
 
 def numpy_path_clearance(v: MotionValidator, X: np.ndarray, T: np.ndarray) -> np.ndarray:

@@ -21,9 +21,11 @@ SCENE = Scene(obstacles=(Obstacle(center=(0.0, 60.0, 330.0), radius=45.0, name="
 
 
 @pytest.fixture(autouse=True)
-def _cache(tmp_path_factory, monkeypatch):
+def _compiler():
+    """A C compiler (skips locally, fails under CI=true without one). The libraries go to the session's build cache
+    (conftest's `private_build_cache`), shared with the other files: test_horizon_backends builds the same
+    compiled horizon, and a private cache here compiled it a second time (tens of seconds of gcc)."""
     require_tool("cc", "gcc", "clang", hint="the compiled solvers need a C compiler")
-    monkeypatch.setenv("CRTRAJ_CACHE_DIR", str(tmp_path_factory.getbasetemp() / "solver-cache"))
 
 
 def test_compiled_function_matches_casadi_on_a_closed_form():

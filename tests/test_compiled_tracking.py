@@ -9,20 +9,18 @@ from conftest import PROBLEMS, require_tool
 
 from crtraj.control.loop import ClosedLoop
 from crtraj.control.tracking._compiled import CompiledTracking
-from crtraj.core.build_cache import BuildCache
 from crtraj.io.problem import Problem
 
 TOL = 1e-9
 
 
 @pytest.fixture(scope="module")
-def loop_and_c(tmp_path_factory):
+def loop_and_c(build_cache):
     require_tool("cc", "gcc", hint="Debian: apt-get install gcc")
     problem = Problem.load(PROBLEMS / "paper_dynamic.toml")
     loop = ClosedLoop.from_problem(problem, seed=0)
     h = loop.options.dt / loop.n_sub
-    cache = BuildCache(tmp_path_factory.mktemp("tracking"))
-    c = CompiledTracking.load(loop.tracker, h, loop.parts.checks.validator.space.metric_matrix, cache)
+    c = CompiledTracking.load(loop.tracker, h, loop.parts.checks.validator.space.metric_matrix, build_cache)
     assert c is not None
     return loop, c
 

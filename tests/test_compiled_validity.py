@@ -31,9 +31,9 @@ TOL = 1e-9
 
 
 @pytest.fixture(scope="module")
-def kernel_cache(tmp_path_factory):
+def kernel_cache(build_cache):
     require_tool("cc", "gcc", hint="Debian: apt-get install gcc")
-    return BuildCache(tmp_path_factory.mktemp("kernels"))
+    return build_cache
 
 
 def validators(model, scene, cache, **kw):

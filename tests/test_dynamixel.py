@@ -20,8 +20,9 @@ from crtraj.core.errors import AdmissionError, InputError
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.admission import MotionRecord, admit
 from crtraj.hardware.dynamixel._link import DynamixelTransport, open_dynamixel
-from crtraj.hardware.dynamixel._protocol import HW_OVERHEATING, HW_OVERLOAD
+from crtraj.hardware.dynamixel._protocol import HW_OVERHEATING, HW_OVERLOAD, X
 from crtraj.hardware.dynamixel._protocol import crc16 as dxl_crc16
+from crtraj.hardware.dynamixel._protocol import status as dxl_status
 from crtraj.hardware.dynamixel._sim_chain import ServoChain
 from crtraj.hardware.stream import Streamer, StreamOptions
 from crtraj.hardware.transport import TransportError
@@ -163,6 +164,57 @@ def test_a_silent_servo_is_named_by_its_id(acts):
         _one_line_error(e, "servo id 3 (s1c3) does not answer", "ids 1, 2, 4, 5, 6, 7 do")
     finally:
         sim.stop()
+
+
+@pytest.mark.parametrize("params", [b"", (1234).to_bytes(2, "little")], ids=["write-status", "2-byte-read"])
+def test_a_late_reply_of_another_size_is_not_taken_for_a_read(acts, params):
+    """A servo's status packet to an earlier write or 2-byte read, arriving late (a starved host or device answers
+    after the SDK's reply timeout), comes in before the reply to a 4-byte read: the SDK takes it (same id, valid CRC)
+    and would index past a write's status (IndexError) or read a 2-byte reply and its CRC as the value. The link
+    takes it as a corrupt reply and asks again: the servo's true reading."""
+    clock = Clock()
+    sim = _sim(acts, clock)
+    try:
+        tr = DynamixelTransport(sim.path, 1_000_000, acts, homing=homed_state(sim.chain, acts), clock=clock)
+        dxl_id = acts.bus.ids[0]
+        truth = tr.read(dxl_id, X.PRESENT_POSITION, 4)
+        port = sim.ports[-1]
+        send = port.writePort
+
+        def late_first(packet):  # the SDK cleared the port before sending: the late reply comes after that
+            port._rx += dxl_status(dxl_id, 0, params)
+            port.writePort = send
+            return send(packet)
+
+        port.writePort = late_first
+        assert tr.read(dxl_id, X.PRESENT_POSITION, 4) == truth
+        assert port.writePort is send  # the late reply was there
+        tr.close()
+    finally:
+        sim.stop()
+
+
+def test_a_pseudo_terminal_allows_a_scheduler_delay_per_reply():
+    """On a pseudo-terminal (sim-dynamixel's) each reply may take PTY_LATENCY_MS longer than the SDK allows a bus; a
+    character device that is not one (a USB adapter's place: /dev/null here) keeps the SDK's timeout."""
+    import os
+
+    import dynamixel_sdk
+
+    from crtraj.hardware.dynamixel._link import PTY_LATENCY_MS, sdk_port
+
+    master, slave = os.openpty()
+    try:
+        pty = sdk_port(dynamixel_sdk, os.ttyname(slave))
+        bus = sdk_port(dynamixel_sdk, "/dev/null")
+        for port in (pty, bus):
+            port.setPacketTimeout(11)
+        assert pty.packet_timeout == pytest.approx(bus.packet_timeout + PTY_LATENCY_MS)
+        # the SDK's own allowance (its port not opened: no bytes on the wire yet)
+        assert bus.packet_timeout == pytest.approx(2.0 * dynamixel_sdk.port_handler.LATENCY_TIMER + 2.0)
+    finally:
+        os.close(master)
+        os.close(slave)
 
 
 def test_a_model_mismatch_is_refused(acts):

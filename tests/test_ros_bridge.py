@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import PAPER, paper_copy, require_module
+from conftest import PAPER, PLANNER_HANG_S, paper_copy, require_module, reserve_ros_domain
 from feed_clock import VirtualClock
 
 from crtraj.app.devices import RosBridgeRequest, run_ros_bridge
@@ -39,15 +39,19 @@ from crtraj.world.scene import Scene
 
 ROOT = Path(__file__).resolve().parent.parent
 HANG = 60.0  # s: a guard against hangs, never a timing window
-DOMAIN = 10 + os.getpid() % 90  # one ROS domain per test run
+DOMAIN = reserve_ros_domain()  # this run's own ROS domain: no other run's nodes on its topics
 
 
 def _problem(tmp_path: Path, duration: float = 60.0) -> Path:
     """paper_dynamic.toml without its step deadline (`paper_copy`), a [ros] section on this run's domain (hang
     bounds only, and one more step of obstacle age than the robot's one-step latency needs) and a [loop]
-    duration of `duration` s."""
+    duration of `duration` s, its references planned inline."""
     ros = {"domain_id": DOMAIN, "max_age": 0.35, "joint_state_timeout": HANG, "start_timeout": HANG}
-    values = {("loop", "duration"): duration, **{("ros", k): v for k, v in ros.items()}}
+    # references planned inside the steps, with a hang bound for the planner's wall time only: a worker's path
+    # is taken over when it has arrived in wall-clock time, and a planner stopped by its time limit answers
+    # differently, so the run would depend on the machine's load
+    loop = {"duration": duration, "reference_delay": 0.0, "planner_time": PLANNER_HANG_S}
+    values = {**{("loop", k): v for k, v in loop.items()}, **{("ros", k): v for k, v in ros.items()}}
     return paper_copy(tmp_path, "paper_dynamic_ros.toml", values)
 
 
@@ -75,6 +79,7 @@ class RobotNode:
         self.received: list[tuple[float, np.ndarray, np.ndarray, np.ndarray]] = []
         self.arrived = threading.Condition()
         self._last_marker = -math.inf
+        self.states_sent = self.spheres_sent = 0  # joint states and SPHERE markers published
         ros_environment(ros)
         self.ctx = rclpy.Context()
         rclpy.init(context=self.ctx, domain_id=ros.domain_id, signal_handler_options=SignalHandlerOptions.NO)
@@ -118,12 +123,14 @@ class RobotNode:
         msg = JointState(name=list(self.names), position=[float(v) for v in self.position_at(t)])
         msg.header.stamp = _stamp(t)
         self.js.publish(msg)
+        self.states_sent += 1
 
     def publish_obstacles(self, t: float) -> None:
         if t <= self._last_marker or t >= self.stop_markers:
             return
         self._last_marker = t
         self.mk.publish(spheres(self.ros.frame_id, self.scene, t))
+        self.spheres_sent += len(self.scene.obstacles)
 
     def _on_trajectory(self, msg) -> None:
         start = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
@@ -137,10 +144,12 @@ class RobotNode:
             keep = [k for k, t in enumerate(self.knots_t) if t < start]
             self.knots_t = [self.knots_t[k] for k in keep] + [start, *(start + offs)]
             self.knots_v = [self.knots_v[k] for k in keep] + [at_start, *P]
-            self.received.append((start, offs, P, V))
-            self.arrived.notify_all()
         self.publish_obstacles(now)
         self.publish_state(now)
+        # counted as received once its replies are on the wire: a waiter for it may wait for them to arrive
+        with self.arrived:
+            self.received.append((start, offs, P, V))
+            self.arrived.notify_all()
 
     def _on_view(self, msg) -> None:
         with self.arrived:
@@ -224,22 +233,38 @@ def _executed(robot: RobotNode) -> tuple[np.ndarray, np.ndarray]:
     return dense, robot.position_at(dense)
 
 
-def _in_step(robots, nodes, clock: VirtualClock, dt: float) -> None:
-    """The bridge's sleep on virtual time: the robot takes each trajectory before the clock moves on (a
-    robot as fast as real time), so every run is the same whatever the machine's load."""
+def _in_step(robots, nodes, feeds, clock: VirtualClock, dt: float) -> None:
+    """The bridge's sleep on virtual time: the robot takes each trajectory, and the bridge takes the joint
+    state and obstacles the robot answered with, before the clock moves on (a robot and a network as fast as
+    real time). So every run is the same whatever the machine's load: a reply that arrived after the clock
+    moved would be stamped later by the obstacle feed, and the next step measured from an older state."""
     if robots and nodes:
-        assert robots[0].wait_received(nodes[0].published)
+        robot, node, feed = robots[0], nodes[0], feeds[0]
+        assert robot.wait_received(node.published)
+        assert _wait_until(lambda: node.joint_states >= robot.states_sent), "the robot's joint state never arrived"
+        assert feed.wait_for(robot.spheres_sent, HANG), "the robot's obstacles never arrived"
     clock.sleep(dt)
+
+
+def _wait_until(done) -> bool:
+    """Poll `done()` every millisecond until it holds (True) or HANG s pass (False): a hang bound only."""
+    pause = threading.Event()
+    for _ in range(int(HANG / 0.001)):
+        if done():
+            return True
+        pause.wait(0.001)
+    return bool(done())
 
 
 def _bridge_with_robot(path, ros, acts, scene, start, tmp_path, **robot_options):
     """`run_ros_bridge` on a virtual clock against a `RobotNode` started once the bridge's node is up:
     (exit code, the robot node)."""
     clock = VirtualClock()
-    robots, nodes = [], []
+    robots, nodes, feeds = [], [], []
 
     def ready(node, feed):
         nodes.append(node)
+        feeds.append(feed)
         robots.append(RobotNode(ros, acts.names, scene, start * si_scale(acts.units), clock, **robot_options))
         robots[0].wait_matched()
 
@@ -247,7 +272,7 @@ def _bridge_with_robot(path, ros, acts, scene, start, tmp_path, **robot_options)
         code = run_ros_bridge(
             RosBridgeRequest(path, out=tmp_path / "run", html=False, quiet=True),
             clock=clock,
-            sleep=lambda dt: _in_step(robots, nodes, clock, dt),
+            sleep=lambda dt: _in_step(robots, nodes, feeds, clock, dt),
             ready=ready,
         )
     finally:

@@ -7,13 +7,12 @@ depends on the machine's speed; waits have generous hang bounds only.
 
 from __future__ import annotations
 
-import os
 import threading
 from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import PAPER, paper_copy, require_module
+from conftest import PAPER, paper_copy, require_module, reserve_ros_domain
 from feed_clock import VirtualClock
 from jtc_emulator import JtcEmulator
 
@@ -28,7 +27,7 @@ from crtraj.io.problem import Problem
 from crtraj.io.results import read_result
 
 HANG = 60.0  # s: a guard against hangs, never a timing window
-DOMAIN = 10 + (os.getpid() + 37) % 90
+DOMAIN = reserve_ros_domain()  # this run's own ROS domain: no other run's nodes on its topics
 GOAL = np.array([10.0, -120.0, 170.0])  # the paper's simulation 2 goal (mm)
 
 

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import PAPER, PROBLEMS, ROOT, default_sigint, paper_copy, require_module
+from conftest import PAPER, PROBLEMS, ROOT, default_sigint, paper_copy, require_module, reserve_ros_domain
 
 from crtraj.core import interrupt
 from crtraj.core.fileio import StagedDir, StagedFile, atomic_write_bytes
@@ -328,7 +328,9 @@ def _signal_once(
         progress = Progress(mark)
         start = progress()
         while progress() - start < at_cpu:
-            assert proc.poll() is None, f"{what}: finished before the signal: {proc.stderr.read()[-500:]!r}"
+            assert proc.poll() is None, (
+                f"{what}: exit {proc.returncode} before the signal: {proc.stderr.read()[-500:]!r}"
+            )
             assert time.monotonic() < end, f"{what}: never reached its point"
             time.sleep(0.01)
         proc.send_signal(signum)
@@ -449,8 +451,10 @@ def test_signal_home(tmp_path):
 
     robot = tmp_path / "robot.toml"
     # the tests' own [robot.homing.z] in place of the shipped one, pressing toward its stop slowly: the homing must
-    # outlast the random signal point (at 20 mm/s it could finish first, exit 0)
-    slow = Z_HOMING.replace("speed = 20.0", "speed = 2.0")
+    # outlast the random signal point (at 20 mm/s it could finish first, exit 0; at 0.5 mm/s it takes minutes, and
+    # the signal ends it within a second of CPU time). The link allows the simulator on its pseudo-terminal a
+    # scheduler's delay per reply (`PTY_LATENCY_MS`): a starved simulator is not a silent servo.
+    slow = Z_HOMING.replace("speed = 20.0", "speed = 0.5")
     assert slow != Z_HOMING
     robot.write_text(robot_text(slow))
     sim_args = ["sim-dynamixel", "--pty", "--robot", str(robot), "--power-cycle-at", "0", "--duration", "600"]
@@ -467,7 +471,7 @@ def test_signal_home(tmp_path):
 @pytest.mark.slow
 def test_signal_ros_bridge(tmp_path):
     require_module("rclpy", "pip install -e '.[ros]'")
-    domain = 100 + os.getpid() % 100  # nobody else's graph: the bridge waits for a robot that never comes
+    domain = reserve_ros_domain()  # nobody else's graph: the bridge waits for a robot that never comes
     problem = paper_copy(tmp_path, values={("ros", "domain_id"): domain, ("ros", "start_timeout"): 600.0})
     out = _outputs(tmp_path, "run/run.json", "bridge.mcap")
     args = ["ros-bridge", str(problem), "--out", str(out / "run"), "--record", str(out / "bridge.mcap"), "--quiet"]

@@ -16,7 +16,6 @@ from hypothesis import strategies as st
 from test_broad_phase import motions, random_scene
 from test_planner_helpers import PAPER_STATIC, dense_path_check, paper_static
 
-from crtraj.core.build_cache import BuildCache
 from crtraj.io.problem import Problem
 from crtraj.model.kinematics import Model
 from crtraj.planning.context import PlanningContext
@@ -32,9 +31,9 @@ from crtraj.world.scene import Scene
 
 
 @pytest.fixture(scope="module")
-def kernels(tmp_path_factory):
+def kernels(build_cache):
     require_tool("cc", "gcc", hint="Debian: apt-get install gcc")
-    return Kernels(BuildCache(tmp_path_factory.mktemp("kernels")))
+    return Kernels(build_cache)
 
 
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])

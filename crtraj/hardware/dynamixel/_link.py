@@ -77,6 +77,9 @@ from crtraj.hardware.dynamixel._checks import (
 )
 from crtraj.hardware.dynamixel._drive_mode import DriveModeCheck
 from crtraj.hardware.dynamixel._homing_state import HomingState, PowerUpCheck, multi_turn
+from crtraj.hardware.dynamixel._protocol import PING as DXL_PING
+from crtraj.hardware.dynamixel._protocol import READ as DXL_READ
+from crtraj.hardware.dynamixel._protocol import WRITE as DXL_WRITE
 from crtraj.hardware.dynamixel._protocol import X
 from crtraj.hardware.dynamixel._watchdog import BusWatchdog, watchdog_units
 from crtraj.hardware.protocol import ESTOP, PING, STATUS_ESTOP, Frame, Telemetry, seq_next
@@ -102,6 +105,11 @@ _AT_VELOCITY, _AT_POSITION, _AT_WATCHDOG = X.INDIRECT_DATA + 2, X.INDIRECT_DATA 
 # SerialException on a write or read, OSError from the ioctl behind in_waiting, termios.error from the flush
 # behind clearPort; the SDK catches none of them (and leaves its busy flag set)
 LINK_ERRORS = (serial.SerialException, OSError, termios.error)
+# a pseudo-terminal's reply allowance beyond the SDK's (ms), and Linux's device numbers of pseudo-terminal ends
+PTY_LATENCY_MS = 500.0
+_PTY_MAJORS = range(136, 144)
+# indices into the SDK's packets (lists of bytes; header FF FF FD 00, then id)
+_LENGTH, _INSTRUCTION, _PARAMS = 5, 7, 8
 
 
 def _sdk() -> Any:
@@ -114,12 +122,27 @@ def _sdk() -> Any:
 
 
 def sdk_port(sdk: Any, device: str) -> Any:
-    """The SDK's `PortHandler` of `device`; `TransportError` (one line) when there is no such device."""
+    """The SDK's `PortHandler` of `device`; `TransportError` (one line) when there is no such device. On a
+    pseudo-terminal each reply may take `PTY_LATENCY_MS` longer: its other end is a program (`crtraj
+    sim-dynamixel`, a socat bridge), which answers when the scheduler runs it, not within a bus's microseconds."""
     if not os.path.exists(device):
         raise TransportError(
             f"{device}: no such port (is the USB-serial adapter, e.g. a U2D2, plugged in? see ls /dev/ttyUSB*)"
         )
-    return sdk.PortHandler(device)
+    port = sdk.PortHandler(device)
+    try:
+        pty = os.major(os.stat(device).st_rdev) in _PTY_MAJORS
+    except OSError:
+        pty = False
+    if pty:
+        timeout = port.setPacketTimeout
+
+        def patient(packet_length: int) -> None:
+            timeout(packet_length)
+            port.packet_timeout += PTY_LATENCY_MS
+
+        port.setPacketTimeout = patient
+    return port
 
 
 # Test seam, not a user-facing option: how a device name becomes a port object. Production opens the SDK's
@@ -143,6 +166,27 @@ def parse_url(url: str) -> tuple[str, int]:
 
 def _signed32(v: int) -> int:
     return v - (1 << 32) if v >= 1 << 31 else v
+
+
+def _reply_sizes_checked(ph: Any, corrupt: int) -> Any:
+    """The SDK's Protocol 2.0 packet handler `ph`, whose ping, read and write transactions take a status packet of
+    the wrong size as corrupt (result `corrupt`, the SDK's COMM_RX_CORRUPT). A servo's late reply to an earlier
+    transaction (a starved host or device answers after the SDK's 34 ms timeout) passes the SDK's id check: a
+    4-byte read would take a 2-byte read's reply with its CRC for a value, or index past a write's and raise."""
+    raw = ph.txRxPacket
+
+    def transaction(port: Any, tx: list[int]) -> tuple[Any, int, int]:
+        rx, result, error = raw(port, tx)
+        n = {DXL_PING: 3, DXL_WRITE: 0}.get(tx[_INSTRUCTION])
+        if tx[_INSTRUCTION] == DXL_READ:
+            n = tx[_PARAMS + 2] | tx[_PARAMS + 3] << 8  # the bytes asked for
+        # a status packet's length field: instruction, error, the parameters and the CRC
+        if result == 0 and n is not None and (len(rx) < 7 or rx[_LENGTH] | rx[_LENGTH + 1] << 8 != n + 4):
+            return rx, corrupt, 0
+        return rx, result, error
+
+    ph.txRxPacket = transaction
+    return ph
 
 
 class DynamixelTransport(Transport):
@@ -206,7 +250,7 @@ class DynamixelTransport(Transport):
         state = homing if isinstance(homing, HomingState) else HomingState.load(homing) if homing else HomingState()
         self._state, self._state_path = state, None if isinstance(homing, HomingState) or not homing else Path(homing)
         self._sdk = sdk
-        self._ph = sdk.PacketHandler(2.0)
+        self._ph = _reply_sizes_checked(sdk.PacketHandler(2.0), sdk.COMM_RX_CORRUPT)
         self._port = None
         self._lost: str | None = None  # why the link is gone (`_bus`), or None
         port = port_factory(sdk, device)
@@ -297,11 +341,13 @@ class DynamixelTransport(Transport):
     # --------------------------------------------------------------- checks
     def _ask(self, call: Callable[..., tuple[Any, ...]], *args: Any) -> tuple[Any, ...]:
         """One connect-time transaction (an SDK call returning ``(..., result, error)``), tried up to
-        `CONNECT_ATTEMPTS` times: a reply lost to line noise (or a busy host) is not yet a missing servo."""
+        `CONNECT_ATTEMPTS` times: a reply lost to line noise (or a busy host) is not yet a missing servo. A try
+        after a failed one drains late replies first (a reply of the wrong size is refused: `_reply_sizes_checked`)."""
         out = self._bus(call, self._port, *args)
         for _ in range(CONNECT_ATTEMPTS - 1):
             if out[-2] == self._sdk.COMM_SUCCESS:
                 break
+            self._drain()
             out = self._bus(call, self._port, *args)
         return out
 
