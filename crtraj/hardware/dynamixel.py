@@ -76,9 +76,10 @@ from crtraj.hardware.dynamixel_checks import (
     hardware_error_line,
     latency_warning,
 )
+from crtraj.hardware.dynamixel_force import ForceCaps, TripWatch
 from crtraj.hardware.dynamixel_protocol import X
 from crtraj.hardware.dynamixel_watchdog import BusWatchdog, watchdog_units
-from crtraj.hardware.homing_state import HomingState, PowerUpCheck, multi_turn
+from crtraj.hardware.homing_state import HomingState, PowerUpCheck, multi_turn, record_last
 from crtraj.hardware.protocol import ESTOP, PING, STATUS_ESTOP, Frame, Telemetry, seq_next
 from crtraj.hardware.transport import LinkLostError, Transport, TransportError
 
@@ -94,10 +95,14 @@ _STATE = (
     (X.PRESENT_VELOCITY, 4),
     (X.PRESENT_POSITION, 4),
     (X.BUS_WATCHDOG, 1),
+    (X.PRESENT_CURRENT, 2),
+    (X.PRESENT_VOLTAGE, 2),
+    (X.PRESENT_TEMPERATURE, 1),
 )
 _STATE_SIZE = sum(n for _, n in _STATE)
 _AT_TORQUE, _AT_ERROR = X.INDIRECT_DATA, X.INDIRECT_DATA + 1
 _AT_VELOCITY, _AT_POSITION, _AT_WATCHDOG = X.INDIRECT_DATA + 2, X.INDIRECT_DATA + 6, X.INDIRECT_DATA + 10
+_AT_CURRENT, _AT_VOLTAGE, _AT_TEMPERATURE = X.INDIRECT_DATA + 11, X.INDIRECT_DATA + 13, X.INDIRECT_DATA + 15
 # what reaches the SDK's callers when the adapter goes away (USB-serial unplugged): pyserial raises
 # SerialException on a write or read, OSError from the ioctl behind in_waiting, termios.error from the flush
 # behind clearPort; the SDK catches none of them (and leaves its busy flag set)
@@ -202,6 +207,11 @@ class DynamixelTransport(Transport):
             raise InputError(f'robot.stop.torque: must be "keep" or "off", got {stop_torque!r}')
         self.stop_torque = stop_torque
         self.bus_watchdog = watchdog_units(bus_watchdog)
+        self.caps = ForceCaps(actuators)  # a robot file without its tendons' caps is one line before the port opens
+        why = self.caps.refusal()
+        if why is not None:
+            raise InputError(why)
+        self.trips = TripWatch(self.caps)  # the first reading beyond a bound, and the last readings
         # a bad state file is one line before the port opens
         state = homing if isinstance(homing, HomingState) else HomingState.load(homing) if homing else HomingState()
         self._state, self._state_path = state, None if isinstance(homing, HomingState) or not homing else Path(homing)
@@ -329,14 +339,14 @@ class DynamixelTransport(Transport):
             )
 
     def _setup(self, actuators: Actuators) -> None:
-        """Torque off, extended position mode, profiles, goal = present, torque on."""
+        """Torque off, the force caps (`crtraj.hardware.dynamixel_force`), profiles, goal = present, torque on."""
         bus = self.bus
         for i in bus.ids:
             self._write1(i, X.TORQUE_ENABLE, 0, 1, "torque off")
+        self.caps.apply(self)  # shutdown conditions, operating mode 5 with the Goal Current of each cap (or 4)
         for k, i in enumerate(bus.ids):
             self._write1(i, X.RETURN_DELAY, self.return_delay, 1, "return delay time")
             self._write1(i, X.STATUS_RETURN, 2, 1, "status return level")
-            self._write1(i, X.OPERATING_MODE, X.EXTENDED_POSITION, 1, "extended position mode")
             # profile limits at or just above the actuator limits: the set-points already obey them, the
             # servo's own profile only smooths what the gate let through
             rev = bus.per_rev[k]
@@ -393,28 +403,25 @@ class DynamixelTransport(Transport):
         self._ack = msg.seq
         self._t_write = time.perf_counter() - t
 
-    def _sync_watchdog(self, units: int) -> None:
-        """One sync write of Bus Watchdog = `units` (20 ms) to every servo (no replies)."""
-        w = self._sdk.GroupSyncWrite(self._port, self._ph, X.BUS_WATCHDOG, 1)
+    def _sync1(self, addr: int, value: int) -> None:
+        """One sync write of the 1-byte register `addr` = `value` to every servo (no replies)."""
+        w = self._sdk.GroupSyncWrite(self._port, self._ph, addr, 1)
         for i in self.bus.ids:
-            w.addParam(i, [units])
+            w.addParam(i, [value])
         self._bus(w.txPacket)
 
     def _arm_watchdog(self) -> None:
         """At the session's first frame: clear (0) and set the bus watchdog again; a trip counts from then on.
         Between connect and the first frame (an approach being planned) the host may be silent longer than the
         watchdog with the servos at rest: a trip then stopped nothing, and would leave the goals read-only."""
-        self._sync_watchdog(0)
-        self._sync_watchdog(self.bus_watchdog)
+        self._sync1(X.BUS_WATCHDOG, 0)
+        self._sync1(X.BUS_WATCHDOG, self.bus_watchdog)
         self._armed = True
 
     def _torque_off(self, confirm: bool = True) -> list[int]:
         """Torque off: one sync write to every servo at once, then (confirm) a write with a reply to each,
         so it has surely happened when this returns; the ids that did not confirm it."""
-        w = self._sdk.GroupSyncWrite(self._port, self._ph, X.TORQUE_ENABLE, 1)
-        for i in self.bus.ids:
-            w.addParam(i, [0])
-        self._bus(w.txPacket)
+        self._sync1(X.TORQUE_ENABLE, 0)
         if not confirm:
             return []
         silent = []
@@ -439,10 +446,13 @@ class DynamixelTransport(Transport):
         self.timings.append((self._t_write, time.perf_counter() - t))
         bus = self.bus
         ticks, vel = [], []
-        for i in bus.ids:
+        for k, i in enumerate(bus.ids):
             self._check_state(i)
             ticks.append(_signed32(group.getData(i, _AT_POSITION, 4)))
             vel.append(_signed32(group.getData(i, _AT_VELOCITY, 4)))
+            if not self._estopped:
+                at = (_AT_CURRENT, 2), (_AT_VOLTAGE, 2), (_AT_TEMPERATURE, 1)
+                self.trips.see(k, *(group.getData(i, a, n) for a, n in at))
         # present velocity in 0.229 rev/min units -> revolutions per second -> rad/s or mm/s
         self.velocities = np.asarray(vel) * X.VELOCITY_UNIT / 60.0 * np.asarray(bus.per_rev)
         self._seq = seq_next(self._seq)
@@ -480,6 +490,11 @@ class DynamixelTransport(Transport):
             self._held = why
             raise TransportError(why)
 
+    def trip(self) -> tuple[str, str] | None:
+        """(status, one line) of the first reading beyond a bound since connect (`crtraj.hardware.dynamixel_force`:
+        over-tension, slack, over-temperature, under-/over-voltage; read while the torque should be on), or None."""
+        return self.trips.first
+
     def _miss(self, result: int) -> None:
         """Count a failed read; `max_misses` in a row end the stream, naming the first silent servo."""
         self.counts["corrupt" if result == self._sdk.COMM_RX_CORRUPT else "timeouts"] += 1
@@ -510,28 +525,18 @@ class DynamixelTransport(Transport):
             clock.sleep(0.0005)
         self._bus(self._port.clearPort)
 
-    def _record_last(self) -> None:
-        """Where each homed servo is let go (`HomedServo.last`), into the homing state file (when it was given
-        as a file): the next connect refuses one whose reading moved by whole turns since (a lost turn count)."""
-        if self._state_path is None or self._lost is not None or not self._state.servos:
-            return
-        try:
-            ids = [s.id for s in self._state.servos if s.id in self.bus.ids]
-            self._state.moved({i: self.read(i, X.PRESENT_POSITION, 4) for i in ids}).save(self._state_path)
-        except (TransportError, OSError) as exc:
-            self._warn(f"warning: {self._state_path}: where the servos stopped is not recorded ({exc})")
-
     def close(self) -> None:
         """Torque off (with ``stop_torque="off"``), then close the port (idempotent; never raises for a lost
         link: the servos cannot be reached, a warning says so)."""
         if self._port is None:
             return
         try:
-            self._record_last()
+            if self._lost is None:
+                record_last(self, self.bus.ids, self._state, self._state_path, self._warn)
             if self.stop_torque == "keep":
                 log.info("%s: torque kept on (robot.stop.torque = keep)", self.description)
                 if self._lost is None:  # a clean end: the servos hold; the watchdog is for a host that dies
-                    self._sync_watchdog(0)
+                    self._sync1(X.BUS_WATCHDOG, 0)
                 return
             silent = self._torque_off() if self._lost is None else []
             if silent:

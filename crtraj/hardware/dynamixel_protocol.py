@@ -63,12 +63,18 @@ class X:
     OPERATING_MODE = 11  # 1: 3 position, 4 extended position, 5 current-based position
     HOMING_OFFSET = 20  # 4, signed ticks added to the present position (EEPROM)
     HOMING_OFFSET_LIMIT = 1_044_479  # ticks, +- (the register's range)
-    CURRENT_LIMIT = 38  # 2, 2.69 mA units (EEPROM)
+    TEMPERATURE_LIMIT = 31  # 1, deg C (EEPROM; factory 80 on the XM430)
+    MAX_VOLTAGE = 32  # 2, 0.1 V (EEPROM; factory 160)
+    MIN_VOLTAGE = 34  # 2, 0.1 V (EEPROM; factory 95)
+    PWM_LIMIT = 36  # 2, 885 = 100 % (EEPROM): the only output cap of modes 3 and 4
+    CURRENT_LIMIT = 38  # 2, 2.69 mA units (EEPROM): caps Goal Current; acts in modes 0 and 5 only
+    SHUTDOWN = 63  # 1 (EEPROM): the hardware error bits that turn the torque off (factory 0x34)
     TORQUE_ENABLE = 64  # 1; EEPROM (< 64) is writable only with torque off
     LED = 65  # 1, RAM (power-up default 0): crtraj's "homed since power-up" marker
     STATUS_RETURN = 68  # 1, RAM: 0 answer PING only, 1 PING and READ, 2 every instruction
     BUS_WATCHDOG = 98  # 1, RAM: 0 off (clears the error), 1..127 on (20 ms units, torque on only), -1 (0xFF) tripped
     HARDWARE_ERROR = 70  # 1, read-only
+    POSITION_P_GAIN = 84  # 2 (factory 800 on the XM430): K_P = value / 128
     GOAL_PWM = 100  # 2: the first goal value (read-only after a Bus Watchdog stop)
     GOAL_CURRENT = 102  # 2, 2.69 mA units (current-based position mode)
     PROFILE_ACCELERATION = 108  # 4, 214.577 rev/min^2 units
@@ -92,6 +98,8 @@ class X:
     RETURN_DELAY_DEFAULT = 250  # factory default (x 2 us)
     CURRENT_UNIT = 2.69  # mA per unit of goal / present current
     CURRENT_LIMIT_DEFAULT = 1193  # units (3.2 A), XM430
+    PWM_LIMIT_DEFAULT = 885  # 100 %
+    SHUTDOWN_DEFAULT = 0x34  # overload, electrical shock, overheating (not input voltage)
     # extended position control: goal position range, ticks (+-256 revolutions)
     EXTENDED_LIMIT = 1_048_575
     WATCHDOG_UNIT = 0.020  # s per unit of Bus Watchdog
