@@ -294,7 +294,8 @@ class ServoChain(ChainFaults):
     def _clamp(self, x: np.ndarray) -> np.ndarray:
         """Positions `x` (reported ticks) held at the mechanical stops."""
         lim = self._stops_read()
-        return self.loads.hold(np.clip(x, lim[:, 0], lim[:, 1]))
+        give = self.loads.give(self._table)  # a stop pressed at the cap yields by its compliance
+        return self.loads.hold(np.clip(x, lim[:, 0] - give, lim[:, 1] + give))
 
     def _current(self, k: int) -> int:
         """Present Current (2.69 mA units) of servo k (`crtraj.hardware.sim_dynamixel_load.ShaftLoads.current`):

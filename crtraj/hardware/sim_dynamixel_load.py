@@ -10,6 +10,10 @@ The current model of `crtraj.hardware.sim_dynamixel.ServoChain`, from the ROBOTI
   plus the position loop's output K_P (reference - position), K_P = Position P Gain (84) / 128 units per tick,
   saturated at the mode's cap.
 
+A mechanical stop is stiff but not rigid (`compliance`, ticks per current unit, default 0): pressed with the torque
+on, the shaft goes past the stop's surface by compliance x the mode's cap (a stall is at the cap), and springs
+back to the surface when the torque goes off.
+
 Faults: `jam` holds a shaft where it is (a spool jammed: position stalls, current rises to the cap); `cut`
 drops a tendon's load to 0 (the current collapses).
 """
@@ -41,6 +45,15 @@ class ShaftLoads:
     def __init__(self, n: int) -> None:
         self.load = np.zeros(n)  # signed 2.69 mA units drawn to hold each tendon
         self.jammed = np.full(n, np.nan)  # reported ticks a jammed shaft is held at (nan: free)
+        self.compliance = np.zeros(n)  # ticks per current unit a pressed stop yields
+
+    def give(self, tables: list[bytearray]) -> np.ndarray:
+        """(n,) ticks each shaft may pass its stops by: compliance x its mode's cap while the torque is on."""
+        if not self.compliance.any():
+            return np.zeros(len(tables))
+        return np.array(
+            [c * mode_cap(t) if t[X.TORQUE_ENABLE] else 0.0 for c, t in zip(self.compliance, tables, strict=True)]
+        )
 
     def jam(self, k: int, at: float) -> None:
         """Shaft k jams at reported position `at` (ticks): it moves no more either way."""
