@@ -14,12 +14,12 @@ from conftest import PROBLEMS
 from crtraj.cli import main
 from crtraj.core import clock as clock_module
 from crtraj.core.clock import VirtualClock
-from crtraj.hardware import dynamixel
-from crtraj.hardware import dynamixel_protocol as dxl
-from crtraj.hardware.dynamixel_protocol import X
-from crtraj.hardware.homing_state import HomedServo, HomingState, multi_turn, state_path
-from crtraj.hardware.sim_dynamixel import ServoChain
-from crtraj.hardware.sim_dynamixel_port import SimPort
+from crtraj.hardware.dynamixel import _link as dynamixel
+from crtraj.hardware.dynamixel import _protocol as dxl
+from crtraj.hardware.dynamixel._homing_state import HomedServo, HomingState, multi_turn, state_path
+from crtraj.hardware.dynamixel._protocol import X
+from crtraj.hardware.dynamixel._sim_chain import ServoChain
+from crtraj.hardware.dynamixel._sim_port import SimPort
 
 ROBOT = PROBLEMS / "robots" / "cdsr2.toml"
 Z_HOMING = """
@@ -153,9 +153,9 @@ def homed_at(plan: Path, robot_file: Path, text: str):
     """The robot file `robot_file` written with `text` (its homing state beside it), and servos homed standing at
     `plan`'s start with the device time reached, as `crtraj sim-dynamixel --at` serves them: (robot file,
     chain, device time)."""
-    from crtraj.app.stream import admit_result
+    from crtraj.app.devices import admit_result
     from crtraj.hardware.actuators import Actuators
-    from crtraj.hardware.sim_dynamixel_robot import home_in_place, robot_chain
+    from crtraj.hardware.dynamixel import home_in_place, robot_chain
     from crtraj.io.problem import load_robot
 
     robot_file.write_text(text)

@@ -21,7 +21,7 @@ import pytest
 from conftest import ROOT, require_module
 from dxl_helpers import Z_HOMING, robot_text
 
-from crtraj.hardware.dynamixel_protocol import X
+from crtraj.hardware.dynamixel import X
 
 sim1_plan = dxl_helpers.sim1_plan  # the fixture, shared
 WAIT_S = 120.0  # s the test waits for a subprocess's line at most (a loaded CI machine is slow to import)

@@ -23,11 +23,11 @@ from dxl_helpers import Z_HOMING, Clock, in_process, robot_text
 from test_planner_helpers import dense_path_check
 
 from crtraj.cli import main
-from crtraj.hardware import dynamixel_protocol as dxl
 from crtraj.hardware.actuators import Actuators
-from crtraj.hardware.dynamixel_protocol import X
-from crtraj.hardware.homing_state import state_path
-from crtraj.hardware.sim_dynamixel import ServoChain
+from crtraj.hardware.dynamixel import _protocol as dxl
+from crtraj.hardware.dynamixel._homing_state import state_path
+from crtraj.hardware.dynamixel._protocol import X
+from crtraj.hardware.dynamixel._sim_chain import ServoChain
 from crtraj.io.problem import Problem, load_robot
 from crtraj.model.kinematics import Model
 from crtraj.world.scene import Scene
@@ -63,7 +63,7 @@ class Recorder:
 
 def _power_cycled_chain(robot, acts, x, clock: Clock) -> ServoChain:
     """Servos at configuration x with the stage's lower stop at its homing reference (-200 mm), power-cycled."""
-    from crtraj.hardware.sim_dynamixel_robot import stops
+    from crtraj.hardware.dynamixel._sim_robot import stops
 
     chain = ServoChain(
         acts.bus.ids, acts.bus.models, initial=acts.bus.ticks(acts.command(robot.cables(x))), stops=stops(robot, acts)

@@ -12,11 +12,9 @@ from dxl_helpers import Z_HOMING, robot_text
 from crtraj.core.clock import VirtualClock
 from crtraj.core.errors import InputError
 from crtraj.hardware.actuators import Actuators
-from crtraj.hardware.dynamixel_protocol import X
-from crtraj.hardware.homing import Homer, HomingError
-from crtraj.hardware.homing_spec import read_homing
-from crtraj.hardware.homing_state import HomingState
-from crtraj.hardware.sim_dynamixel_robot import ChainIO, robot_chain
+from crtraj.hardware.dynamixel import Homer, HomingState, X, read_homing, robot_chain
+from crtraj.hardware.dynamixel._homing import HomingError
+from crtraj.hardware.dynamixel._sim_robot import ChainIO
 from crtraj.io.problem import load_robot
 
 COMPLIANCE = 0.5  # ticks per current unit the simulated stage's stop yields

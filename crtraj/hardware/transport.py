@@ -54,7 +54,7 @@ class Transport(abc.ABC):
 
     def trip(self) -> tuple[str, str] | None:
         """(status, one line) of a reading of the device beyond a bound that must stop the stream (a tendon at its
-        force cap, a slack tendon, a hot servo, a low supply: `crtraj.hardware.dynamixel_force`), or None.
+        force cap, a slack tendon, a hot servo, a low supply: `crtraj.hardware.dynamixel._safety`), or None.
         Links that read no such thing keep this default."""
         return None
 
@@ -89,7 +89,7 @@ class Transport(abc.ABC):
             return _SerialTransport(dev, b)
         if parts.scheme == "file":
             return _FileTransport(parts.netloc + parts.path)
-        if parts.scheme == "dynamixel":  # needs the servo ids and tick scales: crtraj.hardware.dynamixel
+        if parts.scheme == "dynamixel":  # needs the servo ids and tick scales: crtraj.hardware.dynamixel._link
             raise InputError(f"{url}: a Dynamixel bus opens with Streamer.open(url, actuators) (it needs the ids)")
         raise InputError(
             f"stream target: unknown scheme in {url!r} (use udp://HOST:PORT, serial://DEV, dynamixel://DEV or "
