@@ -14,6 +14,7 @@ from conftest import require_module
 from dxl_helpers import Z_HOMING, Clock, robot_text
 
 from crtraj.app.devices import admit_result
+from crtraj.cli import main
 from crtraj.core.errors import InputError
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.dynamixel import HomingState, ServoChain, SimPort, X, open_dynamixel, state_path
@@ -201,3 +202,44 @@ def test_heat_and_a_sagging_supply_trip_before_the_servo_shuts_down(sim1_plan, t
     assert rep.status == status and rep.message.startswith(text), rep
     assert all(port.chain.torque(i) for i in acts.bus.ids)
     assert not any(port.chain.register(i, X.HARDWARE_ERROR, 1) for i in acts.bus.ids)
+
+
+class UnplugAfter(SimPort):
+    """The simulator's port with the adapter pulled out at its `after`-th write (a packet of the connect)."""
+
+    def __init__(self, chain, clock, name: str, after: int) -> None:
+        super().__init__(chain, clock, name=name)
+        self.after, self.writes = after, 0
+
+    def writePort(self, packet) -> int:  # noqa: N802 - the SDK's name
+        self.writes += 1
+        if self.writes == self.after:
+            self.unplug_at = self.clock.now()
+        return super().writePort(packet)
+
+
+def test_an_adapter_pulled_out_at_any_packet_of_the_connect_is_one_line(sim1_plan, taut, monkeypatch, capsys):
+    """The adapter pulled out at 12 packets spread over the whole connect (pings, model checks, the watchdog, the
+    drive mode, the power-up check, the force caps, the profiles, torque on): every time `crtraj stream` exits 1
+    with one stderr line saying the link is lost, no traceback, and the SDK's busy flag released."""
+    robot_file, chain0, reached = taut
+    clock = Clock(reached)
+    port = UnplugAfter(copy.deepcopy(chain0), clock, "/dev/sim", 0)
+    monkeypatch.setattr(dynamixel, "port_factory", lambda sdk, name: port)
+    acts = Actuators.from_robot(load_robot(robot_file))
+    open_dynamixel("dynamixel:///dev/sim", acts, homing=state_path(robot_file), clock=clock, warn=lambda m: None)
+    connect = port.writes  # the packets of one whole connect
+    assert connect > 50
+    for after in np.linspace(1, connect, 12).astype(int):
+        sim = dxl_helpers.in_process(monkeypatch, copy.deepcopy(chain0), clock)
+        sim.open = lambda after=after, sim=sim: UnplugAfter(sim.chain, clock, sim.path, int(after))
+        sim.ports = []
+        made = sim.open
+        sim.open = lambda made=made, sim=sim: sim.ports.append(made()) or sim.ports[-1]
+        code = main(["stream", str(sim1_plan), "--dynamixel", sim.path, "--robot", str(robot_file)])
+        out = capsys.readouterr()
+        err = out.err.strip().splitlines()
+        assert code == 1, (after, out)
+        assert len(err) == 1 and "the link to the servos is lost" in err[0], (after, err)
+        assert "Traceback" not in out.out + out.err
+        assert not sim.ports[-1].is_using
