@@ -25,6 +25,10 @@ from crtraj.hardware.dynamixel import X
 
 sim1_plan = dxl_helpers.sim1_plan  # the fixture, shared
 WAIT_S = 120.0  # s the test waits for a subprocess's line at most (a loaded CI machine is slow to import)
+# A loaded CI machine can starve the streaming process for more than the default 0.1 s: these tests are about the
+# kill and the signals, so the servos' Bus Watchdog and the stream's telemetry watchdog are longer
+BUS_WATCHDOG = 0.5  # s
+STOP = f"\n[robot.stop]\nbus_watchdog = {BUS_WATCHDOG}\n"
 
 
 def _spawn(args: list[str], cwd: Path) -> subprocess.Popen:
@@ -63,7 +67,7 @@ def _read(ph, port, dxl_id: int, addr: int, size: int) -> int:
 @pytest.mark.slow
 def test_sigkill_of_a_streaming_host_leaves_every_servo_stopped_by_its_watchdog(sim1_plan, tmp_path):
     """`crtraj stream` SIGKILLed about 1 s into a sim-1 stream (no cleanup of it runs: no torque off, no last
-    frame): every servo's Bus Watchdog (100 ms) fires, register 98 reads -1 (0xFF), the servos stand still (two
+    frame): every servo's Bus Watchdog (0.5 s here) fires, register 98 reads -1 (0xFF), the servos stand still (two
     readings of every position 0.3 s apart agree, Moving reads 0) with the torque still on, and the next stream
     refuses the z stage, naming the watchdog stop, until it is homed again."""
     require_module("dynamixel_sdk", "pip install 'crtraj[dynamixel]'")
@@ -73,7 +77,7 @@ def test_sigkill_of_a_streaming_host_leaves_every_servo_stopped_by_its_watchdog(
         args, log, _, _ = _signalled(sim1_plan, robot, pty, tmp_path, signal.SIGKILL)
         records = [json.loads(x) for x in log.read_text().splitlines() if x.endswith("}")]
         assert not any(r.get("type") == "report" for r in records)  # killed mid-stream: it never reported
-        time.sleep(0.5)  # watchdog 0.1 s, then each servo brakes with its profile (about 0.1 s at these speeds)
+        time.sleep(BUS_WATCHDOG + 0.5)  # the watchdog, then each servo brakes with its profile (about 0.1 s here)
         port, ph = sdk.PortHandler(pty), sdk.PacketHandler(2.0)
         assert port.openPort() and port.setBaudRate(1_000_000)
         try:
@@ -124,7 +128,7 @@ def _signalled(plan: Path, robot: Path, pty: str, tmp_path: Path, signum: int):
     """`crtraj stream plan --dynamixel pty` in its own process, sent `signum` about 1 s after its first set-point
     went out: (its arguments, its run log, its exit code, its output)."""
     log = tmp_path / "stream.jsonl"
-    args = ["stream", str(plan), "--dynamixel", pty, "--robot", str(robot), "--log", str(log)]
+    args = ["stream", str(plan), "--dynamixel", pty, "--robot", str(robot), "--log", str(log), "--watchdog", "2.0"]
     host = _spawn(args, tmp_path)
     assert _streaming(log, host), host.communicate(timeout=WAIT_S)[0]
     time.sleep(1.0)
@@ -138,7 +142,7 @@ def _simulator(plan: Path, tmp_path: Path) -> Iterator[tuple[Path, str]]:
     """`crtraj sim-dynamixel --pty --at plan` in its own process (servos homed at the plan's start, wall clock):
     (the robot file, the pseudo-terminal's path); ended with Ctrl-C after the block."""
     robot = tmp_path / "robot.toml"
-    robot.write_text(robot_text(Z_HOMING))
+    robot.write_text(robot_text(Z_HOMING) + STOP)
     sim = _spawn(["sim-dynamixel", "--pty", "--robot", str(robot), "--at", str(plan)], tmp_path)
     try:
         line = ""
