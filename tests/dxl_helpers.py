@@ -16,7 +16,7 @@ from crtraj.core import clock as clock_module
 from crtraj.core.clock import VirtualClock
 from crtraj.hardware.dynamixel import _link as dynamixel
 from crtraj.hardware.dynamixel import _protocol as dxl
-from crtraj.hardware.dynamixel._homing_state import HomedServo, HomingState, multi_turn
+from crtraj.hardware.dynamixel._homing_state import HomedServo, HomingState, multi_turn, state_path
 from crtraj.hardware.dynamixel._protocol import X
 from crtraj.hardware.dynamixel._sim_chain import ServoChain
 from crtraj.hardware.dynamixel._sim_port import SimPort
@@ -147,3 +147,22 @@ def homed_state(chain: ServoChain, acts, now: float = 0.0) -> HomingState:
                 )
             )
     return HomingState(tuple(entries))
+
+
+def homed_at(plan: Path, robot_file: Path, text: str):
+    """The robot file `robot_file` written with `text` (its homing state beside it), and servos homed standing at
+    `plan`'s start with the device time reached, as `crtraj sim-dynamixel --at` serves them: (robot file,
+    chain, device time)."""
+    from crtraj.app.devices import admit_result
+    from crtraj.hardware.actuators import Actuators
+    from crtraj.hardware.dynamixel import home_in_place, robot_chain
+    from crtraj.io.problem import load_robot
+
+    robot_file.write_text(text)
+    robot = load_robot(robot_file)
+    acts = Actuators.from_robot(robot)
+    start = admit_result(str(plan), str(robot_file), rate=100.0).values[0]
+    chain = robot_chain(robot, acts, start)
+    homed, reached = home_in_place(robot, acts, chain, start)
+    HomingState(tuple(homed)).save(state_path(robot_file))
+    return robot_file, chain, reached

@@ -153,6 +153,7 @@ def test_robot_keeps_the_raw_table_read_only(robot):
         "acceleration_limit",
         "ticks_per_rev",
         "model",
+        "max_tension",
         "servo",
         "z",
     }

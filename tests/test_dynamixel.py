@@ -260,7 +260,10 @@ def test_latency_timer_above_1ms_is_a_warning(acts, tmp_path):
         sim.stop()
 
 
-def test_connect_sets_extended_mode_profiles_and_torque_without_moving(acts):
+def test_connect_sets_current_based_mode_caps_profiles_and_torque_without_moving(acts):
+    """Connect puts each cable servo in current-based position mode (5) with its Goal Current at max_tension
+    (20 N x 10 mm / (3.0 / 2.3 N*m/A) = 153.3 mA -> 57 units, rounded down), the stage (no max_force) in extended
+    position mode (4), Shutdown with input voltage added (0x35), the profiles, and the torque on without moving."""
     start = acts.command(acts.rest) + np.array([0.5, -0.5, 1.0, 0, 0, 0, 30.0])
     sim = _sim(acts, Clock(), start=start)
     chain = sim.chain
@@ -269,7 +272,10 @@ def test_connect_sets_extended_mode_profiles_and_torque_without_moving(acts):
         tr = DynamixelTransport(sim.path, 1_000_000, acts, stop_torque="off", homing=homed_state(chain, acts))
         assert all(chain.torque(i) for i in acts.bus.ids)
         first = acts.bus.ids[0]
-        assert chain.register(first, 11, 1) == 4  # extended position control
+        assert chain.register(first, 11, 1) == 5  # current-based position control
+        assert chain.register(first, 102, 2) == int(20.0 * 0.010 / (3.0 / 2.3) * 1000 / 2.69) == 57
+        assert chain.register(acts.bus.ids[-1], 11, 1) == 4  # the stage: extended position control
+        assert [chain.register(i, 63, 1) for i in acts.bus.ids] == [0x35] * 7
         # profile velocity: 5 rad/s = 47.75 rev/min -> ceil(47.75 / 0.229) = 209 units
         assert chain.register(first, 112, 4) == 209
         assert np.array_equal(chain.positions(1.0), before)  # torque on did not move anything

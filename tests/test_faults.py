@@ -20,7 +20,7 @@ from dxl_helpers import Z_HOMING, Clock, in_process, robot_text
 from crtraj.app.devices import admit_result
 from crtraj.cli import main
 from crtraj.hardware.actuators import Actuators
-from crtraj.hardware.dynamixel import HomingState, ServoChain, SimPort, home_in_place, robot_chain, state_path
+from crtraj.hardware.dynamixel import HomingState, ServoChain, SimPort, state_path
 from crtraj.io.problem import load_robot
 
 sim1_plan = dxl_helpers.sim1_plan  # the fixture, shared
@@ -36,15 +36,7 @@ def _sdk():
 def homed_at_start(sim1_plan, tmp_path_factory):
     """The robot file (its homing state beside it), and servos homed standing at sim 1's start with the
     device time reached: what `crtraj sim-dynamixel --at` serves."""
-    robot_file = tmp_path_factory.mktemp("robot") / "robot.toml"
-    robot_file.write_text(robot_text(Z_HOMING))
-    robot = load_robot(robot_file)
-    acts = Actuators.from_robot(robot)
-    start = admit_result(str(sim1_plan), str(robot_file), rate=100.0).values[0]
-    chain = robot_chain(robot, acts, start)
-    homed, reached = home_in_place(robot, acts, chain, start)
-    HomingState(tuple(homed)).save(state_path(robot_file))
-    return robot_file, chain, reached
+    return dxl_helpers.homed_at(sim1_plan, tmp_path_factory.mktemp("robot") / "robot.toml", robot_text(Z_HOMING))
 
 
 def _fresh(robot_file, where):

@@ -52,6 +52,12 @@ class Transport(abc.ABC):
     has_telemetry = True
     description = "transport"
 
+    def trip(self) -> tuple[str, str] | None:
+        """(status, one line) of a reading of the device beyond a bound that must stop the stream (a tendon at its
+        force cap, a slack tendon, a hot servo, a low supply: `crtraj.hardware.dynamixel._safety`), or None.
+        Links that read no such thing keep this default."""
+        return None
+
     @abc.abstractmethod
     def send(self, frame: bytes) -> None:
         """Send one encoded frame."""

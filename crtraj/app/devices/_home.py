@@ -78,7 +78,7 @@ def home_command(args: argparse.Namespace) -> int:
     # homing makes the positions absolute itself; the bus watchdog guards it as it guards a stream
     link = open_dynamixel(url, acts, power_up_check=False, bus_watchdog=read_stop(robot).bus_watchdog)
     try:
-        homer = Homer(link, acts, specs, default_clock(), confirm_on_stdin)
+        homer = Homer(link, acts, specs, default_clock(), confirm_on_stdin, previous=old)
         homer.check()  # before anything moves
         homed = homer.run()
     finally:

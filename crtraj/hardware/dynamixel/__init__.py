@@ -47,6 +47,6 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "robot_chain",
             "stops",
         ),
-        "crtraj.hardware.dynamixel._watchdog": ("watchdog_units",),
+        "crtraj.hardware.dynamixel._safety": ("watchdog_units",),
     },
 )

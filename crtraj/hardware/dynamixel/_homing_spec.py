@@ -13,6 +13,10 @@ that actuator finds its absolute position after a power-up:
 - ``method = "index"``: a known absolute reference, e.g. a mark the operator
   moves the actuator to by hand (torque off) and confirms.
 
+A spool (a cable servo) is homed by ``hard_stop`` only with ``allow_hard_stop = true``: pressing a stop pulls its
+tendon at the homing current; the documented spool method is an index mark at a low pretension. The homing
+current is at most the servo's force cap (``max_tension``, ``max_force``; `crtraj.hardware.dynamixel._homing`).
+
 ``reference`` is the actuator's value (rad or mm, as in ``[robot.actuators]``)
 at the stop or mark; it must lie within the actuator's position limits.
 
@@ -98,6 +102,13 @@ def _read_one(t: Table, name: str, acts: Actuators) -> HomingSpec:
     )
     if spec.direction == 0:
         raise t.error("direction", "must be -1 or +1 (the side of the stop)")
+    allowed = t.bool("allow_hard_stop", False) if t.has("allow_hard_stop") else False
+    if method == "hard_stop" and i < acts.n - 1 and not allowed:
+        raise t.error(
+            "method",
+            '"hard_stop" presses a spool\'s tendon against its stop: use "index" (a mark at low pretension), or set '
+            "allow_hard_stop = true if the stop is on the spool, not the tendon",
+        )
     t.finish()
     return spec
 

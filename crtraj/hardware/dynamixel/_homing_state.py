@@ -40,6 +40,7 @@ taut; crtraj never uses it with a 2 pi offset.
 from __future__ import annotations
 
 import datetime as _dt
+from collections.abc import Callable
 from dataclasses import MISSING, asdict, dataclass, replace
 from pathlib import Path
 from typing import Any, Protocol
@@ -50,6 +51,7 @@ from crtraj.core.errors import InputError
 from crtraj.core.fileio import atomic_write_json, read_json
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.dynamixel._protocol import X
+from crtraj.hardware.transport import TransportError
 
 STATE_SUFFIX = ".homing.json"
 MAX_STATE_BYTES = 1 << 20
@@ -272,3 +274,18 @@ def homing_command(robot_file: Any, device: str) -> str:
     if not robot_file:
         return f"crtraj home --dynamixel {device} --robot ROBOT.toml, then stream with the same --robot ROBOT.toml"
     return f"crtraj home --dynamixel {device} --robot {robot_file}"
+
+
+def record_last(
+    io: ServoIO, bus_ids: tuple[int, ...], state: HomingState, path: Path | None, warn: Callable[[str], None]
+) -> None:
+    """Where each homed servo of `state` among `bus_ids` on `io` is let go (`HomedServo.last`), into the state
+    file `path` (None: not kept in a file): the next connect refuses one whose reading moved by whole turns since
+    (a lost turn count). A failed read or write is a warning, never an error (the servos are being let go)."""
+    if path is None or not state.servos:
+        return
+    try:
+        ids = [s.id for s in state.servos if s.id in bus_ids]
+        state.moved({i: io.read(i, X.PRESENT_POSITION, 4) for i in ids}).save(path)
+    except (TransportError, OSError) as exc:
+        warn(f"warning: {path}: where the servos stopped is not recorded ({exc})")

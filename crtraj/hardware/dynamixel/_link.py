@@ -76,12 +76,9 @@ from crtraj.hardware.dynamixel._checks import (
     latency_warning,
 )
 from crtraj.hardware.dynamixel._drive_mode import DriveModeCheck
-from crtraj.hardware.dynamixel._homing_state import HomingState, PowerUpCheck, multi_turn
-from crtraj.hardware.dynamixel._protocol import PING as DXL_PING
-from crtraj.hardware.dynamixel._protocol import READ as DXL_READ
-from crtraj.hardware.dynamixel._protocol import WRITE as DXL_WRITE
-from crtraj.hardware.dynamixel._protocol import X
-from crtraj.hardware.dynamixel._watchdog import BusWatchdog, watchdog_units
+from crtraj.hardware.dynamixel._homing_state import HomingState, PowerUpCheck, multi_turn, record_last
+from crtraj.hardware.dynamixel._protocol import X, reply_sizes_checked
+from crtraj.hardware.dynamixel._safety import BusWatchdog, ForceCaps, TripWatch, watchdog_units
 from crtraj.hardware.protocol import ESTOP, PING, STATUS_ESTOP, Frame, Telemetry, seq_next
 from crtraj.hardware.transport import LinkLostError, Transport, TransportError
 
@@ -97,10 +94,14 @@ _STATE = (
     (X.PRESENT_VELOCITY, 4),
     (X.PRESENT_POSITION, 4),
     (X.BUS_WATCHDOG, 1),
+    (X.PRESENT_CURRENT, 2),
+    (X.PRESENT_VOLTAGE, 2),
+    (X.PRESENT_TEMPERATURE, 1),
 )
 _STATE_SIZE = sum(n for _, n in _STATE)
 _AT_TORQUE, _AT_ERROR = X.INDIRECT_DATA, X.INDIRECT_DATA + 1
 _AT_VELOCITY, _AT_POSITION, _AT_WATCHDOG = X.INDIRECT_DATA + 2, X.INDIRECT_DATA + 6, X.INDIRECT_DATA + 10
+_AT_CURRENT, _AT_VOLTAGE, _AT_TEMPERATURE = X.INDIRECT_DATA + 11, X.INDIRECT_DATA + 13, X.INDIRECT_DATA + 15
 # what reaches the SDK's callers when the adapter goes away (USB-serial unplugged): pyserial raises
 # SerialException on a write or read, OSError from the ioctl behind in_waiting, termios.error from the flush
 # behind clearPort; the SDK catches none of them (and leaves its busy flag set)
@@ -109,7 +110,6 @@ LINK_ERRORS = (serial.SerialException, OSError, termios.error)
 PTY_LATENCY_MS = 500.0
 _PTY_MAJORS = range(136, 144)
 # indices into the SDK's packets (lists of bytes; header FF FF FD 00, then id)
-_LENGTH, _INSTRUCTION, _PARAMS = 5, 7, 8
 
 
 def _sdk() -> Any:
@@ -166,27 +166,6 @@ def parse_url(url: str) -> tuple[str, int]:
 
 def _signed32(v: int) -> int:
     return v - (1 << 32) if v >= 1 << 31 else v
-
-
-def _reply_sizes_checked(ph: Any, corrupt: int) -> Any:
-    """The SDK's Protocol 2.0 packet handler `ph`, whose ping, read and write transactions take a status packet of
-    the wrong size as corrupt (result `corrupt`, the SDK's COMM_RX_CORRUPT). A servo's late reply to an earlier
-    transaction (a starved host or device answers after the SDK's 34 ms timeout) passes the SDK's id check: a
-    4-byte read would take a 2-byte read's reply with its CRC for a value, or index past a write's and raise."""
-    raw = ph.txRxPacket
-
-    def transaction(port: Any, tx: list[int]) -> tuple[Any, int, int]:
-        rx, result, error = raw(port, tx)
-        n = {DXL_PING: 3, DXL_WRITE: 0}.get(tx[_INSTRUCTION])
-        if tx[_INSTRUCTION] == DXL_READ:
-            n = tx[_PARAMS + 2] | tx[_PARAMS + 3] << 8  # the bytes asked for
-        # a status packet's length field: instruction, error, the parameters and the CRC
-        if result == 0 and n is not None and (len(rx) < 7 or rx[_LENGTH] | rx[_LENGTH + 1] << 8 != n + 4):
-            return rx, corrupt, 0
-        return rx, result, error
-
-    ph.txRxPacket = transaction
-    return ph
 
 
 class DynamixelTransport(Transport):
@@ -246,11 +225,16 @@ class DynamixelTransport(Transport):
             raise InputError(f'robot.stop.torque: must be "keep" or "off", got {stop_torque!r}')
         self.stop_torque = stop_torque
         self.bus_watchdog = watchdog_units(bus_watchdog)
+        self.caps = ForceCaps(actuators)  # a robot file without its tendons' caps is one line before the port opens
+        why = self.caps.refusal()
+        if why is not None:
+            raise InputError(why)
+        self.trips = TripWatch(self.caps)  # the first reading beyond a bound, and the last readings
         # a bad state file is one line before the port opens
         state = homing if isinstance(homing, HomingState) else HomingState.load(homing) if homing else HomingState()
         self._state, self._state_path = state, None if isinstance(homing, HomingState) or not homing else Path(homing)
         self._sdk = sdk
-        self._ph = _reply_sizes_checked(sdk.PacketHandler(2.0), sdk.COMM_RX_CORRUPT)
+        self._ph = reply_sizes_checked(sdk.PacketHandler(2.0), sdk.COMM_RX_CORRUPT)
         self._port = None
         self._lost: str | None = None  # why the link is gone (`_bus`), or None
         port = port_factory(sdk, device)
@@ -342,7 +326,7 @@ class DynamixelTransport(Transport):
     def _ask(self, call: Callable[..., tuple[Any, ...]], *args: Any) -> tuple[Any, ...]:
         """One connect-time transaction (an SDK call returning ``(..., result, error)``), tried up to
         `CONNECT_ATTEMPTS` times: a reply lost to line noise (or a busy host) is not yet a missing servo. A try
-        after a failed one drains late replies first (a reply of the wrong size is refused: `_reply_sizes_checked`)."""
+        after a failed one drains late replies first (a reply of the wrong size is refused: `reply_sizes_checked`)."""
         out = self._bus(call, self._port, *args)
         for _ in range(CONNECT_ATTEMPTS - 1):
             if out[-2] == self._sdk.COMM_SUCCESS:
@@ -375,14 +359,14 @@ class DynamixelTransport(Transport):
             )
 
     def _setup(self, actuators: Actuators) -> None:
-        """Torque off, extended position mode, profiles, goal = present, torque on."""
+        """Torque off, the force caps (`crtraj.hardware.dynamixel._safety`), profiles, goal = present, torque on."""
         bus = self.bus
         for i in bus.ids:
             self._write1(i, X.TORQUE_ENABLE, 0, 1, "torque off")
+        self.caps.apply(self)  # shutdown conditions, operating mode 5 with the Goal Current of each cap (or 4)
         for k, i in enumerate(bus.ids):
             self._write1(i, X.RETURN_DELAY, self.return_delay, 1, "return delay time")
             self._write1(i, X.STATUS_RETURN, 2, 1, "status return level")
-            self._write1(i, X.OPERATING_MODE, X.EXTENDED_POSITION, 1, "extended position mode")
             # profile limits at or just above the actuator limits: the set-points already obey them, the
             # servo's own profile only smooths what the gate let through
             rev = bus.per_rev[k]
@@ -439,28 +423,25 @@ class DynamixelTransport(Transport):
         self._ack = msg.seq
         self._t_write = time.perf_counter() - t
 
-    def _sync_watchdog(self, units: int) -> None:
-        """One sync write of Bus Watchdog = `units` (20 ms) to every servo (no replies)."""
-        w = self._sdk.GroupSyncWrite(self._port, self._ph, X.BUS_WATCHDOG, 1)
+    def _sync1(self, addr: int, value: int) -> None:
+        """One sync write of the 1-byte register `addr` = `value` to every servo (no replies)."""
+        w = self._sdk.GroupSyncWrite(self._port, self._ph, addr, 1)
         for i in self.bus.ids:
-            w.addParam(i, [units])
+            w.addParam(i, [value])
         self._bus(w.txPacket)
 
     def _arm_watchdog(self) -> None:
         """At the session's first frame: clear (0) and set the bus watchdog again; a trip counts from then on.
         Between connect and the first frame (an approach being planned) the host may be silent longer than the
         watchdog with the servos at rest: a trip then stopped nothing, and would leave the goals read-only."""
-        self._sync_watchdog(0)
-        self._sync_watchdog(self.bus_watchdog)
+        self._sync1(X.BUS_WATCHDOG, 0)
+        self._sync1(X.BUS_WATCHDOG, self.bus_watchdog)
         self._armed = True
 
     def _torque_off(self, confirm: bool = True) -> list[int]:
         """Torque off: one sync write to every servo at once, then (confirm) a write with a reply to each,
         so it has surely happened when this returns; the ids that did not confirm it."""
-        w = self._sdk.GroupSyncWrite(self._port, self._ph, X.TORQUE_ENABLE, 1)
-        for i in self.bus.ids:
-            w.addParam(i, [0])
-        self._bus(w.txPacket)
+        self._sync1(X.TORQUE_ENABLE, 0)
         if not confirm:
             return []
         silent = []
@@ -485,10 +466,13 @@ class DynamixelTransport(Transport):
         self.timings.append((self._t_write, time.perf_counter() - t))
         bus = self.bus
         ticks, vel = [], []
-        for i in bus.ids:
+        for k, i in enumerate(bus.ids):
             self._check_state(i)
             ticks.append(_signed32(group.getData(i, _AT_POSITION, 4)))
             vel.append(_signed32(group.getData(i, _AT_VELOCITY, 4)))
+            if not self._estopped:
+                at = (_AT_CURRENT, 2), (_AT_VOLTAGE, 2), (_AT_TEMPERATURE, 1)
+                self.trips.see(k, *(group.getData(i, a, n) for a, n in at))
         # present velocity in 0.229 rev/min units -> revolutions per second -> rad/s or mm/s
         self.velocities = np.asarray(vel) * X.VELOCITY_UNIT / 60.0 * np.asarray(bus.per_rev)
         self._seq = seq_next(self._seq)
@@ -526,6 +510,11 @@ class DynamixelTransport(Transport):
             self._held = why
             raise TransportError(why)
 
+    def trip(self) -> tuple[str, str] | None:
+        """(status, one line) of the first reading beyond a bound since connect (`crtraj.hardware.dynamixel._safety`:
+        over-tension, slack, over-temperature, under-/over-voltage; read while the torque should be on), or None."""
+        return self.trips.first
+
     def _miss(self, result: int) -> None:
         """Count a failed read; `max_misses` in a row end the stream, naming the first silent servo."""
         self.counts["corrupt" if result == self._sdk.COMM_RX_CORRUPT else "timeouts"] += 1
@@ -556,28 +545,18 @@ class DynamixelTransport(Transport):
             clock.sleep(0.0005)
         self._bus(self._port.clearPort)
 
-    def _record_last(self) -> None:
-        """Where each homed servo is let go (`HomedServo.last`), into the homing state file (when it was given
-        as a file): the next connect refuses one whose reading moved by whole turns since (a lost turn count)."""
-        if self._state_path is None or self._lost is not None or not self._state.servos:
-            return
-        try:
-            ids = [s.id for s in self._state.servos if s.id in self.bus.ids]
-            self._state.moved({i: self.read(i, X.PRESENT_POSITION, 4) for i in ids}).save(self._state_path)
-        except (TransportError, OSError) as exc:
-            self._warn(f"warning: {self._state_path}: where the servos stopped is not recorded ({exc})")
-
     def close(self) -> None:
         """Torque off (with ``stop_torque="off"``), then close the port (idempotent; never raises for a lost
         link: the servos cannot be reached, a warning says so)."""
         if self._port is None:
             return
         try:
-            self._record_last()
+            if self._lost is None:
+                record_last(self, self.bus.ids, self._state, self._state_path, self._warn)
             if self.stop_torque == "keep":
                 log.info("%s: torque kept on (robot.stop.torque = keep)", self.description)
                 if self._lost is None:  # a clean end: the servos hold; the watchdog is for a host that dies
-                    self._sync_watchdog(0)
+                    self._sync1(X.BUS_WATCHDOG, 0)
                 return
             silent = self._torque_off() if self._lost is None else []
             if silent:

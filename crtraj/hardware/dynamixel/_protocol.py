@@ -25,6 +25,7 @@ from __future__ import annotations
 import struct
 from dataclasses import dataclass
 from types import MappingProxyType
+from typing import Any
 
 HEADER = b"\xff\xff\xfd\x00"
 BROADCAST_ID = 0xFE
@@ -63,12 +64,18 @@ class X:
     OPERATING_MODE = 11  # 1: 3 position, 4 extended position, 5 current-based position
     HOMING_OFFSET = 20  # 4, signed ticks added to the present position (EEPROM)
     HOMING_OFFSET_LIMIT = 1_044_479  # ticks, +- (the register's range)
-    CURRENT_LIMIT = 38  # 2, 2.69 mA units (EEPROM)
+    TEMPERATURE_LIMIT = 31  # 1, deg C (EEPROM; factory 80 on the XM430)
+    MAX_VOLTAGE = 32  # 2, 0.1 V (EEPROM; factory 160)
+    MIN_VOLTAGE = 34  # 2, 0.1 V (EEPROM; factory 95)
+    PWM_LIMIT = 36  # 2, 885 = 100 % (EEPROM): the only output cap of modes 3 and 4
+    CURRENT_LIMIT = 38  # 2, 2.69 mA units (EEPROM): caps Goal Current; acts in modes 0 and 5 only
+    SHUTDOWN = 63  # 1 (EEPROM): the hardware error bits that turn the torque off (factory 0x34)
     TORQUE_ENABLE = 64  # 1; EEPROM (< 64) is writable only with torque off
     LED = 65  # 1, RAM (power-up default 0): crtraj's "homed since power-up" marker
     STATUS_RETURN = 68  # 1, RAM: 0 answer PING only, 1 PING and READ, 2 every instruction
     BUS_WATCHDOG = 98  # 1, RAM: 0 off (clears the error), 1..127 on (20 ms units, torque on only), -1 (0xFF) tripped
     HARDWARE_ERROR = 70  # 1, read-only
+    POSITION_P_GAIN = 84  # 2 (factory 800 on the XM430): K_P = value / 128
     GOAL_PWM = 100  # 2: the first goal value (read-only after a Bus Watchdog stop)
     GOAL_CURRENT = 102  # 2, 2.69 mA units (current-based position mode)
     PROFILE_ACCELERATION = 108  # 4, 214.577 rev/min^2 units
@@ -92,6 +99,8 @@ class X:
     RETURN_DELAY_DEFAULT = 250  # factory default (x 2 us)
     CURRENT_UNIT = 2.69  # mA per unit of goal / present current
     CURRENT_LIMIT_DEFAULT = 1193  # units (3.2 A), XM430
+    PWM_LIMIT_DEFAULT = 885  # 100 %
+    SHUTDOWN_DEFAULT = 0x34  # overload, electrical shock, overheating (not input voltage)
     # extended position control: goal position range, ticks (+-256 revolutions)
     EXTENDED_LIMIT = 1_048_575
     WATCHDOG_UNIT = 0.020  # s per unit of Bus Watchdog
@@ -214,3 +223,28 @@ def hardware_error_text(bits: int) -> str:
     """The hardware error status bits by name (``overload, overheating``), or the raw value."""
     names = [name for bit, name in HW_ERROR_NAMES if bits & bit]
     return ", ".join(names) if names else f"0x{bits:02x}"
+
+
+# byte offsets in a Protocol 2.0 packet: the length field, the instruction and the first parameter
+_LENGTH, _INSTRUCTION, _PARAMS = 5, 7, 8
+
+
+def reply_sizes_checked(ph: Any, corrupt: int) -> Any:
+    """The SDK's Protocol 2.0 packet handler `ph`, whose ping, read and write transactions take a status packet of
+    the wrong size as corrupt (result `corrupt`, the SDK's COMM_RX_CORRUPT). A servo's late reply to an earlier
+    transaction (a starved host or device answers after the SDK's 34 ms timeout) passes the SDK's id check: a
+    4-byte read would take a 2-byte read's reply with its CRC for a value, or index past a write's and raise."""
+    raw = ph.txRxPacket
+
+    def transaction(port: Any, tx: list[int]) -> tuple[Any, int, int]:
+        rx, result, error = raw(port, tx)
+        n = {PING: 3, WRITE: 0}.get(tx[_INSTRUCTION])
+        if tx[_INSTRUCTION] == READ:
+            n = tx[_PARAMS + 2] | tx[_PARAMS + 3] << 8  # the bytes asked for
+        # a status packet's length field: instruction, error, the parameters and the CRC
+        if result == 0 and n is not None and (len(rx) < 7 or rx[_LENGTH] | rx[_LENGTH + 1] << 8 != n + 4):
+            return rx, corrupt, 0
+        return rx, result, error
+
+    ph.txRxPacket = transaction
+    return ph

@@ -8,7 +8,14 @@ override, ``[robot.actuators.z]`` for the stage):
 - ``model``: the model number the servo must report (XM430-W350: 1020);
 - ``lead`` (z only): mm of stage travel per revolution of its servo;
 - ``drive_mode = { reverse = true }``: the servo's Drive Mode register (10) as it must be
-  (`DriveMode`): connect sets a declared reverse bit and refuses a bit it finds undeclared.
+  (`DriveMode`): connect sets a declared reverse bit and refuses a bit it finds undeclared;
+- ``max_tension`` (N, cable servos): the largest tension the servo may pull its tendon with. A Dynamixel stream
+  runs the servo in current-based position mode with its Goal Current at that tension
+  (`crtraj.hardware.dynamixel._safety`); ``min_tension`` (N, default 0: no check) is the least tension a taut
+  tendon keeps while streaming (below it: a slack trip); ``max_force`` (N, z only, optional) caps the stage's
+  axial force the same way through its lead;
+- ``torque_constant`` (N*m/A): output torque per ampere of the servo; by default the e-manual's stall torque over
+  stall current at 12 V of the model (`crtraj.hardware.dynamixel._safety.TORQUE_CONSTANTS`).
 
 Either no actuator has an ``id`` (the robot has no Dynamixel bus) or every
 actuator has one. The actuator value (`crtraj.hardware.actuators`: rad for a
@@ -35,7 +42,8 @@ from crtraj.core.options import Options, option
 
 MAX_TICKS_PER_REV = 1 << 20
 MAX_MODEL = 0xFFFF
-BUS_KEYS = ("id", "ticks_per_rev", "model", "drive_mode")
+BUS_KEYS = ("id", "ticks_per_rev", "model", "drive_mode", "max_tension", "min_tension", "max_force", "torque_constant")
+MAX_FORCE = 10_000.0  # N: above any tendon or stage a Dynamixel drives
 # why the time-based profile is refused: with Drive Mode bit 2 the servo reads Profile Velocity and Profile
 # Acceleration as times (ms per goal), so the speed and acceleration caps crtraj writes from the actuator limits
 # (the servo's own backstop under every streamed set-point) would not exist
@@ -104,6 +112,15 @@ def read_bus_keys(t: Table, base: dict[str, Any], stage: bool) -> dict[str, Any]
     d["drive_mode"] = _drive_mode(t, base)
     if stage:
         d["lead"] = t.float("lead", gt=0.0, limit=MAX_LENGTH) if t.has("lead") else None
+        d["max_force"] = t.float("max_force", gt=0.0, le=MAX_FORCE) if t.has("max_force") else None
+        d["min_force"] = 0.0
+    else:
+        d["max_force"] = t.float("max_tension", gt=0.0, le=MAX_FORCE) if t.has("max_tension") else base.get("max_force")
+        d["min_force"] = t.float("min_tension", ge=0.0, le=MAX_FORCE) if t.has("min_tension") else base.get("min_force")
+        if d["min_force"] is not None and d["max_force"] is not None and d["min_force"] >= d["max_force"]:
+            raise t.error("min_tension", f"{d['min_force']:g} N must be below max_tension ({d['max_force']:g} N)")
+    has_kt = t.has("torque_constant")
+    d["torque_constant"] = t.float("torque_constant", gt=0.0, le=100.0) if has_kt else base.get("torque_constant")
     return d
 
 
@@ -113,6 +130,8 @@ class ServoBus:
 
     per_rev: actuator units per output revolution (2 pi rad for servos, the lead in mm for the stage).
     drive_modes: each servo's declared Drive Mode (`DriveMode`; empty: every servo in normal mode).
+    max_force: each servo's ``max_tension`` (N; ``max_force`` for the stage), None where not declared.
+    min_force: each servo's ``min_tension`` (N, 0: no slack check). torque_constant: N*m/A, None: the model's.
     """
 
     names: tuple[str, ...]
@@ -121,6 +140,9 @@ class ServoBus:
     ticks_per_rev: tuple[int, ...]
     per_rev: tuple[float, ...]
     drive_modes: tuple[DriveMode, ...] = ()
+    max_force: tuple[float | None, ...] = ()
+    min_force: tuple[float, ...] = ()
+    torque_constant: tuple[float | None, ...] = ()
 
     @classmethod
     def from_rows(cls, names: tuple[str, ...], rows: list[dict[str, Any]], where: list[str]) -> ServoBus | None:
@@ -156,6 +178,9 @@ class ServoBus:
             ticks_per_rev=tuple(int(r["ticks_per_rev"]) for r in rows),
             per_rev=tuple(per_rev),
             drive_modes=tuple(r.get("drive_mode") or DriveMode() for r in rows),
+            max_force=tuple(r.get("max_force") for r in rows),
+            min_force=tuple(float(r.get("min_force") or 0.0) for r in rows),
+            torque_constant=tuple(r.get("torque_constant") for r in rows),
         )
 
     def drive_mode(self, k: int) -> DriveMode:
@@ -188,5 +213,12 @@ class ServoBus:
                 d["lead"] = self.per_rev[i]
             if self.drive_mode(i).reverse:
                 d["drive_mode"] = {"reverse": True}
+            stage = i == len(self.ids) - 1
+            if self.max_force and self.max_force[i] is not None:
+                d["max_force" if stage else "max_tension"] = self.max_force[i]
+            if self.min_force and self.min_force[i] and not stage:
+                d["min_tension"] = self.min_force[i]
+            if self.torque_constant and self.torque_constant[i] is not None:
+                d["torque_constant"] = self.torque_constant[i]
             out.append(d)
         return out

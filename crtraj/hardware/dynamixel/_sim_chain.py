@@ -18,8 +18,13 @@ acceleration (`ServoProfile`; 0 means unlimited), and its measured position
 follows that reference through a first-order lag ``tau``; with torque off it
 stays where it is. Injectable faults: `drop_replies` (a timeout: the next
 packets get no answer), `corrupt_replies` (a wrong CRC), `set_hardware_error`
-(an error bit: the servo drops its torque and flags the alert bit) and
-`remove` (a missing id).
+(an error bit: the servo drops its torque and flags the alert bit),
+`remove` (a missing id), `jam` (a jammed spool: the shaft stalls, its current rises to its mode's cap), `cut`
+(a cut tendon: its load current collapses), `heat` (Present Temperature; past Temperature Limit (31) the
+overheating bit, and torque off as Shutdown (63) says) and `supply` (Present Input Voltage; outside the voltage
+limits (32, 34) the input voltage bit, likewise). Present Current follows
+`crtraj.hardware.dynamixel._sim_shaft`: capped by Goal Current (102, at most Current Limit (38)) in mode 5, and only
+by PWM Limit (36), up to the stall current, in modes 3 and 4.
 
 `crtraj.hardware.dynamixel.SimDynamixel` puts a chain on a pseudo-terminal (`os.openpty`, raw mode) and
 serves it from a thread: the host opens `path` like a USB serial port. A pty
@@ -36,9 +41,8 @@ Power-up as on a real X-series servo: `power_cycle` and REBOOT turn the torque
 off, put RAM at its defaults (the LED, crtraj's homed marker, reads 0) and lose
 the multi-turn count: the present position reads within one turn (0..4095)
 plus the Homing Offset (register 20, EEPROM, kept). Each shaft may have
-mechanical ``stops`` (physical ticks); pressing one, the servo reads the
-current limit of its mode as Present Current (current-based position mode 5:
-the Goal Current), which is what hard-stop homing detects.
+mechanical ``stops`` (physical ticks); pressing one, the servo's Present Current rises with its position error
+to the cap of its mode (current-based position mode 5: the Goal Current), which is what hard-stop homing detects.
 
 The multi-turn count is also lost, the LED untouched, by switching to Operating Mode 3 (position control), by
 the torque coming on in mode 3, and by the Clear instruction (0x10, torque off only), as the e-manual says.
@@ -67,6 +71,7 @@ import numpy as np
 from crtraj.core.errors import InputError
 from crtraj.hardware.dynamixel import _protocol as dxl
 from crtraj.hardware.dynamixel._protocol import X
+from crtraj.hardware.dynamixel._sim_shaft import P_GAIN_DEFAULT, ChainFaults, ShaftLoads
 from crtraj.hardware.sim import ServoProfile
 
 TICKS_PER_REV = 4096  # X-series encoder
@@ -104,7 +109,7 @@ def _clear_refusal(t: bytearray, params: bytes) -> int:
     return dxl.ERR_RESULT_FAIL if t[X.TORQUE_ENABLE] else 0
 
 
-class ServoChain:
+class ServoChain(ChainFaults):
     """Simulated X-series servos on one bus. ids, models: bus ids and model numbers. initial: start
     positions (ticks). tau: motor time constant (s, >= 0). Times are the caller's device clock (s)."""
 
@@ -141,6 +146,10 @@ class ServoChain:
             t[X.OPERATING_MODE], t[13] = 3, 2  # position control, protocol 2
             t[X.RETURN_DELAY] = X.RETURN_DELAY_DEFAULT
             struct.pack_into("<H", t, X.CURRENT_LIMIT, X.CURRENT_LIMIT_DEFAULT)
+            t[X.TEMPERATURE_LIMIT] = 80
+            struct.pack_into("<HHH", t, X.MAX_VOLTAGE, 160, 95, X.PWM_LIMIT_DEFAULT)  # 32, 34, 36
+            t[X.SHUTDOWN] = X.SHUTDOWN_DEFAULT
+            struct.pack_into("<H", t, X.POSITION_P_GAIN, P_GAIN_DEFAULT)
             t[X.STATUS_RETURN] = 2  # status return level: answer every instruction
             struct.pack_into("<H", t, X.GOAL_CURRENT, X.CURRENT_LIMIT_DEFAULT)
             struct.pack_into("<H", t, X.PRESENT_VOLTAGE, 120)
@@ -151,6 +160,7 @@ class ServoChain:
         lim = np.full((n, 2), [-np.inf, np.inf]) if stops is None else np.asarray(stops, dtype=float).reshape(n, 2)
         self.stops = lim  # mechanical stops of each shaft (physical ticks, the frame of `initial`)
         self._v = np.zeros(n)  # measured velocities (ticks/s)
+        self.loads = ShaftLoads(n)  # tendons and jams (`crtraj.hardware.dynamixel._sim_shaft`)
         self._profile = ServoProfile(np.full(n, _UNLIMITED), np.full(n, _UNLIMITED), x0)
         self._t: float | None = None  # device time reached; the first call's time is the start
         self.present = set(self.ids)
@@ -173,19 +183,6 @@ class ServoChain:
     def remove(self, dxl_id: int) -> None:
         """Missing-id fault: the servo no longer answers (unplugged)."""
         self.present.discard(dxl_id)
-
-    def set_hardware_error(self, dxl_id: int, bits: int, now: float = 0.0) -> None:
-        """Error-bit fault: set hardware error status bits; the servo turns its torque off (shutdown)."""
-        k = self.ids.index(dxl_id)
-        self.advance(now)
-        self._table[k][X.HARDWARE_ERROR] = bits & 0xFF
-        if bits:
-            self._torque(k, False, now)
-
-    def torque_off(self, dxl_id: int, now: float = 0.0) -> None:
-        """Torque-off fault: another program (or a person at a servo tool) switches the servo's torque off."""
-        self.advance(now)
-        self._torque(self.ids.index(dxl_id), False, now)
 
     def reboot(self, dxl_id: int, now: float = 0.0) -> None:
         """Reboot fault (a brown-out, or a REBOOT from another program): the servo restarts with its
@@ -235,6 +232,7 @@ class ServoChain:
         t[64:120] = bytes(56)  # RAM back to its defaults (zero here), the shaft where it is
         t[X.STATUS_RETURN] = 2
         t[X.GOAL_CURRENT : X.GOAL_CURRENT + 2] = t[X.CURRENT_LIMIT : X.CURRENT_LIMIT + 2]
+        struct.pack_into("<H", t, X.POSITION_P_GAIN, P_GAIN_DEFAULT)
         for j in range(X.INDIRECT_COUNT):  # each indirect address names its own data byte again
             struct.pack_into("<H", t, X.INDIRECT_ADDRESS + 2 * j, X.INDIRECT_DATA + j)
         struct.pack_into("<i", t, X.GOAL_POSITION, int(np.rint(self._x[k])))
@@ -295,20 +293,17 @@ class ServoChain:
     def _clamp(self, x: np.ndarray) -> np.ndarray:
         """Positions `x` (reported ticks) held at the mechanical stops."""
         lim = self._stops_read()
-        return np.clip(x, lim[:, 0], lim[:, 1])
+        give = self.loads.give(self._table)  # a stop pressed at the cap yields by its compliance
+        return self.loads.hold(np.clip(x, lim[:, 0] - give, lim[:, 1] + give))
 
     def _current(self, k: int) -> int:
-        """Present current (2.69 mA units): the current limit of the mode while the shaft presses a stop toward
-        its reference, else 0 (friction and load are not modelled)."""
-        t = self._table[k]
-        if not t[X.TORQUE_ENABLE]:
-            return 0
-        r = self._profile.target[k]
+        """Present Current (2.69 mA units) of servo k (`crtraj.hardware.dynamixel._sim_shaft.ShaftLoads.current`):
+        its tendon's load, plus the position loop's output while the shaft presses a stop toward its reference,
+        within the cap of its operating mode."""
+        r = float(self._profile.sample(self._t if self._t is not None else 0.0)[0][k])
         lo, hi = self._stops_read()[k]
-        pressing = 1 if r > hi and self._x[k] >= hi else -1 if r < lo and self._x[k] <= lo else 0
-        mode_current = X.GOAL_CURRENT if t[X.OPERATING_MODE] == X.CURRENT_POSITION else X.CURRENT_LIMIT
-        (limit,) = struct.unpack_from("<H", t, mode_current)
-        return pressing * int(limit)
+        pressing = (r > hi and self._x[k] >= hi) or (r < lo and self._x[k] <= lo)
+        return self.loads.current(self._table[k], k, r, float(self._x[k]), bool(pressing))
 
     def reply_time(self, request_size: int, replies: list[bytes]) -> float:
         """Bus time (s) of one transaction: the request's and replies' bytes at 10 bits each at the bus rate,
@@ -449,6 +444,12 @@ class ServoChain:
         lo, hi = (-X.EXTENDED_LIMIT, X.EXTENDED_LIMIT) if extended else (0, 4095)
         if addr < X.GOAL_POSITION + 4 and end > X.GOAL_POSITION and not lo <= goal <= hi:
             return dxl.ERR_DATA_LIMIT
+        if addr < X.GOAL_CURRENT + 2 and end > X.GOAL_CURRENT:  # e-manual: never above Current Limit (38)
+            g = bytearray(t[X.GOAL_CURRENT : X.GOAL_CURRENT + 2])
+            lo_g, hi_g = max(addr, X.GOAL_CURRENT), min(end, X.GOAL_CURRENT + 2)
+            g[lo_g - X.GOAL_CURRENT : hi_g - X.GOAL_CURRENT] = data[lo_g - addr : hi_g - addr]
+            if struct.unpack("<H", g)[0] > struct.unpack_from("<H", t, X.CURRENT_LIMIT)[0]:
+                return dxl.ERR_DATA_LIMIT
         if t[X.BUS_WATCHDOG] == X.WATCHDOG_TRIPPED and addr < X.GOAL_POSITION + 4 and end > X.GOAL_PWM:
             return dxl.ERR_DATA_RANGE  # after a watchdog stop the goal values are read-only until 98 reads 0
         torque = trial[X.TORQUE_ENABLE - base]

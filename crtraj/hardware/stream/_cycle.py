@@ -228,6 +228,9 @@ class StreamCycle:
             if tel is not None:
                 self._on_telemetry(tel, now)
                 newest = tel
+        trip = self._transport.trip()
+        if trip is not None and self._machine.state in LIVE and self._machine.state != HELD:
+            self._machine.latch(trip[1], now, trip[0])  # the verified stop, then a hold; the report names it
         # after the whole batch: telemetry that queued up while this thread was starved must not
         # make frames it sent just before the stall look unacknowledged
         if newest is not None and self._machine.state in CHECKED:
