@@ -9,7 +9,8 @@ SIGTERM to the command's process only, as `kill PID` does. Each probe then check
 - every file of the output folder is byte-identical and no temporary or partial file was left there;
 - for a stream to the simulated device, the actuator acceleration it reports is within the limits (<= 1.00).
 
-Run: python benchmarks/hostile.py [--trials 3] [--seed 36] [--only record,replan-cosserat]
+Run: python benchmarks/hostile.py [--trials 3] [--seed 36] [--only record-cosserat,replan-cosserat] [--tree DIR]
+(--tree: the checkout whose code and inputs run, e.g. an exported older commit, for a before/after comparison.)
 Prints one line per probe and a table of clean / dirty / finished-first per case. Linux only (/proc).
 """
 
@@ -43,23 +44,46 @@ except ModuleNotFoundError:  # Python 3.10
     import tomli as tomllib
 
 ROOT = Path(__file__).resolve().parent.parent
-PAPER = ROOT / "problems" / "paper_dynamic.toml"
-ROBOT = ROOT / "problems" / "robots" / "cdsr2.toml"
-RESULT = ROOT / "tests" / "data" / "plan_cspace_v1.json"
+
+
+@dataclass(frozen=True)
+class Tree:
+    """The checkout whose crtraj the commands run, and its inputs (another one: a before/after comparison)."""
+
+    root: Path
+
+    @property
+    def paper(self) -> Path:
+        return self.root / "problems" / "paper_dynamic.toml"
+
+    @property
+    def robot(self) -> Path:
+        return self.root / "problems" / "robots" / "cdsr2.toml"
+
+    @property
+    def result(self) -> Path:
+        return self.root / "tests" / "data" / "plan_cspace_v1.json"
+
+    @property
+    def calibration(self) -> Path:
+        return self.root / "tests" / "data" / "calibration_small.json"
+
+
 HANG_S = 600.0  # a hung command: reported dirty
 ORPHAN_S = 2.0  # the issue's bound
+STARTUP_S = 10.0  # the clock starts at the handler's install, or this long after the start (a crtraj without one)
 _ACCEL = re.compile(r"([\d.]+) of their acceleration limit")
 _TOL = 1e-6  # the simulated device's own tolerance on a limit
 
 
 @dataclass(frozen=True)
 class Case:
-    """One command of the corpus: `args(folder, address)` its arguments after `crtraj`, `outputs` the files
+    """One command of the corpus: `args(tree, folder, address)` its arguments after `crtraj`, `outputs` the files
     pre-created in folder/o, `window` (s) the range of the random signal point after the handler is
     installed, `signals` the ones drawn from, `device` True when it streams to a simulated UDP device."""
 
     name: str
-    args: Callable[[Path, str], list[str]]
+    args: Callable[[Tree, Path, str], list[str]]
     outputs: tuple[str, ...]
     window: tuple[float, float]
     signals: tuple[int, ...] = (signal.SIGINT, signal.SIGTERM)
@@ -80,39 +104,44 @@ class Probe:
     reported: float | None = None  # the command's own report (stdout), a fraction of the limit
 
 
-def _ros_problem(folder: Path) -> str:
+def _ros_problem(tree: Tree, folder: Path) -> str:
     """paper_dynamic.toml on a DDS domain of its own (the bridge waits for a robot that never comes)."""
-    values = {("robot",): str(ROBOT), ("ros", "domain_id"): 100 + os.getpid() % 100, ("ros", "start_timeout"): 600.0}
+    values = {
+        ("robot",): str(tree.robot),
+        ("ros", "domain_id"): 100 + os.getpid() % 100,
+        ("ros", "start_timeout"): 600.0,
+    }
     p = folder / "paper_ros.toml"
-    p.write_text(set_values(PAPER.read_text(), values))
+    p.write_text(set_values(tree.paper.read_text(), values))
     return str(p)
 
 
 CASES = (
-    Case("verify-cosserat", lambda f, a: ["verify", str(RESULT), "--model", "cosserat", "--robot", str(ROBOT)],
+    Case("verify-cosserat", lambda t, f, a: ["verify", str(t.result), "--model", "cosserat", "--robot", str(t.robot)],
          ("keep.txt",), (0.5, 4.0), (signal.SIGINT,)),
     # the issue's probes: SIGINT at 2 s and at 6 s, the earlier dataset replaced after an exit 0
-    Case("record-cosserat", lambda f, a: ["record", "--excite", "--plant", "cosserat", "--duration", "300",
+    Case("record-cosserat", lambda t, f, a: ["record", "--excite", "--plant", "cosserat", "--duration", "300",
                                           "--out", str(f / "o" / "data.json")], ("data.json",), (2.0, 6.0),
          (signal.SIGINT,)),
-    Case("replan-cosserat", lambda f, a: ["replan", str(PAPER), "--plant", "cosserat", "--out", str(f / "o" / "run")],
+    Case("replan-cosserat", lambda t, f, a: ["replan", str(t.paper), "--plant", "cosserat",
+                                             "--out", str(f / "o" / "run")],
          ("run/run.json", "run/run.png"), (1.0, 10.0), (signal.SIGTERM, signal.SIGINT)),
-    Case("replan-pcc", lambda f, a: ["replan", str(PAPER), "--out", str(f / "o" / "run")],
+    Case("replan-pcc", lambda t, f, a: ["replan", str(t.paper), "--out", str(f / "o" / "run")],
          ("run/run.json",), (0.5, 6.0)),
-    Case("ros-bridge-record", lambda f, a: ["ros-bridge", _ros_problem(f), "--out", str(f / "o" / "run"),
+    Case("ros-bridge-record", lambda t, f, a: ["ros-bridge", _ros_problem(t, f), "--out", str(f / "o" / "run"),
                                             "--record", str(f / "o" / "bridge.mcap")],
          ("run/run.json", "bridge.mcap"), (1.0, 6.0), (signal.SIGTERM, signal.SIGINT)),
-    Case("replan-stream-udp", lambda f, a: ["replan", str(PAPER), "--stream", f"udp://{a}", "--approach",
+    Case("replan-stream-udp", lambda t, f, a: ["replan", str(t.paper), "--stream", f"udp://{a}", "--approach",
                                             "--out", str(f / "o" / "live")],
          ("live/run.json",), (8.0, 40.0), (signal.SIGINT,), device=True),
-    Case("stream-udp", lambda f, a: ["stream", str(RESULT), "--udp", a, "--approach", "--log",
+    Case("stream-udp", lambda t, f, a: ["stream", str(t.result), "--udp", a, "--approach", "--log",
                                      str(f / "o" / "stream.jsonl")], ("stream.jsonl",), (1.0, 8.0), device=True),
-    Case("calibrate", lambda f, a: ["calibrate", str(ROOT / "tests" / "data" / "calibration_small.json"),
+    Case("calibrate", lambda t, f, a: ["calibrate", str(t.calibration),
                                     "--out", str(f / "o" / "cal.toml")],
          ("cal.toml", "cal.report.json", "cal.residuals.png"), (0.5, 4.0)),
-    Case("model-compare", lambda f, a: ["model", "compare", str(ROBOT), "--samples", "100000",
+    Case("model-compare", lambda t, f, a: ["model", "compare", str(t.robot), "--samples", "100000",
                                         "--plot", str(f / "o" / "compare.png")], ("compare.png",), (0.5, 4.0)),
-    Case("bench", lambda f, a: ["bench", "table1", "--workers", "2", "--scenarios", "50", "--counts", "3",
+    Case("bench", lambda t, f, a: ["bench", "table1", "--workers", "2", "--scenarios", "50", "--counts", "3",
                                 "--planners", "cspace", "--time-limit", "1", "--no-progress",
                                 "--out", str(f / "o" / "table1")], ("table1/table1.md", "table1/runs.csv"),
          (1.0, 8.0)),
@@ -230,11 +259,11 @@ class Wire:
 
 
 # ---------------------------------------------------------------------------------------------- a probe
-def _device(folder: Path) -> tuple[subprocess.Popen, str]:
+def _device(tree: Tree, folder: Path) -> tuple[subprocess.Popen, str]:
     """The simulated UDP device, in a process group of its own (a Ctrl-C of the command does not reach it)."""
     proc = subprocess.Popen(
         [sys.executable, "-m", "crtraj.cli", "sim-device", "--udp", "127.0.0.1:0", "--duration", "900"],
-        cwd=folder, env={**os.environ, "PYTHONPATH": str(ROOT)}, stdout=subprocess.PIPE,
+        cwd=folder, env={**os.environ, "PYTHONPATH": str(tree.root)}, stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT, text=True, start_new_session=True,
     )  # fmt: skip
     line = proc.stdout.readline()
@@ -244,15 +273,15 @@ def _device(folder: Path) -> tuple[subprocess.Popen, str]:
     return proc, found.group(1)
 
 
-def _start(case: Case, folder: Path, address: str, mark: str) -> subprocess.Popen:
-    env = {**os.environ, "CRTRAJ_HOSTILE_MARK": mark, "PYTHONPATH": str(ROOT)}
+def _start(case: Case, tree: Tree, folder: Path, address: str, mark: str) -> subprocess.Popen:
+    env = {**os.environ, "CRTRAJ_HOSTILE_MARK": mark, "PYTHONPATH": str(tree.root)}
 
     def preexec() -> None:  # a terminal's job: SIGINT at its default, a process group of its own
         signal.signal(signal.SIGINT, signal.SIG_DFL)
         os.setsid()
 
     return subprocess.Popen(
-        [sys.executable, "-m", "crtraj.cli", *case.args(folder, address)],
+        [sys.executable, "-m", "crtraj.cli", *case.args(tree, folder, address)],
         cwd=folder, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=preexec,
     )  # fmt: skip
 
@@ -265,7 +294,9 @@ def _deliver(proc: subprocess.Popen, signum: int) -> None:
         proc.send_signal(signum)
 
 
-def probe(case: Case, rng: random.Random, wire: Wire | None) -> Probe:  # long: one run, its signal and its checks
+def probe(
+    case: Case, tree: Tree, rng: random.Random, wire: Wire | None
+) -> Probe:  # long: one run, its signal and its checks
     """Run `case` once in a fresh folder, signal it at a random point, and check what it left."""
     signum = rng.choice(case.signals)
     at = rng.uniform(*case.window)
@@ -279,8 +310,8 @@ def probe(case: Case, rng: random.Random, wire: Wire | None) -> Probe:  # long: 
         before, mark = snapshot(out), uuid.uuid4().hex
         if wire is not None:
             wire.reset()
-        proc = _start(case, folder, wire.address if wire is not None else "", mark)
-        end = time.monotonic() + HANG_S
+        proc = _start(case, tree, folder, wire.address if wire is not None else "", mark)
+        end = time.monotonic() + STARTUP_S
         while not handles_sigterm(proc.pid) and proc.poll() is None and time.monotonic() < end:
             time.sleep(0.01)
         deadline = time.monotonic() + at
@@ -347,7 +378,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--trials", type=int, default=3, help="probes per case")
     parser.add_argument("--seed", type=int, default=36)
     parser.add_argument("--only", default="", help="comma-separated case names (default: all)")
+    parser.add_argument("--tree", type=Path, default=ROOT, help="the checkout to run (default: this one)")
     args = parser.parse_args(argv)
+    tree = Tree(args.tree.resolve())
     names = [c.name for c in CASES]
     only = [n for n in args.only.split(",") if n]
     unknown = sorted(set(only) - set(names))
@@ -357,12 +390,12 @@ def main(argv: list[str] | None = None) -> int:
     rng = random.Random(args.seed)
     probes: list[Probe] = []
     with tempfile.TemporaryDirectory(prefix="hostile-dev-") as tmp:
-        device, address = _device(Path(tmp)) if any(c.device for c in chosen) else (None, "")
-        wire = Wire(address, acceleration_limits(ROBOT)) if device is not None else None
+        device, address = _device(tree, Path(tmp)) if any(c.device for c in chosen) else (None, "")
+        wire = Wire(address, acceleration_limits(tree.robot)) if device is not None else None
         try:
             for case in chosen:
                 for _ in range(args.trials):
-                    probes.append(probe(case, rng, wire if case.device else None))
+                    probes.append(probe(case, tree, rng, wire if case.device else None))
                     print(_line(probes[-1]), flush=True)
         finally:
             if device is not None:

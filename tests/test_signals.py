@@ -191,10 +191,10 @@ def test_a_stop_while_replan_streams_its_run_keeps_the_earlier_run(tmp_path, mon
     (out / "run.json").write_bytes(b"the user's earlier run\n")
     real, staged = replan._stream_run, []
 
-    def signalled(req, problem, paths, dest):
+    def signalled(req, problem, paths, *rest):
         staged.append(Path(paths["json"]).parent)
         _stop_here(signal.SIGINT)  # swallowed here, as the device's loop might: the flag stays
-        return real(req, problem, paths, dest)
+        return real(req, problem, paths, *rest)
 
     monkeypatch.setattr(replan, "_stream_run", signalled)
     frames = tmp_path / "frames.bin"
