@@ -4,10 +4,10 @@ Target (issue 17): fit time <= 2 s for 2,000 samples with all parameters.
 Synthetic setup: cdsr2 perturbed (`synthetic_truth`: lengths +-5 %, coupling -0.8, servo zero offsets +-0.05
 rad, capture frame rotated 10 degrees and shifted 50 mm), 2,000 random samples within 60 % of the bend limits
 (`synthetic_values`), base + proximal tip + distal tip markers with 0.3 mm noise per axis and 2 % outliers of
-~20 mm; 20 % held out. "fit" is the whole `crtraj.model.calibration.fit` call (initial capture frame,
+~20 mm; 20 % held out. "fit" is the whole `crtraj.model.calibration._fit` call (initial capture frame,
 identifiability, NLP build and solve, covariance, statistics; wall and CPU time of this process: on a loaded
 machine the CPU time is the steadier figure); "solve" is the NLP build and IPOPT solve (wall); "gate" is the
-sanity gate on the last fit (time offset, noise estimate, checks; `crtraj.app.calibrate.gate`), wall time.
+sanity gate on the last fit (time offset, noise estimate, checks; `crtraj.app.lab._calibrate.gate`), wall time.
 Run: python benchmarks/calibrate.py [--n 2000] [--repeat 5]
 """
 
@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from crtraj.app.calibrate import gate
+from crtraj.app.lab._calibrate import gate
 from crtraj.hardware.actuators import Actuators
 from crtraj.io.calibration_data import Dataset
 from crtraj.io.problem import load_robot

@@ -4,7 +4,7 @@ What is measured (problems/robots/cdsr2.toml, its [robot.mechanics], gravity on)
 
 - build: constructing `CosseratRod`, once: the old path (``compiled=False``: the SX shooting function
   and CasADi's Newton rootfinder, interpreted) and the new one (generated C from the build cache,
-  `crtraj.model.cosserat_compiled`; the first build of a robot compiles, later ones load);
+  `crtraj.model.cosserat._compiled`; the first build of a robot compiles, later ones load);
 - warm solve: `CosseratRod.solve` for a tension vector a small random step (up to 0.05 N per tendon)
   from the previous solve, as a closed loop or the compare tool calls it; `--solves` of them, each timed
   alone, old path and new path in the same run. Reported: median, 10th and 90th percentile of wall
@@ -14,7 +14,7 @@ What is measured (problems/robots/cdsr2.toml, its [robot.mechanics], gravity on)
 - cable-length mode, warm: `CableDrivenRod.solve` (tensions unknown, slack by the active set) for the
   commanded lengths `RodDrive.lengths` gives along a seeded random walk of the actuation (each cable moving by
   up to 0.05 mm per solve, as the closed-loop plant moves between control periods), old path
-  (``compiled=False``) and new (generated C, `crtraj.model.cosserat_cable_compiled`), each timed alone;
+  (``compiled=False``) and new (generated C, `crtraj.model.cosserat._cable_compiled`), each timed alone;
 - compare: `compare_models` over `--samples` configurations (two solves each, one without and one
   with gravity), wall and CPU time, per configuration.
 
@@ -36,13 +36,13 @@ from pathlib import Path
 
 import numpy as np
 
-from crtraj.app.model_compare import compare_models, sample_configs
+from crtraj.app.lab._model_compare import compare_models, sample_configs
 from crtraj.io.problem import load_robot
-from crtraj.model.cosserat import CosseratRod, RodLoad
-from crtraj.model.cosserat_cables import CableDrivenRod
+from crtraj.model.cosserat._cables import CableDrivenRod
+from crtraj.model.cosserat._drive import RodDrive
+from crtraj.model.cosserat._statics import CosseratRod, RodLoad
 from crtraj.model.mechanics import Mechanics
 from crtraj.model.robot import Robot
-from crtraj.model.rod_drive import RodDrive
 
 ROBOT = Path(__file__).resolve().parent.parent / "problems" / "robots" / "cdsr2.toml"
 

@@ -65,14 +65,14 @@ from crtraj.core.fileio import read_toml
 from crtraj.io.problem import Problem
 from crtraj.model.kinematics import Model
 from crtraj.model.robot import Robot, Segment
-from crtraj.planning.compiled_validity import ValidityKernel, kernel_functions
 from crtraj.planning.context import PlanningContext
 from crtraj.planning.options import PlannerOptions
 from crtraj.planning.pipeline import STREAM_RATE, retime_result
-from crtraj.planning.registry import BUILTIN, make_planner
-from crtraj.planning.steer import SteerOptions
+from crtraj.planning.planners._registry import BUILTIN, make_planner
+from crtraj.planning.steer._solver import SteerOptions
 from crtraj.planning.stop import StopCondition
-from crtraj.planning.validity import MotionValidator
+from crtraj.planning.validity._compiled import ValidityKernel, kernel_functions
+from crtraj.planning.validity._motion import MotionValidator
 from crtraj.world.scene import Scene
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -233,7 +233,7 @@ def executable(res: Any, context: PlanningContext, scene: Scene) -> tuple[bool, 
 def section_ompl(problem: Problem, model: Model, scene: Scene, options: PlannerOptions, sim1: dict, n: int) -> None:
     print(f"\n== 2. against OMPL RRTConnect on the same compiled validator, {n} queries per scene set ==")
     try:
-        from crtraj.planning.ompl import OMPLPlanner, import_ompl
+        from crtraj.planning.planners._ompl import OMPLPlanner, import_ompl
 
         import_ompl()
     except Exception as exc:  # the bench extra is optional

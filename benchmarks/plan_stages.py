@@ -21,10 +21,10 @@ from typing import Any
 import numpy as np
 
 from crtraj.planning.base import PlannerBase
-from crtraj.planning.compiled_validity import ValidityKernel
-from crtraj.planning.cspace import CSpacePlanner
-from crtraj.planning.cspace_search import CSpaceSearch
+from crtraj.planning.planners._cspace import CSpacePlanner
+from crtraj.planning.planners._cspace_search import CSpaceSearch
 from crtraj.planning.postprocess import PathPostprocessor
+from crtraj.planning.validity._compiled import ValidityKernel
 
 # the kernel's entry points that call C (each returns after its one C call)
 KERNEL_CALLS = ("_run_auto", "_run_edges", "clearance", "clearance_windows", "tip_jacobian", "project",

@@ -25,7 +25,7 @@ the step that asks for it (reference_delay = 0, the previous round's loop).
 the problem now runs one per call, issue 29). "compiled-prev": the previous stop's path as a whole (three
 iterations a call, fused = false, the heap left to the garbage collector during the steps, the obstacle spheres
 computed in every step). "compiled-untabled": "compiled" with the obstacle spheres computed in every step instead
-of looked up in the table of the run's step times (`crtraj.control.horizon_obstacles`).
+of looked up in the table of the run's step times (`crtraj.control.horizon._obstacles`).
 "sqp-hpipm", "compiled-hpipm": the horizon QP in stage form (state (x_k, x_k-1), input x_k+1) solved by
 HPIPM (issue 29), interpreted as "sqp" runs and as generated C as "compiled" runs.
 "compiled-old": the compiled solver with the QP of the previous round (every
@@ -59,10 +59,10 @@ from unittest import mock
 
 import numpy as np
 
-from crtraj.control import loop as loop_module
-from crtraj.control.horizon import ReplanOptions
-from crtraj.control.loop import ClosedLoop
-from crtraj.control.loop_options import LoopOptions
+from crtraj.control.horizon._replanner import ReplanOptions
+from crtraj.control.loop import _closed_loop as loop_module
+from crtraj.control.loop._closed_loop import ClosedLoop
+from crtraj.control.loop._options import LoopOptions
 from crtraj.core.fileio import read_toml
 from crtraj.io.problem import Problem
 
@@ -91,7 +91,7 @@ VARIANTS = {
     "compiled-inline": {"solver": "sqp", "qpsol": "daqp", "compiled": True},
     # "compiled" with the obstacle spheres computed in every step (the table of the run's step times off)
     "compiled-untabled": {"solver": "sqp", "qpsol": "daqp", "compiled": True},
-    # issue 29: the stage-form QP for HPIPM (`crtraj.control.horizon_stage`), interpreted as "sqp" runs, and
+    # issue 29: the stage-form QP for HPIPM (`crtraj.control.horizon._stage`), interpreted as "sqp" runs, and
     # as generated C as "compiled" runs (the problem's deadline)
     "sqp-hpipm": {"solver": "sqp", "qpsol": "hpipm", "compiled": False, "step_deadline": 0.0, "max_iter": 60,
                   "max_calls": 1},
@@ -113,10 +113,10 @@ LOOP_VARIANTS = {
 
 
 # variants whose loop leaves the heap to the garbage collector during the steps, as before issue 29 (the loop now
-# freezes the setup's objects for the run: `crtraj.control.loop._freeze_heap`)
+# freezes the setup's objects for the run: `crtraj.control.loop._closed_loop._freeze_heap`)
 UNFROZEN = {"compiled-prev"}
 # variants whose steps compute the horizon's obstacle spheres themselves, as before the table of the run's step times
-# (`crtraj.control.horizon_obstacles.ObstacleTable`, issue 29)
+# (`crtraj.control.horizon._obstacles.ObstacleTable`, issue 29)
 UNTABLED = {"compiled-prev", "compiled-untabled"}
 
 # --deadline: the step deadline (s) of the variants that keep the problem's (None: the problem's)

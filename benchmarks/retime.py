@@ -35,7 +35,7 @@ from crtraj.planning.context import PlanningContext
 from crtraj.planning.metric import BodyMetric
 from crtraj.planning.options import PlannerOptions
 from crtraj.planning.pipeline import executed_fractions, retime_result
-from crtraj.planning.registry import BUILTIN
+from crtraj.planning.planners._registry import BUILTIN
 from crtraj.planning.retime import (
     keep_corners,
     min_durations,

@@ -31,12 +31,12 @@ from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory
 from visualization_msgs.msg import Marker, MarkerArray
 
-from crtraj.app.ros_bridge import RosBridgeRequest, run_ros_bridge
-from crtraj.control.loop import ClosedLoop
+from crtraj.app.devices._ros_bridge import RosBridgeRequest, run_ros_bridge
+from crtraj.control.loop._closed_loop import ClosedLoop
 from crtraj.hardware.actuators import Actuators
-from crtraj.hardware.ros.messages import si_scale
-from crtraj.hardware.ros.node import RosNode, ros_environment
-from crtraj.hardware.ros.options import RosOptions
+from crtraj.hardware.ros._messages import si_scale
+from crtraj.hardware.ros._node import RosNode, ros_environment
+from crtraj.hardware.ros._options import RosOptions
 from crtraj.io.problem import Problem
 from crtraj.io.results import read_result
 

@@ -16,7 +16,7 @@ one-off builds take minutes.
   obstacles (each new size is one C build of the horizon NLP, about a minute). That column puts every
   obstacle in the QP (``qp_obstacles = 0``, the previous path); the "broad" column is the same with the
   shipped ``qp_obstacles`` (``--broad-slots``, a list): a QP of at most that many obstacle slots, filled each
-  step by the horizon's broad phase (`crtraj.control.horizon_broad`), every move still verified against every obstacle.
+  step by the horizon's broad phase (`crtraj.control.horizon._broad`), every move still verified against every obstacle.
 
 Writes docs/scaling_solvers.png (two panels: vs obstacles, vs segments) and prints the table with the
 date, machine and load. Run: python benchmarks/scaling_solvers.py [--compiled 7] [--compiled-replan 31]
@@ -37,12 +37,12 @@ from pathlib import Path
 
 import numpy as np
 
-from crtraj.control.horizon import ReplanOptions
-from crtraj.control.loop import ClosedLoop
-from crtraj.control.loop_options import LoopOptions
+from crtraj.control.horizon._replanner import ReplanOptions
+from crtraj.control.loop._closed_loop import ClosedLoop
+from crtraj.control.loop._options import LoopOptions
 from crtraj.io.problem import Problem
 from crtraj.model.kinematics import Model
-from crtraj.planning.steer import SteerOptions, SteerSolver
+from crtraj.planning.steer._solver import SteerOptions, SteerSolver
 from crtraj.world.obstacle import Obstacle
 from crtraj.world.scene import Scene
 

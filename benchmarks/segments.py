@@ -24,12 +24,12 @@ from pathlib import Path
 
 import numpy as np
 
-from crtraj.control.loop import ClosedLoop
+from crtraj.control.loop._closed_loop import ClosedLoop
 from crtraj.io.problem import Problem
 from crtraj.model.kinematics import Model
 from crtraj.planning.options import PlannerOptions
-from crtraj.planning.registry import make_planner
-from crtraj.planning.steer import SteerOptions
+from crtraj.planning.planners._registry import make_planner
+from crtraj.planning.steer._solver import SteerOptions
 from crtraj.world.scene import Scene
 
 ROOT = Path(__file__).resolve().parent.parent

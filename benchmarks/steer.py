@@ -35,7 +35,7 @@ import numpy as np
 from crtraj.core.fileio import atomic_write_json
 from crtraj.io.problem import Problem
 from crtraj.model.kinematics import Model
-from crtraj.planning.steer import SteerOptions, SteerSolver
+from crtraj.planning.steer._solver import SteerOptions, SteerSolver
 from crtraj.world.scene import Scene
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -67,7 +67,7 @@ def dense_check(model: Model, scene: Scene, results: list) -> tuple[int, int]:
     """(unsafe, D_sf dips) among the results called safe, from 200 backbone points against the spheres at
     t = 0, computed here independently of the solver's re-check. unsafe: the body (with its radius) enters
     a sphere. D_sf dips: it keeps out of the sphere but comes closer than D_sf between the constrained
-    points (allowed by design: D_sf absorbs the chord and sagitta, see crtraj/planning/steer.py)."""
+    points (allowed by design: D_sf absorbs the chord and sagitta, see crtraj/planning/steer/_solver.py)."""
     safe = [r for r in results if r.safe]
     if not safe:
         return 0, 0

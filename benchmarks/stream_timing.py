@@ -33,8 +33,8 @@ from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.admission import MotionRecord, admit
 from crtraj.hardware.limits import LimitsGate
 from crtraj.hardware.protocol import MOVE, Frame
-from crtraj.hardware.sim_device import SimDevice
-from crtraj.hardware.stream import Streamer, StreamOptions
+from crtraj.hardware.sim._device import SimDevice
+from crtraj.hardware.stream._streamer import Streamer, StreamOptions
 from crtraj.hardware.transport import TransportError
 from crtraj.io.problem import load_robot
 from crtraj.world.scene import Scene
@@ -79,7 +79,7 @@ def _start_sim(baud: int) -> tuple[subprocess.Popen, str]:
 
 def _one_rate(args, robot, acts: Actuators, dev: str, baud: int, delay: int, rate: float, sim_pid: int):
     """Stream at `rate` over the link (Return Delay Time `delay`); print one row; (host, sim) CPU ms per tick."""
-    from crtraj.hardware.dynamixel import open_dynamixel  # the optional extra: only for this mode
+    from crtraj.hardware.dynamixel._link import open_dynamixel  # the optional extra: only for this mode
 
     motion = admit(_record(robot, args.seconds), acts, rate=rate)
     with tempfile.TemporaryDirectory() as tmp:

@@ -34,7 +34,7 @@ from crtraj.core.errors import InputError
 from crtraj.core.fields import read_int
 from crtraj.core.fileio import check_output_file, check_outputs_not_inputs
 from crtraj.io.problem import load_robot
-from crtraj.planning.registry import BUILTIN
+from crtraj.planning.planners._registry import BUILTIN
 
 ROOT = Path(__file__).resolve().parent.parent
 

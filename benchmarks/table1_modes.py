@@ -1,7 +1,7 @@
 """Table I in both checking modes (issue 15): the paper's check and the strict dense check, on the paper's scenes.
 
 Planners: rrt-paper and rrtstar-paper (the paper's Algorithm 1 planning with the
-paper's check: ten collision points at 1-s step ends, `crtraj.planning.paper_check`),
+paper's check: ten collision points at 1-s step ends, `crtraj.planning.validity._paper_check`),
 and rrt, rrtstar, cspace, ompl-rrtconnect, ompl-rrtstar with the strict check.
 Every run is judged by both checks (`crtraj.bench.runner.judge`). Runs go
 index-major (scenario 0 of every count and planner, then 1, ...), each row is

@@ -2,7 +2,7 @@
 
 Issue 30: the live view updates the page at up to 30 Hz from its own thread "so the loop's timing does not change".
 This runs the paper's simulation 2 (problems/paper_dynamic.toml, one seed) alternately without the view and with
-it (a served `crtraj.viz.live_view.LiveView`, its page open in headless Chromium when there is one, so the server
+it (a served `crtraj.viz.live.LiveView`, its page open in headless Chromium when there is one, so the server
 really pushes to a browser), and prints per run and pooled: the loop's iteration time (median, p99, max), its
 deadline misses, and the view's frames (published, drawn, dropped, drawn per second of the run) with the CPU each
 part of the view spent per drawn frame: the feed thread (in the loop's process, holding the interpreter lock), the
@@ -30,11 +30,11 @@ from pathlib import Path
 
 import numpy as np
 
-from crtraj.control.horizon_options import ReplanOptions
-from crtraj.control.loop import ClosedLoop
+from crtraj.control.horizon._options import ReplanOptions
+from crtraj.control.loop._closed_loop import ClosedLoop
 from crtraj.io.problem import Problem
 from crtraj.viz.chromium import Chromium, find_chromium
-from crtraj.viz.live_view import VIEW_NICE, LiveView
+from crtraj.viz.live._view import VIEW_NICE, LiveView
 
 ROOT = Path(__file__).resolve().parent.parent
 _TICK = os.sysconf("SC_CLK_TCK")

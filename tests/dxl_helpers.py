@@ -14,12 +14,12 @@ from conftest import PROBLEMS
 from crtraj.cli import main
 from crtraj.core import clock as clock_module
 from crtraj.core.clock import VirtualClock
-from crtraj.hardware import dynamixel
-from crtraj.hardware import dynamixel_protocol as dxl
-from crtraj.hardware.dynamixel_protocol import X
-from crtraj.hardware.homing_state import HomedServo, HomingState, multi_turn
-from crtraj.hardware.sim_dynamixel import ServoChain
-from crtraj.hardware.sim_dynamixel_port import SimPort
+from crtraj.hardware.dynamixel import _link as dynamixel
+from crtraj.hardware.dynamixel import _protocol as dxl
+from crtraj.hardware.dynamixel._homing_state import HomedServo, HomingState, multi_turn
+from crtraj.hardware.dynamixel._protocol import X
+from crtraj.hardware.dynamixel._sim_chain import ServoChain
+from crtraj.hardware.dynamixel._sim_port import SimPort
 
 ROBOT = PROBLEMS / "robots" / "cdsr2.toml"
 Z_HOMING = """

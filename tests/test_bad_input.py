@@ -14,7 +14,7 @@ import pytest
 
 from crtraj import cli
 from crtraj.control.horizon import MOVED_TO_LOOP, ReplanOptions
-from crtraj.control.loop_options import LoopOptions
+from crtraj.control.loop import LoopOptions
 from crtraj.core.errors import InputError
 from crtraj.core.fields import Table, check_array
 from crtraj.core.fileio import MAX_DEPTH, read_json, read_toml
@@ -365,8 +365,7 @@ def test_non_finite_edge_times_are_refused_before_numpy_sees_them(bad, compiled,
     module an error; here it is an error whatever the configuration)."""
     import warnings
 
-    from crtraj.planning.kernels import Kernels
-    from crtraj.planning.validity import MotionValidator
+    from crtraj.planning.validity import Kernels, MotionValidator
     from crtraj.world.scene import Scene
 
     scene = Problem.load(ROOT / "problems" / "paper_dynamic.toml").options(Scene, "scene")

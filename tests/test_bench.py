@@ -23,10 +23,9 @@ from crtraj.bench.scenarios import Scenario, ScenarioGenerator, ScenarioOptions
 from crtraj.cli import main
 from crtraj.core.errors import InputError
 from crtraj.planning.context import PlanningContext
-from crtraj.planning.ompl import OMPLPlanner, import_ompl
+from crtraj.planning.ik import SafeIK
 from crtraj.planning.options import PlannerOptions
-from crtraj.planning.registry import PlannerSpec
-from crtraj.planning.safe_ik import SafeIK
+from crtraj.planning.planners import OMPLPlanner, PlannerSpec, import_ompl
 from crtraj.planning.stop import StopCondition
 from crtraj.planning.validity import MotionValidator
 from crtraj.world.obstacle import Obstacle

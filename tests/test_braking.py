@@ -14,21 +14,16 @@ import pytest
 from conftest import PROBLEMS, paper_copy
 from devlink import CoreLink
 
+from crtraj.app.devices import admit_result
 from crtraj.app.run_output import write_run_files
-from crtraj.app.stream import admit_result
 from crtraj.cli import main
-from crtraj.control.braking import servo_stop
-from crtraj.control.loop import ClosedLoop
-from crtraj.control.loop_setup import assemble
-from crtraj.control.problem_loop import ProblemRun, spec_from_problem
-from crtraj.control.run_record import RunStatus, StepStatus
-from crtraj.control.step_policy import RobotNow
+from crtraj.control.braking import servo_stop, stop_frames
+from crtraj.control.loop import ClosedLoop, ProblemRun, RobotNow, RunStatus, StepStatus, assemble, spec_from_problem
 from crtraj.core.clock import VirtualClock
 from crtraj.core.errors import AdmissionError
-from crtraj.hardware.braking import Braking, stop_frames
 from crtraj.hardware.protocol import ESTOP, MOVE, Frame
-from crtraj.hardware.sim_device import DeviceCore
-from crtraj.hardware.stream import Streamer, StreamOptions
+from crtraj.hardware.sim import DeviceCore
+from crtraj.hardware.stream import Braking, Streamer, StreamOptions
 from crtraj.hardware.transport import TransportError
 from crtraj.io.problem import Problem
 
@@ -271,12 +266,12 @@ def test_the_loops_hold_at_random_interrupt_times_is_a_verified_stop_within_the_
         Q, C = servo_stop(servo, q, q_last, h, limits)
         step, bound = policy.hold(RobotNow(t, q, q, servo.config(q), np.zeros(loop.robot.nx), q_last))
         if not len(Q):
-            assert np.array_equal(step[4], np.repeat(q[None], loop.n_sub, axis=0))  # at rest: commanded where it is
+            assert np.array_equal(step.commands, np.repeat(q[None], loop.n_sub, axis=0))  # at rest: held in place
             continue
         moving += 1
         assert np.allclose(motion.periods(q, C), Q, rtol=0, atol=1e-9)  # the plant executes the stop as planned
         n = min(loop.n_sub, len(Q))
-        assert np.array_equal(step[4][:n], C[:n]) and np.allclose(step[0], Q[n - 1], atol=1e-12)
+        assert np.array_equal(step.commands[:n], C[:n]) and np.allclose(step.q, Q[n - 1], atol=1e-12)
         X = servo.config(np.vstack([q_last, q, Q]))
         acc = np.diff(X, 2, axis=0) @ full.jacobian.T / h**2
         assert np.all(np.abs(acc) <= limits.amax * (1 + 1e-9)) and np.all(limits.amax <= full.amax)

@@ -16,9 +16,9 @@ from hypothesis import strategies as st
 
 from crtraj.core.build_cache import BuildCache
 from crtraj.model.kinematics import Model
-from crtraj.planning.compiled_driver import EDGE_BROAD
-from crtraj.planning.kernels import Kernels
-from crtraj.planning.validity import BROAD_MIN, MotionValidator
+from crtraj.planning.validity._driver import EDGE_BROAD
+from crtraj.planning.validity._kernels import Kernels
+from crtraj.planning.validity._motion import BROAD_MIN, MotionValidator
 from crtraj.world.obstacle import Obstacle
 from crtraj.world.scene import Scene
 

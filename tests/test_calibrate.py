@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from crtraj.app.calibrate import calibrate, toml_changes
-from crtraj.app.record import excitation_motion
+from crtraj.app.lab._calibrate import calibrate, toml_changes
+from crtraj.app.lab._record import excitation_motion
 from crtraj.cli import main
 from crtraj.control.loop import ClosedLoop
 from crtraj.core.errors import AdmissionError, InputError

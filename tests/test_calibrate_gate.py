@@ -19,8 +19,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from crtraj.app.calibrate import calibrate, gate
-from crtraj.app.calibration_report import calibrated_text, report_lines
+from crtraj.app.lab._calibrate import calibrate, gate
+from crtraj.app.lab._calibration_report import calibrated_text, report_lines
 from crtraj.cli import main
 from crtraj.hardware.actuators import Actuators
 from crtraj.io.calibration_data import Dataset, read_calibration
@@ -29,20 +29,21 @@ from crtraj.model.calibration import (
     GROUPS,
     CalibrateOptions,
     CalibrationModel,
+    GateOptions,
     Hardware,
     Layout,
     Observations,
+    detect_time_offset,
+    estimate_noise,
     fit,
     paper_markers,
     simulate_markers,
     split,
+    synthetic_motion,
     synthetic_truth,
     synthetic_values,
+    weighted_jacobian,
 )
-from crtraj.model.calibration.gate import GateOptions, estimate_noise
-from crtraj.model.calibration.identify import weighted_jacobian
-from crtraj.model.calibration.synthetic import synthetic_motion
-from crtraj.model.calibration.timing import detect_time_offset
 
 if sys.version_info >= (3, 11):
     import tomllib

@@ -12,10 +12,9 @@ from conftest import require_tool
 from test_planner_helpers import dense_path_check, paper_static
 
 from crtraj.core.build_cache import BuildCache
-from crtraj.planning.kernels import Kernels
-from crtraj.planning.safe_ik import SafeIK
+from crtraj.planning.ik._safe_ik import SafeIK
 from crtraj.planning.sampler import ConfigSampler
-from crtraj.planning.validity import MotionValidator
+from crtraj.planning.validity import Kernels, MotionValidator
 
 
 @pytest.fixture(scope="module")

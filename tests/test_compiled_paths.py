@@ -20,10 +20,9 @@ from test_broad_phase import motions, random_scene
 from crtraj.core.build_cache import BuildCache
 from crtraj.core.splines import BSplineCurve
 from crtraj.model.kinematics import Model
-from crtraj.planning.ik_run import IKRun
-from crtraj.planning.kernels import Kernels
-from crtraj.planning.tree import SearchTree
-from crtraj.planning.validity import MotionValidator
+from crtraj.planning.ik import IKRun
+from crtraj.planning.planners._tree import SearchTree
+from crtraj.planning.validity import Kernels, MotionValidator
 from crtraj.world.scene import Scene
 
 

@@ -12,10 +12,8 @@ import pytest
 from conftest import require_tool
 
 from crtraj.control.horizon import Replanner, ReplanOptions
-from crtraj.planning.compiled_nlp import CompiledFunction, compiled_library
-from crtraj.planning.steer import SteerOptions, SteerSolver
-from crtraj.planning.steer_backends import RescuedBackend
-from crtraj.planning.steer_compiled import CompiledBackend
+from crtraj.planning.nlp._compiled import CompiledFunction, compiled_library
+from crtraj.planning.steer import CompiledBackend, RescuedBackend, SteerOptions, SteerSolver
 from crtraj.world.obstacle import Obstacle
 from crtraj.world.scene import Scene
 

@@ -1,5 +1,5 @@
-"""The C tracking simulation of one control step (crtraj.control.compiled_tracking) against the numpy one
-(`crtraj.control.step_motion.StepMotion.track` with TrackingController.step and ServoModel), limits binding and not."""
+"""The C tracking simulation of one control step (crtraj.control.tracking._compiled) against the numpy one
+(`StepMotion.track` with TrackingController.step and ServoModel), limits binding and not."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from conftest import PROBLEMS, require_tool
 
-from crtraj.control.compiled_tracking import CompiledTracking
 from crtraj.control.loop import ClosedLoop
+from crtraj.control.tracking._compiled import CompiledTracking
 from crtraj.core.build_cache import BuildCache
 from crtraj.io.problem import Problem
 
@@ -75,8 +75,8 @@ def test_c_tracking_step_is_the_numpy_step(loop_and_c):
             want = loop.parts.motion.track(q, qc, x0, x1, t, inc)
             got = c.step(q, qc, x0, x1, t, inc, loop.n_sub, loop.options.dt, loop.loop_options.check_resolution)
             assert got is not None
-            assert len(got[2]) == len(want[2])  # the same samples per period
-            for g, w in zip(got, want, strict=True):
+            assert len(got[2]) == len(want.times)  # the same samples per period
+            for g, w in zip(got, (want.q, want.qc, want.times, want.configs, want.commands), strict=True):
                 np.testing.assert_allclose(g, w, rtol=0, atol=TOL)
     # every limit of the controller was active in some period
     assert min(flags.values()) > 0, flags

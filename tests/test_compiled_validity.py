@@ -17,12 +17,12 @@ from crtraj.core.build_cache import BuildCache
 from crtraj.core.errors import InputError
 from crtraj.io.problem import Problem, load_robot
 from crtraj.model.kinematics import Model
-from crtraj.planning.compiled_validity import ValidityKernel, kernel_key
 from crtraj.planning.context import PlanningContext
-from crtraj.planning.kernels import Kernels
 from crtraj.planning.options import PlannerOptions
-from crtraj.planning.registry import BUILTIN
-from crtraj.planning.validity import MotionValidator
+from crtraj.planning.planners import BUILTIN
+from crtraj.planning.validity._compiled import ValidityKernel, kernel_key
+from crtraj.planning.validity._kernels import Kernels
+from crtraj.planning.validity._motion import MotionValidator
 from crtraj.world import packing
 from crtraj.world.obstacle import Obstacle
 from crtraj.world.scene import Scene

@@ -1,4 +1,4 @@
-"""Cosserat-rod statics (crtraj.model.cosserat) against closed forms, and the PCC comparison tool."""
+"""Cosserat-rod statics (crtraj.model.cosserat._statics) against closed forms, and the PCC comparison tool."""
 
 from __future__ import annotations
 
@@ -13,18 +13,18 @@ import numpy as np
 import pytest
 from conftest import require_tool
 
-from crtraj.app.model_compare import compare_models, sample_configs
+from crtraj.app.lab import compare_models, sample_configs
 from crtraj.core.build_cache import BuildCache
 from crtraj.core.errors import InputError
 from crtraj.core.fields import Table
 from crtraj.io.problem import load_robot
-from crtraj.model.cosserat import NO_LOAD, CosseratRod, RodLoad
-from crtraj.model.cosserat_cables import CableDrivenRod
-from crtraj.model.cosserat_map import pcc_nodes, segment_moments, tensions_for_bending
+from crtraj.model.cosserat._cables import CableDrivenRod
+from crtraj.model.cosserat._drive import RodDrive
+from crtraj.model.cosserat._map import pcc_nodes, segment_moments, tensions_for_bending
+from crtraj.model.cosserat._statics import NO_LOAD, CosseratRod, RodLoad
 from crtraj.model.kinematics import Model
 from crtraj.model.mechanics import Mechanics
 from crtraj.model.robot import Robot, Segment
-from crtraj.model.rod_drive import RodDrive
 
 ROOT = Path(__file__).resolve().parent.parent
 CDSR2 = ROOT / "problems" / "robots" / "cdsr2.toml"

@@ -30,7 +30,7 @@ from crtraj.hardware.protocol import (
     FrameError,
     Telemetry,
 )
-from crtraj.hardware.sim_device import DeviceCore, Faults, SimDevice
+from crtraj.hardware.sim._device import DeviceCore, Faults, SimDevice
 
 pytestmark = pytest.mark.timeout(60)
 

@@ -24,8 +24,7 @@ from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from crtraj.control.horizon import ReplanOptions
-from crtraj.control.loop import ClosedLoop, RunStatus
-from crtraj.control.loop_options import LoopOptions
+from crtraj.control.loop import ClosedLoop, LoopOptions, RunStatus
 from crtraj.control.ports import Device, DeviceError, Landing
 from crtraj.core.clock import VirtualClock
 from crtraj.hardware.actuators import Actuators

@@ -15,13 +15,13 @@ from dxl_helpers import ROBOT, Z_HOMING, Clock, InProcessSim, homed_state, robot
 from crtraj.core.errors import InputError
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.admission import MotionRecord, admit
-from crtraj.hardware.dynamixel import open_dynamixel
-from crtraj.hardware.dynamixel_protocol import X
-from crtraj.hardware.homing import Homer
-from crtraj.hardware.homing_spec import read_homing
-from crtraj.hardware.homing_state import HomingState
-from crtraj.hardware.sim_dynamixel import ServoChain
-from crtraj.hardware.sim_dynamixel_robot import robot_chain
+from crtraj.hardware.dynamixel._homing import Homer
+from crtraj.hardware.dynamixel._homing_spec import read_homing
+from crtraj.hardware.dynamixel._homing_state import HomingState
+from crtraj.hardware.dynamixel._link import open_dynamixel
+from crtraj.hardware.dynamixel._protocol import X
+from crtraj.hardware.dynamixel._sim_chain import ServoChain
+from crtraj.hardware.dynamixel._sim_robot import robot_chain
 from crtraj.hardware.stream import Streamer, StreamOptions
 from crtraj.hardware.transport import TransportError
 from crtraj.io.problem import load_robot

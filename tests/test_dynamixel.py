@@ -13,16 +13,16 @@ import pytest
 from conftest import PROBLEMS, paper_copy, require_module
 from dxl_helpers import InProcessSim, homed_state, serve_in_process
 
-from crtraj.app.stream import admit_result
+from crtraj.app.devices import admit_result
 from crtraj.cli import main
 from crtraj.core.clock import VirtualClock
 from crtraj.core.errors import AdmissionError, InputError
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.admission import MotionRecord, admit
-from crtraj.hardware.dynamixel import DynamixelTransport, open_dynamixel
-from crtraj.hardware.dynamixel_protocol import HW_OVERHEATING, HW_OVERLOAD
-from crtraj.hardware.dynamixel_protocol import crc16 as dxl_crc16
-from crtraj.hardware.sim_dynamixel import ServoChain
+from crtraj.hardware.dynamixel._link import DynamixelTransport, open_dynamixel
+from crtraj.hardware.dynamixel._protocol import HW_OVERHEATING, HW_OVERLOAD
+from crtraj.hardware.dynamixel._protocol import crc16 as dxl_crc16
+from crtraj.hardware.dynamixel._sim_chain import ServoChain
 from crtraj.hardware.stream import Streamer, StreamOptions
 from crtraj.hardware.transport import TransportError
 from crtraj.world.scene import Scene
@@ -472,7 +472,7 @@ def test_a_signal_during_an_sdk_transaction_waits_for_its_end():
     from types import SimpleNamespace
 
     from crtraj.core import interrupt
-    from crtraj.hardware.dynamixel import DynamixelTransport
+    from crtraj.hardware.dynamixel._link import DynamixelTransport
 
     done = []
 

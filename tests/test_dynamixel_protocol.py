@@ -13,10 +13,10 @@ from conftest import PROBLEMS
 from crtraj.core.errors import InputError
 from crtraj.core.fields import Table
 from crtraj.core.fileio import read_toml
-from crtraj.hardware import dynamixel_protocol as dxl
 from crtraj.hardware.actuators import Actuators
-from crtraj.hardware.dynamixel_protocol import X
-from crtraj.hardware.sim_dynamixel import ServoChain
+from crtraj.hardware.dynamixel import _protocol as dxl
+from crtraj.hardware.dynamixel._protocol import X
+from crtraj.hardware.dynamixel._sim_chain import ServoChain
 
 
 # ------------------------------------------------------------------ CRC

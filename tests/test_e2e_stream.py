@@ -23,13 +23,12 @@ import pytest
 from conftest import default_sigint, paper_copy
 from devlink import CoreLink
 
-from crtraj.app.approach import plan_approach
-from crtraj.app.stream import admit_result
+from crtraj.app.devices import admit_result, plan_approach
 from crtraj.cli import main
 from crtraj.core.clock import VirtualClock
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.protocol import ESTOP, MOVE, Frame
-from crtraj.hardware.sim_device import DeviceCore
+from crtraj.hardware.sim import DeviceCore
 from crtraj.hardware.stream import Streamer, StreamOptions, StreamReport
 from crtraj.io.results import read_result
 

@@ -17,13 +17,10 @@ import serial
 from conftest import require_module
 from dxl_helpers import Z_HOMING, Clock, in_process, robot_text
 
-from crtraj.app.stream import admit_result
+from crtraj.app.devices import admit_result
 from crtraj.cli import main
 from crtraj.hardware.actuators import Actuators
-from crtraj.hardware.homing_state import HomingState, state_path
-from crtraj.hardware.sim_dynamixel import ServoChain
-from crtraj.hardware.sim_dynamixel_port import SimPort
-from crtraj.hardware.sim_dynamixel_robot import home_in_place, robot_chain
+from crtraj.hardware.dynamixel import HomingState, ServoChain, SimPort, home_in_place, robot_chain, state_path
 from crtraj.io.problem import load_robot
 
 sim1_plan = dxl_helpers.sim1_plan  # the fixture, shared
@@ -117,7 +114,7 @@ def test_closing_a_pseudo_terminal_raises_what_the_simulated_unplug_raises():
 
 
 def _chain():
-    from crtraj.hardware.sim_dynamixel import ServoChain
+    from crtraj.hardware.dynamixel import ServoChain
 
     return ServoChain([1], [1020])
 
@@ -171,7 +168,7 @@ def test_each_serial_error_becomes_the_links_error_and_releases_the_sdks_busy_fl
     refuses at once without touching the port, and close does not raise."""
     from dxl_helpers import homed_state
 
-    from crtraj.hardware import dynamixel
+    from crtraj.hardware.dynamixel import _link as dynamixel
     from crtraj.hardware.transport import LinkLostError
     from crtraj.io.problem import load_robot as load
 
@@ -252,7 +249,7 @@ def _killed_stream(sim1_plan, homed, at: float):
     acts = motion.actuators
     clock = KillingClock(reached, reached + at)
     state = HomingState.load(state_path(robot_file))
-    from crtraj.hardware import dynamixel
+    from crtraj.hardware.dynamixel import _link as dynamixel
 
     port = MortalPort(chain, clock, name="/dev/sim")
     dynamixel.port_factory = lambda sdk, name: port
@@ -270,9 +267,8 @@ def test_a_killed_host_is_stopped_by_the_bus_watchdog_within_the_acceleration_li
     servo; an independent dense check of the simulated shafts (1 ms finite differences) after the kill stays
     within each actuator's acceleration limit (plus one unit of the profile register, which rounds up), every
     servo comes to rest, and the next stream refuses the stage until it is homed again."""
-    from crtraj.hardware import dynamixel
-    from crtraj.hardware.dynamixel import open_dynamixel
-    from crtraj.hardware.dynamixel_protocol import X
+    from crtraj.hardware.dynamixel import X, open_dynamixel
+    from crtraj.hardware.dynamixel import _link as dynamixel
 
     monkeypatch.setattr(dynamixel, "port_factory", dynamixel.port_factory)
     duration = admit_result(str(sim1_plan), str(homed_at_start[0]), rate=100.0).stamps[-1]
@@ -307,9 +303,7 @@ def test_a_host_killed_while_homing_leaves_the_stage_stopped_by_its_watchdog(tmp
     The Bus Watchdog stops it: after the kill the shaft travels at most the closed form v (T_wd + tau) +
     v^2 / (2 a) (homing speed v, profile acceleration a, watchdog T_wd, motor lag tau), its dense 1 ms
     accelerations stay within a, it comes to rest, and the register reads -1."""
-    from crtraj.hardware.dynamixel_protocol import X
-    from crtraj.hardware.homing_spec import read_homing
-    from crtraj.hardware.sim_dynamixel_robot import stops
+    from crtraj.hardware.dynamixel import X, read_homing, stops
 
     robot_file = tmp_path / "robot.toml"
     robot_file.write_text(robot_text(Z_HOMING))
@@ -364,8 +358,7 @@ def test_the_bus_watchdog_is_read_from_the_robot_file_within_its_range(tmp_path,
     """``[robot.stop] bus_watchdog`` (s): default 0.1; outside 0.02..2.54 one line naming the key; the link writes
     it in 20 ms units (0.5 s -> 25)."""
     from crtraj.core.errors import InputError
-    from crtraj.hardware.dynamixel_watchdog import watchdog_units
-    from crtraj.hardware.homing_spec import read_stop
+    from crtraj.hardware.dynamixel import read_stop, watchdog_units
 
     (path := tmp_path / "robot.toml").write_text(robot_text(Z_HOMING) + f"\n[robot.stop]\n{text}\n")
     if isinstance(expected, float):
@@ -380,7 +373,7 @@ def test_the_bus_watchdog_is_read_from_the_robot_file_within_its_range(tmp_path,
 # ------------------------------------------------------------ a lost turn count behind the homed marker's back
 def _connect(chain, reached, robot_file):
     """Open the link to `chain` with the robot file's homing state file (the stream's check), at `reached`."""
-    from crtraj.hardware import dynamixel
+    from crtraj.hardware.dynamixel import _link as dynamixel
 
     acts = Actuators.from_robot(load_robot(robot_file))
     clock = Clock(reached)
@@ -395,8 +388,7 @@ def _move_stage(chain, now: float, robot_file) -> float:
     """Through the link (the stream's check passes), move the stage 2.5 turns within its limits and let it go:
     its turn count is then not the one of its power-up, and the state file records where it was let go. The
     device time reached."""
-    from crtraj.hardware.dynamixel_protocol import X
-    from crtraj.hardware.homing_state import windows
+    from crtraj.hardware.dynamixel import X, windows
 
     link = _connect(chain, now, robot_file)
     lo, hi = windows(Actuators.from_robot(load_robot(robot_file)))[6]
@@ -415,7 +407,7 @@ def _move_stage(chain, now: float, robot_file) -> float:
 
 
 def _clear(chain, dxl_id: int, now: float) -> None:
-    from crtraj.hardware import dynamixel_protocol as dxl
+    from crtraj.hardware.dynamixel import _protocol as dxl
 
     (reply,) = chain.handle(dxl.Packet(dxl_id, dxl.CLEAR, dxl.CLEAR_MULTI_TURN), now)
     assert dxl.PacketReader().feed(reply)[0].params[0] == 0  # done (torque off)
@@ -437,8 +429,8 @@ def test_a_lost_turn_count_behind_a_lit_marker_is_refused(homed_at_start, tmp_pa
     from dxl_helpers import write
 
     from crtraj.core.errors import InputError
-    from crtraj.hardware import dynamixel
-    from crtraj.hardware.dynamixel_protocol import X
+    from crtraj.hardware.dynamixel import X
+    from crtraj.hardware.dynamixel import _link as dynamixel
 
     monkeypatch.setattr(dynamixel, "port_factory", dynamixel.port_factory)
     robot_file, chain0, reached = homed_at_start
@@ -469,8 +461,8 @@ def test_torque_on_in_mode_3_loses_the_turn_count_and_a_clear_needs_the_torque_o
     Offset (the LED untouched); the Clear instruction is refused (result fail) while the torque is on."""
     from dxl_helpers import write
 
-    from crtraj.hardware import dynamixel_protocol as dxl
-    from crtraj.hardware.dynamixel_protocol import X
+    from crtraj.hardware.dynamixel import X
+    from crtraj.hardware.dynamixel import _protocol as dxl
 
     chain = ServoChain([1], [1020], initial=[-8 * 4096 + 100])
     write(chain, 1, X.LED, 1, 1)
@@ -499,8 +491,8 @@ def test_torque_on_by_goal_update_is_refused_on_the_servo_and_in_the_robot_file(
     from dxl_helpers import homed_state, write
 
     from crtraj.core.errors import InputError
-    from crtraj.hardware import dynamixel
-    from crtraj.hardware.dynamixel_protocol import X
+    from crtraj.hardware.dynamixel import X
+    from crtraj.hardware.dynamixel import _link as dynamixel
     from crtraj.hardware.transport import TransportError
 
     monkeypatch.setattr(dynamixel, "port_factory", dynamixel.port_factory)
@@ -539,8 +531,8 @@ def test_home_check_reports_each_actuators_position_without_writing(homed_at_sta
     spools still are (unwrapped), exit 1 with one stderr line; no WRITE, SYNC WRITE or CLEAR reaches the bus."""
     from dxl_helpers import write
 
-    from crtraj.hardware import dynamixel_protocol as dxl
-    from crtraj.hardware.dynamixel_protocol import X
+    from crtraj.hardware.dynamixel import X
+    from crtraj.hardware.dynamixel import _protocol as dxl
 
     robot_file, chain0, reached = homed_at_start
     robot_file, chain = _fresh(robot_file, tmp_path), copy.deepcopy(chain0)
@@ -590,7 +582,7 @@ def test_a_host_frozen_longer_than_the_watchdog_mid_stream_stops_naming_the_serv
 ):
     """A host frozen 150 ms mid-stream (nothing sent): the servos' watchdog (100 ms) stopped them, the next sync
     read sees it and the stream stops, naming the first servo; frozen 60 ms (within the watchdog) it completes."""
-    from crtraj.hardware import dynamixel
+    from crtraj.hardware.dynamixel import _link as dynamixel
     from crtraj.hardware.dynamixel import open_dynamixel
     from crtraj.hardware.stream import Streamer, StreamOptions
 

@@ -20,21 +20,20 @@ import pytest
 from conftest import require_module
 from dxl_helpers import ROBOT, Z_HOMING, Clock, InProcessSim, in_process, robot_text, serve_in_process
 
-from crtraj.app.approach import plan_approach
-from crtraj.app.stream import admit_result
+from crtraj.app.devices import admit_result, plan_approach
 from crtraj.cli import main
 from crtraj.core.errors import InputError
-from crtraj.hardware import dynamixel_protocol as dxl
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.admission import MotionRecord, admit
-from crtraj.hardware.dynamixel import open_dynamixel
-from crtraj.hardware.dynamixel_protocol import X
-from crtraj.hardware.homing import Homer, HomingError
-from crtraj.hardware.homing_spec import read_homing
-from crtraj.hardware.homing_state import HomedServo, HomingState, PowerUpCheck, state_path, unwrap
-from crtraj.hardware.sim_dynamixel import TICKS_PER_REV, ServoChain
-from crtraj.hardware.sim_dynamixel_pty import SimDynamixel
-from crtraj.hardware.sim_dynamixel_robot import ChainIO, stops
+from crtraj.hardware.dynamixel import _protocol as dxl
+from crtraj.hardware.dynamixel._homing import Homer, HomingError
+from crtraj.hardware.dynamixel._homing_spec import read_homing
+from crtraj.hardware.dynamixel._homing_state import HomedServo, HomingState, PowerUpCheck, state_path, unwrap
+from crtraj.hardware.dynamixel._link import open_dynamixel
+from crtraj.hardware.dynamixel._protocol import X
+from crtraj.hardware.dynamixel._sim_chain import TICKS_PER_REV, ServoChain
+from crtraj.hardware.dynamixel._sim_pty import SimDynamixel
+from crtraj.hardware.dynamixel._sim_robot import ChainIO, stops
 from crtraj.hardware.stream import Streamer, StreamOptions
 from crtraj.hardware.transport import TransportError
 from crtraj.io.problem import load_robot

@@ -23,11 +23,11 @@ from dxl_helpers import Z_HOMING, Clock, in_process, robot_text
 from test_planner_helpers import dense_path_check
 
 from crtraj.cli import main
-from crtraj.hardware import dynamixel_protocol as dxl
 from crtraj.hardware.actuators import Actuators
-from crtraj.hardware.dynamixel_protocol import X
-from crtraj.hardware.homing_state import state_path
-from crtraj.hardware.sim_dynamixel import ServoChain
+from crtraj.hardware.dynamixel import _protocol as dxl
+from crtraj.hardware.dynamixel._homing_state import state_path
+from crtraj.hardware.dynamixel._protocol import X
+from crtraj.hardware.dynamixel._sim_chain import ServoChain
 from crtraj.io.problem import Problem, load_robot
 from crtraj.model.kinematics import Model
 from crtraj.world.scene import Scene
@@ -63,7 +63,7 @@ class Recorder:
 
 def _power_cycled_chain(robot, acts, x, clock: Clock) -> ServoChain:
     """Servos at configuration x with the stage's lower stop at its homing reference (-200 mm), power-cycled."""
-    from crtraj.hardware.sim_dynamixel_robot import stops
+    from crtraj.hardware.dynamixel._sim_robot import stops
 
     chain = ServoChain(
         acts.bus.ids, acts.bus.models, initial=acts.bus.ticks(acts.command(robot.cables(x))), stops=stops(robot, acts)
@@ -129,6 +129,7 @@ def test_replan_stream_dynamixel_refuses_a_power_cycled_stage_then_runs_after_ho
     assert main([*base, "--out", str(tmp_path / "r1")]) == 2
     line = _one_error_line(capsys)
     assert line.startswith("crtraj: error: servo id 7 (z): not homed since its last power-up") and home in line
+    assert (tmp_path / "r1" / "run.json").is_file()  # the refused stream keeps the run (only a stop does not)
     _untouched(chain, acts, clock.now(), before, goals)
     saved = _home(dev, robot_file, capsys)
     z = saved["servos"][0]

@@ -1,4 +1,4 @@
-"""The horizon replanner's backends (crtraj.control.horizon_backends): chosen once, each an `NLPBackend`, and each
+"""The horizon replanner's backends (crtraj.control.horizon._backends): chosen once, each an `NLPBackend`, and each
 one's look at its solution checked against independent computations."""
 
 from __future__ import annotations
@@ -6,8 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from crtraj.control.horizon import Replanner, ReplanOptions
-from crtraj.control.horizon_backends import (
+from crtraj.control.horizon._backends import (
     CompiledBackend,
     HorizonQuery,
     InterpretedBackend,
@@ -15,7 +14,8 @@ from crtraj.control.horizon_backends import (
     RowCheck,
     ScreenedBackend,
 )
-from crtraj.planning.nlp_backend import NLPBackend
+from crtraj.control.horizon._replanner import Replanner, ReplanOptions
+from crtraj.planning.nlp import NLPBackend
 from crtraj.world import packing
 from crtraj.world.obstacle import Obstacle
 from crtraj.world.scene import Scene

@@ -1,4 +1,4 @@
-"""The horizon's broad phase (crtraj.control.horizon_broad): its gap is a lower bound of every obstacle row of
+"""The horizon's broad phase (crtraj.control.horizon._broad): its gap is a lower bound of every obstacle row of
 every plan within reach, so it never leaves out an obstacle the narrow phase (the NLP's rows) would find; and a
 QP with fewer slots than the scene's obstacles plans what the full one plans."""
 
@@ -11,10 +11,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from crtraj.control.horizon import Replanner, ReplanOptions
-from crtraj.control.horizon_broad import ROW_TOLERANCE, BroadPhase, Selection, step_reach
-from crtraj.control.loop import ClosedLoop, RunStatus
-from crtraj.control.loop_options import LoopOptions
+from crtraj.control.horizon._broad import ROW_TOLERANCE, BroadPhase, Selection, step_reach
+from crtraj.control.horizon._replanner import Replanner, ReplanOptions
+from crtraj.control.loop import ClosedLoop, LoopOptions, RunStatus
 from crtraj.planning.metric import BodyMetric
 from crtraj.world import packing
 from crtraj.world.obstacle import Obstacle

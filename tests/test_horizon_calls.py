@@ -9,9 +9,9 @@ import dataclasses
 import numpy as np
 import pytest
 
-from crtraj.control.horizon import Replanner, ReplanOptions
-from crtraj.control.horizon_backends import HorizonCall, HorizonQuery, RowCheck, ScreenStart, replace
-from crtraj.control.horizon_options import HorizonStatus, horizon_status
+from crtraj.control.horizon._backends import HorizonCall, HorizonQuery, RowCheck, ScreenStart, replace
+from crtraj.control.horizon._options import HorizonStatus, horizon_status
+from crtraj.control.horizon._replanner import Replanner, ReplanOptions
 
 N, NX = 3, 5
 

@@ -11,11 +11,9 @@ import numpy as np
 import pytest
 from conftest import require_tool
 
-from crtraj.control.horizon import ReplanOptions
-from crtraj.control.horizon_backends import CompiledBackend, HorizonQuery
-from crtraj.control.loop import ClosedLoop
-from crtraj.control.loop_options import LoopOptions
-from crtraj.control.run_record import ReplanRun
+from crtraj.control.horizon._backends import CompiledBackend, HorizonQuery
+from crtraj.control.horizon._replanner import ReplanOptions
+from crtraj.control.loop import ClosedLoop, LoopOptions, ReplanRun
 from crtraj.io.problem import Problem
 
 ROOT = Path(__file__).resolve().parent.parent

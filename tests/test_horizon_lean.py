@@ -1,5 +1,5 @@
 """The replanning step of issue 29: the parameters written in place into one preallocated buffer around the fused
-call (`crtraj.control.horizon_buffers`), the verification's arrays written in place (`SceneChecks.verify`), and one
+call (`crtraj.control.horizon._buffers`), the verification's arrays written in place (`SceneChecks.verify`), and one
 SQP iteration per call (problems/paper_dynamic.toml). On recorded inputs the new step agrees with the previous one
 (the same decisions, the same numbers to a stated tolerance), and a simulation-2 loop with it is safe and reaches
 the goal. No timing here (that is benchmarks/replan.py)."""
@@ -14,11 +14,9 @@ import pytest
 from conftest import require_tool
 from test_horizon_fused import TOL, _close  # the fused call's tolerance and comparison
 
-from crtraj.control.horizon import Replanner, ReplanOptions
-from crtraj.control.horizon_buffers import ParameterBuffer
-from crtraj.control.loop import ClosedLoop
-from crtraj.control.loop_options import LoopOptions
-from crtraj.control.scene_checks import SceneChecks
+from crtraj.control.horizon._buffers import ParameterBuffer
+from crtraj.control.horizon._replanner import Replanner, ReplanOptions
+from crtraj.control.loop import ClosedLoop, LoopOptions, SceneChecks
 from crtraj.core.errors import InputError
 from crtraj.io.problem import Problem
 from crtraj.world import packing

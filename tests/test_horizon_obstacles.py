@@ -1,4 +1,4 @@
-"""The horizon's obstacle spheres tabulated before the run (`crtraj.control.horizon_obstacles`, issue 29): every
+"""The horizon's obstacle spheres tabulated before the run (`crtraj.control.horizon._obstacles`, issue 29): every
 looked-up row is the per-step computation's bit for bit (scenes that fit the QP's slots and scenes the broad
 phase packs), a time or scene the table does not hold is computed as before, the table cannot be written, and a
 loop over the table takes the same decisions as one without it."""
@@ -11,10 +11,9 @@ import numpy as np
 import pytest
 from test_horizon_broad import OPTS, XG, XS, _far_scene, _scene_near
 
-from crtraj.control.horizon import Replanner
-from crtraj.control.horizon_obstacles import ObstacleTable
-from crtraj.control.loop import ClosedLoop, RunStatus
-from crtraj.control.loop_options import LoopOptions
+from crtraj.control.horizon._obstacles import ObstacleTable
+from crtraj.control.horizon._replanner import Replanner
+from crtraj.control.loop import ClosedLoop, LoopOptions, RunStatus
 
 DT = OPTS.dt
 TIMES = np.array([0.0] + [round((k + 1) * DT, 12) for k in range(300)])  # the loop's step times

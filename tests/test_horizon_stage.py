@@ -12,11 +12,10 @@ import numpy as np
 import pytest
 from conftest import require_tool
 
-from crtraj.control.horizon import ReplanOptions
-from crtraj.control.horizon_backends import CompiledBackend, HorizonQuery, InterpretedBackend
-from crtraj.control.horizon_stage import StageSolver
-from crtraj.control.loop import ClosedLoop
-from crtraj.control.loop_options import LoopOptions
+from crtraj.control.horizon._backends import CompiledBackend, HorizonQuery, InterpretedBackend
+from crtraj.control.horizon._replanner import ReplanOptions
+from crtraj.control.horizon._stage import StageSolver
+from crtraj.control.loop import ClosedLoop, LoopOptions
 from crtraj.io.problem import Problem
 
 ROOT = Path(__file__).resolve().parent.parent

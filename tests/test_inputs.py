@@ -16,8 +16,7 @@ from crtraj.core.fields import MAX_STAMP, read_int, read_number
 from crtraj.core.fileio import MARKER, is_marked
 from crtraj.core.logs import configure_logging
 from crtraj.hardware.dynamixel import parse_url
-from crtraj.hardware.ros.node import domain_id
-from crtraj.hardware.ros.options import RosOptions
+from crtraj.hardware.ros import RosOptions, domain_id
 
 ROOT = Path(__file__).resolve().parent.parent
 ROBOT = ROOT / "problems" / "robots" / "cdsr2.toml"

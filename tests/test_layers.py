@@ -1,18 +1,24 @@
-"""The package layout is the data flow: no import from a lower layer to a higher one, no hidden imports.
+"""The package layout is the design, checked over the whole tree in a few tests.
 
-Layers, low to high (docs/architecture.md): core < model < world < planning < control < hardware < io
-< {viz, bench} < app < cli. A module may import its own package and any lower layer, never a higher one
-nor a sibling of the same rank (viz and bench stay independent). Imports sit at module level, except for
-optional extras whose absence must not break the rest (OMPL, Dask, ROS, Dynamixel, matplotlib in headless
-paths): the AST of every module is read, so an import hidden in a function is seen too.
+- Layers, low to high (docs/architecture.md): core < model < world < planning < control < hardware < io
+  < {viz, bench} < app < cli. A module may import its own package and any lower layer, never a higher one
+  nor a sibling of the same rank (viz and bench stay independent).
+- Imports sit at module level, except for optional extras whose absence must not break the rest (OMPL, Dask,
+  ROS, Dynamixel, matplotlib in headless paths): the AST of every module is read, so an import hidden in a
+  function is seen too.
+- Rooms: a concept with several modules is a subpackage; no folder holds more than MAX_FOLDER_MODULES modules;
+  every package's ``__init__`` has ``__all__``.
+- A private module (``_x.py``) is imported only from inside its own package: never by another package of
+  crtraj, nor by the examples or the docs, which use the package's public names. A subpackage's own tests may
+  import its private modules: `TEST_OWNERS` names them by test file prefix.
+- Sizes: functions, classes and modules stay readable (MAX_*_LINES).
 """
 
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
-
-import pytest
 
 PKG = Path(__file__).resolve().parent.parent / "crtraj"
 
@@ -72,6 +78,10 @@ def _layer_of_module(name: str) -> str | None:
     return "cli" if parts[1] == "cli" else parts[1]
 
 
+def _tree(path: Path) -> ast.Module:
+    return ast.parse(path.read_text(encoding="utf-8"))
+
+
 def _imported(node: ast.AST) -> list[str]:
     if isinstance(node, ast.Import):
         return [a.name for a in node.names]
@@ -86,12 +96,10 @@ def test_every_package_has_a_layer():
     assert not [p for p in _modules() if len(p.relative_to(PKG).parts) == 1 and p.stem not in ("__init__", "cli")]
 
 
-@pytest.mark.parametrize("path", _modules(), ids=lambda p: str(p.relative_to(PKG)))
-def test_no_upward_or_sideways_import(path):
+def _upward_imports(path: Path) -> list[str]:
     own = _layer_of_file(path)
-    tree = ast.parse(path.read_text(encoding="utf-8"))
     bad = []
-    for node in ast.walk(tree):
+    for node in ast.walk(_tree(path)):
         for name in _imported(node):
             layer = _layer_of_module(name)
             if layer is None or layer == own or layer == "":
@@ -100,30 +108,46 @@ def test_no_upward_or_sideways_import(path):
                 bad.append(f"line {node.lineno}: {name} ({layer}) from {own or 'crtraj'}")
         if isinstance(node, ast.ImportFrom) and node.level:
             bad.append(f"line {node.lineno}: relative import")
-    assert not bad, "\n".join(bad)
+    return bad
 
 
-@pytest.mark.parametrize("path", _modules(), ids=lambda p: str(p.relative_to(PKG)))
-def test_no_hidden_imports(path):
-    tree = ast.parse(path.read_text(encoding="utf-8"))
+def _hidden_imports(path: Path) -> list[str]:
     hidden = []
-    for fn in ast.walk(tree):
+    for fn in ast.walk(_tree(path)):
         if not isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
             continue
         for node in ast.walk(fn):
             for name in _imported(node):
                 if name.split(".")[0] not in OPTIONAL:
                     hidden.append(f"line {node.lineno}: {name} in {fn.name}()")
-    assert not hidden, "imports inside functions (move them to module level):\n" + "\n".join(sorted(set(hidden)))
+    return sorted(set(hidden))
+
+
+def _over_tree(check) -> dict[str, list[str]]:
+    """`check` over every module of crtraj: {module path: what it found}, the modules it found nothing in left out."""
+    found = {str(p.relative_to(PKG)): check(p) for p in _modules()}
+    return {k: v for k, v in found.items() if v}
+
+
+def test_no_upward_or_sideways_import():
+    bad = _over_tree(_upward_imports)
+    assert not bad, "\n".join(f"{k}: {v}" for k, v in bad.items())
+
+
+def test_no_hidden_imports():
+    bad = _over_tree(_hidden_imports)
+    assert not bad, "imports inside functions (move them to module level):\n" + "\n".join(
+        f"{k}: {v}" for k, v in bad.items()
+    )
 
 
 def test_the_checker_sees_an_upward_import(tmp_path):
     # The rule itself must be able to fail: a model module importing the planning layer is caught.
-    src = "import numpy\n\ndef f():\n    from crtraj.planning.rrt import RRT\n    return RRT\n"
+    src = "import numpy\n\ndef f():\n    from crtraj.planning.planners._rrt import RRT\n    return RRT\n"
     tree = ast.parse(src)
     names = [n for node in ast.walk(tree) for n in _imported(node)]
-    assert "crtraj.planning.rrt" in names
-    assert RANK[_layer_of_module("crtraj.planning.rrt")] > RANK["model"]
+    assert "crtraj.planning.planners._rrt" in names
+    assert RANK[_layer_of_module("crtraj.planning.planners._rrt")] > RANK["model"]
 
 
 # Sizes that keep a module readable (DESIGN.md): a function over this many lines of code (docstring excluded),
@@ -162,19 +186,24 @@ def _long_classes_in(src: str) -> list[str]:
     ]
 
 
-@pytest.mark.parametrize("path", _modules(), ids=lambda p: str(p.relative_to(PKG)))
-def test_long_functions_say_why(path):
-    long = _long_functions_in(path.read_text(encoding="utf-8"))
-    assert not long, f"functions over {MAX_FUNCTION_LINES} lines without a '# long: reason' comment: {long}"
-
-
-@pytest.mark.parametrize("path", _modules(), ids=lambda p: str(p.relative_to(PKG)))
-def test_classes_and_modules_stay_small(path):
+def _too_big(path: Path) -> list[str]:
     src = path.read_text(encoding="utf-8")
+    out = []
     n = len(src.splitlines())
-    assert n <= MAX_MODULE_LINES, f"{n} lines: a module is at most {MAX_MODULE_LINES} (split it by job)"
+    if n > MAX_MODULE_LINES:
+        out.append(f"{n} lines: a module is at most {MAX_MODULE_LINES} (split it along a seam)")
+    long = _long_functions_in(src)
+    if long:
+        out.append(f"functions over {MAX_FUNCTION_LINES} lines without a '# long: reason' comment: {long}")
     big = _long_classes_in(src)
-    assert not big, f"classes over {MAX_CLASS_LINES} lines (one job per class): {big}"
+    if big:
+        out.append(f"classes over {MAX_CLASS_LINES} lines (one job per class): {big}")
+    return out
+
+
+def test_functions_classes_and_modules_stay_small():
+    bad = _over_tree(_too_big)
+    assert not bad, "\n".join(f"{k}: {v}" for k, v in bad.items())
 
 
 def test_the_size_checks_can_fail():
@@ -184,3 +213,166 @@ def test_the_size_checks_can_fail():
     assert _long_functions_in(f"# long: a table of cases\ndef _f():\n{body}") == []
     methods = "".join(f"    def m{i}(self):\n        return {i}\n" for i in range(200))
     assert _long_classes_in(f"class C:\n{methods}") == ["C (line 1, 401 lines)"]
+
+
+# ------------------------------------------------------------------------------------------------- rooms
+ROOT = PKG.parent
+MAX_FOLDER_MODULES = 15
+# The tests of a subpackage may import its private modules; a test file names its subpackage by its file name's
+# prefix (test_horizon_* tests crtraj.control.horizon). A test file not listed here reaches a subpackage only
+# through its public names, as a user does.
+TEST_OWNERS = {
+    "test_horizon_": ("crtraj.control.horizon",),
+    "test_replan": ("crtraj.control.loop",),
+    "test_loop_": ("crtraj.control.loop",),
+    "test_reference_": ("crtraj.control.loop",),
+    "test_tracking": ("crtraj.control.tracking",),
+    "test_compiled_tracking": ("crtraj.control.tracking",),
+    "test_startup": ("crtraj.control.tracking",),  # python-control loads only when the controller is built
+    "test_steer": ("crtraj.planning.steer",),
+    "test_compiled_solvers": ("crtraj.planning.nlp",),
+    "test_planner": ("crtraj.planning.planners",),
+    "test_compiled_paths": ("crtraj.planning.planners",),
+    "test_ompl_log": ("crtraj.planning.planners",),
+    "test_compiled_validity": ("crtraj.planning.validity",),
+    "test_vectorised_checks": ("crtraj.planning.validity",),
+    "test_broad_phase": ("crtraj.planning.validity",),
+    "test_paper_mode": ("crtraj.planning.validity",),
+    "test_compiled_ik": ("crtraj.planning.ik",),
+    "test_stream": ("crtraj.hardware.stream",),
+    "test_dynamixel": ("crtraj.hardware.dynamixel",),
+    "test_homing": ("crtraj.hardware.dynamixel",),
+    "test_drive_mode": ("crtraj.hardware.dynamixel",),
+    "test_sim_dynamixel": ("crtraj.hardware.dynamixel",),
+    "test_faults": ("crtraj.hardware.dynamixel",),  # the link's faults, injected into its SDK port
+    "dxl_helpers": ("crtraj.hardware.dynamixel",),
+    "test_device": ("crtraj.hardware.sim",),
+    "devlink": ("crtraj.hardware.sim",),
+    "test_ros_": ("crtraj.hardware.ros",),
+    "test_cosserat": ("crtraj.model.cosserat",),
+    "test_rod_": ("crtraj.model.cosserat",),
+    "test_calibrate": ("crtraj.model.calibration", "crtraj.app.lab"),
+    "test_verify_cosserat": ("crtraj.app.lab",),
+    "test_viz_live": ("crtraj.viz.live",),
+    "test_geometry": ("crtraj.world.geometry",),
+}
+
+
+def _packages() -> list[Path]:
+    return sorted(p.parent for p in PKG.rglob("__init__.py") if "__pycache__" not in p.parts)
+
+
+def _dotted(path: Path) -> str:
+    rel = path.relative_to(ROOT).with_suffix("")
+    return ".".join(rel.parts[:-1] if rel.name == "__init__" else rel.parts)
+
+
+def _private_home(module: str) -> str | None:
+    """The package whose private module `module` is (crtraj.a.b._x -> crtraj.a.b), or None for a public one."""
+    parts = module.split(".")
+    for i, part in enumerate(parts[1:], start=1):
+        if part.startswith("_") and not part.startswith("__"):
+            return ".".join(parts[:i])
+    return None
+
+
+def _is_module(package: str, name: str) -> bool:
+    """Whether ``from package import name`` imports a module of crtraj (not a name defined in one)."""
+    folder = ROOT.joinpath(*package.split("."))
+    return package.split(".")[0] == "crtraj" and ((folder / f"{name}.py").is_file() or (folder / name).is_dir())
+
+
+def _private_reaches(code: str, allowed: set[str]) -> list[str]:
+    """Imports in `code` of a private module of a crtraj package not in `allowed` (nor inside one of them):
+    ``import crtraj.a._x``, ``from crtraj.a._x import N`` and ``from crtraj.a import _x`` alike."""
+    out = []
+    for node in ast.walk(ast.parse(code)):
+        targets = []
+        if isinstance(node, ast.Import):
+            targets = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            targets = [node.module] + [f"{node.module}.{a.name}" for a in node.names if _is_module(node.module, a.name)]
+        for name in targets:
+            home = _private_home(name) if name.split(".")[0] == "crtraj" else None
+            if home and not any(home == a or home.startswith(a + ".") for a in allowed):
+                out.append(f"line {node.lineno}: {name}")
+    return sorted(set(out))
+
+
+def _allowed_for(path: Path) -> set[str]:
+    """The packages whose private modules `path` may import: its own package (a module of crtraj), the
+    subpackages its name owns (a test), none (an example, a doc)."""
+    rel = path.relative_to(ROOT)
+    if rel.parts[0] == "crtraj":
+        return {_dotted(path.parent / "__init__.py")}
+    if rel.parts[0] == "tests":
+        return {pkg for prefix, pkgs in TEST_OWNERS.items() if path.stem.startswith(prefix) for pkg in pkgs}
+    return set()
+
+
+def _python_of(path: Path) -> list[str]:
+    text = path.read_text(encoding="utf-8")
+    return [text] if path.suffix == ".py" else re.findall(r"```python\n(.*?)```", text, flags=re.S)
+
+
+def test_no_folder_holds_more_than_15_modules():
+    """A concept of several modules is a subpackage, not a file-name prefix in a crowded folder."""
+    counts = {
+        str(pkg.relative_to(ROOT)): len([p for p in pkg.glob("*.py") if p.stem not in ("__init__", "__main__")])
+        for pkg in _packages()
+    }
+    crowded = {k: n for k, n in counts.items() if n > MAX_FOLDER_MODULES}
+    assert not crowded, f"folders over {MAX_FOLDER_MODULES} modules (make rooms): {crowded}"
+
+
+def test_every_package_lists_its_public_names():
+    """Every package's __init__ assigns __all__ (a list, or the first of lazy_exports' three values)."""
+
+    def has_all(init: Path) -> bool:
+        for node in _tree(init).body:
+            targets = node.targets if isinstance(node, ast.Assign) else []
+            for target in targets:
+                names = target.elts if isinstance(target, ast.Tuple) else [target]
+                if any(isinstance(n, ast.Name) and n.id == "__all__" for n in names):
+                    return True
+        return False
+
+    missing = [str(pkg.relative_to(ROOT)) for pkg in _packages() if not has_all(pkg / "__init__.py")]
+    assert not missing, f"packages without __all__: {missing}"
+
+
+def test_no_private_module_is_reached_from_outside_its_package():
+    """The library, the tests (but a subpackage's own, TEST_OWNERS), the examples and the docs' Python import a
+    private module (_x.py) only from inside its package."""
+    sources = [
+        *_modules(),
+        *sorted((ROOT / "tests").glob("*.py")),
+        *sorted((ROOT / "examples").glob("*.py")),
+        *sorted((ROOT / "docs").rglob("*.py")),
+        *sorted((ROOT / "docs").rglob("*.md")),
+        ROOT / "README.md",
+    ]
+    bad = {}
+    for path in sources:
+        found = [r for code in _python_of(path) for r in _private_reaches(code, _allowed_for(path))]
+        if found:
+            bad[str(path.relative_to(ROOT))] = found
+    assert not bad, "private modules imported from outside their package:\n" + "\n".join(
+        f"{k}: {v}" for k, v in bad.items()
+    )
+
+
+def test_the_room_checks_can_fail():
+    """A reach into another package's private module is caught in each spelling; its own package and an owner
+    may; a public import is fine."""
+    code = (
+        "import crtraj.a._x\nfrom crtraj.b._y import N\nfrom crtraj.control.horizon import _build\n"
+        "from crtraj.d import Public\n"
+    )
+    reaches = ["line 1: crtraj.a._x", "line 2: crtraj.b._y", "line 3: crtraj.control.horizon._build"]
+    assert _private_reaches(code, set()) == reaches
+    assert _private_reaches(code, {"crtraj.a", "crtraj.b", "crtraj.control.horizon"}) == []
+    assert _private_home("crtraj.control.horizon._build") == "crtraj.control.horizon"
+    assert _private_home("crtraj.control.horizon") is None
+    owned = _allowed_for(ROOT / "tests" / "test_horizon_stage.py")
+    assert owned == {"crtraj.control.horizon"} and _allowed_for(ROOT / "examples" / "x.py") == set()

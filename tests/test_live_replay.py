@@ -24,11 +24,10 @@ from conftest import PAPER, LoopClock, free_udp_port, paper_copy
 from feed_clock import VirtualClock
 
 from crtraj.control.horizon import ReplanOptions
-from crtraj.control.loop import ClosedLoop, RunStatus
-from crtraj.control.loop_options import LoopOptions
+from crtraj.control.loop import ClosedLoop, LoopOptions, RunStatus
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.protocol import MOVE
-from crtraj.hardware.sim_device import SimDevice
+from crtraj.hardware.sim import SimDevice
 from crtraj.io.problem import Problem
 from crtraj.model.kinematics import Model
 from crtraj.world.feed import ObstacleFeed

@@ -1,13 +1,13 @@
-"""Parts of the closed loop on their own (crtraj.control.pacer, crtraj.control.recorder), on a virtual clock."""
+"""Parts of the closed loop on their own (the pacer, the recorder), on a virtual clock."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from crtraj.control.pacer import FIRST_STATES_WAIT, CallableClock, Pacer
-from crtraj.control.recorder import RecorderSetup, RunRecorder
-from crtraj.control.run_record import StateRecord
+from crtraj.control.loop._pacer import FIRST_STATES_WAIT, CallableClock, Pacer
+from crtraj.control.loop._recorder import RecorderSetup, RunRecorder
+from crtraj.control.loop._run_record import StateRecord
 from crtraj.core.clock import VirtualClock
 
 

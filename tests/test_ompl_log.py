@@ -17,7 +17,7 @@ from conftest import require_module
 from crtraj.bench.ompl_log import log_text, write_logs
 from crtraj.bench.records import RunRecord
 from crtraj.bench.runlog import RunLog, read_runs
-from crtraj.planning.ompl import OMPLPlanner
+from crtraj.planning.planners._ompl import OMPLPlanner
 
 
 def _rec(planner: str, index: int, *, ok: bool, paper_ok: bool, progress: str = "", status: str = "exact") -> RunRecord:

@@ -22,8 +22,8 @@ from crtraj.bench.scenarios import Scenario
 from crtraj.core.fileio import MARKER, is_marked
 from crtraj.planning.context import PlanningContext
 from crtraj.planning.options import CheckOptions, PlannerOptions
-from crtraj.planning.paper_check import PaperValidator, step_end_fractions
-from crtraj.planning.validity import MotionValidator
+from crtraj.planning.validity._motion import MotionValidator
+from crtraj.planning.validity._paper_check import PaperValidator, step_end_fractions
 from crtraj.world.obstacle import Obstacle
 from crtraj.world.scene import Scene
 
@@ -99,7 +99,7 @@ def test_bench_paper_check_against_the_dense_check(model, sweep):
 
 
 def test_paper_option_builds_the_paper_validator_and_relaxes_the_rrt_steer(model):
-    from crtraj.planning.rrt import RRT
+    from crtraj.planning.planners import RRT
 
     scene = Scene(obstacles=(Obstacle(center=(80.0, 0.0, 300.0), radius=30.0),))
     v = PlanningContext(model, scene, PlannerOptions(check=CheckOptions(mode="paper", step=0.5))).validator

@@ -16,11 +16,11 @@ from crtraj.io.problem import Problem
 from crtraj.model.robot import Robot
 from crtraj.planning.base import Planner
 from crtraj.planning.context import PlanningContext
-from crtraj.planning.cspace import CSpacePlanner
 from crtraj.planning.options import CheckOptions, PlannerOptions, RRTOptions
-from crtraj.planning.registry import BUILTIN, make_planner
+from crtraj.planning.planners._cspace import CSpacePlanner
+from crtraj.planning.planners._registry import BUILTIN, make_planner
+from crtraj.planning.planners._rrt import RRT, RRTStar
 from crtraj.planning.result import PlanStatus
-from crtraj.planning.rrt import RRT, RRTStar
 from crtraj.planning.steer import SteerOptions
 from crtraj.planning.stop import StopCondition
 from crtraj.world.scene import Scene

@@ -15,8 +15,8 @@ from test_planner_helpers import (
 
 from crtraj.core.errors import InputError
 from crtraj.planning.context import PlanningContext
-from crtraj.planning.cspace import CSpacePlanner
 from crtraj.planning.options import CSpaceOptions, PlannerOptions
+from crtraj.planning.planners._cspace import CSpacePlanner
 from crtraj.planning.result import PlanStatus
 from crtraj.planning.stop import StopCondition
 from crtraj.world.obstacle import Obstacle

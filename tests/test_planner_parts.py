@@ -10,12 +10,12 @@ from test_planner_helpers import body_motion_bound, dense_path_check, full_speed
 
 from crtraj.core.errors import InputError
 from crtraj.core.fields import Table
-from crtraj.planning.nn import NearestNeighbors
+from crtraj.planning.ik import SafeIK
 from crtraj.planning.options import CheckOptions, CSpaceOptions, IKOptions, PlannerOptions
+from crtraj.planning.planners._nn import NearestNeighbors
+from crtraj.planning.planners._tree import SearchTree
 from crtraj.planning.postprocess import PathPostprocessor, dedup, dedup_timed
-from crtraj.planning.safe_ik import SafeIK
 from crtraj.planning.stop import StopCondition
-from crtraj.planning.tree import SearchTree
 from crtraj.planning.validity import MotionValidator
 from crtraj.world.obstacle import Obstacle
 from crtraj.world.scene import Scene

@@ -22,9 +22,9 @@ from crtraj.io.problem import Problem, load_robot
 from crtraj.model.kinematics import Model
 from crtraj.planning import PlanningContext, plan_executable
 from crtraj.planning.base import PlannerBase
-from crtraj.planning.kernels import Kernels
 from crtraj.planning.options import MOVED, PlannerOptions
-from crtraj.planning.registry import BUILTIN
+from crtraj.planning.planners import BUILTIN
+from crtraj.planning.validity import Kernels
 from crtraj.world.scene import Scene
 
 STATIC = PROBLEMS / "paper_static.toml"

@@ -1,4 +1,4 @@
-"""Reference planning beside the control loop (`crtraj.control.reference_worker`, ``[loop] reference_delay``).
+"""Reference planning beside the control loop (`crtraj.control.loop._reference_worker`, ``[loop] reference_delay``).
 
 The worker is a forked process; what crosses its pipe is checked bit for bit against calling the same
 source in this process. In the closed loop, the reference source charges its planning time to the loop's
@@ -18,10 +18,10 @@ import pytest
 from conftest import BALL, XG, XS, VirtualClock, straight_loop
 
 from crtraj.control.horizon import ReplanOptions
-from crtraj.control.loop import StepStatus
-from crtraj.control.loop_options import LoopOptions
-from crtraj.control.reference import ReferencePlan
-from crtraj.control.reference_worker import PendingPlan, ReferenceWorker
+from crtraj.control.loop._closed_loop import StepStatus
+from crtraj.control.loop._options import LoopOptions
+from crtraj.control.loop._reference import ReferencePlan
+from crtraj.control.loop._reference_worker import PendingPlan, ReferenceWorker
 from crtraj.planning.result import PlanStatus
 from crtraj.world.obstacle import Obstacle
 from crtraj.world.scene import Scene

@@ -21,8 +21,8 @@ from conftest import PROBLEMS, require_module
 from crtraj import cli
 from crtraj.core.errors import InputError
 from crtraj.core.fields import Table
-from crtraj.hardware.homing_state import HomingState
-from crtraj.hardware.ros.options import RosOptions
+from crtraj.hardware.dynamixel import HomingState
+from crtraj.hardware.ros import RosOptions
 from crtraj.io.problem import load_robot
 from crtraj.io.results import read_result
 
@@ -257,8 +257,7 @@ def test_stream_dynamixel_power_cycled_mid_stream_says_why(dynamixel_sdk, files,
     from dxl_helpers import Clock, homed_state, in_process
 
     from crtraj.hardware.actuators import Actuators
-    from crtraj.hardware.homing_state import state_path
-    from crtraj.hardware.sim_dynamixel import ServoChain
+    from crtraj.hardware.dynamixel import ServoChain, state_path
 
     robot_file = tmp_path / "robot.toml"
     robot_file.write_text(CDSR2.read_text())

@@ -321,14 +321,14 @@ def test_a_screened_solve_that_never_clears_is_not_ok(model, scene):
     x0 = XS + 0.25 * (XG - XS)
     Xr = _straight_reference(x0, XG, rp.N, 0.12)
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr("crtraj.control.horizon_backends.SCREEN_SOLVES", 1)
+        mp.setattr("crtraj.control.horizon._backends.SCREEN_SOLVES", 1)
         res = rp.solve(x0, Xr, rp.obstacles_from_scene(scene, 3.0), warm=False)
     assert res.status is HorizonStatus.FAILED and not res.feasible
     assert "omitted point stays" in res.solver_status and res.min_distance < -1e-6
     # such a solve counts as failed: with the rescue on, IPOPT solves the full NLP instead
     rp = _WrongFirstGuess(model, replace(opts, rescue=True), max_obstacles=2, safety_distance=5.0)
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr("crtraj.control.horizon_backends.SCREEN_SOLVES", 1)
+        mp.setattr("crtraj.control.horizon._backends.SCREEN_SOLVES", 1)
         res = rp.solve(x0, Xr, rp.obstacles_from_scene(scene, 3.0), warm=False)
     assert res.extra["rescue"] and res.is_success(), res.solver_status
     assert "omitted point stays" in res.solver_status and res.min_distance >= -1e-6

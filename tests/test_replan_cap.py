@@ -13,7 +13,7 @@ import pytest
 from conftest import XG, XS, SlowReplanner, VirtualClock, straight_loop
 
 from crtraj.control.horizon import DIVERGED, HorizonStatus, Replanner, ReplanOptions
-from crtraj.control.loop_options import LoopOptions
+from crtraj.control.loop._options import LoopOptions
 from crtraj.world.obstacle import Obstacle
 from crtraj.world.scene import Scene
 

@@ -105,7 +105,7 @@ def test_live_feed_from_the_command_line(tmp_path, capsys, monkeypatch):
     import time
 
     import crtraj.app.replan
-    from crtraj.control.pacer import Pacer
+    from crtraj.control.loop._pacer import Pacer
     from crtraj.world.feed import ObstacleFeed
 
     scene = Scene.from_table(Problem.load(PAPER).section("scene"))

@@ -13,11 +13,11 @@ from conftest import free_udp_port
 from feed_clock import VirtualClock
 
 from crtraj.cli import main
-from crtraj.control.loop import ClosedLoop, RunStatus
+from crtraj.control.loop._closed_loop import ClosedLoop, RunStatus
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.link import DeviceLink
 from crtraj.hardware.protocol import HOLD, MOVE
-from crtraj.hardware.sim_device import SimDevice
+from crtraj.hardware.sim import SimDevice
 from crtraj.hardware.stream import Streamer, StreamOptions
 from crtraj.world.feed import ObstacleFeed
 from crtraj.world.obstacle import Obstacle

@@ -12,8 +12,7 @@ import pytest
 from crtraj.app.plan import plan_problem
 from crtraj.app.run_output import run_context
 from crtraj.control.horizon import ReplanOptions
-from crtraj.control.loop import ClosedLoop
-from crtraj.control.loop_options import LoopOptions
+from crtraj.control.loop import ClosedLoop, LoopOptions
 from crtraj.core.errors import InputError
 from crtraj.core.fileio import atomic_write_json
 from crtraj.io.problem import Problem

@@ -13,12 +13,12 @@ from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.setpoints import SetpointPath
 from crtraj.io.problem import Problem
 from crtraj.model.kinematics import Model
+from crtraj.model.rate_limits import RateLimits
 from crtraj.planning.context import PlanningContext
 from crtraj.planning.metric import BodyMetric
 from crtraj.planning.options import PlannerOptions
 from crtraj.planning.pipeline import retime_result
-from crtraj.planning.rate_limits import RateLimits
-from crtraj.planning.registry import BUILTIN
+from crtraj.planning.planners import BUILTIN
 from crtraj.planning.retime import retime, retime_curve
 from crtraj.world.scene import Scene
 

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from crtraj.app.model_compare import sample_configs
+from crtraj.app.lab import sample_configs
 from crtraj.app.plant_sim import attach_plant, make_plant
 from crtraj.cli import main
 from crtraj.control.loop import ClosedLoop
@@ -19,11 +19,11 @@ from crtraj.hardware.actuators import Actuators
 from crtraj.io.calibration_data import read_dataset
 from crtraj.io.problem import Problem, load_robot
 from crtraj.model.calibration import paper_markers
-from crtraj.model.cosserat import CosseratRod, RodLoad
-from crtraj.model.cosserat_cables import CableDrivenRod
-from crtraj.model.cosserat_map import pcc_nodes, tensions_for_bending
+from crtraj.model.cosserat._cables import CableDrivenRod
+from crtraj.model.cosserat._drive import RodDrive
+from crtraj.model.cosserat._map import pcc_nodes, tensions_for_bending
+from crtraj.model.cosserat._statics import CosseratRod, RodLoad
 from crtraj.model.kinematics import Model
-from crtraj.model.rod_drive import RodDrive
 
 ROOT = Path(__file__).resolve().parent.parent
 CDSR2 = ROOT / "problems" / "robots" / "cdsr2.toml"

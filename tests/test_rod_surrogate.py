@@ -1,4 +1,4 @@
-"""The rod-correction surrogate (crtraj.model.rod_surrogate) against fresh rod solves, its map and its cache.
+"""The rod-correction surrogate (crtraj.model.cosserat._surrogate) against fresh rod solves, its map and its cache.
 
 A small robot keeps the builds cheap: one 100 mm segment with heavy discs (so gravity matters), 20 rod steps (a
 node every 5 mm) and 5 collision points at 0, 25, 50, 75 and 100 mm, which fall on rod nodes: the fresh solves
@@ -12,13 +12,10 @@ import casadi as ca
 import numpy as np
 import pytest
 
-import crtraj.model.rod_surrogate as rs
+import crtraj.model.cosserat._surrogate as rs
 from crtraj.core.errors import InputError
-from crtraj.model.kinematics import Model
-from crtraj.model.mechanics import Mechanics
-from crtraj.model.robot import Robot, Segment
-from crtraj.model.rod_drive import RodDrive
-from crtraj.model.rod_surrogate import (
+from crtraj.model.cosserat._drive import RodDrive
+from crtraj.model.cosserat._surrogate import (
     RodSurrogate,
     SurrogateOptions,
     disc_to_square,
@@ -26,6 +23,9 @@ from crtraj.model.rod_surrogate import (
     square_to_disc,
     surrogate_key,
 )
+from crtraj.model.kinematics import Model
+from crtraj.model.mechanics import Mechanics
+from crtraj.model.robot import Robot, Segment
 
 ROBOT = Robot("small", 2.5, (Segment(100.0, theta_max=2.0),), z_range=(-50.0, 50.0), collision_points=5)
 MECH = Mechanics(steps=20, disc_mass=2.0)

@@ -18,17 +18,17 @@ import pytest
 from conftest import PAPER, paper_copy, require_module
 from feed_clock import VirtualClock
 
-from crtraj.app.ros_bridge import RosBridgeRequest, run_ros_bridge
+from crtraj.app.devices import RosBridgeRequest, run_ros_bridge
 from crtraj.control.horizon import ReplanOptions
 from crtraj.control.loop import ClosedLoop
 from crtraj.control.ports import DeviceError
 from crtraj.core.errors import InputError
 from crtraj.core.fields import Table
 from crtraj.hardware.actuators import Actuators
-from crtraj.hardware.ros.device import RosDevice
-from crtraj.hardware.ros.messages import si_scale
-from crtraj.hardware.ros.node import RosNode, ros_environment
-from crtraj.hardware.ros.options import RosOptions
+from crtraj.hardware.ros._device import RosDevice
+from crtraj.hardware.ros._messages import si_scale
+from crtraj.hardware.ros._node import RosNode, ros_environment
+from crtraj.hardware.ros._options import RosOptions
 from crtraj.hardware.verify import FrameVerifier
 from crtraj.io.problem import Problem
 from crtraj.io.results import read_result

@@ -1,4 +1,4 @@
-"""The ROS device port (`crtraj.hardware.ros.device.RosDevice`) without ROS: a fake node records what would be
+"""The ROS device port (`crtraj.hardware.ros._device.RosDevice`) without ROS: a fake node records what would be
 published and serves chosen joint states; a virtual clock times it."""
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ from feed_clock import VirtualClock
 from crtraj.control.ports import DeviceError
 from crtraj.control.tracking import TrackingController, TrackingOptions
 from crtraj.hardware.actuators import Actuators
-from crtraj.hardware.ros.device import RosDevice
-from crtraj.hardware.ros.options import RosOptions
+from crtraj.hardware.ros._device import RosDevice
+from crtraj.hardware.ros._options import RosOptions
 from crtraj.hardware.verify import FrameVerifier
 from crtraj.io.problem import Problem
 from crtraj.model.kinematics import Model

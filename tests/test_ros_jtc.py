@@ -1,14 +1,14 @@
-"""The joint_trajectory_controller model (`crtraj.hardware.ros.jtc`) and the bridge's message shaping
-(`crtraj.hardware.ros.shaping`) against closed forms; no ROS needed."""
+"""The joint_trajectory_controller model (`crtraj.hardware.ros._jtc`) and the bridge's message shaping
+(`crtraj.hardware.ros._shaping`) against closed forms; no ROS needed."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from crtraj.hardware.ros.controller import check_parameters
-from crtraj.hardware.ros.jtc import JtcMessage, JtcParameters, Spline, executed, rejection, state_before
-from crtraj.hardware.ros.shaping import TAIL_FRACTION, hold_message, step_message, stop_tail
+from crtraj.hardware.ros._controller import check_parameters
+from crtraj.hardware.ros._jtc import JtcMessage, JtcParameters, Spline, executed, rejection, state_before
+from crtraj.hardware.ros._shaping import TAIL_FRACTION, hold_message, step_message, stop_tail
 
 NAMES = ("a", "b")
 DEFAULT = JtcParameters()

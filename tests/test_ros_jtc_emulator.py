@@ -17,13 +17,13 @@ from conftest import PAPER, paper_copy, require_module
 from feed_clock import VirtualClock
 from jtc_emulator import JtcEmulator
 
-from crtraj.app.ros_bridge import RosBridgeRequest, run_ros_bridge
+from crtraj.app.devices import RosBridgeRequest, run_ros_bridge
 from crtraj.control.loop import ClosedLoop
 from crtraj.core.errors import InputError
 from crtraj.hardware.actuators import Actuators
-from crtraj.hardware.ros.messages import si_scale
-from crtraj.hardware.ros.node import ros_environment
-from crtraj.hardware.ros.options import RosOptions
+from crtraj.hardware.ros._messages import si_scale
+from crtraj.hardware.ros._node import ros_environment
+from crtraj.hardware.ros._options import RosOptions
 from crtraj.io.problem import Problem
 from crtraj.io.results import read_result
 
@@ -159,7 +159,7 @@ LAG_PERIODS = 3  # the emulated controller reads its state this many control per
 def _snapshots(monkeypatch) -> list:
     """(clock time, loop-time origin, committed curve) after every message the bridge sends (a step or a hold):
     the curve it verified, as the controller executes it."""
-    from crtraj.hardware.ros.device import RosDevice
+    from crtraj.hardware.ros._device import RosDevice
 
     snaps: list = []
     for name in ("move", "hold"):

@@ -19,14 +19,14 @@ import pytest
 from conftest import PROBLEMS
 from devlink import CoreLink
 
-from crtraj.app.approach import plan_approach
+from crtraj.app.devices import plan_approach
 from crtraj.cli import main
 from crtraj.core.clock import VirtualClock
 from crtraj.core.fileio import read_toml
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.admission import admit
 from crtraj.hardware.protocol import MOVE, Frame
-from crtraj.hardware.sim_device import DeviceCore
+from crtraj.hardware.sim import DeviceCore
 from crtraj.hardware.stream import Streamer, StreamOptions
 from crtraj.io.problem import load_robot
 from crtraj.io.results import read_result

@@ -16,11 +16,11 @@ from crtraj.cli import main
 from crtraj.core.clock import VirtualClock
 from crtraj.core.errors import InputError
 from crtraj.hardware.actuators import Actuators
-from crtraj.hardware.dynamixel_protocol import X
-from crtraj.hardware.homing_state import HomingState, PowerUpCheck, state_path
-from crtraj.hardware.sim_dynamixel import ServoChain
-from crtraj.hardware.sim_dynamixel_port import SDK_LATENCY_MS, SimPort
-from crtraj.hardware.sim_dynamixel_robot import ChainIO, home_in_place, robot_chain
+from crtraj.hardware.dynamixel._homing_state import HomingState, PowerUpCheck, state_path
+from crtraj.hardware.dynamixel._protocol import X
+from crtraj.hardware.dynamixel._sim_chain import ServoChain
+from crtraj.hardware.dynamixel._sim_port import SDK_LATENCY_MS, SimPort
+from crtraj.hardware.dynamixel._sim_robot import ChainIO, home_in_place, robot_chain
 from crtraj.io.problem import load_robot
 
 sim1_plan = dxl_helpers.sim1_plan  # the fixture, shared

@@ -13,7 +13,7 @@ from crtraj.core.errors import InputError
 from crtraj.core.fields import Table
 from crtraj.io.problem import Problem
 from crtraj.model.kinematics import Model
-from crtraj.planning.steer import SteerOptions, SteerResult, SteerSolver, SteerStatus, config_scale, dls_step
+from crtraj.planning.steer._solver import SteerOptions, SteerResult, SteerSolver, SteerStatus, config_scale, dls_step
 from crtraj.world.obstacle import Obstacle
 from crtraj.world.scene import Scene
 
@@ -440,7 +440,7 @@ def test_jit_compiles_privately_and_matches_plain(model, sqp, tmp_path, monkeypa
 
 
 def test_jit_without_a_compiler_runs_plain(model, monkeypatch):
-    import crtraj.planning.steer_backends as steer_mod
+    import crtraj.planning.steer._backends as steer_mod
 
     monkeypatch.setattr(steer_mod.shutil, "which", lambda name: None)
     solver = SteerSolver(model, 1, SteerOptions(solver="sqp", jit=True))

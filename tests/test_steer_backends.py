@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from test_steer import sim1_scene, witness_problems
 
-from crtraj.planning.nlp_backend import NLPBackend
-from crtraj.planning.steer import SteerOptions, SteerSolver
-from crtraj.planning.steer_backends import DlsBackend, IpoptBackend, RescuedBackend, SqpBackend
+from crtraj.planning.nlp import NLPBackend
+from crtraj.planning.steer._backends import DlsBackend, IpoptBackend, RescuedBackend, SqpBackend
+from crtraj.planning.steer._solver import SteerOptions, SteerSolver
 
 
 @pytest.mark.parametrize(

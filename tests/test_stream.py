@@ -28,8 +28,8 @@ from crtraj.core.fileio import atomic_write_json, to_jsonable
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.admission import MotionRecord, admit
 from crtraj.hardware.protocol import ESTOP, HOLD, MOVE, PING, Frame, Telemetry, read_stream_file
-from crtraj.hardware.sim_device import DeviceCore, Faults, SimDevice
-from crtraj.hardware.stream import Streamer, StreamError, StreamOptions
+from crtraj.hardware.sim import DeviceCore, Faults, SimDevice
+from crtraj.hardware.stream._streamer import Streamer, StreamError, StreamOptions
 from crtraj.hardware.transport import Transport
 from crtraj.io.results import read_result
 from crtraj.world.scene import Scene

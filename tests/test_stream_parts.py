@@ -14,12 +14,12 @@ from crtraj.core.clock import VirtualClock
 from crtraj.core.errors import InputError
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.protocol import Telemetry
-from crtraj.hardware.setpoint_buffer import SetpointBuffer
-from crtraj.hardware.stream import StreamOptions
-from crtraj.hardware.stream_log import RunLog
-from crtraj.hardware.stream_monitor import StreamMonitor
-from crtraj.hardware.stream_pacing import RatePacer
-from crtraj.hardware.stream_state import StreamError, StreamStateMachine
+from crtraj.hardware.stream._buffer import SetpointBuffer
+from crtraj.hardware.stream._log import RunLog
+from crtraj.hardware.stream._monitor import StreamMonitor
+from crtraj.hardware.stream._pacing import RatePacer
+from crtraj.hardware.stream._state import StreamError, StreamStateMachine
+from crtraj.hardware.stream._streamer import StreamOptions
 
 DT = 0.01
 
@@ -36,7 +36,7 @@ def test_buffer_interpolates_linearly_between_set_points():
     a, b = np.array([0.0, 1.0]), np.array([1.0, -3.0])
     buf.append(0.0, a)
     buf.append(0.05, b)
-    buf.finished = True
+    buf.finish()
     buf.begin()
     for k in range(5):
         due = buf.due()
@@ -51,7 +51,7 @@ def test_buffer_sends_the_final_set_point_at_its_own_time_then_settles():
     buf = SetpointBuffer(DT)
     last = np.array([2.0])
     buf.extend(np.array([0.0, 0.025]), np.array([[0.0], last]))
-    buf.finished = True
+    buf.finish()
     buf.begin()
     stamps = []
     while (due := buf.due()).kind == "move":
@@ -68,7 +68,7 @@ def test_buffer_on_grid_stamp_is_the_set_point_itself():
     values = [np.array([0.1 * k + 1e-17]) for k in range(4)]
     for k, v in enumerate(values):
         buf.append(k * DT, v)
-    buf.finished = True
+    buf.finish()
     buf.begin()
     for k in range(3):
         due = buf.due()
@@ -113,7 +113,7 @@ def test_buffer_ready_after_prebuffer_span_or_finish():
     buf.clear()
     buf.append(1.0, np.zeros(1))
     assert not buf.ready(0.1)
-    buf.finished = True
+    buf.finish()
     assert buf.ready(0.1)
 
 

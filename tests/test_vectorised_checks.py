@@ -20,12 +20,12 @@ from crtraj.core.build_cache import BuildCache
 from crtraj.io.problem import Problem
 from crtraj.model.kinematics import Model
 from crtraj.planning.context import PlanningContext
-from crtraj.planning.kernels import Kernels
 from crtraj.planning.options import PlannerOptions
+from crtraj.planning.planners import BUILTIN
 from crtraj.planning.postprocess import _at
-from crtraj.planning.registry import BUILTIN
 from crtraj.planning.sampler import LIMIT_TOL, ConfigSampler
-from crtraj.planning.validity import MotionValidator
+from crtraj.planning.validity._kernels import Kernels
+from crtraj.planning.validity._motion import MotionValidator
 from crtraj.world import packing
 from crtraj.world.obstacle import Obstacle
 from crtraj.world.scene import Scene

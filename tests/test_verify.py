@@ -19,7 +19,7 @@ from devlink import CoreLink
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from crtraj.app.approach import plan_approach
+from crtraj.app.devices import plan_approach
 from crtraj.cli import main
 from crtraj.control.ports import DeviceError
 from crtraj.control.tracking import ServoModel
@@ -31,7 +31,7 @@ from crtraj.hardware.admission import MotionRecord, admit
 from crtraj.hardware.link import DeviceLink
 from crtraj.hardware.protocol import MOVE, Frame, read_stream_file
 from crtraj.hardware.setpoints import SetpointPath
-from crtraj.hardware.sim_device import DeviceCore
+from crtraj.hardware.sim import DeviceCore
 from crtraj.hardware.stream import Streamer, StreamOptions
 from crtraj.hardware.verify import FrameVerifier
 from crtraj.io.results import read_result

@@ -1,4 +1,4 @@
-"""`crtraj verify --model cosserat` (crtraj.app.verify) against an independent per-frame computation, and a
+"""`crtraj verify --model cosserat` (crtraj.app.lab._verify) against an independent per-frame computation, and a
 gravity sag that PCC cannot see."""
 
 from __future__ import annotations
@@ -12,17 +12,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from crtraj.app.verify import frames, verify_cosserat
+from crtraj.app.lab._verify import frames, verify_cosserat
 from crtraj.core.fields import Table
 from crtraj.io.problem import load_robot
 from crtraj.io.results import read_result
-from crtraj.model.cosserat import CosseratRod, RodLoad
-from crtraj.model.cosserat_cables import CableDrivenRod
-from crtraj.model.cosserat_map import pcc_nodes, tensions_for_bending
+from crtraj.model.cosserat import CableDrivenRod, CosseratRod, RodDrive, RodLoad, pcc_nodes, tensions_for_bending
 from crtraj.model.kinematics import Model
 from crtraj.model.mechanics import Mechanics
 from crtraj.model.robot import Robot
-from crtraj.model.rod_drive import RodDrive
 from crtraj.world.scene import Scene
 
 ROOT = Path(__file__).resolve().parent.parent

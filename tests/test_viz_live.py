@@ -1,4 +1,4 @@
-"""crtraj.viz.live_feed: the loop's hook never waits for drawing; the view draws the newest state at most
+"""crtraj.viz.live._feed: the loop's hook never waits for drawing; the view draws the newest state at most
 30 times a second and counts what it dropped."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from conftest import calls_of
 
-from crtraj.viz.live_feed import LiveFeed, LiveState
+from crtraj.viz.live._feed import LiveFeed, LiveState
 
 HANG_S = 60.0  # a hang bound only; nothing here waits for time to pass
 

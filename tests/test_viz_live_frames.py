@@ -13,9 +13,9 @@ import pytest
 from conftest import BALL, straight_loop
 
 from crtraj.control.horizon import ReplanOptions
-from crtraj.control.loop_options import LoopOptions
-from crtraj.viz.live_child import pack, unpack
-from crtraj.viz.live_page import ActuatorFractions, LivePage
+from crtraj.control.loop import LoopOptions
+from crtraj.viz.live._child import pack, unpack
+from crtraj.viz.live._page import ActuatorFractions, LivePage
 from crtraj.viz.page import append_rows
 from crtraj.viz.view import Visualizer
 from crtraj.world.scene import Scene

@@ -21,13 +21,12 @@ from test_viz import make_result
 from crtraj.app.replan import ReplanRequest, run_replan
 from crtraj.app.view import LiveSession
 from crtraj.control.horizon import ReplanOptions
-from crtraj.control.loop_options import LoopOptions
-from crtraj.control.run_record import StateRecord, StepRecord
+from crtraj.control.loop import LoopOptions, StateRecord, StepRecord
 from crtraj.io.results import read_result
 from crtraj.viz.chromium import Chromium
-from crtraj.viz.live_feed import LiveFeed
-from crtraj.viz.live_page import LivePage
-from crtraj.viz.live_view import LiveView
+from crtraj.viz.live._feed import LiveFeed
+from crtraj.viz.live._page import LivePage
+from crtraj.viz.live._view import LiveView
 from crtraj.viz.view import Visualizer
 from crtraj.world.scene import Obstacle, Scene
 

@@ -14,10 +14,15 @@ __all__, __getattr__, __dir__ = lazy_exports(
     {
         "crtraj.app.plan": ("plan_problem", "ProblemPlan"),
         "crtraj.app.run_output": ("write_run",),
-        "crtraj.app.stream": ("admit_result",),
+        "crtraj.app.devices": ("admit_result",),
         "crtraj.app.plan_motion": ("admit_plan",),
-        "crtraj.app.record": ("excitation_motion", "record_dataset"),
-        "crtraj.app.calibrate_file": ("calibrate_robot", "Calibration"),
-        "crtraj.app.verify": ("verify_cosserat", "Verification"),
+        "crtraj.app.lab": (
+            "excitation_motion",
+            "record_dataset",
+            "calibrate_robot",
+            "Calibration",
+            "verify_cosserat",
+            "Verification",
+        ),
     },
 )

@@ -38,7 +38,7 @@ from crtraj.core.logs import configure_logging
 from crtraj.io.problem import load_robot
 from crtraj.model.kinematics import Model
 from crtraj.planning.options import PlannerOptions
-from crtraj.planning.registry import BUILTIN
+from crtraj.planning.planners import BUILTIN
 
 log = logging.getLogger(__name__)
 

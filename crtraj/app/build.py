@@ -14,14 +14,14 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from crtraj.control.loop_options import LoopOptions
+from crtraj.control.loop import LoopOptions
 from crtraj.core.build_cache import BuildCache, CacheEntry
 from crtraj.core.errors import InputError
 from crtraj.hardware.verify import VerifyOptions
 from crtraj.io.problem import load_robot
 from crtraj.model.kinematics import Model
-from crtraj.planning.compiled_validity import MAX_COMPILED_POINTS, ValidityKernel
 from crtraj.planning.options import PlannerOptions
+from crtraj.planning.validity import MAX_COMPILED_POINTS, ValidityKernel
 
 
 @dataclass(frozen=True)

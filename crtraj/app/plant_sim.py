@@ -17,8 +17,8 @@ from crtraj.core.errors import InputError
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.mocap import check_true_robot
 from crtraj.io.problem import Problem
+from crtraj.model.cosserat import RodDrive
 from crtraj.model.robot import Robot
-from crtraj.model.rod_drive import RodDrive
 from crtraj.world.scene import Scene
 
 # --plant choices: the rod with the robot file's gravity, or weightless

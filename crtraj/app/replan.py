@@ -20,21 +20,18 @@ from typing import Any
 
 import numpy as np
 
-from crtraj.app.approach import plan_approach
+from crtraj.app.devices import plan_approach
 from crtraj.app.plant_sim import attach_plant, make_plant, plant_lines, plant_verdict
 from crtraj.app.run_output import write_run_files
 from crtraj.control.horizon import ReplanOptions
-from crtraj.control.loop import ClosedLoop, ReplanRun, RunStatus
-from crtraj.control.problem_loop import UnsolvableTaskError
+from crtraj.control.loop import ClosedLoop, ReplanRun, RunStatus, UnsolvableTaskError
 from crtraj.control.rod_plant import RodPlant
 from crtraj.core.errors import InputError
 from crtraj.core.fileio import StagedDir, check_output_dir, failed_sibling, is_successful_result
 from crtraj.core.lazy import lazy_module
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.admission import admit, check_stream_safety
-from crtraj.hardware.dynamixel import parse_url
-from crtraj.hardware.homing_spec import read_stop
-from crtraj.hardware.homing_state import homing_command, state_path
+from crtraj.hardware.dynamixel import homing_command, parse_url, read_stop, state_path
 from crtraj.hardware.link import DeviceLink
 from crtraj.hardware.mocap import MocapTip, SimulatedMocap
 from crtraj.hardware.setpoints import check_time_scale

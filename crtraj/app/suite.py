@@ -22,7 +22,7 @@ from crtraj.core.errors import InputError
 from crtraj.core.fileio import check_output_file, check_outputs_not_inputs, json_document, to_jsonable
 from crtraj.io.problem import load_robot
 from crtraj.model.kinematics import Model
-from crtraj.planning.registry import BUILTIN
+from crtraj.planning.planners import BUILTIN
 
 # What the suite writes into --out.
 SUITE_FILES = ("scenarios.json", "suite.md", "suite.json")

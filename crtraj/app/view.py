@@ -15,7 +15,7 @@ from crtraj.core import interrupt
 from crtraj.core.errors import InputError
 from crtraj.core.fileio import check_output_file, check_outputs_not_inputs
 from crtraj.io.results import Result, read_result
-from crtraj.viz.live_view import LiveView
+from crtraj.viz.live import LiveView
 from crtraj.viz.render import Picture, parse_size, render_mp4, render_png
 from crtraj.viz.view import Visualizer
 
@@ -59,7 +59,7 @@ def serve(
 
 
 class LiveSession:
-    """`crtraj replan --view`: the loop feeds a served full page while it runs (`crtraj.viz.live_view.LiveView`);
+    """`crtraj replan --view`: the loop feeds a served full page while it runs (`crtraj.viz.live.LiveView`);
     afterwards the same page shows the finished run until Ctrl-C. open_browser: open the page at the start."""
 
     def __init__(self, open_browser: bool) -> None:

@@ -212,7 +212,7 @@ def paper_check(
 ) -> PaperCheck:
     """The paper's check: at t = 0, step, 2 step, ... up to the arrival, and at the arrival itself, the
     robot's `collision_points` backbone points (discs of the body radius) keep D_sf from every sphere
-    as it is at that time (mm, s). Written apart from `crtraj.planning.paper_check` on purpose: the
+    as it is at that time (mm, s). Written apart from `crtraj.planning.validity._paper_check` on purpose: the
     configurations come from interpolating the waypoints here, the distances from `Scene.states`."""
     T = np.asarray(result.t, dtype=float).reshape(-1)
     X = np.asarray(result.configs, dtype=float)

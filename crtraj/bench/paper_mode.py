@@ -2,7 +2,7 @@
 
 Planners ``rrt-paper`` and ``rrtstar-paper`` are the registry's ``rrt`` and
 ``rrtstar`` built with ``[planner.check] mode = "paper"``
-(`crtraj.planning.paper_check`: the robot's ten collision points at the ends
+(`crtraj.planning.validity._paper_check`: the robot's ten collision points at the ends
 of 1-s time steps only), not a fork of the planner. Every run of every
 planner is judged twice (`crtraj.bench.runner.judge`): by the paper's check
 (`crtraj.bench.check.paper_check`) and by the strict dense check; the report
@@ -25,7 +25,7 @@ from functools import partial
 from crtraj.bench.scenarios import ScenarioOptions
 from crtraj.planning.base import Planner
 from crtraj.planning.context import PlanningContext
-from crtraj.planning.registry import BUILTIN, PlannerSpec
+from crtraj.planning.planners import BUILTIN, PlannerSpec
 from crtraj.planning.steer import SteerOptions
 
 # The lowest mean speed drawn (mm/s): the paper gives only the upper bound; a floor keeps the motion's

@@ -17,7 +17,7 @@ from crtraj.bench.scenarios import MAX_INDEX
 from crtraj.core.errors import InputError
 from crtraj.core.fields import MAX_LENGTH, MAX_SEED, MAX_TIME, Table
 from crtraj.core.options import Options, option
-from crtraj.planning.registry import BUILTIN
+from crtraj.planning.planners import BUILTIN
 from crtraj.world.scene import MAX_OBSTACLES
 
 PLANNERS = BUILTIN.names

@@ -11,7 +11,7 @@ with an independent dense check, and writes the paper's table beside ours:
 Planners (names as in the CSV): ``rrt`` and ``rrtstar`` (the paper's
 Algorithm 1 over tip positions), ``cspace`` (crtraj's default planner),
 ``ompl-rrtstar`` and ``ompl-rrtconnect`` (OMPL 2.x in the same
-configuration space with the same validity checker, `crtraj.planning.ompl`).
+configuration space with the same validity checker, `crtraj.planning.planners._ompl`).
 
 Work goes through any `concurrent.futures.Executor`; each worker process (or
 thread) builds its own model and planners once, because CasADi functions do
@@ -82,7 +82,7 @@ from crtraj.model.kinematics import Model
 from crtraj.model.robot import Robot
 from crtraj.planning.base import Planner
 from crtraj.planning.options import PlannerOptions
-from crtraj.planning.registry import BUILTIN, PlannerRegistry, PlannerSpec
+from crtraj.planning.planners import BUILTIN, PlannerRegistry, PlannerSpec
 from crtraj.planning.result import PlanResult
 from crtraj.planning.stop import StopCondition
 from crtraj.world import packing
@@ -317,7 +317,7 @@ class Table1Bench:
     options.seed). planner_options: shared settings of every planner (max
     speed, collision resolution, check points: the same validity checker for
     crtraj's and OMPL's planners). extra_planners: `PlannerSpec`s added to
-    the built-in registry (`crtraj.planning.registry`); every planner is
+    the built-in registry (`crtraj.planning.planners._registry`); every planner is
     built by its registry factory and called through the `Planner`
     protocol. A factory must be picklable (a module-level function or class)
     to run in worker processes.

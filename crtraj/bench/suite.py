@@ -47,9 +47,7 @@ from crtraj.bench.check import dense_check
 from crtraj.bench.runner import WARMUP_TIME, bench_stop, plan_scenario, warm_up
 from crtraj.bench.scenarios import MAX_INDEX, Scenario, ScenarioGenerator, ScenarioOptions
 from crtraj.control.horizon import ReplanOptions
-from crtraj.control.loop import ClosedLoop
-from crtraj.control.loop_options import LoopOptions
-from crtraj.control.reference import PlannerReference
+from crtraj.control.loop import ClosedLoop, LoopOptions, PlannerReference
 from crtraj.core.errors import InputError
 from crtraj.core.fields import MAX_SEED, MAX_TIME, Table
 from crtraj.core.options import Options, option
@@ -57,7 +55,7 @@ from crtraj.hardware.actuators import Actuators
 from crtraj.model.kinematics import Model
 from crtraj.planning.base import Planner
 from crtraj.planning.options import PlannerOptions
-from crtraj.planning.registry import BUILTIN
+from crtraj.planning.planners import BUILTIN
 from crtraj.planning.result import PlanResult
 from crtraj.planning.stop import StopCondition
 from crtraj.world import packing

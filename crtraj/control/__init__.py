@@ -11,12 +11,22 @@ from crtraj.core.lazy import lazy_exports
 __all__, __getattr__, __dir__ = lazy_exports(
     __name__,
     {
-        "crtraj.control.loop": ("ClosedLoop",),
-        "crtraj.control.run_record": ("ReplanRun", "RunStatus", "StepStatus"),
-        "crtraj.control.loop_options": ("LoopOptions",),
-        "crtraj.control.horizon": ("Replanner",),
-        "crtraj.control.horizon_options": ("ReplanOptions", "HorizonResult", "HorizonStatus"),
-        "crtraj.control.tracking": ("TrackingController",),
-        "crtraj.control.tracking_options": ("TrackingOptions",),
+        "crtraj.control.loop": (
+            "ClosedLoop",
+            "ReplanRun",
+            "RunStatus",
+            "StepStatus",
+            "LoopOptions",
+        ),
+        "crtraj.control.horizon": (
+            "Replanner",
+            "ReplanOptions",
+            "HorizonResult",
+            "HorizonStatus",
+        ),
+        "crtraj.control.tracking": (
+            "TrackingController",
+            "TrackingOptions",
+        ),
     },
 )

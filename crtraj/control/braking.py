@@ -3,12 +3,12 @@ limits from the current state, checked against the obstacles over its whole dura
 
 One planner serves both places that stop a moving robot:
 
-- the hardware streamer (`crtraj.hardware.braking`, on the streamed frames: position and the velocity
+- the hardware streamer (`crtraj.hardware.stream._braking`, on the streamed frames: position and the velocity
   between the last two frames, as the limits gate knows them), verified with the motion's
   `crtraj.hardware.verify.FrameVerifier`;
 - the closed loop's own hold (`servo_stop`, on the actual actuation at the end of each control period,
   with the set-points that make the first-order servo model follow the stop exactly), verified by the
-  loop's dense check (`crtraj.control.scene_checks.SceneChecks.verify`).
+  loop's dense check (`crtraj.control.loop.SceneChecks.verify`).
 
 The stop (`stop_frames`): every coordinate's frame-to-frame velocity falls linearly from its current
 ``v_i`` to 0 over the same ``N`` periods, so all coordinates stop together (the body keeps its direction)

@@ -12,7 +12,7 @@ whose first derivative is a convex combination of first differences over h; so a
 
 and finite differences of its samples at any period, being averages of these derivatives, keep the
 same bounds. The loop keeps the samples' differences within the limits (tracking set-points and the
-servos' positive averaging, `crtraj.control.tracking`), so the streamed set-points keep them at any
+servos' positive averaging, `crtraj.control.tracking._controller`), so the streamed set-points keep them at any
 stream rate and slow-down. At its knots the B-spline is (p[k-1] + 4 p[k] + p[k+1]) / 6: it stays
 within a sixth of a second difference (hundredths of a millimetre) of the motion the loop verified,
 and admission verifies its own frames anyway (`crtraj.hardware.verify`).
@@ -29,7 +29,7 @@ import math
 import numpy as np
 
 from crtraj.core.splines import HermiteCubic
-from crtraj.planning.rate_limits import RateLimits
+from crtraj.model.rate_limits import RateLimits
 
 # The streamer's default rate (Hz, `crtraj.hardware.stream.StreamOptions.rate`).
 STREAM_RATE = 100.0

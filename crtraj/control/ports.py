@@ -3,7 +3,7 @@
 The loop (`crtraj.control.loop.ClosedLoop`) talks to the world, to hardware and to a live view only through
 these protocols, so it never imports hardware or viewing code. Implementations live in the layer that owns
 them: `crtraj.world.sources` (obstacle sources), `crtraj.hardware.link` (a device driven through the
-streamer) and `crtraj.viz.live_feed` (a live view, `StepObserver`). Units: mm, rad, s.
+streamer) and `crtraj.viz.live._feed` (a live view, `StepObserver`). Units: mm, rad, s.
 """
 
 from __future__ import annotations
@@ -161,13 +161,13 @@ class TipSensor(Protocol):
 
 @runtime_checkable
 class StepObserver(Protocol):
-    """Something that watches a running loop, e.g. a live view (`crtraj.viz.live_feed.LiveFeed`).
+    """Something that watches a running loop, e.g. a live view (`crtraj.viz.live._feed.LiveFeed`).
 
     Called on the loop's thread once per recorded state, so it must cost O(1): keep references and return,
     never copy arrays, draw or wait (the records are frozen and the loop never changes their arrays).
     """
 
     def observe(self, state: Any, step: Any) -> None:
-        """The newest `crtraj.control.run_record.StateRecord` (t s, x, centers mm, ...) and the
+        """The newest `crtraj.control.loop.StateRecord` (t s, x, centers mm, ...) and the
         `StepRecord` of the step that led to it (None for the record at the start)."""
         ...

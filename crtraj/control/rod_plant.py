@@ -1,12 +1,12 @@
 """The Cosserat rod as the closed loop's plant: a simulated robot behind the loop's `Device` port.
 
 The loop plans and verifies with PCC; `RodPlant` is the robot it drives. Each verified step's commands
-go through the loop's own servo model (`crtraj.control.tracking_servo.ServoModel`: position-controlled
+go through the loop's own servo model (`crtraj.control.tracking.ServoModel`: position-controlled
 servos), and at the end of every control period the rod's shape at the reached actuator positions is
-solved in the robot file's actuation mode (`crtraj.model.rod_drive.RodDrive`: commanded cable lengths for
+solved in the robot file's actuation mode (`crtraj.model.cosserat.RodDrive`: commanded cable lengths for
 position servos, the default, or fixed tensions; reported as ``actuation``). The loop's measurement is the plant's:
 the servos' readback (`measure`), and, as a `TipSensor`, the tip of the rod's shape (with optional
-capture noise), which the loop's tip sensing (`crtraj.control.tip_sensing`) corrects the goal with.
+capture noise), which the loop's tip sensing (`crtraj.control.loop._tip_sensing`) corrects the goal with.
 
 Collisions and clearance are judged by the rod's shape: at every control period, the backbone (its
 integration nodes, a few mm apart) inflated by the robot's body radius against the obstacles at that
@@ -29,10 +29,10 @@ import numpy as np
 
 from crtraj.control.executed import limit_fractions
 from crtraj.control.ports import Landing
-from crtraj.control.tracking_servo import ServoModel
+from crtraj.control.tracking import ServoModel
 from crtraj.core.errors import InputError
-from crtraj.model.rod_drive import RodDrive, RodShape
-from crtraj.planning.rate_limits import RateLimits
+from crtraj.model.cosserat import RodDrive, RodShape
+from crtraj.model.rate_limits import RateLimits
 
 log = logging.getLogger(__name__)
 

@@ -14,12 +14,21 @@ __all__, __getattr__, __dir__ = lazy_exports(
         "crtraj.hardware.actuators": ("Actuators",),
         "crtraj.hardware.admission": ("admit", "AdmittedMotion", "MotionRecord"),
         "crtraj.hardware.verify": ("FrameVerifier", "VerifyOptions"),
-        "crtraj.hardware.stream": ("Streamer", "StreamReport", "open_link"),
-        "crtraj.hardware.stream_options": ("StreamOptions",),
-        "crtraj.hardware.stream_state": ("StreamError",),
+        "crtraj.hardware.stream": (
+            "Streamer",
+            "StreamReport",
+            "open_link",
+            "StreamOptions",
+            "StreamError",
+        ),
         "crtraj.hardware.transport": ("Transport", "TransportError"),
-        "crtraj.hardware.sim_device": ("SimDevice", "Faults"),
-        "crtraj.hardware.sim_dynamixel_pty": ("SimDynamixel",),
-        "crtraj.hardware.homing_state": ("HomingState",),
+        "crtraj.hardware.sim": (
+            "SimDevice",
+            "Faults",
+        ),
+        "crtraj.hardware.dynamixel": (
+            "SimDynamixel",
+            "HomingState",
+        ),
     },
 )

@@ -17,13 +17,13 @@ import numpy as np
 
 from crtraj.core.errors import InputError
 from crtraj.core.fields import Table, check_array
-from crtraj.hardware.servo_bus import ServoBus, read_bus_keys
+from crtraj.hardware.dynamixel import ServoBus, read_bus_keys
 from crtraj.model.actuator_limits import ActuatorLimits, read_actuator_table
 from crtraj.model.rate_limits import RateLimits
 
 
 class _BusKeys:
-    """The bus keys of ``[robot.actuators]`` (`crtraj.hardware.servo_bus`), read beside the limits."""
+    """The bus keys of ``[robot.actuators]`` (`crtraj.hardware.dynamixel._servo_bus`), read beside the limits."""
 
     def shared(self, t: Table) -> dict[str, Any]:
         base = {k: v for k, v in read_bus_keys(t, {}, stage=False).items() if k != "id"}

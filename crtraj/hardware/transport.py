@@ -83,7 +83,7 @@ class Transport(abc.ABC):
             return _SerialTransport(dev, b)
         if parts.scheme == "file":
             return _FileTransport(parts.netloc + parts.path)
-        if parts.scheme == "dynamixel":  # needs the servo ids and tick scales: crtraj.hardware.dynamixel
+        if parts.scheme == "dynamixel":  # needs the servo ids and tick scales: crtraj.hardware.dynamixel._link
             raise InputError(f"{url}: a Dynamixel bus opens with Streamer.open(url, actuators) (it needs the ids)")
         raise InputError(
             f"stream target: unknown scheme in {url!r} (use udp://HOST:PORT, serial://DEV, dynamixel://DEV or "

@@ -49,8 +49,7 @@ from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.limits import LimitsGate
 from crtraj.model.kinematics import Model
 from crtraj.model.robot import Robot
-from crtraj.planning.kernels import Kernels
-from crtraj.planning.validity import MotionValidator
+from crtraj.planning.validity import Kernels, MotionValidator
 
 # Slack of the configuration-limit comparison (rad or mm): the round trip x -> q -> values -> q -> x.
 _LIMIT_TOL = 1e-9

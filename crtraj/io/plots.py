@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 from matplotlib.figure import Figure
 
-from crtraj.control.run_record import REPORT_POINTS, ReplanRun
+from crtraj.control.loop import REPORT_POINTS, ReplanRun
 from crtraj.core.fileio import atomic_write_bytes
 from crtraj.io.results import RunContext
 from crtraj.model.kinematics import Model

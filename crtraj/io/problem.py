@@ -20,11 +20,11 @@ from crtraj.core.errors import InputError
 from crtraj.core.fields import MAX_LENGTH, MAX_SEED, Table, check_name
 from crtraj.core.fileio import read_toml
 from crtraj.hardware.actuators import Actuators
-from crtraj.hardware.homing_spec import read_homing, read_stop
+from crtraj.hardware.dynamixel import read_homing, read_stop
 from crtraj.io.calibration_data import CalibrationRecord
 from crtraj.model.mechanics import Mechanics
+from crtraj.model.rate_limits import RateLimits
 from crtraj.model.robot import Robot
-from crtraj.planning.rate_limits import RateLimits
 
 SECTIONS = (
     "name",

@@ -25,7 +25,7 @@ import casadi as ca
 import numpy as np
 
 from crtraj import __version__
-from crtraj.control.run_record import ReplanRun
+from crtraj.control.loop import ReplanRun
 from crtraj.core.errors import InputError
 from crtraj.core.fields import Table
 from crtraj.core.fileio import read_json, to_jsonable

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from crtraj.control.run_record import ReplanRun
+from crtraj.control.loop import ReplanRun
 from crtraj.core.errors import InputError
 from crtraj.core.fileio import atomic_write_bytes
 from crtraj.io import run_schema as rs

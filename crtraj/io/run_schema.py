@@ -328,7 +328,7 @@ RUN_BODY = (
 # `crtraj.control.rod_plant.RodPlant.describe`, plus PCC's own view of the same run
 PLANT = (
     Field("kind", "", "string", '"plant"', True),
-    Field("model", "", "string", '"cosserat": the Cosserat rod (`crtraj.model.rod_drive`)', True),
+    Field("model", "", "string", '"cosserat": the Cosserat rod (`crtraj.model.cosserat._drive`)', True),
     Field("actuation", "", "string", '`[robot.mechanics]` actuation the rod ran in: "cable_length" or "tension"'),
     Field("gravity", "", "bool", "the rod carried its weight (`[robot.mechanics]` gravity)", True),
     Field("pretension_n", "N", "float", "tendon tension at the straight pose"),

@@ -16,7 +16,11 @@ __all__, __getattr__, __dir__ = lazy_exports(
         "crtraj.model.actuator_limits": ("ActuatorLimits",),
         "crtraj.model.rate_limits": ("RateLimits",),
         "crtraj.model.mechanics": ("Mechanics",),
-        "crtraj.model.cosserat": ("CosseratRod", "RodLoad", "RodSolution"),
+        "crtraj.model.cosserat": (
+            "CosseratRod",
+            "RodLoad",
+            "RodSolution",
+        ),
         "crtraj.model.excitation": ("excitation_path",),
         "crtraj.model.export": ("ExportReport", "export_model"),
     },

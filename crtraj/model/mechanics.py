@@ -1,7 +1,7 @@
 """Mechanical parameters of a tendon-driven robot: the ``[robot.mechanics]`` section of a robot file.
 
 The PCC model (`crtraj.model.kinematics`) needs only lengths and the cable radius; the Cosserat-rod
-model (`crtraj.model.cosserat`) also needs the backbone's material and section, the mass it carries
+model (`crtraj.model.cosserat._statics`) also needs the backbone's material and section, the mass it carries
 and gravity. They live here, declared once with their units and bounds (`crtraj.core.options`).
 
 Units: lengths mm, moduli N/mm^2 (= MPa), density kg/m^3, disc mass g, gravity m/s^2, force N.
@@ -46,7 +46,7 @@ class Mechanics(Options):
     the robot's base frame (m/s^2; the base axis is +z, so a robot pointing up has (0, 0, -9.81)).
     tendon_stiffness: EA of one tendon (N): its stretch under tension tau is tau / EA per unit length.
     actuation: how the actuators drive the tendons, which decides the rod's shape for a configuration:
-    "cable_length" (position-controlled servos set each tendon's commanded length, `crtraj.model.rod_drive`;
+    "cable_length" (position-controlled servos set each tendon's commanded length, `crtraj.model.cosserat._drive`;
     the rod then finds its tensions, tendon stretch and gravity included) or "tension" (force-controlled
     actuators hold the tensions that keep the PCC bending on a weightless rod, whatever the weight does).
     steps: RK4 steps per segment of the shooting integrator. tolerance: largest shooting residual

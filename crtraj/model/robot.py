@@ -83,7 +83,7 @@ class Robot:
     # the raw [robot.mechanics] table (immutable) or None; `crtraj.model.mechanics.Mechanics.from_robot`
     # parses it. Left out of `to_dict`: results describe the kinematic robot they were planned with.
     mechanics: Mapping[str, Any] | None = field(default=None, compare=False)
-    # the raw [robot.homing] and [robot.stop] tables (read by `crtraj.hardware.homing_spec`), or None
+    # the raw [robot.homing] and [robot.stop] tables (read by `crtraj.hardware.dynamixel._homing_spec`), or None
     homing: Mapping[str, Any] | None = field(default=None, compare=False)
     stop: Mapping[str, Any] | None = field(default=None, compare=False)
 

@@ -15,10 +15,15 @@ __all__, __getattr__, __dir__ = lazy_exports(
         "crtraj.planning.context": ("PlanningContext",),
         "crtraj.planning.pipeline": ("ExecutablePlan", "plan_executable", "retime_result"),
         "crtraj.planning.options": ("PlannerOptions", "IKOptions", "CheckOptions", "CSpaceOptions", "RRTOptions"),
-        "crtraj.planning.steer_options": ("SteerOptions",),
+        "crtraj.planning.steer": ("SteerOptions",),
         "crtraj.planning.stop": ("StopCondition",),
         "crtraj.planning.result": ("PlanResult", "PlanStatus"),
         "crtraj.planning.base": ("Planner",),
-        "crtraj.planning.registry": ("BUILTIN", "PlannerRegistry", "PlannerSpec", "make_planner"),
+        "crtraj.planning.planners": (
+            "BUILTIN",
+            "PlannerRegistry",
+            "PlannerSpec",
+            "make_planner",
+        ),
     },
 )

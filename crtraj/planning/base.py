@@ -23,13 +23,13 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 
 from crtraj.model.kinematics import Model
+from crtraj.model.rate_limits import RateLimits
 from crtraj.planning.context import PlanningContext
+from crtraj.planning.ik import SafeIK, resolve_start
 from crtraj.planning.options import PlannerOptions
 from crtraj.planning.postprocess import empty_result
 from crtraj.planning.query import PlanQuery
-from crtraj.planning.rate_limits import RateLimits
 from crtraj.planning.result import PlanResult, PlanStatus
-from crtraj.planning.safe_ik import SafeIK, resolve_start
 from crtraj.planning.stop import StopCondition
 from crtraj.planning.validity import MotionValidator
 

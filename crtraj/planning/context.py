@@ -17,11 +17,8 @@ from typing import Any
 
 from crtraj.model.kinematics import Model
 from crtraj.model.rate_limits import RateLimits
-from crtraj.planning.kernels import Kernels
 from crtraj.planning.options import PlannerOptions
-from crtraj.planning.paper_check import PaperValidator
-from crtraj.planning.state_validity import StateValidityChecker
-from crtraj.planning.validity import MotionValidator
+from crtraj.planning.validity import Kernels, MotionValidator, PaperValidator, StateValidityChecker
 from crtraj.world.scene import Scene
 
 

@@ -3,7 +3,7 @@
 No backbone point moves more than ``B(dx) = sum_k w_k |d u_bar_k| + |dz|``
 (mm) when the configuration changes by dx (u_bar: the effective bending
 vectors, ``w_k = L_k / 2 + sum_{j>k} L_j``; the proof is bound 2 in
-`crtraj.planning.validity`). In ``y = M x`` (blocks ``w_k u_bar_k``, then
+`crtraj.planning.validity._motion`). In ``y = M x`` (blocks ``w_k u_bar_k``, then
 z) B is the block-l1 norm of dy, so the planners measure distances in y
 (mm). A straight motion lasts ``B(dx) / max_speed`` seconds: no point of the
 body moves faster than `max_speed` (mm/s).
@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from crtraj.core.errors import InputError
-from crtraj.planning.rate_limits import RateLimits
+from crtraj.model.rate_limits import RateLimits
 
 
 def body_weights(robot: Any) -> np.ndarray:

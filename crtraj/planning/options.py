@@ -22,7 +22,7 @@ from crtraj.planning.stop import StopCondition
 
 ALGORITHMS = ("cspace", "rrt", "rrtstar")
 # "strict": the continuous body over continuous time (`MotionValidator`); "paper": the paper's
-# collision points at the ends of `step`-second steps only (`crtraj.planning.paper_check`).
+# collision points at the ends of `step`-second steps only (`crtraj.planning.validity._paper_check`).
 CHECKS = ("strict", "paper")
 
 # Bounds: the highs keep one planner call within memory and a bounded number of solver calls (each far above
@@ -67,7 +67,7 @@ class CheckOptions(Options):
 
     mode: "strict" (default: the continuous body over continuous time) or "paper" (the paper's
     Table I check: the robot's collision points at the ends of `step`-second steps only; meant for
-    rrt and rrtstar, see `crtraj.planning.paper_check`). step: the paper check's time step (s).
+    rrt and rrtstar, see `crtraj.planning.validity._paper_check`). step: the paper check's time step (s).
     resolution: largest body motion between collision-checked samples (mm). points: backbone
     points per collision check (>= 2). compiled: run the collision checks through the compiled
     kernel (C generated once per robot and cached, `crtraj build`) when a C compiler is available;

@@ -6,7 +6,7 @@
     run = plan_executable(context, goal, start_tip=start, seed=0)
     run.is_success(), run.duration, run.min_clearance
 
-The planner (`options.algorithm`, from `crtraj.planning.registry.BUILTIN`) smooths its own path;
+The planner (`options.algorithm`, from `crtraj.planning.planners.BUILTIN`) smooths its own path;
 with the robot's actuator limits in the context the result is then retimed within
 `options.limit_fraction` of them (`retime_result`), sampled at the stream rate, and its frames are
 verified with the context's motion validity at their new times. Units mm, rad, s.
@@ -24,7 +24,7 @@ from crtraj.core.splines import HermiteCubic, pchip_slopes
 from crtraj.model.actuator_limits import ActuatorLimits
 from crtraj.planning.context import PlanningContext
 from crtraj.planning.metric import BodyMetric
-from crtraj.planning.registry import BUILTIN, PlannerRegistry
+from crtraj.planning.planners import BUILTIN, PlannerRegistry
 from crtraj.planning.result import PlanResult, PlanStatus
 from crtraj.planning.retime import retime, retime_curve
 from crtraj.planning.steer import SteerOptions

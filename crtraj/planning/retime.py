@@ -49,8 +49,8 @@ import numpy as np
 
 from crtraj.core.errors import InputError
 from crtraj.core.splines import natural_cubic
+from crtraj.model.rate_limits import RateLimits
 from crtraj.planning.metric import BodyMetric
-from crtraj.planning.rate_limits import RateLimits
 from crtraj.planning.validity import MotionValidator
 
 # Largest distance (configuration units) of a merged inner waypoint from its straight motion.

@@ -26,7 +26,7 @@ works for a remote kernel and in a saved notebook.
 
 The parts: `crtraj.viz.options` (`ViewOptions`), `crtraj.viz.geometry` (poses and transforms),
 `crtraj.viz.scene` (building the scene), `crtraj.viz.animation` (the replay's key frames),
-`crtraj.viz.export` (the in-process scene tree and the standalone page) and `crtraj.viz.live` (the link to a
+`crtraj.viz.export` (the in-process scene tree and the standalone page) and `crtraj.viz.live._link` (the link to a
 live server, `crtraj.viz.server`); `Visualizer` is the facade over them.
 
 meshcat 0.3.2 quirks handled once: cylinders lie along the y axis

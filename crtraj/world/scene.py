@@ -226,7 +226,7 @@ class Scene:
         """Spheres that contain each obstacle over the whole of [t0, t1]: centres S + (M, 3) mm at the
         middle of the `swept` capsule's segment, radii S + (M,) mm its largest radius plus half the
         segment's length. The length is summed x, y, z in that order, an order the compiled edge
-        check (`crtraj.planning.compiled_validity`) repeats, so both give the same numbers bit for bit.
+        check (`crtraj.planning.validity._compiled`) repeats, so both give the same numbers bit for bit.
         """
         if self._static:
             # a = b = c0 in `swept`: the length below is +0.0 and the centre 0.5 (c0 + c0)

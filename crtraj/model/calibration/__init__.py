@@ -23,14 +23,14 @@ them by this data and is held at its prior. Two such directions always exist: a 
 segment's three cables does not change its bending (the pseudo-inverse of eq. 2-3 removes it), and the
 stage's zero offset moves every marker like the capture frame's translation along the robot's z axis.
 
-Identifiability is judged again at the fitted parameters (`identify.at_fit`): a Jacobian column can be zero
+Identifiability is judged again at the fitted parameters (`_identify.at_fit`): a Jacobian column can be zero
 at the prior only (a segment commanded straight makes the coupling look inert, while at the truth its zero
 offsets bend it and the coupling is confounded with the proximal zero offsets). Parameters confounded at the
 fit are named with their partners and their standard errors withheld; the singular values of the scaled
 Jacobian are reported at both points.
 
-Every fit then passes a sanity gate (`gate`: time offset from `timing`, held-out residual against the noise,
-outliers, bounds, convergence), and a failed one is given its likely cause (`diagnose`).
+Every fit then passes a sanity gate (`judge`: time offset from `detect_time_offset`, held-out residual against
+the noise, outliers, bounds, convergence), and a failed one is given its likely cause (`likely_cause`).
 
 Standard errors come from the Gauss-Newton covariance at the solution, ``s^2 (J_w^T J_w)^-1`` with the
 robust weights w_j = 1 / sqrt(1 + |e_j|^2 / delta^2) and ``s^2 = sum w_j |e_j|^2 / (m - p)``.
@@ -41,12 +41,14 @@ NiTi backbone), so no stiffness ratio is fitted. Units: mm, rad.
 
 from __future__ import annotations
 
-from crtraj.model.calibration.fit import fit, initial_capture
-from crtraj.model.calibration.frames import align, rotation_matrix, rotation_vector
-from crtraj.model.calibration.identify import identifiable, scaled_singular_values
-from crtraj.model.calibration.layout import CalibrateOptions, Hardware, Layout
-from crtraj.model.calibration.model import CalibrationModel
-from crtraj.model.calibration.sites import (
+from crtraj.model.calibration._diagnose import likely_cause
+from crtraj.model.calibration._fit import fit, initial_capture
+from crtraj.model.calibration._frames import align, rotation_matrix, rotation_vector
+from crtraj.model.calibration._gate import GateInput, GateOptions, GateVerdict, estimate_noise, judge, usual_cause
+from crtraj.model.calibration._identify import identifiable, scaled_singular_values, weighted_jacobian
+from crtraj.model.calibration._layout import CalibrateOptions, Hardware, Layout
+from crtraj.model.calibration._model import CalibrationModel
+from crtraj.model.calibration._sites import (
     GROUPS,
     MAX_MARKERS,
     MAX_SAMPLES,
@@ -58,7 +60,7 @@ from crtraj.model.calibration.sites import (
     paper_markers,
     parse_groups,
 )
-from crtraj.model.calibration.stats import (
+from crtraj.model.calibration._stats import (
     OUTLIER_FACTOR,
     CalibrationResult,
     Held,
@@ -67,7 +69,14 @@ from crtraj.model.calibration.stats import (
     marker_stats,
     split,
 )
-from crtraj.model.calibration.synthetic import SyntheticTruth, simulate_markers, synthetic_truth, synthetic_values
+from crtraj.model.calibration._synthetic import (
+    SyntheticTruth,
+    simulate_markers,
+    synthetic_motion,
+    synthetic_truth,
+    synthetic_values,
+)
+from crtraj.model.calibration._timing import detect_time_offset
 
 __all__ = [
     "GROUPS",
@@ -80,6 +89,9 @@ __all__ = [
     "CalibrateOptions",
     "CalibrationModel",
     "CalibrationResult",
+    "GateInput",
+    "GateOptions",
+    "GateVerdict",
     "Hardware",
     "Held",
     "Layout",
@@ -89,9 +101,13 @@ __all__ = [
     "SyntheticTruth",
     "align",
     "check_sites",
+    "detect_time_offset",
+    "estimate_noise",
     "fit",
     "identifiable",
     "initial_capture",
+    "judge",
+    "likely_cause",
     "marker_stats",
     "paper_markers",
     "parse_groups",
@@ -100,6 +116,9 @@ __all__ = [
     "scaled_singular_values",
     "simulate_markers",
     "split",
+    "synthetic_motion",
     "synthetic_truth",
     "synthetic_values",
+    "usual_cause",
+    "weighted_jacobian",
 ]
