@@ -32,7 +32,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from conftest import ROOT
+from conftest import ROOT, require_module, require_tool
 
 TUTORIALS = ROOT / "docs" / "tutorials"
 SKIP_MARKER = "<!-- docs-test: skip ("
@@ -52,10 +52,21 @@ def blocks(page: Path) -> list[tuple[str | None, str]]:
     return [(m.group("why"), m.group("text")) for m in _BLOCK.finditer(page.read_text(encoding="utf-8"))]
 
 
-def _pages() -> list:
-    """One pytest param per tutorial page with a block to run."""
+def _runs(page: Path) -> str:
+    """The text of the page's blocks that run."""
+    return "".join(text for why, text in blocks(page) if why is None)
+
+
+def _tools(page: Path) -> bool:
+    """The page's blocks need a tool or extra beyond crtraj: Chromium and ffmpeg (view --png/--mp4) or the
+    Dynamixel SDK (--dynamixel)."""
+    return any(flag in _runs(page) for flag in ("--png", "--mp4", "--dynamixel"))
+
+
+def _pages(tools: bool) -> list:
+    """One pytest param per tutorial page with a block to run, those with or without tools."""
     pages = sorted(TUTORIALS.glob("*.md"))
-    return [pytest.param(p.name, id=p.name) for p in pages if any(why is None for why, _ in blocks(p))]
+    return [pytest.param(p.name, id=p.name) for p in pages if _runs(p) and _tools(p) == tools]
 
 
 def steps(text: str) -> list[tuple[str, list[str]]]:
@@ -185,17 +196,36 @@ class Reader:
             self.jobs = []
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("page", _pages())
-def test_tutorial_shell_blocks_run_as_written(page, tmp_path):
+def _follow(page: str, folder: Path) -> None:
     """The page's blocks, in order, in one folder (a later block reads what an earlier one wrote)."""
-    for folder in ("problems", "examples"):
-        shutil.copytree(ROOT / folder, tmp_path / folder)
+    for name in ("problems", "examples"):
+        shutil.copytree(ROOT / name, folder / name)
     path = TUTORIALS / page
-    reader = Reader(tmp_path, path.read_text(encoding="utf-8"))
+    reader = Reader(folder, path.read_text(encoding="utf-8"))
     for why, text in blocks(path):
         if why is None:
             reader.block(text)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("page", _pages(tools=False))
+def test_tutorial_shell_blocks_run_as_written(page, tmp_path):
+    _follow(page, tmp_path)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("page", _pages(tools=True))
+def test_tutorial_shell_blocks_with_tools_run_as_written(page, tmp_path):
+    """The pages that need Chromium and ffmpeg (crtraj view renders in headless Chromium and encodes with ffmpeg)
+    or the Dynamixel SDK."""
+    runs = _runs(TUTORIALS / page)
+    if "--png" in runs or "--mp4" in runs:
+        require_tool("chromium", "chromium-browser", "google-chrome", hint="Debian: apt-get install chromium")
+    if "--mp4" in runs:
+        require_tool("ffmpeg", hint="Debian: apt-get install ffmpeg")
+    if "--dynamixel" in runs:
+        require_module("dynamixel_sdk", "pip install 'crtraj[dynamixel]'")
+    _follow(page, tmp_path)
 
 
 def test_every_tutorial_block_runs_or_says_what_it_needs():
@@ -211,7 +241,7 @@ def test_every_tutorial_block_runs_or_says_what_it_needs():
             skipped += why is not None
             assert why is None or len(why.split()) >= 2, f"{page.name}: say what the block needs: {why!r}"
     assert found > skipped > 0
-    assert _pages(), "the tutorials have blocks to run"
+    assert _pages(tools=False) and _pages(tools=True), "the tutorials have blocks to run"
 
 
 def test_tutorial_step_check_sees_a_wrong_exit_code_and_a_missing_line():
