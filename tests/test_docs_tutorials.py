@@ -15,8 +15,8 @@ a feed sending); ``kill %N`` stops the block's Nth such job, and the block's end
 comment says ``until Ctrl-C`` serves until it prints ``press Ctrl-C to stop``; then it gets its Ctrl-C and must
 exit 0. Every other command exits 0, or with the ``(exit N)`` the tutorial shows under it, and prints every line
 shown under it (``#   ...`` lines; ``...`` in them stands for any text); a command whose simulator answered
-too late (a starved machine: the stream's telemetry watchdog, a Dynamixel read without reply) runs again, at
-most three times in all. BROWSER is a program that opens nothing.
+too late (a starved machine: the stream's telemetry watchdog, a Dynamixel read without reply, a servo's bus
+watchdog) runs again, at most three times in all. BROWSER is a program that opens nothing.
 """
 
 from __future__ import annotations
@@ -44,8 +44,9 @@ SERVES = "until Ctrl-C"
 SERVING = "press Ctrl-C to stop"
 HANG_S = 800.0  # a hang bound only
 # what a starved machine makes of a simulator's replies: the stream's telemetry watchdog (0.1 s), a Dynamixel read
-# the simulated chain did not answer within the SDK's reply timeout (34 ms, tried 3 times)
-STARVED = ("telemetry lost: nothing valid for", "cannot read register")
+# the simulated chain did not answer within the SDK's reply timeout (34 ms, tried 3 times), a simulated servo's
+# Bus Watchdog (no instruction for 100 ms; the stream says "check the host's load")
+STARVED = ("telemetry lost: nothing valid for", "cannot read register", "its bus watchdog stopped it")
 STARVED_RUNS = 3
 
 
