@@ -69,7 +69,7 @@ from crtraj.planning.context import PlanningContext
 from crtraj.planning.options import PlannerOptions
 from crtraj.planning.pipeline import STREAM_RATE, retime_result
 from crtraj.planning.planners._registry import BUILTIN, make_planner
-from crtraj.planning.steer._solver import SteerOptions
+from crtraj.planning.steer import SteerOptions
 from crtraj.planning.stop import StopCondition
 from crtraj.planning.validity._compiled import ValidityKernel, kernel_functions
 from crtraj.planning.validity._motion import MotionValidator

@@ -59,7 +59,7 @@ from unittest import mock
 
 import numpy as np
 
-from crtraj.control.horizon._replanner import ReplanOptions
+from crtraj.control.horizon import ReplanOptions
 from crtraj.control.loop import _closed_loop as loop_module
 from crtraj.control.loop._closed_loop import ClosedLoop
 from crtraj.control.loop._options import LoopOptions

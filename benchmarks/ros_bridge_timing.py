@@ -210,7 +210,7 @@ def main() -> None:
     problem = Problem.load(path)
     loop = ClosedLoop.from_problem(problem)
     acts = Actuators.from_robot(problem.robot)
-    start = acts.command(loop.tracker.initial_command(loop.x_start))
+    start = acts.command(loop.start_command())
     round_trips(acts, start, args.round_trips)
     closed_loop(path, acts, start, loop.scene, args.lead)
 

@@ -37,12 +37,13 @@ from pathlib import Path
 
 import numpy as np
 
-from crtraj.control.horizon._replanner import ReplanOptions
+from crtraj.control.horizon import ReplanOptions
 from crtraj.control.loop._closed_loop import ClosedLoop
 from crtraj.control.loop._options import LoopOptions
 from crtraj.io.problem import Problem
 from crtraj.model.kinematics import Model
-from crtraj.planning.steer._solver import SteerOptions, SteerSolver
+from crtraj.planning.steer import SteerOptions
+from crtraj.planning.steer._solver import SteerSolver
 from crtraj.world.obstacle import Obstacle
 from crtraj.world.scene import Scene
 

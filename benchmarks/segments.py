@@ -29,7 +29,7 @@ from crtraj.io.problem import Problem
 from crtraj.model.kinematics import Model
 from crtraj.planning.options import PlannerOptions
 from crtraj.planning.planners._registry import make_planner
-from crtraj.planning.steer._solver import SteerOptions
+from crtraj.planning.steer import SteerOptions
 from crtraj.world.scene import Scene
 
 ROOT = Path(__file__).resolve().parent.parent

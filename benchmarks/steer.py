@@ -35,7 +35,8 @@ import numpy as np
 from crtraj.core.fileio import atomic_write_json
 from crtraj.io.problem import Problem
 from crtraj.model.kinematics import Model
-from crtraj.planning.steer._solver import SteerOptions, SteerSolver
+from crtraj.planning.steer import SteerOptions
+from crtraj.planning.steer._solver import SteerSolver
 from crtraj.world.scene import Scene
 
 ROOT = Path(__file__).resolve().parent.parent

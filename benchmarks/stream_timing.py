@@ -34,7 +34,8 @@ from crtraj.hardware.admission import MotionRecord, admit
 from crtraj.hardware.limits import LimitsGate
 from crtraj.hardware.protocol import MOVE, Frame
 from crtraj.hardware.sim._device import SimDevice
-from crtraj.hardware.stream._streamer import Streamer, StreamOptions
+from crtraj.hardware.stream import StreamOptions
+from crtraj.hardware.stream._streamer import Streamer
 from crtraj.hardware.transport import TransportError
 from crtraj.io.problem import load_robot
 from crtraj.world.scene import Scene

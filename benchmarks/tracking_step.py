@@ -16,7 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from crtraj.control.tracking._controller import TrackingController, TrackingOptions
+from crtraj.control.tracking import TrackingOptions
+from crtraj.control.tracking._controller import TrackingController
 from crtraj.io.problem import load_robot
 from crtraj.model.kinematics import Model
 

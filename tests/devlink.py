@@ -11,7 +11,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from crtraj.core.clock import VirtualClock
-from crtraj.hardware.sim._device import DeviceCore
+from crtraj.hardware.sim._device_core import DeviceCore
 from crtraj.hardware.transport import Transport
 
 

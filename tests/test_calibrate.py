@@ -18,7 +18,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from crtraj.app.lab._calibrate import calibrate, toml_changes
+from crtraj.app.lab._calibrate import calibrate
+from crtraj.app.lab._calibration_report import toml_changes
 from crtraj.app.lab._record import excitation_motion
 from crtraj.cli import main
 from crtraj.control.loop import ClosedLoop

@@ -30,7 +30,8 @@ from crtraj.hardware.protocol import (
     FrameError,
     Telemetry,
 )
-from crtraj.hardware.sim._device import DeviceCore, Faults, SimDevice
+from crtraj.hardware.sim._device import Faults, SimDevice
+from crtraj.hardware.sim._device_core import DeviceCore
 
 pytestmark = pytest.mark.timeout(60)
 

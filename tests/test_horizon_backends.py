@@ -14,7 +14,8 @@ from crtraj.control.horizon._backends import (
     RowCheck,
     ScreenedBackend,
 )
-from crtraj.control.horizon._replanner import Replanner, ReplanOptions
+from crtraj.control.horizon._options import ReplanOptions
+from crtraj.control.horizon._replanner import Replanner
 from crtraj.planning.nlp import NLPBackend
 from crtraj.world import packing
 from crtraj.world.obstacle import Obstacle

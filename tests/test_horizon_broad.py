@@ -12,7 +12,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from crtraj.control.horizon._broad import ROW_TOLERANCE, BroadPhase, Selection, step_reach
-from crtraj.control.horizon._replanner import Replanner, ReplanOptions
+from crtraj.control.horizon._options import ReplanOptions
+from crtraj.control.horizon._replanner import Replanner
 from crtraj.control.loop import ClosedLoop, LoopOptions, RunStatus
 from crtraj.planning.metric import BodyMetric
 from crtraj.world import packing

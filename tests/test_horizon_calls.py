@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from crtraj.control.horizon._backends import HorizonCall, HorizonQuery, RowCheck, ScreenStart, replace
-from crtraj.control.horizon._options import HorizonStatus, horizon_status
-from crtraj.control.horizon._replanner import Replanner, ReplanOptions
+from crtraj.control.horizon._options import HorizonStatus, ReplanOptions, horizon_status
+from crtraj.control.horizon._replanner import Replanner
 
 N, NX = 3, 5
 

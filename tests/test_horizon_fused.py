@@ -12,7 +12,7 @@ import pytest
 from conftest import require_tool
 
 from crtraj.control.horizon._backends import CompiledBackend, HorizonQuery
-from crtraj.control.horizon._replanner import ReplanOptions
+from crtraj.control.horizon._options import ReplanOptions
 from crtraj.control.loop import ClosedLoop, LoopOptions, ReplanRun
 from crtraj.io.problem import Problem
 

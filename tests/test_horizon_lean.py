@@ -15,7 +15,8 @@ from conftest import require_tool
 from test_horizon_fused import TOL, _close  # the fused call's tolerance and comparison
 
 from crtraj.control.horizon._buffers import ParameterBuffer
-from crtraj.control.horizon._replanner import Replanner, ReplanOptions
+from crtraj.control.horizon._options import ReplanOptions
+from crtraj.control.horizon._replanner import Replanner
 from crtraj.control.loop import ClosedLoop, LoopOptions, SceneChecks
 from crtraj.core.errors import InputError
 from crtraj.io.problem import Problem

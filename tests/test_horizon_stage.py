@@ -13,7 +13,7 @@ import pytest
 from conftest import require_tool
 
 from crtraj.control.horizon._backends import CompiledBackend, HorizonQuery, InterpretedBackend
-from crtraj.control.horizon._replanner import ReplanOptions
+from crtraj.control.horizon._options import ReplanOptions
 from crtraj.control.horizon._stage import StageSolver
 from crtraj.control.loop import ClosedLoop, LoopOptions
 from crtraj.io.problem import Problem

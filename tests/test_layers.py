@@ -36,9 +36,10 @@ RANK = {
     "app": 8,
     "cli": 9,
 }
-# Optional extras (pyproject [project.optional-dependencies]) and headless-only plotting: the only
-# imports allowed inside functions.
+# Optional extras (pyproject [project.optional-dependencies]), headless-only plotting and trimesh (seconds to
+# import, needed only when a mesh or PLY file is read): the only imports allowed inside functions.
 OPTIONAL = {
+    "trimesh",
     "ompl",
     "distributed",
     "dask",

@@ -25,7 +25,7 @@ from crtraj.hardware.stream import Streamer, StreamOptions
 from crtraj.planning import BUILTIN
 from crtraj.planning.options import CheckOptions, CSpaceOptions, IKOptions, PlannerOptions, RRTOptions
 from crtraj.planning.steer import SteerOptions, SteerSolver
-from crtraj.viz.view import ViewOptions
+from crtraj.viz import ViewOptions
 from crtraj.world.feed import FeedOptions
 
 # every options section of the package

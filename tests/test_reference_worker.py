@@ -18,10 +18,10 @@ import pytest
 from conftest import BALL, XG, XS, VirtualClock, straight_loop
 
 from crtraj.control.horizon import ReplanOptions
-from crtraj.control.loop._closed_loop import StepStatus
 from crtraj.control.loop._options import LoopOptions
 from crtraj.control.loop._reference import ReferencePlan
 from crtraj.control.loop._reference_worker import PendingPlan, ReferenceWorker
+from crtraj.control.loop._run_record import StepStatus
 from crtraj.planning.result import PlanStatus
 from crtraj.world.obstacle import Obstacle
 from crtraj.world.scene import Scene
@@ -294,7 +294,7 @@ def test_with_a_worker_the_check_for_a_new_reference_is_in_no_step(model, delay,
         loop_options=LoopOptions(duration=0.5, reference_delay=delay), reference=ChargedSource(clock, 0.0),
         clock=clock,
     )  # fmt: skip
-    reason = loop.references.replan_reason
+    reason = loop.parts.references.replan_reason
     checks = []
 
     def costly_reason(t):
@@ -303,7 +303,7 @@ def test_with_a_worker_the_check_for_a_new_reference_is_in_no_step(model, delay,
         checks.append(t)
         return reason(t)
 
-    monkeypatch.setattr(loop.references, "replan_reason", costly_reason)
+    monkeypatch.setattr(loop.parts.references, "replan_reason", costly_reason)
     run = loop.run()
     assert len(checks) >= run.steps - 1  # the check ran at (nearly) every step either way
     # inline, the plan (hence the check) belongs to the step; with a worker it comes after the move is sent

@@ -14,8 +14,9 @@ import pytest
 from conftest import BALL, XG, XS, SlowReplanner, VirtualClock
 
 from crtraj.control.horizon import ReplanOptions
-from crtraj.control.loop._closed_loop import ClosedLoop, StepStatus
+from crtraj.control.loop._closed_loop import ClosedLoop
 from crtraj.control.loop._options import LoopOptions
+from crtraj.control.loop._run_record import StepStatus
 from crtraj.world.scene import Scene
 
 DEADLINE = 0.004  # s

@@ -16,8 +16,9 @@ from feed_clock import VirtualClock
 
 from crtraj.app.run_output import run_context
 from crtraj.control.horizon import ReplanOptions
-from crtraj.control.loop._closed_loop import ClosedLoop, RunStatus
+from crtraj.control.loop._closed_loop import ClosedLoop
 from crtraj.control.loop._options import LoopOptions
+from crtraj.control.loop._run_record import RunStatus
 from crtraj.io.results import run_document
 from crtraj.world.feed import ObstacleFeed
 from crtraj.world.obstacle import Obstacle

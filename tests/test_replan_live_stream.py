@@ -13,7 +13,8 @@ from conftest import free_udp_port
 from feed_clock import VirtualClock
 
 from crtraj.cli import main
-from crtraj.control.loop._closed_loop import ClosedLoop, RunStatus
+from crtraj.control.loop._closed_loop import ClosedLoop
+from crtraj.control.loop._run_record import RunStatus
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.link import DeviceLink
 from crtraj.hardware.protocol import HOLD, MOVE

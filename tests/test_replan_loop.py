@@ -17,8 +17,9 @@ import pytest
 
 from crtraj.app.run_output import write_run
 from crtraj.control.horizon import HorizonResult, HorizonStatus, Replanner, ReplanOptions
-from crtraj.control.loop._closed_loop import ClosedLoop, RunStatus, StepStatus
+from crtraj.control.loop._closed_loop import ClosedLoop
 from crtraj.control.loop._options import LoopOptions
+from crtraj.control.loop._run_record import RunStatus, StepStatus
 from crtraj.control.ports import Device, DeviceError, Landing
 from crtraj.control.tracking import TrackingOptions
 from crtraj.world.obstacle import Obstacle

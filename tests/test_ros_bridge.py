@@ -203,7 +203,7 @@ def paper():
     problem = Problem.load(PAPER)
     loop = ClosedLoop.from_problem(problem)
     acts = Actuators.from_robot(problem.robot)
-    start = acts.command(loop.tracker.initial_command(loop.x_start))
+    start = acts.command(loop.start_command())
     return problem, acts, loop.scene, loop.model, start, loop.servo
 
 

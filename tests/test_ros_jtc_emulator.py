@@ -39,7 +39,7 @@ def paper():
     problem = Problem.load(PAPER)
     loop = ClosedLoop.from_problem(problem)
     acts = Actuators.from_robot(problem.robot)
-    start = acts.command(loop.tracker.initial_command(loop.x_start))
+    start = acts.command(loop.start_command())
     return problem, acts, loop.scene, loop.model, start
 
 
@@ -176,13 +176,18 @@ def _snapshots(monkeypatch) -> list:
 
 
 @pytest.mark.slow
-def test_a_stock_controller_executes_simulation_2_as_verified(tmp_path, paper, monkeypatch):
-    """Simulation 2 through the emulated JTC with its defaults, reading its state 3 periods late, taking each message
-    up to ros.arrival_margin after it was sent, and every step computed late by up to the bound ros.lead -
-    ros.arrival_margin (injected on the virtual clock): no message rejected, no step refused, the goal reached;
-    what the controller commanded at every control cycle is the curve the bridge verified (1e-9), although the
-    lag changed the point before the trajectory; every commanded position is clear of the true obstacles
-    (independent dense check); the run is recorded to MCAP."""
+@pytest.mark.parametrize(
+    ("distro", "settings"),
+    [("humble", {}), ("jazzy", {}), ("rolling", {"allow_trajectory_replacement": False})],
+)
+def test_a_stock_controller_executes_simulation_2_as_verified(tmp_path, paper, monkeypatch, distro, settings):
+    """Simulation 2 through the emulated JTC of each release with its defaults (Rolling: without its blend, which
+    the bridge refuses; Jazzy and Rolling command one update period ahead, read from its update_rate), reading its
+    state 3 periods late, taking each message up to ros.arrival_margin after it was sent, and every step computed
+    late by up to the bound ros.lead - ros.arrival_margin (injected on the virtual clock): no message rejected, no
+    step refused, the goal reached; what the controller commanded at every control cycle is the curve the bridge
+    verified (1e-9), although the lag changed the point before the trajectory; every commanded position is clear
+    of the true obstacles (independent dense check); the run is recorded to MCAP."""
     _, acts, scene, model, start = paper
     joints = {a: f"robot/{a}_joint" for a in acts.names}
     # references planned inside the steps (no worker process beside the loop, whose paths would arrive at steps that
@@ -202,7 +207,7 @@ def test_a_stock_controller_executes_simulation_2_as_verified(tmp_path, paper, m
     period = 0.004
     code, g = _run(
         path, acts, scene, start, tmp_path, list(joints.values()), record=record, lateness=lateness,
-        lag=LAG_PERIODS * period, latency=ros.arrival_margin, period=period,
+        lag=LAG_PERIODS * period, latency=ros.arrival_margin, period=period, distro=distro, params=settings,
     )  # fmt: skip
     assert code == 0 and len(draws) > 50 and max(draws) == bound
     res = read_result(tmp_path / "run" / "run.json")
@@ -271,32 +276,96 @@ def test_joint_names_the_robot_does_not_have_are_one_line_and_nothing_moves(tmp_
     assert not (tmp_path / "run").exists()
 
 
-def test_a_controller_with_other_joints_is_refused_from_its_parameters(tmp_path, paper):
-    """The controller's `joints` parameter (read through /<controller>/get_parameters) lacks a commanded joint:
-    one line naming it, before anything is sent."""
+def _refused_at_start(tmp_path, paper, match: str, setup=None, joints=None, **emulator) -> list:
+    """Run the bridge against an emulated controller (`emulator`: distro, params) that `setup(jtc)` may change, with
+    [ros.joints] = `joints` (default: none): the start is refused with one line matching `match`, nothing sent, no
+    run written. Returns the graphs."""
     _, acts, scene, _, start = paper
-    names = list(acts.names)
-    path = _problem(tmp_path, acts, {}, start_timeout=5.0)
+    joints = joints or {}
+    names = [joints.get(a, a) for a in acts.names]
+    path = _problem(tmp_path, acts, joints, start_timeout=5.0)
     ros = Problem.load(path).options(RosOptions, "ros")
     clock = VirtualClock()
     graphs = []
 
     def ready(node, feed):
-        g = Graph(ros, names, start * si_scale(acts.units), scene, clock)
+        g = Graph(ros, names, start * si_scale(acts.units), scene, clock, **emulator)
         graphs.append(g)
-        g.jtc.node.set_parameters([_parameter("joints", names[:-1])])
+        if setup is not None:
+            setup(g.jtc)
         g.wait_matched()
         g.publish_obstacles(0.0)
         g.jtc.publish_state(0.0)
 
     req = RosBridgeRequest(path, out=tmp_path / "run", html=False, quiet=True)
     try:
-        with pytest.raises(InputError, match=rf"^joint_trajectory_controller\.joints: no {names[-1]} among"):
+        with pytest.raises(InputError, match=match) as exc:
             run_ros_bridge(req, clock=clock, sleep=clock.sleep, ready=ready)
     finally:
         for g in graphs:
             g.close()
+    assert "\n" not in str(exc.value)
     assert graphs[0].jtc.received == [] and not (tmp_path / "run").exists()
+    return graphs
+
+
+def test_a_controller_with_other_joints_is_refused_from_its_parameters(tmp_path, paper):
+    """The controller's `joints` parameter (read through /<controller>/get_parameters) lacks a commanded joint:
+    one line naming it, before anything is sent."""
+    last = paper[1].names[-1]
+    names = list(paper[1].names)
+    _refused_at_start(
+        tmp_path, paper, rf"^joint_trajectory_controller\.joints: no {last} among",
+        setup=lambda jtc: jtc.node.set_parameters([_parameter("joints", names[:-1])]),
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("distro", "params", "match"),
+    [
+        ("rolling", {}, r"allow_trajectory_replacement: true .* set allow_trajectory_replacement: false$"),
+        ("humble", {"constraints.s2c1_joint.trajectory": 0.05}, r"constraints\.s2c1_joint\.trajectory: 0\.05;"),
+        ("jazzy", {"speed_scaling.initial_scaling_factor": 0.5}, r"speed_scaling\.initial_scaling_factor: 0\.5;"),
+    ],
+)
+def test_settings_that_change_the_executed_curve_are_refused_with_their_fix(tmp_path, paper, distro, params, match):
+    """An emulated controller of each release whose parameter service answers as rclcpp's does (no values at all
+    for a request naming an undeclared parameter, as open_loop_control is on Rolling): the bridge still reads its
+    parameters, tells the release, and refuses in one line naming the parameter and the fix, before anything is
+    sent: Rolling's default blend, a path tolerance (Humble), a speed scaling factor (Jazzy)."""
+    joints = {a: f"{a}_joint" for a in paper[1].names}
+    _refused_at_start(
+        tmp_path, paper, r"^joint_trajectory_controller\." + match, joints=joints, distro=distro, params=params
+    )
+
+
+def test_a_controller_without_a_release_marker_is_named_and_still_checked(tmp_path, paper, caplog):
+    """A controller that declares none of the release markers (open_loop_control undeclared on a Humble one): a
+    warning names the unknown release and the assumption, and its parameters are still checked (cmd_timeout)."""
+
+    def unmark(jtc):
+        jtc.node.undeclare_parameter("open_loop_control")
+        jtc.node.set_parameters([Parameter("cmd_timeout", Parameter.Type.DOUBLE, 0.5)])
+
+    from rclpy.parameter import Parameter
+
+    caplog.set_level("WARNING", logger="crtraj.app.ros_bridge")
+    _refused_at_start(tmp_path, paper, r"^joint_trajectory_controller\.cmd_timeout: 0\.5 s;", setup=unmark)
+    assert any("its release is unknown; the bridge assumes humble" in r.getMessage() for r in caplog.records)
+
+
+def test_a_speed_scaling_publisher_is_refused_on_jazzy(tmp_path, paper):
+    """A Jazzy controller with its defaults, and a node publishing on its ~/speed_scaling_input (any type; the real
+    one is control_msgs/SpeedScalingFactor): one line naming the topic, before anything is sent."""
+    from std_msgs.msg import Float64
+
+    def scaler(jtc):
+        jtc.node.create_publisher(Float64, "/joint_trajectory_controller/speed_scaling_input", 10)
+
+    _refused_at_start(
+        tmp_path, paper, r"^ros\.controller: something publishes on /joint_trajectory_controller/speed_scaling_input",
+        setup=scaler, distro="jazzy",
+    )  # fmt: skip
 
 
 def _parameter(name: str, value):

@@ -43,7 +43,7 @@ def test_the_plan_command_does_not_import_what_it_never_uses():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
     # and the lazily bound module still works where it is used
-    from crtraj.control.tracking import _controller as tracking
+    from crtraj.control.tracking import _design as tracking
 
     assert callable(tracking.control.dlqr)
 

@@ -13,7 +13,10 @@ from crtraj.core.errors import InputError
 from crtraj.core.fields import Table
 from crtraj.io.problem import Problem
 from crtraj.model.kinematics import Model
-from crtraj.planning.steer._solver import SteerOptions, SteerResult, SteerSolver, SteerStatus, config_scale, dls_step
+from crtraj.planning.steer._nlp import config_scale
+from crtraj.planning.steer._options import SteerOptions
+from crtraj.planning.steer._result import SteerResult, SteerStatus
+from crtraj.planning.steer._solver import SteerSolver, dls_step
 from crtraj.world.obstacle import Obstacle
 from crtraj.world.scene import Scene
 

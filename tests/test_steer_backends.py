@@ -8,7 +8,8 @@ from test_steer import sim1_scene, witness_problems
 
 from crtraj.planning.nlp import NLPBackend
 from crtraj.planning.steer._backends import DlsBackend, IpoptBackend, RescuedBackend, SqpBackend
-from crtraj.planning.steer._solver import SteerOptions, SteerSolver
+from crtraj.planning.steer._options import SteerOptions
+from crtraj.planning.steer._solver import SteerSolver
 
 
 @pytest.mark.parametrize(

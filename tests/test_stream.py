@@ -29,7 +29,9 @@ from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.admission import MotionRecord, admit
 from crtraj.hardware.protocol import ESTOP, HOLD, MOVE, PING, Frame, Telemetry, read_stream_file
 from crtraj.hardware.sim import DeviceCore, Faults, SimDevice
-from crtraj.hardware.stream._streamer import Streamer, StreamError, StreamOptions
+from crtraj.hardware.stream._options import StreamOptions
+from crtraj.hardware.stream._state import StreamError
+from crtraj.hardware.stream._streamer import Streamer
 from crtraj.hardware.transport import Transport
 from crtraj.io.results import read_result
 from crtraj.world.scene import Scene

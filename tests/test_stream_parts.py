@@ -17,9 +17,9 @@ from crtraj.hardware.protocol import Telemetry
 from crtraj.hardware.stream._buffer import SetpointBuffer
 from crtraj.hardware.stream._log import RunLog
 from crtraj.hardware.stream._monitor import StreamMonitor
+from crtraj.hardware.stream._options import StreamOptions
 from crtraj.hardware.stream._pacing import RatePacer
 from crtraj.hardware.stream._state import StreamError, StreamStateMachine
-from crtraj.hardware.stream._streamer import StreamOptions
 
 DT = 0.01
 

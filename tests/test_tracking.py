@@ -13,7 +13,9 @@ import scipy.linalg
 from conftest import assert_same_multiset
 from scipy.integrate import solve_ivp
 
-from crtraj.control.tracking._controller import ServoModel, TrackingController, TrackingOptions
+from crtraj.control.tracking._controller import TrackingController
+from crtraj.control.tracking._options import TrackingOptions
+from crtraj.control.tracking._servo import ServoModel
 from crtraj.core.errors import InputError
 from crtraj.core.fields import Table
 from crtraj.io.problem import Problem, load_robot

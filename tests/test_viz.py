@@ -28,9 +28,9 @@ from crtraj.cli import main
 from crtraj.core.errors import InputError
 from crtraj.core.fields import Table
 from crtraj.core.fileio import atomic_write_json, to_jsonable
-from crtraj.viz import chromium
+from crtraj.viz import ViewOptions, chromium
 from crtraj.viz.geometry import cylinder_quat
-from crtraj.viz.view import ViewOptions, Visualizer
+from crtraj.viz.view import Visualizer
 
 # paper simulation 1 / 2: start, goal and the two spheres (mm)
 START = np.array([-50.0, 100.0, 390.0])

@@ -73,16 +73,17 @@ def plan_problem(
     seed: int | None = None,
     time_limit: float | None = None,
     model: Model | None = None,
+    scene: Scene | None = None,
 ) -> ProblemPlan:
     """Plan a problem file's task with its ``[scene]``, ``[planner]``, ``[steer]`` and ``[stream]`` sections
     (`crtraj.planning.pipeline.plan_executable`).
 
-    algorithm, seed, time_limit (s) override the file. The start is
+    algorithm, seed, time_limit (s) and scene (a `Scene` instead of the file's) override the file. The start is
     ``task.start_config`` when given, else a safe IK solution for ``task.start``.
     """
     task = problem.require_task()
     t1 = time.perf_counter()
-    scene = problem.options(Scene, "scene")
+    scene = problem.options(Scene, "scene") if scene is None else scene
     options = problem.options(PlannerOptions, "planner")
     changes: dict[str, Any] = {}
     if algorithm is not None:

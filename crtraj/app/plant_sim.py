@@ -60,7 +60,7 @@ def make_plant(
 
 def attach_plant(plant: RodPlant, loop: ClosedLoop) -> None:
     """Give the plant the loop's servo model, start actuation and control period."""
-    q0 = loop.tracker.initial_command(loop.x_start)
+    q0 = loop.start_command()
     plant.attach(loop.servo, q0, loop.n_sub, loop.options.dt / loop.n_sub, loop.rate_limits)
 
 

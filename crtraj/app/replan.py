@@ -401,7 +401,7 @@ def _live_link(streamer: Streamer, approach: bool, problem: Problem, loop: Close
             scene_now=lambda: loop.scene_now,
         )
         here = streamer.position
-        start = acts.command(loop.tracker.initial_command(loop.x_start))
+        start = acts.command(loop.start_command())
         d = np.abs(here - start)
         i = int(np.argmax(d))
         tol = sopts.settle_tolerance

@@ -14,6 +14,7 @@ import numpy as np
 
 from crtraj.model.kinematics import Model
 from crtraj.planning.result import PlanResult
+from crtraj.world.geometry import exact_min_clearance
 from crtraj.world.scene import Scene
 
 # Dense samples are checked in chunks of this many (memory ~ chunk * points * obstacles * 24 bytes).
@@ -96,7 +97,8 @@ def _clearance_and_length(
 ) -> tuple[float, float, float]:
     """(smallest body-surface to sphere-surface distance (mm), when (s), tip travel (mm)) over dense samples.
 
-    Each backbone chord is checked as a segment against every sphere at the sample's own time.
+    Each backbone chord is checked as a segment against every sphere at the sample's own time, and each
+    backbone point against every other shape by brute force (`crtraj.world.geometry.exact_min_clearance`).
     """
     nan = float("nan")
     min_clr, t_worst = math.inf, nan
@@ -111,6 +113,12 @@ def _clearance_and_length(
             steps += np.linalg.norm(tips[0] - prev_tip)
         length += float(steps)
         prev_tip = tips[-1]
+        if scene.shapes:  # other shapes: brute-force distances to their triangles and points, at the points
+            tt = tc + scene.time_origin
+            d = np.min([exact_min_clearance(ms, pts, tt) for ms in scene.shapes], axis=0) - body
+            i = int(np.argmin(d))
+            if d[i] < min_clr:
+                min_clr, t_worst = float(d[i]), float(tc[i])
         if scene.n_obstacles == 0:
             continue
         centers, radii = scene.states(tc)  # (C, M, 3), (C, M)

@@ -56,6 +56,22 @@ def _file_name(ref: str, key: str) -> str:
     return ref
 
 
+def _shape_files_resolved(data: dict[str, Any], base: Path) -> dict[str, Any]:
+    """`data` with each ``[[scene.shape]] file`` made relative to `base` (the problem file's folder) when it
+    is a relative path, so the scene reads the same file wherever it is asked from."""
+    scene = data.get("scene")
+    shapes = scene.get("shape") if isinstance(scene, dict) else None
+    if not isinstance(shapes, list):
+        return data
+    out = []
+    for st in shapes:
+        ref = st.get("file") if isinstance(st, dict) else None
+        if isinstance(ref, str) and ref and not Path(ref).is_absolute():
+            st = {**st, "file": str(base / _file_name(ref, "scene.shape.file"))}
+        out.append(st)
+    return {**data, "scene": {**scene, "shape": out}}
+
+
 class _FromTable(Protocol[T]):  # pragma: no cover - typing only
     @classmethod
     def from_table(cls, t: Table) -> T: ...
@@ -153,6 +169,7 @@ class Problem:
         for key in SECTIONS:
             top.raw(key, None)  # sections are validated by their owners
         top.finish()
+        data = _shape_files_resolved(data, path.parent if path is not None else Path.cwd())
         prob = cls(name, robot, task, seed, path, desc, dict(data))
         return prob
 

@@ -18,6 +18,7 @@ import numpy as np
 from crtraj.io.results import Result
 from crtraj.viz.geometry import M_PER_MM, RobotPoses, cylinder_quat, unit
 from crtraj.viz.scene import SceneBuilder
+from crtraj.viz.shapes import shape_tracks
 from crtraj.viz.timeline import Timeline
 
 with warnings.catch_warnings():
@@ -124,6 +125,10 @@ def run_animation(run: Result, poses: RobotPoses, scene: SceneBuilder, timeline:
     clips.add(f"{scene.prefix}/tip", position=("vector3", run.tip[keys] * M_PER_MM))
     if scene.prefix == "robot":  # the scene's own obstacles and closest approach; a compared run shows only its robot
         _obstacle_clips(clips, run, timeline, keys)
+        shapes = () if run.scene is None else run.scene.shapes
+        for k, ms in enumerate(shapes):
+            if not ms.static:
+                clips.add(f"shapes/{k}", **shape_tracks(ms, timeline.t[keys] + run.scene.time_origin))
     return clips.anim
 
 

@@ -53,10 +53,11 @@ from crtraj.model.kinematics import Model
 from crtraj.viz.animation import run_animation
 from crtraj.viz.geometry import M_PER_MM, cylinder_quat, fit_view, transforms, translation, unit
 from crtraj.viz.live import MeshcatWindow
-from crtraj.viz.options import MAX_SEGMENT_COLORS, ViewOptions
+from crtraj.viz.options import ViewOptions
 from crtraj.viz.page import page_data, page_json, wrap_page
 from crtraj.viz.run_paths import draw_run_paths
 from crtraj.viz.scene import ROOT, SceneBuilder
+from crtraj.viz.shapes import draw_shapes, shape_extent
 from crtraj.viz.timeline import Timeline, build_timeline
 
 with warnings.catch_warnings():
@@ -66,7 +67,7 @@ with warnings.catch_warnings():
     from IPython.display import HTML  # meshcat's own dependency, for its notebook cell
     from meshcat.animation import Animation
 
-__all__ = ["MAX_SEGMENT_COLORS", "ViewOptions", "Visualizer"]
+__all__ = ["Visualizer"]
 
 _CAMERA_FOV_DEG = 75.0  # meshcat's default perspective camera
 # width / height of the page's scene pane (1280 x 800 window less the side panel and the plots): what is framed
@@ -257,6 +258,8 @@ class Visualizer:
         scene.draw_obstacles(run.centers.shape[1])
         if run.centers.shape[1]:
             scene.draw_closest()
+        if run.scene is not None and run.scene.shapes:
+            draw_shapes(self._vis, run.scene.shapes, self._safety, self.options, run.t[0] + run.scene.time_origin)
         content = draw_run_paths(scene, run)
         self._play = self.options.play if play is None else play
         self.animation = run_animation(run, poses, scene, self.timeline) if animate and len(run.t) > 1 else None
@@ -265,6 +268,8 @@ class Visualizer:
         if run.centers.shape[1]:
             r = run.radii[..., None] + self._safety
             frame += [(run.centers - r).reshape(-1, 3), (run.centers + r).reshape(-1, 3)]
+        if run.scene is not None:
+            frame.append(shape_extent(run.scene.shapes, run.t[0] + run.scene.time_origin))
         allp = np.concatenate(frame)
         scene.floor(allp.min(axis=0) - 10.0, allp.max(axis=0) + 10.0)
         self.frame_camera(allp)

@@ -25,6 +25,8 @@ import numpy as np
 from crtraj.core.errors import InputError
 from crtraj.core.fields import MAX_TIME, Table
 from crtraj.world import margin, packing
+from crtraj.world.geometry import MovingShape, shape_from_table, shape_to_dict
+from crtraj.world.geometry import shape_clearance as _shape_clearance
 from crtraj.world.obstacle import MAX_COORDINATE, PROFILE_CODE, Obstacle, sin_range
 
 # The paper's search space: 300 x 300 x 500 mm centred on the base axis. It
@@ -38,10 +40,24 @@ DEFAULT_WORKSPACE = ((-150.0, -150.0, 0.0), (150.0, 150.0, 500.0))
 MAX_OBSTACLES = 100
 
 
+def _with_shapes(scene: Scene, p: np.ndarray, t0: Any, t1: Any, inflate: float, out: np.ndarray) -> np.ndarray:
+    """`out` lowered to the scene's shapes' clearance of points p (..., P, 3) over [t0, t1] (s; scalars or
+    broadcastable to the leading dims): ``lower_bound - inflate - D_sf`` (`crtraj.world.geometry`)."""
+    if not scene.shapes:
+        return out
+    t0 = scene._abs_time(t0, "t0")
+    t1 = scene._abs_time(t1, "t1")
+    d = _shape_clearance(scene.shapes, p, t0, t1)
+    return np.minimum(out, margin.clearance(d, scene.safety_distance, inflate))
+
+
 @dataclass(frozen=True)
 class Scene:
     """Obstacles, safety distance D_sf (mm) and workspace box (mm).
 
+    `obstacles` are the moving, breathing spheres every solver packs as slots; `shapes` are obstacles of
+    other shapes (`crtraj.world.geometry.MovingShape`: boxes, capsules, cylinders, half spaces, meshes,
+    point clouds), which the clearance functions below include through the distance interface.
     Read from a problem file's ``[scene]`` table with `Scene.from_table`.
     """
 
@@ -50,6 +66,7 @@ class Scene:
     workspace_lo: tuple[float, float, float] = DEFAULT_WORKSPACE[0]
     workspace_hi: tuple[float, float, float] = DEFAULT_WORKSPACE[1]
     time_origin: float = 0.0
+    shapes: tuple[MovingShape, ...] = ()
     _arr: dict[str, np.ndarray] = field(init=False, repr=False, compare=False)
     # the one motion profile code every obstacle has, -1 when mixed or none (`_progress_of` skips the others)
     _profile: int = field(init=False, repr=False, compare=False)
@@ -62,6 +79,10 @@ class Scene:
         for o in self.obstacles:
             if not isinstance(o, Obstacle):
                 raise InputError(f"scene.obstacle: expected Obstacle objects, got {type(o).__name__}")
+        object.__setattr__(self, "shapes", tuple(self.shapes))
+        for o in self.shapes:
+            if not isinstance(o, MovingShape):
+                raise InputError(f"scene.shape: expected MovingShape objects, got {type(o).__name__}")
         if not (math.isfinite(self.safety_distance) and self.safety_distance >= 0):
             raise InputError(f"scene.safety_distance: must be >= 0 mm, got {self.safety_distance}")
         if not math.isfinite(self.time_origin):
@@ -103,7 +124,23 @@ class Scene:
     # ------------------------------------------------------------- properties
     @property
     def n_obstacles(self) -> int:
+        """The number of sphere obstacles (the solvers' slots); `shapes` are counted by `n_shapes`."""
         return len(self.obstacles)
+
+    @property
+    def n_shapes(self) -> int:
+        """The number of obstacles of other shapes (`shapes`)."""
+        return len(self.shapes)
+
+    @property
+    def has_obstacles(self) -> bool:
+        """True when the scene has a sphere or a shape to keep D_sf from."""
+        return bool(self.obstacles) or bool(self.shapes)
+
+    @property
+    def shapes_static(self) -> bool:
+        """True when no shape moves or breathes."""
+        return all(s.static for s in self.shapes)
 
     @property
     def workspace(self) -> tuple[np.ndarray, np.ndarray]:
@@ -261,7 +298,7 @@ class Scene:
         p = self._points(points)
         lead = p.shape[:-2]
         if self.n_obstacles == 0:
-            return np.full(lead, np.inf)
+            return _with_shapes(self, p, t, t, inflate, np.full(lead, np.inf))
         centers, radii = self.states(t)  # S+(M,3), S+(M,)
         out = np.full(np.broadcast_shapes(lead, centers.shape[:-2]), np.inf)
         # a loop over obstacles (a handful) keeps memory at (..., P) per pass
@@ -269,7 +306,7 @@ class Scene:
             c = centers[..., i, :][..., None, :]  # S+(1,3)
             dist = np.linalg.norm(p - c, axis=-1)  # broadcast(...,P)
             np.minimum(out, dist.min(axis=-1) - radii[..., i], out=out)
-        return margin.clearance(out, self.safety_distance, inflate)
+        return _with_shapes(self, p, t, t, inflate, margin.clearance(out, self.safety_distance, inflate))
 
     def clearance_points_over(self, points: Any, t0: Any, t1: Any, inflate: float = 0.0) -> np.ndarray:
         """Conservative clearance (mm) of fixed points over the whole interval [t0, t1].
@@ -287,7 +324,7 @@ class Scene:
         p = self._points(points)
         lead = p.shape[:-2]
         if self.n_obstacles == 0:
-            return np.full(lead, np.inf)
+            return _with_shapes(self, p, t0, t1, inflate, np.full(lead, np.inf))
         a, b, rmax = self.swept(t0, t1)
         out = np.full(np.broadcast_shapes(lead, a.shape[:-2]), np.inf)
         for i in range(self.n_obstacles):
@@ -303,7 +340,7 @@ class Scene:
         bound = margin.clearance(out, self.safety_distance, inflate)
         # mathematically already <= both ends; the min removes rounding doubt
         ends = np.minimum(self.clearance_points(p, t0, inflate), self.clearance_points(p, t1, inflate))
-        return np.minimum(bound, ends)
+        return _with_shapes(self, p, t0, t1, inflate, np.minimum(bound, ends))
 
     def clearance(self, model: Any, x: Any, t: Any, n_points: int | None = None) -> np.ndarray:
         """Body clearance (mm) of configuration(s) x at time t: the paper's check.
@@ -364,13 +401,15 @@ class Scene:
         300 x 300 x 500 box, x,y in [-150, 150], z in [0, 500]),
         ``time_origin`` (s, default 0), and ``[[scene.obstacle]]`` tables with
         ``center`` (mm), ``radius`` (mm, or ``{mean, amplitude, omega, phase}``),
-        optional ``motion = {to, duration | period, profile}`` and ``name``.
+        optional ``motion = {to, duration | period, profile}`` and ``name``, and ``[[scene.shape]]`` tables
+        (`crtraj.world.geometry._table`: box, capsule, cylinder, halfspace, sphere, mesh, points).
         """
         if t.has("time_step"):  # documented once, never used: refuse it rather than ignore it
             t.raw("time_step")
             raise t.error("time_step", "no longer supported (it had no effect); remove it")
         obstacles = tuple(Obstacle.from_table(ot) for ot in t.tables("obstacle", most=MAX_OBSTACLES))
-        names = [o.name for o in obstacles if o.name]
+        shapes = tuple(shape_from_table(st) for st in t.tables("shape", most=MAX_OBSTACLES))
+        names = [o.name for o in obstacles if o.name] + [s.shape.name for s in shapes if s.shape.name]
         if len(set(names)) != len(names):
             dup = next(n for n in names if names.count(n) > 1)
             raise t.error("obstacle", f"duplicate obstacle name {dup!r}")
@@ -389,6 +428,7 @@ class Scene:
             workspace_lo=(lo[0], lo[1], lo[2]),
             workspace_hi=(hi[0], hi[1], hi[2]),
             time_origin=t.float("time_origin", 0.0, limit=MAX_TIME),
+            shapes=shapes,
         )
         t.finish()
         return scene
@@ -402,4 +442,6 @@ class Scene:
         if self.time_origin != 0.0:
             d["time_origin"] = self.time_origin
         d["obstacle"] = [o.to_dict() for o in self.obstacles]
+        if self.shapes:
+            d["shape"] = [shape_to_dict(s) for s in self.shapes]
         return d

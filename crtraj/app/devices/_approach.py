@@ -1,6 +1,6 @@
 """Use case: a planned approach from where the device is to the start of an admitted motion (``--approach``).
 
-`plan_approach` is the `crtraj.hardware.stream._streamer.ApproachPlanner` the stream use
+`plan_approach` is the `ApproachPlanner` (`crtraj.hardware.stream._path`) the stream use
 cases inject into `Streamer.run_path` (the planner lives below hardware, the
 streamer never imports it). It returns the motion's path with an approach
 that ends at the motion's first time (its t = 0 in the scene's clock), found

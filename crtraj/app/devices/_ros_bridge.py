@@ -36,7 +36,6 @@ from crtraj.core.fileio import (
 )
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.ros import (
-    PARAMETERS,
     VERIFY_SUBSTEPS,
     JtcParameters,
     McapRecorder,
@@ -44,6 +43,8 @@ from crtraj.hardware.ros import (
     RosNode,
     RosOptions,
     check_parameters,
+    detect_distro,
+    parameter_names,
 )
 from crtraj.hardware.verify import FrameVerifier
 from crtraj.io.problem import Problem
@@ -53,6 +54,7 @@ from crtraj.world.scene import Scene
 
 log = logging.getLogger(__name__)
 PARAMETER_TIMEOUT = 2.0  # s to wait for the controller's parameter service
+PARAMETER_ANSWERS = 5.0  # s more for its answers, once found (a loaded graph answers slowly; no loop runs yet)
 
 
 @dataclass(frozen=True)
@@ -101,21 +103,42 @@ def _await_robot(node: RosNode, feed: ObstacleFeed, ros: RosOptions) -> JtcParam
 
 
 def _controller_parameters(node: RosNode, ros: RosOptions) -> JtcParameters:
-    """The controller's parameters through ``/<controller>/get_parameters`` (`check_parameters`); when the
-    service does not answer, the defaults, and a warning that nothing was checked."""
-    values = node.get_parameters(ros.controller, list(PARAMETERS), min(ros.start_timeout, PARAMETER_TIMEOUT))
+    """The controller's parameters through ``/<controller>/get_parameters`` (`check_parameters`, one line naming the
+    parameter on a refusal); when the service does not answer, a warning that nothing was checked and the model of
+    ``ros.distro`` (Humble for "auto") with its defaults."""
+    wait = min(ros.start_timeout, PARAMETER_TIMEOUT)
+    values = node.get_parameters(ros.controller, parameter_names(node.names), wait, PARAMETER_ANSWERS)
     if values is None:
+        params, why = check_parameters(ros.controller, {}, node.names, distro=ros.distro, update_rate=ros.update_rate)
         log.warning(
-            "ros: /%s/get_parameters did not answer within %g s: the controller's parameters are NOT checked; "
-            "the bridge assumes the defaults (interpolation_method splines) and open_loop_control: true",
+            "ros: /%s/get_parameters did not answer within %g s: the controller's parameters are NOT checked; the "
+            "bridge assumes %s's defaults (set ros.distro when that is not the robot's release)",
             ros.controller,
-            min(ros.start_timeout, PARAMETER_TIMEOUT),
+            wait,
+            params.distro,
         )
-        return JtcParameters()
-    params, why = check_parameters(ros.controller, values, node.names)
+    else:
+        params, why = check_parameters(
+            ros.controller, values, node.names, distro=ros.distro, update_rate=ros.update_rate
+        )
+        if detect_distro(values) is None:
+            log.warning(
+                "ros: %s declares none of allow_trajectory_replacement, interpolate_from_desired_state and "
+                "open_loop_control (is it a joint_trajectory_controller?): its release is unknown; the bridge "
+                "assumes %s (ros.distro)",
+                ros.controller,
+                params.distro,
+            )
+    scaling = f"/{ros.controller}/speed_scaling_input"
+    if not why and params.distro != "humble" and node.node.count_publishers(scaling):
+        why = (
+            f"ros.controller: something publishes on {scaling}, which changes {ros.controller}'s speed scaling while "
+            "it runs (the trajectory would not run as verified); stop that publisher"
+        )
     if why:
         raise InputError(why)
-    log.info("ros: %s parameters checked: %s", ros.controller, values)
+    log.info("ros: %s (%s, lookahead %g s) parameters checked: %s", ros.controller, params.distro, params.lookahead,
+             values)  # fmt: skip
     return params
 
 
@@ -139,9 +162,8 @@ def _plan_first(loop: Any, node: RosNode, acts: Actuators) -> None:
     the loop's clock starts: in the first step the planner would take longer than ``ros.lead``. (Every
     step still checks the reference against the obstacles of its time and replans when it is blocked.)"""
     st = node.joint_state()
-    scene, _ = loop.obstacles.at(0.0)
-    if st is not None and scene is not None:
-        loop.initial_reference = loop.reference_source(loop.servo.config(acts.actuation(st[0])), 0.0, scene)
+    if st is not None:
+        loop.plan_first_reference(acts.actuation(st[0]))
 
 
 def run_ros_bridge(

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from crtraj.app.lab._calibration_report import calibrated_text, report_dict, report_lines, toml_changes
+from crtraj.app.lab._calibration_report import calibrated_text, report_dict, report_lines
 from crtraj.app.lab._record import marker_sites, record_dataset
 from crtraj.core.errors import InputError
 from crtraj.core.fields import MAX_LENGTH, check_float
@@ -67,7 +67,7 @@ from crtraj.model.calibration import (
 )
 from crtraj.model.robot import Robot
 
-__all__ = ["calibrate", "calibrate_command", "gate", "toml_changes"]
+__all__ = ["calibrate", "calibrate_command", "gate"]
 
 logger = logging.getLogger(__name__)
 

@@ -91,17 +91,12 @@ from crtraj.control.horizon._build import (
 from crtraj.control.horizon._obstacles import ObstacleTable
 from crtraj.control.horizon._options import (
     DIVERGED,
-    HESSIANS,
-    INTERPOLATION_GAIN,
-    MOVED_TO_LOOP,
-    QP_SOLVERS,
-    SOLVERS,
     HorizonResult,
     HorizonStatus,
     ReplanOptions,
     horizon_status,
 )
-from crtraj.control.horizon._rows import implied_rows, merge_parallel_rows, sagitta, shift_index
+from crtraj.control.horizon._rows import sagitta
 from crtraj.control.horizon._stage import StageSolver
 from crtraj.core.errors import InputError
 from crtraj.core.fields import check_float
@@ -109,23 +104,7 @@ from crtraj.model.kinematics import Model
 from crtraj.model.rate_limits import RateLimits
 from crtraj.world import margin, packing
 
-__all__ = [
-    "DIVERGED",
-    "HESSIANS",
-    "INTERPOLATION_GAIN",
-    "MOVED_TO_LOOP",
-    "QP_SOLVERS",
-    "SOLVERS",
-    "HorizonResult",
-    "HorizonStatus",
-    "ReplanOptions",
-    "Replanner",
-    "horizon_status",
-    "implied_rows",
-    "merge_parallel_rows",
-    "sagitta",
-    "shift_index",
-]
+__all__ = ["Replanner"]
 
 log = logging.getLogger(__name__)
 

@@ -54,12 +54,12 @@ from crtraj.control.horizon import HorizonStatus, Replanner
 from crtraj.control.loop._problem import ProblemLike, ProblemRun, spec_from_problem
 from crtraj.control.loop._recorder import RunEnding
 from crtraj.control.loop._reference import ReferencePlan
-from crtraj.control.loop._run_record import REPORT_POINTS, ReplanRun, RunStatus, StateRecord, StepRecord, StepStatus
+from crtraj.control.loop._run_record import ReplanRun, RunStatus, StateRecord, StepRecord, StepStatus
 from crtraj.control.loop._setup import LoopConfig, LoopParts, LoopSpec, assemble
 from crtraj.control.loop._step_policy import Choice, RobotNow
 from crtraj.control.ports import Device, DeviceError, Landing, StepObserver
 
-__all__ = ["REPORT_POINTS", "ClosedLoop", "ReplanRun", "RunStatus", "StepStatus"]
+__all__ = ["ClosedLoop"]
 
 # LoopSpec fields whose None means "the default"
 _DEFAULTED = ("options", "loop_options", "tracking", "extra_options", "clock")
@@ -114,10 +114,6 @@ class ClosedLoop:
         self.n_sub, self.rate_limits = config.n_sub, config.rate_limits
         self.tracker, self.servo = parts.tracker, parts.tracker.servo
         self.replanner: Replanner = parts.policy.replanner
-        self.obstacles = parts.obstacles
-        self.references = parts.references
-        self.reference_source = parts.references.source
-        self.clock = parts.pacer.clock
 
     @classmethod
     def build(cls, model: Any, scene: Any, goal: Any, start_config: Any, **options: Any) -> ClosedLoop:
@@ -143,11 +139,23 @@ class ClosedLoop:
     @property
     def initial_reference(self) -> ReferencePlan | None:
         """A reference planned from the start at t = 0 (the first step follows it), or None."""
-        return self.references.initial
+        return self.parts.references.initial
 
     @initial_reference.setter
     def initial_reference(self, plan: ReferencePlan | None) -> None:
-        self.references.initial = plan
+        self.parts.references.initial = plan
+
+    def start_command(self) -> np.ndarray:
+        """The actuation (nq,) mm a run without a device starts from: the tracker's command at the start
+        configuration."""
+        return self.tracker.initial_command(self.x_start)
+
+    def plan_first_reference(self, q: np.ndarray) -> None:
+        """Plan the first reference path (`initial_reference`) from actuation q (nq,) mm among the obstacles as
+        the loop's source has them at t = 0, before the run; nothing while the source has no state yet."""
+        scene, _ = self.parts.obstacles.at(0.0)
+        if scene is not None:
+            self.parts.references.plan_before(self.servo.config(q), scene)
 
     @property
     def scene_now(self) -> Any:
@@ -183,7 +191,7 @@ class ClosedLoop:
         p = self.parts
         live = bool(p.obstacles.live)
         realtime = live if realtime is None or device is not None else bool(realtime)
-        q = self.tracker.initial_command(self.x_start) if device is None else device.start_actuation()
+        q = self.start_command() if device is None else device.start_actuation()
         x = self.servo.config(q)
         robot = _Robot(0.0, q, q.copy(), x, x.copy(), q, np.zeros_like(x))
         for part in (p.tip, p.references, p.recorder, p.policy):
@@ -282,7 +290,7 @@ class ClosedLoop:
         settled_since: float | None = None
         for k in range(lo.steps(self.options.dt)):
             t = robot.t
-            t_iter = self.clock.now()
+            t_iter = self.parts.pacer.now()
             if device is not None:
                 why_not = device.problem()
                 if why_not:
@@ -322,9 +330,9 @@ class ClosedLoop:
         X_ref = p.references.horizon_reference(robot.x, rp.N, dt)
         obstacles = rp.obstacles_from_scene(scene_t, t, robot.x)
         deadline = self.options.step_deadline
-        left = deadline - (self.clock.now() - t_iter) if deadline else None
+        left = deadline - (self.parts.pacer.now() - t_iter) if deadline else None
         late = p.policy.solve(robot.x, X_ref, obstacles, robot.x_prev, left)
-        res = p.policy.judge_deadline(late, self.clock.now() - t_iter + refs[3] - p.references.waited)
+        res = p.policy.judge_deadline(late, self.parts.pacer.now() - t_iter + refs[3] - p.references.waited)
         if res is not late:
             p.recorder.count_deadline_miss()
         p.references.note_nlp(failed=not res.feasible and res.status is not HorizonStatus.SKIPPED)
@@ -342,7 +350,7 @@ class ClosedLoop:
             reason, plan_time, replanned, charged = "", 0.0, False, 0.0
         else:
             choice, res, (reason, plan_time, replanned, charged) = self._decide(k, robot, scene_t, t_iter)
-        iter_time = self.clock.now() - t_iter + charged - p.references.take_waited()
+        iter_time = self.parts.pacer.now() - t_iter + charged - p.references.take_waited()
         m = choice.motion
         q_new, qc_new, T, X, cmds = m.q, m.qc, m.times, m.configs, m.commands
         periods = p.motion.periods(robot.q, cmds)

@@ -113,6 +113,11 @@ def spec_from_problem(problem: ProblemLike, run: ProblemRun) -> LoopSpec:
     popts = problem.options(PlannerOptions, "planner")
     sopts = problem.options(SteerOptions, "steer")
     scene = Scene.from_table(problem.section("scene"))
+    if scene.shapes:  # refused before any planning: the replanner's NLP would not see them
+        raise InputError(
+            f"scene.shape: {scene.n_shapes} shape(s), but the receding-horizon replanner keeps its points from "
+            "spheres only; plan this scene with `crtraj plan`, or give its obstacles as [[scene.obstacle]] spheres"
+        )
     feed_options = problem.options(FeedOptions, "feed")  # checked even without a feed
     model = Model(problem.robot)
     planner = make_planner(model, scene, popts, sopts)

@@ -161,6 +161,11 @@ class ReferenceManager:
         self.t_last_attempt = t
         self.first_plan = (f"{reason}: {plan.status}", plan.wall_time, self.adopt(0, t, plan, None))
 
+    def plan_before(self, x: np.ndarray, scene: Any) -> None:
+        """Plan the reference the run starts with (`initial`) from configuration x (nx,) at t = 0 among `scene`,
+        before the run."""
+        self.initial = self.source(x, 0.0, scene)
+
     def start_worker(self, realtime: bool) -> None:
         """Start the reference worker with ``loop.reference_delay > 0`` (none without a delay, or on a
         platform without fork: logged). A simulated run waits for a due reference (real time would have

@@ -70,9 +70,9 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from crtraj.control.tracking._design import TrackingDesign, control, lqr_design
+from crtraj.control.tracking._design import TrackingDesign, lqr_design
 from crtraj.control.tracking._limits import ActuationLimits, accelerate, braking
-from crtraj.control.tracking._options import MODES, TrackingOptions
+from crtraj.control.tracking._options import TrackingOptions
 from crtraj.control.tracking._servo import MAX_PERIODS, ServoModel
 from crtraj.core.errors import InputError
 from crtraj.core.fields import check_float
@@ -80,16 +80,7 @@ from crtraj.model.kinematics import Model
 from crtraj.model.rate_limits import RateLimits
 
 # the names this module has always offered (`control`: the lazily imported python-control, used by the design)
-__all__ = [
-    "MODES",
-    "ServoModel",
-    "TrackingCommand",
-    "TrackingController",
-    "TrackingDesign",
-    "TrackingOptions",
-    "TrackingRun",
-    "control",
-]
+__all__ = ["TrackingCommand", "TrackingController", "TrackingRun"]
 
 
 @dataclass(frozen=True)

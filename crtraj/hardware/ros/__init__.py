@@ -11,7 +11,7 @@ from crtraj.core.lazy import lazy_exports
 __all__, __getattr__, __dir__ = lazy_exports(
     __name__,
     {
-        "crtraj.hardware.ros._controller": ("PARAMETERS", "check_parameters"),
+        "crtraj.hardware.ros._controller": ("check_parameters", "detect_distro", "parameter_names"),
         "crtraj.hardware.ros._device": ("RosDevice", "VERIFY_SUBSTEPS"),
         "crtraj.hardware.ros._jtc": ("JtcParameters",),
         "crtraj.hardware.ros._node": ("RosNode", "domain_id"),

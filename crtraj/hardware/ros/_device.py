@@ -50,7 +50,9 @@ class RosDevice:
 
     Time (pipelined): the bridge's `clock` (s; the ROS clock by default, a virtual one in tests) stamps
     what is sent; loop time t is clock time origin + t, and step t is computed and sent `lead` s before
-    it starts. The measurement at loop time t is the committed curve at t, corrected by the newest
+    it starts. Messages are stamped `controller.lookahead` s later than that (`jtc.message_epoch`): Jazzy
+    and later write their trajectory sampled one update period ahead, so each cycle commands the
+    committed curve at its own time. The measurement at loop time t is the committed curve at t, corrected by the newest
     joint state's deviation from it at the state's stamp, decayed with the servo's lag; a joint state
     older than ``ros.joint_state_timeout`` s means the robot is lost and the run ends. A message may
     take up to `arrival_margin` s to reach the controller: a step ready later than that before its
@@ -201,7 +203,8 @@ class RosDevice:
             )
         values, vel = self.samples(q0, commands)
         names = tuple(self.node.names)
-        msg = step_message(self._curve, now, t, (self.offsets, values, vel), self.actuators.amax, names, self._origin)
+        epoch = jtc.message_epoch(self._origin, self.controller)
+        msg = step_message(self._curve, now, t, (self.offsets, values, vel), self.actuators.amax, names, epoch)
         why = self._verify(msg, now)
         if why is not None:
             self._refuse(t, why)
@@ -214,13 +217,14 @@ class RosDevice:
         """Check `msg` sent at loop time `now` as the controller will take and execute it; publish it and make
         its executed curve the committed one when it passes; else the reason."""
         names = tuple(self.node.names)
-        why = jtc.rejection(msg, names, now, self.controller, epoch=self._origin)
+        epoch = jtc.message_epoch(self._origin, self.controller)
+        why = jtc.rejection(msg, names, now, self.controller, epoch=epoch)
         if why is not None:
             return f"the controller would refuse it: {why}"
         # the point before the trajectory is the controller's lagged state (never used: the message's first point
         # is already due when it arrives; `crtraj.hardware.ros._shaping`)
         p0, v0 = jtc.state_before(self._curve, now, self.state_lag)
-        curve = jtc.executed(msg, now, p0, v0, epoch=self._origin)
+        curve = jtc.executed(msg, now, p0, v0, epoch=epoch)
         stamps = now + self.spacing * np.arange(math.ceil((curve.end - now) / self.spacing - 1e-9) + 1)
         P, V, _ = curve.at(stamps)
         why = self.verifier.with_scene(self.scene_now()).failure(stamps[1:], P[1:], start=P[0], start_velocity=V[0])
@@ -235,7 +239,7 @@ class RosDevice:
         tfs = np.array([p.time_from_start for p in msg.points])
         pos = np.array([p.positions for p in msg.points])
         vel = np.array([p.velocities for p in msg.points])
-        self.node.publish_trajectory(self._origin + msg.stamp, tfs, pos, vel)
+        self.node.publish_trajectory(jtc.message_epoch(self._origin, self.controller) + msg.stamp, tfs, pos, vel)
         self._curve = self._curve.since(stamps[0] - 2.0).then(curve)
         publish_path = getattr(self.node, "publish_path", None)
         if publish_path is not None and self.model is not None:
@@ -282,13 +286,14 @@ class RosDevice:
         if self._last is None:
             return
         now = self.clock() - self._origin
-        msg = hold_message(self._curve, now, self.dt / self.n_points, tuple(self.node.names), self._origin)
+        epoch = jtc.message_epoch(self._origin, self.controller)
+        msg = hold_message(self._curve, now, self.dt / self.n_points, tuple(self.node.names), epoch)
         tfs = np.array([p.time_from_start for p in msg.points])
         pos = np.array([p.positions for p in msg.points])
         vel = np.array([p.velocities for p in msg.points])
-        self.node.publish_trajectory(self._origin + msg.stamp, tfs, pos, vel)
+        self.node.publish_trajectory(epoch + msg.stamp, tfs, pos, vel)
         p0, v0 = jtc.state_before(self._curve, now, self.state_lag)
-        self._curve = self._curve.since(now - 2.0).then(jtc.executed(msg, now, p0, v0, epoch=self._origin))
+        self._curve = self._curve.since(now - 2.0).then(jtc.executed(msg, now, p0, v0, epoch=epoch))
         self._vel = np.zeros(self.actuators.n)
         self._qc = self.actuators.actuation(self._curve.positions[-1])
         self.holds += 1

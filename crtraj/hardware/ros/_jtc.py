@@ -8,12 +8,14 @@ The model follows the controller's documented behaviour on its topic interface
   every joint at every point, velocity and acceleration arrays empty or one per joint, no efforts,
   ``time_from_start`` strictly increasing, a non-zero ``header.stamp`` whose last point lies in the
   past refused, and a last point with non-zero velocity refused unless
-  ``allow_nonzero_velocity_at_trajectory_end`` (false by default in current releases).
+  ``allow_nonzero_velocity_at_trajectory_end`` (by more than float epsilon; the parameter is true by default on
+  Humble, false on Jazzy and Rolling).
 - An accepted message replaces the current trajectory at once. At its first control cycle (the
   arrival) the controller stores its state as "the point before the trajectory" (the measured
-  state, or the last command with ``open_loop_control``), stamped with the arrival time. That state
-  is read at the start of the update, before the cycle's command: it is the state one controller
-  period old (`state_before`, lag ``1 / update_rate``), not the state at the arrival time.
+  state, or the last command with Humble's ``open_loop_control`` / later ``interpolate_from_desired_state``),
+  stamped with the arrival time. That state is read at the start of the update, before the cycle's
+  command: it is the state one controller period old (`state_before`, lag ``1 / update_rate``), not the
+  state at the arrival time.
 - ``header.stamp`` 0 means "start now": the start time becomes the arrival time. Point k is due at
   start + ``time_from_start[k]``.
 - Between the point before and the first point, and between consecutive points, the controller
@@ -21,6 +23,13 @@ The model follows the controller's documented behaviour on its topic interface
   both carry velocities, linear otherwise. Before the first point is due the first segment runs
   from the arrival; once a point's time has passed the segment that contains the time is used.
 - After the last point it holds the last point (its positions and velocities).
+- Per distro (`JtcParameters.distro`): Humble writes the trajectory sampled at the cycle time; Jazzy and Rolling
+  sample it one update period ahead (`JtcParameters.lookahead`; with a speed scaling factor of 1, which the bridge
+  requires). Rolling's ``allow_trajectory_replacement`` (true by default) blends a message into the running
+  trajectory instead of replacing it, re-anchored at the previous cycle: the old curve then runs one period late
+  until the new stamp, and a stamp not in the future starts at the arrival cycle, which the bridge cannot know.
+  The model does not cover that blend: the bridge refuses the parameter
+  (`crtraj.hardware.ros._controller.check_parameters`).
 
 Everything here is plain numpy (no rclpy): times in s, values in any consistent unit (rad, mm).
 """
@@ -35,6 +44,12 @@ import numpy as np
 LINEAR, CUBIC, QUINTIC = "linear", "cubic", "quintic"
 
 
+# the ros2_controllers releases whose JTC semantics differ (master is Rolling)
+DISTROS = ("humble", "jazzy", "rolling")
+# the controller's tolerance on a last point's velocity (std::numeric_limits<float>::epsilon())
+FLOAT_EPS = float(np.finfo(np.float32).eps)
+
+
 @dataclass(frozen=True)
 class JtcParameters:
     """The controller parameters the model depends on (names as in the JTC parameter file).
@@ -43,11 +58,24 @@ class JtcParameters:
     allow_partial_joints_goal: accept a message naming only some of the controller's joints.
     interpolation_method: "splines" (the model) or "none" (the controller jumps to each point; not
     supported by the bridge).
+    distro: "humble", "jazzy" or "rolling" (`crtraj.hardware.ros._controller.detect_distro`).
+    lookahead: s the command is sampled ahead of the cycle time (Jazzy and later: one update period,
+    1 / update_rate; Humble: 0). The bridge stamps its messages that much later (`message_epoch`), so the
+    command written at cycle time t is the verified curve at t.
     """
 
     allow_nonzero_velocity_at_trajectory_end: bool = False
     allow_partial_joints_goal: bool = False
     interpolation_method: str = "splines"
+    distro: str = "humble"
+    lookahead: float = 0.0
+
+
+def message_epoch(origin: float, params: JtcParameters) -> float:
+    """The controller clock time (s) of loop time 0 of the bridge's messages: `origin` (the loop's) plus the
+    controller's lookahead, so a controller that commands its trajectory `lookahead` s ahead commands the verified
+    curve at each cycle's own time."""
+    return float(origin) + float(params.lookahead)
 
 
 @dataclass(frozen=True)
@@ -139,8 +167,9 @@ def rejection(
         if why is not None:
             return why
     last = msg.points[-1]
-    if not params.allow_nonzero_velocity_at_trajectory_end and last.velocities.size and np.any(last.velocities != 0):
-        j = int(np.flatnonzero(last.velocities != 0.0)[0])
+    moving = np.abs(last.velocities) > FLOAT_EPS
+    if not params.allow_nonzero_velocity_at_trajectory_end and last.velocities.size and np.any(moving):
+        j = int(np.flatnonzero(moving)[0])
         return f"velocity of the last point of joint {names[j]!r} is not zero ({last.velocities[j]:.15g})"
     return None
 

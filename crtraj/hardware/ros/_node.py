@@ -35,6 +35,8 @@ from crtraj.hardware.ros._options import RosOptions
 
 MAX_EVENTS = 1000  # rejected messages kept (the counts stay exact beyond it)
 DEFAULT_RMW = "rmw_fastrtps_cpp"  # the RMW wheel the [ros] extra installs
+# parameter requests in flight at once: a service's default QoS keeps the last 10 requests and drops older ones
+PARAMETER_WINDOW = 8
 
 
 def ros_environment(options: RosOptions) -> dict[str, str]:
@@ -272,23 +274,46 @@ class RosNode:
                 return self._traj.get_subscription_count() > 0
         return True
 
-    def get_parameters(self, node_name: str, names: list[str], timeout: float) -> dict[str, Any] | None:
-        """The values of parameters `names` of node `node_name` through its ``get_parameters`` service (None
-        for a parameter it does not have); None when the service does not answer within `timeout` s."""
+    def get_parameters(
+        self, node_name: str, names: list[str], timeout: float, answer_timeout: float | None = None
+    ) -> dict[str, Any] | None:
+        """The values of parameters `names` of node `node_name` through its ``get_parameters`` service (None for a
+        parameter it does not declare); None when the service is not found within `timeout` s, or does not answer
+        every request within `answer_timeout` s more (default `timeout`). One request per name, `PARAMETER_WINDOW`
+        in flight at once: rclcpp's service answers a request naming one undeclared parameter with no values at
+        all, and which ones a controller declares differs per release."""
         from rcl_interfaces.srv import GetParameters
 
         client = self.node.create_client(GetParameters, f"/{node_name}/get_parameters")
         try:
             if not client.wait_for_service(timeout_sec=timeout):
                 return None
-            done = threading.Event()
-            future = client.call_async(GetParameters.Request(names=names))
-            future.add_done_callback(lambda _: done.set())
-            if not done.wait(timeout) or future.result() is None:
-                return None
-            return {n: parameter_value(v) for n, v in zip(names, future.result().values, strict=False)}
+            end = time.monotonic() + (timeout if answer_timeout is None else answer_timeout)
+            out: dict[str, Any] = {}
+            for k in range(0, len(names), PARAMETER_WINDOW):
+                batch = names[k : k + PARAMETER_WINDOW]
+                answers = self._ask(client, batch, end)
+                if answers is None:
+                    return None
+                out.update(zip(batch, answers, strict=True))
+            return out
         finally:
             self.node.destroy_client(client)
+
+    def _ask(self, client: Any, names: list[str], end: float) -> list[Any] | None:
+        """One request per name of `names`, all in flight at once: their values (None: not declared), or None when
+        they are not all answered by monotonic time `end`."""
+        from rcl_interfaces.srv import GetParameters
+
+        pending = threading.Semaphore(0)
+        futures = [client.call_async(GetParameters.Request(names=[n])) for n in names]
+        for f in futures:
+            f.add_done_callback(lambda _: pending.release())
+        for _ in futures:
+            if not pending.acquire(timeout=max(end - time.monotonic(), 0.0)):
+                return None
+        values = [[] if f.result() is None else list(f.result().values) for f in futures]
+        return [parameter_value(v[0]) if v else None for v in values]
 
     def matched(self) -> tuple[int, int]:
         """(subscribers of the trajectory topic, publishers of the joint-state topic) seen so far."""

@@ -39,6 +39,10 @@ class RosOptions(Options):
     state_lag: s the controller's state lags its command when it reads it for the point before a
     new trajectory (one update period of ros2_control, 1 / update_rate; the bridge's messages never
     use that point, and its verification models it).
+    distro: the ros2_controllers release of the controller ("auto": told by the parameters it declares;
+    `crtraj.hardware.ros._controller.detect_distro`); it decides how the messages are stamped when the
+    controller's parameter service does not answer (then "auto" means Humble). update_rate: Hz of the
+    controller (0: its own ``update_rate`` parameter); Jazzy and later sample the trajectory one period ahead.
     joint_state_timeout: s the bridge waits for a joint state at least as new as the step it
     measures before it gives up on the robot. start_timeout: s to wait for the first joint state
     and obstacles. max_age: s after which an obstacle's state is stale (the loop then holds).
@@ -64,6 +68,8 @@ class RosOptions(Options):
     lead: float = option(0.2, ge=0.0, le=10.0)
     arrival_margin: float = option(0.02, ge=0.0, le=1.0)
     state_lag: float = option(0.01, ge=0.0, le=1.0)
+    distro: str = option("auto", choices=("auto", "humble", "jazzy", "rolling"))
+    update_rate: float = option(0.0, ge=0.0, le=100000.0)
     joint_state_timeout: float = option(1.0, gt=0.0, le=60.0)
     start_timeout: float = option(10.0, gt=0.0, le=600.0)
     max_age: float = option(0.2, gt=0.0, le=60.0)

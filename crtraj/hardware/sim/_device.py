@@ -31,9 +31,8 @@ import numpy as np
 from crtraj.core.errors import InputError
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.sim._device_core import Applied, DeviceCore, LimitViolation
-from crtraj.hardware.sim._servo import ServoProfile
 
-__all__ = ["Applied", "DeviceCore", "Faults", "LimitViolation", "ServoProfile", "SimDevice"]
+__all__ = ["Faults", "SimDevice"]
 
 logger = logging.getLogger(__name__)
 

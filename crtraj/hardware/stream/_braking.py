@@ -14,11 +14,11 @@ the last set-point as before, and that is counted (`BrakeCounts.latched`) and re
 
 from __future__ import annotations
 
-from crtraj.control.braking import BrakeCounts, BrakePlan, StopVerifier, stop_frames
 from crtraj.control.braking import Braking as _Braking
+from crtraj.control.braking import StopVerifier
 from crtraj.hardware.actuators import Actuators
 
-__all__ = ["BrakeCounts", "BrakePlan", "Braking", "stop_frames"]
+__all__ = ["Braking"]
 
 
 class Braking(_Braking):

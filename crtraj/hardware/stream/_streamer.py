@@ -76,14 +76,7 @@ from crtraj.hardware.stream._state import (
 )
 from crtraj.hardware.transport import Transport, TransportError
 
-__all__ = [
-    "ApproachPlanner",
-    "StreamError",
-    "StreamOptions",
-    "StreamReport",
-    "Streamer",
-    "open_link",
-]
+__all__ = ["StreamReport", "Streamer", "open_link"]
 
 
 def open_link(target: str, actuators: Actuators, **dynamixel: Any) -> Transport:

@@ -30,6 +30,9 @@ whole body keeps the safety distance from every obstacle, in three stages:
    so the NLP's solutions pass the planner's checks (they are re-verified
    anyway). Obstacles, target and reference are parameters: the NLP is
    built once per (model, max obstacles), on first use, and re-solved.
+   A scene's other shapes add ``d_k(p_i(x)) >= inflate`` per check point with d_k the shape's NLP distance
+   (`crtraj.world.geometry.ShapeTerms`: a lower bound; their poses are parameters, the NLP is rebuilt only
+   for another set of shapes).
 
 Seeds pull toward their own random configurations, so the kept solutions
 spread over the robot's redundancy (3 tip equalities leave a 2-D family of
@@ -53,11 +56,60 @@ from crtraj.planning.ik._rescue import IKRescue
 from crtraj.planning.ik._run import IKRun, format_statuses
 from crtraj.planning.validity import MotionValidator, ProjectionLimits, ProjectionSteps
 from crtraj.world import packing
+from crtraj.world.geometry import ShapeTerms
 
 PUSH_EXTRA = 2.0  # mm of clearance a push-out step asks for beyond the required one (overshoot, so few steps)
 PUSH_STEP = 40.0  # mm: largest body motion of one push-out step (the linear model's trust region)
 PUSH_FD = 1e-3  # mm of body motion per finite-difference step of the clearance gradient
 PUSH_NEWTON = 4  # Newton steps back onto the target after each push-out step
+
+
+def build_nlp(
+    model: Model, validator: MotionValidator, M: int, terms: ShapeTerms, max_iter: int
+) -> tuple[ca.Function, np.ndarray, np.ndarray]:
+    """The safe IK's IPOPT NLP (module docstring, stage 3) for M sphere slots and the shapes of `terms`, with
+    its constraint bounds (lbg, ubg)."""
+    n = validator.check_points
+    x = ca.SX.sym("x", model.robot.nx)
+    goal = ca.SX.sym("goal", 3)
+    obs = ca.SX.sym("obstacles", packing.WIDTH * M)
+    xref = ca.SX.sym("x_ref", model.robot.nx)
+    inflate = ca.SX.sym("inflate")
+    Mm = ca.DM(validator.metric_matrix / 100.0)
+    f = ca.sumsqr(Mm @ (x - xref))
+    g = [model.tip(x) - goal, model.limits(x)]
+    lbg = [np.zeros(3), model.limit_bounds()[0]]
+    ubg = [np.zeros(3), model.limit_bounds()[1]]
+    pts = model.backbone_function(n)(x)  # 3 x n
+    if M:
+        h = model.robot.total_length / (n - 1)
+        cl = []
+        for j in range(M):
+            c, radius, act = packing.slot(obs, j)
+            r = radius + inflate
+            d2 = ca.sum1((pts - ca.repmat(c, 1, n)) ** 2)
+            # padding slots have active = 0: the row is 0 >= 0 and inert
+            cl.append((act * ((d2 - (h / 2.0) ** 2) / (r * r) - 1.0)).T)
+        g.append(ca.vertcat(*cl))
+        lbg.append(np.zeros(n * M))
+        ubg.append(np.full(n * M, np.inf))
+    shapes = terms.symbols()
+    if terms.shapes:  # each check point keeps inflate from each shape (its lower bound over the window)
+        rows = terms.distances(pts, shapes)
+        g.append(ca.vertcat(*[(row - inflate).T for row in rows]))
+        lbg.append(np.zeros(n * len(rows)))
+        ubg.append(np.full(n * len(rows), np.inf))
+    nlp = {"x": x, "p": ca.vertcat(goal, obs, xref, inflate, shapes), "f": f, "g": ca.vertcat(*g)}
+    opts = {
+        "ipopt.print_level": 0,
+        "print_time": False,
+        "ipopt.sb": "yes",
+        "ipopt.max_iter": max_iter,
+        "ipopt.tol": 1e-8,
+        "ipopt.constr_viol_tol": 1e-7,
+        "error_on_fail": False,
+    }
+    return ca.nlpsol("safe_ik", "ipopt", nlp, opts), np.concatenate(lbg), np.concatenate(ubg)
 
 
 @dataclass(frozen=True)
@@ -133,6 +185,10 @@ class SafeIK:
         self.rescue = IKRescue(self, self.robot.nx, rescue_starts)
         self._solver: ca.Function | None = None
         self._lbg = self._ubg = np.zeros(0)
+        # the scene's other shapes (boxes, meshes, ...) in the NLP, with their poses as parameters: the NLP
+        # is rebuilt only when a query brings other shapes (`_shape_terms`)
+        self._terms = ShapeTerms(())
+        self._terms_key: tuple[int, ...] = ()
         self._box = self.robot.config_box()
         x = ca.SX.sym("x", self.robot.nx)
         # batch projection (stage 1): tip and Jacobian in one call, mapped per batch size
@@ -156,45 +212,10 @@ class SafeIK:
         return self._solver
 
     def _build(self) -> ca.Function:
-        model, validator = self.model, self.validator
-        M = self.max_obstacles
-        n = validator.check_points
-        x = ca.SX.sym("x", self.robot.nx)
-        goal = ca.SX.sym("goal", 3)
-        obs = ca.SX.sym("obstacles", packing.WIDTH * M)
-        xref = ca.SX.sym("x_ref", self.robot.nx)
-        inflate = ca.SX.sym("inflate")
-        Mm = ca.DM(validator.metric_matrix / 100.0)
-        f = ca.sumsqr(Mm @ (x - xref))
-        g = [model.tip(x) - goal, model.limits(x)]
-        lbg = [np.zeros(3), model.limit_bounds()[0]]
-        ubg = [np.zeros(3), model.limit_bounds()[1]]
-        if M:
-            pts = model.backbone_function(n)(x)  # 3 x n
-            h = self.robot.total_length / (n - 1)
-            cl = []
-            for j in range(M):
-                c, radius, act = packing.slot(obs, j)
-                r = radius + inflate
-                d2 = ca.sum1((pts - ca.repmat(c, 1, n)) ** 2)
-                # padding slots have active = 0: the row is 0 >= 0 and inert
-                cl.append((act * ((d2 - (h / 2.0) ** 2) / (r * r) - 1.0)).T)
-            g.append(ca.vertcat(*cl))
-            lbg.append(np.zeros(n * M))
-            ubg.append(np.full(n * M, np.inf))
-        self._lbg = np.concatenate(lbg)
-        self._ubg = np.concatenate(ubg)
-        nlp = {"x": x, "p": ca.vertcat(goal, obs, xref, inflate), "f": f, "g": ca.vertcat(*g)}
-        opts = {
-            "ipopt.print_level": 0,
-            "print_time": False,
-            "ipopt.sb": "yes",
-            "ipopt.max_iter": self.max_iter,
-            "ipopt.tol": 1e-8,
-            "ipopt.constr_viol_tol": 1e-7,
-            "error_on_fail": False,
-        }
-        return ca.nlpsol("safe_ik", "ipopt", nlp, opts)
+        solver, self._lbg, self._ubg = build_nlp(
+            self.model, self.validator, self.max_obstacles, self._terms, self.max_iter
+        )
+        return solver
 
     def project(self, target: np.ndarray, seeds: np.ndarray, iterations: int) -> tuple[np.ndarray, np.ndarray]:
         """Batch damped-Newton projection of every seed onto tip(x) = target, ignoring obstacles.
@@ -453,6 +474,7 @@ class SafeIK:
         order = rest[np.lexsort((err[rest], -np.where(converged[rest], clear[rest], -np.inf)))]
         order = np.concatenate([forced, [i for i in order if i not in forced]]).astype(int)
         inflate = run.v.inflate + self.margin
+        shape_values = self._shape_terms(run.v.scene, run.t_check)
         if max_nlp is not None:
             order = order[: max(0, int(max_nlp))]
         for i in order:
@@ -466,11 +488,21 @@ class SafeIK:
                 run.statuses["rescue"] = run.statuses.get("rescue", 0) + 1
                 continue
             # start from the projection, stay close to the seed itself
-            p = np.concatenate([run.target, scene_pack, run.seeds[i], [inflate]])
+            p = np.concatenate([run.target, scene_pack, run.seeds[i], [inflate], shape_values])
             sol = self._nlp_solve(run, X[i], p)
             run.sols.append(sol)
             if sol.safe and sol.clearance >= run.required:
                 run.keep(sol.x)
+
+    def _shape_terms(self, scene: Any, t_check: tuple[float, float]) -> np.ndarray:
+        """The NLP's shape parameters for `scene` over t_check (s); the NLP is rebuilt when the scene's shapes
+        are not the ones it was built for."""
+        shapes = tuple(getattr(scene, "shapes", ()))
+        key = tuple(id(ms) for ms in shapes)
+        if key != self._terms_key:
+            self._terms, self._terms_key, self._solver = ShapeTerms(shapes), key, None
+        origin = scene.time_origin
+        return self._terms.values(t_check[0] + origin, t_check[1] + origin)
 
     def _nlp_solve(self, run: IKRun, x0: np.ndarray, p: np.ndarray) -> IKSolution:
         """One NLP solve from x0 with parameters p, checked (tip error, limits, clearance over t_check)."""

@@ -25,7 +25,6 @@ from crtraj.core.interrupt import check as check_interrupt
 from crtraj.planning.nlp import NLPBackend
 from crtraj.planning.steer._nlp import NlpCall, SteerNLP, SteerQuery, SteerSolution
 from crtraj.planning.steer._options import IPOPT_DEFAULTS, SQP_DEFAULTS, SteerOptions
-from crtraj.world import packing
 
 _JIT_KEYS = ("jit", "compiler", "jit_options")
 
@@ -196,7 +195,7 @@ class IpoptBackend(NlpsolBackend):
         nlp = self.nlp
         x0 = nlp.robot.straight()
         tip = np.asarray(nlp.model.tip(x0), dtype=float).reshape(-1)
-        p = nlp.parameters(x0, tip, packing.padding(nlp.max_obstacles), 0.0)
+        p = nlp.parameters(x0, tip, nlp.padding(), 0.0)
         lbx, ubx = nlp.step_bounds(x0)
         for solver in (self.solver, self.warm_solver):
             if solver is None:

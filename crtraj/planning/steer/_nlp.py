@@ -18,10 +18,12 @@ import numpy as np
 from crtraj.core.errors import InputError
 from crtraj.planning.steer._options import SteerOptions
 from crtraj.world import margin, packing
+from crtraj.world.geometry import ShapeTerms
 from crtraj.world.scene import Scene
 
 _EPS_D2 = 1e-6  # mm^2, keeps the eq. 18 term finite if a point sits on a centre
 _G_SCALE = 1e-3  # 1/mm^2: collision constraints in units of 1000 mm^2, O(1..10)
+_G_SHAPE = 0.1  # 1/mm: shape constraints in cm
 
 
 def config_scale(robot: Any) -> np.ndarray:
@@ -106,10 +108,13 @@ class SteerNLP:
 
     `problem` is the ``nlpsol`` dictionary (x = y = S x, p, f, g); `check` maps x to (tip, tip Jacobian,
     collision points (3, n_points), limits). Parameters: ``p = [x_prev, target, packed obstacles, D_sf,
-    w_d, w_o]``; constraints: the robot's limits, then one row per (obstacle slot, collision point).
+    w_d, w_o]``, the packed obstacles followed by the shapes' parameters of `terms` (`ShapeTerms`);
+    constraints: the robot's limits, one row per (shape, collision point), then one row per (obstacle slot,
+    collision point).
     """
 
-    def __init__(self, model: Any, max_obstacles: int, options: SteerOptions) -> None:
+    def __init__(self, model: Any, max_obstacles: int, options: SteerOptions, terms: ShapeTerms | None = None) -> None:
+        self.terms = ShapeTerms(()) if terms is None else terms
         self.model = model
         self.robot = model.robot
         self.options = options
@@ -136,7 +141,8 @@ class SteerNLP:
         x = y / S
         x_prev = ca.SX.sym("x_prev", nx)
         target = ca.SX.sym("target", 3)
-        obs = ca.SX.sym("obstacles", packing.WIDTH * M)
+        # the packed spheres, then the shapes' parameters (`ShapeTerms.values`)
+        obs = ca.SX.sym("obstacles", packing.WIDTH * M + self.terms.n_params)
         dsf = ca.SX.sym("safety_distance")
         w_d = ca.SX.sym("w_d")
         w_o = ca.SX.sym("w_o")
@@ -158,12 +164,17 @@ class SteerNLP:
                 g_col.append(act * _G_SCALE * (d2 - rho**2) + (1 - act))
                 pen = pen + act * rho**2 / (d2 + _EPS_D2)
         f = f + w_o * pen
+        # shapes: each point keeps D_sf + body + margin from each shape's lower bound over the window (in cm)
+        keep = margin.keep_out_radius(0.0, dsf, self.robot.body_radius, self.options.margin)
+        rows = self.terms.distances(P, obs[packing.WIDTH * M :]) if self.terms.shapes else []
+        g_shape = [_G_SHAPE * (row - keep).T for row in rows]
+        n_shape = self.n_points * len(rows)
         lbg_lim, ubg_lim = self.model.limit_bounds()
         self.n_col = len(g_col)
         self.lbg_lim, self.ubg_lim = lbg_lim, ubg_lim
-        self.lbg = np.concatenate([lbg_lim, np.zeros(self.n_col)])
-        self.ubg = np.concatenate([ubg_lim, np.full(self.n_col, np.inf)])
-        return {"x": y, "p": p, "f": f, "g": ca.vertcat(glim, *g_col)}
+        self.lbg = np.concatenate([lbg_lim, np.zeros(n_shape), np.zeros(self.n_col)])
+        self.ubg = np.concatenate([ubg_lim, np.full(n_shape + self.n_col, np.inf)])
+        return {"x": y, "p": p, "f": f, "g": ca.vertcat(glim, *g_shape, *g_col)}
 
     # ------------------------------------------------------------ numeric helpers
     def parameters(
@@ -180,6 +191,10 @@ class SteerNLP:
         wo = self.options.obstacle_weight if obstacle_weight is None else obstacle_weight
         return np.concatenate([x_prev, target, packed, [safety_distance, wd, wo]])
 
+    def padding(self) -> np.ndarray:
+        """Obstacle parameters with every sphere slot padding and the shapes as they are at t = 0."""
+        return np.concatenate([packing.padding(self.max_obstacles), self.terms.values(0.0, 0.0)])
+
     def step_bounds(self, x_prev: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Variable bounds: the config box intersected with ``|S (x - x_prev)|_inf <= max_step``."""
         d = self.options.max_step / self.scale
@@ -190,7 +205,7 @@ class SteerNLP:
         """Constraint lower bounds for these packed obstacles: padding slots get free rows (lbg = -inf), no
         slack for the solver to carry."""
         lbg = self.lbg.copy()
-        act = packing.active_flags(packed)
+        act = packing.active_flags(packed[: packing.WIDTH * self.max_obstacles])
         lbg[lbg.size - self.n_col :] = np.where(np.repeat(act, self.n_points), 0.0, -np.inf)
         return lbg
 
@@ -222,7 +237,7 @@ class SteerNLP:
             if t_end is None:
                 return float(scene.clearance_points(pts, t, inflate=body))
             return float(scene.clearance_points_over(pts, t, t_end, inflate=body))
-        centers, radii, active = packing.unpack(packed)
+        centers, radii, active = packing.unpack(packed[: packing.WIDTH * self.max_obstacles])
         on = active > 0
         if not np.any(on):
             return math.inf

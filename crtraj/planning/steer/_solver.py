@@ -68,30 +68,14 @@ from crtraj.planning.steer._backends import (
 from crtraj.planning.steer._compiled import build_compiled
 from crtraj.planning.steer._nlp import SteerNLP, SteerQuery, config_scale
 from crtraj.planning.steer._options import (
-    IPOPT_DEFAULTS,
-    MAX_SOLVER_OPTIONS,
-    QP_SOLVERS,
-    SOLVERS,
-    SQP_DEFAULTS,
     SteerOptions,
 )
-from crtraj.planning.steer._result import SteerResult, SteerStatus, assess
+from crtraj.planning.steer._result import SteerResult, assess
 from crtraj.world import packing
+from crtraj.world.geometry import ShapeTerms
 from crtraj.world.scene import Scene
 
-__all__ = [
-    "IPOPT_DEFAULTS",
-    "MAX_SOLVER_OPTIONS",
-    "QP_SOLVERS",
-    "SOLVERS",
-    "SQP_DEFAULTS",
-    "SteerOptions",
-    "SteerResult",
-    "SteerSolver",
-    "SteerStatus",
-    "config_scale",
-    "dls_step",
-]
+__all__ = ["SteerSolver", "dls_step"]
 
 
 def dls_step(
@@ -181,6 +165,20 @@ class SteerSolver:
         self._factory: SolverFactory | None = None
         self._memo: tuple[Any, float, float | None, np.ndarray] | None = None  # last (scene, t, t_end, packed)
         self.backend: SteerBackend = backend if backend is not None else self._choose_backend()
+        self._shapes_key: tuple[int, ...] = ()  # the scene shapes the NLP was built for (`_use_shapes`)
+
+    def _use_shapes(self, shapes: tuple[Any, ...]) -> None:
+        """Rebuild the NLP and its backend when a query brings other shapes than the NLP's (their poses are
+        parameters: a moving shape does not rebuild). With shapes the compiled step is not used: its re-check
+        measures the packed spheres only."""
+        key = tuple(id(ms) for ms in shapes)
+        if key == self._shapes_key:
+            return
+        self._shapes_key = key
+        self.nlp = SteerNLP(self.model, self.max_obstacles, self.options, ShapeTerms(tuple(shapes)))
+        self.n_params, self.n_col = self.nlp.n_params, self.nlp.n_col
+        self._memo = None
+        self.backend = self._choose_backend()
 
     def _choose_backend(self) -> SteerBackend:
         """The backend of the options, built once (`jit_message` and `compiled_message` say how it went)."""
@@ -194,7 +192,7 @@ class SteerSolver:
             backend = IpoptBackend.build(factory, warm)
         else:
             backend = SqpBackend.build(factory, warm)
-            if o.compiled:
+            if o.compiled and not nlp.terms.shapes:
                 compiled, self.compiled_message = build_compiled(nlp, {**factory.plain, **factory.sqp_options()}, warm)
                 backend = backend if compiled is None else compiled
             if o.fallback:
@@ -240,6 +238,7 @@ class SteerSolver:
             raise InputError(f"t: must be finite, got {t}")
         if t_end is not None and not (math.isfinite(float(t_end)) and t_end >= t):
             raise InputError(f"t_end: must be finite and >= t = {t}, got {t_end}")
+        self._use_shapes(obstacles.shapes if isinstance(obstacles, Scene) else ())
         packed, dsf, scene = self._packed(obstacles, float(t), t_end, safety_distance)
         guess = None if x0 is None else _vec(x0, "x0", self.nx)
         lbx, ubx = self.step_bounds(xp)
@@ -295,10 +294,12 @@ class SteerSolver:
             memo = self._memo
             if memo is not None and memo[0] is obstacles and memo[1] == t and memo[2] == t_end:
                 packed = memo[3]  # a Scene is frozen: the same scene at the same times packs the same
-            elif t_end is None:
-                packed = obstacles.pack(t, self.max_obstacles)
             else:
-                packed = obstacles.pack_over(t, t_end, self.max_obstacles)
+                pack = obstacles.pack(t, self.max_obstacles) if t_end is None else None
+                pack = obstacles.pack_over(t, t_end, self.max_obstacles) if pack is None else pack
+                origin = obstacles.time_origin
+                shapes = self.nlp.terms.values(t + origin, (t if t_end is None else t_end) + origin)
+                packed = np.concatenate([pack, shapes]) if shapes.size else pack
             self._memo = (obstacles, t, t_end, packed)
             dsf = obstacles.safety_distance if safety_distance is None else float(safety_distance)
             return packed, dsf, obstacles

@@ -322,7 +322,8 @@ class MotionValidator:
         # static scenes: every window is irrelevant, so no split in time
         tres = np.inf if self.static else self.time_resolution * (1.0 + 1e-9)
         kernel = self.state.kernel
-        fast = kernel is not None and self.compiled_loop and self.scene.n_obstacles and E
+        # the compiled loop knows the spheres only: a scene with other shapes is checked by the numpy loop
+        fast = kernel is not None and self.compiled_loop and self.scene.n_obstacles and E and not self.state.shapes
         if fast and self.static:
             # a static scene's compiled check needs no times: the loop in C, with the numpy loop's arithmetic,
             # entered without the batch the numpy loop needs (a query makes many small calls)
@@ -444,7 +445,7 @@ class MotionValidator:
             c = self.clearance(X, T[0])
             return float(c[0]), c
         kernel = self.state.kernel
-        if kernel is not None and self.scene.n_obstacles and T.shape == (len(X),):
+        if kernel is not None and self.scene.n_obstacles and not self.state.shapes and T.shape == (len(X),):
             # the same samples and minima in one compiled call, which skips per motion the obstacles that
             # cannot set its minimum
             sc = self.scene

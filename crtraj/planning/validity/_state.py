@@ -6,7 +6,9 @@ points, minus the sagitta of the arc over the chord (bound 1 in
 `crtraj.planning.validity._motion`), minus the disc radius and the scene's safety
 distance D_sf, is a lower bound of the true clearance. Held over a time
 window, each obstacle is replaced by the sphere enclosing everything it
-sweeps in that window (bound 3). Units mm, s.
+sweeps in that window (bound 3). Obstacles of other shapes (`Scene.shapes`) are bounded per chord by
+`crtraj.world.geometry.chord_clearance` (tangent lines of convex distances, or samples along the chord for
+meshes and point clouds) over the same windows, with the same sagitta and inflation. Units mm, s.
 """
 
 from __future__ import annotations
@@ -23,6 +25,24 @@ from crtraj.planning.sampler import ConfigSampler
 from crtraj.planning.validity._compiled import per_item
 from crtraj.planning.validity._kernels import Kernels
 from crtraj.world import margin, packing
+from crtraj.world.geometry import chord_clearance
+
+# How fast (mm/s) a moving shape's surface may move when its motion has no finite bound (a turning half
+# space): the edge check then never calls a window hopeless from its middle alone (it splits it instead).
+_UNBOUNDED = 1.0e12
+
+
+def shape_enlargement(scene: Any) -> float:
+    """The largest speed (mm/s) of any point of the scene's moving shapes over all time (0 when none
+    moves): how much a shape's clearance over a window can exceed its clearance at an instant, per second."""
+    rate = 0.0
+    for ms in scene.shapes:
+        if not ms.static:
+            rate = max(rate, ms.surface_speed(-MAX_WINDOW, MAX_WINDOW))
+    return rate if math.isfinite(rate) else _UNBOUNDED
+
+
+MAX_WINDOW = 1.0e6  # s: the span over which `shape_enlargement` bounds the shapes' speeds
 
 
 class StateValidityChecker:
@@ -66,9 +86,14 @@ class StateValidityChecker:
         self.kernels = Kernels() if kernels is None else kernels
         speeds, rates = scene.speed_bounds()
         self.static = bool(np.all(speeds == 0.0) and np.all(rates == 0.0))
+        self.spheres_static = self.static  # the spheres alone (the compiled kernel's static slots)
         # how much the sphere swept over a window of dt seconds can exceed the sphere at any one of its
         # instants: capsule length plus radius growth, <= (speed + rate) dt (mm/s)
         self.enlargement_rate = float(np.max(speeds + rates)) if scene.n_obstacles else 0.0
+        self.shapes = tuple(getattr(scene, "shapes", ()))
+        if self.shapes:
+            self.static = self.static and scene.shapes_static
+            self.enlargement_rate = max(self.enlargement_rate, shape_enlargement(scene))
         self.kernel = self.kernels.validity_kernel(model, self.check_points) if compiled else None
         if scene.n_obstacles:
             c, r = scene.states(0.0)
@@ -157,13 +182,31 @@ class StateValidityChecker:
         """
         X = np.atleast_2d(np.asarray(X, dtype=float))
         N = X.shape[0]
+        if not self.shapes:
+            return self._sphere_clearance(X, t_lo, t_hi) - self.inflate - margin
+        out = np.full(N, np.inf) if self.scene.n_obstacles == 0 else self._sphere_clearance(X, t_lo, t_hi)
+        lo = per_item(t_lo, N)
+        hi = lo if t_hi is None else per_item(t_hi, N)
+        for name, t in (("t0", lo), ("t1", hi)):
+            if not np.isfinite(t).all():
+                raise InputError(f"{name}: contains NaN or infinity")
+        if self.scene.n_obstacles == 0:
+            self.n_samples += N
+        P = self.points(X)
+        origin = self.scene.time_origin
+        out = np.minimum(out, chord_clearance(self.shapes, P, lo + origin, hi + origin))
+        return out - self.inflate - margin
+
+    def _sphere_clearance(self, X: np.ndarray, t_lo: Any, t_hi: Any) -> np.ndarray:
+        """The spheres' chord clearance (mm, before inflation) of configurations X (N, nx) over their windows."""
+        N = X.shape[0]
         if self.scene.n_obstacles == 0:
             return np.full(N, np.inf)
         M = self.scene.n_obstacles
         if self.kernel is not None:
             self.n_samples += N
-            return self._compiled_clearance(X, t_lo, t_hi) - self.inflate - margin
-        if self.static:
+            return self._compiled_clearance(X, t_lo, t_hi)
+        if self.spheres_static:
             C = self._static_c.T  # (3, M): broadcast to every configuration
             R = self._static_r[None, :]
         else:
@@ -177,7 +220,7 @@ class StateValidityChecker:
         for start, take, size in self._batches(N):
             block = np.zeros((self.robot.nx, size))
             block[:, :take] = X[start : start + take].T
-            if self.static:
+            if self.spheres_static:
                 Cb, Rb = C, R
             else:
                 Cb = np.zeros((3, size * M))
@@ -185,13 +228,13 @@ class StateValidityChecker:
                 Cb[:, : take * M] = C[:, start * M : (start + take) * M]
                 Rb[:, : take * M] = R[:, start * M : (start + take) * M]
             out[start : start + take] = self._mapped("clearance", size)(block, Cb, Rb).full().ravel()[:take]
-        return out - self.inflate - margin
+        return out
 
     def _compiled_clearance(self, X: np.ndarray, t_lo: Any, t_hi: Any) -> np.ndarray:
         """Chord clearance (mm, before inflation) by the compiled kernel: static slots shared by every
         configuration, or each configuration's swept spheres over its window."""
         assert self.kernel is not None
-        if self.static:
+        if self.spheres_static:
             return self.kernel.clearance(X, self.static_slots)
         N = X.shape[0]
         lo = per_item(t_lo, N)

@@ -37,8 +37,12 @@ import numpy as np
 from crtraj.core.errors import InputError
 from crtraj.core.fields import MAX_LENGTH, MAX_TIME, check_array, check_float
 from crtraj.world.geometry._motion import Breathing, Fixed, Motion, StraightLine
+from crtraj.world.geometry._points import POINT_SETS, Mesh, PointCloud
 from crtraj.world.geometry._shapes import SHAPES, HalfSpace, Shape, Sphere
 from crtraj.world.obstacle import Obstacle
+
+# every shape a `MovingShape` moves: the primitives and the point sets (clouds, meshes)
+ALL_SHAPES = SHAPES + POINT_SETS
 
 
 @runtime_checkable
@@ -68,13 +72,13 @@ def _time(v: Any, name: str) -> float:
 class MovingShape:
     """A primitive `shape` moved by `motion` (`Fixed` by default) and scaled by `breathing` (None: s = 1)."""
 
-    shape: Shape
+    shape: Shape | PointCloud | Mesh
     motion: Motion = field(default_factory=Fixed)
     breathing: Breathing | None = None
 
     def __post_init__(self) -> None:
-        if not isinstance(self.shape, SHAPES):
-            raise InputError(f"shape: expected one of {', '.join(c.kind for c in SHAPES)}, got {self.shape!r}")
+        if not isinstance(self.shape, ALL_SHAPES):
+            raise InputError(f"shape: expected one of {', '.join(c.kind for c in ALL_SHAPES)}, got {self.shape!r}")
         if not isinstance(self.motion, Motion):
             raise InputError(f"motion: expected a motion (Fixed, Keyframes, StraightLine), got {self.motion!r}")
         if self.breathing is not None and not isinstance(self.breathing, Breathing):
@@ -90,6 +94,11 @@ class MovingShape:
         motion = StraightLine(ob.center, to, ob.duration, ob.profile)
         breathing = Breathing(ob.amplitude / ob.radius, ob.omega, ob.phase) if ob.amplitude else None
         return cls(Sphere(ob.radius, name=ob.name), motion, breathing)
+
+    @property
+    def static(self) -> bool:
+        """True when the shape neither moves nor breathes (its distance does not depend on time)."""
+        return isinstance(self.motion, Fixed) and (self.breathing is None or self.breathing.amplitude == 0.0)
 
     def frame(self, t: float) -> tuple[np.ndarray, np.ndarray, float]:
         """(origin (3,) mm, rotation (3, 3), scale) of the shape's own frame at time t s."""
