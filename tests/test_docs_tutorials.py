@@ -16,8 +16,8 @@ comment says ``until Ctrl-C`` serves until it prints ``press Ctrl-C to stop``; t
 exit 0. Every other command exits 0, or with the ``(exit N)`` the tutorial shows under it, and prints every line
 shown under it (``#   ...`` lines; ``...`` in them stands for any text); a command whose simulator answered
 too late (a starved machine: the stream's telemetry watchdog, a Dynamixel read without reply, a servo's bus
-watchdog, a loop that missed its wall-clock step deadline until it timed out) runs again, at most three times
-in all. BROWSER is a program that opens nothing.
+watchdog, a loop that missed its wall-clock step deadline until it timed out) makes its block run again from its
+start, with fresh simulators, at most three times in all. BROWSER is a program that opens nothing.
 """
 
 from __future__ import annotations
@@ -51,6 +51,10 @@ STARVED = ("telemetry lost: nothing valid for", "cannot read register", "its bus
 # and a loop whose steps missed the problem's wall-clock step deadline (paper_dynamic.toml: 4 ms) so often that it
 # held until its time ran out
 _LATE_LOOP = re.compile(r"\b[1-9]\d* deadline misses(.|\n)*goal not reached")
+
+
+class StarvedError(Exception):
+    """A command of the block was starved (`starved`): the block runs again from its start."""
 
 
 def starved(output: str) -> bool:
@@ -173,15 +177,14 @@ class Reader:
             ["bash", "-c", shell], cwd=self.folder, env=self.env, capture_output=True, text=True, timeout=HANG_S
         )
 
-    def run_fed(self, shell: str) -> subprocess.CompletedProcess:
-        """Run `shell`; again, at most twice, when the simulator's replies came too late (`STARVED`: only a
-        machine too loaded to run both processes on time starves a simulator on 127.0.0.1 or a pty; the command
-        then stops safely, as it must, and says so)."""
-        for _ in range(STARVED_RUNS - 1):
-            proc = self.run(shell)
-            if not starved(proc.stdout + proc.stderr):
-                return proc
-        return self.run(shell)
+    def run_fed(self, shell: str, last: bool = True) -> subprocess.CompletedProcess:
+        """Run `shell`; `StarvedError` when the simulator's replies came too late (`STARVED`: only a machine too loaded
+        to run both processes on time starves a simulator on 127.0.0.1 or a pty; the command then stops safely, as
+        it must, and says so) and this is not the `last` try of its block."""
+        proc = self.run(shell)
+        if not last and starved(proc.stdout + proc.stderr):
+            raise StarvedError(shell)
+        return proc
 
     def stop(self, job: subprocess.Popen) -> None:
         """SIGTERM to the job's process group (the shell and the program), then wait for it."""
@@ -192,6 +195,16 @@ class Reader:
         job.stdout.close()
 
     def block(self, text: str) -> None:
+        """Run one block, and again from its start (its simulators started afresh: a stopped stream left the
+        device elsewhere) when a command was starved, at most `STARVED_RUNS` times in all."""
+        for attempt in range(1, STARVED_RUNS + 1):
+            try:
+                self._block_once(text, last=attempt == STARVED_RUNS)
+                return
+            except StarvedError:
+                continue
+
+    def _block_once(self, text: str, last: bool) -> None:
         """Run one block, step by step, and stop its jobs at its end."""
         try:
             for command, shown in steps(text):
@@ -203,11 +216,12 @@ class Reader:
                 elif SERVES in command:
                     check_step(command, shown, self.serve(shell))
                 else:
-                    check_step(command, shown, self.run_fed(shell))
+                    check_step(command, shown, self.run_fed(shell, last))
         finally:
             for job in self.jobs:
                 self.stop(job)
             self.jobs = []
+            self.pty = None
 
 
 def _follow(page: str, folder: Path) -> None:
@@ -283,16 +297,20 @@ def test_a_reader_maps_the_pages_ports_and_the_tools(tmp_path):
     )
 
 
-def test_a_starved_simulator_reruns_the_command_and_nothing_else_does(tmp_path):
-    """A command whose simulator answered too late runs again (at most 3 runs); any other failure is final."""
+def test_a_starved_simulator_reruns_the_block_and_nothing_else_does(tmp_path):
+    """A block with a starved command runs again from its start (at most 3 runs); any other failure is final."""
     reader = Reader(tmp_path, "")
     count = "n=$(cat {0} 2>/dev/null || echo 0); echo $((n+1)) > {0}; "
-    flaky = count.format("a") + "[ $n -ge 1 ] || { echo 'telemetry lost: nothing valid for 428 ms'; exit 1; }"
-    assert reader.run_fed(flaky).returncode == 0 and (tmp_path / "a").read_text() == "2\n"
-    always = count.format("b") + "echo 'servo id 7 (z): cannot read register 126'; exit 1"
-    assert reader.run_fed(always).returncode == 1 and (tmp_path / "b").read_text() == "3\n"
-    other = count.format("c") + "echo 'not homed'; exit 2"
-    assert reader.run_fed(other).returncode == 2 and (tmp_path / "c").read_text() == "1\n"
+    flaky = "echo start >> log\n" + count.format("a")
+    flaky += "[ $n -ge 1 ] || { echo 'telemetry lost: nothing valid for 428 ms'; exit 1; }\n"
+    reader.block(flaky)
+    assert (tmp_path / "a").read_text() == "2\n" and (tmp_path / "log").read_text() == "start\nstart\n"
+    with pytest.raises(AssertionError, match="exit 1, expected 0"):
+        reader.block(count.format("b") + "echo 'servo id 7 (z): cannot read register 126'; exit 1\n")
+    assert (tmp_path / "b").read_text() == "3\n"
+    with pytest.raises(AssertionError, match="exit 2, expected 0"):
+        reader.block(count.format("c") + "echo 'not homed'; exit 2\n")
+    assert (tmp_path / "c").read_text() == "1\n"
     late = "reached goal no, 542 deadline misses (deadline 4 ms)\ncrtraj: replan failed: timeout: goal not reached"
     assert (
         starved(late) and not starved(late.replace("542", "0")) and not starved("reached goal yes, 3 deadline misses")
