@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import PROBLEMS, require_tool
+from conftest import PROBLEMS, require_module, require_tool
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -110,7 +110,7 @@ def test_compiled_law_duration_agrees_with_toppra(robot, kernel):
     """toppra (TOPP-RA, independent code) times the same spline within the same caps: the closed-form pass is
     conservative where q'' helps (module docstring of `crtraj.planning.retime`), so its duration is at least
     toppra's and within 15 % of it."""
-    pytest.importorskip("toppra")
+    require_module("toppra", "pip install -e .[bench]")
     t = np.linspace(0.0, 1.0, 9)
     X = np.stack([0.4 * t, 0.3 * np.sin(6 * t), 0.2 * t, -0.1 * np.cos(5 * t), 60.0 * t], axis=1)
     lim = RateLimits(np.diag([10.0, 10.0, 10.0, 10.0, 1.0]), np.full(5, 5.0), np.full(5, 5.0), tuple("abcde"))

@@ -5,7 +5,6 @@ crtraj runs without the [bench] extra's rich and toppra."""
 from __future__ import annotations
 
 import argparse
-import contextlib
 import dataclasses
 import importlib
 import importlib.util
@@ -13,7 +12,6 @@ import io
 import os
 import re
 import shutil
-import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -339,130 +337,6 @@ def test_plain_progress_prints_about_ten_lines_per_planner():
                 expected.append(f"bench: {LABELS[planner]} {n}/20, success {ok}/{n}")
     bar.stop()
     assert out.getvalue().splitlines() == expected
-
-
-# ------------------------------------------------------------------ the tutorials' simulator blocks
-TUTORIALS = ROOT / "docs" / "tutorials"
-SIMULATORS = ("crtraj sim-dynamixel",)  # the blocks that start one are run end to end, as written
-_PTY = re.compile(r"sim-dynamixel on (/dev/pts/\d+)")
-_EXIT = re.compile(r"^\(exit (\d+)\) ")
-
-
-def _simulator_blocks() -> list:
-    """One pytest param per ```bash block of docs/tutorials/ that starts a simulator: (file, text)."""
-    out = []
-    for md in sorted(TUTORIALS.glob("*.md")):
-        blocks = re.findall(r"^```bash\n(.*?)^```", md.read_text(encoding="utf-8"), flags=re.S | re.M)
-        for k, text in enumerate(blocks):
-            if any(s in text for s in SIMULATORS):
-                out.append(pytest.param(md.name, text, id=f"{md.name}#{k + 1}"))
-    return out
-
-
-def _steps(text: str) -> list[tuple[str, list[str]]]:
-    """The block's commands, each with the output lines the tutorial shows under it (``#   ...`` lines)."""
-    steps: list[tuple[str, list[str]]] = []
-    for line in text.splitlines():
-        if line.startswith("#   ") and steps:
-            steps[-1][1].append(line[4:].strip())
-        elif line.strip() and not line.startswith("#"):
-            steps.append((line, []))
-    return steps
-
-
-def _shown(expected: str) -> re.Pattern:
-    """The tutorial's shown output line as a pattern: ``...`` stands for any text, /dev/pts/N for a pty."""
-    parts = [re.escape(p).replace("/dev/pts/N", r"/dev/pts/\d+") for p in expected.split("...")]
-    return re.compile(".*".join(parts))
-
-
-def _check_step(command: str, shown: list[str], proc: subprocess.CompletedProcess) -> None:
-    """Exit code 0 (or the ``(exit N)`` shown) and every shown line somewhere in the output."""
-    output = proc.stdout + proc.stderr
-    want = next((int(m.group(1)) for m in map(_EXIT.match, shown) if m), 0)
-    assert proc.returncode == want, f"{command}\nexit {proc.returncode}, expected {want}\n{output[-3000:]}"
-    for line in shown:
-        pattern = _shown(_EXIT.sub("", line))
-        assert any(pattern.fullmatch(out) for out in output.splitlines()), f"{command}\nno line {line!r}\n{output}"
-
-
-def _start_background(command: str, env: dict[str, str], cwd: Path) -> tuple[subprocess.Popen, str, str]:
-    """Start `command` (without its ``&``) in its own process group; the pseudo-terminal it prints, and its output
-    up to that line."""
-    proc = subprocess.Popen(
-        ["bash", "-c", command],
-        cwd=cwd,
-        env=env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        start_new_session=True,
-    )
-    seen = []
-    for line in proc.stdout:  # it prints its path once it serves (after homing, with --at)
-        seen.append(line)
-        m = _PTY.search(line)
-        if m:
-            return proc, m.group(1), "".join(seen)
-    raise AssertionError(f"{command}\nprinted no pseudo-terminal:\n{''.join(seen)}")
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize(("tutorial", "text"), _simulator_blocks())
-def test_tutorial_simulator_blocks_run_as_written(tutorial, text, tmp_path):
-    """Each such block runs line by line in a folder holding a copy of problems/, with `.venv/bin/` the test's
-    interpreter's and /dev/pts/N the pseudo-terminal the simulator printed; ``CMD &`` starts in the background
-    and ``kill %1`` stops it (else it is stopped at the end). Every command exits 0, or with the ``(exit N)``
-    the tutorial shows under it, and prints every line shown under it (``...``: any text)."""
-    shutil.copytree(ROOT / "problems", tmp_path / "problems")
-    env, bin_dir = _env(), f"{Path(sys.executable).parent}/"
-    jobs: list[subprocess.Popen] = []
-    pty = None
-    try:
-        for command, shown in _steps(text):
-            command = command.replace(".venv/bin/", bin_dir)
-            command = command if pty is None else command.replace("/dev/pts/N", pty)
-            shell = re.sub(r"\s+#.*$", "", command).strip()
-            if shell.endswith("&"):
-                job, pty, printed = _start_background(shell[:-1], env, tmp_path)
-                jobs.append(job)
-                _check_step(command, shown, subprocess.CompletedProcess(shell, 0, printed, ""))
-            elif (m := re.fullmatch(r"kill %(\d+)", shell)) is not None:
-                _stop(jobs[int(m.group(1)) - 1])
-            else:
-                proc = subprocess.run(
-                    ["bash", "-c", shell], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=800
-                )
-                _check_step(command, shown, proc)
-    finally:
-        for job in jobs:
-            _stop(job)
-    assert jobs, f"{tutorial}: the block started no simulator"
-
-
-def _stop(job: subprocess.Popen) -> None:
-    """SIGTERM to the job's process group (the shell and the simulator), then wait for it."""
-    if job.poll() is None:
-        with contextlib.suppress(ProcessLookupError):
-            os.killpg(job.pid, signal.SIGTERM)
-        job.wait(timeout=30)
-    job.stdout.close()
-
-
-def test_tutorial_step_check_sees_a_wrong_exit_code_and_a_missing_line():
-    """The checks above fail on a command that exits otherwise than shown, or does not print a shown line."""
-    steps = _steps("a --x\n#   (exit 2) crtraj: error: servo id 7 (z): not homed ... run crtraj home ...\nb\n")
-    assert steps == [
-        ("a --x", ["(exit 2) crtraj: error: servo id 7 (z): not homed ... run crtraj home ..."]),
-        ("b", []),
-    ]
-    line = "crtraj: error: servo id 7 (z): not homed since its power-up; run crtraj home --dynamixel /dev/pts/3\n"
-    _check_step("a", steps[0][1], subprocess.CompletedProcess("a", 2, "", line))
-    with pytest.raises(AssertionError, match="exit 1, expected 2"):
-        _check_step("a", steps[0][1], subprocess.CompletedProcess("a", 1, "", line))
-    with pytest.raises(AssertionError, match="no line"):
-        _check_step("a", steps[0][1], subprocess.CompletedProcess("a", 2, "", line.replace("not homed", "homed")))
-    assert _simulator_blocks(), "the tutorials try the simulator"
 
 
 # ------------------------------------------------------------------ the mechanics page's block

@@ -129,6 +129,7 @@ def test_replan_stream_dynamixel_refuses_a_power_cycled_stage_then_runs_after_ho
     assert main([*base, "--out", str(tmp_path / "r1")]) == 2
     line = _one_error_line(capsys)
     assert line.startswith("crtraj: error: servo id 7 (z): not homed since its last power-up") and home in line
+    assert (tmp_path / "r1" / "run.json").is_file()  # the refused stream keeps the run (only a stop does not)
     _untouched(chain, acts, clock.now(), before, goals)
     saved = _home(dev, robot_file, capsys)
     z = saved["servos"][0]

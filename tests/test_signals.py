@@ -179,6 +179,35 @@ def test_the_command_line_reports_a_stop_that_a_library_mangled_or_swallowed(mon
     assert capsys.readouterr().err == "crtraj: terminated\n"
 
 
+def test_a_stop_while_replan_streams_its_run_keeps_the_earlier_run(tmp_path, monkeypatch, capsys):
+    """replan --stream of a simulated run streams from the staged run folder: Ctrl-C during the stream leaves
+    the earlier run in place, with one stderr line (it replaced the run and said two lines: the hostile corpus,
+    benchmarks/hostile.py replan-stream-udp)."""
+    import crtraj.app.replan as replan
+    from crtraj.cli import main
+
+    out = tmp_path / "o"
+    out.mkdir()
+    (out / "run.json").write_bytes(b"the user's earlier run\n")
+    real, staged = replan._stream_run, []
+
+    def signalled(req, problem, paths, *rest):
+        staged.append(Path(paths["json"]).parent)
+        _stop_here(signal.SIGINT)  # swallowed here, as the device's loop might: the flag stays
+        return real(req, problem, paths, *rest)
+
+    monkeypatch.setattr(replan, "_stream_run", signalled)
+    frames = tmp_path / "frames.bin"
+    args = ["replan", str(PROBLEMS / "paper_static.toml"), "--out", str(out), "--no-html", "--quiet"]
+    assert main([*args, "--stream", f"file://{frames}"]) == 130
+    assert capsys.readouterr().err == "crtraj: interrupted\n"
+    assert staged and staged[0] != out  # it streamed from the staged folder
+    assert (out / "run.json").read_bytes() == b"the user's earlier run\n"
+    assert sorted(p.name for p in out.iterdir()) == ["run.json"]
+    # no staged folder left (frames.bin is the file:// device itself, opened before the stop was seen)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["frames.bin", "o"]
+
+
 # ------------------------------------------------------------------ children die with their parent
 def _marked(mark: str) -> list[int]:
     """Live processes whose environment carries CRTRAJ_SIGNAL_MARK=mark (every child inherits it)."""

@@ -104,6 +104,7 @@ class _Written:
     dest: Path
     paths: dict[str, Any]
     plant: RodPlant | None = None  # the simulated plant (--plant)
+    streamed: bool = True  # False: --stream of the finished run did not complete
 
 
 def run_replan(req: ReplanRequest, *, view: Callable[[dict[str, Any]], None] | None = None, watch: Any = None) -> int:
@@ -132,19 +133,24 @@ def run_replan(req: ReplanRequest, *, view: Callable[[dict[str, Any]], None] | N
     seed = problem.seed if req.seed is None else req.seed
     t0 = time.perf_counter()
     feed = _open_feed(req.feed, req.feed_max_age, problem) if req.feed else None
-    done = _run_and_write(req, problem, seed, feed, out, watch)
+
+    def summary_then_stream(done: _Written, staged: dict[str, Any]) -> bool:
+        """The summary, then (--stream of a simulated run) its stream from the staged files: before the run's
+        folder replaces `out`, so a stream stopped by Ctrl-C or SIGTERM leaves the earlier run in place."""
+        _print_summary(req, done, out, t0)
+        if done.link is not None or not req.stream:
+            return True
+        if not done.ok:  # a run that failed or broke the safety distance never reaches a device
+            print("  not streamed: the run did not reach the goal safely", flush=True)
+            return True
+        return _stream_run(req, problem, staged, done.dest)
+
+    done = _run_and_write(req, problem, seed, feed, out, watch, then=summary_then_stream)
     if done is None:
         return 1
-    _print_summary(req, done, out, t0)
-    streamed = True
-    if done.link is None and req.stream:
-        if done.ok:
-            streamed = _stream_run(req, problem, done.paths)
-        else:  # a run that failed or broke the safety distance never reaches a device
-            print("  not streamed: the run did not reach the goal safely", flush=True)
     if view is not None:
         view(done.paths["result"])
-    return _exit_code(done, streamed)
+    return _exit_code(done, done.streamed)
 
 
 def _tip_sensor(req: ReplanRequest, problem: Problem) -> SimulatedMocap | MocapTip | RodPlant | None:
@@ -181,10 +187,17 @@ def _open_feed(address: str, max_age: float, problem: Problem) -> ObstacleFeed:
 
 
 def _run_and_write(  # long: the run's resources (stage, stream, feed, live view) share one exit stack
-    req: ReplanRequest, problem: Problem, seed: int, feed: Any, out: Path, watch: Any = None
+    req: ReplanRequest,
+    problem: Problem,
+    seed: int,
+    feed: Any,
+    out: Path,
+    watch: Any = None,
+    then: Callable[[_Written, dict[str, Any]], bool] | None = None,
 ) -> _Written | None:
     """Build the loop, run it (live with a feed and a device) and write its files; None when the task
-    is unsolvable (said on stdout and stderr, nothing written)."""
+    is unsolvable (said on stdout and stderr, nothing written). `then(done, staged)`: called with the run and
+    its staged (not yet committed) files before they replace `out`; its answer is `_Written.streamed`."""
     live = feed is not None and bool(req.stream)
     link = None
     sensor = _tip_sensor(req, problem)
@@ -240,9 +253,15 @@ def _run_and_write(  # long: the run's resources (stage, stream, feed, live view
         dest = out
         if not ok and not req.overwrite_failed and is_successful_result(out):
             dest = failed_sibling(out)
-        dest = stage.commit(dest)
-    paths = {k: (v if k == "result" else dest / Path(v).name) for k, v in staged.items()}
-    return _Written(run, loop, link, ok, dest, paths, sensor if isinstance(sensor, RodPlant) else None)
+        paths = {k: (v if k == "result" else dest / Path(v).name) for k, v in staged.items()}
+        done = _Written(run, loop, link, ok, dest, paths, sensor if isinstance(sensor, RodPlant) else None)
+        try:
+            streamed = then(done, staged) if then is not None else True
+        except Exception:  # a device refused or failed: the run is kept (a stop is no Exception: it is not)
+            stage.commit(dest)
+            raise
+        stage.commit(dest)  # raises Interrupted after a stop: the earlier run stays
+    return dataclasses.replace(done, streamed=streamed)
 
 
 def _print_header(problem: Problem, seed: int, loop: ClosedLoop, *, live_obstacles: bool) -> None:
@@ -404,8 +423,9 @@ def _live_link(streamer: Streamer, approach: bool, problem: Problem, loop: Close
     return link
 
 
-def _stream_run(req: ReplanRequest, problem: Problem, paths: dict[str, Any]) -> bool:
-    """Stream a finished run's actuation (its waypoints' q) to the device; True when the stream completed."""
+def _stream_run(req: ReplanRequest, problem: Problem, paths: dict[str, Any], dest: Path) -> bool:
+    """Stream a finished run's actuation (its waypoints' q) to the device; True when the stream completed.
+    paths: the run's staged files (the log is written beside them); dest: the folder they go to."""
     actuators = _actuators(problem)
     target = _stream_target(req.stream or "")
     opts = problem.options(StreamOptions, "stream")
@@ -421,7 +441,7 @@ def _stream_run(req: ReplanRequest, problem: Problem, paths: dict[str, Any]) -> 
     print(f"streaming the run ({motion.path.duration:.2f} s) to {target}", flush=True)
     streamer = Streamer.open(target, actuators, opts, log, link=_link_options(target, problem))
     rep = streamer.run_path(motion, approach=req.approach, plan_approach=plan_approach)
-    print(f"  stream {rep.status}: {rep.message}; {rep.frames} frames; log {rep.log}")
+    print(f"  stream {rep.status}: {rep.message}; {rep.frames} frames; log {dest / log.name}")
     return rep.ok
 
 
