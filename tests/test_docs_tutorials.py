@@ -33,7 +33,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from conftest import ROOT, require_module, require_tool
+from conftest import ROOT, default_sigint, require_module, require_tool
 
 TUTORIALS = ROOT / "docs" / "tutorials"
 SKIP_MARKER = "<!-- docs-test: skip ("
@@ -143,7 +143,15 @@ class Reader:
 
     def _popen(self, shell: str) -> subprocess.Popen:
         out = {"stdout": subprocess.PIPE, "stderr": subprocess.STDOUT, "text": True}
-        return subprocess.Popen(["bash", "-c", shell], cwd=self.folder, env=self.env, start_new_session=True, **out)
+        # a terminal's job takes Ctrl-C; a suite run in the background would hand SIGINT on ignored (conftest)
+        return subprocess.Popen(
+            ["bash", "-c", shell],
+            cwd=self.folder,
+            env=self.env,
+            start_new_session=True,
+            preexec_fn=default_sigint,
+            **out,
+        )
 
     def background(self, shell: str) -> str:
         """Start `shell` (without its ``&``); its output up to its first line (a pty it names is kept)."""

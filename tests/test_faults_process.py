@@ -18,7 +18,7 @@ from pathlib import Path
 import dxl_helpers
 import numpy as np
 import pytest
-from conftest import ROOT, require_module
+from conftest import ROOT, default_sigint, require_module
 from dxl_helpers import Z_HOMING, robot_text
 
 from crtraj.hardware.dynamixel import X
@@ -39,6 +39,7 @@ def _spawn(args: list[str], cwd: Path) -> subprocess.Popen:
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,
+        preexec_fn=default_sigint,  # its Ctrl-C must reach it when the suite runs in the background
     )
 
 
