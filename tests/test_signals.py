@@ -39,6 +39,18 @@ pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="re
 
 SEED = int(os.environ.get("CRTRAJ_SIGNAL_SEED", "36"))
 HANG_S = 300.0  # a hang bound only: a hung child, never a timing window
+
+
+@pytest.fixture(autouse=True)
+def terminal_sigint():
+    """SIGINT handled as in a Python started from a terminal: a suite run in the background (nohup, a CI
+    runner) inherits SIGINT ignored, and the policy keeps an ignored SIGINT ignored, as Python does
+    (`conftest.default_sigint` does the same for child processes)."""
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, old)
+
+
 ORPHAN_S = 2.0  # the issue's bound: no process of the run alive this long after it exited
 TICK = os.sysconf("SC_CLK_TCK")
 RESULT = ROOT / "tests" / "data" / "plan_cspace_v1.json"
@@ -204,8 +216,9 @@ def test_a_stop_while_replan_streams_its_run_keeps_the_earlier_run(tmp_path, mon
     assert staged and staged[0] != out  # it streamed from the staged folder
     assert (out / "run.json").read_bytes() == b"the user's earlier run\n"
     assert sorted(p.name for p in out.iterdir()) == ["run.json"]
-    # no staged folder left (frames.bin is the file:// device itself, opened before the stop was seen)
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["frames.bin", "o"]
+    # no staged folder left (frames.bin is the file:// device itself: there if it was opened before the stop
+    # was seen, which depends on where the stream sees it)
+    assert {p.name for p in tmp_path.iterdir()} - {"frames.bin"} == {"o"}
 
 
 # ------------------------------------------------------------------ children die with their parent

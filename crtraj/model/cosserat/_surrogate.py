@@ -47,15 +47,18 @@ from typing import Any
 
 import casadi as ca
 import numpy as np
-from scipy.interpolate import CubicSpline, make_interp_spline
 
 from crtraj.core.build_cache import default_root
 from crtraj.core.errors import InputError
 from crtraj.core.fileio import atomic_write_bytes, atomic_write_json, read_json
+from crtraj.core.lazy import lazy_module
 from crtraj.model.cosserat._drive import PRETENSION, RodDrive
 from crtraj.model.kinematics import Model
 from crtraj.model.mechanics import Mechanics
 from crtraj.model.robot import Robot
+
+# SciPy's interpolate package costs about 0.3 s to import; `crtraj plan` loads this module but builds no surrogate
+interpolate = lazy_module("scipy.interpolate")
 
 log = logging.getLogger(__name__)
 
@@ -182,7 +185,7 @@ class RodSampler:
         s = self.drive.shape_config(x)
         if not s.is_success():
             return None
-        return np.asarray(CubicSpline(self.node_arcs, s.points, axis=0)(self.arcs))
+        return np.asarray(interpolate.CubicSpline(self.node_arcs, s.points, axis=0)(self.arcs))
 
     def pcc_points(self, x: np.ndarray) -> np.ndarray:
         """PCC's points (P, 3) mm at the collision points, world frame."""
@@ -278,7 +281,7 @@ class RodSurrogate:
         coef = self.table.reshape(*self.table.shape[:dims], -1)
         knots: list[float] = []
         for ax in range(dims):
-            spline = make_interp_spline(grid_axis(self.table.shape[0]), coef, k=3, axis=ax)
+            spline = interpolate.make_interp_spline(grid_axis(self.table.shape[0]), coef, k=3, axis=ax)
             coef, knots = spline.c, list(spline.t)
         x = ca.MX.sym("x", r.nx)
         ub = ca.mtimes(ca.DM(r.coupling_matrix()), x[:dims])

@@ -25,11 +25,14 @@ from dataclasses import dataclass, field
 from typing import ClassVar
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from crtraj.core.errors import InputError
 from crtraj.core.fields import MAX_LENGTH, check_array, check_float
+from crtraj.core.lazy import lazy_module
 from crtraj.world.geometry._shapes import Distance, Pose, _pose_of, _unit_or, _where
+
+# SciPy's spatial package costs about 0.5 s to import; only a mesh or a point cloud needs its KD-tree
+spatial = lazy_module("scipy.spatial")
 
 # Most points a cloud (or samples a mesh) may have: a KD-tree of 10^6 points is about 50 MB.
 MAX_POINTS = 1_000_000
@@ -37,7 +40,7 @@ MAX_POINTS = 1_000_000
 MAX_TRIANGLES = 500_000
 
 
-def _nearest(tree: cKDTree, pts: np.ndarray, y: np.ndarray, s: float) -> Distance:
+def _nearest(tree: spatial.cKDTree, pts: np.ndarray, y: np.ndarray, s: float) -> Distance:
     """(distance to the nearest point of s * pts, unit direction from it) for points y (N, 3)."""
     dist, idx = tree.query(y / s)
     v = y - s * pts[idx]
@@ -78,7 +81,7 @@ class PointCloud:
     name: str = ""
     source: str = ""  # the file it was read from (for messages and the result), "" when built in code
     kind: ClassVar[str] = "points"
-    _tree: cKDTree = field(init=False, repr=False, compare=False, default=None)
+    _tree: spatial.cKDTree = field(init=False, repr=False, compare=False, default=None)
 
     def __post_init__(self) -> None:
         w = _where(self.kind, self.name)
@@ -93,7 +96,7 @@ class PointCloud:
         p = np.ascontiguousarray(p)
         p.setflags(write=False)
         object.__setattr__(self, "points", p)
-        object.__setattr__(self, "_tree", cKDTree(p))
+        object.__setattr__(self, "_tree", spatial.cKDTree(p))
 
     @property
     def ball(self) -> float:
@@ -150,7 +153,7 @@ class Mesh:
     kind: ClassVar[str] = "mesh"
     samples: np.ndarray = field(init=False, repr=False, compare=False, default=None)
     cover_radius: float = field(init=False, repr=False, compare=False, default=0.0)
-    _tree: cKDTree = field(init=False, repr=False, compare=False, default=None)
+    _tree: spatial.cKDTree = field(init=False, repr=False, compare=False, default=None)
 
     def __post_init__(self) -> None:
         w = _where(self.kind, self.name)
@@ -172,7 +175,7 @@ class Mesh:
         object.__setattr__(self, "pose", _pose_of(self.pose, w))
         object.__setattr__(self, "samples", samples)
         object.__setattr__(self, "cover_radius", cover)
-        object.__setattr__(self, "_tree", cKDTree(samples))
+        object.__setattr__(self, "_tree", spatial.cKDTree(samples))
 
     @property
     def ball(self) -> float:
