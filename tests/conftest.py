@@ -58,8 +58,19 @@ def private_build_cache(tmp_path_factory):
     never to the user's cache directory; CRTRAJ_CACHE_DIR set by the caller is kept."""
     with pytest.MonkeyPatch.context() as mp:
         if not os.environ.get("CRTRAJ_CACHE_DIR"):
-            mp.setenv("CRTRAJ_CACHE_DIR", str(tmp_path_factory.mktemp("crtraj-cache")))
+            mp.setenv("CRTRAJ_CACHE_DIR", str(_session_cache_folder(tmp_path_factory)))
         yield
+
+
+def _session_cache_folder(tmp_path_factory) -> Path:
+    """The run's cache folder. Under pytest-xdist every worker has its own base temp folder, inside one folder of
+    the run: the workers share the cache there, so a library is compiled once per run, not once per worker (the
+    cache publishes an entry by one rename, so two workers building the same entry at once both stay correct)."""
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        folder = tmp_path_factory.getbasetemp().parent / "crtraj-cache"
+        folder.mkdir(exist_ok=True)
+        return folder
+    return tmp_path_factory.mktemp("crtraj-cache")
 
 
 @pytest.fixture(scope="session")
