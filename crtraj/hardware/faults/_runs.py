@@ -73,7 +73,8 @@ class StopMeasure:
     """A stop measured densely. decel: (n,) largest |second difference| of each shaft over its acceleration
     limit (profile rounding allowed: at most 1); distance: (n,) travel of each actuator (rad, mm); rest: s from
     the silence until every shaft rests; clearance: smallest clearance (mm, beyond D_sf) on the way (inf: not
-    measured); tripped: every servo's Bus Watchdog reads -1; values: (m, n) the actuator values sampled."""
+    measured); tripped: every servo's Bus Watchdog reads -1; values: (m, n) the actuator values sampled;
+    current: (n,) largest |Present Current| (2.69 mA units) on the way (zeros: not measured)."""
 
     decel: np.ndarray
     distance: np.ndarray
@@ -81,6 +82,7 @@ class StopMeasure:
     clearance: float
     tripped: bool
     values: np.ndarray
+    current: np.ndarray
 
 
 def measure_stop(
@@ -90,18 +92,23 @@ def measure_stop(
     *,
     horizon: float = 3.0,
     clearance: Callable[[np.ndarray], np.ndarray] | None = None,
+    currents: bool = False,
 ) -> StopMeasure:
     """The stop of `chain` after the bus fell silent at `start` (device s), sampled every `SAMPLE` s until every
-    shaft rests (at most `horizon` s). clearance: (m, n) actuator values -> (m,) clearance (mm), or None."""
+    shaft rests (at most `horizon` s). clearance: (m, n) actuator values -> (m,) clearance (mm), or None.
+    currents: also the largest |Present Current| of each servo (a read of every servo per sample)."""
     bus = acts.bus
     per_tick = np.asarray(bus.per_rev) / np.asarray(bus.ticks_per_rev)  # actuator units per tick
     bound = acts.amax / per_tick + X.ACCELERATION_UNIT / 3600.0 * np.asarray(bus.ticks_per_rev)  # ticks/s^2
     shafts, reads = [chain.shaft(start)], [chain.positions(start)]
+    peak = np.zeros(len(bus.ids))
     span = round(REST_SPAN / SAMPLE)
     while len(shafts) * SAMPLE < horizon:
         t = start + len(shafts) * SAMPLE
         shafts.append(chain.shaft(t))
         reads.append(chain.positions(t))
+        if currents:
+            peak = np.maximum(peak, [abs(chain.current(i, t)) for i in bus.ids])
         if len(shafts) > span and np.max(np.abs(shafts[-1] - shafts[-1 - span])) < REST:
             break
     s = np.array(shafts)
@@ -114,4 +121,5 @@ def measure_stop(
         clearance=float(np.min(clearance(values))) if clearance is not None else float("inf"),
         tripped=all(chain.register(i, X.BUS_WATCHDOG, 1) & 0xFF == X.WATCHDOG_TRIPPED for i in bus.ids),
         values=values,
+        current=peak,
     )
