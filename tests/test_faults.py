@@ -1,6 +1,10 @@
+# long: one module fixture (servos homed at sim 1's start, ~5 s) and one stream serve every test here; split, the
+# suite would home and stream them twice
 """Faults on a real robot's bus, injected into the Dynamixel simulator behind the command line (in process, on
 one virtual clock shared by the streamer, the SDK's timeouts and the simulated servos: every run is the same
-on any machine): the USB-serial adapter pulled out mid-stream (issue 38)."""
+on any machine): the USB-serial adapter pulled out mid-stream and the host killed, each at 50 random times of one
+sim-1 stream (the servos copied at each kill; the streaming host forked at each unplug, the child unplugged), one
+real pseudo-terminal closed mid-stream, a frozen host, a lost turn count behind the homed marker (issue 38)."""
 
 from __future__ import annotations
 
