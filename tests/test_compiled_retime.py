@@ -1,6 +1,7 @@
 """The retiming's phase-plane pass and knot times in C (`ValidityKernel.phase_law`) against the numpy/Python pass,
 on random curves (hypothesis) and recorded sim-1 plans; toppra (the reference TOPP-RA library) as an independent
-check of the law's duration; and the limit check that catches a law computed for weaker limits."""
+check of the law's duration; the limit check that catches a law computed for weaker limits; and the curve in C
+(`ValidityKernel.natural_slopes`, `hermite`) against numpy's `crtraj.core.splines`, bit for bit."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ from hypothesis import strategies as st
 
 from crtraj.core.build_cache import BuildCache
 from crtraj.core.errors import InputError
+from crtraj.core.splines import HermiteCubic, natural_cubic
 from crtraj.io.problem import Problem
 from crtraj.model.kinematics import Model
 from crtraj.model.rate_limits import RateLimits
@@ -167,3 +169,31 @@ def test_chord_test_decides_as_before(seed, k, tol):
     u = np.sort(rng.uniform(-0.1, 1.1, size=k)) if rng.random() < 0.7 else rng.uniform(-0.1, 1.1, size=k)
     inner = a + u[:, None] * (b - a) + rng.choice([0.0, 1e-11, 1e-9]) * rng.normal(size=(k, 5))
     assert _on_chord(a, b, inner, tol) == _on_chord_plain(a, b, inner, tol)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(3, 40), st.integers(1, 6))
+def test_compiled_natural_cubic_equals_numpy(kernel, seed, n, d):
+    rng = np.random.default_rng(seed)
+    t = np.cumsum(10 ** rng.uniform(-3, 2, size=n))
+    Y = rng.normal(size=(n, d)) * 10 ** rng.uniform(-2, 2, size=d)
+    ref = natural_cubic(t, Y)
+    S = kernel.natural_slopes(t, Y)
+    np.testing.assert_array_equal(S, ref.slopes)
+    # the spline's defining conditions, checked independently: C2 at the inner knots, zero curvature at the ends
+    curve = HermiteCubic(t, Y, S)
+    left, right = curve(t[1:-1] - 1e-9 * (t[1:-1] - t[:-2]), 2), curve(t[1:-1], 2)
+    scale = np.max(np.abs(curve(t, 2)), axis=0) + np.max(np.abs(Y), axis=0)
+    assert np.all(np.abs(left - right) <= 1e-5 * scale)
+    x = np.concatenate([rng.uniform(t[0] - 1.0, t[-1] + 1.0, size=200), t, [np.nan, -np.inf, np.inf]])
+    for nu in (0, 1, 2):
+        with np.errstate(invalid="ignore"):  # inf - inf at the infinite parameters: NaN on both sides
+            np.testing.assert_array_equal(kernel.hermite(t, Y, S, x, nu), ref(x, nu))
+
+
+def test_compiled_cubic_rejects_a_bad_order(kernel):
+    t, Y = np.arange(4.0), np.ones((4, 2))
+    with pytest.raises(RuntimeError):
+        kernel.hermite(t, Y, Y, t, 3)
+    with pytest.raises(ValueError):
+        kernel.natural_slopes(t[:2], Y[:2])

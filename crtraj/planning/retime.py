@@ -312,7 +312,7 @@ def _piece_law(
     where q'' helps; the sampled frames are then checked against every limit (`_curve_piece`).
     """
     ss = np.concatenate([[0.0], np.cumsum(metric.motion_bound(np.diff(P, axis=0)))])
-    spline = natural_cubic(ss, P)  # x(s); spline(s, 1) is dx/ds
+    spline = _natural(ss, P, kernel)  # x(s); spline(s, 1) is dx/ds
     J = limits.jacobian
     n = int(min(MAX_GRID, GRID_PER_KNOT * (len(ss) - 1)))
     grid = np.unique(np.concatenate([ss, np.linspace(0.0, ss[-1], n + 1)]))
@@ -348,6 +348,26 @@ def _piece_law(
     if np.any(sd[1:-1] <= 0.0):
         raise InputError("retime: no law along a curve piece")
     return spline, grid, sd, T
+
+
+class _KernelCubic:
+    """The cubic `crtraj.core.splines.HermiteCubic(t, Y, S)` evaluated by a `ValidityKernel` (`hermite`: the same
+    numbers, one C call per evaluation); derivative orders 0-2, x (N,)."""
+
+    def __init__(self, t: np.ndarray, Y: np.ndarray, S: np.ndarray, kernel: Any) -> None:
+        self.t, self.values, self.slopes, self.kernel = t, Y, S, kernel
+
+    def __call__(self, x: np.ndarray, nu: int = 0) -> np.ndarray:
+        return self.kernel.hermite(self.t, self.values, self.slopes, x, nu)
+
+
+def _natural(ss: np.ndarray, P: np.ndarray, kernel: Any) -> Any:
+    """`natural_cubic(ss, P)`, with a kernel solved and evaluated in C (the same numbers) when ss is strictly
+    increasing and there are at least 3 knots (else numpy's, which raises on bad knots)."""
+    if kernel is None or len(ss) < 3 or P.ndim != 2 or not np.all(np.diff(ss) > 0.0):
+        return natural_cubic(ss, P)
+    t, Y = np.ascontiguousarray(ss, dtype=float), np.ascontiguousarray(P, dtype=float)
+    return _KernelCubic(t, Y, kernel.natural_slopes(t, Y), kernel)
 
 
 def _knot_times(gp: np.ndarray, sd: np.ndarray) -> np.ndarray:
