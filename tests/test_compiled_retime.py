@@ -22,7 +22,16 @@ from crtraj.planning.metric import BodyMetric
 from crtraj.planning.options import PlannerOptions
 from crtraj.planning.pipeline import retime_result
 from crtraj.planning.planners import BUILTIN
-from crtraj.planning.retime import _on_chord, _over_limits, _piece_law, _sample_law, _toppra_law, retime_curve
+from crtraj.planning.retime import (
+    _keep_corners_walk,
+    _on_chord,
+    _over_limits,
+    _piece_law,
+    _sample_law,
+    _toppra_law,
+    keep_corners,
+    retime_curve,
+)
 from crtraj.planning.validity import ValidityKernel
 from crtraj.world.scene import Scene
 
@@ -197,3 +206,25 @@ def test_compiled_cubic_rejects_a_bad_order(kernel):
         kernel.hermite(t, Y, Y, t, 3)
     with pytest.raises(ValueError):
         kernel.natural_slopes(t[:2], Y[:2])
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(0, 40))
+def test_corners_found_as_by_the_walk(seed, k):
+    """`keep_corners` (only the possible merges visited) keeps the corners the walk over every waypoint keeps, on
+    paths of straight runs (finely and coarsely resampled), repeated waypoints, backtracks and random corners."""
+    rng = np.random.default_rng(seed)
+    pts = [rng.normal(size=5)]
+    for _ in range(k):
+        r = rng.random()
+        if r < 0.4:  # a straight run through 1-4 inner points
+            b = pts[-1] + rng.normal(size=5)
+            pts += list(pts[-1] + np.linspace(0.0, 1.0, rng.integers(2, 6))[1:, None] * (b - pts[-1]))
+        elif r < 0.55:
+            pts.append(pts[-1].copy())  # a zero-length motion
+        elif r < 0.65 and len(pts) > 1:
+            pts.append(pts[-2].copy())  # straight back
+        else:
+            pts.append(pts[-1] + rng.normal(size=5) * rng.choice([1e-12, 1e-3, 1.0]))
+    X = np.array(pts)
+    np.testing.assert_array_equal(keep_corners(X), _keep_corners_walk(X))

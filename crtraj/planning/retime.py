@@ -127,8 +127,35 @@ def keep_corners(X: np.ndarray, tol: float = COLLINEAR) -> np.ndarray:
     """Indices of the waypoints that are corners (plus both ends): runs of collinear,
     forward-progressing straight motions are merged; zero-length motions are dropped."""
     X = np.asarray(X, dtype=float)
+    K = len(X)
+    if not np.all(np.isfinite(X)):
+        return _keep_corners_walk(X, tol)  # the comparisons below assume equal values are equal (no NaN)
     # a run from X[i] can only grow past X[i+1] when X[i+1] lies on the chord X[i] -> X[i+2]: that first
-    # test is made for all i at once, so the loop below calls `_on_chord` only where a merge may happen
+    # test is made for all i at once, so the loop below visits only those i (elsewhere the walk steps by one)
+    first = _middles_on_chords(X, tol) if K >= 3 else np.zeros(0, dtype=bool)
+    visited = np.ones(K, dtype=bool)  # the waypoints the walk from 0 stands on (not inside a merged run)
+    reach = 0  # the walk has stood on no waypoint beyond this one yet
+    for i in np.flatnonzero(first).tolist():
+        if i < reach:
+            continue  # inside a run merged from an earlier waypoint
+        j = i + 1
+        while j + 1 < K and _on_chord(X[i], X[j + 1], X[i + 1 : j + 1], tol):
+            j += 1
+        visited[i + 1 : j] = False
+        reach = j
+    v = np.flatnonzero(visited)
+    # a visited waypoint is kept where it differs from the previous one visited (a zero-length motion is dropped:
+    # the previous one equals the last kept, which it was compared with)
+    moved = np.max(np.abs(X[v[1:]] - X[v[:-1]]), axis=1, initial=0.0) > 0.0 if len(v) > 1 else np.zeros(0, bool)
+    keep = np.concatenate([[0], v[1:][moved]]).astype(np.int64)
+    if keep[-1] != K - 1:
+        keep[-1] = K - 1  # the end itself (equal to the last kept corner up to 0)
+    return keep
+
+
+def _keep_corners_walk(X: np.ndarray, tol: float = COLLINEAR) -> np.ndarray:
+    """`keep_corners` as a walk over every waypoint (the reference the tests compare it with)."""
+    X = np.asarray(X, dtype=float)
     first = _middles_on_chords(X, tol) if len(X) >= 3 else np.zeros(0, dtype=bool)
     keep = [0]
     i, K = 0, len(X)
@@ -140,7 +167,7 @@ def keep_corners(X: np.ndarray, tol: float = COLLINEAR) -> np.ndarray:
             keep.append(j)
         i = j
     if keep[-1] != K - 1:
-        keep[-1] = K - 1  # the end itself (equal to the last kept corner up to 0)
+        keep[-1] = K - 1
     return np.asarray(keep)
 
 
