@@ -23,7 +23,8 @@ from crtraj.planning.options import PlannerOptions
 from crtraj.planning.pipeline import retime_result
 from crtraj.planning.planners import BUILTIN
 from crtraj.planning.retime import (
-    _keep_corners_walk,
+    COLLINEAR,
+    _middles_on_chords,
     _on_chord,
     _over_limits,
     _piece_law,
@@ -208,6 +209,24 @@ def test_compiled_cubic_rejects_a_bad_order(kernel):
         kernel.natural_slopes(t[:2], Y[:2])
 
 
+def _keep_corners_walk(X: np.ndarray, tol: float = COLLINEAR) -> np.ndarray:
+    """`keep_corners` as it was written before: a walk over every waypoint."""
+    X = np.asarray(X, dtype=float)
+    first = _middles_on_chords(X, tol) if len(X) >= 3 else np.zeros(0, dtype=bool)
+    keep = [0]
+    i, K = 0, len(X)
+    while i < K - 1:
+        j = i + 1
+        while j + 1 < K and first[i] and _on_chord(X[i], X[j + 1], X[i + 1 : j + 1], tol):
+            j += 1
+        if np.max(np.abs(X[j] - X[keep[-1]])) > 0.0:
+            keep.append(j)
+        i = j
+    if keep[-1] != K - 1:
+        keep[-1] = K - 1
+    return np.asarray(keep)
+
+
 @settings(max_examples=150, deadline=None)
 @given(st.integers(0, 2**32 - 1), st.integers(0, 40))
 def test_corners_found_as_by_the_walk(seed, k):
@@ -228,3 +247,6 @@ def test_corners_found_as_by_the_walk(seed, k):
             pts.append(pts[-1] + rng.normal(size=5) * rng.choice([1e-12, 1e-3, 1.0]))
     X = np.array(pts)
     np.testing.assert_array_equal(keep_corners(X), _keep_corners_walk(X))
+    if k:
+        X[rng.integers(0, len(X))] = np.nan  # NaN equals nothing
+        np.testing.assert_array_equal(keep_corners(X), _keep_corners_walk(X))

@@ -128,8 +128,6 @@ def keep_corners(X: np.ndarray, tol: float = COLLINEAR) -> np.ndarray:
     forward-progressing straight motions are merged; zero-length motions are dropped."""
     X = np.asarray(X, dtype=float)
     K = len(X)
-    if not np.all(np.isfinite(X)):
-        return _keep_corners_walk(X, tol)  # the comparisons below assume equal values are equal (no NaN)
     # a run from X[i] can only grow past X[i+1] when X[i+1] lies on the chord X[i] -> X[i+2]: that first
     # test is made for all i at once, so the loop below visits only those i (elsewhere the walk steps by one)
     first = _middles_on_chords(X, tol) if K >= 3 else np.zeros(0, dtype=bool)
@@ -144,31 +142,20 @@ def keep_corners(X: np.ndarray, tol: float = COLLINEAR) -> np.ndarray:
         visited[i + 1 : j] = False
         reach = j
     v = np.flatnonzero(visited)
-    # a visited waypoint is kept where it differs from the previous one visited (a zero-length motion is dropped:
-    # the previous one equals the last kept, which it was compared with)
-    moved = np.max(np.abs(X[v[1:]] - X[v[:-1]]), axis=1, initial=0.0) > 0.0 if len(v) > 1 else np.zeros(0, bool)
-    keep = np.concatenate([[0], v[1:][moved]]).astype(np.int64)
+    if np.all(np.isfinite(X)):
+        # a visited waypoint is kept where it differs from the previous one visited (a zero-length motion is
+        # dropped: the previous one then equals the last kept, which the walk compares with)
+        moved = np.max(np.abs(X[v[1:]] - X[v[:-1]]), axis=1, initial=0.0) > 0.0 if len(v) > 1 else []
+        keep = np.concatenate([[0], v[1:][moved]]).astype(np.int64)
+    else:  # NaN equals nothing: compare with the last kept, as the walk does
+        keep_list = [0]
+        for j in v[1:].tolist():
+            if np.max(np.abs(X[j] - X[keep_list[-1]])) > 0.0:
+                keep_list.append(j)
+        keep = np.asarray(keep_list, dtype=np.int64)
     if keep[-1] != K - 1:
         keep[-1] = K - 1  # the end itself (equal to the last kept corner up to 0)
     return keep
-
-
-def _keep_corners_walk(X: np.ndarray, tol: float = COLLINEAR) -> np.ndarray:
-    """`keep_corners` as a walk over every waypoint (the reference the tests compare it with)."""
-    X = np.asarray(X, dtype=float)
-    first = _middles_on_chords(X, tol) if len(X) >= 3 else np.zeros(0, dtype=bool)
-    keep = [0]
-    i, K = 0, len(X)
-    while i < K - 1:
-        j = i + 1
-        while j + 1 < K and first[i] and _on_chord(X[i], X[j + 1], X[i + 1 : j + 1], tol):
-            j += 1
-        if np.max(np.abs(X[j] - X[keep[-1]])) > 0.0:
-            keep.append(j)
-        i = j
-    if keep[-1] != K - 1:
-        keep[-1] = K - 1
-    return np.asarray(keep)
 
 
 def _middles_on_chords(X: np.ndarray, tol: float) -> np.ndarray:

@@ -116,3 +116,57 @@ int crtraj_hermite(long long n, long long d, const double* t, const double* y, c
   return 0;
 }
 """
+
+VERIFY_DRIVER = r"""
+/* The closed loop's dense verification of a step's move (crtraj.control.loop SceneChecks.verify) in one call: the
+   n sampled configurations X (n x CRTRAJ_NX) at times Tm (n,) s, sample i held over [Tm[i-1], Tm[i+1]] (the ends
+   over their own instant and the neighbour's) with the margin half the larger body-motion bound of its two motions
+   (mm), and with `after` one more sample, the last configuration held over [a_lo, a_hi]. Obstacles: K static slots
+   S (T NULL) or the M rows of the table T (each window's swept spheres, as crtraj_clearance_windows). Out: the
+   smallest clearance minus inflate minus the margin (mm); NaN propagates. Returns 3 when a time is not finite. */
+int crtraj_verify_motion(long long n, const double* X, const double* Tm, int after, double a_lo, double a_hi,
+                         long long M, const double* S, const double* T, double origin, double inflate, double* out) {
+  crtraj_work kb = {0}, km = {0}; long long i, m = n + (after ? 1 : 0); int rc = 0, j, bad;
+  double P[7 * CRTRAJ_NP], dx[CRTRAJ_NX], b_prev = 0.0, b_next = 0.0, best = INFINITY;
+  double* sw = (double*) malloc(sizeof(double) * 5 * (size_t) (M > 0 ? M : 1));
+  *out = NAN;
+  if (n < 1) { free(sw); return 2; }
+  for (i = 0; i < n; ++i) if (!isfinite(Tm[i])) { free(sw); return 3; }
+  if (after && (!isfinite(a_lo) || !isfinite(a_hi))) { free(sw); return 3; }
+  bad = !sw;
+  bad |= crtraj_alloc(&kb, crtraj_bb_work);
+  bad |= crtraj_alloc(&km, crtraj_mb_work);
+  if (bad) { free(sw); crtraj_free(&kb); crtraj_free(&km); return 1; }
+  for (i = 0; i < m && !rc; ++i) {
+    const double* x = X + (i < n ? i : n - 1) * CRTRAJ_NX;
+    double lo, hi, half = 0.0, c, v;
+    if (i < n) {
+      b_prev = b_next;
+      if (i + 1 < n) {
+        for (j = 0; j < CRTRAJ_NX; ++j) dx[j] = x[CRTRAJ_NX + j] - x[j];
+        km.arg[0] = dx; km.res[0] = &b_next;
+        rc = crtraj_mb(km.arg, km.res, km.iw, km.w, 0);
+      }
+      if (n > 1) {
+        double a = i == 0 ? b_next : b_prev, b = i == n - 1 ? b_prev : b_next;
+        half = (a != a || b != b) ? NAN : (a >= b ? a : b);
+        half *= 0.5;
+      }
+      lo = i == 0 ? Tm[0] : Tm[i - 1];
+      hi = i == n - 1 ? Tm[n - 1] : Tm[i + 1];
+    } else {
+      lo = a_lo;
+      hi = a_hi;
+    }
+    if (rc) break;
+    if (T) { crtraj_swept(M, T, origin, lo, hi, sw); rc = crtraj_clear_one(&kb, x, M, sw, P, &c); }
+    else rc = crtraj_clear_one(&kb, x, M, S, P, &c);
+    v = (c - inflate) - half;
+    if (v < best || v != v) best = v;
+    if (best != best) break;
+  }
+  *out = best;
+  free(sw); crtraj_free(&kb); crtraj_free(&km);
+  return rc;
+}
+"""
