@@ -152,3 +152,24 @@ def test_a_corrupt_rod_model_entry_is_rebuilt_not_used(rod: RodModel, cache: Pat
     assert "is unusable" in caplog.text and "rebuilding it" in caplog.text
     assert np.allclose(again.correction.coef, rod.correction.coef, rtol=0.0, atol=1e-9)
     assert load_rod_model(ROBOT, SMALL, cache_dir=cache).error == again.error  # and stored again
+
+
+def test_the_compiled_checker_and_numpy_evaluate_the_same_rod_body(rod: RodModel) -> None:
+    """The checker's generated C, the interpreted SX function and a plain numpy evaluation of the correction
+    (PCC's points plus mean + modes x polynomials, interpolated along the arc) agree to 1e-9 mm."""
+    from crtraj.core.build_cache import BuildCache
+    from crtraj.planning.validity import ValidityKernel
+
+    kernel = ValidityKernel.load(rod, 15, BuildCache())
+    if kernel is None:
+        pytest.skip("no C compiler")
+    X = sample_within_limits(ROBOT, 64, np.random.default_rng(5))
+    interpreted = rod.points(X, 15)
+    assert np.abs(kernel.points(X) - interpreted).max() <= 1e-9
+    c = rod.correction
+    arcs = Model(ROBOT).arc_positions(15)
+    by_numpy = Model(ROBOT).points(X, 15) + np.einsum(
+        "qj,njc->nqc", c.weights(arcs), c.values(ROBOT.bending(X).reshape(len(X), -1))
+    )
+    assert np.abs(by_numpy - interpreted).max() <= 1e-9
+    assert c.basis.shape[0] == min(SMALL.modes, 3 * len(c.arcs))  # the modes, not one polynomial per number
