@@ -173,3 +173,23 @@ def test_the_compiled_checker_and_numpy_evaluate_the_same_rod_body(rod: RodModel
     )
     assert np.abs(by_numpy - interpreted).max() <= 1e-9
     assert c.basis.shape[0] == min(SMALL.modes, 3 * len(c.arcs))  # the modes, not one polynomial per number
+
+
+def test_the_view_draws_the_rod_body_of_a_rod_result() -> None:
+    """`crtraj view` of a --model rod plan draws the rod model's body (the plan's own model, not PCC's); a result
+    that records a PCC body is drawn with PCC."""
+    from crtraj.viz.view import Visualizer, result_model
+
+    run = plan_problem(Problem.load(PROBLEM), body="rod")
+    doc = run.document()
+    vis = Visualizer.for_result(doc)
+    try:
+        assert isinstance(vis.model, RodModel) and vis.model.identity() == run.model.identity()
+    finally:
+        vis.close()
+    xs = read_result(doc).x
+    x = xs[len(xs) // 2]
+    assert np.allclose(vis.model.points(x), run.model.points(x), atol=1e-12)
+    assert np.linalg.norm(vis.model.points(x) - Model(ROBOT).points(x), axis=1).max() > 5.0  # the sag is drawn
+    doc["options"]["body"] = {"kind": "pcc"}
+    assert type(result_model(read_result(doc))) is Model
