@@ -155,8 +155,9 @@ def test_a_corrupt_rod_model_entry_is_rebuilt_not_used(rod: RodModel, cache: Pat
 
 
 def test_the_compiled_checker_and_numpy_evaluate_the_same_rod_body(rod: RodModel) -> None:
-    """The checker's generated C, the interpreted SX function and a plain numpy evaluation of the correction
-    (PCC's points plus mean + modes x polynomials, interpolated along the arc) agree to 1e-9 mm."""
+    """The checker's generated C (backbone points and the tip), the interpreted SX function and a plain numpy
+    evaluation of the correction (PCC's points plus mean + modes x polynomials, interpolated along the arc) agree
+    to 1e-9 mm."""
     from crtraj.core.build_cache import BuildCache
     from crtraj.planning.validity import ValidityKernel
 
@@ -172,6 +173,8 @@ def test_the_compiled_checker_and_numpy_evaluate_the_same_rod_body(rod: RodModel
         "qj,njc->nqc", c.weights(arcs), c.values(ROBOT.bending(X).reshape(len(X), -1))
     )
     assert np.abs(by_numpy - interpreted).max() <= 1e-9
+    tips, _ = kernel.tip_jacobian(X)  # the tip's own polynomials (the modes folded in): the same tip
+    assert np.abs(tips - by_numpy[:, -1]).max() <= 1e-9
     assert c.basis.shape[0] == min(SMALL.modes, 3 * len(c.arcs))  # the modes, not one polynomial per number
 
 

@@ -166,9 +166,9 @@ class Correction:
         coef, *_ = np.linalg.lstsq(phi, (y - mean) @ basis.T, rcond=None)
         return cls(r, exps, coef, Model(r, sur.n_points).arc_positions(sur.n_points), basis, mean)
 
-    def expr(self, ub: Any) -> Any:
-        """Delta (3 x P) as an SX/MX expression of the effective bending vectors ub (2 n_segments,) rad: each
-        monomial one product of a lower monomial and one variable, the modes' polynomials, then the modes."""
+    def terms(self, ub: Any) -> Any:
+        """The monomials (M,) as an SX/MX expression of the effective bending vectors ub (2 n_segments,) rad,
+        each one product of a lower monomial and one variable."""
         n = len(self.scale)
         w = [ub[i] * float(self.scale[i]) for i in range(n)]
         mono: dict[tuple[int, ...], Any] = {(0,) * n: 1.0}
@@ -177,9 +177,18 @@ class Correction:
                 i = max(j for j in range(n) if e[j])  # the last variable with a nonzero exponent
                 lower = (*e[:i], e[i] - 1, *e[i + 1 :])
                 mono[e] = mono[lower] * w[i] if lower in mono else self._monomial(w, e)
-        terms = ca.vertcat(*[mono[tuple(e)] for e in self.exps.tolist()])
+        return ca.vertcat(*[mono[tuple(e)] for e in self.exps.tolist()])
+
+    def expr(self, terms: Any) -> Any:
+        """Delta (3 x P) from the monomials `terms` (`Correction.terms`): the modes' polynomials, then the modes."""
         flat = ca.DM(self.mean) + ca.mtimes(ca.DM(self.basis.T), ca.mtimes(ca.DM(self.coef.T), terms))  # (3 P,)
         return ca.reshape(flat, 3, len(self.arcs))
+
+    def tip_expr(self, terms: Any) -> Any:
+        """Delta at the tip (3,) from the monomials: one polynomial per coordinate (the modes folded into the
+        coefficients), which costs 3 and not R polynomials where only the tip is wanted (the safe IK's tip and
+        Jacobian, the horizon's tip terms)."""
+        return ca.DM(self.mean[-3:]) + ca.mtimes(ca.DM((self.coef @ self.basis[:, -3:]).T), terms)
 
     @staticmethod
     def _monomial(w: list[Any], e: tuple[int, ...]) -> Any:
@@ -237,6 +246,7 @@ class RodModel(Model):
     ) -> None:
         self.correction, self.error, self._identity = correction, error, dict(identity)
         self._delta: Any = None
+        self._mono: Any = None
         super().__init__(robot, n_points)
 
     def identity(self) -> dict[str, Any] | None:
@@ -255,14 +265,19 @@ class RodModel(Model):
             "error_mm": {"body_max": e.body_max, "body_p95": e.body_p95, "tip_max": e.tip_max, "samples": e.samples}
         }
 
+    def _terms(self) -> Any:
+        if self._mono is None:
+            self._mono = self.correction.terms(self._ub)
+        return self._mono
+
     def _correction_expr(self) -> Any:
         if self._delta is None:
-            self._delta = self.correction.expr(self._ub)
+            self._delta = self.correction.expr(self._terms())
         return self._delta
 
     def _frame_expr(self, frac_total: float | None = None) -> ca.SX:
         T = super()._frame_expr(frac_total)
-        T[:3, 3] = T[:3, 3] + self._correction_expr()[:, -1]
+        T[:3, 3] = T[:3, 3] + self.correction.tip_expr(self._terms())
         return T
 
     def _points_expr(self, arcs: np.ndarray) -> ca.SX:
