@@ -18,17 +18,23 @@ which is above it, so the bound stays one) and the smooth lower bound of the dis
 grown by b (a box that contains every ball). Inside the grid the first term is I(y) - e.
 
 The interpolant is piecewise trilinear: continuous, its gradient jumps across cell faces (the NLPs' SQP and
-IPOPT steps cope; the verifiers never use it). Grids are kept per set object (built once per process).
+IPOPT steps cope; the verifiers never use it). Grids are kept per set object, and their node values in the build
+cache's folder under the SHA-256 of the set's points and the grid (built once).
 """
 
 from __future__ import annotations
 
+import hashlib
+import io
+import logging
 import math
 from typing import Any
 
 import casadi as ca
 import numpy as np
 
+from crtraj.core.build_cache import default_root
+from crtraj.core.fileio import atomic_write_bytes
 from crtraj.core.lazy import lazy_module
 from crtraj.world.geometry._points import Mesh, PointCloud
 from crtraj.world.geometry._shapes import Box
@@ -39,6 +45,8 @@ ndimage = lazy_module("scipy.ndimage")  # as the KD-tree's SciPy: loaded when a 
 # Most grid nodes per set: the spacing grows until the grid fits (about 16 MB of doubles).
 MAX_NODES = 2_000_000
 _EPS = 1e-3  # mm, the smoothing of the norm outside the grid
+_VERSION = b"grid-1"  # changes when the node values are computed otherwise
+log = logging.getLogger(__name__)
 _GRIDS: dict[int, tuple[Any, GridDistance]] = {}
 
 
@@ -67,7 +75,7 @@ class GridDistance:
         self.spacing, self.lo, self.n = float(h), lo, n
         self.hi = lo + (n - 1) * h
         axes = [lo[a] + h * np.arange(n[a]) for a in range(3)]
-        d = _node_distances(shape, lo, h, n, near) - 0.5 * math.sqrt(3.0) * h
+        d = _cached_nodes(shape, lo, h, n, near) - 0.5 * math.sqrt(3.0) * h
         # CasADi's interpolant takes the values with the first axis fastest (Fortran order)
         values = d.reshape(n).ravel(order="F")
         self.values = d.reshape(n)
@@ -85,6 +93,24 @@ class GridDistance:
         grid = self._f(c) - ca.sqrt(ca.dot(v, v) + _EPS * _EPS)
         box = casadi_distance(self._box, y - self._box_centre, ca.DM.zeros(3), ca.DM.eye(3))
         return ca.fmax(grid, box)
+
+    def lookup(self, y: np.ndarray) -> np.ndarray:
+        """The same bound at points y (N, 3) in numpy (the checker's trilinear lookup; the box term is the exact
+        distance to the box, at least its smooth lower bound): (N,) mm."""
+        c = np.clip(y, self.lo, self.hi)
+        u = (c - self.lo) / self.spacing
+        i = np.minimum(np.floor(u).astype(np.int64), self.n - 2)
+        f = u - i
+        v = self.values
+        out = np.zeros(len(y))
+        for corner in range(8):
+            b = np.array([(corner >> a) & 1 for a in range(3)])
+            w = np.prod(np.where(b == 1, f, 1.0 - f), axis=1)
+            j = i + b
+            out += w * v[j[:, 0], j[:, 1], j[:, 2]]
+        grid = out - np.sqrt(np.sum((y - c) ** 2, axis=1) + _EPS * _EPS)
+        box = self._box.local_distance(y - np.asarray(self._box_centre).ravel())[0]
+        return np.maximum(grid, box)
 
     def numeric(self, y: np.ndarray) -> np.ndarray:
         """The bound at points y (N, 3) (numbers; for tests and benchmarks)."""
@@ -110,6 +136,29 @@ def _node_distances(shape: PointCloud | Mesh, lo: np.ndarray, h: float, n: np.nd
         dist, _ = shape._tree.query(nodes, distance_upper_bound=near + 2.0 * half + ball)
         exact = np.where(np.isfinite(dist), dist - ball, near)  # beyond the bound: f is at least near
         d.ravel()[close] = np.maximum(d.ravel()[close], exact)
+    return d
+
+
+def _cached_nodes(shape: PointCloud | Mesh, lo: np.ndarray, h: float, n: np.ndarray, near: float) -> np.ndarray:
+    """`_node_distances`, kept in the build cache's folder (``grids/<sha256>.npy``) under the SHA-256 of the set's
+    points, ball and the grid (a set built again, in this process or another, reads it back). A cache that
+    cannot be read or written is passed by (the grid is computed)."""
+    key = hashlib.sha256(np.ascontiguousarray(shape.points, dtype=np.float64).tobytes())
+    key.update(np.array([shape.ball, h, near, *lo, *n], dtype=np.float64).tobytes() + _VERSION)
+    path = default_root() / "grids" / f"{key.hexdigest()}.npy"
+    try:
+        cached = np.load(path, allow_pickle=False)
+        if cached.shape == tuple(n) and np.isfinite(cached).all():
+            return cached
+    except (OSError, ValueError):
+        pass
+    d = _node_distances(shape, lo, h, n, near)
+    buf = io.BytesIO()
+    np.save(buf, d, allow_pickle=False)
+    try:
+        atomic_write_bytes(path, buf.getvalue())
+    except OSError as exc:
+        log.debug("grid cache: not written (%s)", exc)
     return d
 
 
