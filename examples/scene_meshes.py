@@ -5,11 +5,13 @@
 - problems/data/bent_pipe.stl: the wall surface of a pipe of 55 mm radius (open at both ends): 120 mm straight
   along its own z axis from its mouth at z = 0, then a 90-degree bend of 150 mm centre-line radius toward +x.
 
-Run: python examples/scene_meshes.py   (rewrites both files; the problems read them as they are)
+Run: python examples/scene_meshes.py [FOLDER]   (writes both files into FOLDER, by default problems/data, whose
+files the problems read; the same numbers give the same triangles)
 """
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -53,10 +55,11 @@ def bent_pipe(radius: float = 55.0, straight: float = 120.0, bend: float = 150.0
 
 
 def main() -> None:
-    DATA.mkdir(parents=True, exist_ok=True)
+    folder = Path(sys.argv[1]) if len(sys.argv) > 1 else DATA
+    folder.mkdir(parents=True, exist_ok=True)
     for name, mesh in (("plate_hole.stl", plate_with_hole()), ("bent_pipe.stl", bent_pipe())):
-        mesh.export(DATA / name)
-        print(f"wrote {DATA / name} ({len(mesh.faces)} triangles)")
+        mesh.export(folder / name)
+        print(f"wrote {folder / name} ({len(mesh.faces)} triangles)")
 
 
 if __name__ == "__main__":
