@@ -29,12 +29,11 @@ from pathlib import Path
 import numpy as np
 import tomlkit
 import trimesh
-from scene_shapes import sphere_cover
+from scene_shapes import checker_rate, sphere_cover
 
 from crtraj.app.plan import plan_problem
 from crtraj.control.loop import ClosedLoop
 from crtraj.io.problem import Problem
-from crtraj.planning.validity import StateValidityChecker
 from crtraj.world.geometry import Box, GridDistance, Mesh, MovingShape, Pose, load_triangles
 from crtraj.world.obstacle import Obstacle
 from crtraj.world.scene import MAX_OBSTACLES, Scene
@@ -88,18 +87,6 @@ def _replan(problem: Problem) -> tuple[float, int, int, str]:
     return float(np.median(t)), int(np.sum(t > 0.004)), len(t), f"{run.status}, {run.collisions} collisions"
 
 
-def _checker_rate(model: object, scene: Scene, repeat: int) -> float:
-    checker = StateValidityChecker(model, scene)
-    X = checker.limits.sample(np.random.default_rng(1), 2000)
-    checker.clearance(X[:10], 0.0)
-    rates = []
-    for _ in range(repeat):
-        c = time.process_time()
-        checker.clearance(X, 0.0)
-        rates.append(len(X) / max(time.process_time() - c, 1e-9))
-    return statistics.median(rates)
-
-
 def _load() -> str:
     return " ".join(f"{v:.2f}" for v in os.getloadavg())
 
@@ -150,9 +137,9 @@ def mesh_part(base: Scene, folder: Path, repeat: int, duration: float, sizes: tu
         wall, run = _plan(problem, repeat)
         ok = "" if run.result.is_success() else " (plan failed)"
         med, late, n, status = _replan(problem)
-        rate = _checker_rate(run.model, problem.options(Scene, "scene"), repeat)
+        rate = checker_rate(run, problem.options(Scene, "scene"), repeat)
         ball = replace(base, obstacles=(Obstacle(PLACE.position, 85.0),))
-        rate1 = _checker_rate(run.model, ball, repeat)
+        rate1 = checker_rate(run, ball, repeat)
         print(f"| {len(mesh.triangles)} triangles{ok} | {load:.2f} | {cold:.2f} | {warm:.2f} | {wall:.2f} | "
               f"{med * 1e3:.1f} | {late} of {n} | {rate:.0f} | {rate1:.0f} | {status} |")  # fmt: skip
 
