@@ -11,11 +11,12 @@ bounding box grown by `pad` mm. Trilinear interpolation ``I(y) = sum_i w_i g_i``
                       = f(y) + h sqrt(sum_axes u_a (1 - u_a)) <= f(y) + (sqrt(3) / 2) h,
 
 (u_a the cell coordinates of y; Jensen, then the trilinear weights' variance per axis), so
-``f(y) - sqrt(3) h <= I(y) <= f(y)``: conservative, at most sqrt(3) h below f, and b + sqrt(3) h below the
-obstacle's distance for a mesh (the error bound `error`). Outside the grid, the lower bound is the larger of
-``I(clip(y)) - |y - clip(y)|`` (f is 1-Lipschitz; the norm is taken as ``sqrt(|.|^2 + e^2)`` with e = 1e-3 mm,
-which is above it, so the bound stays one) and the smooth lower bound of the distance to the set's bounding box
-grown by b (a box that contains every ball). Inside the grid the first term is I(y) - e.
+``f(y) - sqrt(3) h <= I(y) <= f(y)``: conservative, at most sqrt(3) h below f (a cloud's distance), and
+b + sqrt(3) h below the obstacle's distance for a mesh (the error bound `error`). Outside the grid, the lower
+bound is the larger of ``I(clip(y)) - |y - clip(y)|`` (f is 1-Lipschitz; the norm is taken as
+``sqrt(|.|^2 + e^2)`` with e = 1e-3 mm, which is above it, so the bound stays one) and the smooth lower bound of
+the distance to the set's bounding box grown by b (a box that contains every ball). Inside the grid the first
+term is I(y) - e.
 
 The interpolant is piecewise trilinear: continuous, its gradient jumps across cell faces (the NLPs' SQP and
 IPOPT steps cope; the verifiers never use it). Grids are kept per set object, and their node values in the build
@@ -84,7 +85,9 @@ class GridDistance:
         half = np.maximum(0.5 * (cmax - cmin), 1e-6)
         self._box = Box(tuple(half.tolist()))
         self._box_centre = ca.DM(0.5 * (cmax + cmin))
-        self.error = math.sqrt(3.0) * h + ball  # below the obstacle's true distance, at most (inside the grid)
+        # below the obstacle's distance at most (inside the grid, within `near` of the set): the grid's, and a
+        # mesh's sampling (a cloud's balls are its obstacle: its f is exact)
+        self.error = math.sqrt(3.0) * h + (ball if isinstance(shape, Mesh) else 0.0)
 
     def __call__(self, y: Any) -> Any:
         """A lower bound (mm) of the distance at y (3, 1) in the set's frame at scale 1 (symbolic or numeric)."""
@@ -96,7 +99,7 @@ class GridDistance:
 
     def lookup(self, y: np.ndarray) -> np.ndarray:
         """The same bound at points y (N, 3) in numpy (the checker's trilinear lookup; the box term is the exact
-        distance to the box, at least its smooth lower bound): (N,) mm."""
+        distance to the box, at most `BOX_SMOOTH_ERROR` k above the interpolant's smooth one): (N,) mm."""
         c = np.clip(y, self.lo, self.hi)
         u = (c - self.lo) / self.spacing
         i = np.minimum(np.floor(u).astype(np.int64), self.n - 2)
