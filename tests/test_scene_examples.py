@@ -19,6 +19,8 @@ from crtraj.io.results import read_result
 from crtraj.model.kinematics import Model
 from crtraj.world.geometry import exact_min_clearance
 
+pytestmark = pytest.mark.slow  # end to end: four plans and four replans from the command line (about 1.5 min)
+
 NAMES = ("scene_table_wall", "scene_plate_hole", "scene_bent_pipe", "scene_swinging_arm")
 
 
