@@ -23,7 +23,9 @@ Each query runs on both paths, one after the other, so both see the same load.
    Target (new): 31 obstacles at most 3x the time at 1.
 5. Edge checks per second, with and without the broad phase, and the kernel's loaders (ctypes against
    ``casadi.external``).
-7. With `--stages N`: where a query's time goes, per stage, in C and in Python (`benchmarks/plan_stages.py`).
+7. With `--stages N`: where a query's time goes, per stage, in C and in Python, planning and retiming, and the
+   physical limit: samples, work per sample and the C cost per sample against the measured CPU time
+   (`benchmarks/plan_stages.py`).
 
 Plan times are the planner's own wall time per query (`PlanResult.timings["total"]`), planners built once
 and warmed up by one untimed query, with the process CPU time beside it (`time.process_time`; on a machine
@@ -474,13 +476,14 @@ def ab_executable(problem: Problem, model: Model, scene: Scene, options: Planner
 
 
 def stage_queries(problem: Problem, model: Model, scene: Scene, options: PlannerOptions, n: int) -> dict:
-    """Section 7's query sets (sim 1 from its start tip, Table I at 7 obstacles), planners built and warmed up."""
+    """Section 7's query sets (sim 1 from its start tip, Table I at 7 obstacles), planners built and warmed up, with
+    the robot's rate limits as `plan_executable` has them (section 7 retimes every result)."""
     o = options.with_(algorithm="cspace")
     task = problem.task
-    p = make_planner(model, scene, o)
+    p = make_planner(model, scene, o, rate_limits=model.robot.rate_limits())
     kw = {"start_tip": task.start, "stop": o.stop(), "goal_tolerance": task.goal_tolerance}
     p.plan(task.goal, seed=10_000, **kw)
-    p7 = make_planner(model, Scene(), o, max_obstacles=8)
+    p7 = make_planner(model, Scene(), o, max_obstacles=8, rate_limits=model.robot.rate_limits())
     stop = StopCondition(time_limit=5.0, max_iterations=o.max_iterations, first_solution=True)
     warm = ScenarioGenerator(model, ScenarioOptions(seed=99)).generate(7, 0)
     p7.plan(warm.goal, start_config=warm.start, scene=warm.scene, stop=stop, seed=0)

@@ -144,6 +144,7 @@ def homed_state(chain: ServoChain, acts, now: float = 0.0) -> HomingState:
                     "2026-12-02T00:00:00+00:00",
                     chain.register(dxl_id, X.MODEL_INFORMATION, 4),
                     chain.register(dxl_id, X.FIRMWARE, 1),
+                    chain.register(dxl_id, X.PRESENT_POSITION, 4),
                 )
             )
     return HomingState(tuple(entries))

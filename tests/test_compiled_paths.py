@@ -4,7 +4,7 @@ check that counts first intervals in C returns the numpy-counted call's numbers 
 that are not finite; the compiled path clearance (with its exact broad phase) equals the numpy samples through
 the compiled clearance bit for bit; the compiled B-spline equals `BSplineCurve`; the body-motion bound equals
 its former formula; the batched IK dedup keeps what one-at-a-time keeping keeps; a tree filled at once equals
-one filled node by node."""
+one filled node by node; the closed loop's verification of a move in one call equals its numpy form."""
 
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ from crtraj.core.splines import BSplineCurve
 from crtraj.model.kinematics import Model
 from crtraj.planning.ik import IKRun
 from crtraj.planning.planners._tree import SearchTree
-from crtraj.planning.validity import Kernels, MotionValidator
+from crtraj.planning.validity import Kernels, MotionValidator, held_clearance
 from crtraj.world.scene import Scene
 
 
@@ -230,3 +230,50 @@ def test_path_clearance_of_frames_shares_their_samples_exactly(model: Model, ker
     np.testing.assert_array_equal(per, ref)
     assert low == ref.min()
     assert v.n_samples - s0 == len(S)
+
+
+def _servo_motion(v: MotionValidator, rng: np.random.Generator, n: int, scale: float) -> tuple[np.ndarray, ...]:
+    """A step's sampled move as the loop verifies it: n configurations a small random walk apart, every 10 ms."""
+    X = v.project_limits(v.sample(rng, 1) + np.cumsum(rng.normal(scale=scale, size=(n, v.robot.nx)), axis=0))
+    T = rng.uniform(0.0, 3.0) + 0.01 * np.arange(n)
+    return X, T
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(seed=st.integers(0, 2**32 - 1), n=st.integers(1, 12), k=st.integers(1, 30), moving=st.booleans())
+def test_held_clearance_in_one_call_is_the_numpy_one(model: Model, kernels: Kernels, seed, n, k, moving):
+    """The loop's verification of a sampled move in one compiled call (its bounds from the kernel's motion bound)
+    equals the numpy buffers through the validator's clearance within 1e-9 mm, with and without the hold after
+    it, and counts the same samples."""
+    rng = np.random.default_rng(seed)
+    v = MotionValidator(model, replace(random_scene(rng, k, moving), time_origin=rng.uniform(0, 5)), kernels=kernels)
+    X, T = _servo_motion(v, rng, n, rng.choice([1e-3, 0.02, 0.2]))
+    for after in (None, (T[-1], T[-1] + 0.5)):
+        s0 = v.n_samples
+        a = held_clearance(v, X, T, after)
+        s1 = v.n_samples
+        b = held_clearance(v, X, T, after, compiled=False)
+        assert abs(a - b) <= 1e-9
+        assert s1 - s0 == v.n_samples - s1 == n + (after is not None)
+
+
+def test_held_clearance_keeps_the_margin_between_samples(model: Model, kernels: Kernels):
+    """Moves whose samples are all clear but whose configurations between them may not be: the one-call check
+    subtracts the half bound and flags them (negative) as numpy does; without the margin (the weaker check) the
+    samples alone would pass. A time that is not finite goes to numpy, which names it."""
+    from crtraj.core.errors import InputError
+
+    rng = np.random.default_rng(11)
+    v = MotionValidator(model, random_scene(rng, 12, moving=True), kernels=kernels)
+    assert v.kernel is not None
+    flagged = 0
+    for _ in range(300):
+        X, T = _servo_motion(v, rng, 4, 0.15)
+        held = held_clearance(v, X, T)
+        weak = float(np.min(v.clearance(X, T, T)))
+        assert abs(held - held_clearance(v, X, T, compiled=False)) <= 1e-9
+        assert held <= weak + 1e-12
+        flagged += held < 0.0 <= weak
+    assert flagged >= 3
+    with pytest.raises(InputError, match="NaN or infinity"):
+        held_clearance(v, X, np.array([0.0, 0.01, np.inf, 0.03]))

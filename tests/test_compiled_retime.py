@@ -1,6 +1,7 @@
 """The retiming's phase-plane pass and knot times in C (`ValidityKernel.phase_law`) against the numpy/Python pass,
 on random curves (hypothesis) and recorded sim-1 plans; toppra (the reference TOPP-RA library) as an independent
-check of the law's duration; and the limit check that catches a law computed for weaker limits."""
+check of the law's duration; the limit check that catches a law computed for weaker limits; and the curve in C
+(`ValidityKernel.natural_slopes`, `hermite`) against numpy's `crtraj.core.splines`, bit for bit."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ from hypothesis import strategies as st
 
 from crtraj.core.build_cache import BuildCache
 from crtraj.core.errors import InputError
+from crtraj.core.splines import HermiteCubic, natural_cubic
 from crtraj.io.problem import Problem
 from crtraj.model.kinematics import Model
 from crtraj.model.rate_limits import RateLimits
@@ -20,7 +22,17 @@ from crtraj.planning.metric import BodyMetric
 from crtraj.planning.options import PlannerOptions
 from crtraj.planning.pipeline import retime_result
 from crtraj.planning.planners import BUILTIN
-from crtraj.planning.retime import _on_chord, _over_limits, _piece_law, _sample_law, _toppra_law, retime_curve
+from crtraj.planning.retime import (
+    COLLINEAR,
+    _middles_on_chords,
+    _on_chord,
+    _over_limits,
+    _piece_law,
+    _sample_law,
+    _toppra_law,
+    keep_corners,
+    retime_curve,
+)
 from crtraj.planning.validity import ValidityKernel
 from crtraj.world.scene import Scene
 
@@ -167,3 +179,74 @@ def test_chord_test_decides_as_before(seed, k, tol):
     u = np.sort(rng.uniform(-0.1, 1.1, size=k)) if rng.random() < 0.7 else rng.uniform(-0.1, 1.1, size=k)
     inner = a + u[:, None] * (b - a) + rng.choice([0.0, 1e-11, 1e-9]) * rng.normal(size=(k, 5))
     assert _on_chord(a, b, inner, tol) == _on_chord_plain(a, b, inner, tol)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(3, 40), st.integers(1, 6))
+def test_compiled_natural_cubic_equals_numpy(kernel, seed, n, d):
+    rng = np.random.default_rng(seed)
+    t = np.cumsum(10 ** rng.uniform(-3, 2, size=n))
+    Y = rng.normal(size=(n, d)) * 10 ** rng.uniform(-2, 2, size=d)
+    ref = natural_cubic(t, Y)
+    S = kernel.natural_slopes(t, Y)
+    np.testing.assert_array_equal(S, ref.slopes)
+    # the spline's defining conditions, checked independently: C2 at the inner knots, zero curvature at the ends
+    curve = HermiteCubic(t, Y, S)
+    left, right = curve(t[1:-1] - 1e-9 * (t[1:-1] - t[:-2]), 2), curve(t[1:-1], 2)
+    scale = np.max(np.abs(curve(t, 2)), axis=0) + np.max(np.abs(Y), axis=0)
+    assert np.all(np.abs(left - right) <= 1e-5 * scale)
+    x = np.concatenate([rng.uniform(t[0] - 1.0, t[-1] + 1.0, size=200), t, [np.nan, -np.inf, np.inf]])
+    for nu in (0, 1, 2):
+        with np.errstate(invalid="ignore"):  # inf - inf at the infinite parameters: NaN on both sides
+            np.testing.assert_array_equal(kernel.hermite(t, Y, S, x, nu), ref(x, nu))
+
+
+def test_compiled_cubic_rejects_a_bad_order(kernel):
+    t, Y = np.arange(4.0), np.ones((4, 2))
+    with pytest.raises(RuntimeError):
+        kernel.hermite(t, Y, Y, t, 3)
+    with pytest.raises(ValueError):
+        kernel.natural_slopes(t[:2], Y[:2])
+
+
+def _keep_corners_walk(X: np.ndarray, tol: float = COLLINEAR) -> np.ndarray:
+    """`keep_corners` as it was written before: a walk over every waypoint."""
+    X = np.asarray(X, dtype=float)
+    first = _middles_on_chords(X, tol) if len(X) >= 3 else np.zeros(0, dtype=bool)
+    keep = [0]
+    i, K = 0, len(X)
+    while i < K - 1:
+        j = i + 1
+        while j + 1 < K and first[i] and _on_chord(X[i], X[j + 1], X[i + 1 : j + 1], tol):
+            j += 1
+        if np.max(np.abs(X[j] - X[keep[-1]])) > 0.0:
+            keep.append(j)
+        i = j
+    if keep[-1] != K - 1:
+        keep[-1] = K - 1
+    return np.asarray(keep)
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(0, 40))
+def test_corners_found_as_by_the_walk(seed, k):
+    """`keep_corners` (only the possible merges visited) keeps the corners the walk over every waypoint keeps, on
+    paths of straight runs (finely and coarsely resampled), repeated waypoints, backtracks and random corners."""
+    rng = np.random.default_rng(seed)
+    pts = [rng.normal(size=5)]
+    for _ in range(k):
+        r = rng.random()
+        if r < 0.4:  # a straight run through 1-4 inner points
+            b = pts[-1] + rng.normal(size=5)
+            pts += list(pts[-1] + np.linspace(0.0, 1.0, rng.integers(2, 6))[1:, None] * (b - pts[-1]))
+        elif r < 0.55:
+            pts.append(pts[-1].copy())  # a zero-length motion
+        elif r < 0.65 and len(pts) > 1:
+            pts.append(pts[-2].copy())  # straight back
+        else:
+            pts.append(pts[-1] + rng.normal(size=5) * rng.choice([1e-12, 1e-3, 1.0]))
+    X = np.array(pts)
+    np.testing.assert_array_equal(keep_corners(X), _keep_corners_walk(X))
+    if k:
+        X[rng.integers(0, len(X))] = np.nan  # NaN equals nothing
+        np.testing.assert_array_equal(keep_corners(X), _keep_corners_walk(X))

@@ -243,3 +243,62 @@ def test_an_adapter_pulled_out_at_any_packet_of_the_connect_is_one_line(sim1_pla
         assert len(err) == 1 and "the link to the servos is lost" in err[0], (after, err)
         assert "Traceback" not in out.out + out.err
         assert not sim.ports[-1].is_using
+
+
+# ------------------------------------------------------------------- the safety registers at connect
+def test_connect_sets_pwm_current_limit_and_shutdown_and_reads_back_the_limits(monkeypatch, tmp_path):
+    """Servos left by another tool with PWM Limit 300 (a slowed servo), Current Limit 1000, Shutdown 0x34 (the
+    factory's: no input voltage), Temperature Limit 70 and Min Voltage 10.5 V: after connect PWM Limit reads 885,
+    each capped spool's Current Limit equals its Goal Current (57: 20 N), the uncapped stage keeps its Current
+    Limit, Shutdown reads 0x35, and the limits the trips use are the ones read back (a 66 deg C reading trips, 64
+    does not). A second connect writes none of these EEPROM registers again; a cap above the model's largest
+    Current Limit (the simulator refuses it, data limit) is one line naming max_tension."""
+    from dxl_helpers import homed_state, write
+
+    from crtraj.hardware.dynamixel._safety import Reading
+
+    acts = Actuators.from_robot(load_robot(dxl_helpers.ROBOT))
+    chain = ServoChain(acts.bus.ids, acts.bus.models)
+    for i in acts.bus.ids:
+        for addr, value, size in ((X.PWM_LIMIT, 300, 2), (X.CURRENT_LIMIT, 1000, 2), (X.TEMPERATURE_LIMIT, 70, 1)):
+            write(chain, i, addr, value, size)
+        write(chain, i, X.MIN_VOLTAGE, 105, 2)
+    state = homed_state(chain, acts)
+    clock = Clock()
+    eeprom = []
+    handle = chain.handle
+
+    def watch(packet, now):
+        if packet.instruction == dxl.WRITE and int.from_bytes(packet.params[:2], "little") in (36, 38, 63):
+            eeprom.append(int.from_bytes(packet.params[:2], "little"))
+        return handle(packet, now)
+
+    chain.handle = watch
+    monkeypatch.setattr(dynamixel, "port_factory", lambda sdk, name: SimPort(chain, clock, name=name))
+    tr = open_dynamixel("dynamixel:///dev/sim", acts, homing=state, clock=clock, warn=lambda m: None)
+    assert [chain.register(i, X.PWM_LIMIT, 2) for i in acts.bus.ids] == [885] * 7
+    assert [chain.register(i, X.CURRENT_LIMIT, 2) for i in acts.bus.ids] == [57] * 6 + [1000]
+    assert [chain.register(i, X.GOAL_CURRENT, 2) for i in acts.bus.ids[:6]] == [57] * 6
+    assert [chain.register(i, X.SHUTDOWN, 1) for i in acts.bus.ids] == [0x35] * 7
+    assert sorted(set(eeprom)) == [36, 38, 63] and len(eeprom) == 7 + 6 + 7
+    assert tr.caps.limits[1] == (70, 105, 160)
+    assert tr.caps.trip(0, Reading(30, 120, 66))[0] == "over-temperature"
+    assert tr.caps.trip(0, Reading(30, 120, 64)) is None
+    assert tr.caps.trip(0, Reading(30, 109, 40))[0] == "under-voltage"  # within 0.5 V of the 10.5 V read back
+    tr.close()
+    eeprom.clear()
+    for i in acts.bus.ids:
+        write(chain, i, X.TORQUE_ENABLE, 0, 1, clock.now())
+    open_dynamixel("dynamixel:///dev/sim", acts, homing=state, clock=clock, warn=lambda m: None).close()
+    assert eeprom == []
+    text = dxl_helpers.ROBOT.read_text().replace("max_tension = 20.0", "max_tension = 500.0")
+    (path := tmp_path / "strong.toml").write_text(text)
+    strong = Actuators.from_robot(load_robot(path))
+    for i in acts.bus.ids:
+        write(chain, i, X.TORQUE_ENABLE, 0, 1, clock.now())
+    with pytest.raises(dynamixel.TransportError) as exc:
+        open_dynamixel("dynamixel:///dev/sim", strong, homing=state, clock=clock, warn=lambda m: None)
+    assert str(exc.value) == (
+        "servo id 1 (s1c1): max tension 500 N needs 3833 mA, above the largest Current Limit its model takes: "
+        "lower it in the robot file"
+    )

@@ -211,7 +211,8 @@ def test_a_spool_turned_while_unpowered_is_unwrapped_or_refused():
     chain.turn_by_hand(2, TICKS_PER_REV)  # s1c2 turned a whole revolution while unpowered
     chain.power_cycle(0.0)
     _write(chain, 7, X.LED, 1, 1)  # the stage counts as homed here: this test is about the spools
-    stage = HomingState((HomedServo(7, "z", 1030, 0, "index", "2026-01-01T00:00:00+00:00", 0, 46),))
+    here = chain.register(7, X.PRESENT_POSITION, 4)  # where it was let go
+    stage = HomingState((HomedServo(7, "z", 1030, 0, "index", "2026-01-01T00:00:00+00:00", 0, 46, here),))
     with InProcessSim(chain, clock=clock, wire_time=False) as sim:
         assert np.any(np.abs(_reading(chain, acts, clock)[:-1] - values[:-1]) > 6.0)  # read a turn off
         link = _connect(sim, acts)

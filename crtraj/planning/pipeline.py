@@ -133,7 +133,11 @@ def retime_result(
     if not result.has_path or len(result.t) < 2:
         return result, {**info, "outcome": "no motion", **executed_fractions(result, actuators, context, rate)}
     usable = limits.scaled(options.limit_fraction)
-    metric = BodyMetric(validator.robot, options.max_speed)
+    # the validator's own metric when it has the same speed (its motion bound is the same function of the robot; a
+    # new one costs its matrices and their inverse, a tenth of a millisecond)
+    space = getattr(validator, "space", None)
+    same = isinstance(space, BodyMetric) and space.robot is validator.robot and space.max_speed == options.max_speed
+    metric = space if same else BodyMetric(validator.robot, options.max_speed)
     X, t0, period = result.configs, float(result.t[0]), 1.0 / rate
     model = validator.model
 

@@ -127,21 +127,35 @@ def keep_corners(X: np.ndarray, tol: float = COLLINEAR) -> np.ndarray:
     """Indices of the waypoints that are corners (plus both ends): runs of collinear,
     forward-progressing straight motions are merged; zero-length motions are dropped."""
     X = np.asarray(X, dtype=float)
+    K = len(X)
     # a run from X[i] can only grow past X[i+1] when X[i+1] lies on the chord X[i] -> X[i+2]: that first
-    # test is made for all i at once, so the loop below calls `_on_chord` only where a merge may happen
-    first = _middles_on_chords(X, tol) if len(X) >= 3 else np.zeros(0, dtype=bool)
-    keep = [0]
-    i, K = 0, len(X)
-    while i < K - 1:
+    # test is made for all i at once, so the loop below visits only those i (elsewhere the walk steps by one)
+    first = _middles_on_chords(X, tol) if K >= 3 else np.zeros(0, dtype=bool)
+    visited = np.ones(K, dtype=bool)  # the waypoints the walk from 0 stands on (not inside a merged run)
+    reach = 0  # the walk has stood on no waypoint beyond this one yet
+    for i in np.flatnonzero(first).tolist():
+        if i < reach:
+            continue  # inside a run merged from an earlier waypoint
         j = i + 1
-        while j + 1 < K and first[i] and _on_chord(X[i], X[j + 1], X[i + 1 : j + 1], tol):
+        while j + 1 < K and _on_chord(X[i], X[j + 1], X[i + 1 : j + 1], tol):
             j += 1
-        if np.max(np.abs(X[j] - X[keep[-1]])) > 0.0:
-            keep.append(j)
-        i = j
+        visited[i + 1 : j] = False
+        reach = j
+    v = np.flatnonzero(visited)
+    if np.all(np.isfinite(X)):
+        # a visited waypoint is kept where it differs from the previous one visited (a zero-length motion is
+        # dropped: the previous one then equals the last kept, which the walk compares with)
+        moved = np.max(np.abs(X[v[1:]] - X[v[:-1]]), axis=1, initial=0.0) > 0.0 if len(v) > 1 else []
+        keep = np.concatenate([[0], v[1:][moved]]).astype(np.int64)
+    else:  # NaN equals nothing: compare with the last kept, as the walk does
+        keep_list = [0]
+        for j in v[1:].tolist():
+            if np.max(np.abs(X[j] - X[keep_list[-1]])) > 0.0:
+                keep_list.append(j)
+        keep = np.asarray(keep_list, dtype=np.int64)
     if keep[-1] != K - 1:
         keep[-1] = K - 1  # the end itself (equal to the last kept corner up to 0)
-    return np.asarray(keep)
+    return keep
 
 
 def _middles_on_chords(X: np.ndarray, tol: float) -> np.ndarray:
@@ -312,7 +326,7 @@ def _piece_law(
     where q'' helps; the sampled frames are then checked against every limit (`_curve_piece`).
     """
     ss = np.concatenate([[0.0], np.cumsum(metric.motion_bound(np.diff(P, axis=0)))])
-    spline = natural_cubic(ss, P)  # x(s); spline(s, 1) is dx/ds
+    spline = _natural(ss, P, kernel)  # x(s); spline(s, 1) is dx/ds
     J = limits.jacobian
     n = int(min(MAX_GRID, GRID_PER_KNOT * (len(ss) - 1)))
     grid = np.unique(np.concatenate([ss, np.linspace(0.0, ss[-1], n + 1)]))
@@ -348,6 +362,26 @@ def _piece_law(
     if np.any(sd[1:-1] <= 0.0):
         raise InputError("retime: no law along a curve piece")
     return spline, grid, sd, T
+
+
+class _KernelCubic:
+    """The cubic `crtraj.core.splines.HermiteCubic(t, Y, S)` evaluated by a `ValidityKernel` (`hermite`: the same
+    numbers, one C call per evaluation); derivative orders 0-2, x (N,)."""
+
+    def __init__(self, t: np.ndarray, Y: np.ndarray, S: np.ndarray, kernel: Any) -> None:
+        self.t, self.values, self.slopes, self.kernel = t, Y, S, kernel
+
+    def __call__(self, x: np.ndarray, nu: int = 0) -> np.ndarray:
+        return self.kernel.hermite(self.t, self.values, self.slopes, x, nu)
+
+
+def _natural(ss: np.ndarray, P: np.ndarray, kernel: Any) -> Any:
+    """`natural_cubic(ss, P)`, with a kernel solved and evaluated in C (the same numbers) when ss is strictly
+    increasing and there are at least 3 knots (else numpy's, which raises on bad knots)."""
+    if kernel is None or len(ss) < 3 or P.ndim != 2 or not np.all(np.diff(ss) > 0.0):
+        return natural_cubic(ss, P)
+    t, Y = np.ascontiguousarray(ss, dtype=float), np.ascontiguousarray(P, dtype=float)
+    return _KernelCubic(t, Y, kernel.natural_slopes(t, Y), kernel)
 
 
 def _knot_times(gp: np.ndarray, sd: np.ndarray) -> np.ndarray:

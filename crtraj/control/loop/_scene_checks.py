@@ -10,7 +10,7 @@ import numpy as np
 from crtraj.control.loop._options import LoopOptions
 from crtraj.control.loop._run_record import REPORT_POINTS
 from crtraj.model.kinematics import Model
-from crtraj.planning.validity import Kernels, MotionValidator
+from crtraj.planning.validity import Kernels, MotionValidator, held_clearance
 
 
 class SceneChecks:
@@ -64,24 +64,7 @@ class SceneChecks:
         the time window from its previous to its next sample, the obstacles
         by that half bound on top of the validator's chord/sagitta bounds.
         """
-        v = self.validator
-        n = len(X)
-        m = n + (after is not None)
-        # one buffer per array, written in place (the numbers of the concatenations they replace)
-        Xa, half, t_lo, t_hi = np.empty((m, X.shape[1])), np.zeros(m), np.empty(m), np.empty(m)
-        Xa[:n] = X
-        t_lo[0], t_hi[n - 1] = T[0], T[n - 1]
-        if n > 1:
-            B = v.motion_bound(X[1:] - X[:-1])
-            half[0], half[n - 1] = B[0], B[-1]
-            np.maximum(B[:-1], B[1:], out=half[1 : n - 1])
-            half[:n] *= 0.5
-            t_lo[1:n] = T[:-1]
-            t_hi[: n - 1] = T[1:]
-        if after is not None:
-            Xa[n] = X[-1]
-            t_lo[n], t_hi[n] = after
-        return float(np.min(v.clearance(Xa, t_lo, t_hi, half)))
+        return held_clearance(self.validator, X, T, after)
 
     def measure(self, T: np.ndarray, X: np.ndarray) -> float:
         """Sampled (not conservative) body clearance (mm, minus D_sf) along the motion, many points."""

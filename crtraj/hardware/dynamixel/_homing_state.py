@@ -26,8 +26,10 @@ How crtraj knows a servo's reading is absolute:
   was powered up after the homing, so its LED reads 0.
 
 `PowerUpCheck` runs at connect, before torque comes on: a multi-turn actuator
-(position limits spanning a turn or more) must carry the marker and match the
-state file, else a one-line refusal names the servo. A single-turn actuator (a
+(position limits spanning a turn or more) must carry the marker, read Operating Mode 4 or 5, match the
+state file (Homing Offset, identity) and read within half a turn of where crtraj last let it go (the turn
+cross-check: a count lost behind a lit marker moves the reading by whole turns), else a one-line refusal names
+the servo. A single-turn actuator (a
 spool whose limits span less than a turn) is unwrapped: without the marker its
 reading is moved by whole turns into the turn centred on its limits window
 (`unwrap`), which is exact whenever the spool is within its limits; a reading
@@ -237,10 +239,16 @@ class PowerUpCheck:
         self._check_last(k, dxl_id, entry)
 
     def _check_last(self, k: int, dxl_id: int, entry: HomedServo) -> None:
-        """A multi-turn servo must read within half a turn of where crtraj last left it (`HomedServo.last`):
-        a Clear instruction or a spell in mode 3 moves the reading by whole turns, marker and mode unchanged."""
+        """The turn cross-check, at every connect of every multi-turn servo: it must read within half a turn of
+        where crtraj last let it go (`HomedServo.last`, recorded by the homing and by every stream's end). A Clear
+        instruction or a spell in mode 3 moves the reading by whole turns with the marker, the mode and the
+        Homing Offset unchanged (a lost count keeps the phase within the turn, so only the turns tell). An entry
+        without `last` (written before crtraj recorded it) cannot be cross-checked: refused, home again."""
         if entry.last is None:
-            return
+            raise InputError(
+                f"servo {self.acts.bus.name_of(dxl_id)}: the homing state file does not record where crtraj last let "
+                f"it go (an older crtraj wrote it), so its turn count cannot be cross-checked; run {self.command}"
+            )
         n = int(self.acts.bus.ticks_per_rev[k])
         reading = self.io.read(dxl_id, X.PRESENT_POSITION, 4)
         if abs(reading - entry.last) * 2 >= n:

@@ -14,9 +14,12 @@ accuracy). ``k_t`` is the robot file's ``torque_constant`` or the model's stall 
 12 V from the e-manual (`TORQUE_CONSTANTS`). A cable servo without ``max_tension`` is refused: crtraj does not
 guess a tendon's strength. A stage without ``max_force`` keeps extended position mode (its PWM Limit caps it).
 
-Connect (`ForceCaps.apply`, torque off) also sets Shutdown (63) to overload, electrical shock, overheating and
-input voltage (the factory default leaves out input voltage), and reads back Current Limit (38), Temperature
-Limit (31) and the voltage limits (32, 34) the trips compare with.
+Connect (`ForceCaps.apply`, torque off) also sets, each written only when it differs and read back: Shutdown (63)
+to overload, electrical shock, overheating and input voltage (the factory default leaves out input voltage);
+PWM Limit (36) to 100 % (a lower value another tool left would slow the servo below its plan, and in mode 5 the
+current, not the PWM, is the cap; in mode 4 it is the only cap, at the full stall torque); and a capped servo's
+Current Limit (38) to its cap, so that no Goal Current written later (homing, another tool) exceeds it. It
+reads back the Temperature Limit (31) and the voltage limits (32, 34) the trips compare with.
 
 Trips (`ForceCaps.trip`, on every sync read of the stream; times are the stream's periods): a reading beyond a
 bound latches the stream's verified stop (braking within the limits, then holding; in mode 5 the hold keeps the
@@ -66,6 +69,7 @@ TORQUE_CONSTANTS = MappingProxyType(
     }
 )
 SHUTDOWN = HW_OVERLOAD | HW_SHOCK | HW_OVERHEATING | HW_INPUT_VOLTAGE  # 0x35: the factory 0x34 plus input voltage
+PWM_LIMIT = X.PWM_LIMIT_DEFAULT  # 885 = 100 %: in mode 5 the current is the cap, a lower PWM only slows the servo
 AT_CAP = 0.95  # |Present Current| / Goal Current that counts as pulling at the cap
 TEMPERATURE_MARGIN = 5  # deg C below Temperature Limit
 VOLTAGE_MARGIN = 0.5  # V inside the voltage limits
@@ -145,11 +149,15 @@ class ForceCaps:
 
     # ------------------------------------------------------------- connect
     def apply(self, io: RegisterIO) -> None:
-        """With the torque off: Shutdown, the operating mode and Goal Current of every servo, and the limits the
-        trips read back; `TransportError` (one line) when a cap exceeds the servo's Current Limit."""
+        """With the torque off, on every servo: Shutdown (63), PWM Limit (36) and, for a capped servo, Current
+        Limit (38) = Goal Current (102) = its cap in current-based position mode (others: extended position mode),
+        each written only when it differs (EEPROM wears) and read back; then the Temperature and voltage limits
+        (31, 32, 34) the trips compare with. `TransportError` (one line) for a cap the servo refuses (above its
+        model's largest Current Limit) or a register that does not read back what was written."""
         bus = self.bus
         for k, i in enumerate(bus.ids):
-            io.write(i, X.SHUTDOWN, SHUTDOWN, 1, "shutdown conditions")
+            ensure(io, bus, i, X.SHUTDOWN, SHUTDOWN, 1, "shutdown conditions")
+            ensure(io, bus, i, X.PWM_LIMIT, PWM_LIMIT, 2, "PWM limit")
             self.limits[i] = (
                 io.read(i, X.TEMPERATURE_LIMIT, 1),
                 io.read(i, X.MIN_VOLTAGE, 2),
@@ -158,12 +166,13 @@ class ForceCaps:
             if not self.goal[k]:
                 io.write(i, X.OPERATING_MODE, X.EXTENDED_POSITION, 1, "extended position mode")
                 continue
-            limit = io.read(i, X.CURRENT_LIMIT, 2)
-            if self.goal[k] > limit:
+            try:
+                ensure(io, bus, i, X.CURRENT_LIMIT, int(self.goal[k]), 2, "current limit")
+            except TransportError:
                 raise TransportError(
                     f"servo {bus.name_of(i)}: max tension {self.force[k]:g} N needs {self.goal[k] * X.CURRENT_UNIT:.0f}"
-                    f" mA, above its Current Limit {limit * X.CURRENT_UNIT:.0f} mA: lower it in the robot file"
-                )
+                    " mA, above the largest Current Limit its model takes: lower it in the robot file"
+                ) from None
             io.write(i, X.OPERATING_MODE, X.CURRENT_POSITION, 1, "current-based position mode")
             io.write(i, X.GOAL_CURRENT, int(self.goal[k]), 2, "goal current")
 
@@ -213,6 +222,18 @@ class TripWatch:
         self.readings[k] = r
         if self.first is None:
             self.first = self.caps.trip(k, r)
+
+
+def ensure(io: RegisterIO, bus: ServoBus, dxl_id: int, addr: int, value: int, size: int, what: str) -> None:
+    """Register `addr` of servo `dxl_id` = `value`: written only when it reads otherwise (an EEPROM register wears
+    with every write), then read back; `TransportError` naming `what` when the servo keeps another value."""
+    mask = (1 << (8 * size)) - 1
+    if io.read(dxl_id, addr, size) & mask == value & mask:
+        return
+    io.write(dxl_id, addr, value, size, what)
+    got = io.read(dxl_id, addr, size) & mask
+    if got != value & mask:
+        raise TransportError(f"servo {bus.name_of(dxl_id)}: {what} reads {got} after writing {value}")
 
 
 # ------------------------------------------------------------------ the Bus Watchdog

@@ -11,8 +11,8 @@ WRITE, SYNC READ, SYNC WRITE and REBOOT on the X-series control table
 profile acceleration and velocity, goal, present velocity and position,
 indirect addresses and data, ...),
 refuses writes to read-only bytes and to EEPROM while the torque is on
-(access error), goal positions outside the operating mode's range (data limit
-error) and reads past the table (data range error). Each servo with torque on
+(access error), goal positions outside the operating mode's range, PWM Limit above 885 and Current Limit above
+the model's maximum (data limit error) and reads past the table (data range error). Each servo with torque on
 follows its goal on the time-optimal profile within its profile velocity and
 acceleration (`ServoProfile`; 0 means unlimited), and its measured position
 follows that reference through a first-order lag ``tau``; with torque off it
@@ -65,6 +65,7 @@ from __future__ import annotations
 import math
 import struct
 from collections.abc import Sequence
+from types import MappingProxyType
 
 import numpy as np
 
@@ -78,6 +79,7 @@ TICKS_PER_REV = 4096  # X-series encoder
 _UNLIMITED = 1e12  # ticks/s or ticks/s^2 for a profile register of 0
 _READ_ONLY = (range(0, 7), range(70, 71), range(120, X.INDIRECT_ADDRESS), range(X.INDIRECT_DATA, X.SIZE))
 _EEPROM_END = 64
+_CURRENT_LIMIT_MAX = MappingProxyType({1120: 2047, 1130: 2047})  # units, by model number (XM540); XM430: 1193
 
 
 def _watching(t: bytearray) -> bool:
@@ -99,6 +101,19 @@ def _watchdog_stops(tables: list[bytearray], heard: float, now: float) -> list[i
     for k in out:
         tables[k][X.BUS_WATCHDOG] = X.WATCHDOG_TRIPPED
     return out
+
+
+def _over_maximum(t: bytearray, addr: int, data: bytes) -> bool:
+    """A write of `data` at `addr` puts PWM Limit (36) above 885 or Current Limit (38) above its model's maximum
+    (e-manual: 1193 on the XM430, 2047 on the XM540): the servo refuses it (data limit error)."""
+    trial = bytearray(t[X.PWM_LIMIT : X.CURRENT_LIMIT + 2])
+    lo, hi = max(addr, X.PWM_LIMIT), min(addr + len(data), X.CURRENT_LIMIT + 2)
+    if lo >= hi:
+        return False
+    trial[lo - X.PWM_LIMIT : hi - X.PWM_LIMIT] = data[lo - addr : hi - addr]
+    pwm, current = struct.unpack("<HH", trial)
+    model = struct.unpack_from("<H", t, X.MODEL_NUMBER)[0]
+    return pwm > X.PWM_LIMIT_DEFAULT or current > _CURRENT_LIMIT_MAX.get(model, X.CURRENT_LIMIT_DEFAULT)
 
 
 def _clear_refusal(t: bytearray, params: bytes) -> int:
@@ -450,6 +465,8 @@ class ServoChain(ChainFaults):
             g[lo_g - X.GOAL_CURRENT : hi_g - X.GOAL_CURRENT] = data[lo_g - addr : hi_g - addr]
             if struct.unpack("<H", g)[0] > struct.unpack_from("<H", t, X.CURRENT_LIMIT)[0]:
                 return dxl.ERR_DATA_LIMIT
+        if _over_maximum(t, addr, data):
+            return dxl.ERR_DATA_LIMIT
         if t[X.BUS_WATCHDOG] == X.WATCHDOG_TRIPPED and addr < X.GOAL_POSITION + 4 and end > X.GOAL_PWM:
             return dxl.ERR_DATA_RANGE  # after a watchdog stop the goal values are read-only until 98 reads 0
         torque = trial[X.TORQUE_ENABLE - base]

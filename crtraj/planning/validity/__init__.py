@@ -18,6 +18,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "ValidityKernel",
             "kernel_key",
         ),
+        "crtraj.planning.validity._held": ("held_clearance",),
         "crtraj.planning.validity._kernels": ("Kernels",),
         "crtraj.planning.validity._motion": ("MotionValidator",),
         "crtraj.planning.validity._paper_check": ("PaperValidator",),

@@ -21,6 +21,10 @@ rounding), and a small hand-written C driver loops over a whole batch in one cal
   smoothing's spline samples, `crtraj.planning.postprocess`);
 - ``crtraj_phase_law(...)``: the retiming's phase-plane pass along a smoothed curve and the law's knot times
   (`crtraj.planning.retime`), operation for operation, so the same numbers;
+- ``crtraj_natural_slopes(...)``, ``crtraj_hermite(...)``: the natural cubic spline's slopes and the cubic's values
+  and derivatives (`crtraj.core.splines`), operation for operation: the retiming's curve in C;
+- ``crtraj_verify_motion(...)``: the closed loop's dense verification of a step's move in one call
+  (`MotionValidator.held_clearance`);
 - ``crtraj_motion_bound(N, dX, B)``: the body-motion bound B(dx) (mm, `crtraj.planning.metric`; it agrees
   with numpy's to 1e-12, but the planners keep numpy's, whose rounding times every motion, so that both
   paths give identical plans);
@@ -61,11 +65,11 @@ from crtraj.model.kinematics import Model
 from crtraj.planning.metric import metric_matrix
 from crtraj.planning.validity._driver import DRIVER as EDGE_DRIVER
 from crtraj.planning.validity._path_driver import PATH_DRIVER
-from crtraj.planning.validity._retime_driver import RETIME_DRIVER
+from crtraj.planning.validity._retime_driver import CURVE_DRIVER, RETIME_DRIVER, VERIFY_DRIVER
 from crtraj.world import packing
 
 # The hand-written C around the generated functions: the edge checks' driver, the path functions, the retiming's.
-DRIVER = EDGE_DRIVER + PATH_DRIVER + RETIME_DRIVER
+DRIVER = EDGE_DRIVER + PATH_DRIVER + RETIME_DRIVER + CURVE_DRIVER + VERIFY_DRIVER
 # Version of the generated code and driver: raising it makes every cached kernel foreign (rebuilt).
 GENERATOR = 20
 # Most check points a kernel is generated for: the generated FK grows with them (100 points: ~15 s of
@@ -151,7 +155,7 @@ class ValidityKernel:
     threads: the driver keeps no state between calls.
     """
 
-    def __init__(self, library: Path, nx: int, check_points: int) -> None:
+    def __init__(self, library: Path, nx: int, check_points: int) -> None:  # long: one ctypes binding per C function
         self.library = library
         self.nx = int(nx)
         self.check_points = int(check_points)
@@ -185,6 +189,13 @@ class ValidityKernel:
         self._check_moving_auto.argtypes += [ctypes.c_int, _N, _P, _P, _P]
         self._phase_law = lib.crtraj_phase_law
         self._phase_law.argtypes = [_N, _N, _P, _P, _P, _P, _P, _P]
+        self._natural_slopes = lib.crtraj_natural_slopes
+        self._natural_slopes.argtypes = [_N, _N, _P, _P, _P]
+        self._hermite = lib.crtraj_hermite
+        self._hermite.argtypes = [_N, _N, _P, _P, _P, _N, _P, ctypes.c_int, _P]
+        self._verify_motion = lib.crtraj_verify_motion
+        self._verify_motion.argtypes = [_N, _P, _P, ctypes.c_int, ctypes.c_double, ctypes.c_double, _N, _P, _P]
+        self._verify_motion.argtypes += [ctypes.c_double, ctypes.c_double, _P]
         # the last static slots and obstacle table passed, with their addresses: the same scene's arrays come back
         # call after call (a table is read-only, whose address costs a dict per call)
         self._slots: tuple[Any, int] = (None, 0)
@@ -202,6 +213,9 @@ class ValidityKernel:
             self._bspline,
             self._path_clearance,
             self._phase_law,
+            self._natural_slopes,
+            self._hermite,
+            self._verify_motion,
         ):
             f.restype = ctypes.c_int
 
@@ -461,6 +475,50 @@ class ValidityKernel:
         rc = self._phase_law(n, num.shape[1], _ptr(cap), _ptr(num), _ptr(den), _ptr(ds), _ptr(sd), _ptr(T))
         self._check(rc, "phase law")
         return sd, T
+
+    def natural_slopes(self, t: Any, Y: Any) -> np.ndarray:
+        """Slopes (n, d) of the natural cubic spline through Y (n, d) at strictly increasing t (n,), n >= 3:
+        `crtraj.core.splines.natural_cubic`'s, the same numbers."""
+        t = np.ascontiguousarray(t, dtype=float)
+        Y = np.ascontiguousarray(Y, dtype=float)
+        if t.ndim != 1 or len(t) < 3 or Y.ndim != 2 or len(Y) != len(t):
+            raise ValueError(f"natural_slopes: t (n,) with n >= 3 and Y (n, d) expected, got {Y.shape}")
+        out = np.empty_like(Y)
+        self._check(self._natural_slopes(len(t), Y.shape[1], _ptr(t), _ptr(Y), _ptr(out)), "natural cubic")
+        return out
+
+    def hermite(self, t: np.ndarray, Y: np.ndarray, S: np.ndarray, x: Any, nu: int = 0) -> np.ndarray:
+        """The nu-th derivative (nu 0-2) at x (N,) of the cubic through Y (n, d) with slopes S (n, d) at the knots t
+        (n,), contiguous float64 arrays: `crtraj.core.splines.HermiteCubic`'s, the same numbers. Returns (N, d)."""
+        x = np.ascontiguousarray(x, dtype=float)
+        out = np.empty((len(x), Y.shape[1]))
+        rc = self._hermite(len(t), Y.shape[1], _ptr(t), _ptr(Y), _ptr(S), len(x), _ptr(x), int(nu), _ptr(out))
+        self._check(rc, "cubic")
+        return out
+
+    def verify_motion(
+        self, X: Any, T: Any, after: tuple[float, float] | None, obstacles: tuple[Any, Any, float], inflate: float
+    ) -> float | None:
+        """The smallest held clearance (mm) of the sampled motion X (n, nx) at times T (n,) s, each sample over the
+        window between its neighbours' times with half its motions' larger body-motion bound as margin, and the
+        last one held over `after` (s) too (`MotionValidator.held_clearance`); obstacles: (static slots, None, 0)
+        or (None, `Scene.motion_table`, time origin s). None when a time is not finite (nothing computed)."""
+        X = self._configs(X)
+        T = np.ascontiguousarray(T, dtype=float)
+        if T.shape != (len(X),) or not len(X):
+            raise ValueError("verify_motion: X (n, nx) and T (n,) with n >= 1 expected")
+        S, table, origin = obstacles
+        A = np.ascontiguousarray(S if table is None else table, dtype=float)
+        M = len(A) // packing.WIDTH if table is None else len(A)
+        pS, pT = (_ptr(A), 0) if table is None else (0, _ptr(A))
+        lo, hi = (0.0, 0.0) if after is None else (float(after[0]), float(after[1]))
+        out = np.empty(1)
+        rc = self._verify_motion(len(X), _ptr(X), _ptr(T), after is not None, lo, hi, M, pS, pT, float(origin),
+                                 float(inflate), _ptr(out))  # fmt: skip
+        if rc == 3:
+            return None
+        self._check(rc, "motion verification")
+        return float(out[0])
 
     def motion_bound(self, dX: Any) -> np.ndarray:
         """Body-motion bound (N,) mm of configuration changes dX (N, nx)."""
