@@ -413,6 +413,11 @@ def build_compiled(spec: HorizonSpec, built: HorizonNLP, solver: ca.Function) ->
             f"compiled: needs solver 'sqp' with qpsol {' or '.join(CODEGEN_QP)} "
             f"(got {o.solver}/{o.qpsol}): interpreted solver"
         ), None
+    if spec.model.identity() is not None:
+        # every stage's rows, their Jacobian and the exact Hessian carry the rod correction's polynomials: the
+        # generated C is about 90 MB for cdsr2 (PCC's 2.5 MB), and gcc does not finish it within the build cache's
+        # bound, so trying would only cost the user that wait before the same interpreted solver runs
+        return "compiled: not for a rod-model body (its generated C is too large to compile): interpreted solver", None
     nlp = built.nlp
     xv, p = nlp["x"], nlp["p"]
     lam_g = ca.SX.sym("lam_g", nlp["g"].numel())
