@@ -78,7 +78,7 @@ def _plan(problem: Problem, scene: Scene, repeat: int) -> tuple[float, float, ob
     return statistics.median(walls), statistics.median(cpus), run
 
 
-def _checker_rate(run: object, scene: Scene, repeat: int) -> float:
+def checker_rate(run: object, scene: Scene, repeat: int) -> float:
     checker = StateValidityChecker(run.model, scene)
     X = checker.limits.sample(np.random.default_rng(1), 2000)
     checker.clearance(X[:10], 0.0)
@@ -116,7 +116,7 @@ def main() -> None:
     print("|---|---|---|---|---|")
     for label, scene in (("1 box", as_box), (f"{len(spheres)} spheres", as_spheres)):
         wall, cpu, run = _plan(problem, scene, args.repeat)
-        rate = _checker_rate(run, scene, args.repeat)
+        rate = checker_rate(run, scene, args.repeat)
         ok = "" if run.result.is_success() else " (plan failed)"
         clr = _clearance(run, box) if run.result.is_success() else math.nan
         print(f"| {label}{ok} | {wall:.2f} | {cpu:.2f} | {rate:.0f} | {clr:.2f} |")

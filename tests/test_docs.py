@@ -95,6 +95,10 @@ EXAMPLES = {
     # the calibrated file moves the true robot's tip onto the plan (the nominal one misses it by ~150 mm)
     "calibrate_synthetic.py": ([], r"refused: --time-offset.*\n(.*\n)*calibrated plan: .* max 0\.[0-4]\d* mm"),
     "view_result.py": (["--pose", "{tmp}/pose.html"], r"wrote .*pose\.html"),
+    "scene_meshes.py": (
+        ["{tmp}/data"],
+        r"wrote .*plate_hole\.stl \(768 triangles\)\nwrote .*bent_pipe\.stl \(5664 triangles\)",
+    ),
 }
 
 

@@ -143,6 +143,27 @@ def test_the_replan_loop_plans_for_the_rod_body() -> None:
     assert np.linalg.norm(Model(ROBOT).tip_position(x0) - np.asarray(task.start)) > 5.0  # PCC's tip is elsewhere
 
 
+def test_a_rod_horizon_runs_interpreted_without_trying_to_compile(monkeypatch) -> None:
+    """The rod body's horizon C is too large to compile (90 MB for cdsr2): with `compiled = true` the loop says so
+    and runs the interpreted solver at once, without calling the compiler (a build attempt fails this test)."""
+    from crtraj.control.horizon import _build
+    from crtraj.control.loop import ClosedLoop
+
+    def no_build(*args, **kw):
+        raise AssertionError("the rod horizon was sent to the compiler")
+
+    monkeypatch.setattr(_build, "compiled_library", no_build)
+    from dataclasses import replace
+
+    from crtraj.control.horizon import ReplanOptions
+
+    problem = Problem.load(PROBLEM)
+    options = replace(problem.options(ReplanOptions, "replan"), solver="sqp", qpsol="daqp", compiled=True)
+    loop = ClosedLoop.from_problem(problem, body="rod", options=options)
+    assert loop.replanner.compiled is False
+    assert loop.replanner.compiled_message.startswith("compiled: not for a rod-model body")
+
+
 def test_a_corrupt_rod_model_entry_is_rebuilt_not_used(rod: RodModel, cache: Path, caplog) -> None:
     """A cache entry whose JSON is damaged is refused with one warning and rebuilt to the same coefficients."""
     (entry,) = cache.glob(f"rod_model-{rod.identity()['rod_model']}.json")
@@ -152,3 +173,47 @@ def test_a_corrupt_rod_model_entry_is_rebuilt_not_used(rod: RodModel, cache: Pat
     assert "is unusable" in caplog.text and "rebuilding it" in caplog.text
     assert np.allclose(again.correction.coef, rod.correction.coef, rtol=0.0, atol=1e-9)
     assert load_rod_model(ROBOT, SMALL, cache_dir=cache).error == again.error  # and stored again
+
+
+def test_the_compiled_checker_and_numpy_evaluate_the_same_rod_body(rod: RodModel) -> None:
+    """The checker's generated C (backbone points and the tip), the interpreted SX function and a plain numpy
+    evaluation of the correction (PCC's points plus mean + modes x polynomials, interpolated along the arc) agree
+    to 1e-9 mm."""
+    from crtraj.core.build_cache import BuildCache
+    from crtraj.planning.validity import ValidityKernel
+
+    kernel = ValidityKernel.load(rod, 15, BuildCache())
+    if kernel is None:
+        pytest.skip("no C compiler")
+    X = sample_within_limits(ROBOT, 64, np.random.default_rng(5))
+    interpreted = rod.points(X, 15)
+    assert np.abs(kernel.points(X) - interpreted).max() <= 1e-9
+    c = rod.correction
+    arcs = Model(ROBOT).arc_positions(15)
+    by_numpy = Model(ROBOT).points(X, 15) + np.einsum(
+        "qj,njc->nqc", c.weights(arcs), c.values(ROBOT.bending(X).reshape(len(X), -1))
+    )
+    assert np.abs(by_numpy - interpreted).max() <= 1e-9
+    tips, _ = kernel.tip_jacobian(X)  # the tip's own polynomials (the modes folded in): the same tip
+    assert np.abs(tips - by_numpy[:, -1]).max() <= 1e-9
+    assert c.basis.shape[0] == min(SMALL.modes, 3 * len(c.arcs))  # the modes, not one polynomial per number
+
+
+def test_the_view_draws_the_rod_body_of_a_rod_result() -> None:
+    """`crtraj view` of a --model rod plan draws the rod model's body (the plan's own model, not PCC's); a result
+    that records a PCC body is drawn with PCC."""
+    from crtraj.viz.view import Visualizer, result_model
+
+    run = plan_problem(Problem.load(PROBLEM), body="rod")
+    doc = run.document()
+    vis = Visualizer.for_result(doc)
+    try:
+        assert isinstance(vis.model, RodModel) and vis.model.identity() == run.model.identity()
+    finally:
+        vis.close()
+    xs = read_result(doc).x
+    x = xs[len(xs) // 2]
+    assert np.allclose(vis.model.points(x), run.model.points(x), atol=1e-12)
+    assert np.linalg.norm(vis.model.points(x) - Model(ROBOT).points(x), axis=1).max() > 5.0  # the sag is drawn
+    doc["options"]["body"] = {"kind": "pcc"}
+    assert type(result_model(read_result(doc))) is Model

@@ -126,6 +126,54 @@ def test_measurement_is_the_commanded_motion_corrected_by_the_joint_state():
     assert "robot lost" in dev.problem()
 
 
+@pytest.mark.parametrize("off", [0.9, 1.1])
+def test_a_controller_that_does_not_execute_what_was_sent_stops_the_run_named(off):
+    """An inactive controller keeps its subscription but drops every message, and the topic gives no feedback:
+    its joints stay at rest while the curve sent moves on. A joint state more than ``ros.following_error`` off
+    the curve at its stamp (the controller's cubic segments, evaluated independently) ends the run with the
+    joint named; `off` x the limit below it is measured as usual."""
+    problem = Problem.load(PAPER)
+    acts = Actuators.from_robot(problem.robot)
+    model = Model(problem.robot)
+    servo = TrackingController(model, TrackingOptions()).servo
+    scene = Scene.from_table(problem.section("scene")).with_obstacles(())
+    x0 = np.array([0.3, 0.0, 0.0, 0.0, 0.0])
+    q0 = problem.robot.cable_matrix()[1] + problem.robot.cable_matrix()[0] @ x0
+    C = np.repeat((q0 + np.r_[np.full(acts.n - 1, 0.04), 0.05])[None], 5, axis=0)  # z (the stage) moves most
+    # the curve sent for this step, at loop time 0.08, from a first device (the limit does not change what is sent)
+    probe_node, probe_clock = _FakeNode(RosOptions(points_per_step=5), acts.names), VirtualClock()
+    probe_node.state = (acts.command(q0), 0.0)
+    ver = FrameVerifier(problem.robot, acts, scene, 0.005, model=model)
+    probe = RosDevice(probe_node, acts, model, servo, 0.1, ver, lambda: scene, clock=probe_clock, lead=0.2)
+    assert np.allclose(probe.start_actuation(), q0)
+    probe.begin(0.0)
+    probe.move(0.0, q0, C, 0.02)
+    _, offs, vals, vels = probe_node.sent[-1]
+    gap = acts.actuation(_hermite(0.08, offs, vals, vels)) - q0  # what an idle robot lags behind it, mm
+    worst = int(np.argmax(np.abs(gap)))
+    limit = float(np.abs(gap[worst])) / off
+    ros = RosOptions(points_per_step=5, joint_state_timeout=1.0, following_error=limit, joints=(("z", "stage"),))
+    node, clock = _FakeNode(ros, acts.names), VirtualClock()
+    node.state = (acts.command(q0), 0.0)
+    dev = RosDevice(node, acts, model, servo, 0.1, ver, lambda: scene, clock=clock, sleep=clock.sleep, lead=0.2)
+    assert np.allclose(dev.start_actuation(), q0)
+    dev.begin(0.0)
+    dev.move(0.0, q0, C, 0.02)
+    node.state = (acts.command(q0), 0.28)  # the joints still at rest, stamped at loop time 0.08
+    clock.advance_to(0.3)
+    q, _, ok = dev.measure(0.1, q0, C[-1])
+    if off < 1.0:
+        assert ok and dev.problem() == ""
+        return
+    name = ros.joint_name(acts.names[worst])
+    assert not ok and np.array_equal(q, q0)
+    assert dev.problem() == (
+        f"ros: joint {name!r} is {abs(gap[worst]):.2f} mm off the curve sent to joint_trajectory_controller at "
+        f"t = 0.080 s (ros.following_error {limit:g} mm): the controller is not executing it; check that it is "
+        "active (ros2 control list_controllers) and owns the joint"
+    )
+
+
 @pytest.mark.parametrize("margin", [0.0, 0.05])
 def test_a_step_later_than_the_lateness_bound_is_refused_not_sent(margin):
     """Steps computed late on a virtual clock (lead 0.2 s, arrival margin `margin`): up to the bound lead - margin

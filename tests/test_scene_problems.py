@@ -17,7 +17,6 @@ import numpy as np
 import pytest
 
 from crtraj.app.plan import plan_problem
-from crtraj.cli import main
 from crtraj.io.problem import Problem, load_robot
 from crtraj.model.kinematics import Model
 from crtraj.planning.ik import SafeIK
@@ -123,15 +122,6 @@ def test_steer_nlp_keeps_its_points_from_a_box():
     assert exact_distance(box, steer.nlp.evaluate(res.x)[2], 0.0).min() >= keep - 1e-4
     free = SteerSolver(model, 0, SteerOptions(solver="ipopt")).solve(x0, target, Scene())
     assert exact_distance(box, steer.nlp.evaluate(free.x)[2], 0.0).min() < 1.0
-
-
-def test_replan_refuses_shapes_in_one_line(tmp_path, capsys):
-    """`crtraj replan` of a shape scene: exit 2, one stderr line naming scene.shape, nothing written."""
-    out = tmp_path / "r.json"
-    assert main(["replan", str(PROBLEMS / "shapes_mesh.toml"), "--out", str(out)]) == 2
-    err = capsys.readouterr().err.strip()
-    assert "\n" not in err and "scene.shape" in err and "crtraj plan" in err
-    assert not out.exists() and list(tmp_path.iterdir()) == []
 
 
 def test_view_draws_each_shape_where_the_scene_puts_it(plans):

@@ -101,7 +101,9 @@ def test_the_live_view_adds_constant_work_per_step_and_keeps_the_loops_p99(model
     extra = work_viewed - work_bare
     assert np.all(extra == extra[0]) and 0 < extra[0] <= 20, extra  # observe(): a lock, an append, a notify
     p99_bare, p99_viewed = np.percentile(work_bare, 99), np.percentile(work_viewed, 99)
-    assert p99_bare > 1000  # an iteration is thousands of calls: the bound below compares real work
+    # an iteration is hundreds of calls (about 1000 since the move's verification became one C call), far more
+    # than the view's 20: the 10 % bound below compares real work
+    assert p99_bare > 10 * 20
     assert p99_viewed <= 1.10 * p99_bare and p99_viewed - p99_bare <= 20
     # the view saw every step (its plots miss none) and drew at least the last state
     assert feed.published == len(bare.t) and len(page.t) == len(bare.t) and feed.drawn >= 1

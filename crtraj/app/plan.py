@@ -24,7 +24,7 @@ from crtraj.core.fileio import (
 from crtraj.core.lazy import lazy_module
 from crtraj.hardware.stream import StreamOptions
 from crtraj.io.problem import Problem
-from crtraj.io.results import plan_document
+from crtraj.io.results import plan_document, relative_shape_files
 from crtraj.model.kinematics import Model
 from crtraj.planning.body import margin_of, model_record, planning_model, planning_scene
 from crtraj.planning.context import PlanningContext
@@ -64,8 +64,8 @@ class ProblemPlan:
         return doc
 
     def write(self, path: str | Path) -> Path:
-        """Write `document()` as JSON, atomically."""
-        return atomic_write_json(path, self.document())
+        """Write `document()` as JSON, atomically (its shapes' data files relative to the file's folder)."""
+        return atomic_write_json(path, relative_shape_files(self.document(), Path(path).parent))
 
 
 def plan_problem(
@@ -156,7 +156,8 @@ def _write_outputs(doc: dict[str, Any], success: bool, out: Path, args: argparse
         dest = failed_sibling(out)
     with contextlib.ExitStack() as stack:
         staged = [stack.enter_context(StagedFile(dest))]
-        staged[0].write(json_document(doc).encode("utf-8"))
+        # its shapes' data files relative to its folder (it moves with them); the view reads them where they are
+        staged[0].write(json_document(relative_shape_files(doc, dest.parent)).encode("utf-8"))
         if args.html and success:
             staged.append(stack.enter_context(StagedFile(args.html)))
             staged[1].write(view.static_html(doc).encode("utf-8"))

@@ -9,7 +9,7 @@ from typing import Any
 from crtraj.control.loop import ClosedLoop, ReplanRun
 from crtraj.core.fileio import StagedDir, atomic_write_json, atomic_write_text
 from crtraj.io.plots import plot_run
-from crtraj.io.results import RunContext, run_document
+from crtraj.io.results import RunContext, relative_shape_files, run_document
 from crtraj.io.run_files import RUN_FILES, save_npz
 from crtraj.viz.view import Visualizer
 
@@ -36,7 +36,8 @@ def write_run_files(
     out = Path(folder)
     context = run_context(loop)
     result = run_document(run, context, problem, seed)
-    paths: dict[str, Any] = {"json": atomic_write_json(out / "run.json", result)}
+    # the shapes' data files relative to the folder in the file (it moves with them), absolute for the view here
+    paths: dict[str, Any] = {"json": atomic_write_json(out / "run.json", relative_shape_files(result, out))}
     paths["npz"] = save_npz(run, out / "run.npz")
     paths["png"] = plot_run(run, context, out / "run.png")
     if html:

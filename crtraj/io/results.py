@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import datetime
 import math
+import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -381,6 +382,39 @@ def _verdict(doc: Mapping[str, Any], kind: str) -> dict[str, Any]:
             **counts}  # fmt: skip
 
 
+def shape_files_moved(doc: Any, move: Any) -> Any:
+    """A copy of the result document `doc` whose ``scene.shape`` data files (a mesh's, a cloud's) are
+    ``move(file)``, for each relative one (`relative_shape_files` wrote them so); `doc` itself when it has none."""
+    scene = doc.get("scene") if isinstance(doc, Mapping) else None
+    shapes = scene.get("shape") if isinstance(scene, Mapping) else None
+    if not isinstance(shapes, list) or not any(
+        isinstance(s, Mapping) and isinstance(s.get("file"), str) for s in shapes
+    ):
+        return doc
+    out = []
+    for st in shapes:
+        f = st.get("file") if isinstance(st, Mapping) else None
+        out.append({**st, "file": move(f)} if isinstance(f, str) and f and not Path(f).is_absolute() else st)
+    return {**doc, "scene": {**scene, "shape": out}}
+
+
+def relative_shape_files(doc: Mapping[str, Any], folder: str | Path) -> Any:
+    """A copy of the result document `doc` to be written into `folder`, its shapes' data files given relative to
+    that folder (so the result moves with its folder and the data beside it); `read_result` of the file makes
+    them absolute again."""
+    base = Path(folder).resolve()
+
+    def rel(f: str) -> str:
+        return Path(os.path.relpath(Path(f).resolve(), base)).as_posix()
+
+    scene = doc.get("scene")
+    shapes = scene.get("shape") if isinstance(scene, Mapping) else None
+    if not isinstance(shapes, list):
+        return doc
+    out = [{**st, "file": rel(st["file"])} if isinstance(st.get("file"), str) and st["file"] else st for st in shapes]
+    return {**doc, "scene": {**scene, "shape": out}}
+
+
 def read_result(src: Mapping[str, Any] | str | Path | Result) -> Result:
     """Read and validate a result document: a file path, its parsed JSON, or a `Result` (returned as is).
 
@@ -393,7 +427,7 @@ def read_result(src: Mapping[str, Any] | str | Path | Result) -> Result:
     doc: Any = src
     if not isinstance(src, Mapping):
         source = str(src)
-        doc = read_json(src)
+        doc = shape_files_moved(read_json(src), lambda f: str(Path(src).parent / f))
     try:
         return _parse(doc, source)
     except InputError as exc:

@@ -37,6 +37,7 @@ float32), and ``meshcat.Visualizer.close()`` raises (the window here closes).
 from __future__ import annotations
 
 import dataclasses
+import logging
 import os
 import warnings
 from collections.abc import Mapping, Sequence
@@ -48,8 +49,11 @@ import numpy as np
 from crtraj.core.errors import InputError
 from crtraj.core.fields import check_array
 from crtraj.core.fileio import atomic_write_text
+from crtraj.io.problem import Problem
 from crtraj.io.results import Result, read_result
 from crtraj.model.kinematics import Model
+from crtraj.model.robot import Robot
+from crtraj.planning.body import planning_model
 from crtraj.viz.animation import run_animation
 from crtraj.viz.geometry import M_PER_MM, cylinder_quat, fit_view, transforms, translation, unit
 from crtraj.viz.live import MeshcatWindow
@@ -72,6 +76,42 @@ __all__ = ["Visualizer"]
 _CAMERA_FOV_DEG = 75.0  # meshcat's default perspective camera
 # width / height of the page's scene pane (1280 x 800 window less the side panel and the plots): what is framed
 _PANE_ASPECT = 1.6
+
+
+log = logging.getLogger(__name__)
+
+
+def result_model(res: Result) -> Model:
+    """The `Model` whose body a result was planned for: the rod model (`crtraj.planning.body.planning_model`,
+    from the build cache) when its options record ``body.kind = "rod"``, else PCC. A rod model other than the
+    result's (the robot file's mechanics or the model's options changed since) is drawn with a warning; a robot
+    without ``[robot.mechanics]`` falls back to PCC with a warning."""
+    body = res.data.get("options", {}).get("body") if isinstance(res.data, Mapping) else None
+    if not isinstance(body, Mapping) or body.get("kind") != "rod":
+        return Model(res.robot)
+    try:
+        model = planning_model(_mechanics_robot(res), "rod")
+    except InputError as exc:
+        log.warning("view: drawing PCC's body for a rod result (%s)", exc)
+        return Model(res.robot)
+    ident = model.identity() or {}
+    if ident.get("rod_model") != body.get("rod_model"):
+        log.warning("view: the result was planned with rod model %s; drawing rod model %s (the robot file or the "
+                    "model's options changed since)", body.get("rod_model"), ident.get("rod_model"))  # fmt: skip
+    return model
+
+
+def _mechanics_robot(res: Result) -> Robot:
+    """The result's robot with its ``[robot.mechanics]``: a result records the robot's model but not its
+    mechanics, which come from the robot file of the problem the result names (checked against the result's)."""
+    if res.robot.mechanics is not None:
+        return res.robot
+    path = (res.data.get("problem") or {}).get("path")
+    if not path or not Path(path).is_file():
+        raise InputError("the result names no readable problem file, whose robot file holds [robot.mechanics]")
+    robot = Problem.load(path).robot
+    res.check_robot(robot, f"the robot of {path}", "view the result beside the problem file it was planned from")
+    return robot
 
 
 class Visualizer:
@@ -128,10 +168,11 @@ class Visualizer:
     ) -> Visualizer:
         """A Visualizer for the robot of `result` (a plan/replan result dict) with the run drawn.
 
-        Offline by default: ``Visualizer.for_result(result).save_html(path)``.
+        Offline by default: ``Visualizer.for_result(result).save_html(path)``. The body drawn is the one the
+        result was planned for (`result_model`): the rod's for a ``--model rod`` result.
         """
         res = read_result(result)
-        vis = cls(Model(res.robot), server=server, options=options)
+        vis = cls(result_model(res), server=server, options=options)
         try:
             vis.show_result(res, play=play)
             if open:

@@ -303,12 +303,10 @@ class ScreenedBackend:
             solves += 1
             if not r.finite:
                 break
-            r = self._checked(r, O)
-            if r.min_distance >= -1e-6 or solves >= SCREEN_SOLVES:
-                if r.min_distance < -1e-6:
-                    r = replace(
-                        r, status=r.status + f"; an omitted point stays {-r.min_distance:.3g} mm inside its sphere"
-                    )
+            r, dmin = self._checked(r, O)
+            if dmin >= -1e-6 or solves >= SCREEN_SOLVES:
+                if dmin < -1e-6:
+                    r = replace(r, status=r.status + f"; an omitted point stays {-dmin:.3g} mm inside its sphere")
                 break
             # an omitted point entered its sphere: again, with the closest points of this solution
             new = self.closest(r.x, O)
@@ -317,16 +315,19 @@ class ScreenedBackend:
             sel = new
         return replace(r, selection=sel, solves=solves, wall=time.perf_counter() - t_start)
 
-    def _checked(self, r: HorizonCall, obstacles: np.ndarray) -> HorizonCall:
-        """r with every obstacle row of the full NLP at its point: the smallest, and the violation and "ok" with
-        them."""
+    def _checked(self, r: HorizonCall, obstacles: np.ndarray) -> tuple[HorizonCall, float]:
+        """(r with every obstacle row of the full NLP at its point: the smallest row, sphere or shape, and the
+        violation and "ok" with them; the smallest sphere row). The QP's shape rows are the full NLP's, and its
+        sphere rows are among the full ones, so the smaller of r's own smallest row and the full sphere rows'
+        is the full NLP's."""
         D = r.sol["distances"] if "distances" in r.sol else self.rows(r.x, obstacles)
         dmin = float(np.min(D))
         violation = max(r.violation, -dmin)
-        return replace(
+        checked = replace(
             r,
             distances=D.reshape(self.rows.shape),
-            min_distance=dmin,
+            min_distance=min(dmin, r.min_distance),
             violation=violation,
             ok=r.ok and violation <= 1e-6,
         )
+        return checked, dmin

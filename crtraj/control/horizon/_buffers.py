@@ -1,6 +1,6 @@
 """Preallocated parameter buffers of the horizon NLP (issue 29: the step's Python around the one generated call).
 
-The NLP's parameter vector is ``[x0, x_-1, X_ref (N nx), P_ref (N 3), obstacles (N, WIDTH M)]`` (then, when
+The NLP's parameter vector is ``[x0, x_-1, X_ref (N nx), P_ref (N 3), obstacles (N, WIDTH M + shapes)]`` (then, when
 `closest_points` screens, the selection's slot parameters). `ParameterBuffer` keeps it as one array written in
 place every step: each part is a view of it, and the reference's tips are computed by CasADi's buffer API
 straight from the X_ref view into the P_ref view (the map's column-major nx x N input and 3 x N output are, in
@@ -24,12 +24,13 @@ from crtraj.world import packing
 
 class ParameterBuffer:
     """The horizon NLP's parameter vector (p) for N steps, nx coordinates and M obstacle slots, and its parts as
-    views of it: x0, xm1 (nx,), X (N, nx), P (N, 3) mm, O (N, packing.WIDTH M).
+    views of it: x0, xm1 (nx,), X (N, nx), P (N, 3) mm, O (N, packing.WIDTH M + shape_params).
 
-    model: the robot's `Model` (its ``tip`` function gives the reference's tips)."""
+    model: the robot's `Model` (its ``tip`` function gives the reference's tips). shape_params: the shapes'
+    parameters per step, after the step's sphere slots (`crtraj.world.geometry.ShapeTerms`)."""
 
-    def __init__(self, model: Model, N: int, max_obstacles: int) -> None:
-        nx, W = model.nx, packing.WIDTH * max_obstacles
+    def __init__(self, model: Model, N: int, max_obstacles: int, shape_params: int = 0) -> None:
+        nx, W = model.nx, packing.WIDTH * max_obstacles + shape_params
         self.N, self.nx, self.width = N, nx, W
         cut = np.cumsum((0, nx, nx, N * nx, N * 3, N * W))
         self.p = np.zeros(int(cut[-1]))

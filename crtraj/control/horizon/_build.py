@@ -23,6 +23,7 @@ from crtraj.model.kinematics import Model
 from crtraj.model.rate_limits import RateLimits
 from crtraj.planning.nlp import CODEGEN_QP, CompiledFunction, compiled_library
 from crtraj.world import packing
+from crtraj.world.geometry import ShapeTerms
 
 log = logging.getLogger(__name__)
 
@@ -34,7 +35,10 @@ class HorizonSpec:
     cable_matrix: A (3 S, nx), cable-length changes (mm) per configuration change. step_limit: (3 S + 1,) mm
     per step of each cable and of z. scale: (nx,) S of the module docstring of `crtraj.control.horizon._replanner`
     (bending rad -> mm). rate_limits: the actuators' limits already scaled by ``limit_fraction`` (or None).
-    closest_points: K, the points per obstacle and step the QP keeps (0: all of them).
+    closest_points: K, the points per obstacle and step the QP keeps (0: all of them). shapes: the scene's
+    obstacles of other shapes as NLP terms (`crtraj.world.geometry.ShapeTerms`; None or empty: none), each of
+    `shape_points` backbone points of each step kept `shape_keep` mm from each shape's lower bound over the step's
+    window.
     """
 
     model: Model
@@ -45,11 +49,22 @@ class HorizonSpec:
     scale: np.ndarray
     rate_limits: RateLimits | None
     closest_points: int
+    shapes: ShapeTerms | None = None
+    shape_keep: float = 0.0
+    shape_points: int = 0
+
+    @property
+    def n_shape_params(self) -> int:
+        """Parameters per step of the shapes (after each step's obstacle slots)."""
+        return 0 if self.shapes is None else self.shapes.n_params
 
     @property
     def tag(self) -> str:
-        """The sizes in the names of the generated functions (segments, obstacles, steps)."""
-        return f"{self.model.robot.n_segments}s_{self.max_obstacles}o_{self.options.horizon}n"
+        """The sizes in the names of the generated functions (segments, obstacles, steps; shapes when any)."""
+        n = 0 if self.shapes is None else len(self.shapes.shapes)
+        return f"{self.model.robot.n_segments}s_{self.max_obstacles}o_{self.options.horizon}n" + (
+            f"_{n}sh" if n else ""
+        )
 
 
 @dataclass(frozen=True)
@@ -57,7 +72,9 @@ class HorizonNLP:
     """The built horizon NLP: the QP's NLP (`nlp`, bounds `lbg`/`ubg`) and the full one (`nlp_full`).
 
     r_vec: the cost's residuals (cost = |r_vec|^2). n_lin: linear rows (rates, actuator limits) that come
-    first in both. n_params: parameters of the full NLP; the obstacle slots are its last `n_obstacle_p`.
+    first in both. n_shape: the shape rows right after them (mm, >= 0: every point of every step against every
+    shape, never screened). n_params: parameters of the full NLP; the obstacle slots (each step's sphere slots,
+    then its shapes' parameters) are its last `n_obstacle_p`.
     n_dist: obstacle rows of the full NLP (0 without). all_distance: (X, O) -> every obstacle row (N M
     points) or None. checked: what the compiled KKT check returns besides the residual (obstacle rows, tips).
     widths: (rows per step, steps) of each row block of the QP's NLP; shift_x, shift_g: the warm start's
@@ -72,6 +89,7 @@ class HorizonNLP:
     lbg_full: np.ndarray
     ubg_full: np.ndarray
     n_lin: int
+    n_shape: int
     n_params: int
     n_obstacle_p: int
     n_dist: int
@@ -104,7 +122,7 @@ def build_nlp(spec: HorizonSpec) -> HorizonNLP:
     xm1 = ca.SX.sym("x_prev", nx)
     Xr = ca.SX.sym("x_ref", nx, N)
     Pr = ca.SX.sym("tip_ref", 3, N)
-    O = ca.SX.sym("obstacles", packing.WIDTH * M, N)
+    O = ca.SX.sym("obstacles", packing.WIDTH * M + spec.n_shape_params, N)
     S = ca.DM(spec.scale)
     Xall = ca.horzcat(xm1, x0, X)  # columns k = -1, 0, 1..N
     tips = model.tip.map(N)(X)  # 3 x N
@@ -119,6 +137,7 @@ def build_nlp(spec: HorizonSpec) -> HorizonNLP:
     ubg.append(np.tile(hi, N))
     widths.append((len(lo), N))
     n_lin = int(sum(len(b) for b in lbg))
+    n_shape = _shape_rows(spec, (X, O), (g, lbg, ubg, widths))
     p = ca.vertcat(x0, xm1, ca.vec(Xr), ca.vec(Pr), ca.vec(O))
     xv = ca.vec(X)
     ob = _obstacle_rows(spec, (X, xv, O, p), (g, lbg), tips)
@@ -128,15 +147,17 @@ def build_nlp(spec: HorizonSpec) -> HorizonNLP:
         widths.append(((K or n) * M, N))
     lbg_full = np.concatenate(ob.lb_full)
     lbg_red = np.concatenate(ob.lb_red)
+    n_pre = n_lin + n_shape  # rows with their own upper bounds, before the sphere rows
     return HorizonNLP(
         nlp={"x": xv, "p": ob.p_red, "f": f, "g": ca.vertcat(*ob.g_red)},
         nlp_full={"x": xv, "p": p, "f": f, "g": ca.vertcat(*ob.g_full)},
         r_vec=r_vec,
         lbg=lbg_red,
-        ubg=np.concatenate([*ubg, np.full(len(lbg_red) - n_lin, np.inf)]),
+        ubg=np.concatenate([*ubg, np.full(len(lbg_red) - n_pre, np.inf)]),
         lbg_full=lbg_full,
-        ubg_full=np.concatenate([*ubg, np.full(len(lbg_full) - n_lin, np.inf)]),
+        ubg_full=np.concatenate([*ubg, np.full(len(lbg_full) - n_pre, np.inf)]),
         n_lin=n_lin,
+        n_shape=n_shape,
         n_params=int(p.numel()),
         n_obstacle_p=int(O.numel()),  # the obstacle slots are the parameter vector's last entries
         n_dist=n_dist,
@@ -201,6 +222,34 @@ def _rate_rows(
     return g, lbg, ubg, widths
 
 
+def _shape_rows(
+    spec: HorizonSpec,
+    syms: tuple[ca.SX, ca.SX],
+    rows: tuple[list[ca.SX], list[np.ndarray], list[np.ndarray], list[tuple[int, int]]],
+) -> int:
+    """Append the shape rows (mm) to the row lists (g, lbg, ubg, widths): per step and shape, each of the
+    `shape_points` backbone points' lower bound of its distance over the step's window (`ShapeTerms.distances`,
+    whose parameters follow the step's sphere slots in its column of O) minus `shape_keep`, >= 0. Returns how
+    many (0 without shapes or without safety)."""
+    o, model, terms = spec.options, spec.model, spec.shapes
+    if terms is None or not terms.shapes or not o.safety:
+        return 0
+    X, O = syms
+    g, lbg, ubg, widths = rows
+    n, N, W = spec.shape_points, o.horizon, packing.WIDTH * spec.max_obstacles
+    x = ca.SX.sym("x", model.robot.nx)
+    ob = ca.SX.sym("ob", W + terms.n_params)
+    pts = model.backbone_function(n)(x)  # 3 x n
+    d = ca.vertcat(*[row.T for row in terms.distances(pts, ob[W:])]) - spec.shape_keep  # (shapes n) x 1
+    per_step = int(d.numel())
+    fn = ca.Function("horizon_shape_distance", [x, ob], [d], {"cse": True})
+    g.append(ca.vec(fn.map(N)(X, O)))
+    lbg.append(np.zeros(per_step * N))
+    ubg.append(np.full(per_step * N, np.inf))
+    widths.append((per_step, N))
+    return per_step * N
+
+
 def _obstacle_rows(
     spec: HorizonSpec,
     syms: tuple[ca.SX, ca.SX, ca.SX, ca.SX],
@@ -239,14 +288,14 @@ def _obstacle_rows(
             diff = ca.horzcat(*cols) - ca.repmat(c, 1, K)
             ds.append(ca.sqrt(ca.sum1(diff * diff) + 1e-9).T - rho)
     dist = ca.Function("horizon_distance", [x, ob], [ca.vertcat(*d)], {"cse": True})
-    D = dist.map(N)(X, O)  # (n M) x N
+    D = dist.map(N)(X, O[: packing.WIDTH * M, :])  # (n M) x N; the shapes' parameters follow the slots
     g_full.append(ca.vec(D))
     lb_full.append(np.zeros(n * M * N))
     all_distance = ca.Function(f"horizon_all_distance_{spec.tag}", [xv, ca.vec(O)], [D], {"cse": True})
     if K:
         slots = ca.Function("horizon_slot_distance", [x, ob, ca.vec(sel)], [ca.vertcat(*ds)], {"cse": True})
         Sel = ca.SX.sym("selection", (S_ + 1) * K * M, N)
-        g_red.append(ca.vec(slots.map(N)(X, O, Sel)))
+        g_red.append(ca.vec(slots.map(N)(X, O[: packing.WIDTH * M, :], Sel)))
         lb_red.append(np.zeros(K * M * N))
         p_red = ca.vertcat(p, ca.vec(Sel))
     else:
@@ -364,6 +413,11 @@ def build_compiled(spec: HorizonSpec, built: HorizonNLP, solver: ca.Function) ->
             f"compiled: needs solver 'sqp' with qpsol {' or '.join(CODEGEN_QP)} "
             f"(got {o.solver}/{o.qpsol}): interpreted solver"
         ), None
+    if spec.model.identity() is not None:
+        # every stage's rows, their Jacobian and the exact Hessian carry the rod correction's polynomials: the
+        # generated C is about 90 MB for cdsr2 (PCC's 2.5 MB), and gcc does not finish it within the build cache's
+        # bound, so trying would only cost the user that wait before the same interpreted solver runs
+        return "compiled: not for a rod-model body (its generated C is too large to compile): interpreted solver", None
     nlp = built.nlp
     xv, p = nlp["x"], nlp["p"]
     lam_g = ca.SX.sym("lam_g", nlp["g"].numel())

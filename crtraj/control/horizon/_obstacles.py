@@ -71,3 +71,20 @@ class ObstacleTable:
             centers, radii = scene.swept_spheres(*self._windows(t0))
             return None, centers, self._rho(radii)
         return None if self.packed is None else self.packed[j], self.centers[j], self.rho[j]
+
+
+def swept_states(
+    centers: Any, radii: Any, velocities: Any, radius_rates: Any, lo: np.ndarray, hi: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(centres (N, m, 3), radii (N, m)) mm of spheres that hold what live obstacles, extrapolated at constant
+    velocity, cover over each window [lo_k, hi_k] (s after the state): centers (m, 3) mm, radii (m,) mm,
+    velocities (m, 3) mm/s and radius_rates (m,) mm/s (None: zero)."""
+    c = np.asarray(centers, dtype=float).reshape(-1, 3)
+    m = len(c)
+    r = np.asarray(radii, dtype=float).reshape(m)
+    v = np.zeros((m, 3)) if velocities is None else np.asarray(velocities, dtype=float).reshape(m, 3)
+    rd = np.zeros(m) if radius_rates is None else np.asarray(radius_rates, dtype=float).reshape(m)
+    ca_ = c[None] + lo[:, None, None] * v[None]
+    cb_ = c[None] + hi[:, None, None] * v[None]
+    rmax = np.maximum(r[None] + lo[:, None] * rd[None], r[None] + hi[:, None] * rd[None])
+    return 0.5 * (ca_ + cb_), rmax + 0.5 * np.linalg.norm(cb_ - ca_, axis=-1)

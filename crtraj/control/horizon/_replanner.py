@@ -88,7 +88,7 @@ from crtraj.control.horizon._build import (
     gauss_newton,
     nlp_solver,
 )
-from crtraj.control.horizon._obstacles import ObstacleTable
+from crtraj.control.horizon._obstacles import ObstacleTable, swept_states
 from crtraj.control.horizon._options import (
     DIVERGED,
     HorizonResult,
@@ -97,12 +97,14 @@ from crtraj.control.horizon._options import (
     horizon_status,
 )
 from crtraj.control.horizon._rows import sagitta
+from crtraj.control.horizon._shapes import HorizonShapes
 from crtraj.control.horizon._stage import StageSolver
 from crtraj.core.errors import InputError
 from crtraj.core.fields import check_float
 from crtraj.model.kinematics import Model
 from crtraj.model.rate_limits import RateLimits
 from crtraj.world import margin, packing
+from crtraj.world.geometry import MovingShape
 
 __all__ = ["Replanner"]
 
@@ -149,6 +151,7 @@ class Replanner:
         safety_distance: float,
         rate_limits: RateLimits | None = None,
         solver_wrapper: Callable[[ca.Function], Any] | None = None,
+        shapes: tuple[MovingShape, ...] = (),
     ) -> None:
         self.model, self.robot = model, model.robot
         self.options = ReplanOptions() if options is None else options
@@ -160,6 +163,7 @@ class Replanner:
         self.nx, self.nq, self.N = r.nx, r.nq, o.horizon
         self.spacing = r.total_length / (o.points - 1)
         self.inflate = margin.inflation(self.safety_distance, r.body_radius, sagitta(r, self.spacing), o.margin)
+        self.shapes = HorizonShapes(r, tuple(shapes), o.safety, self.safety_distance, o.points, o.margin)
         self._A, _ = r.cable_matrix()
         self.step_limit = np.append(np.full(3 * r.n_segments, o.max_cable_speed), o.max_z_speed) * o.dt  # mm
         self._box = r.config_box()
@@ -180,7 +184,11 @@ class Replanner:
         self._slot_table = np.column_stack([np.eye(r.n_segments)[seg], frac])
         self._build(solver_wrapper)
         # with the fused call (issue 29) the parameters are written in place into one preallocated buffer
-        self._buffer = ParameterBuffer(model, self.N, self.max_obstacles) if self.compiled and o.fused else None
+        self._buffer = (
+            ParameterBuffer(model, self.N, self.max_obstacles, self.shapes.n_params)
+            if self.compiled and o.fused
+            else None
+        )
         # which obstacles of a larger scene enter the QP's slots (`obstacles_from_scene` with x0)
         self.broad = BroadPhase(model, o.points, self.step_limit, self.N)
         self.broad_overflows = 0  # steps on which more obstacles could matter than the QP has slots
@@ -188,6 +196,7 @@ class Replanner:
         # a known scene's spheres for the run's step times, tabulated before it (`ObstacleTable.tabulate`)
         self.obstacle_table = ObstacleTable(self.step_windows, self._rho, self.max_obstacles)
         self._warm: _Warm | None = None
+        self._selected: np.ndarray | None = None  # the parameter `obstacles_from_scene` made with `_selection`
         self.solve_count = 0
 
     # ------------------------------------------------------------------ build
@@ -203,6 +212,9 @@ class Replanner:
             scale=self._scale,
             rate_limits=self.rate_limits,
             closest_points=self._K,
+            shapes=self.shapes.terms,
+            shape_keep=self.shapes.keep,
+            shape_points=self.shapes.points,
         )
         nlp = self._nlp = build_nlp(spec)
         if o.solver == "sqp" and o.qpsol == "hpipm":
@@ -215,19 +227,22 @@ class Replanner:
         if o.compiled:
             stage = getattr(self.solver, "function", None)  # the stage form's dense-interface function
             self.compiled_message, parts = build_compiled(spec, nlp, self.solver if stage is None else stage)
-            log.debug("horizon: %s", self.compiled_message)
+            # the user asked for the compiled solver: say so when the interpreted one runs instead
+            (log.debug if parts is not None else log.warning)("horizon: %s", self.compiled_message)
         self._rows = None
         if nlp.all_distance is not None:
             shape = (self.N, self.max_obstacles, o.points)
             self._rows = ObstacleRows(nlp.all_distance, None if parts is None else parts.distance, shape)
-        self._screen = PointScreen(self._K, self._slot_table, nlp.n_lin)
+        self._screen = PointScreen(self._K, self._slot_table, nlp.n_lin + nlp.n_shape)
         self.compiled = parts is not None  # the generated C runs (else the interpreted solver)
         self.backend = self._backend(nlp, parts, solver_wrapper)
         self.rescue: InterpretedBackend | None = None
         if o.solver == "sqp" and o.rescue:
             # the rescue: a failed sqpmethod solve is retried once with IPOPT (robust, slower) on the full NLP
             hess = gauss_newton(o, nlp.r_vec, nlp.nlp_full, "ipopt")
-            full = RowCheck(self._box_lo, self._box_hi, nlp.lbg_full, nlp.ubg_full, nlp.n_lin, nlp.n_dist > 0)
+            full = RowCheck(
+                self._box_lo, self._box_hi, nlp.lbg_full, nlp.ubg_full, nlp.n_lin, nlp.n_dist + nlp.n_shape > 0
+            )
             self.rescue = InterpretedBackend("ipopt", nlp_solver("ipopt", o, nlp.nlp_full, hess), full)
 
     def _backend(
@@ -235,7 +250,7 @@ class Replanner:
     ) -> InterpretedBackend | CompiledBackend | ScreenedBackend:
         """The backend of the QP's NLP: the compiled C when it was built, else the interpreted solver; screened
         when `closest_points` keeps fewer than every point."""
-        check = RowCheck(self._box_lo, self._box_hi, nlp.lbg, nlp.ubg, nlp.n_lin, nlp.n_dist > 0)
+        check = RowCheck(self._box_lo, self._box_hi, nlp.lbg, nlp.ubg, nlp.n_lin, nlp.n_dist + nlp.n_shape > 0)
         call: InterpretedBackend | CompiledBackend
         if parts is not None:
             call = CompiledBackend(parts, check, self.options.tol)
@@ -265,21 +280,34 @@ class Replanner:
         dt = self.options.dt
         return t0 + (k - 1) * dt, t0 + (k + 1) * dt
 
+    @property
+    def obstacle_width(self) -> int:
+        """Obstacle parameters per step: the sphere slots (packing.WIDTH each), then the shapes' (`ShapeTerms`)."""
+        return packing.WIDTH * self.max_obstacles + self.shapes.n_params
+
     def obstacles_from_scene(self, scene: Any, t0: float, x0: np.ndarray | None = None) -> np.ndarray:
-        """Obstacle parameter (N, packing.WIDTH * max_obstacles) for the scene's known motion, horizon from t0 (s).
+        """Obstacle parameter (N, `obstacle_width`) for the scene's known motion, horizon from t0 (s): per step the
+        sphere slots, then the shapes' parameters over the step's window (`shape_parameters`).
 
         x0: the configuration (nx,) the horizon starts from. With it, a scene of more obstacles than the NLP's
         slots fills them with the obstacles the horizon's reachable body can come near (`BroadPhase`): the
         others cannot be active in any plan within reach. Without it such a scene is an `InputError`."""
+        self._selection = self._selected = None
         if scene.n_obstacles == 0:
-            return self._inflated(np.zeros((self.N, 0, 3)), np.zeros((self.N, 0)))
-        self._selection, broad = None, x0 is not None and scene.n_obstacles > self.max_obstacles
-        packed, centers, rho = self.obstacle_table.spheres(scene, float(t0))  # looked up if tabulated, or computed
-        if not broad:
-            return packed if packed is not None else packing.pack(centers, rho, self.max_obstacles, "the replanner")
-        packed, self._selection = self.broad.pack(np.asarray(x0, float), centers, rho, self.max_obstacles)
-        self.broad_overflows += self._selection is not None
-        return packed
+            out = self._inflated(np.zeros((self.N, 0, 3)), np.zeros((self.N, 0)))
+        else:
+            packed, centers, rho = self.obstacle_table.spheres(scene, float(t0))  # looked up if tabulated
+            if x0 is not None and scene.n_obstacles > self.max_obstacles:
+                out, self._selection = self.broad.pack(np.asarray(x0, float), centers, rho, self.max_obstacles)
+                self.broad_overflows += self._selection is not None
+            else:
+                out = packed if packed is not None else packing.pack(centers, rho, self.max_obstacles, "the replanner")
+        if self.shapes.n_params:  # each step's window of the shapes (`HorizonShapes.parameters`)
+            shapes = self.shapes.parameters(scene, *self.step_windows(float(t0) + scene.time_origin))
+            out = np.concatenate([out, shapes], axis=1)
+        if self._selection is not None:
+            self._selected = out  # `solve` checks the omitted obstacles when it is given this parameter
+        return out
 
     def obstacles_from_states(
         self,
@@ -289,21 +317,13 @@ class Replanner:
         radius_rates: np.ndarray | None = None,
         age: float = 0.0,
     ) -> np.ndarray:
-        """Obstacle parameter from a live state, extrapolated at constant velocity.
-
-        centers (m, 3) mm, radii (m,) mm, velocities (m, 3) mm/s, radius_rates
-        (m,) mm/s, all measured `age` seconds before the horizon starts.
-        """
-        c = np.asarray(centers, dtype=float).reshape(-1, 3)
-        m = len(c)
-        r = np.asarray(radii, dtype=float).reshape(m)
-        v = np.zeros((m, 3)) if velocities is None else np.asarray(velocities, dtype=float).reshape(m, 3)
-        rd = np.zeros(m) if radius_rates is None else np.asarray(radius_rates, dtype=float).reshape(m)
-        lo, hi = self.step_windows(float(age))
-        ca_ = c[None] + lo[:, None, None] * v[None]
-        cb_ = c[None] + hi[:, None, None] * v[None]
-        rmax = np.maximum(r[None] + lo[:, None] * rd[None], r[None] + hi[:, None] * rd[None])
-        return self._inflated(0.5 * (ca_ + cb_), rmax + 0.5 * np.linalg.norm(cb_ - ca_, axis=-1))
+        """Obstacle parameter from a live state, extrapolated at constant velocity (`swept_states`), measured `age`
+        s before the horizon starts. Not for a replanner with shapes (their motion is the scene's)."""
+        if self.shapes.n_params:
+            raise InputError(
+                "obstacles: the replanner has shapes, whose motion is the scene's: use obstacles_from_scene"
+            )
+        return self._inflated(*swept_states(centers, radii, velocities, radius_rates, *self.step_windows(float(age))))
 
     def tabulate_obstacles(self, scene: Any, times: np.ndarray) -> None:
         """Tabulate a known scene's obstacle spheres for the run's step start times (s), before the run."""
@@ -366,7 +386,7 @@ class Replanner:
             log.debug("horizon: rescue ipopt after %s: %s", tried[-1].status, rr.status)
             r = replace(rr, status=f"{tried[-1].status}; rescue ipopt: {rr.status}")
             tried.append(r)
-        if self._selection is not None and obstacles is self._selection.packed:
+        if self._selection is not None and obstacles is self._selected:
             r = self._omitted(r, p, tried, time_left)
         r = replace(r, wall=sum(x.wall for x in tried))
         return self._result(r, tried, rescued, used_warm)
@@ -401,12 +421,12 @@ class Replanner:
         xm1 = x0 if x_prev is None else np.asarray(x_prev, dtype=float).reshape(nx)
         Pr = self.model.tip_position(Xr) if tip_reference is None else np.asarray(tip_reference, float).reshape(N, 3)
         Ob = np.asarray(obstacles, dtype=float)
-        if Ob.size != N * packing.WIDTH * self.max_obstacles:
+        if Ob.size != N * self.obstacle_width:
             raise InputError(
-                f"obstacles: expected shape ({N}, {packing.WIDTH * self.max_obstacles}) from obstacles_from_scene "
+                f"obstacles: expected shape ({N}, {self.obstacle_width}) from obstacles_from_scene "
                 f"or obstacles_from_states, got {Ob.shape}"
             )
-        Ob = Ob.reshape(N, packing.WIDTH * self.max_obstacles)
+        Ob = Ob.reshape(N, self.obstacle_width)
         p = np.concatenate([x0, xm1, Xr.ravel(), Pr.ravel(), Ob.ravel()])
         if not np.isfinite(p).all():
             # one check of the whole vector; the slow search for the culprit only when there is one
@@ -471,7 +491,8 @@ class Replanner:
             if solves == SCREEN_SOLVES or not _in_time(tried, time_left):
                 break
             p = p.copy()
-            p[len(p) - sel.packed.size :] = sel.packed.ravel()
+            Ob = p[len(p) - self.N * self.obstacle_width :].reshape(self.N, self.obstacle_width)
+            Ob[:, : sel.packed.shape[1]] = sel.packed  # the sphere slots; the shapes' parameters stay
             r = self._attempt(HorizonQuery(p, r.x), tried, time_left)
         why = f"; an obstacle left out of the QP stays {-worst:.3g} mm inside its sphere"
         return replace(r, violation=max(r.violation, -worst), ok=False, status=r.status + why)
@@ -506,22 +527,30 @@ class Replanner:
 
     def describe(self) -> dict[str, Any]:
         """Sizes of the NLP (for result files and benchmarks)."""
-        o, nlp = self.options, self._nlp
-        return {
-            "solver": (o.solver if o.solver == "ipopt" else f"sqpmethod+{o.qpsol}")
-            + (" (compiled C)" if self.compiled else ""),
-            "rescue": "ipopt" if self.rescue is not None else None,
-            "max_iter": o.max_iter,
-            "max_calls": o.max_calls,
-            "step_deadline_s": o.step_deadline,
-            "variables": self.nx * self.N,
-            "parameters": nlp.n_params,
-            "constraints": len(nlp.lbg),
-            "actuator_limits": None if self.rate_limits is None else list(self.rate_limits.names),
-            "limit_fraction": o.limit_fraction,
-            "obstacle_constraints": nlp.n_dist,
-            "qp_obstacle_rows": (self._K or o.points) * self.max_obstacles * self.N if nlp.n_dist else 0,
-            "max_obstacles": self.max_obstacles,
-            "inflate_mm": self.inflate,
-            "point_spacing_mm": self.spacing,
-        }
+        return _sizes(self)
+
+
+def _sizes(rp: Replanner) -> dict[str, Any]:
+    """`Replanner.describe`: the sizes of its NLP."""
+    o, nlp = rp.options, rp._nlp
+    return {
+        "solver": (o.solver if o.solver == "ipopt" else f"sqpmethod+{o.qpsol}")
+        + (" (compiled C)" if rp.compiled else ""),
+        "rescue": "ipopt" if rp.rescue is not None else None,
+        "max_iter": o.max_iter,
+        "max_calls": o.max_calls,
+        "step_deadline_s": o.step_deadline,
+        "variables": rp.nx * rp.N,
+        "parameters": nlp.n_params,
+        "constraints": len(nlp.lbg),
+        "actuator_limits": None if rp.rate_limits is None else list(rp.rate_limits.names),
+        "limit_fraction": o.limit_fraction,
+        "obstacle_constraints": nlp.n_dist,
+        "qp_obstacle_rows": (rp._K or o.points) * rp.max_obstacles * rp.N if nlp.n_dist else 0,
+        "max_obstacles": rp.max_obstacles,
+        "shapes": len(rp.shapes.terms.shapes),
+        "shape_constraints": nlp.n_shape,
+        "shape_keep_mm": rp.shapes.keep if nlp.n_shape else None,
+        "inflate_mm": rp.inflate,
+        "point_spacing_mm": rp.spacing,
+    }

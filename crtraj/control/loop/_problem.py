@@ -117,11 +117,6 @@ def spec_from_problem(problem: ProblemLike, run: ProblemRun) -> LoopSpec:
     popts = problem.options(PlannerOptions, "planner")
     sopts = problem.options(SteerOptions, "steer")
     scene = Scene.from_table(problem.section("scene"))
-    if scene.shapes:  # refused before any planning: the replanner's NLP would not see them
-        raise InputError(
-            f"scene.shape: {scene.n_shapes} shape(s), but the receding-horizon replanner keeps its points from "
-            "spheres only; plan this scene with `crtraj plan`, or give its obstacles as [[scene.obstacle]] spheres"
-        )
     feed_options = problem.options(FeedOptions, "feed")  # checked even without a feed
     model = planning_model(problem.robot, popts.model if run.body is None else run.body)
     scene = planning_scene(scene, model)
@@ -140,6 +135,7 @@ def spec_from_problem(problem: ProblemLike, run: ProblemRun) -> LoopSpec:
     else:
         x0, first, res = _start_config(planner, task, scene0, seed, opts.safety)
     moving = run.feed is not None or any(o.amplitude != 0.0 or o.to is not None for o in scene.obstacles)
+    moving = moving or not scene.shapes_static
     _check_goal(planner, task, x0, scene0, seed, res, among_obstacles=opts.safety and not moving)
     reference = PlannerReference(
         planner,

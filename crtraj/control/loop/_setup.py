@@ -150,7 +150,10 @@ def assemble(spec: LoopSpec) -> tuple[LoopParts, LoopConfig]:
     if replanner is None:
         # a scene of more obstacles than qp_obstacles: the QP gets that many slots, filled by the broad phase
         slots = scene.n_obstacles if not o.qp_obstacles else min(scene.n_obstacles, o.qp_obstacles)
-        replanner = Replanner(model, o, max_obstacles=slots, safety_distance=scene.safety_distance, rate_limits=sampled)
+        replanner = Replanner(
+            model, o, max_obstacles=slots, safety_distance=scene.safety_distance, rate_limits=sampled,
+            shapes=scene.shapes,
+        )  # fmt: skip
     if replanner.options.dt != o.dt or o.horizon != replanner.N:
         raise InputError("replanner: its dt and horizon must match the loop's options")
     obstacles: ObstacleSource = SceneObstacles(scene) if spec.obstacles is None else spec.obstacles

@@ -152,10 +152,28 @@ class RosDevice:
         self.measured_steps += 1
         here = self.actuators.actuation(self._commanded(t))
         dev = self.actuators.actuation(st[0]) - self.actuators.actuation(self._commanded(st[1] - self._origin))
+        if self._not_following(dev, st[1] - self._origin):
+            return q, qc, False
         q_now = here + self.servo.decay(max(t - (st[1] - self._origin), 0.0)) * dev
         # off the sent steps (a hold, a refusal) the set-point in force is the committed curve's: it may still be
         # on its stop tail, and a next step planned from rest there would ask for a jump in acceleration
         return q_now, (qc if self._joins(t) else self.landing(t - self.dt, 1, self.dt).qc), True
+
+    def _not_following(self, dev: np.ndarray, tau: float) -> bool:
+        """True (and the run's problem set) when the robot is more than ``ros.following_error`` mm off the curve
+        sent to the controller at loop time tau: the controller is not executing the verified motion (inactive,
+        or another controller claims the joints), and the topic interface would never say so."""
+        limit = self.options.following_error
+        worst = int(np.argmax(np.abs(dev)))
+        if limit <= 0.0 or abs(dev[worst]) <= limit:
+            return False
+        joint = self.options.joint_name(self.actuators.names[worst])
+        self._problem = (
+            f"ros: joint {joint!r} is {abs(dev[worst]):.2f} mm off the curve sent to "
+            f"{self.options.controller} at t = {tau:.3f} s (ros.following_error {limit:g} mm): the controller "
+            "is not executing it; check that it is active (ros2 control list_controllers) and owns the joint"
+        )
+        return True
 
     def _commanded(self, tau: float) -> np.ndarray:
         """The commanded actuator values at loop time tau (the committed curve)."""

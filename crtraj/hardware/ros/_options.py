@@ -44,7 +44,10 @@ class RosOptions(Options):
     controller's parameter service does not answer (then "auto" means Humble). update_rate: Hz of the
     controller (0: its own ``update_rate`` parameter); Jazzy and later sample the trajectory one period ahead.
     joint_state_timeout: s the bridge waits for a joint state at least as new as the step it
-    measures before it gives up on the robot. start_timeout: s to wait for the first joint state
+    measures before it gives up on the robot. following_error: mm of actuation a joint state may be off the
+    curve sent to the controller at its stamp (0: unchecked); beyond it the run stops, reported: the controller
+    is not executing what was verified (an inactive controller keeps its subscription but drops every
+    message, and the topic gives no feedback). start_timeout: s to wait for the first joint state
     and obstacles. max_age: s after which an obstacle's state is stale (the loop then holds).
     udp_feed_port: also listen for the UDP JSON obstacle feed on 127.0.0.1 at this port (0: a
     free port the bridge prints).
@@ -71,6 +74,7 @@ class RosOptions(Options):
     distro: str = option("auto", choices=("auto", "humble", "jazzy", "rolling"))
     update_rate: float = option(0.0, ge=0.0, le=100000.0)
     joint_state_timeout: float = option(1.0, gt=0.0, le=60.0)
+    following_error: float = option(3.0, ge=0.0, le=1000.0)
     start_timeout: float = option(10.0, gt=0.0, le=600.0)
     max_age: float = option(0.2, gt=0.0, le=60.0)
     udp_feed_port: int = option(0, ge=0, le=65535)

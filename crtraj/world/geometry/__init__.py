@@ -6,7 +6,8 @@ profiles), and `Breathing` (a uniform scale). `MovingShape` implements `Distance
 and gradient at a time, and a conservative lower bound over an interval. `casadi_distance` gives the
 smooth primitives' distances as CasADi expressions. `PointCloud` and `Mesh` are obstacles given as data
 (files read by `load_points`, `load_triangles`), with a conservative distance to their points.
-`shape_from_table` reads a problem file's ``[[scene.shape]]``; `shape_clearance` and `chord_clearance` are
+`GridDistance` is a point set's conservative trilinear distance grid (the NLPs' interpolant and the checker's
+lookup). `shape_from_table` reads a problem file's ``[[scene.shape]]``; `shape_clearance` and `chord_clearance` are
 what the scene and the checker ask. docs/concepts/shapes.md describes them.
 """
 
@@ -14,6 +15,7 @@ from crtraj.world.geometry._clearance import chord_clearance, shape_clearance
 from crtraj.world.geometry._distance import ALL_SHAPES, DistanceField, MovingShape
 from crtraj.world.geometry._exact import exact_clearances, exact_distance, exact_min_clearance, point_triangle_distance
 from crtraj.world.geometry._files import load_points, load_triangles
+from crtraj.world.geometry._grid import GridDistance
 from crtraj.world.geometry._motion import INTERPOLATIONS, Breathing, Fixed, Keyframes, Motion, StraightLine
 from crtraj.world.geometry._nlp import ShapeTerms
 from crtraj.world.geometry._points import MAX_POINTS, POINT_SETS, Mesh, PointCloud
@@ -37,6 +39,7 @@ __all__ = [
     "Cylinder",
     "DistanceField",
     "Fixed",
+    "GridDistance",
     "HalfSpace",
     "Keyframes",
     "Mesh",

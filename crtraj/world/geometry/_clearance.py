@@ -10,11 +10,12 @@ clearances are made of (mm, s; times absolute, the scene adds its clock).
   f(b) - (1 - u) g_b.(b - a))`` (each tangent of a convex function is below it; the one-sided gradients
   returned on the non-smooth set are subgradients), and the smallest value of that maximum of two lines over
   u in [0, 1] (at an end or where they cross) bounds the chord. For a point set (cloud, mesh), whose distance
-  is not convex, the chord is sampled every `spacing` mm and ``f >= f(sample) - spacing / 2`` (f is
-  1-Lipschitz); chords whose end values already bound them above `refine_above` mm
-  (``f >= (f(a) + f(b) - |b - a|) / 2``) keep that coarser bound. Over a window the distance is taken at
-  the middle time and lowered by the sweep pad ``f(x, tm) - lower_bound(x, t0, t1)``, the larger of the two
-  ends' (constant for a bounded shape, convex in x for a half space).
+  is not convex, f is the grid's trilinear lower bound (`crtraj.world.geometry._grid`, at most
+  `GridDistance.error` below the set's distance), the chord is sampled every `spacing` mm and
+  ``f >= f(sample) - spacing / 2`` (the set's distance is 1-Lipschitz); chords whose end values already
+  bound them above `refine_above` mm (``f >= (f(a) + f(b) - |b - a|) / 2``) keep that coarser bound. Over a
+  window the distance is taken at the middle time and lowered by the sweep pad ``f(x, tm) - lower_bound(x, t0,
+  t1)``, the larger of the two ends' (constant for a bounded shape, h L; convex in x for a half space).
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from crtraj.world.geometry._distance import MovingShape
+from crtraj.world.geometry._grid import grid_of
 from crtraj.world.geometry._points import POINT_SETS
 
 
@@ -77,6 +79,14 @@ def _convex_chords(f: np.ndarray, g: np.ndarray, P: np.ndarray) -> np.ndarray:
     return best.min(axis=1)
 
 
+def _grid_distance(ms: MovingShape, points: np.ndarray, t: float) -> np.ndarray:
+    """(N,) the grid's trilinear lower bound (`GridDistance.lookup`) of a point set's distance at points (N, 3) at
+    time t: at most `GridDistance.error` below it (a KD-tree query near a ring of samples, a hole's rim or a pipe's
+    axis, visits every sample of the ring)."""
+    o, r, s = ms.frame(t)
+    return s * grid_of(ms.shape).lookup(((points - o) @ r) / s)
+
+
 def _sampled_chords(ms: MovingShape, tm: float, P: np.ndarray, f: np.ndarray, spacing: float, above: float) -> Any:
     """(N,) chord bound of a point set: coarse from the ends, sampled where the coarse bound is low."""
     ab = P[:, 1:] - P[:, :-1]
@@ -89,7 +99,7 @@ def _sampled_chords(ms: MovingShape, tm: float, P: np.ndarray, f: np.ndarray, sp
             u = (np.arange(m + 1) / m)[None, :, None]
             a = P[fine[:, 0], fine[:, 1]][:, None, :]
             pts = a + u * ab[fine[:, 0], fine[:, 1]][:, None, :]
-            d = ms.distance(pts.reshape(-1, 3), tm).reshape(len(fine), m + 1).min(axis=1)
+            d = _grid_distance(ms, pts.reshape(-1, 3), tm).reshape(len(fine), m + 1).min(axis=1)
             step = length[fine[:, 0], fine[:, 1]] / m
             bound[fine[:, 0], fine[:, 1]] = np.maximum(bound[fine[:, 0], fine[:, 1]], d - 0.5 * step)
     return bound.min(axis=1)
@@ -113,6 +123,11 @@ def chord_clearance(
         for a, b, idx in groups:
             tm = 0.5 * (a + b)
             pts = P[idx]
+            if isinstance(ms.shape, POINT_SETS):  # bounded: the sweep pad is h L (`MovingShape.lower_bound`)
+                f = _grid_distance(ms, pts.reshape(-1, 3), tm).reshape(len(idx), n)
+                pad = 0.5 * (b - a) * ms.surface_speed(a, b) if b > a else 0.0
+                out[idx] = np.minimum(out[idx], _sampled_chords(ms, tm, pts, f, spacing, refine_above) - pad)
+                continue
             f, g = ms.distance_and_gradient(pts.reshape(-1, 3) if not ms.static else flat, tm)
             f, g = f.reshape(len(idx), n), g.reshape(len(idx), n, 3)
             if b > a:
@@ -120,9 +135,5 @@ def chord_clearance(
                 pad = np.maximum(pad[:, :-1], pad[:, 1:]).max(axis=1)
             else:
                 pad = 0.0
-            if isinstance(ms.shape, POINT_SETS):
-                d = _sampled_chords(ms, tm, pts, f, spacing, refine_above)
-            else:
-                d = _convex_chords(f, g, pts)
-            out[idx] = np.minimum(out[idx], d - pad)
+            out[idx] = np.minimum(out[idx], _convex_chords(f, g, pts) - pad)
     return out

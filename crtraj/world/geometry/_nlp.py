@@ -11,8 +11,9 @@ points P (3, n) over the window:
 
 - sphere, half space, capsule: the exact distance (`casadi_distance`); box and cylinder: its smooth lower
   bound, at most `BOX_SMOOTH_ERROR * smooth` mm below the exact one;
-- mesh, point cloud: the distance to at most `max_spheres` spheres that contain every ball of the set
-  (`cover`), so never above the set's own distance: an NLP that keeps it above a margin keeps the set's.
+- mesh, point cloud: the trilinear grid lower bound of the set's distance (`crtraj.world.geometry._grid`), at
+  most `GridDistance.error` mm below the obstacle's distance inside the grid, so never above it: an NLP that
+  keeps it above a margin keeps the set's.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ import casadi as ca
 import numpy as np
 
 from crtraj.world.geometry._distance import MovingShape
+from crtraj.world.geometry._grid import grid_of
 from crtraj.world.geometry._points import POINT_SETS
 from crtraj.world.geometry._shapes import HalfSpace
 from crtraj.world.geometry._symbolic import casadi_distance
@@ -36,10 +38,10 @@ REACH = 2000.0
 class ShapeTerms:
     """The NLP distances of `shapes` (module docstring); `smooth` mm: the box and cylinder smoothing length."""
 
-    def __init__(self, shapes: tuple[MovingShape, ...], *, max_spheres: int = 16, smooth: float = 0.5) -> None:
+    def __init__(self, shapes: tuple[MovingShape, ...], *, smooth: float = 0.5) -> None:
         self.shapes = tuple(shapes)
         self.smooth = float(smooth)
-        self.covers = [ms.shape.cover(max_spheres) if isinstance(ms.shape, POINT_SETS) else None for ms in shapes]
+        self.grids = [grid_of(ms.shape) if isinstance(ms.shape, POINT_SETS) else None for ms in shapes]
         self.n_params = WIDTH * len(self.shapes)
 
     def symbols(self) -> Any:
@@ -56,17 +58,14 @@ class ShapeTerms:
             origin = p[base : base + 3]
             rot = ca.reshape(p[base + 3 : base + 12], 3, 3)
             scale, pad = p[base + 12], p[base + 13]
-            cover = self.covers[k]
+            grid = self.grids[k]
             row = []
             for j in range(n):
                 x = P[:, j]
-                if cover is None:
+                if grid is None:
                     d = casadi_distance(ms.shape, x, origin, rot, scale, self.smooth)
-                else:
-                    y = ca.mtimes(ca.transpose(rot), x - origin)
-                    d = ca.mmin(
-                        ca.vertcat(*[ca.norm_2(y - scale * ca.DM(c)) - scale * r for c, r in zip(*cover, strict=True)])
-                    )
+                else:  # the set grown by `scale` about its origin: s f(y / s)
+                    d = scale * grid(ca.mtimes(ca.transpose(rot), x - origin) / scale)
                 row.append(d - pad)
             rows.append(ca.horzcat(*row))
         return rows

@@ -13,9 +13,7 @@ union of the balls, from a KD-tree (`scipy.spatial.cKDTree`):
   ``cover = max sub-edge / sqrt(3)`` of the samples, and ``min_k |y - p_k| - cover`` is at most the distance
   to the surface and at least that distance minus `cover`: a conservative distance with a stated error.
 
-`cover(max_spheres)` packs a set into at most that many spheres that contain every ball (a voxel grid: one
-sphere per occupied voxel, about its points' centre, radius the farthest point plus the ball radius); the
-NLPs keep their points outside these spheres (more conservative than the checker, never less).
+The NLPs and the checker's chord bound take either as a conservative distance grid (`crtraj.world.geometry._grid`).
 """
 
 from __future__ import annotations
@@ -45,30 +43,6 @@ def _nearest(tree: spatial.cKDTree, pts: np.ndarray, y: np.ndarray, s: float) ->
     dist, idx = tree.query(y / s)
     v = y - s * pts[idx]
     return s * dist, _unit_or(v, np.array([0.0, 0.0, 1.0]))
-
-
-def cover_spheres(pts: np.ndarray, ball: float, max_spheres: int) -> tuple[np.ndarray, np.ndarray]:
-    """At most `max_spheres` spheres (centres (k, 3) mm, radii (k,) mm) containing every ball of radius
-    `ball` about the points pts (K, 3): a voxel grid, coarsened until few enough voxels are occupied."""
-    if max_spheres < 1:
-        raise InputError(f"max_spheres: must be >= 1, got {max_spheres}")
-    lo, hi = pts.min(axis=0), pts.max(axis=0)
-    size = max(float(np.max(hi - lo)), 1e-9)
-    cells = max(1, math.ceil(max_spheres ** (1.0 / 3.0)) * 2)
-    while True:
-        v = size / cells * (1.0 + 1e-9)
-        key = np.floor((pts - lo) / v).astype(np.int64)
-        _, inv = np.unique(key, axis=0, return_inverse=True)
-        inv = inv.ravel()
-        k = int(inv.max()) + 1
-        if k <= max_spheres or cells == 1:
-            break
-        cells = max(1, cells // 2) if k > 2 * max_spheres else cells - 1
-    counts = np.bincount(inv, minlength=k)
-    centres = np.stack([np.bincount(inv, pts[:, i], minlength=k) for i in range(3)], axis=1) / counts[:, None]
-    far = np.zeros(k)
-    np.maximum.at(far, inv, np.linalg.norm(pts - centres[inv], axis=1))
-    return centres, far + ball
 
 
 @dataclass(frozen=True, eq=False)  # equal when the same object: arrays have no single truth value
@@ -112,10 +86,6 @@ class PointCloud:
         """Signed distance (N,) mm to the union of balls and unit gradient (N, 3), points y in the frame."""
         d, g = _nearest(self._tree, self.points, y, s)
         return d - s * self.radius, g
-
-    def cover(self, max_spheres: int) -> tuple[np.ndarray, np.ndarray]:
-        """Spheres (centres (k, 3), radii (k,)) in the shape's frame at scale 1 containing every ball."""
-        return cover_spheres(self.points, self.radius, max_spheres)
 
 
 def _from(source: str) -> str:
@@ -197,10 +167,6 @@ class Mesh:
         direction (N, 3) from the nearest sample, for points y (N, 3) in the shape's frame."""
         d, g = _nearest(self._tree, self.samples, y, s)
         return d - s * self.cover_radius, g
-
-    def cover(self, max_spheres: int) -> tuple[np.ndarray, np.ndarray]:
-        """Spheres (centres (k, 3), radii (k,)) in the shape's frame at scale 1 containing the surface."""
-        return cover_spheres(self.samples, self.cover_radius, max_spheres)
 
 
 POINT_SETS = (PointCloud, Mesh)
