@@ -33,7 +33,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from conftest import ROOT, default_sigint, require_module, require_tool
+from conftest import ROOT, default_sigint
 
 TUTORIALS = ROOT / "docs" / "tutorials"
 SKIP_MARKER = "<!-- docs-test: skip ("
@@ -246,21 +246,6 @@ def _follow(page: str, folder: Path) -> None:
 @pytest.mark.slow
 @pytest.mark.parametrize("page", _pages(tools=False))
 def test_tutorial_shell_blocks_run_as_written(page, tmp_path):
-    _follow(page, tmp_path)
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize("page", _pages(tools=True))
-def test_tutorial_shell_blocks_with_tools_run_as_written(page, tmp_path):
-    """The pages that need Chromium and ffmpeg (crtraj view renders in headless Chromium and encodes with ffmpeg)
-    or the Dynamixel SDK."""
-    runs = _runs(TUTORIALS / page)
-    if "--png" in runs or "--mp4" in runs:
-        require_tool("chromium", "chromium-browser", "google-chrome", hint="Debian: apt-get install chromium")
-    if "--mp4" in runs:
-        require_tool("ffmpeg", hint="Debian: apt-get install ffmpeg")
-    if "--dynamixel" in runs:
-        require_module("dynamixel_sdk", "pip install 'crtraj[dynamixel]'")
     _follow(page, tmp_path)
 
 
