@@ -124,3 +124,25 @@ def test_the_compiled_backend_is_chosen_when_its_c_is_built(model):
     O = slow.obstacles_from_scene(SCENE, 3.0)
     a, b = fast.solve(X0, _reference(3), O), slow.solve(X0, _reference(3), O)
     assert a.status is b.status and np.max(np.abs(a.configs - b.configs)) <= 1e-6
+
+
+def test_a_rod_horizon_runs_interpreted_without_trying_to_compile(monkeypatch) -> None:
+    """The rod body's horizon C is too large to compile (90 MB for cdsr2): with `compiled = true` the loop says so
+    and runs the interpreted solver at once, without calling the compiler (a build attempt fails this test)."""
+    from dataclasses import replace
+
+    from conftest import PROBLEMS
+
+    from crtraj.control.horizon import _build
+    from crtraj.control.loop import ClosedLoop
+    from crtraj.io.problem import Problem
+
+    def no_build(*args, **kw):
+        raise AssertionError("the rod horizon was sent to the compiler")
+
+    monkeypatch.setattr(_build, "compiled_library", no_build)
+    problem = Problem.load(PROBLEMS / "side_shelf.toml")
+    options = replace(problem.options(ReplanOptions, "replan"), solver="sqp", qpsol="daqp", compiled=True)
+    loop = ClosedLoop.from_problem(problem, body="rod", options=options)
+    assert loop.replanner.compiled is False
+    assert loop.replanner.compiled_message.startswith("compiled: not for a rod-model body")

@@ -143,27 +143,6 @@ def test_the_replan_loop_plans_for_the_rod_body() -> None:
     assert np.linalg.norm(Model(ROBOT).tip_position(x0) - np.asarray(task.start)) > 5.0  # PCC's tip is elsewhere
 
 
-def test_a_rod_horizon_runs_interpreted_without_trying_to_compile(monkeypatch) -> None:
-    """The rod body's horizon C is too large to compile (90 MB for cdsr2): with `compiled = true` the loop says so
-    and runs the interpreted solver at once, without calling the compiler (a build attempt fails this test)."""
-    from crtraj.control.horizon import _build
-    from crtraj.control.loop import ClosedLoop
-
-    def no_build(*args, **kw):
-        raise AssertionError("the rod horizon was sent to the compiler")
-
-    monkeypatch.setattr(_build, "compiled_library", no_build)
-    from dataclasses import replace
-
-    from crtraj.control.horizon import ReplanOptions
-
-    problem = Problem.load(PROBLEM)
-    options = replace(problem.options(ReplanOptions, "replan"), solver="sqp", qpsol="daqp", compiled=True)
-    loop = ClosedLoop.from_problem(problem, body="rod", options=options)
-    assert loop.replanner.compiled is False
-    assert loop.replanner.compiled_message.startswith("compiled: not for a rod-model body")
-
-
 def test_a_corrupt_rod_model_entry_is_rebuilt_not_used(rod: RodModel, cache: Path, caplog) -> None:
     """A cache entry whose JSON is damaged is refused with one warning and rebuilt to the same coefficients."""
     (entry,) = cache.glob(f"rod_model-{rod.identity()['rod_model']}.json")

@@ -227,7 +227,6 @@ class Replanner:
         if o.compiled:
             stage = getattr(self.solver, "function", None)  # the stage form's dense-interface function
             self.compiled_message, parts = build_compiled(spec, nlp, self.solver if stage is None else stage)
-            # the user asked for the compiled solver: say so when the interpreted one runs instead
             (log.debug if parts is not None else log.warning)("horizon: %s", self.compiled_message)
         self._rows = None
         if nlp.all_distance is not None:
