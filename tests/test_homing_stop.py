@@ -112,3 +112,37 @@ def test_a_spool_is_homed_against_a_stop_only_when_allowed(tmp_path):
     assert "\n" not in str(e.value)
     robot, acts = _robot(tmp_path, Z_HOMING + spool + "allow_hard_stop = true\n")
     assert read_homing(robot, acts)["s1c1"].method == "hard_stop"
+
+
+class _PausingClock(VirtualClock):
+    """A virtual clock whose `pause_at`-th sleep lasts `pause` s longer: the host stalls once (a loaded machine)."""
+
+    def __init__(self, pause_at: int, pause: float) -> None:
+        super().__init__()
+        self.sleeps, self.pause_at, self.pause = 0, pause_at, pause
+
+    def sleep(self, seconds: float) -> None:
+        self.sleeps += 1
+        super().sleep(seconds + (self.pause if self.sleeps == self.pause_at else 0.0))
+
+
+@pytest.mark.parametrize("pause", [0.05, 0.3])
+def test_a_host_silent_past_the_bus_watchdog_while_homing_is_named_at_once(tmp_path, pause):
+    """The stage's Bus Watchdog (100 ms) runs while it homes. A host that pauses 0.3 s mid-move lets it stop the
+    stage short of its stop: homing says so as soon as the shaft stands still, rather than waiting out the move's
+    deadline and blaming a missing stop. A 0.05 s pause is within the watchdog: the stage homes."""
+    robot, acts = _robot(tmp_path)
+    chain, _ = _powered_up(robot, acts, -150.0)
+    clock = _PausingClock(pause_at=200, pause=pause)  # 2 s into the move at 10 ms polls, 50 mm from the stop
+    io = ChainIO(chain, clock)
+    for dxl_id in acts.bus.ids:
+        io.write(dxl_id, X.BUS_WATCHDOG, 5, 1, "bus watchdog")  # 5 x 20 ms
+    homer = Homer(io, acts, dict(read_homing(robot, acts)), clock, lambda t: True)
+    if pause < 0.1:
+        (homed,) = homer.run()
+        assert homed.method == "hard_stop"
+        return
+    with pytest.raises(HomingError, match=r"servo .*z.*: its bus watchdog stopped it while homing"):
+        homer.run()
+    spec = dict(read_homing(robot, acts))["z"]
+    assert clock.now() < 2.0 * spec.travel / spec.speed  # named once the shaft stood still, not at the deadline

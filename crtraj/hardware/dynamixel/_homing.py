@@ -168,6 +168,17 @@ class Homer:
                 f"home again (robot.homing.{spec.name}.stall_travel is the tolerance); nothing written"
             )
 
+    def _refuse_tripped(self, k: int) -> None:
+        """`HomingError` when servo k stands still because its Bus Watchdog stopped it: the host was silent longer
+        than the watchdog (a loaded machine), so the move ended short of the stop; without this the wait would go on
+        to its deadline and blame a missing stop."""
+        dxl_id = self.bus.ids[k]
+        if self.io.read(dxl_id, X.BUS_WATCHDOG, 1) & 0xFF == X.WATCHDOG_TRIPPED:
+            raise HomingError(
+                f"servo {self.bus.name_of(dxl_id)}: its bus watchdog stopped it while homing (the host sent no "
+                "instruction in time): check the host's load, then home again; nothing written"
+            )
+
     def _goal_current(self, k: int, spec: HomingSpec) -> int:
         """Goal Current units of servo k's stall: the spec's, refused above the servo's force cap."""
         goal = max(1, round(spec.current / X.CURRENT_UNIT))
@@ -219,6 +230,8 @@ class Homer:
             still = max(p for _, p in window) - min(p for _, p in window) <= spec.stall_travel / res
             if spec.direction * current >= STALL_CURRENT * goal_current and held and still:
                 return
+            if held and still:
+                self._refuse_tripped(k)
         unit = self.acts.units[k]
         raise HomingError(
             f"servo {self.bus.name_of(dxl_id)}: no stall within {spec.travel:g} {unit} of travel toward "
