@@ -148,7 +148,7 @@ class Reader:
             cwd=self.folder,
             env=self.env,
             start_new_session=True,
-            preexec_fn=_reader_child,
+            preexec_fn=_reader_child(shell),
             **out,
         )
 
@@ -187,7 +187,7 @@ class Reader:
             capture_output=True,
             text=True,
             timeout=HANG_S,
-            preexec_fn=_reader_child,
+            preexec_fn=_reader_child(shell),
         )
 
     def run_fed(self, shell: str, last: bool = True) -> subprocess.CompletedProcess:
@@ -237,19 +237,27 @@ class Reader:
             self.pty = None
 
 
-# The reader's commands and the simulated devices they talk to run ahead of the suite's other work (nice -10, where
-# the user may raise priority): a simulator stands in for separate hardware with its own processor, and a page's
-# stream is the only real-time work of a reader's machine. The suite's other workers and the budget's CPU hog would
-# otherwise starve a 100 Hz stream past its 100 ms watchdogs, which is the watchdog working, not the page failing.
+# The simulated devices and the commands that stream to them or feed them run ahead of the suite's other work
+# (nice -10, where the user may raise priority): a simulator stands in for separate hardware with its own processor,
+# and a page's stream is the only real-time work of a reader's machine. The suite's other workers and the budget's
+# CPU hog would otherwise starve a 100 Hz stream past its 100 ms watchdogs. Only those: a page's planning, rendering
+# and encoding at that priority would starve the other workers' real-time tests (a headless Chromium went silent).
 READER_NICE = -10
+_REAL_TIME = re.compile(r"sim-device|sim-dynamixel|feed-replay|--udp\b|--dynamixel\b|--stream\b|--feed\b|\bhome\b")
 
 
-def _reader_child() -> None:
-    """Popen preexec_fn of the reader's commands: a terminal's job takes Ctrl-C (a suite run in the background
-    hands SIGINT on ignored, conftest's `default_sigint`), at `READER_NICE` when allowed (else as it was)."""
-    default_sigint()
-    with contextlib.suppress(OSError):
-        os.setpriority(os.PRIO_PROCESS, 0, READER_NICE)
+def _reader_child(shell: str):
+    """Popen preexec_fn of a reader's command `shell`: a terminal's job takes Ctrl-C (a suite run in the background
+    hands SIGINT on ignored, conftest's `default_sigint`); a real-time one at `READER_NICE` when allowed."""
+    real_time = _REAL_TIME.search(shell) is not None
+
+    def child() -> None:
+        default_sigint()
+        if real_time:
+            with contextlib.suppress(OSError):
+                os.setpriority(os.PRIO_PROCESS, 0, READER_NICE)
+
+    return child
 
 
 def _follow(page: str, folder: Path) -> None:
