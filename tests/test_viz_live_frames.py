@@ -6,6 +6,9 @@ tests/test_viz_live_page.py.)"""
 from __future__ import annotations
 
 import json
+import os
+import signal
+import time
 import urllib.request
 
 import numpy as np
@@ -14,6 +17,7 @@ from conftest import BALL, straight_loop
 
 from crtraj.control.horizon import ReplanOptions
 from crtraj.control.loop import LoopOptions
+from crtraj.viz.live import LiveView
 from crtraj.viz.live._child import pack, unpack
 from crtraj.viz.live._page import ActuatorFractions, LivePage
 from crtraj.viz.page import append_rows
@@ -155,3 +159,45 @@ def test_a_frame_the_server_refuses_raises(model):
             vis._window.send_frame([], np.zeros((0, 4, 4)), rows)
     finally:
         vis.close()
+
+
+def _wait_for(condition, what: str) -> None:
+    """Poll `condition` every 10 ms, bounded by HANG_S (a hang bound only)."""
+    end = time.monotonic() + HANG_S
+    while not condition():
+        assert time.monotonic() < end, f"no {what} within {HANG_S:g} s"
+        time.sleep(0.01)
+
+
+def test_a_server_too_slow_for_one_frame_does_not_end_the_live_view(loop_records, model):
+    """The live server (which runs below the loop's priority) is stopped while the drawing process waits for its
+    reply: that one draw is reported late (the feed counts it failed) and the view goes on. The next draw that
+    reaches the server sends the page's whole data first, so the server's page (data.json) has every observed
+    step, in order, with none missing, none twice (before: the drawing process died and the page froze)."""
+    run, entries = loop_records
+    view = LiveView(model, run.goal, Scene(obstacles=(BALL,), safety_distance=5.0), 0.004, timeout=2.0, nice=0)
+    feed, server = view.feed, view.vis._window.server_proc
+    try:
+        feed.observe(*entries[0])
+        _wait_for(lambda: feed.drawn == 1, "first draw")
+        os.kill(server.pid, signal.SIGSTOP)
+        try:
+            feed.observe(*entries[1])
+            _wait_for(lambda: feed.failed == 1, "late draw")
+        finally:
+            os.kill(server.pid, signal.SIGCONT)
+        # each further state is one more draw; a draw late again (a busy machine) only means one more resync
+        k = 2
+        while True:
+            drawn, failed = feed.drawn, feed.failed
+            feed.observe(*entries[k])
+            k += 1
+            _wait_for(lambda d=drawn, f=failed: feed.drawn + feed.failed > d + f, "draw")
+            if feed.drawn > drawn or k == len(entries):
+                break
+        data = _get(view.url + "data.json")
+    finally:
+        view.close()
+    assert feed.drawn >= 2, feed.summary()
+    assert data["runs"][0]["t"] == pytest.approx([s.t for s, _ in entries[:k]], abs=0.0)
+    assert [s or "" for s in data["runs"][0]["status"]] == ["", *(str(st.step_status) for _, st in entries[1:k])]

@@ -224,6 +224,47 @@ def test_the_served_live_page_is_the_full_page_and_shows_a_published_state(brows
     assert served == page  # the server's copy (Python) and the page's (JavaScript) grew alike from the frames
 
 
+# In the page: hold every answer to fetch() until the test releases it, and count the live frames that arrive.
+_HOLD_FETCH = """(() => { const f0 = window.fetch; window.__held = []; window.__frames = 0;
+  window.fetch = (u, o) => f0(u, o).then((r) => new Promise((res) => { window.__held.push(() => res(r)); }));
+  const h = window.viewer.handle_command;
+  window.viewer.handle_command = (c) => { h(c); if (c.type === 'crtraj_frame') window.__frames++; }; })()"""
+
+
+def test_a_data_answer_older_than_a_frame_never_takes_the_live_page_back(browser, model):
+    """The server tells a live page to fetch its data; the answer (a snapshot with the first step only) reaches the
+    page after the next step's frame (a busy machine). The page then shows the newest step, with both steps in its
+    numbers, not the older snapshot (before: the page went back to t = 0 and stayed there until the next frame,
+    for good after the run's last one)."""
+    ball = Obstacle(center=(-3.5, 76.8, 394.4), radius=30.0, name="ball")
+    C, R = np.array([ball.center]), np.array([ball.radius])
+    q0, executed, _, _ = _moving_cable(model, 0.1 / 5, 5)
+    s0 = _record(0.0, np.array([0.3, 0.0, 0.0, 0.0, 0.0]), C, R, q=q0)
+    s1 = _record(0.1, np.array([0.2, 0.1, -0.1, 0.05, -5.0]), C, R, q=executed[-1])
+    vis = Visualizer(model, server=True, timeout=HANG_S)
+    try:
+        page = LivePage(vis, model, safety_distance=5.0, deadline=0.004, names=["ball"], goal=np.zeros(3))
+        page.push()
+        page.draw(s0, [(s0, None)])
+        tab = browser.open(vis.url, 1280, 800)
+        _wait_for_time(tab, 0.0)
+        # the page's own fetch of its data on connecting has been answered before the answers are held
+        _wait_until(tab, "performance.getEntriesByType('resource').some((e) => e.name.endsWith('data.json'))")
+        tab.evaluate(_HOLD_FETCH)
+        page.push()  # the server tells the page to fetch its data: the answer (step 0 only) is made now, held
+        _wait_until(tab, "window.__held.length === 1")
+        page.draw(s1, [(s1, _step("move", 0.001, executed))])
+        _wait_until(tab, "window.__frames === 1")
+        tab.evaluate("window.__before = crtrajView.data; window.__held.shift()()")
+        _wait_until(tab, "crtrajView.data !== window.__before")
+        shown = tab.evaluate("[parseFloat(document.getElementById('crtraj-time').dataset.t),"
+                             " crtrajView.data.runs[0].t]")  # fmt: skip
+        tab.close()
+    finally:
+        vis.close()
+    assert shown == [0.1, [0.0, 0.1]], shown
+
+
 def test_the_live_page_turns_into_the_replay_when_the_run_ends(browser, model):
     """A page open on a live run: when the run's result is shown on the same server (what `crtraj replan --view`
     does at the end), the server tells the page (one web-socket message) and it reloads to the replay: the

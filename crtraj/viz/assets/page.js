@@ -286,15 +286,27 @@
     shownTime = duration;
     rebuild(); refresh();
   }
+  // The data fetched is a snapshot the server made before some frames the page may already have: rows that come
+  // while a fetch is under way wait for it and are appended to the snapshot (appendRows skips what it has), so a
+  // slow answer never takes the page back to an older step. A notice during a fetch asks for one more.
+  let fetching = false, refetch = false, pending = [];
   function fetchData() {
+    if (fetching) { refetch = true; return; }
+    fetching = true; refetch = false;
     fetch("data.json", { cache: "no-store" }).then((r) => r.json()).then((d) => {
-      if (!d.live && data.live) location.reload(); else if (d.live) load(d);
-    }).catch(() => setTimeout(fetchData, 1000));
+      fetching = false;
+      if (!d.live && data.live) { location.reload(); return; }
+      if (d.live) load(d);
+      if (refetch) { fetchData(); return; }
+      const rows = pending; pending = [];
+      rows.forEach(appendRows);
+    }).catch(() => { fetching = false; setTimeout(fetchData, 1000); });
   }
   function appendRows(rows) {
     if (!data.live || !runs.length) return;
+    if (fetching) { pending.push(rows); return; }
     const r = runs[0], n = r.t.length;
-    if (rows.k > n) { fetchData(); return; } // a gap: frames came before this page's data
+    if (rows.k > n) { pending.push(rows); fetchData(); return; } // a gap: frames came before this page's data
     const skip = n - rows.k;
     if (skip >= rows.t.length) return;
     const last = n ? r.t[n - 1] : -Infinity;

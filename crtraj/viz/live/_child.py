@@ -32,6 +32,7 @@ from crtraj.core.fileio import to_jsonable
 from crtraj.core.interrupt import popen_child
 from crtraj.model.kinematics import Model
 from crtraj.model.robot import Robot
+from crtraj.viz.live._link import ServerLateError
 from crtraj.viz.live._page import LivePage
 from crtraj.viz.view import Visualizer
 
@@ -126,9 +127,13 @@ class ChildDrawer:
         return lines[-1] if lines else f"exit code {self.proc.poll()}"
 
     def draw(self, state: Any, new: list[tuple[Any, Any]]) -> None:
-        """Draw `state` and add the records `new` to the page (the child's work); raises when the child failed."""
+        """Draw `state` and add the records `new` to the page (the child's work); raises when the child failed,
+        or when the server was too slow to take this frame (the child then goes on; the next draw is whole)."""
         self._send(*pack(state, new))
-        if self._line() != "ok":
+        line = self._line()
+        if line == "late":
+            raise ServerLateError(f"live view: the server missed the frame at t = {state.t:.3f} s; the view goes on")
+        if line != "ok":
             raise RuntimeError(f"live view: the drawing process failed: {self._tail()}")
 
     def close(self) -> None:
@@ -146,12 +151,15 @@ class ChildDrawer:
         self._log.close()
 
 
-def setup_message(model: Model, zmq_url: str, scene: Any, deadline: float, goal: Any) -> dict[str, Any]:
+def setup_message(
+    model: Model, zmq_url: str, scene: Any, deadline: float, goal: Any, timeout: float = 60.0
+) -> dict[str, Any]:
     """The child's first line: the robot, the live server's ZMQ address, D_sf (mm), the step deadline (s), the
-    obstacles' names and the goal (3,) mm."""
+    obstacles' names, the goal (3,) mm and the bound (s) on each of the server's replies."""
     return {
         "robot": model.robot.to_dict(),
         "zmq_url": zmq_url,
+        "timeout": float(timeout),
         "safety": float(scene.safety_distance),
         "deadline": float(deadline),
         "names": [o.name for o in scene.obstacles],
@@ -167,7 +175,7 @@ def main() -> None:
     stdin = sys.stdin.buffer
     setup = json.loads(stdin.readline())
     model = Model(Robot.from_table(Table(setup["robot"], "robot")))
-    vis = Visualizer(model, zmq_url=setup["zmq_url"])
+    vis = Visualizer(model, zmq_url=setup["zmq_url"], timeout=setup.get("timeout", 60.0))
     try:
         page = LivePage(vis, model, safety_distance=setup["safety"], deadline=setup["deadline"],
                         names=setup["names"], goal=setup["goal"])  # fmt: skip
@@ -177,10 +185,25 @@ def main() -> None:
         for line in stdin:
             header = json.loads(line)
             state, entries = unpack(header, stdin.read(header["b"]), model.robot.nx)
-            page.draw(state, entries)
-            print("ok", flush=True)
+            print("ok" if _draw(page, state, entries) else "late", flush=True)
     finally:
         vis.close()
+
+
+def _draw(page: LivePage, state: Any, entries: list[tuple[Any, Any]]) -> bool:
+    """Draw one frame; False when the server was too slow to answer (starved at its low priority on a busy
+    machine). The frame's new rows may then be lost on the server's side, so the page's whole data is sent again
+    at the next chance: the live page never keeps a gap, and one slow moment never ends the view."""
+    try:
+        if page.resync:
+            page.push()
+            page.resync = False
+        page.draw(state, entries)
+    except ServerLateError as exc:
+        page.resync = True
+        print(f"live view: {exc}", file=sys.stderr, flush=True)
+        return False
+    return True
 
 
 if __name__ == "__main__":

@@ -135,9 +135,10 @@ class LiveFeed:
                 self.drawn += 1
                 self.last_draw = self._clock()
                 self.first_draw = self.last_draw if self.first_draw is None else self.first_draw
-            except Exception:  # a failed draw must not stop the feed nor reach the loop
+            except Exception as exc:  # a failed draw must not stop the feed nor reach the loop
                 self.failed += 1
-                log.warning("live view: drawing the state at t = %.3f s failed", state.t, exc_info=True)
+                log.warning("live view: drawing the state at t = %.3f s failed: %s", state.t, exc)
+                log.debug("live view: the failed draw", exc_info=True)
             self.draw_cpu += time.thread_time() - cpu
             # the next draw starts a period after this one started, never sooner: no burst to catch up after a
             # slow draw, nor after a wait for the loop's next state

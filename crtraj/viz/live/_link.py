@@ -21,6 +21,10 @@ from crtraj.viz import server as meshcat_server
 from crtraj.viz.export import SceneRecorder, packb
 
 
+class ServerLateError(RuntimeError):
+    """The meshcat server did not answer one command within the window's timeout (the link stays usable)."""
+
+
 class MeshcatWindow:
     """meshcat's ViewerWindow interface: every command goes to the in-process scene recorder and, when
     connected, to a meshcat server.
@@ -63,9 +67,11 @@ class MeshcatWindow:
             self._sock.send_multipart(list(frames))
             return self._sock.recv()
         except zmq.Again:
+            # a REQ socket that missed its reply can send no more: a new one keeps the link usable, so a server
+            # that was only slow (starved on a busy machine) takes the next command
             self._sock.close(linger=0)
-            self._sock = None
-            raise RuntimeError(
+            self._connect()
+            raise ServerLateError(
                 f"meshcat server at {self.zmq_url} did not answer within {self._timeout_ms / 1000:g} s"
             ) from None
 

@@ -97,6 +97,8 @@ class LivePage:
         self._closest_pair: tuple[np.ndarray, np.ndarray] | None = None
         self.fractions = ActuatorFractions(model.robot.actuator_limits(), model.robot.cable_matrix()[1])
         self.verdict = "running"
+        # the server may lack rows of a frame it did not answer in time: the next draw sends the whole data first
+        self.resync = False
         vis.start_live(self.safety, goal, m)
 
     # ----------------------------------------------------------- the drawer

@@ -47,7 +47,8 @@ class LiveView:
         self.vis = Visualizer(model, server=True, options=options, timeout=timeout, nice=nice)
         try:
             zmq_url = self.vis.zmq_url or ""
-            self.drawer = ChildDrawer(setup_message(model, zmq_url, scene, deadline or math.nan, goal), nice=nice)
+            setup = setup_message(model, zmq_url, scene, deadline or math.nan, goal, timeout)
+            self.drawer = ChildDrawer(setup, nice=nice)
         except BaseException:
             self.vis.close()
             raise
