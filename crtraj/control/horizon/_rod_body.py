@@ -1,0 +1,176 @@
+"""The rod's body in the horizon NLP as PCC plus a first-order correction (issue 40: the rod horizon at PCC's size).
+
+`crtraj.model.cosserat.RodModel` is PCC's body plus a correction Delta(x) (3 x P mm at the P collision points,
+polynomials of degree ~10 in the bending coordinates, interpolated linearly along the arc between them). Built
+into every stage of the horizon NLP, those polynomials, their Jacobian and the Hessian made its generated C about
+90 MB for cdsr2 (PCC's: 2.5 MB), too large to compile. The horizon takes the correction to first order instead,
+step k about a configuration x_bar_k, as NLP parameters:
+
+    Delta(x_k) ~= Delta(x_bar_k) + J(x_bar_k) (b_k - b_bar_k) = a_k + J_k b_k,       b = x[:2 S] (bending),
+
+with ``c_k = [a_k (3 P), vec(J_k) (3 P x 2 S, column-major)]`` filled by numpy (`LinearCorrection.values`, the
+polynomials' exact values and derivatives). The NLP's body (tips, backbone points, each segment's point at a
+symbolic arc fraction) is PCC's plus this linear term: its expression graph and C stay PCC's size.
+
+Where: `LinearisedBackend` linearises every solver call about that call's own start point (the shifted previous
+solution, or the measured configuration held still on a cold start). An SQP iteration linearises the rows at the
+start point anyway, and there the correction's value and Jacobian are the full model's: a call's first SQP
+iteration is the full model's iteration (the Gauss-Newton Hessian included); only its line search and later
+iterations see the linear model.
+
+The guarantee. The step's move is verified densely on the full `RodModel` body (the loop's `SceneChecks`), never
+on this approximation: the approximation only decides whether the NLP's plan passes that check. Its error grows
+with the distance from the linearisation point; `reach_error` measures it over one step's reach (every x with
+|A (x - x_bar)| <= the horizon's per-step cable and z limits), the largest move a solution's first step makes from
+the measured configuration. Units: mm, rad.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import casadi as ca
+import numpy as np
+
+from crtraj.control.horizon._backends import replace
+from crtraj.model.cosserat import BOUND_FACTOR, RodModel, sample_within_limits
+from crtraj.model.kinematics import Model
+
+__all__ = ["LinearCorrection", "LinearisedBackend", "reach_bound", "reach_error"]
+
+# Seeded samples of (configuration, move within one step's reach) the linearisation error is measured on.
+REACH_SAMPLES = 2000
+
+
+class LinearCorrection:
+    """The first-order rod correction of `model` (a `RodModel`) as NLP parameters (the module docstring).
+
+    pcc: the robot's PCC `Model` (the body the horizon builds its expressions on); n_params: len(c)."""
+
+    def __init__(self, model: RodModel) -> None:
+        self.rod = model
+        self.correction = c = model.correction
+        r = model.robot
+        self.pcc = Model(r, model.n_points)
+        self.nb = 2 * r.n_segments
+        self.P = len(c.arcs)
+        self.n_params = 3 * self.P * (1 + self.nb)
+        self._coupling = r.coupling_matrix()
+        self._starts = np.cumsum([0.0] + [s.length for s in r.segments])
+        e = c.exps
+        self._deg = int(e.max()) if e.size else 0
+        self._coef_basis = c.coef @ c.basis  # (M, 3 P)
+        self._chain = c.scale[:, None] * self._coupling  # d w / d b
+        # per variable i and monomial m: the index of the monomial e_m - 1_i (any, where e_mi = 0) and e_mi
+        index = {tuple(row): m for m, row in enumerate(e.tolist())}
+        self._lower = np.array([[index.get(tuple(np.maximum(row - np.eye(self.nb, dtype=int)[i], 0)), 0) for row in e]
+                                for i in range(self.nb)])  # fmt: skip
+        self._power = e.T.astype(float)  # (nb, M)
+
+    # ------------------------------------------------------------------ numbers
+    def values(self, xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(Delta (n, 3 P), dDelta/db (n, 3 P, 2 S)) mm and mm/rad at configurations xs (n, nx): the polynomials'
+        values and exact derivatives (column 3 j + i: coordinate i of point j)."""
+        c = self.correction
+        b = np.atleast_2d(np.asarray(xs, dtype=float))[:, : self.nb]
+        w = (b @ self._coupling.T) * c.scale  # (n, nb), normalised bending
+        pw = w[:, :, None] ** np.arange(self._deg + 1)  # (n, nb, deg + 1): w_j^k
+        phi = pw[:, 0, c.exps[:, 0]]
+        for j in range(1, self.nb):
+            phi = phi * pw[:, j, c.exps[:, j]]  # (n, M): the monomials
+        # d w^e / d w_i = e_i w^(e - 1_i): a lower monomial of the same list, times e_i
+        dphi = phi[:, self._lower] * self._power  # (n, nb, M)
+        delta = c.mean + phi @ self._coef_basis
+        dw = np.swapaxes(dphi @ self._coef_basis, 1, 2)  # (n, 3 P, nb)
+        return delta, dw @ self._chain
+
+    def parameters(self, x_bar: np.ndarray) -> np.ndarray:
+        """c (n_params,) of the linearisation about configuration x_bar (nx,)."""
+        delta, J = self.values(x_bar)
+        b = np.asarray(x_bar, dtype=float)[: self.nb]
+        return np.concatenate([delta[0] - J[0] @ b, J[0].ravel(order="F")])
+
+    # ---------------------------------------------------------------- symbols
+    def delta(self, x: Any, c: Any) -> Any:
+        """The linear correction (3 x P) at configuration x for parameters c (SX)."""
+        n = 3 * self.P
+        J = ca.reshape(c[n:], n, self.nb)
+        return ca.reshape(c[:n] + ca.mtimes(J, x[: self.nb]), 3, self.P)
+
+    def tip(self, x: Any, c: Any) -> Any:
+        """The tip (3,) mm: PCC's plus the correction at the last collision point (the tip)."""
+        return self.pcc.tip(x) + self.delta(x, c)[:, -1]
+
+    def points(self, x: Any, c: Any, n: int) -> Any:
+        """n backbone points (3 x n) evenly along the arc: PCC's plus the correction interpolated along the arc."""
+        w = self.correction.weights(self.pcc.arc_positions(n))  # (n, P)
+        return self.pcc.backbone_function(n)(x) + ca.mtimes(self.delta(x, c), ca.DM(w.T))
+
+    def segment_points(self, x: Any, f: Any, c: Any) -> Any:
+        """Each segment's point at arc fraction f (3 x n_segments), as `RodModel.segment_point_function`."""
+        base = self.pcc.segment_point_function()(x, f)
+        d = self.delta(x, c)
+        segs = self.pcc.robot.segments
+        cols = [base[:, k] + self.correction.at_arc(d, self._starts[k] + f * s.length) for k, s in enumerate(segs)]
+        return ca.horzcat(*cols)
+
+
+def reach_error(lin: LinearCorrection, step_limit: np.ndarray, samples: int = REACH_SAMPLES, seed: int = 0) -> float:
+    """Largest distance (mm) between the correction and its linearisation about x_bar, at the collision points
+    (the body between them is interpolated from them, so no point of it is off by more), over `samples` seeded
+    pairs: x_bar random within the robot's limits, x one step's reach away (|A (x - x_bar)| <= step_limit, the
+    cable and z rate rows of the horizon, on the boundary of that reach in a random direction) and within the
+    limits."""
+    r = lin.pcc.robot
+    rng = np.random.default_rng([seed, 40])
+    A, _ = r.cable_matrix()
+    xb = sample_within_limits(r, samples, rng)
+    d = rng.normal(size=xb.shape)
+    d *= (1.0 / np.max(np.abs(d @ A.T) / step_limit, axis=1))[:, None]  # onto the reach's boundary
+    x = xb + d
+    lo, hi = r.config_box()
+    inside = (r.limit_violation(x) <= 0.0) & np.all((x >= lo) & (x <= hi), axis=1)
+    xb, x = xb[inside], x[inside]
+    exact, _ = lin.values(x)
+    at, J = lin.values(xb)
+    approx = at + np.einsum("nkb,nb->nk", J, (x - xb)[:, : lin.nb])
+    err = np.linalg.norm((exact - approx).reshape(len(x), -1, 3), axis=2)
+    return float(err.max()) if len(err) else 0.0
+
+
+def reach_bound(lin: LinearCorrection, step_limit: np.ndarray) -> float:
+    """The stated bound (mm) of the linearisation's error over one step's reach: `BOUND_FACTOR` (the rod model's
+    own) times the seeded `reach_error`."""
+    return BOUND_FACTOR * reach_error(lin, step_limit)
+
+
+class LinearisedBackend:
+    """A backend (`crtraj.planning.nlp.NLPBackend`) whose every call first linearises the correction about its
+    own start point, step by step: the parameters' last N n_params entries (`build_nlp`'s layout) become, for
+    each step k, `LinearCorrection.parameters` at the start's x_k. The correction's value and Jacobian then equal
+    the full model's at the point each SQP call linearises at, so the first iteration of a call is the full
+    model's. The time taken is part of the call's wall time."""
+
+    def __init__(self, inner: Any, lin: LinearCorrection, N: int) -> None:
+        self.inner, self.lin, self.N = inner, lin, N
+        self.name = inner.name
+        self.n = lin.n_params * N
+
+    def fill(self, p: np.ndarray, x_start: np.ndarray) -> np.ndarray:
+        """p with its correction parameters (the last `n` entries) written for start point x_start (N nx,)."""
+        lin = self.lin
+        xs = np.asarray(x_start, dtype=float).reshape(self.N, -1)
+        delta, J = lin.values(xs)  # (N, 3 P), (N, 3 P, nb)
+        a = delta - np.einsum("nkb,nb->nk", J, xs[:, : lin.nb])
+        c = np.concatenate([a, np.swapaxes(J, 1, 2).reshape(self.N, -1)], axis=1)  # vec(J) column-major per step
+        out = np.array(p, dtype=float, copy=True)
+        out[len(out) - self.n :] = c.ravel()
+        return out
+
+    def solve(self, query: Any) -> Any:
+        t0 = time.perf_counter()
+        p = self.fill(query.p, query.x0)
+        spent = time.perf_counter() - t0
+        r = self.inner.solve(replace(query, p=p))
+        return replace(r, wall=r.wall + spent)
