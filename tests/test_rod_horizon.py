@@ -143,3 +143,34 @@ def test_the_full_rod_horizon_runs_interpreted_without_trying_to_compile(rod: Ro
     rp = Replanner(rod, replace(OPTS, compiled=True), max_obstacles=1, safety_distance=5.0, rod_linear=False)
     assert rp.compiled is False and rp.linear is None
     assert rp.compiled_message.startswith("compiled: not for a rod-model body")
+
+
+def test_the_rod_loop_reaches_the_goal_and_the_rod_never_touches_the_shelf() -> None:
+    """side_shelf.toml with ``--model rod`` (the linearised horizon, sqpmethod + daqp interpreted, one iteration a
+    call as in paper_dynamic.toml, no deadline, virtual clock):
+    the loop reaches the goal, and fresh rod solves at every step's configuration (the robot file's actuation
+    mode, gravity; no surrogate) keep D_sf from the shelf by numpy distances."""
+    from crtraj.control.loop import ClosedLoop
+    from crtraj.core.clock import VirtualClock
+    from crtraj.io.problem import Problem
+    from crtraj.model.cosserat import RodDrive
+    from crtraj.model.mechanics import Mechanics
+
+    problem = Problem.load(ROOT / "problems" / "side_shelf.toml")
+    options = replace(
+        problem.options(ReplanOptions, "replan"), solver="sqp", qpsol="daqp", max_iter=1, max_calls=60, compiled=False
+    )
+    options = replace(options, step_deadline=0.0)
+    loop = ClosedLoop.from_problem(problem, body="rod", options=options, clock=VirtualClock())
+    assert loop.replanner.linear is not None
+    run = loop.run()
+    assert run.reached, run.message
+    drive = RodDrive(ROBOT, Mechanics.from_robot(ROBOT))
+    c, radius = np.array(SHELF.center), SHELF.radius
+    worst = np.inf
+    for x in run.x:
+        shape = drive.shape_config(x)
+        assert shape.is_success()
+        worst = min(worst, float(np.min(np.linalg.norm(shape.points - c, axis=1))) - radius - ROBOT.body_radius)
+    assert worst >= SCENE.safety_distance, worst
+    assert len(run.x) > 10
