@@ -58,38 +58,62 @@ class LinearCorrection:
         self.n_params = 3 * self.P * (1 + self.nb)
         self._coupling = r.coupling_matrix()
         self._starts = np.cumsum([0.0] + [s.length for s in r.segments])
-        e = c.exps
-        self._deg = int(e.max()) if e.size else 0
-        self._coef_basis = c.coef @ c.basis  # (M, 3 P)
-        self._chain = c.scale[:, None] * self._coupling  # d w / d b
-        # per variable i and monomial m: the index of the monomial e_m - 1_i (any, where e_mi = 0) and e_mi
-        index = {tuple(row): m for m, row in enumerate(e.tolist())}
-        self._lower = np.array([[index.get(tuple(np.maximum(row - np.eye(self.nb, dtype=int)[i], 0)), 0) for row in e]
-                                for i in range(self.nb)])  # fmt: skip
-        self._power = e.T.astype(float)  # (nb, M)
+        self._deg = int(c.exps.max()) if c.exps.size else 0
+        self._table = self._derivative_table()
+
+    def _derivative_table(self) -> np.ndarray:
+        """(M, R (1 + 2 S)): the monomials (M,) times it give the R modes' amplitudes of Delta - mean and, block b,
+        of dDelta/db_b (the modes' `basis` then makes them 3 P numbers each).
+
+        d w^e / d w_i = e_i w^(e - 1_i), a lower monomial of the same list, so row m of block i (in w) is the sum
+        of e_ki coef_k over the monomials k whose e_k - 1_i is monomial m; then b -> w = scale (C b)."""
+        c = self.correction
+        cb = c.coef  # (M, R)
+        index = {tuple(row): m for m, row in enumerate(c.exps.tolist())}
+        dw = np.zeros((self.nb, *cb.shape))
+        for i in range(self.nb):
+            for k, row in enumerate(c.exps):
+                if row[i]:
+                    lower = row.copy()
+                    lower[i] -= 1
+                    dw[i, index[tuple(lower)]] += row[i] * cb[k]
+        chain = c.scale[:, None] * self._coupling  # d w_i / d b_j
+        db = np.einsum("imk,ij->jmk", dw, chain)  # (nb, M, 3 P)
+        return np.concatenate([cb, *db], axis=1)
 
     # ------------------------------------------------------------------ numbers
     def values(self, xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(Delta (n, 3 P), dDelta/db (n, 3 P, 2 S)) mm and mm/rad at configurations xs (n, nx): the polynomials'
         values and exact derivatives (column 3 j + i: coordinate i of point j)."""
+        delta, blocks = self._evaluate(xs)
+        return delta, np.swapaxes(blocks, 1, 2)
+
+    def _evaluate(self, xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(Delta (n, 3 P), dDelta/db as (n, 2 S, 3 P): column b of the Jacobian per block) by one matrix
+        product of the monomials with `_table`, then the modes."""
         c = self.correction
         b = np.atleast_2d(np.asarray(xs, dtype=float))[:, : self.nb]
         w = (b @ self._coupling.T) * c.scale  # (n, nb), normalised bending
-        pw = w[:, :, None] ** np.arange(self._deg + 1)  # (n, nb, deg + 1): w_j^k
+        pw = np.ones((len(w), self.nb, self._deg + 1))
+        for k in range(1, self._deg + 1):
+            pw[:, :, k] = pw[:, :, k - 1] * w  # w_j^k
         phi = pw[:, 0, c.exps[:, 0]]
         for j in range(1, self.nb):
             phi = phi * pw[:, j, c.exps[:, j]]  # (n, M): the monomials
-        # d w^e / d w_i = e_i w^(e - 1_i): a lower monomial of the same list, times e_i
-        dphi = phi[:, self._lower] * self._power  # (n, nb, M)
-        delta = c.mean + phi @ self._coef_basis
-        dw = np.swapaxes(dphi @ self._coef_basis, 1, 2)  # (n, 3 P, nb)
-        return delta, dw @ self._chain
+        R = c.basis.shape[0]
+        out = (phi @ self._table).reshape(len(w), 1 + self.nb, R) @ c.basis  # (n, 1 + nb, 3 P)
+        return c.mean + out[:, 0], out[:, 1:]
 
     def parameters(self, x_bar: np.ndarray) -> np.ndarray:
         """c (n_params,) of the linearisation about configuration x_bar (nx,)."""
-        delta, J = self.values(x_bar)
-        b = np.asarray(x_bar, dtype=float)[: self.nb]
-        return np.concatenate([delta[0] - J[0] @ b, J[0].ravel(order="F")])
+        return self.parameters_at(np.atleast_2d(x_bar))[0]
+
+    def parameters_at(self, xs: np.ndarray) -> np.ndarray:
+        """c (n, n_params) of the linearisations about configurations xs (n, nx), one row each."""
+        delta, blocks = self._evaluate(xs)
+        b = np.atleast_2d(np.asarray(xs, dtype=float))[:, : self.nb]
+        a = delta - np.einsum("nbk,nb->nk", blocks, b)
+        return np.concatenate([a, blocks.reshape(len(a), -1)], axis=1)  # vec(J) column-major: its columns in turn
 
     # ---------------------------------------------------------------- symbols
     def delta(self, x: Any, c: Any) -> Any:
@@ -159,11 +183,7 @@ class LinearisedBackend:
 
     def fill(self, p: np.ndarray, x_start: np.ndarray) -> np.ndarray:
         """p with its correction parameters (the last `n` entries) written for start point x_start (N nx,)."""
-        lin = self.lin
-        xs = np.asarray(x_start, dtype=float).reshape(self.N, -1)
-        delta, J = lin.values(xs)  # (N, 3 P), (N, 3 P, nb)
-        a = delta - np.einsum("nkb,nb->nk", J, xs[:, : lin.nb])
-        c = np.concatenate([a, np.swapaxes(J, 1, 2).reshape(self.N, -1)], axis=1)  # vec(J) column-major per step
+        c = self.lin.parameters_at(np.asarray(x_start, dtype=float).reshape(self.N, -1))
         out = np.array(p, dtype=float, copy=True)
         out[len(out) - self.n :] = c.ravel()
         return out
