@@ -70,6 +70,26 @@ def test_the_horizon_body_is_the_rod_models_at_its_linearisation_point(rod: RodM
         assert np.abs(np.asarray(_linear_points(lin, 21)(xb, cb)).T - rod.points(xb, 21)).max() <= 1e-9
 
 
+def test_the_screened_qps_slot_rows_are_the_rod_models_at_the_linearisation_point(rod: RodModel) -> None:
+    """The QP's rows of the K selected points per obstacle and step (points picked by parameters: segment, arc
+    fraction and the correction's interpolation weights) equal numpy distances of those points of the full rod
+    model, at the configurations the correction is linearised about, to 1e-9 mm."""
+    rp = Replanner(rod, OPTS, max_obstacles=1, safety_distance=5.0)
+    nlp = rp._nlp
+    X = _configs(OPTS.horizon, 15)
+    O = rp.obstacles_from_scene(SCENE, 0.0)
+    p = rp.backend.fill(rp._parameters(X[0], X, O, None, None), X.ravel())
+    sel = rp.nearest_points(X.ravel(), O)  # (N, M, K) point indices
+    g = ca.Function("g", [nlp.nlp["x"], nlp.nlp["p"]], [nlp.nlp["g"]])
+    rows = np.asarray(g(X.ravel(), np.concatenate([p, rp._screen.parameter(sel)]))).ravel()
+    K = sel.shape[-1]
+    P = rod.points(X, OPTS.points)  # (N, points, 3)
+    c, rho, _ = packing.unpack(O)
+    picked = np.take_along_axis(P, sel[:, 0, :, None], axis=1)  # (N, K, 3)
+    by_numpy = np.sqrt(np.sum((picked - c[:, :1]) ** 2, axis=-1) + 1e-9) - rho[:, :1]
+    assert np.abs(rows[-K * OPTS.horizon :] - by_numpy.ravel()).max() <= 1e-9
+
+
 def test_the_linear_correction_is_the_rod_models_tangent(rod: RodModel) -> None:
     """The Jacobian the parameters carry (numpy, from the polynomials' exponents) equals central differences of
     the full model's collision points minus PCC's."""

@@ -196,13 +196,16 @@ def _points(spec: HorizonSpec, x: ca.SX, c: ca.SX, n: int) -> ca.SX:
     return spec.model.backbone_function(n)(x) if spec.linear is None else spec.linear.points(x, c, n)
 
 
-def _segment_points(spec: HorizonSpec, c: ca.SX) -> Any:
-    """(x, f) -> each segment's point at arc fraction f (3 x n_segments): the model's, or PCC's plus the linear
-    correction c."""
+def _slot_point(spec: HorizonSpec, x: ca.SX, column: ca.SX, c: ca.SX) -> ca.SX:
+    """The backbone point (3,) a QP slot selects by its parameter column: one-hot over the segments, the fraction
+    of that segment's arc, and (with `linear`) the P interpolation weights of the correction at that arc, so the
+    correction's share is one weighted sum of its linear term (the weights are parameters, not hat functions)."""
+    S_ = spec.model.robot.n_segments
+    pts = spec.model.segment_point_function()(x, column[S_])  # PCC's, or the model's own body
+    point = pts @ column[:S_]
     if spec.linear is None:
-        return spec.model.segment_point_function()
-    linear = spec.linear
-    return lambda x, f: linear.segment_points(x, f, c)
+        return point
+    return point + spec.linear.delta(x, c) @ column[S_ + 1 :]
 
 
 def _residuals(o: ReplanOptions, syms: tuple[ca.SX, ca.SX, ca.SX, ca.SX], tips: ca.SX, S: ca.DM) -> tuple[ca.SX, ...]:
@@ -310,10 +313,10 @@ def _obstacle_rows(
     ob = ca.SX.sym("ob", packing.WIDTH * M)
     S_ = model.robot.n_segments
     # per slot: one-hot weights over the segments, then the fraction of that segment's arc
-    sel = ca.SX.sym("sel", S_ + 1, max(K, 1) * M)
+    width = S_ + 1 + (0 if spec.linear is None else spec.linear.P)  # a slot's parameters (`_slot_point`)
+    sel = ca.SX.sym("sel", width, max(K, 1) * M)
     corr = ca.SX.sym("c", spec.n_linear)
     pts = _points(spec, x, corr, n)  # 3 x n
-    seg_points = _segment_points(spec, corr)
     d, ds = [], []
     for i in range(M):
         # the slot's radius is the inflated rho (`Replanner._inflated`); padding has rho = 0 at 1e6 mm
@@ -323,7 +326,7 @@ def _obstacle_rows(
         if K:
             # slot (i, j) is one backbone point, chosen by parameters: its segment (one-hot) and the fraction of
             # that segment's arc (one point per segment is computed, not all n)
-            cols = [seg_points(x, sel[S_, i * K + j]) @ sel[:S_, i * K + j] for j in range(K)]
+            cols = [_slot_point(spec, x, sel[:, i * K + j], corr) for j in range(K)]
             diff = ca.horzcat(*cols) - ca.repmat(c, 1, K)
             ds.append(ca.sqrt(ca.sum1(diff * diff) + 1e-9).T - rho)
     lin, Lin = ([corr], [C]) if spec.linear is not None else ([], [])  # PCC's functions keep their inputs (and C)
@@ -335,7 +338,7 @@ def _obstacle_rows(
     all_distance = ca.Function(f"horizon_all_distance_{spec.tag}", [xv, tail], [D], {"cse": True})
     if K:
         slots = ca.Function("horizon_slot_distance", [x, ob, ca.vec(sel), *lin], [ca.vertcat(*ds)], {"cse": True})
-        Sel = ca.SX.sym("selection", (S_ + 1) * K * M, N)
+        Sel = ca.SX.sym("selection", width * K * M, N)
         g_red.append(ca.vec(slots.map(N)(X, O[: packing.WIDTH * M, :], Sel, *Lin)))
         lb_red.append(np.zeros(K * M * N))
         p_red = ca.vertcat(p, ca.vec(Sel))

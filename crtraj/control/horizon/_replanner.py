@@ -189,6 +189,9 @@ class Replanner:
         # of that segment's arc (the QP's slots select their points by them)
         seg, frac = model.arc_segments(model.arc_positions(o.points))
         self._slot_table = np.column_stack([np.eye(r.n_segments)[seg], frac])
+        if self.linear is not None:  # and the rod correction's interpolation weights at the point's arc
+            arcs = model.arc_positions(o.points)
+            self._slot_table = np.column_stack([self._slot_table, self.linear.correction.weights(arcs)])
         self._build(solver_wrapper)
         # with the fused call (issue 29) the parameters are written in place into one preallocated buffer
         self._buffer = (
@@ -373,6 +376,8 @@ class Replanner:
         next solve.
         """
         x0 = np.asarray(x0, dtype=float).reshape(self.nx)
+        if tip_reference is None and self.linear is not None:
+            tip_reference = self.linear.tips(np.asarray(reference, dtype=float).reshape(self.N, self.nx))
         fill = self._parameters if self._buffer is None else self._buffer.fill
         p = fill(x0, reference, obstacles, x_prev, tip_reference)
 
@@ -517,7 +522,9 @@ class Replanner:
         """Tip positions (N, 3) mm of a solve's configurations (NaN when they are not finite)."""
         if not r.finite:
             return np.full((self.N, 3), np.nan)
-        if "tips" in r.sol and self.linear is None:
+        if self.linear is not None:
+            return self.linear.tips(configs)  # the full model's, not the NLP's first-order ones
+        if "tips" in r.sol:
             return r.sol["tips"].reshape(self.N, 3)  # computed by the compiled KKT check
         return self.model.tip_position(configs)
 
