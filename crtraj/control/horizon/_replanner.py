@@ -161,7 +161,6 @@ class Replanner:
         self.options = ReplanOptions() if options is None else options
         self.linear = LinearCorrection(model) if rod_linear and isinstance(model, RodModel) else None
         self._n_linear = 0 if self.linear is None else self.linear.n_params * self.options.horizon
-        self._lin_bound: float | None = None
         if isinstance(max_obstacles, bool) or not isinstance(max_obstacles, (int, np.integer)) or max_obstacles < 0:
             raise InputError(f"max_obstacles: must be an integer >= 0, got {max_obstacles!r}")
         self.max_obstacles = int(max_obstacles)
@@ -187,11 +186,10 @@ class Replanner:
         self._K = o.closest_points if screens else 0
         # per backbone point of the NLP, its slot parameters: one-hot over the segments, then the fraction
         # of that segment's arc (the QP's slots select their points by them)
-        seg, frac = model.arc_segments(model.arc_positions(o.points))
-        self._slot_table = np.column_stack([np.eye(r.n_segments)[seg], frac])
-        if self.linear is not None:  # and the rod correction's interpolation weights at the point's arc
-            arcs = model.arc_positions(o.points)
-            self._slot_table = np.column_stack([self._slot_table, self.linear.correction.weights(arcs)])
+        arcs = model.arc_positions(o.points)
+        seg, frac = model.arc_segments(arcs)
+        extra = [] if self.linear is None else [self.linear.correction.weights(arcs)]  # the rod's (`_slot_point`)
+        self._slot_table = np.column_stack([np.eye(r.n_segments)[seg], frac, *extra])
         self._build(solver_wrapper)
         # with the fused call (issue 29) the parameters are written in place into one preallocated buffer
         self._buffer = (
@@ -562,9 +560,10 @@ def linearisation_bound(rp: Replanner) -> float | None:
     (`crtraj.control.horizon._rod_body.reach_bound`, measured on first use); None without the linearisation."""
     if rp.linear is None:
         return None
-    if rp._lin_bound is None:
-        rp._lin_bound = reach_bound(rp.linear, rp.step_limit)
-    return rp._lin_bound
+    bound = getattr(rp, "_lin_bound", None)
+    if bound is None:
+        bound = rp._lin_bound = reach_bound(rp.linear, rp.step_limit)
+    return bound
 
 
 def _sizes(rp: Replanner) -> dict[str, Any]:

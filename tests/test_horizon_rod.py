@@ -18,8 +18,14 @@ from crtraj.control.horizon._options import ReplanOptions
 from crtraj.control.horizon._replanner import Replanner
 from crtraj.control.horizon._rod_body import LinearCorrection, LinearisedBackend, reach_bound
 from crtraj.io.problem import load_robot
-from crtraj.model.cosserat import BOUND_FACTOR, RodModel, RodModelOptions, load_rod_model, sample_within_limits
-from crtraj.model.cosserat._surrogate import SurrogateOptions
+from crtraj.model.cosserat import (
+    BOUND_FACTOR,
+    RodModel,
+    RodModelOptions,
+    SurrogateOptions,
+    load_rod_model,
+    sample_within_limits,
+)
 from crtraj.model.kinematics import Model
 from crtraj.world import packing
 from crtraj.world.obstacle import Obstacle
