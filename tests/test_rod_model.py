@@ -173,8 +173,18 @@ def test_the_compiled_checker_and_numpy_evaluate_the_same_rod_body(rod: RodModel
         "qj,njc->nqc", c.weights(arcs), c.values(ROBOT.bending(X).reshape(len(X), -1))
     )
     assert np.abs(by_numpy - interpreted).max() <= 1e-9
-    tips, _ = kernel.tip_jacobian(X)  # the tip's own polynomials (the modes folded in): the same tip
+    tips, jac = kernel.tip_jacobian(X)  # the tip's own polynomials (the modes folded in): the same tip
     assert np.abs(tips - by_numpy[:, -1]).max() <= 1e-9
+    # the hand-written tip Jacobian (derivative coefficients, chain rule through the coupling) against CasADi's
+    # symbolic one of the same expression, and a central difference of the compiled tip
+    symbolic = np.array([np.asarray(rod.jac_tip(x)) for x in X])
+    assert np.abs(jac - symbolic).max() <= 1e-9 * max(1.0, np.abs(symbolic).max())
+    h = 1e-6
+    for j in range(ROBOT.nx):
+        e = np.zeros(ROBOT.nx)
+        e[j] = h
+        fd = (kernel.tip_jacobian(X + e)[0] - kernel.tip_jacobian(X - e)[0]) / (2 * h)
+        assert np.abs(fd - jac[:, :, j]).max() <= 1e-5 * max(1.0, np.abs(jac).max())
     assert c.basis.shape[0] == min(SMALL.modes, 3 * len(c.arcs))  # the modes, not one polynomial per number
 
 
