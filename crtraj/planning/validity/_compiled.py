@@ -101,7 +101,7 @@ def kernel_key(model: Model, check_points: int) -> BuildKey:
     spec["flags"] = list(KERNEL_FLAGS)
     if model.identity() is not None:  # a body other than PCC's (the rod's): its own library
         spec["body"] = model.identity()
-        # the rod's hand-written body (`body_source`): a changed one never loads a stale library (PCC keys unchanged)
+    if rod_body.is_rod(model):  # the rod's hand-written body (`body_source`): a changed one never loads stale
         spec["rod_body"] = hashlib.sha256(Path(rod_body.__file__).read_bytes()).hexdigest()
     return BuildKey("crtraj_validity", spec)
 
