@@ -159,9 +159,9 @@ def test_the_compiled_checker_and_numpy_evaluate_the_same_rod_body(rod: RodModel
     evaluation of the correction (PCC's points plus mean + modes x polynomials, interpolated along the arc) agree
     to 1e-9 mm."""
     from crtraj.core.build_cache import BuildCache
-    from crtraj.planning.validity import ValidityKernel
+    from crtraj.planning.validity import RodKernel, ValidityKernel
 
-    kernel = ValidityKernel.load(rod, 15, BuildCache())
+    kernel = RodKernel.load(rod, 15, BuildCache())
     if kernel is None:
         pytest.skip("no C compiler")
     X = sample_within_limits(ROBOT, 64, np.random.default_rng(5))
@@ -179,6 +179,11 @@ def test_the_compiled_checker_and_numpy_evaluate_the_same_rod_body(rod: RodModel
     # symbolic one of the same expression, and a central difference of the compiled tip
     symbolic = np.array([np.asarray(rod.jac_tip(x)) for x in X])
     assert np.abs(jac - symbolic).max() <= 1e-9 * max(1.0, np.abs(symbolic).max())
+    # the tips alone sum the same products in the same order: bit for bit; the push-out's Jacobian is PCC's
+    assert np.array_equal(kernel.tip_positions(X), tips)
+    pcc_kernel = ValidityKernel.load(Model(ROBOT), 15, BuildCache())
+    assert np.array_equal(kernel.pcc_tip_jacobian(X), pcc_kernel.tip_jacobian(X)[1])
+    assert np.abs(kernel.pcc_tip_jacobian(X) - jac).max() > 1e-3  # and not the rod's
     h = 1e-6
     for j in range(ROBOT.nx):
         e = np.zeros(ROBOT.nx)

@@ -54,7 +54,7 @@ from crtraj.core.interrupt import check as check_interrupt
 from crtraj.model.kinematics import Model
 from crtraj.planning.ik._rescue import IKRescue
 from crtraj.planning.ik._run import IKRun, format_statuses
-from crtraj.planning.validity import MotionValidator, ProjectionLimits, ProjectionSteps
+from crtraj.planning.validity import MotionValidator, ProjectionLimits, ProjectionSteps, RodKernel
 from crtraj.world import packing
 from crtraj.world.geometry import ShapeTerms
 
@@ -316,7 +316,7 @@ class SafeIK:
         grad = (cp - ca_[:, None]) / self._fd
         # ascent direction in the null space of the tip Jacobian, metric W = M^T M: the steepest
         # ascent W^-1 g minus the smallest motion that undoes its tip change
-        _, J = self._tip_jacobian(Xa)
+        J = self._push_jacobian(Xa)
         Wg = grad @ self._W_inv
         d = Wg - self._tip_move(J, np.einsum("nij,nj->ni", J, Wg))
         gain = np.einsum("ni,ni->n", grad, d)  # predicted clearance gain (mm) per unit step
@@ -327,6 +327,15 @@ class SafeIK:
     def tips(self, v: MotionValidator, X: np.ndarray) -> np.ndarray:
         """Tip positions (N, 3) mm of X (N, nx): with `compiled`, the validator's (its kernel's), else the model's."""
         return v.tip_position(X) if self.compiled else self.model.tip_position(X)
+
+    def _push_jacobian(self, X: np.ndarray) -> np.ndarray:
+        """Tip Jacobians (S, 3, nx) the push-out moves along: a rod kernel's PCC ones (a direction only: the
+        projection after the step puts the rod's tip back on target; a fortieth of the rod's cost), else the
+        model's (`_tip_jacobian`)."""
+        kernel = self.validator.state.kernel
+        if isinstance(kernel, RodKernel):
+            return kernel.pcc_tip_jacobian(X)
+        return self._tip_jacobian(X)[1]
 
     def _tip_jacobian(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Tips (S, 3) mm and tip Jacobians (S, 3, nx) of configurations X (S, nx): the validator's compiled

@@ -233,7 +233,9 @@ class ValidityKernel:
         defines = f"\n#define CRTRAJ_NX {model.robot.nx}\n#define CRTRAJ_NP {int(check_points)}\n"
         if rod_body.is_rod(model):  # the rod's body and tip by hand around PCC's generated ones
             defines += rod_body.body_source(model, check_points)
-        build = codegen_builder(lambda: kernel_functions(model, check_points), key.name, defines + DRIVER, KERNEL_FLAGS)
+        tail = rod_body.ROD_TIPS_C if rod_body.is_rod(model) else ""
+        build = codegen_builder(lambda: kernel_functions(model, check_points), key.name, defines + DRIVER + tail,
+                                KERNEL_FLAGS)  # fmt: skip
         return cache.load(key, build, lambda lib: cls(lib, model.robot.nx, check_points))
 
     def _configs(self, X: Any) -> np.ndarray:

@@ -192,3 +192,32 @@ int crtraj_tipjac(const casadi_real** arg, casadi_real** res, casadi_int* iw, ca
   return 0;
 }
 """
+
+
+# After the driver (it uses the driver's work arrays): the rod's tips alone, with PCC's tip Jacobians.
+ROD_TIPS_C = r"""
+/* The rod's tips (N x 3) of configurations X into P (the tip polynomials of crtraj_tipjac, summed in the same
+   order: the same numbers) and PCC's tip Jacobians (N x 3 x CRTRAJ_NX, each column-major) into Jp (NULL: not
+   wanted). Without the rod's Jacobian: a fifth of crtraj_tipjac's work. */
+int crtraj_rod_tips(long long N, const double* X, double* P, double* Jp) {
+  crtraj_work k; long long i; int rc = 0, m, r;
+  double J[3 * CRTRAJ_NX], phi[CRTRAJ_NM];
+  if (crtraj_alloc(&k, crtraj_tjp_work)) { crtraj_free(&k); return 1; }
+  for (i = 0; i < N && !rc; ++i) {
+    const double* x = X + i * CRTRAJ_NX;
+    double v[3] = {0.0, 0.0, 0.0};
+    k.arg[0] = x; k.res[0] = P + 3 * i; k.res[1] = Jp ? Jp + 3 * CRTRAJ_NX * i : J;
+    rc = crtraj_tjp(k.arg, k.res, k.iw, k.w, 0);
+    if (rc) break;
+    crtraj_mono(x, phi);
+    for (m = 0; m < CRTRAJ_NM; ++m) {
+      const double* tc = crtraj_tipc + 3 * m;
+      double p = phi[m];
+      for (r = 0; r < 3; ++r) v[r] += tc[r] * p;
+    }
+    for (r = 0; r < 3; ++r) P[3 * i + r] += crtraj_tipm[r] + v[r];
+  }
+  crtraj_free(&k);
+  return rc;
+}
+"""
