@@ -22,10 +22,10 @@ ROBOT_FILE = ROOT / "problems" / "robots" / "cdsr1_side.toml"
 
 
 def _result(tmp_path: Path, body: dict | None) -> Path:
-    """A small plan result of cdsr1_side over 1 s (within its limits), recording `body` as the plan's body."""
+    """A small plan result of cdsr1_side over 2 s (within its limits), recording `body` as the plan's body."""
     robot = load_robot(ROBOT_FILE)
     X = np.linspace(0.0, 1.0, 5)[:, None] * np.array([0.3, 0.1, 10.0])
-    wps = [{"t": 0.25 * i, "x": X[i].tolist(), "q": robot.cables(X[i]).tolist()} for i in range(5)]
+    wps = [{"t": 0.5 * i, "x": X[i].tolist(), "q": robot.cables(X[i]).tolist()} for i in range(5)]
     res = {"kind": "plan", "success": True, "status": "success", "waypoints": wps}
     res["robot"] = json.loads(json.dumps(robot.to_dict(), default=float))
     res["scene"] = json.loads(json.dumps(Scene(safety_distance=5.0).to_dict(), default=float))  # no obstacles
