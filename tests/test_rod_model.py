@@ -8,6 +8,7 @@ gravity) and numpy distances to the obstacles, no surrogate."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +23,7 @@ from crtraj.model.cosserat import RodDrive, RodModel, RodModelOptions, load_rod_
 from crtraj.model.cosserat._surrogate import SurrogateOptions
 from crtraj.model.kinematics import Model
 from crtraj.model.mechanics import Mechanics
-from crtraj.planning.body import planning_model, planning_scene
+from crtraj.planning.body import body_mismatch, planning_model, planning_scene
 from crtraj.planning.validity import kernel_key
 from crtraj.world.scene import Scene
 
@@ -123,6 +124,10 @@ def test_the_sagging_shelf_pcc_plan_breaches_dsf_on_the_rod_and_the_rod_plan_kee
     assert pcc_by_pcc >= 0.0 and pcc_by_rod < -1.0, verdicts  # PCC keeps D_sf only in its own eyes
     assert verdicts["rod"][1] >= 0.0, verdicts  # the rod plan keeps D_sf on the rod
     assert doc["options"]["body"]["planning_margin_mm"] == pytest.approx(rod.planning_margin)
+    # the rod plan records its mechanics: its own robot file may stream it, one with other mechanics may not
+    assert body_mismatch(doc["options"]["body"], robot) is None
+    heavier = replace(robot, mechanics={**robot.mechanics, "disc_mass": 0.4})
+    assert "robot.mechanics.disc_mass" in body_mismatch(doc["options"]["body"], heavier)
 
 
 def test_the_replan_loop_plans_for_the_rod_body() -> None:
