@@ -190,9 +190,9 @@ class SafeIK:
         self._terms = ShapeTerms(())
         self._terms_key: tuple[int, ...] = ()
         self._box = self.robot.config_box()
-        x = ca.SX.sym("x", self.robot.nx)
-        # batch projection (stage 1): tip and Jacobian in one call, mapped per batch size
-        self._tip_jac_single = ca.Function("tip_jac", [x], [model.tip(x), model.jac_tip(x)])
+        # batch projection (stage 1) without a compiled kernel: tip and Jacobian in one call, mapped per batch size
+        # (built on first use: a rod model's graph takes milliseconds, and a kernel never needs it)
+        self._tip_jac_single: ca.Function | None = None
         self._tip_jac: dict[int, ca.Function] = {}
         Mx = validator.metric_matrix
         self._W_inv = np.linalg.inv(Mx.T @ Mx)
@@ -346,6 +346,9 @@ class SafeIK:
         S = X.shape[0]
         f = self._tip_jac.get(S)
         if f is None:
+            if self._tip_jac_single is None:
+                x = ca.SX.sym("x", self.robot.nx)
+                self._tip_jac_single = ca.Function("tip_jac", [x], [self.model.tip(x), self.model.jac_tip(x)])
             f = self._tip_jac_single.map(S, "serial")
             self._tip_jac[S] = f
         P, J = f(X.T)

@@ -231,11 +231,15 @@ class ValidityKernel:
         """The kernel of `model` at `check_points`, from `cache` (built on a miss); None without a C compiler."""
         key = kernel_key(model, check_points)
         defines = f"\n#define CRTRAJ_NX {model.robot.nx}\n#define CRTRAJ_NP {int(check_points)}\n"
-        if rod_body.is_rod(model):  # the rod's body and tip by hand around PCC's generated ones
-            defines += rod_body.body_source(model, check_points)
-        tail = rod_body.ROD_TIPS_C if rod_body.is_rod(model) else ""
-        build = codegen_builder(lambda: kernel_functions(model, check_points), key.name, defines + DRIVER + tail,
-                                KERNEL_FLAGS)  # fmt: skip
+        rod = rod_body.is_rod(model)
+
+        def build(folder: Path, compiler: str) -> Path:
+            # on a miss only: a rod's hand-written body and tip (its coefficient tables) around PCC's generated ones
+            extra = defines + (rod_body.body_source(model, check_points) if rod else "") + DRIVER
+            extra += rod_body.ROD_TIPS_C if rod else ""
+            make = codegen_builder(lambda: kernel_functions(model, check_points), key.name, extra, KERNEL_FLAGS)
+            return make(folder, compiler)
+
         return cache.load(key, build, lambda lib: cls(lib, model.robot.nx, check_points))
 
     def _configs(self, X: Any) -> np.ndarray:
