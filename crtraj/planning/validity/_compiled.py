@@ -52,6 +52,7 @@ from __future__ import annotations
 
 import ctypes
 import hashlib
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -122,6 +123,22 @@ def kernel_functions(model: Model, check_points: int) -> list[ca.Function]:
         ca.Function("crtraj_tjp" if rod else "crtraj_tipjac", [x], [pcc.tip(x), pcc.jac_tip(x)], {"cse": True}),
         ca.Function("crtraj_mb", [x], [motion_bound_expr(x, metric, robot.n_segments)]),
     ]
+
+
+def _builder(model: Model, check_points: int, name: str) -> Callable[[Path, str], Path]:
+    """A kernel's build step: generated functions, then the driver (a rod model's body, `rod_body.body_source`,
+    before it and its tips after it; written on a miss only)."""
+    defines = f"\n#define CRTRAJ_NX {model.robot.nx}\n#define CRTRAJ_NP {int(check_points)}\n"
+
+    def build(folder: Path, compiler: str) -> Path:
+        rod = rod_body.is_rod(model)
+        extra = defines + (rod_body.body_source(model, check_points) if rod else "") + DRIVER
+        extra += rod_body.ROD_TIPS_C if rod else ""
+        return codegen_builder(lambda: kernel_functions(model, check_points), name, extra, KERNEL_FLAGS)(
+            folder, compiler
+        )
+
+    return build
 
 
 _P = ctypes.c_void_p
@@ -230,17 +247,9 @@ class ValidityKernel:
     def load(cls, model: Model, check_points: int, cache: BuildCache) -> ValidityKernel | None:
         """The kernel of `model` at `check_points`, from `cache` (built on a miss); None without a C compiler."""
         key = kernel_key(model, check_points)
-        defines = f"\n#define CRTRAJ_NX {model.robot.nx}\n#define CRTRAJ_NP {int(check_points)}\n"
-        rod = rod_body.is_rod(model)
-
-        def build(folder: Path, compiler: str) -> Path:
-            # on a miss only: a rod's hand-written body and tip (its coefficient tables) around PCC's generated ones
-            extra = defines + (rod_body.body_source(model, check_points) if rod else "") + DRIVER
-            extra += rod_body.ROD_TIPS_C if rod else ""
-            make = codegen_builder(lambda: kernel_functions(model, check_points), key.name, extra, KERNEL_FLAGS)
-            return make(folder, compiler)
-
-        return cache.load(key, build, lambda lib: cls(lib, model.robot.nx, check_points))
+        return cache.load(
+            key, _builder(model, check_points, key.name), lambda lib: cls(lib, model.robot.nx, check_points)
+        )
 
     def _configs(self, X: Any) -> np.ndarray:
         X = np.ascontiguousarray(X, dtype=float)
