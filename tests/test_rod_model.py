@@ -8,6 +8,7 @@ gravity) and numpy distances to the obstacles, no surrogate."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +23,7 @@ from crtraj.model.cosserat import RodDrive, RodModel, RodModelOptions, load_rod_
 from crtraj.model.cosserat._surrogate import SurrogateOptions
 from crtraj.model.kinematics import Model
 from crtraj.model.mechanics import Mechanics
-from crtraj.planning.body import planning_model, planning_scene
+from crtraj.planning.body import body_mismatch, planning_model, planning_scene
 from crtraj.planning.validity import kernel_key
 from crtraj.world.scene import Scene
 
@@ -123,6 +124,10 @@ def test_the_sagging_shelf_pcc_plan_breaches_dsf_on_the_rod_and_the_rod_plan_kee
     assert pcc_by_pcc >= 0.0 and pcc_by_rod < -1.0, verdicts  # PCC keeps D_sf only in its own eyes
     assert verdicts["rod"][1] >= 0.0, verdicts  # the rod plan keeps D_sf on the rod
     assert doc["options"]["body"]["planning_margin_mm"] == pytest.approx(rod.planning_margin)
+    # the rod plan records its mechanics: its own robot file may stream it, one with other mechanics may not
+    assert body_mismatch(doc["options"]["body"], robot) is None
+    heavier = replace(robot, mechanics={**robot.mechanics, "disc_mass": 0.4})
+    assert "robot.mechanics.disc_mass" in body_mismatch(doc["options"]["body"], heavier)
 
 
 def test_the_replan_loop_plans_for_the_rod_body() -> None:
@@ -159,9 +164,9 @@ def test_the_compiled_checker_and_numpy_evaluate_the_same_rod_body(rod: RodModel
     evaluation of the correction (PCC's points plus mean + modes x polynomials, interpolated along the arc) agree
     to 1e-9 mm."""
     from crtraj.core.build_cache import BuildCache
-    from crtraj.planning.validity import ValidityKernel
+    from crtraj.planning.validity import RodKernel, ValidityKernel
 
-    kernel = ValidityKernel.load(rod, 15, BuildCache())
+    kernel = RodKernel.load(rod, 15, BuildCache())
     if kernel is None:
         pytest.skip("no C compiler")
     X = sample_within_limits(ROBOT, 64, np.random.default_rng(5))
@@ -173,8 +178,23 @@ def test_the_compiled_checker_and_numpy_evaluate_the_same_rod_body(rod: RodModel
         "qj,njc->nqc", c.weights(arcs), c.values(ROBOT.bending(X).reshape(len(X), -1))
     )
     assert np.abs(by_numpy - interpreted).max() <= 1e-9
-    tips, _ = kernel.tip_jacobian(X)  # the tip's own polynomials (the modes folded in): the same tip
+    tips, jac = kernel.tip_jacobian(X)  # the tip's own polynomials (the modes folded in): the same tip
     assert np.abs(tips - by_numpy[:, -1]).max() <= 1e-9
+    # the hand-written tip Jacobian (derivative coefficients, chain rule through the coupling) against CasADi's
+    # symbolic one of the same expression, and a central difference of the compiled tip
+    symbolic = np.array([np.asarray(rod.jac_tip(x)) for x in X])
+    assert np.abs(jac - symbolic).max() <= 1e-9 * max(1.0, np.abs(symbolic).max())
+    # the tips alone sum the same products in the same order: bit for bit; the push-out's Jacobian is PCC's
+    assert np.array_equal(kernel.tip_positions(X), tips)
+    pcc_kernel = ValidityKernel.load(Model(ROBOT), 15, BuildCache())
+    assert np.array_equal(kernel.pcc_tip_jacobian(X), pcc_kernel.tip_jacobian(X)[1])
+    assert np.abs(kernel.pcc_tip_jacobian(X) - jac).max() > 1e-3  # and not the rod's
+    h = 1e-6
+    for j in range(ROBOT.nx):
+        e = np.zeros(ROBOT.nx)
+        e[j] = h
+        fd = (kernel.tip_jacobian(X + e)[0] - kernel.tip_jacobian(X - e)[0]) / (2 * h)
+        assert np.abs(fd - jac[:, :, j]).max() <= 1e-5 * max(1.0, np.abs(jac).max())
     assert c.basis.shape[0] == min(SMALL.modes, 3 * len(c.arcs))  # the modes, not one polynomial per number
 
 

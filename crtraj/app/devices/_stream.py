@@ -32,6 +32,7 @@ from crtraj.hardware.stream import Streamer, StreamOptions, StreamReport, open_l
 from crtraj.hardware.transport import parse_hostport
 from crtraj.io.problem import Problem, load_robot
 from crtraj.io.results import Result, read_result
+from crtraj.planning.body import body_mismatch
 
 
 def admit_result(
@@ -59,6 +60,9 @@ def admit_result(
         raise InputError(
             "robot.actuators: the result's robot has no [robot.actuators]; pass --robot problems/robots/cdsr2.toml"
         )
+    why = body_mismatch((res.data.get("options") or {}).get("body"), device)
+    if why is not None:  # a rod plan's commanded cable lengths hold only for the mechanics it was planned with
+        raise AdmissionError(f"{res.source or 'result'}: {why}")
     actuators = Actuators.from_robot(device)
     # the robot's other hardware tables are read whatever the transport: a typo in them is named now, not at
     # the first stream to servos that reads them

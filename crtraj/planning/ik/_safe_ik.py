@@ -54,7 +54,7 @@ from crtraj.core.interrupt import check as check_interrupt
 from crtraj.model.kinematics import Model
 from crtraj.planning.ik._rescue import IKRescue
 from crtraj.planning.ik._run import IKRun, format_statuses
-from crtraj.planning.validity import MotionValidator, ProjectionLimits, ProjectionSteps
+from crtraj.planning.validity import MotionValidator, ProjectionLimits, ProjectionSteps, RodKernel
 from crtraj.world import packing
 from crtraj.world.geometry import ShapeTerms
 
@@ -190,9 +190,9 @@ class SafeIK:
         self._terms = ShapeTerms(())
         self._terms_key: tuple[int, ...] = ()
         self._box = self.robot.config_box()
-        x = ca.SX.sym("x", self.robot.nx)
-        # batch projection (stage 1): tip and Jacobian in one call, mapped per batch size
-        self._tip_jac_single = ca.Function("tip_jac", [x], [model.tip(x), model.jac_tip(x)])
+        # batch projection (stage 1) without a compiled kernel: tip and Jacobian in one call, mapped per batch size
+        # (built on first use: a rod model's graph takes milliseconds, and a kernel never needs it)
+        self._tip_jac_single: ca.Function | None = None
         self._tip_jac: dict[int, ca.Function] = {}
         Mx = validator.metric_matrix
         self._W_inv = np.linalg.inv(Mx.T @ Mx)
@@ -316,7 +316,7 @@ class SafeIK:
         grad = (cp - ca_[:, None]) / self._fd
         # ascent direction in the null space of the tip Jacobian, metric W = M^T M: the steepest
         # ascent W^-1 g minus the smallest motion that undoes its tip change
-        _, J = self._tip_jacobian(Xa)
+        J = self._push_jacobian(Xa)
         Wg = grad @ self._W_inv
         d = Wg - self._tip_move(J, np.einsum("nij,nj->ni", J, Wg))
         gain = np.einsum("ni,ni->n", grad, d)  # predicted clearance gain (mm) per unit step
@@ -328,6 +328,15 @@ class SafeIK:
         """Tip positions (N, 3) mm of X (N, nx): with `compiled`, the validator's (its kernel's), else the model's."""
         return v.tip_position(X) if self.compiled else self.model.tip_position(X)
 
+    def _push_jacobian(self, X: np.ndarray) -> np.ndarray:
+        """Tip Jacobians (S, 3, nx) the push-out moves along: a rod kernel's PCC ones (a direction only: the
+        projection after the step puts the rod's tip back on target; a fortieth of the rod's cost), else the
+        model's (`_tip_jacobian`)."""
+        kernel = self.validator.state.kernel
+        if isinstance(kernel, RodKernel):
+            return kernel.pcc_tip_jacobian(X)
+        return self._tip_jacobian(X)[1]
+
     def _tip_jacobian(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Tips (S, 3) mm and tip Jacobians (S, 3, nx) of configurations X (S, nx): the validator's compiled
         kernel when it has one, else one mapped CasADi call."""
@@ -337,6 +346,9 @@ class SafeIK:
         S = X.shape[0]
         f = self._tip_jac.get(S)
         if f is None:
+            if self._tip_jac_single is None:
+                x = ca.SX.sym("x", self.robot.nx)
+                self._tip_jac_single = ca.Function("tip_jac", [x], [self.model.tip(x), self.model.jac_tip(x)])
             f = self._tip_jac_single.map(S, "serial")
             self._tip_jac[S] = f
         P, J = f(X.T)

@@ -22,6 +22,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
         "crtraj.planning.validity._kernels": ("Kernels",),
         "crtraj.planning.validity._motion": ("MotionValidator",),
         "crtraj.planning.validity._paper_check": ("PaperValidator",),
+        "crtraj.planning.validity._rod_kernel": ("RodKernel",),
         "crtraj.planning.validity._state": ("StateValidityChecker",),
     },
 )

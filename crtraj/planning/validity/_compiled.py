@@ -52,6 +52,7 @@ from __future__ import annotations
 
 import ctypes
 import hashlib
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -63,6 +64,7 @@ from crtraj.core.build_cache import BuildCache, BuildKey
 from crtraj.model.codegen import codegen_builder
 from crtraj.model.kinematics import Model
 from crtraj.planning.metric import metric_matrix
+from crtraj.planning.validity import _rod_body as rod_body
 from crtraj.planning.validity._driver import DRIVER as EDGE_DRIVER
 from crtraj.planning.validity._path_driver import PATH_DRIVER
 from crtraj.planning.validity._retime_driver import CURVE_DRIVER, RETIME_DRIVER, VERIFY_DRIVER
@@ -100,21 +102,43 @@ def kernel_key(model: Model, check_points: int) -> BuildKey:
     spec["flags"] = list(KERNEL_FLAGS)
     if model.identity() is not None:  # a body other than PCC's (the rod's): its own library
         spec["body"] = model.identity()
+    if rod_body.is_rod(model):  # the rod's hand-written body (`body_source`): a changed one never loads stale
+        spec["rod_body"] = hashlib.sha256(Path(rod_body.__file__).read_bytes()).hexdigest()
     return BuildKey("crtraj_validity", spec)
 
 
 def kernel_functions(model: Model, check_points: int) -> list[ca.Function]:
-    """The CasADi functions the kernel library is generated from (one configuration each)."""
+    """The CasADi functions the kernel library is generated from (one configuration each). A rod model's
+    (`RodModel`): PCC's body and tip as ``crtraj_bbp`` and ``crtraj_tjp``, around which `body_source` writes
+    ``crtraj_bb`` and ``crtraj_tipjac`` by hand."""
     robot = model.robot
     metric = metric_matrix(robot)
     x = ca.SX.sym("x", robot.nx)
-    bb = model.backbone_function(check_points)
+    rod = rod_body.is_rod(model)
+    pcc = Model(robot) if rod else model
+    bb = pcc.backbone_function(check_points)
     return [
-        ca.Function("crtraj_bb", [x], [bb(x)]),
+        ca.Function("crtraj_bbp" if rod else "crtraj_bb", [x], [bb(x)]),
         # common subexpressions of the tip and its Jacobian computed once (-14 % operations; the same numbers)
-        ca.Function("crtraj_tipjac", [x], [model.tip(x), model.jac_tip(x)], {"cse": True}),
+        ca.Function("crtraj_tjp" if rod else "crtraj_tipjac", [x], [pcc.tip(x), pcc.jac_tip(x)], {"cse": True}),
         ca.Function("crtraj_mb", [x], [motion_bound_expr(x, metric, robot.n_segments)]),
     ]
+
+
+def _builder(model: Model, check_points: int, name: str) -> Callable[[Path, str], Path]:
+    """A kernel's build step: generated functions, then the driver (a rod model's body, `rod_body.body_source`,
+    before it and its tips after it; written on a miss only)."""
+    defines = f"\n#define CRTRAJ_NX {model.robot.nx}\n#define CRTRAJ_NP {int(check_points)}\n"
+
+    def build(folder: Path, compiler: str) -> Path:
+        rod = rod_body.is_rod(model)
+        extra = defines + (rod_body.body_source(model, check_points) if rod else "") + DRIVER
+        extra += rod_body.ROD_TIPS_C if rod else ""
+        return codegen_builder(lambda: kernel_functions(model, check_points), name, extra, KERNEL_FLAGS)(
+            folder, compiler
+        )
+
+    return build
 
 
 _P = ctypes.c_void_p
@@ -223,9 +247,9 @@ class ValidityKernel:
     def load(cls, model: Model, check_points: int, cache: BuildCache) -> ValidityKernel | None:
         """The kernel of `model` at `check_points`, from `cache` (built on a miss); None without a C compiler."""
         key = kernel_key(model, check_points)
-        defines = f"\n#define CRTRAJ_NX {model.robot.nx}\n#define CRTRAJ_NP {int(check_points)}\n"
-        build = codegen_builder(lambda: kernel_functions(model, check_points), key.name, defines + DRIVER, KERNEL_FLAGS)
-        return cache.load(key, build, lambda lib: cls(lib, model.robot.nx, check_points))
+        return cache.load(
+            key, _builder(model, check_points, key.name), lambda lib: cls(lib, model.robot.nx, check_points)
+        )
 
     def _configs(self, X: Any) -> np.ndarray:
         X = np.ascontiguousarray(X, dtype=float)

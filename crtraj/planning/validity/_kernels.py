@@ -14,7 +14,9 @@ from typing import Any
 
 from crtraj.core.build_cache import BuildCache
 from crtraj.model.kinematics import Model
+from crtraj.planning.validity import _rod_body
 from crtraj.planning.validity._compiled import MAX_COMPILED_POINTS, ValidityKernel
+from crtraj.planning.validity._rod_kernel import RodKernel
 
 log = logging.getLogger(__name__)
 
@@ -52,7 +54,8 @@ class Kernels:
             return None
         if n not in self._validity:
             try:
-                self._validity[n] = ValidityKernel.load(model, n, self.build_cache)
+                kind = RodKernel if _rod_body.is_rod(model) else ValidityKernel
+                self._validity[n] = kind.load(model, n, self.build_cache)
             except (RuntimeError, OSError) as exc:
                 log.warning("compiled validity unavailable (%s): using the interpreted path", exc)
                 self._validity[n] = None

@@ -55,6 +55,7 @@ from crtraj.planning.metric import BodyMetric
 from crtraj.planning.sampler import ConfigSampler
 from crtraj.planning.validity._compiled import ValidityKernel, per_item
 from crtraj.planning.validity._kernels import Kernels
+from crtraj.planning.validity._rod_kernel import RodKernel
 from crtraj.planning.validity._state import StateValidityChecker
 
 # From this many obstacles on the compiled edge check runs its broad phase (below it, the one extra
@@ -405,7 +406,7 @@ class MotionValidator:
         X = np.atleast_2d(np.asarray(X, dtype=float))
         kernel = self.state.kernel
         if kernel is not None and len(X):
-            return kernel.tip_jacobian(X)[0]
+            return kernel.tip_positions(X) if isinstance(kernel, RodKernel) else kernel.tip_jacobian(X)[0]
         return self.model.tip_position(X)
 
     def first_valid(
