@@ -23,6 +23,7 @@ whole body keeps the safety distance from every obstacle, in three stages:
     minimise    |M (x - x_ref)|^2 / 1e4              (closest to the projection, body-motion units)
     subject to  tip(x) = target                        (3 equalities, mm)
                 limits(x) within bounds                (bending discs, cable strokes, z stroke)
+                tangent(x) . d >= cos(cone)            (a tip direction goal; inert without one)
                 |p_i(x) - c_j|^2 >= (R_j + inflate)^2 + (h/2)^2   for every check point i, obstacle j
 
    The last line makes every *chord* between neighbouring check points (arc
@@ -33,6 +34,10 @@ whole body keeps the safety distance from every obstacle, in three stages:
    A scene's other shapes add ``d_k(p_i(x)) >= inflate`` per check point with d_k the shape's NLP distance
    (`crtraj.world.geometry.ShapeTerms`: a lower bound; their poses are parameters, the NLP is rebuilt only
    for another set of shapes).
+
+A tip direction goal (`crtraj.planning.goal.TipGoal` with a direction, ``solve(direction=)``) replaces stage
+1's projection by one onto the position and the cone together (`crtraj.planning.ik._direction`), and every
+stage keeps only configurations whose tip tangent lies within the cone.
 
 Seeds pull toward their own random configurations, so the kept solutions
 spread over the robot's redundancy (3 tip equalities leave a 2-D family of
@@ -52,6 +57,8 @@ import numpy as np
 from crtraj.core.fields import check_array
 from crtraj.core.interrupt import check as check_interrupt
 from crtraj.model.kinematics import Model
+from crtraj.planning.goal import TipGoal
+from crtraj.planning.ik._direction import DirectionProjection
 from crtraj.planning.ik._rescue import IKRescue
 from crtraj.planning.ik._run import IKRun, format_statuses
 from crtraj.planning.validity import MotionValidator, ProjectionLimits, ProjectionSteps
@@ -62,6 +69,7 @@ PUSH_EXTRA = 2.0  # mm of clearance a push-out step asks for beyond the required
 PUSH_STEP = 40.0  # mm: largest body motion of one push-out step (the linear model's trust region)
 PUSH_FD = 1e-3  # mm of body motion per finite-difference step of the clearance gradient
 PUSH_NEWTON = 4  # Newton steps back onto the target after each push-out step
+DIRECTION_ITERATIONS = 15  # Newton steps a direction goal's projection takes beyond the position's
 
 
 def build_nlp(
@@ -99,7 +107,13 @@ def build_nlp(
         g.append(ca.vertcat(*[(row - inflate).T for row in rows]))
         lbg.append(np.zeros(n * len(rows)))
         ubg.append(np.full(n * len(rows), np.inf))
-    nlp = {"x": x, "p": ca.vertcat(goal, obs, xref, inflate, shapes), "f": f, "g": ca.vertcat(*g)}
+    # a tip direction goal: tangent . direction >= cos(cone); inert (1 >= 0) for direction 0 and cos -1
+    direction, cos_cone = ca.SX.sym("direction", 3), ca.SX.sym("cos_cone")
+    g.append(ca.dot(model.tip_frame(x)[:3, 2], direction) - cos_cone)
+    lbg.append(np.zeros(1))
+    ubg.append(np.full(1, np.inf))
+    params = ca.vertcat(goal, obs, xref, inflate, shapes, direction, cos_cone)
+    nlp = {"x": x, "p": params, "f": f, "g": ca.vertcat(*g)}
     opts = {
         "ipopt.print_level": 0,
         "print_time": False,
@@ -203,6 +217,16 @@ class SafeIK:
         self.compiled = bool(compiled)
         self._limits = ProjectionLimits.of(self.robot)
         self._steps = ProjectionSteps(np.ascontiguousarray(self._W_inv), self._damping, self._step, self.tip_tolerance)
+        self._direction: DirectionProjection | None = None
+
+    @property
+    def direction(self) -> DirectionProjection:
+        """The projection onto a tip position and direction cone (built on first use)."""
+        if self._direction is None:
+            self._direction = DirectionProjection(
+                self.model, self._W_inv, self._damping, self._step, self.validator.project_limits
+            )
+        return self._direction
 
     @property
     def solver(self) -> ca.Function:
@@ -360,6 +384,7 @@ class SafeIK:
         max_nlp: int | None = None,
         always: tuple[int, ...] = (),
         push_rounds: int | None = None,
+        direction: TipGoal | None = None,
     ) -> IKBatch:
         """Safe configurations with the tip on `target` (mm), from seed configurations (S, nx).
 
@@ -384,6 +409,8 @@ class SafeIK:
         and then gets an NLP solve first, even when enough configurations exist (e.g. the start
         configuration as a seed: the safe goal configuration nearest to it).
         push_rounds: rounds of the push-out stage (default the one given at construction; 0 skips it).
+        direction: a goal whose direction cone the tip tangent must keep (its position must be `target`; a
+        goal without a direction, or None, asks for the position only).
         """
         t_start = time.perf_counter()
         v = self.validator if validator is None else validator
@@ -391,7 +418,10 @@ class SafeIK:
         seeds = np.atleast_2d(np.asarray(seeds, dtype=float))
         want = len(seeds) if want is None else int(want)
         # the NLP keeps `margin`; allow for its tolerance
+        goal = direction if direction is not None and direction.has_direction else None
         run = IKRun(np.asarray(target, dtype=float), seeds, v, t_check, tol, self.margin - 0.25, want, dedup)
+        if goal is not None:
+            run.aim(goal, self.direction.tangents)
         self._project_stage(run, newton_iterations)
         run.statuses["projection"] = int(run.good.sum())
         forced = [i for i in always if 0 <= i < len(seeds) and not run.good[i]]
@@ -405,11 +435,18 @@ class SafeIK:
     def _project_stage(self, run: IKRun, newton_iterations: int) -> None:
         """Stage 1: project in blocks of Newton steps, stopping as soon as enough safe configurations exist."""
         v, t_check, done_it = run.v, run.t_check, 0
+        if run.goal is not None:  # the cone needs more steps than the position alone
+            newton_iterations += DIRECTION_ITERATIONS
         while True:
             block = min(6 if done_it == 0 else 3, newton_iterations - done_it)
-            run.X, run.err = self.project(run.target, run.X, block)
+            if run.goal is None:
+                run.X, run.err = self.project(run.target, run.X, block)
+                aimed = np.ones(len(run.X), dtype=bool)
+            else:
+                run.X, run.err, angle = self.direction.project(run.goal, run.X, block, run.tol)
+                aimed = angle <= run.goal.cone
             done_it += block
-            new = ~run.checked & (run.err <= run.tol)
+            new = ~run.checked & (run.err <= run.tol) & aimed
             if new.any():
                 idx = np.flatnonzero(new)
                 run.clear[idx] = v.clearance(run.X[idx], t_check[0], t_check[1])
@@ -449,6 +486,7 @@ class SafeIK:
         )
         err[cand] = np.linalg.norm(self.tips(run.v, X[cand]) - run.target, axis=1)
         ok = (clear[cand] >= run.required) & (err[cand] <= run.tol) & run.v.within_limits(X[cand])
+        ok &= run.in_cone(X[cand])
         good[cand] = ok
         for i in cand[ok]:
             run.add(IKSolution(X[i], "push-out", True, float(err[i]), float(clear[i]), True, 0.0))
@@ -488,7 +526,7 @@ class SafeIK:
                 run.statuses["rescue"] = run.statuses.get("rescue", 0) + 1
                 continue
             # start from the projection, stay close to the seed itself
-            p = np.concatenate([run.target, scene_pack, run.seeds[i], [inflate], shape_values])
+            p = np.concatenate([run.target, scene_pack, run.seeds[i], [inflate], shape_values, run.cone_parameters()])
             sol = self._nlp_solve(run, X[i], p)
             run.sols.append(sol)
             if sol.safe and sol.clearance >= run.required:
@@ -518,7 +556,7 @@ class SafeIK:
         run.statuses[status] = run.statuses.get(status, 0) + 1
         ok = bool(st.get("success", False)) and bool(np.all(np.isfinite(xs)))
         tip_err = float(np.linalg.norm(self.model.tip_position(xs) - run.target)) if ok else np.inf
-        ok = ok and tip_err <= run.tol
+        ok = ok and tip_err <= run.tol and bool(run.in_cone(xs[None])[0])
         ins = bool(v.within_limits(xs[None])[0]) if ok else False
         c = float(v.clearance(xs[None], t_check[0], t_check[1])[0]) if ok else -np.inf
         return IKSolution(xs, status, ok, tip_err, c, ins, time.perf_counter() - t1)
