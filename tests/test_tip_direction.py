@@ -16,11 +16,11 @@ from crtraj.core.tomledit import set_values
 from crtraj.io.problem import TASK_KEYS, Problem, Task, load_robot
 from crtraj.io.results import read_result
 from crtraj.model.kinematics import Model
+from crtraj.planning import BUILTIN
 from crtraj.planning.body import planning_model, planning_scene
 from crtraj.planning.context import PlanningContext
 from crtraj.planning.goal import TipGoal
 from crtraj.planning.options import PlannerOptions
-from crtraj.planning.planners._cspace import CSpacePlanner
 from crtraj.planning.result import PlanStatus
 from crtraj.world.geometry import exact_min_clearance
 from crtraj.world.scene import Scene
@@ -52,7 +52,7 @@ def table_wall():
     model = planning_model(problem.robot, "pcc")
     scene = problem.options(Scene, "scene")
     context = PlanningContext.build(model, planning_scene(scene, model), problem.options(PlannerOptions, "planner"))
-    return problem, model, scene, CSpacePlanner(context)
+    return problem, model, scene, BUILTIN.create("cspace", context)
 
 
 # directions (any length), cones (deg) and seeds at the table-wall goal; the goal IK refuses the last one
@@ -100,10 +100,11 @@ def one_segment_planner():
     robot = load_robot(PROBLEMS / "robots" / "cdsr1.toml")
     model = Model(robot)
     scene = Scene(workspace_lo=(-400.0, -400.0, -300.0), workspace_hi=(400.0, 400.0, 400.0))
-    return model, CSpacePlanner(
+    return model, BUILTIN.create(
+        "cspace",
         PlanningContext.build(
             model, scene, PlannerOptions(time_limit=60.0).with_(check={"compiled": False}, ik={"compiled": False})
-        )
+        ),
     )
 
 
