@@ -97,7 +97,7 @@ def closest_approach(
         k = np.argmin(gap, axis=1)  # (N, m): the backbone point closest to each sphere
         for j in range(m):
             p, c, r = P[rows, k[:, j]], centers[:, j], radii[:, j]
-            u = c - p
+            u = c - p  # toward the centre: the sphere's surface point nearest p is c - r u
             u = u / np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-12)
             columns.append(gap[rows, k[:, j], j])
             pairs.append((p, c - r[:, None] * u))
@@ -107,11 +107,14 @@ def closest_approach(
         k = np.argmin(gap, axis=1)
         columns.append(gap[rows, k])
         pairs.append((P[rows, k], q[rows, k]))
-    clearance = np.stack(columns, axis=1) - body - safety
+    gaps = np.stack(columns, axis=1)
+    clearance = gaps - body - safety
     near = np.argmin(clearance, axis=1)
     p = np.stack([pr[0] for pr in pairs])[near, rows]
     q = np.stack([pr[1] for pr in pairs])[near, rows]
-    u = q - p
+    # the body's surface point toward the obstacle: toward its surface point from outside, away from it from
+    # inside (a sphere's: toward its centre either way)
+    u = (q - p) * np.where(gaps[rows, near] < 0.0, -1.0, 1.0)[:, None]
     u = u / np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-12)
     return clearance, near, p + body * u, q
 
