@@ -215,3 +215,23 @@ def test_plan_file_reports_the_angle_and_verify_fails_outside_the_cone(tmp_path,
     assert main(["verify", str(turned), "--model", "cosserat", "--robot", str(robot)]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "goal_cone: the final tip tangent is" in err[0] and "outside the 15 deg cone" in err[0]
+
+
+def test_planners_and_the_loop_that_do_not_honour_a_direction_refuse_it(tmp_path, capsys):
+    """`crtraj plan --planner rrt` and `crtraj replan` of a task with a direction: exit 2, one stderr line naming
+    goal_direction, nothing written."""
+    robot = PROBLEMS / "robots" / "cdsr2.toml"
+    text = set_values(
+        TABLE_WALL.read_text(), {("task", "goal_direction"): [1.0, 0.0, 0.0], ("task", "goal_cone"): 15.0}
+    )
+    path = tmp_path / "p.toml"
+    path.write_text(text.replace('robot = "robots/cdsr2.toml"', f"robot = {json.dumps(str(robot))}"))
+    for argv in (
+        ["plan", str(path), "--planner", "rrt", "--out", str(tmp_path / "rrt.json"), "-q"],
+        ["replan", str(path), "--out", str(tmp_path / "run"), "--no-html", "-q"],
+    ):
+        capsys.readouterr()
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "goal_direction" in err[0], err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["p.toml"]
