@@ -15,6 +15,8 @@ distance to each shape at that time is measured exactly, without the planner's d
 - sphere, half space: their definitions (|y| - r, n . y - offset); capsule and cylinder: the distance to the axis
   segment minus the radius, and the 2-D distance to the (radial, axial) rectangle.
 
+A point whose lower bound is beyond `CUTOFF` (12 mm, above D_sf + body radius) cannot be unsafe, so the table's
+smallest clearance is exact below CUTOFF - D_sf - body radius and reads ">= 4.00" above it.
 Only the shapes' poses over time come from crtraj (`MovingShape.frame`: the motion is data). A success is unsafe
 when some point comes closer than D_sf + body radius. Between neighbouring points (spacing h mm) the body may be up
 to h/2 closer than at them; the table gives h/2 too.
@@ -42,8 +44,10 @@ from crtraj.world.scene import Scene
 
 ROOT = Path(__file__).resolve().parent.parent
 SCENES = ("scene_table_wall", "scene_plate_hole", "scene_bent_pipe", "scene_swinging_arm")
-CUTOFF = 40.0  # mm: points surely farther than this from a mesh keep the lower bound (never unsafe)
-SPLIT = 8.0  # mm: longest triangle edge of the meshes measured
+# mm: points surely farther than this from a mesh (or box) keep the lower bound; above D_sf + body radius (8 mm in
+# the examples), so such a point is never unsafe, and the table's smallest clearance is exact below CUTOFF - 8 mm
+CUTOFF = 12.0
+SPLIT = 5.0  # mm: longest triangle edge of the meshes measured
 
 
 class MeshDistance:
@@ -162,7 +166,9 @@ def run_scene(name: str, seeds: int, points: int) -> dict:
             clear.append(check_plan(res, scene, model, points))
             check_s.append(time.perf_counter() - t1)
     h = model.robot.total_length / (points - 1)
+    cap = CUTOFF - model.robot.body_radius - scene.safety_distance  # clearances above it are lower bounds
     return {
+        "cap": cap,
         "scene": name,
         "plans": seeds,
         "successes": len(clear),
@@ -192,7 +198,9 @@ def main() -> None:
         r = run_scene(name, a.seeds, a.points)
         total, unsafe, plans = total + r["successes"], unsafe + r["unsafe"], plans + r["plans"]
         st = ", ".join(f"{k} {v}" for k, v in sorted(r["statuses"].items()))
-        row = [r["plans"], r["successes"], r["unsafe"], f"{r['min_clearance']:.2f}", f"{r['half_spacing']:.2f}"]
+        low = r["min_clearance"]
+        low_text = f"{low:.2f}" if low < r["cap"] else f">= {r['cap']:.2f}"
+        row = [r["plans"], r["successes"], r["unsafe"], low_text, f"{r['half_spacing']:.2f}"]
         row += [f"{r['plan_median_s']:.2f}", f"{r['check_median_s']:.2f}", st]
         print(f"| {name} | " + " | ".join(str(v) for v in row) + " |", flush=True)
     print(f"# {unsafe} unsafe successes of {total} successes over {plans} plans; load {os.getloadavg()}")
