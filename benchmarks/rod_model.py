@@ -14,28 +14,43 @@ What is measured (problems/robots/cdsr2.toml unless --robot, its [robot.mechanic
   IK, search, shortcuts, smoothing), median and sum per model and their ratio; with --verify every plan is
   checked by fresh rod solves (`crtraj.app.lab.verify_cosserat`) and the passes are counted.
 
-The replan step is measured by `crtraj replan ... --plant cosserat` itself (docs/benchmarks.md gives the
-commands). The date, the machine and its load average are printed with the numbers: other jobs' load moves wall
+- replan (--replan PROBLEM): the closed loop of `crtraj replan PROBLEM --model M --plant cosserat` (the problem's
+  seed, the rod plant with gravity, no tip feedback, the problem's step deadline) in one process: PCC and the rod
+  with the horizon's first-order correction (the path `--model rod` takes) alternately for --rounds rounds (their
+  iteration times also pooled), then once the rod with the full correction built into the horizon NLP (the
+  earlier path, interpreted: `Replanner(rod_linear=False)`). Per run: the loop iteration (median / p90 / p99,
+  ms), the NLP's share, deadline misses, the step outcomes, the plant rod's final tip error and collisions; for
+  the new path also the first-order model's error over the moves the loop made (about each step's start
+  configuration, at the next one) and its stated bound over one step's reach.
+
+The date, the machine and its load average are printed with the numbers: other jobs' load moves wall
 times on a shared 2-core machine.
 
-Run: python benchmarks/rod_model.py [--holdout 1000] [--seeds 10] [--verify] [--cold]
+Run: python benchmarks/rod_model.py [--holdout 1000] [--seeds 10] [--verify] [--cold] [--replan PROBLEM] [--rounds 3]
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime
+import functools
 import os
 import platform
 import statistics
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from crtraj.app.lab import verify_cosserat
 from crtraj.app.plan import plan_problem
+from crtraj.app.plant_sim import attach_plant, make_plant
+from crtraj.control.horizon._replanner import Replanner, linearisation_bound
+from crtraj.control.horizon._rod_body import LinearCorrection
+from crtraj.control.loop import ClosedLoop
 from crtraj.io.problem import Problem, load_robot
 from crtraj.io.results import read_result
 from crtraj.model.cosserat import RodModel, load_rod_model, sample_within_limits
@@ -117,6 +132,70 @@ def plans(path: Path, rod: RodModel, seeds: int, verify: bool) -> None:
     print(f"  rod / PCC: {ratio:.2f} x (medians), {sum(times['rod']) / sum(times['pcc']):.2f} x (sums)")
 
 
+@contextlib.contextmanager
+def _full_rod_horizon() -> Any:
+    """The loop's replanner built with the full correction in the NLP (the earlier path), for one run."""
+    from crtraj.control.loop import _setup
+
+    saved = _setup.Replanner
+    _setup.Replanner = functools.partial(Replanner, rod_linear=False)
+    try:
+        yield
+    finally:
+        _setup.Replanner = saved
+
+
+def replan(path: Path, rounds: int) -> None:
+    """The closed loop of `path` on the rod plant: PCC and rod (first order) alternately for `rounds` rounds, then
+    rod (full correction, the old path) once; each run's figures, then the rounds' pooled step times."""
+    problem = Problem.load(path)
+    print(f"{path.name}, closed loop on the rod plant (gravity, no tip feedback), seed {problem.seed}:")
+    runs = [("pcc", "pcc", False), ("rod, first order", "rod", False)] * rounds + [("rod, full (old)", "rod", True)]
+    pooled: dict[str, list[np.ndarray]] = {}
+    for name, body, old in runs:
+        it = _replan_run(problem, name, body, old)
+        pooled.setdefault(name, []).append(it)
+    print(f"  pooled over {rounds} round(s), interleaved:")
+    for name, its in pooled.items():
+        it = np.concatenate(its)
+        p50, p90, p99 = np.percentile(it, [50, 90, 99])
+        print(f"    {name}: loop iteration median {p50:.2f} / p90 {p90:.2f} / p99 {p99:.2f} ms over {len(it)} steps")
+
+
+def _replan_run(problem: Problem, name: str, body: str, old: bool) -> np.ndarray:
+    """One closed loop on the rod plant; prints its figures; returns its loop iteration times (ms)."""
+    w0 = time.perf_counter()
+    plant = make_plant("cosserat", problem)
+    with _full_rod_horizon() if old else contextlib.nullcontext():
+        loop = ClosedLoop.from_problem(problem, body=body, tip_sensor=plant)
+    attach_plant(plant, loop)
+    built = time.perf_counter() - w0
+    load = os.getloadavg()[0]
+    run = loop.run(device=plant)
+    s, pl = run.summary(), plant.describe()
+    it, nlp = run.iter_time * 1e3, run.nlp_time * 1e3
+    p50, p90, p99 = np.percentile(it, [50, 90, 99])
+    print(f"  {name}: {loop.replanner.describe()['solver']}, built in {built:.1f} s, load average {load:.1f}")
+    print(f"    loop iteration median {p50:.2f} / p90 {p90:.2f} / p99 {p99:.2f} ms (NLP median "
+          f"{np.median(nlp):.2f} ms); {s['deadline_misses']} of {s['steps']} steps past the "
+          f"{s['step_deadline_s'] * 1e3:g} ms deadline; steps {s['status_counts']}")  # fmt: skip
+    print(f"    reached {s['reached_goal']}; rod tip {pl['final_tip_error_mm']:.2f} mm off the goal; "
+          f"rod collisions {pl['collisions']}, D_sf breaches {pl['safety_violations']}")  # fmt: skip
+    if loop.replanner.linear is not None:
+        _linear_error(loop.replanner.linear, run.x, linearisation_bound(loop.replanner))
+    return it
+
+
+def _linear_error(lin: LinearCorrection, xs: np.ndarray, bound: float | None) -> None:
+    """The first-order model about each step's configuration, at the next step's, against the full correction."""
+    exact, _ = lin.values(xs[1:])
+    at, J = lin.values(xs[:-1])
+    approx = at + np.einsum("nkb,nb->nk", J, (xs[1:] - xs[:-1])[:, : lin.nb])
+    err = np.linalg.norm((exact - approx).reshape(len(approx), -1, 3), axis=2).max(axis=1)
+    print(f"    first-order error over the loop's {len(err)} moves: max {err.max():.3f} mm, p99 "
+          f"{np.percentile(err, 99):.3f} mm; stated bound over one step's full reach {bound:.3f} mm")  # fmt: skip
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--robot", default=str(ROOT / "problems" / "robots" / "cdsr2.toml"))
@@ -125,6 +204,8 @@ def main() -> None:
     ap.add_argument("--problems", nargs="*", default=[str(ROOT / "problems" / "paper_static.toml")])
     ap.add_argument("--verify", action="store_true", help="check every plan with fresh rod solves")
     ap.add_argument("--cold", action="store_true", help="build the rod model into a fresh cache")
+    ap.add_argument("--replan", nargs="*", default=[], help="problems whose closed loop is run (e.g. paper_dynamic)")
+    ap.add_argument("--rounds", type=int, default=3, help="interleaved PCC / rod loops per --replan problem")
     args = ap.parse_args()
     stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     print(f"{stamp}, {platform.node()}, {os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f}")
@@ -135,6 +216,8 @@ def main() -> None:
     for p in args.problems:
         other = Problem.load(p).robot
         plans(Path(p), rod if other.name == robot.name else load_rod_model(other), args.seeds, args.verify)
+    for p in args.replan:
+        replan(Path(p), args.rounds)
     print(f"load average after: {os.getloadavg()[0]:.2f}")
 
 

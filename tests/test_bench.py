@@ -393,11 +393,8 @@ def test_ompl_plans_in_space_time_and_passes_the_dense_check(model, generator):
     assert res.goal_error <= 1.0
     with pytest.raises(InputError, match="time_limit"):
         planner.plan(sc.goal, start_config=sc.start, scene=sc.scene, stop=StopCondition(max_iterations=10))
-    # a start tip is resolved by safe IK, as crtraj's planners resolve it (the `Planner` protocol)
-    by_tip = planner.plan(sc.goal, start_tip=sc.start_tip, scene=sc.scene, stop=StopCondition(time_limit=30.0), seed=3)
-    assert by_tip.is_success(), by_tip.message
-    np.testing.assert_allclose(model.tip_position(by_tip.configs[0]), sc.start_tip, atol=1e-3)
-    assert dense_check(model, sc.scene, by_tip, by_tip.configs[0], sc.goal).is_success()
+    # a start tip resolved by safe IK, a spent budget and a blocked start: every registered planner's contract
+    # (test_planner_contract.py)
     with pytest.raises(InputError, match="start"):
         planner.plan(sc.goal, scene=sc.scene, stop=StopCondition(time_limit=1.0))
 

@@ -126,9 +126,10 @@ def test_the_compiled_backend_is_chosen_when_its_c_is_built(model):
     assert a.status is b.status and np.max(np.abs(a.configs - b.configs)) <= 1e-6
 
 
-def test_a_rod_horizon_runs_interpreted_without_trying_to_compile(monkeypatch) -> None:
-    """The rod body's horizon C is too large to compile (90 MB for cdsr2): with `compiled = true` the loop says so
-    and runs the interpreted solver at once, without calling the compiler (a build attempt fails this test)."""
+def test_the_loops_rod_horizon_is_linearised_and_sent_to_the_compiler(monkeypatch) -> None:
+    """With ``--model rod`` the loop's horizon takes the rod correction to first order (a PCC-sized NLP) and, with
+    `compiled = true`, is sent to the compiler under its own name (the compiler is replaced here by one that
+    declines, so the test does not wait for gcc: tests/test_rod_horizon.py compiles a small one)."""
     from dataclasses import replace
 
     from conftest import PROBLEMS
@@ -137,12 +138,16 @@ def test_a_rod_horizon_runs_interpreted_without_trying_to_compile(monkeypatch) -
     from crtraj.control.loop import ClosedLoop
     from crtraj.io.problem import Problem
 
-    def no_build(*args, **kw):
-        raise AssertionError("the rod horizon was sent to the compiler")
+    names = []
 
-    monkeypatch.setattr(_build, "compiled_library", no_build)
+    def declined(name, functions, qpsol):
+        names.append(name)
+        return None, "no compiler in this test"
+
+    monkeypatch.setattr(_build, "compiled_library", declined)
     problem = Problem.load(PROBLEMS / "side_shelf.toml")
     options = replace(problem.options(ReplanOptions, "replan"), solver="sqp", qpsol="daqp", compiled=True)
     loop = ClosedLoop.from_problem(problem, body="rod", options=options)
-    assert loop.replanner.compiled is False
-    assert loop.replanner.compiled_message.startswith("compiled: not for a rod-model body")
+    assert loop.replanner.linear is not None and loop.replanner.model is loop.model
+    assert len(names) == 1 and names[0].endswith("_rodlin")
+    assert loop.replanner.compiled_message == "compiled: no compiler in this test"

@@ -89,12 +89,7 @@ def test_invalid_start_and_goal_are_statuses(sim1, planner):
     res = planner.plan(task.goal, start_tip=inside, seed=0)
     assert res.status is PlanStatus.INVALID_START and not res.is_success() and not res.has_path
     assert "start" in res.message
-    # a configuration whose body passes through the upper sphere
-    bad = model.robot.straight(0.0)
-    bad[:2] = [0.0, 0.4]
-    assert planner.validator.clearance(bad[None])[0] < 0
-    res = planner.plan(task.goal, start_config=bad, seed=0)
-    assert res.status is PlanStatus.INVALID_START and "collision" in res.message
+    # a start configuration in collision: every registered planner's contract (test_planner_contract.py)
     over = model.robot.straight(0.0)
     over[0] = 4.0  # theta beyond pi
     res = planner.plan(task.goal, start_config=over, seed=0)
@@ -148,13 +143,10 @@ def test_tree_search_without_the_via_round(sim1, dynamic):
 def test_no_solution_within_budget_is_reported(sim1):
     problem, model, scene = sim1
     task = problem.task
-    # no via round, one tree iteration: not enough for simulation 1 (the direct motion collides)
+    # no via round: one tree iteration is not enough for simulation 1 (a TIMEOUT without a path: every registered
+    # planner's contract, test_planner_contract.py); a few iterations more (deterministic: iterations, not time)
+    # give an approximate path, which is still a verified motion toward the goal that stops short of it
     planner = CSpacePlanner(PlanningContext(model, scene, PlannerOptions(cspace=CSpaceOptions(via_points=0))))
-    res = planner.plan(task.goal, start_tip=task.start, seed=0, stop=StopCondition(max_iterations=1))
-    assert res.status is PlanStatus.TIMEOUT and not res.is_success() and not res.has_path
-    assert "iteration limit (1)" in res.message and len(res.t) == 0
-    # a few iterations more (deterministic: iterations, not time): an approximate path, which is still
-    # a verified motion toward the goal that stops short of it
     res = planner.plan(task.goal, start_tip=task.start, seed=0, stop=StopCondition(max_iterations=6))
     assert res.status is PlanStatus.APPROXIMATE and not res.is_success() and res.has_path
     clear, limit, _ = dense_path_check(model, scene, res.t, res.configs)

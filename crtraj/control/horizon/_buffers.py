@@ -27,12 +27,13 @@ class ParameterBuffer:
     views of it: x0, xm1 (nx,), X (N, nx), P (N, 3) mm, O (N, packing.WIDTH M + shape_params).
 
     model: the robot's `Model` (its ``tip`` function gives the reference's tips). shape_params: the shapes'
-    parameters per step, after the step's sphere slots (`crtraj.world.geometry.ShapeTerms`)."""
+    parameters per step, after the step's sphere slots (`crtraj.world.geometry.ShapeTerms`). extra: entries after
+    the obstacles, left to the backend (the rod correction's, `crtraj.control.horizon._rod_body`)."""
 
-    def __init__(self, model: Model, N: int, max_obstacles: int, shape_params: int = 0) -> None:
+    def __init__(self, model: Model, N: int, max_obstacles: int, shape_params: int = 0, extra: int = 0) -> None:
         nx, W = model.nx, packing.WIDTH * max_obstacles + shape_params
         self.N, self.nx, self.width = N, nx, W
-        cut = np.cumsum((0, nx, nx, N * nx, N * 3, N * W))
+        cut = np.cumsum((0, nx, nx, N * nx, N * 3, N * W, extra))
         self.p = np.zeros(int(cut[-1]))
         v = [self.p[a:b] for a, b in itertools.pairwise(cut)]
         self.x0, self.xm1 = v[0], v[1]

@@ -12,7 +12,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import casadi as ca
 import numpy as np
@@ -24,6 +24,9 @@ from crtraj.model.rate_limits import RateLimits
 from crtraj.planning.nlp import CODEGEN_QP, CompiledFunction, compiled_library
 from crtraj.world import packing
 from crtraj.world.geometry import ShapeTerms
+
+if TYPE_CHECKING:
+    from crtraj.control.horizon._rod_body import LinearCorrection
 
 log = logging.getLogger(__name__)
 
@@ -38,7 +41,9 @@ class HorizonSpec:
     closest_points: K, the points per obstacle and step the QP keeps (0: all of them). shapes: the scene's
     obstacles of other shapes as NLP terms (`crtraj.world.geometry.ShapeTerms`; None or empty: none), each of
     `shape_points` backbone points of each step kept `shape_keep` mm from each shape's lower bound over the step's
-    window.
+    window. linear: the rod's correction to first order (`crtraj.control.horizon._rod_body`; None: the body is
+    `model`'s own); with it `model` is the robot's PCC model and each step's correction parameters (its
+    `n_params`) follow the obstacle slots at the parameter vector's end.
     """
 
     model: Model
@@ -52,6 +57,12 @@ class HorizonSpec:
     shapes: ShapeTerms | None = None
     shape_keep: float = 0.0
     shape_points: int = 0
+    linear: LinearCorrection | None = None
+
+    @property
+    def n_linear(self) -> int:
+        """Correction parameters per step (0 without `linear`)."""
+        return 0 if self.linear is None else self.linear.n_params
 
     @property
     def n_shape_params(self) -> int:
@@ -62,8 +73,10 @@ class HorizonSpec:
     def tag(self) -> str:
         """The sizes in the names of the generated functions (segments, obstacles, steps; shapes when any)."""
         n = 0 if self.shapes is None else len(self.shapes.shapes)
-        return f"{self.model.robot.n_segments}s_{self.max_obstacles}o_{self.options.horizon}n" + (
-            f"_{n}sh" if n else ""
+        return (
+            f"{self.model.robot.n_segments}s_{self.max_obstacles}o_{self.options.horizon}n"
+            + (f"_{n}sh" if n else "")
+            + ("_rodlin" if self.linear is not None else "")
         )
 
 
@@ -123,9 +136,10 @@ def build_nlp(spec: HorizonSpec) -> HorizonNLP:
     Xr = ca.SX.sym("x_ref", nx, N)
     Pr = ca.SX.sym("tip_ref", 3, N)
     O = ca.SX.sym("obstacles", packing.WIDTH * M + spec.n_shape_params, N)
+    C = ca.SX.sym("rod_correction", spec.n_linear, N)
     S = ca.DM(spec.scale)
     Xall = ca.horzcat(xm1, x0, X)  # columns k = -1, 0, 1..N
-    tips = model.tip.map(N)(X)  # 3 x N
+    tips = _tips(spec, X, C)  # 3 x N
     r_vec, dX, ddX = _residuals(o, (X, Xall, Xr, Pr), tips, S)
     f = ca.sumsqr(r_vec)
     g, lbg, ubg, widths = _rate_rows(spec, dX, ddX)
@@ -137,10 +151,10 @@ def build_nlp(spec: HorizonSpec) -> HorizonNLP:
     ubg.append(np.tile(hi, N))
     widths.append((len(lo), N))
     n_lin = int(sum(len(b) for b in lbg))
-    n_shape = _shape_rows(spec, (X, O), (g, lbg, ubg, widths))
-    p = ca.vertcat(x0, xm1, ca.vec(Xr), ca.vec(Pr), ca.vec(O))
+    n_shape = _shape_rows(spec, (X, O, C), (g, lbg, ubg, widths))
+    p = ca.vertcat(x0, xm1, ca.vec(Xr), ca.vec(Pr), ca.vec(O), ca.vec(C))
     xv = ca.vec(X)
-    ob = _obstacle_rows(spec, (X, xv, O, p), (g, lbg), tips)
+    ob = _obstacle_rows(spec, (X, xv, O, C, p), (g, lbg), tips)
     n, K = o.points, spec.closest_points
     n_dist = int(n * M * N) if (o.safety and M > 0) else 0
     if n_dist:
@@ -159,7 +173,7 @@ def build_nlp(spec: HorizonSpec) -> HorizonNLP:
         n_lin=n_lin,
         n_shape=n_shape,
         n_params=int(p.numel()),
-        n_obstacle_p=int(O.numel()),  # the obstacle slots are the parameter vector's last entries
+        n_obstacle_p=int(O.numel() + C.numel()),  # the obstacle slots (and the correction) end the parameters
         n_dist=n_dist,
         all_distance=ob.all_distance,
         checked=ob.checked,
@@ -167,6 +181,31 @@ def build_nlp(spec: HorizonSpec) -> HorizonNLP:
         shift_x=shift_index(((nx, N),)),
         shift_g=shift_index(tuple(widths)),
     )
+
+
+def _tips(spec: HorizonSpec, X: ca.SX, C: ca.SX) -> ca.SX:
+    """The tips (3 x N) of the steps' configurations X: the model's, or PCC's plus the linear correction."""
+    if spec.linear is None:
+        return spec.model.tip.map(X.size2())(X)
+    x, c = ca.SX.sym("x", X.size1()), ca.SX.sym("c", spec.n_linear)
+    return ca.Function("horizon_tip", [x, c], [spec.linear.tip(x, c)]).map(X.size2())(X, C)
+
+
+def _points(spec: HorizonSpec, x: ca.SX, c: ca.SX, n: int) -> ca.SX:
+    """n backbone points (3 x n) of configuration x: the model's, or PCC's plus the linear correction c."""
+    return spec.model.backbone_function(n)(x) if spec.linear is None else spec.linear.points(x, c, n)
+
+
+def _slot_point(spec: HorizonSpec, x: ca.SX, column: ca.SX, c: ca.SX) -> ca.SX:
+    """The backbone point (3,) a QP slot selects by its parameter column: one-hot over the segments, the fraction
+    of that segment's arc, and (with `linear`) the P interpolation weights of the correction at that arc, so the
+    correction's share is one weighted sum of its linear term (the weights are parameters, not hat functions)."""
+    S_ = spec.model.robot.n_segments
+    pts = spec.model.segment_point_function()(x, column[S_])  # PCC's, or the model's own body
+    point = pts @ column[:S_]
+    if spec.linear is None:
+        return point
+    return point + spec.linear.delta(x, c) @ column[S_ + 1 :]
 
 
 def _residuals(o: ReplanOptions, syms: tuple[ca.SX, ca.SX, ca.SX, ca.SX], tips: ca.SX, S: ca.DM) -> tuple[ca.SX, ...]:
@@ -224,7 +263,7 @@ def _rate_rows(
 
 def _shape_rows(
     spec: HorizonSpec,
-    syms: tuple[ca.SX, ca.SX],
+    syms: tuple[ca.SX, ca.SX, ca.SX],
     rows: tuple[list[ca.SX], list[np.ndarray], list[np.ndarray], list[tuple[int, int]]],
 ) -> int:
     """Append the shape rows (mm) to the row lists (g, lbg, ubg, widths): per step and shape, each of the
@@ -234,16 +273,18 @@ def _shape_rows(
     o, model, terms = spec.options, spec.model, spec.shapes
     if terms is None or not terms.shapes or not o.safety:
         return 0
-    X, O = syms
+    X, O, C = syms
     g, lbg, ubg, widths = rows
     n, N, W = spec.shape_points, o.horizon, packing.WIDTH * spec.max_obstacles
     x = ca.SX.sym("x", model.robot.nx)
     ob = ca.SX.sym("ob", W + terms.n_params)
-    pts = model.backbone_function(n)(x)  # 3 x n
+    c = ca.SX.sym("c", spec.n_linear)
+    pts = _points(spec, x, c, n)  # 3 x n
     d = ca.vertcat(*[row.T for row in terms.distances(pts, ob[W:])]) - spec.shape_keep  # (shapes n) x 1
     per_step = int(d.numel())
-    fn = ca.Function("horizon_shape_distance", [x, ob], [d], {"cse": True})
-    g.append(ca.vec(fn.map(N)(X, O)))
+    lin = [c] if spec.linear is not None else []  # PCC's functions keep their inputs (and their C)
+    fn = ca.Function("horizon_shape_distance", [x, ob, *lin], [d], {"cse": True})
+    g.append(ca.vec(fn.map(N)(X, O, *([C] if lin else []))))
     lbg.append(np.zeros(per_step * N))
     ubg.append(np.full(per_step * N, np.inf))
     widths.append((per_step, N))
@@ -252,7 +293,7 @@ def _shape_rows(
 
 def _obstacle_rows(
     spec: HorizonSpec,
-    syms: tuple[ca.SX, ca.SX, ca.SX, ca.SX],
+    syms: tuple[ca.SX, ca.SX, ca.SX, ca.SX, ca.SX],
     linear: tuple[list[ca.SX], list[np.ndarray]],
     tips: ca.SX,
 ) -> _Obstacles:
@@ -260,7 +301,7 @@ def _obstacle_rows(
     closest points per obstacle and step, `closest_points`; the same rows when K = 0), after the linear rows."""
     o, model = spec.options, spec.model
     nx, N, M = model.robot.nx, o.horizon, spec.max_obstacles
-    X, xv, O, p = syms  # variables (nx, N) and as a vector, obstacle slots (WIDTH M, N), parameters
+    X, xv, O, C, p = syms  # variables (nx, N) and as a vector, obstacle slots (WIDTH M, N), correction, parameters
     g, lbg = linear
     n, K = o.points, spec.closest_points
     g_full, g_red, p_red = list(g), list(g), p
@@ -272,9 +313,10 @@ def _obstacle_rows(
     ob = ca.SX.sym("ob", packing.WIDTH * M)
     S_ = model.robot.n_segments
     # per slot: one-hot weights over the segments, then the fraction of that segment's arc
-    sel = ca.SX.sym("sel", S_ + 1, max(K, 1) * M)
-    pts = model.backbone_function(n)(x)  # 3 x n
-    seg_points = model.segment_point_function()
+    width = S_ + 1 + (0 if spec.linear is None else spec.linear.P)  # a slot's parameters (`_slot_point`)
+    sel = ca.SX.sym("sel", width, max(K, 1) * M)
+    corr = ca.SX.sym("c", spec.n_linear)
+    pts = _points(spec, x, corr, n)  # 3 x n
     d, ds = [], []
     for i in range(M):
         # the slot's radius is the inflated rho (`Replanner._inflated`); padding has rho = 0 at 1e6 mm
@@ -284,18 +326,20 @@ def _obstacle_rows(
         if K:
             # slot (i, j) is one backbone point, chosen by parameters: its segment (one-hot) and the fraction of
             # that segment's arc (one point per segment is computed, not all n)
-            cols = [seg_points(x, sel[S_, i * K + j]) @ sel[:S_, i * K + j] for j in range(K)]
+            cols = [_slot_point(spec, x, sel[:, i * K + j], corr) for j in range(K)]
             diff = ca.horzcat(*cols) - ca.repmat(c, 1, K)
             ds.append(ca.sqrt(ca.sum1(diff * diff) + 1e-9).T - rho)
-    dist = ca.Function("horizon_distance", [x, ob], [ca.vertcat(*d)], {"cse": True})
-    D = dist.map(N)(X, O[: packing.WIDTH * M, :])  # (n M) x N; the shapes' parameters follow the slots
+    lin, Lin = ([corr], [C]) if spec.linear is not None else ([], [])  # PCC's functions keep their inputs (and C)
+    dist = ca.Function("horizon_distance", [x, ob, *lin], [ca.vertcat(*d)], {"cse": True})
+    D = dist.map(N)(X, O[: packing.WIDTH * M, :], *Lin)  # (n M) x N; the shapes' parameters follow the slots
     g_full.append(ca.vec(D))
     lb_full.append(np.zeros(n * M * N))
-    all_distance = ca.Function(f"horizon_all_distance_{spec.tag}", [xv, ca.vec(O)], [D], {"cse": True})
+    tail = ca.vec(O) if spec.linear is None else ca.vertcat(ca.vec(O), ca.vec(C))  # the parameters' last entries
+    all_distance = ca.Function(f"horizon_all_distance_{spec.tag}", [xv, tail], [D], {"cse": True})
     if K:
-        slots = ca.Function("horizon_slot_distance", [x, ob, ca.vec(sel)], [ca.vertcat(*ds)], {"cse": True})
-        Sel = ca.SX.sym("selection", (S_ + 1) * K * M, N)
-        g_red.append(ca.vec(slots.map(N)(X, O[: packing.WIDTH * M, :], Sel)))
+        slots = ca.Function("horizon_slot_distance", [x, ob, ca.vec(sel), *lin], [ca.vertcat(*ds)], {"cse": True})
+        Sel = ca.SX.sym("selection", width * K * M, N)
+        g_red.append(ca.vec(slots.map(N)(X, O[: packing.WIDTH * M, :], Sel, *Lin)))
         lb_red.append(np.zeros(K * M * N))
         p_red = ca.vertcat(p, ca.vec(Sel))
     else:

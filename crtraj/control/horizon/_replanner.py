@@ -96,11 +96,13 @@ from crtraj.control.horizon._options import (
     ReplanOptions,
     horizon_status,
 )
+from crtraj.control.horizon._rod_body import LinearCorrection, LinearisedBackend, reach_bound
 from crtraj.control.horizon._rows import sagitta
 from crtraj.control.horizon._shapes import HorizonShapes
 from crtraj.control.horizon._stage import StageSolver
 from crtraj.core.errors import InputError
 from crtraj.core.fields import check_float
+from crtraj.model.cosserat import RodModel
 from crtraj.model.kinematics import Model
 from crtraj.model.rate_limits import RateLimits
 from crtraj.world import margin, packing
@@ -136,7 +138,8 @@ class Replanner:
     the obstacle parameter, then `solve`.
     solver_wrapper: called once with the interpreted solver of the QP's NLP (`solver`); what it returns (anything
     with ``call(args)`` and ``stats()``) is called instead, e.g. to inject a solver's failure (unused when the
-    compiled C runs).
+    compiled C runs). rod_linear: a `RodModel`'s correction to first order about each call's start point
+    (`crtraj.control.horizon._rod_body`); False: in full (interpreted only; the earlier path, for comparison).
 
     How a query is solved is chosen once here (`backend`): the interpreted solver or its compiled C, wrapped in
     the screening of `closest_points` when it applies; `rescue` is the IPOPT backend of the full NLP or None.
@@ -152,9 +155,12 @@ class Replanner:
         rate_limits: RateLimits | None = None,
         solver_wrapper: Callable[[ca.Function], Any] | None = None,
         shapes: tuple[MovingShape, ...] = (),
+        rod_linear: bool = True,
     ) -> None:
         self.model, self.robot = model, model.robot
         self.options = ReplanOptions() if options is None else options
+        self.linear = LinearCorrection(model) if rod_linear and isinstance(model, RodModel) else None
+        self._n_linear = 0 if self.linear is None else self.linear.n_params * self.options.horizon
         if isinstance(max_obstacles, bool) or not isinstance(max_obstacles, (int, np.integer)) or max_obstacles < 0:
             raise InputError(f"max_obstacles: must be an integer >= 0, got {max_obstacles!r}")
         self.max_obstacles = int(max_obstacles)
@@ -180,12 +186,14 @@ class Replanner:
         self._K = o.closest_points if screens else 0
         # per backbone point of the NLP, its slot parameters: one-hot over the segments, then the fraction
         # of that segment's arc (the QP's slots select their points by them)
-        seg, frac = model.arc_segments(model.arc_positions(o.points))
-        self._slot_table = np.column_stack([np.eye(r.n_segments)[seg], frac])
+        arcs = model.arc_positions(o.points)
+        seg, frac = model.arc_segments(arcs)
+        extra = [] if self.linear is None else [self.linear.correction.weights(arcs)]  # the rod's (`_slot_point`)
+        self._slot_table = np.column_stack([np.eye(r.n_segments)[seg], frac, *extra])
         self._build(solver_wrapper)
         # with the fused call (issue 29) the parameters are written in place into one preallocated buffer
         self._buffer = (
-            ParameterBuffer(model, self.N, self.max_obstacles, self.shapes.n_params)
+            ParameterBuffer(model, self.N, self.max_obstacles, self.shapes.n_params, self._n_linear)
             if self.compiled and o.fused
             else None
         )
@@ -204,7 +212,7 @@ class Replanner:
         """The NLP (`build_nlp`), its solvers and the backends that solve it, chosen once."""
         o = self.options
         spec = HorizonSpec(
-            model=self.model,
+            model=self.model if self.linear is None else self.linear.pcc,
             options=o,
             max_obstacles=self.max_obstacles,
             cable_matrix=self._A,
@@ -215,6 +223,7 @@ class Replanner:
             shapes=self.shapes.terms,
             shape_keep=self.shapes.keep,
             shape_points=self.shapes.points,
+            linear=self.linear,
         )
         nlp = self._nlp = build_nlp(spec)
         if o.solver == "sqp" and o.qpsol == "hpipm":
@@ -235,7 +244,7 @@ class Replanner:
         self._screen = PointScreen(self._K, self._slot_table, nlp.n_lin + nlp.n_shape)
         self.compiled = parts is not None  # the generated C runs (else the interpreted solver)
         self.backend = self._backend(nlp, parts, solver_wrapper)
-        self.rescue: InterpretedBackend | None = None
+        self.rescue: InterpretedBackend | LinearisedBackend | None = None
         if o.solver == "sqp" and o.rescue:
             # the rescue: a failed sqpmethod solve is retried once with IPOPT (robust, slower) on the full NLP
             hess = gauss_newton(o, nlp.r_vec, nlp.nlp_full, "ipopt")
@@ -243,6 +252,10 @@ class Replanner:
                 self._box_lo, self._box_hi, nlp.lbg_full, nlp.ubg_full, nlp.n_lin, nlp.n_dist + nlp.n_shape > 0
             )
             self.rescue = InterpretedBackend("ipopt", nlp_solver("ipopt", o, nlp.nlp_full, hess), full)
+        if self.linear is not None:  # each call linearises the rod's correction about its own start point
+            self.backend = LinearisedBackend(self.backend, self.linear, self.N)
+            if self.rescue is not None:
+                self.rescue = LinearisedBackend(self.rescue, self.linear, self.N)
 
     def _backend(
         self, nlp: HorizonNLP, parts: CompiledParts | None, solver_wrapper: Callable[[ca.Function], Any] | None
@@ -361,6 +374,8 @@ class Replanner:
         next solve.
         """
         x0 = np.asarray(x0, dtype=float).reshape(self.nx)
+        if tip_reference is None and self.linear is not None:
+            tip_reference = self.linear.tips(np.asarray(reference, dtype=float).reshape(self.N, self.nx))
         fill = self._parameters if self._buffer is None else self._buffer.fill
         p = fill(x0, reference, obstacles, x_prev, tip_reference)
 
@@ -411,28 +426,9 @@ class Replanner:
             extra={"attempts": len(tried), "rescue": rescued, "screen_solves": sum(x.solves for x in tried)},
         )
 
-    def _parameters(
-        self, x0: np.ndarray, reference: Any, obstacles: Any, x_prev: Any, tip_reference: Any
-    ) -> np.ndarray:
-        """The NLP's parameter vector from `solve`'s inputs; `InputError` for a wrong shape or NaN."""
-        N, nx = self.N, self.nx
-        Xr = np.asarray(reference, dtype=float).reshape(N, nx)
-        xm1 = x0 if x_prev is None else np.asarray(x_prev, dtype=float).reshape(nx)
-        Pr = self.model.tip_position(Xr) if tip_reference is None else np.asarray(tip_reference, float).reshape(N, 3)
-        Ob = np.asarray(obstacles, dtype=float)
-        if Ob.size != N * self.obstacle_width:
-            raise InputError(
-                f"obstacles: expected shape ({N}, {self.obstacle_width}) from obstacles_from_scene "
-                f"or obstacles_from_states, got {Ob.shape}"
-            )
-        Ob = Ob.reshape(N, self.obstacle_width)
-        p = np.concatenate([x0, xm1, Xr.ravel(), Pr.ravel(), Ob.ravel()])
-        if not np.isfinite(p).all():
-            # one check of the whole vector; the slow search for the culprit only when there is one
-            for name, arr in (("x0", x0), ("reference", Xr), ("x_prev", xm1), ("tip_reference", Pr), ("obstacles", Ob)):
-                if not np.isfinite(arr).all():
-                    raise InputError(f"{name}: contains NaN or infinity")
-        return p
+    def _parameters(self, *args: Any) -> np.ndarray:
+        """`_parameter_vector` of this replanner: `solve`'s inputs as the NLP's parameters."""
+        return _parameter_vector(self, *args)
 
     def _warm_fits(self, x0: np.ndarray) -> bool:
         """The shifted previous solution starts within reach of x0 (else it belongs to another situation)."""
@@ -447,7 +443,10 @@ class Replanner:
         (N, packing.WIDTH * M) parameter. `InputError` when the NLP has no obstacle rows."""
         if self._rows is None:
             raise InputError("obstacles: this replanner has no obstacle rows (safety off or max_obstacles = 0)")
-        return self._rows(np.asarray(xs, dtype=float), np.asarray(obstacles, dtype=float).ravel())
+        xs, ob = np.asarray(xs, dtype=float), np.asarray(obstacles, dtype=float).ravel()
+        if isinstance(self.backend, LinearisedBackend) and ob.size == self.N * self.obstacle_width:
+            ob = self.backend.fill(np.append(ob, np.zeros(self._n_linear)), xs)  # about xs: the full body there
+        return self._rows(xs, ob)
 
     def nearest_points(self, xs: np.ndarray, obstacles: np.ndarray) -> np.ndarray:
         """Indices (N, M, K) of the K = `closest_points` backbone points closest to each obstacle slot at each
@@ -490,7 +489,8 @@ class Replanner:
             if solves == SCREEN_SOLVES or not _in_time(tried, time_left):
                 break
             p = p.copy()
-            Ob = p[len(p) - self.N * self.obstacle_width :].reshape(self.N, self.obstacle_width)
+            end = len(p) - self._n_linear  # the rod correction's parameters follow the obstacles
+            Ob = p[end - self.N * self.obstacle_width : end].reshape(self.N, self.obstacle_width)
             Ob[:, : sel.packed.shape[1]] = sel.packed  # the sphere slots; the shapes' parameters stay
             r = self._attempt(HorizonQuery(p, r.x), tried, time_left)
         why = f"; an obstacle left out of the QP stays {-worst:.3g} mm inside its sphere"
@@ -520,6 +520,8 @@ class Replanner:
         """Tip positions (N, 3) mm of a solve's configurations (NaN when they are not finite)."""
         if not r.finite:
             return np.full((self.N, 3), np.nan)
+        if self.linear is not None:
+            return self.linear.tips(configs)  # the full model's, not the NLP's first-order ones
         if "tips" in r.sol:
             return r.sol["tips"].reshape(self.N, 3)  # computed by the compiled KKT check
         return self.model.tip_position(configs)
@@ -527,6 +529,41 @@ class Replanner:
     def describe(self) -> dict[str, Any]:
         """Sizes of the NLP (for result files and benchmarks)."""
         return _sizes(self)
+
+
+def _parameter_vector(
+    rp: Replanner, x0: np.ndarray, reference: Any, obstacles: Any, x_prev: Any, tip_reference: Any
+) -> np.ndarray:
+    """The NLP's parameter vector from `solve`'s inputs; `InputError` for a wrong shape or NaN."""
+    N, nx = rp.N, rp.nx
+    Xr = np.asarray(reference, dtype=float).reshape(N, nx)
+    xm1 = x0 if x_prev is None else np.asarray(x_prev, dtype=float).reshape(nx)
+    Pr = rp.model.tip_position(Xr) if tip_reference is None else np.asarray(tip_reference, float).reshape(N, 3)
+    Ob = np.asarray(obstacles, dtype=float)
+    if Ob.size != N * rp.obstacle_width:
+        raise InputError(
+            f"obstacles: expected shape ({N}, {rp.obstacle_width}) from obstacles_from_scene "
+            f"or obstacles_from_states, got {Ob.shape}"
+        )
+    Ob = Ob.reshape(N, rp.obstacle_width)
+    p = np.concatenate([x0, xm1, Xr.ravel(), Pr.ravel(), Ob.ravel(), np.zeros(rp._n_linear)])
+    if not np.isfinite(p).all():
+        # one check of the whole vector; the slow search for the culprit only when there is one
+        for name, arr in (("x0", x0), ("reference", Xr), ("x_prev", xm1), ("tip_reference", Pr), ("obstacles", Ob)):
+            if not np.isfinite(arr).all():
+                raise InputError(f"{name}: contains NaN or infinity")
+    return p
+
+
+def linearisation_bound(rp: Replanner) -> float | None:
+    """The stated bound (mm) of the rod correction's first-order error over one step's reach of `rp`'s horizon
+    (`crtraj.control.horizon._rod_body.reach_bound`, measured on first use); None without the linearisation."""
+    if rp.linear is None:
+        return None
+    bound = getattr(rp, "_lin_bound", None)
+    if bound is None:
+        bound = rp._lin_bound = reach_bound(rp.linear, rp.step_limit)
+    return bound
 
 
 def _sizes(rp: Replanner) -> dict[str, Any]:
@@ -552,4 +589,6 @@ def _sizes(rp: Replanner) -> dict[str, Any]:
         "shape_keep_mm": rp.shapes.keep if nlp.n_shape else None,
         "inflate_mm": rp.inflate,
         "point_spacing_mm": rp.spacing,
+        "rod_body": None if rp.linear is None else "first order about each call's start point",
+        "linearisation_bound_mm": linearisation_bound(rp),
     }

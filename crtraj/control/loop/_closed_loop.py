@@ -53,7 +53,7 @@ import numpy as np
 from crtraj.control.horizon import HorizonStatus, Replanner
 from crtraj.control.loop._problem import ProblemLike, ProblemRun, spec_from_problem
 from crtraj.control.loop._recorder import RunEnding
-from crtraj.control.loop._reference import ReferencePlan
+from crtraj.control.loop._reference_manager import ReferenceStep
 from crtraj.control.loop._run_record import ReplanRun, RunStatus, StateRecord, StepRecord, StepStatus
 from crtraj.control.loop._setup import LoopConfig, LoopParts, LoopSpec, assemble
 from crtraj.control.loop._step_policy import Choice, RobotNow
@@ -136,22 +136,13 @@ class ClosedLoop:
         parts, config = assemble(spec)
         return cls(parts, config, time.perf_counter() - t_setup)
 
-    @property
-    def initial_reference(self) -> ReferencePlan | None:
-        """A reference planned from the start at t = 0 (the first step follows it), or None."""
-        return self.parts.references.initial
-
-    @initial_reference.setter
-    def initial_reference(self, plan: ReferencePlan | None) -> None:
-        self.parts.references.initial = plan
-
     def start_command(self) -> np.ndarray:
         """The actuation (nq,) mm a run without a device starts from: the tracker's command at the start
         configuration."""
         return self.tracker.initial_command(self.x_start)
 
     def plan_first_reference(self, q: np.ndarray) -> None:
-        """Plan the first reference path (`initial_reference`) from actuation q (nq,) mm among the obstacles as
+        """Plan the first reference path (followed from t = 0) from actuation q (nq,) mm among the obstacles as
         the loop's source has them at t = 0, before the run; nothing while the source has no state yet."""
         scene, _ = self.parts.obstacles.at(0.0)
         if scene is not None:
@@ -194,9 +185,10 @@ class ClosedLoop:
         q = self.start_command() if device is None else device.start_actuation()
         x = self.servo.config(q)
         robot = _Robot(0.0, q, q.copy(), x, x.copy(), q, np.zeros_like(x))
-        for part in (p.tip, p.references, p.recorder, p.policy):
-            part.start()
-        p.recorder.observer = observer
+        p.tip.start()
+        p.references.start()
+        p.recorder.start(observer)
+        p.policy.start()
         p.pacer.start(realtime, device)
         p.tip.sense(robot.t, robot.q, robot.x, p.references)
         refused = self._start(robot, live)
@@ -317,11 +309,9 @@ class ClosedLoop:
         msg = f"goal not reached within {lo.duration:g} s"
         return self._finish(robot, RunStatus.TIMEOUT, msg, t_wall, device)
 
-    def _decide(
-        self, k: int, robot: _Robot, scene_t: Any, t_iter: float
-    ) -> tuple[Choice, Any, tuple[str, float, bool, float]]:
-        """Step k's move among the obstacles `scene_t`: (choice, NLP result as recorded, (reason, planner time
-        s, replanned, time charged s)). An NLP result that arrives after ``replan.step_deadline`` is not used:
+    def _decide(self, k: int, robot: _Robot, scene_t: Any, t_iter: float) -> tuple[Choice, Any, ReferenceStep]:
+        """Step k's move among the obstacles `scene_t`: (choice, NLP result as recorded, what keeping the
+        reference did). An NLP result that arrives after ``replan.step_deadline`` is not used:
         the step falls back to the last plan's next move (verified now), or a verified hold; the late plan, if
         feasible, becomes the last plan for the next step."""
         p, t, dt, rp = self.parts, robot.t, self.options.dt, self.replanner
@@ -332,7 +322,9 @@ class ClosedLoop:
         deadline = self.options.step_deadline
         left = deadline - (self.parts.pacer.now() - t_iter) if deadline else None
         late = p.policy.solve(robot.x, X_ref, obstacles, robot.x_prev, left)
-        res = p.policy.judge_deadline(late, self.parts.pacer.now() - t_iter + refs[3] - p.references.waited)
+        res = p.policy.judge_deadline(
+            late, self.parts.pacer.now() - t_iter + refs.charged - p.references.waited_so_far()
+        )
         if res is not late:
             p.recorder.count_deadline_miss()
         p.references.note_nlp(failed=not res.feasible and res.status is not HorizonStatus.SKIPPED)
@@ -347,10 +339,11 @@ class ClosedLoop:
         if scene_t is None:
             # no trustworthy obstacle state: keep the actuators where they are and say so
             choice, res = p.policy.stale(robot.now(), why)
-            reason, plan_time, replanned, charged = "", 0.0, False, 0.0
+            refs = ReferenceStep()
         else:
-            choice, res, (reason, plan_time, replanned, charged) = self._decide(k, robot, scene_t, t_iter)
-        iter_time = self.parts.pacer.now() - t_iter + charged - p.references.take_waited()
+            choice, res, refs = self._decide(k, robot, scene_t, t_iter)
+        iter_time = self.parts.pacer.now() - t_iter + refs.charged - p.references.take_waited()
+        reason = refs.reason
         m = choice.motion
         q_new, qc_new, T, X, cmds = m.q, m.qc, m.times, m.configs, m.commands
         periods = p.motion.periods(robot.q, cmds)
@@ -376,8 +369,8 @@ class ClosedLoop:
         clear = (measured, measured + self.scene.safety_distance, choice.bound)
         p.recorder.record_state(self._state_record(robot, clear, choice.planned, T, X, p.checks.scene_now))
         step = StepRecord(
-            str(choice.status), res.solver_status, res.wall_time, plan_time, iter_time, res.iterations, replanned,
-            reason, cmds, periods,
+            str(choice.status), res.solver_status, res.wall_time, refs.plan_time, iter_time, res.iterations,
+            refs.replanned, reason, cmds, periods,
         )  # fmt: skip
         p.recorder.record_step(step)
         return choice.status
@@ -425,10 +418,8 @@ class ClosedLoop:
         ending = RunEnding(
             status=status,
             message=message,
-            reference_tips=tuple(p.references.refs_used),
-            tree_edges=p.references.tree_edges,
             measured_tip=p.tip.readings(),
-            reference_worker=p.references.record(),
+            **p.references.outcome(),
             setup_time=self.setup_time,
             wall_time=time.perf_counter() - t_wall,
             nlp=self.replanner.describe(),

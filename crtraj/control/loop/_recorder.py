@@ -60,11 +60,12 @@ class RunRecorder:
 
     def __init__(self, setup: RecorderSetup) -> None:
         self.setup = setup
-        self.observer: StepObserver | None = None  # told of each record as it is kept (a live view)
         self.start()
 
-    def start(self) -> None:
-        """Forget the records of any previous run."""
+    def start(self, observer: StepObserver | None = None) -> None:
+        """Forget the records of any previous run; observer: told of each record of this run as it is kept (a
+        live view), or None."""
+        self.observer = observer
         self.states: list[StateRecord] = []
         self.steps: list[StepRecord] = []
         self.deadline_misses = 0  # NLP results that came after replan.step_deadline (not used)

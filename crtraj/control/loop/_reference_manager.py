@@ -43,6 +43,17 @@ class ReferenceSetup:
     clock: Clock
 
 
+@dataclass(frozen=True)
+class ReferenceStep:
+    """What keeping the reference did at one step: why it was planned (reason, '' when it was not), the
+    planner's time (s), whether a new path was adopted, and the time (s) to charge to the step."""
+
+    reason: str = ""
+    plan_time: float = 0.0
+    replanned: bool = False
+    charged: float = 0.0
+
+
 class ReferenceManager:
     """The reference path of one run and the progress along it (`start` begins a run).
 
@@ -182,9 +193,9 @@ class ReferenceManager:
         worker.start()
         self.worker = worker
 
-    def update(self, k: int, x: np.ndarray, t: float, ahead: float) -> tuple[str, float, bool, float]:
-        """Replan the reference path at step k (from x at t) when needed; returns (reason, planner time s,
-        replanned, time to charge s); then locate the progress (`ahead`: s of reference searched ahead).
+    def update(self, k: int, x: np.ndarray, t: float, ahead: float) -> ReferenceStep:
+        """Replan the reference path at step k (from x at t) when needed; returns what it did (`ReferenceStep`);
+        then locate the progress (`ahead`: s of reference searched ahead).
 
         Inline (no worker) the plan is made now and its time is part of the step; with a worker the step
         takes over a due path here and asks for a new one after its move (`ask`), and the plan's
@@ -204,7 +215,7 @@ class ReferenceManager:
                 replanned = self.adopt(k, t, plan, self.goal_version)
                 said, plan_time = f"{reason}: {plan.status}", plan.wall_time
         self.locate(x, t, ahead)
-        return said, plan_time, replanned, charged
+        return ReferenceStep(said, plan_time, replanned, charged)
 
     def ask(self, k: int, x: np.ndarray, t: float) -> str:
         """With a worker, after step k's move was chosen (and sent): ask for a new reference path when one is
@@ -258,6 +269,10 @@ class ReferenceManager:
             self.ref_goal_version = goal_version
         return True
 
+    def waited_so_far(self) -> float:
+        """The s this step has waited for a due path so far (simulated runs; not charged to the step)."""
+        return self.waited
+
     def take_waited(self) -> float:
         """The s this step waited for a due path (not charged to it), and start counting the next step's."""
         waited, self.waited = self.waited, 0.0
@@ -268,6 +283,15 @@ class ReferenceManager:
         rec = self.worker.record() if self.worker is not None else self.worker_record
         lo = self.setup.loop_options
         return {"handover_steps": lo.handover_steps(self.setup.options.dt), **rec} if rec else {}
+
+    def outcome(self) -> dict[str, Any]:
+        """What the run's ending keeps of the references (`RunEnding` fields): every reference's tip polyline
+        with the step it started at, the last planner tree's edges (E, 2, 3) mm and the worker's record."""
+        return {
+            "reference_tips": tuple(self.refs_used),
+            "tree_edges": self.tree_edges,
+            "reference_worker": self.record(),
+        }
 
     def close(self) -> None:
         """Stop the worker, if one runs."""

@@ -30,7 +30,7 @@ servos answer at this baud rate (if none does, the other common rates are
 tried and the right one named), every id answers (a silent one is named),
 each model number is the robot file's, no hardware error bit is set, and the
 actuators' position limits fit the extended position range, and Drive Mode
-carries no bit the robot file does not declare (`crtraj.hardware.dynamixel._drive_mode`:
+carries no bit the robot file does not declare (`crtraj.hardware.dynamixel._checks.DriveModeCheck`:
 no undeclared reverse bit, never the time-based profile). Then it sets torque
 off and the declared reverse bits, and checks that every position is absolute
 (`crtraj.hardware.dynamixel._homing_state.PowerUpCheck`: a multi-turn actuator homed since
@@ -69,13 +69,13 @@ from crtraj.core.interrupt import shielded
 from crtraj.hardware.actuators import Actuators
 from crtraj.hardware.dynamixel._checks import (
     SYSFS_USB_SERIAL,
+    DriveModeCheck,
     ServoCheck,
     check_baud,
     check_ranges,
     hardware_error_line,
     latency_warning,
 )
-from crtraj.hardware.dynamixel._drive_mode import DriveModeCheck
 from crtraj.hardware.dynamixel._homing_state import HomingState, PowerUpCheck, multi_turn, record_last
 from crtraj.hardware.dynamixel._protocol import X, reply_sizes_checked
 from crtraj.hardware.dynamixel._safety import BusWatchdog, ForceCaps, TripWatch, watchdog_units

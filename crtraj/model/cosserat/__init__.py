@@ -32,6 +32,6 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "RodLoad",
             "RodSolution",
         ),
-        "crtraj.model.cosserat._surrogate": ("sample_within_limits",),
+        "crtraj.model.cosserat._surrogate": ("BOUND_FACTOR", "SurrogateOptions", "sample_within_limits"),
     },
 )
