@@ -110,7 +110,7 @@ def plan_problem(
     start = {"start_config": task.start_config} if task.start_config is not None else {"start_tip": task.start}
     run = plan_executable(
         context,
-        task.goal,
+        task.tip_goal(),
         seed=seed,
         goal_tolerance=task.goal_tolerance,
         steer_options=steer_options,
@@ -125,6 +125,15 @@ def _margin_text(model: Model) -> str:
     """' + 0.53 mm for the rod model's error' for a rod plan; '' for PCC."""
     extra = margin_of(model)
     return "" if extra == 0.0 else f" + {extra:.2f} mm for the rod model's error"
+
+
+def _angle_text(r: PlanResult, problem: Problem) -> str:
+    """', tip tangent 3.1 deg from goal_direction (cone 10 deg)' for a direction goal; '' otherwise."""
+    if not math.isfinite(r.goal_angle) or problem.task is None or problem.task.goal_cone is None:
+        return ""
+    return (
+        f", tip tangent {math.degrees(r.goal_angle):.2f} deg from goal_direction (cone {problem.task.goal_cone:g} deg)"
+    )
 
 
 def _executed(timing: dict[str, Any] | None) -> dict[str, Any]:
@@ -180,7 +189,7 @@ def plan_command(args: argparse.Namespace) -> int:
         print(
             f"  tip path {r.length:.1f} mm over {r.duration:.2f} s, {len(r.t)} waypoints, "
             f"min clearance {r.min_clearance:.2f} mm (beyond D_sf {run.scene.safety_distance:g} mm"
-            f"{_margin_text(run.model)}), goal error {r.goal_error:.3f} mm"
+            f"{_margin_text(run.model)}), goal error {r.goal_error:.3f} mm{_angle_text(r, problem)}"
         )
     if run.timing is not None and r.has_path:
         tm = run.timing

@@ -25,6 +25,7 @@ from crtraj.io.calibration_data import CalibrationRecord
 from crtraj.model.mechanics import Mechanics
 from crtraj.model.rate_limits import RateLimits
 from crtraj.model.robot import Robot
+from crtraj.planning.goal import TipGoal
 
 SECTIONS = (
     "name",
@@ -104,14 +105,42 @@ def _checked(robot: Robot) -> Robot:
     return robot
 
 
+# The keys of ``[task]`` (key, type, default, unit, meaning): `Task.from_table` reads exactly these, and the
+# generated problem-file reference lists them (docs/hooks/references.py).
+TASK_KEYS = (
+    ("start", "array of 3 floats", "", "mm", "start tip position (a safe configuration is found by IK)"),
+    ("goal", "array of 3 floats", "", "mm", "goal tip position"),
+    ("goal_tolerance", "float", "1.0", "mm", "how close the tip must end to the goal, > 0"),
+    ("start_config", "array of nx floats (optional)", "", "rad/mm", "start configuration instead of IK"),
+    (
+        "goal_direction",
+        "array of 3 floats (optional)",
+        "",
+        "-",
+        "direction the tip tangent must point along at the goal (any non-zero length; needs goal_cone)",
+    ),
+    (
+        "goal_cone",
+        "float (optional)",
+        "",
+        "deg",
+        "largest angle between the tip tangent and goal_direction at the goal, in (0, 180]",
+    ),
+)
+
+
 @dataclass(frozen=True)
 class Task:
-    """Start and goal tip positions (mm); an optional start configuration overrides IK."""
+    """Start and goal tip positions (mm); an optional start configuration overrides IK. goal_direction (3,)
+    (unit) with goal_cone (deg): the tip tangent at the goal must lie within the cone
+    (`crtraj.planning.goal.TipGoal`)."""
 
     start: np.ndarray
     goal: np.ndarray
     start_config: np.ndarray | None = None
     goal_tolerance: float = 1.0  # mm
+    goal_direction: np.ndarray | None = None  # unit vector
+    goal_cone: float | None = None  # deg
 
     @classmethod
     def from_table(cls, t: Table, nx: int) -> Task:
@@ -119,13 +148,23 @@ class Task:
         goal = np.array(t.vec("goal", 3, limit=MAX_LENGTH))
         sc = t.vec("start_config", nx, None, limit=MAX_LENGTH)
         tol = t.float("goal_tolerance", 1.0, gt=0.0, limit=MAX_LENGTH)
+        direction = t.vec("goal_direction", 3, None, limit=MAX_LENGTH)
+        cone = t.float("goal_cone", None, gt=0.0, le=180.0)
         t.finish()
-        return cls(start, goal, None if sc is None else np.array(sc), tol)
+        tip = TipGoal.of(goal, direction, cone, prefix="task.")
+        return cls(start, goal, None if sc is None else np.array(sc), tol, tip.direction, cone)
+
+    def tip_goal(self) -> TipGoal:
+        """The goal as planners take it: the position with its direction cone, when the task has one."""
+        return TipGoal.of(self.goal, self.goal_direction, self.goal_cone, prefix="task.")
 
     def to_dict(self) -> dict[str, Any]:
         d: dict[str, Any] = {"start": self.start, "goal": self.goal, "goal_tolerance": self.goal_tolerance}
         if self.start_config is not None:
             d["start_config"] = self.start_config
+        if self.goal_direction is not None:
+            d["goal_direction"] = self.goal_direction
+            d["goal_cone"] = self.goal_cone
         return d
 
 

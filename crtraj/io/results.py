@@ -217,7 +217,8 @@ class Result:
     (M, 3): the planned path a run tracked, or None. edges (E, 2, 3): planner
     tree, or None. workspace: (lo, hi) when the scene records one. executed:
     a run's actual actuation (t0 s, period s, q (M, nq) mm), one sample per
-    control period, or None. source: the file it came from ("" for in-memory
+    control period, or None. goal_direction (3,) unit and goal_cone (deg): the
+    task's tip direction goal, or None. source: the file it came from ("" for in-memory
     data). data: the document itself.
     """
 
@@ -243,6 +244,8 @@ class Result:
     edges: np.ndarray | None
     workspace: tuple[np.ndarray, np.ndarray] | None
     executed: tuple[float, float, np.ndarray] | None = None
+    goal_direction: np.ndarray | None = None
+    goal_cone: float | None = None
     source: str = ""
     data: Mapping[str, Any] = field(default_factory=dict, repr=False, compare=False)
 
@@ -321,6 +324,7 @@ def _waypoints(wps: Any, nx: int, nq: int) -> tuple[np.ndarray, ...]:
 def _extras(doc: Mapping[str, Any]) -> dict[str, Any]:
     """Task tips, the tracked reference path and the planner tree (each optional)."""
     out: dict[str, Any] = {"start": None, "goal": None, "reference": None, "edges": None}
+    out |= {"goal_direction": None, "goal_cone": None}
     task = doc.get("task") or {}
     if isinstance(task, Mapping):
         out.update(rs.read_fields(task, rs.TASK, "task", {}))

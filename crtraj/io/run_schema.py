@@ -113,6 +113,17 @@ def read_time(v: Any, where: str, dims: Dims) -> float:
     return check_float(v, where, limit=MAX_TIME)
 
 
+def read_direction(v: Any, where: str, dims: Dims) -> np.ndarray:
+    a = check_array(v, where, (3,))
+    if abs(float(np.linalg.norm(a)) - 1.0) > 1e-6:
+        raise InputError(f"{where}: expected a unit vector, got length {float(np.linalg.norm(a)):g}")
+    return a
+
+
+def read_cone(v: Any, where: str, dims: Dims) -> float:
+    return check_float(v, where, gt=0.0, le=180.0)
+
+
 def read_config(v: Any, where: str, dims: Dims) -> np.ndarray:
     return check_array(v, where, (dims["nx"],), limit=MAX_LENGTH)
 
@@ -217,6 +228,14 @@ VERDICT = (
 TASK = (
     Field("start", "mm", "(3,)", "start tip", read=read_point),
     Field("goal", "mm", "(3,)", "goal tip", read=read_point),
+    Field("goal_direction", "", "(3,)", "unit direction the tip tangent keeps at the goal", read=read_direction),
+    Field("goal_cone", "deg", "float", "largest angle of the tip tangent to `goal_direction`", read=read_cone),
+)
+
+# a plan's `summary` figures of a direction goal (`crtraj.planning.result.PlanResult.summary`)
+SUMMARY = (
+    Field("goal_error_mm", "mm", "float", "final tip to the goal"),
+    Field("goal_angle_deg", "deg", "float", "final tip tangent to `task.goal_direction` (a direction goal only)"),
 )
 
 OBSTACLES = (
@@ -405,6 +424,8 @@ NPZ = (
 TABLES = (
     ("Header (plan.json and run.json, in this order)", HEADER),
     ("Verdict and figures (both)", VERDICT),
+    ("Task (`task`, both: the keys read back)", TASK),
+    ("Plan summary figures (plan.json `summary`, a selection)", SUMMARY),
     ("Plan body (plan.json)", PLAN_BODY),
     ("Plan waypoint (plan.json `waypoints[k]`)", PLAN_WAYPOINT),
     ("Run body (run.json)", RUN_BODY),

@@ -7,8 +7,10 @@ answers the same call::
          seed=None, scene=None, goal_tolerance=1.0) -> PlanResult
 
 (goal tip and tolerance in mm, t0 in s; `PlanResult.is_success()` tells an
-exact solution). Every planner is built from a `PlanningContext`
-(`crtraj.planning.context`). `PlannerBase` holds what they all do before
+exact solution). The goal may be a `crtraj.planning.goal.TipGoal` with a tip
+direction cone; a planner whose `honours_direction` is False refuses a goal
+with a direction (one-line `InputError`). Every planner is built from a
+`PlanningContext` (`crtraj.planning.context`). `PlannerBase` holds what they all do before
 they search: check the query (`PlanQuery.begin`), pick the validator of the
 query's scene, grow the NLPs' obstacle slots, and resolve the start
 configuration (given, or safe IK for a start tip), timed.
@@ -22,6 +24,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
+from crtraj.core.errors import InputError
 from crtraj.model.kinematics import Model
 from crtraj.model.rate_limits import RateLimits
 from crtraj.planning.context import PlanningContext
@@ -106,6 +109,8 @@ class PlannerBase:
     """
 
     name: str = ""  # a class attribute of each planner (OMPL's: per instance, by algorithm)
+    # the planner keeps a goal's tip direction cone (`crtraj.planning.goal.TipGoal`); others refuse such a goal
+    honours_direction: bool = False
 
     def __init__(self, context: PlanningContext) -> None:
         self.context = context
@@ -145,6 +150,11 @@ class PlannerBase:
             stop=stop,
             seed=seed,
         )
+        if query.tip_goal.has_direction and not self.honours_direction:
+            raise InputError(
+                f"goal_direction: the {self.name} planner does not honour a tip direction goal; "
+                'plan with [planner] algorithm = "cspace"'
+            )
         v = self.context.validity_for(scene)
         self._prepare(v)
         start = QueryStart(query, v, None, "", goal_tolerance, seed, v.n_samples, counts=dict(counts or {}))

@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 
 from crtraj.core.splines import BSplineCurve
+from crtraj.planning.goal import TipGoal, tip_tangents
 from crtraj.planning.options import PlannerOptions
 from crtraj.planning.result import PlanResult, PlanStatus
 from crtraj.planning.validity import MotionValidator
@@ -337,7 +338,7 @@ class PathPostprocessor:
         message: str,
         planner: str,
         seed: int | None,
-        goal: np.ndarray,
+        goal: np.ndarray | TipGoal,
         X: np.ndarray,
         raw: np.ndarray,
         smoothed: bool,
@@ -350,8 +351,11 @@ class PathPostprocessor:
         raw_t: np.ndarray | None = None,
     ) -> PlanResult:
         """Assemble a `PlanResult` for the final path X (already verified); T, raw_t: the
-        waypoint times of a timed path (default: full speed from t0)."""
+        waypoint times of a timed path (default: full speed from t0). goal: the goal tip (mm), or a `TipGoal`
+        (with a direction, the result records the final tip tangent's angle to it)."""
         model = self.v.model
+        goal = TipGoal.of(goal)
+        angle = float(goal.angles(tip_tangents(model, X[-1:]))[0]) if goal.has_direction else float("nan")
         tips = self.v.tip_position(X)
         dense = self.resample(X, self.v.resolution)
         length = float(np.sum(np.linalg.norm(np.diff(self.v.tip_position(dense), axis=0), axis=1)))
@@ -369,7 +373,8 @@ class PathPostprocessor:
             length=length,
             cost=cost,
             min_clearance=self.v.path_clearance(X, T)[0],
-            goal_error=float(np.linalg.norm(tips[-1] - goal)),
+            goal_error=float(np.linalg.norm(tips[-1] - goal.position)),
+            goal_angle=angle,
             smoothed=smoothed,
             raw_configs=raw,
             raw_t=self.times(raw) if raw_t is None else raw_t,

@@ -39,7 +39,8 @@ class PlanResult:
     cost: the planner's own path cost (tip length of the tree path for the
     task-space planners, body-motion metric for the c-space planner).
     min_clearance: smallest body clearance minus the safety distance along
-    the returned motion (mm, checked densely; >= 0 means safe). tree_edges:
+    the returned motion (mm, checked densely; >= 0 means safe). goal_error: final tip to goal (mm);
+    goal_angle: final tip tangent to the goal's direction (rad; NaN without a direction goal). tree_edges:
     (E, 2, 3) tip positions of the search tree's edges, for drawing.
     timings (s) and counts describe the run. cost_progress: the best cost each time a planner
     found a better solution, as (s since the plan call began, cost) pairs (OMPL planners; empty otherwise).
@@ -57,6 +58,7 @@ class PlanResult:
     cost: float = float("nan")
     min_clearance: float = float("nan")
     goal_error: float = float("nan")
+    goal_angle: float = float("nan")  # rad: final tip tangent to a direction goal's direction (NaN: none)
     smoothed: bool = False
     raw_configs: np.ndarray | None = None
     raw_t: np.ndarray | None = None
@@ -104,4 +106,6 @@ class PlanResult:
             "smoothed": self.smoothed,
             "plan_time_s": self.timings.get("total", float("nan")),
             **{f"n_{k}": v for k, v in self.counts.items()},
+            # a direction goal's final tip tangent angle (deg), only for a goal with a direction
+            **({"goal_angle_deg": float(np.degrees(self.goal_angle))} if np.isfinite(self.goal_angle) else {}),
         }

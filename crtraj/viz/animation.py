@@ -75,7 +75,9 @@ def moving_points(run: Result, poses: RobotPoses, timeline: Timeline) -> np.ndar
     parts = [poses.joints / M_PER_MM]
     if run.centers.shape[1]:
         r = run.radii[..., None]
-        parts += [run.centers + r, run.centers - r, timeline.body_point[:, None], timeline.obstacle_point[:, None]]
+        parts += [run.centers + r, run.centers - r]
+    if timeline.clearance.shape[1]:
+        parts += [timeline.body_point[:, None], timeline.obstacle_point[:, None]]
     return np.concatenate(parts, axis=1)
 
 
@@ -140,7 +142,7 @@ def _obstacle_clips(clips: _Clips, run: Result, timeline: Timeline, keys: np.nda
         shell = r + timeline.safety_distance * M_PER_MM
         clips.add(f"obstacles/{i}", position=("vector3", c), scale=("vector3", np.stack([r, r, r], axis=-1)))
         clips.add(f"shells/{i}", position=("vector3", c), scale=("vector3", np.stack([shell] * 3, axis=-1)))
-    if run.centers.shape[1] == 0:
+    if timeline.clearance.shape[1] == 0:  # neither spheres nor shapes
         return
     a, b = timeline.body_point[keys] * M_PER_MM, timeline.obstacle_point[keys] * M_PER_MM
     d = b - a

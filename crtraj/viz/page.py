@@ -36,9 +36,17 @@ def nums(a: Any) -> Any:
     return [nums(v) for v in arr]
 
 
-def _run_data(run: Result, tl: Timeline, label: str) -> dict[str, Any]:
+def obstacle_names(run: Result, columns: int) -> list[str]:
+    """One name per clearance column: the sphere obstacles', then the other shapes' (their kind and index when
+    unnamed), "obstacle i" for any other column."""
     names = [o.name for o in run.scene.obstacles] if run.scene is not None else []
-    names += [f"obstacle {i}" for i in range(len(names), tl.clearance.shape[1])]
+    if run.scene is not None:
+        names += [ms.shape.name or f"{ms.shape.kind} {j}" for j, ms in enumerate(run.scene.shapes)]
+    return names + [f"obstacle {i}" for i in range(len(names), columns)]
+
+
+def _run_data(run: Result, tl: Timeline, label: str) -> dict[str, Any]:
+    names = obstacle_names(run, tl.clearance.shape[1])
     summary = run.data.get("summary")
     summary = summary if isinstance(summary, dict) else {}
     late, dense = summary.get("deadline_misses"), summary.get("min_distance_mm")

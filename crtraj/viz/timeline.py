@@ -3,20 +3,22 @@
 `build_timeline` reads a validated `Result` (and the per-waypoint fields its document records: step status, tip
 error, iteration time) and measures the rest from the recorded configurations with the robot's model: the
 clearance of the body to each obstacle (distance to the sphere's surface minus the body radius and D_sf, as the
-loop defines it) and where the closest approach is. Lengths in mm, times in s.
+loop defines it), then to each of the scene's other shapes (the true distance to its surface), and where the closest
+approach is: its line ends on the nearest obstacle's surface. Lengths in mm, times in s.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
 
 from crtraj.io.results import Result
 from crtraj.model.kinematics import Model
+from crtraj.world.geometry import MovingShape, nearest_surface_points
 
 # backbone points measured per configuration for the clearance (4 mm apart on a 400 mm robot: the distance to a
 # sphere of 20 mm radius or more is then within 0.1 mm)
@@ -38,8 +40,9 @@ class Event:
 class Timeline:
     """Per-waypoint numbers of a run (N waypoints, m obstacles); NaN where the result records none.
 
-    t (N,) s from the first waypoint. status (N,) step status ("" where none). clearance (N, m) mm to each
-    obstacle (negative: closer than D_sf). near (N,) index of the nearest obstacle (-1 without obstacles).
+    t (N,) s from the first waypoint. status (N,) step status ("" where none). clearance (N, m + k) mm to each
+    sphere obstacle, then each of the k other shapes (negative: closer than D_sf). near (N,) column of the
+    nearest (-1 without obstacles).
     body_point, obstacle_point (N, 3) mm: the closest pair between the body's surface and the nearest obstacle.
     tip_error (N,) mm. iteration (N,) s per loop iteration; deadline s (NaN: none). velocity, acceleration
     (N,) largest actuator fraction of its limit. safety_distance D_sf mm. events: markers on the time axis.
@@ -68,26 +71,65 @@ class Timeline:
 
 
 def closest_approach(
-    model: Model, x: np.ndarray, centers: np.ndarray, radii: np.ndarray, safety: float
+    model: Model,
+    x: np.ndarray,
+    centers: np.ndarray,
+    radii: np.ndarray,
+    safety: float,
+    shapes: Sequence[MovingShape] = (),
+    t: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Clearance (N, m) mm of configurations x (N, nx) to spheres (N, m, 3)/(N, m), the nearest sphere (N,),
-    and the closest points (N, 3) mm on the body's surface and on that sphere."""
+    """Clearance (N, m + k) mm of configurations x (N, nx) to spheres (N, m, 3)/(N, m) and then to the `shapes`
+    (k, each at the times t (N,) s, absolute), the nearest obstacle (N,) (a column of the clearance), and the
+    closest points (N, 3) mm on the body's surface and on that obstacle's surface (a shape's nearest surface
+    point, `crtraj.world.geometry.nearest_surface_points`)."""
     n, m = x.shape[0], centers.shape[1]
     P = np.asarray(model.points(x, CLEARANCE_POINTS)).reshape(n, -1, 3)
-    if m == 0:
+    if m + len(shapes) == 0:
         nan = np.full((n, 3), np.nan)
         return np.zeros((n, 0)), np.full(n, -1), nan, nan.copy()
-    d = np.linalg.norm(P[:, :, None, :] - centers[:, None, :, :], axis=-1)  # (N, P, m)
     body = model.robot.body_radius
-    gap = d - radii[:, None, :]  # backbone point to sphere surface
-    clearance = gap.min(axis=1) - body - safety
-    near = np.argmin(clearance, axis=1)
     rows = np.arange(n)
-    k = np.argmin(gap[rows, :, near], axis=1)  # the backbone point closest to the nearest sphere
-    p, c, r = P[rows, k], centers[rows, near], radii[rows, near]
-    u = c - p
+    columns, pairs = [], []  # per obstacle: clearance (N,), and (backbone point, surface point) (N, 3) each
+    if m:
+        d = np.linalg.norm(P[:, :, None, :] - centers[:, None, :, :], axis=-1)  # (N, P, m)
+        gap = d - radii[:, None, :]  # backbone point to sphere surface
+        k = np.argmin(gap, axis=1)  # (N, m): the backbone point closest to each sphere
+        for j in range(m):
+            p, c, r = P[rows, k[:, j]], centers[:, j], radii[:, j]
+            u = c - p  # toward the centre: the sphere's surface point nearest p is c - r u
+            u = u / np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-12)
+            columns.append(gap[rows, k[:, j], j])
+            pairs.append((p, c - r[:, None] * u))
+    times = np.zeros(n) if t is None else np.asarray(t, dtype=float)
+    for ms in shapes:
+        gap, q = _shape_gaps(ms, P, times)
+        k = np.argmin(gap, axis=1)
+        columns.append(gap[rows, k])
+        pairs.append((P[rows, k], q[rows, k]))
+    gaps = np.stack(columns, axis=1)
+    clearance = gaps - body - safety
+    near = np.argmin(clearance, axis=1)
+    p = np.stack([pr[0] for pr in pairs])[near, rows]
+    q = np.stack([pr[1] for pr in pairs])[near, rows]
+    # the body's surface point toward the obstacle: toward its surface point from outside, away from it from
+    # inside (a sphere's: toward its centre either way)
+    u = (q - p) * np.where(gaps[rows, near] < 0.0, -1.0, 1.0)[:, None]
     u = u / np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-12)
-    return clearance, near, p + body * u, c - r[:, None] * u
+    return clearance, near, p + body * u, q
+
+
+def _shape_gaps(ms: MovingShape, P: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(distances (N, P) mm, nearest surface points (N, P, 3) mm) of backbone points P (N, P, 3) to the shape,
+    row i at time t[i] (s); a shape that neither moves nor breathes at once."""
+    n, k = P.shape[:2]
+    if ms.static:
+        d, q = nearest_surface_points(ms, P.reshape(-1, 3), 0.0)
+        return d.reshape(n, k), q.reshape(n, k, 3)
+    d, q = np.empty((n, k)), np.empty((n, k, 3))
+    for i in range(n):
+        d[i], q[i] = nearest_surface_points(ms, P[i], float(t[i]))
+    return d, q
 
 
 def _waypoint_field(doc: Mapping[str, Any], name: str, n: int) -> np.ndarray:
@@ -173,7 +215,11 @@ def build_timeline(run: Result, model: Model) -> Timeline:
     n = len(run.t)
     t = run.t - run.t[0]
     safety = run.scene.safety_distance if run.scene is not None else 0.0
-    clearance, near, body_point, obstacle_point = closest_approach(model, run.x, run.centers, run.radii, safety)
+    shapes = run.scene.shapes if run.scene is not None else ()
+    origin = run.scene.time_origin if run.scene is not None else 0.0
+    clearance, near, body_point, obstacle_point = closest_approach(
+        model, run.x, run.centers, run.radii, safety, shapes, run.t + origin
+    )
     summary = doc.get("summary") if isinstance(doc.get("summary"), Mapping) else {}
     deadline = summary.get("step_deadline_s")
     deadline = float(deadline) if isinstance(deadline, (int, float)) and deadline > 0 else math.nan

@@ -297,7 +297,7 @@ class Visualizer:
         poses = scene.poses(run.x)
         scene.draw_robot()
         scene.draw_obstacles(run.centers.shape[1])
-        if run.centers.shape[1]:
+        if self.timeline.clearance.shape[1]:  # spheres or other shapes
             scene.draw_closest()
         if run.scene is not None and run.scene.shapes:
             draw_shapes(self._vis, run.scene.shapes, self._safety, self.options, run.t[0] + run.scene.time_origin)
@@ -363,7 +363,7 @@ class Visualizer:
         self.display(self._run.x[k])
         self.set_obstacles(self._run.centers[k], self._run.radii[k])
         tl = self.timeline
-        if tl is not None and self._run.centers.shape[1]:
+        if tl is not None and tl.clearance.shape[1]:
             self.set_closest(tl.body_point[k], tl.obstacle_point[k])
 
     def set_closest(self, body_point: Any, obstacle_point: Any) -> None:

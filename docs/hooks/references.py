@@ -237,6 +237,19 @@ def _section_markdown(cls: type) -> list[str]:
     return [*lines, ""]
 
 
+def task_markdown() -> list[str]:
+    """The `[task]` table's keys, from `crtraj.io.problem.TASK_KEYS` (the keys `Task.from_table` reads)."""
+    keys = importlib.import_module("crtraj.io.problem").TASK_KEYS
+    # a heading other than the options tables' (`## [section]`): this table is no `Options` class
+    lines = ["## The `[task]` table", "", "Read by `crtraj.io.problem.Task` (not an options class).", ""]
+    lines += ["| key | type | default | unit | meaning |", "| --- | --- | --- | --- | --- |"]
+    for key, typ, default, unit, meaning in keys:
+        lines.append(
+            f"| {_code(key)} | {_cell(typ)} | {_code(default) if default else ''} | {unit} | {_cell(meaning)} |"
+        )
+    return [*lines, ""]
+
+
 def problem_markdown() -> str:
     """The problem-file reference page: every options table, key by key."""
     classes = options_classes()
@@ -248,10 +261,11 @@ def problem_markdown() -> str:
         "problem file and a Python caller alike. An empty default means *derived* (see the notes). Unknown",
         "keys are errors. Units: mm, rad, s, unless the row says otherwise.",
         "",
-        "The `robot`, `[task]` and `[scene]` tables are described in [Problem files](../concepts/problems.md).",
+        "The `robot` and `[scene]` tables are described in [Problem files](../concepts/problems.md).",
         "",
-        "Tables: " + ", ".join(f"`[{c.SECTION}]`" for c in classes) + ".",
+        "Tables: `[task]`, " + ", ".join(f"`[{c.SECTION}]`" for c in classes) + ".",
         "",
+        *task_markdown(),
     ]
     for cls in classes:
         lines += _section_markdown(cls)

@@ -14,7 +14,9 @@ result's scene. Clearance of a node: ``|p - c(t)| - R(t) - body_radius - D_sf`` 
 Reported: each model's minimum clearance with where (frame, time, arc length along the backbone,
 obstacle), the largest PCC-to-rod node distance, the clearance the mechanics take away (largest
 per-frame PCC minus rod clearance) and the extra D_sf this result needs (minus the rod's minimum
-clearance, when negative). The rod solves run compiled and warm-started frame to frame
+clearance, when negative). A task with a tip direction goal (``goal_direction``, ``goal_cone``) also gets the
+last frame's tip tangent angle to the direction under each model; outside the cone under PCC fails the check
+(under the rod: with ``--strict``). The rod solves run compiled and warm-started frame to frame
 (`crtraj.model.cosserat._statics`), to `VERIFY_TOLERANCE`; the actuation mode is printed with the figures.
 """
 
@@ -36,6 +38,7 @@ from crtraj.model.cosserat import RodDrive, robot_rod
 from crtraj.model.kinematics import Model
 from crtraj.model.mechanics import Mechanics
 from crtraj.model.robot import Robot
+from crtraj.planning.goal import TipGoal, tip_tangents
 from crtraj.world import margin
 
 log = logging.getLogger(__name__)
@@ -73,7 +76,9 @@ class Verification:
         largest node distance between the two shapes (mm). pcc, rod: the closest approach of each. failed:
         frames whose rod solve did not converge. safety_distance: the D_sf checked (mm). gravity: the rod carried
         its weight. actuation: the rod's actuation mode ("cable_length" or "tension"). seconds, cpu_seconds: wall
-    and process CPU time of the check (the CPU time moves far less with other jobs' load)."""
+    and process CPU time of the check (the CPU time moves far less with other jobs' load). goal_cone,
+    pcc_goal_angle, rod_goal_angle (rad): a direction goal's cone and the last frame's tip tangent angle to its
+    direction under each model (NaN without a direction goal)."""
 
     t: np.ndarray
     pcc_clearance: np.ndarray
@@ -87,6 +92,13 @@ class Verification:
     actuation: str
     seconds: float
     cpu_seconds: float
+    goal_cone: float = float("nan")  # rad: the task's direction cone (NaN: no direction goal)
+    pcc_goal_angle: float = float("nan")  # rad: the last frame's PCC tip tangent to the goal direction
+    rod_goal_angle: float = float("nan")  # rad: the same under the rod (NaN where its solve failed)
+
+    @property
+    def has_direction(self) -> bool:
+        return bool(np.isfinite(self.goal_cone))
 
     @property
     def holds(self) -> bool:
@@ -180,6 +192,7 @@ def verify_cosserat(
     nodes, failed = drive.nodes(x)
     c_pcc, c_rod = _clearances(pcc, t, result, d_sf), _clearances(nodes, t, result, d_sf)
     per_rod = c_rod.min(axis=(1, 2))  # NaN where the rod failed
+    angles = _goal_angles(result, robot, x[-1], nodes[-1])
     return Verification(
         t,
         c_pcc.min(axis=(1, 2)),
@@ -193,7 +206,28 @@ def verify_cosserat(
         drive.actuation,
         time.perf_counter() - start,
         time.process_time() - cpu,
+        *angles,
     )
+
+
+def end_tangent(nodes: np.ndarray) -> np.ndarray:
+    """Unit tangent at the last of equally spaced backbone nodes (..., P, 3), P >= 3: the second-order backward
+    difference 3 p[-1] - 4 p[-2] + p[-3] (error of order h^2 times the curvature squared), normalised."""
+    d = 3.0 * nodes[..., -1, :] - 4.0 * nodes[..., -2, :] + nodes[..., -3, :]
+    return d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+
+def _goal_angles(result: Result, robot: Robot, x_end: np.ndarray, rod_end: np.ndarray) -> tuple[float, float, float]:
+    """(cone, PCC tip tangent angle, rod tip tangent angle) in rad at the last frame, for a result whose task has a
+    direction goal; NaNs otherwise. PCC's tangent is its tip frame's z axis, the rod's the backward difference of
+    its last nodes (`end_tangent`; the last segment's nodes are equally spaced)."""
+    nan = float("nan")
+    if result.goal_direction is None or result.goal_cone is None or result.goal is None:
+        return nan, nan, nan
+    goal = TipGoal.of(result.goal, result.goal_direction, result.goal_cone, prefix="task.")
+    pcc = float(goal.angles(tip_tangents(Model(robot), x_end[None]))[0])
+    rod = float(goal.angles(end_tangent(rod_end))) if np.all(np.isfinite(rod_end)) else nan
+    return float(goal.cone or nan), pcc, rod
 
 
 def planning_seconds(result: Result) -> float | None:
@@ -243,6 +277,12 @@ def verify_command(args: argparse.Namespace) -> int:
     )
     if v.failed:
         print(f"  rod solves that did not converge: {v.failed} of {len(v.t)} frames (not verified)")
+    if v.has_direction:
+        cone = np.degrees(v.goal_cone)
+        print(
+            f"  goal direction: tip tangent at the goal {np.degrees(v.pcc_goal_angle):.2f} deg (PCC), "
+            f"{np.degrees(v.rod_goal_angle):.2f} deg (Cosserat) from goal_direction; cone {cone:g} deg"
+        )
     took = planning_seconds(result)
     ratio = ""
     if took is not None and took > 0:
@@ -257,8 +297,10 @@ def verify_command(args: argparse.Namespace) -> int:
 
 def _failure(v: Verification, strict: bool) -> str | None:
     """Why `crtraj verify` exits 1 (one line with the fix), or None: rod contact, rod solves that did not
-    converge, or (strict) D_sf broken under the rod."""
+    converge, a direction goal's final tip tangent outside its cone under PCC, or (strict) D_sf broken or the
+    tangent outside the cone under the rod."""
     more = f"re-plan with [scene] safety_distance at least {v.extra_margin:.2f} mm larger"
+    cone = np.degrees(v.goal_cone)
     if v.contact and v.rod is not None:
         return f"CONTACT: under the Cosserat rod the body touches an obstacle ({v.rod.text()}); {more}"
     if v.failed:
@@ -266,7 +308,17 @@ def _failure(v: Verification, strict: bool) -> str | None:
             f"{v.failed} of {len(v.t)} rod solves did not converge, those frames are not verified; check "
             "[robot.mechanics] in the robot file (moduli, tolerance, max_iter)"
         )
+    if v.has_direction and not v.pcc_goal_angle <= v.goal_cone:
+        return (
+            f"goal_cone: the final tip tangent is {np.degrees(v.pcc_goal_angle):.2f} deg from goal_direction under "
+            f"PCC, outside the {cone:g} deg cone; re-plan the task"
+        )
     if strict and not v.holds:
         where = "" if v.rod is None else f" ({v.rod.text()})"
         return f"--strict: D_sf does not hold under the Cosserat rod{where}; {more}"
+    if strict and v.has_direction and not v.rod_goal_angle <= v.goal_cone:
+        return (
+            f"--strict: goal_cone: under the Cosserat rod the final tip tangent is {np.degrees(v.rod_goal_angle):.2f} "
+            f"deg from goal_direction, outside the {cone:g} deg cone; re-plan with a narrower goal_cone"
+        )
     return None

@@ -105,6 +105,11 @@ def spec_from_problem(problem: ProblemLike, run: ProblemRun) -> LoopSpec:
     configuration is the task's ``start_config``, `run.start_config`, or the planner's safe IK for the
     start tip. `InputError` for bad input, `UnsolvableTaskError` for a task that cannot be run."""
     task = problem.require_task()
+    if getattr(task, "goal_direction", None) is not None:
+        raise InputError(
+            "task.goal_direction: the closed loop (crtraj replan, stream) does not honour a tip direction goal; "
+            "plan it with crtraj plan, or drop goal_direction and goal_cone"
+        )
     seed = problem.seed if run.seed is None else int(run.seed)
     if seed < 0:
         raise InputError(f"--seed: must be >= 0, got {seed}")

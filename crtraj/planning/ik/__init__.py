@@ -14,9 +14,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "IKRun",
             "format_statuses",
         ),
-        "crtraj.planning.ik._safe_ik": (
-            "SafeIK",
-            "resolve_start",
-        ),
+        "crtraj.planning.ik._safe_ik": ("SafeIK",),
+        "crtraj.planning.ik._start": ("resolve_start",),
     },
 )

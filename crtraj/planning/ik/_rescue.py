@@ -60,7 +60,7 @@ class IKRescue:
             deadline=deadline,
         )
         err = np.linalg.norm(ik.tips(v, X) - run.target, axis=1)
-        ok = np.flatnonzero((clear >= run.required) & (err <= run.tol) & v.within_limits(X))
+        ok = np.flatnonzero((clear >= run.required) & (err <= run.tol) & v.within_limits(X) & run.in_cone(X))
         if not len(ok):
             return None
         k = ok[int(np.argmin(v.motion_bound(X[ok] - run.seeds[i])))]

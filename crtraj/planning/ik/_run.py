@@ -3,14 +3,19 @@ clearances, the solutions tried and the distinct safe configurations kept."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from crtraj.planning.goal import TipGoal
 from crtraj.planning.validity import MotionValidator
 
 if TYPE_CHECKING:
     from crtraj.planning.ik._safe_ik import IKSolution
+
+
+NLP_CONE_SLACK = 1e-3  # rad: the NLP aims this far inside a direction goal's cone
 
 
 class IKRun:
@@ -40,6 +45,27 @@ class IKRun:
         self.sols: list[IKSolution] = []
         self.kept: list[np.ndarray] = []
         self.statuses: dict[str, int] = {}
+        self.goal: TipGoal | None = None  # a tip direction goal (`aim`)
+        self._tangents: Callable[[np.ndarray], np.ndarray] | None = None
+
+    def aim(self, goal: TipGoal, tangents: Callable[[np.ndarray], np.ndarray]) -> None:
+        """Keep only configurations whose tip tangent (`tangents`: (S, nx) -> unit (S, 3)) lies within the cone
+        of `goal` (a goal with a direction, at `target`)."""
+        self.goal, self._tangents = goal, tangents
+
+    def in_cone(self, X: np.ndarray) -> np.ndarray:
+        """Which configurations X (S, nx) keep the goal's direction cone (all, without a direction goal)."""
+        if self.goal is None or self._tangents is None or not len(X):
+            return np.ones(len(X), dtype=bool)
+        return self.goal.within(self._tangents(X))
+
+    def cone_parameters(self) -> np.ndarray:
+        """The safe-IK NLP's direction parameters (direction (3,), cos of the cone less NLP_CONE_SLACK rad, so its
+        solutions land inside the cone despite its constraint tolerance): inert zeros and -1 without a
+        direction goal."""
+        if self.goal is None or self.goal.direction is None or self.goal.cone is None:
+            return np.array([0.0, 0.0, 0.0, -1.0])
+        return np.append(self.goal.direction, np.cos(max(self.goal.cone - NLP_CONE_SLACK, 0.5 * self.goal.cone)))
 
     def keep(self, x: np.ndarray) -> None:
         if self.kept and np.min(self.v.motion_bound(np.array(self.kept) - x)) < self.dedup:

@@ -23,6 +23,7 @@ whole body keeps the safety distance from every obstacle, in three stages:
     minimise    |M (x - x_ref)|^2 / 1e4              (closest to the projection, body-motion units)
     subject to  tip(x) = target                        (3 equalities, mm)
                 limits(x) within bounds                (bending discs, cable strokes, z stroke)
+                tangent(x) . d >= cos(cone)            (a tip direction goal; inert without one)
                 |p_i(x) - c_j|^2 >= (R_j + inflate)^2 + (h/2)^2   for every check point i, obstacle j
 
    The last line makes every *chord* between neighbouring check points (arc
@@ -33,6 +34,10 @@ whole body keeps the safety distance from every obstacle, in three stages:
    A scene's other shapes add ``d_k(p_i(x)) >= inflate`` per check point with d_k the shape's NLP distance
    (`crtraj.world.geometry.ShapeTerms`: a lower bound; their poses are parameters, the NLP is rebuilt only
    for another set of shapes).
+
+A tip direction goal (`crtraj.planning.goal.TipGoal` with a direction, ``solve(direction=)``) replaces stage
+1's projection by one onto the position and the cone together (`crtraj.planning.ik._direction`), and every
+stage keeps only configurations whose tip tangent lies within the cone.
 
 Seeds pull toward their own random configurations, so the kept solutions
 spread over the robot's redundancy (3 tip equalities leave a 2-D family of
@@ -49,12 +54,14 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from crtraj.core.fields import check_array
 from crtraj.core.interrupt import check as check_interrupt
 from crtraj.model.kinematics import Model
+from crtraj.planning.goal import TipGoal
+from crtraj.planning.ik._direction import DirectionProjection
 from crtraj.planning.ik._rescue import IKRescue
-from crtraj.planning.ik._run import IKRun, format_statuses
-from crtraj.planning.validity import MotionValidator, ProjectionLimits, ProjectionSteps, RodKernel
+from crtraj.planning.ik._run import IKRun
+from crtraj.planning.ik._tips import TipJacobians
+from crtraj.planning.validity import MotionValidator, ProjectionLimits, ProjectionSteps
 from crtraj.world import packing
 from crtraj.world.geometry import ShapeTerms
 
@@ -62,6 +69,7 @@ PUSH_EXTRA = 2.0  # mm of clearance a push-out step asks for beyond the required
 PUSH_STEP = 40.0  # mm: largest body motion of one push-out step (the linear model's trust region)
 PUSH_FD = 1e-3  # mm of body motion per finite-difference step of the clearance gradient
 PUSH_NEWTON = 4  # Newton steps back onto the target after each push-out step
+DIRECTION_ITERATIONS = 15  # Newton steps a direction goal's projection takes beyond the position's
 
 
 def build_nlp(
@@ -99,7 +107,13 @@ def build_nlp(
         g.append(ca.vertcat(*[(row - inflate).T for row in rows]))
         lbg.append(np.zeros(n * len(rows)))
         ubg.append(np.full(n * len(rows), np.inf))
-    nlp = {"x": x, "p": ca.vertcat(goal, obs, xref, inflate, shapes), "f": f, "g": ca.vertcat(*g)}
+    # a tip direction goal: tangent . direction >= cos(cone); inert (1 >= 0) for direction 0 and cos -1
+    direction, cos_cone = ca.SX.sym("direction", 3), ca.SX.sym("cos_cone")
+    g.append(ca.dot(model.tip_frame(x)[:3, 2], direction) - cos_cone)
+    lbg.append(np.zeros(1))
+    ubg.append(np.full(1, np.inf))
+    params = ca.vertcat(goal, obs, xref, inflate, shapes, direction, cos_cone)
+    nlp = {"x": x, "p": params, "f": f, "g": ca.vertcat(*g)}
     opts = {
         "ipopt.print_level": 0,
         "print_time": False,
@@ -190,10 +204,6 @@ class SafeIK:
         self._terms = ShapeTerms(())
         self._terms_key: tuple[int, ...] = ()
         self._box = self.robot.config_box()
-        # batch projection (stage 1) without a compiled kernel: tip and Jacobian in one call, mapped per batch size
-        # (built on first use: a rod model's graph takes milliseconds, and a kernel never needs it)
-        self._tip_jac_single: ca.Function | None = None
-        self._tip_jac: dict[int, ca.Function] = {}
         Mx = validator.metric_matrix
         self._W_inv = np.linalg.inv(Mx.T @ Mx)
         # finite-difference step per coordinate: PUSH_FD mm of body motion
@@ -201,8 +211,19 @@ class SafeIK:
         self._damping = 1e-3
         self._step = 150.0  # mm of tip error removed per Newton step at most
         self.compiled = bool(compiled)
+        self._tips = TipJacobians(model, validator, self.compiled)
         self._limits = ProjectionLimits.of(self.robot)
         self._steps = ProjectionSteps(np.ascontiguousarray(self._W_inv), self._damping, self._step, self.tip_tolerance)
+        self._direction: DirectionProjection | None = None
+
+    @property
+    def direction(self) -> DirectionProjection:
+        """The projection onto a tip position and direction cone (built on first use)."""
+        if self._direction is None:
+            self._direction = DirectionProjection(
+                self.model, self._W_inv, self._damping, self._step, self.validator.project_limits
+            )
+        return self._direction
 
     @property
     def solver(self) -> ca.Function:
@@ -234,7 +255,7 @@ class SafeIK:
         S = X.shape[0]
         err = np.full(S, np.inf)
         for _ in range(iterations + 1):
-            P, J = self._tip_jacobian(X)
+            P, J = self._tips.tip_jacobian(X)
             e = target - P
             err = np.linalg.norm(e, axis=1)
             if _ == iterations or np.all(err < self.tip_tolerance):
@@ -316,7 +337,7 @@ class SafeIK:
         grad = (cp - ca_[:, None]) / self._fd
         # ascent direction in the null space of the tip Jacobian, metric W = M^T M: the steepest
         # ascent W^-1 g minus the smallest motion that undoes its tip change
-        J = self._push_jacobian(Xa)
+        J = self._tips.push_jacobian(Xa)
         Wg = grad @ self._W_inv
         d = Wg - self._tip_move(J, np.einsum("nij,nj->ni", J, Wg))
         gain = np.einsum("ni,ni->n", grad, d)  # predicted clearance gain (mm) per unit step
@@ -326,35 +347,7 @@ class SafeIK:
 
     def tips(self, v: MotionValidator, X: np.ndarray) -> np.ndarray:
         """Tip positions (N, 3) mm of X (N, nx): with `compiled`, the validator's (its kernel's), else the model's."""
-        return v.tip_position(X) if self.compiled else self.model.tip_position(X)
-
-    def _push_jacobian(self, X: np.ndarray) -> np.ndarray:
-        """Tip Jacobians (S, 3, nx) the push-out moves along: a rod kernel's PCC ones (a direction only: the
-        projection after the step puts the rod's tip back on target; a fortieth of the rod's cost), else the
-        model's (`_tip_jacobian`)."""
-        kernel = self.validator.state.kernel
-        if isinstance(kernel, RodKernel):
-            return kernel.pcc_tip_jacobian(X)
-        return self._tip_jacobian(X)[1]
-
-    def _tip_jacobian(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Tips (S, 3) mm and tip Jacobians (S, 3, nx) of configurations X (S, nx): the validator's compiled
-        kernel when it has one, else one mapped CasADi call."""
-        kernel = self.validator.state.kernel
-        if kernel is not None:
-            return kernel.tip_jacobian(X)
-        S = X.shape[0]
-        f = self._tip_jac.get(S)
-        if f is None:
-            if self._tip_jac_single is None:
-                x = ca.SX.sym("x", self.robot.nx)
-                self._tip_jac_single = ca.Function("tip_jac", [x], [self.model.tip(x), self.model.jac_tip(x)])
-            f = self._tip_jac_single.map(S, "serial")
-            self._tip_jac[S] = f
-        P, J = f(X.T)
-        # contiguous like the kernel's arrays: numpy's batched products round differently on strided views
-        J = np.ascontiguousarray(np.asarray(J).reshape(3, S, self.robot.nx).transpose(1, 0, 2))
-        return np.ascontiguousarray(np.asarray(P).T), J
+        return self._tips.tips(v, X)
 
     def solve(
         self,
@@ -372,6 +365,7 @@ class SafeIK:
         max_nlp: int | None = None,
         always: tuple[int, ...] = (),
         push_rounds: int | None = None,
+        direction: TipGoal | None = None,
     ) -> IKBatch:
         """Safe configurations with the tip on `target` (mm), from seed configurations (S, nx).
 
@@ -396,6 +390,8 @@ class SafeIK:
         and then gets an NLP solve first, even when enough configurations exist (e.g. the start
         configuration as a seed: the safe goal configuration nearest to it).
         push_rounds: rounds of the push-out stage (default the one given at construction; 0 skips it).
+        direction: a goal whose direction cone the tip tangent must keep (its position must be `target`; a
+        goal without a direction, or None, asks for the position only).
         """
         t_start = time.perf_counter()
         v = self.validator if validator is None else validator
@@ -403,7 +399,10 @@ class SafeIK:
         seeds = np.atleast_2d(np.asarray(seeds, dtype=float))
         want = len(seeds) if want is None else int(want)
         # the NLP keeps `margin`; allow for its tolerance
+        goal = direction if direction is not None and direction.has_direction else None
         run = IKRun(np.asarray(target, dtype=float), seeds, v, t_check, tol, self.margin - 0.25, want, dedup)
+        if goal is not None:
+            run.aim(goal, self.direction.tangents)
         self._project_stage(run, newton_iterations)
         run.statuses["projection"] = int(run.good.sum())
         forced = [i for i in always if 0 <= i < len(seeds) and not run.good[i]]
@@ -417,11 +416,18 @@ class SafeIK:
     def _project_stage(self, run: IKRun, newton_iterations: int) -> None:
         """Stage 1: project in blocks of Newton steps, stopping as soon as enough safe configurations exist."""
         v, t_check, done_it = run.v, run.t_check, 0
+        if run.goal is not None:  # the cone needs more steps than the position alone
+            newton_iterations += DIRECTION_ITERATIONS
         while True:
             block = min(6 if done_it == 0 else 3, newton_iterations - done_it)
-            run.X, run.err = self.project(run.target, run.X, block)
+            if run.goal is None:
+                run.X, run.err = self.project(run.target, run.X, block)
+                aimed = np.ones(len(run.X), dtype=bool)
+            else:
+                run.X, run.err, angle = self.direction.project(run.goal, run.X, block, run.tol)
+                aimed = angle <= run.goal.cone
             done_it += block
-            new = ~run.checked & (run.err <= run.tol)
+            new = ~run.checked & (run.err <= run.tol) & aimed
             if new.any():
                 idx = np.flatnonzero(new)
                 run.clear[idx] = v.clearance(run.X[idx], t_check[0], t_check[1])
@@ -461,6 +467,7 @@ class SafeIK:
         )
         err[cand] = np.linalg.norm(self.tips(run.v, X[cand]) - run.target, axis=1)
         ok = (clear[cand] >= run.required) & (err[cand] <= run.tol) & run.v.within_limits(X[cand])
+        ok &= run.in_cone(X[cand])
         good[cand] = ok
         for i in cand[ok]:
             run.add(IKSolution(X[i], "push-out", True, float(err[i]), float(clear[i]), True, 0.0))
@@ -500,7 +507,7 @@ class SafeIK:
                 run.statuses["rescue"] = run.statuses.get("rescue", 0) + 1
                 continue
             # start from the projection, stay close to the seed itself
-            p = np.concatenate([run.target, scene_pack, run.seeds[i], [inflate], shape_values])
+            p = np.concatenate([run.target, scene_pack, run.seeds[i], [inflate], shape_values, run.cone_parameters()])
             sol = self._nlp_solve(run, X[i], p)
             run.sols.append(sol)
             if sol.safe and sol.clearance >= run.required:
@@ -530,64 +537,7 @@ class SafeIK:
         run.statuses[status] = run.statuses.get(status, 0) + 1
         ok = bool(st.get("success", False)) and bool(np.all(np.isfinite(xs)))
         tip_err = float(np.linalg.norm(self.model.tip_position(xs) - run.target)) if ok else np.inf
-        ok = ok and tip_err <= run.tol
+        ok = ok and tip_err <= run.tol and bool(run.in_cone(xs[None])[0])
         ins = bool(v.within_limits(xs[None])[0]) if ok else False
         c = float(v.clearance(xs[None], t_check[0], t_check[1])[0]) if ok else -np.inf
         return IKSolution(xs, status, ok, tip_err, c, ins, time.perf_counter() - t1)
-
-
-def resolve_start(
-    ik: SafeIK,
-    validator: MotionValidator,
-    *,
-    start_config: Any,
-    start_tip: Any,
-    t0: float,
-    rng: np.random.Generator,
-    seeds: int,
-    iterations: int,
-    deadline: float | None,
-    tip_tolerance: float,
-    max_nlp: int | None = None,
-) -> tuple[np.ndarray | None, str, int]:
-    """The start configuration of a query: checked when given, else safe IK for the start tip.
-
-    Returns (x or None, why it is invalid, IK solves). Among several safe IK
-    solutions the least bent one is taken (smallest bending body motion).
-    Bad input (shape, NaN) raises `InputError`.
-    """
-    robot = ik.robot
-    if start_config is not None:
-        xs = check_array(start_config, "start_config", (robot.nx,))
-        # the validator's limit test is Robot.limit_violation's arithmetic on kept matrices (the same verdict,
-        # a fraction of its cost); the violation itself is computed only for the message
-        if not validator.within_limits(xs[None])[0]:
-            viol = float(robot.limit_violation(xs)[0])
-            return None, f"start configuration violates the robot limits by {viol:.3g}", 0
-        c = float(validator.clearance(xs[None], t0)[0])
-        if c < 0:
-            return None, f"start configuration is in collision: body clearance {c:.2f} mm (below D_sf + margins)", 0
-        return xs, "", 0
-    st = check_array(start_tip, "start_tip", (3,))
-    batch = ik.solve(
-        st,
-        lambda: validator.scene.pack(t0, ik.max_obstacles),
-        validator.sample(rng, seeds),
-        t_check=(t0, t0),
-        want=1,
-        newton_iterations=iterations,
-        deadline=deadline,
-        validator=validator,
-        tip_tolerance=tip_tolerance,
-        max_nlp=max_nlp,
-    )
-    if not len(batch.safe):
-        return (
-            None,
-            f"no safe configuration puts the tip on the start {st.tolist()} mm "
-            f"({seeds} IK starts: {format_statuses(batch.statuses)})",
-            len(batch.solutions),
-        )
-    bend = batch.safe.copy()
-    bend[:, -1] = 0.0
-    return batch.safe[int(np.argmin(validator.motion_bound(bend)))], "", len(batch.solutions)

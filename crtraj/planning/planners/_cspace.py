@@ -79,6 +79,7 @@ class CSpacePlanner(PlannerBase):
     """
 
     name = "cspace"
+    honours_direction = True
 
     def __init__(self, context: PlanningContext, *, max_obstacles: int | None = None) -> None:
         super().__init__(context)
@@ -121,6 +122,8 @@ class CSpacePlanner(PlannerBase):
         condition (default: the options'). seed: seeds the random generator
         (the same seed gives the same plan). scene: plan among these
         obstacles instead of the planner's scene. goal_tolerance (mm).
+        goal: a (3,) tip position (mm), or a `crtraj.planning.goal.TipGoal` whose direction cone the goal
+        configurations keep (the tip tangent within the cone).
         goal_config: (nx,) reach this configuration (its tip must be the goal)
         instead of any safe one with the tip on the goal (an approach to a
         motion's start pose).
@@ -150,12 +153,7 @@ class CSpacePlanner(PlannerBase):
         statuses: dict[str, int] = {}
         goals = self._goals(q, q.x_start, goal_config, statuses)
         if not len(goals):
-            return self._fail(
-                run,
-                PlanStatus.INVALID_GOAL,
-                f"no safe configuration puts the tip on the goal {q.query.goal.tolist()} mm "
-                f"({q.counts.get('ik_solves_goal', 0)} IK solves: {format_statuses(statuses)})",
-            )
+            return self._fail(run, PlanStatus.INVALID_GOAL, unreachable_message(q, statuses))
         run.goals = goals
         return self._search(run)
 
@@ -208,6 +206,7 @@ class CSpacePlanner(PlannerBase):
             "max_nlp": o.ik.nlp_solves,
             # the safe goal configuration nearest the start: short paths, above all when re-planning
             "always": (0,),
+            "direction": q.query.tip_goal,
         }
         if v.static or o.ik.goal_window == 0:
             parts = [ik.solve(goal, lambda: sc.pack(t0, ik.max_obstacles), seeds, tip_tolerance=tip_tol, **kw)]
@@ -325,7 +324,7 @@ class CSpacePlanner(PlannerBase):
             message=msg,
             planner=self.name,
             seed=q.seed,
-            goal=q.query.goal,
+            goal=q.query.tip_goal,
             X=final,
             raw=raw,
             smoothed=smoothed,
@@ -356,3 +355,13 @@ class _Query:
     q: QueryStart
     goals: np.ndarray
     trees: list[Any]
+
+
+def unreachable_message(q: QueryStart, statuses: dict[str, int]) -> str:
+    """The one line of a goal no safe configuration reaches; a direction goal's begins with
+    ``unreachable_goal:`` and names the cone."""
+    tip = q.query.tip_goal
+    solves = f"({q.counts.get('ik_solves_goal', 0)} IK solves: {format_statuses(statuses)})"
+    if not tip.has_direction:
+        return f"no safe configuration puts the tip on the goal {q.query.goal.tolist()} mm {solves}"
+    return f"unreachable_goal: no safe configuration puts the tip on the goal {tip.describe()} {solves}"

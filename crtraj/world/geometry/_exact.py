@@ -31,8 +31,13 @@ _CHUNK = 4096  # points per brute-force block
 
 
 def _closest_on_triangle(x: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """Distances (...) from points x to triangles a, b, c (all broadcast to (..., 3)): Ericson's closest point,
-    by region (vertex, edge or face)."""
+    """Distances (...) from points x to triangles a, b, c (all broadcast to (..., 3))."""
+    return np.linalg.norm(x - closest_point_on_triangle(x, a, b, c), axis=-1)
+
+
+def closest_point_on_triangle(x: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """The points (..., 3) of triangles a, b, c nearest to points x (all broadcast to (..., 3)): Ericson's
+    closest point, by region (vertex, edge or face)."""
     ab, ac, ap = b - a, c - a, x - a
     d1, d2 = np.einsum("...k,...k->...", ab, ap), np.einsum("...k,...k->...", ac, ap)
     bp, cp = x - b, x - c
@@ -58,7 +63,7 @@ def _closest_on_triangle(x: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndar
     ]
     for mask, point in regions:
         q = np.where(mask[..., None], point, q)
-    return np.linalg.norm(x - q, axis=-1)
+    return q
 
 
 def point_triangle_distance(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
