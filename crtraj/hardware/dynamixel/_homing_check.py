@@ -16,9 +16,10 @@ from typing import Any
 
 from crtraj.core.errors import InputError
 from crtraj.hardware.actuators import Actuators
+from crtraj.hardware.dynamixel import _link
 from crtraj.hardware.dynamixel._checks import ServoCheck, check_baud
 from crtraj.hardware.dynamixel._homing_state import HomingState, PowerUpCheck, multi_turn, unwrap, windows
-from crtraj.hardware.dynamixel._link import LINK_ERRORS, DynamixelTransport, _sdk, parse_url, port_factory
+from crtraj.hardware.dynamixel._link import LINK_ERRORS, DynamixelTransport, _sdk, parse_url
 from crtraj.hardware.dynamixel._protocol import X
 from crtraj.hardware.transport import LinkLostError, TransportError
 
@@ -31,7 +32,8 @@ class ReadOnlyLink:
         device, baud = parse_url(url)
         self.bus, self.device, self.baud = actuators.bus, device, check_baud(baud)
         self._ph, self._lost = sdk.PacketHandler(2.0), None
-        self._port = port = port_factory(sdk, device)
+        # looked up at each open, not bound at import: the port seam (`_link.port_factory`) is the link's
+        self._port = port = _link.port_factory(sdk, device)
         try:
             opened = port.openPort() and DynamixelTransport._set_baud(port, self.baud)
         except Exception as exc:  # pyserial raises SerialException / OSError / ValueError
