@@ -80,7 +80,7 @@ def test_the_new_step_agrees_with_the_previous_one_on_recorded_inputs(problem, m
     parameters concatenated): the same status and solver status, configurations, tips, cost, smallest obstacle row
     and violation to 1e-9 relative. And every verification the run made gives the previous formula's bound (its
     arrays built by concatenation) bit for bit."""
-    new, old = _loop(problem, step_deadline=0.0), _loop(problem, fused=False, step_deadline=0.0)
+    new, old = _loop(problem, 6.0, step_deadline=0.0), _loop(problem, 6.0, fused=False, step_deadline=0.0)
     assert new.replanner._buffer is not None and old.replanner._buffer is None
     solves, checks = [], []
     solve, verify = Replanner.solve, SceneChecks.verify

@@ -270,11 +270,12 @@ def test_feed_replay_and_live_replan_with_approach_reach_the_goal_on_the_device(
     assert res["status"] == "reached" and res["summary"]["collisions"] == 0
     np.testing.assert_allclose(res["waypoints"][0]["x"], np.zeros(robot.nx), atol=1e-6)  # started at the device
     assert res["stream"]["stream"]["status"] == "done" and res["stream"]["refused_steps"] == 0
-    # the limit figures are those of the frames queued for the device (the link's follower keeps 98 %)
-    s = res["summary"]
-    assert 0.0 < s["max_velocity_fraction"] <= 0.98 * (1 + 1e-9) and 0.0 < s["max_acceleration_fraction"] <= 0.98 * (
-        1 + 1e-9
-    )
+    # the limit figures are those of every frame the device was sent: the link's follower keeps 98 %; a hold (a
+    # starved machine's late telemetry) brakes within 100 % (f9: 0.991 after a hold), so 98 % holds only without one
+    s, link = res["summary"], res["stream"]
+    bound = 0.98 if link["holds"] == 0 and link["restarts"] == 0 else 1.0
+    assert 0.0 < s["max_velocity_fraction"] <= bound * (1 + 1e-9), (s, link["holds"])
+    assert 0.0 < s["max_acceleration_fraction"] <= bound * (1 + 1e-9), (s, link["holds"])
     # the device ends at the run's final set-point, with the tip on the goal
     q_end = np.array(res["waypoints"][-1]["q"])
     np.testing.assert_allclose(final["positions"], acts.command(q_end), atol=0.01)
