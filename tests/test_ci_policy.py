@@ -252,3 +252,12 @@ def test_ci_tools_installs_each_missing_tool_on_a_bare_machine(tmp_path):
     env, log = _stub_path(tmp_path / "full", (*_tool_table(), "python3"))
     subprocess.run([env["PATH"] + "/bash", str(CI_TOOLS)], env=env, check=True, capture_output=True)
     assert not log.exists(), log.read_text()
+
+
+def test_the_heavy_first_files_are_test_files_of_the_suite():
+    """Every file conftest hands out first exists (a renamed file would silently lose its place), once."""
+    from conftest import HEAVY_FIRST
+
+    here = Path(__file__).resolve().parent
+    assert len(set(HEAVY_FIRST)) == len(HEAVY_FIRST)
+    assert [name for name in HEAVY_FIRST if not (here / name).is_file()] == []
