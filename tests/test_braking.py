@@ -21,7 +21,7 @@ from crtraj.control.braking import servo_stop, stop_frames
 from crtraj.control.loop import ClosedLoop, ProblemRun, RobotNow, RunStatus, StepStatus, assemble, spec_from_problem
 from crtraj.core.clock import VirtualClock
 from crtraj.core.errors import AdmissionError
-from crtraj.hardware.protocol import ESTOP, MOVE, Frame
+from crtraj.hardware.protocol import ESTOP, HOLD, MOVE, Frame
 from crtraj.hardware.sim import DeviceCore
 from crtraj.hardware.stream import Braking, Streamer, StreamOptions
 from crtraj.hardware.transport import TransportError
@@ -147,6 +147,16 @@ def test_estop_while_moving_sends_the_verified_stop_then_the_estop(motion, at):
     assert np.array_equal(F[-1], F[-2]) and np.array_equal(after[-1].values, F[-1])
     stamps = np.array([f.stamp for f in before[1:] + after[:m]])
     assert _min_clearance(motion, stamps, F[1:]) >= motion.scene.safety_distance - 0.25
+    # the report's limit figures are those of every frame on the wire, the stop included: finite differences of
+    # the set-points as sent (from rest at the first), against the report's
+    W = np.array([f.values for f in frames if f.kind in (MOVE, HOLD)])
+    W = np.vstack([W[:1], W])
+    V = np.diff(W, axis=0) / DT
+    A = np.diff(np.vstack([np.zeros((1, W.shape[1])), V]), axis=0) / DT
+    acts = motion.actuators
+    assert rep.max_velocity_fraction == pytest.approx(float(np.max(np.abs(V) / acts.vmax)), rel=1e-9)
+    assert rep.max_acceleration_fraction == pytest.approx(float(np.max(np.abs(A) / acts.amax)), rel=1e-9)
+    assert 0.0 < rep.max_acceleration_fraction <= 1.0 + 1e-9
 
 
 class _FailingLink(CoreLink):

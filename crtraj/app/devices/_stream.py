@@ -152,6 +152,12 @@ def print_report(rep: StreamReport, dry_run: str | None) -> None:
     )
     if dev:
         print(f"  device: {dev}")
+    v, a = rep.max_velocity_fraction, rep.max_acceleration_fraction
+    if v is not None and a is not None:
+        print(
+            f"  sent: actuators at most {v:.2f} of their velocity limit and {a:.2f} of their acceleration limit "
+            "(every frame, stops included)"
+        )
     if rep.brakes or rep.latched:
         print(f"  stop: {rep.brakes} planned stop(s) in {rep.brake_frames} frames; {rep.latched} latched")
     if rep.late_ticks:

@@ -7,7 +7,9 @@ actuator units (rad for servos, mm for the z stage), stamps in s of trajectory t
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -105,3 +107,10 @@ class FrameSender:
             }
         )
         return True
+
+    def tallies(self) -> dict[str, Any]:
+        """What was sent, for the stream's report: frames in all and per kind, and the largest actuator speed and
+        acceleration of every frame as fractions of the limits (None before any frame)."""
+        c = self.counts
+        peaks = {k: (v if math.isfinite(v) else None) for k, v in self.peaks.as_dict().items()}
+        return {"frames": c["frames"], "moves": c[MOVE], "holds": c[HOLD], "estops": c[ESTOP], **peaks}

@@ -110,6 +110,10 @@ class StreamReport:
     brakes: int = 0  # stops planned within the acceleration limits, verified and sent
     brake_frames: int = 0
     latched: int = 0  # stops that fell back to latching the last set-point (check failed, refused, closed)
+    # the largest actuator speed and acceleration of every frame sent, its stops and holds included, as fractions
+    # of the limits (the limits gate's finite differences; None before any frame): what the device received
+    max_velocity_fraction: float | None = None
+    max_acceleration_fraction: float | None = None
 
     @property
     def ok(self) -> bool:
@@ -504,10 +508,7 @@ class Streamer:
         return StreamReport(
             status=self._machine.final_status(status),
             message=message or self.reason or ("completed" if self.state == DONE else ""),
-            frames=counts["frames"],
-            moves=counts[MOVE],
-            holds=counts[HOLD],
-            estops=counts[ESTOP],
+            **self._sender.tallies(),
             telemetry=self._monitor.received,
             telemetry_errors=self._monitor.errors,
             device={} if tel is None else tel.counters(),
