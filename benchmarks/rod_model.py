@@ -175,7 +175,7 @@ def _replan_run(problem: Problem, name: str, body: str, old: bool) -> np.ndarray
     s, pl = run.summary(), plant.describe()
     it, nlp = run.iter_time * 1e3, run.nlp_time * 1e3
     p50, p90, p99 = np.percentile(it, [50, 90, 99])
-    print(f"  {name}: {loop.replanner.describe()['solver']}, built in {built:.1f} s, load average {load:.1f}")
+    print(f"  {name}: {loop.describe_nlp()['solver']}, built in {built:.1f} s, load average {load:.1f}")
     print(f"    loop iteration median {p50:.2f} / p90 {p90:.2f} / p99 {p99:.2f} ms (NLP median "
           f"{np.median(nlp):.2f} ms); {s['deadline_misses']} of {s['steps']} steps past the "
           f"{s['step_deadline_s'] * 1e3:g} ms deadline; steps {s['status_counts']}")  # fmt: skip

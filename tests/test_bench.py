@@ -261,11 +261,11 @@ class Collider(StraightToGoal):
         return plan_result(self.model, [0.0, 1.0, 2.0], [x0, x_bad, self.goal_config(goal, x0, seed)])
 
 
-def _straight(context, steer_options, max_obstacles):
+def _straight(context):
     return StraightToGoal(context.model)
 
 
-def _collider(context, steer_options, max_obstacles):
+def _collider(context):
     return Collider(context.model)
 
 

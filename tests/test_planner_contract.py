@@ -23,11 +23,12 @@ import pytest
 from conftest import PLANNER_HANG_S, require_module
 from test_planner_helpers import dense_path_check, paper_static
 
+from crtraj.core.errors import InputError
 from crtraj.model.kinematics import Model
 from crtraj.planning.base import Planner
 from crtraj.planning.context import PlanningContext
 from crtraj.planning.options import CSpaceOptions, PlannerOptions
-from crtraj.planning.planners import BUILTIN, import_ompl
+from crtraj.planning.planners import BUILTIN, PlannerSpec, import_ompl
 from crtraj.planning.result import PlanStatus
 from crtraj.planning.steer import SteerOptions
 from crtraj.planning.stop import StopCondition
@@ -160,3 +161,23 @@ def test_the_contract(name, clause, planners, sim1, checker, monkeypatch):
 def test_the_contract_of_an_extra(name, clause, planners, sim1, checker, monkeypatch):
     require_module(BUILTIN.spec(name).optional, hint="pip install -e '.[bench]'")
     clause(name, planners, sim1, checker, monkeypatch)
+
+
+def test_a_factory_is_given_only_the_build_inputs_it_names():
+    """The registry passes a factory the context and, by keyword, only the build inputs its signature names (the
+    c-space planner no steer options, OMPL neither those nor obstacle slots); a factory naming any other is refused
+    when it is registered."""
+    got = {}
+
+    def slots_only(context, *, max_obstacles=None):
+        got.update(context=context, max_obstacles=max_obstacles)
+        return "built"
+
+    registry = BUILTIN.with_planner(PlannerSpec("slots", slots_only))
+    assert registry.create("slots", "the context", SteerOptions(), max_obstacles=4) == "built"
+    assert got == {"context": "the context", "max_obstacles": 4}
+    assert BUILTIN.spec("cspace").inputs() == ("max_obstacles",)
+    assert BUILTIN.spec("rrt").inputs() == ("steer_options", "max_obstacles")
+    assert BUILTIN.spec("ompl-rrtconnect").inputs() == ()
+    with pytest.raises(InputError, match="'steer'"):
+        PlannerSpec("old", lambda context, steer, max_obstacles: None)

@@ -239,8 +239,8 @@ def _run_and_write(  # long: the run's resources (stage, stream, feed, live view
             device = sensor if isinstance(sensor, RodPlant) else link
             run = loop.run(device=device, observer=watch.start(loop) if watch is not None else None)
         finally:
-            if link is not None:
-                link.streamer.close()  # a no-op after a normal run: the run closed it
+            if streamer is not None:
+                streamer.close()  # a no-op after a normal run: the run closed it
             if feed is not None:
                 feed.close()
         ok = run.is_success()  # reached the goal safely, --no-safety or not
@@ -265,7 +265,7 @@ def _run_and_write(  # long: the run's resources (stage, stream, feed, live view
 
 
 def _print_header(problem: Problem, seed: int, loop: ClosedLoop, *, live_obstacles: bool) -> None:
-    o, d = loop.options, loop.replanner.describe()
+    o, d = loop.options, loop.describe_nlp()
     print(
         f"replanning '{problem.name}' (seed {seed}, {'with' if o.safety else 'WITHOUT'} collision-free "
         f"terms{', live obstacles, real time' if live_obstacles else ''}): horizon {o.horizon} x "

@@ -35,10 +35,12 @@ _MIN_SPEED = 0.01
 PAPER_SCENES = ScenarioOptions(mean_speed=(_MIN_SPEED, 15.0))
 
 
-def _paper(name: str, context: PlanningContext, steer: SteerOptions | None, max_obstacles: int | None) -> Planner:
+def _paper(
+    name: str, context: PlanningContext, *, steer_options: SteerOptions | None = None, max_obstacles: int | None = None
+) -> Planner:
     # task-space edges keep full-speed timing (as the registry's rrt and rrtstar)
     paper = context.with_options(context.options.with_(check={"mode": "paper"}))
-    return BUILTIN.create(name, paper, steer, max_obstacles=max_obstacles)
+    return BUILTIN.create(name, paper, steer_options, max_obstacles=max_obstacles)
 
 
 PAPER_SPECS = (

@@ -99,6 +99,18 @@ class Braking:
         self.verifier = verifier
         self.counts = BrakeCounts()
 
+    def count_latched(self) -> None:
+        """A stop that could not be sent or finished: the device's latch stopped it."""
+        self.counts.latched += 1
+
+    def count_braked(self) -> None:
+        """A stop planned, verified and started."""
+        self.counts.braked += 1
+
+    def count_frame(self) -> None:
+        """One frame of a stop sent."""
+        self.counts.frames += 1
+
     def plan(self, position: np.ndarray, velocity: np.ndarray, t0: float) -> BrakePlan:
         """The stop from the last frame (`position` at trajectory time `t0` s, moving at `velocity`)."""
         values = stop_frames(position, velocity, self.amax, self.dt)

@@ -38,6 +38,10 @@ class SetpointFollower:
         p = np.asarray(position, dtype=float)
         self.state = FollowerState(p, np.zeros(len(self.vmax)), p)
 
+    def restore(self, state: FollowerState) -> None:
+        """Go back to `state` (one taken before a `follow` whose frames were not sent)."""
+        self.state = state
+
     def follow(self, target: np.ndarray) -> np.ndarray:
         """The set-points (frames, n) tracking `target` (frames, n) from the current state; the state moves on."""
         dt, vmax, amax = self.dt, self.vmax, self.amax

@@ -168,8 +168,8 @@ class DeviceLink:
         if s.state == "held":
             try:  # a hold latched while moving brakes within the limits: resume from where the stop ends
                 s.wait_stopped(self._STOP_WAIT)
-                if t < s.buffer.sent_stamp - 1e-9:  # the stop's frames ran past t: stamps never go back
-                    raise StreamError(f"device stream held: stopping (sent up to t={s.buffer.sent_stamp:.3f} s)")
+                if t < s.sent_stamp - 1e-9:  # the stop's frames ran past t: stamps never go back
+                    raise StreamError(f"device stream held: stopping (sent up to t={s.sent_stamp:.3f} s)")
                 s.resume()
             except StreamError as exc:
                 raise DeviceError(str(exc)) from exc
@@ -184,7 +184,7 @@ class DeviceLink:
         values = self.follower.follow(target)
         why = self._failure(stamps, values, before.position, before.velocity)
         if why is not None:
-            self.follower.state = before
+            self.follower.restore(before)
             self.refused_steps += 1
             self.refusal = self.refusal or why
             self.hold(f"step at t={t:.2f} s refused before sending: {why}")

@@ -50,7 +50,7 @@ from typing import Any
 
 import numpy as np
 
-from crtraj.control.horizon import HorizonStatus, Replanner
+from crtraj.control.horizon import HorizonStatus
 from crtraj.control.loop._problem import ProblemLike, ProblemRun, spec_from_problem
 from crtraj.control.loop._recorder import RunEnding
 from crtraj.control.loop._reference_manager import ReferenceStep
@@ -58,6 +58,7 @@ from crtraj.control.loop._run_record import ReplanRun, RunStatus, StateRecord, S
 from crtraj.control.loop._setup import LoopConfig, LoopParts, LoopSpec, assemble
 from crtraj.control.loop._step_policy import Choice, RobotNow
 from crtraj.control.ports import Device, DeviceError, Landing, StepObserver
+from crtraj.model.robot import Robot
 
 __all__ = ["ClosedLoop"]
 
@@ -107,13 +108,21 @@ class ClosedLoop:
 
     def __init__(self, parts: LoopParts, config: LoopConfig, setup_time: float = 0.0) -> None:
         self.parts, self.config, self.setup_time = parts, config, setup_time
-        self.model, self.robot, self.scene = parts.model, parts.model.robot, parts.scene
+        self.model, self.scene = parts.model, parts.scene
         self.options, self.loop_options = config.options, config.loop_options
         self.tracking_options, self.extra_options = config.tracking_options, config.extra_options
         self.goal, self.x_start, self.goal_tolerance = config.goal, config.x_start, config.goal_tolerance
         self.n_sub, self.rate_limits = config.n_sub, config.rate_limits
-        self.tracker, self.servo = parts.tracker, parts.tracker.servo
-        self.replanner: Replanner = parts.policy.replanner
+        self.tracker, self.servo, self.replanner = parts.tracker, parts.servo, parts.replanner
+        # the parts the coordinator asks, each through its own methods
+        self._obstacles, self._checks, self._motion = parts.obstacles, parts.checks, parts.motion
+        self._policy, self._references, self._tip = parts.policy, parts.references, parts.tip
+        self._pacer, self._recorder = parts.pacer, parts.recorder
+
+    @property
+    def robot(self) -> Robot:
+        """The robot description of the loop's model."""
+        return self.model.robot
 
     @classmethod
     def build(cls, model: Any, scene: Any, goal: Any, start_config: Any, **options: Any) -> ClosedLoop:
@@ -144,15 +153,19 @@ class ClosedLoop:
     def plan_first_reference(self, q: np.ndarray) -> None:
         """Plan the first reference path (followed from t = 0) from actuation q (nq,) mm among the obstacles as
         the loop's source has them at t = 0, before the run; nothing while the source has no state yet."""
-        scene, _ = self.parts.obstacles.at(0.0)
+        scene, _ = self._obstacles.at(0.0)
         if scene is not None:
-            self.parts.references.plan_before(self.servo.config(q), scene)
+            self._references.plan_before(self.servo.config(q), scene)
+
+    def describe_nlp(self) -> dict[str, Any]:
+        """The horizon NLP as the run records it (solver, variables, constraints, build; `Replanner.describe`)."""
+        return self.replanner.describe()
 
     @property
     def scene_now(self) -> Any:
         """The obstacles (a `crtraj.world.scene.Scene`, loop time) the current step was checked against: a
         device that verifies what it sends checks against the same snapshot."""
-        return self.parts.checks.scene_now
+        return self._checks.scene_now
 
     # ------------------------------------------------------------------- run
     def run(
@@ -179,32 +192,31 @@ class ClosedLoop:
         `crtraj.control.ports.StepObserver`; it keeps references only, so the loop's timing does not change).
         """
         t_wall = time.perf_counter()
-        p = self.parts
-        live = bool(p.obstacles.live)
+        live = bool(self._obstacles.live)
         realtime = live if realtime is None or device is not None else bool(realtime)
         q = self.start_command() if device is None else device.start_actuation()
         x = self.servo.config(q)
         robot = _Robot(0.0, q, q.copy(), x, x.copy(), q, np.zeros_like(x))
-        p.tip.start()
-        p.references.start()
-        p.recorder.start(observer)
-        p.policy.start()
-        p.pacer.start(realtime, device)
-        p.tip.sense(robot.t, robot.q, robot.x, p.references)
+        self._tip.start()
+        self._references.start()
+        self._recorder.start(observer)
+        self._policy.start()
+        self._pacer.start(realtime, device)
+        self._tip.sense(robot.t, robot.q, robot.x, self._references)
         refused = self._start(robot, live)
         if refused is not None:
             return self._finish(robot, *refused, t_wall, device)
-        p.references.plan_initial(robot.t)
-        p.references.start_worker(realtime)
+        self._references.plan_initial(robot.t)
+        self._references.start_worker(realtime)
         if not live:
             # a known scene: the horizon's obstacle spheres of every step's start time in one pass (the numbers
             # of the per-step call, looked up in the steps; issue 29)
             dt = self.options.dt
             times = [0.0] + [round((k + 1) * dt, 12) for k in range(self.loop_options.steps(dt))]
-            self.replanner.tabulate_obstacles(p.checks.scene_now, np.array(times))
+            self.replanner.tabulate_obstacles(self._checks.scene_now, np.array(times))
         self._warm_up(robot)
         frozen = _freeze_heap()
-        p.pacer.begin()
+        self._pacer.begin()
         try:
             return self._steps(robot, t_wall, progress, device)
         except KeyboardInterrupt:
@@ -214,7 +226,7 @@ class ClosedLoop:
             msg = "interrupted (Ctrl-C): device held"
             return self._finish(robot, RunStatus.INTERRUPTED, msg, t_wall, device)
         finally:
-            p.references.close()
+            self._references.close()
             if frozen:
                 gc.unfreeze()
 
@@ -222,17 +234,17 @@ class ClosedLoop:
         """Run a step's computations once, untimed, before the first step, and keep nothing of it. Their
         first calls allocate buffers, fill caches and (after the worker's fork) copy the pages they write:
         milliseconds that would otherwise land in step 0. The replanner's warm start is forgotten."""
-        rp, dt, p = self.replanner, self.options.dt, self.parts
-        X_ref = p.references.horizon_reference(robot.x, rp.N, dt)
+        rp, dt = self.replanner, self.options.dt
+        X_ref = self._references.horizon_reference(robot.x, rp.N, dt)
         res = rp.solve(
-            robot.x, X_ref, rp.obstacles_from_scene(p.checks.scene_now, robot.t, robot.x), x_prev=robot.x_prev
+            robot.x, X_ref, rp.obstacles_from_scene(self._checks.scene_now, robot.t, robot.x), x_prev=robot.x_prev
         )
         rp.reset()
         x1 = res.configs[0] if res.feasible else robot.x
-        sim = p.motion.track(robot.q, robot.qc, robot.x, x1, robot.t, robot.inc)
+        sim = self._motion.track(robot.q, robot.qc, robot.x, x1, robot.t, robot.inc)
         if self.options.safety:
-            p.checks.verify(sim.times, sim.configs, (robot.t + dt, robot.t + 2 * dt))
-            p.references.current_valid(robot.t)
+            self._checks.verify(sim.times, sim.configs, (robot.t + dt, robot.t + 2 * dt))
+            self._references.current_valid(robot.t)
 
     def _state_record(
         self,
@@ -253,20 +265,19 @@ class ClosedLoop:
 
     def _start(self, robot: _Robot, live: bool) -> tuple[RunStatus, str] | None:
         """Record t = 0 and check that the run can start: (status, why) when it cannot, else None."""
-        p = self.parts
-        scene0, why = p.pacer.first_states(p.obstacles, live)
-        p.recorder.feed_events(p.obstacles, 0.0)
+        scene0, why = self._pacer.first_states(self._obstacles, live)
+        self._recorder.feed_events(self._obstacles, 0.0)
         if scene0 is None:
             nan = math.nan
-            p.recorder.record_state(
+            self._recorder.record_state(
                 self._state_record(robot, (nan, nan, nan), robot.x, np.zeros(1), robot.x[None], self.scene)
             )
             return RunStatus.NO_OBSTACLES, f"no obstacle state to start from: {why}"
-        p.checks.use(scene0)
-        c0 = p.checks.measure(np.array([0.0]), robot.x[None])
-        b0 = p.checks.verify(np.array([0.0]), robot.x[None], None)
+        self._checks.use(scene0)
+        c0 = self._checks.measure(np.array([0.0]), robot.x[None])
+        b0 = self._checks.verify(np.array([0.0]), robot.x[None], None)
         d0 = c0 + self.scene.safety_distance
-        p.recorder.record_state(
+        self._recorder.record_state(
             self._state_record(robot, (c0, d0, b0), robot.x, np.array([0.0]), robot.x[None], scene0)
         )
         if self.options.safety and b0 < 0.0:
@@ -278,11 +289,11 @@ class ClosedLoop:
         self, robot: _Robot, t_wall: float, progress: Callable[[int, float, str], None] | None, device: Device | None
     ) -> ReplanRun:
         """The control steps of `run` after the start checks."""
-        lo, p = self.loop_options, self.parts
+        lo = self.loop_options
         settled_since: float | None = None
         for k in range(lo.steps(self.options.dt)):
             t = robot.t
-            t_iter = self.parts.pacer.now()
+            t_iter = self._pacer.now()
             if device is not None:
                 why_not = device.problem()
                 if why_not:
@@ -291,21 +302,21 @@ class ClosedLoop:
                 robot.on_device = True
                 robot.x = self.servo.config(robot.q)
             status = self._step(k, robot, device, t_iter)
-            p.tip.sense(robot.t, robot.q, robot.x, p.references)
+            self._tip.sense(robot.t, robot.q, robot.x, self._references)
             if progress is not None:
                 progress(k, robot.t, str(status))
             if device is not None and status is StepStatus.UNSAFE:
                 msg = f"unsafe step at t={t:.2f} s: nothing verified safe, device e-stopped"
                 return self._finish(robot, RunStatus.ESTOP, msg, t_wall, device)
             # with tip feedback the goal is where the corrected tip (model tip + estimated error) reaches it
-            err = float(np.linalg.norm(self.model.tip_position(robot.x) - p.tip.target))
+            err = float(np.linalg.norm(self.model.tip_position(robot.x) - self._tip.target))
             if err > self.goal_tolerance or not self._at_rest(robot):
                 settled_since = None
             else:
                 settled_since = robot.t if settled_since is None else settled_since
                 if robot.t - settled_since >= lo.settle_time - 1e-9:
                     return self._finish(robot, RunStatus.REACHED, "goal reached and held", t_wall, device)
-            p.pacer.pace(robot.t)
+            self._pacer.pace(robot.t)
         msg = f"goal not reached within {lo.duration:g} s"
         return self._finish(robot, RunStatus.TIMEOUT, msg, t_wall, device)
 
@@ -314,39 +325,39 @@ class ClosedLoop:
         reference did). An NLP result that arrives after ``replan.step_deadline`` is not used:
         the step falls back to the last plan's next move (verified now), or a verified hold; the late plan, if
         feasible, becomes the last plan for the next step."""
-        p, t, dt, rp = self.parts, robot.t, self.options.dt, self.replanner
-        p.checks.use(scene_t)
-        refs = p.references.update(k, robot.x, t, dt * rp.N)
-        X_ref = p.references.horizon_reference(robot.x, rp.N, dt)
+        t, dt, rp = robot.t, self.options.dt, self.replanner
+        self._checks.use(scene_t)
+        refs = self._references.update(k, robot.x, t, dt * rp.N)
+        X_ref = self._references.horizon_reference(robot.x, rp.N, dt)
         obstacles = rp.obstacles_from_scene(scene_t, t, robot.x)
         deadline = self.options.step_deadline
-        left = deadline - (self.parts.pacer.now() - t_iter) if deadline else None
-        late = p.policy.solve(robot.x, X_ref, obstacles, robot.x_prev, left)
-        res = p.policy.judge_deadline(
-            late, self.parts.pacer.now() - t_iter + refs.charged - p.references.waited_so_far()
+        left = deadline - (self._pacer.now() - t_iter) if deadline else None
+        late = self._policy.solve(robot.x, X_ref, obstacles, robot.x_prev, left)
+        res = self._policy.judge_deadline(
+            late, self._pacer.now() - t_iter + refs.charged - self._references.waited_so_far()
         )
         if res is not late:
-            p.recorder.count_deadline_miss()
-        p.references.note_nlp(failed=not res.feasible and res.status is not HorizonStatus.SKIPPED)
-        return p.policy.choose_after(robot.now(), late, res), res, refs
+            self._recorder.count_deadline_miss()
+        self._references.note_nlp(failed=not res.feasible and res.status is not HorizonStatus.SKIPPED)
+        return self._policy.choose_after(robot.now(), late, res), res, refs
 
     def _step(self, k: int, robot: _Robot, device: Device | None, t_iter: float) -> StepStatus:
         """Control step k from robot.t: choose, verify, (send,) apply and record one move; its status.
         t_iter: the clock when the step began (its iteration time is charged from then)."""
-        p, t = self.parts, robot.t
-        scene_t, why = p.obstacles.at(t)
-        p.recorder.feed_events(p.obstacles, t)
+        t = robot.t
+        scene_t, why = self._obstacles.at(t)
+        self._recorder.feed_events(self._obstacles, t)
         if scene_t is None:
             # no trustworthy obstacle state: keep the actuators where they are and say so
-            choice, res = p.policy.stale(robot.now(), why)
+            choice, res = self._policy.stale(robot.now(), why)
             refs = ReferenceStep()
         else:
             choice, res, refs = self._decide(k, robot, scene_t, t_iter)
-        iter_time = self.parts.pacer.now() - t_iter + refs.charged - p.references.take_waited()
+        iter_time = self._pacer.now() - t_iter + refs.charged - self._references.take_waited()
         reason = refs.reason
         m = choice.motion
         q_new, qc_new, T, X, cmds = m.q, m.qc, m.times, m.configs, m.commands
-        periods = p.motion.periods(robot.q, cmds)
+        periods = self._motion.periods(robot.q, cmds)
         if device is not None:
             landing, not_sent = self._drive(device, choice.status, t, robot.q, cmds, why, choice.bound)
             if landing is not None:
@@ -356,10 +367,10 @@ class ClosedLoop:
                 X = self.servo.config(np.vstack([robot.q[None], periods]))
                 reason = "; ".join(filter(None, (reason, not_sent)))
                 if not_sent:
-                    p.policy.dropped()
+                    self._policy.dropped()
         if scene_t is not None:
-            reason = "; ".join(filter(None, (reason, p.references.ask(k, robot.x, t))))
-        measured = p.checks.measure(T, X)
+            reason = "; ".join(filter(None, (reason, self._references.ask(k, robot.x, t))))
+        measured = self._checks.measure(T, X)
         # the set-point's last change (configuration): the next step's acceleration history
         before = cmds[-2] if len(cmds) > 1 else robot.qc
         robot.inc = self.servo.config(qc_new) - self.servo.config(before)
@@ -367,12 +378,12 @@ class ClosedLoop:
         robot.q_last = periods[-2] if len(periods) > 1 else robot.q
         robot.t = round((k + 1) * self.options.dt, 12)
         clear = (measured, measured + self.scene.safety_distance, choice.bound)
-        p.recorder.record_state(self._state_record(robot, clear, choice.planned, T, X, p.checks.scene_now))
+        self._recorder.record_state(self._state_record(robot, clear, choice.planned, T, X, self._checks.scene_now))
         step = StepRecord(
             str(choice.status), res.solver_status, res.wall_time, refs.plan_time, iter_time, res.iterations,
             refs.replanned, reason, cmds, periods,
         )  # fmt: skip
-        p.recorder.record_step(step)
+        self._recorder.record_step(step)
         return choice.status
 
     def _at_rest(self, robot: _Robot) -> bool:
@@ -412,17 +423,16 @@ class ClosedLoop:
         self, robot: _Robot, status: RunStatus, message: str, t_wall: float, device: Device | None = None
     ) -> ReplanRun:
         """Finish the device (if any) and turn the records into the run."""
-        p = self.parts
         if device is not None:
             device.finish(robot.q)
         ending = RunEnding(
             status=status,
             message=message,
-            measured_tip=p.tip.readings(),
-            **p.references.outcome(),
+            measured_tip=self._tip.readings(),
+            **self._references.outcome(),
             setup_time=self.setup_time,
             wall_time=time.perf_counter() - t_wall,
-            nlp=self.replanner.describe(),
-            late_steps=p.pacer.late,
+            nlp=self.describe_nlp(),
+            late_steps=self._pacer.late,
         )
-        return p.recorder.build(ending, p.obstacles, device)
+        return self._recorder.build(ending, self._obstacles, device)

@@ -62,10 +62,13 @@ class ReferenceManager:
     """
 
     def __init__(self, setup: ReferenceSetup, checks: SceneChecks) -> None:
-        self.setup, self.checks = setup, checks
+        self.checks = checks
         self.source = setup.source
         self.initial = setup.initial
-        robot = setup.model.robot
+        self._model, self._options, self._loop_options = setup.model, setup.options, setup.loop_options
+        self._rate_limits, self._clock = setup.rate_limits, setup.clock
+        robot = self._model.robot
+        self._nx = robot.nx
         self._A, _ = robot.cable_matrix()
         o = setup.options
         self._rates = np.append(np.full(3 * robot.n_segments, o.max_cable_speed), o.max_z_speed)
@@ -94,18 +97,18 @@ class ReferenceManager:
     # ------------------------------------------------------------ timing and checks
     def seconds_per(self, dX: np.ndarray) -> np.ndarray:
         """Time (s) each configuration change takes at `reference_speed` times the rate limits."""
-        lo, limits = self.setup.loop_options, self.setup.rate_limits
+        lo, limits = self._loop_options, self._rate_limits
         dq = np.abs(dX @ self._A.T)
         t_act = np.max(dq / (lo.reference_speed * self._rates), axis=1)
         if limits is not None:
-            f = self.setup.options.limit_fraction * lo.reference_speed
+            f = self._options.limit_fraction * lo.reference_speed
             t_act = np.maximum(t_act, limits.velocity_fraction(dX) / f)
-        t_body = self.checks.validator.motion_bound(dX) / (lo.reference_speed * lo.max_body_speed)
+        t_body = self.checks.motion_bound(dX) / (lo.reference_speed * lo.max_body_speed)
         return np.maximum(t_act, t_body)
 
     def reference_valid(self, ref: TimedReference, s_now: float, t: float) -> bool:
         """The next stretch of the reference is clear of the obstacles at the times it would be reached."""
-        o = self.setup.options
+        o = self._options
         look = max(2.0 * o.horizon * o.dt, 2.0)
         s = np.linspace(s_now, min(s_now + look, ref.end), 12)
         return self.checks.path_clear(ref.at(s), t + (s - s_now), o.dt)
@@ -117,7 +120,7 @@ class ReferenceManager:
 
     def replan_reason(self, t: float) -> str:
         """Why the reference path must be planned again at t (s) ('' when it need not)."""
-        lo, ref = self.setup.loop_options, self.ref
+        lo, ref = self._loop_options, self.ref
         if ref is None:
             return "no reference"
         if self.ref_goal_version != self.goal_version:
@@ -128,13 +131,13 @@ class ReferenceManager:
             return "periodic"
         if t - self.progress_t >= lo.stall_time and self.s_ref < ref.end - 1e-9:
             return "stalled"
-        if self.setup.options.safety and not self.reference_valid(ref, self.s_ref, t):
+        if self._options.safety and not self.reference_valid(ref, self.s_ref, t):
             return "reference blocked"
         return ""
 
     def _waiting(self, t: float, reason: str) -> bool:
         """After a failed attempt, wait a little (1 s, or a step) before asking the planner again."""
-        return reason != "periodic" and t - self.t_last_attempt < max(1.0, self.setup.options.dt) - 1e-9
+        return reason != "periodic" and t - self.t_last_attempt < max(1.0, self._options.dt) - 1e-9
 
     # ------------------------------------------------------------ progress
     def locate(self, x: np.ndarray, t: float, ahead: float) -> None:
@@ -182,14 +185,14 @@ class ReferenceManager:
         platform without fork: logged). A simulated run waits for a due reference (real time would have
         given the worker those seconds); a real-time run takes it at the first step it has arrived by."""
         self.worker, self.wait_reference = None, not realtime
-        lo = self.setup.loop_options
-        if not lo.handover_steps(self.setup.options.dt):
+        lo = self._loop_options
+        if not lo.handover_steps(self._options.dt):
             return
         if not ReferenceWorker.can_fork():
             log.warning("this platform cannot fork: reference paths are planned inside the steps")
             return
         # the planner stops itself after planner_time; a worker silent for a minute longer is hung
-        worker = ReferenceWorker(self.source, self.setup.model.robot.nx, lo.planner_time + 60.0)
+        worker = ReferenceWorker(self.source, self._nx, lo.planner_time + 60.0)
         worker.start()
         self.worker = worker
 
@@ -229,7 +232,7 @@ class ReferenceManager:
         if not reason or self._waiting(t, reason):
             return ""
         self.t_last_attempt = t
-        due = k + self.setup.loop_options.handover_steps(self.setup.options.dt)
+        due = k + self._loop_options.handover_steps(self._options.dt)
         w.submit(x, t, self.checks.scene_now, PendingPlan(k, due, reason, self.goal_version))
         return f"{reason}: asked"
 
@@ -241,7 +244,7 @@ class ReferenceManager:
             return "", 0.0, False
         asked = w.pending
         waited = w.wait_time
-        plan = w.take(self.wait_reference, self.setup.clock.now)
+        plan = w.take(self.wait_reference, self._clock.now)
         # a simulated run's wait for a due path is not part of the step: in real time the worker would have
         # had the delay's seconds (the run records the waits as the worker's wait_s)
         self.waited += w.wait_time - waited
@@ -260,9 +263,9 @@ class ReferenceManager:
         tip goal's version the plan aims at (None: planned before the loop, for the task's goal)."""
         if not plan.is_success():
             return False
-        self.ref = TimedReference(plan.configs, self.seconds_per, self.checks.validator.metric)
+        self.ref = TimedReference(plan.configs, self.seconds_per, self.checks.metric)
         self.s_ref, self.progress_s, self.progress_t, self.t_last_plan = 0.0, 0.0, t, t
-        self.refs_used.append((k, self.setup.model.tip_position(self.ref.X)))
+        self.refs_used.append((k, self._model.tip_position(self.ref.X)))
         if len(plan.tree_edges):
             self.tree_edges = plan.tree_edges
         if goal_version is not None:
@@ -281,8 +284,8 @@ class ReferenceManager:
     def record(self) -> dict[str, Any]:
         """The run's `ReplanRun.reference_worker` record ({} when references were planned inline)."""
         rec = self.worker.record() if self.worker is not None else self.worker_record
-        lo = self.setup.loop_options
-        return {"handover_steps": lo.handover_steps(self.setup.options.dt), **rec} if rec else {}
+        lo = self._loop_options
+        return {"handover_steps": lo.handover_steps(self._options.dt), **rec} if rec else {}
 
     def outcome(self) -> dict[str, Any]:
         """What the run's ending keeps of the references (`RunEnding` fields): every reference's tip polyline

@@ -45,6 +45,10 @@ class SceneChecks:
         """Body-motion bound (mm) of configuration changes dx (..., nx)."""
         return self.validator.motion_bound(dx)
 
+    def metric(self, x: np.ndarray) -> np.ndarray:
+        """The body metric's coordinates y = M x (mm) of configurations x (..., nx)."""
+        return self.validator.metric(x)
+
     def use(self, scene: Any) -> None:
         """Make `scene` the obstacles every check of this step uses."""
         if scene is not self.scene_now:

@@ -20,7 +20,7 @@ from crtraj.control.loop._step_motion import StepMotion
 from crtraj.control.loop._step_policy import StepPolicy
 from crtraj.control.loop._tip_sensing import TipSensing
 from crtraj.control.ports import ObstacleSource, TipSensor
-from crtraj.control.tracking import TrackingController, TrackingOptions
+from crtraj.control.tracking import ServoModel, TrackingController, TrackingOptions
 from crtraj.core.clock import Clock, WallClock
 from crtraj.core.errors import InputError
 from crtraj.core.fields import check_array
@@ -93,16 +93,18 @@ class LoopConfig:
 @dataclass(frozen=True)
 class LoopParts:
     """The parts of a closed loop, one job each: the model and scene, where obstacle states come from,
-    the checks against the current obstacles, the tracking controller and the step's motion, the step
-    policy (choose, verify, fall back), the reference manager, the tip sensing, the pacer (one clock)
-    and the run recorder."""
+    the checks against the current obstacles, the tracking controller, its servo model and the step's
+    motion, the horizon NLP's replanner, the step policy (choose, verify, fall back; it solves with the same
+    replanner), the reference manager, the tip sensing, the pacer (one clock) and the run recorder."""
 
     model: Model
     scene: Any
     obstacles: ObstacleSource
     checks: SceneChecks
     tracker: TrackingController
+    servo: ServoModel
     motion: StepMotion
+    replanner: Replanner
     policy: StepPolicy
     references: ReferenceManager
     tip: TipSensing
@@ -169,14 +171,17 @@ def assemble(spec: LoopSpec) -> tuple[LoopParts, LoopConfig]:
     ref_setup = ReferenceSetup(
         model, o, spec.loop_options, reference, spec.initial_reference, limits, spec.clock
     )  # fmt: skip
-    recorder = RunRecorder(RecorderSetup(model, tracker.servo.config, cfg.goal, o.dt, cfg.n_sub, o.safety, limits))
+    servo = tracker.servo
+    recorder = RunRecorder(RecorderSetup(model, servo.config, cfg.goal, o.dt, cfg.n_sub, o.safety, limits))
     parts = LoopParts(
         model=model,
         scene=scene,
         obstacles=obstacles,
         checks=checks,
         tracker=tracker,
+        servo=servo,
         motion=motion,
+        replanner=replanner,
         policy=StepPolicy(replanner, motion, checks, o),
         references=ReferenceManager(ref_setup, checks),
         tip=tip,

@@ -29,3 +29,7 @@ class Braking(_Braking):
     def __init__(self, actuators: Actuators, dt: float, verifier: StopVerifier | None = None) -> None:
         super().__init__(actuators.amax, dt, verifier)
         self.actuators = actuators
+
+    def checked_by(self, verifier: StopVerifier) -> Braking:
+        """A new braking for the same actuators and period whose stops `verifier` checks (its counts start at 0)."""
+        return Braking(self.actuators, self.dt, verifier)

@@ -117,6 +117,11 @@ class SetpointBuffer:
             return Due("move", tau, self._values[-1])
         return Due("underrun", tau)
 
+    def sent_stop_frame(self, stamp: float) -> None:
+        """A frame of a stop left, stamped `stamp` (s): the hold frames after the stop repeat it (stamps never go
+        back)."""
+        self.sent_stamp = stamp
+
     def advance(self, due: Due) -> None:
         """The move frame `due` left: step the cursor on."""
         self.sent_stamp = due.stamp

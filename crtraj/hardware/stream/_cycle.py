@@ -63,12 +63,12 @@ class StreamCycle:
         """Verify every stop's frames with `verifier` (an admitted motion's `FrameVerifier`) from now on, as its
         frames are; the stop counts start again."""
         if self.braking is not None:
-            self.braking = Braking(self.braking.actuators, self.braking.dt, verifier)
+            self.braking = self.braking.checked_by(verifier)
 
     def count_latched(self) -> None:
         """A stop cut short by the latch (the stream closed before it ended)."""
         if self.braking is not None:
-            self.braking.counts.latched += 1
+            self.braking.count_latched()
 
     @property
     def brake_counts(self) -> BrakeCounts:
@@ -99,12 +99,13 @@ class StreamCycle:
         stamp, values = self._brake.pop(0)
         if not self._sender.emit(MOVE, values, stamp):  # refused: the sender already held at the last frame
             self._brake = []
-            self.braking.counts.latched += 1
+            self.braking.count_latched()
             return True
-        self.braking.counts.frames += 1
-        self._buffer.sent_stamp = stamp  # the hold frames after the stop repeat its last stamp: stamps never go back
+        self.braking.count_frame()
+        self._buffer.sent_stop_frame(stamp)
         if not self._brake:  # at rest: the hold or e-stop frames now repeat for a watchdog period from here
-            m.latched_at = self._braked_for = now
+            m.stopped(now)
+            self._braked_for = now
         return True
 
     def _plan_brake(self, now: float) -> None:
@@ -115,10 +116,10 @@ class StreamCycle:
         if not len(plan.values):
             return
         if not plan.ok:
-            braking.counts.latched += 1
+            braking.count_latched()
             self._machine.event("brake-refused", f"the stop failed its check ({plan.why}): latched", now)
             return
-        braking.counts.braked += 1
+        braking.count_braked()
         self._machine.event("brake", f"stopping within the acceleration limits in {len(plan.values)} frames", now)
         self._brake = list(zip(plan.stamps.tolist(), plan.values, strict=True))
 
@@ -148,7 +149,7 @@ class StreamCycle:
                 self._tick_settling(now)
         except TransportError as exc:
             if self.braking is not None and np.any(self._gate.velocity != 0.0):
-                self.braking.counts.latched += 1  # moving when the link failed: the device's latch is all there is
+                self.braking.count_latched()  # moving when the link failed: the device's latch is all there is
             state.transport_failed(exc)
 
     def _tick_waiting(self, now: float) -> None:
@@ -257,4 +258,4 @@ class StreamCycle:
         if machine.state in CHECKED:
             why = self._monitor.following_error(tel)
             if why is not None:
-                machine.latch(why, machine.clock.now(), "following-error")
+                machine.latch(why, machine.now(), "following-error")

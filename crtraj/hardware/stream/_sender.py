@@ -61,6 +61,10 @@ class FrameSender:
         # values, so one that latches while moving counts as the stop in one period it commands
         self.peaks = LimitPeaks(gate.actuators, gate.dt)
 
+    def limit_fractions(self) -> dict[str, float]:
+        """Largest actuator speed and acceleration of every frame sent (holds too), as fractions of the limits."""
+        return self.peaks.as_dict()
+
     def ping(self, dt: float) -> None:
         """Send the PING that opens the session (dt: the stream period, s). A PING carries no values and
         commands nothing, so it bypasses the limits gate."""
@@ -79,7 +83,7 @@ class FrameSender:
         v = self._gate.check(kind, values, stamp)
         if v is not None:
             if kind == MOVE:
-                self._machine.latch(f"set-point refused: {v.message()}", self._machine.clock.now(), "refused")
+                self._machine.latch(f"set-point refused: {v.message()}", self._machine.now(), "refused")
                 self.hold(HOLD)
             else:  # cannot happen: hold values are the gate's own position
                 reason = f"internal: {KIND_NAMES[kind]} frame refused: {v.message()}"
@@ -91,7 +95,7 @@ class FrameSender:
         if kind == MOVE:
             self.last_move_seq = self._seq
         if self._transport.has_telemetry:
-            self._monitor.sent(frame.seq, self._machine.clock.now(), values)
+            self._monitor.sent(frame.seq, self._machine.now(), values)
         self.peaks.add(values[None], self._gate.position, self._gate.velocity)
         self._gate.commit(kind, values)
         self.counts["frames"] += 1
@@ -112,5 +116,5 @@ class FrameSender:
         """What was sent, for the stream's report: frames in all and per kind, and the largest actuator speed and
         acceleration of every frame as fractions of the limits (None before any frame)."""
         c = self.counts
-        peaks = {k: (v if math.isfinite(v) else None) for k, v in self.peaks.as_dict().items()}
+        peaks = {k: (v if math.isfinite(v) else None) for k, v in self.limit_fractions().items()}
         return {"frames": c["frames"], "moves": c[MOVE], "holds": c[HOLD], "estops": c[ESTOP], **peaks}

@@ -62,6 +62,10 @@ class StreamStateMachine:
         """The stream starts now: event times count from the clock's reading."""
         self.t_start = self.clock.now()
 
+    def now(self) -> float:
+        """The stream clock's reading (s)."""
+        return self.clock.now()
+
     def wall(self, now: float | None = None) -> float:
         """Time since the start (s), of `now` or of the clock's reading."""
         return (self.clock.now() if now is None else now) - self.t_start
@@ -106,6 +110,11 @@ class StreamStateMachine:
         self.latched_at = now
         self.status_override = None if status == "held" else status
         self.event(status, reason, now)
+
+    def stopped(self, now: float) -> None:
+        """A planned stop of the latched hold or e-stop reached rest at clock time `now` (s): its hold or e-stop
+        frames repeat for a watchdog period from here."""
+        self.latched_at = now
 
     def resume(self) -> None:
         """Leave a latched hold for waiting."""

@@ -131,13 +131,11 @@ class Streamer:
     A facade over its parts: the set-point buffer (`SetpointBuffer`), the watch on the device's telemetry and
     acknowledgements (`StreamMonitor`) and the state machine (`StreamStateMachine`).
 
-    transport: the link (`Transport.open(url)`); actuators: limits and the
-    cable/servo conversion (bound to the robot with `Actuators.for_robot`
-    when set-points are given as actuation q); log: JSON-lines run record
-    path (None: no record). realtime: pace `run_path` by the clock
-    (default: only when the transport has telemetry, so a dry run is instant).
-    clock: the time source (s) that paces and times the stream (default `crtraj.core.clock.default_clock()`, the
-    `WallClock`; tests inject a `VirtualClock`). session: this run's session number (default: random, non-zero);
+    transport: the link (`Transport.open(url)`); actuators: limits and the cable/servo conversion (bound to the robot
+    with `Actuators.for_robot` when set-points are given as actuation q); log: JSON-lines run record path (None: no
+    record). realtime: pace `run_path` by the clock (default: only when the transport has telemetry, so a dry run is
+    instant). clock: the time source (s) that paces and times the stream (default `crtraj.core.clock.default_clock()`,
+    the `WallClock`; tests inject a `VirtualClock`). session: this run's session number (default: random, non-zero);
     first_seq: the PING's sequence number (set-points follow from first_seq + 1, wrapping).
     """
 
@@ -228,17 +226,19 @@ class Streamer:
         return self._monitor.last
 
     @property
+    def sent_stamp(self) -> float:  # s, trajectory time: the last move frame sent, a stop's frames included
+        return self._buffer.sent_stamp
+
+    @property
     def buffer(self) -> SetpointBuffer:
         """The queued set-points (read them; queue through `send_values` / `send_path`)."""
         return self._buffer
 
     # ---------------------------------------------------------------- start
     def start(self, initial: np.ndarray | None = None, *, background: bool = True) -> None:
-        """Connect: wait for the device's first telemetry (its positions are the start),
-        then run the fixed-rate loop in a background thread (``background=False``: caller runs it).
-
-        initial: start positions (actuator values) for links without telemetry.
-        """
+        """Connect: wait for the device's first telemetry (its positions are the start), then run the fixed-rate
+        loop in a background thread (``background=False``: caller runs it). initial: start positions (actuator
+        values) for links without telemetry."""
         if self.state != IDLE:
             raise StreamError(f"start: streamer is already {self.state}")
         self._machine.mark_start()
@@ -336,7 +336,7 @@ class Streamer:
     def limit_fractions(self) -> dict[str, float]:
         """Largest actuator speed and acceleration of every frame sent (holds too), as fractions of the limits."""
         with self._lock:
-            return self._sender.peaks.as_dict()
+            return self._sender.limit_fractions()
 
     def wait_stopped(self, timeout: float) -> bool:
         """Wait up to `timeout` s (stream clock) until a held or e-stopped stream has sent its stop (the last frame

@@ -7,7 +7,9 @@
 Names: ``cspace``, ``rrt``, ``rrtstar`` (crtraj's planners; also the values
 of ``[planner] algorithm``) and ``ompl-rrtstar``, ``ompl-rrtconnect`` (OMPL
 in the same configuration space). Every factory builds its planner from a
-`PlanningContext`. OMPL is an optional extra: its module is
+`PlanningContext` and takes, by keyword, only the other build inputs it uses (`BUILD_INPUTS`: the
+``[steer]`` options, the NLPs' obstacle slots): `PlannerRegistry.create` passes a factory the ones its
+signature names. OMPL is an optional extra: its module is
 importable without it and imports ``ompl`` only when such a planner is built
 (`crtraj.planning.planners.import_ompl`), so the OMPL entries cost nothing until
 used. A `PlannerRegistry` is immutable; `with_planner` returns an extended
@@ -17,6 +19,7 @@ module-level callables so that registries pickle to worker processes.
 
 from __future__ import annotations
 
+import inspect
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
@@ -33,15 +36,19 @@ from crtraj.planning.planners._ompl import OMPLPlanner, import_ompl
 from crtraj.planning.planners._rrt import RRT, RRTStar
 from crtraj.planning.steer import SteerOptions
 
-# (context, steer_options, max_obstacles) -> Planner
-PlannerFactory = Callable[[PlanningContext, "SteerOptions | None", "int | None"], Planner]
+# (context, **the build inputs it names) -> Planner
+PlannerFactory = Callable[..., Planner]
+# What a factory may take besides the context, by keyword: the task-space planners' [steer] options, and the
+# obstacle slots of its NLPs (None: the scene's count)
+BUILD_INPUTS = ("steer_options", "max_obstacles")
 
 
 @dataclass(frozen=True)
 class PlannerSpec:
     """One registered planner.
 
-    name: its registry name. factory: builds it (see `PlannerFactory`).
+    name: its registry name. factory: builds it from the context and, by keyword, the `BUILD_INPUTS`
+    its signature names (see `PlannerFactory`).
     budget_only: a benchmark stops it on its time budget alone, without the
     options' iteration limit and first-solution stop (OMPL: no iteration
     limit through its Python API, and its anytime planners use the whole
@@ -55,6 +62,20 @@ class PlannerSpec:
     optional: str | None = None
     description: str = ""
 
+    def __post_init__(self) -> None:
+        unknown = sorted(set(self.inputs()) - set(BUILD_INPUTS))
+        if unknown:
+            raise InputError(f"planners: {self.name}'s factory takes {unknown}; a factory may take {BUILD_INPUTS}")
+
+    def inputs(self) -> tuple[str, ...]:
+        """The names of the build inputs the factory takes besides the context (its keyword parameters)."""
+        params = list(inspect.signature(self.factory).parameters.values())[1:]
+        return tuple(p.name for p in params if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD))
+
+    def build(self, context: PlanningContext, **inputs: Any) -> Planner:
+        """The planner from `context` and, of `inputs` (`BUILD_INPUTS` by name), those the factory takes."""
+        return self.factory(context, **{k: inputs[k] for k in self.inputs()})
+
 
 def _for_algorithm(context: PlanningContext, algorithm: str) -> PlanningContext:
     """`context` with ``options.algorithm`` set to `algorithm` (the same context when it already is)."""
@@ -63,22 +84,26 @@ def _for_algorithm(context: PlanningContext, algorithm: str) -> PlanningContext:
     return context.with_options(context.options.with_(algorithm=algorithm))
 
 
-def _cspace(context: PlanningContext, steer: SteerOptions | None, max_obstacles: int | None) -> Planner:
-    del steer  # the configuration-space planner has no steer step
+def _cspace(context: PlanningContext, *, max_obstacles: int | None = None) -> Planner:
+    # the configuration-space planner has no steer step
     return CSpacePlanner(_for_algorithm(context, "cspace"), max_obstacles=max_obstacles)
 
 
 def _task_space(
-    algorithm: str, context: PlanningContext, steer: SteerOptions | None, max_obstacles: int | None
+    algorithm: str,
+    context: PlanningContext,
+    *,
+    steer_options: SteerOptions | None = None,
+    max_obstacles: int | None = None,
 ) -> Planner:
     # task-space edges keep full-speed timing; a static result is retimed afterwards (`plan_executable`)
     ctx = _for_algorithm(context, algorithm).without_rate_limits()
     cls = RRTStar if algorithm == "rrtstar" else RRT
-    return cls(ctx, steer, max_obstacles=max_obstacles)
+    return cls(ctx, steer_options, max_obstacles=max_obstacles)
 
 
-def _ompl(algorithm: str, context: PlanningContext, steer: SteerOptions | None, max_obstacles: int | None) -> Planner:
-    del steer, max_obstacles  # OMPL plans with the validator only; its IK grows its own slots
+def _ompl(algorithm: str, context: PlanningContext) -> Planner:
+    # OMPL plans with the validator only (no steer step); its IK grows its own obstacle slots
     return OMPLPlanner(context.without_rate_limits(), algorithm=algorithm)
 
 
@@ -125,7 +150,7 @@ class PlannerRegistry:
     ) -> Planner:
         """Build the planner called `name` from `context` (steer_options: the task-space planners'
         ``[steer]`` settings; max_obstacles: obstacle slots of its NLPs, default the scene's count)."""
-        return self.spec(name).factory(context, steer_options, max_obstacles)
+        return self.spec(name).build(context, steer_options=steer_options, max_obstacles=max_obstacles)
 
     def build(
         self,
