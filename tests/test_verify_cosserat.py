@@ -172,3 +172,51 @@ def test_bad_verify_inputs_are_one_line(robot: Robot, tmp_path: Path) -> None:
         out = subprocess.run(base + extra, capture_output=True, text=True, cwd=ROOT, timeout=600)
         assert out.returncode == 2 and needle in out.stderr
         assert len(out.stderr.strip().splitlines()) == 1, out.stderr
+
+
+def _box_distance(p: np.ndarray, centre: np.ndarray, half: np.ndarray) -> np.ndarray:
+    """Closed-form signed distance (N,) mm of points p (N, 3) to an axis-aligned box."""
+    q = np.abs(p - centre) - half
+    return np.linalg.norm(np.maximum(q, 0.0), axis=1) + np.minimum(q.max(axis=1), 0.0)
+
+
+def _cylinder_distance(p: np.ndarray, centre: np.ndarray, radius: float, length: float) -> np.ndarray:
+    """Closed-form signed distance (N,) mm of points p (N, 3) to a solid cylinder about z through `centre`."""
+    y = p - centre
+    q = np.stack([np.hypot(y[:, 0], y[:, 1]) - radius, np.abs(y[:, 2]) - 0.5 * length], axis=1)
+    return np.linalg.norm(np.maximum(q, 0.0), axis=1) + np.minimum(q.max(axis=1), 0.0)
+
+
+def test_shapes_are_checked_against_the_rods_body_and_pccs(robot: Robot) -> None:
+    """A box under the sagged rod's tip touches the rod but not PCC's straight body; a cylinder at PCC's tip
+    touches PCC but not the sagged rod: each model's clearance equals a closed-form distance to its own body."""
+    side = _sideways(robot)
+    x = robot.straight(robot.z_range[0])
+    sag = CosseratRod(side).solve(np.ones(6), RodLoad())
+    assert sag.is_success()
+    lift = np.array([0.0, 0.0, x[-1]])
+    rod_pts, pcc_pts = sag.points + lift, pcc_nodes(Model(robot), x, Mechanics.from_robot(side).steps) + lift
+    half = np.array([3.0, 3.0, 3.0])
+    box_c = rod_pts[-1] - np.array([5.0, 0.0, 0.0])  # 2 mm below the sagged tip
+    cyl_c, cyl_r, cyl_len = pcc_pts[-1] + np.array([6.0, 0.0, 0.0]), 4.0, 8.0  # 2 mm beside PCC's tip
+    shapes = [
+        {"kind": "box", "half_extents": half.tolist(), "position": box_c.tolist()},
+        {"kind": "cylinder", "radius": cyl_r, "length": cyl_len, "position": cyl_c.tolist()},
+    ]
+    scene = Scene.from_table(Table({"safety_distance": D_SF, "shape": shapes}, "scene"))
+    v = verify_cosserat(read_result(_document(side, scene, np.array([0.0, 1.0]), np.stack([x, x]))), side)
+
+    def clearance(pts: np.ndarray) -> tuple[float, float]:
+        body = robot.body_radius + D_SF
+        box = _box_distance(pts, box_c, half).min() - body
+        return float(box), float(_cylinder_distance(pts, cyl_c, cyl_r, cyl_len).min() - body)
+
+    rod_box, rod_cyl = clearance(rod_pts)
+    pcc_box, pcc_cyl = clearance(pcc_pts)
+    assert rod_box < -D_SF and rod_cyl > 10.0 and pcc_cyl < -D_SF and pcc_box > 10.0  # each touches one body
+    np.testing.assert_allclose(v.rod_clearance, min(rod_box, rod_cyl), atol=1e-3)
+    np.testing.assert_allclose(v.pcc_clearance, min(pcc_box, pcc_cyl), atol=1e-9)
+    assert v.contact and not v.holds
+    assert v.rod.name == "shape 0 (box)" and v.pcc.name == "shape 1 (cylinder)"
+    assert v.rod.node == int(np.argmin(_box_distance(rod_pts, box_c, half)))
+    assert v.pcc.node == int(np.argmin(_cylinder_distance(pcc_pts, cyl_c, cyl_r, cyl_len)))

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import math
 import sys
 import time
 from collections.abc import Callable
@@ -44,6 +45,7 @@ from crtraj.io.results import read_result
 from crtraj.io.run_files import RUN_FILES
 from crtraj.model.kinematics import Model
 from crtraj.planning.body import model_record
+from crtraj.planning.goal import tip_tangents
 from crtraj.world.feed import ObstacleFeed
 from crtraj.world.scene import Scene
 
@@ -284,6 +286,9 @@ def _print_summary(req: ReplanRequest, done: _Written, out: Path, t0: float) -> 
     print(line)
     if not req.quiet:
         print(f"  {run.limits_line()}")
+    aim = direction_line(done.loop, run)
+    if aim:
+        print(f"  {aim}")
     if done.plant is not None:
         for text in plant_lines(done.plant, run, model_record(done.loop.model)["kind"]):
             print(f"  {text}")
@@ -302,6 +307,20 @@ def _print_summary(req: ReplanRequest, done: _Written, out: Path, t0: float) -> 
         for key in ("json", "npz", "png", "html"):
             if key in done.paths:
                 print(f"  {key:4s} {done.paths[key]}")
+
+
+def direction_line(loop: ClosedLoop, run: ReplanRun) -> str:
+    """'goal direction: final tip tangent 3.10 deg from goal_direction (cone 10 deg): within' for a task with a
+    direction goal (the loop holds the goal only with the tangent within the cone); '' otherwise."""
+    goal = loop.config.tip_goal
+    if goal.cone is None:
+        return ""
+    angle = float(goal.angles(tip_tangents(loop.model, run.x[-1:]))[0])
+    inside = "within" if angle <= goal.cone else "OUTSIDE"
+    return (
+        f"goal direction: final tip tangent {math.degrees(angle):.2f} deg from goal_direction "
+        f"(cone {goal.cone_deg:g} deg): {inside}"
+    )
 
 
 def measured_tip_line(run: ReplanRun, feedback: bool) -> str:

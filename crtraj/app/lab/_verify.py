@@ -8,7 +8,10 @@ weightless rod), with the robot's weight unless ``gravity`` is off. Both shapes 
 integration nodes (`[robot.mechanics] steps` per segment) and offset by the base translation; each node
 is the centre of the body's cross-section (radius ``robot.body_radius``), as in the planner's collision
 check (`crtraj.world.margin`). Obstacles are taken at each frame's time (moving, breathing) from the
-result's scene. Clearance of a node: ``|p - c(t)| - R(t) - body_radius - D_sf`` (mm); >= 0 keeps D_sf,
+result's scene: its spheres, and every other shape (boxes, capsules, cylinders, half spaces, meshes, point
+clouds) through the verifiers' exact distance (`crtraj.world.geometry.exact_min_clearance`, brute force on
+the shape's triangles or points, independent of the planner's grid). Clearance of a node: its distance to
+the obstacle's surface (``|p - c(t)| - R(t)`` for a sphere) ``- body_radius - D_sf`` (mm); >= 0 keeps D_sf,
 < -D_sf is contact (the body inside the obstacle).
 
 Reported: each model's minimum clearance with where (frame, time, arc length along the backbone,
@@ -40,6 +43,8 @@ from crtraj.model.mechanics import Mechanics
 from crtraj.model.robot import Robot
 from crtraj.planning.goal import TipGoal, tip_tangents
 from crtraj.world import margin
+from crtraj.world.geometry import MovingShape, exact_distance, exact_min_clearance
+from crtraj.world.scene import Scene
 
 log = logging.getLogger(__name__)
 
@@ -62,11 +67,12 @@ class Closest:
     node: int
     arc: float
     obstacle: int
+    name: str = ""  # how the text names the obstacle ("shape 2 (box)"); "obstacle K" (a sphere) when empty
 
     def text(self) -> str:
         return (
             f"{self.clearance:.2f} mm at t {self.t:.2f} s (frame {self.frame}), {self.arc:.0f} mm along the "
-            f"backbone, obstacle {self.obstacle}"
+            f"backbone, {self.name or f'obstacle {self.obstacle}'}"
         )
 
 
@@ -144,19 +150,53 @@ def pcc_nodes_batch(model: Model, x: np.ndarray, steps: int) -> np.ndarray:
     return np.concatenate(rows, axis=1)
 
 
-def _clearances(nodes: np.ndarray, t: np.ndarray, result: Result, d_sf: float) -> np.ndarray:
-    """Clearance (N, P, M) mm of every node to every obstacle at its frame's time."""
-    if result.scene.n_obstacles == 0:
-        return np.full((*nodes.shape[:2], 1), np.inf)
-    centers, radii = result.scene.states(t)  # (N, M, 3), (N, M)
+def _sphere_clearances(nodes: np.ndarray, t: np.ndarray, scene: Scene, d_sf: float, body: float) -> np.ndarray:
+    """Clearance (N, P, M) mm of every node to every sphere obstacle at its frame's time (NaN nodes: NaN)."""
+    centers, radii = scene.states(t)  # (N, M, 3), (N, M)
     dist = np.linalg.norm(nodes[:, :, None, :] - centers[:, None, :, :], axis=-1) - radii[:, None, :]
-    return margin.clearance(dist, d_sf, result.robot.body_radius)
+    return margin.clearance(dist, d_sf, body)
 
 
-def _closest(c: np.ndarray, t: np.ndarray, arcs: np.ndarray) -> Closest:
-    """The smallest entry of c (N, P, M), NaN frames left out."""
-    i, j, k = np.unravel_index(np.nanargmin(c), c.shape)
-    return Closest(float(c[i, j, k]), int(i), float(t[i]), int(j), float(arcs[j]), int(k))
+def _shape_closest(
+    ms: MovingShape, k: int, nodes: np.ndarray, t: np.ndarray, origin: float, c: np.ndarray, arcs: np.ndarray
+) -> Closest:
+    """Where the nodes come closest to shape k, given its per-frame clearance c (N,): the node of the worst
+    frame, by the exact distance of that frame's nodes."""
+    i = int(np.nanargmin(c))
+    j = int(np.argmin(exact_distance(ms, nodes[i], float(t[i]) + origin)))
+    return Closest(float(c[i]), i, float(t[i]), j, float(arcs[j]), k, f"shape {k} ({ms.shape.kind})")
+
+
+def model_clearance(
+    nodes: np.ndarray, t: np.ndarray, scene: Scene, d_sf: float, body: float, arcs: np.ndarray
+) -> tuple[np.ndarray, Closest | None]:
+    """(per-frame clearance (N,) mm, the closest approach) of body nodes (N, P, 3), frame i at time t[i] (s, the
+    scene's clock), to every obstacle of `scene`: the spheres in closed form, every other shape (box, capsule,
+    cylinder, half space, mesh, point cloud) by the verifiers' exact distance
+    (`crtraj.world.geometry.exact_min_clearance`, independent of the planner's). Frames with NaN nodes (a failed
+    rod solve) get NaN; +inf and a closest approach at frame 0 when there is no obstacle; None when every
+    frame is NaN."""
+    ok = np.all(np.isfinite(nodes), axis=(1, 2))
+    per = np.where(ok, np.inf, np.nan)
+    found: list[Closest] = []
+    if scene.n_obstacles:
+        c = _sphere_clearances(nodes, t, scene, d_sf, body)
+        per = np.fmin(per, c.min(axis=(1, 2)))  # NaN stays NaN on failed frames (their c is NaN too)
+        if ok.any():
+            i, j, k = np.unravel_index(np.nanargmin(c), c.shape)
+            found.append(Closest(float(c[i, j, k]), int(i), float(t[i]), int(j), float(arcs[j]), int(k)))
+    for k, ms in enumerate(scene.shapes):
+        if not ok.any():
+            break
+        c = np.full(len(t), np.nan)
+        c[ok] = margin.clearance(exact_min_clearance(ms, nodes[ok], t[ok] + scene.time_origin), d_sf, body)
+        per = np.fmin(per, c)
+        found.append(_shape_closest(ms, k, nodes, t, scene.time_origin, c, arcs))
+    if not ok.any():
+        return per, None
+    if not found:
+        return per, Closest(float("inf"), 0, float(t[0]), 0, 0.0, 0)
+    return per, min(found, key=lambda f: f.clearance)
 
 
 def verify_cosserat(
@@ -190,16 +230,17 @@ def verify_cosserat(
     arcs[1:] += np.repeat(np.cumsum([0.0] + [s.length for s in robot.segments[:-1]]), steps)
     pcc = pcc_nodes_batch(Model(robot), x, steps)
     nodes, failed = drive.nodes(x)
-    c_pcc, c_rod = _clearances(pcc, t, result, d_sf), _clearances(nodes, t, result, d_sf)
-    per_rod = c_rod.min(axis=(1, 2))  # NaN where the rod failed
+    per_pcc, pcc_closest = model_clearance(pcc, t, result.scene, d_sf, robot.body_radius, arcs)
+    per_rod, rod_closest = model_clearance(nodes, t, result.scene, d_sf, robot.body_radius, arcs)  # NaN: failed
+    assert pcc_closest is not None  # PCC's nodes are always finite
     angles = _goal_angles(result, robot, x[-1], nodes[-1])
     return Verification(
         t,
-        c_pcc.min(axis=(1, 2)),
+        per_pcc,
         per_rod,
         np.linalg.norm(pcc - nodes, axis=-1).max(axis=1),
-        _closest(c_pcc, t, arcs),
-        None if failed.all() else _closest(c_rod, t, arcs),
+        pcc_closest,
+        rod_closest,
         int(failed.sum()),
         d_sf,
         drive.gravity,

@@ -59,6 +59,7 @@ from crtraj.control.loop._setup import LoopConfig, LoopParts, LoopSpec, assemble
 from crtraj.control.loop._step_policy import Choice, RobotNow
 from crtraj.control.ports import Device, DeviceError, Landing, StepObserver
 from crtraj.model.robot import Robot
+from crtraj.planning.goal import tip_tangents
 
 __all__ = ["ClosedLoop"]
 
@@ -310,7 +311,7 @@ class ClosedLoop:
                 return self._finish(robot, RunStatus.ESTOP, msg, t_wall, device)
             # with tip feedback the goal is where the corrected tip (model tip + estimated error) reaches it
             err = float(np.linalg.norm(self.model.tip_position(robot.x) - self._tip.target))
-            if err > self.goal_tolerance or not self._at_rest(robot):
+            if err > self.goal_tolerance or not self._at_rest(robot) or not self._aimed(robot.x):
                 settled_since = None
             else:
                 settled_since = robot.t if settled_since is None else settled_since
@@ -385,6 +386,11 @@ class ClosedLoop:
         )  # fmt: skip
         self._recorder.record_step(step)
         return choice.status
+
+    def _aimed(self, x: np.ndarray) -> bool:
+        """The tip tangent at configuration x lies within the goal's direction cone (always, without one)."""
+        goal = self.config.tip_goal
+        return goal.cone is None or bool(goal.within(tip_tangents(self.model, x[None]))[0])
 
     def _at_rest(self, robot: _Robot) -> bool:
         """The last control period moved every actuator slowly enough to stop within its acceleration limit

@@ -23,6 +23,7 @@ from crtraj.core.errors import InputError
 from crtraj.core.fields import Table, check_array
 from crtraj.model.rate_limits import RateLimits
 from crtraj.planning.body import model_record, planning_model, planning_scene
+from crtraj.planning.goal import TipGoal
 from crtraj.planning.options import PlannerOptions
 from crtraj.planning.planners import make_planner
 from crtraj.planning.result import PlanStatus
@@ -105,11 +106,9 @@ def spec_from_problem(problem: ProblemLike, run: ProblemRun) -> LoopSpec:
     configuration is the task's ``start_config``, `run.start_config`, or the planner's safe IK for the
     start tip. `InputError` for bad input, `UnsolvableTaskError` for a task that cannot be run."""
     task = problem.require_task()
-    if getattr(task, "goal_direction", None) is not None:
-        raise InputError(
-            "task.goal_direction: the closed loop (crtraj replan, stream) does not honour a tip direction goal; "
-            "plan it with crtraj plan, or drop goal_direction and goal_cone"
-        )
+    tip_goal = TipGoal.of(
+        task.goal, getattr(task, "goal_direction", None), getattr(task, "goal_cone", None), prefix="task."
+    )
     seed = problem.seed if run.seed is None else int(run.seed)
     if seed < 0:
         raise InputError(f"--seed: must be >= 0, got {seed}")
@@ -126,6 +125,11 @@ def spec_from_problem(problem: ProblemLike, run: ProblemRun) -> LoopSpec:
     model = planning_model(problem.robot, popts.model if run.body is None else run.body)
     scene = planning_scene(scene, model)
     planner = make_planner(model, scene, popts, sopts)
+    if tip_goal.has_direction and not getattr(planner, "honours_direction", False):
+        raise InputError(
+            f"task.goal_direction: the {popts.algorithm} planner does not honour a tip direction goal; "
+            'plan with [planner] algorithm = "cspace"'
+        )
     source: FeedObstacles | None = None
     scene0 = scene
     extra: dict[str, Any] = {"planner": popts, "steer": sopts, "body": model_record(model)}
@@ -138,20 +142,20 @@ def spec_from_problem(problem: ProblemLike, run: ProblemRun) -> LoopSpec:
     if run.start_config is not None:
         x0, first, res = check_array(run.start_config, "start_config", (problem.robot.nx,)), None, None
     else:
-        x0, first, res = _start_config(planner, task, scene0, seed, opts.safety)
+        x0, first, res = _start_config(planner, task, tip_goal, scene0, seed, opts.safety)
     moving = run.feed is not None or any(o.amplitude != 0.0 or o.to is not None for o in scene.obstacles)
     moving = moving or not scene.shapes_static
-    _check_goal(planner, task, x0, scene0, seed, res, among_obstacles=opts.safety and not moving)
+    _check_goal(planner, task, tip_goal, x0, scene0, seed, res, among_obstacles=opts.safety and not moving)
     reference = PlannerReference(
         planner,
-        task.goal,
+        tip_goal,
         goal_tolerance=task.goal_tolerance,
         stop=popts.stop() | StopCondition(time_limit=lopts.planner_time),
         seed=seed,
         scene=None if opts.safety else scene.with_obstacles(()),
     )
     return LoopSpec(
-        model, scene, task.goal, x0, options=opts, loop_options=lopts, tracking=tracking, reference=reference,
+        model, scene, tip_goal, x0, options=opts, loop_options=lopts, tracking=tracking, reference=reference,
         goal_tolerance=task.goal_tolerance, initial_reference=None if run.feed is not None else first,
         extra_options=extra, obstacles=source, rate_limits=problem.rate_limits(), tip_sensor=run.tip_sensor,
         tip_feedback=run.tip_feedback, clock=run.clock,
@@ -184,16 +188,17 @@ def _start_scene(source: FeedObstacles, clock: Clock) -> Any:
 
 
 def _start_config(
-    planner: Any, task: Any, scene0: Any, seed: int, safety: bool
+    planner: Any, task: Any, tip_goal: TipGoal, scene0: Any, seed: int, safety: bool
 ) -> tuple[np.ndarray, ReferencePlan | None, Any]:
     """(start configuration, a first reference plan from it or None, the planner's result or None).
 
     The task's start_config, else the planner's safe IK for the start tip among `scene0`; its plan to
-    the goal is reused as the first reference when it succeeded (with the safety terms only)."""
+    the goal (`tip_goal`: with its direction cone) is reused as the first reference when it succeeded (with
+    the safety terms only)."""
     if task.start_config is not None:
         return np.asarray(task.start_config, dtype=float), None, None
     tol = task.goal_tolerance
-    res = planner.plan(task.goal, start_tip=task.start, t0=0.0, seed=seed, goal_tolerance=tol, scene=scene0)
+    res = planner.plan(tip_goal, start_tip=task.start, t0=0.0, seed=seed, goal_tolerance=tol, scene=scene0)
     if res.status is PlanStatus.INVALID_START:
         raise UnsolvableTaskError(PlanStatus.INVALID_START, f"task.start: {res.message}")
     if not res.has_path:
@@ -208,7 +213,15 @@ def _start_config(
 
 
 def _check_goal(
-    planner: Any, task: Any, x0: np.ndarray, scene: Any, seed: int, res: Any, *, among_obstacles: bool
+    planner: Any,
+    task: Any,
+    tip_goal: TipGoal,
+    x0: np.ndarray,
+    scene: Any,
+    seed: int,
+    res: Any,
+    *,
+    among_obstacles: bool,
 ) -> None:
     """Fail fast, as `crtraj plan` does, when no configuration can ever put the tip on the goal safely
     (`UnsolvableTaskError` "invalid_goal"), instead of running the loop until its duration ends.
@@ -224,7 +237,7 @@ def _check_goal(
         scene, res = scene.with_obstacles(()), None
     if res is None:  # the goal IK runs before any search; one search iteration bounds the cost
         res = planner.plan(
-            task.goal,
+            tip_goal,
             start_config=x0,
             t0=0.0,
             seed=seed,

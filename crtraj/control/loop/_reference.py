@@ -10,12 +10,13 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 
 from crtraj.core.fields import check_array
+from crtraj.planning.goal import TipGoal
 from crtraj.planning.result import PlanStatus
 
 
@@ -59,7 +60,8 @@ class PlannerReference:
     """Reference source backed by crtraj's planner: plans from the current configuration at time t.
 
     planner: a planner with ``plan(goal, start_config=, t0=, stop=, seed=, scene=, goal_tolerance=)``
-    (`crtraj.planning.planners.make_planner`). goal: tip (mm). stop: a bounded
+    (`crtraj.planning.planners.make_planner`). goal: tip (mm), or a `crtraj.planning.goal.TipGoal` whose
+    direction cone every plan's goal configuration keeps (a planner that honours it). stop: a bounded
     `crtraj.planning.stop.StopCondition` per plan. seed: base seed; each call uses the
     next one so runs reproduce exactly. scene: always plan among these
     obstacles (e.g. none, for a run without the collision-free terms);
@@ -78,7 +80,8 @@ class PlannerReference:
     ) -> None:
         stop.check_bounded()
         self.planner = planner
-        self.goal = check_array(goal, "goal", (3,))
+        self.tip_goal = TipGoal.of(goal)
+        self.goal = self.tip_goal.position
         self.goal_tolerance = float(goal_tolerance)
         self.stop = stop
         self.seed = int(seed)
@@ -92,8 +95,9 @@ class PlannerReference:
 
     def __call__(self, x: np.ndarray, t: float, scene: Any = None) -> ReferencePlan:
         t1 = time.perf_counter()
+        goal = self.goal if self.tip_goal.direction is None else replace(self.tip_goal, position=self.goal)
         res = self.planner.plan(
-            self.goal,
+            goal,
             start_config=np.asarray(x, float),
             t0=float(t),
             stop=self.stop,

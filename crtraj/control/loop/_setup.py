@@ -26,6 +26,7 @@ from crtraj.core.errors import InputError
 from crtraj.core.fields import check_array
 from crtraj.model.kinematics import Model
 from crtraj.model.rate_limits import RateLimits
+from crtraj.planning.goal import TipGoal
 from crtraj.world.sources import SceneObstacles
 
 
@@ -34,7 +35,8 @@ class LoopSpec:
     """Everything a closed loop is built from (`assemble`).
 
     model: the robot's `Model`. scene: `crtraj.world.scene.Scene` (obstacle truth and prediction). goal:
-    tip position (3,) mm. start_config: (nx,) the robot's configuration at t = 0 (servos settled).
+    tip position (3,) mm, or a `crtraj.planning.goal.TipGoal` (with a direction cone the goal is held only
+    with the tip tangent within it). start_config: (nx,) the robot's configuration at t = 0 (servos settled).
     options: `ReplanOptions` (the horizon NLP). loop_options: `LoopOptions` (this loop: duration,
     reference timing, verification, settling). tracking: `TrackingOptions` (its dt must divide the
     replanner's dt). reference: a `ReferenceSource` ((x, t, scene) -> `ReferencePlan`); default: the
@@ -77,7 +79,8 @@ class LoopConfig:
     """The frozen options of one closed loop: goal (3,) mm, start configuration (nx,), goal tolerance
     (mm), ``[replan]``, ``[loop]`` and ``[tracking]`` options, tracking periods per step (n_sub), the
     actuator rate limits (or None), and every option section recorded in result files besides
-    ``replan`` and ``tracking`` (``loop`` first)."""
+    ``replan`` and ``tracking`` (``loop`` first). tip_goal: the goal with its direction cone
+    (`crtraj.planning.goal.TipGoal`; no cone without a direction goal)."""
 
     goal: np.ndarray
     x_start: np.ndarray
@@ -88,6 +91,7 @@ class LoopConfig:
     n_sub: int
     rate_limits: RateLimits | None
     extra_options: dict[str, Any]
+    tip_goal: TipGoal = field(default_factory=lambda: TipGoal(np.zeros(3)))
 
 
 @dataclass(frozen=True)
@@ -116,14 +120,17 @@ def _config(spec: LoopSpec) -> LoopConfig:
     """The checked options of `spec`; `InputError` naming the bad field."""
     o, lo = spec.options, spec.loop_options
     lo.steps(o.dt)  # refuse a huge run before building anything
-    goal = check_array(spec.goal, "goal", (3,))
+    tip_goal = TipGoal.of(spec.goal)
+    goal = tip_goal.position
     x_start = check_array(spec.start_config, "start_config", (spec.model.robot.nx,))
     if not spec.goal_tolerance > 0:
         raise InputError(f"goal_tolerance: must be > 0 mm, got {spec.goal_tolerance}")
     n_sub = control_periods(o, spec.tracking)
     # the loop's own section is recorded in result files beside the others
     extra = {"loop": lo, **(spec.extra_options or {})}
-    return LoopConfig(goal, x_start, float(spec.goal_tolerance), o, lo, spec.tracking, n_sub, spec.rate_limits, extra)
+    return LoopConfig(
+        goal, x_start, float(spec.goal_tolerance), o, lo, spec.tracking, n_sub, spec.rate_limits, extra, tip_goal
+    )
 
 
 def _reference(spec: LoopSpec) -> ReferenceSource:
