@@ -521,9 +521,7 @@ class Replanner:
         if not r.finite:
             return np.full((self.N, 3), np.nan)
         if self.linear is not None:
-            # the full model's, not the NLP's first-order ones; the linearisations about them are kept, as the
-            # next call's start is this solution shifted by a step (`LinearCorrection.parameters_at`)
-            return self.linear.rows(configs)
+            return self.linear.rows(configs)  # the full model's; kept for the next (shifted) start: `rows`
         if "tips" in r.sol:
             return r.sol["tips"].reshape(self.N, 3)  # computed by the compiled KKT check
         return self.model.tip_position(configs)
