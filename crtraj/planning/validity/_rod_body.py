@@ -100,7 +100,7 @@ def body_source(model: Any, check_points: int) -> str:
         raise ValueError("tip gradient: a monomial of the highest degree has a nonzero derivative coefficient")
     grad = grad[:ng]
     head = f"#define CRTRAJ_NW {nw}\n#define CRTRAJ_NM {M}\n#define CRTRAJ_NR {R}\n#define CRTRAJ_NC {P}\n"
-    head += f"#define CRTRAJ_NG {ng}\n" + CLONES
+    head += f"#define CRTRAJ_NG {ng}\n"
     tables = "".join(
         [
             _c_array("crtraj_low", lower, "int"),
@@ -120,17 +120,6 @@ def body_source(model: Any, check_points: int) -> str:
     return head + tables + BODY_C
 
 
-# The correction's sums are compiled twice on x86-64 Linux with gcc, for AVX2 and for the baseline, and the loader
-# picks the one the processor runs (an ifunc). Without contraction (the build cache's -ffp-contract=off) and
-# without reassociation both do the same operations on every accumulator: the same numbers.
-CLONES = r"""
-#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__) && defined(__linux__)
-#define CRTRAJ_CLONES __attribute__((target_clones("avx2", "default")))
-#else
-#define CRTRAJ_CLONES
-#endif
-"""
-
 BODY_C = r"""
 /* The monomials phi (CRTRAJ_NM) of configuration x, in order of degree: w = scale * (C x[0 .. NW)), then each
    monomial the product of its lower one and one variable. */
@@ -147,7 +136,7 @@ static void crtraj_mono(const double* x, double* phi) {
 
 /* The modes' polynomials y (CRTRAJ_NR) of the monomials phi: one pass over the monomials, the R accumulators in
    the inner loop (elementwise, so every accumulator sums its products in the same order in any build). */
-CRTRAJ_CLONES void crtraj_rod_modes(const double* phi, double* y) {
+static void crtraj_rod_modes(const double* phi, double* y) {
   int m, r;
   for (r = 0; r < CRTRAJ_NR; ++r) y[r] = 0.0;
   for (m = 0; m < CRTRAJ_NM; ++m) {
@@ -160,7 +149,7 @@ CRTRAJ_CLONES void crtraj_rod_modes(const double* phi, double* y) {
 /* The tip polynomials v[0 .. 3) and their gradient in w, v[3 + 3 i + c] = d tip_c / d w_i, of the monomials phi.
    The gradient's coefficients are zero on the monomials of the highest degree (no monomial one degree above),
    which come last: its sums stop after the first CRTRAJ_NG. */
-CRTRAJ_CLONES void crtraj_rod_tipsums(const double* phi, double* v) {
+static void crtraj_rod_tipsums(const double* phi, double* v) {
   int m, r;
   for (r = 0; r < 3 * CRTRAJ_NW + 3; ++r) v[r] = 0.0;
   for (m = 0; m < CRTRAJ_NG; ++m) {
