@@ -112,6 +112,25 @@ def test_the_linear_correction_is_the_rod_models_tangent(rod: RodModel) -> None:
         assert np.abs(J[0] - np.stack(fd, axis=1)).max() <= 1e-5
 
 
+def test_a_solutions_kept_linearisations_are_the_ones_about_the_next_start(rod: RodModel) -> None:
+    """`rows` (a solution's tips) keeps the linearisations about its configurations for the next call, whose start
+    is that solution shifted by a step: those rows are the ones a fresh evaluation gives (and the tips the
+    model's), a configuration not among them (the new last step, a cold start's repeated one) is evaluated
+    itself, and a second `rows` replaces the kept ones."""
+    lin = LinearCorrection(rod)
+    X = _configs(4, 21)
+    assert np.abs(lin.rows(X) - rod.tip_position(X)).max() <= 1e-9
+    fresh = LinearCorrection(rod)
+    start = np.vstack([X[1:], X[-1:]])  # the warm start: shifted, the last step repeated
+    assert np.abs(lin.parameters_at(start) - fresh.parameters_at(start)).max() <= 1e-12
+    other = _configs(2, 22)
+    mixed = np.vstack([X[2:3], other, np.tile(other[0], (2, 1))])
+    assert np.abs(lin.parameters_at(mixed) - fresh.parameters_at(mixed)).max() <= 1e-12
+    lin.rows(other)  # X is no longer kept: the kept rows are never another configuration's
+    assert lin._rows.keys() == {x.tobytes() for x in other}
+    assert np.abs(lin.parameters_at(X) - fresh.parameters_at(X)).max() <= 1e-12
+
+
 def test_the_first_order_error_over_one_step_is_within_its_stated_bound(rod: RodModel) -> None:
     """Fresh pairs (not the bound's seeded ones): x_bar within the limits, x anywhere within one step's reach of it
     (the horizon's per-step cable and z limits). The linear body against the full model's body at x (CasADi, not

@@ -216,3 +216,22 @@ def test_the_view_draws_the_rod_body_of_a_rod_result() -> None:
     assert np.linalg.norm(vis.model.points(x) - Model(ROBOT).points(x), axis=1).max() > 5.0  # the sag is drawn
     doc["options"]["body"] = {"kind": "pcc"}
     assert type(result_model(read_result(doc))) is Model
+
+
+def test_the_numpy_tip_is_the_interpreted_rod_tip(rod: RodModel) -> None:
+    """`RodModel.tip_position` (PCC's tip plus the tip polynomials by table look-ups, numpy) equals the model's
+    interpreted SX tip function at random configurations, one at a time and in a batch; its monomials equal
+    plain powers (`monomials`) on 4 variables of degree 10 (cdsr2's two segments)."""
+    from crtraj.model.cosserat import power_products
+    from crtraj.model.cosserat._rod_model import exponents, monomials
+
+    X = sample_within_limits(ROBOT, 16, np.random.default_rng(8))
+    interpreted = np.array([np.asarray(rod.tip(x)).ravel() for x in X])
+    assert np.abs(rod.tip_position(X) - interpreted).max() <= 1e-9
+    assert rod.tip_position(X[3]).shape == (3,)
+    assert np.abs(rod.tip_position(X[3]) - interpreted[3]).max() <= 1e-9
+    assert np.abs(rod.tip_position(X) - Model(ROBOT).tip_position(X)).max() > 1.0  # the sag, not PCC's tip
+    w = np.random.default_rng(9).uniform(-1.2, 1.2, (5, 4))
+    exps = exponents(4, 10)
+    plain = monomials(w, exps)
+    assert np.abs(power_products(w, exps) - plain).max() <= 1e-13 * np.abs(plain).max()

@@ -521,7 +521,7 @@ class Replanner:
         if not r.finite:
             return np.full((self.N, 3), np.nan)
         if self.linear is not None:
-            return self.linear.tips(configs)  # the full model's, not the NLP's first-order ones
+            return self.linear.rows(configs)  # the full model's; kept for the next (shifted) start: `rows`
         if "tips" in r.sol:
             return r.sol["tips"].reshape(self.N, 3)  # computed by the compiled KKT check
         return self.model.tip_position(configs)

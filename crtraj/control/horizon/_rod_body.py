@@ -35,7 +35,7 @@ import casadi as ca
 import numpy as np
 
 from crtraj.control.horizon._backends import replace
-from crtraj.model.cosserat import BOUND_FACTOR, RodModel, sample_within_limits
+from crtraj.model.cosserat import BOUND_FACTOR, RodModel, power_products, sample_within_limits
 from crtraj.model.kinematics import Model
 
 __all__ = ["LinearCorrection", "LinearisedBackend", "reach_bound", "reach_error"]
@@ -58,29 +58,40 @@ class LinearCorrection:
         self.P = len(c.arcs)
         self.n_params = 3 * self.P * (1 + self.nb)
         self._coupling = r.coupling_matrix()
-        self._deg = int(c.exps.max()) if c.exps.size else 0
-        self._table = self._derivative_table()
-        self._tip_coef = c.coef @ c.basis[:, -3:]  # (M, 3): the tip's own polynomials
+        # the monomials in order of degree: the derivative's coefficients are zero on the highest degree's (no
+        # monomial one degree above), which come last, so its product stops after the first `_ng`
+        deg = c.exps.sum(axis=1) if c.exps.size else np.zeros(len(c.exps), dtype=int)
+        self._order = np.argsort(deg, kind="stable")
+        self._exps = c.exps[self._order]
+        self._ng = int(np.count_nonzero(deg < deg.max())) if len(deg) else 0
+        self._value, self._slopes = self._derivative_table()
+        self._tip_coef = (c.coef @ c.basis[:, -3:])[self._order]  # (M, 3): the tip's own polynomials
+        # the rows of the last configurations `rows` evaluated (the solutions' tips), by their bytes: the next
+        # call's start is the previous solution shifted by a step, the same rows
+        self._rows: dict[bytes, np.ndarray] = {}
 
-    def _derivative_table(self) -> np.ndarray:
-        """(M, R (1 + 2 S)): the monomials (M,) times it give the R modes' amplitudes of Delta - mean and, block b,
-        of dDelta/db_b (the modes' `basis` then makes them 3 P numbers each).
+    def _derivative_table(self) -> tuple[np.ndarray, np.ndarray]:
+        """((M, R), (M', 2 S R)): the monomials (M,, in order of degree) times the first give the R modes'
+        amplitudes of Delta - mean; the first M' = `_ng` of them times the second, block b, those of dDelta/db_b
+        (the modes' `basis` then makes them 3 P numbers each).
 
         d w^e / d w_i = e_i w^(e - 1_i), a lower monomial of the same list, so row m of block i (in w) is the sum
         of e_ki coef_k over the monomials k whose e_k - 1_i is monomial m; then b -> w = scale (C b)."""
         c = self.correction
-        cb = c.coef  # (M, R)
-        index = {tuple(row): m for m, row in enumerate(c.exps.tolist())}
+        cb = c.coef[self._order]  # (M, R)
+        index = {tuple(row): m for m, row in enumerate(self._exps.tolist())}
         dw = np.zeros((self.nb, *cb.shape))
         for i in range(self.nb):
-            for k, row in enumerate(c.exps):
+            for k, row in enumerate(self._exps):
                 if row[i]:
                     lower = row.copy()
                     lower[i] -= 1
                     dw[i, index[tuple(lower)]] += row[i] * cb[k]
         chain = c.scale[:, None] * self._coupling  # d w_i / d b_j
-        db = np.einsum("imk,ij->jmk", dw, chain)  # (nb, M, 3 P)
-        return np.concatenate([cb, *db], axis=1)
+        db = np.einsum("imk,ij->jmk", dw, chain)  # (nb, M, R)
+        if np.any(db[:, self._ng :]):
+            raise ValueError("rod correction: a monomial of the highest degree has a nonzero derivative")
+        return cb, np.concatenate(list(db[:, : self._ng]), axis=1)
 
     # ------------------------------------------------------------------ numbers
     def values(self, xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -90,26 +101,26 @@ class LinearCorrection:
         return delta, np.swapaxes(blocks, 1, 2)
 
     def _evaluate(self, xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(Delta (n, 3 P), dDelta/db as (n, 2 S, 3 P): column b of the Jacobian per block) by one matrix
-        product of the monomials with `_table`, then the modes."""
+        """(Delta (n, 3 P), dDelta/db as (n, 2 S, 3 P): column b of the Jacobian per block) by two matrix
+        products of the monomials with the tables (`_derivative_table`), then the modes."""
         c = self.correction
         phi = self._monomials(xs)
-        R = c.basis.shape[0]
-        out = (phi @ self._table).reshape(len(phi), 1 + self.nb, R) @ c.basis  # (n, 1 + nb, 3 P)
+        n, R = len(phi), c.basis.shape[0]
+        amp = np.empty((n, 1 + self.nb, R))
+        amp[:, 0] = phi @ self._value
+        # in slices of at most 2^18 multiply-adds: a larger product runs on a BLAS thread pool, whose threads
+        # spin beside the loop's on a loaded machine
+        cols = max(R, (1 << 18) // max(1, n * self._ng) // R * R)
+        slopes = amp[:, 1:].reshape(n, -1)
+        for j in range(0, slopes.shape[1], cols):
+            slopes[:, j : j + cols] = phi[:, : self._ng] @ self._slopes[:, j : j + cols]
+        out = amp @ c.basis  # (n, 1 + nb, 3 P)
         return c.mean + out[:, 0], out[:, 1:]
 
     def _monomials(self, xs: np.ndarray) -> np.ndarray:
-        """The correction's monomials (n, M) at configurations xs (n, nx)."""
-        c = self.correction
+        """The correction's monomials (n, M), in order of degree, at configurations xs (n, nx)."""
         b = np.atleast_2d(np.asarray(xs, dtype=float))[:, : self.nb]
-        w = (b @ self._coupling.T) * c.scale  # (n, nb), normalised bending
-        pw = np.ones((len(w), self.nb, self._deg + 1))
-        for k in range(1, self._deg + 1):
-            pw[:, :, k] = pw[:, :, k - 1] * w  # w_j^k
-        phi = pw[:, 0, c.exps[:, 0]]
-        for j in range(1, self.nb):
-            phi = phi * pw[:, j, c.exps[:, j]]
-        return phi
+        return power_products((b @ self._coupling.T) * self.correction.scale, self._exps)
 
     def tips(self, xs: np.ndarray) -> np.ndarray:
         """The full model's tips (n, 3) mm at configurations xs (n, nx): PCC's plus the correction's tip
@@ -117,16 +128,39 @@ class LinearCorrection:
         xs = np.atleast_2d(np.asarray(xs, dtype=float))
         return self.pcc.tip_position(xs) + self.correction.mean[-3:] + self._monomials(xs) @ self._tip_coef
 
+    def rows(self, xs: np.ndarray) -> np.ndarray:
+        """The full model's tips (n, 3) mm at configurations xs (n, nx), from one evaluation of the correction
+        and its Jacobian there (the tip is the correction's last point), whose linearisations are kept for
+        `parameters_at`: a solution's tips, whose shifted rows are the next call's start point."""
+        xs = np.atleast_2d(np.asarray(xs, dtype=float))
+        c, delta = self._linearise(xs)
+        self._rows = {x.tobytes(): row for x, row in zip(xs, c, strict=True)}
+        return self.pcc.tip_position(xs) + delta[:, -3:]
+
     def parameters(self, x_bar: np.ndarray) -> np.ndarray:
         """c (n_params,) of the linearisation about configuration x_bar (nx,)."""
         return self.parameters_at(np.atleast_2d(x_bar))[0]
 
     def parameters_at(self, xs: np.ndarray) -> np.ndarray:
-        """c (n, n_params) of the linearisations about configurations xs (n, nx), one row each."""
+        """c (n, n_params) of the linearisations about configurations xs (n, nx), one row each: the rows `rows`
+        kept where xs repeats its configurations, the others evaluated (each distinct one once)."""
+        xs = np.atleast_2d(np.asarray(xs, dtype=float))
+        keys = [x.tobytes() for x in xs]
+        known = [self._rows.get(k) for k in keys]
+        missing = [i for i, row in enumerate(known) if row is None]
+        if missing:
+            first = {keys[i]: i for i in reversed(missing)}  # each distinct configuration once
+            fresh, _ = self._linearise(xs[list(first.values())])
+            found = dict(zip(first, fresh, strict=True))
+            for i in missing:
+                known[i] = found[keys[i]]
+        return np.stack(known)
+
+    def _linearise(self, xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(c (n, n_params) of the linearisations about configurations xs (n, nx), Delta (n, 3 P) there)."""
         delta, blocks = self._evaluate(xs)
-        b = np.atleast_2d(np.asarray(xs, dtype=float))[:, : self.nb]
-        a = delta - np.einsum("nbk,nb->nk", blocks, b)
-        return np.concatenate([a, blocks.reshape(len(a), -1)], axis=1)  # vec(J) column-major: its columns in turn
+        a = delta - np.einsum("nbk,nb->nk", blocks, xs[:, : self.nb])
+        return np.concatenate([a, blocks.reshape(len(a), -1)], axis=1), delta  # vec(J) column-major
 
     # ---------------------------------------------------------------- symbols
     def delta(self, x: Any, c: Any) -> Any:

@@ -22,6 +22,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "RodModel",
             "RodModelOptions",
             "load_rod_model",
+            "power_products",
         ),
         "crtraj.model.cosserat._map": (
             "pcc_nodes",

@@ -119,6 +119,28 @@ def monomials(w: np.ndarray, exps: np.ndarray) -> np.ndarray:
     return np.prod(w[:, None, :] ** exps[None, :, :], axis=2)
 
 
+def power_products(w: np.ndarray, exps: np.ndarray) -> np.ndarray:
+    """The monomials w^e (N, M) of points w (N, n_vars) as `monomials`, by table look-ups instead of powers: the
+    powers of each variable by repeated products, then per pair of variables the table of their products, and
+    each monomial the product of its pairs' entries (a fifth of `monomials`' time on 10 points of 1001)."""
+    w = np.atleast_2d(np.asarray(w, dtype=float))
+    exps = np.asarray(exps, dtype=int)
+    n, nv = w.shape
+    D = int(exps.max()) + 1 if exps.size else 1
+    pw = np.empty((n, nv, D))
+    pw[:, :, 0] = 1.0
+    pw[:, :, 1:] = w[:, :, None]
+    np.cumprod(pw, axis=2, out=pw)  # w_j^k
+    phi = np.ones((n, len(exps)))
+    for j in range(0, nv, 2):
+        if j + 1 < nv:
+            table, idx = (pw[:, j, :, None] * pw[:, j + 1, None, :]).reshape(n, -1), exps[:, j] * D + exps[:, j + 1]
+        else:
+            table, idx = pw[:, j], exps[:, j]
+        phi *= np.take(table, idx, axis=1)
+    return phi
+
+
 class Correction:
     """Delta(w) (3 x P, mm) as polynomials in the normalised bending vectors w (the module docstring).
 
@@ -247,6 +269,7 @@ class RodModel(Model):
         self.correction, self.error, self._identity = correction, error, dict(identity)
         self._delta: Any = None
         self._mono: Any = None
+        self._tip_numbers: tuple[ca.Function, np.ndarray, np.ndarray] | None = None  # `tip_position`'s
         super().__init__(robot, n_points)
 
     def identity(self) -> dict[str, Any] | None:
@@ -264,6 +287,21 @@ class RodModel(Model):
         return {"kind": "rod", **self._identity, "planning_margin_mm": self.planning_margin} | {
             "error_mm": {"body_max": e.body_max, "body_p95": e.body_p95, "tip_max": e.tip_max, "samples": e.samples}
         }
+
+    def tip_position(self, x: Any) -> np.ndarray:
+        """Tip position(s) (mm): (3,) or (N, 3). PCC's tip plus the tip's own polynomials (`Correction.tip_expr`)
+        in numpy: the interpreted SX tip costs about 30 us a configuration (the closed loop takes a reference
+        path's tips inside a step), this a few us for a whole path; the same polynomials, to 1e-12 mm."""
+        X, single = self._as_batch(x)
+        if self._tip_numbers is None:
+            c = self.correction
+            order = np.argsort(c.exps.sum(axis=1), kind="stable")
+            pcc = ca.Function("pcc_tip", [self._x], [Model._frame_expr(self)[:3, 3]])
+            self._tip_numbers = (pcc, c.exps[order], (c.coef @ c.basis[:, -3:])[order])
+        pcc, exps, coef = self._tip_numbers
+        w = self.robot.bending(X).reshape(len(X), -1) * self.correction.scale
+        out = self._eval(pcc, X, 3, 1)[:, 0, :] + self.correction.mean[-3:] + power_products(w, exps) @ coef
+        return out[0] if single else out
 
     def _terms(self) -> Any:
         if self._mono is None:

@@ -94,7 +94,13 @@ def body_source(model: Any, check_points: int) -> str:
     coupling = np.asarray(robot.coupling_matrix(), dtype=float)
     dwdx = c.scale[:, None] * coupling  # dw / dx over the bending coordinates
     nw, M, R, P = len(c.scale), len(exps), coef.shape[1], len(c.arcs)
+    deg = exps.sum(axis=1)
+    ng = int(np.count_nonzero(deg < deg.max())) if M else 0  # the gradient's nonzero rows come first
+    if np.any(grad[ng:]):
+        raise ValueError("tip gradient: a monomial of the highest degree has a nonzero derivative coefficient")
+    grad = grad[:ng]
     head = f"#define CRTRAJ_NW {nw}\n#define CRTRAJ_NM {M}\n#define CRTRAJ_NR {R}\n#define CRTRAJ_NC {P}\n"
+    head += f"#define CRTRAJ_NG {ng}\n"
     tables = "".join(
         [
             _c_array("crtraj_low", lower, "int"),
@@ -128,6 +134,38 @@ static void crtraj_mono(const double* x, double* phi) {
   for (m = 0; m < CRTRAJ_NM; ++m) phi[m] = crtraj_low[m] < 0 ? 1.0 : phi[crtraj_low[m]] * w[crtraj_var[m]];
 }
 
+/* The modes' polynomials y (CRTRAJ_NR) of the monomials phi: one pass over the monomials, the R accumulators in
+   the inner loop (elementwise, so every accumulator sums its products in the same order in any build). */
+static void crtraj_rod_modes(const double* phi, double* y) {
+  int m, r;
+  for (r = 0; r < CRTRAJ_NR; ++r) y[r] = 0.0;
+  for (m = 0; m < CRTRAJ_NM; ++m) {
+    const double* row = crtraj_coef + m * CRTRAJ_NR;
+    double p = phi[m];
+    for (r = 0; r < CRTRAJ_NR; ++r) y[r] += row[r] * p;
+  }
+}
+
+/* The tip polynomials v[0 .. 3) and their gradient in w, v[3 + 3 i + c] = d tip_c / d w_i, of the monomials phi.
+   The gradient's coefficients are zero on the monomials of the highest degree (no monomial one degree above),
+   which come last: its sums stop after the first CRTRAJ_NG. */
+static void crtraj_rod_tipsums(const double* phi, double* v) {
+  int m, r;
+  for (r = 0; r < 3 * CRTRAJ_NW + 3; ++r) v[r] = 0.0;
+  for (m = 0; m < CRTRAJ_NG; ++m) {
+    const double* tc = crtraj_tipc + 3 * m;
+    const double* tg = crtraj_tipg + 3 * CRTRAJ_NW * m;
+    double p = phi[m];
+    for (r = 0; r < 3; ++r) v[r] += tc[r] * p;
+    for (r = 0; r < 3 * CRTRAJ_NW; ++r) v[3 + r] += tg[r] * p;
+  }
+  for (m = CRTRAJ_NG; m < CRTRAJ_NM; ++m) {
+    const double* tc = crtraj_tipc + 3 * m;
+    double p = phi[m];
+    for (r = 0; r < 3; ++r) v[r] += tc[r] * p;
+  }
+}
+
 int crtraj_bb_work(casadi_int* sz_arg, casadi_int* sz_res, casadi_int* sz_iw, casadi_int* sz_w) {
   return crtraj_bbp_work(sz_arg, sz_res, sz_iw, sz_w);
 }
@@ -135,15 +173,10 @@ int crtraj_bb_work(casadi_int* sz_arg, casadi_int* sz_res, casadi_int* sz_iw, ca
 /* The rod's check points (3 x CRTRAJ_NP, column-major) of x = arg[0] into res[0]: PCC's plus the correction. */
 int crtraj_bb(const casadi_real** arg, casadi_real** res, casadi_int* iw, casadi_real* w, int mem) {
   double phi[CRTRAJ_NM], y[CRTRAJ_NR], d[3 * CRTRAJ_NC];
-  int m, r, q, k, j, rc = crtraj_bbp(arg, res, iw, w, mem);
+  int r, q, k, j, rc = crtraj_bbp(arg, res, iw, w, mem);
   if (rc || !res[0]) return rc;
   crtraj_mono(arg[0], phi);
-  for (r = 0; r < CRTRAJ_NR; ++r) y[r] = 0.0;
-  for (m = 0; m < CRTRAJ_NM; ++m) {
-    const double* row = crtraj_coef + m * CRTRAJ_NR;
-    double p = phi[m];
-    for (r = 0; r < CRTRAJ_NR; ++r) y[r] += row[r] * p;
-  }
+  crtraj_rod_modes(phi, y);
   for (q = 0; q < 3 * CRTRAJ_NC; ++q) d[q] = crtraj_mean[q];
   for (r = 0; r < CRTRAJ_NR; ++r) {
     const double* row = crtraj_basis + r * 3 * CRTRAJ_NC;
@@ -169,17 +202,10 @@ int crtraj_tipjac_work(casadi_int* sz_arg, casadi_int* sz_res, casadi_int* sz_iw
    polynomials and their gradient through w (module docstring). */
 int crtraj_tipjac(const casadi_real** arg, casadi_real** res, casadi_int* iw, casadi_real* w, int mem) {
   double phi[CRTRAJ_NM], v[3 * CRTRAJ_NW + 3];
-  int m, r, i, j, rc = crtraj_tjp(arg, res, iw, w, mem);
+  int r, i, j, rc = crtraj_tjp(arg, res, iw, w, mem);
   if (rc) return rc;
   crtraj_mono(arg[0], phi);
-  for (r = 0; r < 3 * CRTRAJ_NW + 3; ++r) v[r] = 0.0;
-  for (m = 0; m < CRTRAJ_NM; ++m) {
-    const double* tc = crtraj_tipc + 3 * m;
-    const double* tg = crtraj_tipg + 3 * CRTRAJ_NW * m;
-    double p = phi[m];
-    for (r = 0; r < 3; ++r) v[r] += tc[r] * p;
-    for (r = 0; r < 3 * CRTRAJ_NW; ++r) v[3 + r] += tg[r] * p;
-  }
+  crtraj_rod_tipsums(phi, v);
   if (res[0])
     for (r = 0; r < 3; ++r) res[0][r] += crtraj_tipm[r] + v[r];
   if (res[1])
