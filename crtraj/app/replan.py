@@ -201,7 +201,7 @@ def _run_and_write(  # long: the run's resources (stage, stream, feed, live view
     is unsolvable (said on stdout and stderr, nothing written). `then(done, staged)`: called with the run and
     its staged (not yet committed) files before they replace `out`; its answer is `_Written.streamed`."""
     live = feed is not None and bool(req.stream)
-    link = None
+    link = streamer = None  # bound before anything can fail: the `finally` below reads both
     sensor = _tip_sensor(req, problem)
     with contextlib.ExitStack() as stack:
         try:
