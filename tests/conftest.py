@@ -118,12 +118,16 @@ def build_cache(private_build_cache) -> BuildCache:
 
 @pytest.fixture(autouse=True)
 def no_stop_requested():
-    """Each test starts with no stop requested. A test that signals its own process inside `interrupt.policy`
-    leaves the request behind (in a command's process it ends the process), and a later test's library call
-    would raise it at its first safe point (`interrupt.check`), far from its cause."""
+    """Each test starts and ends with no stop requested. A test that signals its own process inside
+    `interrupt.policy` leaves the request behind (in a command's process it ends the process), and a later
+    library call would raise it at its first safe point (`interrupt.check`), far from its cause. Cleared after
+    the test too: the next file's module fixtures are built before this fixture runs for its first test (f14:
+    test_dynamixel's SIGTERM test left its request, and test_cosserat's module rod raised it while being built,
+    which ended the worker's session)."""
     state = interrupt._state
     state.signum = state.count = state.shield = 0
     yield
+    state.signum = state.count = state.shield = 0
 
 
 @pytest.fixture(scope="session")
